@@ -1,0 +1,1 @@
+"""Drape client SDK: submit cloths to a Drape server over Zenoh and receive their state."""

@@ -1,0 +1,1 @@
+"""OpenCL C sources of Drape's solvers, shipped as package data (see cloth.cl)."""

@@ -1,0 +1,576 @@
+"""The OpenCL world: every live cloth merged into structure-of-arrays device buffers.
+
+Layout (see kernels/layout.h):
+- vertex buffers (positions with inverse mass in w, velocities, previous positions, pin
+  targets, normals) hold each cloth in a contiguous range handed out by a first-fit allocator,
+  so adding or removing a cloth never moves the others;
+- one int arena holds each *fabric* once (links sorted by colour, colour offsets, tether
+  anchors, Jacobi adjacency, vertex-triangle lists): cloths of one fabric share it;
+- per-cloth int/float tables carry ranges and parameters; kernels read them by cloth index.
+
+Cloths are grouped by the kernels they need (feature set, and substeps or local-memory fit):
+one program per build-option set, one launch (or one batch sequence) per group.
+"""
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+import pyopencl as cl
+
+from .device import Device, layout
+from .fabric import Fabric
+from .params import ClothParams, Features
+from .reference import JACOBI_OMEGA
+from .world import Cloth, Frame, World, inverse_masses
+
+log = logging.getLogger(__name__)
+
+L = layout()
+MF = cl.mem_flags
+
+
+class RangeAllocator:
+    """First-fit allocator of [start, start + n) ranges inside [0, capacity), coalescing frees."""
+
+    def __init__(self) -> None:
+        self.capacity = 0
+        self.free: list[list[int]] = []  # sorted [start, size]
+
+    def alloc(self, n: int) -> int | None:
+        if n == 0:
+            return 0
+        for i, (s, size) in enumerate(self.free):
+            if size >= n:
+                if size == n:
+                    self.free.pop(i)
+                else:
+                    self.free[i] = [s + n, size - n]
+                return s
+        return None
+
+    def grow(self, capacity: int) -> None:
+        if capacity > self.capacity:
+            self.release(self.capacity, capacity - self.capacity)
+            self.capacity = capacity
+
+    def release(self, start: int, n: int) -> None:
+        if n == 0:
+            return
+        self.free.append([start, n])
+        self.free.sort()
+        merged: list[list[int]] = []
+        for s, size in self.free:
+            if merged and merged[-1][0] + merged[-1][1] == s:
+                merged[-1][1] += size
+            else:
+                merged.append([s, size])
+        self.free = merged
+
+    @property
+    def high_water(self) -> int:
+        """End of the last allocated range."""
+        if self.free and self.free[-1][0] + self.free[-1][1] == self.capacity:
+            return self.free[-1][0]
+        return self.capacity
+
+
+class DevArray:
+    """A growable device buffer of ``capacity`` items of ``width`` elements of ``dtype``."""
+
+    def __init__(self, dev: Device, dtype, width: int = 1, capacity: int = 64) -> None:
+        self.dev = dev
+        self.dtype = np.dtype(dtype)
+        self.width = width
+        self.itembytes = self.dtype.itemsize * width
+        self.capacity = 0
+        self.buf: cl.Buffer | None = None
+        self.resize(capacity)
+
+    def resize(self, capacity: int) -> None:
+        capacity = max(capacity, 1)
+        new = cl.Buffer(self.dev.ctx, MF.READ_WRITE, capacity * self.itembytes)
+        if self.buf is not None and self.capacity:
+            n = min(self.capacity, capacity) * self.itembytes
+            cl.enqueue_copy(self.dev.queue, new, self.buf, byte_count=n)
+        self.buf, self.capacity = new, capacity
+
+    def write(self, start: int, host: np.ndarray) -> None:
+        host = np.ascontiguousarray(host, self.dtype)
+        if host.size:
+            cl.enqueue_copy(self.dev.queue, self.buf, host, dst_offset=start * self.itembytes)
+
+    def read(self, start: int, n: int) -> np.ndarray:
+        out = np.empty((n, self.width), self.dtype)
+        if n:
+            cl.enqueue_copy(self.dev.queue, out, self.buf, src_offset=start * self.itembytes)
+        return out
+
+
+@dataclass
+class FabricSlot:
+    base: int
+    size: int
+    refs: int
+    offsets: dict[str, int]
+
+
+@dataclass
+class ClothSlot:
+    slot: int  # row in the cloth tables
+    vbase: int
+    fabric: FabricSlot
+    lam_base: int = -1
+    lam_size: int = 0
+    coll_base: int = 0
+    coll_cap: int = 0
+    group: tuple | None = None
+
+
+@dataclass
+class Group:
+    key: tuple
+    features: Features
+    use_local: bool
+    handles: set[int] = field(default_factory=set)
+    dirty: bool = True
+    slots: np.ndarray | None = None
+    cloths_buf: cl.Buffer | None = None
+    prefix_buf: cl.Buffer | None = None
+    colour_totals: list[int] = field(default_factory=list)
+    max_iters: int = 0
+    max_colours: int = 0
+    max_vertices: int = 0
+    substeps: int = 1
+    local_size: int = 64
+
+
+def fabric_blob(f: Fabric) -> tuple[np.ndarray, dict[str, int]]:
+    """Every fabric array the kernels read, as one int32 blob, and where each part starts."""
+    links = np.zeros((f.n_links, L["LINK_WORDS"]), np.int32)
+    links[:, :2] = f.links
+    links[:, 2] = f.link_type
+    links[:, 3] = f.rest_length.astype(np.float32).view(np.int32)
+    anchor = np.zeros((f.n_vertices, L["ANCHOR_WORDS"]), np.int32)
+    anchor[:, 0] = f.tether_anchor
+    anchor[:, 1] = f.tether_length.astype(np.float32).view(np.int32)
+    parts = {
+        "CI_OFF_LINKS": links.ravel(),
+        "CI_OFF_COLOURS": f.colour_offsets.astype(np.int32),
+        "CI_OFF_ANCHOR": anchor.ravel(),
+        "CI_OFF_JORDER": f.jacobi_order.astype(np.int32),
+        "CI_OFF_JOFF": f.jacobi_offsets.astype(np.int32),
+        "CI_OFF_JADJ": f.jacobi_adj.astype(np.int32).ravel(),
+        "CI_OFF_VTRIOFF": f.vtri_offsets.astype(np.int32),
+        "CI_OFF_VTRI": f.vtri.astype(np.int32),
+        "CI_OFF_TRIS": f.triangles.astype(np.int32).ravel(),
+    }
+    offsets, pos = {}, 0
+    for name, arr in parts.items():
+        offsets[name] = pos
+        pos += len(arr)
+    return np.concatenate(list(parts.values())).astype(np.int32), offsets
+
+
+def _next_pow2(n: int) -> int:
+    return 1 << max(0, int(n - 1).bit_length())
+
+
+class CLWorld(World):
+    def __init__(
+        self,
+        strategy: str = "workgroup",
+        device: str | Device | None = None,
+        local_size: int | None = None,
+        use_local: bool | None = None,
+        link_group_size: int = 256,
+    ) -> None:
+        super().__init__()
+        if strategy not in ("workgroup", "coloured", "jacobi"):
+            raise ValueError(f"unknown OpenCL strategy {strategy!r}")
+        self.solver = strategy
+        self.dev = device if isinstance(device, Device) else Device(device)
+        self.device_name = self.dev.info.name
+        env_ls = os.environ.get("DRAPE_WG_SIZE")
+        self.max_local_size = int(local_size or env_ls or (256 if self.dev.info.is_gpu else 1024))
+        self.use_local = use_local  # None: when the cloth fits
+        self.link_group_size = link_group_size
+        q = self.dev
+        self.vert = RangeAllocator()
+        self.pos = DevArray(q, np.float32, 4)
+        self.vel = DevArray(q, np.float32, 4)
+        self.prev = DevArray(q, np.float32, 4)
+        self.target = DevArray(q, np.float32, 4)
+        self.nrm = DevArray(q, np.float32, 4)
+        self.pos2 = DevArray(q, np.float32, 4) if strategy == "jacobi" else None
+        self.fab_alloc = RangeAllocator()
+        self.fab = DevArray(q, np.int32, 1)
+        self.lam_alloc = RangeAllocator()
+        self.lam = DevArray(q, np.float32, 1)
+        self.coll_alloc = RangeAllocator()
+        self.coll = DevArray(q, np.float32, 4 * L["COLLIDER_WORDS"])
+        self.coll_host = np.zeros((1, L["COLLIDER_WORDS"], 4), np.float32)
+        self._coll_dirty = False
+        self._moved: set[int] = set()
+        self.fabrics: dict[str, FabricSlot] = {}
+        self.rec: dict[int, ClothSlot] = {}
+        self.ci_host = np.zeros((64, L["CI_STRIDE"]), np.int32)
+        self.cf_host = np.zeros((64, L["CF_STRIDE"]), np.float32)
+        self.ci = DevArray(q, np.int32, L["CI_STRIDE"], 64)
+        self.cf = DevArray(q, np.float32, L["CF_STRIDE"], 64)
+        self._free_slots: list[int] = list(range(63, -1, -1))
+        self._tables_dirty = True
+        self.groups: dict[tuple, Group] = {}
+        self._host = [np.zeros((0, 4), np.float32), np.zeros((0, 4), np.float32)]
+        self._host_nrm = np.zeros((0, 4), np.float32)
+        self._flip = 0
+
+    # --- allocation -----------------------------------------------------------------------
+    def _alloc(self, alloc: RangeAllocator, arrays: list[DevArray], n: int) -> int:
+        start = alloc.alloc(n)
+        if start is None:
+            cap = max(alloc.capacity * 2, alloc.capacity + n, 64)
+            for a in arrays:
+                a.resize(cap)
+            alloc.grow(cap)
+            start = alloc.alloc(n)
+        assert start is not None
+        return start
+
+    def _vertex_arrays(self) -> list[DevArray]:
+        arrs = [self.pos, self.vel, self.prev, self.target, self.nrm]
+        return arrs + ([self.pos2] if self.pos2 is not None else [])
+
+    def _fabric_slot(self, f: Fabric) -> FabricSlot:
+        fs = self.fabrics.get(f.key)
+        if fs is None:
+            blob, offsets = fabric_blob(f)
+            base = self._alloc(self.fab_alloc, [self.fab], len(blob))
+            self.fab.write(base, blob)
+            fs = FabricSlot(base, len(blob), 0, offsets)
+            self.fabrics[f.key] = fs
+        fs.refs += 1
+        return fs
+
+    def _table_slot(self) -> int:
+        if not self._free_slots:
+            old = len(self.ci_host)
+            self.ci_host = np.concatenate([self.ci_host, np.zeros_like(self.ci_host)])
+            self.cf_host = np.concatenate([self.cf_host, np.zeros_like(self.cf_host)])
+            self.ci.resize(2 * old)
+            self.cf.resize(2 * old)
+            self._free_slots = list(range(2 * old - 1, old - 1, -1))
+        return self._free_slots.pop()
+
+    # --- World hooks -----------------------------------------------------------------------
+    def _add(self, cloth: Cloth, positions: np.ndarray | None) -> None:
+        f = cloth.fabric
+        n = f.n_vertices
+        vbase = self._alloc(self.vert, self._vertex_arrays(), n)
+        rec = ClothSlot(self._table_slot(), vbase, self._fabric_slot(f))
+        self.rec[cloth.handle] = rec
+        x = f.rest_positions if positions is None else positions
+        self._write_vertices(cloth, rec, x)
+        self._write_tables(cloth, rec)
+        self._regroup(cloth, rec)
+
+    def _write_vertices(self, cloth: Cloth, rec: ClothSlot, x: np.ndarray) -> None:
+        n = cloth.fabric.n_vertices
+        p = np.zeros((n, 4), np.float32)
+        p[:, :3] = x
+        p[:, 3] = inverse_masses(cloth.fabric, cloth.params)
+        self.pos.write(rec.vbase, p)
+        self.prev.write(rec.vbase, p)
+        self.target.write(rec.vbase, p)
+        self.vel.write(rec.vbase, np.zeros((n, 4), np.float32))
+        self.nrm.write(rec.vbase, np.zeros((n, 4), np.float32))
+        if self.pos2 is not None:
+            self.pos2.write(rec.vbase, p)
+
+    def _write_tables(self, cloth: Cloth, rec: ClothSlot) -> None:
+        f, p, m = cloth.fabric, cloth.params, cloth.params.material
+        if p.features.xpbd and rec.lam_size < 2 * f.n_links:
+            if rec.lam_size:
+                self.lam_alloc.release(rec.lam_base, rec.lam_size)
+            rec.lam_size = 2 * f.n_links
+            rec.lam_base = self._alloc(self.lam_alloc, [self.lam], rec.lam_size)
+        ci = self.ci_host[rec.slot]
+        ci[:] = 0
+        ci[L["CI_VBASE"]] = rec.vbase
+        ci[L["CI_NVERTS"]] = f.n_vertices
+        ci[L["CI_FAB"]] = rec.fabric.base
+        ci[L["CI_NLINKS"]] = f.n_links
+        ci[L["CI_NCOLOURS"]] = f.n_colours
+        ci[L["CI_ITERS"]] = p.iterations
+        ci[L["CI_SUBSTEPS"]] = p.substeps
+        ci[L["CI_COLL"]] = rec.coll_base
+        ci[L["CI_NCOLL"]] = len(cloth.colliders) if p.features.colliders else 0
+        ci[L["CI_NTRIS"]] = len(f.triangles)
+        ci[L["CI_LAM"]] = max(rec.lam_base, 0)
+        for name, off in rec.fabric.offsets.items():
+            ci[L[name]] = off
+        cf = self.cf_host[rec.slot]
+        cf[:] = 0
+        cf[L["CF_GRAVITY"] : L["CF_GRAVITY"] + 3] = p.gravity
+        cf[L["CF_WIND"] : L["CF_WIND"] + 3] = p.wind
+        cf[L["CF_DAMP_SUB"]] = 1.0 - (1.0 - m.damping) ** (1.0 / p.substeps)
+        cf[L["CF_STIFFNESS"] : L["CF_STIFFNESS"] + 3] = m.stiffness
+        cf[L["CF_COMPLIANCE"] : L["CF_COMPLIANCE"] + 3] = m.compliance
+        cf[L["CF_FRICTION"]] = m.friction
+        cf[L["CF_DRAG"]] = m.drag
+        cf[L["CF_LIFT"]] = m.lift
+        cf[L["CF_RHO"]] = m.air_density
+        cf[L["CF_TETHER_LIMIT"]] = m.tether_limit
+        self._tables_dirty = True
+
+    def _group_key(self, cloth: Cloth) -> tuple[tuple, bool]:
+        f = cloth.params.features
+        if self.solver == "workgroup":
+            fits = cloth.fabric.n_vertices * 16 <= self.dev.info.local_mem - 1024
+            local = fits if self.use_local is None else (self.use_local and fits)
+            return (f.key(), local), local
+        return (f.key(), cloth.params.substeps), False
+
+    def _regroup(self, cloth: Cloth, rec: ClothSlot) -> None:
+        key, local = self._group_key(cloth)
+        if rec.group == key:
+            self.groups[key].dirty = True
+            return
+        if rec.group is not None:
+            self._leave_group(cloth.handle, rec)
+        g = self.groups.get(key)
+        if g is None:
+            g = self.groups[key] = Group(key, cloth.params.features, local)
+        g.handles.add(cloth.handle)
+        g.dirty = True
+        rec.group = key
+
+    def _leave_group(self, handle: int, rec: ClothSlot) -> None:
+        g = self.groups[rec.group]
+        g.handles.discard(handle)
+        g.dirty = True
+        if not g.handles:
+            del self.groups[rec.group]
+        rec.group = None
+
+    def _remove(self, cloth: Cloth) -> None:
+        rec = self.rec.pop(cloth.handle)
+        self._leave_group(cloth.handle, rec)
+        self.vert.release(rec.vbase, cloth.fabric.n_vertices)
+        if rec.lam_size:
+            self.lam_alloc.release(rec.lam_base, rec.lam_size)
+        if rec.coll_cap:
+            self.coll_alloc.release(rec.coll_base, rec.coll_cap)
+        self._moved.discard(cloth.handle)
+        fs = rec.fabric
+        fs.refs -= 1
+        if fs.refs == 0:
+            self.fab_alloc.release(fs.base, fs.size)
+            del self.fabrics[cloth.fabric.key]
+        self.ci_host[rec.slot] = 0
+        self._free_slots.append(rec.slot)
+        self._tables_dirty = True
+
+    def _set_params(self, cloth: Cloth, old: ClothParams) -> None:
+        rec = self.rec[cloth.handle]
+        if old.material.mass != cloth.params.material.mass:
+            x = self.pos.read(rec.vbase, cloth.fabric.n_vertices)
+            x[:, 3] = inverse_masses(cloth.fabric, cloth.params)
+            self.pos.write(rec.vbase, x)
+        self._write_tables(cloth, rec)
+        self._regroup(cloth, rec)
+
+    def _set_targets(self, cloth: Cloth, idx: np.ndarray, targets: np.ndarray) -> None:
+        rec = self.rec[cloth.handle]
+        if len(idx) == 0:
+            return
+        # contiguous runs of indices become one write each (pins are usually one edge)
+        order = np.argsort(idx)
+        idx, targets = idx[order], targets[order]
+        breaks = np.flatnonzero(np.diff(idx) != 1) + 1
+        for run_i, run_t in zip(np.split(idx, breaks), np.split(targets, breaks)):
+            t = np.zeros((len(run_i), 4), np.float32)
+            t[:, :3] = run_t
+            self.target.write(rec.vbase + int(run_i[0]), t)
+
+    def _set_colliders(self, cloth: Cloth) -> None:
+        rec = self.rec[cloth.handle]
+        new = cloth.colliders
+        n = len(new)
+        W = L["COLLIDER_WORDS"]
+        if n != rec.coll_cap:
+            if rec.coll_cap:
+                self.coll_alloc.release(rec.coll_base, rec.coll_cap)
+            rec.coll_cap = n
+            rec.coll_base = self._alloc(self.coll_alloc, [self.coll], n) if n else 0
+            if self.coll_alloc.capacity > len(self.coll_host):
+                grown = np.zeros((self.coll_alloc.capacity, W, 4), np.float32)
+                grown[: len(self.coll_host)] = self.coll_host
+                self.coll_host = grown
+            self.coll_host[rec.coll_base : rec.coll_base + n, 0:2] = new  # starts where it is
+        else:
+            self.coll_host[rec.coll_base : rec.coll_base + n, 0:2] = self.coll_host[
+                rec.coll_base : rec.coll_base + n, 2:4
+            ]
+        self.coll_host[rec.coll_base : rec.coll_base + n, 2:4] = new
+        self._coll_dirty = True
+        self._moved.add(cloth.handle)
+        self._write_tables(cloth, rec)
+
+    def _reset(self, cloth: Cloth, positions: np.ndarray) -> None:
+        self._write_vertices(cloth, self.rec[cloth.handle], positions)
+
+    # --- stepping ---------------------------------------------------------------------------
+    def _flush(self) -> None:
+        if self._tables_dirty:
+            n = len(self.ci_host)
+            if self.ci.capacity < n:
+                self.ci.resize(n)
+                self.cf.resize(n)
+            self.ci.write(0, self.ci_host)
+            self.cf.write(0, self.cf_host)
+            self._tables_dirty = False
+        if self._coll_dirty:
+            self.coll.write(0, self.coll_host[: self.coll.capacity].reshape(-1, 4 * L["COLLIDER_WORDS"]))
+            self._coll_dirty = False
+        for g in self.groups.values():
+            if g.dirty:
+                self._build_group(g)
+
+    def _build_group(self, g: Group) -> None:
+        handles = sorted(g.handles)
+        recs = [self.rec[h] for h in handles]
+        cloths = [self.cloths[h] for h in handles]
+        g.slots = np.array([r.slot for r in recs], np.int32)
+        g.cloths_buf = cl.Buffer(self.dev.ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=g.slots)
+        g.max_iters = max(c.params.iterations for c in cloths)
+        g.max_colours = max(c.fabric.n_colours for c in cloths)
+        g.max_vertices = max(c.fabric.n_vertices for c in cloths)
+        g.substeps = cloths[0].params.substeps
+        widest = max(
+            max(c.fabric.n_vertices for c in cloths),
+            max((int(np.diff(c.fabric.colour_offsets).max()) if c.fabric.n_colours else 1) for c in cloths),
+        )
+        g.local_size = int(min(self.max_local_size, max(32, _next_pow2(widest))))
+        g.local_size = min(g.local_size, self._kernel_limit(g))
+        if self.solver == "coloured":
+            counts = np.zeros((g.max_colours, len(cloths) + 1), np.int32)
+            for j, c in enumerate(cloths):
+                sizes = np.diff(c.fabric.colour_offsets)
+                counts[: len(sizes), j + 1] = sizes
+            prefix = np.cumsum(counts, axis=1, dtype=np.int64)
+            if prefix.size and prefix.max() >= 2**31:
+                raise RuntimeError("too many links in one colour batch")
+            prefix = prefix.astype(np.int32)
+            g.colour_totals = [int(t) for t in prefix[:, -1]]
+            g.prefix_buf = cl.Buffer(
+                self.dev.ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(prefix)
+            )
+        g.dirty = False
+
+    def _options(self, g: Group, local: bool | None = None) -> list[str]:
+        use_local = g.use_local if local is None else local
+        return [*g.features.build_options(), f"-DUSE_LOCAL={int(use_local)}", f"-DJACOBI_OMEGA={JACOBI_OMEGA}f"]
+
+    def _kernel_limit(self, g: Group) -> int:
+        name = "wg_step" if self.solver == "workgroup" else "cl_predict"
+        k = self.dev.kernel(self._options(g), name)
+        return int(k.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, self.dev.device))
+
+    def step(self, dt: float) -> None:
+        self._flush()
+        q = self.dev.queue
+        dt32 = np.float32(dt)
+        for g in self.groups.values():
+            n = len(g.slots)
+            ls = g.local_size
+            gsize = (n * ls,)
+            opts = self._options(g)
+            if self.solver == "workgroup":
+                k = self.dev.kernel(opts, "wg_step")
+                args = [dt32, g.cloths_buf, self.ci.buf, self.cf.buf, self.fab.buf, self.pos.buf, self.vel.buf,
+                        self.prev.buf, self.target.buf, self.nrm.buf, self.coll.buf, self.lam.buf]
+                if g.use_local:
+                    args.append(cl.LocalMemory(16 * g.max_vertices))
+                k(q, gsize, (ls,), *args)
+                continue
+            predict = self.dev.kernel(opts, "cl_predict")
+            finish = self.dev.kernel(opts, "cl_finish")
+            for s in range(g.substeps):
+                si = np.int32(s)
+                predict(q, gsize, (ls,), dt32, si, g.cloths_buf, self.ci.buf, self.cf.buf, self.fab.buf,
+                        self.pos.buf, self.vel.buf, self.prev.buf, self.target.buf, self.nrm.buf, self.lam.buf)
+                if self.solver == "coloured":
+                    self._coloured_iterations(g, dt32, opts)
+                else:
+                    self._jacobi_iterations(g, dt32, opts, gsize, ls)
+                finish(q, gsize, (ls,), dt32, si, g.cloths_buf, self.ci.buf, self.cf.buf, self.fab.buf,
+                       self.pos.buf, self.vel.buf, self.prev.buf, self.nrm.buf, self.coll.buf)
+        self.steps += 1
+        self._after_step()
+
+    def _coloured_iterations(self, g: Group, dt32, opts) -> None:
+        k = self.dev.kernel(opts, "cl_links")
+        q = self.dev.queue
+        lg = self.link_group_size
+        ngc = np.int32(len(g.slots))
+        for it in range(g.max_iters):
+            for c, total in enumerate(g.colour_totals):
+                if total == 0:
+                    continue
+                k(q, (-(-total // lg) * lg,), (lg,), dt32, np.int32(c), np.int32(it), ngc, g.prefix_buf,
+                  g.cloths_buf, self.ci.buf, self.cf.buf, self.fab.buf, self.pos.buf, self.lam.buf)
+
+    def _jacobi_iterations(self, g: Group, dt32, opts, gsize, ls) -> None:
+        k = self.dev.kernel(opts, "jacobi_iter")
+        q = self.dev.queue
+        bufs = [self.pos.buf, self.pos2.buf]
+        for it in range(g.max_iters):
+            k(q, gsize, (ls,), dt32, np.int32(it), g.cloths_buf, self.ci.buf, self.cf.buf, self.fab.buf,
+              bufs[it & 1], bufs[(it + 1) & 1], self.lam.buf)
+        if g.max_iters & 1:
+            self.dev.kernel(opts, "copy_positions")(q, gsize, (ls,), g.cloths_buf, self.ci.buf, self.pos2.buf,
+                                                     self.pos.buf)
+
+    def _after_step(self) -> None:
+        """A collider not moved again before the next step stays where it is."""
+        if not self._moved:
+            return
+        for h in self._moved:
+            rec = self.rec[h]
+            sl = slice(rec.coll_base, rec.coll_base + rec.coll_cap)
+            self.coll_host[sl, 0:2] = self.coll_host[sl, 2:4]
+        self._moved.clear()
+        self._coll_dirty = True
+
+    def fetch(self) -> Frame:
+        q = self.dev.queue
+        hw = self.vert.high_water
+        self._flip ^= 1
+        host = self._host[self._flip]
+        if len(host) < hw:
+            host = self._host[self._flip] = np.zeros((self.vert.capacity, 4), np.float32)
+        if hw:
+            cl.enqueue_copy(q, host[:hw], self.pos.buf, is_blocking=False)
+        want_normals = any(c.params.features.normals for c in self.cloths.values())
+        if want_normals and hw:
+            if len(self._host_nrm) < hw:
+                self._host_nrm = np.zeros((self.vert.capacity, 4), np.float32)
+            cl.enqueue_copy(q, self._host_nrm[:hw], self.nrm.buf, is_blocking=False)
+        q.finish()
+        pos, nrm = {}, {}
+        for h, c in self.cloths.items():
+            rec = self.rec[h]
+            sl = slice(rec.vbase, rec.vbase + c.fabric.n_vertices)
+            pos[h] = host[sl, :3]
+            if c.params.features.normals:
+                nrm[h] = self._host_nrm[sl, :3].copy()
+        return Frame(self.steps, pos, nrm)
+
+    def positions(self, handle: int) -> np.ndarray:
+        return self.fetch().positions[handle].copy()
+
+    def close(self) -> None:
+        self.dev.queue.finish()

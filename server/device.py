@@ -1,0 +1,124 @@
+"""OpenCL device choice and the kernel program cache.
+
+Device choice: ``DRAPE_DEVICE`` (or the ``device`` argument) is ``auto`` (a GPU when one is
+present, else a CPU device such as PoCL), ``gpu``, ``cpu``, or a substring of the platform or
+device name. Programs are built once per build-option set and cached for the context.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import re
+import threading
+from dataclasses import dataclass
+from functools import lru_cache
+from importlib import resources
+from pathlib import Path
+
+import pyopencl as cl
+
+log = logging.getLogger(__name__)
+
+KERNEL_PACKAGE = "drape.kernels"
+
+
+@lru_cache(maxsize=1)
+def kernel_dir() -> Path:
+    return Path(str(resources.files(KERNEL_PACKAGE)))
+
+
+@lru_cache(maxsize=1)
+def layout() -> dict[str, int]:
+    """The ``#define NAME int`` constants of kernels/layout.h."""
+    text = (kernel_dir() / "layout.h").read_text()
+    return {m.group(1): int(m.group(2)) for m in re.finditer(r"^#define\s+(\w+)\s+(-?\d+)\b", text, re.M)}
+
+
+def _all_devices() -> list[cl.Device]:
+    devs: list[cl.Device] = []
+    for p in cl.get_platforms():
+        try:
+            devs.extend(p.get_devices())
+        except cl.Error:  # a platform without devices
+            continue
+    return devs
+
+
+def describe(dev: cl.Device) -> str:
+    return f"{dev.platform.name.strip()} / {dev.name.strip()}"
+
+
+def choose_device(spec: str | None = None) -> cl.Device:
+    spec = (spec or os.environ.get("DRAPE_DEVICE") or "auto").strip()
+    devs = _all_devices()
+    if not devs:
+        raise RuntimeError("no OpenCL device found (install pocl-binary-distribution for a CPU device)")
+    gpus = [d for d in devs if d.type & cl.device_type.GPU]
+    cpus = [d for d in devs if d.type & cl.device_type.CPU]
+    low = spec.lower()
+    if low == "auto":
+        return (gpus or cpus or devs)[0]
+    if low == "gpu":
+        if not gpus:
+            raise RuntimeError("DRAPE_DEVICE=gpu but no OpenCL GPU is present")
+        return gpus[0]
+    if low == "cpu":
+        if not cpus:
+            raise RuntimeError("DRAPE_DEVICE=cpu but no OpenCL CPU device is present")
+        return cpus[0]
+    for d in devs:
+        if low in describe(d).lower():
+            return d
+    raise RuntimeError(f"no OpenCL device matches {spec!r}; have: {[describe(d) for d in devs]}")
+
+
+@dataclass
+class DeviceInfo:
+    name: str
+    is_gpu: bool
+    local_mem: int
+    max_work_group: int
+    compute_units: int
+
+
+class Device:
+    """A context, a queue and a cache of built programs."""
+
+    def __init__(self, spec: str | None = None) -> None:
+        self.device = choose_device(spec)
+        self.ctx = cl.Context([self.device])
+        self.queue = cl.CommandQueue(self.ctx)
+        self._programs: dict[tuple[str, ...], cl.Program] = {}
+        self._lock = threading.Lock()
+        d = self.device
+        self.info = DeviceInfo(
+            name=describe(d),
+            is_gpu=bool(d.type & cl.device_type.GPU),
+            local_mem=int(d.local_mem_size),
+            max_work_group=int(d.max_work_group_size),
+            compute_units=int(d.max_compute_units),
+        )
+        log.info("OpenCL device: %s (local mem %d B, max work-group %d)", self.info.name, self.info.local_mem,
+                 self.info.max_work_group)
+
+    def program(self, options: list[str], source: str = "cloth.cl") -> cl.Program:
+        key = (source, *sorted(options))
+        with self._lock:
+            prg = self._programs.get(key)
+            if prg is None:
+                text = (kernel_dir() / source).read_text()
+                opts = [*options, "-I", str(kernel_dir())]
+                log.debug("building %s with %s", source, " ".join(options))
+                prg = cl.Program(self.ctx, text).build(options=opts)
+                self._programs[key] = prg
+            return prg
+
+    def kernel(self, options: list[str], name: str) -> cl.Kernel:
+        key = ("kernel", name, *sorted(options))
+        with self._lock:
+            k = self._programs.get(key)
+        if k is None:
+            k = cl.Kernel(self.program(options), name)
+            with self._lock:
+                self._programs[key] = k
+        return k

@@ -1,0 +1,465 @@
+"""Fabric cooking, pure numpy: topology in, immutable solver-ready fabric out.
+
+A fabric is what many cloth instances share: rest pose, links (structural, shear, bending)
+greedily graph-coloured into independent batches and sorted by colour, triangles, the
+vertex adjacency the Jacobi solver gathers over (vertices packed by degree), per-vertex
+area (mass share) and tether anchors. It never changes after cooking, so cloths made from
+the same mesh, link options and pins share one fabric and its device buffers.
+"""
+from __future__ import annotations
+
+import hashlib
+import logging
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+
+from .params import LINK_BENDING, LINK_SHEAR, LINK_STRUCTURAL, LinkOptions
+
+log = logging.getLogger(__name__)
+
+MAX_VERTICES = 1 << 20  # per cloth; a hard sanity cap against hostile submissions
+MIN_REST_LENGTH = 0.0  # zero-length links are kept and handled by the solvers (a weld)
+
+
+@dataclass(frozen=True, eq=False)
+class Fabric:
+    key: str
+    rest_positions: np.ndarray  # (n, 3) float64
+    triangles: np.ndarray  # (m, 3) int32
+    pinned: np.ndarray  # (n,) bool
+    links: np.ndarray  # (L, 2) int32, sorted by colour
+    link_type: np.ndarray  # (L,) int8: LINK_STRUCTURAL / LINK_SHEAR / LINK_BENDING
+    rest_length: np.ndarray  # (L,) float64
+    colour_offsets: np.ndarray  # (C+1,) int32: colour c is links[colour_offsets[c]:colour_offsets[c+1]]
+    vertex_area: np.ndarray  # (n,) float64: a third of the area of each incident triangle
+    tether_anchor: np.ndarray  # (n,) int32: nearest pinned vertex, -1 for pinned or none
+    tether_length: np.ndarray  # (n,) float64: rest distance to that anchor
+    jacobi_order: np.ndarray  # (n,) int32: vertices sorted by degree, highest first
+    jacobi_offsets: np.ndarray  # (n+1,) int32: CSR over jacobi_order positions
+    jacobi_adj: np.ndarray  # (2L, 2) int32: (other vertex, link index) for each incidence
+    vtri_offsets: np.ndarray  # (n+1,) int32: CSR of incident triangles per vertex
+    vtri: np.ndarray  # (3m,) int32
+
+    @property
+    def n_vertices(self) -> int:
+        return len(self.rest_positions)
+
+    @property
+    def n_links(self) -> int:
+        return len(self.links)
+
+    @property
+    def n_colours(self) -> int:
+        return len(self.colour_offsets) - 1
+
+    def colour_of_links(self) -> np.ndarray:
+        return np.repeat(np.arange(self.n_colours, dtype=np.int32), np.diff(self.colour_offsets))
+
+    def count(self, link_type: int) -> int:
+        return int(np.count_nonzero(self.link_type == link_type))
+
+
+# ---------------------------------------------------------------------------------------------
+# Meshes in
+
+
+def grid_mesh(
+    cols: int,
+    rows: int,
+    width: float = 1.0,
+    height: float = 1.0,
+    orientation: str = "horizontal",
+    origin: Iterable[float] = (0.0, 0.0, 0.0),
+) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (rows*cols, 3) and triangles of a regular grid; vertex (r, c) is r*cols + c.
+
+    horizontal: in the XZ plane (x = columns, z = rows) at the origin's height.
+    vertical: in the XY plane, row 0 at the origin's height, rows going down (-y)."""
+    if cols < 1 or rows < 1:
+        raise ValueError("a grid needs at least one column and one row")
+    if cols * rows > MAX_VERTICES:
+        raise ValueError(f"grid of {cols}x{rows} exceeds {MAX_VERTICES} vertices")
+    ox, oy, oz = (float(v) for v in origin)
+    u = np.linspace(0.0, width, cols) if cols > 1 else np.zeros(1)
+    w = np.linspace(0.0, height, rows) if rows > 1 else np.zeros(1)
+    cc, rr = np.meshgrid(u, w)
+    verts = np.zeros((rows * cols, 3))
+    verts[:, 0] = ox + cc.ravel()
+    if orientation == "horizontal":
+        verts[:, 1] = oy
+        verts[:, 2] = oz + rr.ravel()
+    elif orientation == "vertical":
+        verts[:, 1] = oy - rr.ravel()
+        verts[:, 2] = oz
+    else:
+        raise ValueError("orientation must be 'horizontal' or 'vertical'")
+    r, c = np.meshgrid(np.arange(rows - 1), np.arange(cols - 1), indexing="ij")
+    a = (r * cols + c).ravel()
+    b, d, e = a + 1, a + cols, a + cols + 1
+    tris = np.concatenate([np.stack([a, d, b], 1), np.stack([b, d, e], 1)]).astype(np.int32)
+    return verts, tris
+
+
+def load_obj(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and triangles of a Wavefront OBJ file (faces fan-triangulated; v/vt/vn indices
+    and negative indices accepted; everything else ignored)."""
+    return parse_obj(Path(path).read_text())
+
+
+def parse_obj(text: str) -> tuple[np.ndarray, np.ndarray]:
+    verts: list[tuple[float, float, float]] = []
+    tris: list[tuple[int, int, int]] = []
+    for lineno, line in enumerate(text.splitlines(), 1):
+        parts = line.split("#", 1)[0].split()
+        if not parts:
+            continue
+        if parts[0] == "v":
+            if len(parts) < 4:
+                raise ValueError(f"OBJ line {lineno}: vertex needs x y z")
+            verts.append((float(parts[1]), float(parts[2]), float(parts[3])))
+        elif parts[0] == "f":
+            idx = []
+            for p in parts[1:]:
+                i = int(p.split("/")[0])
+                idx.append(i - 1 if i > 0 else len(verts) + i)
+            if len(idx) < 3:
+                raise ValueError(f"OBJ line {lineno}: face needs three vertices")
+            for k in range(1, len(idx) - 1):
+                tris.append((idx[0], idx[k], idx[k + 1]))
+    v = np.asarray(verts, np.float64).reshape(-1, 3)
+    t = np.asarray(tris, np.int32).reshape(-1, 3)
+    return v, t
+
+
+# ---------------------------------------------------------------------------------------------
+# Links
+
+
+def mesh_edges(triangles: np.ndarray) -> np.ndarray:
+    """Unique undirected edges (E, 2) of a triangle list, lower index first, in first-seen order."""
+    e = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
+    return _unique_pairs(e)
+
+
+def bending_pairs(triangles: np.ndarray) -> np.ndarray:
+    """For every interior edge shared by exactly two triangles, the two opposite vertices."""
+    if len(triangles) == 0:
+        return np.zeros((0, 2), np.int32)
+    t = triangles.astype(np.int64)
+    half = np.concatenate([t[:, [0, 1, 2]], t[:, [1, 2, 0]], t[:, [2, 0, 1]]])  # (a, b, opposite)
+    lo = np.minimum(half[:, 0], half[:, 1])
+    hi = np.maximum(half[:, 0], half[:, 1])
+    key = lo * (t.max() + 1) + hi
+    order = np.argsort(key, kind="stable")
+    ks = key[order]
+    same = ks[1:] == ks[:-1]
+    # an edge with exactly two incident triangles: pair i, i+1 equal and not part of a longer run
+    run_start = np.r_[True, ~same]
+    run_len = np.diff(np.r_[np.flatnonzero(run_start), len(ks)])
+    starts = np.flatnonzero(run_start)[run_len == 2]
+    opp = np.stack([half[order[starts], 2], half[order[starts + 1], 2]], 1)
+    opp = opp[opp[:, 0] != opp[:, 1]]
+    return _unique_pairs(opp)
+
+
+def grid_links(cols: int, rows: int, options: LinkOptions) -> tuple[np.ndarray, np.ndarray]:
+    """Links of a regular grid: structural = row and column neighbours, shear = both cell
+    diagonals, bending = neighbours two apart along rows and columns."""
+    idx = np.arange(rows * cols).reshape(rows, cols)
+    parts: list[np.ndarray] = []
+    types: list[int] = []
+
+    def add(a: np.ndarray, b: np.ndarray, t: int) -> None:
+        if a.size:
+            parts.append(np.stack([a.ravel(), b.ravel()], 1))
+            types.append((t, a.size))
+
+    if options.structural:
+        add(idx[:, :-1], idx[:, 1:], LINK_STRUCTURAL)
+        add(idx[:-1, :], idx[1:, :], LINK_STRUCTURAL)
+    if options.shear:
+        add(idx[:-1, :-1], idx[1:, 1:], LINK_SHEAR)
+        add(idx[:-1, 1:], idx[1:, :-1], LINK_SHEAR)
+    if options.bending:
+        add(idx[:, :-2], idx[:, 2:], LINK_BENDING)
+        add(idx[:-2, :], idx[2:, :], LINK_BENDING)
+    if not parts:
+        return np.zeros((0, 2), np.int32), np.zeros(0, np.int8)
+    links = np.concatenate(parts).astype(np.int32)
+    ltype = np.concatenate([np.full(n, t, np.int8) for t, n in types])
+    return links, ltype
+
+
+def mesh_links(triangles: np.ndarray, options: LinkOptions) -> tuple[np.ndarray, np.ndarray]:
+    """Links of a triangle mesh: structural = edges, bending = across interior edges.
+    A general mesh has no shear diagonals; the shear option only applies to grids."""
+    parts, types = [], []
+    if options.structural:
+        e = mesh_edges(triangles)
+        parts.append(e)
+        types.append(np.full(len(e), LINK_STRUCTURAL, np.int8))
+    if options.bending:
+        b = bending_pairs(triangles)
+        parts.append(b)
+        types.append(np.full(len(b), LINK_BENDING, np.int8))
+    if not parts:
+        return np.zeros((0, 2), np.int32), np.zeros(0, np.int8)
+    return np.concatenate(parts).astype(np.int32), np.concatenate(types)
+
+
+def dedupe_links(links: np.ndarray, ltype: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Drop self-links and repeated pairs (the first occurrence, i.e. the stronger type, wins)."""
+    if len(links) == 0:
+        return links.reshape(0, 2).astype(np.int32), ltype
+    keep = links[:, 0] != links[:, 1]
+    links, ltype = links[keep], ltype[keep]
+    lo = np.minimum(links[:, 0], links[:, 1]).astype(np.int64)
+    hi = np.maximum(links[:, 0], links[:, 1]).astype(np.int64)
+    _, first = np.unique(lo * (int(hi.max(initial=0)) + 1) + hi, return_index=True)
+    first.sort()
+    return links[first].astype(np.int32), ltype[first]
+
+
+def greedy_colour(links: np.ndarray, n_vertices: int) -> np.ndarray:
+    """Greedy edge colouring: each link, in order, takes the lowest colour unused at both of its
+    vertices. No two links of one colour share a vertex."""
+    colours = np.empty(len(links), np.int32)
+    used = [0] * n_vertices  # bitmask of colours already at each vertex (python ints: unbounded)
+    for i, (a, b) in enumerate(links.tolist()):
+        m = used[a] | used[b]
+        c = (~m & (m + 1)).bit_length() - 1  # lowest clear bit
+        colours[i] = c
+        bit = 1 << c
+        used[a] |= bit
+        used[b] |= bit
+    return colours
+
+
+def _unique_pairs(pairs: np.ndarray) -> np.ndarray:
+    if len(pairs) == 0:
+        return np.zeros((0, 2), np.int32)
+    p = np.sort(pairs.astype(np.int64), axis=1)
+    key = p[:, 0] * (int(p.max()) + 1) + p[:, 1]
+    _, first = np.unique(key, return_index=True)
+    first.sort()
+    return p[first].astype(np.int32)
+
+
+# ---------------------------------------------------------------------------------------------
+# Cooking
+
+
+def cook(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    links: np.ndarray,
+    link_type: np.ndarray,
+    pinned: Iterable[int] = (),
+) -> Fabric:
+    """Cook a fabric from a rest pose, triangles and candidate links (any order, duplicates
+    and self-links removed). Raises ValueError on malformed input."""
+    v = np.asarray(vertices, np.float64)
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
+        raise ValueError("vertices must be a non-empty (n, 3) array")
+    n = len(v)
+    if n > MAX_VERTICES:
+        raise ValueError(f"{n} vertices exceeds the limit of {MAX_VERTICES}")
+    if not np.all(np.isfinite(v)):
+        raise ValueError("vertices must be finite")
+    t = np.asarray(triangles, np.int64).reshape(-1, 3)
+    if t.size and (t.min() < 0 or t.max() >= n):
+        raise ValueError("triangle index out of range")
+    if t.size and np.any((t[:, 0] == t[:, 1]) | (t[:, 1] == t[:, 2]) | (t[:, 0] == t[:, 2])):
+        raise ValueError("triangle with a repeated vertex")
+    lk = np.asarray(links, np.int64).reshape(-1, 2)
+    if lk.size and (lk.min() < 0 or lk.max() >= n):
+        raise ValueError("link index out of range")
+    pin_idx = np.asarray(list(pinned), np.int64).reshape(-1)
+    if pin_idx.size and (pin_idx.min() < 0 or pin_idx.max() >= n):
+        raise ValueError("pinned index out of range")
+    pin_mask = np.zeros(n, bool)
+    pin_mask[pin_idx] = True
+
+    lk, lt = dedupe_links(lk.astype(np.int32), np.asarray(link_type, np.int8).reshape(-1))
+    colours = greedy_colour(lk, n)
+    order = np.argsort(colours, kind="stable")
+    lk, lt, colours = lk[order], lt[order], colours[order]
+    n_col = int(colours.max()) + 1 if len(colours) else 0
+    colour_offsets = np.searchsorted(colours, np.arange(n_col + 1)).astype(np.int32)
+    rest = np.linalg.norm(v[lk[:, 1]] - v[lk[:, 0]], axis=1) if len(lk) else np.zeros(0)
+
+    t32 = t.astype(np.int32)
+    area = _vertex_area(v, t32)
+    anchor, tlen = _tethers(v, pin_mask)
+    j_order, j_off, j_adj = _jacobi_adjacency(lk, n)
+    vt_off, vt = _vertex_triangles(t32, n)
+
+    key = _fabric_key(v, t32, lk, lt, pin_mask)
+    fab = Fabric(
+        key=key,
+        rest_positions=v,
+        triangles=t32,
+        pinned=pin_mask,
+        links=lk,
+        link_type=lt,
+        rest_length=rest,
+        colour_offsets=colour_offsets,
+        vertex_area=area,
+        tether_anchor=anchor,
+        tether_length=tlen,
+        jacobi_order=j_order,
+        jacobi_offsets=j_off,
+        jacobi_adj=j_adj,
+        vtri_offsets=vt_off,
+        vtri=vt,
+    )
+    for arr in (v, t32, pin_mask, lk, lt, rest, colour_offsets, area, anchor, tlen, j_order, j_off, j_adj, vt_off, vt):
+        arr.setflags(write=False)
+    log.debug("cooked fabric %s: %d vertices, %d links, %d colours", key[:8], n, len(lk), n_col)
+    return fab
+
+
+def cook_grid(
+    cols: int,
+    rows: int,
+    width: float = 1.0,
+    height: float = 1.0,
+    options: LinkOptions = LinkOptions(),
+    pinned: Iterable[int] = (),
+    orientation: str = "horizontal",
+    origin: Iterable[float] = (0.0, 0.0, 0.0),
+) -> Fabric:
+    verts, tris = grid_mesh(cols, rows, width, height, orientation, origin)
+    links, ltype = grid_links(cols, rows, options)
+    return cook(verts, tris, links, ltype, pinned)
+
+
+def cook_mesh(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    options: LinkOptions = LinkOptions(),
+    pinned: Iterable[int] = (),
+) -> Fabric:
+    t = np.asarray(triangles, np.int64).reshape(-1, 3)
+    n = len(np.asarray(vertices).reshape(-1, 3))
+    if t.size and (t.min() < 0 or t.max() >= n):
+        raise ValueError("triangle index out of range")
+    links, ltype = mesh_links(t.astype(np.int32), options)
+    return cook(vertices, t, links, ltype, pinned)
+
+
+class FabricCache:
+    """Cooked fabrics by content key, so identical submissions share one fabric. Thread-safe;
+    entries are dropped when the last cloth using them is released."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._fabrics: dict[str, tuple[Fabric, int]] = {}
+
+    def intern(self, fabric: Fabric) -> Fabric:
+        with self._lock:
+            have = self._fabrics.get(fabric.key)
+            if have is not None:
+                self._fabrics[fabric.key] = (have[0], have[1] + 1)
+                return have[0]
+            self._fabrics[fabric.key] = (fabric, 1)
+            return fabric
+
+    def release(self, fabric: Fabric) -> None:
+        with self._lock:
+            have = self._fabrics.get(fabric.key)
+            if have is None:
+                return
+            if have[1] <= 1:
+                del self._fabrics[fabric.key]
+            else:
+                self._fabrics[fabric.key] = (have[0], have[1] - 1)
+
+    def __len__(self) -> int:
+        return len(self._fabrics)
+
+
+# ---------------------------------------------------------------------------------------------
+# Derived data
+
+
+def _vertex_area(v: np.ndarray, t: np.ndarray) -> np.ndarray:
+    area = np.zeros(len(v))
+    if len(t):
+        tri_area = 0.5 * np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1)
+        for k in range(3):
+            np.add.at(area, t[:, k], tri_area / 3.0)
+    return area
+
+
+def vertex_masses(fabric: Fabric, total_mass: float) -> np.ndarray:
+    """Mass of each vertex: the total spread by area share (uniform where there is no area)."""
+    area = fabric.vertex_area
+    total = float(area.sum())
+    n = fabric.n_vertices
+    if total > 0 and np.all(area > 0):
+        return total_mass * area / total
+    if total > 0:
+        # vertices touching no triangle get the mean share, then all are renormalised
+        a = np.where(area > 0, area, total / n)
+        return total_mass * a / a.sum()
+    return np.full(n, total_mass / n)
+
+
+def _tethers(v: np.ndarray, pinned: np.ndarray, chunk: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+    n = len(v)
+    anchor = np.full(n, -1, np.int32)
+    length = np.zeros(n)
+    pins = np.flatnonzero(pinned)
+    if len(pins) == 0:
+        return anchor, length
+    pv = v[pins]
+    free = np.flatnonzero(~pinned)
+    for s in range(0, len(free), chunk):
+        idx = free[s : s + chunk]
+        d = np.linalg.norm(v[idx, None, :] - pv[None, :, :], axis=2)
+        j = np.argmin(d, axis=1)
+        anchor[idx] = pins[j]
+        length[idx] = d[np.arange(len(idx)), j]
+    return anchor, length
+
+
+def _jacobi_adjacency(links: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    deg = np.bincount(links.ravel(), minlength=n) if len(links) else np.zeros(n, np.int64)
+    order = np.argsort(-deg, kind="stable").astype(np.int32)
+    pos = np.empty(n, np.int64)
+    pos[order] = np.arange(n)
+    offsets = np.zeros(n + 1, np.int32)
+    offsets[1:] = np.cumsum(deg[order])
+    if len(links) == 0:
+        return order, offsets, np.zeros((0, 2), np.int32)
+    L = len(links)
+    ends = np.concatenate([links[:, 0], links[:, 1]])
+    others = np.concatenate([links[:, 1], links[:, 0]])
+    lid = np.concatenate([np.arange(L), np.arange(L)])
+    srt = np.lexsort((lid, pos[ends]))
+    adj = np.stack([others[srt], lid[srt]], 1).astype(np.int32)
+    return order, offsets, adj
+
+
+def _vertex_triangles(t: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    if len(t) == 0:
+        return np.zeros(n + 1, np.int32), np.zeros(0, np.int32)
+    v = t.ravel()
+    tri = np.repeat(np.arange(len(t)), 3)
+    srt = np.argsort(v, kind="stable")
+    offsets = np.zeros(n + 1, np.int32)
+    offsets[1:] = np.cumsum(np.bincount(v, minlength=n))
+    return offsets, tri[srt].astype(np.int32)
+
+
+def _fabric_key(*arrays: np.ndarray) -> str:
+    h = hashlib.sha1()
+    for a in arrays:
+        h.update(str(a.shape).encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()

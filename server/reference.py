@@ -1,0 +1,332 @@
+"""CPU reference solver in numpy (float64 by default): the ground truth of the tests.
+
+One step of one cloth, in this order (the OpenCL kernels in kernels/cloth.cl do the same):
+
+    h = dt / substeps;  damping per substep = 1 - (1 - kDP) ** (1 / substeps)
+    for each substep s:
+        [wind]       normals and areas from the current positions; aerodynamic force F
+        free:        v += (g + F * invm) * h;   x_prev = x;   x += v * h
+        pinned:      x += (target - x) / (substeps - s)        (reaches the target on the last)
+        [xpbd]       lambda = 0
+        iterations:  every link, colour by colour (Gauss-Seidel in colour order), with the
+                     talk's PBD equation   k = kst (rl^2 - L) / ((im0 + im1) (rl^2 + L))
+                     or XPBD               dl = (-C - a~ l) / (im0 + im1 + a~),  a~ = compliance / h^2
+        [tethers]    free vertex no further than tether_length * limit from its anchor
+        [colliders]  push out of spheres, capsules, planes (interpolated over substeps), friction
+        all:         v = (x - x_prev) / h * (1 - damping)
+
+``mode="serial"`` visits links one at a time in fabric order exactly like the talk's CPU loop;
+``mode="coloured"`` does each colour as one numpy operation (links of a colour share no vertex,
+so it is the same computation); ``mode="jacobi"`` mirrors the OpenCL vertex solver (corrections
+from the previous iterate, averaged per vertex and over-relaxed by ``JACOBI_OMEGA``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .fabric import Fabric, vertex_masses
+from .params import (
+    COLLIDER_CAPSULE,
+    COLLIDER_PLANE,
+    COLLIDER_SPHERE,
+    ClothParams,
+)
+
+JACOBI_OMEGA = 1.5
+EPS_LEN2 = 1e-20  # below this squared length a direction is undefined: no correction
+EPS_DENOM = 1e-30
+
+
+@dataclass
+class ClothState:
+    """Mutable state of one cloth instance."""
+
+    x: np.ndarray  # (n, 3)
+    v: np.ndarray  # (n, 3)
+    invm: np.ndarray  # (n,)
+    target: np.ndarray  # (n, 3): where pinned vertices are at the end of the next step
+    colliders: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 4)))  # at step end
+    colliders_prev: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 4)))  # at step start
+    normals: np.ndarray | None = None  # (n, 3), filled when features ask for normals
+
+    @classmethod
+    def initial(cls, fabric: Fabric, params: ClothParams, dtype=np.float64, positions=None) -> "ClothState":
+        x = np.array(fabric.rest_positions if positions is None else positions, dtype=dtype)
+        masses = vertex_masses(fabric, params.material.mass)
+        invm = np.where(fabric.pinned, 0.0, 1.0 / masses).astype(dtype)
+        return cls(x=x, v=np.zeros_like(x), invm=invm, target=x.copy())
+
+    def set_colliders(self, packed: np.ndarray) -> None:
+        """New collider poses for the end of the next step; the previous ones become its start."""
+        packed = np.asarray(packed, self.x.dtype).reshape(-1, 2, 4)
+        if len(packed) != len(self.colliders):
+            self.colliders_prev = packed.copy()
+        else:
+            self.colliders_prev = self.colliders
+        self.colliders = packed.copy()
+
+
+def link_stiffness(fabric: Fabric, params: ClothParams) -> np.ndarray:
+    return np.asarray(params.material.stiffness, np.float64)[fabric.link_type]
+
+
+def link_compliance(fabric: Fabric, params: ClothParams) -> np.ndarray:
+    return np.asarray(params.material.compliance, np.float64)[fabric.link_type]
+
+
+def step(state: ClothState, fabric: Fabric, params: ClothParams, dt: float, mode: str = "coloured") -> None:
+    """Advance one cloth by dt in place."""
+    if mode not in ("serial", "coloured", "jacobi"):
+        raise ValueError(f"unknown reference mode {mode!r}")
+    f = params.features
+    m = params.material
+    x, v, invm = state.x, state.v, state.invm
+    dtype = x.dtype
+    S = params.substeps
+    h = dt / S
+    damp = 1.0 - (1.0 - m.damping) ** (1.0 / S)
+    free = invm > 0
+    pinned = ~free
+    g = np.asarray(params.gravity, dtype)
+    kst = link_stiffness(fabric, params).astype(dtype)
+    comp = link_compliance(fabric, params).astype(dtype)
+    lam = np.zeros(fabric.n_links, dtype)
+    for s in range(S):
+        acc = np.broadcast_to(g, x.shape).copy()
+        if f.needs_normals:
+            normals, area = vertex_normals(x, fabric)
+            state.normals = normals
+            if f.wind:
+                force = aero_force(v, normals, area, np.asarray(params.wind, dtype), m.drag, m.lift, m.air_density)
+                acc += force * invm[:, None]
+        v[free] += acc[free] * h
+        x_prev = x.copy()
+        x[free] += v[free] * h
+        x[pinned] += (state.target[pinned] - x[pinned]) / (S - s)
+        lam[:] = 0.0
+        alpha = comp / (h * h)
+        for _ in range(params.iterations):
+            if mode == "serial":
+                _links_serial(x, invm, fabric, kst, alpha, lam, f.xpbd)
+            elif mode == "coloured":
+                for c in range(fabric.n_colours):
+                    sl = slice(int(fabric.colour_offsets[c]), int(fabric.colour_offsets[c + 1]))
+                    _links_vectorised(x, invm, fabric, sl, kst, alpha, lam, f.xpbd)
+            else:
+                _links_jacobi(x, invm, fabric, kst, alpha, lam, f.xpbd)
+        if f.tethers:
+            apply_tethers(x, fabric, m.tether_limit)
+        if f.colliders and len(state.colliders):
+            t0, t1 = s / S, (s + 1) / S
+            c_prev = _lerp_colliders(state.colliders_prev, state.colliders, t0)
+            c_now = _lerp_colliders(state.colliders_prev, state.colliders, t1)
+            collide(x, x_prev, invm, c_prev, c_now, m.friction)
+        v[:] = (x - x_prev) / h * (1.0 - damp)
+    if f.needs_normals:
+        state.normals, _ = vertex_normals(x, fabric)
+
+
+# ---------------------------------------------------------------------------------------------
+# Links
+
+
+def _pbd_pair(x0, x1, im0, im1, rl, kst):
+    """Vectorised PBD correction factors k (..., ) for pairs; zero where undefined."""
+    d = x1 - x0
+    L = np.einsum("...i,...i->...", d, d)
+    rl2 = rl * rl
+    w = im0 + im1
+    denom = w * (rl2 + L)
+    ok = denom > EPS_DENOM
+    k = np.where(ok, kst * (rl2 - L) / np.where(ok, denom, 1.0), 0.0)
+    return d, k
+
+
+def _xpbd_pair(x0, x1, im0, im1, rl, alpha, lam):
+    d = x1 - x0
+    L = np.einsum("...i,...i->...", d, d)
+    ok = L > EPS_LEN2
+    length = np.sqrt(np.where(ok, L, 1.0))
+    n = d / length[..., None]
+    C = length - rl
+    denom = im0 + im1 + alpha
+    ok &= denom > EPS_DENOM
+    dl = np.where(ok, (-C - alpha * lam) / np.where(denom > EPS_DENOM, denom, 1.0), 0.0)
+    return n, dl
+
+
+def _links_vectorised(x, invm, fabric, sl, kst, alpha, lam, xpbd):
+    a = fabric.links[sl, 0]
+    b = fabric.links[sl, 1]
+    im0, im1 = invm[a], invm[b]
+    rl = fabric.rest_length[sl].astype(x.dtype)
+    if xpbd:
+        n, dl = _xpbd_pair(x[a], x[b], im0, im1, rl, alpha[sl], lam[sl])
+        lam[sl] += dl
+        x[a] -= n * (im0 * dl)[:, None]
+        x[b] += n * (im1 * dl)[:, None]
+    else:
+        d, k = _pbd_pair(x[a], x[b], im0, im1, rl, kst[sl])
+        x[a] -= d * (k * im0)[:, None]
+        x[b] += d * (k * im1)[:, None]
+
+
+def _links_serial(x, invm, fabric, kst, alpha, lam, xpbd):
+    """The talk's CPU loop, one link at a time, in place."""
+    links = fabric.links
+    rest = fabric.rest_length
+    for i in range(fabric.n_links):
+        a, b = links[i]
+        im0, im1 = invm[a], invm[b]
+        if xpbd:
+            n, dl = _xpbd_pair(x[a], x[b], im0, im1, rest[i], alpha[i], lam[i])
+            lam[i] += dl
+            x[a] -= n * (im0 * dl)
+            x[b] += n * (im1 * dl)
+        else:
+            d, k = _pbd_pair(x[a], x[b], im0, im1, rest[i], kst[i])
+            x[a] -= d * (k * im0)
+            x[b] += d * (k * im1)
+
+
+def _links_jacobi(x, invm, fabric, kst, alpha, lam, xpbd):
+    """All links from the same iterate; per-vertex average of corrections, over-relaxed."""
+    a = fabric.links[:, 0]
+    b = fabric.links[:, 1]
+    im0, im1 = invm[a], invm[b]
+    rl = fabric.rest_length.astype(x.dtype)
+    if xpbd:
+        n, dl = _xpbd_pair(x[a], x[b], im0, im1, rl, alpha, lam)
+        lam += dl
+        d0 = -n * (im0 * dl)[:, None]
+        d1 = n * (im1 * dl)[:, None]
+    else:
+        d, k = _pbd_pair(x[a], x[b], im0, im1, rl, kst)
+        d0 = -d * (k * im0)[:, None]
+        d1 = d * (k * im1)[:, None]
+    acc = np.zeros_like(x)
+    np.add.at(acc, a, d0)
+    np.add.at(acc, b, d1)
+    deg = np.diff(fabric.jacobi_offsets)[np.argsort(fabric.jacobi_order)]
+    scale = np.where(deg > 0, JACOBI_OMEGA / np.maximum(deg, 1), 0.0)
+    x += acc * scale[:, None]
+
+
+# ---------------------------------------------------------------------------------------------
+# Features
+
+
+def apply_tethers(x: np.ndarray, fabric: Fabric, limit: float) -> None:
+    anchor = fabric.tether_anchor
+    idx = np.flatnonzero(anchor >= 0)
+    if len(idx) == 0:
+        return
+    d = x[idx] - x[anchor[idx]]
+    dist = np.linalg.norm(d, axis=1)
+    lim = fabric.tether_length[idx] * limit
+    over = dist > lim
+    if np.any(over):
+        i = idx[over]
+        x[i] = x[anchor[i]] + d[over] * (lim[over] / dist[over])[:, None]
+
+
+def _lerp_colliders(c0: np.ndarray, c1: np.ndarray, t: float) -> np.ndarray:
+    out = c0 + (c1 - c0) * t
+    out[:, 1, 3] = c1[:, 1, 3]  # the type does not interpolate
+    return out
+
+
+def collide(x, x_prev, invm, c_prev, c_now, friction):
+    """Push free vertices out of each collider in order, then Coulomb-like friction against the
+    collider's own motion over the substep."""
+    free = invm > 0
+    for c in range(len(c_now)):
+        kind = int(round(float(c_now[c, 1, 3])))
+        if kind == COLLIDER_PLANE:
+            n = c_now[c, 0, :3]
+            n = n / max(np.linalg.norm(n), 1e-30)
+            off = c_now[c, 0, 3]
+            dist = x @ n - off
+            inside = free & (dist < 0)
+            if not np.any(inside):
+                continue
+            pen = -dist[inside]
+            nn = np.broadcast_to(n, (int(inside.sum()), 3))
+            cdisp = n * (off - c_prev[c, 0, 3])
+            x[inside] += nn * pen[:, None]
+            _friction(x, x_prev, inside, nn, pen, np.broadcast_to(cdisp, nn.shape), friction)
+            continue
+        r = c_now[c, 0, 3]
+        p0, p1 = c_now[c, 0, :3], c_now[c, 1, :3]
+        q0, q1 = c_prev[c, 0, :3], c_prev[c, 1, :3]
+        if kind == COLLIDER_CAPSULE:
+            axis = p1 - p0
+            aa = float(axis @ axis)
+            t = np.clip(((x - p0) @ axis) / aa, 0.0, 1.0) if aa > EPS_LEN2 else np.zeros(len(x))
+        else:
+            t = np.zeros(len(x))
+        centre = p0 + t[:, None] * (p1 - p0)
+        d = x - centre
+        dist2 = np.einsum("ij,ij->i", d, d)
+        inside = free & (dist2 < r * r)
+        if not np.any(inside):
+            continue
+        di = d[inside]
+        dist = np.sqrt(dist2[inside])
+        safe = dist > 1e-12
+        nn = np.where(safe[:, None], di / np.where(safe, dist, 1.0)[:, None], np.array([0.0, 1.0, 0.0]))
+        pen = r - dist
+        x[inside] = centre[inside] + nn * r
+        ti = t[inside][:, None]
+        cdisp = (p0 + ti * (p1 - p0)) - (q0 + ti * (q1 - q0))
+        _friction(x, x_prev, inside, nn, pen, cdisp, friction)
+
+
+def _friction(x, x_prev, mask, n, pen, cdisp, mu):
+    if mu <= 0:
+        return
+    rel = (x[mask] - x_prev[mask]) - cdisp
+    tang = rel - n * np.einsum("ij,ij->i", rel, n)[:, None]
+    tl = np.linalg.norm(tang, axis=1)
+    corr = np.minimum(mu * pen, tl)
+    ok = tl > 1e-12
+    scale = np.where(ok, corr / np.where(ok, tl, 1.0), 0.0)
+    x[mask] -= tang * scale[:, None]
+
+
+def vertex_normals(x: np.ndarray, fabric: Fabric) -> tuple[np.ndarray, np.ndarray]:
+    """Unit vertex normals (area-weighted face normals; (0, 0, 0) where there are none) and
+    per-vertex areas (a third of each incident triangle)."""
+    t = fabric.triangles
+    normals = np.zeros_like(x)
+    area = np.zeros(len(x), x.dtype)
+    if len(t):
+        fn = np.cross(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]])
+        fa = 0.5 * np.linalg.norm(fn, axis=1)
+        for k in range(3):
+            np.add.at(normals, t[:, k], fn)
+            np.add.at(area, t[:, k], fa / 3.0)
+    ln = np.linalg.norm(normals, axis=1)
+    ok = ln > 1e-30
+    normals[ok] /= ln[ok, None]
+    normals[~ok] = 0.0
+    return normals, area
+
+
+def aero_force(v, normals, area, wind, drag, lift, rho):
+    """Bullet's per-vertex aerodynamics: drag along the relative wind, lift across it."""
+    r = v - wind
+    rl = np.linalg.norm(r, axis=1)
+    ok = rl > 1e-12
+    rh = np.where(ok[:, None], r / np.where(ok, rl, 1.0)[:, None], 0.0)
+    n = normals * np.where(np.einsum("ij,ij->i", normals, r) < 0, -1.0, 1.0)[:, None]
+    c = np.einsum("ij,ij->i", n, rh)
+    f = -0.5 * drag * rho * (rl * rl * area * c)[:, None] * rh
+    lift_on = (c > 0) & (c < 0.9848)
+    if lift > 0 and np.any(lift_on):
+        s = np.sqrt(np.maximum(1.0 - c * c, 0.0))
+        dirn = np.cross(np.cross(n, rh), rh)
+        f += np.where(lift_on[:, None], 0.5 * lift * rho * (rl * area * s)[:, None] * dirn, 0.0)
+    return f

@@ -1,0 +1,157 @@
+"""Fabric cooking: link sets, colouring independence, degenerate input, sharing."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import random_grid_fabric, random_mesh_fabric
+
+from drape.server.fabric import (
+    FabricCache,
+    bending_pairs,
+    cook,
+    cook_grid,
+    cook_mesh,
+    greedy_colour,
+    mesh_edges,
+    parse_obj,
+    vertex_masses,
+)
+from drape.server.params import LINK_BENDING, LINK_SHEAR, LINK_STRUCTURAL, LinkOptions
+
+
+def test_grid_link_counts_match_the_talk():
+    f = cook_grid(150, 150, options=LinkOptions(structural=True, shear=True))
+    assert f.n_links == 89_102  # the talk's "90,000 links"
+    assert f.count(LINK_STRUCTURAL) == 2 * 150 * 149
+    assert f.count(LINK_SHEAR) == 2 * 149 * 149
+    g = cook_grid(32, 32, options=LinkOptions(bending=True))
+    assert g.n_links == 5_826
+    assert g.count(LINK_BENDING) == 2 * 32 * 30
+
+
+def _assert_independent(f):
+    for c in range(f.n_colours):
+        batch = f.links[f.colour_offsets[c] : f.colour_offsets[c + 1]]
+        ends = batch.ravel()
+        assert len(np.unique(ends)) == len(ends), f"colour {c} has links sharing a vertex"
+
+
+@pytest.mark.parametrize("maker", [random_mesh_fabric, random_grid_fabric])
+def test_colouring_is_independent_on_random_meshes(rng, maker):
+    for _ in range(5):
+        f = maker(rng)
+        _assert_independent(f)
+        # every link kept, sorted by colour, colours contiguous
+        assert f.colour_offsets[0] == 0 and f.colour_offsets[-1] == f.n_links
+        assert np.all(np.diff(f.colour_offsets) > 0)
+
+
+def test_greedy_colour_uses_lowest_free_colour(rng):
+    n = 40
+    links = rng.integers(0, n, size=(300, 2))
+    links = links[links[:, 0] != links[:, 1]]
+    col = greedy_colour(links.astype(np.int32), n)
+    for i, (a, b) in enumerate(links):
+        earlier = col[:i][(links[:i] == a).any(1) | (links[:i] == b).any(1)]
+        assert col[i] not in earlier
+        assert all(c in earlier for c in range(col[i]))
+
+
+def test_mesh_links_and_bending_pairs():
+    # two triangles sharing edge (1, 2): one bending link between 0 and 3
+    t = np.array([[0, 1, 2], [2, 1, 3]])
+    assert sorted(map(tuple, mesh_edges(t))) == [(0, 1), (0, 2), (1, 2), (1, 3), (2, 3)]
+    assert [tuple(p) for p in bending_pairs(t)] == [(0, 3)]
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.0]])
+    f = cook_mesh(v, t, LinkOptions(structural=True, shear=True, bending=True), pinned=[0])
+    assert f.count(LINK_STRUCTURAL) == 5 and f.count(LINK_BENDING) == 1 and f.count(LINK_SHEAR) == 0
+    assert f.pinned.tolist() == [True, False, False, False]
+    np.testing.assert_allclose(sorted(f.rest_length), sorted([1, 1, np.sqrt(2), 1, 1, np.sqrt(2)]))
+
+
+def test_duplicate_self_and_zero_length_links_are_handled():
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 0, 0], [2, 0, 0.0]])  # vertices 1 and 2 coincide
+    links = np.array([[0, 1], [1, 0], [1, 1], [1, 2], [2, 3], [0, 1]])
+    types = np.zeros(len(links), np.int8)
+    f = cook(v, np.zeros((0, 3), int), links, types)
+    assert f.n_links == 3  # (0,1) once, (1,2) zero-length kept, (2,3)
+    assert np.isclose(f.rest_length.min(), 0.0)
+    assert np.all(np.isfinite(f.rest_length))
+
+
+@pytest.mark.parametrize(
+    "verts,tris,links,pins,match",
+    [
+        (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 2)), [], "non-empty"),
+        (np.array([[0, 0, np.nan]]), np.zeros((0, 3)), np.zeros((0, 2)), [], "finite"),
+        (np.zeros((3, 3)), np.array([[0, 1, 5]]), np.zeros((0, 2)), [], "triangle index"),
+        (np.zeros((3, 3)), np.array([[0, 1, 1]]), np.zeros((0, 2)), [], "repeated"),
+        (np.zeros((3, 3)), np.zeros((0, 3)), np.array([[0, 3]]), [], "link index"),
+        (np.zeros((3, 3)), np.zeros((0, 3)), np.zeros((0, 2)), [7], "pinned index"),
+    ],
+)
+def test_malformed_input_is_rejected(verts, tris, links, pins, match):
+    with pytest.raises(ValueError, match=match):
+        cook(verts, tris, links, np.zeros(len(links), np.int8), pins)
+
+
+def test_obj_loader_fan_triangulates_and_accepts_slashes_and_negative_indices():
+    text = """
+    # a quad and a triangle
+    v 0 0 0
+    v 1 0 0
+    v 1 1 0
+    v 0 1 0
+    vt 0 0
+    f 1/1/1 2/1/1 3/1/1 4/1/1
+    v 2 0 0
+    f -1 2 3
+    """
+    v, t = parse_obj(text)
+    assert v.shape == (5, 3)
+    assert t.tolist() == [[0, 1, 2], [0, 2, 3], [4, 1, 2]]
+
+
+def test_tiny_cloths_cook():
+    for cols, rows in [(1, 1), (2, 1), (3, 1), (1, 3)]:
+        f = cook_grid(cols, rows, options=LinkOptions(bending=True))
+        assert f.n_vertices == cols * rows
+        m = vertex_masses(f, 1.0)
+        assert np.isclose(m.sum(), 1.0) and np.all(m > 0)
+
+
+def test_tethers_point_at_the_nearest_pin():
+    f = cook_grid(5, 5, width=1, height=1, pinned=[0, 4])
+    assert f.tether_anchor[0] == -1 and f.tether_anchor[4] == -1
+    assert f.tether_anchor[1] == 0 and f.tether_anchor[3] == 4
+    assert np.isclose(f.tether_length[24], 1.0)  # (4,4) to pin (0,4) is 1 m
+
+
+def test_mass_follows_area_and_pins():
+    f = cook_grid(3, 3, width=2, height=2, pinned=[0])
+    m = vertex_masses(f, 1.0)
+    assert np.isclose(m.sum(), 1.0)
+    assert m[4] > m[0]  # the centre touches more triangles than a corner
+
+
+def test_identical_submissions_share_one_fabric(device):
+    from drape.server.clworld import CLWorld
+    from drape.server.params import ClothParams
+
+    cache = FabricCache()
+    a = cache.intern(cook_grid(8, 8, pinned=[0, 7]))
+    b = cache.intern(cook_grid(8, 8, pinned=[0, 7]))
+    c = cache.intern(cook_grid(8, 8, pinned=[0]))
+    assert a is b and a is not c and len(cache) == 2
+    w = CLWorld("workgroup", device=device)
+    h1, h2, h3 = w.add(a, ClothParams()), w.add(b, ClothParams()), w.add(c, ClothParams())
+    assert len(w.fabrics) == 2 and w.rec[h1].fabric is w.rec[h2].fabric  # one device copy
+    w.remove(h1)
+    assert len(w.fabrics) == 2
+    w.remove(h2)
+    assert len(w.fabrics) == 1
+    w.remove(h3)
+    assert len(w.fabrics) == 0
+    cache.release(a)
+    cache.release(b)
+    assert len(cache) == 1

@@ -1,0 +1,234 @@
+"""OpenCL solvers against the float64 CPU reference, and the solver invariants."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import random_grid_fabric, random_mesh_fabric
+
+from drape.server import reference
+from drape.server.clworld import CLWorld, RangeAllocator
+from drape.server.fabric import cook_grid
+from drape.server.params import ClothParams, Features, LinkOptions, Material
+from drape.server.world import ReferenceWorld, inverse_masses
+
+GS_SOLVERS = ["workgroup", "coloured"]
+DT = 1 / 60
+
+
+def random_params(rng, features=Features()) -> ClothParams:
+    return ClothParams(
+        material=Material(
+            mass=float(rng.uniform(0.2, 3.0)),
+            stiffness=tuple(float(s) for s in rng.uniform(0.3, 1.0, 3)),
+            compliance=tuple(float(c) for c in 10.0 ** rng.uniform(-8, -4, 3)),
+            damping=float(rng.uniform(0, 0.05)),
+        ),
+        features=features,
+        gravity=(float(rng.normal(0, 1)), float(rng.uniform(-15, -5)), float(rng.normal(0, 1))),
+        iterations=int(rng.integers(1, 12)),
+        substeps=int(rng.integers(1, 4)),
+    )
+
+
+def random_state(rng, fabric, scale=0.05):
+    return fabric.rest_positions + rng.normal(0, scale, fabric.rest_positions.shape)
+
+
+def run_pair(world, ref, fabric, params, positions, steps):
+    h = world.add(fabric, params, positions)
+    hr = ref.add(fabric, params, positions)
+    for _ in range(steps):
+        world.step(DT)
+        ref.step(DT)
+    return world.positions(h), ref.positions(hr)
+
+
+def tol(ref_pos, steps):
+    scale = max(1.0, float(np.abs(ref_pos).max()))
+    return 2e-5 * scale * steps
+
+
+@pytest.mark.parametrize("solver", GS_SOLVERS)
+@pytest.mark.parametrize("xpbd", [False, True])
+def test_gauss_seidel_solvers_match_reference_in_colour_order(device, rng, solver, xpbd):
+    for maker in (random_mesh_fabric, random_grid_fabric):
+        fab = maker(rng)
+        params = random_params(rng, Features(xpbd=xpbd))
+        pos = random_state(rng, fab)
+        steps = 5
+        a, b = run_pair(CLWorld(solver, device=device), ReferenceWorld("coloured"), fab, params, pos, steps)
+        assert np.all(np.isfinite(a))
+        np.testing.assert_allclose(a, b, atol=tol(b, steps), rtol=0)
+
+
+def test_workgroup_global_memory_path_matches_local(device, rng):
+    fab = random_grid_fabric(rng)
+    params = random_params(rng)
+    pos = random_state(rng, fab)
+    a, _ = run_pair(CLWorld("workgroup", device=device, use_local=True), ReferenceWorld(), fab, params, pos, 3)
+    b, r = run_pair(CLWorld("workgroup", device=device, use_local=False), ReferenceWorld(), fab, params, pos, 3)
+    np.testing.assert_allclose(a, r, atol=tol(r, 3), rtol=0)
+    np.testing.assert_allclose(b, r, atol=tol(r, 3), rtol=0)
+
+
+def test_cloth_too_big_for_local_memory_takes_the_global_path(device):
+    w = CLWorld("workgroup", device=device)
+    n = int(np.ceil(np.sqrt(device.info.local_mem / 16))) + 2  # more vertices than local memory holds
+    big = cook_grid(n, n, pinned=[0, n - 1])
+    small = cook_grid(8, 8, pinned=[0, 7])
+    hb, hs = w.add(big, ClothParams(iterations=2)), w.add(small, ClothParams(iterations=2))
+    assert not w.groups[w.rec[hb].group].use_local and w.groups[w.rec[hs].group].use_local
+    ref = ReferenceWorld()
+    rb, rs = ref.add(big, ClothParams(iterations=2)), ref.add(small, ClothParams(iterations=2))
+    for _ in range(2):
+        w.step(DT)
+        ref.step(DT)
+    np.testing.assert_allclose(w.positions(hb), ref.positions(rb), atol=1e-4)
+    np.testing.assert_allclose(w.positions(hs), ref.positions(rs), atol=1e-4)
+
+
+def test_serial_reference_equals_colour_batched_reference(rng):
+    fab = random_mesh_fabric(rng)
+    for xpbd in (False, True):
+        params = random_params(rng, Features(xpbd=xpbd))
+        pos = random_state(rng, fab)
+        s1 = reference.ClothState.initial(fab, params, positions=pos)
+        s2 = reference.ClothState.initial(fab, params, positions=pos)
+        for _ in range(3):
+            reference.step(s1, fab, params, DT, "serial")
+            reference.step(s2, fab, params, DT, "coloured")
+        np.testing.assert_allclose(s1.x, s2.x, atol=1e-12)
+
+
+def test_jacobi_matches_its_reference_and_reaches_the_rest_shape(device, rng):
+    fab = random_grid_fabric(rng, n_pins=0)
+    params = ClothParams(gravity=(0.0, 0.0, 0.0), iterations=4, material=Material(damping=0.5))
+    pos = random_state(rng, fab, 0.02)
+    a, b = run_pair(CLWorld("jacobi", device=device), ReferenceWorld("jacobi"), fab, params, pos, 3)
+    np.testing.assert_allclose(a, b, atol=tol(b, 3), rtol=0)
+    # relaxed long enough, Jacobi and Gauss-Seidel reach the same shape: every link at rest length
+    for solver in ("jacobi", "workgroup"):
+        w = CLWorld(solver, device=device)
+        h = w.add(fab, params.with_(iterations=50), pos)
+        for _ in range(60):
+            w.step(DT)
+        x = w.positions(h)
+        lengths = np.linalg.norm(x[fab.links[:, 1]] - x[fab.links[:, 0]], axis=1)
+        strain = np.abs(lengths - fab.rest_length) / fab.rest_length
+        assert strain.max() < 2e-3, (solver, strain.max())
+
+
+@pytest.mark.parametrize("solver", ["workgroup", "coloured", "jacobi"])
+def test_pinned_vertices_never_move_and_no_nan(device, rng, solver):
+    fab = random_grid_fabric(rng, n_pins=3)
+    w = CLWorld(solver, device=device)
+    h = w.add(fab, random_params(rng))
+    pins = np.flatnonzero(fab.pinned)
+    for _ in range(30):
+        w.step(DT)
+    x = w.positions(h)
+    assert np.all(np.isfinite(x))
+    np.testing.assert_array_equal(x[pins], fab.rest_positions[pins].astype(np.float32))
+
+
+@pytest.mark.parametrize("solver", GS_SOLVERS)
+def test_link_solve_conserves_momentum(device, rng, solver):
+    fab = random_mesh_fabric(rng, n_pins=0)
+    params = ClothParams(gravity=(0.0, 0.0, 0.0), iterations=8, material=Material(mass=float(rng.uniform(0.5, 2))))
+    w = CLWorld(solver, device=device)
+    h = w.add(fab, params, random_state(rng, fab, 0.1))
+    w.step(DT)
+    m = 1.0 / inverse_masses(fab, params)
+    # velocity after one step from rest = link corrections / h; total momentum stays zero
+    frame_v = w.vel.read(w.rec[h].vbase, fab.n_vertices)[:, :3]
+    p = (m[:, None] * frame_v).sum(0)
+    scale = (m[:, None] * np.abs(frame_v)).sum()
+    assert scale > 1e-3  # the links did move things
+    assert np.abs(p).max() < 1e-4 * scale
+
+
+def test_add_and_remove_between_ticks_leaves_others_untouched(device, rng):
+    fa, fb = random_grid_fabric(rng), random_mesh_fabric(rng)
+    pa = random_params(rng)
+    alone = CLWorld("workgroup", device=device)
+    busy = CLWorld("workgroup", device=device)
+    ha = alone.add(fa, pa)
+    hb_a = busy.add(fa, pa)
+    others = []
+    for step in range(12):
+        if step % 3 == 0:
+            others.append(busy.add(fb, random_params(rng)))
+        if step % 4 == 3:
+            busy.remove(others.pop(0))
+        alone.step(DT)
+        busy.step(DT)
+        np.testing.assert_array_equal(alone.positions(ha), busy.positions(hb_a))
+    # holes left by removed cloths get reused
+    assert busy.vert.high_water <= fa.n_vertices + 4 * fb.n_vertices
+
+
+def test_per_cloth_parameters_in_one_world(device):
+    fab = cook_grid(6, 6, pinned=[0, 5])
+    w = CLWorld("coloured", device=device)
+    ref = ReferenceWorld()
+    ps = [ClothParams(iterations=i, gravity=(0, g, 0), material=Material(stiffness=(s, s, s)))
+          for i, g, s in [(2, -9.8, 1.0), (9, -3.0, 0.5), (5, -20.0, 0.8)]]
+    hs = [w.add(fab, p) for p in ps]
+    rs = [ref.add(fab, p) for p in ps]
+    for _ in range(10):
+        w.step(DT)
+        ref.step(DT)
+    for h, r in zip(hs, rs):
+        np.testing.assert_allclose(w.positions(h), ref.positions(r), atol=2e-4)
+    assert not np.allclose(w.positions(hs[0]), w.positions(hs[1]))
+
+
+def test_many_cloths_in_one_launch_match_reference(device, rng):
+    fabs = [random_grid_fabric(rng) for _ in range(3)]
+    w = {s: CLWorld(s, device=device) for s in GS_SOLVERS}
+    ref = ReferenceWorld()
+    handles = []
+    for i in range(24):
+        fab = fabs[i % 3]
+        p = random_params(rng).with_(substeps=1)
+        pos = random_state(rng, fab)
+        handles.append(({s: w[s].add(fab, p, pos) for s in GS_SOLVERS}, ref.add(fab, p, pos)))
+    for _ in range(3):
+        for s in GS_SOLVERS:
+            w[s].step(DT)
+        ref.step(DT)
+    frames = {s: w[s].fetch() for s in GS_SOLVERS}
+    rf = ref.fetch()
+    for hs, hr in handles:
+        for s in GS_SOLVERS:
+            np.testing.assert_allclose(frames[s].positions[hs[s]], rf.positions[hr], atol=tol(rf.positions[hr], 3))
+
+
+def test_range_allocator_reuses_and_coalesces():
+    a = RangeAllocator()
+    a.grow(100)
+    x, y, z = a.alloc(10), a.alloc(20), a.alloc(30)
+    assert (x, y, z) == (0, 10, 30) and a.high_water == 60
+    a.release(10, 20)
+    assert a.alloc(15) == 10
+    a.release(0, 10)
+    a.release(10, 15)
+    assert a.free[0] == [0, 30]
+    a.release(30, 30)
+    assert a.high_water == 0 and a.free == [[0, 100]]
+
+
+def test_device_choice_respects_environment(monkeypatch):
+    from drape.server.device import choose_device
+
+    monkeypatch.setenv("DRAPE_DEVICE", "cpu")
+    import pyopencl as cl
+
+    assert choose_device().type & cl.device_type.CPU
+    with pytest.raises(RuntimeError, match="no OpenCL device matches"):
+        choose_device("no-such-device-name")
+
+
+def test_link_options_change_links():
+    f = cook_grid(4, 4, options=LinkOptions(structural=True, shear=False, bending=False))
+    assert f.n_links == 2 * 4 * 3

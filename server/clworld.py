@@ -572,5 +572,8 @@ class CLWorld(World):
     def positions(self, handle: int) -> np.ndarray:
         return self.fetch().positions[handle].copy()
 
+    def sync(self) -> None:
+        self.dev.queue.finish()
+
     def close(self) -> None:
         self.dev.queue.finish()

@@ -152,8 +152,8 @@ class ClothParams:
         _finite("wind", self.wind)
         _finite("stiffness", m.stiffness)
         _finite("compliance", m.compliance)
-        if not (1 <= self.iterations <= 1000):
-            raise ValueError("iterations must be in 1..1000")
+        if not (0 <= self.iterations <= 1000):  # 0: no link solve (the talk's "no solver" row)
+            raise ValueError("iterations must be in 0..1000")
         if not (1 <= self.substeps <= 100):
             raise ValueError("substeps must be in 1..100")
         if not (math.isfinite(m.mass) and m.mass > 0):

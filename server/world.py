@@ -118,6 +118,9 @@ class World(ABC):
     def positions(self, handle: int) -> np.ndarray:
         return self.fetch().positions[handle]
 
+    def sync(self) -> None:
+        """Wait until every step asked for so far has finished (for timing)."""
+
     def close(self) -> None:
         pass
 

@@ -1,0 +1,46 @@
+#!/usr/bin/env bash
+# Drape on the lent NVIDIA H100 (NVIDIA's OpenCL driver): install the carried wheels, point the
+# ICD loader at the driver, then run the benchmarks named on the command line.
+#
+#   bash deploy/h100.sh bench [EXTRA ARGS...]     # drape bench on the GPU
+#   bash deploy/h100.sh tune                      # work-group sizes for the 'many' workload
+#   bash deploy/h100.sh tradeoff|loadtest [ARGS]  # the other benchmarks
+#
+# Results land in $OUT (the device tool's folder) or out/h100. Wheels come from .whl/ (see
+# docs/benchmarks.md for the pip download line that fills it).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+OUT=${OUT:-out/h100}
+mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1
+if [ ! -f /tmp/site/.drape-installed ]; then
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl
+    python3 -m pip install -q --no-index --no-deps --no-build-isolation --no-cache-dir --target /tmp/site .
+    touch /tmp/site/.drape-installed
+fi
+export PYTHONPATH=/tmp/site
+mkdir -p /tmp/icd
+echo /usr/local/nvidia/lib64/libnvidia-opencl.so.1 > /tmp/icd/nvidia.icd
+export OCL_ICD_VENDORS=/tmp/icd
+export DRAPE_DEVICE=${DRAPE_DEVICE:-gpu}
+drape() { python3 -m drape.server.cli "$@"; }
+nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader || true
+nproc
+drape devices
+what=${1:-bench}
+shift || true
+case "$what" in
+    bench)
+        drape bench --json "$OUT/bench-h100.json" "$@" 2>&1 | tee "$OUT/bench-h100.txt" ;;
+    tune)
+        for ls in 64 128 256 512 1024; do
+            echo "== DRAPE_WG_SIZE=$ls"
+            DRAPE_WG_SIZE=$ls drape bench many seed --solvers workgroup --counts 4096 --frames 20 "$@" 2>&1 | grep -E "^(seed|many)"
+        done 2>&1 | tee "$OUT/tune-h100.txt" ;;
+    tradeoff)
+        drape tradeoff --json "$OUT/tradeoff-h100.json" --out "$OUT" "$@" 2>&1 | tee "$OUT/tradeoff-h100.txt" ;;
+    loadtest)
+        drape loadtest --json "$OUT/loadtest-h100.json" "$@" 2>&1 | tee "$OUT/loadtest-h100.txt" ;;
+    *)
+        echo "unknown: $what" >&2; exit 2 ;;
+esac

@@ -1,0 +1,218 @@
+"""``drape bench``: the talk's table and beyond.
+
+Workloads
+- ``seed``: one 150x150 cloth, structural + shear links (89,102: the talk's 90k), 10 iterations;
+  no solver (iterations 0) / coloured batches / work-group / Jacobi / CPU reference.
+- ``many``: N cloths of 32x32 with bending (5,826 links each), N = 64 .. 4096.
+- ``hang``: 1 m x 1 m, 1 kg, n x n, flat at 1 m, two corners of one edge pinned, dt 1/60,
+  10 iterations: ms per step and max/mean structural stretch (length / rest) after 2 s.
+
+A frame is one ``World.step`` plus waiting for the device (``World.sync``): median of the timed
+frames after warm-up. Records go to ``--json PATH``; the table is printed.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import platform
+import statistics
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .fabric import Fabric, cook_grid
+from .params import ClothParams, LinkOptions
+from .world import World, make_world
+
+log = logging.getLogger(__name__)
+
+DT = 1 / 60
+
+
+@dataclass
+class Record:
+    workload: str
+    solver: str
+    device: str
+    cloths: int
+    vertices: int
+    links: int
+    iterations: int
+    ms_per_frame: float  # median
+    link_iters_per_s: float
+    frames: int
+    ms_min: float
+    ms_max: float
+    extra: dict = field(default_factory=dict)
+
+
+def time_frames(world: World, warmup: int, frames: int, max_seconds: float) -> list[float]:
+    for _ in range(warmup):
+        world.step(DT)
+    world.sync()
+    times: list[float] = []
+    start = time.perf_counter()
+    for _ in range(frames):
+        t0 = time.perf_counter()
+        world.step(DT)
+        world.sync()
+        times.append((time.perf_counter() - t0) * 1e3)
+        if time.perf_counter() - start > max_seconds and len(times) >= 3:
+            break
+    return times
+
+
+def _record(workload, solver, world, fabrics_params, times, extra=None) -> Record:
+    links = sum(f.n_links for f, _ in fabrics_params)
+    iters = max(p.iterations for _, p in fabrics_params)
+    li = sum(f.n_links * p.iterations * p.substeps for f, p in fabrics_params)
+    med = statistics.median(times)
+    return Record(
+        workload=workload,
+        solver=solver,
+        device=getattr(world, "device_name", "?"),
+        cloths=len(fabrics_params),
+        vertices=sum(f.n_vertices for f, _ in fabrics_params),
+        links=links,
+        iterations=iters,
+        ms_per_frame=round(med, 4),
+        link_iters_per_s=li / (med / 1e3) if med > 0 else 0.0,
+        frames=len(times),
+        ms_min=round(min(times), 4),
+        ms_max=round(max(times), 4),
+        extra=extra or {},
+    )
+
+
+def make(solver: str, device: str | None) -> World:
+    return make_world(solver) if solver == "reference" else make_world(solver, device=device)
+
+
+def bench_seed(solvers, device, frames, max_seconds) -> list[Record]:
+    fab = cook_grid(150, 150, 1.0, 1.0, LinkOptions(structural=True, shear=True), pinned=[0, 149], origin=(0, 1, 0))
+    out = []
+    cases = [("no-solver", solvers[0] if solvers[0] != "reference" else "workgroup", 0)]
+    cases += [(s, s, 10) for s in solvers]
+    for label, solver, iters in cases:
+        log.info("seed: %s", label)
+        w = make(solver, device)
+        p = ClothParams(iterations=iters)
+        w.add(fab, p)
+        n = frames if solver != "reference" else max(3, frames // 10)
+        t = time_frames(w, warmup=3 if solver != "reference" else 1, frames=n, max_seconds=max_seconds)
+        rec = _record("seed", label if label == "no-solver" else solver, w, [(fab, p)], t)
+        if label == "no-solver":
+            rec.extra["strategy"] = solver
+        out.append(rec)
+        w.close()
+    return out
+
+
+def bench_many(solvers, device, counts, frames, max_seconds) -> list[Record]:
+    fab = cook_grid(32, 32, 1.0, 1.0, LinkOptions(bending=True), pinned=[0, 31], origin=(0, 1, 0))
+    out = []
+    for solver in solvers:
+        for n in counts:
+            if solver == "reference" and n > 64:
+                continue  # numpy over thousands of cloths says nothing new
+            log.info("many: %s x %d cloths", solver, n)
+            w = make(solver, device)
+            p = ClothParams(iterations=10)
+            for i in range(n):
+                w.add(fab, p)
+            t = time_frames(w, warmup=2, frames=frames, max_seconds=max_seconds)
+            out.append(_record("many", solver, w, [(fab, p)] * n, t))
+            w.close()
+    return out
+
+
+def stretch(x: np.ndarray, fab: Fabric) -> tuple[float, float]:
+    s = fab.link_type == 0
+    a, b = fab.links[s, 0], fab.links[s, 1]
+    ratio = np.linalg.norm(x[b] - x[a], axis=1) / fab.rest_length[s]
+    return float(ratio.max()), float(ratio.mean())
+
+
+def bench_hang(solvers, device, sizes, frames, max_seconds) -> list[Record]:
+    out = []
+    for n in sizes:
+        fab = cook_grid(n, n, 1.0, 1.0, LinkOptions(structural=True, shear=True, bending=True), pinned=[0, n - 1],
+                        origin=(0, 1, 0))
+        for solver in solvers:
+            if solver == "reference" and n > 64:
+                continue
+            log.info("hang: %s %dx%d", solver, n, n)
+            w = make(solver, device)
+            p = ClothParams(iterations=10)
+            h = w.add(fab, p)
+            times = []
+            steps = int(round(2.0 / DT))
+            for _ in range(steps):
+                t0 = time.perf_counter()
+                w.step(DT)
+                w.sync()
+                times.append((time.perf_counter() - t0) * 1e3)
+            x = w.positions(h)
+            mx, mean = stretch(x, fab)
+            rec = _record(f"hang{n}", solver, w, [(fab, p)], times[5:] or times)
+            rec.extra.update(max_stretch=round(mx, 5), mean_stretch=round(mean, 5), finite=bool(np.isfinite(x).all()),
+                             lowest_y=round(float(x[:, 1].min()), 4))
+            out.append(rec)
+            w.close()
+    return out
+
+
+def print_table(records: list[Record]) -> None:
+    head = f"{'workload':<10} {'solver':<10} {'cloths':>6} {'vertices':>9} {'links':>10} {'it':>3} {'ms/frame':>10} {'G link-it/s':>11}  extra"
+    print(head)
+    print("-" * len(head))
+    for r in records:
+        extra = " ".join(f"{k}={v}" for k, v in r.extra.items())
+        print(f"{r.workload:<10} {r.solver:<10} {r.cloths:>6} {r.vertices:>9} {r.links:>10} {r.iterations:>3} "
+              f"{r.ms_per_frame:>10.3f} {r.link_iters_per_s / 1e9:>11.3f}  {extra}")
+    if records:
+        print(f"device: {records[0].device}; host: {platform.node()} {platform.processor() or platform.machine()}")
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("workloads", nargs="*", default=["seed", "many", "hang"], choices=["seed", "many", "hang", []],
+                        help="which workloads (default: all)")
+    parser.add_argument("--solvers", default="coloured,workgroup,jacobi,reference")
+    parser.add_argument("--device", default=None, help="OpenCL device: auto, gpu, cpu or a name substring")
+    parser.add_argument("--counts", default=None, help="cloth counts for 'many' (default 64..4096 on a GPU, 64..512 on a CPU)")
+    parser.add_argument("--sizes", default="32,64,150", help="n for the n x n 'hang' cloths")
+    parser.add_argument("--frames", type=int, default=30, help="timed frames per case (median reported)")
+    parser.add_argument("--max-seconds", type=float, default=20.0, help="stop timing a case after this long")
+    parser.add_argument("--json", type=Path, default=None, help="write the records here")
+    parser.add_argument("--quick", action="store_true", help="small counts and few frames (CI smoke run)")
+
+
+def run(args: argparse.Namespace) -> int:
+    solvers = [s.strip() for s in args.solvers.split(",") if s.strip()]
+    workloads = args.workloads or ["seed", "many", "hang"]
+    frames = 5 if args.quick else args.frames
+    if args.counts:
+        counts = [int(c) for c in args.counts.split(",")]
+    elif args.quick:
+        counts = [64]
+    else:
+        from .device import Device
+
+        counts = [64, 256, 1024, 4096] if Device(args.device).info.is_gpu else [64, 256, 512]
+    sizes = [int(s) for s in args.sizes.split(",")] if not args.quick else [32]
+    records: list[Record] = []
+    if "seed" in workloads:
+        records += bench_seed(solvers, args.device, frames, args.max_seconds)
+    if "many" in workloads:
+        records += bench_many(solvers, args.device, counts, frames, args.max_seconds)
+    if "hang" in workloads:
+        records += bench_hang(solvers, args.device, sizes, frames, args.max_seconds)
+    print_table(records)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps([asdict(r) for r in records], indent=1))
+        print(f"wrote {args.json}")
+    return 0

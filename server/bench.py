@@ -178,8 +178,7 @@ def print_table(records: list[Record]) -> None:
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("workloads", nargs="*", default=["seed", "many", "hang"], choices=["seed", "many", "hang", []],
-                        help="which workloads (default: all)")
+    parser.add_argument("workloads", nargs="*", metavar="WORKLOAD", help="seed, many, hang (default: all)")
     parser.add_argument("--solvers", default="coloured,workgroup,jacobi,reference")
     parser.add_argument("--device", default=None, help="OpenCL device: auto, gpu, cpu or a name substring")
     parser.add_argument("--counts", default=None, help="cloth counts for 'many' (default 64..4096 on a GPU, 64..512 on a CPU)")
@@ -193,6 +192,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     solvers = [s.strip() for s in args.solvers.split(",") if s.strip()]
     workloads = args.workloads or ["seed", "many", "hang"]
+    unknown = set(workloads) - {"seed", "many", "hang"}
+    if unknown:
+        raise SystemExit(f"drape bench: unknown workload(s) {sorted(unknown)}; choose from seed, many, hang")
     frames = 5 if args.quick else args.frames
     if args.counts:
         counts = [int(c) for c in args.counts.split(",")]

@@ -13,12 +13,13 @@ cd "$(dirname "$0")/.."
 OUT=${OUT:-out/h100}
 mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1
-if [ ! -f /tmp/site/.drape-installed ]; then
+if [ ! -f /tmp/site/.wheels-installed ]; then
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl
-    python3 -m pip install -q --no-index --no-deps --no-build-isolation --no-cache-dir --target /tmp/site .
-    touch /tmp/site/.drape-installed
+    touch /tmp/site/.wheels-installed
 fi
-export PYTHONPATH=/tmp/site
+# the project itself is reinstalled every call: the working tree may have changed
+python3 -m pip install -q --no-index --no-deps --no-build-isolation --no-cache-dir --upgrade --target /tmp/drape-site .
+export PYTHONPATH=/tmp/drape-site:/tmp/site
 mkdir -p /tmp/icd
 echo /usr/local/nvidia/lib64/libnvidia-opencl.so.1 > /tmp/icd/nvidia.icd
 export OCL_ICD_VENDORS=/tmp/icd

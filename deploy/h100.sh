@@ -34,10 +34,12 @@ case "$what" in
     bench)
         drape bench --json "$OUT/bench-h100.json" "$@" 2>&1 | tee "$OUT/bench-h100.txt" ;;
     tune)
-        for ls in 64 128 256 512 1024; do
-            echo "== DRAPE_WG_SIZE=$ls"
-            DRAPE_WG_SIZE=$ls drape bench many seed --solvers workgroup --counts 4096 --frames 20 "$@" 2>&1 | grep -E "^(seed|many)"
-        done 2>&1 | tee "$OUT/tune-h100.txt" ;;
+        # register cap x unroll for the global-memory path (seed), unroll for the local path (many)
+        for regs in ${TUNE_REGS:-0 64 32}; do for u in ${TUNE_UNROLL:-1 2 4 8}; do
+            echo "== DRAPE_NV_MAXRREG=$regs DRAPE_LINK_UNROLL_GLOBAL=$u DRAPE_LINK_UNROLL_LOCAL=$u"
+            DRAPE_NV_MAXRREG=$regs DRAPE_LINK_UNROLL_GLOBAL=$u DRAPE_LINK_UNROLL_LOCAL=$u \
+                drape bench seed many --solvers workgroup --counts 4096 --frames 20 "$@" 2>&1 | grep -E "^(seed|many) "
+        done; done 2>&1 | tee "$OUT/tune-h100.txt" ;;
     tradeoff)
         drape tradeoff --json "$OUT/tradeoff-h100.json" --out "$OUT" "$@" 2>&1 | tee "$OUT/tradeoff-h100.txt" ;;
     loadtest)

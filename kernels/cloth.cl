@@ -5,6 +5,7 @@
  *   USE_LOCAL      1: wg_step keeps the cloth's positions in local memory (cloth must fit)
  *                  0: wg_step works on global memory, and the coloured/Jacobi kernels exist
  *   JACOBI_OMEGA   over-relaxation of the Jacobi vertex solver
+ *   LINK_UNROLL    links a work-item loads before it stores any (memory-level parallelism)
  *
  * Positions are float4: xyz and the inverse mass in w (0 = pinned).
  * Strategies:
@@ -34,6 +35,9 @@
 #endif
 #ifndef JACOBI_OMEGA
 #define JACOBI_OMEGA 1.5f
+#endif
+#ifndef LINK_UNROLL
+#define LINK_UNROLL 4
 #endif
 
 #define EPS_LEN2 1e-20f
@@ -288,20 +292,43 @@ __kernel void wg_step(const float dt, __global const int *cloths, __global const
         for (int it = 0; it < iters; ++it) {
             for (int col = 0; col < ncol; ++col) {
                 const int end = cols[col + 1];
-                for (int l = cols[col] + lid; l < end; l += ls) {
-                    __global const int *L = links + LINK_WORDS * l;
-                    int a = L[0], b = L[1], type = L[2];
-                    float rl = as_float(L[3]);
-                    float4 p0 = X[a], p1 = X[b];
+                int l = cols[col] + lid;
+                /* Links of one colour share no vertex, so a work-item may load several before
+                 * storing any: LINK_UNROLL independent loads in flight hide memory latency. */
+                for (; l + (LINK_UNROLL - 1) * ls < end; l += LINK_UNROLL * ls) {
+                    int4 R[LINK_UNROLL];
+                    float4 P0[LINK_UNROLL], P1[LINK_UNROLL];
+                    for (int u = 0; u < LINK_UNROLL; ++u)
+                        R[u] = vload4(l + u * ls, links);
+                    for (int u = 0; u < LINK_UNROLL; ++u) {
+                        P0[u] = X[R[u].x];
+                        P1[u] = X[R[u].y];
+                    }
+                    for (int u = 0; u < LINK_UNROLL; ++u) {
+                        float3 d0, d1;
+#if FEATURE_XPBD
+                        int lu = l + u * ls;
+                        float dl = link_xpbd(P0[u], P1[u], as_float(R[u].w), link_alpha(F, R[u].z, h), lam[lu], &d0, &d1);
+                        lam[lu] += dl;
+#else
+                        link_pbd(P0[u], P1[u], as_float(R[u].w), F[CF_STIFFNESS + R[u].z], &d0, &d1);
+#endif
+                        X[R[u].x] = (float4)(P0[u].xyz + d0, P0[u].w);
+                        X[R[u].y] = (float4)(P1[u].xyz + d1, P1[u].w);
+                    }
+                }
+                for (; l < end; l += ls) {
+                    int4 R = vload4(l, links);
+                    float4 p0 = X[R.x], p1 = X[R.y];
                     float3 d0, d1;
 #if FEATURE_XPBD
-                    float dl = link_xpbd(p0, p1, rl, link_alpha(F, type, h), lam[l], &d0, &d1);
+                    float dl = link_xpbd(p0, p1, as_float(R.w), link_alpha(F, R.z, h), lam[l], &d0, &d1);
                     lam[l] += dl;
 #else
-                    link_pbd(p0, p1, rl, F[CF_STIFFNESS + type], &d0, &d1);
+                    link_pbd(p0, p1, as_float(R.w), F[CF_STIFFNESS + R.z], &d0, &d1);
 #endif
-                    X[a] = (float4)(p0.xyz + d0, p0.w);
-                    X[b] = (float4)(p1.xyz + d1, p1.w);
+                    X[R.x] = (float4)(p0.xyz + d0, p0.w);
+                    X[R.y] = (float4)(p1.xyz + d1, p1.w);
                 }
                 barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
             }

@@ -104,6 +104,7 @@ def bench_seed(solvers, device, frames, max_seconds) -> list[Record]:
         n = frames if solver != "reference" else max(3, frames // 10)
         t = time_frames(w, warmup=3 if solver != "reference" else 1, frames=n, max_seconds=max_seconds)
         rec = _record("seed", label if label == "no-solver" else solver, w, [(fab, p)], t)
+        rec.extra.update(_launch_shape(w))
         if label == "no-solver":
             rec.extra["strategy"] = solver
         out.append(rec)
@@ -124,7 +125,7 @@ def bench_many(solvers, device, counts, frames, max_seconds) -> list[Record]:
             for i in range(n):
                 w.add(fab, p)
             t = time_frames(w, warmup=2, frames=frames, max_seconds=max_seconds)
-            out.append(_record("many", solver, w, [(fab, p)] * n, t))
+            out.append(_record("many", solver, w, [(fab, p)] * n, t, _launch_shape(w)))
             w.close()
     return out
 
@@ -163,6 +164,14 @@ def bench_hang(solvers, device, sizes, frames, max_seconds) -> list[Record]:
             out.append(rec)
             w.close()
     return out
+
+
+def _launch_shape(w: World) -> dict:
+    """Work-group size and memory path of each kernel group (OpenCL worlds)."""
+    groups = getattr(w, "groups", {})
+    if not groups:
+        return {}
+    return {"wg": ",".join(f"{g.local_size}{'L' if g.use_local else 'G'}/{w._kernel_limit(g)}" for g in groups.values())}
 
 
 def print_table(records: list[Record]) -> None:

@@ -174,6 +174,10 @@ def fabric_blob(f: Fabric) -> tuple[np.ndarray, dict[str, int]]:
     return np.concatenate(list(parts.values())).astype(np.int32), offsets
 
 
+LINK_UNROLL_LOCAL = 1  # local memory answers fast: no gain from more loads in flight
+LINK_UNROLL_GLOBAL = 4  # global memory: four independent links per work-item hide latency
+
+
 def _next_pow2(n: int) -> int:
     return 1 << max(0, int(n - 1).bit_length())
 
@@ -194,7 +198,10 @@ class CLWorld(World):
         self.dev = device if isinstance(device, Device) else Device(device)
         self.device_name = self.dev.info.name
         env_ls = os.environ.get("DRAPE_WG_SIZE")
+        # GPU: 256 work-items per cloth held in local memory; a big cloth on the global-memory
+        # path takes the whole 1024 it is allowed (it is alone on its compute unit anyway).
         self.max_local_size = int(local_size or env_ls or (256 if self.dev.info.is_gpu else 1024))
+        self.max_global_path_size = int(local_size or env_ls or 1024)
         self.use_local = use_local  # None: when the cloth fits
         self.link_group_size = link_group_size
         q = self.dev
@@ -453,7 +460,8 @@ class CLWorld(World):
             max(c.fabric.n_vertices for c in cloths),
             max((int(np.diff(c.fabric.colour_offsets).max()) if c.fabric.n_colours else 1) for c in cloths),
         )
-        g.local_size = int(min(self.max_local_size, max(32, _next_pow2(widest))))
+        cap = self.max_local_size if (g.use_local or self.solver != "workgroup") else self.max_global_path_size
+        g.local_size = int(min(cap, max(32, _next_pow2(widest))))
         g.local_size = min(g.local_size, self._kernel_limit(g))
         if self.solver == "coloured":
             counts = np.zeros((g.max_colours, len(cloths) + 1), np.int32)
@@ -472,7 +480,15 @@ class CLWorld(World):
 
     def _options(self, g: Group, local: bool | None = None) -> list[str]:
         use_local = g.use_local if local is None else local
-        return [*g.features.build_options(), f"-DUSE_LOCAL={int(use_local)}", f"-DJACOBI_OMEGA={JACOBI_OMEGA}f"]
+        unroll = os.environ.get("DRAPE_LINK_UNROLL_LOCAL" if use_local else "DRAPE_LINK_UNROLL_GLOBAL")
+        unroll = int(unroll) if unroll else (LINK_UNROLL_LOCAL if use_local else LINK_UNROLL_GLOBAL)
+        opts = [*g.features.build_options(), f"-DUSE_LOCAL={int(use_local)}", f"-DJACOBI_OMEGA={JACOBI_OMEGA}f",
+                f"-DLINK_UNROLL={unroll}"]
+        regs = os.environ.get("DRAPE_NV_MAXRREG", "64")
+        if not use_local and self.dev.info.is_nvidia and regs != "0":
+            # cap registers so a global-path work-group may have 1024 work-items
+            opts.append(f"-cl-nv-maxrregcount={regs}")
+        return opts
 
     def _kernel_limit(self, g: Group) -> int:
         name = "wg_step" if self.solver == "workgroup" else "cl_predict"

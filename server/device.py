@@ -79,6 +79,7 @@ class DeviceInfo:
     local_mem: int
     max_work_group: int
     compute_units: int
+    is_nvidia: bool
 
 
 class Device:
@@ -97,6 +98,7 @@ class Device:
             local_mem=int(d.local_mem_size),
             max_work_group=int(d.max_work_group_size),
             compute_units=int(d.max_compute_units),
+            is_nvidia="nvidia" in d.platform.name.lower(),
         )
         log.info("OpenCL device: %s (local mem %d B, max work-group %d)", self.info.name, self.info.local_mem,
                  self.info.max_work_group)

@@ -201,9 +201,12 @@ class CLWorld(World):
         self.device_name = self.dev.info.name
         env_ls = os.environ.get("DRAPE_WG_SIZE")
         # GPU: 256 work-items per cloth held in local memory; a big cloth on the global-memory
-        # path takes the whole 1024 it is allowed (it is alone on its compute unit anyway).
-        self.max_local_size = int(local_size or env_ls or (256 if self.dev.info.is_gpu else 1024))
-        self.max_global_path_size = int(local_size or env_ls or 1024)
+        # path takes as many as the kernel allows (it is alone on its compute unit anyway).
+        # CPU (PoCL): one work-item per cloth, i.e. the talk's serial loop in colour order with
+        # no barrier bookkeeping, fastest there (docs/benchmarks.md); cloths spread over cores.
+        gpu = self.dev.info.is_gpu
+        self.max_local_size = int(local_size or env_ls or (256 if gpu else 1))
+        self.max_global_path_size = int(local_size or env_ls or (1024 if gpu else 1))
         self.use_local = use_local  # None: when the cloth fits
         self.link_group_size = link_group_size
         q = self.dev
@@ -463,7 +466,7 @@ class CLWorld(World):
             max((int(np.diff(c.fabric.colour_offsets).max()) if c.fabric.n_colours else 1) for c in cloths),
         )
         cap = self.max_local_size if (g.use_local or self.solver != "workgroup") else self.max_global_path_size
-        g.local_size = int(min(cap, max(32, _next_pow2(widest))))
+        g.local_size = int(min(cap, max(min(32, cap), _next_pow2(widest))))
         g.local_size = min(g.local_size, self._kernel_limit(g))
         if self.solver == "coloured":
             counts = np.zeros((g.max_colours, len(cloths) + 1), np.int32)

@@ -30,7 +30,8 @@ FEATURE_SETS = [
 
 @pytest.mark.parametrize("solver", OPENCL)
 @pytest.mark.parametrize("features", FEATURE_SETS, ids=lambda f: "+".join(f.names()))
-def test_every_feature_on_every_solver_agrees_with_reference(device, rng, solver, features):
+@pytest.mark.parametrize("local_size", [1, 64], ids=["serial", "parallel"])
+def test_every_feature_on_every_solver_agrees_with_reference(device, rng, solver, features, local_size):
     fab = random_grid_fabric(rng, LinkOptions(bending=True), n_pins=2)
     params = ClothParams(
         features=features,
@@ -46,7 +47,7 @@ def test_every_feature_on_every_solver_agrees_with_reference(device, rng, solver
         Capsule(tuple(centre + [-0.5, -0.6, 0]), tuple(centre + [0.5, -0.6, 0.1]), 0.1),
         Plane((0.0, 1.0, 0.0), float(lo[1] - 0.4)),
     ]
-    w = CLWorld(solver, device=device)
+    w = CLWorld(solver, device=device, local_size=local_size)
     ref = ReferenceWorld("jacobi" if solver == "jacobi" else "coloured")
     h, r = w.add(fab, params), ref.add(fab, params)
     for step in range(10):

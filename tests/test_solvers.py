@@ -50,13 +50,15 @@ def tol(ref_pos, steps):
 
 @pytest.mark.parametrize("solver", GS_SOLVERS)
 @pytest.mark.parametrize("xpbd", [False, True])
-def test_gauss_seidel_solvers_match_reference_in_colour_order(device, rng, solver, xpbd):
+@pytest.mark.parametrize("local_size", [1, 64], ids=["serial", "parallel"])
+def test_gauss_seidel_solvers_match_reference_in_colour_order(device, rng, solver, xpbd, local_size):
     for maker in (random_mesh_fabric, random_grid_fabric):
         fab = maker(rng)
         params = random_params(rng, Features(xpbd=xpbd))
         pos = random_state(rng, fab)
         steps = 5
-        a, b = run_pair(CLWorld(solver, device=device), ReferenceWorld("coloured"), fab, params, pos, steps)
+        world = CLWorld(solver, device=device, local_size=local_size)
+        a, b = run_pair(world, ReferenceWorld("coloured"), fab, params, pos, steps)
         assert np.all(np.isfinite(a))
         np.testing.assert_allclose(a, b, atol=tol(b, steps), rtol=0)
 
@@ -65,8 +67,10 @@ def test_workgroup_global_memory_path_matches_local(device, rng):
     fab = random_grid_fabric(rng)
     params = random_params(rng)
     pos = random_state(rng, fab)
-    a, _ = run_pair(CLWorld("workgroup", device=device, use_local=True), ReferenceWorld(), fab, params, pos, 3)
-    b, r = run_pair(CLWorld("workgroup", device=device, use_local=False), ReferenceWorld(), fab, params, pos, 3)
+    a, _ = run_pair(CLWorld("workgroup", device=device, use_local=True, local_size=64), ReferenceWorld(), fab,
+                    params, pos, 3)
+    b, r = run_pair(CLWorld("workgroup", device=device, use_local=False, local_size=64), ReferenceWorld(), fab,
+                    params, pos, 3)
     np.testing.assert_allclose(a, r, atol=tol(r, 3), rtol=0)
     np.testing.assert_allclose(b, r, atol=tol(r, 3), rtol=0)
 
@@ -108,7 +112,7 @@ def test_jacobi_matches_its_reference_and_reaches_the_rest_shape(device, rng):
     np.testing.assert_allclose(a, b, atol=tol(b, 3), rtol=0)
     # relaxed long enough, Jacobi and Gauss-Seidel reach the same shape: every link at rest length
     for solver in ("jacobi", "workgroup"):
-        w = CLWorld(solver, device=device)
+        w = CLWorld(solver, device=device, local_size=32)
         h = w.add(fab, params.with_(iterations=50), pos)
         for _ in range(60):
             w.step(DT)
@@ -185,7 +189,7 @@ def test_per_cloth_parameters_in_one_world(device):
 
 def test_many_cloths_in_one_launch_match_reference(device, rng):
     fabs = [random_grid_fabric(rng) for _ in range(3)]
-    w = {s: CLWorld(s, device=device) for s in GS_SOLVERS}
+    w = {s: CLWorld(s, device=device, local_size=32) for s in GS_SOLVERS}
     ref = ReferenceWorld()
     handles = []
     for i in range(24):

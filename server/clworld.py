@@ -537,20 +537,27 @@ class CLWorld(World):
         q = self.dev.queue
         lg = self.link_group_size
         ngc = np.int32(len(g.slots))
+        # arguments set once; per dispatch only the colour and the iteration change
+        k.set_args(dt32, np.int32(0), np.int32(0), ngc, g.prefix_buf, g.cloths_buf, self.ci.buf, self.cf.buf,
+                   self.fab.buf, self.pos.buf, self.lam.buf)
+        sizes = [((-(-total // lg) * lg,), c) for c, total in enumerate(g.colour_totals) if total]
         for it in range(g.max_iters):
-            for c, total in enumerate(g.colour_totals):
-                if total == 0:
-                    continue
-                k(q, (-(-total // lg) * lg,), (lg,), dt32, np.int32(c), np.int32(it), ngc, g.prefix_buf,
-                  g.cloths_buf, self.ci.buf, self.cf.buf, self.fab.buf, self.pos.buf, self.lam.buf)
+            k.set_arg(2, np.int32(it))
+            for gsize, c in sizes:
+                k.set_arg(1, np.int32(c))
+                cl.enqueue_nd_range_kernel(q, k, gsize, (lg,))
 
     def _jacobi_iterations(self, g: Group, dt32, opts, gsize, ls) -> None:
         k = self.dev.kernel(opts, "jacobi_iter")
         q = self.dev.queue
         bufs = [self.pos.buf, self.pos2.buf]
+        k.set_args(dt32, np.int32(0), g.cloths_buf, self.ci.buf, self.cf.buf, self.fab.buf, bufs[0], bufs[1],
+                   self.lam.buf)
         for it in range(g.max_iters):
-            k(q, gsize, (ls,), dt32, np.int32(it), g.cloths_buf, self.ci.buf, self.cf.buf, self.fab.buf,
-              bufs[it & 1], bufs[(it + 1) & 1], self.lam.buf)
+            k.set_arg(1, np.int32(it))
+            k.set_arg(6, bufs[it & 1])
+            k.set_arg(7, bufs[(it + 1) & 1])
+            cl.enqueue_nd_range_kernel(q, k, gsize, (ls,))
         if g.max_iters & 1:
             self.dev.kernel(opts, "copy_positions")(q, gsize, (ls,), g.cloths_buf, self.ci.buf, self.pos2.buf,
                                                      self.pos.buf)

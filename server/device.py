@@ -109,7 +109,7 @@ class Device:
             prg = self._programs.get(key)
             if prg is None:
                 text = (kernel_dir() / source).read_text()
-                opts = [*options, "-I", str(kernel_dir())]
+                opts = [*options, *os.environ.get("DRAPE_CL_FLAGS", "").split(), "-I", str(kernel_dir())]
                 log.debug("building %s with %s", source, " ".join(options))
                 prg = cl.Program(self.ctx, text).build(options=opts)
                 self._programs[key] = prg

@@ -6,6 +6,8 @@ Workloads
 - ``many``: N cloths of 32x32 with bending (5,826 links each), N = 64 .. 4096.
 - ``hang``: 1 m x 1 m, 1 kg, n x n, flat at 1 m, two corners of one edge pinned, dt 1/60,
   10 iterations: ms per step and max/mean structural stretch (length / rest) after 2 s.
+- ``features``: the ``many`` cloths with each scene feature alone, all of them, and a half/half
+  mix of bare and windy cloths (two kernels in one tick): the cost of each feature.
 
 A frame is one ``World.step`` plus waiting for the device (``World.sync``): median of the timed
 frames after warm-up. Records go to ``--json PATH``; the table is printed.
@@ -24,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from .fabric import Fabric, cook_grid
-from .params import ClothParams, LinkOptions
+from .params import Capsule, ClothParams, Features, LinkOptions, Material, Plane, Sphere, pack_colliders
 from .world import World, make_world
 
 log = logging.getLogger(__name__)
@@ -130,6 +132,48 @@ def bench_many(solvers, device, counts, frames, max_seconds) -> list[Record]:
     return out
 
 
+FEATURE_CASES: list[tuple[str, Features]] = [
+    ("none", Features()),
+    ("xpbd", Features(xpbd=True)),
+    ("tethers", Features(tethers=True)),
+    ("colliders", Features(colliders=True)),
+    ("wind", Features(wind=True)),
+    ("normals", Features(normals=True)),
+    ("all", Features(xpbd=True, tethers=True, colliders=True, wind=True, normals=True)),
+    ("half-wind", Features()),  # half the cloths bare, half with wind: two kernels per tick
+]
+
+
+def bench_features(solvers, device, count, frames, max_seconds) -> list[Record]:
+    fab = cook_grid(32, 32, 1.0, 1.0, LinkOptions(bending=True), pinned=[0, 31], origin=(0, 1, 0))
+    colliders = pack_colliders([Sphere((0.5, 0.4, 0.5), 0.2), Capsule((0.0, 0.2, 0.3), (1.0, 0.2, 0.6), 0.05),
+                                Plane((0.0, 1.0, 0.0), -0.5)])
+    out = []
+    for solver in solvers:
+        if solver == "reference":
+            continue
+        for label, feats in FEATURE_CASES:
+            log.info("features: %s %s x %d", solver, label, count)
+            w = make(solver, device)
+            mat = Material(compliance=(1e-6, 1e-6, 1e-4), drag=1.0, lift=0.5, friction=0.3, tether_limit=1.05)
+            fps = []
+            for i in range(count):
+                f = Features(wind=True) if (label == "half-wind" and i % 2) else feats
+                p = ClothParams(iterations=10, material=mat, features=f, wind=(2.0, 0.0, 1.0))
+                h = w.add(fab, p)
+                if f.colliders:
+                    w.set_colliders(h, colliders)
+                fps.append((fab, p))
+            t = time_frames(w, warmup=2, frames=frames, max_seconds=max_seconds)
+            rec = _record("features", solver, w, fps, t, {"features": label})
+            out.append(rec)
+            w.close()
+    base = {r.solver: r.ms_per_frame for r in out if r.extra["features"] == "none"}
+    for r in out:
+        r.extra["vs_none"] = round(r.ms_per_frame / base[r.solver], 3) if base.get(r.solver) else None
+    return out
+
+
 def stretch(x: np.ndarray, fab: Fabric) -> tuple[float, float]:
     s = fab.link_type == 0
     a, b = fab.links[s, 0], fab.links[s, 1]
@@ -187,7 +231,9 @@ def print_table(records: list[Record]) -> None:
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("workloads", nargs="*", metavar="WORKLOAD", help="seed, many, hang (default: all)")
+    parser.add_argument("workloads", nargs="*", metavar="WORKLOAD", help="seed, many, hang, features (default: all)")
+    parser.add_argument("--feature-cloths", type=int, default=None,
+                        help="cloths in the 'features' workload (default 4096 on a GPU, 128 on a CPU)")
     parser.add_argument("--solvers", default="coloured,workgroup,jacobi,reference")
     parser.add_argument("--device", default=None, help="OpenCL device: auto, gpu, cpu or a name substring")
     parser.add_argument("--counts", default=None, help="cloth counts for 'many' (default 64..4096 on a GPU, 64..512 on a CPU)")
@@ -200,19 +246,22 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     solvers = [s.strip() for s in args.solvers.split(",") if s.strip()]
-    workloads = args.workloads or ["seed", "many", "hang"]
-    unknown = set(workloads) - {"seed", "many", "hang"}
+    known = ["seed", "many", "hang", "features"]
+    workloads = args.workloads or known
+    unknown = set(workloads) - set(known)
     if unknown:
-        raise SystemExit(f"drape bench: unknown workload(s) {sorted(unknown)}; choose from seed, many, hang")
+        raise SystemExit(f"drape bench: unknown workload(s) {sorted(unknown)}; choose from {', '.join(known)}")
     frames = 5 if args.quick else args.frames
+    from .device import Device
+
+    gpu = Device(args.device).info.is_gpu if set(workloads) & {"many", "features"} else False
     if args.counts:
         counts = [int(c) for c in args.counts.split(",")]
     elif args.quick:
         counts = [64]
     else:
-        from .device import Device
-
-        counts = [64, 256, 1024, 4096] if Device(args.device).info.is_gpu else [64, 256, 512]
+        counts = [64, 256, 1024, 4096] if gpu else [64, 256, 512]
+    feature_cloths = args.feature_cloths or (16 if args.quick else 4096 if gpu else 128)
     sizes = [int(s) for s in args.sizes.split(",")] if not args.quick else [32]
     records: list[Record] = []
     if "seed" in workloads:
@@ -221,6 +270,8 @@ def run(args: argparse.Namespace) -> int:
         records += bench_many(solvers, args.device, counts, frames, args.max_seconds)
     if "hang" in workloads:
         records += bench_hang(solvers, args.device, sizes, frames, args.max_seconds)
+    if "features" in workloads:
+        records += bench_features(solvers, args.device, feature_cloths, frames, args.max_seconds)
     print_table(records)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -12,6 +12,7 @@
  *   wg_step                         one work-group per cloth, the whole step in one launch
  *   cl_predict / cl_links / cl_finish   coloured batches merged over every cloth of a group
  *   cl_predict / jacobi_iter / cl_finish   Jacobi vertex solver, double-buffered
+ *   (vertex phases of those two run over vertex chunks; cl_normals is its own launch)
  */
 #include "layout.h"
 
@@ -354,30 +355,42 @@ __kernel void wg_step(const float dt, __global const int *cloths, __global const
 
 #if !USE_LOCAL
 /* ------------------------------------------------------------------------------------------ */
-/* Per-cloth vertex phases for the coloured and Jacobi strategies (one work-group per cloth). */
+/* Vertex phases of the coloured and Jacobi strategies. They run over *chunks*: (cloth, first
+ * vertex) pairs of at most `chunk` vertices, so a big cloth spreads over many work-groups and
+ * small ones take one each. No phase reads a vertex another chunk writes in the same launch:
+ * normals are their own launch, tethers read pinned anchors, which these phases never move. */
 
-__kernel void cl_predict(const float dt, const int s, __global const int *cloths, __global const int *ci,
-                         __global const float *cf, __global const int *fab, __global float4 *pos,
-                         __global float4 *vel, __global float4 *prev, __global const float4 *target,
-                         __global float4 *nrm, __global float *lam_all)
-{
-    const int c = cloths[get_group_id(0)];
-    __global const int *I = ci + c * CI_STRIDE;
-    __global const float *F = cf + c * CF_STRIDE;
-    __global const int *fb = fab + I[CI_FAB];
-    const int vbase = I[CI_VBASE], nv = I[CI_NVERTS], S = I[CI_SUBSTEPS];
+#define CHUNK_PROLOGUE                                                                           \
+    const int2 ck = chunks[get_group_id(0)];                                                     \
+    const int c = ck.x;                                                                          \
+    __global const int *I = ci + c * CI_STRIDE;                                                  \
+    __global const float *F = cf + c * CF_STRIDE;                                                \
+    __global const int *fb = fab + I[CI_FAB];                                                    \
+    const int vbase = I[CI_VBASE], S = I[CI_SUBSTEPS];                                           \
+    const int v_end = min(ck.y + chunk, I[CI_NVERTS]);                                           \
     const int lid = get_local_id(0), ls = get_local_size(0);
-    const float h = dt / (float)S;
-    __global float4 *X = pos + vbase;
-#if FEATURE_WIND
-    for (int v = lid; v < nv; v += ls) {
+
+__kernel void cl_normals(const int chunk, __global const int2 *chunks, __global const int *ci,
+                         __global const float *cf, __global const int *fab, __global const float4 *pos,
+                         __global float4 *nrm)
+{
+    CHUNK_PROLOGUE
+    for (int v = ck.y + lid; v < v_end; v += ls) {
         float area;
-        float3 n = vertex_normal(X, fb, I, v, &area);
+        float3 n = vertex_normal(pos + vbase, fb, I, v, &area);
         nrm[vbase + v] = (float4)(n, area);
     }
-    barrier(CLK_GLOBAL_MEM_FENCE);
-#endif
-    for (int v = lid; v < nv; v += ls) {
+}
+
+__kernel void cl_predict(const float dt, const int s, const int chunk, __global const int2 *chunks,
+                         __global const int *ci, __global const float *cf, __global const int *fab,
+                         __global float4 *pos, __global float4 *vel, __global float4 *prev,
+                         __global const float4 *target, __global const float4 *nrm, __global float *lam_all)
+{
+    CHUNK_PROLOGUE
+    const float h = dt / (float)S;
+    __global float4 *X = pos + vbase;
+    for (int v = ck.y + lid; v < v_end; v += ls) {
         float3 f = (float3)(0.0f);
 #if FEATURE_WIND
         float4 na = nrm[vbase + v];
@@ -386,37 +399,24 @@ __kernel void cl_predict(const float dt, const int s, __global const int *cloths
         X[v] = predict_vertex(X[v], f, vel, prev, target, vbase + v, F, h, S - s);
     }
 #if FEATURE_XPBD
-    __global float *lam = lam_all + I[CI_LAM];
-    for (int l = lid; l < I[CI_NLINKS]; l += ls)
-        lam[l] = 0.0f; /* Jacobi reads the first half on its first iteration */
+    if (ck.y == 0) { /* the cloth's first chunk resets its multipliers */
+        __global float *lam = lam_all + I[CI_LAM];
+        for (int l = lid; l < I[CI_NLINKS]; l += ls)
+            lam[l] = 0.0f; /* Jacobi reads the first half on its first iteration */
+    }
 #endif
 }
 
-__kernel void cl_finish(const float dt, const int s, __global const int *cloths, __global const int *ci,
-                        __global const float *cf, __global const int *fab, __global float4 *pos,
-                        __global float4 *vel, __global const float4 *prev, __global float4 *nrm,
+__kernel void cl_finish(const float dt, const int s, const int chunk, __global const int2 *chunks,
+                        __global const int *ci, __global const float *cf, __global const int *fab,
+                        __global float4 *pos, __global float4 *vel, __global const float4 *prev,
                         __global const float4 *coll)
 {
-    const int c = cloths[get_group_id(0)];
-    __global const int *I = ci + c * CI_STRIDE;
-    __global const float *F = cf + c * CF_STRIDE;
-    __global const int *fb = fab + I[CI_FAB];
-    const int vbase = I[CI_VBASE], nv = I[CI_NVERTS], S = I[CI_SUBSTEPS];
-    const int lid = get_local_id(0), ls = get_local_size(0);
+    CHUNK_PROLOGUE
     const float h = dt / (float)S;
     __global float4 *X = pos + vbase;
-    for (int v = lid; v < nv; v += ls)
+    for (int v = ck.y + lid; v < v_end; v += ls)
         X[v] = finish_vertex(X[v], X, fb, I, F, vel, prev, coll, v, vbase + v, h, s, S);
-#if FEATURE_NORMALS
-    if (s == S - 1) {
-        barrier(CLK_GLOBAL_MEM_FENCE);
-        for (int v = lid; v < nv; v += ls) {
-            float area;
-            float3 n = vertex_normal(X, fb, I, v, &area);
-            nrm[vbase + v] = (float4)(n, area);
-        }
-    }
-#endif
 }
 
 /* One colour batch of every cloth in the group: global id -> (cloth, link) through the
@@ -464,20 +464,15 @@ __kernel void cl_links(const float dt, const int colour, const int it, const int
 
 /* Jacobi vertex solver: each vertex gathers its links from src and writes dst; vertices are
  * visited in the fabric's degree order so neighbouring work-items loop the same number of times. */
-__kernel void jacobi_iter(const float dt, const int it, __global const int *cloths, __global const int *ci,
-                          __global const float *cf, __global const int *fab, __global const float4 *src,
-                          __global float4 *dst, __global float *lam_all)
+__kernel void jacobi_iter(const float dt, const int it, const int chunk, __global const int2 *chunks,
+                          __global const int *ci, __global const float *cf, __global const int *fab,
+                          __global const float4 *src, __global float4 *dst, __global float *lam_all)
 {
-    const int c = cloths[get_group_id(0)];
-    __global const int *I = ci + c * CI_STRIDE;
-    __global const float *F = cf + c * CF_STRIDE;
-    __global const int *fb = fab + I[CI_FAB];
+    CHUNK_PROLOGUE
     __global const int *order = fb + I[CI_OFF_JORDER];
     __global const int *off = fb + I[CI_OFF_JOFF];
     __global const int *adj = fb + I[CI_OFF_JADJ];
     __global const int *links = fb + I[CI_OFF_LINKS];
-    const int vbase = I[CI_VBASE], nv = I[CI_NVERTS];
-    const int lid = get_local_id(0), ls = get_local_size(0);
     __global const float4 *Xs = src + vbase;
     __global float4 *Xd = dst + vbase;
     const bool active = it < I[CI_ITERS];
@@ -485,9 +480,9 @@ __kernel void jacobi_iter(const float dt, const int it, __global const int *clot
     const int nl = I[CI_NLINKS];
     __global const float *lam_src = lam_all + I[CI_LAM] + (it & 1) * nl;
     __global float *lam_dst = lam_all + I[CI_LAM] + ((it + 1) & 1) * nl;
-    const float h = dt / (float)I[CI_SUBSTEPS];
+    const float h = dt / (float)S;
 #endif
-    for (int k = lid; k < nv; k += ls) {
+    for (int k = ck.y + lid; k < v_end; k += ls) {
         const int v = order[k];
         float4 p = Xs[v];
         if (!active) {
@@ -529,14 +524,14 @@ __kernel void jacobi_iter(const float dt, const int it, __global const int *clot
     }
 }
 
-/* copy positions of every cloth of the group (closes an odd number of Jacobi iterations) */
-__kernel void copy_positions(__global const int *cloths, __global const int *ci, __global const float4 *src,
-                             __global float4 *dst)
+/* copy positions of every chunk (closes an odd number of Jacobi iterations) */
+__kernel void copy_positions(const int chunk, __global const int2 *chunks, __global const int *ci,
+                             __global const float4 *src, __global float4 *dst)
 {
-    const int c = cloths[get_group_id(0)];
-    __global const int *I = ci + c * CI_STRIDE;
-    const int vbase = I[CI_VBASE], nv = I[CI_NVERTS];
-    for (int v = get_local_id(0); v < nv; v += get_local_size(0))
+    const int2 ck = chunks[get_group_id(0)];
+    __global const int *I = ci + ck.x * CI_STRIDE;
+    const int vbase = I[CI_VBASE], v_end = min(ck.y + chunk, I[CI_NVERTS]);
+    for (int v = ck.y + get_local_id(0); v < v_end; v += get_local_size(0))
         dst[vbase + v] = src[vbase + v];
 }
 #endif

@@ -139,6 +139,8 @@ class Group:
     slots: np.ndarray | None = None
     cloths_buf: cl.Buffer | None = None
     prefix_buf: cl.Buffer | None = None
+    chunks_buf: cl.Buffer | None = None  # (cloth slot, first vertex) per vertex-phase work-group
+    n_chunks: int = 0
     colour_totals: list[int] = field(default_factory=list)
     max_iters: int = 0
     max_colours: int = 0
@@ -192,6 +194,7 @@ class CLWorld(World):
         local_size: int | None = None,
         use_local: bool | None = None,
         link_group_size: int = 256,
+        chunk: int | None = None,
     ) -> None:
         super().__init__()
         if strategy not in ("workgroup", "coloured", "jacobi"):
@@ -209,6 +212,8 @@ class CLWorld(World):
         self.max_global_path_size = int(local_size or env_ls or (1024 if gpu else 1))
         self.use_local = use_local  # None: when the cloth fits
         self.link_group_size = link_group_size
+        # vertices per work-group in the coloured/Jacobi vertex phases: big cloths spread out
+        self.chunk = int(chunk or os.environ.get("DRAPE_CHUNK", "1024"))
         q = self.dev
         self.vert = RangeAllocator()
         self.pos = DevArray(q, np.float32, 4)
@@ -465,7 +470,15 @@ class CLWorld(World):
             max(c.fabric.n_vertices for c in cloths),
             max((int(np.diff(c.fabric.colour_offsets).max()) if c.fabric.n_colours else 1) for c in cloths),
         )
-        cap = self.max_local_size if (g.use_local or self.solver != "workgroup") else self.max_global_path_size
+        if self.solver == "workgroup":
+            cap = self.max_local_size if g.use_local else self.max_global_path_size
+        else:
+            cap = self.max_local_size
+            widest = min(widest, self.chunk)
+            chunks = [(r.slot, v0) for r, c in zip(recs, cloths) for v0 in range(0, c.fabric.n_vertices, self.chunk)]
+            g.n_chunks = len(chunks)
+            g.chunks_buf = cl.Buffer(self.dev.ctx, MF.READ_ONLY | MF.COPY_HOST_PTR,
+                                     hostbuf=np.ascontiguousarray(chunks, np.int32))
         g.local_size = int(min(cap, max(min(32, cap), _next_pow2(widest))))
         g.local_size = min(g.local_size, self._kernel_limit(g))
         if self.solver == "coloured":
@@ -505,32 +518,43 @@ class CLWorld(World):
         q = self.dev.queue
         dt32 = np.float32(dt)
         for g in self.groups.values():
-            n = len(g.slots)
-            ls = g.local_size
-            gsize = (n * ls,)
             opts = self._options(g)
-            if self.solver == "workgroup":
-                k = self.dev.kernel(opts, "wg_step")
-                args = [dt32, g.cloths_buf, self.ci.buf, self.cf.buf, self.fab.buf, self.pos.buf, self.vel.buf,
-                        self.prev.buf, self.target.buf, self.nrm.buf, self.coll.buf, self.lam.buf]
-                if g.use_local:
-                    args.append(cl.LocalMemory(16 * g.max_vertices))
-                k(q, gsize, (ls,), *args)
+            if self.solver != "workgroup":
+                self._vertex_phase_step(g, dt32, opts)
                 continue
-            predict = self.dev.kernel(opts, "cl_predict")
-            finish = self.dev.kernel(opts, "cl_finish")
-            for s in range(g.substeps):
-                si = np.int32(s)
-                predict(q, gsize, (ls,), dt32, si, g.cloths_buf, self.ci.buf, self.cf.buf, self.fab.buf,
-                        self.pos.buf, self.vel.buf, self.prev.buf, self.target.buf, self.nrm.buf, self.lam.buf)
-                if self.solver == "coloured":
-                    self._coloured_iterations(g, dt32, opts)
-                else:
-                    self._jacobi_iterations(g, dt32, opts, gsize, ls)
-                finish(q, gsize, (ls,), dt32, si, g.cloths_buf, self.ci.buf, self.cf.buf, self.fab.buf,
-                       self.pos.buf, self.vel.buf, self.prev.buf, self.nrm.buf, self.coll.buf)
+            args = [dt32, g.cloths_buf, self.ci.buf, self.cf.buf, self.fab.buf, self.pos.buf, self.vel.buf,
+                    self.prev.buf, self.target.buf, self.nrm.buf, self.coll.buf, self.lam.buf]
+            if g.use_local:
+                args.append(cl.LocalMemory(16 * g.max_vertices))
+            ls = g.local_size
+            self.dev.kernel(opts, "wg_step")(q, (len(g.slots) * ls,), (ls,), *args)
         self.steps += 1
         self._after_step()
+
+    def _vertex_phase_step(self, g: Group, dt32, opts) -> None:
+        """Coloured or Jacobi: per substep normals (wind), predict, iterations, finish."""
+        q = self.dev.queue
+        ls = g.local_size
+        gsize = (g.n_chunks * ls,)
+        ch = np.int32(self.chunk)
+        predict = self.dev.kernel(opts, "cl_predict")
+        finish = self.dev.kernel(opts, "cl_finish")
+        normals = self.dev.kernel(opts, "cl_normals")
+        normal_args = (ch, g.chunks_buf, self.ci.buf, self.cf.buf, self.fab.buf, self.pos.buf, self.nrm.buf)
+        for s in range(g.substeps):
+            si = np.int32(s)
+            if g.features.wind:
+                normals(q, gsize, (ls,), *normal_args)
+            predict(q, gsize, (ls,), dt32, si, ch, g.chunks_buf, self.ci.buf, self.cf.buf, self.fab.buf,
+                    self.pos.buf, self.vel.buf, self.prev.buf, self.target.buf, self.nrm.buf, self.lam.buf)
+            if self.solver == "coloured":
+                self._coloured_iterations(g, dt32, opts)
+            else:
+                self._jacobi_iterations(g, dt32, opts, gsize, ls)
+            finish(q, gsize, (ls,), dt32, si, ch, g.chunks_buf, self.ci.buf, self.cf.buf, self.fab.buf,
+                   self.pos.buf, self.vel.buf, self.prev.buf, self.coll.buf)
+        if g.features.normals:
+            normals(q, gsize, (ls,), *normal_args)
 
     def _coloured_iterations(self, g: Group, dt32, opts) -> None:
         k = self.dev.kernel(opts, "cl_links")
@@ -551,15 +575,16 @@ class CLWorld(World):
         k = self.dev.kernel(opts, "jacobi_iter")
         q = self.dev.queue
         bufs = [self.pos.buf, self.pos2.buf]
-        k.set_args(dt32, np.int32(0), g.cloths_buf, self.ci.buf, self.cf.buf, self.fab.buf, bufs[0], bufs[1],
+        ch = np.int32(self.chunk)
+        k.set_args(dt32, np.int32(0), ch, g.chunks_buf, self.ci.buf, self.cf.buf, self.fab.buf, bufs[0], bufs[1],
                    self.lam.buf)
         for it in range(g.max_iters):
             k.set_arg(1, np.int32(it))
-            k.set_arg(6, bufs[it & 1])
-            k.set_arg(7, bufs[(it + 1) & 1])
+            k.set_arg(7, bufs[it & 1])
+            k.set_arg(8, bufs[(it + 1) & 1])
             cl.enqueue_nd_range_kernel(q, k, gsize, (ls,))
         if g.max_iters & 1:
-            self.dev.kernel(opts, "copy_positions")(q, gsize, (ls,), g.cloths_buf, self.ci.buf, self.pos2.buf,
+            self.dev.kernel(opts, "copy_positions")(q, gsize, (ls,), ch, g.chunks_buf, self.ci.buf, self.pos2.buf,
                                                      self.pos.buf)
 
     def _after_step(self) -> None:

@@ -47,7 +47,7 @@ def test_every_feature_on_every_solver_agrees_with_reference(device, rng, solver
         Capsule(tuple(centre + [-0.5, -0.6, 0]), tuple(centre + [0.5, -0.6, 0.1]), 0.1),
         Plane((0.0, 1.0, 0.0), float(lo[1] - 0.4)),
     ]
-    w = CLWorld(solver, device=device, local_size=local_size)
+    w = CLWorld(solver, device=device, local_size=local_size, chunk=48)  # cloths span several chunks
     ref = ReferenceWorld("jacobi" if solver == "jacobi" else "coloured")
     h, r = w.add(fab, params), ref.add(fab, params)
     for step in range(10):

@@ -108,18 +108,22 @@ def test_jacobi_matches_its_reference_and_reaches_the_rest_shape(device, rng):
     fab = random_grid_fabric(rng, n_pins=0)
     params = ClothParams(gravity=(0.0, 0.0, 0.0), iterations=4, material=Material(damping=0.5))
     pos = random_state(rng, fab, 0.02)
-    a, b = run_pair(CLWorld("jacobi", device=device), ReferenceWorld("jacobi"), fab, params, pos, 3)
+    a, b = run_pair(CLWorld("jacobi", device=device, chunk=32), ReferenceWorld("jacobi"), fab, params, pos, 3)
     np.testing.assert_allclose(a, b, atol=tol(b, 3), rtol=0)
     # relaxed long enough, Jacobi and Gauss-Seidel reach the same shape: every link at rest length
-    for solver in ("jacobi", "workgroup"):
+    # (Jacobi gets there more slowly: it needs several times the iterations of Gauss-Seidel)
+    for solver, iterations, bound in (("jacobi", 100, 2e-3), ("workgroup", 50, 2e-3)):
         w = CLWorld(solver, device=device, local_size=32)
-        h = w.add(fab, params.with_(iterations=50), pos)
-        for _ in range(60):
-            w.step(DT)
-        x = w.positions(h)
-        lengths = np.linalg.norm(x[fab.links[:, 1]] - x[fab.links[:, 0]], axis=1)
-        strain = np.abs(lengths - fab.rest_length) / fab.rest_length
-        assert strain.max() < 2e-3, (solver, strain.max())
+        h = w.add(fab, params.with_(iterations=iterations), pos)
+        strains = []
+        for _ in range(3):
+            for _ in range(40):
+                w.step(DT)
+            x = w.positions(h)
+            lengths = np.linalg.norm(x[fab.links[:, 1]] - x[fab.links[:, 0]], axis=1)
+            strains.append(float((np.abs(lengths - fab.rest_length) / fab.rest_length).max()))
+        assert strains[-1] < bound, (solver, strains)
+        assert strains[-1] <= strains[0] + 1e-6, (solver, strains)
 
 
 @pytest.mark.parametrize("solver", ["workgroup", "coloured", "jacobi"])
@@ -189,7 +193,8 @@ def test_per_cloth_parameters_in_one_world(device):
 
 def test_many_cloths_in_one_launch_match_reference(device, rng):
     fabs = [random_grid_fabric(rng) for _ in range(3)]
-    w = {s: CLWorld(s, device=device, local_size=32) for s in GS_SOLVERS}
+    # small vertex chunks: the coloured strategy's vertex phases spread one cloth over work-groups
+    w = {s: CLWorld(s, device=device, local_size=32, chunk=40) for s in GS_SOLVERS}
     ref = ReferenceWorld()
     handles = []
     for i in range(24):

@@ -51,17 +51,26 @@ class Record:
     extra: dict = field(default_factory=dict)
 
 
-def time_frames(world: World, warmup: int, frames: int, max_seconds: float) -> list[float]:
+class FrameTimes(list):
+    """Milliseconds per frame; ``host_ms`` holds the part spent enqueueing (Python + driver)."""
+
+    host_ms: list[float]
+
+
+def time_frames(world: World, warmup: int, frames: int, max_seconds: float) -> FrameTimes:
     for _ in range(warmup):
         world.step(DT)
     world.sync()
-    times: list[float] = []
+    times = FrameTimes()
+    times.host_ms = []
     start = time.perf_counter()
     for _ in range(frames):
         t0 = time.perf_counter()
         world.step(DT)
+        t1 = time.perf_counter()
         world.sync()
         times.append((time.perf_counter() - t0) * 1e3)
+        times.host_ms.append((t1 - t0) * 1e3)
         if time.perf_counter() - start > max_seconds and len(times) >= 3:
             break
     return times
@@ -72,7 +81,7 @@ def _record(workload, solver, world, fabrics_params, times, extra=None) -> Recor
     iters = max(p.iterations for _, p in fabrics_params)
     li = sum(f.n_links * p.iterations * p.substeps for f, p in fabrics_params)
     med = statistics.median(times)
-    return Record(
+    rec = Record(
         workload=workload,
         solver=solver,
         device=getattr(world, "device_name", "?"),
@@ -85,8 +94,11 @@ def _record(workload, solver, world, fabrics_params, times, extra=None) -> Recor
         frames=len(times),
         ms_min=round(min(times), 4),
         ms_max=round(max(times), 4),
-        extra=extra or {},
+        extra=dict(extra or {}),
     )
+    if getattr(times, "host_ms", None):
+        rec.extra["enqueue_ms"] = round(statistics.median(times.host_ms), 4)
+    return rec
 
 
 def make(solver: str, device: str | None) -> World:

@@ -462,6 +462,17 @@ __kernel void cl_links(const float dt, const int colour, const int it, const int
     X[b] = (float4)(p1.xyz + d1, p1.w);
 }
 
+/* Chebyshev semi-iterative weight of Jacobi iteration `it` (Wang 2015); 1 when off. */
+inline float chebyshev_omega(float rho, int it)
+{
+    if (!(rho > 0.0f) || it == 0)
+        return 1.0f;
+    float w = 2.0f / (2.0f - rho * rho);
+    for (int k = 1; k < it; ++k)
+        w = 4.0f / (4.0f - rho * rho * w);
+    return w;
+}
+
 /* Jacobi vertex solver: each vertex gathers its links from src and writes dst; vertices are
  * visited in the fabric's degree order so neighbouring work-items loop the same number of times. */
 __kernel void jacobi_iter(const float dt, const int it, const int chunk, __global const int2 *chunks,
@@ -476,6 +487,7 @@ __kernel void jacobi_iter(const float dt, const int it, const int chunk, __globa
     __global const float4 *Xs = src + vbase;
     __global float4 *Xd = dst + vbase;
     const bool active = it < I[CI_ITERS];
+    const float omega = chebyshev_omega(F[CF_CHEB_RHO], it);
 #if FEATURE_XPBD
     const int nl = I[CI_NLINKS];
     __global const float *lam_src = lam_all + I[CI_LAM] + (it & 1) * nl;
@@ -520,6 +532,10 @@ __kernel void jacobi_iter(const float dt, const int it, const int chunk, __globa
         }
         if (e1 > e0)
             p.xyz += acc * (JACOBI_OMEGA / (float)(e1 - e0));
+        if (omega != 1.0f && p.w > 0.0f) {
+            float4 before = Xd[v]; /* dst still holds this vertex's iterate before the last */
+            p.xyz = omega * (p.xyz - before.xyz) + before.xyz;
+        }
         Xd[v] = p;
     }
 }

@@ -39,6 +39,7 @@
 #define CF_LIFT 15
 #define CF_RHO 16
 #define CF_TETHER_LIMIT 17
+#define CF_CHEB_RHO 18     /* Chebyshev spectral-radius estimate for Jacobi, 0 = off */
 
 /* fabric blob records */
 #define LINK_WORDS 4      /* i0, i1, type, rest length (float bits) */

@@ -340,6 +340,7 @@ class CLWorld(World):
         cf[L["CF_LIFT"]] = m.lift
         cf[L["CF_RHO"]] = m.air_density
         cf[L["CF_TETHER_LIMIT"]] = m.tether_limit
+        cf[L["CF_CHEB_RHO"]] = p.chebyshev_rho
         self._tables_dirty = True
 
     def _group_key(self, cloth: Cloth) -> tuple[tuple, bool]:

@@ -142,6 +142,9 @@ class ClothParams:
     wind: tuple[float, float, float] = (0.0, 0.0, 0.0)
     iterations: int = 10
     substeps: int = 1
+    # Jacobi only: Chebyshev semi-iterative acceleration (Wang 2015) with this estimate of the
+    # spectral radius; 0 turns it off. Typical 0.9 .. 0.99.
+    chebyshev_rho: float = 0.0
 
     def with_(self, **changes) -> "ClothParams":
         return replace(self, **changes)
@@ -154,6 +157,8 @@ class ClothParams:
         _finite("compliance", m.compliance)
         if not (0 <= self.iterations <= 1000):  # 0: no link solve (the talk's "no solver" row)
             raise ValueError("iterations must be in 0..1000")
+        if not (0.0 <= self.chebyshev_rho < 1.0):
+            raise ValueError("chebyshev_rho must be in [0, 1)")
         if not (1 <= self.substeps <= 100):
             raise ValueError("substeps must be in 1..100")
         if not (math.isfinite(m.mass) and m.mass > 0):

@@ -107,7 +107,8 @@ def step(state: ClothState, fabric: Fabric, params: ClothParams, dt: float, mode
         x[pinned] += (state.target[pinned] - x[pinned]) / (S - s)
         lam[:] = 0.0
         alpha = comp / (h * h)
-        for _ in range(params.iterations):
+        x_before = x.copy()  # x^(k-1) for Chebyshev
+        for it in range(params.iterations):
             if mode == "serial":
                 _links_serial(x, invm, fabric, kst, alpha, lam, f.xpbd)
             elif mode == "coloured":
@@ -115,7 +116,12 @@ def step(state: ClothState, fabric: Fabric, params: ClothParams, dt: float, mode
                     sl = slice(int(fabric.colour_offsets[c]), int(fabric.colour_offsets[c + 1]))
                     _links_vectorised(x, invm, fabric, sl, kst, alpha, lam, f.xpbd)
             else:
+                x_k = x.copy()
                 _links_jacobi(x, invm, fabric, kst, alpha, lam, f.xpbd)
+                omega = chebyshev_omega(params.chebyshev_rho, it)
+                if omega != 1.0:
+                    x[free] = omega * (x[free] - x_before[free]) + x_before[free]
+                x_before = x_k
         if f.tethers:
             apply_tethers(x, fabric, m.tether_limit)
         if f.colliders and len(state.colliders):
@@ -126,6 +132,16 @@ def step(state: ClothState, fabric: Fabric, params: ClothParams, dt: float, mode
         v[:] = (x - x_prev) / h * (1.0 - damp)
     if f.needs_normals:
         state.normals, _ = vertex_normals(x, fabric)
+
+
+def chebyshev_omega(rho: float, it: int) -> float:
+    """Chebyshev weight of Jacobi iteration ``it`` (0-based): 1, 2/(2-rho^2), 4/(4-rho^2 w)..."""
+    if rho <= 0.0 or it == 0:
+        return 1.0
+    w = 2.0 / (2.0 - rho * rho)
+    for _ in range(it - 1):
+        w = 4.0 / (4.0 - rho * rho * w)
+    return w
 
 
 # ---------------------------------------------------------------------------------------------

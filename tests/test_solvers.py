@@ -241,3 +241,22 @@ def test_device_choice_respects_environment(monkeypatch):
 def test_link_options_change_links():
     f = cook_grid(4, 4, options=LinkOptions(structural=True, shear=False, bending=False))
     assert f.n_links == 2 * 4 * 3
+
+
+def test_chebyshev_jacobi_matches_reference_and_converges_faster(device, rng):
+    fab = random_grid_fabric(rng, n_pins=2)
+    base = ClothParams(iterations=12, material=Material(damping=0.1))
+    pos = random_state(rng, fab, 0.02)
+    cheb = base.with_(chebyshev_rho=0.95)
+    a, b = run_pair(CLWorld("jacobi", device=device, chunk=32), ReferenceWorld("jacobi"), fab, cheb, pos, 3)
+    np.testing.assert_allclose(a, b, atol=tol(b, 3) * 5, rtol=0)
+
+    def residual(params):
+        w = ReferenceWorld("jacobi")
+        h = w.add(fab, params.with_(gravity=(0.0, 0.0, 0.0)), pos)
+        w.step(DT)
+        x = w.positions(h)
+        lengths = np.linalg.norm(x[fab.links[:, 1]] - x[fab.links[:, 0]], axis=1)
+        return float(np.abs(lengths - fab.rest_length).sum())
+
+    assert residual(cheb) < 0.8 * residual(base)

@@ -32,7 +32,7 @@ what=${1:-bench}
 shift || true
 case "$what" in
     bench)
-        drape bench --json "$OUT/bench-h100.json" "$@" 2>&1 | tee "$OUT/bench-h100.txt" ;;
+        drape bench --json "$OUT/bench-h100.json" --markdown "$OUT/bench-h100.md" "$@" 2>&1 | tee "$OUT/bench-h100.txt" ;;
     tune)
         # register cap x unroll for the global-memory path (seed), unroll for the local path (many)
         for regs in ${TUNE_REGS:-0 64 32}; do for u in ${TUNE_UNROLL:-1 2 4 8}; do

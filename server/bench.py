@@ -242,6 +242,19 @@ def print_table(records: list[Record]) -> None:
         print(f"device: {records[0].device}; host: {platform.node()} {platform.processor() or platform.machine()}")
 
 
+def markdown_table(records: list[Record]) -> str:
+    """The records as a Markdown table (what docs/benchmarks.md quotes)."""
+    rows = ["| workload | solver | cloths | vertices | links | iterations | ms/frame (median) | G link-it/s | notes |",
+            "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
+    for r in records:
+        notes = ", ".join(f"{k} {v}" for k, v in r.extra.items())
+        rows.append(f"| {r.workload} | {r.solver} | {r.cloths} | {r.vertices} | {r.links} | {r.iterations} | "
+                    f"{r.ms_per_frame:.3f} | {r.link_iters_per_s / 1e9:.2f} | {notes} |")
+    if records:
+        rows.append(f"\nDevice: {records[0].device}.")
+    return "\n".join(rows) + "\n"
+
+
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("workloads", nargs="*", metavar="WORKLOAD", help="seed, many, hang, features (default: all)")
     parser.add_argument("--feature-cloths", type=int, default=None,
@@ -253,6 +266,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=int, default=30, help="timed frames per case (median reported)")
     parser.add_argument("--max-seconds", type=float, default=20.0, help="stop timing a case after this long")
     parser.add_argument("--json", type=Path, default=None, help="write the records here")
+    parser.add_argument("--markdown", type=Path, default=None, help="write the table as Markdown here")
     parser.add_argument("--quick", action="store_true", help="small counts and few frames (CI smoke run)")
 
 
@@ -289,4 +303,8 @@ def run(args: argparse.Namespace) -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps([asdict(r) for r in records], indent=1))
         print(f"wrote {args.json}")
+    if args.markdown:
+        args.markdown.parent.mkdir(parents=True, exist_ok=True)
+        args.markdown.write_text(markdown_table(records))
+        print(f"wrote {args.markdown}")
     return 0

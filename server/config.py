@@ -1,0 +1,245 @@
+"""Server configuration: one dataclass, filled from defaults < a TOML file < DRAPE_* environment
+variables < command-line flags.
+
+A TOML file holds the fields at its top level (or inside a ``[server]`` table)::
+
+    mode = "peer"                      # peer | client | router
+    listen = ["tcp/0.0.0.0:7447"]
+    connect = []
+    namespace = "drape"
+    server_id = "eu-1"
+    tick_rate = 60.0
+    solver = "workgroup"               # workgroup | coloured | jacobi | reference
+    device = "auto"                    # see drape devices
+    max_cloths = 1024
+    max_cloths_per_client = 64
+    max_vertices_per_cloth = 65536
+    max_total_vertices = 2097152
+    grace_period = 5.0                 # seconds a vanished client's cloths are kept
+    stats_period = 1.0
+
+Every field is also an environment variable ``DRAPE_<FIELD>`` (``DRAPE_TICK_RATE=30``; lists are
+comma-separated: ``DRAPE_LISTEN=tcp/0.0.0.0:7447,tcp/[::]:7447``) and a flag ``--field-name``.
+``DRAPE_CONFIG`` or ``--config`` names the TOML file.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import re
+import socket
+import tomllib
+import types
+import typing
+from dataclasses import MISSING, dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any, Mapping
+
+from drape.client.protocol import DEFAULT_ENDPOINT, DEFAULT_NAMESPACE, ID_RE, NAMESPACE_RE, Limits
+from .params import MAX_COLLIDERS_PER_CLOTH, SOLVERS
+
+log = logging.getLogger(__name__)
+
+ZENOH_MODES = ("peer", "client", "router")
+CONGESTION_CHOICES = ("auto", "drop", "block")
+
+
+def default_server_id() -> str:
+    """Host name and process id, as a valid key chunk."""
+    host = re.sub(r"[^A-Za-z0-9_.\-]", "-", socket.gethostname())[:40] or "drape"
+    return f"{host}-{os.getpid()}"
+
+
+@dataclass
+class ServerConfig:
+    # --- Zenoh -------------------------------------------------------------------------------
+    mode: str = "peer"
+    listen: list[str] = field(default_factory=lambda: [DEFAULT_ENDPOINT])
+    connect: list[str] = field(default_factory=list)
+    multicast_scouting: bool = False  # off: peers find each other through explicit endpoints
+    zenoh_config: str | None = None  # a Zenoh JSON5 file (TLS, auth, ACL); the fields above override it
+    namespace: str = DEFAULT_NAMESPACE
+    server_id: str = ""  # "" = host name and process id
+    # --- simulation ----------------------------------------------------------------------------
+    tick_rate: float = 60.0  # Hz; dt = 1 / tick_rate
+    solver: str = "workgroup"
+    device: str | None = None  # None = DRAPE_DEVICE or auto
+    # --- limits --------------------------------------------------------------------------------
+    max_cloths: int = 1024
+    max_cloths_per_client: int = 64
+    max_vertices_per_cloth: int = 65536
+    max_total_vertices: int = 1 << 21
+    max_message_bytes: int = 8 << 20
+    max_pin_updates: int = 4096
+    max_iterations: int = 100
+    max_substeps: int = 16
+    max_pending_requests: int = 1024  # queued commands; beyond this requests get "busy"
+    # --- service -------------------------------------------------------------------------------
+    grace_period: float = 5.0  # seconds a client's cloths outlive its liveliness token
+    stats_period: float = 1.0  # seconds between stats publications
+    state_congestion: str = "auto"  # auto | drop | block (see PROTOCOL.md, "Congestion control")
+    drop_max_bytes: int = 60000  # auto: states up to this size use DROP, larger ones BLOCK
+
+    def __post_init__(self) -> None:
+        if not self.server_id:
+            self.server_id = default_server_id()
+
+    def validate(self) -> "ServerConfig":
+        if self.mode not in ZENOH_MODES:
+            raise ValueError(f"mode must be one of {ZENOH_MODES}, got {self.mode!r}")
+        if not NAMESPACE_RE.match(self.namespace):
+            raise ValueError(f"invalid namespace {self.namespace!r}")
+        if not ID_RE.match(self.server_id):
+            raise ValueError(f"invalid server_id {self.server_id!r}: 1-64 characters of [A-Za-z0-9_.-]")
+        if self.solver not in SOLVERS:
+            raise ValueError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
+        if not (0.1 <= self.tick_rate <= 10000):
+            raise ValueError("tick_rate must be in 0.1..10000 Hz")
+        if self.state_congestion not in CONGESTION_CHOICES:
+            raise ValueError(f"state_congestion must be one of {CONGESTION_CHOICES}")
+        for name in ("max_cloths", "max_cloths_per_client", "max_vertices_per_cloth", "max_total_vertices",
+                     "max_message_bytes", "max_pin_updates", "max_iterations", "max_substeps", "max_pending_requests"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1")
+        if self.max_iterations > 1000 or self.max_substeps > 100:
+            raise ValueError("max_iterations <= 1000 and max_substeps <= 100 (the solver's own bounds)")
+        if self.grace_period < 0 or self.stats_period <= 0:
+            raise ValueError("grace_period must be >= 0 and stats_period > 0")
+        return self
+
+    @property
+    def dt(self) -> float:
+        return 1.0 / self.tick_rate
+
+    def limits(self) -> Limits:
+        return Limits(
+            max_message_bytes=self.max_message_bytes,
+            max_vertices=self.max_vertices_per_cloth,
+            max_triangles=4 * self.max_vertices_per_cloth,
+            max_pin_updates=self.max_pin_updates,
+            max_colliders=MAX_COLLIDERS_PER_CLOTH,
+            max_iterations=self.max_iterations,
+            max_substeps=self.max_substeps,
+        )
+
+    # --- sources ---------------------------------------------------------------------------
+    @classmethod
+    def load(
+        cls,
+        path: str | Path | None = None,
+        env: Mapping[str, str] | None = None,
+        overrides: Mapping[str, Any] | None = None,
+    ) -> "ServerConfig":
+        """Defaults, then the TOML file (``path`` or $DRAPE_CONFIG), then DRAPE_* variables of
+        ``env`` (default os.environ), then ``overrides`` (None values are ignored)."""
+        env = os.environ if env is None else env
+        values: dict[str, Any] = {}
+        path = path or env.get("DRAPE_CONFIG")
+        if path:
+            values.update(_from_toml(Path(path)))
+        values.update(_from_env(env))
+        values.update({k: v for k, v in (overrides or {}).items() if v is not None})
+        unknown = set(values) - {f.name for f in fields(cls)}
+        if unknown:
+            raise ValueError(f"unknown configuration key(s) {sorted(unknown)}")
+        return cls(**values).validate()
+
+    def with_(self, **changes: Any) -> "ServerConfig":
+        return replace(self, **changes).validate()
+
+
+def _field_kind(f) -> tuple[type, bool]:
+    """(base type, optional) of a dataclass field from its annotation."""
+    hint = typing.get_type_hints(ServerConfig)[f.name]
+    optional = False
+    if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        optional = len(args) < len(typing.get_args(hint))
+        hint = args[0]
+    if typing.get_origin(hint) is list:
+        return list, optional
+    return hint, optional
+
+
+def _convert(name: str, value: Any, kind: type, optional: bool, source: str) -> Any:
+    try:
+        if value is None or (optional and isinstance(value, str) and value.strip().lower() in ("", "none")):
+            if optional:
+                return None
+            raise ValueError("a value is required")
+        if kind is list:
+            if isinstance(value, str):
+                return [v.strip() for v in value.split(",") if v.strip()]
+            if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+                raise ValueError("expected a list of strings")
+            return list(value)
+        if kind is bool:
+            if isinstance(value, bool):
+                return value
+            s = str(value).strip().lower()
+            if s in ("1", "true", "yes", "on"):
+                return True
+            if s in ("0", "false", "no", "off"):
+                return False
+            raise ValueError("expected true or false")
+        if kind is int:
+            if isinstance(value, bool):
+                raise ValueError("expected an integer")
+            return int(value)
+        if kind is float:
+            if isinstance(value, bool):
+                raise ValueError("expected a number")
+            return float(value)
+        return str(value)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{source}: bad value {value!r} for {name}: {e}") from None
+
+
+def _from_toml(path: Path) -> dict[str, Any]:
+    with open(path, "rb") as fh:
+        data = tomllib.load(fh)
+    if "server" in data and isinstance(data["server"], dict):
+        data = {**{k: v for k, v in data.items() if k != "server"}, **data["server"]}
+    out: dict[str, Any] = {}
+    by_name = {f.name: f for f in fields(ServerConfig)}
+    for k, v in data.items():
+        if k not in by_name:
+            raise ValueError(f"{path}: unknown configuration key {k!r}")
+        kind, optional = _field_kind(by_name[k])
+        out[k] = _convert(k, v, kind, optional, str(path))
+    log.debug("configuration from %s: %s", path, out)
+    return out
+
+
+def _from_env(env: Mapping[str, str]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for f in fields(ServerConfig):
+        var = f"DRAPE_{f.name.upper()}"
+        if var in env:
+            kind, optional = _field_kind(f)
+            out[f.name] = _convert(f.name, env[var], kind, optional, var)
+    return out
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--config`` plus one flag per ServerConfig field (all default to None = not given)."""
+    parser.add_argument("--config", metavar="FILE", help="TOML configuration file (default: $DRAPE_CONFIG)")
+    for f in fields(ServerConfig):
+        kind, _ = _field_kind(f)
+        flag = "--" + f.name.replace("_", "-")
+        default = f.default_factory() if f.default_factory is not MISSING else f.default  # type: ignore[misc]
+        help_ = f"(default: {default!r}; env DRAPE_{f.name.upper()})"
+        if kind is bool:
+            parser.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=None, help=help_)
+        elif kind is list:
+            parser.add_argument(flag, dest=f.name, action="append", metavar="ENDPOINT", default=None,
+                                help=f"repeatable {help_}")
+        else:
+            choices = {"mode": ZENOH_MODES, "solver": SOLVERS, "state_congestion": CONGESTION_CHOICES}.get(f.name)
+            parser.add_argument(flag, dest=f.name, type=kind, default=None, choices=choices, help=help_)
+
+
+def from_args(args: argparse.Namespace, env: Mapping[str, str] | None = None) -> ServerConfig:
+    overrides = {f.name: getattr(args, f.name, None) for f in fields(ServerConfig)}
+    return ServerConfig.load(getattr(args, "config", None), env, overrides)

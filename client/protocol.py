@@ -236,8 +236,9 @@ MATERIAL_DEFAULTS: dict[str, float | tuple[float, float, float]] = {
 }
 DEFAULT_GRAVITY = (0.0, -9.81, 0.0)
 DEFAULT_WIND = (0.0, 0.0, 0.0)
-DEFAULT_ITERATIONS = 10
+DEFAULT_ITERATIONS = 10  # 0 = no link solve
 DEFAULT_SUBSTEPS = 1
+DEFAULT_CHEBYSHEV_RHO = 0.0  # Jacobi solver only; 0 = off
 
 Vec3 = tuple[float, float, float]
 
@@ -349,6 +350,7 @@ class SubmitRequest:
     wind: Vec3 | None = None
     iterations: int | None = None
     substeps: int | None = None
+    chebyshev_rho: float | None = None
     colliders: tuple[Collider, ...] | None = None
     state: StateOptions | None = None
     rid: int = 0
@@ -378,6 +380,7 @@ class ControlRequest:
     features: tuple[str, ...] | None = None  # replaces the feature set
     iterations: int | None = None
     substeps: int | None = None
+    chebyshev_rho: float | None = None
     state: StateOptions | None = None
     reset: bool = False  # back to the rest pose with zero velocity
     rid: int = 0
@@ -709,6 +712,13 @@ def _read_state_options(r: _Reader, key: str = "state") -> StateOptions | None:
     return StateOptions(sub.bool_("normals"), sub.str_("encoding", choices=ENCODINGS))
 
 
+def _read_rho(r: _Reader) -> float | None:
+    rho = r.num("chebyshev_rho", 0.0, 1.0)
+    if rho is not None and rho >= 1.0:
+        raise r.fail(ERR_INVALID_VALUE, f"'chebyshev_rho' must be in [0, 1), got {rho}")
+    return rho
+
+
 def _rid(r: _Reader) -> int:
     v = r.int_("rid", 0, (1 << 64) - 1)
     return 0 if v is None else v
@@ -798,6 +808,8 @@ def submit_to_map(req: SubmitRequest) -> dict[str, Any]:
         m["iterations"] = int(req.iterations)
     if req.substeps is not None:
         m["substeps"] = int(req.substeps)
+    if req.chebyshev_rho is not None:
+        m["chebyshev_rho"] = _f(req.chebyshev_rho)
     if req.colliders is not None:
         m["colliders"] = [collider_to_map(c) for c in req.colliders]
     if req.state is not None:
@@ -879,8 +891,9 @@ def submit_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS) -> Su
         features=_read_features(r) or (),
         gravity=r.vec3("gravity", acc),
         wind=r.vec3("wind", acc),
-        iterations=r.int_("iterations", 1, limits.max_iterations),
+        iterations=r.int_("iterations", 0, limits.max_iterations),
         substeps=r.int_("substeps", 1, limits.max_substeps),
+        chebyshev_rho=_read_rho(r),
         colliders=_read_colliders(r),
         state=_read_state_options(r),
         rid=rid,
@@ -911,6 +924,8 @@ def control_to_map(req: ControlRequest) -> dict[str, Any]:
         m["iterations"] = int(req.iterations)
     if req.substeps is not None:
         m["substeps"] = int(req.substeps)
+    if req.chebyshev_rho is not None:
+        m["chebyshev_rho"] = _f(req.chebyshev_rho)
     if req.state is not None:
         m["state"] = _state_map(req.state)
     if req.reset:
@@ -961,8 +976,9 @@ def control_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS, n_ve
         wind=r.vec3("wind", acc),
         material=_read_material(r),
         features=_read_features(r),
-        iterations=r.int_("iterations", 1, limits.max_iterations),
+        iterations=r.int_("iterations", 0, limits.max_iterations),
         substeps=r.int_("substeps", 1, limits.max_substeps),
+        chebyshev_rho=_read_rho(r),
         state=_read_state_options(r),
         reset=bool(reset),
         rid=rid,

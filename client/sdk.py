@@ -193,6 +193,7 @@ class ClothHandle:
         features: Iterable[str] | None = None,
         iterations: int | None = None,
         substeps: int | None = None,
+        chebyshev_rho: float | None = None,
         normals: bool | None = None,
         encoding: str | None = None,
         reset: bool = False,
@@ -207,6 +208,7 @@ class ClothHandle:
             features=tuple(features) if features is not None else None,
             iterations=iterations,
             substeps=substeps,
+            chebyshev_rho=chebyshev_rho,
             state=state,
             reset=reset,
         )
@@ -493,6 +495,7 @@ class DrapeClient:
         wind: Sequence[float] | None = None,
         iterations: int | None = None,
         substeps: int | None = None,
+        chebyshev_rho: float | None = None,
         colliders: Sequence[Any] | None = None,
         normals: bool = False,
         encoding: str = "float32",
@@ -514,6 +517,7 @@ class DrapeClient:
             wind=_vec3(wind),
             iterations=iterations,
             substeps=substeps,
+            chebyshev_rho=chebyshev_rho,
             colliders=tuple(_collider(c) for c in colliders) if colliders is not None else None,
             state=P.StateOptions(bool(normals), encoding) if (normals or encoding != "float32") else None,
             rid=self._next_rid(),
@@ -524,7 +528,7 @@ class DrapeClient:
 # Options every submit_* method takes, for documentation and for tools wrapping the SDK.
 cloth_options = (
     "pinned", "links", "material", "features", "gravity", "wind", "iterations", "substeps",
-    "colliders", "normals", "encoding", "timeout", "queue_size",
+    "chebyshev_rho", "colliders", "normals", "encoding", "timeout", "queue_size",
 )
 
 

@@ -78,7 +78,7 @@ class ServerConfig:
     # --- service -------------------------------------------------------------------------------
     grace_period: float = 5.0  # seconds a client's cloths outlive its liveliness token
     stats_period: float = 1.0  # seconds between stats publications
-    state_congestion: str = "auto"  # auto | drop | block (see PROTOCOL.md, "Congestion control")
+    state_congestion: str = "drop"  # drop | block | auto (see PROTOCOL.md, "Congestion control")
     drop_max_bytes: int = 60000  # auto: states up to this size use DROP, larger ones BLOCK
 
     def __post_init__(self) -> None:
@@ -222,6 +222,33 @@ def _from_env(env: Mapping[str, str]) -> dict[str, Any]:
     return out
 
 
+HELP = {
+    "mode": "Zenoh mode",
+    "listen": "Zenoh endpoint to listen on",
+    "connect": "Zenoh endpoint to connect to (a router or other peers)",
+    "multicast_scouting": "find peers by UDP multicast",
+    "zenoh_config": "Zenoh JSON5 configuration file (TLS, authentication, access control)",
+    "namespace": "first key-expression chunk(s) of every key",
+    "server_id": "this server's id in its keys (default: host-pid)",
+    "tick_rate": "ticks per second; dt = 1/tick_rate",
+    "solver": "World solver",
+    "device": "OpenCL device: auto, gpu, cpu or part of a name",
+    "max_cloths": "cloths on this server",
+    "max_cloths_per_client": "cloths of one client",
+    "max_vertices_per_cloth": "vertices of one cloth",
+    "max_total_vertices": "vertices of all cloths together",
+    "max_message_bytes": "size of one request",
+    "max_pin_updates": "pin targets in one control request",
+    "max_iterations": "solver iterations a cloth may ask for",
+    "max_substeps": "substeps a cloth may ask for",
+    "max_pending_requests": "queued requests before new ones get 'busy'",
+    "grace_period": "seconds a vanished client's cloths are kept",
+    "stats_period": "seconds between stats publications",
+    "state_congestion": "Zenoh congestion control of state publications",
+    "drop_max_bytes": "auto congestion: largest state published with DROP",
+}
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """``--config`` plus one flag per ServerConfig field (all default to None = not given)."""
     parser.add_argument("--config", metavar="FILE", help="TOML configuration file (default: $DRAPE_CONFIG)")
@@ -229,12 +256,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         kind, _ = _field_kind(f)
         flag = "--" + f.name.replace("_", "-")
         default = f.default_factory() if f.default_factory is not MISSING else f.default  # type: ignore[misc]
-        help_ = f"(default: {default!r}; env DRAPE_{f.name.upper()})"
+        help_ = f"{HELP.get(f.name, '')} (default: {default!r}; env DRAPE_{f.name.upper()})"
         if kind is bool:
             parser.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=None, help=help_)
         elif kind is list:
             parser.add_argument(flag, dest=f.name, action="append", metavar="ENDPOINT", default=None,
-                                help=f"repeatable {help_}")
+                                help=f"{help_}; repeatable")
         else:
             choices = {"mode": ZENOH_MODES, "solver": SOLVERS, "state_congestion": CONGESTION_CHOICES}.get(f.name)
             parser.add_argument(flag, dest=f.name, type=kind, default=None, choices=choices, help=help_)

@@ -62,18 +62,20 @@ def free_port() -> int:
 
 def _ball(t: float) -> tuple[tuple[float, float, float], float]:
     """The ball swinging through the curtain: a pendulum in the z direction."""
-    swing = 0.9 * math.sin(1.6 * t)
+    swing = 0.6 * math.sin(1.6 * t)
     return (2.4, 1.0 + 0.25 * (1 - math.cos(1.6 * t)), swing), 0.28
 
 
-def _walker(t: float) -> tuple[np.ndarray, float]:
-    """Where the cape wearer's shoulders are at time t (walking a circle), and heading."""
-    r, w = 0.55, 1.1
-    centre = np.array([3.75, 1.75, 0.0])
-    ang = w * t
-    pos = centre + np.array([r * math.sin(ang), 0.08 * abs(math.sin(3 * ang)), r * (1 - math.cos(ang)) - r])
-    heading = ang  # facing along the tangent
-    return pos, heading
+def _walker(t: float) -> tuple[np.ndarray, np.ndarray]:
+    """The cape wearer at time t: shoulder centre and body rotation. They start where the cape
+    was cooked, facing -z, and walk a circle (turning left), bobbing a little."""
+    r, w = 0.5, 1.1
+    a = w * t
+    start = np.array([3.75, 1.75, 0.0])
+    pos = start + np.array([r * (1 - math.cos(a)), 0.05 * abs(math.sin(4 * a)), -r * math.sin(a)])
+    c, s = math.cos(-a), math.sin(-a)  # rotation about y taking the facing -z to the heading
+    rot = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    return pos, rot
 
 
 def run_client(kind: str, endpoint: str, seconds: float, fps: float, out: str, ready) -> None:
@@ -129,14 +131,11 @@ def run_client(kind: str, endpoint: str, seconds: float, fps: float, out: str, r
                 cloth.set_colliders([{"type": "sphere", "center": c, "radius": r}])
                 sph.append([list(c), r])
             elif kind == "cape":
-                pos, heading = _walker(t)
-                offsets = rest_top - rest_top.mean(0)
-                # the shoulders turn with the heading (rotation about y)
-                ch, sh = math.cos(heading), math.sin(heading)
-                rot = np.array([[ch, 0, sh], [0, 1, 0], [-sh, 0, ch]])
+                pos, rot = _walker(t)
+                offsets = rest_top - rest_top.mean(0)  # the shoulder line, along x at rest
                 cloth.move_pins(list(range(cols)), pos + offsets @ rot.T)
-                back = pos + rot @ np.array([0.0, 0.0, 0.12])
-                p0, p1 = back + [0, -0.05, 0], back + [0, -0.9, 0]
+                chest = pos + rot @ np.array([0.0, 0.0, -0.17])  # the body is in front of the cape
+                p0, p1 = chest + [0, -0.05, 0], chest + [0, -0.9, 0]
                 cloth.set_colliders([{"type": "capsule", "p0": tuple(p0), "p1": tuple(p1), "radius": 0.16}])
                 cap.append([p0.tolist(), p1.tolist(), 0.16])
             if state.tick % every == 0:

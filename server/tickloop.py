@@ -700,9 +700,7 @@ class Server:
             return []
         t = time.monotonic()
         w.step(self.config.dt)
-        dev = getattr(w, "dev", None)
-        if dev is not None:
-            dev.queue.finish()  # so "solve" is device time and "readback" the copy
+        w.sync()  # so "solve" is the device's time and "readback" the copy
         t2 = time.monotonic()
         frame = w.fetch()
         states: list[_StateItem] = []
@@ -820,6 +818,7 @@ class Server:
                 wind=req.wind if req.wind is not None else p.wind,
                 iterations=req.iterations if req.iterations is not None else p.iterations,
                 substeps=req.substeps if req.substeps is not None else p.substeps,
+                chebyshev_rho=req.chebyshev_rho if req.chebyshev_rho is not None else p.chebyshev_rho,
             )
             new.validate()
         except ValueError as e:
@@ -1005,6 +1004,7 @@ def _params_from_submit(req: P.SubmitRequest) -> ClothParams:
             wind=req.wind if req.wind is not None else d.wind,
             iterations=req.iterations if req.iterations is not None else d.iterations,
             substeps=req.substeps if req.substeps is not None else d.substeps,
+            chebyshev_rho=req.chebyshev_rho if req.chebyshev_rho is not None else d.chebyshev_rho,
         )
         params.validate()
     except (TypeError, ValueError) as e:

@@ -1,0 +1,65 @@
+"""``drape serve``: run the cloth server until SIGINT or SIGTERM.
+
+Configuration: defaults < TOML file (``--config`` or $DRAPE_CONFIG) < DRAPE_* environment
+variables < flags; see drape.server.config. On a signal the server stops publishing, answers
+what is still queued with ``busy``, undeclares everything and closes its Zenoh session; the
+exit status is 0 after a clean stop, 1 when the tick loop failed, 2 for a bad configuration.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import signal
+import threading
+from types import FrameType
+
+from .config import ServerConfig, add_arguments, from_args
+
+log = logging.getLogger(__name__)
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    add_arguments(parser)
+    parser.add_argument("--print-config", action="store_true", help="print the effective configuration and exit")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        config = from_args(args)
+    except (OSError, ValueError) as e:
+        log.error("bad configuration: %s", e)
+        return 2
+    if getattr(args, "print_config", False):
+        for k, v in dataclasses.asdict(config).items():
+            print(f"{k} = {v!r}")
+        return 0
+    return serve(config)
+
+
+def serve(config: ServerConfig) -> int:
+    """Run a server in this process until SIGINT/SIGTERM (main thread only)."""
+    from .tickloop import Server  # Zenoh and OpenCL only when actually serving
+
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        log.info("received %s", signal.Signals(signum).name)
+        stop.set()
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    server = Server(config)
+    try:
+        server.start()
+        while not stop.wait(0.25):
+            if server.failure is not None:
+                log.error("tick loop failed: %s", server.failure)
+                break
+    except Exception:
+        log.exception("server failed")
+        server.failure = server.failure or RuntimeError("start failed")
+    finally:
+        server.stop()
+        for s, h in previous.items():
+            signal.signal(s, h)
+    return 1 if server.failure is not None else 0

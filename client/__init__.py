@@ -1,8 +1,14 @@
 """Drape client SDK: submit cloths to a Drape server over Zenoh and receive their state.
 
-Imports numpy, msgpack and Zenoh only (never drape.server or OpenCL). The wire protocol itself
-is drape.client.protocol (numpy + msgpack only).
+``drape.client.protocol`` (the wire protocol) needs numpy and msgpack only; the SDK classes
+(DrapeClient, ClothHandle, zenoh_config) add Zenoh and are imported on first use, so a tool
+that only encodes or decodes messages does not need Zenoh installed. Nothing here imports
+drape.server or OpenCL.
 """
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
 from .protocol import (
     PROTOCOL_VERSION,
     Busy,
@@ -19,7 +25,20 @@ from .protocol import (
     Sphere,
     Unavailable,
 )
-from .sdk import ClothHandle, DrapeClient, zenoh_config
+
+if TYPE_CHECKING:
+    from .sdk import ClothHandle, DrapeClient, zenoh_config
+
+_SDK = ("ClothHandle", "DrapeClient", "zenoh_config")
+
+
+def __getattr__(name: str) -> Any:
+    if name in _SDK:
+        from . import sdk
+
+        return getattr(sdk, name)
+    raise AttributeError(f"module 'drape.client' has no attribute {name!r}")
+
 
 __all__ = [
     "PROTOCOL_VERSION",

@@ -1,0 +1,200 @@
+"""Write the protocol test vectors (tests/vectors/*.json) from drape.client.protocol.
+
+    .venv/bin/python tests/vectors/generate.py
+
+The vectors are committed; tests/test_protocol.py checks them both ways (bytes -> meaning and
+meaning -> identical bytes), so regenerating them is only needed when the protocol changes on
+purpose (and then PROTOCOL.md's version rules apply). Format: see PROTOCOL.md, "Test vectors".
+"""
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from drape.client import protocol as P
+
+HERE = Path(__file__).resolve().parent
+
+#: bin fields and the little-endian element type of their contents
+BIN_TYPES = {"pinned": "u32", "vertices": "f32", "triangles": "u32", "indices": "u32", "targets": "f32"}
+DTYPES = {"u32": "<u4", "f32": "<f4"}
+
+
+def wire_to_json(obj: Any, key: str | None = None) -> Any:
+    """A decoded msgpack value as JSON: bin fields become {"u32": [...]} / {"f32": [...]}."""
+    if isinstance(obj, dict):
+        return {k: wire_to_json(v, k) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [wire_to_json(v, key) for v in obj]
+    if isinstance(obj, (bytes, bytearray)):
+        t = BIN_TYPES[key]  # type: ignore[index]
+        return {t: np.frombuffer(obj, DTYPES[t]).tolist()}
+    return obj
+
+
+def json_to_wire(obj: Any) -> Any:
+    """The inverse of wire_to_json."""
+    if isinstance(obj, dict):
+        if len(obj) == 1 and next(iter(obj)) in DTYPES:
+            t, values = next(iter(obj.items()))
+            return np.asarray(values, DTYPES[t]).tobytes()
+        return {k: json_to_wire(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [json_to_wire(v) for v in obj]
+    return obj
+
+
+TOKEN = "0123456789abcdef0123456789abcdef"
+CLOTH = "5ba88a14c526242f"
+
+
+def msg_vector(name: str, message: str, description: str, data: bytes) -> dict[str, Any]:
+    return {
+        "name": name,
+        "message": message,
+        "description": description,
+        "hex": data.hex(),
+        "value": wire_to_json(msgpack.unpackb(data, raw=False)),
+    }
+
+
+def state_vector(name: str, description: str, tick: int, t_ns: int, positions, normals, encoding: str,
+                 flags: int = 0) -> dict[str, Any]:
+    pos = np.asarray(positions, np.float32)
+    nrm = None if normals is None else np.asarray(normals, np.float32)
+    data = bytes(P.encode_state(tick, t_ns, pos, nrm, encoding, flags))
+    st = P.decode_state(data)
+    return {
+        "name": name,
+        "message": "state",
+        "description": description,
+        "hex": data.hex(),
+        "input": {"positions": pos.tolist(), "normals": None if nrm is None else nrm.tolist(), "flags": flags},
+        "value": {
+            "magic": "DRPS",
+            "major": P.PROTOCOL_MAJOR,
+            "minor": P.PROTOCOL_MINOR,
+            "header_size": P.STATE_HEADER_SIZE,
+            "encoding": encoding,
+            "flags": st.flags,
+            "vertex_count": st.n_vertices,
+            "tick": tick,
+            "server_time_ns": t_ns,
+            "bounds_min": list(st.bounds[0]),
+            "bounds_max": list(st.bounds[1]),
+            "positions": st.positions.tolist(),
+            "normals": None if st.normals is None else st.normals.tolist(),
+        },
+    }
+
+
+def vectors() -> dict[str, list[dict[str, Any]]]:
+    quad_v = np.array([[0, 0, 0], [1, 0, 0], [1, 0, 1], [0, 0, 1]], np.float32)
+    quad_t = np.array([[0, 3, 1], [1, 3, 2]], np.uint32)
+    submit = [
+        msg_vector("submit_grid_full", "submit", "A vertical 8x4 grid with every optional field.", P.encode_submit(
+            P.SubmitRequest(
+                client="game-7",
+                grid=P.GridSpec(8, 4, 1.6, 0.8, "vertical", (0.0, 2.0, 0.0)),
+                pinned=np.array([0, 7], np.uint32),
+                links=P.LinkSpec(True, True, True),
+                material={"mass": 0.5, "stiffness": (1.0, 0.9, 0.5), "damping": 0.01},
+                features=("tethers",),
+                gravity=(0.0, -9.81, 0.0),
+                wind=(1.0, 0.0, 0.0),
+                iterations=12,
+                substeps=2,
+                colliders=(P.Sphere((0.8, 1.5, 0.3), 0.25),),
+                state=P.StateOptions(True, "float32"),
+                rid=1,
+            ))),
+        msg_vector("submit_grid_minimal", "submit", "The smallest submission: a 4x4 grid, server defaults.",
+                   P.encode_submit(P.SubmitRequest(client="c1", grid=P.GridSpec(4, 4)))),
+        msg_vector("submit_mesh", "submit", "A 4-vertex, 2-triangle mesh pinned at vertex 0, quantised states.",
+                   P.encode_submit(P.SubmitRequest(client="c1", mesh=P.MeshSpec(quad_v, quad_t),
+                                                   pinned=np.array([0], np.uint32),
+                                                   state=P.StateOptions(None, "quant16"), rid=2))),
+    ]
+    control = [
+        msg_vector("control_full", "control", "Pins, colliders, gravity, wind, material, features, iterations, "
+                   "substeps, state options and a reset.", P.encode_control(P.ControlRequest(
+                       cloth=CLOTH, token=TOKEN,
+                       pins=P.PinUpdate(np.array([0, 7], np.uint32), np.array([[0, 2, 0], [1.5, 2, 0.25]], np.float32)),
+                       colliders=(P.Plane((0.0, 1.0, 0.0), -1.0), P.Capsule((0, 1, 0), (1, 1, 0), 0.1)),
+                       gravity=(0.0, -20.0, 0.0), wind=(0.0, 0.0, 3.0), material={"drag": 0.3, "lift": 0.1},
+                       features=("wind", "colliders"), iterations=8, substeps=1, state=P.StateOptions(False, "float16"),
+                       reset=True, rid=3))),
+        msg_vector("control_pins", "control", "Move pinned vertex 3.",
+                   P.encode_control(P.ControlRequest(CLOTH, TOKEN, pins=P.PinUpdate(
+                       np.array([3], np.uint32), np.array([[0.5, 1.0, -0.5]], np.float32)), rid=4))),
+    ]
+    other = [
+        msg_vector("remove", "remove", "Remove a cloth.", P.encode_remove(P.RemoveRequest(CLOTH, TOKEN, 5))),
+        msg_vector("info", "info", "Ask for the server's description (an empty payload is accepted too).",
+                   P.encode_info(P.InfoRequest(6))),
+        msg_vector("reply_submit", "reply_submit", "A submission accepted.",
+                   P.encode_submit_reply(P.SubmitReply(CLOTH, TOKEN, f"drape/cloth/{CLOTH}/state", 32, 1042, 1))),
+        msg_vector("reply_control", "reply_control", "A control applied from tick 1050 on.",
+                   P.encode_control_reply(P.ControlReply(1050, 3))),
+        msg_vector("reply_remove", "reply_remove", "A cloth removed; 1061 was its last state.",
+                   P.encode_remove_reply(P.RemoveReply(1061, 5))),
+        msg_vector("reply_error", "error", "An error reply.", P.encode_error(
+            "index_out_of_range", "'pinned' refers to vertex 16 but the cloth has 16 vertices", 9)),
+    ]
+    tri = [[0.0, 2.0, 0.0], [1.0, 1.5, -0.25], [0.5, 1.0, 0.75]]
+    nrm = [[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, -1.0, 0.0]]
+    state = [
+        state_vector("state_float32", "Three vertices, float32.", 1042, 1_700_000_000_123_456_789, tri, None, "float32"),
+        state_vector("state_float32_normals", "Three vertices with normals, float32, after a reset.", 7, 42, tri, nrm,
+                     "float32", P.FLAG_RESET),
+        state_vector("state_float16", "Three vertices with normals, float16 (0.1 and 1.3 round).", 8, 43,
+                     [[0.1, 2.0, 0.0], [1.3, 1.5, -0.25], [0.5, 1.0, 0.75]], nrm, "float16"),
+        state_vector("state_quant16", "Three vertices with normals, uint16 quantised against the bounds, normals "
+                     "snorm16.", 9, 44, [[0.0, 2.0, 0.0], [1.0, 1.5, -0.25], [0.3, 1.2, 0.75]], nrm, "quant16"),
+    ]
+    bad_cases = [
+        ("truncated", P.encode_submit(P.SubmitRequest(client="c1", grid=P.GridSpec(4, 4)))[:-4], "submit", "malformed"),
+        ("unknown_major", msgpack.packb({"v": [2, 0], "client": "c1"}), "submit", "unsupported_version"),
+        ("no_version", msgpack.packb({"client": "c1", "grid": {"cols": 2, "rows": 2}}), "submit", "missing_field"),
+        ("cols_as_string", msgpack.packb({"v": [1, 0], "client": "c1", "grid": {"cols": "4", "rows": 4}}), "submit",
+         "invalid_type"),
+        ("nan_gravity", msgpack.packb({"v": [1, 0], "client": "c1", "grid": {"cols": 2, "rows": 2},
+                                       "gravity": [0.0, float("nan"), 0.0]}), "submit", "invalid_value"),
+        ("pin_out_of_range", msgpack.packb({"v": [1, 0], "client": "c1", "grid": {"cols": 2, "rows": 2},
+                                            "pinned": np.array([4], "<u4").tobytes()}, use_bin_type=True), "submit",
+         "index_out_of_range"),
+        ("grid_too_large", msgpack.packb({"v": [1, 0], "client": "c1", "grid": {"cols": 100000, "rows": 100000}}),
+         "submit", "too_large"),
+        ("token_not_hex", msgpack.packb({"v": [1, 0], "cloth": CLOTH, "token": "secret"}), "remove", "invalid_value"),
+    ]
+    invalid = [{"name": n, "message": m, "hex": d.hex(), "error": code} for n, d, m, code in bad_cases]
+    # Unknown minor version and unknown keys are accepted within major 1:
+    future = {"name": "submit_future_minor", "message": "submit", "description": "Version 1.7 with a key this "
+              "version does not know: accepted, the key ignored.",
+              "hex": msgpack.packb({"v": [1, 7], "rid": 0, "client": "c1", "grid": {"cols": 2, "rows": 2},
+                                    "hologram": True}).hex()}
+    return {"submit": submit, "control": control, "misc": other, "state": state, "invalid": invalid,
+            "accepted": [future]}
+
+
+def dumps(items: list[dict[str, Any]]) -> str:
+    """JSON with one line per scalar field and arrays of numbers kept on one line."""
+    text = json.dumps(items, indent=1)
+    return re.sub(r"\[[-+0-9.e,\s]*\]", lambda m: re.sub(r"\s+", " ", m.group(0)).replace("[ ", "[").replace(" ]", "]"),
+                  text)
+
+
+def main() -> None:
+    for group, items in vectors().items():
+        path = HERE / f"{group}.json"
+        path.write_text(dumps(items) + "\n")
+        print(f"wrote {len(items)} vectors to {path}")
+
+
+if __name__ == "__main__":
+    main()

@@ -532,6 +532,8 @@ def test_config_precedence(tmp_path: Path):
         ServerConfig.load(env={"DRAPE_TICK_RATE": "fast"})
     with pytest.raises(ValueError):
         ServerConfig.load(env={"DRAPE_SOLVER": "magic"})
+    example = ServerConfig.load(Path(__file__).resolve().parents[1] / "deploy" / "drape.toml", env={})
+    assert example.server_id == "drape-1" and example.listen == ["tcp/0.0.0.0:7447"]
     bad = tmp_path / "bad.toml"
     bad.write_text("tickrate = 3\n")
     with pytest.raises(ValueError, match="tickrate"):

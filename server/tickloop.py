@@ -261,6 +261,16 @@ class Server:
 
     # --- lifecycle ---------------------------------------------------------------------------
     def start(self) -> "Server":
+        """Create the World, open the Zenoh session, start the threads, declare the endpoints
+        and finally the server's liveliness token. On failure everything is torn down again."""
+        try:
+            self._start()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def _start(self) -> None:
         cfg = self.config
         kw = {} if cfg.solver == "reference" else {"device": cfg.device}
         self._world = make_world(cfg.solver, **kw)
@@ -288,7 +298,6 @@ class Server:
         self._token = lv.declare_token(self.keys.alive_server(sid))
         log.info("drape server %s up: %s solver on %s, %.0f Hz, %s mode, listen %s connect %s, namespace %r",
                  sid, cfg.solver, self.device_name, cfg.tick_rate, cfg.mode, cfg.listen, cfg.connect, cfg.namespace)
-        return self
 
     def stop(self, timeout: float = 10.0) -> None:
         """Stop serving: no new requests, last tick finishes, publishing stops, everything is
@@ -386,6 +395,7 @@ class Server:
                 "tick_rate": self.config.tick_rate,
                 "cloths": len(self._cloths),
                 "clients": len(self._by_client),
+                "alive_clients": len(self._alive),
                 "vertices": self._vertices,
                 "requests": dict(self._requests),
                 "errors": dict(self._errors),
@@ -433,13 +443,13 @@ class Server:
     def _reply_error(self, query: zenoh.Query, code: str, message: str, rid: int | None = 0) -> None:
         with self._lock:
             self._errors[code] += 1
-        log.info("request %s rejected: [%s] %s", query.key_expr, code, message)
+        log.debug("request %s rejected: [%s] %s", query.key_expr, code, message)  # counted in stats
         _send(_Reply(query, P.encode_error(code, message, rid or 0), True))
 
     def _error_reply(self, query: zenoh.Query, code: str, message: str, rid: int | None) -> _Reply:
         with self._lock:
             self._errors[code] += 1
-        log.info("request %s failed: [%s] %s", query.key_expr, code, message)
+        log.debug("request %s failed: [%s] %s", query.key_expr, code, message)
         return _Reply(query, P.encode_error(code, message, rid or 0), True)
 
     def _guard(self, name: str, cb: Callable[[zenoh.Query, bytes], None]) -> Callable[[zenoh.Query], None]:

@@ -55,9 +55,10 @@ def serve(config: ServerConfig) -> int:
             if server.failure is not None:
                 log.error("tick loop failed: %s", server.failure)
                 break
-    except Exception:
-        log.exception("server failed")
-        server.failure = server.failure or RuntimeError("start failed")
+    except Exception as e:  # no device, endpoint in use, bad Zenoh configuration...
+        log.error("server failed: %s", e)
+        log.debug("details", exc_info=True)
+        server.failure = server.failure or e
     finally:
         server.stop()
         for s, h in previous.items():

@@ -576,15 +576,13 @@ class Server:
     def _run_cook(self) -> None:
         while True:
             item = self._cook_q.get()
-            if item is None or self._stopping.is_set():
-                if item is not None:
-                    rec, req, query = item
-                    self._unreserve(rec)
-                    _send(self._error_reply(query, P.ERR_BUSY, "server is shutting down", req.rid))
-                if item is None:
-                    break
-                continue
+            if item is None:
+                break
             rec, req, query = item
+            if self._stopping.is_set():
+                self._unreserve(rec)
+                _send(self._error_reply(query, P.ERR_BUSY, "server is shutting down", req.rid))
+                continue
             try:
                 fabric = self._cook(req)
             except ValueError as e:
@@ -651,12 +649,10 @@ class Server:
     # --- tick thread -----------------------------------------------------------------------------
     def _warm_up(self) -> None:
         """Build the default kernels before serving so the first submission does not stall a tick."""
-        from .fabric import cook_grid as _cg
-
         w = self._world
         assert w is not None
         t = time.perf_counter()
-        h = w.add(_cg(2, 2), ClothParams())
+        h = w.add(cook_grid(2, 2), ClothParams())
         w.step(self.config.dt)
         w.fetch()
         w.remove(h)
@@ -685,7 +681,9 @@ class Server:
                 self._count("ticks")
                 if t3 >= next_stats:
                     job.stats = P.encode_stats(self._stats(reset_window=True))
-                    next_stats = max(next_stats + cfg.stats_period, t3)
+                    next_stats += cfg.stats_period
+                    if next_stats <= t3:  # fell behind (a long stall): restart the schedule
+                        next_stats = t3 + cfg.stats_period
                 if self._mailbox.put(job):
                     self._count("skipped_frames")
                 next_t += period

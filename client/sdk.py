@@ -169,20 +169,24 @@ class ClothHandle:
             self._queue.clear()
 
     # --- controls (each returns the first tick whose state reflects it) -------------------------
-    def move_pins(self, indices: Sequence[int] | np.ndarray, targets: Sequence[Sequence[float]] | np.ndarray) -> int:
-        """Move pinned vertices ``indices`` to ``targets`` ((k, 3) metres) by the end of the next tick."""
+    def move_pins(self, indices: Sequence[int] | np.ndarray, targets: Sequence[Sequence[float]] | np.ndarray,
+                  *, wait: bool = True, colliders: Sequence[Any] | None = None) -> int | None:
+        """Move pinned vertices ``indices`` to ``targets`` ((k, 3) metres) by the end of the next
+        tick (and, if given, the colliders with them, in the same message). ``wait=False`` does
+        not wait for the reply (see DrapeClient.send): the per-tick call of a game loop."""
         idx = np.asarray(indices, np.int64).reshape(-1)
         tgt = np.asarray(targets, np.float32).reshape(-1, 3)
         if len(idx) != len(tgt):
             raise ValueError(f"{len(idx)} indices but {len(tgt)} targets")
         if idx.size and idx.min() < 0:
             raise ValueError("pin indices must be >= 0")
-        return self._control(pins=P.PinUpdate(idx.astype(np.uint32), tgt))
+        extra = {"colliders": tuple(_collider(c) for c in colliders)} if colliders is not None else {}
+        return self._control(wait, pins=P.PinUpdate(idx.astype(np.uint32), tgt), **extra)
 
-    def set_colliders(self, colliders: Sequence[Any]) -> int:
+    def set_colliders(self, colliders: Sequence[Any], *, wait: bool = True) -> int | None:
         """Replace the cloth's colliders (Sphere, Capsule, Plane of this package or of
         drape.server.params); [] removes them. Colliders move to their new pose over the next tick."""
-        return self._control(colliders=tuple(_collider(c) for c in colliders))
+        return self._control(wait, colliders=tuple(_collider(c) for c in colliders))
 
     def set(
         self,
@@ -197,11 +201,13 @@ class ClothHandle:
         normals: bool | None = None,
         encoding: str | None = None,
         reset: bool = False,
-    ) -> int:
+        wait: bool = True,
+    ) -> int | None:
         """Change any of the cloth's settings from the next tick on; fields left None stay as
         they are (``material`` may name only the fields to change)."""
         state = P.StateOptions(normals, encoding) if (normals is not None or encoding is not None) else None
         return self._control(
+            wait,
             gravity=_vec3(gravity),
             wind=_vec3(wind),
             material=P.material_to_map(material) if material is not None else {},
@@ -215,11 +221,14 @@ class ClothHandle:
 
     def reset(self) -> int:
         """Back to the rest pose with zero velocity."""
-        return self._control(reset=True)
+        return self._control(True, reset=True)
 
-    def _control(self, **changes: Any) -> int:
+    def _control(self, wait: bool, **changes: Any) -> int | None:
         self._check_open()
         req = P.ControlRequest(self.id, self.token, rid=self.client._next_rid(), **changes)
+        if not wait:
+            self.client.send("control", P.encode_control(req))
+            return None
         rep = self.client.request("control", P.encode_control(req))
         return P.tick_reply_from_map(rep)
 
@@ -306,6 +315,7 @@ class DrapeClient:
         self._servers: set[str] = set()
         self._servers_cond = threading.Condition(self._lock)
         self._closed = False
+        self.send_errors = 0  # replies to send() that were errors, or that never came
         self.session: zenoh.Session = zenoh.open(
             zenoh_config(mode, listen, list(connect), multicast_scouting, zenoh_config_file)
         )
@@ -415,6 +425,45 @@ class DrapeClient:
                 time.sleep(0.05)
                 continue
             raise Unavailable(P.ERR_UNAVAILABLE, f"no reply from {key} within {timeout} s")
+
+    def send(self, kind: str, payload: bytes | bytearray, on_error: Callable[[DrapeError], None] | None = None,
+             timeout: float | None = None) -> None:
+        """Send a request without waiting for its reply (what a game does with per-tick pin
+        updates): the reply is read on a Zenoh thread; an error reply or no reply at all is
+        counted in ``send_errors`` and handed to ``on_error`` (default: logged)."""
+        if self._closed:
+            raise DrapeError(P.ERR_UNAVAILABLE, "client is closed")
+        key = getattr(self.keys, kind)(self.server_id)
+        answered = []
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            answered.append(True)
+            if reply.ok is not None:
+                return
+            data = reply.err.payload.to_bytes()
+            try:
+                P.decode_reply(data)
+                err = Unavailable(P.ERR_UNAVAILABLE, f"{key}: error reply without an error")
+            except DrapeError as e:
+                err = e
+            except P.ProtocolError:
+                err = Unavailable(P.ERR_UNAVAILABLE, f"{key}: {data[:80].decode(errors='replace')}")
+            self._send_failed(err, on_error)
+
+        def on_done() -> None:
+            if not answered:
+                self._send_failed(Unavailable(P.ERR_UNAVAILABLE, f"no reply from {key}"), on_error)
+
+        self.session.get(key, zenoh.handlers.Callback(on_reply, on_done), payload=bytes(payload),
+                         timeout=self.timeout if timeout is None else timeout)
+
+    def _send_failed(self, err: DrapeError, on_error: Callable[[DrapeError], None] | None) -> None:
+        with self._lock:
+            self.send_errors += 1
+        if on_error is not None:
+            on_error(err)
+        else:
+            log.warning("request failed: %s", err)
 
     def info(self, timeout: float | None = None) -> dict[str, Any]:
         """The server's description: version, solver, device, tick rate, limits, counts."""

@@ -125,18 +125,19 @@ def run_client(kind: str, endpoint: str, seconds: float, fps: float, out: str, r
             sph, cap = [], []
             if kind == "flag" and state.tick % 15 == 0:
                 gust = 5.0 + 3.0 * math.sin(0.9 * t) + 1.5 * math.sin(2.3 * t)
-                cloth.set(wind=(gust, 0.0, 1.5 * math.sin(0.5 * t)))
+                cloth.set(wind=(gust, 0.0, 1.5 * math.sin(0.5 * t)), wait=False)
             elif kind == "curtain":
                 c, r = _ball(t)
-                cloth.set_colliders([{"type": "sphere", "center": c, "radius": r}])
+                cloth.set_colliders([{"type": "sphere", "center": c, "radius": r}], wait=False)
                 sph.append([list(c), r])
             elif kind == "cape":
                 pos, rot = _walker(t)
                 offsets = rest_top - rest_top.mean(0)  # the shoulder line, along x at rest
-                cloth.move_pins(list(range(cols)), pos + offsets @ rot.T)
                 chest = pos + rot @ np.array([0.0, 0.0, -0.17])  # the body is in front of the cape
                 p0, p1 = chest + [0, -0.05, 0], chest + [0, -0.9, 0]
-                cloth.set_colliders([{"type": "capsule", "p0": tuple(p0), "p1": tuple(p1), "radius": 0.16}])
+                body = [{"type": "capsule", "p0": tuple(p0), "p1": tuple(p1), "radius": 0.16}]
+                # one message per tick, not waited for: what a game loop does
+                cloth.move_pins(list(range(cols)), pos + offsets @ rot.T, colliders=body, wait=False)
                 cap.append([p0.tolist(), p1.tolist(), 0.16])
             if state.tick % every == 0:
                 frames.append(np.array(state.positions, np.float32))

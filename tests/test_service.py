@@ -147,6 +147,22 @@ def test_control_takes_effect_on_the_next_tick(server, client):
         assert d.min() > 0.2 - 0.02  # no vertex inside the sphere
 
 
+def test_controls_without_waiting_for_the_reply(server, client):
+    """The game-loop form: pins (with colliders) sent every tick without waiting; errors are
+    still counted."""
+    with client.submit_grid(6, 6, pinned=[0, 5]) as h:
+        collect(h, 1)
+        for k in range(10):
+            target = np.array([[0.0, 0.05 * k, 0.0]], np.float32)
+            assert h.move_pins([0], target, wait=False, colliders=[Sphere((3.0, 3.0, 3.0), 0.1)]) is None
+        assert wait_until(lambda: h.latest() is not None and np.allclose(h.latest().positions[0], [0.0, 0.45, 0.0]))
+        assert client.send_errors == 0
+        errors = []
+        client.send("control", P.encode_control(P.ControlRequest(h.id, "0" * 32, rid=1)), on_error=errors.append)
+        assert wait_until(lambda: errors)
+        assert isinstance(errors[0], Forbidden) and client.send_errors == 1
+
+
 def test_plane_collider_and_reset(server, client):
     with client.submit_grid(5, 5, gravity=(0, -40.0, 0), colliders=[Plane((0, 1, 0), -0.3)]) as h:
         s = h.wait_for_tick(h.first_tick + 40, TIMEOUT)

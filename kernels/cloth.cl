@@ -540,6 +540,15 @@ __kernel void jacobi_iter(const float dt, const int it, const int chunk, __globa
     }
 }
 
+/* pin targets sent this tick, gathered into one upload: target[index[i]] = value[i] */
+__kernel void scatter_targets(const int n, __global const int *index, __global const float4 *value,
+                              __global float4 *target)
+{
+    const int i = get_global_id(0);
+    if (i < n)
+        target[index[i]] = value[i];
+}
+
 /* copy positions of every chunk (closes an odd number of Jacobi iterations) */
 __kernel void copy_positions(const int chunk, __global const int2 *chunks, __global const int *ci,
                              __global const float4 *src, __global float4 *dst)

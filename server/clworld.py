@@ -243,6 +243,10 @@ class CLWorld(World):
         self._host = [np.zeros((0, 4), np.float32), np.zeros((0, 4), np.float32)]
         self._host_nrm = np.zeros((0, 4), np.float32)
         self._flip = 0
+        self._pending_targets: list[tuple[np.ndarray, np.ndarray]] = []
+        self._scatter_idx = DevArray(q, np.int32, 1, 1024)
+        self._scatter_val = DevArray(q, np.float32, 4, 1024)
+        self._base_options = [*Features().build_options(), "-DUSE_LOCAL=0"]
 
     # --- allocation -----------------------------------------------------------------------
     def _alloc(self, alloc: RangeAllocator, arrays: list[DevArray], n: int) -> int:
@@ -374,6 +378,8 @@ class CLWorld(World):
         rec.group = None
 
     def _remove(self, cloth: Cloth) -> None:
+        if self._pending_targets:  # targets still queued for this cloth must not land in its freed range
+            self._upload_targets()
         rec = self.rec.pop(cloth.handle)
         self._leave_group(cloth.handle, rec)
         self.vert.release(rec.vbase, cloth.fabric.n_vertices)
@@ -401,17 +407,24 @@ class CLWorld(World):
         self._regroup(cloth, rec)
 
     def _set_targets(self, cloth: Cloth, idx: np.ndarray, targets: np.ndarray) -> None:
-        rec = self.rec[cloth.handle]
-        if len(idx) == 0:
-            return
-        # contiguous runs of indices become one write each (pins are usually one edge)
-        order = np.argsort(idx)
-        idx, targets = idx[order], targets[order]
-        breaks = np.flatnonzero(np.diff(idx) != 1) + 1
-        for run_i, run_t in zip(np.split(idx, breaks), np.split(targets, breaks)):
-            t = np.zeros((len(run_i), 4), np.float32)
-            t[:, :3] = run_t
-            self.target.write(rec.vbase + int(run_i[0]), t)
+        # gathered and scattered on the device in one launch before the next step (_flush)
+        if len(idx):
+            self._pending_targets.append((idx + self.rec[cloth.handle].vbase, targets))
+
+    def _upload_targets(self) -> None:
+        idx = np.concatenate([i for i, _ in self._pending_targets]).astype(np.int32)
+        val = np.zeros((len(idx), 4), np.float32)
+        val[:, :3] = np.concatenate([t for _, t in self._pending_targets])
+        self._pending_targets.clear()
+        if self._scatter_idx.capacity < len(idx):
+            self._scatter_idx.resize(2 * len(idx))
+            self._scatter_val.resize(2 * len(idx))
+        self._scatter_idx.write(0, idx)
+        self._scatter_val.write(0, val)
+        k = self.dev.kernel(self._base_options, "scatter_targets")
+        n = len(idx)
+        k(self.dev.queue, (-(-n // 64) * 64,), (64,), np.int32(n), self._scatter_idx.buf, self._scatter_val.buf,
+          self.target.buf)
 
     def _set_colliders(self, cloth: Cloth) -> None:
         rec = self.rec[cloth.handle]
@@ -438,10 +451,14 @@ class CLWorld(World):
         self._write_tables(cloth, rec)
 
     def _reset(self, cloth: Cloth, positions: np.ndarray) -> None:
+        if self._pending_targets:  # earlier pin targets first: the reset puts the pins back too
+            self._upload_targets()
         self._write_vertices(cloth, self.rec[cloth.handle], positions)
 
     # --- stepping ---------------------------------------------------------------------------
     def _flush(self) -> None:
+        if self._pending_targets:
+            self._upload_targets()
         if self._tables_dirty:
             n = len(self.ci_host)
             if self.ci.capacity < n:

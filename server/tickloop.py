@@ -652,7 +652,8 @@ class Server:
         w = self._world
         assert w is not None
         t = time.perf_counter()
-        h = w.add(cook_grid(2, 2), ClothParams())
+        h = w.add(cook_grid(2, 2, pinned=[0]), ClothParams())
+        w.set_pin_targets(h, np.array([0]), np.zeros((1, 3)))  # builds the pin-target scatter too
         w.step(self.config.dt)
         w.fetch()
         w.remove(h)

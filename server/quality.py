@@ -1,0 +1,157 @@
+"""Quality presets: named solver settings picked from the measured speed/accuracy Pareto front.
+
+``apply_preset(params, name)`` returns the cloth's parameters with the preset's iterations,
+substeps, XPBD and tether switches. Presets never touch the material: an XPBD preset uses the
+material's own compliance (0, the default, is an inextensible cloth, what PBD with stiffness 1
+aims at); a material authored for PBD with stiffness below 1 should give a compliance too.
+
+The figures behind each preset (``drape tradeoff``, docs/accuracy.md) are for the hanging
+cloth, 64 x 64, 60 Hz, the work-group solver on PoCL (2 CPU cores); ``cost`` is the measured
+cost relative to the plain 10-iteration PBD solve in the same process, which a server can use
+to estimate what a change of preset frees or costs.
+
+Adaptive quality, for a server under load (the tick loop owns the policy; this is the API):
+
+    name = degrade(name)          # one step cheaper (the cheapest stays itself)
+    name = restore(name, wanted)  # one step back up toward the preset the client asked for
+    QualityGovernor               # a small hysteresis loop built on the two, optional
+
+``degrade``/``restore`` only move along ``ORDER``; apply the result with ``apply_preset``
+(``World.set_params``) between ticks. Changing iterations or tethers keeps a cloth in the same
+kernel group; switching XPBD on or off or changing substeps regroups it (see clworld).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+from .params import ClothParams
+
+
+@dataclass(frozen=True)
+class Preset:
+    name: str
+    iterations: int
+    substeps: int
+    xpbd: bool
+    tethers: bool
+    cost: float  # measured ms per frame / the 10-iteration PBD solve's (hanging 64 x 64, 60 Hz)
+    max_strain: float  # measured on the same scene: largest structural strain over 2 s
+    mean_strain: float  # mean structural strain, averaged over 2 s
+    note: str = ""
+
+    def params(self, base: ClothParams) -> ClothParams:
+        return apply_preset(base, self.name)
+
+
+# Cheapest first. Figures: docs/accuracy.md (drape tradeoff, PoCL on 2 Xeon cores).
+PRESETS: dict[str, Preset] = {
+    p.name: p
+    for p in (
+        Preset("fast", 1, 5, True, True, cost=0.88, max_strain=1.70, mean_strain=0.051,
+               note="Small Steps and tethers for less than the plain 10-iteration solve (which "
+                    "stretches 44x at its worst, 26% on average)"),
+        Preset("balanced", 1, 20, True, True, cost=3.2, max_strain=0.36, mean_strain=0.0071,
+               note="mean strain under 1%"),
+        Preset("accurate", 1, 80, True, True, cost=12.3, max_strain=0.067, mean_strain=0.0011,
+               note="max strain under 10% through the whole fall and swing, mean 0.1%"),
+        Preset("exact", 2, 100, True, True, cost=26.0, max_strain=0.055, mean_strain=0.0005,
+               note="reference-like: mean 0.05%, max under 1% once swinging (0.8% at t = 2 s)"),
+    )
+}
+ORDER: tuple[str, ...] = tuple(PRESETS)
+PRESET_TICK_HZ = 60.0  # the tick rate the presets' substeps are given for
+DEFAULT = "balanced"
+
+
+def preset(name: str) -> Preset:
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise ValueError(f"unknown quality preset {name!r}; choose from {list(ORDER)}") from None
+
+
+def apply_preset(params: ClothParams, name: str, tick_hz: float = PRESET_TICK_HZ) -> ClothParams:
+    """``params`` with the preset's iterations, substeps, XPBD and tethers switched on or off.
+    Material (stiffness, compliance, tether limit), gravity, wind and other features are kept.
+
+    Presets are defined at 60 Hz; at another ``tick_hz`` the substeps scale so that the substep
+    length (what accuracy depends on, Small Steps) and the cost per simulated second stay the
+    same: 20 substeps at 60 Hz are 10 at 120 Hz and 40 at 30 Hz (at most 100, at least 1)."""
+    p = preset(name)
+    if not (math.isfinite(tick_hz) and tick_hz > 0):
+        raise ValueError("tick_hz must be a positive number")
+    substeps = min(100, max(1, round(p.substeps * PRESET_TICK_HZ / tick_hz)))
+    features = replace(params.features, xpbd=p.xpbd, tethers=p.tethers)
+    out = params.with_(iterations=p.iterations, substeps=substeps, features=features)
+    out.validate()
+    return out
+
+
+def preset_of(params: ClothParams, tick_hz: float = PRESET_TICK_HZ) -> str | None:
+    """The preset whose solver settings ``params`` has (at ``tick_hz``), or None."""
+    for p in PRESETS.values():
+        q = apply_preset(params, p.name, tick_hz)
+        if (params.iterations, params.substeps, params.features) == (q.iterations, q.substeps, q.features):
+            return p.name
+    return None
+
+
+def degrade(name: str) -> str:
+    """The next cheaper preset (``fast`` stays ``fast``)."""
+    i = ORDER.index(preset(name).name)
+    return ORDER[max(i - 1, 0)]
+
+
+def restore(name: str, wanted: str | None = None) -> str:
+    """One step back up from ``name`` toward ``wanted`` (default: the most accurate), never
+    above it; ``wanted`` itself once reached."""
+    i = ORDER.index(preset(name).name)
+    top = ORDER.index(preset(wanted).name) if wanted is not None else len(ORDER) - 1
+    if i >= top:
+        return ORDER[top] if i > top else name
+    return ORDER[i + 1]
+
+
+def can_degrade(name: str) -> bool:
+    return ORDER.index(preset(name).name) > 0
+
+
+class QualityGovernor:
+    """Hysteresis around ``degrade``/``restore`` for one server (or one cloth).
+
+    Call ``update(frame_ms)`` once per tick with the measured device time of the tick; it returns
+    the preset to use next. Over ``budget_ms`` for ``patience`` ticks in a row: one step down.
+    Under ``headroom`` x budget for ``patience * 4`` ticks in a row (and the next preset up is
+    predicted to fit, from the presets' measured relative costs): one step back up toward
+    ``wanted``."""
+
+    def __init__(self, wanted: str = DEFAULT, budget_ms: float = 16.0, patience: int = 3,
+                 headroom: float = 0.6) -> None:
+        self.wanted = preset(wanted).name
+        self.current = self.wanted
+        self.budget_ms = float(budget_ms)
+        self.patience = int(patience)
+        self.headroom = float(headroom)
+        self._over = 0
+        self._under = 0
+
+    def update(self, frame_ms: float) -> str:
+        if frame_ms > self.budget_ms:
+            self._over += 1
+            self._under = 0
+            if self._over >= self.patience and can_degrade(self.current):
+                self.current = degrade(self.current)
+                self._over = 0
+        else:
+            self._over = 0
+            up = restore(self.current, self.wanted)
+            predicted = frame_ms * PRESETS[up].cost / PRESETS[self.current].cost
+            if up != self.current and frame_ms < self.headroom * self.budget_ms and predicted < self.budget_ms:
+                self._under += 1
+                if self._under >= 4 * self.patience:
+                    self.current = up
+                    self._under = 0
+            else:
+                self._under = 0
+        return self.current

@@ -71,7 +71,8 @@ inline float link_xpbd(float4 p0, float4 p1, float rl, float alpha, float lam, f
     float3 d = p1.xyz - p0.xyz;
     float L = dot(d, d);
     float denom = p0.w + p1.w + alpha;
-    if (!(L > EPS_LEN2) || !(denom > EPS_DENOM)) {
+    /* compliance / h^2 past float range: infinitely soft, no correction (and no inf * 0) */
+    if (!(L > EPS_LEN2) || !(denom > EPS_DENOM) || isinf(alpha)) {
         *d0 = (float3)(0.0f);
         *d1 = (float3)(0.0f);
         return 0.0f;
@@ -111,7 +112,11 @@ inline float3 vertex_normal(XS const float4 *X, __global const int *fb, __global
     return len > 1e-30f ? n / len : (float3)(0.0f);
 }
 
-inline float3 aero_force(float3 vel, float3 n, float area, __global const float *F)
+/* Velocity change from Bullet's aerodynamics over one substep: drag along the relative wind,
+ * lift across it. The change is at most the relative wind speed, so drag never carries a
+ * vertex past the wind's own velocity however strong the wind or long the step (explicit drag
+ * would overshoot and blow up). */
+inline float3 aero_dv(float3 vel, float3 n, float area, float invm, float h, __global const float *F)
 {
     float3 wind = (float3)(F[CF_WIND], F[CF_WIND + 1], F[CF_WIND + 2]);
     float3 r = vel - wind;
@@ -129,18 +134,20 @@ inline float3 aero_force(float3 vel, float3 n, float area, __global const float 
         float s = sqrt(fmax(1.0f - c * c, 0.0f));
         f += 0.5f * lift * rho * (rl * area * s) * cross(cross(n, rh), rh);
     }
-    return f;
+    float3 dv = f * (invm * h);
+    float m = length(dv);
+    return m > rl ? dv * (rl / m) : dv;
 }
 
 /* gravity (+ wind), integrate, move pins toward their targets */
-inline float4 predict_vertex(float4 x, float3 n_area_force, __global float4 *vel, __global float4 *prev,
+inline float4 predict_vertex(float4 x, float3 aero, __global float4 *vel, __global float4 *prev,
                              __global const float4 *target, int gv, __global const float *F, float h, int remaining)
 {
     prev[gv] = x;
     if (x.w > 0.0f) {
         float3 g = (float3)(F[CF_GRAVITY], F[CF_GRAVITY + 1], F[CF_GRAVITY + 2]);
         float4 v = vel[gv];
-        float3 vv = v.xyz + (g + n_area_force * x.w) * h;
+        float3 vv = v.xyz + g * h + aero;
         vel[gv] = (float4)(vv, 0.0f);
         x.xyz += vv * h;
     } else {
@@ -280,7 +287,7 @@ __kernel void wg_step(const float dt, __global const int *cloths, __global const
             float3 f = (float3)(0.0f);
 #if FEATURE_WIND
             float4 na = nrm[vbase + v];
-            f = aero_force(vel[vbase + v].xyz, na.xyz, na.w, F);
+            f = aero_dv(vel[vbase + v].xyz, na.xyz, na.w, X[v].w, h, F);
 #endif
             X[v] = predict_vertex(X[v], f, vel, prev, target, vbase + v, F, h, S - s);
         }
@@ -394,7 +401,7 @@ __kernel void cl_predict(const float dt, const int s, const int chunk, __global 
         float3 f = (float3)(0.0f);
 #if FEATURE_WIND
         float4 na = nrm[vbase + v];
-        f = aero_force(vel[vbase + v].xyz, na.xyz, na.w, F);
+        f = aero_dv(vel[vbase + v].xyz, na.xyz, na.w, X[v].w, h, F);
 #endif
         X[v] = predict_vertex(X[v], f, vel, prev, target, vbase + v, F, h, S - s);
     }

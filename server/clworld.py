@@ -338,7 +338,8 @@ class CLWorld(World):
         cf[L["CF_WIND"] : L["CF_WIND"] + 3] = p.wind
         cf[L["CF_DAMP_SUB"]] = 1.0 - (1.0 - m.damping) ** (1.0 / p.substeps)
         cf[L["CF_STIFFNESS"] : L["CF_STIFFNESS"] + 3] = m.stiffness
-        cf[L["CF_COMPLIANCE"] : L["CF_COMPLIANCE"] + 3] = m.compliance
+        # beyond float32: the largest float32, whose alpha = c / h^2 is infinite, i.e. no correction
+        cf[L["CF_COMPLIANCE"] : L["CF_COMPLIANCE"] + 3] = np.minimum(m.compliance, np.finfo(np.float32).max)
         cf[L["CF_FRICTION"]] = m.friction
         cf[L["CF_DRAG"]] = m.drag
         cf[L["CF_LIFT"]] = m.lift
@@ -499,7 +500,9 @@ class CLWorld(World):
                                      hostbuf=np.ascontiguousarray(chunks, np.int32))
         g.local_size = int(min(cap, max(min(32, cap), _next_pow2(widest))))
         g.local_size = min(g.local_size, self._kernel_limit(g))
-        if self.solver == "coloured":
+        if self.solver == "coloured" and g.max_colours == 0:  # cloths without links (1 vertex)
+            g.colour_totals, g.prefix_buf = [], None
+        elif self.solver == "coloured":
             counts = np.zeros((g.max_colours, len(cloths) + 1), np.int32)
             for j, c in enumerate(cloths):
                 sizes = np.diff(c.fabric.colour_offsets)

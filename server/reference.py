@@ -4,8 +4,9 @@ One step of one cloth, in this order (the OpenCL kernels in kernels/cloth.cl do 
 
     h = dt / substeps;  damping per substep = 1 - (1 - kDP) ** (1 / substeps)
     for each substep s:
-        [wind]       normals and areas from the current positions; aerodynamic force F
-        free:        v += (g + F * invm) * h;   x_prev = x;   x += v * h
+        [wind]       normals and areas from the current positions
+        free:        v += g * h + dv_aero;   x_prev = x;   x += v * h
+                     (dv_aero: drag and lift over the substep, at most the relative wind speed)
         pinned:      x += (target - x) / (substeps - s)        (reaches the target on the last)
         [xpbd]       lambda = 0
         iterations:  every link, colour by colour (Gauss-Seidel in colour order), with the
@@ -94,13 +95,13 @@ def step(state: ClothState, fabric: Fabric, params: ClothParams, dt: float, mode
     comp = link_compliance(fabric, params).astype(dtype)
     lam = np.zeros(fabric.n_links, dtype)
     for s in range(S):
-        acc = np.broadcast_to(g, x.shape).copy()
+        acc = np.broadcast_to(g, x.shape)
         if f.needs_normals:
             normals, area = vertex_normals(x, fabric)
             state.normals = normals
-            if f.wind:
-                force = aero_force(v, normals, area, np.asarray(params.wind, dtype), m.drag, m.lift, m.air_density)
-                acc += force * invm[:, None]
+        if f.wind:  # from the velocity before this substep's gravity, as the kernels do
+            v[free] += aero_dv(v, normals, area, invm, h, np.asarray(params.wind, dtype), m.drag, m.lift,
+                               m.air_density)[free]
         v[free] += acc[free] * h
         x_prev = x.copy()
         x[free] += v[free] * h
@@ -168,7 +169,7 @@ def _xpbd_pair(x0, x1, im0, im1, rl, alpha, lam):
     n = d / length[..., None]
     C = length - rl
     denom = im0 + im1 + alpha
-    ok &= denom > EPS_DENOM
+    ok &= (denom > EPS_DENOM) & np.isfinite(alpha)  # infinite compliance: infinitely soft
     dl = np.where(ok, (-C - alpha * lam) / np.where(denom > EPS_DENOM, denom, 1.0), 0.0)
     return n, dl
 
@@ -329,6 +330,18 @@ def vertex_normals(x: np.ndarray, fabric: Fabric) -> tuple[np.ndarray, np.ndarra
     normals[ok] /= ln[ok, None]
     normals[~ok] = 0.0
     return normals, area
+
+
+def aero_dv(v, normals, area, invm, h, wind, drag, lift, rho):
+    """Velocity change over a substep from Bullet's per-vertex aerodynamics, at most the
+    relative wind speed (drag never carries a vertex past the wind's velocity)."""
+    f = aero_force(v, normals, area, wind, drag, lift, rho)
+    dv = f * (invm * h)[:, None]
+    mag = np.linalg.norm(dv, axis=1)
+    rl = np.linalg.norm(v - wind, axis=1)
+    over = mag > rl
+    dv[over] *= (rl[over] / mag[over])[:, None]
+    return dv
 
 
 def aero_force(v, normals, area, wind, drag, lift, rho):

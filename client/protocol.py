@@ -1,10 +1,15 @@
-"""The Drape wire protocol, version 1.0 (see PROTOCOL.md at the repository root).
+"""The Drape wire protocol, version 1.1 (see PROTOCOL.md at the repository root).
 
 Requests and replies are msgpack maps; the per-tick cloth state is a fixed little-endian binary
 layout that any language reads with a struct. This module is the single source of truth for
 both: key expressions, dataclasses for every message, ``encode_*``/``decode_*`` pairs, and the
 validation that turns anything malformed or hostile into a :class:`ProtocolError` carrying a
 stable error ``code``.
+
+1.1 adds, backward compatibly: state bundles (``state.bundle`` at submission; one binary
+``DRPB`` publication per client per tick on :meth:`Keys.bundle`, see :func:`encode_bundle`) and
+batch control (many cloths' controls in one request on :meth:`Keys.control_batch`, one result
+per item, see :func:`decode_control_batch`).
 
 It imports only numpy, msgpack and the standard library, so a game client or a tool can use it
 without Zenoh or OpenCL installed.
@@ -24,7 +29,7 @@ import numpy as np
 # Versions, keys, names
 
 PROTOCOL_MAJOR = 1
-PROTOCOL_MINOR = 0
+PROTOCOL_MINOR = 1
 PROTOCOL_VERSION: tuple[int, int] = (PROTOCOL_MAJOR, PROTOCOL_MINOR)
 VERSION_STRING = f"{PROTOCOL_MAJOR}.{PROTOCOL_MINOR}"
 
@@ -58,6 +63,9 @@ class Keys:
     def control(self, server: str) -> str:  # queryable
         return f"{self.namespace}/server/{server}/control"
 
+    def control_batch(self, server: str) -> str:  # queryable (1.1)
+        return f"{self.namespace}/server/{server}/control_batch"
+
     def remove(self, server: str) -> str:  # queryable
         return f"{self.namespace}/server/{server}/remove"
 
@@ -69,6 +77,9 @@ class Keys:
 
     def state(self, cloth: str) -> str:  # publication, every tick, binary
         return f"{self.namespace}/cloth/{cloth}/state"
+
+    def bundle(self, client: str) -> str:  # publication, every tick, binary bundle (1.1)
+        return f"{self.namespace}/client/{client}/states"
 
     def alive_server(self, server: str) -> str:  # liveliness token
         return f"{self.namespace}/alive/server/{server}"
@@ -192,7 +203,8 @@ class Limits:
     max_message_bytes: int = 8 << 20
     max_vertices: int = 65536  # per cloth
     max_triangles: int = 262144  # per mesh
-    max_pin_updates: int = 4096  # pin targets in one control message
+    max_pin_updates: int = 4096  # pin targets in one control message (in one batch item)
+    max_batch_items: int = 64  # items in one batch control (1.1)
     max_colliders: int = 32  # = params.MAX_COLLIDERS_PER_CLOTH
     max_iterations: int = 100
     max_substeps: int = 16
@@ -308,10 +320,12 @@ ENCODING_NAMES = {v: k for k, v in ENCODING_IDS.items()}
 @dataclass(frozen=True)
 class StateOptions:
     """How a cloth's state is published. None = unchanged (control) or the default (submit:
-    no normals, float32)."""
+    no normals, float32, own key). ``bundle`` (1.1, submission only): publish the state inside
+    the client's bundle on Keys.bundle(client) instead of on the cloth's own key."""
 
     normals: bool | None = None
     encoding: str | None = None
+    bundle: bool | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -405,10 +419,11 @@ class InfoRequest:
 class SubmitReply:
     cloth: str
     token: str
-    key: str  # where the cloth's state is published
+    key: str  # the cloth's own state key (where its state is published unless bundled)
     vertices: int
     tick: int  # the first tick whose state includes the cloth
     rid: int = 0
+    bundle_key: str | None = None  # 1.1: set when the state goes in the client's bundle on this key instead
 
 
 @dataclass
@@ -431,6 +446,58 @@ class ErrorReply:
 
     def exception(self) -> DrapeError:
         return error_for(self.code, self.message, self.rid)
+
+
+@dataclass(eq=False)
+class ControlBatchRequest:
+    """1.1: controls of many cloths of one client in one request. Each item is a control
+    (cloth, token and any control field); the items' own ``rid`` is not sent."""
+
+    client: str
+    items: list[ControlRequest] = field(default_factory=list)
+    rid: int = 0
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, ControlBatchRequest) and control_batch_to_map(self) == control_batch_to_map(other)
+
+
+@dataclass(eq=False)
+class DecodedControlBatch:
+    """A batch control as a server reads it: the envelope was valid; each item is either its
+    validated ControlRequest or the ProtocolError that rejects that item alone."""
+
+    client: str
+    items: list[ControlRequest | ProtocolError]
+    rid: int = 0
+
+
+@dataclass
+class BatchItemResult:
+    """The outcome of one batch item: ``tick`` when applied, else an error ``code`` and ``message``."""
+
+    tick: int | None = None
+    code: str = ""
+    message: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return not self.code
+
+    def exception(self, rid: int = 0) -> DrapeError | None:
+        return None if self.ok else error_for(self.code, self.message, rid)
+
+
+@dataclass
+class ControlBatchReply:
+    """``tick``: the first tick whose states reflect the applied items; one result per item, in order."""
+
+    tick: int
+    results: list[BatchItemResult] = field(default_factory=list)
+    rid: int = 0
+
+    @property
+    def failed(self) -> int:
+        return sum(1 for r in self.results if not r.ok)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -705,17 +772,20 @@ def _read_colliders(r: _Reader, key: str = "colliders") -> tuple[Collider, ...] 
     return tuple(out)
 
 
-def _read_state_options(r: _Reader, key: str = "state") -> StateOptions | None:
+def _read_state_options(r: _Reader, key: str = "state", submit: bool = True) -> StateOptions | None:
     sub = r.sub(key)
     if sub is None:
         return None
-    return StateOptions(sub.bool_("normals"), sub.str_("encoding", choices=ENCODINGS))
+    bundle = sub.bool_("bundle")
+    if bundle is not None and not submit:
+        raise r.fail(ERR_INVALID_VALUE, f"'{sub.name('bundle')}' can only be chosen at submission, not changed by a control")
+    return StateOptions(sub.bool_("normals"), sub.str_("encoding", choices=ENCODINGS), bundle)
 
 
 def _read_rho(r: _Reader) -> float | None:
     rho = r.num("chebyshev_rho", 0.0, 1.0)
     if rho is not None and rho >= 1.0:
-        raise r.fail(ERR_INVALID_VALUE, f"'chebyshev_rho' must be in [0, 1), got {rho}")
+        raise r.fail(ERR_INVALID_VALUE, f"'{r.name('chebyshev_rho')}' must be in [0, 1), got {rho}")
     return rho
 
 
@@ -775,6 +845,8 @@ def _state_map(s: StateOptions) -> dict[str, Any]:
         m["normals"] = bool(s.normals)
     if s.encoding is not None:
         m["encoding"] = s.encoding
+    if s.bundle is not None:
+        m["bundle"] = bool(s.bundle)
     return m
 
 
@@ -906,6 +978,13 @@ def submit_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS) -> Su
 
 def control_to_map(req: ControlRequest) -> dict[str, Any]:
     m = _header(req.rid)
+    m.update(control_item_to_map(req))
+    return m
+
+
+def control_item_to_map(req: ControlRequest) -> dict[str, Any]:
+    """A control's fields without ``v`` and ``rid``: one item of a batch control."""
+    m: dict[str, Any] = {}
     m["cloth"] = req.cloth
     m["token"] = req.token
     if req.pins is not None:
@@ -950,7 +1029,12 @@ def _owner_fields(r: _Reader) -> tuple[str, str]:
 
 def control_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS, n_vertices: int | None = None) -> ControlRequest:
     r = _Reader(m, "", _peek_rid(dict(m)), limits)
-    rid = _rid(r)
+    return _read_control(r, _rid(r), n_vertices)
+
+
+def _read_control(r: _Reader, rid: int, n_vertices: int | None = None) -> ControlRequest:
+    """The fields of a control (a whole message, or one batch item whose reader path names it)."""
+    limits = r.limits
     cloth, token = _owner_fields(r)
     pins = None
     pr = r.sub("pins")
@@ -959,11 +1043,11 @@ def control_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS, n_ve
         tgt = pr.blob("targets", "f4", 3, limits.max_pin_updates, True)
         assert idx is not None and tgt is not None
         if len(idx) != len(tgt):
-            raise r.fail(ERR_INVALID_VALUE, f"'pins' has {len(idx)} indices but {len(tgt)} targets")
+            raise r.fail(ERR_INVALID_VALUE, f"'{r.name('pins')}' has {len(idx)} indices but {len(tgt)} targets")
         if n_vertices is not None and idx.size and int(idx.max()) >= n_vertices:
-            raise r.fail(ERR_INDEX_OUT_OF_RANGE, f"'pins.indices' refers to vertex {int(idx.max())} but the cloth has "
-                         f"{n_vertices} vertices")
-        _check_finite_array(r, "pins.targets", tgt, limits.max_coordinate)
+            raise r.fail(ERR_INDEX_OUT_OF_RANGE, f"'{pr.name('indices')}' refers to vertex {int(idx.max())} but the "
+                         f"cloth has {n_vertices} vertices")
+        _check_finite_array(r, pr.name("targets"), tgt, limits.max_coordinate)
         pins = PinUpdate(idx, tgt)
     acc = limits.max_acceleration
     reset = r.bool_("reset")
@@ -979,7 +1063,7 @@ def control_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS, n_ve
         iterations=r.int_("iterations", 0, limits.max_iterations),
         substeps=r.int_("substeps", 1, limits.max_substeps),
         chebyshev_rho=_read_rho(r),
-        state=_read_state_options(r),
+        state=_read_state_options(r, submit=False),
         reset=bool(reset),
         rid=rid,
     )
@@ -1020,12 +1104,97 @@ def decode_info(data: bytes | bytearray, limits: Limits = DEFAULT_LIMITS) -> Inf
 
 
 # ---------------------------------------------------------------------------------------------
+# Batch control (1.1)
+
+
+def control_batch_to_map(req: ControlBatchRequest) -> dict[str, Any]:
+    m = _header(req.rid)
+    m["client"] = req.client
+    m["items"] = [control_item_to_map(it) for it in req.items]
+    return m
+
+
+def encode_control_batch(req: ControlBatchRequest) -> bytes:
+    return pack(control_batch_to_map(req))
+
+
+def decode_control_batch(data: bytes | bytearray, limits: Limits = DEFAULT_LIMITS) -> DecodedControlBatch:
+    """Validate a batch control. The envelope (size, msgpack, version, ``client``, ``items``
+    being an array of 1..max_batch_items) raises ProtocolError for the whole request; every item
+    is then validated on its own: an invalid item becomes its ProtocolError in ``items`` and
+    does not affect the others."""
+    return control_batch_from_map(unpack_message(data, limits), limits)
+
+
+def control_batch_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS) -> DecodedControlBatch:
+    r = _Reader(m, "", _peek_rid(dict(m)), limits)
+    rid = _rid(r)
+    client = r.str_("client", True, pattern=ID_RE, what="1-64 characters of [A-Za-z0-9_.-]")
+    raw_items = r.raw("items", True)
+    if not isinstance(raw_items, list):
+        raise r.fail(ERR_INVALID_TYPE, f"'items' must be an array of control maps, got {_tname(raw_items)}")
+    if not raw_items:
+        raise r.fail(ERR_INVALID_VALUE, "'items' must hold at least one control")
+    if len(raw_items) > limits.max_batch_items:
+        raise r.fail(ERR_TOO_LARGE, f"'items' has {len(raw_items)} controls, more than the limit of "
+                     f"{limits.max_batch_items}")
+    items: list[ControlRequest | ProtocolError] = []
+    for i, it in enumerate(raw_items):
+        name = f"items[{i}]"
+        if not isinstance(it, dict):
+            items.append(ProtocolError(ERR_INVALID_TYPE, f"'{name}' must be a map, got {_tname(it)}", rid))
+            continue
+        try:
+            items.append(_read_control(_Reader(it, name, rid, limits), rid))
+        except ProtocolError as e:
+            items.append(e)
+    return DecodedControlBatch(client, items, rid)  # type: ignore[arg-type]
+
+
+def encode_control_batch_reply(rep: ControlBatchReply) -> bytes:
+    m = _header(rep.rid)
+    results: list[dict[str, Any]] = []
+    for res in rep.results:
+        if res.ok:
+            results.append({"ok": True, "tick": int(rep.tick if res.tick is None else res.tick)})
+        else:
+            if res.code not in ERROR_CODES:
+                raise ValueError(f"unknown error code {res.code!r}")
+            results.append({"ok": False, "error": {"code": res.code, "message": str(res.message)}})
+    m.update(ok=True, tick=int(rep.tick), failed=sum(1 for x in rep.results if not x.ok), results=results)
+    return pack(m)
+
+
+def control_batch_reply_from_map(m: Mapping[str, Any]) -> ControlBatchReply:
+    """A batch reply's map (as decode_reply returns it) as a ControlBatchReply."""
+    r = _Reader(m, "", _peek_rid(dict(m)), DEFAULT_LIMITS)
+    tick = r.int_("tick", 0, (1 << 64) - 1, True)
+    raw_results = r.raw("results", True)
+    if not isinstance(raw_results, list):
+        raise r.fail(ERR_INVALID_TYPE, f"'results' must be an array, got {_tname(raw_results)}")
+    results: list[BatchItemResult] = []
+    for i, x in enumerate(raw_results):
+        if not isinstance(x, dict):
+            raise r.fail(ERR_INVALID_TYPE, f"'results[{i}]' must be a map, got {_tname(x)}")
+        xr = _Reader(x, f"results[{i}]", r.rid, DEFAULT_LIMITS)
+        if xr.bool_("ok", True):
+            results.append(BatchItemResult(tick=xr.int_("tick", 0, (1 << 64) - 1, True)))
+        else:
+            er = xr.sub("error", True)
+            assert er is not None
+            results.append(BatchItemResult(None, er.str_("code", True) or "", er.str_("message") or ""))
+    return ControlBatchReply(tick, results, _rid(r))  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------------------------------------
 # Replies
 
 
 def encode_submit_reply(rep: SubmitReply) -> bytes:
     m = _header(rep.rid)
     m.update(ok=True, cloth=rep.cloth, token=rep.token, key=rep.key, vertices=int(rep.vertices), tick=int(rep.tick))
+    if rep.bundle_key is not None:
+        m["bundle_key"] = rep.bundle_key
     return pack(m)
 
 
@@ -1092,6 +1261,7 @@ def submit_reply_from_map(m: Mapping[str, Any]) -> SubmitReply:
         vertices=r.int_("vertices", 1, 1 << 32, True),  # type: ignore[arg-type]
         tick=r.int_("tick", 0, (1 << 64) - 1, True),  # type: ignore[arg-type]
         rid=_rid(r),
+        bundle_key=r.str_("bundle_key"),
     )
 
 
@@ -1263,6 +1433,141 @@ def decode_state(data: bytes | bytearray | memoryview, cloth: str = "", receive_
             nrm = (np.frombuffer(buf, "<i2", n * 3, hsize + block).reshape(n, 3) / SNORM_MAX).astype(np.float32)
     bounds = (tuple(float(v) for v in lo), tuple(float(v) for v in hi))
     return ClothState(tick, t_ns, pos, nrm, receive_time_ns, ENCODING_NAMES[enc], flags, bounds, cloth)  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------------------------------------
+# State bundles (1.1): the states of one client's bundled cloths at one tick, in one payload
+
+BUNDLE_MAGIC = b"DRPB"
+#: magic, major, minor, header_size, count, flags, tick, server time
+BUNDLE_HEADER = struct.Struct("<4sBBHIIQQ")
+BUNDLE_HEADER_SIZE = BUNDLE_HEADER.size  # 32
+assert BUNDLE_HEADER_SIZE == 32
+#: per entry: entry header size (offset of the state from the entry start), id length, reserved, state size
+BUNDLE_ENTRY = struct.Struct("<HBxI")
+BUNDLE_ENTRY_SIZE = BUNDLE_ENTRY.size  # 8, then the cloth id, then zeros up to the entry header size
+BUNDLE_ALIGN = 8  # entries and states start at multiples of 8 from the start of the bundle
+
+
+def align8(n: int) -> int:
+    return (n + 7) & ~7
+
+
+def bundle_entry_header_size(cloth: str) -> int:
+    """Bytes from an entry's start to its state payload: 8 + id length, rounded up to 8."""
+    return align8(BUNDLE_ENTRY_SIZE + len(cloth))
+
+
+def bundle_size(entries: Iterable[tuple[str, int]]) -> int:
+    """Bytes of a bundle of (cloth id, state size) entries."""
+    return BUNDLE_HEADER_SIZE + sum(bundle_entry_header_size(c) + align8(n) for c, n in entries)
+
+
+def pack_bundle_header(out: bytearray | memoryview, tick: int, server_time_ns: int, count: int, flags: int = 0) -> None:
+    BUNDLE_HEADER.pack_into(out, 0, BUNDLE_MAGIC, PROTOCOL_MAJOR, PROTOCOL_MINOR, BUNDLE_HEADER_SIZE, count, flags,
+                            tick, server_time_ns)
+
+
+def pack_bundle_entry(out: bytearray | memoryview, at: int, cloth: str, state_size: int) -> int:
+    """Write an entry header (with the id and its padding) at ``at``; returns the state's offset."""
+    cid = cloth.encode("ascii")
+    h = align8(BUNDLE_ENTRY_SIZE + len(cid))
+    BUNDLE_ENTRY.pack_into(out, at, h, len(cid), state_size)
+    end = at + BUNDLE_ENTRY_SIZE + len(cid)
+    out[at + BUNDLE_ENTRY_SIZE:end] = cid
+    out[end:at + h] = bytes(at + h - end)
+    return at + h
+
+
+def encode_bundle(tick: int, server_time_ns: int, states: Sequence[tuple[str, bytes | bytearray | memoryview]],
+                  flags: int = 0) -> bytearray:
+    """The bundle payload of (cloth id, state payload) pairs, in order. Every state should carry
+    the bundle's tick and server time (encode_state(tick, server_time_ns, ...))."""
+    out = bytearray(bundle_size((c, len(st)) for c, st in states))
+    pack_bundle_header(out, tick, server_time_ns, len(states), flags)
+    at = BUNDLE_HEADER_SIZE
+    for cloth, st in states:
+        if not valid_id(cloth):
+            raise ValueError(f"invalid cloth id {cloth!r}")
+        off = pack_bundle_entry(out, at, cloth, len(st))
+        out[off:off + len(st)] = st
+        at = off + align8(len(st))  # the padding is already zero
+    return out
+
+
+@dataclass(frozen=True)
+class BundleEntry:
+    cloth: str
+    offset: int  # of the state payload, from the start of the bundle
+    size: int  # of the state payload
+
+
+@dataclass(eq=False)
+class Bundle:
+    """A parsed bundle: header fields and where each cloth's state payload lies in ``data``."""
+
+    tick: int
+    server_time_ns: int
+    flags: int
+    entries: list[BundleEntry]
+    data: bytes | bytearray | memoryview
+    minor: int = PROTOCOL_MINOR
+
+    def payload(self, i: int) -> memoryview:
+        e = self.entries[i]
+        return memoryview(self.data)[e.offset:e.offset + e.size]
+
+    def state(self, i: int, receive_time_ns: int = 0) -> ClothState:
+        """Entry ``i`` decoded with decode_state (float32 arrays are views of the bundle)."""
+        return decode_state(self.payload(i), self.entries[i].cloth, receive_time_ns)
+
+    def states(self, receive_time_ns: int = 0) -> list[ClothState]:
+        return [self.state(i, receive_time_ns) for i in range(len(self.entries))]
+
+
+def parse_bundle(data: bytes | bytearray | memoryview) -> Bundle:
+    """Parse a bundle's header and entry table (the states are decoded on demand). Raises
+    ProtocolError on a bad magic, an unknown major version, a header_size below 32, an entry
+    that does not fit, an entry header size below 8 + id length, or an id that is not a valid
+    cloth id. Unknown flag bits, a longer header and trailing bytes after the last entry are
+    ignored (later minor versions may add them)."""
+    buf = data if isinstance(data, (bytes, bytearray)) else memoryview(data).cast("B")
+    size = len(buf)
+    if size < BUNDLE_HEADER_SIZE:
+        raise ProtocolError(ERR_MALFORMED, f"bundle of {size} bytes is shorter than the {BUNDLE_HEADER_SIZE}-byte header")
+    magic, major, minor, hsize, count, flags, tick, t_ns = BUNDLE_HEADER.unpack_from(buf, 0)
+    if magic != BUNDLE_MAGIC:
+        raise ProtocolError(ERR_MALFORMED, f"bundle magic {bytes(magic)!r} is not {BUNDLE_MAGIC!r}")
+    if major != PROTOCOL_MAJOR:
+        raise ProtocolError(ERR_UNSUPPORTED_VERSION, f"bundle version {major}.{minor} is not supported; this side "
+                            f"speaks {VERSION_STRING}")
+    if hsize < BUNDLE_HEADER_SIZE:
+        raise ProtocolError(ERR_MALFORMED, f"bundle header_size {hsize} is below {BUNDLE_HEADER_SIZE}")
+    at = hsize
+    entries: list[BundleEntry] = []
+    for i in range(count):
+        if at + BUNDLE_ENTRY_SIZE > size:
+            raise ProtocolError(ERR_MALFORMED, f"bundle entry {i} of {count} starts at byte {at}, past the end ({size})")
+        h, id_len, st_size = BUNDLE_ENTRY.unpack_from(buf, at)
+        if h < BUNDLE_ENTRY_SIZE + id_len:
+            raise ProtocolError(ERR_MALFORMED, f"bundle entry {i}: entry header size {h} is below 8 + id length {id_len}")
+        if at + h + st_size > size:
+            raise ProtocolError(ERR_MALFORMED, f"bundle entry {i}: state of {st_size} bytes at byte {at + h} runs past "
+                                f"the end ({size})")
+        try:
+            cloth = bytes(buf[at + BUNDLE_ENTRY_SIZE:at + BUNDLE_ENTRY_SIZE + id_len]).decode("ascii")
+        except UnicodeDecodeError:
+            cloth = ""
+        if not valid_id(cloth):
+            raise ProtocolError(ERR_MALFORMED, f"bundle entry {i}: invalid cloth id")
+        entries.append(BundleEntry(cloth, at + h, st_size))
+        at = align8(at + h + st_size)
+    return Bundle(tick, t_ns, flags, entries, buf, minor)
+
+
+def decode_bundle(data: bytes | bytearray | memoryview, receive_time_ns: int = 0) -> list[ClothState]:
+    """Every state of a bundle, decoded (each ClothState's ``cloth`` is its entry's id)."""
+    return parse_bundle(data).states(receive_time_ns)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -274,7 +274,7 @@ def test_error_messages_name_the_problem():
         assert needle in e.value.message, e.value.message
     with pytest.raises(P.ProtocolError) as e:
         P.decode_submit(raw(sub(v=[3, 1])))
-    assert "1.0" in e.value.message  # names the supported version
+    assert P.VERSION_STRING in e.value.message  # names the supported version
 
 
 # ---------------------------------------------------------------------------------------------
@@ -287,7 +287,7 @@ def test_state_header_layout_matches_the_document():
     data = bytes(P.encode_state(0x0102030405060708, 99, pos, nrm, "float32", P.FLAG_RESET))
     assert len(data) == 64 + 2 * 12 * 2 == P.state_size(2, "float32", True)
     assert data[0:4] == b"DRPS"
-    assert data[4] == 1 and data[5] == 0  # major, minor
+    assert data[4] == 1 and data[5] == P.PROTOCOL_MINOR == 1  # major, minor
     assert struct.unpack_from("<H", data, 6)[0] == 64  # header size
     assert data[8] == 0 and data[9] == 0  # encoding float32, reserved
     assert struct.unpack_from("<H", data, 10)[0] == P.FLAG_NORMALS | P.FLAG_RESET == 3
@@ -378,8 +378,22 @@ def _reply_encoders(kind: str, m: dict) -> bytes:
         return P.encode_control_reply(P.ControlReply(P.tick_reply_from_map(m), m["rid"]))
     if kind == "reply_remove":
         return P.encode_remove_reply(P.RemoveReply(P.tick_reply_from_map(m), m["rid"]))
+    if kind == "reply_control_batch":
+        return P.encode_control_batch_reply(P.control_batch_reply_from_map(m))
     err = P.decode_error_map(m)
     return P.encode_error(err.code, err.message, err.rid)
+
+
+def _batch_request(d: P.DecodedControlBatch) -> P.ControlBatchRequest:
+    assert all(isinstance(it, P.ControlRequest) for it in d.items), d.items
+    return P.ControlBatchRequest(d.client, list(d.items), d.rid)  # type: ignore[arg-type]
+
+
+REENCODE["control_batch"] = (
+    lambda data: _batch_request(P.decode_control_batch(data)),
+    P.encode_control_batch,
+    lambda m: _batch_request(P.control_batch_from_map(m)),
+)
 
 
 @pytest.mark.parametrize("vec", load("submit") + load("control") + load("misc"), ids=lambda v: v["name"])
@@ -428,18 +442,111 @@ def test_state_vectors(vec):
     assert bytes(again) == data
 
 
+@pytest.mark.parametrize("vec", load("bundle"), ids=lambda v: v["name"])
+def test_bundle_vectors(vec):
+    data = bytes.fromhex(vec["hex"])
+    val = vec["value"]
+    # bytes -> meaning, read with struct as the document's offset table says
+    magic, major, minor, hsize, count, flags, tick, t_ns = struct.unpack_from("<4sBBHIIQQ", data, 0)
+    assert (magic.decode(), major, minor, hsize, count, flags, tick, t_ns) == (
+        val["magic"], val["major"], val["minor"], val["header_size"], val["count"], val["flags"], val["tick"],
+        val["server_time_ns"])
+    assert len(data) == val["size"] and len(data) % 8 == 0
+    for e in val["entries"]:
+        at = e["entry_offset"]
+        h, id_len, reserved, size = struct.unpack_from("<HBBI", data, at)
+        assert (h, size, reserved) == (e["entry_header_size"], e["state_size"], 0)
+        assert data[at + 8:at + 8 + id_len].decode() == e["cloth"] and not any(data[at + 8 + id_len:at + h])
+        assert at % 8 == 0 and e["state_offset"] == at + h and e["state_offset"] % 8 == 0
+        st = P.decode_state(data[at + h:at + h + size], e["cloth"])
+        sv = e["state"]
+        assert (st.tick, st.server_time_ns, st.encoding, st.flags, st.n_vertices) == (
+            sv["tick"], sv["server_time_ns"], sv["encoding"], sv["flags"], sv["vertex_count"])
+        assert st.positions.tolist() == sv["positions"]
+        assert (st.normals is None and sv["normals"] is None) or st.normals.tolist() == sv["normals"]
+    # the decoder agrees
+    b = P.parse_bundle(data)
+    assert (b.tick, b.server_time_ns, b.flags, len(b.entries)) == (val["tick"], val["server_time_ns"], 0, val["count"])
+    assert [s.cloth for s in P.decode_bundle(data, 5)] == [e["cloth"] for e in val["entries"]]
+    # meaning -> identical bytes
+    inp = vec["input"]
+    again = P.encode_bundle(inp["tick"], inp["server_time_ns"], [(s["cloth"], bytes.fromhex(s["hex"])) for s in inp["states"]])
+    assert bytes(again) == data
+    for s, e in zip(inp["states"], val["entries"]):
+        assert data[e["state_offset"]:e["state_offset"] + e["state_size"]].hex() == s["hex"]
+
+
+DECODERS = {"submit": P.decode_submit, "control": P.decode_control, "remove": P.decode_remove,
+            "control_batch": P.decode_control_batch, "bundle": P.decode_bundle}
+
+
 @pytest.mark.parametrize("vec", load("invalid"), ids=lambda v: v["name"])
 def test_invalid_vectors(vec):
-    decode = {"submit": P.decode_submit, "control": P.decode_control, "remove": P.decode_remove}[vec["message"]]
+    decode = DECODERS[vec["message"]]
+    data = bytes.fromhex(vec["hex"])
+    if vec["error"] is None:  # a batch with a valid envelope: per-item errors
+        batch = decode(data)
+        codes = [it.code if isinstance(it, P.ProtocolError) else None for it in batch.items]
+        assert codes == vec["item_errors"]
+        assert all(it.rid == batch.rid for it in batch.items if isinstance(it, P.ProtocolError))
+        return
     with pytest.raises(P.ProtocolError) as e:
-        decode(bytes.fromhex(vec["hex"]))
+        decode(data)
     assert e.value.code == vec["error"]
 
 
 def test_accepted_vectors():
     for vec in load("accepted"):
-        req = P.decode_submit(bytes.fromhex(vec["hex"]))
+        data = bytes.fromhex(vec["hex"])
+        if vec["message"] == "bundle":
+            (st,) = P.decode_bundle(data)
+            assert st.cloth == "c" and st.tick == 7 and st.encoding == "float16"
+            continue
+        req = P.decode_submit(data)
         assert req.grid == P.GridSpec(2, 2)
+
+
+V10 = VECTORS / "v1.0"
+
+
+def _as_current(wire: dict) -> dict:
+    """A 1.0 message as this version writes it: the same map with v = [1, PROTOCOL_MINOR]."""
+    return {**wire, "v": [P.PROTOCOL_MAJOR, P.PROTOCOL_MINOR]} if "v" in wire else wire
+
+
+@pytest.mark.parametrize("vec", [v for g in ("submit", "control", "misc") for v in json.loads((V10 / f"{g}.json").read_text())],
+                         ids=lambda v: v["name"])
+def test_v1_0_message_vectors_still_read(vec):
+    """Minor-version compatibility: every frozen 1.0 message means the same under 1.1; writing it
+    again changes the version field only."""
+    data = bytes.fromhex(vec["hex"])
+    wire = json_to_wire(vec["value"])
+    assert wire["v"] == [1, 0]
+    kind = vec["message"]
+    if kind in REENCODE:
+        decode, encode, _ = REENCODE[kind]
+        again = encode(decode(data))
+    elif kind == "error":
+        err = P.decode_error_map(P.unpack_message(data))
+        again = P.encode_error(err.code, err.message, err.rid)
+    else:
+        again = _reply_encoders(kind, P.decode_reply(data))
+    assert msgpack.unpackb(again, raw=False) == _as_current(wire)
+
+
+@pytest.mark.parametrize("vec", json.loads((V10 / "state.json").read_text()), ids=lambda v: v["name"])
+def test_v1_0_state_vectors_still_read(vec):
+    data = bytes.fromhex(vec["hex"])
+    val = vec["value"]
+    assert (data[4], data[5]) == (1, 0)
+    st = P.decode_state(data)
+    assert st.positions.tolist() == val["positions"] and st.tick == val["tick"] and st.flags == val["flags"]
+    assert (st.normals is None and val["normals"] is None) or st.normals.tolist() == val["normals"]
+    inp = vec["input"]
+    normals = None if inp["normals"] is None else np.array(inp["normals"], np.float32)
+    again = bytes(P.encode_state(val["tick"], val["server_time_ns"], np.array(inp["positions"], np.float32), normals,
+                                 val["encoding"], inp["flags"]))
+    assert again[:5] + again[6:] == data[:5] + data[6:] and again[5] == P.PROTOCOL_MINOR  # only the minor byte
 
 
 def test_committed_vectors_are_current():
@@ -525,3 +632,79 @@ def test_keys():
         with pytest.raises(ValueError):
             P.Keys(bad)
     assert math.isclose(P.DEFAULT_GRAVITY[1], -9.81)
+
+
+# ---------------------------------------------------------------------------------------------
+# 1.1: bundles and batch control
+
+
+def test_bundle_option_and_reply_round_trip():
+    req = P.SubmitRequest("c", grid=P.GridSpec(2, 2), state=P.StateOptions(None, None, True))
+    assert P.decode_submit(P.encode_submit(req)).state == P.StateOptions(None, None, True)
+    rep = P.SubmitReply("abc", TOKEN, "drape/cloth/abc/state", 4, 9, 1, "drape/client/c/states")
+    assert P.submit_reply_from_map(P.decode_reply(P.encode_submit_reply(rep))) == rep
+    plain = P.SubmitReply("abc", TOKEN, "drape/cloth/abc/state", 4, 9, 1)
+    assert "bundle_key" not in P.decode_reply(P.encode_submit_reply(plain))  # a 1.0 reply, byte for byte
+    assert P.Keys("g").bundle("c7") == "g/client/c7/states"
+    assert P.Keys("g").control_batch("s") == "g/server/s/control_batch"
+    # bundling is chosen at submission: a control cannot switch it
+    with pytest.raises(P.ProtocolError) as e:
+        P.decode_control(ctl(state={"bundle": False}))
+    assert e.value.code == "invalid_value" and "state.bundle" in e.value.message
+
+
+def test_control_batch_round_trip_and_item_errors_name_the_item():
+    items = [P.ControlRequest("a", TOKEN, pins=P.PinUpdate(np.array([1], np.uint32), np.ones((1, 3), np.float32))),
+             P.ControlRequest("b", TOKEN, gravity=(0, 0, 0), colliders=(), reset=True)]
+    req = P.ControlBatchRequest("me", items, rid=77)
+    back = P.decode_control_batch(P.encode_control_batch(req))
+    assert (back.client, back.rid) == ("me", 77)
+    assert back.items == [dataclasses.replace(it, rid=77) for it in items]  # errors of an item echo the batch's rid
+    bad = raw({"v": [1, 1], "rid": 3, "client": "me", "items": [
+        {"cloth": "a", "token": TOKEN, "pins": pins([0], [[0, np.inf, 0]])},
+        {"cloth": "a", "token": TOKEN, "material": {"stiffness": [1, 1, 2]}},
+        {"cloth": "a", "token": TOKEN, "pins": pins(range(5), np.zeros((5, 3)))},
+        {"cloth": "a", "token": TOKEN},
+    ]})
+    got = P.decode_control_batch(bad, LIMITS).items
+    assert [getattr(x, "code", None) for x in got] == ["invalid_value", "invalid_value", "too_large", None]
+    assert "items[0].pins.targets" in got[0].message and "items[1].material.stiffness[2]" in got[1].message
+    assert "items[2].pins.indices" in got[2].message
+    # the envelope is all or nothing
+    lim = P.Limits(max_batch_items=2)
+    with pytest.raises(P.ProtocolError) as e:
+        P.decode_control_batch(raw({"v": [1, 1], "client": "me", "items": [{}] * 3}), lim)
+    assert e.value.code == "too_large" and "2" in e.value.message
+    with pytest.raises(P.ProtocolError) as e:
+        P.decode_control_batch(raw({"v": [2, 0], "client": "me", "items": [{}]}))
+    assert e.value.code == "unsupported_version"
+    # the reply
+    rep = P.ControlBatchReply(12, [P.BatchItemResult(12), P.BatchItemResult(None, "not_found", "gone")], 5)
+    m = P.decode_reply(P.encode_control_batch_reply(rep))
+    assert m["failed"] == 1 and P.control_batch_reply_from_map(m) == rep
+    assert isinstance(rep.results[1].exception(), P.NotFound) and rep.results[0].exception() is None
+
+
+def test_bundle_parser_survives_every_truncation_and_corruption(rng):
+    tri = np.arange(9, dtype=np.float32).reshape(3, 3)
+    data = bytes(P.encode_bundle(3, 4, [("a", P.encode_state(3, 4, tri)),
+                                        ("bb", P.encode_state(3, 4, tri, tri / 10, "quant16"))]))
+    assert len(data) % 8 == 0
+    b = P.parse_bundle(data)
+    end = b.entries[-1].offset + b.entries[-1].size  # the last entry's padding is not needed
+    for n in range(end):
+        with pytest.raises(P.ProtocolError):
+            P.decode_bundle(data[:n])
+    assert len(P.decode_bundle(data[:end])) == 2
+    for _ in range(300):
+        bad = bytearray(data)
+        for i in rng.integers(0, len(bad), 3):
+            bad[i] = int(rng.integers(0, 256))
+        try:
+            for st in P.decode_bundle(bytes(bad)):
+                assert st.positions.shape[1] == 3
+        except P.ProtocolError:
+            pass
+    with pytest.raises(ValueError):
+        P.encode_bundle(1, 1, [("not/an/id", b"")])
+    assert P.decode_bundle(bytes(P.encode_bundle(1, 2, []))) == []  # an empty bundle is well formed

@@ -341,7 +341,7 @@ def test_hostile_messages_get_errors_and_others_keep_being_served(server, client
             client.request("remove", _raw({"v": V, "cloth": bystander.id}))
         with pytest.raises(ProtocolError) as e:
             client.request("info", _raw({"v": [9, 9]}))
-        assert e.value.code == "unsupported_version" and "1.0" in e.value.message
+        assert e.value.code == "unsupported_version" and P.VERSION_STRING in e.value.message
 
         errors = sum(server.stats()["errors"].values()) - errors_before
         assert errors >= len(HOSTILE_SUBMITS) + len(hostile_controls)
@@ -385,7 +385,7 @@ def test_non_finite_cloth_is_reset_never_published(server, client):
 
 def test_encodings_normals_and_info(server, client):
     info = client.info()
-    assert info["server"] == server.server_id and info["version"] == "1.0" and info["solver"] == "workgroup"
+    assert info["server"] == server.server_id and info["version"] == P.VERSION_STRING == "1.1" and info["solver"] == "workgroup"
     assert info["limits"]["max_cloths_per_client"] == 6
     a = client.submit_grid(6, 6, pinned=[0, 5])
     b = client.submit_grid(6, 6, pinned=[0, 5], normals=True, encoding="quant16")
@@ -470,7 +470,7 @@ def test_stats_are_published(server, client):
     finally:
         cancel()
     s = got[-1]
-    assert s["v"] == [1, 0] and s["server"] == server.server_id and s["tick"] > 0
+    assert s["v"] == [1, 1] and s["server"] == server.server_id and s["tick"] > 0
     for phase in ("apply", "solve", "readback", "encode", "publish", "tick"):
         assert {"mean_ms", "max_ms"} <= set(s["phases"][phase])
     for k in ("missed_ticks", "skipped_frames", "nan_resets", "reclaimed", "cloths", "vertices"):

@@ -5,6 +5,9 @@
 The vectors are committed; tests/test_protocol.py checks them both ways (bytes -> meaning and
 meaning -> identical bytes), so regenerating them is only needed when the protocol changes on
 purpose (and then PROTOCOL.md's version rules apply). Format: see PROTOCOL.md, "Test vectors".
+
+tests/vectors/v1.0/ holds the vectors of protocol 1.0 as they were committed, frozen: this script
+never rewrites them, and the tests check that a 1.1 implementation still reads every one.
 """
 from __future__ import annotations
 
@@ -51,6 +54,8 @@ def json_to_wire(obj: Any) -> Any:
 
 TOKEN = "0123456789abcdef0123456789abcdef"
 CLOTH = "5ba88a14c526242f"
+TOKEN2 = "fedcba9876543210fedcba9876543210"
+CLOTH2 = "0f1e2d3c4b5a6978"
 
 
 def msg_vector(name: str, message: str, description: str, data: bytes) -> dict[str, Any]:
@@ -75,20 +80,67 @@ def state_vector(name: str, description: str, tick: int, t_ns: int, positions, n
         "description": description,
         "hex": data.hex(),
         "input": {"positions": pos.tolist(), "normals": None if nrm is None else nrm.tolist(), "flags": flags},
+        "value": state_value(st, data),
+    }
+
+
+def state_value(st: P.ClothState, data: bytes | memoryview) -> dict[str, Any]:
+    return {
+        "magic": "DRPS",
+        "major": data[4],
+        "minor": data[5],
+        "header_size": int.from_bytes(bytes(data[6:8]), "little"),
+        "encoding": st.encoding,
+        "flags": st.flags,
+        "vertex_count": st.n_vertices,
+        "tick": st.tick,
+        "server_time_ns": st.server_time_ns,
+        "bounds_min": list(st.bounds[0]),
+        "bounds_max": list(st.bounds[1]),
+        "positions": st.positions.tolist(),
+        "normals": None if st.normals is None else st.normals.tolist(),
+    }
+
+
+def bundle_vector(name: str, description: str, tick: int, t_ns: int,
+                  cloths: list[tuple[str, Any, Any, str, int]]) -> dict[str, Any]:
+    """cloths: (id, positions, normals, encoding, flags) per entry."""
+    states = []
+    for cid, pos, nrm, enc, flags in cloths:
+        pos = np.asarray(pos, np.float32)
+        nrm = None if nrm is None else np.asarray(nrm, np.float32)
+        states.append((cid, bytes(P.encode_state(tick, t_ns, pos, nrm, enc, flags))))
+    data = bytes(P.encode_bundle(tick, t_ns, states))
+    b = P.parse_bundle(data)
+    entries = []
+    at = P.BUNDLE_HEADER_SIZE
+    for i, e in enumerate(b.entries):
+        entries.append({
+            "cloth": e.cloth,
+            "entry_offset": at,
+            "entry_header_size": e.offset - at,
+            "state_offset": e.offset,
+            "state_size": e.size,
+            "state": state_value(b.state(i), b.payload(i)),
+        })
+        at = P.align8(e.offset + e.size)
+    return {
+        "name": name,
+        "message": "bundle",
+        "description": description,
+        "hex": data.hex(),
+        "input": {"tick": tick, "server_time_ns": t_ns, "states": [{"cloth": c, "hex": st.hex()} for c, st in states]},
         "value": {
-            "magic": "DRPS",
+            "magic": "DRPB",
             "major": P.PROTOCOL_MAJOR,
             "minor": P.PROTOCOL_MINOR,
-            "header_size": P.STATE_HEADER_SIZE,
-            "encoding": encoding,
-            "flags": st.flags,
-            "vertex_count": st.n_vertices,
+            "header_size": P.BUNDLE_HEADER_SIZE,
+            "count": len(entries),
+            "flags": b.flags,
             "tick": tick,
             "server_time_ns": t_ns,
-            "bounds_min": list(st.bounds[0]),
-            "bounds_max": list(st.bounds[1]),
-            "positions": st.positions.tolist(),
-            "normals": None if st.normals is None else st.normals.tolist(),
+            "size": len(data),
+            "entries": entries,
         },
     }
 
@@ -113,6 +165,10 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
                 state=P.StateOptions(True, "float32"),
                 rid=1,
             ))),
+        msg_vector("submit_bundle", "submit", "1.1: a 4x4 grid whose state goes in the client's bundle, quant16.",
+                   P.encode_submit(P.SubmitRequest(client="game-7", grid=P.GridSpec(4, 4),
+                                                   pinned=np.array([0, 3], np.uint32),
+                                                   state=P.StateOptions(None, "quant16", True), rid=7))),
         msg_vector("submit_grid_minimal", "submit", "The smallest submission: a 4x4 grid, server defaults.",
                    P.encode_submit(P.SubmitRequest(client="c1", grid=P.GridSpec(4, 4)))),
         msg_vector("submit_mesh", "submit", "A 4-vertex, 2-triangle mesh pinned at vertex 0, quantised states.",
@@ -132,6 +188,14 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
         msg_vector("control_pins", "control", "Move pinned vertex 3.",
                    P.encode_control(P.ControlRequest(CLOTH, TOKEN, pins=P.PinUpdate(
                        np.array([3], np.uint32), np.array([[0.5, 1.0, -0.5]], np.float32)), rid=4))),
+        msg_vector("control_batch", "control_batch", "1.1: one request controlling two cloths of client game-7: "
+                   "pins and a collider for the first, a reset for the second.",
+                   P.encode_control_batch(P.ControlBatchRequest("game-7", [
+                       P.ControlRequest(CLOTH, TOKEN, pins=P.PinUpdate(
+                           np.array([0, 3], np.uint32), np.array([[0, 1, 0], [1, 1, 0]], np.float32)),
+                           colliders=(P.Sphere((0.5, 0.5, 0.0), 0.2),)),
+                       P.ControlRequest(CLOTH2, TOKEN2, reset=True),
+                   ], rid=10))),
     ]
     other = [
         msg_vector("remove", "remove", "Remove a cloth.", P.encode_remove(P.RemoveRequest(CLOTH, TOKEN, 5))),
@@ -141,6 +205,15 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
                    P.encode_submit_reply(P.SubmitReply(CLOTH, TOKEN, f"drape/cloth/{CLOTH}/state", 32, 1042, 1))),
         msg_vector("reply_control", "reply_control", "A control applied from tick 1050 on.",
                    P.encode_control_reply(P.ControlReply(1050, 3))),
+        msg_vector("reply_submit_bundle", "reply_submit", "1.1: a bundled submission accepted: its state goes "
+                   "in client game-7's bundle.",
+                   P.encode_submit_reply(P.SubmitReply(CLOTH, TOKEN, f"drape/cloth/{CLOTH}/state", 16, 1042, 7,
+                                                       "drape/client/game-7/states"))),
+        msg_vector("reply_control_batch", "reply_control_batch", "1.1: a batch of two: the first applied from tick "
+                   "1050 on, the second refused (not the owner's token).",
+                   P.encode_control_batch_reply(P.ControlBatchReply(1050, [
+                       P.BatchItemResult(1050),
+                       P.BatchItemResult(None, "forbidden", f"the token does not own cloth '{CLOTH2}'")], 10))),
         msg_vector("reply_remove", "reply_remove", "A cloth removed; 1061 was its last state.",
                    P.encode_remove_reply(P.RemoveReply(1061, 5))),
         msg_vector("reply_error", "error", "An error reply.", P.encode_error(
@@ -157,6 +230,15 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
         state_vector("state_quant16", "Three vertices with normals, uint16 quantised against the bounds, normals "
                      "snorm16.", 9, 44, [[0.0, 2.0, 0.0], [1.0, 1.5, -0.25], [0.3, 1.2, 0.75]], nrm, "quant16"),
     ]
+    bundles = [
+        bundle_vector("bundle_two", "Two cloths at tick 1042: a float32 one (16-character id) and a quant16 one "
+                      "with normals (6-character id, so its entry header is padded).", 1042,
+                      1_700_000_000_123_456_789,
+                      [(CLOTH, tri, None, "float32", 0),
+                       ("cape-2", [[0.0, 2.0, 0.0], [1.0, 1.5, -0.25]], nrm[:2], "quant16", P.FLAG_RESET)]),
+        bundle_vector("bundle_one", "A bundle of one float16 cloth.", 7, 42, [("c", tri, None, "float16", 0)]),
+    ]
+    one = bytes.fromhex(bundles[1]["hex"])
     bad_cases = [
         ("truncated", P.encode_submit(P.SubmitRequest(client="c1", grid=P.GridSpec(4, 4)))[:-4], "submit", "malformed"),
         ("unknown_major", msgpack.packb({"v": [2, 0], "client": "c1"}), "submit", "unsupported_version"),
@@ -172,14 +254,50 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
          "submit", "too_large"),
         ("token_not_hex", msgpack.packb({"v": [1, 0], "cloth": CLOTH, "token": "secret"}), "remove", "invalid_value"),
     ]
+    batch = {"v": [1, 1], "rid": 4, "client": "c1"}
+    item = {"cloth": CLOTH, "token": TOKEN}
+    bad_cases += [
+        ("batch_no_items", msgpack.packb(batch), "control_batch", "missing_field"),
+        ("batch_items_not_array", msgpack.packb({**batch, "items": item}), "control_batch", "invalid_type"),
+        ("batch_empty", msgpack.packb({**batch, "items": []}), "control_batch", "invalid_value"),
+        ("batch_too_many", msgpack.packb({**batch, "items": [item] * 65}), "control_batch", "too_large"),
+        ("batch_bad_client", msgpack.packb({**batch, "client": "a/b", "items": [item]}), "control_batch",
+         "invalid_value"),
+        ("bundle_bad_magic", b"DRPX" + one[4:], "bundle", "malformed"),
+        ("bundle_major_2", one[:4] + b"\x02" + one[5:], "bundle", "unsupported_version"),
+        ("bundle_truncated_header", one[:31], "bundle", "malformed"),
+        ("bundle_truncated_state", one[:-9], "bundle", "malformed"),  # the state itself ends early
+        ("bundle_count_too_big", one[:8] + (2).to_bytes(4, "little") + one[12:], "bundle", "malformed"),
+        ("bundle_entry_header_short", one[:32] + (8).to_bytes(2, "little") + one[34:], "bundle", "malformed"),
+        ("bundle_bad_id", one[:40] + b"/" + one[41:], "bundle", "malformed"),
+    ]
     invalid = [{"name": n, "message": m, "hex": d.hex(), "error": code} for n, d, m, code in bad_cases]
+    # A batch whose envelope is valid: each item stands alone, only the bad ones are refused.
+    partial = msgpack.packb({**batch, "items": [
+        item,
+        {**item, "pins": {"indices": np.array([0, 1], "<u4").tobytes(), "targets": np.zeros(3, "<f4").tobytes()}},
+        [1, 2],
+        {**item, "token": "not-a-token"},
+        {**item, "state": {"bundle": True}},
+        {**item, "gravity": [0.0, -9.81, 0.0]},
+    ]}, use_bin_type=True)
+    invalid.append({"name": "batch_partly_invalid", "message": "control_batch", "hex": partial.hex(), "error": None,
+                    "item_errors": [None, "invalid_value", "invalid_type", "invalid_value", "invalid_value", None]})
     # Unknown minor version and unknown keys are accepted within major 1:
     future = {"name": "submit_future_minor", "message": "submit", "description": "Version 1.7 with a key this "
               "version does not know: accepted, the key ignored.",
               "hex": msgpack.packb({"v": [1, 7], "rid": 0, "client": "c1", "grid": {"cols": 2, "rows": 2},
                                     "hologram": True}).hex()}
-    return {"submit": submit, "control": control, "misc": other, "state": state, "invalid": invalid,
-            "accepted": [future]}
+    # A bundle of a future minor version: a longer header, an unknown flag, bytes after the last entry.
+    later = bytearray(one[:32] + b"\xee" * 8 + one[32:] + b"trailing")
+    later[5] = 7
+    later[6:8] = (40).to_bytes(2, "little")
+    later[12:16] = (1 << 31).to_bytes(4, "little")
+    future_bundle = {"name": "bundle_future_minor", "message": "bundle", "description": "Version 1.7 bundle with a "
+                     "40-byte header, an unknown flag and trailing bytes: read as the 1.1 bundle it contains.",
+                     "hex": bytes(later).hex()}
+    return {"submit": submit, "control": control, "misc": other, "state": state, "bundle": bundles,
+            "invalid": invalid, "accepted": [future, future_bundle]}
 
 
 def dumps(items: list[dict[str, Any]]) -> str:

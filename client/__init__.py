@@ -27,9 +27,9 @@ from .protocol import (
 )
 
 if TYPE_CHECKING:
-    from .sdk import ClothHandle, DrapeClient, zenoh_config
+    from .sdk import BatchError, ClothHandle, ControlBatch, DrapeClient, zenoh_config
 
-_SDK = ("ClothHandle", "DrapeClient", "zenoh_config")
+_SDK = ("BatchError", "ClothHandle", "ControlBatch", "DrapeClient", "zenoh_config")
 
 
 def __getattr__(name: str) -> Any:
@@ -42,10 +42,12 @@ def __getattr__(name: str) -> Any:
 
 __all__ = [
     "PROTOCOL_VERSION",
+    "BatchError",
     "Busy",
     "Capsule",
     "ClothHandle",
     "ClothState",
+    "ControlBatch",
     "DrapeClient",
     "DrapeError",
     "Forbidden",

@@ -8,6 +8,16 @@
                 draw(state.positions)            # (256, 3) float32
                 cloth.move_pins([0, 15], [[0, 0, 0], [1, 0, 0]])
 
+A game with many cloths (protocol 1.1) submits them with ``bundle=True`` (their states arrive in
+one publication per tick for the whole client, dispatched to each ClothHandle exactly as
+before) and moves them all with one message per tick::
+
+    cloths = [client.submit_grid(16, 16, pinned=[0, 15], bundle=True) for _ in range(32)]
+    while playing:
+        with client.batch() as b:                # one batch control on exit, reply not awaited
+            for c in cloths:
+                b.move_pins(c, [0, 15], targets_of(c))
+
 Needs numpy, msgpack and eclipse-zenoh only: nothing here imports drape.server or OpenCL.
 """
 from __future__ import annotations
@@ -32,6 +42,21 @@ from .protocol import ClothState, DrapeError, Unavailable
 log = logging.getLogger(__name__)
 
 StateCallback = Callable[[ClothState], None]
+ErrorCallback = Callable[[DrapeError], None]
+
+MAX_ORPHAN_CLOTHS = 256  # bundle entries of cloths whose submit reply is still on its way, kept per id
+
+
+class BatchError(DrapeError):
+    """Raised by a waited-for batch (``client.batch(wait=True)``) when some of its items were
+    refused: ``results`` holds, per item in order, the tick it applies from or its DrapeError."""
+
+    def __init__(self, results: list["int | DrapeError"]) -> None:
+        errors = [r for r in results if isinstance(r, DrapeError)]
+        first = errors[0]
+        super().__init__(first.code, f"{len(errors)} of {len(results)} batch items refused; first: {first.message}",
+                         first.rid)
+        self.results = results
 
 
 def zenoh_config(
@@ -72,6 +97,7 @@ class ClothHandle:
         self.id = reply.cloth
         self.token = reply.token
         self.key = reply.key
+        self.bundle_key = reply.bundle_key  # 1.1: the state arrives in the client's bundle, not on ``key``
         self.n_vertices = reply.vertices
         self.first_tick = reply.tick
         self.rest_positions = rest_positions
@@ -82,10 +108,19 @@ class ClothHandle:
         self.closed = False
         self.close_reason = ""
         self._cond = threading.Condition()
+        self._deliver_lock = threading.RLock()  # states are delivered one at a time, in order
         self._queue: deque[ClothState] = deque(maxlen=max(1, queue_size))
         self._latest: ClothState | None = None
         self._callbacks: list[StateCallback] = []
-        self._sub = client.session.declare_subscriber(self.key, self._on_sample)
+        self._sub: Any = None
+        if self.bundle_key is None:
+            self._sub = client.session.declare_subscriber(self.key, self._on_sample)
+
+    @property
+    def bundled(self) -> bool:
+        """Whether the state arrives inside the client's bundle (submitted with bundle=True to
+        a 1.1 server)."""
+        return self.bundle_key is not None
 
     def __repr__(self) -> str:
         return f"ClothHandle({self.id!r}, {self.n_vertices} vertices{', closed' if self.closed else ''})"
@@ -99,21 +134,26 @@ class ClothHandle:
             self.invalid += 1
             log.warning("cloth %s: invalid state payload: %s", self.id, e)
             return
-        with self._cond:
-            if self.closed:
-                return
-            self._latest = st
-            if len(self._queue) == self._queue.maxlen:
-                self.dropped += 1
-            self._queue.append(st)
-            self.received += 1
-            self._cond.notify_all()
-            callbacks = list(self._callbacks)
-        for cb in callbacks:
-            try:
-                cb(st)
-            except Exception:
-                log.exception("cloth %s: on_state callback failed", self.id)
+        self._deliver(st)
+
+    def _deliver(self, st: ClothState) -> None:
+        """Queue a state and run the callbacks (on the thread that received it)."""
+        with self._deliver_lock:
+            with self._cond:
+                if self.closed:
+                    return
+                self._latest = st
+                if len(self._queue) == self._queue.maxlen:
+                    self.dropped += 1
+                self._queue.append(st)
+                self.received += 1
+                self._cond.notify_all()
+                callbacks = list(self._callbacks)
+            for cb in callbacks:
+                try:
+                    cb(st)
+                except Exception:
+                    log.exception("cloth %s: on_state callback failed", self.id)
 
     def on_state(self, callback: StateCallback) -> Callable[[], None]:
         """Call ``callback(state)`` for every state (on a Zenoh thread). Returns an unsubscribe function."""
@@ -174,14 +214,7 @@ class ClothHandle:
         """Move pinned vertices ``indices`` to ``targets`` ((k, 3) metres) by the end of the next
         tick (and, if given, the colliders with them, in the same message). ``wait=False`` does
         not wait for the reply (see DrapeClient.send): the per-tick call of a game loop."""
-        idx = np.asarray(indices, np.int64).reshape(-1)
-        tgt = np.asarray(targets, np.float32).reshape(-1, 3)
-        if len(idx) != len(tgt):
-            raise ValueError(f"{len(idx)} indices but {len(tgt)} targets")
-        if idx.size and idx.min() < 0:
-            raise ValueError("pin indices must be >= 0")
-        extra = {"colliders": tuple(_collider(c) for c in colliders)} if colliders is not None else {}
-        return self._control(wait, pins=P.PinUpdate(idx.astype(np.uint32), tgt), **extra)
+        return self._control(wait, **_pin_changes(indices, targets, colliders))
 
     def set_colliders(self, colliders: Sequence[Any], *, wait: bool = True) -> int | None:
         """Replace the cloth's colliders (Sphere, Capsule, Plane of this package or of
@@ -205,19 +238,8 @@ class ClothHandle:
     ) -> int | None:
         """Change any of the cloth's settings from the next tick on; fields left None stay as
         they are (``material`` may name only the fields to change)."""
-        state = P.StateOptions(normals, encoding) if (normals is not None or encoding is not None) else None
-        return self._control(
-            wait,
-            gravity=_vec3(gravity),
-            wind=_vec3(wind),
-            material=P.material_to_map(material) if material is not None else {},
-            features=tuple(features) if features is not None else None,
-            iterations=iterations,
-            substeps=substeps,
-            chebyshev_rho=chebyshev_rho,
-            state=state,
-            reset=reset,
-        )
+        return self._control(wait, **_set_changes(gravity, wind, material, features, iterations, substeps,
+                                                  chebyshev_rho, normals, encoding, reset))
 
     def reset(self) -> int:
         """Back to the rest pose with zero velocity."""
@@ -257,10 +279,11 @@ class ClothHandle:
             self.closed = True
             self.close_reason = reason
             self._cond.notify_all()
-        try:
-            self._sub.undeclare()
-        except Exception:
-            pass
+        if self._sub is not None:
+            try:
+                self._sub.undeclare()
+            except Exception:
+                pass
         self.client._forget(self)
 
     def __enter__(self) -> "ClothHandle":
@@ -315,7 +338,13 @@ class DrapeClient:
         self._servers: set[str] = set()
         self._servers_cond = threading.Condition(self._lock)
         self._closed = False
-        self.send_errors = 0  # replies to send() that were errors, or that never came
+        self.send_errors = 0  # replies to send() that were errors (or refused batch items), or that never came
+        self.bundle_invalid = 0  # bundle payloads that could not be parsed
+        self._bundle_sub: Any = None
+        self._bundled_submits = 0  # bundled submissions waiting for their reply
+        self._orphans: dict[str, list[ClothState]] = {}  # their states that arrived before the reply
+        self._server_version: tuple[int, int] | None = None
+        self._max_batch_items = P.DEFAULT_LIMITS.max_batch_items
         self.session: zenoh.Session = zenoh.open(
             zenoh_config(mode, listen, list(connect), multicast_scouting, zenoh_config_file)
         )
@@ -343,7 +372,9 @@ class DrapeClient:
                 except DrapeError as e:
                     log.debug("removing %s on close: %s", h.id, e)
         self._closed = True
-        for obj in (self._token, self._server_watch):
+        for obj in (self._bundle_sub, self._token, self._server_watch):
+            if obj is None:
+                continue
             try:
                 obj.undeclare()
             except Exception:
@@ -395,6 +426,54 @@ class DrapeClient:
         with self._lock:
             self._handles.pop(handle.id, None)
 
+    # --- bundles (protocol 1.1) -------------------------------------------------------------------
+    @property
+    def bundle_key(self) -> str:
+        """Where the server publishes this client's bundle: {ns}/client/{client id}/states."""
+        return self.keys.bundle(self.client_id)
+
+    def _ensure_bundle_subscriber(self) -> None:
+        """Subscribe to this client's bundle once, before the first bundled submission, so the
+        subscription is in place when the cloth's first state is published."""
+        with self._lock:
+            if self._bundle_sub is None:
+                self._bundle_sub = self.session.declare_subscriber(self.bundle_key, self._on_bundle)
+
+    def _on_bundle(self, sample: zenoh.Sample) -> None:
+        """Dispatch each state of a bundle to its ClothHandle (on the Zenoh thread)."""
+        now = time.time_ns()
+        try:
+            bundle = P.parse_bundle(sample.payload.to_bytes())
+        except DrapeError as e:
+            self.bundle_invalid += 1
+            log.warning("invalid bundle payload on %s: %s", self.bundle_key, e)
+            return
+        for i, entry in enumerate(bundle.entries):
+            h = self._handles.get(entry.cloth)
+            if h is None:
+                with self._lock:
+                    h = self._handles.get(entry.cloth)
+                    if h is None:
+                        # A cloth whose submit reply has not been handled yet: keep its states for it.
+                        if self._bundled_submits and (entry.cloth in self._orphans
+                                                      or len(self._orphans) < MAX_ORPHAN_CLOTHS):
+                            try:
+                                q = self._orphans.setdefault(entry.cloth, [])
+                                q.append(bundle.state(i, now))
+                                del q[:-self.queue_size]
+                            except DrapeError:
+                                pass
+                        continue
+            if not h.bundled:
+                continue
+            try:
+                st = bundle.state(i, now)
+            except DrapeError as e:
+                h.invalid += 1
+                log.warning("cloth %s: invalid state in bundle: %s", h.id, e)
+                continue
+            h._deliver(st)
+
     # --- requests -----------------------------------------------------------------------------
     def request(self, kind: str, payload: bytes | bytearray, timeout: float | None = None) -> dict[str, Any]:
         """Send a raw request payload to the server's ``kind`` queryable (submit, control,
@@ -427,10 +506,11 @@ class DrapeClient:
             raise Unavailable(P.ERR_UNAVAILABLE, f"no reply from {key} within {timeout} s")
 
     def send(self, kind: str, payload: bytes | bytearray, on_error: Callable[[DrapeError], None] | None = None,
-             timeout: float | None = None) -> None:
+             timeout: float | None = None, on_ok: Callable[[dict[str, Any]], None] | None = None) -> None:
         """Send a request without waiting for its reply (what a game does with per-tick pin
         updates): the reply is read on a Zenoh thread; an error reply or no reply at all is
-        counted in ``send_errors`` and handed to ``on_error`` (default: logged)."""
+        counted in ``send_errors`` and handed to ``on_error`` (default: logged). ``on_ok``, if
+        given, gets a success reply's map (on the Zenoh thread)."""
         if self._closed:
             raise DrapeError(P.ERR_UNAVAILABLE, "client is closed")
         key = getattr(self.keys, kind)(self.server_id)
@@ -439,6 +519,13 @@ class DrapeClient:
         def on_reply(reply: zenoh.Reply) -> None:
             answered.append(True)
             if reply.ok is not None:
+                if on_ok is not None:
+                    try:
+                        on_ok(P.decode_reply(reply.ok.payload.to_bytes()))
+                    except DrapeError as e:
+                        self._send_failed(e, on_error)
+                    except Exception:
+                        log.exception("%s: reply handler failed", key)
                 return
             data = reply.err.payload.to_bytes()
             try:
@@ -465,6 +552,90 @@ class DrapeClient:
         else:
             log.warning("request failed: %s", err)
 
+    # --- batch control (protocol 1.1) -------------------------------------------------------------
+    def batch(self, *, wait: bool = False, on_error: ErrorCallback | None = None,
+              timeout: float | None = None) -> "ControlBatch":
+        """Collect controls of many of this client's cloths and send them as one batch control
+        request when the ``with`` block ends (or on ``send()``): the per-tick call of a game
+        loop with many cloths. ``wait=False``: the reply is not waited for; refused items are
+        counted in ``send_errors`` and handed to ``on_error``. ``wait=True``: ``results`` holds
+        each item's first tick, and BatchError is raised if any item was refused."""
+        return ControlBatch(self, wait=wait, on_error=on_error, timeout=timeout)
+
+    def move_pins_many(
+        self,
+        handles: Sequence[ClothHandle],
+        indices: Sequence[int] | np.ndarray | Sequence[Sequence[int]],
+        targets: Sequence[Any] | np.ndarray,
+        *,
+        colliders: Sequence[Sequence[Any] | None] | None = None,
+        wait: bool = False,
+        on_error: ErrorCallback | None = None,
+    ) -> list[int | DrapeError] | None:
+        """Move the pins of many cloths in one message: ``indices`` the same for every cloth
+        (a sequence of ints) or one sequence per cloth; ``targets[j]`` the (k, 3) targets of
+        ``handles[j]``; ``colliders[j]`` (optional) the colliders of ``handles[j]`` (None: unchanged)."""
+        if len(targets) != len(handles):
+            raise ValueError(f"{len(handles)} cloths but {len(targets)} target arrays")
+        try:
+            shared = np.asarray(indices).ndim == 1  # one index list for every cloth
+        except ValueError:  # ragged: one list per cloth
+            shared = False
+        b = self.batch(wait=wait, on_error=on_error)
+        for j, h in enumerate(handles):
+            b.move_pins(h, indices if shared else indices[j], targets[j],
+                        colliders=None if colliders is None else colliders[j])
+        return b.send()
+
+    def _server_batch_limit(self) -> int:
+        """Items per batch request the server takes; 0 when it speaks 1.0 (no batch control)."""
+        if self._server_version is None:
+            info = self.info()
+            major, _, minor = str(info.get("version", "1.0")).partition(".")
+            self._server_version = (int(major), int(minor or 0))
+            self._max_batch_items = int(info.get("limits", {}).get("max_batch_items", 0) or 0)
+        if self._server_version < (1, 1):
+            return 0
+        return max(1, self._max_batch_items)
+
+    def _send_controls(self, items: list[tuple[ClothHandle, P.ControlRequest]], wait: bool,
+                       on_error: ErrorCallback | None, timeout: float | None) -> list[int | DrapeError] | None:
+        if not items:
+            return [] if wait else None
+        limit = self._server_batch_limit()
+        if not limit:  # a 1.0 server: one control per item
+            log.debug("server speaks %s: batch sent as %d controls", self._server_version, len(items))
+            out: list[int | DrapeError] = []
+            for h, req in items:
+                if wait:
+                    try:
+                        out.append(P.tick_reply_from_map(self.request("control", P.encode_control(req), timeout)))
+                    except DrapeError as e:
+                        out.append(e)
+                else:
+                    self.send("control", P.encode_control(req), on_error, timeout)
+            return out if wait else None
+        results: list[int | DrapeError] = []
+        for start in range(0, len(items), limit):
+            chunk = items[start:start + limit]
+            rid = self._next_rid()
+            payload = P.encode_control_batch(P.ControlBatchRequest(self.client_id, [r for _, r in chunk], rid))
+            if wait:
+                rep = P.control_batch_reply_from_map(self.request("control_batch", payload, timeout))
+                results.extend(_item_outcomes(chunk, rep, rid))
+            else:
+                self.send("control_batch", payload, on_error, timeout,
+                          on_ok=lambda m, chunk=chunk, rid=rid: self._batch_replied(chunk, m, rid, on_error))
+        return results if wait else None
+
+    def _batch_replied(self, chunk: list[tuple[ClothHandle, P.ControlRequest]], m: dict[str, Any], rid: int,
+                       on_error: ErrorCallback | None) -> None:
+        rep = P.control_batch_reply_from_map(m)
+        if rep.failed:
+            for r in _item_outcomes(chunk, rep, rid):
+                if isinstance(r, DrapeError):
+                    self._send_failed(r, on_error)
+
     def info(self, timeout: float | None = None) -> dict[str, Any]:
         """The server's description: version, solver, device, tick rate, limits, counts."""
         return self.request("info", P.encode_info(P.InfoRequest(self._next_rid())), timeout)
@@ -490,12 +661,33 @@ class DrapeClient:
         timeout: float | None = None,
         queue_size: int | None = None,
     ) -> ClothHandle:
-        """Send a SubmitRequest as is and subscribe to the new cloth's state."""
-        rep = P.submit_reply_from_map(self.request("submit", P.encode_submit(req), timeout))
-        h = ClothHandle(self, rep, rest_positions, triangles, queue_size or self.queue_size)
-        with self._lock:
-            self._handles[h.id] = h
-        return h
+        """Send a SubmitRequest as is and subscribe to the new cloth's state (with
+        ``req.state.bundle``: to this client's bundle, once for all its bundled cloths; a 1.0
+        server ignores the option and the handle subscribes to the cloth's own key)."""
+        bundled = bool(req.state is not None and req.state.bundle)
+        if bundled:
+            self._ensure_bundle_subscriber()
+            with self._lock:
+                self._bundled_submits += 1
+        try:
+            rep = P.submit_reply_from_map(self.request("submit", P.encode_submit(req), timeout))
+            if bundled and rep.bundle_key is None:
+                log.info("server %s does not bundle states (protocol 1.0): cloth %s on its own key", self.server_id,
+                         rep.cloth)
+            h = ClothHandle(self, rep, rest_positions, triangles, queue_size or self.queue_size)
+            with h._deliver_lock:  # states of the bundle reach the handle only after these
+                with self._lock:
+                    self._handles[h.id] = h
+                    early = self._orphans.pop(h.id, []) if bundled else []
+                for st in early:
+                    h._deliver(st)
+            return h
+        finally:
+            if bundled:
+                with self._lock:
+                    self._bundled_submits -= 1
+                    if not self._bundled_submits:
+                        self._orphans.clear()
 
     def submit_grid(
         self,
@@ -548,6 +740,7 @@ class DrapeClient:
         colliders: Sequence[Any] | None = None,
         normals: bool = False,
         encoding: str = "float32",
+        bundle: bool = False,
         timeout: float | None = None,
         queue_size: int | None = None,
     ) -> ClothHandle:
@@ -568,7 +761,8 @@ class DrapeClient:
             substeps=substeps,
             chebyshev_rho=chebyshev_rho,
             colliders=tuple(_collider(c) for c in colliders) if colliders is not None else None,
-            state=P.StateOptions(bool(normals), encoding) if (normals or encoding != "float32") else None,
+            state=(P.StateOptions(bool(normals), encoding, True if bundle else None)
+                   if (normals or encoding != "float32" or bundle) else None),
             rid=self._next_rid(),
         )
         return self.submit(req, rest, tris, timeout, queue_size)
@@ -577,8 +771,116 @@ class DrapeClient:
 # Options every submit_* method takes, for documentation and for tools wrapping the SDK.
 cloth_options = (
     "pinned", "links", "material", "features", "gravity", "wind", "iterations", "substeps",
-    "chebyshev_rho", "colliders", "normals", "encoding", "timeout", "queue_size",
+    "chebyshev_rho", "colliders", "normals", "encoding", "bundle", "timeout", "queue_size",
 )
+
+
+class ControlBatch:
+    """Controls of many of one client's cloths, sent as one batch control request (protocol
+    1.1; to a 1.0 server as one control each). Use as a context manager (sent when the block
+    ends without an exception) or call ``send()``. Every method takes the ClothHandle first
+    and the same arguments as the ClothHandle method of the same name."""
+
+    def __init__(self, client: "DrapeClient", *, wait: bool = False, on_error: ErrorCallback | None = None,
+                 timeout: float | None = None) -> None:
+        self.client = client
+        self.wait = wait
+        self.on_error = on_error
+        self.timeout = timeout
+        self.items: list[tuple[ClothHandle, P.ControlRequest]] = []
+        self.results: list[int | DrapeError] | None = None
+        self.sent = False
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def add(self, handle: ClothHandle, **changes: Any) -> "ControlBatch":
+        """Any ControlRequest fields for ``handle``."""
+        if handle.client is not self.client:
+            raise ValueError(f"cloth {handle.id} belongs to another DrapeClient")
+        handle._check_open()
+        self.items.append((handle, P.ControlRequest(handle.id, handle.token, **changes)))
+        return self
+
+    def move_pins(self, handle: ClothHandle, indices: Sequence[int] | np.ndarray,
+                  targets: Sequence[Sequence[float]] | np.ndarray, *, colliders: Sequence[Any] | None = None) -> "ControlBatch":
+        return self.add(handle, **_pin_changes(indices, targets, colliders))
+
+    def set_colliders(self, handle: ClothHandle, colliders: Sequence[Any]) -> "ControlBatch":
+        return self.add(handle, colliders=tuple(_collider(c) for c in colliders))
+
+    def set(self, handle: ClothHandle, *, gravity: Sequence[float] | None = None, wind: Sequence[float] | None = None,
+            material: Mapping[str, Any] | Any = None, features: Iterable[str] | None = None,
+            iterations: int | None = None, substeps: int | None = None, chebyshev_rho: float | None = None,
+            normals: bool | None = None, encoding: str | None = None, reset: bool = False) -> "ControlBatch":
+        return self.add(handle, **_set_changes(gravity, wind, material, features, iterations, substeps, chebyshev_rho,
+                                               normals, encoding, reset))
+
+    def reset(self, handle: ClothHandle) -> "ControlBatch":
+        return self.add(handle, reset=True)
+
+    def send(self) -> list[int | DrapeError] | None:
+        """Send the collected items (once). ``wait=True``: returns each item's first tick, raising
+        BatchError (with every item's outcome) if any was refused; otherwise None."""
+        if self.sent:
+            raise RuntimeError("this batch was already sent")
+        self.sent = True
+        results = self.client._send_controls(self.items, self.wait, self.on_error, self.timeout)
+        self.results = results
+        if results is not None and any(isinstance(r, DrapeError) for r in results):
+            raise BatchError(results)
+        return results
+
+    def __enter__(self) -> "ControlBatch":
+        return self
+
+    def __exit__(self, exc_type: Any, *exc: object) -> None:
+        if exc_type is None and not self.sent:
+            self.send()
+
+
+def _item_outcomes(chunk: list[tuple[ClothHandle, P.ControlRequest]], rep: P.ControlBatchReply,
+                   rid: int) -> list[int | DrapeError]:
+    if len(rep.results) != len(chunk):
+        raise DrapeError(P.ERR_INTERNAL, f"batch reply has {len(rep.results)} results for {len(chunk)} items", rid)
+    out: list[int | DrapeError] = []
+    for (h, _), r in zip(chunk, rep.results):
+        if r.ok:
+            out.append(rep.tick if r.tick is None else r.tick)
+        else:
+            out.append(P.error_for(r.code, f"cloth {h.id}: {r.message}", rid))
+    return out
+
+
+def _pin_changes(indices: Sequence[int] | np.ndarray, targets: Sequence[Sequence[float]] | np.ndarray,
+                 colliders: Sequence[Any] | None) -> dict[str, Any]:
+    idx = np.asarray(indices, np.int64).reshape(-1)
+    tgt = np.asarray(targets, np.float32).reshape(-1, 3)
+    if len(idx) != len(tgt):
+        raise ValueError(f"{len(idx)} indices but {len(tgt)} targets")
+    if idx.size and idx.min() < 0:
+        raise ValueError("pin indices must be >= 0")
+    out: dict[str, Any] = {"pins": P.PinUpdate(idx.astype(np.uint32), tgt)}
+    if colliders is not None:
+        out["colliders"] = tuple(_collider(c) for c in colliders)
+    return out
+
+
+def _set_changes(gravity: Sequence[float] | None, wind: Sequence[float] | None, material: Any,
+                 features: Iterable[str] | None, iterations: int | None, substeps: int | None,
+                 chebyshev_rho: float | None, normals: bool | None, encoding: str | None, reset: bool) -> dict[str, Any]:
+    state = P.StateOptions(normals, encoding) if (normals is not None or encoding is not None) else None
+    return dict(
+        gravity=_vec3(gravity),
+        wind=_vec3(wind),
+        material=P.material_to_map(material) if material is not None else {},
+        features=tuple(features) if features is not None else None,
+        iterations=iterations,
+        substeps=substeps,
+        chebyshev_rho=chebyshev_rho,
+        state=state,
+        reset=reset,
+    )
 
 
 def _vec3(v: Sequence[float] | None) -> P.Vec3 | None:

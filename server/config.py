@@ -72,6 +72,7 @@ class ServerConfig:
     max_total_vertices: int = 1 << 21
     max_message_bytes: int = 8 << 20
     max_pin_updates: int = 4096
+    max_batch_items: int = 64  # controls in one batch control request (protocol 1.1)
     max_iterations: int = 100
     max_substeps: int = 16
     max_pending_requests: int = 1024  # queued commands; beyond this requests get "busy"
@@ -99,7 +100,8 @@ class ServerConfig:
         if self.state_congestion not in CONGESTION_CHOICES:
             raise ValueError(f"state_congestion must be one of {CONGESTION_CHOICES}")
         for name in ("max_cloths", "max_cloths_per_client", "max_vertices_per_cloth", "max_total_vertices",
-                     "max_message_bytes", "max_pin_updates", "max_iterations", "max_substeps", "max_pending_requests"):
+                     "max_message_bytes", "max_pin_updates", "max_batch_items", "max_iterations", "max_substeps",
+                     "max_pending_requests"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1")
         if self.max_iterations > 1000 or self.max_substeps > 100:
@@ -118,6 +120,7 @@ class ServerConfig:
             max_vertices=self.max_vertices_per_cloth,
             max_triangles=4 * self.max_vertices_per_cloth,
             max_pin_updates=self.max_pin_updates,
+            max_batch_items=self.max_batch_items,
             max_colliders=MAX_COLLIDERS_PER_CLOTH,
             max_iterations=self.max_iterations,
             max_substeps=self.max_substeps,
@@ -238,7 +241,8 @@ HELP = {
     "max_vertices_per_cloth": "vertices of one cloth",
     "max_total_vertices": "vertices of all cloths together",
     "max_message_bytes": "size of one request",
-    "max_pin_updates": "pin targets in one control request",
+    "max_pin_updates": "pin targets in one control request (or one batch item)",
+    "max_batch_items": "cloths controlled by one batch control request",
     "max_iterations": "solver iterations a cloth may ask for",
     "max_substeps": "substeps a cloth may ask for",
     "max_pending_requests": "queued requests before new ones get 'busy'",

@@ -2,20 +2,25 @@
 
 Threads and who owns what:
 
-- **Zenoh callbacks** (submit, control, remove, info queryables; client liveliness) decode and
-  validate every request with drape.client.protocol, check ownership and quotas against the
-  registry (a lock-protected dict of ClothRecord), then queue a command. A bad request gets its
-  error reply right there; nothing else notices it.
+- **Zenoh callbacks** (submit, control, control_batch, remove, info queryables; client
+  liveliness) decode and validate every request with drape.client.protocol, check ownership and
+  quotas against the registry (a lock-protected dict of ClothRecord), then queue a command. A
+  bad request gets its error reply right there; nothing else notices it. A batch control is
+  validated item by item: a bad item gets its own error in the reply, the others go ahead.
 - **cook thread**: cooks the fabric of each accepted submission (pure numpy, possibly slow for
   a large mesh), so neither a Zenoh thread nor the tick thread waits for it.
 - **tick thread**: the only thread that touches the World. Each tick: apply queued commands,
-  reclaim cloths of vanished clients, step, read back, copy every cloth's state out of the
-  World's double-buffered host memory (resetting any cloth that went non-finite), and hand the
-  frame to the publisher. Ticks follow a monotonic deadline schedule: an overrun skips whole
+  reclaim cloths of vanished clients, step, read back, copy every cloth's positions out of the
+  World's double-buffered host memory into one contiguous array (resetting any cloth that went
+  non-finite), and hand the frame to the publisher. Ticks follow a monotonic deadline schedule: an overrun skips whole
   deadlines and counts them as missed, it never drifts.
 - **publisher thread**: sends the acknowledgements of the commands applied this tick, encodes
-  and publishes each cloth's state on its own key while the device already works on the next
-  tick, then sends remove acknowledgements and the periodic stats. If it is still busy when the
+  the frame (drape.server.statecodec: bounds and encodings for all cloths at once, reused
+  buffers) and publishes each cloth's state on its own key, or, for cloths submitted with
+  ``state.bundle``, one bundle per client on that client's bundle key, while the device already
+  works on the next tick; states (or bundles) whose key has no subscriber are not encoded at
+  all (Zenoh matching status, counted as ``unwatched``). Then it sends remove acknowledgements
+  and the periodic stats. If it is still busy when the
   next frame is ready, that frame replaces the pending one (coalesced, counted as skipped): the
   tick thread never waits for the network.
 """
@@ -42,6 +47,7 @@ from .config import ServerConfig
 from .fabric import Fabric, FabricCache, cook_grid, cook_mesh
 from .params import Capsule, ClothParams, Features, LinkOptions, Material, Plane, Sphere, pack_colliders
 from .reference import vertex_normals
+from .statecodec import FrameEncoder
 from .world import World, make_world
 
 log = logging.getLogger(__name__)
@@ -72,6 +78,7 @@ class ClothRecord:
     handle: int | None = None
     removed: bool = False
     reset_flag: bool = False  # the next published state carries FLAG_RESET
+    bundle_key: str | None = None  # published inside this client's bundle on this key (1.1), not on ``key``
 
 
 @dataclass(eq=False)
@@ -88,6 +95,22 @@ class _Control:
     req: P.ControlRequest
     colliders: np.ndarray | None
     query: zenoh.Query
+
+
+@dataclass(eq=False)
+class _BatchItem:
+    index: int  # in the request's items
+    record: ClothRecord
+    req: P.ControlRequest
+    colliders: np.ndarray | None
+
+
+@dataclass(eq=False)
+class _BatchControl:
+    query: zenoh.Query
+    rid: int
+    results: list[P.BatchItemResult | None]  # filled in for items refused on arrival
+    items: list[_BatchItem]  # the items to apply
 
 
 @dataclass(eq=False)
@@ -114,11 +137,14 @@ class _Reply:
 
 @dataclass(eq=False)
 class _StateItem:
+    """One cloth of a frame; its positions are rows ``offsets[i]:offsets[i + 1]`` of the job's
+    ``positions`` where ``i`` is its index in ``states``."""
+
     cloth: str
     key: str
-    positions: np.ndarray  # (n, 3) float32, owned (copied out of the World's host buffers)
-    normals: np.ndarray | None
-    encoding: str
+    bundle: str | None  # the client's bundle key, or None: published on ``key``
+    normals: np.ndarray | None  # (n, 3) float32, owned
+    encoding: int  # protocol encoding id
     flags: int
 
 
@@ -130,6 +156,8 @@ class _Job:
     tick: int = 0
     time_ns: int = 0
     states: list[_StateItem] = field(default_factory=list)
+    positions: np.ndarray | None = None  # (N, 3) float32: every state's positions back to back, owned
+    offsets: np.ndarray | None = None  # (len(states) + 1,) int64
     before: list[_Reply] = field(default_factory=list)
     removed: list[str] = field(default_factory=list)
     after: list[_Reply] = field(default_factory=list)
@@ -246,7 +274,10 @@ class Server:
         self._world: World | None = None
         self._session: zenoh.Session | None = None
         self._declared: list[Any] = []
-        self._pubs: dict[str, tuple[zenoh.Publisher, bool]] = {}  # publisher thread only
+        self._pubs: dict[str, tuple[zenoh.Publisher, bool]] = {}  # publisher thread only: per cloth
+        self._bundle_pubs: dict[str, tuple[zenoh.Publisher, bool]] = {}  # publisher thread only: per bundle key
+        self._encoder = FrameEncoder()  # publisher thread only
+        self._buffers: dict[str, bytearray] = {}  # publisher thread only: payload buffers reused per key
         self._stats_pub: zenoh.Publisher | None = None
         self._token: Any = None
         self._threads: list[threading.Thread] = []
@@ -292,7 +323,8 @@ class Server:
         lv = s.liveliness()
         self._declared.append(lv.declare_subscriber(self.keys.all_clients_alive, self._on_client_liveliness, history=True))
         for name, cb in (("submit", self._on_submit), ("control", self._on_control),
-                         ("remove", self._on_remove), ("info", self._on_info)):
+                         ("control_batch", self._on_control_batch), ("remove", self._on_remove),
+                         ("info", self._on_info)):
             key = getattr(self.keys, name)(sid)
             self._declared.append(s.declare_queryable(key, self._guard(name, cb)))
         self._token = lv.declare_token(self.keys.alive_server(sid))
@@ -326,9 +358,10 @@ class Server:
             for t in self._threads:
                 if t.name.startswith("drape-publish"):
                     t.join(max(0.0, deadline - time.monotonic()))
-            for pub, _ in self._pubs.values():
+            for pub, _ in list(self._pubs.values()) + list(self._bundle_pubs.values()):
                 _undeclare(pub)
             self._pubs.clear()
+            self._bundle_pubs.clear()
             if self._stats_pub is not None:
                 _undeclare(self._stats_pub)
                 self._stats_pub = None
@@ -401,7 +434,7 @@ class Server:
                 "errors": dict(self._errors),
             }
         for k in ("ticks", "missed_ticks", "skipped_frames", "nan_resets", "reclaimed", "published",
-                  "unwatched", "publish_errors"):
+                  "unwatched", "publish_errors", "bundles", "batch_items"):
             out[k] = c.get(k, 0)
         out["phases"] = {p: t.snapshot(reset_window) for p, t in self._timers.items()}
         return out
@@ -425,6 +458,7 @@ class Server:
                 "max_total_vertices": cfg.max_total_vertices,
                 "max_message_bytes": cfg.max_message_bytes,
                 "max_pin_updates": cfg.max_pin_updates,
+                "max_batch_items": cfg.max_batch_items,
                 "max_colliders": self.limits.max_colliders,
                 "max_iterations": cfg.max_iterations,
                 "max_substeps": cfg.max_substeps,
@@ -491,6 +525,8 @@ class Server:
             encoding=(req.state.encoding if req.state and req.state.encoding else "float32"),
         )
         rec.key = self.keys.state(rec.id)
+        if req.state is not None and req.state.bundle:
+            rec.bundle_key = self.keys.bundle(req.client)
         with self._lock:
             mine = self._by_client.get(req.client, set())
             if len(self._cloths) >= cfg.max_cloths:
@@ -523,8 +559,43 @@ class Server:
 
     def _on_control(self, query: zenoh.Query, payload: bytes) -> None:
         req = P.decode_control(payload, self.limits)
+        rec, packed = self._check_control(req)
+        self._enqueue(self._commands, _Control(rec, req, packed, query), req.rid)
+
+    def _on_control_batch(self, query: zenoh.Query, payload: bytes) -> None:
+        batch = P.decode_control_batch(payload, self.limits)  # the envelope: all or nothing
+        results: list[P.BatchItemResult | None] = [None] * len(batch.items)
+        todo: list[_BatchItem] = []
+        failed: Counter[str] = Counter()
+        for i, item in enumerate(batch.items):
+            try:
+                if isinstance(item, P.ProtocolError):
+                    raise item
+                rec, packed = self._check_control(item, batch.client)
+            except P.DrapeError as e:
+                results[i] = P.BatchItemResult(None, e.code, e.message)
+                failed[e.code] += 1
+                continue
+            todo.append(_BatchItem(i, rec, item, packed))
+        with self._lock:
+            self._errors.update(failed)
+            self._counters["batch_items"] += len(batch.items)
+        if failed:
+            log.debug("batch control of client %s: %d of %d items refused: %s", batch.client, sum(failed.values()),
+                      len(batch.items), dict(failed))
+        if not todo:  # nothing to apply: answer now
+            rep = P.ControlBatchReply(self._tick + 1, results, batch.rid)  # type: ignore[arg-type]
+            _send(_Reply(query, P.encode_control_batch_reply(rep)))
+            return
+        self._enqueue(self._commands, _BatchControl(query, batch.rid, results, todo), batch.rid)
+
+    def _check_control(self, req: P.ControlRequest, client: str | None = None) -> tuple[ClothRecord, np.ndarray | None]:
+        """Ownership (and, in a batch, that the cloth is the batch client's), pin indices and
+        colliders of one control; raises the DrapeError that refuses it."""
         rec = self._owned(req.cloth, req.token, req.rid)
         assert rec.fabric is not None
+        if client is not None and rec.client != client:
+            raise P.Forbidden(P.ERR_FORBIDDEN, f"cloth {rec.id!r} is not a cloth of client {client!r}", req.rid)
         if req.pins is not None and len(req.pins.indices):
             idx = req.pins.indices
             top = int(idx.max())
@@ -538,7 +609,7 @@ class Server:
         packed = None
         if req.colliders is not None:
             packed = _pack(req.colliders, req.rid)
-        self._enqueue(self._commands, _Control(rec, req, packed, query), req.rid)
+        return rec, packed
 
     def _on_remove(self, query: zenoh.Query, payload: bytes) -> None:
         req = P.decode_remove(payload, self.limits)
@@ -712,28 +783,37 @@ class Server:
         w.sync()  # so "solve" is the device's time and "readback" the copy
         t2 = time.monotonic()
         frame = w.fetch()
+        recs = list(self._live.values())
+        # The frame's arrays are views of double-buffered host memory: copy them out now, every
+        # cloth's positions back to back in one array (what the publisher encodes from).
+        pos = np.concatenate([frame.positions[r.handle] for r in recs], axis=0, dtype=np.float32)
+        offsets = np.zeros(len(recs) + 1, np.int64)
+        np.cumsum([r.n_vertices for r in recs], out=offsets[1:])
+        bad: set[int] = set()
+        if not np.isfinite(pos).all():
+            ok = np.isfinite(pos).all(axis=1)
+            bad = set(np.flatnonzero(~np.logical_and.reduceat(ok, offsets[:-1])).tolist())
         states: list[_StateItem] = []
-        for rec in self._live.values():
+        for i, rec in enumerate(recs):
             h = rec.handle
-            # The frame's arrays are views of double-buffered host memory: copy them now.
-            pos = np.array(frame.positions[h], np.float32)
             nrm = frame.normals.get(h)
             nrm = None if nrm is None else np.array(nrm, np.float32)
             flags = 0
             if rec.reset_flag:
                 flags |= P.FLAG_RESET
                 rec.reset_flag = False
-            if not (np.isfinite(pos).all() and (nrm is None or np.isfinite(nrm).all())):
+            if i in bad or (nrm is not None and not np.isfinite(nrm).all()):
                 assert rec.fabric is not None
                 log.warning("cloth %s of client %s went non-finite at tick %d: reset to its rest pose",
                             rec.id, rec.client, tick)
                 w.reset(h)
                 self._count("nan_resets")
-                pos = rec.fabric.rest_positions.astype(np.float32)
+                pos[offsets[i]:offsets[i + 1]] = rec.fabric.rest_positions
                 if nrm is not None:
                     nrm = vertex_normals(rec.fabric.rest_positions, rec.fabric)[0].astype(np.float32)
                 flags |= P.FLAG_RESET
-            states.append(_StateItem(rec.id, rec.key, pos, nrm, rec.encoding, flags))
+            states.append(_StateItem(rec.id, rec.key, rec.bundle_key, nrm, P.ENCODING_IDS[rec.encoding], flags))
+        job.positions, job.offsets = pos, offsets
         t3 = time.monotonic()
         self._timers["solve"].add(t2 - t)
         self._timers["readback"].add(t3 - t2)
@@ -791,12 +871,14 @@ class Server:
                 return
             rec.handle = h
             self._live[rec.id] = rec
-            rep = P.SubmitReply(rec.id, rec.token, rec.key, rec.n_vertices, self._tick + 1, cmd.rid)
+            rep = P.SubmitReply(rec.id, rec.token, rec.key, rec.n_vertices, self._tick + 1, cmd.rid, rec.bundle_key)
             job.before.append(_Reply(cmd.query, P.encode_submit_reply(rep)))
             log.info("cloth %s added for client %s: %d vertices, %d links", rec.id, rec.client, rec.n_vertices,
                      rec.fabric.n_links)
         elif isinstance(cmd, _Control):
             job.before.append(self._apply_control(cmd))
+        elif isinstance(cmd, _BatchControl):
+            job.before.append(self._apply_batch(cmd))
         elif isinstance(cmd, _Remove):
             rec = cmd.record
             if rec.removed or rec.handle is None:
@@ -808,36 +890,66 @@ class Server:
             log.info("cloth %s removed by client %s", rec.id, rec.client)
 
     def _apply_control(self, cmd: _Control) -> _Reply:
+        err = self._apply_control_item(cmd.record, cmd.req, cmd.colliders)
+        if err is not None:
+            return self._error_reply(cmd.query, err[0], err[1], cmd.req.rid)
+        return _Reply(cmd.query, P.encode_control_reply(P.ControlReply(self._tick + 1, cmd.req.rid)))
+
+    def _apply_batch(self, cmd: _BatchControl) -> _Reply:
+        tick = self._tick + 1
+        failed: Counter[str] = Counter()
+        for it in cmd.items:
+            try:
+                err = self._apply_control_item(it.record, it.req, it.colliders)
+            except Exception as e:  # one item's failure must not leave the others unanswered
+                log.exception("applying batch item %d (cloth %s) failed", it.index, it.record.id)
+                err = (P.ERR_INTERNAL, f"internal error: {type(e).__name__}: {e}")
+            if err is None:
+                cmd.results[it.index] = P.BatchItemResult(tick)
+            else:
+                cmd.results[it.index] = P.BatchItemResult(None, err[0], err[1])
+                failed[err[0]] += 1
+        if failed:
+            with self._lock:
+                self._errors.update(failed)
+        rep = P.ControlBatchReply(tick, cmd.results, cmd.rid)  # type: ignore[arg-type]
+        return _Reply(cmd.query, P.encode_control_batch_reply(rep))
+
+    def _apply_control_item(self, rec: ClothRecord, req: P.ControlRequest,
+                            colliders: np.ndarray | None) -> tuple[str, str] | None:
+        """Apply one validated control on the tick thread: None, or (code, message) when it is
+        refused now (the cloth went away, or its new parameters are invalid); nothing of a
+        refused control is applied."""
         w = self._world
-        rec, req = cmd.record, cmd.req
         assert w is not None
         if rec.removed or rec.handle is None or rec.params is None:
-            return self._error_reply(cmd.query, P.ERR_NOT_FOUND, f"no cloth {rec.id!r}", req.rid)
+            return P.ERR_NOT_FOUND, f"no cloth {rec.id!r}"
         p = rec.params
-        feats = set(req.features) if req.features is not None else set(p.features.names())
-        if req.colliders:
-            feats.add("colliders")
-        if req.state is not None and req.state.normals is not None:
-            (feats.add if req.state.normals else feats.discard)("normals")
-        try:
-            new = p.with_(
-                material=replace(p.material, **req.material) if req.material else p.material,
-                features=Features.from_names(sorted(feats)),
-                gravity=req.gravity if req.gravity is not None else p.gravity,
-                wind=req.wind if req.wind is not None else p.wind,
-                iterations=req.iterations if req.iterations is not None else p.iterations,
-                substeps=req.substeps if req.substeps is not None else p.substeps,
-                chebyshev_rho=req.chebyshev_rho if req.chebyshev_rho is not None else p.chebyshev_rho,
-            )
-            new.validate()
-        except ValueError as e:
-            return self._error_reply(cmd.query, P.ERR_INVALID_VALUE, str(e), req.rid)
+        if _changes_params(req, p):
+            feats = set(req.features) if req.features is not None else set(p.features.names())
+            if req.colliders:
+                feats.add("colliders")
+            if req.state is not None and req.state.normals is not None:
+                (feats.add if req.state.normals else feats.discard)("normals")
+            try:
+                new = p.with_(
+                    material=replace(p.material, **req.material) if req.material else p.material,
+                    features=Features.from_names(sorted(feats)),
+                    gravity=req.gravity if req.gravity is not None else p.gravity,
+                    wind=req.wind if req.wind is not None else p.wind,
+                    iterations=req.iterations if req.iterations is not None else p.iterations,
+                    substeps=req.substeps if req.substeps is not None else p.substeps,
+                    chebyshev_rho=req.chebyshev_rho if req.chebyshev_rho is not None else p.chebyshev_rho,
+                )
+                new.validate()
+            except ValueError as e:
+                return P.ERR_INVALID_VALUE, str(e)
+            if new != p:
+                w.set_params(rec.handle, new)
+                rec.params = new
         h = rec.handle
-        if new != p:
-            w.set_params(h, new)
-            rec.params = new
-        if cmd.colliders is not None:
-            w.set_colliders(h, cmd.colliders)
+        if colliders is not None:
+            w.set_colliders(h, colliders)
         if req.pins is not None and len(req.pins.indices):
             w.set_pin_targets(h, req.pins.indices.astype(np.int64), req.pins.targets)
         if req.reset:
@@ -845,7 +957,7 @@ class Server:
             rec.reset_flag = True
         if req.state is not None and req.state.encoding is not None:
             rec.encoding = req.state.encoding
-        return _Reply(cmd.query, P.encode_control_reply(P.ControlReply(self._tick + 1, req.rid)))
+        return None
 
     def _drop(self, rec: ClothRecord, job: _Job) -> None:
         """Take a cloth out of the World and the registry (tick thread)."""
@@ -903,10 +1015,13 @@ class Server:
                 log.exception("publishing tick %d failed", job.tick)
                 self._count("publish_errors")
 
-    def _publisher(self, cloth: str, key: str, size: int) -> zenoh.Publisher:
+    def _publisher(self, store: dict[str, tuple[zenoh.Publisher, bool]], ident: str, key: str,
+                   size: int) -> zenoh.Publisher:
+        """The publisher of ``key`` (kept in ``store`` under ``ident``), re-declared when the
+        congestion control its payload size calls for changes (``auto``)."""
         mode = self.config.state_congestion
         block = mode == "block" or (mode == "auto" and size > self.config.drop_max_bytes)
-        have = self._pubs.get(cloth)
+        have = store.get(ident)
         if have is not None and have[1] == block:
             return have[0]
         if have is not None:
@@ -914,47 +1029,115 @@ class Server:
         assert self._session is not None
         cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         pub = self._session.declare_publisher(key, congestion_control=cc)
-        self._pubs[cloth] = (pub, block)
+        store[ident] = (pub, block)
         return pub
+
+    def _buffer(self, key: str, size: int) -> bytearray:
+        """The payload buffer of ``key``, reused from tick to tick (Zenoh copies a bytearray
+        when it is put, so it may be rewritten as soon as put returns)."""
+        buf = self._buffers.get(key)
+        if buf is None or len(buf) != size:
+            buf = self._buffers[key] = bytearray(size)
+        return buf
 
     def _publish(self, job: _Job) -> None:
         for r in job.before:
             _send(r)
-        enc_t = pub_t = 0.0
-        published = unwatched = 0
-        errors = 0
-        for st in job.states:
+        bundle_keys: set[str] = set()
+        if job.states:
+            bundle_keys = self._publish_states(job)
+        for cid in job.removed:
+            have = self._pubs.pop(cid, None)
+            if have is not None:
+                _undeclare(have[0])
+                self._buffers.pop(self.keys.state(cid), None)
+        for bkey in [k for k in self._bundle_pubs if k not in bundle_keys]:  # the client has no bundled cloth left
+            _undeclare(self._bundle_pubs.pop(bkey)[0])
+            self._buffers.pop(bkey, None)
+        for r in job.after:
+            _send(r)
+        if job.stats is not None and self._stats_pub is not None:
+            self._stats_pub.put(job.stats)
+
+    def _publish_states(self, job: _Job) -> set[str]:
+        """Encode and put the states of one frame: each cloth on its own key, bundled cloths in
+        one payload per bundle key. Returns the bundle keys of the frame."""
+        t0 = time.perf_counter()
+        enc = self._encoder
+        assert job.positions is not None and job.offsets is not None
+        enc.begin(job.tick, job.time_ns, job.positions, job.offsets)
+        singles: list[tuple[int, zenoh.Publisher, int]] = []
+        bundles: dict[str, list[int]] = {}
+        unwatched = errors = 0
+        for i, st in enumerate(job.states):
+            if st.bundle is not None:
+                bundles.setdefault(st.bundle, []).append(i)
+                continue
             try:
-                size = P.state_size(len(st.positions), st.encoding, st.normals is not None)
-                pub = self._publisher(st.cloth, st.key, size)
-                if not pub.matching_status.matching:  # nobody subscribed: skip the work
+                size = enc.state_size(i, st.encoding, st.normals is not None)
+                pub = self._publisher(self._pubs, st.cloth, st.key, size)
+                if pub.matching_status.matching:
+                    singles.append((i, pub, size))
+                else:  # nobody subscribed: skip the work
                     unwatched += 1
-                    continue
+            except Exception as e:
+                errors += 1
+                log.warning("publishing cloth %s at tick %d failed: %s", st.cloth, job.tick, e)
+        watched_bundles: list[tuple[str, list[int], zenoh.Publisher, int]] = []
+        for bkey, idx in bundles.items():
+            try:
+                size = enc.bundle_size([(job.states[i].cloth, i, job.states[i].encoding,
+                                         job.states[i].normals is not None) for i in idx])
+                pub = self._publisher(self._bundle_pubs, bkey, bkey, size)
+                if pub.matching_status.matching:
+                    watched_bundles.append((bkey, idx, pub, size))
+                else:
+                    unwatched += len(idx)
+            except Exception as e:
+                errors += len(idx)
+                log.warning("publishing bundle %s at tick %d failed: %s", bkey, job.tick, e)
+        selected = [i for i, _, _ in singles] + [i for _, idx, _, _ in watched_bundles for i in idx]
+        enc.prepare(selected, [st.encoding for st in job.states])
+        enc_t = time.perf_counter() - t0
+        pub_t = 0.0
+        published = n_bundles = 0
+        for i, pub, size in singles:
+            st = job.states[i]
+            try:
                 a = time.perf_counter()
-                payload = P.encode_state(job.tick, job.time_ns, st.positions, st.normals, st.encoding, st.flags)
+                buf = self._buffer(st.key, size)
+                enc.write_state(buf, 0, i, st.encoding, st.flags, st.normals)
                 b = time.perf_counter()
-                pub.put(payload)
+                pub.put(buf)
                 enc_t += b - a
                 pub_t += time.perf_counter() - b
                 published += 1
             except Exception as e:
                 errors += 1
                 log.warning("publishing cloth %s at tick %d failed: %s", st.cloth, job.tick, e)
-        for cid in job.removed:
-            have = self._pubs.pop(cid, None)
-            if have is not None:
-                _undeclare(have[0])
-        for r in job.after:
-            _send(r)
-        if job.stats is not None and self._stats_pub is not None:
-            self._stats_pub.put(job.stats)
-        if job.states:
-            self._timers["encode"].add(enc_t)
-            self._timers["publish"].add(pub_t)
+        for bkey, idx, pub, size in watched_bundles:
+            try:
+                a = time.perf_counter()
+                buf = self._buffer(bkey, size)
+                enc.write_bundle(buf, [(job.states[i].cloth, i, job.states[i].encoding, job.states[i].flags,
+                                        job.states[i].normals) for i in idx])
+                b = time.perf_counter()
+                pub.put(buf)
+                enc_t += b - a
+                pub_t += time.perf_counter() - b
+                published += len(idx)
+                n_bundles += 1
+            except Exception as e:
+                errors += len(idx)
+                log.warning("publishing bundle %s at tick %d failed: %s", bkey, job.tick, e)
+        self._timers["encode"].add(enc_t)
+        self._timers["publish"].add(pub_t)
         with self._lock:
             self._counters["published"] += published
             self._counters["unwatched"] += unwatched
             self._counters["publish_errors"] += errors
+            self._counters["bundles"] += n_bundles
+        return set(bundles)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -996,6 +1179,17 @@ def _pack(colliders: tuple[P.Collider, ...] | None, rid: int) -> np.ndarray:
         return pack_colliders(out)
     except ValueError as e:
         raise P.ProtocolError(P.ERR_INVALID_VALUE, f"colliders: {e}", rid) from None
+
+
+def _changes_params(req: P.ControlRequest, p: ClothParams) -> bool:
+    """Whether a control changes the cloth's parameters (the common per-tick control, pins and
+    colliders of a cloth whose colliders feature is on, changes none)."""
+    return bool(
+        req.material or req.features is not None or req.gravity is not None or req.wind is not None
+        or req.iterations is not None or req.substeps is not None or req.chebyshev_rho is not None
+        or (req.colliders and not p.features.colliders)
+        or (req.state is not None and req.state.normals is not None and req.state.normals != p.features.normals)
+    )
 
 
 def _params_from_submit(req: P.SubmitRequest) -> ClothParams:

@@ -1,0 +1,171 @@
+"""Encoding one tick's states of many cloths at once: the publisher's hot path.
+
+The tick thread hands the publisher every cloth's positions back to back in one contiguous
+float32 array (``positions``, with ``offsets[i]:offsets[i + 1]`` the vertices of cloth ``i``).
+:class:`FrameEncoder` then works per frame, not per cloth:
+
+- bounds of every cloth in two calls (``np.minimum.reduceat`` / ``np.maximum.reduceat``);
+- float16 and quant16 vertex blocks computed for all the cloths that use them in one pass;
+- per cloth only the 64-byte header (``struct.pack_into``) and one ``memcpy`` of its block into
+  an output buffer that the caller reuses from tick to tick (Zenoh copies a ``bytearray`` when
+  it is put, so a buffer may be rewritten as soon as ``put`` returns).
+
+The bytes are exactly those of :func:`drape.client.protocol.encode_state` and
+:func:`drape.client.protocol.encode_bundle` (tests/test_bundles.py checks that for every encoding).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drape.client import protocol as P
+
+_ENTRY_PAD = bytes(P.BUNDLE_ALIGN)
+
+
+def state_bytes(n: int, encoding: int, normals: bool) -> int:
+    """Size of one encoded state of ``n`` vertices."""
+    return P.STATE_HEADER_SIZE + n * 3 * (4 if encoding == P.ENC_FLOAT32 else 2) * (2 if normals else 1)
+
+
+@dataclass(eq=False)
+class _Group:
+    """The encoded vertex blocks of the cloths of one encoding, back to back."""
+
+    data: memoryview  # bytes
+    start: dict[int, int] = field(default_factory=dict)  # cloth index -> byte offset in data
+
+
+class FrameEncoder:
+    """Encode the states of one frame (call :meth:`begin`, then :meth:`prepare` with the cloths
+    that will be written, then :meth:`write_state` / :meth:`write_bundle` for each)."""
+
+    def __init__(self) -> None:
+        self.tick = 0
+        self.time_ns = 0
+        self._positions = np.zeros((0, 3), np.float32)
+        self._offsets = np.zeros(1, np.int64)
+        self._counts: list[int] = []
+        self._lo: list[list[float]] = []
+        self._hi: list[list[float]] = []
+        self._groups: dict[int, _Group] = {}
+        self._ids: dict[str, bytes] = {}
+
+    def begin(self, tick: int, time_ns: int, positions: np.ndarray, offsets: np.ndarray) -> None:
+        """A new frame: ``positions`` (N, 3) float32 C-contiguous, ``offsets`` (k + 1,) with
+        every cloth non-empty."""
+        pos = np.ascontiguousarray(positions, dtype="<f4")
+        self.tick, self.time_ns = int(tick), int(time_ns)
+        self._positions = pos.reshape(-1, 3)
+        self._offsets = np.asarray(offsets, np.int64)
+        self._counts = np.diff(self._offsets).tolist()
+        self._lo, self._hi = [], []
+        self._groups = {}
+
+    def prepare(self, cloths: list[int], encodings: list[int]) -> None:
+        """Compute bounds and vertex blocks for ``cloths`` (indices into the frame), whose
+        encodings are ``encodings`` (protocol ids, one per cloth of the frame)."""
+        pos, off = self._positions, self._offsets
+        k = len(off) - 1
+        if not cloths or not k:
+            return
+        starts = off[:-1]
+        cols = np.ascontiguousarray(pos.T)  # (3, N): reduceat runs faster along contiguous rows
+        lo = np.minimum.reduceat(cols, starts, axis=1).T
+        hi = np.maximum.reduceat(cols, starts, axis=1).T
+        self._lo, self._hi = lo.tolist(), hi.tolist()
+        by_enc: dict[int, list[int]] = {}
+        for i in cloths:
+            by_enc.setdefault(encodings[i], []).append(i)
+        for enc, idx in by_enc.items():
+            idx = sorted(set(idx))
+            if len(idx) == k:  # every cloth: the frame as is
+                src, local = pos, off
+            else:
+                src = np.concatenate([pos[off[i]:off[i + 1]] for i in idx]) if len(idx) > 1 else pos[off[idx[0]]:off[idx[0] + 1]]
+                counts = np.array([self._counts[i] for i in idx], np.int64)
+                local = np.zeros(len(idx) + 1, np.int64)
+                np.cumsum(counts, out=local[1:])
+            if enc == P.ENC_FLOAT32:
+                block = src
+                es = 4
+            elif enc == P.ENC_FLOAT16:
+                block = np.clip(src, -P.FLOAT16_MAX, P.FLOAT16_MAX).astype("<f2")
+                es = 2
+            else:  # quant16, in float64 against the float32 bounds exactly as encode_state does
+                lo64 = lo[idx].astype(np.float64)
+                ext = hi[idx].astype(np.float64) - lo64
+                scale = np.divide(P.QUANT_MAX, ext, out=np.zeros_like(ext), where=ext > 0)
+                reps = np.diff(local)
+                q = (src.astype(np.float64) - np.repeat(lo64, reps, axis=0)) * np.repeat(scale, reps, axis=0)
+                block = np.rint(np.clip(q, 0, P.QUANT_MAX, out=q), out=q).astype("<u2")
+                es = 2
+            if len(idx) == k:
+                starts_b = {i: int(off[i]) * 3 * es for i in idx}
+            else:
+                starts_b = {i: int(local[j]) * 3 * es for j, i in enumerate(idx)}
+            self._groups[enc] = _Group(memoryview(np.ascontiguousarray(block)).cast("B"), starts_b)
+
+    def state_size(self, i: int, encoding: int, normals: bool) -> int:
+        return state_bytes(self._counts[i], encoding, normals)
+
+    def write_state(self, out: bytearray, at: int, i: int, encoding: int, flags: int,
+                    normals: np.ndarray | None) -> int:
+        """Write cloth ``i``'s state payload into ``out`` at ``at``; returns where it ends."""
+        n = self._counts[i]
+        es = 4 if encoding == P.ENC_FLOAT32 else 2
+        block = n * 3 * es
+        flags = (flags | P.FLAG_NORMALS) if normals is not None else (flags & ~P.FLAG_NORMALS)
+        lo, hi = self._lo[i], self._hi[i]
+        P.STATE_HEADER.pack_into(out, at, P.STATE_MAGIC, P.PROTOCOL_MAJOR, P.PROTOCOL_MINOR, P.STATE_HEADER_SIZE,
+                                 encoding, 0, flags, n, self.tick, self.time_ns, lo[0], lo[1], lo[2], hi[0], hi[1], hi[2])
+        g = self._groups[encoding]
+        s = g.start[i]
+        p0 = at + P.STATE_HEADER_SIZE
+        out[p0:p0 + block] = g.data[s:s + block]
+        end = p0 + block
+        if normals is not None:
+            _write_normals(out, end, normals, encoding)
+            end += block
+        return end
+
+    def bundle_size(self, cloths: list[tuple[str, int, int, bool]]) -> int:
+        """Bytes of a bundle of (cloth id, frame index, encoding, normals) entries."""
+        return P.BUNDLE_HEADER_SIZE + sum(P.bundle_entry_header_size(c) + P.align8(self.state_size(i, e, nr))
+                                          for c, i, e, nr in cloths)
+
+    def write_bundle(self, out: bytearray, entries: list[tuple[str, int, int, int, np.ndarray | None]]) -> int:
+        """Write a bundle of (cloth id, frame index, encoding, flags, normals) entries into
+        ``out`` (sized with bundle_size); returns its size."""
+        P.pack_bundle_header(out, self.tick, self.time_ns, len(entries))
+        at = P.BUNDLE_HEADER_SIZE
+        ids = self._ids
+        for cloth, i, enc, flags, nrm in entries:
+            cid = ids.get(cloth)
+            if cid is None:
+                cid = ids[cloth] = cloth.encode("ascii")
+                if len(ids) > 65536:
+                    ids.clear()
+            h = P.align8(P.BUNDLE_ENTRY_SIZE + len(cid))
+            n_state = self.state_size(i, enc, nrm is not None)
+            P.BUNDLE_ENTRY.pack_into(out, at, h, len(cid), n_state)
+            e = at + P.BUNDLE_ENTRY_SIZE + len(cid)
+            out[at + P.BUNDLE_ENTRY_SIZE:e] = cid
+            out[e:at + h] = _ENTRY_PAD[:at + h - e]
+            end = self.write_state(out, at + h, i, enc, flags, nrm)
+            at = P.align8(end)
+            out[end:at] = _ENTRY_PAD[:at - end]  # the buffer is reused: padding must be rewritten
+        return at
+
+
+def _write_normals(out: bytearray, at: int, normals: np.ndarray, encoding: int) -> None:
+    nrm = np.asarray(normals, np.float32).reshape(-1, 3)
+    n = len(nrm)
+    if encoding == P.ENC_FLOAT32:
+        np.frombuffer(out, "<f4", n * 3, at).reshape(n, 3)[:] = nrm
+    elif encoding == P.ENC_FLOAT16:
+        np.frombuffer(out, "<f2", n * 3, at).reshape(n, 3)[:] = nrm
+    else:
+        qn = np.rint(np.clip(nrm.astype(np.float64), -1.0, 1.0) * P.SNORM_MAX)
+        np.frombuffer(out, "<i2", n * 3, at).reshape(n, 3)[:] = qn

@@ -1033,11 +1033,13 @@ def control_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS, n_ve
 
 
 def _read_control(r: _Reader, rid: int, n_vertices: int | None = None) -> ControlRequest:
-    """The fields of a control (a whole message, or one batch item whose reader path names it)."""
+    """The fields of a control (a whole message, or one batch item whose reader path names it).
+    Only the fields present are read (a per-tick control carries two or three of them)."""
     limits = r.limits
+    m = r.m
     cloth, token = _owner_fields(r)
     pins = None
-    pr = r.sub("pins")
+    pr = r.sub("pins") if "pins" in m else None
     if pr is not None:
         idx = pr.blob("indices", "u4", 1, limits.max_pin_updates, True)
         tgt = pr.blob("targets", "f4", 3, limits.max_pin_updates, True)
@@ -1050,20 +1052,20 @@ def _read_control(r: _Reader, rid: int, n_vertices: int | None = None) -> Contro
         _check_finite_array(r, pr.name("targets"), tgt, limits.max_coordinate)
         pins = PinUpdate(idx, tgt)
     acc = limits.max_acceleration
-    reset = r.bool_("reset")
+    reset = r.bool_("reset") if "reset" in m else None
     return ControlRequest(
         cloth=cloth,
         token=token,
         pins=pins,
-        colliders=_read_colliders(r),
-        gravity=r.vec3("gravity", acc),
-        wind=r.vec3("wind", acc),
-        material=_read_material(r),
-        features=_read_features(r),
-        iterations=r.int_("iterations", 0, limits.max_iterations),
-        substeps=r.int_("substeps", 1, limits.max_substeps),
-        chebyshev_rho=_read_rho(r),
-        state=_read_state_options(r, submit=False),
+        colliders=_read_colliders(r) if "colliders" in m else None,
+        gravity=r.vec3("gravity", acc) if "gravity" in m else None,
+        wind=r.vec3("wind", acc) if "wind" in m else None,
+        material=_read_material(r) if "material" in m else {},
+        features=_read_features(r) if "features" in m else None,
+        iterations=r.int_("iterations", 0, limits.max_iterations) if "iterations" in m else None,
+        substeps=r.int_("substeps", 1, limits.max_substeps) if "substeps" in m else None,
+        chebyshev_rho=_read_rho(r) if "chebyshev_rho" in m else None,
+        state=_read_state_options(r, submit=False) if "state" in m else None,
         reset=bool(reset),
         rid=rid,
     )

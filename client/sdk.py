@@ -587,14 +587,19 @@ class DrapeClient:
                         colliders=None if colliders is None else colliders[j])
         return b.send()
 
-    def _server_batch_limit(self) -> int:
-        """Items per batch request the server takes; 0 when it speaks 1.0 (no batch control)."""
+    @property
+    def server_version(self) -> tuple[int, int]:
+        """The protocol version the server speaks (asked once with info, then remembered)."""
         if self._server_version is None:
             info = self.info()
             major, _, minor = str(info.get("version", "1.0")).partition(".")
-            self._server_version = (int(major), int(minor or 0))
             self._max_batch_items = int(info.get("limits", {}).get("max_batch_items", 0) or 0)
-        if self._server_version < (1, 1):
+            self._server_version = (int(major), int(minor or 0))
+        return self._server_version
+
+    def _server_batch_limit(self) -> int:
+        """Items per batch request the server takes; 0 when it speaks 1.0 (no batch control)."""
+        if self.server_version < (1, 1):
             return 0
         return max(1, self._max_batch_items)
 

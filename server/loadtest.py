@@ -1,8 +1,15 @@
 """``drape loadtest``: how many cloths one server holds.
 
 K client processes, each with M cloths, behave like game clients for T seconds: every tick
-they move each cloth's pins (one control message per cloth, not waited for) and receive every
-state over Zenoh. The load test starts its own ``drape serve`` process (or targets a running
+they move each cloth's pins and receive every state over Zenoh. Two ways (protocol 1.1):
+
+- ``--bundle`` (the default): cloths submitted with ``bundle=True``: one publication per client
+  per tick carries all its cloths' states, and one batch control per client per tick moves all
+  its cloths' pins;
+- ``--no-bundle``: one state publication and one control message per cloth per tick (what a
+  1.0 client does).
+
+Both are not waited for. The load test starts its own ``drape serve`` process (or targets a running
 one with ``--endpoint``) and measures
 
 - achieved tick rate and missed ticks, frames the publisher had to coalesce (server stats);
@@ -50,6 +57,7 @@ class LoadSpec:
     bending: bool = True
     encoding: str = "float32"
     tick_rate: float = 60.0
+    bundle: bool = True  # bundled states and one batch control per client per tick
 
     @property
     def total_cloths(self) -> int:
@@ -69,6 +77,7 @@ class ClientResult:
     send_errors: int
     first_tick: int
     last_tick: int
+    cpu_s: float = float("nan")  # the client process's CPU time during the measured window
 
 
 @dataclass
@@ -96,6 +105,8 @@ class Report:
     send_errors: int
     server: dict = field(default_factory=dict)
     host: str = ""
+    bundle: bool = False  # clients used bundles and batch control (protocol 1.1)
+    clients_cpu_percent: float = float("nan")  # CPU of all client processes together, % of one core
 
     @property
     def held(self) -> bool:
@@ -133,7 +144,7 @@ def _client_main(index: int, endpoint: str, server_id: str | None, spec: LoadSpe
                     n, n, 1.0, 1.0, origin=(1.5 * j, 1.0, 2.0 * index), pinned=pins,
                     links={"structural": True, "shear": True, "bending": spec.bending},
                     features=list(spec.features), iterations=spec.iterations, substeps=spec.substeps,
-                    encoding=spec.encoding,
+                    encoding=spec.encoding, bundle=spec.bundle,
                 )
                 tl: list[int] = []
                 ll: list[int] = []
@@ -148,17 +159,27 @@ def _client_main(index: int, endpoint: str, server_id: str | None, spec: LoadSpe
                 h.on_state(record)
                 handles.append(h)
             rest = [np.asarray(h.rest_positions[pins], np.float64) for h in handles]
+            if spec.bundle:
+                assert all(h.bundled for h in handles), "the server does not bundle states (protocol 1.0?)"
+                client.server_version  # noqa: B018 - asks once now rather than in the first tick
             ready.set()
             go.wait()
             recording.set()
+            cpu0 = time.process_time()
             period = 1.0 / spec.tick_rate
             t0 = next_t = time.monotonic()
             while not stop.is_set() and time.monotonic() - t0 < spec.seconds:
                 t = time.monotonic() - t0
                 # like a game: every cloth's pins follow its character, once per tick
-                for j, h in enumerate(handles):
-                    offset = np.array([0.1 * math.sin(2.0 * t + j), 0.05 * math.sin(3.0 * t), 0.0])
-                    h.move_pins(pins, rest[j] + offset, wait=False)
+                if spec.bundle:
+                    with client.batch() as b:
+                        for j, h in enumerate(handles):
+                            offset = np.array([0.1 * math.sin(2.0 * t + j), 0.05 * math.sin(3.0 * t), 0.0])
+                            b.move_pins(h, pins, rest[j] + offset)
+                else:
+                    for j, h in enumerate(handles):
+                        offset = np.array([0.1 * math.sin(2.0 * t + j), 0.05 * math.sin(3.0 * t), 0.0])
+                        h.move_pins(pins, rest[j] + offset, wait=False)
                 progress.value = sum(len(tl) for tl in ticks)
                 next_t += period
                 delay = next_t - time.monotonic()
@@ -167,6 +188,7 @@ def _client_main(index: int, endpoint: str, server_id: str | None, spec: LoadSpe
                 else:
                     next_t = time.monotonic()
             recording.clear()
+            cpu_s = time.process_time() - cpu0
             send_errors = client.send_errors
             per_state = state_size(n * n, spec.encoding)
     except BaseException as e:  # report, don't hang the parent
@@ -187,7 +209,7 @@ def _client_main(index: int, endpoint: str, server_id: str | None, spec: LoadSpe
         last = max(last, int(uniq[-1]))
     lat_ms = (np.concatenate([np.asarray(x, np.float64) for x in lat]) / 1e6) if received else np.zeros(0)
     results.put(("ok", ClientResult(index, spec.cloths, received, lost, dup, ooo, lat_ms.astype(np.float32),
-                                    received * per_state, send_errors, first, last)))
+                                    received * per_state, send_errors, first, last, cpu_s)))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -203,7 +225,7 @@ class ServerProcess:
         cmd = [sys.executable, "-m", "drape.server.cli", "serve", "--listen", self.endpoint, "--server-id",
                self.server_id, "--tick-rate", str(tick_rate), "--max-cloths", "100000",
                "--max-cloths-per-client", "100000", "--max-total-vertices", str(1 << 26), "--stats-period", "0.5",
-               "--max-pending-requests", "1000000"]
+               "--max-pending-requests", "1000000", "--max-batch-items", "100000"]
         if solver:
             cmd += ["--solver", solver]
         if device:
@@ -354,6 +376,8 @@ def run_load(spec: LoadSpec, endpoint: str, server_id: str | None, server: Serve
         send_errors=int(sum(r.send_errors for r in out)),
         server=server_info,
         host=f"{platform.node()} {os.cpu_count()} cores",
+        bundle=spec.bundle,
+        clients_cpu_percent=round(100.0 * sum(r.cpu_s for r in out) / elapsed, 1) if elapsed > 0 else float("nan"),
     )
     return report, out, window
 
@@ -380,7 +404,8 @@ def _phase_means(window: list[tuple[float, dict]]) -> dict[str, dict[str, float]
 def print_report(r: Report) -> None:
     lat = r.latency_ms
     print(f"load: {r.clients} clients x {r.cloths_per_client} cloths = {r.cloths} cloths of {r.vertices_per_cloth} "
-          f"vertices, {r.iterations} iterations, features {r.features or 'none'}, {r.encoding}")
+          f"vertices, {r.iterations} iterations, features {r.features or 'none'}, {r.encoding}, "
+          f"{'bundles + batch control' if r.bundle else 'per-cloth states and controls'}")
     print(f"  ticks: {r.tick_hz_achieved:.2f} Hz achieved of {r.tick_hz_target:g} Hz; missed {r.missed_ticks}, "
           f"coalesced {r.skipped_frames}")
     print(f"  latency ms: p50 {lat['p50']:.2f}  p99 {lat['p99']:.2f}  max {lat['max']:.2f}")
@@ -391,7 +416,7 @@ def print_report(r: Report) -> None:
         print("  server ms per tick (mean/max): " + ", ".join(f"{k} {v['mean']:.2f}/{v['max']:.2f}" for k, v in ph.items()))
     if "cpu_percent" in r.server:
         print(f"  server CPU {r.server['cpu_percent']:.0f}%, RSS {r.server.get('rss_mb', float('nan')):.0f} MB "
-              f"(peak {r.server.get('peak_rss_mb', float('nan')):.0f} MB)")
+              f"(peak {r.server.get('peak_rss_mb', float('nan')):.0f} MB); clients CPU {r.clients_cpu_percent:.0f}%")
     print(f"  held: {'yes' if r.held else 'NO'}")
 
 
@@ -439,6 +464,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-bending", action="store_true", help="structural and shear links only")
     parser.add_argument("--encoding", default="float32", choices=["float32", "float16", "quant16"])
     parser.add_argument("--tick-rate", type=float, default=60.0)
+    parser.add_argument("--bundle", action=argparse.BooleanOptionalAction, default=True,
+                        help="bundled states and one batch control per client per tick (protocol 1.1); "
+                             "--no-bundle: one state and one control per cloth per tick")
     parser.add_argument("--endpoint", default=None, help="target a running server instead of starting one")
     parser.add_argument("--server-id", default=None, help="with --endpoint: which server (default: the one seen)")
     parser.add_argument("--solver", default=None, help="solver of the started server")
@@ -454,7 +482,7 @@ def run(args: argparse.Namespace) -> int:
     spec = LoadSpec(clients=args.clients, cloths=args.cloths, size=args.size, seconds=args.seconds,
                     features=tuple(f for f in args.features.split(",") if f), iterations=args.iterations,
                     substeps=args.substeps, bending=not args.no_bending, encoding=args.encoding,
-                    tick_rate=args.tick_rate)
+                    tick_rate=args.tick_rate, bundle=args.bundle)
     server = None
     if args.endpoint:
         endpoint, server_id = args.endpoint, args.server_id

@@ -59,6 +59,12 @@ def drain(handle, until_tick: int, timeout: float = TIMEOUT) -> list[P.ClothStat
     return out
 
 
+def gaps(ticks: list[int]) -> int:
+    """Ticks missing between the first and the last of an increasing sequence."""
+    assert ticks == sorted(set(ticks)), f"ticks out of order or repeated: {ticks}"
+    return ticks[-1] - ticks[0] + 1 - len(ticks) if ticks else 0
+
+
 def wait_until(pred, timeout: float = TIMEOUT, step: float = 0.02) -> bool:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -130,6 +136,7 @@ def test_frame_encoder_matches_the_reference_encoders(rng):
 def test_bundle_carries_every_tick_of_every_cloth_as_its_own_key_would(server, client):
     """Bundled cloths: every tick from the first, in order, through the same ClothHandle API;
     each position equal to an unbundled twin's the same number of steps in."""
+    skipped = server.stats()["skipped_frames"]
     twin = client.submit_grid(6, 5, pinned=[0, 5])
     cloths = [client.submit_grid(6, 5, pinned=[0, 5], bundle=True) for _ in range(3)]
     odd = client.submit_grid(4, 4, pinned=[0], bundle=True, normals=True, encoding="quant16")
@@ -141,11 +148,17 @@ def test_bundle_carries_every_tick_of_every_cloth_as_its_own_key_would(server, c
         end = odd.first_tick + 40
         got = {h.id: drain(h, end) for h in cloths + [odd]}
         ref = {s.tick: s for s in drain(twin, end + 10)}
+        # A frame the server had to coalesce (its publisher still busy with the previous one on a
+        # loaded machine) is the one documented way to miss a tick: it is counted.
+        coalesced = server.stats()["skipped_frames"] - skipped
         for h in cloths + [odd]:
             ticks = [s.tick for s in got[h.id]]
-            assert ticks == list(range(h.first_tick, end + 1)), f"{h.id}: ticks {ticks[:5]}..."
+            missing = sorted(set(range(h.first_tick, end + 1)) - set(ticks))
+            assert ticks == sorted(set(ticks)) and ticks[-1] == end, f"{h.id}: ticks {ticks}"
+            assert len(missing) <= coalesced, f"{h.id}: ticks {missing} missing, {coalesced} frames coalesced"
             assert all(s.cloth == h.id for s in got[h.id])
-        assert len(seen) >= 30 and seen == list(range(seen[0], seen[0] + len(seen)))  # callbacks too
+        assert len(seen) >= 30 and seen == sorted(set(seen))  # callbacks too
+        assert seen[-1] - seen[0] + 1 - len(seen) <= coalesced
         for h in cloths:
             shift = twin.first_tick - h.first_tick
             pairs = [(s, ref[s.tick + shift]) for s in got[h.id] if s.tick + shift in ref]
@@ -178,15 +191,16 @@ def test_unwatched_states_are_not_encoded_and_watched_ones_never_skip(server, cl
         ticks = after["ticks"] - before["ticks"]
         assert after["unwatched"] - before["unwatched"] >= 2 * (ticks - 2), "both cloths unwatched every tick"
         # now watch both, from a third session: every tick from then on
+        skipped = server.stats()["skipped_frames"]
         rec = Recorder(client.session, rep.bundle_key)
         plain_ticks: list[int] = []
         psub = client.session.declare_subscriber(
             plain.key, lambda smp: plain_ticks.append(P.decode_state(smp.payload.to_bytes()).tick))
         try:
             assert wait_until(lambda: len(rec.snapshot()) >= 40 and len(plain_ticks) >= 40)
-            t = [g[0] for g in rec.snapshot()]
-            assert t == list(range(t[0], t[0] + len(t))), "a bundle went missing while watched"
-            assert plain_ticks == list(range(plain_ticks[0], plain_ticks[0] + len(plain_ticks)))
+            coalesced = server.stats()["skipped_frames"] - skipped  # the only excuse for a gap: counted
+            assert gaps([g[0] for g in rec.snapshot()]) <= coalesced, "a bundle went missing while watched"
+            assert gaps(list(plain_ticks)) <= coalesced, "a state went missing while watched"
             assert all(ids == [rep.cloth] for _, ids, _ in rec.snapshot())
         finally:
             rec.close()
@@ -366,9 +380,9 @@ def test_hostile_batch_and_bundle_requests_get_errors_and_the_server_keeps_servi
         assert e.value.code == "invalid_value" and "submission" in e.value.message
         # still served: every tick, controllable, by the batch key too
         bystander.clear()
+        skipped = server.stats()["skipped_frames"]
         states = drain(bystander, server.tick + 10)
-        ticks = [s.tick for s in states]
-        assert ticks == list(range(ticks[0], ticks[-1] + 1))
+        assert gaps([s.tick for s in states]) <= server.stats()["skipped_frames"] - skipped
         res = client.batch(wait=True).move_pins(bystander, [0], [[0.0, 0.2, 0.0]]).send()
         assert bystander.wait_for_tick(res[0], TIMEOUT).positions[0, 1] == pytest.approx(0.2)
 

@@ -207,7 +207,7 @@ class Limits:
     max_batch_items: int = 64  # items in one batch control (1.1)
     max_colliders: int = 32  # = params.MAX_COLLIDERS_PER_CLOTH
     max_iterations: int = 100
-    max_substeps: int = 16
+    max_substeps: int = 100
     max_features: int = 16
     max_coordinate: float = 1.0e5  # |x|, |y|, |z| of any position in metres
     max_acceleration: float = 1.0e4  # |component| of gravity and wind, m/s^2 resp. m/s
@@ -220,6 +220,9 @@ DEFAULT_LIMITS = Limits()
 # Cloth description vocabulary (mirrors drape.server.params; tests keep them in step)
 
 FEATURE_NAMES = ("xpbd", "tethers", "colliders", "wind", "normals")
+# Quality presets (1.1), cheapest first: named solver settings the server defines (iterations,
+# substeps, XPBD, tethers); the server may step a cloth down this list under load and back up.
+QUALITY_PRESETS = ("fast", "balanced", "accurate", "exact")
 ORIENTATIONS = ("horizontal", "vertical")
 
 #: name -> (number of components, lower bound, lower bound inclusive, upper bound)
@@ -367,6 +370,7 @@ class SubmitRequest:
     chebyshev_rho: float | None = None
     colliders: tuple[Collider, ...] | None = None
     state: StateOptions | None = None
+    quality: str | None = None  # 1.1: a QUALITY_PRESETS name; sets iterations, substeps, xpbd, tethers
     rid: int = 0
 
     @property
@@ -397,6 +401,7 @@ class ControlRequest:
     chebyshev_rho: float | None = None
     state: StateOptions | None = None
     reset: bool = False  # back to the rest pose with zero velocity
+    quality: str | None = None  # 1.1: the preset the client wants from now on
     rid: int = 0
 
     def __eq__(self, other: object) -> bool:
@@ -886,6 +891,8 @@ def submit_to_map(req: SubmitRequest) -> dict[str, Any]:
         m["colliders"] = [collider_to_map(c) for c in req.colliders]
     if req.state is not None:
         m["state"] = _state_map(req.state)
+    if req.quality is not None:
+        m["quality"] = str(req.quality)
     return m
 
 
@@ -968,6 +975,7 @@ def submit_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS) -> Su
         chebyshev_rho=_read_rho(r),
         colliders=_read_colliders(r),
         state=_read_state_options(r),
+        quality=r.str_("quality", choices=QUALITY_PRESETS),
         rid=rid,
     )
 
@@ -1007,6 +1015,8 @@ def control_item_to_map(req: ControlRequest) -> dict[str, Any]:
         m["chebyshev_rho"] = _f(req.chebyshev_rho)
     if req.state is not None:
         m["state"] = _state_map(req.state)
+    if req.quality is not None:
+        m["quality"] = str(req.quality)
     if req.reset:
         m["reset"] = True
     return m
@@ -1067,6 +1077,7 @@ def _read_control(r: _Reader, rid: int, n_vertices: int | None = None) -> Contro
         chebyshev_rho=_read_rho(r) if "chebyshev_rho" in m else None,
         state=_read_state_options(r, submit=False) if "state" in m else None,
         reset=bool(reset),
+        quality=r.str_("quality", choices=QUALITY_PRESETS) if "quality" in m else None,
         rid=rid,
     )
 

@@ -235,11 +235,13 @@ class ClothHandle:
         encoding: str | None = None,
         reset: bool = False,
         wait: bool = True,
+        quality: str | None = None,
     ) -> int | None:
         """Change any of the cloth's settings from the next tick on; fields left None stay as
-        they are (``material`` may name only the fields to change)."""
+        they are (``material`` may name only the fields to change; ``quality``: a preset of
+        protocol.QUALITY_PRESETS, which sets iterations, substeps, XPBD and tethers)."""
         return self._control(wait, **_set_changes(gravity, wind, material, features, iterations, substeps,
-                                                  chebyshev_rho, normals, encoding, reset))
+                                                  chebyshev_rho, normals, encoding, reset, quality))
 
     def reset(self) -> int:
         """Back to the rest pose with zero velocity."""
@@ -746,6 +748,7 @@ class DrapeClient:
         normals: bool = False,
         encoding: str = "float32",
         bundle: bool = False,
+        quality: str | None = None,
         timeout: float | None = None,
         queue_size: int | None = None,
     ) -> ClothHandle:
@@ -768,6 +771,7 @@ class DrapeClient:
             colliders=tuple(_collider(c) for c in colliders) if colliders is not None else None,
             state=(P.StateOptions(bool(normals), encoding, True if bundle else None)
                    if (normals or encoding != "float32" or bundle) else None),
+            quality=quality,
             rid=self._next_rid(),
         )
         return self.submit(req, rest, tris, timeout, queue_size)
@@ -776,7 +780,7 @@ class DrapeClient:
 # Options every submit_* method takes, for documentation and for tools wrapping the SDK.
 cloth_options = (
     "pinned", "links", "material", "features", "gravity", "wind", "iterations", "substeps",
-    "chebyshev_rho", "colliders", "normals", "encoding", "bundle", "timeout", "queue_size",
+    "chebyshev_rho", "colliders", "normals", "encoding", "bundle", "quality", "timeout", "queue_size",
 )
 
 
@@ -817,9 +821,10 @@ class ControlBatch:
     def set(self, handle: ClothHandle, *, gravity: Sequence[float] | None = None, wind: Sequence[float] | None = None,
             material: Mapping[str, Any] | Any = None, features: Iterable[str] | None = None,
             iterations: int | None = None, substeps: int | None = None, chebyshev_rho: float | None = None,
-            normals: bool | None = None, encoding: str | None = None, reset: bool = False) -> "ControlBatch":
+            normals: bool | None = None, encoding: str | None = None, reset: bool = False,
+            quality: str | None = None) -> "ControlBatch":
         return self.add(handle, **_set_changes(gravity, wind, material, features, iterations, substeps, chebyshev_rho,
-                                               normals, encoding, reset))
+                                               normals, encoding, reset, quality))
 
     def reset(self, handle: ClothHandle) -> "ControlBatch":
         return self.add(handle, reset=True)
@@ -873,7 +878,8 @@ def _pin_changes(indices: Sequence[int] | np.ndarray, targets: Sequence[Sequence
 
 def _set_changes(gravity: Sequence[float] | None, wind: Sequence[float] | None, material: Any,
                  features: Iterable[str] | None, iterations: int | None, substeps: int | None,
-                 chebyshev_rho: float | None, normals: bool | None, encoding: str | None, reset: bool) -> dict[str, Any]:
+                 chebyshev_rho: float | None, normals: bool | None, encoding: str | None, reset: bool,
+                 quality: str | None = None) -> dict[str, Any]:
     state = P.StateOptions(normals, encoding) if (normals is not None or encoding is not None) else None
     return dict(
         gravity=_vec3(gravity),
@@ -885,6 +891,7 @@ def _set_changes(gravity: Sequence[float] | None, wind: Sequence[float] | None, 
         chebyshev_rho=chebyshev_rho,
         state=state,
         reset=reset,
+        quality=quality,
     )
 
 

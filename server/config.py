@@ -74,13 +74,16 @@ class ServerConfig:
     max_pin_updates: int = 4096
     max_batch_items: int = 64  # controls in one batch control request (protocol 1.1)
     max_iterations: int = 100
-    max_substeps: int = 16
+    max_substeps: int = 100  # the quality presets go up to 100 (exact); lower it to forbid them
     max_pending_requests: int = 1024  # queued commands; beyond this requests get "busy"
     # --- service -------------------------------------------------------------------------------
     grace_period: float = 5.0  # seconds a client's cloths outlive its liveliness token
     stats_period: float = 1.0  # seconds between stats publications
     state_congestion: str = "drop"  # drop | block | auto (see PROTOCOL.md, "Congestion control")
     drop_max_bytes: int = 60000  # auto: states up to this size use DROP, larger ones BLOCK
+    # --- quality -------------------------------------------------------------------------------
+    adaptive_quality: bool = True  # lower cloths' presets while ticks overrun, restore them after
+    quality_budget: float = 0.8  # share of a tick the tick's own work may take before that
 
     def __post_init__(self) -> None:
         if not self.server_id:
@@ -106,6 +109,8 @@ class ServerConfig:
                 raise ValueError(f"{name} must be >= 1")
         if self.max_iterations > 1000 or self.max_substeps > 100:
             raise ValueError("max_iterations <= 1000 and max_substeps <= 100 (the solver's own bounds)")
+        if not (0.05 <= self.quality_budget <= 10.0):
+            raise ValueError("quality_budget must be in 0.05..10 (a share of one tick)")
         if self.grace_period < 0 or self.stats_period <= 0:
             raise ValueError("grace_period must be >= 0 and stats_period > 0")
         return self
@@ -250,6 +255,8 @@ HELP = {
     "stats_period": "seconds between stats publications",
     "state_congestion": "Zenoh congestion control of state publications",
     "drop_max_bytes": "auto congestion: largest state published with DROP",
+    "adaptive_quality": "step cloths' quality presets down while ticks overrun, back up after",
+    "quality_budget": "share of a tick the tick's work may take before quality is lowered",
 }
 
 

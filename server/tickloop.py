@@ -43,6 +43,7 @@ import zenoh
 from drape.client import protocol as P
 from drape.client.sdk import zenoh_config
 
+from . import quality
 from .config import ServerConfig
 from .fabric import Fabric, FabricCache, cook_grid, cook_mesh
 from .params import Capsule, ClothParams, Features, LinkOptions, Material, Plane, Sphere, pack_colliders
@@ -79,6 +80,8 @@ class ClothRecord:
     removed: bool = False
     reset_flag: bool = False  # the next published state carries FLAG_RESET
     bundle_key: str | None = None  # published inside this client's bundle on this key (1.1), not on ``key``
+    quality_wanted: str | None = None  # the preset the client asked for (1.1)
+    quality: str | None = None  # the preset in force: lower than wanted while the server is overloaded
 
 
 @dataclass(eq=False)
@@ -237,6 +240,8 @@ class PhaseTimer:
 
 
 PHASES = ("apply", "solve", "readback", "encode", "publish", "tick")
+QUALITY_PATIENCE = 3  # ticks over budget in a row before presets step down (x4 under, to step up)
+QUALITY_HEADROOM = 0.6  # step back up only when ticks take less than this share of the budget
 
 
 # ---------------------------------------------------------------------------------------------
@@ -265,6 +270,9 @@ class Server:
         self._errors: Counter[str] = Counter()
         self._counters: Counter[str] = Counter()
         self._timers = {p: PhaseTimer() for p in PHASES}
+        self._quality_state: dict[str, Any] = {"over": 0, "under": 0, "events": 0, "last": None,
+                                               "degraded_since": None, "degraded_s": 0.0,
+                                               "last_check": time.monotonic()}
         self._live: dict[str, ClothRecord] = {}  # tick thread only: cloths in the World
         self._commands: queue.Queue = queue.Queue(self.config.max_pending_requests)
         self._cook_q: queue.Queue = queue.Queue(self.config.max_pending_requests)
@@ -437,6 +445,7 @@ class Server:
                   "unwatched", "publish_errors", "bundles", "batch_items"):
             out[k] = c.get(k, 0)
         out["phases"] = {p: t.snapshot(reset_window) for p, t in self._timers.items()}
+        out["quality"] = self._quality_stats()
         return out
 
     def info(self) -> dict[str, Any]:
@@ -667,6 +676,9 @@ class Server:
                 continue
             try:
                 rec.params = _params_from_submit(req)
+                if req.quality is not None:
+                    rec.params = self._with_preset(rec.params, req.quality, req.rid)
+                    rec.quality_wanted = rec.quality = req.quality
                 packed = _pack(req.colliders, req.rid) if req.colliders else None
             except P.DrapeError as e:
                 self._fabrics.release(fabric)
@@ -750,6 +762,7 @@ class Server:
                 self._tick = tick
                 self._timers["apply"].add(t1 - t0)
                 self._timers["tick"].add(t3 - t0)
+                self._adapt_quality(t3 - t0, tick)
                 self._count("ticks")
                 if t3 >= next_stats:
                     job.stats = P.encode_stats(self._stats(reset_window=True))
@@ -944,6 +957,12 @@ class Server:
                 new.validate()
             except ValueError as e:
                 return P.ERR_INVALID_VALUE, str(e)
+            if req.quality is not None:
+                try:
+                    new = self._with_preset(new, req.quality, req.rid)
+                except P.DrapeError as e:
+                    return e.code, e.message
+                rec.quality_wanted = rec.quality = req.quality
             if new != p:
                 w.set_params(rec.handle, new)
                 rec.params = new
@@ -958,6 +977,94 @@ class Server:
         if req.state is not None and req.state.encoding is not None:
             rec.encoding = req.state.encoding
         return None
+
+    def _with_preset(self, params: ClothParams, name: str, rid: int) -> ClothParams:
+        """``params`` with quality preset ``name`` at this server's tick rate, within its limits."""
+        out = quality.apply_preset(params, name, self.config.tick_rate)
+        if out.substeps > self.config.max_substeps or out.iterations > self.config.max_iterations:
+            raise P.LimitExceeded(P.ERR_LIMIT_EXCEEDED, f"quality {name!r} needs {out.substeps} substeps x "
+                                  f"{out.iterations} iterations; this server allows {self.config.max_substeps} x "
+                                  f"{self.config.max_iterations}", rid)
+        return out
+
+    def _adapt_quality(self, tick_s: float, tick: int) -> None:
+        """Adaptive quality (tick thread): when the tick's own work (apply, solve, readback) stays
+        over ``quality_budget`` of a tick for ``QUALITY_PATIENCE`` ticks, every cloth that chose a
+        preset steps one preset down; once ticks stay under ``QUALITY_HEADROOM`` of the budget for
+        four times as long and the step back up is predicted to fit (the presets' measured
+        relative costs), they step back up toward what their clients asked for."""
+        q = self._quality_state
+        now = time.monotonic()
+        if q["degraded_since"] is not None:
+            q["degraded_s"] += now - q["last_check"]
+        q["last_check"] = now
+        if not self.config.adaptive_quality:
+            return
+        budget = self.config.quality_budget * self.config.dt
+        if tick_s > budget:
+            q["over"] += 1
+            q["under"] = 0
+            if q["over"] < QUALITY_PATIENCE:
+                return
+            q["over"] = 0
+            moved = [r for r in self._live.values() if r.quality is not None and quality.can_degrade(r.quality)]
+            if moved:
+                self._set_quality(moved, tick, "down")
+            return
+        q["over"] = 0
+        low = [r for r in self._live.values() if r.quality is not None and r.quality != r.quality_wanted]
+        if not low or tick_s >= QUALITY_HEADROOM * budget:
+            q["under"] = 0
+            return
+        ratio = max(quality.PRESETS[quality.restore(r.quality, r.quality_wanted)].cost / quality.PRESETS[r.quality].cost
+                    for r in low)
+        if tick_s * ratio >= budget:
+            q["under"] = 0
+            return
+        q["under"] += 1
+        if q["under"] >= 4 * QUALITY_PATIENCE:
+            q["under"] = 0
+            self._set_quality(low, tick, "up")
+
+    def _set_quality(self, recs: list[ClothRecord], tick: int, direction: str) -> None:
+        w = self._world
+        assert w is not None
+        changed = 0
+        for r in recs:
+            name = quality.degrade(r.quality) if direction == "down" else quality.restore(r.quality, r.quality_wanted)
+            if name == r.quality or r.handle is None or r.params is None:
+                continue
+            r.params = quality.apply_preset(r.params, name, self.config.tick_rate)
+            r.quality = name
+            w.set_params(r.handle, r.params)
+            changed += 1
+        q = self._quality_state
+        degraded = sum(1 for r in self._live.values() if r.quality is not None and r.quality != r.quality_wanted)
+        if degraded and q["degraded_since"] is None:
+            q["degraded_since"] = time.time_ns()
+        elif not degraded:
+            q["degraded_since"] = None
+        q["events"] += 1
+        q["last"] = {"tick": tick, "time_ns": time.time_ns(), "direction": direction, "cloths": changed}
+        log.info("adaptive quality: %d cloths one preset %s at tick %d (%d below what they asked for)", changed,
+                 direction, tick, degraded)
+
+    def _quality_stats(self) -> dict[str, Any]:
+        q = self._quality_state
+        live = list(self._live.values())
+        by: dict[str, int] = {}
+        for r in live:
+            if r.quality is not None:
+                by[r.quality] = by.get(r.quality, 0) + 1
+        return {
+            "adaptive": self.config.adaptive_quality,
+            "presets": by,
+            "degraded": sum(1 for r in live if r.quality is not None and r.quality != r.quality_wanted),
+            "degraded_since_ns": q["degraded_since"],
+            "degraded_s": round(q["degraded_s"], 3),
+            "changes": q["events"],
+            "last_change": q["last"],
+        }
 
     def _drop(self, rec: ClothRecord, job: _Job) -> None:
         """Take a cloth out of the World and the registry (tick thread)."""
@@ -1187,6 +1294,7 @@ def _changes_params(req: P.ControlRequest, p: ClothParams) -> bool:
     return bool(
         req.material or req.features is not None or req.gravity is not None or req.wind is not None
         or req.iterations is not None or req.substeps is not None or req.chebyshev_rho is not None
+        or req.quality is not None
         or (req.colliders and not p.features.colliders)
         or (req.state is not None and req.state.normals is not None and req.state.normals != p.features.normals)
     )

@@ -1,0 +1,68 @@
+"""Quality presets through the service: chosen at submit or by control, lowered by the server
+while ticks overrun and restored afterwards, reported in stats."""
+from __future__ import annotations
+
+import msgpack
+import pytest
+
+from drape.client import DrapeClient, ProtocolError
+from drape.client import protocol as P
+from drape.server import quality
+from drape.server.config import ServerConfig
+from drape.server.tickloop import Server
+from test_service import make_config, wait_until
+
+TIMEOUT = 10.0
+
+
+def test_protocol_carries_quality_both_ways():
+    req = P.SubmitRequest(client="c1", grid=P.GridSpec(4, 4, 1.0, 1.0, "horizontal", (0.0, 0.0, 0.0)),
+                          quality="accurate", rid=3)
+    back = P.decode_submit(P.encode_submit(req))
+    assert back.quality == "accurate" and back == req
+    ctl = P.ControlRequest("a" * 16, "0" * 32, quality="fast", rid=4)
+    assert P.decode_control(P.encode_control(ctl)).quality == "fast"
+    m = P.submit_to_map(req)
+    m["quality"] = "ultra"
+    with pytest.raises(ProtocolError, match="quality"):
+        P.decode_submit(msgpack.packb(m))
+    assert P.QUALITY_PRESETS == quality.ORDER  # one list of names on both sides
+
+
+def _params(srv: Server, cloth_id: str):
+    return srv.call(lambda w: w.cloths[srv.world_handle(cloth_id)].params)
+
+
+def test_preset_at_submit_and_by_control():
+    with Server(make_config(adaptive_quality=False)) as srv, \
+            DrapeClient(srv.config.listen[0], server_id=srv.server_id, timeout=TIMEOUT) as client:
+        with client.submit_grid(8, 8, pinned=[0, 7], quality="balanced") as h:
+            h.next_state(TIMEOUT)
+            p = _params(srv, h.id)
+            want = quality.apply_preset(p, "balanced", srv.config.tick_rate)
+            assert (p.iterations, p.substeps, p.features.xpbd, p.features.tethers) == \
+                   (want.iterations, want.substeps, True, True)
+            tick = h.set(quality="fast")
+            h.wait_for_tick(tick, TIMEOUT)
+            assert _params(srv, h.id).substeps == quality.PRESETS["fast"].substeps
+            assert srv.stats()["quality"]["presets"] == {"fast": 1}
+
+
+def test_server_lowers_quality_under_load_and_restores_it():
+    # a budget of 5% of a tick (0.8 ms): the solve of "accurate" cloths overruns it at once
+    with Server(make_config(quality_budget=0.05)) as srv, \
+            DrapeClient(srv.config.listen[0], server_id=srv.server_id, timeout=TIMEOUT) as client:
+        cloths = [client.submit_grid(16, 16, pinned=[0, 15], quality="accurate") for _ in range(2)]
+        assert wait_until(lambda: srv.stats()["quality"]["presets"].get("fast") == 2, timeout=TIMEOUT)
+        st = srv.stats()["quality"]
+        assert st["degraded"] == 2 and st["changes"] >= 2 and st["last_change"]["direction"] == "down"
+        assert st["degraded_since_ns"] is not None
+        assert all(_params(srv, c.id).substeps == quality.PRESETS["fast"].substeps for c in cloths)
+        # the load goes away (a generous budget): back up, one preset at a time, to what was asked
+        srv.config.quality_budget = 10.0
+        assert wait_until(lambda: srv.stats()["quality"]["presets"].get("accurate") == 2, timeout=TIMEOUT)
+        st = srv.stats()["quality"]
+        assert st["degraded"] == 0 and st["degraded_since_ns"] is None and st["degraded_s"] > 0
+        assert st["last_change"]["direction"] == "up"
+        for c in cloths:
+            assert c.next_state(TIMEOUT).tick > 0

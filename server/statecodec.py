@@ -93,13 +93,9 @@ class FrameEncoder:
             elif enc == P.ENC_FLOAT16:
                 block = np.clip(src, -P.FLOAT16_MAX, P.FLOAT16_MAX).astype("<f2")
                 es = 2
-            else:  # quant16, in float64 against the float32 bounds exactly as encode_state does
-                lo64 = lo[idx].astype(np.float64)
-                ext = hi[idx].astype(np.float64) - lo64
-                scale = np.divide(P.QUANT_MAX, ext, out=np.zeros_like(ext), where=ext > 0)
-                reps = np.diff(local)
-                q = (src.astype(np.float64) - np.repeat(lo64, reps, axis=0)) * np.repeat(scale, reps, axis=0)
-                block = np.rint(np.clip(q, 0, P.QUANT_MAX, out=q), out=q).astype("<u2")
+            else:
+                block = np.empty((len(src), 3), "<u2")
+                _quantise(src, lo[idx], hi[idx], np.diff(local), block)
                 es = 2
             if len(idx) == k:
                 starts_b = {i: int(off[i]) * 3 * es for i in idx}
@@ -157,6 +153,26 @@ class FrameEncoder:
             at = P.align8(end)
             out[end:at] = _ENTRY_PAD[:at - end]  # the buffer is reused: padding must be rewritten
         return at
+
+
+def _quantise(src: np.ndarray, lo: np.ndarray, hi: np.ndarray, counts: np.ndarray, out: np.ndarray) -> None:
+    """quant16 of consecutive cloths (``counts`` vertices each) of ``src`` into ``out``: per axis
+    rint((x - min) * 65535 / (max - min)) in float64 against the float32 bounds, clamped to
+    0..65535, 0 where max == min; exactly what protocol.encode_state computes."""
+    lo64 = lo.astype(np.float64)
+    ext = hi.astype(np.float64) - lo64
+    scale = np.divide(P.QUANT_MAX, ext, out=np.zeros_like(ext), where=ext > 0)
+    q = src.astype(np.float64)
+    if (counts == counts[0]).all():  # cloths of one size: broadcast instead of repeating
+        qv = q.reshape(len(counts), int(counts[0]), 3)
+        qv -= lo64[:, None, :]
+        qv *= scale[:, None, :]
+    else:
+        q -= np.repeat(lo64, counts, axis=0)
+        q *= np.repeat(scale, counts, axis=0)
+    np.clip(q, 0, P.QUANT_MAX, out=q)
+    np.rint(q, out=q)
+    out[:] = q
 
 
 def _write_normals(out: bytearray, at: int, normals: np.ndarray, encoding: int) -> None:

@@ -708,3 +708,22 @@ def test_bundle_parser_survives_every_truncation_and_corruption(rng):
     with pytest.raises(ValueError):
         P.encode_bundle(1, 1, [("not/an/id", b"")])
     assert P.decode_bundle(bytes(P.encode_bundle(1, 2, []))) == []  # an empty bundle is well formed
+
+
+def test_the_document_s_hex_examples_are_the_vectors():
+    """Every hex dump in PROTOCOL.md is byte for byte one of the committed vectors."""
+    text = (Path(__file__).resolve().parents[1] / "PROTOCOL.md").read_text()
+    known = {v["hex"] for g in ("misc", "state", "bundle") for v in load(g)}
+    dumps = []
+    for block in text.split("```")[1::2]:
+        data = []
+        for line in block.splitlines():
+            for tok in line.split():
+                if len(tok) != 2 or not all(c in "0123456789abcdef" for c in tok):
+                    break
+                data.append(tok)
+        if len(data) >= 16:
+            dumps.append("".join(data))
+    assert len(dumps) == 3, "the remove message, a state and a bundle"
+    for d in dumps:
+        assert d in known, d[:64]

@@ -317,6 +317,13 @@ class Server:
         if self.warmup:
             self._warm_up()
         zc = zenoh_config(cfg.mode, cfg.listen, cfg.connect, cfg.multicast_scouting, cfg.zenoh_config)
+        if cfg.zenoh_config is None:
+            # States go out in bursts (every cloth each tick) under DROP congestion control. Zenoh's
+            # default data queue holds 2 batches and drops after waiting 1 ms, so a server whose
+            # Zenoh threads were descheduled for a few ms lost states on a busy 2-core box. Sixteen
+            # batches (Zenoh's maximum) ride that out; a dead subscriber still cannot stall the
+            # publisher for longer than the unchanged 1 ms wait.
+            zc.insert_json5("transport/link/tx/queue/size/data", "16")
         self._session = s = zenoh.open(zc)
         sid = cfg.server_id
         self._started_at = time.monotonic()

@@ -43,7 +43,9 @@ case "$what" in
     tradeoff)
         drape tradeoff --json "$OUT/tradeoff-h100.json" --out "$OUT" "$@" 2>&1 | tee "$OUT/tradeoff-h100.txt" ;;
     loadtest)
-        drape loadtest --json "$OUT/loadtest-h100.json" "$@" 2>&1 | tee "$OUT/loadtest-h100.txt" ;;
+        # the device tool brings back at most 8 files: keep the plots of the last load only
+        drape loadtest --json "$OUT/loadtest-h100.json" --out /tmp/lt-plots "$@" 2>&1 | tee "$OUT/loadtest-h100.txt"
+        for f in $(ls -t /tmp/lt-plots/*.png | head -4); do cp "$f" "$OUT/"; done ;;
     *)
         echo "unknown: $what" >&2; exit 2 ;;
 esac

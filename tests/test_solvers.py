@@ -251,15 +251,22 @@ def test_chebyshev_jacobi_matches_reference_and_converges_faster(device, rng):
     a, b = run_pair(CLWorld("jacobi", device=device, chunk=32), ReferenceWorld("jacobi"), fab, cheb, pos, 3)
     np.testing.assert_allclose(a, b, atol=tol(b, 3) * 5, rtol=0)
 
-    def residual(params):
+    def residual(fabric, start, params):
         w = ReferenceWorld("jacobi")
-        h = w.add(fab, params.with_(gravity=(0.0, 0.0, 0.0)), pos)
+        h = w.add(fabric, params.with_(gravity=(0.0, 0.0, 0.0)), start)
         w.step(DT)
         x = w.positions(h)
-        lengths = np.linalg.norm(x[fab.links[:, 1]] - x[fab.links[:, 0]], axis=1)
-        return float(np.abs(lengths - fab.rest_length).sum())
+        lengths = np.linalg.norm(x[fabric.links[:, 1]] - x[fabric.links[:, 0]], axis=1)
+        return float(np.abs(lengths - fabric.rest_length).sum())
 
-    # one step of 30 iterations from a perturbed pose: the residual always drops, by a factor
-    # that depends on the mesh (0.44 .. 0.92 over 30 random grids); rho must suit the mesh
-    # (docs/benchmarks.md: at 32x32 hanging, rho 0.95 stretches more than plain Jacobi)
-    assert residual(cheb) < 0.95 * residual(base)
+    # One step of 30 iterations from a perturbed pose, on 15 random grids. Over 300 grids the
+    # residual ratio (Chebyshev / plain) had median 0.72, 99th percentile 0.985 and one grid at
+    # 1.0007: the gain depends on the mesh (rho must suit it; docs/benchmarks.md), so the claim
+    # is about the typical grid, and that it never makes things much worse.
+    ratios = []
+    for _ in range(15):
+        f = random_grid_fabric(rng, n_pins=2)
+        p0 = random_state(rng, f, 0.02)
+        ratios.append(residual(f, p0, cheb) / residual(f, p0, base))
+    assert np.median(ratios) < 0.9, ratios
+    assert max(ratios) < 1.05, ratios

@@ -952,15 +952,8 @@ class Server:
             if req.state is not None and req.state.normals is not None:
                 (feats.add if req.state.normals else feats.discard)("normals")
             try:
-                new = p.with_(
-                    material=replace(p.material, **req.material) if req.material else p.material,
-                    features=Features.from_names(sorted(feats)),
-                    gravity=req.gravity if req.gravity is not None else p.gravity,
-                    wind=req.wind if req.wind is not None else p.wind,
-                    iterations=req.iterations if req.iterations is not None else p.iterations,
-                    substeps=req.substeps if req.substeps is not None else p.substeps,
-                    chebyshev_rho=req.chebyshev_rho if req.chebyshev_rho is not None else p.chebyshev_rho,
-                )
+                material = replace(p.material, **req.material) if req.material else p.material
+                new = _params_with(p, req, material, feats)
                 new.validate()
             except ValueError as e:
                 return P.ERR_INVALID_VALUE, str(e)
@@ -1307,23 +1300,28 @@ def _changes_params(req: P.ControlRequest, p: ClothParams) -> bool:
     )
 
 
+def _params_with(base: ClothParams, req: P.SubmitRequest | P.ControlRequest, material: Material,
+                 features: set[str]) -> ClothParams:
+    """``base`` with the solver fields a submit or control request gives (absent ones kept)."""
+    return base.with_(
+        material=material,
+        features=Features.from_names(sorted(features)),
+        gravity=req.gravity if req.gravity is not None else base.gravity,
+        wind=req.wind if req.wind is not None else base.wind,
+        iterations=req.iterations if req.iterations is not None else base.iterations,
+        substeps=req.substeps if req.substeps is not None else base.substeps,
+        chebyshev_rho=req.chebyshev_rho if req.chebyshev_rho is not None else base.chebyshev_rho,
+    )
+
+
 def _params_from_submit(req: P.SubmitRequest) -> ClothParams:
     feats = set(req.features)
     if req.colliders:
         feats.add("colliders")
     if req.state is not None and req.state.normals:
         feats.add("normals")
-    d = ClothParams()
     try:
-        params = ClothParams(
-            material=Material(**req.material),
-            features=Features.from_names(sorted(feats)),
-            gravity=req.gravity if req.gravity is not None else d.gravity,
-            wind=req.wind if req.wind is not None else d.wind,
-            iterations=req.iterations if req.iterations is not None else d.iterations,
-            substeps=req.substeps if req.substeps is not None else d.substeps,
-            chebyshev_rho=req.chebyshev_rho if req.chebyshev_rho is not None else d.chebyshev_rho,
-        )
+        params = _params_with(ClothParams(), req, Material(**req.material), feats)
         params.validate()
     except (TypeError, ValueError) as e:
         raise P.ProtocolError(P.ERR_INVALID_VALUE, f"cloth parameters: {e}", req.rid) from None

@@ -829,8 +829,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenes", default=None,
                         help=f"comma list of {','.join(SCENES)} (default: all; --quick: hanging)")
     parser.add_argument("--sizes", default=None,
-                        help="comma list of grid sizes n (n x n); the first is the main sweep's "
-                             "(default 64,32; --quick 32; --full 64,32,150)")
+                        help="comma list of grid sizes n (n x n), for every scene; the main sweep runs on "
+                             "the first scene at the first size (default: the main sweep on hanging 64 and a "
+                             "few points on every scene at 32; --quick: hanging 32; --full: the main sweep "
+                             "on every scene at 64, points at 32 and 150)")
     parser.add_argument("--solvers", default=",".join(SOLVERS), help="comma list of solvers to sweep")
     level = parser.add_mutually_exclusive_group()
     level.add_argument("--quick", action="store_true", help="a small sweep (about a minute on 2 CPU cores)")

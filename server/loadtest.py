@@ -361,7 +361,7 @@ def run_load(spec: LoadSpec, endpoint: str, server_id: str | None, server: Serve
         encoding=spec.encoding,
         seconds=round(elapsed, 3),
         tick_hz_target=spec.tick_rate,
-        tick_hz_achieved=round(ticks / elapsed, 2) if elapsed > 0 else 0.0,
+        tick_hz_achieved=_tick_rate(s0, s1, ticks, elapsed),
         ticks=ticks,
         missed_ticks=d("missed_ticks"),
         skipped_frames=d("skipped_frames"),
@@ -380,6 +380,16 @@ def run_load(spec: LoadSpec, endpoint: str, server_id: str | None, server: Serve
         clients_cpu_percent=round(100.0 * sum(r.cpu_s for r in out) / elapsed, 1) if elapsed > 0 else float("nan"),
     )
     return report, out, window
+
+
+def _tick_rate(s0: dict, s1: dict, ticks: int, elapsed: float) -> float:
+    """Ticks per second between two stats publications, over the server's own timestamps of
+    those publications (the load's window is measured on the client side and does not line up
+    with the 0.5 s stats windows)."""
+    span = (int(s1.get("time_ns", 0)) - int(s0.get("time_ns", 0))) / 1e9
+    if span > 0 and ticks > 0:
+        return round(ticks / span, 2)
+    return round(ticks / elapsed, 2) if elapsed > 0 else 0.0
 
 
 def _phase_means(window: list[tuple[float, dict]]) -> dict[str, dict[str, float]]:

@@ -3,7 +3,6 @@ ports, no scouting), one module-scoped server; and the publisher's vectorised en
 the reference encoders of drape.client.protocol, byte for byte."""
 from __future__ import annotations
 
-import socket
 import struct
 import threading
 import time
@@ -12,36 +11,20 @@ import msgpack
 import numpy as np
 import pytest
 
-from drape.client import BatchError, DrapeClient, Forbidden, protocol as P
-from drape.server.config import ServerConfig
+from drape.client import BatchError, Forbidden, protocol as P
 from drape.server.statecodec import FrameEncoder
 from drape.server.tickloop import Server
+from test_service import TIMEOUT, connect, make_config, wait_until
 
-TIMEOUT = 5.0
 MAX_ITEMS = 8
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
 def server():
-    ep = f"tcp/127.0.0.1:{free_port()}"
-    cfg = ServerConfig(listen=[ep], server_id=f"bundles-{ep.rsplit(':', 1)[1]}", tick_rate=60.0, grace_period=1.0,
-                       stats_period=0.25, max_cloths_per_client=12, max_vertices_per_cloth=4096,
-                       max_total_vertices=40000, max_message_bytes=1 << 20, max_pin_updates=64,
-                       max_batch_items=MAX_ITEMS).validate()
-    s = Server(cfg).start()
+    s = Server(make_config(max_cloths_per_client=12, max_batch_items=MAX_ITEMS)).start()
     yield s
     s.stop()
     assert s.failure is None
-
-
-def connect(server: Server, **kw) -> DrapeClient:
-    return DrapeClient(server.config.listen[0], server_id=server.server_id, timeout=TIMEOUT, **kw)
 
 
 @pytest.fixture
@@ -63,15 +46,6 @@ def gaps(ticks: list[int]) -> int:
     """Ticks missing between the first and the last of an increasing sequence."""
     assert ticks == sorted(set(ticks)), f"ticks out of order or repeated: {ticks}"
     return ticks[-1] - ticks[0] + 1 - len(ticks) if ticks else 0
-
-
-def wait_until(pred, timeout: float = TIMEOUT, step: float = 0.02) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(step)
-    return pred()
 
 
 class Recorder:

@@ -218,7 +218,7 @@ class ClothHandle:
 
     def set_colliders(self, colliders: Sequence[Any], *, wait: bool = True) -> int | None:
         """Replace the cloth's colliders (Sphere, Capsule, Plane of this package or of
-        drape.server.params); [] removes them. Colliders move to their new pose over the next tick."""
+        drape.server.sim.params); [] removes them. Colliders move to their new pose over the next tick."""
         return self._control(wait, colliders=tuple(_collider(c) for c in colliders))
 
     def set(

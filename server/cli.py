@@ -12,12 +12,12 @@ import logging
 import sys
 
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("drape.server.demo", "run a server and demo clients on loopback, write PNG frames and a GIF"),
-    "serve": ("drape.server.service", "run the cloth server daemon"),
-    "bench": ("drape.server.bench", "solver benchmarks (the talk's table and beyond)"),
-    "tradeoff": ("drape.server.tradeoff", "measure speed against accuracy, write table, JSON and plot"),
-    "loadtest": ("drape.server.loadtest", "load-test a server with many client processes"),
-    "devices": ("drape.server.devices", "list OpenCL devices and the one Drape would pick"),
+    "demo": ("drape.server.tools.demo", "run a server and demo clients on loopback, write PNG frames and a GIF"),
+    "serve": ("drape.server.service.daemon", "run the cloth server daemon"),
+    "bench": ("drape.server.tools.bench", "solver benchmarks (the talk's table and beyond)"),
+    "tradeoff": ("drape.server.tools.tradeoff", "measure speed against accuracy, write table, JSON and plot"),
+    "loadtest": ("drape.server.tools.loadtest", "load-test a server with many client processes"),
+    "devices": ("drape.server.tools.devices", "list OpenCL devices and the one Drape would pick"),
 }
 
 

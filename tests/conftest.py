@@ -7,8 +7,8 @@ import os
 import numpy as np
 import pytest
 
-from drape.server.fabric import cook, cook_grid, grid_links, grid_mesh, mesh_links
-from drape.server.params import LinkOptions
+from drape.server.sim.fabric import cook, cook_grid, grid_links, grid_mesh, mesh_links
+from drape.server.sim.params import LinkOptions
 
 
 @pytest.fixture
@@ -20,7 +20,7 @@ def rng(request) -> np.random.Generator:
 
 @pytest.fixture(scope="session")
 def device():
-    from drape.server.device import Device
+    from drape.server.sim.opencl.device import Device
 
     return Device(os.environ.get("DRAPE_DEVICE"))
 

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from drape.client import BatchError, Forbidden, protocol as P
-from drape.server.statecodec import FrameEncoder
-from drape.server.tickloop import Server
+from drape.server.service.statecodec import FrameEncoder
+from drape.server.service.tickloop import Server
 from test_service import TIMEOUT, connect, make_config, wait_until
 
 MAX_ITEMS = 8

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from conftest import random_grid_fabric, random_mesh_fabric
 
-from drape.server.fabric import (
+from drape.server.sim.fabric import (
     FabricCache,
     bending_pairs,
     cook,
@@ -16,7 +16,7 @@ from drape.server.fabric import (
     parse_obj,
     vertex_masses,
 )
-from drape.server.params import LINK_BENDING, LINK_SHEAR, LINK_STRUCTURAL, LinkOptions
+from drape.server.sim.params import LINK_BENDING, LINK_SHEAR, LINK_STRUCTURAL, LinkOptions
 
 
 def test_grid_link_counts_match_the_talk():
@@ -135,8 +135,8 @@ def test_mass_follows_area_and_pins():
 
 
 def test_identical_submissions_share_one_fabric(device):
-    from drape.server.clworld import CLWorld
-    from drape.server.params import ClothParams
+    from drape.server.sim.opencl.clworld import CLWorld
+    from drape.server.sim.params import ClothParams
 
     cache = FabricCache()
     a = cache.intern(cook_grid(8, 8, pinned=[0, 7]))

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 from conftest import random_grid_fabric
 
-from drape.server.clworld import CLWorld
-from drape.server.fabric import cook_grid
-from drape.server.params import Capsule, ClothParams, Features, LinkOptions, Material, Plane, Sphere, pack_colliders
-from drape.server.world import ReferenceWorld, make_world
+from drape.server.sim.opencl.clworld import CLWorld
+from drape.server.sim.fabric import cook_grid
+from drape.server.sim.params import Capsule, ClothParams, Features, LinkOptions, Material, Plane, Sphere, pack_colliders
+from drape.server.sim.world import ReferenceWorld, make_world
 
 DT = 1 / 60
 OPENCL = ["workgroup", "coloured", "jacobi"]

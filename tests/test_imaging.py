@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 try:
-    from drape.server import imaging as im
+    from drape.server.tools import imaging as im
 except ImportError:  # not installed: load the module straight from the source tree
     _path = Path(__file__).resolve().parents[1] / "server" / "imaging.py"
     _spec = importlib.util.spec_from_file_location("drape_imaging_under_test", _path)

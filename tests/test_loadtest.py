@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 
-from drape.server import loadtest as lt
+from drape.server.tools import loadtest as lt
 
 
 def test_short_load_loses_nothing_and_publishes_every_tick(tmp_path):

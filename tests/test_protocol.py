@@ -560,7 +560,7 @@ def test_committed_vectors_are_current():
 
 
 def test_vocabulary_matches_the_server_params():
-    from drape.server.params import ClothParams, Features, LinkOptions, Material
+    from drape.server.sim.params import ClothParams, Features, LinkOptions, Material
 
     assert tuple(f.name for f in dataclasses.fields(Features)) == P.FEATURE_NAMES
     assert tuple(f.name for f in dataclasses.fields(LinkOptions)) == tuple(f.name for f in dataclasses.fields(P.LinkSpec))
@@ -578,7 +578,7 @@ def test_vocabulary_matches_the_server_params():
 
 
 def test_material_map_accepts_the_server_dataclass():
-    from drape.server.params import Material
+    from drape.server.sim.params import Material
 
     m = P.material_to_map(Material(mass=2.0))
     assert m["mass"] == 2.0 and m["stiffness"] == [1.0, 1.0, 1.0] and set(m) == set(P.MATERIAL_FIELDS)
@@ -588,7 +588,7 @@ def test_material_map_accepts_the_server_dataclass():
 
 @pytest.mark.parametrize("orientation", ["horizontal", "vertical"])
 def test_grid_geometry_matches_the_server(orientation):
-    from drape.server.fabric import grid_mesh
+    from drape.server.sim.fabric import grid_mesh
 
     for cols, rows in [(1, 1), (2, 5), (7, 3)]:
         v, t = P.grid_geometry(cols, rows, 1.5, 0.7, orientation, (1, 2, 3))
@@ -598,7 +598,7 @@ def test_grid_geometry_matches_the_server(orientation):
 
 
 def test_obj_parser_matches_the_server():
-    from drape.server.fabric import parse_obj
+    from drape.server.sim.fabric import parse_obj
 
     text = "# quad\nv 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvt 0 0\nf 1/1 2/1 3/1 4/1\nf -1 -2 -3\n"
     v, t = P.parse_obj(text)

@@ -7,9 +7,9 @@ import pytest
 
 from drape.client import DrapeClient, ProtocolError
 from drape.client import protocol as P
-from drape.server import quality
-from drape.server.config import ServerConfig
-from drape.server.tickloop import Server
+from drape.server.sim import quality
+from drape.server.service.config import ServerConfig
+from drape.server.service.tickloop import Server
 from test_service import make_config, wait_until
 
 TIMEOUT = 10.0

@@ -22,11 +22,11 @@ import pytest
 
 from drape.client import DrapeClient, Forbidden, LimitExceeded, NotFound, ProtocolError, Sphere
 from drape.client import protocol as P
-from drape.server.config import ServerConfig, add_arguments, from_args
-from drape.server.fabric import cook_grid
-from drape.server.params import ClothParams, Features, LinkOptions, Plane
-from drape.server.tickloop import Server
-from drape.server.world import make_world
+from drape.server.service.config import ServerConfig, add_arguments, from_args
+from drape.server.sim.fabric import cook_grid
+from drape.server.sim.params import ClothParams, Features, LinkOptions, Plane
+from drape.server.service.tickloop import Server
+from drape.server.sim.world import make_world
 
 GRACE = 1.0
 TIMEOUT = 5.0

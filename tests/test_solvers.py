@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 from conftest import random_grid_fabric, random_mesh_fabric
 
-from drape.server import reference
-from drape.server.clworld import CLWorld, RangeAllocator
-from drape.server.fabric import cook_grid
-from drape.server.params import ClothParams, Features, LinkOptions, Material
-from drape.server.world import ReferenceWorld, inverse_masses
+from drape.server.sim import reference
+from drape.server.sim.opencl.clworld import CLWorld, RangeAllocator
+from drape.server.sim.fabric import cook_grid
+from drape.server.sim.params import ClothParams, Features, LinkOptions, Material
+from drape.server.sim.world import ReferenceWorld, inverse_masses
 
 GS_SOLVERS = ["workgroup", "coloured"]
 DT = 1 / 60
@@ -228,7 +228,7 @@ def test_range_allocator_reuses_and_coalesces():
 
 
 def test_device_choice_respects_environment(monkeypatch):
-    from drape.server.device import choose_device
+    from drape.server.sim.opencl.device import choose_device
 
     monkeypatch.setenv("DRAPE_DEVICE", "cpu")
     import pyopencl as cl

@@ -29,9 +29,9 @@ import math
 import numpy as np
 import pytest
 
-from drape.server.clworld import CLWorld
-from drape.server.fabric import cook, cook_grid, cook_mesh, grid_links, grid_mesh, vertex_masses
-from drape.server.params import (
+from drape.server.sim.opencl.clworld import CLWorld
+from drape.server.sim.fabric import cook, cook_grid, cook_mesh, grid_links, grid_mesh, vertex_masses
+from drape.server.sim.params import (
     LINK_STRUCTURAL,
     Capsule,
     ClothParams,
@@ -42,7 +42,7 @@ from drape.server.params import (
     Sphere,
     pack_colliders,
 )
-from drape.server.world import ReferenceWorld
+from drape.server.sim.world import ReferenceWorld
 
 SOLVERS = ["workgroup", "coloured", "jacobi", "reference"]
 DT = 1 / 60

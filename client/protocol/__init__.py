@@ -217,7 +217,7 @@ class Limits:
 DEFAULT_LIMITS = Limits()
 
 # ---------------------------------------------------------------------------------------------
-# Cloth description vocabulary (mirrors drape.server.params; tests keep them in step)
+# Cloth description vocabulary (mirrors drape.server.sim.params; tests keep them in step)
 
 FEATURE_NAMES = ("xpbd", "tethers", "colliders", "wind", "normals")
 # Quality presets (1.1), cheapest first: named solver settings the server defines (iterations,
@@ -818,7 +818,7 @@ def _blob(arr: np.ndarray | Sequence, dtype: str) -> bytes:
 
 
 def collider_to_map(c: Any) -> dict[str, Any]:
-    """A collider (this module's or drape.server.params', or a dict) as its wire map."""
+    """A collider (this module's or drape.server.sim.params', or a dict) as its wire map."""
     if isinstance(c, Mapping):
         return dict(c)
     if hasattr(c, "center"):
@@ -832,7 +832,7 @@ def collider_to_map(c: Any) -> dict[str, Any]:
 
 def material_to_map(material: Any) -> dict[str, Any]:
     """Material fields as a wire map: from a dict (only the keys given) or a dataclass such as
-    drape.server.params.Material (all of its fields)."""
+    drape.server.sim.params.Material (all of its fields)."""
     if material is None:
         return {}
     items = material.items() if isinstance(material, Mapping) else ((f.name, getattr(material, f.name)) for f in fields(material))
@@ -1596,7 +1596,7 @@ def grid_geometry(
     origin: Iterable[float] = (0.0, 0.0, 0.0),
 ) -> tuple[np.ndarray, np.ndarray]:
     """Rest positions (rows*cols, 3) float32 and triangles (m, 3) uint32 of a grid cloth, exactly
-    as the server builds them (drape.server.fabric.grid_mesh).
+    as the server builds them (drape.server.sim.fabric.grid_mesh).
 
     Vertex (r, c) = r * cols + c. x = origin.x + c * width / (cols - 1) (0 when cols == 1).
     horizontal: y = origin.y, z = origin.z + r * height / (rows - 1);
@@ -1629,7 +1629,7 @@ def grid_geometry(
 def parse_obj(text: str) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (n, 3) float32 and triangles (m, 3) uint32 of Wavefront OBJ text: faces
     fan-triangulated, v/vt/vn and negative indices accepted, everything else ignored (the same
-    rules as drape.server.fabric.parse_obj)."""
+    rules as drape.server.sim.fabric.parse_obj)."""
     verts: list[tuple[float, float, float]] = []
     tris: list[tuple[int, int, int]] = []
     for lineno, line in enumerate(text.splitlines(), 1):

@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .fabric import Fabric, cook_grid
-from .params import Capsule, ClothParams, Features, LinkOptions, Material, Plane, Sphere, pack_colliders
-from .world import World, make_world
+from ..sim.fabric import Fabric, cook_grid
+from ..sim.params import Capsule, ClothParams, Features, LinkOptions, Material, Plane, Sphere, pack_colliders
+from ..sim.world import World, make_world
 
 log = logging.getLogger(__name__)
 
@@ -278,7 +278,7 @@ def run(args: argparse.Namespace) -> int:
     if unknown:
         raise SystemExit(f"drape bench: unknown workload(s) {sorted(unknown)}; choose from {', '.join(known)}")
     frames = 5 if args.quick else args.frames
-    from .device import Device
+    from ..sim.opencl.device import Device
 
     gpu = Device(args.device).info.is_gpu if set(workloads) & {"many", "features"} else False
     if args.counts:

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from drape.client.protocol import DEFAULT_ENDPOINT, DEFAULT_NAMESPACE, ID_RE, NAMESPACE_RE, Limits
-from .params import MAX_COLLIDERS_PER_CLOTH, SOLVERS
+from ..sim.params import MAX_COLLIDERS_PER_CLOTH, SOLVERS
 
 log = logging.getLogger(__name__)
 

@@ -48,6 +48,29 @@ def describe(dev: cl.Device) -> str:
     return f"{dev.platform.name.strip()} / {dev.name.strip()}"
 
 
+_PROBE = "__kernel void drape_probe(__global float *a) { a[get_global_id(0)] += 1.0f; }"
+
+#: What to do when no OpenCL CPU device can compile: the PoCL inside the pyopencl wheel carries
+#: LLVM 14, which does not know CPUs newer than it (AMD Zen 5 reports "generic" and fails).
+NO_USABLE_CPU_HINT = (
+    "install a newer PoCL, e.g. Debian's pocl-opencl-icd (deploy/setup.sh does it), "
+    "or choose another device with DRAPE_DEVICE"
+)
+
+
+@lru_cache(maxsize=None)
+def _builds(dev: cl.Device) -> bool:
+    """Whether ``dev`` compiles a trivial kernel: an OpenCL platform can list a device whose
+    compiler does not know the host CPU (old PoCL on a new CPU)."""
+    try:
+        cl.Program(cl.Context([dev]), _PROBE).build()
+        return True
+    except Exception as e:  # pyopencl raises RuntimeError or cl.Error subclasses
+        log.warning("OpenCL device %s cannot build kernels (%s); skipping it",
+                    describe(dev), str(e).strip().splitlines()[-1][:200])
+        return False
+
+
 def choose_device(spec: str | None = None) -> cl.Device:
     spec = (spec or os.environ.get("DRAPE_DEVICE") or "auto").strip()
     devs = _all_devices()
@@ -56,20 +79,28 @@ def choose_device(spec: str | None = None) -> cl.Device:
     gpus = [d for d in devs if d.type & cl.device_type.GPU]
     cpus = [d for d in devs if d.type & cl.device_type.CPU]
     low = spec.lower()
+
+    def first_usable(cands: list[cl.Device], what: str) -> cl.Device:
+        for d in cands:
+            if _builds(d):
+                return d
+        raise RuntimeError(f"no {what} OpenCL device can build kernels (tried {[describe(d) for d in cands]}); "
+                           + NO_USABLE_CPU_HINT)
+
     if low == "auto":
-        return (gpus or cpus or devs)[0]
+        return first_usable(gpus + cpus or devs, "usable")
     if low == "gpu":
         if not gpus:
             raise RuntimeError("DRAPE_DEVICE=gpu but no OpenCL GPU is present")
-        return gpus[0]
+        return first_usable(gpus, "GPU")
     if low == "cpu":
         if not cpus:
             raise RuntimeError("DRAPE_DEVICE=cpu but no OpenCL CPU device is present")
-        return cpus[0]
-    for d in devs:
-        if low in describe(d).lower():
-            return d
-    raise RuntimeError(f"no OpenCL device matches {spec!r}; have: {[describe(d) for d in devs]}")
+        return first_usable(cpus, "CPU")
+    matches = [d for d in devs if low in describe(d).lower()]
+    if not matches:
+        raise RuntimeError(f"no OpenCL device matches {spec!r}; have: {[describe(d) for d in devs]}")
+    return first_usable(matches, f"{spec!r}")
 
 
 @dataclass

@@ -1,7 +1,7 @@
 """A world of many cloths stepped together: the interface the tick loop drives.
 
 ``make_world(solver)`` returns a ``ReferenceWorld`` (numpy, float64, the tests' ground truth) or a
-``CLWorld`` (drape.server.clworld: OpenCL work-group, coloured or Jacobi solver). Both keep the
+``CLWorld`` (drape.server.sim.opencl.clworld: OpenCL work-group, coloured or Jacobi solver). Both keep the
 same bookkeeping: cloths are added and removed between steps without touching the others, each
 with its own parameters, pin targets and colliders.
 """
@@ -163,7 +163,7 @@ def inverse_masses(fabric: Fabric, params: ClothParams) -> np.ndarray:
 
 
 class ReferenceWorld(World):
-    """Every cloth stepped by drape.server.reference on the CPU."""
+    """Every cloth stepped by drape.server.sim.reference on the CPU."""
 
     solver = "reference"
 
@@ -221,6 +221,6 @@ def make_world(solver: str = "workgroup", device: str | None = None, **kw) -> Wo
         raise ValueError(f"unknown solver {solver!r}; choose from {SOLVERS}")
     if solver == "reference":
         return ReferenceWorld(**kw)
-    from .clworld import CLWorld  # OpenCL only when asked for
+    from .opencl.clworld import CLWorld  # OpenCL only when asked for
 
     return CLWorld(strategy=solver, device=device, **kw)

@@ -15,7 +15,7 @@ Threads and who owns what:
   non-finite), and hand the frame to the publisher. Ticks follow a monotonic deadline schedule: an overrun skips whole
   deadlines and counts them as missed, it never drifts.
 - **publisher thread**: sends the acknowledgements of the commands applied this tick, encodes
-  the frame (drape.server.statecodec: bounds and encodings for all cloths at once, reused
+  the frame (drape.server.service.statecodec: bounds and encodings for all cloths at once, reused
   buffers) and publishes each cloth's state on its own key, or, for cloths submitted with
   ``state.bundle``, one bundle per client on that client's bundle key, while the device already
   works on the next tick; states (or bundles) whose key has no subscriber are not encoded at
@@ -43,13 +43,13 @@ import zenoh
 from drape.client import protocol as P
 from drape.client.sdk import zenoh_config
 
-from . import quality
+from ..sim import quality
 from .config import ServerConfig
-from .fabric import Fabric, FabricCache, cook_grid, cook_mesh
-from .params import Capsule, ClothParams, Features, LinkOptions, Material, Plane, Sphere, pack_colliders
-from .reference import vertex_normals
+from ..sim.fabric import Fabric, FabricCache, cook_grid, cook_mesh
+from ..sim.params import Capsule, ClothParams, Features, LinkOptions, Material, Plane, Sphere, pack_colliders
+from ..sim.reference import vertex_normals
 from .statecodec import FrameEncoder
-from .world import World, make_world
+from ..sim.world import World, make_world
 
 log = logging.getLogger(__name__)
 

@@ -57,8 +57,8 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from .fabric import Fabric, cook_grid, vertex_masses
-from .params import LINK_STRUCTURAL, SOLVERS, Capsule, ClothParams, Features, Material, pack_colliders
+from ..sim.fabric import Fabric, cook_grid, vertex_masses
+from ..sim.params import LINK_STRUCTURAL, SOLVERS, Capsule, ClothParams, Features, Material, pack_colliders
 
 log = logging.getLogger(__name__)
 
@@ -205,7 +205,7 @@ class Config:
 
     @classmethod
     def from_preset(cls, name: str, solver: str = "workgroup", tick_hz: int = 60) -> "Config":
-        from .quality import PRESETS
+        from ..sim.quality import PRESETS
 
         p = PRESETS[name]  # presets keep the material: compliance 0 and tether limit 1 here
         return cls(solver, p.iterations, p.substeps, p.xpbd, p.tethers, tick_hz=tick_hz, tag=f"preset:{name}")
@@ -390,7 +390,7 @@ class RunResult:
 
 
 def make_world_for(solver: str, device=None):
-    from .world import make_world
+    from ..sim.world import make_world
 
     if solver == "reference":
         return make_world("reference")
@@ -676,7 +676,7 @@ def sweep_layout(level: str, scenes: list[str], sizes: list[str] | None) -> list
 
 def preset_configs(solver: str) -> list[Config]:
     try:
-        from .quality import PRESETS
+        from ..sim.quality import PRESETS
     except ImportError:
         return []
     return [Config.from_preset(name, solver) for name in PRESETS]
@@ -851,7 +851,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .device import Device
+    from ..sim.opencl.device import Device
 
     level = "quick" if args.quick else "full" if args.full else "default"
     scenes = _csv(args.scenes) if args.scenes else (["hanging"] if level == "quick" else list(SCENES))

@@ -21,10 +21,10 @@ import numpy as np
 import pyopencl as cl
 
 from .device import Device, layout
-from .fabric import Fabric
-from .params import ClothParams, Features
-from .reference import JACOBI_OMEGA
-from .world import Cloth, Frame, World, inverse_masses
+from ..fabric import Fabric
+from ..params import ClothParams, Features
+from ..reference import JACOBI_OMEGA
+from ..world import Cloth, Frame, World, inverse_masses
 
 log = logging.getLogger(__name__)
 

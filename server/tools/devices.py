@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from .device import Device, _all_devices, describe
+from ..sim.opencl.device import Device, _all_devices, describe
 
 
 def configure(parser: argparse.ArgumentParser) -> None:

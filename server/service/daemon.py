@@ -1,7 +1,7 @@
 """``drape serve``: run the cloth server until SIGINT or SIGTERM.
 
 Configuration: defaults < TOML file (``--config`` or $DRAPE_CONFIG) < DRAPE_* environment
-variables < flags; see drape.server.config. On a signal the server stops publishing, answers
+variables < flags; see drape.server.service.daemon.config. On a signal the server stops publishing, answers
 what is still queued with ``busy``, undeclares everything and closes its Zenoh session; the
 exit status is 0 after a clean stop, 1 when the tick loop failed, 2 for a bad configuration.
 """

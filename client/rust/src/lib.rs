@@ -1,0 +1,3 @@
+//! Drape client: the wire protocol (module [`wire`], no network) and, with the default
+//! `client` feature, a Zenoh client ([`client`]) and its C ABI ([`ffi`]).
+pub mod wire;

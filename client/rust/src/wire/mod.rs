@@ -1,0 +1,41 @@
+//! The Drape wire protocol 1.1 (PROTOCOL.md) without any network: key expressions, msgpack
+//! requests and replies, the binary state (`DRPS`) and bundle (`DRPB`) payloads, float16 /
+//! quant16 and the geometry a client needs (grids, OBJ files). Everything here is pure and
+//! allocation-conscious: states decode straight into caller-provided `f32` slices.
+pub mod bundle;
+pub mod error;
+pub mod geometry;
+pub mod half;
+pub mod keys;
+pub mod msg;
+pub mod reader;
+pub mod replies;
+pub mod state;
+
+pub use bundle::{encode_bundle, parse_bundle, Bundle, BundleEntry, BUNDLE_HEADER_SIZE};
+pub use error::{Error, ErrorCode, Result};
+pub use geometry::{grid_geometry, parse_obj};
+pub use keys::{valid_id, valid_namespace, valid_token, Keys};
+pub use msg::{
+    Collider, Control, ControlBatch, Encoding, Grid, Links, Material, Mesh, Orientation, Pins, Shape,
+    StateOptions, Submit,
+};
+pub use replies::{BatchItem, BatchReply, ErrorReply, SubmitReply};
+pub use state::{decode_state_into, encode_state, parse_state, state_size, StateHeader, STATE_HEADER_SIZE};
+
+/// The protocol version this crate speaks: `[1, 1]`.
+pub const PROTOCOL_MAJOR: u8 = 1;
+pub const PROTOCOL_MINOR: u8 = 1;
+/// The default namespace and server endpoint.
+pub const DEFAULT_NAMESPACE: &str = "drape";
+pub const DEFAULT_ENDPOINT: &str = "tcp/127.0.0.1:7447";
+/// State flag bits.
+pub const FLAG_NORMALS: u16 = 1;
+pub const FLAG_RESET: u16 = 2;
+/// Protocol limits a client checks before sending (server defaults, PROTOCOL.md section 13).
+pub const MAX_BATCH_ITEMS: usize = 64;
+pub const MAX_PIN_UPDATES: usize = 4096;
+pub const MAX_COLLIDERS: usize = 32;
+pub const MAX_FEATURES: usize = 16;
+pub const FEATURE_NAMES: [&str; 5] = ["xpbd", "tethers", "colliders", "wind", "normals"];
+pub const QUALITY_PRESETS: [&str; 4] = ["fast", "balanced", "accurate", "exact"];

@@ -1,0 +1,1 @@
+"""The Zenoh service around one World: configuration, the server and its parts."""

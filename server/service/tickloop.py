@@ -49,6 +49,7 @@ from ..sim.fabric import Fabric, FabricCache, cook_grid, cook_mesh
 from ..sim.params import Capsule, ClothParams, Features, LinkOptions, Material, Plane, Sphere, pack_colliders
 from ..sim.reference import vertex_normals
 from .statecodec import FrameEncoder
+from .telemetry import PHASES, PhaseTimer
 from ..sim.world import World, make_world
 
 log = logging.getLogger(__name__)
@@ -207,39 +208,6 @@ class _Mailbox:
             self._cond.notify_all()
 
 
-class PhaseTimer:
-    """Count, total and maximum of one phase's durations: cumulative and since the last window."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self.count = 0
-        self.total = 0.0
-        self.w_count = 0
-        self.w_total = 0.0
-        self.w_max = 0.0
-
-    def add(self, seconds: float) -> None:
-        with self._lock:
-            self.count += 1
-            self.total += seconds
-            self.w_count += 1
-            self.w_total += seconds
-            self.w_max = max(self.w_max, seconds)
-
-    def snapshot(self, reset_window: bool) -> dict[str, float]:
-        with self._lock:
-            out = {
-                "mean_ms": 1e3 * self.w_total / self.w_count if self.w_count else 0.0,
-                "max_ms": 1e3 * self.w_max,
-                "count": self.w_count,
-                "total_mean_ms": 1e3 * self.total / self.count if self.count else 0.0,
-            }
-            if reset_window:
-                self.w_count, self.w_total, self.w_max = 0, 0.0, 0.0
-            return out
-
-
-PHASES = ("apply", "solve", "readback", "encode", "publish", "tick")
 QUALITY_PATIENCE = 3  # ticks over budget in a row before presets step down (x4 under, to step up)
 QUALITY_HEADROOM = 0.6  # step back up only when ticks take less than this share of the budget
 

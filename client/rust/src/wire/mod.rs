@@ -8,9 +8,11 @@ pub mod geometry;
 pub mod half;
 pub mod keys;
 pub mod msg;
+mod msg_decode;
 pub mod reader;
 pub mod replies;
 pub mod state;
+pub mod validate;
 
 pub use bundle::{encode_bundle, parse_bundle, Bundle, BundleEntry, BUNDLE_HEADER_SIZE};
 pub use error::{Error, ErrorCode, Result};
@@ -21,6 +23,7 @@ pub use msg::{
     StateOptions, Submit,
 };
 pub use replies::{BatchItem, BatchReply, ErrorReply, SubmitReply};
+pub use validate::Limits;
 pub use state::{decode_state_into, encode_state, parse_state, state_size, StateHeader, STATE_HEADER_SIZE};
 
 /// The protocol version this crate speaks: `[1, 1]`.

@@ -1,0 +1,420 @@
+"""The frame encoded on the device: one packed buffer of every publication's bytes per tick.
+
+:class:`FramePlan` lays a frame out once (when the set of published cloths, their encodings,
+normals or bundling changes): every publication (a single state, or a client's section 9.1
+bundle) at an 8-byte aligned offset of one buffer, every cloth's state at a known offset, and a
+*template* holding every static byte (magics, versions, header sizes, encodings, vertex counts,
+bundle entry tables and cloth ids, zero padding), built with :mod:`drape.client.protocol`'s own
+structs. :class:`DeviceEncoder` uploads the template once into the device output buffer; per
+tick one launch of ``encode_frame`` (kernels/encode.cl: one work-group per cloth) writes only the
+dynamic bytes (flags, tick, time, bounds, vertex data, normals) straight from the world's
+float4 position and normal buffers, and one copy brings the whole frame into pinned host memory.
+:meth:`DeviceEncoder.slices` then gives each publication's bytes as a memoryview of that memory,
+without copying. No per-cloth Python runs per tick.
+
+The bytes equal :func:`drape.client.protocol.encode_state` / :func:`~drape.client.protocol.encode_bundle`
+(tests/sim/test_device_encode.py), with two documented exceptions:
+
+- a zero bound whose axis holds both +0.0 and -0.0 may carry either sign (numpy's min/max pick
+  one by evaluation order; the value is the same);
+- on a device without ``cl_khr_fp64`` quant16 positions and snorm16 normals are evaluated in
+  float and may differ from the float64 reference by :data:`QUANT16_FP32_TOLERANCE` (1 unit).
+"""
+from __future__ import annotations
+
+import logging
+import re
+from dataclasses import dataclass, field
+from functools import lru_cache
+from typing import Sequence
+
+import numpy as np
+import pyopencl as cl
+
+from drape.client import protocol as P
+
+from .device import Device, kernel_dir
+
+log = logging.getLogger(__name__)
+
+SOURCE = "encode.cl"
+MF = cl.mem_flags
+
+#: quant16 / snorm16 units a device without fp64 may differ from the float64 reference by.
+QUANT16_FP32_TOLERANCE = 1
+
+
+@lru_cache(maxsize=1)
+def encode_layout() -> dict[str, int]:
+    """The ``#define ENC_* int`` constants of kernels/encode.cl (the one copy of the row layout)."""
+    text = (kernel_dir() / SOURCE).read_text()
+    return {m.group(1): int(m.group(2)) for m in re.finditer(r"^#define\s+(ENC_\w+)\s+(\d+)\b", text, re.M)}
+
+
+def state_size(n: int, encoding: int, normals: bool) -> int:
+    """Bytes of one encoded state (PROTOCOL.md section 9)."""
+    return P.state_size(n, P.ENCODING_NAMES[encoding], normals)
+
+
+@dataclass(frozen=True)
+class ClothEntry:
+    """One cloth of a plan: its id, vertex range ``[vbase, vbase + n)`` in the world's float4
+    position (and normal) buffers, protocol encoding id and whether normals follow."""
+
+    cloth: str
+    vbase: int
+    n: int
+    encoding: int = P.ENC_FLOAT32
+    normals: bool = False
+
+
+@dataclass(frozen=True)
+class Publication:
+    """One payload per tick: a single state (``bundle=False``, exactly one cloth) or a bundle of
+    the given cloths, in that order. ``cloths`` index the plan's cloth list; ``key`` is the
+    caller's (the Zenoh key expression), carried along untouched."""
+
+    key: str
+    cloths: tuple[int, ...]
+    bundle: bool = False
+
+
+@dataclass(eq=False)
+class FramePlan:
+    """Where every publication and state lies in the packed frame, and its static bytes."""
+
+    cloths: list[ClothEntry]
+    publications: list[Publication]
+    pub_offset: np.ndarray  # (P,) int64, multiples of 8
+    pub_size: np.ndarray  # (P,) int64
+    state_offset: np.ndarray  # (k,) int64 per plan cloth, -1 when it is in no publication
+    rows: np.ndarray  # (R, ENC_ROW_WORDS) uint32: the kernel's table, one row per encoded cloth
+    template: np.ndarray  # (size,) uint8: the static bytes of the whole frame
+    max_n: int = 0
+    vertex_end: int = 0  # one past the last vertex any row reads
+    normals: bool = False  # whether any row reads normals
+    _bounds_at: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    @property
+    def size(self) -> int:
+        return int(self.template.size)
+
+    @classmethod
+    def build(cls, cloths: Sequence[ClothEntry], publications: Sequence[Publication]) -> "FramePlan":
+        """Lay out a frame. Raises ValueError on a bad entry (unknown encoding, negative range,
+        a bundle with an invalid cloth id or no cloth, a single with other than one cloth, a
+        cloth in two publications, an index out of range)."""
+        cloths, publications = list(cloths), list(publications)
+        k = len(cloths)
+        for i, c in enumerate(cloths):
+            if c.encoding not in P.ENCODING_NAMES:
+                raise ValueError(f"cloth {i} ({c.cloth!r}): unknown encoding {c.encoding}")
+            if c.vbase < 0 or c.n < 0 or c.vbase + c.n >= 2**32:
+                raise ValueError(f"cloth {i} ({c.cloth!r}): bad vertex range {c.vbase}+{c.n}")
+        owner = np.full(k, -1, np.int64)
+        state_offset = np.full(k, -1, np.int64)
+        pub_offset = np.zeros(len(publications), np.int64)
+        pub_size = np.zeros(len(publications), np.int64)
+        W = encode_layout()
+        none = W["ENC_NONE"]
+        rows: list[list[int]] = []
+        parts: list[tuple[int, Publication]] = []
+        at = 0
+        for p, pub in enumerate(publications):
+            idx = list(pub.cloths)
+            if not idx:
+                raise ValueError(f"publication {p} ({pub.key!r}) has no cloth")
+            if not pub.bundle and len(idx) != 1:
+                raise ValueError(f"single publication {p} ({pub.key!r}) has {len(idx)} cloths")
+            for i in idx:
+                if not 0 <= i < k:
+                    raise ValueError(f"publication {p} ({pub.key!r}) names cloth {i} of {k}")
+                if owner[i] >= 0:
+                    raise ValueError(f"cloth {i} ({cloths[i].cloth!r}) is in publications {owner[i]} and {p}")
+                owner[i] = p
+                if pub.bundle and not P.valid_id(cloths[i].cloth):
+                    raise ValueError(f"bundle {pub.key!r}: invalid cloth id {cloths[i].cloth!r}")
+            sizes = [state_size(cloths[i].n, cloths[i].encoding, cloths[i].normals) for i in idx]
+            if pub.bundle:
+                size = P.bundle_size((cloths[i].cloth, s) for i, s in zip(idx, sizes))
+                s_at = at + P.BUNDLE_HEADER_SIZE
+                for j, (i, s) in enumerate(zip(idx, sizes)):
+                    s_at += P.bundle_entry_header_size(cloths[i].cloth)
+                    state_offset[i] = s_at
+                    rows.append(cls._row(cloths[i], s_at, at if j == 0 else none, i))
+                    s_at += P.align8(s)
+            else:
+                size = sizes[0]
+                state_offset[idx[0]] = at
+                rows.append(cls._row(cloths[idx[0]], at, none, idx[0]))
+            pub_offset[p], pub_size[p] = at, size
+            parts.append((at, pub))
+            at = P.align8(at + size)
+        if at >= 2**32:
+            raise ValueError(f"a frame of {at} bytes does not fit 32-bit offsets")
+        template = np.zeros(at, np.uint8)
+        buf = memoryview(template).cast("B")
+        for off, pub in parts:
+            if pub.bundle:
+                P.pack_bundle_header(buf[off:], 0, 0, len(pub.cloths))
+                for i in pub.cloths:
+                    c = cloths[i]
+                    so = int(state_offset[i])
+                    e = so - P.bundle_entry_header_size(c.cloth)
+                    P.pack_bundle_entry(buf, e, c.cloth, state_size(c.n, c.encoding, c.normals))
+            for i in pub.cloths:
+                c = cloths[i]
+                P.STATE_HEADER.pack_into(buf, int(state_offset[i]), P.STATE_MAGIC, P.PROTOCOL_MAJOR,
+                                         P.PROTOCOL_MINOR, P.STATE_HEADER_SIZE, c.encoding, 0, 0, c.n, 0, 0,
+                                         0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+        table = np.array(rows, np.uint32).reshape(-1, W["ENC_ROW_WORDS"])
+        enc_idx = table[:, W["ENC_ROW_CLOTH"]].astype(np.int64)
+        plan = cls(cloths, publications, pub_offset, pub_size, state_offset, table, template)
+        plan.max_n = int(table[:, W["ENC_ROW_N"]].max(initial=0))
+        ends = table[:, W["ENC_ROW_VBASE"]].astype(np.int64) + table[:, W["ENC_ROW_N"]]
+        plan.vertex_end = int(ends.max(initial=0))
+        plan.normals = bool(table[:, W["ENC_ROW_NORMALS"]].any())
+        plan._bounds_at = state_offset[enc_idx] if len(enc_idx) else np.zeros(0, np.int64)
+        return plan
+
+    @staticmethod
+    def _row(c: ClothEntry, state_at: int, bundle_at: int, index: int) -> list[int]:
+        W = encode_layout()
+        row = [0] * W["ENC_ROW_WORDS"]
+        row[W["ENC_ROW_VBASE"]] = c.vbase
+        row[W["ENC_ROW_N"]] = c.n
+        row[W["ENC_ROW_ENC"]] = c.encoding
+        row[W["ENC_ROW_NORMALS"]] = int(c.normals)
+        row[W["ENC_ROW_STATE"]] = state_at
+        row[W["ENC_ROW_BUNDLE"]] = bundle_at
+        row[W["ENC_ROW_CLOTH"]] = index
+        return row
+
+    @property
+    def encoded(self) -> np.ndarray:
+        """Plan cloth indices that are encoded (in some publication), in row order."""
+        return self.rows[:, encode_layout()["ENC_ROW_CLOTH"]].astype(np.int64)
+
+
+def _find(packed: bytes, marker: bytes) -> int:
+    at = packed.find(marker)
+    assert at >= 0 and packed.find(marker, at + 1) < 0
+    return at
+
+
+def _header_offsets() -> dict[str, int]:
+    """Byte offsets of the dynamic header fields, found in drape.client.protocol's own structs
+    (the one copy of the layout) by packing marker values; passed to encode.cl as -D options."""
+    st = P.STATE_HEADER.pack(P.STATE_MAGIC, P.PROTOCOL_MAJOR, P.PROTOCOL_MINOR, P.STATE_HEADER_SIZE, 0, 0, 0xA5C3, 0,
+                             0x1122334455667788, 0x99AABBCCDDEEFF10, 1.5, 2.5, 3.5, 4.5, 5.5, 6.5)
+    bh = bytearray(P.BUNDLE_HEADER_SIZE)
+    P.pack_bundle_header(bh, 0x1122334455667788, 0x99AABBCCDDEEFF10, 0)
+    f32 = lambda x: np.float32(x).tobytes()  # noqa: E731
+    return {
+        "ST_FLAGS": _find(st, (0xA5C3).to_bytes(2, "little")),
+        "ST_TICK": _find(st, (0x1122334455667788).to_bytes(8, "little")),
+        "ST_TIME": _find(st, (0x99AABBCCDDEEFF10).to_bytes(8, "little")),
+        "ST_MIN": _find(st, f32(1.5) + f32(2.5) + f32(3.5)),
+        "ST_MAX": _find(st, f32(4.5) + f32(5.5) + f32(6.5)),
+        "ST_DATA": P.STATE_HEADER_SIZE,
+        "BH_TICK": _find(bytes(bh), (0x1122334455667788).to_bytes(8, "little")),
+        "BH_TIME": _find(bytes(bh), (0x99AABBCCDDEEFF10).to_bytes(8, "little")),
+        "FLAG_NORMALS": P.FLAG_NORMALS,
+        "FLOAT16_MAX": int(P.FLOAT16_MAX),
+        "QUANT_MAX": P.QUANT_MAX,
+        "SNORM_MAX": P.SNORM_MAX,
+    }
+
+
+HEADER_OFFSETS = _header_offsets()
+
+
+@dataclass(eq=False)
+class _HostFrame:
+    """One pinned host copy of the frame, and each publication's view of it."""
+
+    mapping: object  # pyopencl MemoryMap keeping the pinned buffer mapped
+    buf: cl.Buffer
+    data: np.ndarray  # (size,) uint8
+    views: list[memoryview]
+    event: cl.Event | None = None
+
+
+class DeviceEncoder:
+    """Encode whole frames on ``dev`` with a :class:`FramePlan`.
+
+    ``fp64`` (default: whether the device has cl_khr_fp64) evaluates quant16 in double, exactly
+    as the reference; ``host_buffers`` pinned host copies are used in turn, so the views of a
+    frame stay valid until that many more frames have been encoded."""
+
+    def __init__(self, dev: Device, local_size: int | None = None, fp64: bool | None = None,
+                 host_buffers: int = 2) -> None:
+        if not dev.device.endian_little:
+            raise RuntimeError(f"{dev.info.name} is big-endian; the wire format is little-endian")
+        if host_buffers < 1:
+            raise ValueError("host_buffers must be at least 1")
+        self.dev = dev
+        has64 = "cl_khr_fp64" in dev.device.extensions
+        if fp64 and not has64:
+            raise ValueError(f"{dev.info.name} has no cl_khr_fp64")
+        self.fp64 = has64 if fp64 is None else bool(fp64)
+        if not self.fp64:
+            log.warning("%s: quant16 evaluated in float, may differ from the reference by %d",
+                        dev.info.name, QUANT16_FP32_TOLERANCE)
+        self._local_size = local_size
+        self._host_buffers = host_buffers
+        self.plan: FramePlan | None = None
+        self._kernel: cl.Kernel | None = None
+        self._wg = 1
+        self._out: cl.Buffer | None = None
+        self._table: cl.Buffer | None = None
+        self._flags_buf: cl.Buffer | None = None
+        self._flags = np.zeros(0, np.uint16)
+        self._hosts: list[_HostFrame] = []
+        self._next = 0
+        self._last: _HostFrame | None = None
+
+    # -- plan ------------------------------------------------------------------------------
+
+    def _pick_wg(self, max_n: int) -> int:
+        limit = self.dev.info.max_work_group
+        want = self._local_size or (256 if self.dev.info.is_gpu else 64)
+        want = min(want, limit, 1 << max(0, int(max(max_n, 1) - 1).bit_length()))
+        wg = 1
+        while wg * 2 <= want:
+            wg *= 2
+        return wg
+
+    def set_plan(self, plan: FramePlan) -> None:
+        """Use ``plan`` from the next frame on: upload its table and template (blocking), size
+        the output and pinned host buffers. Views of earlier frames become invalid."""
+        ctx, q = self.dev.ctx, self.dev.queue
+        self._release_hosts()
+        wg = self._pick_wg(plan.max_n)
+        opts = [f"-DENC_WG={wg}", f"-DENC_FP64={int(self.fp64)}", *(f"-D{k}={v}" for k, v in HEADER_OFFSETS.items())]
+        self._kernel = cl.Kernel(self.dev.program(opts, source=SOURCE), "encode_frame")
+        self._wg = wg
+        size = max(plan.size, 8)
+        self._out = cl.Buffer(ctx, MF.READ_WRITE, size)
+        if plan.size:
+            cl.enqueue_copy(q, self._out, plan.template, is_blocking=True)
+        rows = np.ascontiguousarray(plan.rows, np.uint32)
+        self._table = cl.Buffer(ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=rows if rows.size else np.zeros(1, np.uint32))
+        k = len(plan.cloths)
+        self._flags = np.zeros(max(k, 1), np.uint16)
+        self._flags_buf = cl.Buffer(ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=self._flags)
+        for _ in range(self._host_buffers):
+            hb = cl.Buffer(ctx, MF.READ_WRITE | MF.ALLOC_HOST_PTR, size)
+            data, _ev = cl.enqueue_map_buffer(q, hb, cl.map_flags.READ | cl.map_flags.WRITE, 0, (size,), np.uint8,
+                                              is_blocking=True)
+            data[:plan.size] = plan.template  # a frame read before any encode is the static bytes
+            mv = memoryview(data).cast("B")
+            views = [mv[o:o + s] for o, s in zip(plan.pub_offset.tolist(), plan.pub_size.tolist())]
+            self._hosts.append(_HostFrame(data.base, hb, data, views))
+        self._next = 0
+        self._last = None
+        self.plan = plan
+        log.debug("frame plan: %d publications, %d cloths, %d bytes, work-group %d", len(plan.publications),
+                  len(plan.rows), plan.size, wg)
+
+    def _release_hosts(self) -> None:
+        for h in self._hosts:
+            for v in h.views:
+                v.release()
+            h.views = []
+            try:
+                h.mapping.release(self.dev.queue)  # type: ignore[attr-defined]
+            except Exception:  # a frame still viewed elsewhere keeps its memory alive
+                log.debug("pinned frame buffer still referenced; left mapped")
+        self._hosts = []
+
+    # -- per tick ----------------------------------------------------------------------------
+
+    def encode(self, queue: cl.CommandQueue, positions: cl.Buffer, normals: cl.Buffer | None, tick: int,
+               time_ns: int, flags: np.ndarray | None = None,
+               wait_for: Sequence[cl.Event] | None = None) -> cl.Event:
+        """Enqueue this tick's frame: one launch, one copy into the next pinned host buffer.
+        ``positions`` / ``normals``: float4 device buffers holding every plan cloth's range;
+        ``flags`` (plan cloths,) state flags (FLAG_RESET...; FLAG_NORMALS is set per the plan),
+        None for all zero. Returns the copy's event; :meth:`read` waits for it."""
+        plan = self.plan
+        if plan is None or self._kernel is None:
+            raise RuntimeError("DeviceEncoder.encode before set_plan")
+        need = plan.vertex_end * 16
+        if positions.size < need:
+            raise ValueError(f"positions buffer of {positions.size} bytes; the plan reads {need}")
+        if plan.normals:
+            if normals is None:
+                raise ValueError("the plan has cloths with normals but no normals buffer was given")
+            if normals.size < need:
+                raise ValueError(f"normals buffer of {normals.size} bytes; the plan reads {need}")
+        if not 0 <= tick < 2**64 or not 0 <= time_ns < 2**64:
+            raise ValueError(f"tick {tick} and time {time_ns} must be unsigned 64-bit")
+        k = len(plan.cloths)
+        events = list(wait_for or [])
+        if flags is not None:
+            f = np.asarray(flags)
+            if f.shape != (k,):
+                raise ValueError(f"flags of shape {f.shape}; the plan has {k} cloths")
+            if f.size and (f.min() < 0 or f.max() > 0xFFFF):
+                raise ValueError("flags must fit 16 bits")
+            f = f.astype(np.uint16)
+        else:
+            f = np.zeros(k, np.uint16)
+        if k and not np.array_equal(f, self._flags[:k]):
+            self._flags[:k] = f
+            events.append(cl.enqueue_copy(queue, self._flags_buf, self._flags, is_blocking=False))
+        host = self._hosts[self._next]
+        self._next = (self._next + 1) % len(self._hosts)
+        if host.event is not None:
+            host.event.wait()  # its last copy (normally long done)
+        n_rows = len(plan.rows)
+        if n_rows:
+            nb = normals if normals is not None else positions
+            self._kernel.set_args(positions, nb, self._table, self._flags_buf, np.uint64(tick), np.uint64(time_ns),
+                                  self._out)
+            ev = cl.enqueue_nd_range_kernel(queue, self._kernel, (n_rows * self._wg,), (self._wg,),
+                                            wait_for=events or None)
+            events = [ev]
+        if plan.size:
+            host.event = cl.enqueue_copy(queue, host.data[:plan.size], self._out, is_blocking=False,
+                                         wait_for=events or None)
+        else:
+            host.event = cl.enqueue_marker(queue, wait_for=events or None)
+        self._last = host
+        return host.event
+
+    def _frame(self) -> _HostFrame:
+        if self._last is None:
+            raise RuntimeError("no frame encoded yet")
+        if self._last.event is not None:
+            self._last.event.wait()
+        return self._last
+
+    def read(self) -> memoryview:
+        """The whole packed frame last encoded (waits for it), a view of pinned host memory."""
+        assert self.plan is not None
+        return memoryview(self._frame().data).cast("B")[:self.plan.size]
+
+    def slices(self) -> list[memoryview]:
+        """Publication index -> its payload, views of the frame last encoded (waits for it)."""
+        return self._frame().views
+
+    def bounds(self) -> np.ndarray:
+        """(rows, 2, 3) float32: the bounds min and max in each encoded cloth's header, in
+        :attr:`FramePlan.encoded` order (waits for the frame)."""
+        assert self.plan is not None
+        data = self._frame().data
+        at = self.plan._bounds_at + HEADER_OFFSETS["ST_MIN"]
+        return data[at[:, None] + np.arange(24)].view("<f4").reshape(-1, 2, 3)
+
+    def nonfinite(self) -> np.ndarray:
+        """Plan cloth indices whose positions held a NaN or an infinity this frame (their header
+        bounds are non-finite): the service resets them and encodes them again."""
+        assert self.plan is not None
+        b = self.bounds().reshape(-1, 6)
+        return self.plan.encoded[~np.isfinite(b).all(axis=1)]
+
+    def close(self) -> None:
+        self._release_hosts()
+        self.plan = None

@@ -17,6 +17,9 @@ A TOML file holds the fields at its top level (or inside a ``[server]`` table)::
     max_total_vertices = 2097152
     grace_period = 5.0                 # seconds a vanished client's cloths are kept
     stats_period = 1.0
+    metrics_listen = "127.0.0.1:9464"  # operator HTTP: /metrics /healthz /readyz (default: off)
+    log_format = "text"                # text | json (one object per line)
+    log_level = "info"                 # debug | info | warning | error
 
 Every field is also an environment variable ``DRAPE_<FIELD>`` (``DRAPE_TICK_RATE=30``; lists are
 comma-separated: ``DRAPE_LISTEN=tcp/0.0.0.0:7447,tcp/[::]:7447``) and a flag ``--field-name``.
@@ -43,6 +46,8 @@ log = logging.getLogger(__name__)
 
 ZENOH_MODES = ("peer", "client", "router")
 CONGESTION_CHOICES = ("auto", "drop", "block")
+LOG_FORMATS = ("text", "json")
+LOG_LEVELS = ("debug", "info", "warning", "error", "critical")
 
 
 def default_server_id() -> str:
@@ -84,6 +89,10 @@ class ServerConfig:
     # --- quality -------------------------------------------------------------------------------
     adaptive_quality: bool = True  # lower cloths' presets while ticks overrun, restore them after
     quality_budget: float = 0.8  # share of a tick the tick's own work may take before that
+    # --- operations ----------------------------------------------------------------------------
+    metrics_listen: str | None = None  # host:port of /metrics /healthz /readyz; None = off (127.0.0.1:9464)
+    log_format: str = "text"  # text | json (drape.server.service.logs)
+    log_level: str = "info"  # debug | info | warning | error | critical
 
     def __post_init__(self) -> None:
         if not self.server_id:
@@ -111,6 +120,12 @@ class ServerConfig:
             raise ValueError("max_iterations <= 1000 and max_substeps <= 100 (the solver's own bounds)")
         if not (0.05 <= self.quality_budget <= 10.0):
             raise ValueError("quality_budget must be in 0.05..10 (a share of one tick)")
+        if self.log_format not in LOG_FORMATS:
+            raise ValueError(f"log_format must be one of {LOG_FORMATS}, got {self.log_format!r}")
+        if self.log_level.lower() not in LOG_LEVELS:
+            raise ValueError(f"log_level must be one of {LOG_LEVELS}, got {self.log_level!r}")
+        if self.metrics_listen is not None:
+            parse_listen(self.metrics_listen)
         if self.grace_period < 0 or self.stats_period <= 0:
             raise ValueError("grace_period must be >= 0 and stats_period > 0")
         return self
@@ -155,6 +170,14 @@ class ServerConfig:
 
     def with_(self, **changes: Any) -> "ServerConfig":
         return replace(self, **changes).validate()
+
+
+def parse_listen(value: str) -> tuple[str, int]:
+    """``HOST:PORT`` (``[::1]:9464``, ``:9464`` = every interface) as (host, port)."""
+    host, sep, port = value.strip().rpartition(":")
+    if not sep or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ValueError(f"metrics_listen must be HOST:PORT, got {value!r}")
+    return host.strip("[]") or "0.0.0.0", int(port)
 
 
 def _field_kind(f) -> tuple[type, bool]:
@@ -257,6 +280,9 @@ HELP = {
     "drop_max_bytes": "auto congestion: largest state published with DROP",
     "adaptive_quality": "step cloths' quality presets down while ticks overrun, back up after",
     "quality_budget": "share of a tick the tick's work may take before quality is lowered",
+    "metrics_listen": "HOST:PORT of the operator HTTP listener (/metrics /healthz /readyz), e.g. 127.0.0.1:9464",
+    "log_format": "log lines as text or json (one object per line)",
+    "log_level": "lowest level logged",
 }
 
 
@@ -274,7 +300,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             parser.add_argument(flag, dest=f.name, action="append", metavar="ENDPOINT", default=None,
                                 help=f"{help_}; repeatable")
         else:
-            choices = {"mode": ZENOH_MODES, "solver": SOLVERS, "state_congestion": CONGESTION_CHOICES}.get(f.name)
+            choices = {"mode": ZENOH_MODES, "solver": SOLVERS, "state_congestion": CONGESTION_CHOICES,
+                       "log_format": LOG_FORMATS, "log_level": LOG_LEVELS}.get(f.name)
             parser.add_argument(flag, dest=f.name, type=kind, default=None, choices=choices, help=help_)
 
 

@@ -6,8 +6,9 @@ The vectors are committed; tests/test_protocol.py checks them both ways (bytes -
 meaning -> identical bytes), so regenerating them is only needed when the protocol changes on
 purpose (and then PROTOCOL.md's version rules apply). Format: see PROTOCOL.md, "Test vectors".
 
-tests/vectors/v1.0/ holds the vectors of protocol 1.0 as they were committed, frozen: this script
-never rewrites them, and the tests check that a 1.1 implementation still reads every one.
+tests/vectors/v1.0/ and tests/vectors/v1.1/ hold the vectors of protocols 1.0 and 1.1 as they were
+committed, frozen: this script never rewrites them, and the tests check that this implementation
+still reads every one the same way.
 """
 from __future__ import annotations
 
@@ -25,6 +26,9 @@ HERE = Path(__file__).resolve().parent
 
 #: bin fields and the little-endian element type of their contents
 BIN_TYPES = {"pinned": "u32", "vertices": "f32", "triangles": "u32", "indices": "u32", "targets": "f32"}
+INVALID_NOTE = ("Validation only: the verdicts are the decoder's, on the bytes alone. A server then also checks that "
+                "each cloth exists and that the token owns it (not_found, forbidden), which these vectors do not "
+                "exercise: their cloth ids and tokens are placeholders.")
 DTYPES = {"u32": "<u4", "f32": "<f4"}
 
 
@@ -196,6 +200,10 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
                            colliders=(P.Sphere((0.5, 0.5, 0.0), 0.2),)),
                        P.ControlRequest(CLOTH2, TOKEN2, reset=True),
                    ], rid=10))),
+        msg_vector("control_features_add_remove", "control", "1.2: switch wind on and tethers off, keeping every "
+                   "other feature of the cloth (features_add / features_remove instead of replacing the set).",
+                   P.encode_control(P.ControlRequest(CLOTH, TOKEN, material={"drag": 0.3}, features_add=("wind",),
+                                                     features_remove=("tethers",), rid=11))),
     ]
     other = [
         msg_vector("remove", "remove", "Remove a cloth.", P.encode_remove(P.RemoveRequest(CLOTH, TOKEN, 5))),
@@ -218,6 +226,17 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
                    P.encode_remove_reply(P.RemoveReply(1061, 5))),
         msg_vector("reply_error", "error", "An error reply.", P.encode_error(
             "index_out_of_range", "'pinned' refers to vertex 16 but the cloth has 16 vertices", 9)),
+        msg_vector("reply_control_features", "reply_control", "1.2: a control applied from tick 1050 on; the "
+                   "cloth's feature set after it, in the protocol's order.",
+                   P.encode_control_reply(P.ControlReply(1050, 11, ("colliders", "wind", "normals")))),
+        msg_vector("reply_control_batch_features", "reply_control_batch", "1.2: a batch of one applied item, with "
+                   "the cloth's resulting feature set.",
+                   P.encode_control_batch_reply(P.ControlBatchReply(1050, [
+                       P.BatchItemResult(1050, features=("xpbd", "tethers"))], 12))),
+        msg_vector("reply_error_overloaded", "error", "1.2: a submission refused because admitting it would break "
+                   "the server's tick budget.", P.encode_error(
+                       "overloaded", "admitting 65536 more vertices would exceed the tick budget; retry later or "
+                       "on another server", 13)),
     ]
     tri = [[0.0, 2.0, 0.0], [1.0, 1.5, -0.25], [0.5, 1.0, 0.75]]
     nrm = [[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, -1.0, 0.0]]
@@ -271,6 +290,28 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
         ("bundle_entry_header_short", one[:32] + (8).to_bytes(2, "little") + one[34:], "bundle", "malformed"),
         ("bundle_bad_id", one[:40] + b"/" + one[41:], "bundle", "malformed"),
     ]
+    deep: Any = [0]
+    for _ in range(999):
+        deep = [deep]
+    bad_cases += [
+        ("features_add_and_remove", msgpack.packb({"v": [1, 2], "cloth": CLOTH, "token": TOKEN,
+                                                   "features_add": ["wind"], "features_remove": ["wind"]}),
+         "control", "invalid_value"),
+        ("features_add_unknown", msgpack.packb({"v": [1, 2], "cloth": CLOTH, "token": TOKEN,
+                                                "features_add": ["gravity"]}), "control", "invalid_value"),
+        ("mass_subnormal", msgpack.packb({"v": [1, 2], "client": "c1", "grid": {"cols": 2, "rows": 2},
+                                          "material": {"mass": 5e-324}}), "submit", "invalid_value"),
+        ("mass_below_minimum", msgpack.packb({"v": [1, 2], "client": "c1", "grid": {"cols": 2, "rows": 2},
+                                              "material": {"mass": 1e-10}}), "submit", "invalid_value"),
+        ("nested_1000_deep", msgpack.packb({"v": [1, 2], "client": "c1", "grid": {"cols": 2, "rows": 2},
+                                            "x": deep}), "submit", "malformed"),
+        ("map_too_many_keys", msgpack.packb({"v": [1, 2], "client": "c1", "grid": {"cols": 2, "rows": 2},
+                                             **{f"k{i}": 0 for i in range(P.MAX_MAP_KEYS)}}), "submit", "malformed"),
+        ("array_too_long", msgpack.packb({"v": [1, 2], "client": "c1", "grid": {"cols": 2, "rows": 2},
+                                          "features": ["wind"] * (P.MAX_ARRAY_LENGTH + 1)}), "submit", "malformed"),
+        ("ext_type", msgpack.packb({"v": [1, 2], "client": "c1", "x": msgpack.ExtType(1, b"z")}), "submit",
+         "malformed"),
+    ]
     invalid = [{"name": n, "message": m, "hex": d.hex(), "error": code} for n, d, m, code in bad_cases]
     # A batch whose envelope is valid: each item stands alone, only the bad ones are refused.
     partial = msgpack.packb({**batch, "items": [
@@ -281,21 +322,29 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
         {**item, "state": {"bundle": True}},
         {**item, "gravity": [0.0, -9.81, 0.0]},
     ]}, use_bin_type=True)
-    invalid.append({"name": "batch_partly_invalid", "message": "control_batch", "hex": partial.hex(), "error": None,
+    invalid.append({"name": "batch_partly_invalid", "message": "control_batch", "description": INVALID_NOTE,
+                    "hex": partial.hex(), "error": None,
                     "item_errors": [None, "invalid_value", "invalid_type", "invalid_value", "invalid_value", None]})
     # Unknown minor version and unknown keys are accepted within major 1:
     future = {"name": "submit_future_minor", "message": "submit", "description": "Version 1.7 with a key this "
               "version does not know: accepted, the key ignored.",
               "hex": msgpack.packb({"v": [1, 7], "rid": 0, "client": "c1", "grid": {"cols": 2, "rows": 2},
-                                    "hologram": True}).hex()}
+                                    "hologram": True}).hex(),
+              "value": {"v": [1, 7], "rid": 0, "client": "c1", "grid": {"cols": 2, "rows": 2}, "hologram": True},
+              "ignored": ["hologram"]}
     # A bundle of a future minor version: a longer header, an unknown flag, bytes after the last entry.
     later = bytearray(one[:32] + b"\xee" * 8 + one[32:] + b"trailing")
     later[5] = 7
     later[6:8] = (40).to_bytes(2, "little")
     later[12:16] = (1 << 31).to_bytes(4, "little")
     future_bundle = {"name": "bundle_future_minor", "message": "bundle", "description": "Version 1.7 bundle with a "
-                     "40-byte header, an unknown flag and trailing bytes: read as the 1.1 bundle it contains.",
-                     "hex": bytes(later).hex()}
+                     "40-byte header, an unknown flag and trailing bytes: read as the bundle it contains.",
+                     "hex": bytes(later).hex(),
+                     "value": {**bundles[1]["value"], "minor": 7, "header_size": 40, "flags": 1 << 31,
+                               "size": len(later),
+                               "entries": [{**e, "entry_offset": e["entry_offset"] + 8,
+                                            "state_offset": e["state_offset"] + 8}
+                                           for e in bundles[1]["value"]["entries"]]}}
     return {"submit": submit, "control": control, "misc": other, "state": state, "bundle": bundles,
             "invalid": invalid, "accepted": [future, future_bundle]}
 

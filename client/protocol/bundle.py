@@ -1,0 +1,142 @@
+"""State bundles "DRPB" (1.1, PROTOCOL.md section 9.1): the states of one client's bundled cloths
+at one tick in one payload."""
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from typing import Iterable, Sequence
+
+from .errors import ERR_MALFORMED, ERR_UNSUPPORTED_VERSION, ProtocolError
+from .keys import PROTOCOL_MAJOR, PROTOCOL_MINOR, VERSION_STRING, valid_id
+from .state import ClothState, decode_state
+
+BUNDLE_MAGIC = b"DRPB"
+#: magic, major, minor, header_size, count, flags, tick, server time
+BUNDLE_HEADER = struct.Struct("<4sBBHIIQQ")
+BUNDLE_HEADER_SIZE = BUNDLE_HEADER.size  # 32
+assert BUNDLE_HEADER_SIZE == 32
+#: per entry: entry header size (offset of the state from the entry start), id length, reserved, state size
+BUNDLE_ENTRY = struct.Struct("<HBxI")
+BUNDLE_ENTRY_SIZE = BUNDLE_ENTRY.size  # 8, then the cloth id, then zeros up to the entry header size
+BUNDLE_ALIGN = 8  # entries and states start at multiples of 8 from the start of the bundle
+
+
+def align8(n: int) -> int:
+    return (n + 7) & ~7
+
+
+def bundle_entry_header_size(cloth: str) -> int:
+    """Bytes from an entry's start to its state payload: 8 + id length, rounded up to 8."""
+    return align8(BUNDLE_ENTRY_SIZE + len(cloth))
+
+
+def bundle_size(entries: Iterable[tuple[str, int]]) -> int:
+    """Bytes of a bundle of (cloth id, state size) entries."""
+    return BUNDLE_HEADER_SIZE + sum(bundle_entry_header_size(c) + align8(n) for c, n in entries)
+
+
+def pack_bundle_header(out: bytearray | memoryview, tick: int, server_time_ns: int, count: int, flags: int = 0) -> None:
+    BUNDLE_HEADER.pack_into(out, 0, BUNDLE_MAGIC, PROTOCOL_MAJOR, PROTOCOL_MINOR, BUNDLE_HEADER_SIZE, count, flags,
+                            tick, server_time_ns)
+
+
+def pack_bundle_entry(out: bytearray | memoryview, at: int, cloth: str, state_size: int) -> int:
+    """Write an entry header (with the id and its padding) at ``at``; returns the state's offset."""
+    cid = cloth.encode("ascii")
+    h = align8(BUNDLE_ENTRY_SIZE + len(cid))
+    BUNDLE_ENTRY.pack_into(out, at, h, len(cid), state_size)
+    end = at + BUNDLE_ENTRY_SIZE + len(cid)
+    out[at + BUNDLE_ENTRY_SIZE:end] = cid
+    out[end:at + h] = bytes(at + h - end)
+    return at + h
+
+
+def encode_bundle(tick: int, server_time_ns: int, states: Sequence[tuple[str, bytes | bytearray | memoryview]],
+                  flags: int = 0) -> bytearray:
+    """The bundle payload of (cloth id, state payload) pairs, in order. Every state should carry
+    the bundle's tick and server time (encode_state(tick, server_time_ns, ...))."""
+    out = bytearray(bundle_size((c, len(st)) for c, st in states))
+    pack_bundle_header(out, tick, server_time_ns, len(states), flags)
+    at = BUNDLE_HEADER_SIZE
+    for cloth, st in states:
+        if not valid_id(cloth):
+            raise ValueError(f"invalid cloth id {cloth!r}")
+        off = pack_bundle_entry(out, at, cloth, len(st))
+        out[off:off + len(st)] = st
+        at = off + align8(len(st))  # the padding is already zero
+    return out
+
+
+@dataclass(frozen=True)
+class BundleEntry:
+    cloth: str
+    offset: int  # of the state payload, from the start of the bundle
+    size: int  # of the state payload
+
+
+@dataclass(eq=False)
+class Bundle:
+    """A parsed bundle: header fields and where each cloth's state payload lies in ``data``."""
+
+    tick: int
+    server_time_ns: int
+    flags: int
+    entries: list[BundleEntry]
+    data: bytes | bytearray | memoryview
+    minor: int = PROTOCOL_MINOR
+
+    def payload(self, i: int) -> memoryview:
+        e = self.entries[i]
+        return memoryview(self.data)[e.offset:e.offset + e.size]
+
+    def state(self, i: int, receive_time_ns: int = 0) -> ClothState:
+        """Entry ``i`` decoded with decode_state (float32 arrays are views of the bundle)."""
+        return decode_state(self.payload(i), self.entries[i].cloth, receive_time_ns)
+
+    def states(self, receive_time_ns: int = 0) -> list[ClothState]:
+        return [self.state(i, receive_time_ns) for i in range(len(self.entries))]
+
+
+def parse_bundle(data: bytes | bytearray | memoryview) -> Bundle:
+    """Parse a bundle's header and entry table (the states are decoded on demand). Raises
+    ProtocolError on a bad magic, an unknown major version, a header_size below 32, an entry
+    that does not fit, an entry header size below 8 + id length, or an id that is not a valid
+    cloth id. Unknown flag bits, a longer header and trailing bytes after the last entry are
+    ignored (later minor versions may add them)."""
+    buf = data if isinstance(data, (bytes, bytearray)) else memoryview(data).cast("B")
+    size = len(buf)
+    if size < BUNDLE_HEADER_SIZE:
+        raise ProtocolError(ERR_MALFORMED, f"bundle of {size} bytes is shorter than the {BUNDLE_HEADER_SIZE}-byte header")
+    magic, major, minor, hsize, count, flags, tick, t_ns = BUNDLE_HEADER.unpack_from(buf, 0)
+    if magic != BUNDLE_MAGIC:
+        raise ProtocolError(ERR_MALFORMED, f"bundle magic {bytes(magic)!r} is not {BUNDLE_MAGIC!r}")
+    if major != PROTOCOL_MAJOR:
+        raise ProtocolError(ERR_UNSUPPORTED_VERSION, f"bundle version {major}.{minor} is not supported; this side "
+                            f"speaks {VERSION_STRING}")
+    if hsize < BUNDLE_HEADER_SIZE:
+        raise ProtocolError(ERR_MALFORMED, f"bundle header_size {hsize} is below {BUNDLE_HEADER_SIZE}")
+    at = hsize
+    entries: list[BundleEntry] = []
+    for i in range(count):
+        if at + BUNDLE_ENTRY_SIZE > size:
+            raise ProtocolError(ERR_MALFORMED, f"bundle entry {i} of {count} starts at byte {at}, past the end ({size})")
+        h, id_len, st_size = BUNDLE_ENTRY.unpack_from(buf, at)
+        if h < BUNDLE_ENTRY_SIZE + id_len:
+            raise ProtocolError(ERR_MALFORMED, f"bundle entry {i}: entry header size {h} is below 8 + id length {id_len}")
+        if at + h + st_size > size:
+            raise ProtocolError(ERR_MALFORMED, f"bundle entry {i}: state of {st_size} bytes at byte {at + h} runs past "
+                                f"the end ({size})")
+        try:
+            cloth = bytes(buf[at + BUNDLE_ENTRY_SIZE:at + BUNDLE_ENTRY_SIZE + id_len]).decode("ascii")
+        except UnicodeDecodeError:
+            cloth = ""
+        if not valid_id(cloth):
+            raise ProtocolError(ERR_MALFORMED, f"bundle entry {i}: invalid cloth id")
+        entries.append(BundleEntry(cloth, at + h, st_size))
+        at = align8(at + h + st_size)
+    return Bundle(tick, t_ns, flags, entries, buf, minor)
+
+
+def decode_bundle(data: bytes | bytearray | memoryview, receive_time_ns: int = 0) -> list[ClothState]:
+    """Every state of a bundle, decoded (each ClothState's ``cloth`` is its entry's id)."""
+    return parse_bundle(data).states(receive_time_ns)

@@ -1,0 +1,487 @@
+"""Encoders and validating decoders of every msgpack message: submit, control, batch control,
+remove, info, replies, errors, stats (PROTOCOL.md sections 4-8, 10)."""
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import numpy as np
+
+from .errors import (ERR_INDEX_OUT_OF_RANGE, ERR_INVALID_TYPE, ERR_INVALID_VALUE, ERR_MALFORMED, ERR_MISSING_FIELD,
+                     ERR_TOO_LARGE, ERROR_CODES, ProtocolError)
+from .keys import ID_RE, TOKEN_RE
+from .messages import (BatchItemResult, ControlBatchReply, ControlBatchRequest, ControlReply, ControlRequest,
+                       DecodedControlBatch, ErrorReply, InfoRequest, RemoveReply, RemoveRequest, SubmitReply,
+                       SubmitRequest, feature_list)
+from .validate import (_blob, _check_finite_array, _f, _header, _peek_rid, _read_colliders, _read_features,
+                       _read_material, _read_rho, _read_state_options, _Reader, _rid, _state_map, _tname, _v3,
+                       collider_to_map, material_to_map, pack, unpack_message)
+from .vocabulary import (DEFAULT_LIMITS, ORIENTATIONS, QUALITY_PRESETS, GridSpec, LinkSpec, Limits, MeshSpec, PinUpdate,
+                         _empty_u32)
+
+def submit_to_map(req: SubmitRequest) -> dict[str, Any]:
+    m = _header(req.rid)
+    m["client"] = req.client
+    if req.grid is not None:
+        g = req.grid
+        m["grid"] = {"cols": int(g.cols), "rows": int(g.rows), "width": _f(g.width), "height": _f(g.height),
+                     "orientation": g.orientation, "origin": _v3(g.origin)}
+    if req.mesh is not None:
+        m["mesh"] = {"vertices": _blob(req.mesh.vertices, "f4"), "triangles": _blob(req.mesh.triangles, "u4")}
+    if len(req.pinned):
+        m["pinned"] = _blob(req.pinned, "u4")
+    if req.links is not None:
+        m["links"] = {"structural": bool(req.links.structural), "shear": bool(req.links.shear),
+                      "bending": bool(req.links.bending)}
+    if req.material:
+        m["material"] = material_to_map(req.material)
+    if req.features:
+        m["features"] = list(req.features)
+    if req.gravity is not None:
+        m["gravity"] = _v3(req.gravity)
+    if req.wind is not None:
+        m["wind"] = _v3(req.wind)
+    if req.iterations is not None:
+        m["iterations"] = int(req.iterations)
+    if req.substeps is not None:
+        m["substeps"] = int(req.substeps)
+    if req.chebyshev_rho is not None:
+        m["chebyshev_rho"] = _f(req.chebyshev_rho)
+    if req.colliders is not None:
+        m["colliders"] = [collider_to_map(c) for c in req.colliders]
+    if req.state is not None:
+        m["state"] = _state_map(req.state)
+    if req.quality is not None:
+        m["quality"] = str(req.quality)
+    return m
+
+
+def encode_submit(req: SubmitRequest) -> bytes:
+    return pack(submit_to_map(req))
+
+
+def decode_submit(data: bytes | bytearray, limits: Limits = DEFAULT_LIMITS) -> SubmitRequest:
+    return submit_from_map(unpack_message(data, limits), limits)
+
+
+def submit_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS) -> SubmitRequest:
+    r = _Reader(m, "", _peek_rid(dict(m)), limits)
+    rid = _rid(r)
+    client = r.str_("client", True, pattern=ID_RE, what="1-64 characters of [A-Za-z0-9_.-]")
+    bound = limits.max_coordinate
+    gr, mr = r.sub("grid"), r.sub("mesh")
+    if (gr is None) == (mr is None):
+        if gr is None:
+            raise r.fail(ERR_MISSING_FIELD, "one of 'grid' or 'mesh' is required")
+        raise r.fail(ERR_INVALID_VALUE, "give exactly one of 'grid' or 'mesh', not both")
+    grid = mesh = None
+    if gr is not None:
+        cols = gr.int_("cols", 1, limits.max_vertices, True, over=ERR_TOO_LARGE)
+        rows = gr.int_("rows", 1, limits.max_vertices, True, over=ERR_TOO_LARGE)
+        assert cols is not None and rows is not None
+        if cols * rows > limits.max_vertices:
+            raise r.fail(ERR_TOO_LARGE, f"grid of {cols}x{rows} = {cols * rows} vertices exceeds the limit of "
+                         f"{limits.max_vertices} vertices per cloth")
+        width = gr.num("width", 0.0, bound, lo_inclusive=False)
+        height = gr.num("height", 0.0, bound, lo_inclusive=False)
+        grid = GridSpec(
+            cols, rows,
+            1.0 if width is None else width,
+            1.0 if height is None else height,
+            gr.str_("orientation", choices=ORIENTATIONS) or "horizontal",
+            gr.vec3("origin", bound) or (0.0, 0.0, 0.0),
+        )
+        n = cols * rows
+    else:
+        assert mr is not None
+        verts = mr.blob("vertices", "f4", 3, limits.max_vertices, True)
+        tris = mr.blob("triangles", "u4", 3, limits.max_triangles, True)
+        assert verts is not None and tris is not None
+        n = len(verts)
+        if n == 0:
+            raise r.fail(ERR_INVALID_VALUE, "'mesh.vertices' must hold at least one vertex")
+        _check_finite_array(r, "mesh.vertices", verts, bound)
+        if tris.size:
+            mx = int(tris.max())
+            if mx >= n:
+                raise r.fail(ERR_INDEX_OUT_OF_RANGE, f"'mesh.triangles' refers to vertex {mx} but the mesh has {n} vertices")
+            if np.any((tris[:, 0] == tris[:, 1]) | (tris[:, 1] == tris[:, 2]) | (tris[:, 0] == tris[:, 2])):
+                raise r.fail(ERR_INVALID_VALUE, "'mesh.triangles' has a triangle with a repeated vertex")
+        mesh = MeshSpec(verts, tris)
+    pinned = r.blob("pinned", "u4", 1, limits.max_vertices)
+    if pinned is None:
+        pinned = _empty_u32()
+    if pinned.size and int(pinned.max()) >= n:
+        raise r.fail(ERR_INDEX_OUT_OF_RANGE, f"'pinned' refers to vertex {int(pinned.max())} but the cloth has {n} vertices")
+    lr = r.sub("links")
+    links = None
+    if lr is not None:
+        d = LinkSpec()
+        s, sh, b = lr.bool_("structural"), lr.bool_("shear"), lr.bool_("bending")
+        links = LinkSpec(d.structural if s is None else s, d.shear if sh is None else sh, d.bending if b is None else b)
+    acc = limits.max_acceleration
+    return SubmitRequest(
+        client=client,  # type: ignore[arg-type]
+        grid=grid,
+        mesh=mesh,
+        pinned=pinned,
+        links=links,
+        material=_read_material(r),
+        features=_read_features(r) or (),
+        gravity=r.vec3("gravity", acc),
+        wind=r.vec3("wind", acc),
+        iterations=r.int_("iterations", 0, limits.max_iterations),
+        substeps=r.int_("substeps", 1, limits.max_substeps),
+        chebyshev_rho=_read_rho(r),
+        colliders=_read_colliders(r),
+        state=_read_state_options(r),
+        quality=r.str_("quality", choices=QUALITY_PRESETS),
+        rid=rid,
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Control, remove, info
+
+
+def control_to_map(req: ControlRequest) -> dict[str, Any]:
+    m = _header(req.rid)
+    m.update(control_item_to_map(req))
+    return m
+
+
+def control_item_to_map(req: ControlRequest) -> dict[str, Any]:
+    """A control's fields without ``v`` and ``rid``: one item of a batch control."""
+    m: dict[str, Any] = {}
+    m["cloth"] = req.cloth
+    m["token"] = req.token
+    if req.pins is not None:
+        m["pins"] = {"indices": _blob(req.pins.indices, "u4"), "targets": _blob(req.pins.targets, "f4")}
+    if req.colliders is not None:
+        m["colliders"] = [collider_to_map(c) for c in req.colliders]
+    if req.gravity is not None:
+        m["gravity"] = _v3(req.gravity)
+    if req.wind is not None:
+        m["wind"] = _v3(req.wind)
+    if req.material:
+        m["material"] = material_to_map(req.material)
+    if req.features is not None:
+        m["features"] = list(req.features)
+    if req.features_add is not None:
+        m["features_add"] = list(req.features_add)
+    if req.features_remove is not None:
+        m["features_remove"] = list(req.features_remove)
+    if req.iterations is not None:
+        m["iterations"] = int(req.iterations)
+    if req.substeps is not None:
+        m["substeps"] = int(req.substeps)
+    if req.chebyshev_rho is not None:
+        m["chebyshev_rho"] = _f(req.chebyshev_rho)
+    if req.state is not None:
+        m["state"] = _state_map(req.state)
+    if req.quality is not None:
+        m["quality"] = str(req.quality)
+    if req.reset:
+        m["reset"] = True
+    return m
+
+
+def encode_control(req: ControlRequest) -> bytes:
+    return pack(control_to_map(req))
+
+
+def decode_control(data: bytes | bytearray, limits: Limits = DEFAULT_LIMITS, n_vertices: int | None = None) -> ControlRequest:
+    """Validate a control message; with ``n_vertices`` pin indices are range-checked too."""
+    return control_from_map(unpack_message(data, limits), limits, n_vertices)
+
+
+def _owner_fields(r: _Reader) -> tuple[str, str]:
+    cloth = r.str_("cloth", True, pattern=ID_RE, what="a cloth id (1-64 characters of [A-Za-z0-9_.-])")
+    token = r.str_("token", True, pattern=TOKEN_RE, what="32 lowercase hex digits")
+    return cloth, token  # type: ignore[return-value]
+
+
+def control_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS, n_vertices: int | None = None) -> ControlRequest:
+    r = _Reader(m, "", _peek_rid(dict(m)), limits)
+    return _read_control(r, _rid(r), n_vertices)
+
+
+def _read_control(r: _Reader, rid: int, n_vertices: int | None = None) -> ControlRequest:
+    """The fields of a control (a whole message, or one batch item whose reader path names it).
+    Only the fields present are read (a per-tick control carries two or three of them)."""
+    limits = r.limits
+    m = r.m
+    cloth, token = _owner_fields(r)
+    pins = None
+    pr = r.sub("pins") if "pins" in m else None
+    if pr is not None:
+        idx = pr.blob("indices", "u4", 1, limits.max_pin_updates, True)
+        tgt = pr.blob("targets", "f4", 3, limits.max_pin_updates, True)
+        assert idx is not None and tgt is not None
+        if len(idx) != len(tgt):
+            raise r.fail(ERR_INVALID_VALUE, f"'{r.name('pins')}' has {len(idx)} indices but {len(tgt)} targets")
+        if n_vertices is not None and idx.size and int(idx.max()) >= n_vertices:
+            raise r.fail(ERR_INDEX_OUT_OF_RANGE, f"'{pr.name('indices')}' refers to vertex {int(idx.max())} but the "
+                         f"cloth has {n_vertices} vertices")
+        _check_finite_array(r, pr.name("targets"), tgt, limits.max_coordinate)
+        pins = PinUpdate(idx, tgt)
+    acc = limits.max_acceleration
+    reset = r.bool_("reset") if "reset" in m else None
+    add = _read_features(r, "features_add") if "features_add" in m else None
+    remove = _read_features(r, "features_remove") if "features_remove" in m else None
+    both = set(add or ()) & set(remove or ())
+    if both:
+        raise r.fail(ERR_INVALID_VALUE, f"feature(s) {sorted(both)} in both '{r.name('features_add')}' and "
+                     f"'{r.name('features_remove')}'")
+    return ControlRequest(
+        cloth=cloth,
+        token=token,
+        pins=pins,
+        colliders=_read_colliders(r) if "colliders" in m else None,
+        gravity=r.vec3("gravity", acc) if "gravity" in m else None,
+        wind=r.vec3("wind", acc) if "wind" in m else None,
+        material=_read_material(r) if "material" in m else {},
+        features=_read_features(r) if "features" in m else None,
+        iterations=r.int_("iterations", 0, limits.max_iterations) if "iterations" in m else None,
+        substeps=r.int_("substeps", 1, limits.max_substeps) if "substeps" in m else None,
+        chebyshev_rho=_read_rho(r) if "chebyshev_rho" in m else None,
+        state=_read_state_options(r, submit=False) if "state" in m else None,
+        reset=bool(reset),
+        quality=r.str_("quality", choices=QUALITY_PRESETS) if "quality" in m else None,
+        rid=rid,
+        features_add=add,
+        features_remove=remove,
+    )
+
+
+def remove_to_map(req: RemoveRequest) -> dict[str, Any]:
+    m = _header(req.rid)
+    m["cloth"] = req.cloth
+    m["token"] = req.token
+    return m
+
+
+def encode_remove(req: RemoveRequest) -> bytes:
+    return pack(remove_to_map(req))
+
+
+def decode_remove(data: bytes | bytearray, limits: Limits = DEFAULT_LIMITS) -> RemoveRequest:
+    return remove_from_map(unpack_message(data, limits), limits)
+
+
+def remove_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS) -> RemoveRequest:
+    r = _Reader(m, "", _peek_rid(dict(m)), limits)
+    rid = _rid(r)
+    cloth, token = _owner_fields(r)
+    return RemoveRequest(cloth, token, rid)
+
+
+def encode_info(req: InfoRequest) -> bytes:
+    return pack(_header(req.rid))
+
+
+def decode_info(data: bytes | bytearray, limits: Limits = DEFAULT_LIMITS) -> InfoRequest:
+    """An info query may carry no payload at all (then rid is 0)."""
+    if not data:
+        return InfoRequest()
+    m = unpack_message(data, limits)
+    return InfoRequest(_rid(_Reader(m, "", _peek_rid(m), limits)))
+
+
+# ---------------------------------------------------------------------------------------------
+# Batch control (1.1)
+
+
+def control_batch_to_map(req: ControlBatchRequest) -> dict[str, Any]:
+    m = _header(req.rid)
+    m["client"] = req.client
+    m["items"] = [control_item_to_map(it) for it in req.items]
+    return m
+
+
+def encode_control_batch(req: ControlBatchRequest) -> bytes:
+    return pack(control_batch_to_map(req))
+
+
+def decode_control_batch(data: bytes | bytearray, limits: Limits = DEFAULT_LIMITS) -> DecodedControlBatch:
+    """Validate a batch control. The envelope (size, msgpack, version, ``client``, ``items``
+    being an array of 1..max_batch_items) raises ProtocolError for the whole request; every item
+    is then validated on its own: an invalid item becomes its ProtocolError in ``items`` and
+    does not affect the others."""
+    return control_batch_from_map(unpack_message(data, limits), limits)
+
+
+def control_batch_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS) -> DecodedControlBatch:
+    r = _Reader(m, "", _peek_rid(dict(m)), limits)
+    rid = _rid(r)
+    client = r.str_("client", True, pattern=ID_RE, what="1-64 characters of [A-Za-z0-9_.-]")
+    raw_items = r.raw("items", True)
+    if not isinstance(raw_items, list):
+        raise r.fail(ERR_INVALID_TYPE, f"'items' must be an array of control maps, got {_tname(raw_items)}")
+    if not raw_items:
+        raise r.fail(ERR_INVALID_VALUE, "'items' must hold at least one control")
+    if len(raw_items) > limits.max_batch_items:
+        raise r.fail(ERR_TOO_LARGE, f"'items' has {len(raw_items)} controls, more than the limit of "
+                     f"{limits.max_batch_items}")
+    items: list[ControlRequest | ProtocolError] = []
+    for i, it in enumerate(raw_items):
+        name = f"items[{i}]"
+        if not isinstance(it, dict):
+            items.append(ProtocolError(ERR_INVALID_TYPE, f"'{name}' must be a map, got {_tname(it)}", rid))
+            continue
+        try:
+            items.append(_read_control(_Reader(it, name, rid, limits), rid))
+        except ProtocolError as e:
+            items.append(e)
+    return DecodedControlBatch(client, items, rid)  # type: ignore[arg-type]
+
+
+def encode_control_batch_reply(rep: ControlBatchReply) -> bytes:
+    m = _header(rep.rid)
+    results: list[dict[str, Any]] = []
+    for res in rep.results:
+        if res.ok:
+            item: dict[str, Any] = {"ok": True, "tick": int(rep.tick if res.tick is None else res.tick)}
+            if res.features is not None:
+                item["features"] = list(feature_list(res.features))
+            results.append(item)
+        else:
+            if res.code not in ERROR_CODES:
+                raise ValueError(f"unknown error code {res.code!r}")
+            results.append({"ok": False, "error": {"code": res.code, "message": str(res.message)}})
+    m.update(ok=True, tick=int(rep.tick), failed=sum(1 for x in rep.results if not x.ok), results=results)
+    return pack(m)
+
+
+def control_batch_reply_from_map(m: Mapping[str, Any]) -> ControlBatchReply:
+    """A batch reply's map (as decode_reply returns it) as a ControlBatchReply."""
+    r = _Reader(m, "", _peek_rid(dict(m)), DEFAULT_LIMITS)
+    tick = r.int_("tick", 0, (1 << 64) - 1, True)
+    raw_results = r.raw("results", True)
+    if not isinstance(raw_results, list):
+        raise r.fail(ERR_INVALID_TYPE, f"'results' must be an array, got {_tname(raw_results)}")
+    results: list[BatchItemResult] = []
+    for i, x in enumerate(raw_results):
+        if not isinstance(x, dict):
+            raise r.fail(ERR_INVALID_TYPE, f"'results[{i}]' must be a map, got {_tname(x)}")
+        xr = _Reader(x, f"results[{i}]", r.rid, DEFAULT_LIMITS)
+        if xr.bool_("ok", True):
+            results.append(BatchItemResult(tick=xr.int_("tick", 0, (1 << 64) - 1, True),
+                                           features=_reply_features(xr)))
+        else:
+            er = xr.sub("error", True)
+            assert er is not None
+            results.append(BatchItemResult(None, er.str_("code", True) or "", er.str_("message") or ""))
+    return ControlBatchReply(tick, results, _rid(r))  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------------------------------------
+# Replies
+
+
+def encode_submit_reply(rep: SubmitReply) -> bytes:
+    m = _header(rep.rid)
+    m.update(ok=True, cloth=rep.cloth, token=rep.token, key=rep.key, vertices=int(rep.vertices), tick=int(rep.tick))
+    if rep.bundle_key is not None:
+        m["bundle_key"] = rep.bundle_key
+    return pack(m)
+
+
+def encode_control_reply(rep: ControlReply) -> bytes:
+    m = _header(rep.rid)
+    m.update(ok=True, tick=int(rep.tick))
+    if rep.features is not None:  # 1.2
+        m["features"] = list(feature_list(rep.features))
+    return pack(m)
+
+
+def control_reply_from_map(m: Mapping[str, Any]) -> ControlReply:
+    """A control reply's map (as decode_reply returns it): ``features`` is None from a server
+    older than 1.2."""
+    r = _Reader(m, "", _peek_rid(dict(m)), DEFAULT_LIMITS)
+    return ControlReply(r.int_("tick", 0, (1 << 64) - 1, True), _rid(r), _reply_features(r))  # type: ignore[arg-type]
+
+
+def _reply_features(r: _Reader) -> tuple[str, ...] | None:
+    """A reply's ``features`` (1.2): a list of strings; names this side does not know are kept."""
+    v = r.raw("features", False)
+    if v is None:
+        return None
+    if not (isinstance(v, list) and all(isinstance(x, str) for x in v)):
+        raise r.fail(ERR_INVALID_TYPE, f"'{r.name('features')}' must be an array of strings, got {_tname(v)}")
+    return tuple(v)
+
+
+def encode_remove_reply(rep: RemoveReply) -> bytes:
+    m = _header(rep.rid)
+    m.update(ok=True, tick=int(rep.tick))
+    return pack(m)
+
+
+def encode_ok(rid: int = 0, **body: Any) -> bytes:
+    """A success reply with arbitrary body fields (info)."""
+    m = _header(rid)
+    m["ok"] = True
+    m.update(body)
+    return pack(m)
+
+
+def encode_error(code: str, message: str, rid: int = 0) -> bytes:
+    if code not in ERROR_CODES:
+        raise ValueError(f"unknown error code {code!r}")
+    m = _header(rid)
+    m.update(ok=False, error={"code": code, "message": str(message)})
+    return pack(m)
+
+
+def decode_reply(data: bytes | bytearray, limits: Limits = DEFAULT_LIMITS) -> dict[str, Any]:
+    """A reply's map if ``ok`` is true; raises the matching DrapeError when it is an error reply,
+    ProtocolError when the reply itself is malformed."""
+    m = unpack_message(data, limits)
+    ok = m.get("ok")
+    if ok is True:
+        return m
+    if ok is False:
+        err = decode_error_map(m)
+        raise err.exception()
+    raise ProtocolError(ERR_MALFORMED, f"reply must have boolean 'ok', got {_tname(ok)}", _peek_rid(m))
+
+
+def decode_error_map(m: Mapping[str, Any]) -> ErrorReply:
+    r = _Reader(m, "", _peek_rid(dict(m)), DEFAULT_LIMITS)
+    er = r.sub("error", True)
+    assert er is not None
+    code = er.str_("code", True)
+    msg = er.str_("message") or ""
+    return ErrorReply(code, msg, _rid(r))  # type: ignore[arg-type]
+
+
+def decode_error(data: bytes | bytearray) -> ErrorReply:
+    return decode_error_map(unpack_message(data))
+
+
+def submit_reply_from_map(m: Mapping[str, Any]) -> SubmitReply:
+    r = _Reader(m, "", _peek_rid(dict(m)), DEFAULT_LIMITS)
+    return SubmitReply(
+        cloth=r.str_("cloth", True, pattern=ID_RE),  # type: ignore[arg-type]
+        token=r.str_("token", True, pattern=TOKEN_RE),  # type: ignore[arg-type]
+        key=r.str_("key", True),  # type: ignore[arg-type]
+        vertices=r.int_("vertices", 1, 1 << 32, True),  # type: ignore[arg-type]
+        tick=r.int_("tick", 0, (1 << 64) - 1, True),  # type: ignore[arg-type]
+        rid=_rid(r),
+        bundle_key=r.str_("bundle_key"),
+    )
+
+
+def tick_reply_from_map(m: Mapping[str, Any]) -> int:
+    r = _Reader(m, "", _peek_rid(dict(m)), DEFAULT_LIMITS)
+    return r.int_("tick", 0, (1 << 64) - 1, True)  # type: ignore[return-value]
+
+
+def encode_stats(stats: Mapping[str, Any]) -> bytes:
+    m = _header(0)
+    m.update(stats)
+    return pack(m)
+
+
+def decode_stats(data: bytes | bytearray) -> dict[str, Any]:
+    return unpack_message(data)

@@ -1,0 +1,204 @@
+"""Every request and reply as a dataclass (PROTOCOL.md sections 4-8), and the feature-set rule
+of a control (:func:`resolve_features`)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .errors import DrapeError, ProtocolError, error_for
+from .vocabulary import FEATURE_NAMES, Collider, GridSpec, LinkSpec, MeshSpec, PinUpdate, StateOptions, Vec3, _empty_u32
+
+@dataclass(eq=False)
+class SubmitRequest:
+    """Add a cloth. Exactly one of ``grid`` and ``mesh``. ``None`` means "server default"."""
+
+    client: str
+    grid: GridSpec | None = None
+    mesh: MeshSpec | None = None
+    pinned: np.ndarray = field(default_factory=_empty_u32)
+    links: LinkSpec | None = None
+    material: dict[str, Any] = field(default_factory=dict)  # only the fields given
+    features: tuple[str, ...] = ()
+    gravity: Vec3 | None = None
+    wind: Vec3 | None = None
+    iterations: int | None = None
+    substeps: int | None = None
+    chebyshev_rho: float | None = None
+    colliders: tuple[Collider, ...] | None = None
+    state: StateOptions | None = None
+    quality: str | None = None  # 1.1: a QUALITY_PRESETS name; sets iterations, substeps, xpbd, tethers
+    rid: int = 0
+
+    @property
+    def n_vertices(self) -> int:
+        if self.grid is not None:
+            return self.grid.cols * self.grid.rows
+        assert self.mesh is not None
+        return len(self.mesh.vertices)
+
+    def __eq__(self, other: object) -> bool:
+        from .codec import submit_to_map
+
+        return isinstance(other, SubmitRequest) and submit_to_map(self) == submit_to_map(other)
+
+
+@dataclass(eq=False)
+class ControlRequest:
+    """Change a cloth from the next tick on. Every field but cloth and token is optional."""
+
+    cloth: str
+    token: str
+    pins: PinUpdate | None = None
+    colliders: tuple[Collider, ...] | None = None  # replaces the set; () clears it
+    gravity: Vec3 | None = None
+    wind: Vec3 | None = None
+    material: dict[str, Any] = field(default_factory=dict)  # merged over the current material
+    features: tuple[str, ...] | None = None  # replaces the feature set (prefer features_add / features_remove)
+    iterations: int | None = None
+    substeps: int | None = None
+    chebyshev_rho: float | None = None
+    state: StateOptions | None = None
+    reset: bool = False  # back to the rest pose with zero velocity
+    quality: str | None = None  # 1.1: the preset the client wants from now on
+    rid: int = 0
+    features_add: tuple[str, ...] | None = None  # 1.2: switched on, the others kept
+    features_remove: tuple[str, ...] | None = None  # 1.2: switched off, the others kept
+
+    def __eq__(self, other: object) -> bool:
+        from .codec import control_to_map
+
+        return isinstance(other, ControlRequest) and control_to_map(self) == control_to_map(other)
+
+
+@dataclass
+class RemoveRequest:
+    cloth: str
+    token: str
+    rid: int = 0
+
+
+@dataclass
+class InfoRequest:
+    rid: int = 0
+
+
+@dataclass
+class SubmitReply:
+    cloth: str
+    token: str
+    key: str  # the cloth's own state key (where its state is published unless bundled)
+    vertices: int
+    tick: int  # the first tick whose state includes the cloth
+    rid: int = 0
+    bundle_key: str | None = None  # 1.1: set when the state goes in the client's bundle on this key instead
+
+
+@dataclass
+class ControlReply:
+    tick: int  # the first tick whose state reflects the change
+    rid: int = 0
+    features: tuple[str, ...] | None = None  # 1.2: the cloth's feature set after the change
+
+
+@dataclass
+class RemoveReply:
+    tick: int  # the last tick published for the cloth; nothing later is ever published
+    rid: int = 0
+
+
+@dataclass
+class ErrorReply:
+    code: str
+    message: str
+    rid: int = 0
+
+    def exception(self) -> DrapeError:
+        return error_for(self.code, self.message, self.rid)
+
+
+@dataclass(eq=False)
+class ControlBatchRequest:
+    """1.1: controls of many cloths of one client in one request. Each item is a control
+    (cloth, token and any control field); the items' own ``rid`` is not sent."""
+
+    client: str
+    items: list[ControlRequest] = field(default_factory=list)
+    rid: int = 0
+
+    def __eq__(self, other: object) -> bool:
+        from .codec import control_batch_to_map
+
+        return isinstance(other, ControlBatchRequest) and control_batch_to_map(self) == control_batch_to_map(other)
+
+
+@dataclass(eq=False)
+class DecodedControlBatch:
+    """A batch control as a server reads it: the envelope was valid; each item is either its
+    validated ControlRequest or the ProtocolError that rejects that item alone."""
+
+    client: str
+    items: list[ControlRequest | ProtocolError]
+    rid: int = 0
+
+
+@dataclass
+class BatchItemResult:
+    """The outcome of one batch item: ``tick`` when applied, else an error ``code`` and ``message``."""
+
+    tick: int | None = None
+    code: str = ""
+    message: str = ""
+    features: tuple[str, ...] | None = None  # 1.2: the cloth's feature set after an applied item
+
+    @property
+    def ok(self) -> bool:
+        return not self.code
+
+    def exception(self, rid: int = 0) -> DrapeError | None:
+        return None if self.ok else error_for(self.code, self.message, rid)
+
+
+@dataclass
+class ControlBatchReply:
+    """``tick``: the first tick whose states reflect the applied items; one result per item, in order."""
+
+    tick: int
+    results: list[BatchItemResult] = field(default_factory=list)
+    rid: int = 0
+
+    @property
+    def failed(self) -> int:
+        return sum(1 for r in self.results if not r.ok)
+
+
+def resolve_features(current: frozenset[str], req: ControlRequest) -> frozenset[str]:
+    """The feature set a cloth has after the control ``req``, from its set ``current`` (PROTOCOL.md
+    section 5, "Features"). In this order:
+
+    1. ``features`` (when given) replaces the set; otherwise ``current`` is kept;
+    2. ``features_add`` (1.2) switches its names on, then ``features_remove`` (1.2) switches its
+       names off (a name in both is refused by the decoder);
+    3. a non-empty ``colliders`` list switches ``colliders`` on (``[]`` clears the list and leaves
+       the feature as it is);
+    4. ``state.normals`` switches ``normals`` on (true) or off (false).
+
+    A ``quality`` preset is applied by the server afterwards: it sets ``xpbd`` and ``tethers`` as
+    the preset says (every preset of 1.2 switches both on). Pure: validation is the decoder's job."""
+    feats = set(current if req.features is None else req.features)
+    feats.update(req.features_add or ())
+    feats.difference_update(req.features_remove or ())
+    if req.colliders:
+        feats.add("colliders")
+    if req.state is not None and req.state.normals is not None:
+        (feats.add if req.state.normals else feats.discard)("normals")
+    unknown = feats.difference(FEATURE_NAMES)
+    if unknown:
+        raise ValueError(f"unknown feature(s) {sorted(unknown)}; known: {list(FEATURE_NAMES)}")
+    return frozenset(feats)
+
+
+def feature_list(features: frozenset[str] | set[str] | tuple[str, ...]) -> tuple[str, ...]:
+    """A feature set in the protocol's canonical order (FEATURE_NAMES), as replies carry it."""
+    return tuple(f for f in FEATURE_NAMES if f in features)

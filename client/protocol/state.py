@@ -1,0 +1,215 @@
+"""The binary cloth state "DRPS" (PROTOCOL.md section 9): header layout, encodings and the
+float16/quant16/snorm16 arithmetic (the server's whole-frame encoder uses the same functions)."""
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from .errors import ERR_INVALID_VALUE, ERR_MALFORMED, ERR_UNSUPPORTED_VERSION, ProtocolError
+from .keys import PROTOCOL_MAJOR, PROTOCOL_MINOR, VERSION_STRING
+from .vocabulary import ENC_FLOAT16, ENC_FLOAT32, ENCODING_IDS, ENCODING_NAMES, ENCODINGS, Vec3
+
+STATE_MAGIC = b"DRPS"
+#: magic, major, minor, header_size, encoding, reserved, flags, n, tick, server time, bounds min, bounds max, 8 reserved
+STATE_HEADER = struct.Struct("<4sBBHBBHIQQ3f3f8x")
+STATE_HEADER_SIZE = STATE_HEADER.size  # 64
+assert STATE_HEADER_SIZE == 64
+
+FLAG_NORMALS = 1 << 0  # normals follow the positions
+FLAG_RESET = 1 << 1  # this state is a reset (rest pose after a non-finite step, or a reset control)
+KNOWN_FLAGS = FLAG_NORMALS | FLAG_RESET
+
+FLOAT16_MAX = 65504.0
+QUANT_MAX = 65535
+SNORM_MAX = 32767
+
+
+@dataclass(eq=False)
+class ClothState:
+    """One cloth's state at one tick. ``positions`` (n, 3) float32 and ``normals`` (n, 3) float32
+    or None; arrays decoded from float32 payloads are read-only views of the payload."""
+
+    tick: int
+    server_time_ns: int
+    positions: np.ndarray
+    normals: np.ndarray | None = None
+    receive_time_ns: int = 0
+    encoding: str = "float32"
+    flags: int = 0
+    bounds: tuple[Vec3, Vec3] = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    cloth: str = ""
+
+    @property
+    def n_vertices(self) -> int:
+        return len(self.positions)
+
+    @property
+    def reset(self) -> bool:
+        return bool(self.flags & FLAG_RESET)
+
+    @property
+    def latency_ns(self) -> int:
+        """Receive time minus server time (meaningful when both clocks are one host's)."""
+        return self.receive_time_ns - self.server_time_ns
+
+
+def element_size(encoding: int) -> int:
+    """Bytes per coordinate of an encoding id: 4 for float32, 2 for float16 and quant16."""
+    return 4 if encoding == ENC_FLOAT32 else 2
+
+
+_elem_size = element_size
+
+
+def state_size(n_vertices: int, encoding: str | int = "float32", normals: bool = False) -> int:
+    """Bytes of an encoded state (``encoding`` a name of ENCODINGS or its id)."""
+    e = element_size(ENCODING_IDS[encoding] if isinstance(encoding, str) else int(encoding))
+    return STATE_HEADER_SIZE + n_vertices * 3 * e * (2 if normals else 1)
+
+
+def pack_state_header(out: bytearray | memoryview, at: int, encoding: int, flags: int, n: int, tick: int,
+                      server_time_ns: int, lo: Sequence[float], hi: Sequence[float]) -> None:
+    """Write a state header (this side's version, header_size 64) at ``at``."""
+    STATE_HEADER.pack_into(out, at, STATE_MAGIC, PROTOCOL_MAJOR, PROTOCOL_MINOR, STATE_HEADER_SIZE, encoding, 0, flags,
+                           n, tick, server_time_ns, lo[0], lo[1], lo[2], hi[0], hi[1], hi[2])
+
+
+def float16_values(x: np.ndarray) -> np.ndarray:
+    """float16 positions: IEEE half, round to nearest even, clamped to +-65504 first."""
+    return np.clip(x, -FLOAT16_MAX, FLOAT16_MAX).astype("<f2")
+
+
+def quant16_scale(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, scale) in float64 from float32 bounds (any shape ending in 3): per axis
+    scale = 65535 / (max - min), 0 where max == min."""
+    lo64 = np.asarray(lo, np.float32).astype(np.float64)
+    ext = np.asarray(hi, np.float32).astype(np.float64) - lo64
+    return lo64, np.divide(QUANT_MAX, ext, out=np.zeros_like(ext), where=ext > 0)
+
+
+def quant16_round(q: np.ndarray) -> np.ndarray:
+    """In place on float64 ``(x - min) * scale``: clamp to 0..65535 and round half to even."""
+    np.clip(q, 0, QUANT_MAX, out=q)
+    np.rint(q, out=q)
+    return q
+
+
+def quant16_values(x: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """quant16 of positions ``x`` (n, 3) against one cloth's float32 bounds: uint16
+    rint(clamp((x - min) * 65535 / (max - min), 0, 65535)) evaluated in float64."""
+    lo64, scale = quant16_scale(lo, hi)
+    return quant16_round((np.asarray(x, np.float32).astype(np.float64) - lo64) * scale).astype("<u2")
+
+
+def quant16_decode(q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Positions from quant16 values: min + q * (max - min) / 65535 in float64, then float32."""
+    lo64 = np.asarray(lo, np.float32).astype(np.float64)
+    hi64 = np.asarray(hi, np.float32).astype(np.float64)
+    return (lo64 + np.asarray(q, np.float64) * ((hi64 - lo64) / QUANT_MAX)).astype(np.float32)
+
+
+def snorm16_values(normals: np.ndarray) -> np.ndarray:
+    """quant16 normals: int16 rint(clamp(n, -1, 1) * 32767) evaluated in float64."""
+    return np.rint(np.clip(np.asarray(normals, np.float32).astype(np.float64), -1.0, 1.0) * SNORM_MAX).astype("<i2")
+
+
+def encode_normals_into(out: bytearray | memoryview, at: int, normals: np.ndarray, encoding: int) -> None:
+    """Write a normals block of ``encoding`` at ``at``."""
+    nrm = np.asarray(normals, np.float32).reshape(-1, 3)
+    n = len(nrm)
+    if encoding == ENC_FLOAT32:
+        np.frombuffer(out, "<f4", n * 3, at).reshape(n, 3)[:] = nrm
+    elif encoding == ENC_FLOAT16:
+        np.frombuffer(out, "<f2", n * 3, at).reshape(n, 3)[:] = nrm
+    else:
+        np.frombuffer(out, "<i2", n * 3, at).reshape(n, 3)[:] = snorm16_values(nrm)
+
+
+def encode_state(
+    tick: int,
+    server_time_ns: int,
+    positions: np.ndarray,
+    normals: np.ndarray | None = None,
+    encoding: str = "float32",
+    flags: int = 0,
+) -> bytearray:
+    """The binary state payload. ``positions`` (n, 3) finite; normals (n, 3) when given.
+
+    float32: values as is. float16: IEEE half (round to nearest even, clamped to +-65504).
+    quant16: per axis q = rint((x - min) * 65535 / (max - min)) as uint16 against the float32
+    bounds in the header (q = 0 where max == min); normals as snorm16 rint(n * 32767)."""
+    enc = ENCODING_IDS.get(encoding)
+    if enc is None:
+        raise ValueError(f"unknown encoding {encoding!r}; choose from {ENCODINGS}")
+    pos = np.asarray(positions, np.float32).reshape(-1, 3)
+    n = len(pos)
+    if normals is not None:
+        flags |= FLAG_NORMALS
+        nrm = np.asarray(normals, np.float32).reshape(n, 3)
+    else:
+        flags &= ~FLAG_NORMALS
+    if n:
+        lo = pos.min(axis=0)
+        hi = pos.max(axis=0)
+    else:
+        lo = hi = np.zeros(3, np.float32)
+    es = _elem_size(enc)
+    block = n * 3 * es
+    out = bytearray(STATE_HEADER_SIZE + block * (2 if normals is not None else 1))
+    pack_state_header(out, 0, enc, flags, n, tick, server_time_ns, lo.tolist(), hi.tolist())
+    if enc == ENC_FLOAT32:
+        np.frombuffer(out, "<f4", n * 3, STATE_HEADER_SIZE).reshape(n, 3)[:] = pos
+    elif enc == ENC_FLOAT16:
+        np.frombuffer(out, "<f2", n * 3, STATE_HEADER_SIZE).reshape(n, 3)[:] = float16_values(pos)
+    else:
+        np.frombuffer(out, "<u2", n * 3, STATE_HEADER_SIZE).reshape(n, 3)[:] = quant16_values(pos, lo, hi)
+    if normals is not None:
+        encode_normals_into(out, STATE_HEADER_SIZE + block, nrm, enc)
+    return out
+
+
+def decode_state(data: bytes | bytearray | memoryview, cloth: str = "", receive_time_ns: int = 0) -> ClothState:
+    """Parse a state payload. Raises ProtocolError on a bad magic, an unknown major version or
+    encoding, or a payload shorter than its header says. Unknown flag bits, a longer header
+    (a later minor version) and trailing bytes are ignored."""
+    buf = memoryview(data).cast("B") if not isinstance(data, (bytes, bytearray)) else data
+    if len(buf) < STATE_HEADER_SIZE:
+        raise ProtocolError(ERR_MALFORMED, f"state payload of {len(buf)} bytes is shorter than the {STATE_HEADER_SIZE}-byte header")
+    (magic, major, minor, hsize, enc, _res, flags, n, tick, t_ns,
+     x0, y0, z0, x1, y1, z1) = STATE_HEADER.unpack_from(buf, 0)
+    if magic != STATE_MAGIC:
+        raise ProtocolError(ERR_MALFORMED, f"state payload magic {bytes(magic)!r} is not {STATE_MAGIC!r}")
+    if major != PROTOCOL_MAJOR:
+        raise ProtocolError(ERR_UNSUPPORTED_VERSION, f"state version {major}.{minor} is not supported; this side "
+                            f"speaks {VERSION_STRING}")
+    if hsize < STATE_HEADER_SIZE:
+        raise ProtocolError(ERR_MALFORMED, f"state header_size {hsize} is below {STATE_HEADER_SIZE}")
+    if enc not in ENCODING_NAMES:
+        raise ProtocolError(ERR_INVALID_VALUE, f"unknown state encoding {enc}")
+    es = _elem_size(enc)
+    block = n * 3 * es
+    has_n = bool(flags & FLAG_NORMALS)
+    need = hsize + block * (2 if has_n else 1)
+    if len(buf) < need:
+        raise ProtocolError(ERR_MALFORMED, f"state payload of {len(buf)} bytes is shorter than the {need} bytes its "
+                            f"header announces ({n} vertices, {ENCODING_NAMES[enc]}{', normals' if has_n else ''})")
+    lo = np.array((x0, y0, z0), np.float32)
+    hi = np.array((x1, y1, z1), np.float32)
+    nrm = None
+    if enc == ENC_FLOAT32:
+        pos = np.frombuffer(buf, "<f4", n * 3, hsize).reshape(n, 3)
+        if has_n:
+            nrm = np.frombuffer(buf, "<f4", n * 3, hsize + block).reshape(n, 3)
+    elif enc == ENC_FLOAT16:
+        pos = np.frombuffer(buf, "<f2", n * 3, hsize).reshape(n, 3).astype(np.float32)
+        if has_n:
+            nrm = np.frombuffer(buf, "<f2", n * 3, hsize + block).reshape(n, 3).astype(np.float32)
+    else:
+        pos = quant16_decode(np.frombuffer(buf, "<u2", n * 3, hsize).reshape(n, 3), lo, hi)
+        if has_n:
+            nrm = (np.frombuffer(buf, "<i2", n * 3, hsize + block).reshape(n, 3) / SNORM_MAX).astype(np.float32)
+    bounds = (tuple(float(v) for v in lo), tuple(float(v) for v in hi))
+    return ClothState(tick, t_ns, pos, nrm, receive_time_ns, ENCODING_NAMES[enc], flags, bounds, cloth)  # type: ignore[arg-type]

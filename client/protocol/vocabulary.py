@@ -1,0 +1,182 @@
+"""The cloth description vocabulary and limits: features, quality presets, encodings, colliders,
+material fields with their ranges and defaults, link options, grid/mesh/state/pin specs and the
+decoder caps (PROTOCOL.md sections 4, 5, 13). The server (drape.server.sim.params) takes its names,
+defaults and ranges from here."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+MAX_COLLIDERS_PER_CLOTH = 32  # the server's per-cloth collider capacity (device buffers)
+
+#: Decoding caps against hostile input (1.2, PROTOCOL.md section 13), independent of the server's
+#: configured limits: no legitimate message comes near them. Nesting counts maps and arrays (a
+#: batch item's collider centre is at depth 6); elements counts every value of the message.
+MAX_NESTING = 16
+MAX_MAP_KEYS = 128  # keys of any one map, known and unknown together
+MAX_ARRAY_LENGTH = 1024  # elements of any one msgpack array (bulk data travels as bin)
+MAX_STRING_BYTES = 1 << 16  # bytes of any one string
+MAX_ELEMENTS = 1 << 16  # values in one message, containers and scalars together
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Caps every decoder enforces (the server passes its configured values)."""
+
+    max_message_bytes: int = 8 << 20
+    max_vertices: int = 65536  # per cloth
+    max_triangles: int = 262144  # per mesh
+    max_pin_updates: int = 4096  # pin targets in one control message (in one batch item)
+    max_batch_items: int = 64  # items in one batch control (1.1)
+    max_colliders: int = MAX_COLLIDERS_PER_CLOTH
+    max_iterations: int = 100
+    max_substeps: int = 100
+    max_features: int = 16
+    max_coordinate: float = 1.0e5  # |x|, |y|, |z| of any position in metres
+    max_acceleration: float = 1.0e4  # |component| of gravity and wind, m/s^2 resp. m/s
+    max_material_value: float = 1.0e6
+
+
+DEFAULT_LIMITS = Limits()
+
+# ---------------------------------------------------------------------------------------------
+# Cloth description vocabulary (drape.server.sim.params builds its dataclasses from these)
+
+#: Feature names, in the order of the server's feature flags (params.Features fields).
+FEATURE_NAMES = ("xpbd", "tethers", "colliders", "wind", "normals")
+#: What a quality preset switches (1.1): iterations, substeps and these features.
+PRESET_FEATURES = ("xpbd", "tethers")
+# Quality presets (1.1), cheapest first: named solver settings the server defines (iterations,
+# substeps, XPBD, tethers); the server may step a cloth down this list under load and back up.
+QUALITY_PRESETS = ("fast", "balanced", "accurate", "exact")
+ORIENTATIONS = ("horizontal", "vertical")
+#: Link types, in the order of their ids on the server (0 structural, 1 shear, 2 bending).
+LINK_TYPE_NAMES = ("structural", "shear", "bending")
+#: Collider types, in the order of their ids on the server (0 sphere, 1 capsule, 2 plane).
+COLLIDER_TYPES = ("sphere", "capsule", "plane")
+#: 1.2: the least total mass (kg). Smaller masses make per-vertex masses or inverse masses that
+#: float32 cannot hold (subnormal, or infinite), which turns the cloth non-finite every tick.
+MIN_MASS = 1.0e-9
+
+#: name -> (number of components, lower bound, lower bound inclusive, upper bound)
+MATERIAL_FIELDS: dict[str, tuple[int, float, bool, float | None]] = {
+    "mass": (1, MIN_MASS, True, None),
+    "stiffness": (3, 0.0, True, 1.0),
+    "compliance": (3, 0.0, True, None),
+    "damping": (1, 0.0, True, 1.0),
+    "friction": (1, 0.0, True, None),
+    "drag": (1, 0.0, True, None),
+    "lift": (1, 0.0, True, None),
+    "air_density": (1, 0.0, True, None),
+    "tether_limit": (1, 1.0, True, None),
+}
+#: The server's defaults (params.Material, ClothParams) for fields a submission leaves out.
+MATERIAL_DEFAULTS: dict[str, float | tuple[float, float, float]] = {
+    "mass": 1.0,
+    "stiffness": (1.0, 1.0, 1.0),
+    "compliance": (0.0, 0.0, 0.0),
+    "damping": 0.0,
+    "friction": 0.0,
+    "drag": 0.0,
+    "lift": 0.0,
+    "air_density": 1.2,
+    "tether_limit": 1.0,
+}
+DEFAULT_GRAVITY = (0.0, -9.81, 0.0)
+DEFAULT_WIND = (0.0, 0.0, 0.0)
+DEFAULT_ITERATIONS = 10  # 0 = no link solve
+DEFAULT_SUBSTEPS = 1
+DEFAULT_CHEBYSHEV_RHO = 0.0  # Jacobi solver only; 0 = off
+
+Vec3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Sphere:
+    center: Vec3
+    radius: float
+
+
+@dataclass(frozen=True)
+class Capsule:
+    p0: Vec3
+    p1: Vec3
+    radius: float
+
+
+@dataclass(frozen=True)
+class Plane:
+    """The half space normal . x >= offset is outside (normal need not be unit length)."""
+
+    normal: Vec3
+    offset: float
+
+
+Collider = Sphere | Capsule | Plane
+
+
+@dataclass(frozen=True)
+class GridSpec:
+    """A regular grid; vertex (row r, column c) has index r * cols + c (see grid_geometry)."""
+
+    cols: int
+    rows: int
+    width: float = 1.0
+    height: float = 1.0
+    orientation: str = "horizontal"
+    origin: Vec3 = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True, eq=False)
+class MeshSpec:
+    vertices: np.ndarray  # (n, 3) float32
+    triangles: np.ndarray  # (m, 3) uint32
+
+    def __eq__(self, other: object) -> bool:
+        return (
+            isinstance(other, MeshSpec)
+            and np.array_equal(self.vertices, other.vertices)
+            and np.array_equal(self.triangles, other.triangles)
+        )
+
+
+@dataclass(frozen=True)
+class LinkSpec:
+    structural: bool = True
+    shear: bool = True  # grids only: cell diagonals
+    bending: bool = False
+
+
+ENCODINGS = ("float32", "float16", "quant16")
+ENC_FLOAT32, ENC_FLOAT16, ENC_QUANT16 = 0, 1, 2
+ENCODING_IDS = {"float32": ENC_FLOAT32, "float16": ENC_FLOAT16, "quant16": ENC_QUANT16}
+ENCODING_NAMES = {v: k for k, v in ENCODING_IDS.items()}
+
+
+@dataclass(frozen=True)
+class StateOptions:
+    """How a cloth's state is published. None = unchanged (control) or the default (submit:
+    no normals, float32, own key). ``bundle`` (1.1, submission only): publish the state inside
+    the client's bundle on Keys.bundle(client) instead of on the cloth's own key."""
+
+    normals: bool | None = None
+    encoding: str | None = None
+    bundle: bool | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class PinUpdate:
+    indices: np.ndarray  # (k,) uint32, pinned vertices only
+    targets: np.ndarray  # (k, 3) float32, metres
+
+    def __eq__(self, other: object) -> bool:
+        return (
+            isinstance(other, PinUpdate)
+            and np.array_equal(self.indices, other.indices)
+            and np.array_equal(self.targets, other.targets)
+        )
+
+
+def _empty_u32() -> np.ndarray:
+    return np.zeros(0, np.uint32)

@@ -1,8 +1,9 @@
 """Drape client SDK: submit cloths to a Drape server over Zenoh and receive their state.
 
 ``drape.client.protocol`` (the wire protocol) needs numpy and msgpack only; the SDK classes
-(DrapeClient, ClothHandle, zenoh_config) add Zenoh and are imported on first use, so a tool
-that only encodes or decodes messages does not need Zenoh installed. Nothing here imports
+(DrapeClient, ClothHandle, in ``drape.client.sdk``) and the Zenoh configuration shared with the
+server (``zenoh_config``, in ``drape.client.session``) add Zenoh and are imported on first use, so
+a tool that only encodes or decodes messages does not need Zenoh installed. Nothing here imports
 drape.server or OpenCL.
 """
 from __future__ import annotations
@@ -20,6 +21,7 @@ from .protocol import (
     LimitExceeded,
     LinkSpec,
     NotFound,
+    Overloaded,
     Plane,
     ProtocolError,
     Sphere,
@@ -27,9 +29,10 @@ from .protocol import (
 )
 
 if TYPE_CHECKING:
-    from .sdk import BatchError, ClothHandle, ControlBatch, DrapeClient, zenoh_config
+    from .sdk import BatchError, ClothHandle, ControlBatch, DrapeClient
+    from .session import zenoh_config
 
-_SDK = ("BatchError", "ClothHandle", "ControlBatch", "DrapeClient", "zenoh_config")
+_SDK = ("BatchError", "ClothHandle", "ControlBatch", "DrapeClient")
 
 
 def __getattr__(name: str) -> Any:
@@ -37,6 +40,10 @@ def __getattr__(name: str) -> Any:
         from . import sdk
 
         return getattr(sdk, name)
+    if name == "zenoh_config":
+        from .session import zenoh_config
+
+        return zenoh_config
     raise AttributeError(f"module 'drape.client' has no attribute {name!r}")
 
 
@@ -55,6 +62,7 @@ __all__ = [
     "LimitExceeded",
     "LinkSpec",
     "NotFound",
+    "Overloaded",
     "Plane",
     "ProtocolError",
     "Sphere",

@@ -23,7 +23,6 @@ Needs numpy, msgpack and eclipse-zenoh only: nothing here imports drape.server o
 from __future__ import annotations
 
 import itertools
-import json
 import logging
 import secrets
 import threading
@@ -38,6 +37,7 @@ import zenoh
 
 from . import protocol as P
 from .protocol import ClothState, DrapeError, Unavailable
+from .session import zenoh_config  # noqa: F401  (drape.client.sdk.zenoh_config, the pre-1.2 path)
 
 log = logging.getLogger(__name__)
 
@@ -57,24 +57,6 @@ class BatchError(DrapeError):
         super().__init__(first.code, f"{len(errors)} of {len(results)} batch items refused; first: {first.message}",
                          first.rid)
         self.results = results
-
-
-def zenoh_config(
-    mode: str = "peer",
-    listen: Iterable[str] = (),
-    connect: Iterable[str] = (),
-    multicast_scouting: bool = False,
-    base_file: str | None = None,
-) -> zenoh.Config:
-    """A Zenoh configuration: ``base_file`` (JSON5: TLS, auth, access control...) if given,
-    then mode, listen and connect endpoints and multicast scouting set explicitly."""
-    cfg = zenoh.Config.from_file(base_file) if base_file else zenoh.Config()
-    cfg.insert_json5("mode", json.dumps(mode))
-    if mode != "client":
-        cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
-    cfg.insert_json5("connect/endpoints", json.dumps(list(connect)))
-    cfg.insert_json5("scouting/multicast/enabled", json.dumps(bool(multicast_scouting)))
-    return cfg
 
 
 class ClothHandle:
@@ -100,6 +82,7 @@ class ClothHandle:
         self.bundle_key = reply.bundle_key  # 1.1: the state arrives in the client's bundle, not on ``key``
         self.n_vertices = reply.vertices
         self.first_tick = reply.tick
+        self.features: tuple[str, ...] | None = None  # 1.2: as the last waited control's reply reported it
         self.rest_positions = rest_positions
         self.triangles = triangles
         self.received = 0
@@ -236,12 +219,20 @@ class ClothHandle:
         reset: bool = False,
         wait: bool = True,
         quality: str | None = None,
+        features_add: Iterable[str] | None = None,
+        features_remove: Iterable[str] | None = None,
     ) -> int | None:
         """Change any of the cloth's settings from the next tick on; fields left None stay as
         they are (``material`` may name only the fields to change; ``quality``: a preset of
-        protocol.QUALITY_PRESETS, which sets iterations, substeps, XPBD and tethers)."""
+        protocol.QUALITY_PRESETS, which sets iterations, substeps, XPBD and tethers).
+
+        ``features`` replaces the whole feature set (dropping, say, ``normals`` the submission
+        turned on); ``features_add`` / ``features_remove`` (protocol 1.2) switch only the names
+        given. A 1.2 server reports the resulting set, kept in :attr:`features` after a waited
+        control."""
         return self._control(wait, **_set_changes(gravity, wind, material, features, iterations, substeps,
-                                                  chebyshev_rho, normals, encoding, reset, quality))
+                                                  chebyshev_rho, normals, encoding, reset, quality,
+                                                  features_add, features_remove))
 
     def reset(self) -> int:
         """Back to the rest pose with zero velocity."""
@@ -250,11 +241,14 @@ class ClothHandle:
     def _control(self, wait: bool, **changes: Any) -> int | None:
         self._check_open()
         req = P.ControlRequest(self.id, self.token, rid=self.client._next_rid(), **changes)
+        self.client._require_features_delta((req,))
         if not wait:
             self.client.send("control", P.encode_control(req))
             return None
-        rep = self.client.request("control", P.encode_control(req))
-        return P.tick_reply_from_map(rep)
+        rep = P.control_reply_from_map(self.client.request("control", P.encode_control(req)))
+        if rep.features is not None:  # 1.2 servers report the feature set after the change
+            self.features = rep.features
+        return rep.tick
 
     def remove(self, timeout: float | None = None) -> int | None:
         """Remove the cloth; returns the last tick published for it (None if it was already
@@ -605,10 +599,20 @@ class DrapeClient:
             return 0
         return max(1, self._max_batch_items)
 
+    def _require_features_delta(self, reqs: Iterable[P.ControlRequest]) -> None:
+        """features_add / features_remove need a 1.2 server: an older one ignores unknown keys, so
+        the change would be silently lost. Raises ProtocolError before anything is sent."""
+        if any(r.features_add is not None or r.features_remove is not None for r in reqs) \
+                and self.server_version < (1, 2):
+            raise P.ProtocolError(P.ERR_INVALID_VALUE, "features_add / features_remove need a protocol 1.2 server; "
+                                  f"this one speaks {self.server_version[0]}.{self.server_version[1]}: send the "
+                                  "whole set with features= instead")
+
     def _send_controls(self, items: list[tuple[ClothHandle, P.ControlRequest]], wait: bool,
                        on_error: ErrorCallback | None, timeout: float | None) -> list[int | DrapeError] | None:
         if not items:
             return [] if wait else None
+        self._require_features_delta(r for _, r in items)
         limit = self._server_batch_limit()
         if not limit:  # a 1.0 server: one control per item
             log.debug("server speaks %s: batch sent as %d controls", self._server_version, len(items))
@@ -822,9 +826,11 @@ class ControlBatch:
             material: Mapping[str, Any] | Any = None, features: Iterable[str] | None = None,
             iterations: int | None = None, substeps: int | None = None, chebyshev_rho: float | None = None,
             normals: bool | None = None, encoding: str | None = None, reset: bool = False,
-            quality: str | None = None) -> "ControlBatch":
+            quality: str | None = None, features_add: Iterable[str] | None = None,
+            features_remove: Iterable[str] | None = None) -> "ControlBatch":
+        """As ClothHandle.set, for one item of the batch (``features_add`` / ``features_remove``: 1.2)."""
         return self.add(handle, **_set_changes(gravity, wind, material, features, iterations, substeps, chebyshev_rho,
-                                               normals, encoding, reset, quality))
+                                               normals, encoding, reset, quality, features_add, features_remove))
 
     def reset(self, handle: ClothHandle) -> "ControlBatch":
         return self.add(handle, reset=True)
@@ -879,9 +885,16 @@ def _pin_changes(indices: Sequence[int] | np.ndarray, targets: Sequence[Sequence
 def _set_changes(gravity: Sequence[float] | None, wind: Sequence[float] | None, material: Any,
                  features: Iterable[str] | None, iterations: int | None, substeps: int | None,
                  chebyshev_rho: float | None, normals: bool | None, encoding: str | None, reset: bool,
-                 quality: str | None = None) -> dict[str, Any]:
+                 quality: str | None = None, features_add: Iterable[str] | None = None,
+                 features_remove: Iterable[str] | None = None) -> dict[str, Any]:
     state = P.StateOptions(normals, encoding) if (normals is not None or encoding is not None) else None
+    add = _feature_names(features_add)
+    remove = _feature_names(features_remove)
+    if add and remove and set(add) & set(remove):
+        raise ValueError(f"feature(s) {sorted(set(add) & set(remove))} both added and removed")
     return dict(
+        features_add=add,
+        features_remove=remove,
         gravity=_vec3(gravity),
         wind=_vec3(wind),
         material=P.material_to_map(material) if material is not None else {},
@@ -893,6 +906,16 @@ def _set_changes(gravity: Sequence[float] | None, wind: Sequence[float] | None, 
         reset=reset,
         quality=quality,
     )
+
+
+def _feature_names(names: Iterable[str] | None) -> tuple[str, ...] | None:
+    if names is None:
+        return None
+    out = (names,) if isinstance(names, str) else tuple(names)
+    bad = [n for n in out if n not in P.FEATURE_NAMES]
+    if bad:
+        raise ValueError(f"unknown feature(s) {bad}; known: {list(P.FEATURE_NAMES)}")
+    return out
 
 
 def _vec3(v: Sequence[float] | None) -> P.Vec3 | None:

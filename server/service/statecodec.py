@@ -11,7 +11,9 @@ float32 array (``positions``, with ``offsets[i]:offsets[i + 1]`` the vertices of
   it is put, so a buffer may be rewritten as soon as ``put`` returns).
 
 The bytes are exactly those of :func:`drape.client.protocol.encode_state` and
-:func:`drape.client.protocol.encode_bundle` (tests/test_bundles.py checks that for every encoding).
+:func:`drape.client.protocol.encode_bundle` (tests/test_bundles.py checks that for every encoding):
+every layout number, size and the float16 / quant16 / snorm16 arithmetic come from the protocol
+package (``drape.client.protocol.state`` and ``.bundle``); only the batching over cloths is here.
 """
 from __future__ import annotations
 
@@ -25,8 +27,8 @@ _ENTRY_PAD = bytes(P.BUNDLE_ALIGN)
 
 
 def state_bytes(n: int, encoding: int, normals: bool) -> int:
-    """Size of one encoded state of ``n`` vertices."""
-    return P.STATE_HEADER_SIZE + n * 3 * (4 if encoding == P.ENC_FLOAT32 else 2) * (2 if normals else 1)
+    """Size of one encoded state of ``n`` vertices (protocol.state_size)."""
+    return P.state_size(n, encoding, normals)
 
 
 @dataclass(eq=False)
@@ -87,16 +89,14 @@ class FrameEncoder:
                 counts = np.array([self._counts[i] for i in idx], np.int64)
                 local = np.zeros(len(idx) + 1, np.int64)
                 np.cumsum(counts, out=local[1:])
+            es = P.element_size(enc)
             if enc == P.ENC_FLOAT32:
                 block = src
-                es = 4
             elif enc == P.ENC_FLOAT16:
-                block = np.clip(src, -P.FLOAT16_MAX, P.FLOAT16_MAX).astype("<f2")
-                es = 2
+                block = P.float16_values(src)
             else:
                 block = np.empty((len(src), 3), "<u2")
                 _quantise(src, lo[idx], hi[idx], np.diff(local), block)
-                es = 2
             if len(idx) == k:
                 starts_b = {i: int(off[i]) * 3 * es for i in idx}
             else:
@@ -110,19 +110,16 @@ class FrameEncoder:
                     normals: np.ndarray | None) -> int:
         """Write cloth ``i``'s state payload into ``out`` at ``at``; returns where it ends."""
         n = self._counts[i]
-        es = 4 if encoding == P.ENC_FLOAT32 else 2
-        block = n * 3 * es
+        block = n * 3 * P.element_size(encoding)
         flags = (flags | P.FLAG_NORMALS) if normals is not None else (flags & ~P.FLAG_NORMALS)
-        lo, hi = self._lo[i], self._hi[i]
-        P.STATE_HEADER.pack_into(out, at, P.STATE_MAGIC, P.PROTOCOL_MAJOR, P.PROTOCOL_MINOR, P.STATE_HEADER_SIZE,
-                                 encoding, 0, flags, n, self.tick, self.time_ns, lo[0], lo[1], lo[2], hi[0], hi[1], hi[2])
+        P.pack_state_header(out, at, encoding, flags, n, self.tick, self.time_ns, self._lo[i], self._hi[i])
         g = self._groups[encoding]
         s = g.start[i]
         p0 = at + P.STATE_HEADER_SIZE
         out[p0:p0 + block] = g.data[s:s + block]
         end = p0 + block
         if normals is not None:
-            _write_normals(out, end, normals, encoding)
+            P.encode_normals_into(out, end, normals, encoding)
             end += block
         return end
 
@@ -143,7 +140,7 @@ class FrameEncoder:
                 cid = ids[cloth] = cloth.encode("ascii")
                 if len(ids) > 65536:
                     ids.clear()
-            h = P.align8(P.BUNDLE_ENTRY_SIZE + len(cid))
+            h = P.bundle_entry_header_size(cloth)
             n_state = self.state_size(i, enc, nrm is not None)
             P.BUNDLE_ENTRY.pack_into(out, at, h, len(cid), n_state)
             e = at + P.BUNDLE_ENTRY_SIZE + len(cid)
@@ -156,12 +153,10 @@ class FrameEncoder:
 
 
 def _quantise(src: np.ndarray, lo: np.ndarray, hi: np.ndarray, counts: np.ndarray, out: np.ndarray) -> None:
-    """quant16 of consecutive cloths (``counts`` vertices each) of ``src`` into ``out``: per axis
-    rint((x - min) * 65535 / (max - min)) in float64 against the float32 bounds, clamped to
-    0..65535, 0 where max == min; exactly what protocol.encode_state computes."""
-    lo64 = lo.astype(np.float64)
-    ext = hi.astype(np.float64) - lo64
-    scale = np.divide(P.QUANT_MAX, ext, out=np.zeros_like(ext), where=ext > 0)
+    """quant16 of consecutive cloths (``counts`` vertices each) of ``src`` into ``out``, with the
+    protocol's scale (protocol.quant16_scale) and rounding (protocol.quant16_round): exactly what
+    protocol.encode_state computes, for many cloths in one pass."""
+    lo64, scale = P.quant16_scale(lo, hi)
     q = src.astype(np.float64)
     if (counts == counts[0]).all():  # cloths of one size: broadcast instead of repeating
         qv = q.reshape(len(counts), int(counts[0]), 3)
@@ -170,18 +165,4 @@ def _quantise(src: np.ndarray, lo: np.ndarray, hi: np.ndarray, counts: np.ndarra
     else:
         q -= np.repeat(lo64, counts, axis=0)
         q *= np.repeat(scale, counts, axis=0)
-    np.clip(q, 0, P.QUANT_MAX, out=q)
-    np.rint(q, out=q)
-    out[:] = q
-
-
-def _write_normals(out: bytearray, at: int, normals: np.ndarray, encoding: int) -> None:
-    nrm = np.asarray(normals, np.float32).reshape(-1, 3)
-    n = len(nrm)
-    if encoding == P.ENC_FLOAT32:
-        np.frombuffer(out, "<f4", n * 3, at).reshape(n, 3)[:] = nrm
-    elif encoding == P.ENC_FLOAT16:
-        np.frombuffer(out, "<f2", n * 3, at).reshape(n, 3)[:] = nrm
-    else:
-        qn = np.rint(np.clip(nrm.astype(np.float64), -1.0, 1.0) * P.SNORM_MAX)
-        np.frombuffer(out, "<i2", n * 3, at).reshape(n, 3)[:] = qn
+    out[:] = P.quant16_round(q)

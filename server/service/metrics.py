@@ -107,6 +107,14 @@ def phase_timers(server: Any) -> Mapping[str, PhaseTimer]:
     return timers or {}
 
 
+def overload_refusals(stats: Mapping[str, Any]) -> int:
+    """Submits refused for overload: the stats' ``overload_refusals`` when the server counts them
+    apart, else its ``overloaded`` error replies (0 for a server older than protocol 1.2)."""
+    if "overload_refusals" in stats:
+        return int(_num(stats["overload_refusals"]))
+    return int(_num((stats.get("errors") or {}).get(getattr(P, "ERR_OVERLOADED", "overloaded"), 0)))
+
+
 def _num(v: Any) -> float:
     try:
         return float(v)
@@ -167,8 +175,7 @@ def families(stats: Mapping[str, Any], info: Mapping[str, Any], timers: Mapping[
     for code in sorted(set(P.ERROR_CODES) | set(errors_by_code)):
         errors.add_metric([str(code)], _num(errors_by_code.get(code, 0)))
     yield errors
-    overloaded = getattr(P, "ERR_OVERLOADED", "overloaded")
-    yield _counter("drape_overload_refusals", stats.get("overload_refusals", errors_by_code.get(overloaded, 0)))
+    yield _counter("drape_overload_refusals", overload_refusals(stats))
 
     quality = stats.get("quality") or {}
     presets = dict(quality.get("presets") or {})

@@ -1,0 +1,312 @@
+"""The frame encoded on the device (drape.server.sim.opencl.encode, kernels/encode.cl): every
+publication's bytes equal drape.client.protocol's encode_state / encode_bundle, on real OpenCL."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pyopencl as cl
+import pytest
+
+from drape.client import protocol as P
+from drape.server.sim.opencl.encode import (HEADER_OFFSETS, QUANT16_FP32_TOLERANCE, ClothEntry, DeviceEncoder,
+                                            FramePlan, Publication)
+
+VECTORS = Path(__file__).resolve().parents[1] / "vectors"
+MF = cl.mem_flags
+ENCS = (P.ENC_FLOAT32, P.ENC_FLOAT16, P.ENC_QUANT16)
+
+
+def _buffer(device, host: np.ndarray) -> cl.Buffer:
+    return cl.Buffer(device.ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(host, np.float32))
+
+
+def _world_arrays(rng: np.random.Generator, cloths: list[ClothEntry], pos: list[np.ndarray],
+                  nrm: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """float4 position and normal arrays as the world holds them; the gaps between cloths and
+    the w components are NaN, so reading outside a cloth's range shows in its bounds."""
+    end = max((c.vbase + c.n for c in cloths), default=0) + int(rng.integers(0, 8))
+    P4 = np.full((max(end, 1), 4), np.nan, np.float32)
+    N4 = np.full((max(end, 1), 4), np.nan, np.float32)
+    for c, p, m in zip(cloths, pos, nrm):
+        P4[c.vbase:c.vbase + c.n, :3] = p
+        N4[c.vbase:c.vbase + c.n, :3] = m
+    return P4, N4
+
+
+def _random_positions(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Positions of one cloth, from a menu of awkward cases."""
+    kind = int(rng.integers(0, 7))
+    scale = 10.0 ** rng.uniform(-3, 3)
+    p = rng.normal(rng.normal(0, 5, 3), scale, (n, 3))
+    if kind == 1:  # degenerate bounds: one axis constant, or the whole cloth one point
+        p[:, rng.integers(0, 3)] = rng.normal()
+    elif kind == 2:
+        p[:] = rng.normal(0, 3, 3)
+    elif kind == 3:  # beyond float16's range: clamped to +-65504; values near the top
+        p = rng.choice([65504.0, 65519.0, 65520.0, 7e4, 1e6, -65519.9, -1e9, 3.0], (n, 3))
+    elif kind == 4:  # float16 subnormals and exact quant16 ties: extent 65535, values k + 0.5
+        p = rng.integers(0, 65535, (n, 3)) + rng.choice([0.0, 0.5], (n, 3))
+        p[0], p[-1] = 0.0, 65535.0
+    elif kind == 5:
+        p = rng.uniform(-1e-4, 1e-4, (n, 3)) * rng.choice([1.0, 1e-3], (n, 3))
+    return p.astype(np.float32)
+
+
+def _random_normals(rng: np.random.Generator, n: int) -> np.ndarray:
+    m = rng.normal(0, 1, (n, 3))
+    m /= np.linalg.norm(m, axis=1, keepdims=True)
+    m[rng.random(n) < 0.1] *= 1.01  # a little past +-1: snorm16 clamps
+    return m.astype(np.float32)
+
+
+def _random_id(rng: np.random.Generator) -> str:
+    alphabet = np.array(list("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_.-"))
+    return "".join(rng.choice(alphabet, int(rng.integers(1, 65))))
+
+
+def _random_frame(rng: np.random.Generator, k: int, max_n: int = 700):
+    """k cloths at random places (gaps, random order) of the world's buffers, random encodings
+    and normals, grouped into singles and bundles; some cloths in no publication."""
+    sizes = rng.integers(1, max_n, k)
+    sizes[rng.random(k) < 0.2] = 1
+    order = rng.permutation(k)
+    vbase = np.zeros(k, np.int64)
+    at = int(rng.integers(0, 5))
+    for i in order:
+        vbase[i] = at
+        at += int(sizes[i]) + int(rng.integers(0, 5))
+    cloths = [ClothEntry(_random_id(rng), int(vbase[i]), int(sizes[i]), int(rng.choice(ENCS)), bool(rng.random() < 0.5))
+              for i in range(k)]
+    pos = [_random_positions(rng, c.n) for c in cloths]
+    nrm = [_random_normals(rng, c.n) for c in cloths]
+    published = rng.permutation(k)[: max(1, k - int(rng.integers(0, 3)))]
+    pubs: list[Publication] = []
+    rest = list(published)
+    while rest:
+        take = int(rng.integers(1, 6))
+        group, rest = rest[:take], rest[take:]
+        if take == 1 and rng.random() < 0.6:
+            pubs.append(Publication(f"state/{cloths[group[0]].cloth}", (int(group[0]),)))
+        else:
+            pubs.append(Publication(f"bundle/{len(pubs)}", tuple(int(i) for i in group), bundle=True))
+    rng.shuffle(pubs)  # type: ignore[arg-type]
+    return cloths, pos, nrm, pubs
+
+
+def _reference(cloths, pos, nrm, pubs, tick, time_ns, flags) -> list[bytes]:
+    def state(i: int) -> bytearray:
+        c = cloths[i]
+        return P.encode_state(tick, time_ns, pos[i], nrm[i] if c.normals else None, P.ENCODING_NAMES[c.encoding],
+                              int(flags[i]))
+
+    out = []
+    for pub in pubs:
+        if pub.bundle:
+            out.append(bytes(P.encode_bundle(tick, time_ns, [(cloths[i].cloth, state(i)) for i in pub.cloths])))
+        else:
+            out.append(bytes(state(pub.cloths[0])))
+    return out
+
+
+def _encode(device, enc: DeviceEncoder, P4, N4, tick, time_ns, flags) -> list[bytes]:
+    pb, nb = _buffer(device, P4), _buffer(device, N4)
+    enc.encode(device.queue, pb, nb, tick, time_ns, flags)
+    return [bytes(v) for v in enc.slices()]
+
+
+def _assert_same(got: list[bytes], want: list[bytes], pubs) -> None:
+    assert len(got) == len(want)
+    for g, w, pub in zip(got, want, pubs):
+        assert len(g) == len(w), pub
+        if g != w:
+            d = np.flatnonzero(np.frombuffer(g, np.uint8) != np.frombuffer(w, np.uint8))
+            pytest.fail(f"{pub.key}: {len(d)} bytes differ, first at {d[:8].tolist()}")
+
+
+@pytest.mark.parametrize("k", [1, 7, 40])
+def test_random_frames_equal_the_protocol_encoder(device, rng, k):
+    cloths, pos, nrm, pubs = _random_frame(rng, k)
+    P4, N4 = _world_arrays(rng, cloths, pos, nrm)
+    plan = FramePlan.build(cloths, pubs)
+    enc = DeviceEncoder(device)
+    enc.set_plan(plan)
+    try:
+        for tick in (1, 2**40 + 3):  # the same plan over ticks: dynamic fields rewritten, ring of host buffers
+            time_ns = int(rng.integers(0, 2**63))
+            flags = rng.choice([0, P.FLAG_RESET, P.FLAG_NORMALS, 0x8000], k).astype(np.uint16)
+            got = _encode(device, enc, P4, N4, tick, time_ns, flags)
+            _assert_same(got, _reference(cloths, pos, nrm, pubs, tick, time_ns, flags), pubs)
+            whole = bytes(enc.read())
+            for view, off in zip(got, plan.pub_offset.tolist()):
+                assert whole[off:off + len(view)] == view
+            pos = [p[rng.permutation(len(p))] for p in pos]  # new positions for the next tick
+            P4, N4 = _world_arrays(rng, cloths, pos, nrm)
+        assert len(enc.nonfinite()) == 0
+    finally:
+        enc.close()
+
+
+def test_views_of_the_previous_frame_stay_valid(device, rng):
+    cloths, pos, nrm, pubs = _random_frame(rng, 5, 100)
+    P4, N4 = _world_arrays(rng, cloths, pos, nrm)
+    enc = DeviceEncoder(device, host_buffers=2)
+    enc.set_plan(FramePlan.build(cloths, pubs))
+    zeros = np.zeros(len(cloths), np.uint16)
+    enc.encode(device.queue, _buffer(device, P4), _buffer(device, N4), 10, 100, zeros)
+    first = enc.slices()
+    enc.encode(device.queue, _buffer(device, P4 * 2), _buffer(device, N4), 11, 101, zeros)
+    _assert_same([bytes(v) for v in first], _reference(cloths, pos, nrm, pubs, 10, 100, zeros), pubs)
+    _assert_same([bytes(v) for v in enc.slices()], _reference(cloths, [p * 2 for p in pos], nrm, pubs, 11, 101, zeros),
+                 pubs)
+    enc.close()
+
+
+def test_state_vectors(device):
+    """tests/vectors/state.json (PROTOCOL.md's test vectors) reproduced by the device."""
+    vectors = json.loads((VECTORS / "state.json").read_text())
+    for v in vectors:
+        pos = np.array(v["input"]["positions"], np.float32)
+        nrm = v["input"]["normals"]
+        enc_id = P.ENCODING_IDS[v["value"]["encoding"]]
+        c = ClothEntry("c", 2, len(pos), enc_id, nrm is not None)
+        P4 = np.zeros((len(pos) + 4, 4), np.float32)
+        N4 = np.zeros_like(P4)
+        P4[2:2 + len(pos), :3] = pos
+        if nrm is not None:
+            N4[2:2 + len(pos), :3] = np.array(nrm, np.float32)
+        enc = DeviceEncoder(device)
+        enc.set_plan(FramePlan.build([c], [Publication("k", (0,))]))
+        got = _encode(device, enc, P4, N4, v["value"]["tick"], v["value"]["server_time_ns"],
+                      np.array([v["input"]["flags"]], np.uint16))
+        assert got[0] == bytes.fromhex(v["hex"]), v["name"]
+        enc.close()
+
+
+def test_without_fp64_quant16_within_tolerance(device, rng):
+    """A device without cl_khr_fp64 evaluates quant16 in float: every byte equal but quant16
+    positions and snorm16 normals, which differ by at most QUANT16_FP32_TOLERANCE."""
+    cloths, pos, nrm, _ = _random_frame(rng, 12, 400)
+    cloths = [ClothEntry(c.cloth, c.vbase, c.n, P.ENC_QUANT16, c.normals) for c in cloths]
+    pubs = [Publication(str(i), (i,)) for i in range(len(cloths))]
+    P4, N4 = _world_arrays(rng, cloths, pos, nrm)
+    enc = DeviceEncoder(device, fp64=False)
+    enc.set_plan(FramePlan.build(cloths, pubs))
+    flags = np.zeros(len(cloths), np.uint16)
+    got = _encode(device, enc, P4, N4, 5, 6, flags)
+    want = _reference(cloths, pos, nrm, pubs, 5, 6, flags)
+    worst = 0
+    for g, w, c in zip(got, want, cloths):
+        assert g[:P.STATE_HEADER_SIZE] == w[:P.STATE_HEADER_SIZE]
+        qg = np.frombuffer(g, "<u2", c.n * 3, P.STATE_HEADER_SIZE).astype(np.int64)
+        qw = np.frombuffer(w, "<u2", c.n * 3, P.STATE_HEADER_SIZE).astype(np.int64)
+        worst = max(worst, int(np.abs(qg - qw).max()))
+        if c.normals:
+            at = P.STATE_HEADER_SIZE + c.n * 6
+            sg = np.frombuffer(g, "<i2", c.n * 3, at).astype(np.int64)
+            sw = np.frombuffer(w, "<i2", c.n * 3, at).astype(np.int64)
+            worst = max(worst, int(np.abs(sg - sw).max()))
+        # and what a client decodes is within one quantisation step of the float64 truth
+        st = P.decode_state(g)
+        lo, hi = np.array(st.bounds, np.float64)
+        err = np.abs(st.positions.astype(np.float64) - pos[cloths.index(c)].astype(np.float64))
+        step = (hi - lo) / P.QUANT_MAX
+        assert np.all(err <= 1.5 * step + 1e-6 * max(np.abs(lo).max(), np.abs(hi).max()) + 1e-30)
+    assert worst <= QUANT16_FP32_TOLERANCE
+    enc.close()
+
+
+def test_mixed_signed_zero_bound_may_differ_in_sign_only(device):
+    """The one documented byte difference: a bound of zero on an axis holding both +0.0 and
+    -0.0 carries either sign (numpy picks by evaluation order); its value is the same."""
+    pos = np.array([[0.0, 1.0, 2.0], [-0.0, 3.0, 4.0], [1.0, 5.0, 6.0]], np.float32)
+    c = ClothEntry("z", 0, 3, P.ENC_QUANT16)
+    P4 = np.zeros((3, 4), np.float32)
+    P4[:, :3] = pos
+    enc = DeviceEncoder(device)
+    enc.set_plan(FramePlan.build([c], [Publication("k", (0,))]))
+    got = _encode(device, enc, P4, P4, 1, 2, np.zeros(1, np.uint16))[0]
+    want = bytes(P.encode_state(1, 2, pos, encoding="quant16"))
+    d = np.flatnonzero(np.frombuffer(got, np.uint8) != np.frombuffer(want, np.uint8))
+    assert set(d.tolist()) <= {HEADER_OFFSETS["ST_MIN"] + 3}  # the sign byte of min.x, if anything
+    assert P.decode_state(got).bounds == P.decode_state(want).bounds
+    assert np.array_equal(P.decode_state(got).positions, P.decode_state(want).positions)
+    enc.close()
+
+
+def test_non_finite_cloths_show_in_their_bounds(device, rng):
+    """NaN never passes silently: a cloth holding a NaN or an infinity has non-finite header
+    bounds and nonfinite() names it; the other cloths are encoded exactly."""
+    cloths, pos, nrm, _ = _random_frame(rng, 6, 200)
+    pubs = [Publication(str(i), (i,)) for i in range(6)]
+    pos[1][rng.integers(0, cloths[1].n)] = (0.0, np.nan, 0.0)
+    pos[4][rng.integers(0, cloths[4].n), 2] = -np.inf
+    P4, N4 = _world_arrays(rng, cloths, pos, nrm)
+    enc = DeviceEncoder(device)
+    enc.set_plan(FramePlan.build(cloths, pubs))
+    flags = np.zeros(6, np.uint16)
+    got = _encode(device, enc, P4, N4, 3, 4, flags)
+    assert sorted(enc.nonfinite().tolist()) == [1, 4]
+    b1 = P.STATE_HEADER.unpack_from(got[1])[10:16]  # bounds min xyz, max xyz
+    b4 = P.STATE_HEADER.unpack_from(got[4])[10:16]
+    assert np.isnan(b1[1]) and np.isnan(b1[4]) and b4[2] == -np.inf
+    finite = [0, 2, 3, 5]
+    want = _reference(cloths, pos, nrm, [pubs[i] for i in finite], 3, 4, flags)
+    assert [got[i] for i in finite] == want
+    enc.close()
+
+
+def test_bad_plans_are_refused():
+    a, b = ClothEntry("a", 0, 4), ClothEntry("b", 4, 4)
+    with pytest.raises(ValueError, match="publications 0 and 1"):
+        FramePlan.build([a, b], [Publication("x", (0,)), Publication("y", (0, 1), True)])
+    with pytest.raises(ValueError, match="has 2 cloths"):
+        FramePlan.build([a, b], [Publication("x", (0, 1))])
+    with pytest.raises(ValueError, match="no cloth"):
+        FramePlan.build([a], [Publication("x", (), True)])
+    with pytest.raises(ValueError, match="names cloth 2"):
+        FramePlan.build([a, b], [Publication("x", (2,))])
+    with pytest.raises(ValueError, match="unknown encoding"):
+        FramePlan.build([ClothEntry("a", 0, 4, 7)], [Publication("x", (0,))])
+    with pytest.raises(ValueError, match="invalid cloth id"):
+        FramePlan.build([ClothEntry("bad id", 0, 4)], [Publication("x", (0,), True)])
+    with pytest.raises(ValueError, match="vertex range"):
+        FramePlan.build([ClothEntry("a", -1, 4)], [Publication("x", (0,))])
+
+
+def test_bad_encode_calls_are_refused_and_lose_nothing(device, rng):
+    cloths = [ClothEntry("a", 0, 10, P.ENC_FLOAT16, True), ClothEntry("b", 10, 5, P.ENC_QUANT16)]
+    pubs = [Publication("x", (0, 1), True)]
+    pos = [rng.normal(0, 1, (10, 3)).astype(np.float32), rng.normal(0, 1, (5, 3)).astype(np.float32)]
+    nrm = [_random_normals(rng, 10), _random_normals(rng, 5)]
+    P4, N4 = _world_arrays(rng, cloths, pos, nrm)
+    enc = DeviceEncoder(device)
+    with pytest.raises(RuntimeError, match="before set_plan"):
+        enc.encode(device.queue, _buffer(device, P4), None, 0, 0)
+    enc.set_plan(FramePlan.build(cloths, pubs))
+    pb, nb = _buffer(device, P4), _buffer(device, N4)
+    flags = np.zeros(2, np.uint16)
+    enc.encode(device.queue, pb, nb, 1, 2, flags)
+    before = [bytes(v) for v in enc.slices()]
+    with pytest.raises(ValueError, match="positions buffer"):
+        enc.encode(device.queue, _buffer(device, P4[:12]), nb, 3, 4)
+    with pytest.raises(ValueError, match="no normals buffer"):
+        enc.encode(device.queue, pb, None, 3, 4)
+    with pytest.raises(ValueError, match="flags of shape"):
+        enc.encode(device.queue, pb, nb, 3, 4, np.zeros(3, np.uint16))
+    with pytest.raises(ValueError, match="16 bits"):
+        enc.encode(device.queue, pb, nb, 3, 4, np.array([0, 70000]))
+    with pytest.raises(ValueError, match="unsigned 64-bit"):
+        enc.encode(device.queue, pb, nb, -1, 4)
+    assert [bytes(v) for v in enc.slices()] == before  # the last good frame is still there
+    _assert_same(before, _reference(cloths, pos, nrm, pubs, 1, 2, flags), pubs)
+    enc.close()
+
+
+def test_empty_plan(device):
+    enc = DeviceEncoder(device)
+    enc.set_plan(FramePlan.build([ClothEntry("a", 0, 3)], []))
+    enc.encode(device.queue, _buffer(device, np.zeros((3, 4))), None, 1, 2).wait()
+    assert enc.slices() == [] and len(enc.read()) == 0 and len(enc.nonfinite()) == 0
+    enc.close()

@@ -220,13 +220,13 @@ class Ops:
         if self._stop.is_set():
             return
         self._stop.set()
-        if self.notify:
-            self._notify("STOPPING=1")
         if self._http is not None:
             self._http.shutdown()
             self._http.server_close()
         for t in self._threads:
             t.join(timeout)
+        if self.notify:  # after the watch ended, so no WATCHDOG=1 follows it
+            self._notify("STOPPING=1")
 
     def __enter__(self) -> "Ops":
         return self

@@ -1,3 +1,5 @@
 //! Drape client: the wire protocol (module [`wire`], no network) and, with the default
 //! `client` feature, a Zenoh client ([`client`]) and its C ABI ([`ffi`]).
 pub mod wire;
+#[cfg(feature = "client")]
+pub mod client;

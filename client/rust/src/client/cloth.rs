@@ -1,0 +1,331 @@
+//! A submitted cloth: its handle (stable across failover), its newest state read into caller
+//! buffers, its controls (waited for or not), batch controls and removal.
+use super::recv::Latest;
+use super::{Event, Inner};
+use crate::wire::error::{Error, ErrorCode, Result};
+use crate::wire::msg::{ControlBatch, Pins, Submit};
+use crate::wire::replies::{tick_of, BatchReply};
+use crate::wire::{decode_state_into, Control, Encoding};
+use std::collections::BTreeMap;
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::Duration;
+use zenoh::pubsub::Subscriber;
+
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) enum Status {
+    Pending,
+    Live,
+    Resubmitting,
+    Lost(Error),
+    Removed,
+}
+
+pub(crate) struct Slot {
+    pub(crate) status: Status,
+    pub(crate) server: String,
+    pub(crate) id: String,
+    pub(crate) token: String,
+    pub(crate) key: String,
+    pub(crate) bundle_key: Option<String>,
+    pub(crate) first_tick: u64,
+    pub(crate) sub: Option<Subscriber<()>>,
+    pub(crate) latest: Option<Latest>,
+    pub(crate) fresh: bool,
+    pub(crate) received: u64,
+    pub(crate) dropped: u64,
+    pub(crate) invalid: u64,
+}
+
+pub(crate) struct ClothInner {
+    pub(crate) handle: u64,
+    /// The client's copy of the submission (resubmitted as is on failover).
+    pub(crate) submit: Submit,
+    pub(crate) rest: Vec<f32>,
+    pub(crate) triangles: Vec<u32>,
+    pub(crate) n_vertices: u32,
+    pub(crate) slot: Mutex<Slot>,
+    pub(crate) cv: Condvar,
+}
+
+impl ClothInner {
+    pub(crate) fn new(handle: u64, submit: Submit, rest: Vec<f32>, triangles: Vec<u32>) -> Arc<ClothInner> {
+        let n_vertices = submit.vertex_count() as u32;
+        let slot = Slot {
+            status: Status::Pending,
+            server: String::new(),
+            id: String::new(),
+            token: String::new(),
+            key: String::new(),
+            bundle_key: None,
+            first_tick: 0,
+            sub: None,
+            latest: None,
+            fresh: false,
+            received: 0,
+            dropped: 0,
+            invalid: 0,
+        };
+        Arc::new(ClothInner { handle, submit, rest, triangles, n_vertices, slot: Mutex::new(slot), cv: Condvar::new() })
+    }
+
+    /// (server, cloth id, token, vertex count) of a live cloth, else why it is not live.
+    pub(crate) fn owner(&self) -> Result<(String, String, String, u32)> {
+        let s = self.slot.lock().unwrap();
+        match &s.status {
+            Status::Live => Ok((s.server.clone(), s.id.clone(), s.token.clone(), self.n_vertices)),
+            Status::Lost(e) => Err(e.clone()),
+            Status::Resubmitting => Err(Error::new(ErrorCode::Unavailable, "the cloth is being resubmitted to another server")),
+            Status::Removed => Err(Error::new(ErrorCode::Closed, "the cloth was removed")),
+            Status::Pending => Err(Error::new(ErrorCode::Unavailable, "the cloth is not submitted yet")),
+        }
+    }
+}
+
+/// What a read state was: every header field plus the local receive time.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StateInfo {
+    pub tick: u64,
+    pub server_time_ns: u64,
+    pub receive_time_ns: u64,
+    pub vertex_count: u32,
+    pub flags: u16,
+    pub encoding: Encoding,
+    pub has_normals: bool,
+    pub reset: bool,
+    pub bounds_min: [f32; 3],
+    pub bounds_max: [f32; 3],
+}
+
+/// A submitted cloth. `Send + Sync`; clones share the same cloth.
+#[derive(Clone)]
+pub struct Cloth {
+    pub(crate) inner: Arc<ClothInner>,
+    pub(crate) client: Arc<Inner>,
+}
+
+impl std::fmt::Debug for Cloth {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Cloth({}, {:?}, {} vertices)", self.inner.handle, self.id(), self.inner.n_vertices)
+    }
+}
+
+impl Cloth {
+    /// This client's handle number: stable for the cloth's life, failover included.
+    pub fn handle(&self) -> u64 {
+        self.inner.handle
+    }
+    /// The server's cloth id (changes when failover resubmits the cloth).
+    pub fn id(&self) -> String {
+        self.inner.slot.lock().unwrap().id.clone()
+    }
+    pub fn server(&self) -> String {
+        self.inner.slot.lock().unwrap().server.clone()
+    }
+    pub fn vertex_count(&self) -> u32 {
+        self.inner.n_vertices
+    }
+    /// Rest positions (xyz interleaved) and triangles, for rendering.
+    pub fn rest_positions(&self) -> &[f32] {
+        &self.inner.rest
+    }
+    pub fn triangles(&self) -> &[u32] {
+        &self.inner.triangles
+    }
+    /// Whether states arrive in the client's bundle (acknowledged by the server).
+    pub fn bundled(&self) -> bool {
+        self.inner.slot.lock().unwrap().bundle_key.is_some()
+    }
+    /// The first tick whose state includes the cloth (of its current placement).
+    pub fn first_tick(&self) -> u64 {
+        self.inner.slot.lock().unwrap().first_tick
+    }
+    /// States received, states replaced before they were read, invalid payloads.
+    pub fn counters(&self) -> (u64, u64, u64) {
+        let s = self.inner.slot.lock().unwrap();
+        (s.received, s.dropped, s.invalid)
+    }
+
+    /// Decode the newest state not read yet into `positions` (and `normals` if given and the
+    /// state has them): `Ok(None)` when nothing new arrived. Buffers need `3 * vertex_count`
+    /// floats. Errors: `server_lost` (without failover), `closed` (removed).
+    pub fn read_state(&self, positions: &mut [f32], normals: Option<&mut [f32]>) -> Result<Option<StateInfo>> {
+        self.read(positions, normals, Duration::ZERO, true)
+    }
+
+    /// Like [`Cloth::read_state`], waiting up to `timeout` for a new state.
+    pub fn wait_state(&self, positions: &mut [f32], normals: Option<&mut [f32]>, timeout: Duration) -> Result<Option<StateInfo>> {
+        self.read(positions, normals, timeout, true)
+    }
+
+    /// The newest state even if it was read before (`Ok(None)` before the first one).
+    pub fn latest_state(&self, positions: &mut [f32], normals: Option<&mut [f32]>) -> Result<Option<StateInfo>> {
+        self.read(positions, normals, Duration::ZERO, false)
+    }
+
+    fn read(&self, positions: &mut [f32], normals: Option<&mut [f32]>, timeout: Duration, only_fresh: bool) -> Result<Option<StateInfo>> {
+        self.client.check_open()?;
+        let c = &self.inner;
+        let s = c.slot.lock().unwrap();
+        let waiting = |s: &mut Slot| only_fresh && !s.fresh && matches!(s.status, Status::Live | Status::Resubmitting);
+        let (mut s, _) = c.cv.wait_timeout_while(s, timeout, waiting).unwrap();
+        match &s.status {
+            Status::Lost(e) => return Err(e.clone()),
+            Status::Removed => return Err(Error::new(ErrorCode::Closed, "the cloth was removed")),
+            _ => {}
+        }
+        if only_fresh && !s.fresh {
+            return Ok(None);
+        }
+        s.fresh = false;
+        let Some(l) = s.latest.clone() else { return Ok(None) };
+        drop(s);
+        let h = l.buf.with(|d| decode_state_into(&d[l.off..l.off + l.len], positions, normals))?;
+        Ok(Some(StateInfo {
+            tick: h.tick,
+            server_time_ns: h.server_time_ns,
+            receive_time_ns: l.receive_time_ns,
+            vertex_count: h.vertex_count,
+            flags: h.flags,
+            encoding: h.encoding,
+            has_normals: h.has_normals(),
+            reset: h.is_reset(),
+            bounds_min: h.bounds_min,
+            bounds_max: h.bounds_max,
+        }))
+    }
+
+    /// Move pinned vertices `indices` to `targets` (3 floats each). `wait`: return the tick
+    /// it applies from; otherwise return at once (failures become events).
+    pub fn move_pins(&self, indices: &[u32], targets: &[f32], wait: bool) -> Result<Option<u64>> {
+        let ctl = Control { pins: Some(Pins { indices: indices.to_vec(), targets: targets.to_vec() }), ..Default::default() };
+        self.control(ctl, wait)
+    }
+
+    /// Any control (its `cloth` and `token` are filled in here).
+    pub fn control(&self, ctl: Control, wait: bool) -> Result<Option<u64>> {
+        self.client.control(&self.inner, ctl, wait)
+    }
+
+    /// Back to the rest pose with zero velocity.
+    pub fn reset(&self, wait: bool) -> Result<Option<u64>> {
+        self.control(Control { reset: true, ..Default::default() }, wait)
+    }
+
+    /// Remove the cloth: the last tick a state of it may have been published for. A cloth
+    /// lost with its server is just forgotten (`Ok(0)`).
+    pub fn remove(&self) -> Result<u64> {
+        let c = &self.inner;
+        let owner = c.owner();
+        let tick = match owner {
+            Ok((server, id, token, _)) => {
+                let payload = crate::wire::msg::encode_remove(&id, &token, self.client.next_rid());
+                match self.client.request(&server, "remove", payload) {
+                    Ok(m) => tick_of(&m)?,
+                    Err(e) if e.code == ErrorCode::NotFound => 0,
+                    Err(e) => return Err(e),
+                }
+            }
+            Err(e) if e.code == ErrorCode::ServerLost => 0,
+            Err(e) => return Err(e),
+        };
+        let (id, sub) = {
+            let mut s = c.slot.lock().unwrap();
+            s.status = Status::Removed;
+            (s.id.clone(), s.sub.take())
+        };
+        drop(sub);
+        let mut reg = self.client.reg.lock().unwrap();
+        reg.by_handle.remove(&c.handle);
+        reg.by_id.remove(&id);
+        drop(reg);
+        c.cv.notify_all();
+        Ok(tick)
+    }
+}
+
+/// Controls of many cloths, sent as batch controls by [`super::Client::send_batch`].
+#[derive(Default, Clone)]
+pub struct Batch {
+    pub(crate) items: Vec<(Arc<ClothInner>, Control)>,
+}
+
+impl Batch {
+    pub fn add(&mut self, cloth: &Cloth, ctl: Control) -> &mut Self {
+        self.items.push((cloth.inner.clone(), ctl));
+        self
+    }
+    pub fn move_pins(&mut self, cloth: &Cloth, indices: &[u32], targets: &[f32]) -> &mut Self {
+        let pins = Pins { indices: indices.to_vec(), targets: targets.to_vec() };
+        self.add(cloth, Control { pins: Some(pins), ..Default::default() })
+    }
+    pub fn len(&self) -> usize {
+        self.items.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.items.is_empty()
+    }
+}
+
+pub(crate) fn send_batch(inner: &Arc<Inner>, batch: Batch, wait: bool) -> Result<Option<Vec<Result<u64>>>> {
+    let mut results: Vec<Result<u64>> = vec![Ok(0); batch.items.len()];
+    let mut by_server: BTreeMap<String, Vec<(usize, u64, Control)>> = BTreeMap::new();
+    for (i, (c, mut ctl)) in batch.items.into_iter().enumerate() {
+        match c.owner() {
+            Ok((server, id, token, n)) => {
+                ctl.cloth = id;
+                ctl.token = token;
+                match ctl.validate(&inner.limits(&server), Some(n)) {
+                    Ok(()) => by_server.entry(server).or_default().push((i, c.handle, ctl)),
+                    Err(e) => results[i] = Err(e),
+                }
+            }
+            Err(e) => results[i] = Err(e),
+        }
+    }
+    if !wait {
+        if let Some(e) = results.iter().find_map(|r| r.as_ref().err()) {
+            return Err(e.clone()); // nothing is sent when an item is invalid here
+        }
+    }
+    for (server, items) in by_server {
+        let (_, lim) = inner.server_info(&server)?;
+        if lim.max_batch_items == 0 {
+            for (i, handle, ctl) in items {
+                let payload = ctl.encode(inner.next_rid());
+                if wait {
+                    results[i] = inner.request(&server, "control", payload).and_then(|m| tick_of(&m));
+                } else {
+                    inner.send(&server, "control", payload, Some(handle), None)?;
+                }
+            }
+            continue;
+        }
+        for chunk in items.chunks(lim.max_batch_items) {
+            let req = ControlBatch { rid: inner.next_rid(), client: inner.client_id.clone(), items: chunk.iter().map(|x| x.2.clone()).collect() };
+            if wait {
+                match inner.request(&server, "control_batch", req.encode()).and_then(|m| BatchReply::from_map(&m)) {
+                    Ok(rep) => {
+                        for ((i, _, _), r) in chunk.iter().zip(rep.results) {
+                            results[*i] = r.map_err(|e| e.into_error());
+                        }
+                    }
+                    Err(e) => chunk.iter().for_each(|(i, _, _)| results[*i] = Err(e.clone())),
+                }
+            } else {
+                let handles: Vec<u64> = chunk.iter().map(|x| x.1).collect();
+                let on_ok = move |inner: &Inner, m: crate::wire::reader::Map| match BatchReply::from_map(&m) {
+                    Ok(rep) => {
+                        for (h, r) in handles.iter().zip(rep.results) {
+                            if let Err(e) = r {
+                                inner.push_event(Event::RequestFailed { handle: Some(*h), error: e.into_error() });
+                            }
+                        }
+                    }
+                    Err(error) => inner.push_event(Event::RequestFailed { handle: None, error }),
+                };
+                inner.send(&server, "control_batch", req.encode(), None, Some(Box::new(on_ok)))?;
+            }
+        }
+    }
+    Ok(if wait { Some(results) } else { None })
+}

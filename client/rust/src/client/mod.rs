@@ -1,0 +1,508 @@
+//! The Zenoh client: a session with this client's liveliness token, server discovery by
+//! liveliness, requests (waited for or not), submissions, state reception (single keys and
+//! bundles) and, opt-in, resubmission of a lost server's cloths to another live server.
+mod cloth;
+mod failover;
+mod recv;
+
+pub use cloth::{Batch, Cloth, StateInfo};
+
+use crate::wire::error::{Error, ErrorCode, Result};
+use crate::wire::msg::{encode_info, Control, Grid, Mesh, Shape, Submit};
+use crate::wire::reader::{Map, Reader};
+use crate::wire::replies::{decode_reply, SubmitReply};
+use crate::wire::{grid_geometry, parse_obj, valid_id, valid_namespace, Keys, Limits, DEFAULT_ENDPOINT, DEFAULT_NAMESPACE};
+use std::collections::{BTreeSet, HashMap, VecDeque};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::{Duration, Instant};
+use zenoh::liveliness::LivelinessToken;
+use zenoh::pubsub::Subscriber;
+use zenoh::sample::SampleKind;
+use zenoh::{Session, Wait};
+
+/// How to connect. `Default` connects to `tcp/127.0.0.1:7447` in peer mode.
+#[derive(Debug, Clone)]
+pub struct ClientOptions {
+    /// Endpoints of the server(s) or of a router.
+    pub connect: Vec<String>,
+    pub namespace: String,
+    /// The server to use; None picks the first one seen by liveliness (sorted by id).
+    pub server_id: Option<String>,
+    /// This client's id (its liveliness token); None: random.
+    pub client_id: Option<String>,
+    /// Timeout of waited-for requests and of server discovery.
+    pub timeout: Duration,
+    /// Zenoh mode: "peer" (default) or "client".
+    pub mode: String,
+    /// Opt-in: when a server loses its liveliness, resubmit its cloths to another live server
+    /// from this client's copy of each submission (README.md, "Lost servers").
+    pub failover: bool,
+}
+
+impl Default for ClientOptions {
+    fn default() -> Self {
+        ClientOptions {
+            connect: vec![DEFAULT_ENDPOINT.to_string()],
+            namespace: DEFAULT_NAMESPACE.to_string(),
+            server_id: None,
+            client_id: None,
+            timeout: Duration::from_secs(5),
+            mode: "peer".to_string(),
+            failover: false,
+        }
+    }
+}
+
+/// Something the caller should know about, queued until [`Client::poll_event`] takes it.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Event {
+    /// A server's liveliness token appeared.
+    ServerFound { server: String },
+    /// A server's liveliness token vanished: it is gone with every cloth it held.
+    ServerLost { server: String },
+    /// A cloth was lost with its server (no failover, or resubmission failed: `error`).
+    ClothLost { handle: u64, cloth: String, server: String, error: Error },
+    /// Failover: the cloth was resubmitted to `server` under the same handle, as `cloth`.
+    ClothResubmitted { handle: u64, old_cloth: String, cloth: String, server: String },
+    /// A request sent without waiting failed (an error reply, a refused batch item, no reply).
+    RequestFailed { handle: Option<u64>, error: Error },
+}
+
+pub(crate) struct Inner {
+    pub(crate) session: Session,
+    pub(crate) keys: Keys,
+    pub(crate) client_id: String,
+    pub(crate) timeout: Duration,
+    pub(crate) failover: bool,
+    rid: AtomicU64,
+    next_handle: AtomicU64,
+    pub(crate) servers: Mutex<Servers>,
+    pub(crate) servers_cv: Condvar,
+    pub(crate) reg: Mutex<recv::Registry>,
+    events: Mutex<VecDeque<Event>>,
+    events_cv: Condvar,
+    pub(crate) closed: AtomicBool,
+    bundle_sub: Mutex<Option<Subscriber<()>>>,
+    watch: Mutex<Option<Subscriber<()>>>,
+    token: Mutex<Option<LivelinessToken>>,
+    pub(crate) worker: Mutex<Option<std::sync::mpsc::Sender<String>>>,
+}
+
+#[derive(Default)]
+pub(crate) struct Servers {
+    pub(crate) live: BTreeSet<String>,
+    pub(crate) current: Option<String>,
+    /// Per server: protocol version and limits from its info reply.
+    pub(crate) info: HashMap<String, ((u8, u8), Limits)>,
+}
+
+/// A Drape client. Cheap to share: `Client` is `Send + Sync`; every method may be called from
+/// any thread.
+#[derive(Clone)]
+pub struct Client {
+    pub(crate) inner: Arc<Inner>,
+}
+
+fn zerr(what: &str, e: impl std::fmt::Display) -> Error {
+    Error::new(ErrorCode::Unavailable, format!("{what}: {e}"))
+}
+
+impl Client {
+    /// Open a Zenoh session, declare this client's liveliness token and start watching the
+    /// servers' tokens.
+    pub fn open(opts: ClientOptions) -> Result<Client> {
+        let client_id = opts.client_id.clone().unwrap_or_else(random_id);
+        if !valid_id(&client_id) {
+            return Err(Error::new(ErrorCode::InvalidValue, format!("invalid client id {client_id:?}")));
+        }
+        if let Some(s) = opts.server_id.as_deref().filter(|s| !valid_id(s)) {
+            return Err(Error::new(ErrorCode::InvalidValue, format!("invalid server id {s:?}")));
+        }
+        if !valid_namespace(&opts.namespace) {
+            return Err(Error::new(ErrorCode::InvalidValue, format!("invalid namespace {:?}", opts.namespace)));
+        }
+        if opts.mode != "peer" && opts.mode != "client" {
+            return Err(Error::new(ErrorCode::InvalidValue, format!("mode must be peer or client, not {:?}", opts.mode)));
+        }
+        let mut cfg = zenoh::Config::default();
+        let json = |v: &[String]| format!("[{}]", v.iter().map(|e| format!("{e:?}")).collect::<Vec<_>>().join(","));
+        let set = |cfg: &mut zenoh::Config, k: &str, v: &str| cfg.insert_json5(k, v).map_err(|e| Error::new(ErrorCode::InvalidValue, format!("zenoh config {k} = {v}: {e}")));
+        set(&mut cfg, "mode", &format!("{:?}", opts.mode))?;
+        set(&mut cfg, "connect/endpoints", &json(&opts.connect))?;
+        if opts.mode == "peer" {
+            set(&mut cfg, "listen/endpoints", "[]")?;
+        }
+        set(&mut cfg, "scouting/multicast/enabled", "false")?;
+        let session = zenoh::open(cfg).wait().map_err(|e| zerr("cannot open the Zenoh session", e))?;
+        let keys = Keys::new(&opts.namespace);
+        let inner = Arc::new(Inner {
+            session,
+            keys,
+            client_id,
+            timeout: opts.timeout,
+            failover: opts.failover,
+            rid: AtomicU64::new(1),
+            next_handle: AtomicU64::new(1),
+            servers: Mutex::new(Servers { current: opts.server_id.clone(), ..Default::default() }),
+            servers_cv: Condvar::new(),
+            reg: Mutex::new(recv::Registry::default()),
+            events: Mutex::new(VecDeque::new()),
+            events_cv: Condvar::new(),
+            closed: AtomicBool::new(false),
+            bundle_sub: Mutex::new(None),
+            watch: Mutex::new(None),
+            token: Mutex::new(None),
+            worker: Mutex::new(None),
+        });
+        let weak = Arc::downgrade(&inner);
+        let watch = inner
+            .session
+            .liveliness()
+            .declare_subscriber(inner.keys.all_servers_alive())
+            .history(true)
+            .callback(move |s| {
+                if let Some(inner) = weak.upgrade() {
+                    let id = Keys::last_chunk(s.key_expr().as_str()).to_string();
+                    inner.on_server(id, s.kind() == SampleKind::Put);
+                }
+            })
+            .wait()
+            .map_err(|e| zerr("liveliness subscriber", e))?;
+        *inner.watch.lock().unwrap() = Some(watch);
+        let token = inner
+            .session
+            .liveliness()
+            .declare_token(inner.keys.alive_client(&inner.client_id))
+            .wait()
+            .map_err(|e| zerr("liveliness token", e))?;
+        *inner.token.lock().unwrap() = Some(token);
+        if inner.failover {
+            failover::start_worker(&inner);
+        }
+        Ok(Client { inner })
+    }
+
+    pub fn client_id(&self) -> &str {
+        &self.inner.client_id
+    }
+
+    /// The server this client submits to (found by liveliness when not given, waiting up to
+    /// the timeout; with failover it changes when its server is lost).
+    pub fn server_id(&self) -> Result<String> {
+        self.inner.server_id()
+    }
+
+    /// Ids of the servers whose liveliness tokens are visible now (a liveliness get).
+    pub fn servers(&self, timeout: Duration) -> Result<Vec<String>> {
+        let replies = self.inner.session.liveliness().get(self.inner.keys.all_servers_alive()).timeout(timeout).wait()
+            .map_err(|e| zerr("liveliness get", e))?;
+        let mut out = BTreeSet::new();
+        while let Ok(r) = replies.recv() {
+            if let Ok(s) = r.result() {
+                out.insert(Keys::last_chunk(s.key_expr().as_str()).to_string());
+            }
+        }
+        Ok(out.into_iter().collect())
+    }
+
+    /// The next event (server lost, cloth resubmitted or lost, a failed request), if any;
+    /// waits up to `timeout` (zero: no wait).
+    pub fn poll_event(&self, timeout: Duration) -> Option<Event> {
+        let q = self.inner.events.lock().unwrap();
+        let (mut q, _) = self.inner.events_cv.wait_timeout_while(q, timeout, |q| q.is_empty()).unwrap();
+        q.pop_front()
+    }
+
+    /// The server's `info` map (version, limits, counts...).
+    pub fn info(&self) -> Result<Map> {
+        let server = self.server_id()?;
+        self.inner.request(&server, "info", encode_info(self.inner.next_rid()))
+    }
+
+    /// Submit a grid cloth (`submit` carries the options; its `client` and `rid` are set here).
+    pub fn submit_grid(&self, grid: Grid, submit: Submit) -> Result<Cloth> {
+        let (rest, tris) = grid_geometry(grid.cols, grid.rows, grid.width, grid.height, grid.orientation, grid.origin)?;
+        self.submit(Submit { shape: Shape::Grid(grid), ..submit }, rest, tris)
+    }
+
+    /// Submit a triangle mesh cloth.
+    pub fn submit_mesh(&self, vertices: Vec<f32>, triangles: Vec<u32>, submit: Submit) -> Result<Cloth> {
+        let (rest, tris) = (vertices.clone(), triangles.clone());
+        self.submit(Submit { shape: Shape::Mesh(Mesh { vertices, triangles }), ..submit }, rest, tris)
+    }
+
+    /// Submit a cloth from Wavefront OBJ text (faces fan-triangulated).
+    pub fn submit_obj(&self, obj_text: &str, submit: Submit) -> Result<Cloth> {
+        let (v, t) = parse_obj(obj_text)?;
+        self.submit_mesh(v, t, submit)
+    }
+
+    /// Submit as is (shape included) and subscribe to the cloth's state. `rest`/`triangles`
+    /// are kept on the handle for rendering.
+    pub fn submit(&self, mut submit: Submit, rest: Vec<f32>, triangles: Vec<u32>) -> Result<Cloth> {
+        submit.client = self.inner.client_id.clone();
+        let server = self.server_id()?;
+        let lim = self.inner.limits(&server);
+        submit.validate(&lim)?;
+        let handle = self.inner.next_handle.fetch_add(1, Ordering::Relaxed);
+        let c = cloth::ClothInner::new(handle, submit, rest, triangles);
+        self.inner.place(&c, &server)?;
+        Ok(Cloth { inner: c, client: self.inner.clone() })
+    }
+
+    /// An empty batch of controls (sent with [`Client::send_batch`]).
+    pub fn batch(&self) -> Batch {
+        Batch::default()
+    }
+
+    /// Send a batch control (one request per server and per `max_batch_items`; one control
+    /// per item to a 1.0 server). `wait`: return each item's first tick or its error;
+    /// otherwise return at once and report failures as [`Event::RequestFailed`].
+    pub fn send_batch(&self, batch: Batch, wait: bool) -> Result<Option<Vec<Result<u64>>>> {
+        cloth::send_batch(&self.inner, batch, wait)
+    }
+
+    /// Remove this client's cloths (if `remove`), withdraw its liveliness token and close the
+    /// session. Handles stay valid objects but every call on them fails with `closed`.
+    pub fn close(&self, remove: bool) {
+        if self.inner.closed.load(Ordering::SeqCst) {
+            return;
+        }
+        if remove {
+            let all: Vec<_> = self.inner.reg.lock().unwrap().by_handle.values().cloned().collect();
+            for c in all {
+                let _ = Cloth { inner: c, client: self.inner.clone() }.remove();
+            }
+        }
+        self.inner.closed.store(true, Ordering::SeqCst);
+        self.inner.worker.lock().unwrap().take();
+        self.inner.reg.lock().unwrap().clear();
+        self.inner.bundle_sub.lock().unwrap().take();
+        self.inner.watch.lock().unwrap().take();
+        self.inner.token.lock().unwrap().take();
+        let _ = self.inner.session.close().wait();
+    }
+}
+
+impl Inner {
+    pub(crate) fn next_rid(&self) -> u64 {
+        self.rid.fetch_add(1, Ordering::Relaxed)
+    }
+
+    pub(crate) fn push_event(&self, e: Event) {
+        let mut q = self.events.lock().unwrap();
+        if q.len() >= 4096 {
+            q.pop_front(); // a caller that never polls must not grow memory without bound
+        }
+        q.push_back(e);
+        self.events_cv.notify_all();
+    }
+
+    pub(crate) fn check_open(&self) -> Result<()> {
+        if self.closed.load(Ordering::SeqCst) {
+            return Err(Error::new(ErrorCode::Closed, "the client is closed"));
+        }
+        Ok(())
+    }
+
+    pub(crate) fn server_id(&self) -> Result<String> {
+        let s = self.servers.lock().unwrap();
+        if let Some(c) = &s.current {
+            return Ok(c.clone());
+        }
+        let (mut s, _) = self.servers_cv.wait_timeout_while(s, self.timeout, |s| s.live.is_empty()).unwrap();
+        let first = s.live.iter().next().cloned().ok_or_else(|| {
+            Error::new(ErrorCode::Unavailable, format!("no Drape server seen in namespace {:?} within {:?}", self.keys.namespace, self.timeout))
+        })?;
+        s.current = Some(first.clone());
+        Ok(first)
+    }
+
+    fn on_server(self: &Arc<Self>, id: String, alive: bool) {
+        let mut s = self.servers.lock().unwrap();
+        if alive {
+            if s.live.insert(id.clone()) {
+                drop(s);
+                self.servers_cv.notify_all();
+                self.push_event(Event::ServerFound { server: id });
+            }
+            return;
+        }
+        s.live.remove(&id);
+        s.info.remove(&id);
+        drop(s);
+        self.push_event(Event::ServerLost { server: id.clone() });
+        failover::server_lost(self, &id);
+    }
+
+    /// The server's limits (asked once with info; defaults if it does not answer).
+    pub(crate) fn limits(&self, server: &str) -> Limits {
+        self.server_info(server).map(|(_, l)| l).unwrap_or_default()
+    }
+
+    pub(crate) fn server_info(&self, server: &str) -> Result<((u8, u8), Limits)> {
+        if let Some(i) = self.servers.lock().unwrap().info.get(server) {
+            return Ok(*i);
+        }
+        let m = self.request(server, "info", encode_info(self.next_rid()))?;
+        let r = Reader::new(&m, "");
+        let version = r.str("version", false)?.unwrap_or("1.0");
+        let (ma, mi) = version.split_once('.').unwrap_or((version, "0"));
+        let v = (ma.parse().unwrap_or(1), mi.parse().unwrap_or(0));
+        let mut lim = Limits::default();
+        if let Some(l) = r.sub("limits", false)? {
+            let get = |k: &str| l.u64(k, false).ok().flatten();
+            lim.max_vertices_per_cloth = get("max_vertices_per_cloth").unwrap_or(lim.max_vertices_per_cloth);
+            lim.max_pin_updates = get("max_pin_updates").map_or(lim.max_pin_updates, |x| x as usize);
+            lim.max_batch_items = get("max_batch_items").map_or(if v < (1, 1) { 0 } else { lim.max_batch_items }, |x| x as usize);
+            lim.max_iterations = get("max_iterations").unwrap_or(lim.max_iterations);
+            lim.max_substeps = get("max_substeps").unwrap_or(lim.max_substeps);
+        }
+        self.servers.lock().unwrap().info.insert(server.to_string(), (v, lim));
+        Ok((v, lim))
+    }
+
+    /// A waited-for request: the success map, the server's error, or `unavailable`.
+    pub(crate) fn request(&self, server: &str, kind: &str, payload: Vec<u8>) -> Result<Map> {
+        self.check_open()?;
+        let key = self.keys.query(server, kind);
+        let deadline = Instant::now() + self.timeout;
+        loop {
+            let left = deadline.saturating_duration_since(Instant::now()).max(Duration::from_millis(10));
+            let started = Instant::now();
+            let replies = self.session.get(&key).payload(payload.clone()).timeout(left).wait().map_err(|e| zerr(&key, e))?;
+            if let Ok(r) = replies.recv() {
+                return reply_result(&key, r);
+            }
+            // No reply at all: the queryable is not known yet (connecting) -> retry until the deadline.
+            if Instant::now() + Duration::from_millis(50) < deadline && started.elapsed() < left / 2 {
+                std::thread::sleep(Duration::from_millis(50));
+                continue;
+            }
+            return Err(Error::new(ErrorCode::Unavailable, format!("no reply from {key} within {:?}", self.timeout)));
+        }
+    }
+
+    /// A request not waited for: failures become [`Event::RequestFailed`]; `on_ok` gets a
+    /// success map (on a Zenoh thread).
+    pub(crate) fn send(self: &Arc<Self>, server: &str, kind: &str, payload: Vec<u8>, handle: Option<u64>,
+                       on_ok: Option<Box<dyn Fn(&Inner, Map) + Send + Sync>>) -> Result<()> {
+        self.check_open()?;
+        let key = self.keys.query(server, kind);
+        struct Done {
+            inner: std::sync::Weak<Inner>,
+            answered: AtomicBool,
+            key: String,
+            handle: Option<u64>,
+        }
+        impl Drop for Done {
+            fn drop(&mut self) {
+                if !self.answered.load(Ordering::SeqCst) {
+                    if let Some(i) = self.inner.upgrade() {
+                        let error = Error::new(ErrorCode::Unavailable, format!("no reply from {}", self.key));
+                        i.push_event(Event::RequestFailed { handle: self.handle, error });
+                    }
+                }
+            }
+        }
+        let done = Done { inner: Arc::downgrade(self), answered: AtomicBool::new(false), key: key.clone(), handle };
+        self.session
+            .get(&key)
+            .payload(payload)
+            .timeout(self.timeout)
+            .callback(move |r| {
+                done.answered.store(true, Ordering::SeqCst);
+                let Some(inner) = done.inner.upgrade() else { return };
+                match reply_result(&done.key, r) {
+                    Ok(m) => {
+                        if let Some(f) = &on_ok {
+                            f(&inner, m)
+                        }
+                    }
+                    Err(error) => inner.push_event(Event::RequestFailed { handle: done.handle, error }),
+                }
+            })
+            .wait()
+            .map_err(|e| zerr(&key, e))
+    }
+
+    /// Submit `c`'s stored request to `server` and start receiving its states.
+    pub(crate) fn place(self: &Arc<Self>, c: &Arc<cloth::ClothInner>, server: &str) -> Result<SubmitReply> {
+        self.check_open()?;
+        let bundled = c.submit.state.and_then(|s| s.bundle).unwrap_or(false);
+        if bundled {
+            self.ensure_bundle_sub()?;
+            self.reg.lock().unwrap().pending_bundled += 1;
+        }
+        let mut req = c.submit.clone();
+        req.rid = self.next_rid();
+        let res = self.request(server, "submit", req.encode()).and_then(|m| SubmitReply::from_map(&m));
+        let out = res.and_then(|rep| recv::attach(self, c, server, rep.clone()).map(|_| rep));
+        if bundled {
+            let mut reg = self.reg.lock().unwrap();
+            reg.pending_bundled -= 1;
+            if reg.pending_bundled == 0 {
+                reg.orphans.clear();
+            }
+        }
+        out
+    }
+
+    fn ensure_bundle_sub(self: &Arc<Self>) -> Result<()> {
+        let mut b = self.bundle_sub.lock().unwrap();
+        if b.is_none() {
+            let weak = Arc::downgrade(self);
+            let sub = self
+                .session
+                .declare_subscriber(self.keys.bundle(&self.client_id))
+                .callback(move |s| {
+                    if let Some(inner) = weak.upgrade() {
+                        recv::on_bundle(&inner, s.payload().clone());
+                    }
+                })
+                .wait()
+                .map_err(|e| zerr("bundle subscriber", e))?;
+            *b = Some(sub);
+        }
+        Ok(())
+    }
+
+    /// A control of one cloth (waited for: its tick).
+    pub(crate) fn control(self: &Arc<Self>, c: &Arc<cloth::ClothInner>, mut ctl: Control, wait: bool) -> Result<Option<u64>> {
+        let (server, id, token, n) = c.owner()?;
+        ctl.cloth = id;
+        ctl.token = token;
+        ctl.validate(&self.limits(&server), Some(n))?;
+        let payload = ctl.encode(self.next_rid());
+        if wait {
+            let m = self.request(&server, "control", payload)?;
+            return Ok(Some(crate::wire::replies::tick_of(&m)?));
+        }
+        self.send(&server, "control", payload, Some(c.handle), None)?;
+        Ok(None)
+    }
+}
+
+/// A reply's outcome: an `ok` map, the server's error, or `unavailable` for Zenoh's own errors.
+fn reply_result(key: &str, r: zenoh::query::Reply) -> Result<Map> {
+    match r.result() {
+        Ok(sample) => decode_reply(&sample.payload().to_bytes()),
+        Err(e) => {
+            let data = e.payload().to_bytes();
+            match decode_reply(&data) {
+                Err(err) if err.code != ErrorCode::Malformed => Err(err),
+                Ok(_) => Err(Error::new(ErrorCode::Unavailable, format!("{key}: error reply without an error"))),
+                Err(_) => Err(Error::new(ErrorCode::Unavailable, format!("{key}: {}", String::from_utf8_lossy(&data[..data.len().min(80)])))),
+            }
+        }
+    }
+}
+
+fn random_id() -> String {
+    use std::hash::{BuildHasher, Hasher};
+    let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+    h.write_u128(std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_nanos());
+    h.write_u32(std::process::id());
+    format!("c{:016x}", h.finish())
+}

@@ -1,0 +1,164 @@
+//! State reception: the registry of this client's cloths, the per-cloth subscription, the
+//! bundle dispatcher and the one-slot "latest state" each cloth keeps. A received payload is
+//! kept as Zenoh delivered it (no copy when contiguous) and decoded only when the caller reads
+//! it into its own buffers.
+use super::cloth::{ClothInner, Status};
+use super::Inner;
+use crate::wire::error::Result;
+use crate::wire::replies::SubmitReply;
+use crate::wire::{parse_bundle, parse_state};
+use std::borrow::Cow;
+use std::collections::HashMap;
+use std::sync::Arc;
+use zenoh::bytes::ZBytes;
+use zenoh::Wait;
+
+const MAX_ORPHANS: usize = 256;
+
+/// A received payload: Zenoh's buffer when contiguous, else one contiguous copy.
+#[derive(Clone)]
+pub(crate) enum Buf {
+    Z(ZBytes),
+    V(Arc<Vec<u8>>),
+}
+
+impl Buf {
+    pub(crate) fn new(z: ZBytes) -> Buf {
+        let owned = match z.to_bytes() {
+            Cow::Borrowed(_) => None,
+            Cow::Owned(v) => Some(v),
+        };
+        owned.map_or(Buf::Z(z), |v| Buf::V(Arc::new(v)))
+    }
+    pub(crate) fn with<R>(&self, f: impl FnOnce(&[u8]) -> R) -> R {
+        match self {
+            Buf::Z(z) => f(&z.to_bytes()),
+            Buf::V(v) => f(v),
+        }
+    }
+}
+
+/// The newest state of a cloth: where its payload lies in a received buffer.
+#[derive(Clone)]
+pub(crate) struct Latest {
+    pub(crate) buf: Buf,
+    pub(crate) off: usize,
+    pub(crate) len: usize,
+    pub(crate) receive_time_ns: u64,
+}
+
+#[derive(Default)]
+pub(crate) struct Registry {
+    pub(crate) by_handle: HashMap<u64, Arc<ClothInner>>,
+    pub(crate) by_id: HashMap<String, Arc<ClothInner>>,
+    /// Bundle entries of cloths whose submit reply has not been handled yet.
+    pub(crate) orphans: HashMap<String, Latest>,
+    pub(crate) pending_bundled: usize,
+}
+
+impl Registry {
+    pub(crate) fn clear(&mut self) {
+        self.by_handle.clear();
+        self.by_id.clear();
+        self.orphans.clear();
+    }
+}
+
+pub(crate) fn now_ns() -> u64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
+}
+
+/// Keep `l` as the cloth's newest state (checking its header first).
+pub(crate) fn deliver(c: &ClothInner, l: Latest) {
+    let ok = l.buf.with(|d| parse_state(&d[l.off..l.off + l.len]).is_ok());
+    let mut s = c.slot.lock().unwrap();
+    if !ok {
+        s.invalid += 1;
+        return;
+    }
+    if s.status != Status::Live {
+        return;
+    }
+    if s.fresh {
+        s.dropped += 1; // the previous one was never read
+    }
+    s.latest = Some(l);
+    s.fresh = true;
+    s.received += 1;
+    drop(s);
+    c.cv.notify_all();
+}
+
+/// The cloth entered the simulation on `server`: record the reply, subscribe to its key (or
+/// rely on the bundle), register it and hand it the bundle states that came before the reply.
+pub(crate) fn attach(inner: &Arc<Inner>, c: &Arc<ClothInner>, server: &str, rep: SubmitReply) -> Result<()> {
+    let sub = if rep.bundle_key.is_none() {
+        let weak = Arc::downgrade(c);
+        let sub = inner
+            .session
+            .declare_subscriber(rep.key.as_str())
+            .callback(move |s| {
+                if let Some(c) = weak.upgrade() {
+                    let buf = Buf::new(s.payload().clone());
+                    let len = buf.with(|d| d.len());
+                    deliver(&c, Latest { buf, off: 0, len, receive_time_ns: now_ns() });
+                }
+            })
+            .wait()
+            .map_err(|e| super::zerr("state subscriber", e))?;
+        Some(sub)
+    } else {
+        None
+    };
+    let old_id = {
+        let mut s = c.slot.lock().unwrap();
+        let old = std::mem::replace(&mut s.id, rep.cloth.clone());
+        s.server = server.to_string();
+        s.token = rep.token;
+        s.key = rep.key;
+        s.bundle_key = rep.bundle_key;
+        s.first_tick = rep.tick;
+        s.status = Status::Live;
+        s.latest = None;
+        s.fresh = false;
+        s.sub = sub;
+        old
+    };
+    let early = {
+        let mut reg = inner.reg.lock().unwrap();
+        if !old_id.is_empty() {
+            reg.by_id.remove(&old_id);
+        }
+        reg.by_handle.insert(c.handle, c.clone());
+        reg.by_id.insert(rep.cloth.clone(), c.clone());
+        reg.orphans.remove(&rep.cloth)
+    };
+    if let Some(l) = early {
+        deliver(c, l);
+    }
+    Ok(())
+}
+
+/// A bundle arrived: hand each entry to its cloth (on the Zenoh thread; no decoding here).
+pub(crate) fn on_bundle(inner: &Inner, payload: ZBytes) {
+    let receive_time_ns = now_ns();
+    let buf = Buf::new(payload);
+    let mut targets: Vec<(Arc<ClothInner>, Latest)> = Vec::new();
+    buf.with(|d| {
+        let Ok(b) = parse_bundle(d) else { return };
+        let mut reg = inner.reg.lock().unwrap();
+        for e in &b.entries {
+            let l = Latest { buf: buf.clone(), off: e.state_offset, len: e.state_size, receive_time_ns };
+            match reg.by_id.get(e.cloth) {
+                Some(c) => targets.push((c.clone(), l)),
+                None if reg.pending_bundled > 0 && (reg.orphans.len() < MAX_ORPHANS || reg.orphans.contains_key(e.cloth)) => {
+                    reg.orphans.insert(e.cloth.to_string(), l);
+                }
+                None => {}
+            }
+        }
+    });
+    for (c, l) in targets {
+        deliver(&c, l);
+    }
+}

@@ -1,0 +1,75 @@
+//! Starting a real `drape serve` process for the live tests: found through `DRAPE_BIN`
+//! (default `../../.venv/bin/drape` from this crate), on a loopback port of its own, stopped
+//! when the test process ends (a watchdog shell kills it) or when `kill()` is called.
+#![allow(dead_code)]
+use std::io::{BufRead, BufReader};
+use std::path::PathBuf;
+use std::process::{Command, Stdio};
+use std::time::Duration;
+
+pub struct Server {
+    pub id: String,
+    pub endpoint: String,
+    pub pid: u32,
+    pub log: PathBuf,
+}
+
+/// The drape binary, or None (the test skips) outside CI; in CI (CI=true) a missing binary fails.
+pub fn drape_bin() -> Option<PathBuf> {
+    let bin = std::env::var_os("DRAPE_BIN").map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../.venv/bin/drape"));
+    if bin.exists() {
+        return Some(bin);
+    }
+    let msg = format!("live tests need the drape server: {} does not exist (set DRAPE_BIN, or create the venv: \
+                       python3 -m venv .venv && .venv/bin/pip install -e .)", bin.display());
+    if std::env::var("CI").map(|v| v == "true" || v == "1").unwrap_or(false) {
+        panic!("{msg}");
+    }
+    eprintln!("SKIPPED: {msg}");
+    None
+}
+
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+}
+
+/// Start `drape serve` (grace period 1 s) and return once its process is running; clients find
+/// it by liveliness (their timeout covers its start-up).
+pub fn start(bin: &PathBuf, extra: &[&str]) -> Server {
+    let port = free_port();
+    let id = format!("rs-{port}");
+    let endpoint = format!("tcp/127.0.0.1:{port}");
+    let log = std::env::temp_dir().join(format!("drape-live-{port}.log"));
+    let script = r#"parent=$1; log=$2; shift 2; "$@" >"$log" 2>&1 & child=$!; echo $child;
+        while kill -0 "$parent" 2>/dev/null && kill -0 "$child" 2>/dev/null; do sleep 0.3; done; kill "$child" 2>/dev/null"#;
+    let mut cmd = Command::new("sh");
+    cmd.arg("-c").arg(script).arg("sh").arg(std::process::id().to_string()).arg(&log).arg(bin)
+        .args(["serve", "--listen", &endpoint, "--server-id", &id, "--grace-period", "1", "--stats-period", "0.5"])
+        .args(extra)
+        .stdout(Stdio::piped());
+    let mut child = cmd.spawn().expect("cannot start sh for drape serve");
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    let pid = line.trim().parse().expect("watchdog did not report the server pid");
+    std::thread::spawn(move || child.wait());
+    Server { id, endpoint, pid, log }
+}
+
+impl Server {
+    /// SIGKILL: the server vanishes without removing anything (its liveliness token goes).
+    pub fn kill(&self) {
+        let _ = Command::new("kill").args(["-9", &self.pid.to_string()]).status();
+    }
+    pub fn log_text(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = Command::new("kill").arg(self.pid.to_string()).stderr(Stdio::null()).status();
+    }
+}
+
+pub const START_TIMEOUT: Duration = Duration::from_secs(60);

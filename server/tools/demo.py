@@ -19,16 +19,16 @@ import json
 import logging
 import math
 import multiprocessing as mp
-import os
-import signal
-import socket
-import subprocess
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from .procs import ServerProcess, require_extra
+
+require_extra("tools", "demo")
+require_extra("server", "demo")
 
 log = logging.getLogger(__name__)
 
@@ -48,12 +48,6 @@ class Recording:
     received: int
     missing: int
     duplicates: int
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 # ------------------------------------------------------------------------------------------------
@@ -172,7 +166,7 @@ def load_recording(out: Path, kind: str) -> Recording:
 
 
 def render(recs: list[Recording], out: Path, size: tuple[int, int], fps: float) -> tuple[list[Path], Path]:
-    from .imaging import render_scene, write_gif, write_png
+    from .render import render_scene, write_gif, write_png
 
     common = sorted(set.intersection(*(set(r.ticks.tolist()) for r in recs))) if recs else []
     index = {r.kind: {int(t): i for i, t in enumerate(r.ticks)} for r in recs}
@@ -213,16 +207,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    port = args.port or free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
-    cmd = [sys.executable, "-m", "drape.server.cli", "serve", "--listen", endpoint, "--server-id", "demo",
-           "--tick-rate", str(TICK_HZ)]
+    serve_args = ["--tick-rate", str(TICK_HZ)]
     if args.solver:
-        cmd += ["--solver", args.solver]
+        serve_args += ["--solver", args.solver]
     if args.device:
-        cmd += ["--device", args.device]
-    log.info("starting server: %s", " ".join(cmd))
-    server = subprocess.Popen(cmd, start_new_session=True)
+        serve_args += ["--device", args.device]
+    server = ServerProcess(serve_args, server_id="demo", port=args.port)
+    endpoint = server.endpoint
     ctx = mp.get_context("spawn")
     kinds = ["flag", "curtain", "cape"]
     procs = []
@@ -245,12 +236,7 @@ def run(args: argparse.Namespace) -> int:
         for p, _ in procs:
             if p.is_alive():
                 p.terminate()
-        if server.poll() is None:
-            os.killpg(server.pid, signal.SIGTERM)
-            try:
-                server.wait(15)
-            except subprocess.TimeoutExpired:
-                os.killpg(server.pid, signal.SIGKILL)
+        server.stop(grace=15)
     recs = [load_recording(out, k) for k in kinds]
     for r in recs:
         print(f"{r.kind:8s} received {r.received} states over Zenoh, {r.missing} missing, {r.duplicates} duplicated")

@@ -57,13 +57,15 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
+from drape.client import protocol as P
+
 from ..sim.fabric import Fabric, cook_grid, vertex_masses
 from ..sim.params import LINK_STRUCTURAL, SOLVERS, Capsule, ClothParams, Features, Material, pack_colliders
 
 log = logging.getLogger(__name__)
 
 SCENES = ("hanging", "flag", "cape")
-ENCODINGS = ("float32", "float16", "quant16")  # drape.client.protocol's names
+ENCODINGS = P.ENCODINGS
 DURATION = 2.0  # simulated seconds per run
 COMPARE_HZ = 10  # deviation instants: t = 0.1, 0.2, ... (divides every tick rate used)
 EARLY_S = 0.5  # rms_dev_early covers t <= EARLY_S
@@ -219,43 +221,20 @@ def reference_config(substeps: int = REF_SUBSTEPS, iterations: int = REF_ITERATI
 # Encodings
 
 
-def _protocol():
-    """drape.client.protocol when it is there (its encode_state/decode_state are the wire's)."""
-    try:
-        from drape.client import protocol  # type: ignore
-    except Exception:  # noqa: BLE001 - optional: the numpy fallback below is the same encoding
-        return None
-    return protocol if hasattr(protocol, "encode_state") and hasattr(protocol, "decode_state") else None
-
-
 def wire_bytes(n_vertices: int, encoding: str) -> int:
-    proto = _protocol()
-    if proto is not None:
-        return int(proto.state_size(n_vertices, encoding))
-    return 64 + n_vertices * 3 * (4 if encoding == "float32" else 2)
+    """Bytes of one state of ``n_vertices`` on the wire (the protocol's own size)."""
+    return int(P.state_size(n_vertices, encoding))
 
 
 def encode_roundtrip(x: np.ndarray, encoding: str) -> np.ndarray:
-    """Positions as a client decodes them after ``encoding`` (float32 input): through the wire
-    protocol's own encoder and decoder when client/protocol.py is present, else the same
-    arithmetic in numpy (float16: IEEE half; quant16: per axis rint((x - min) * 65535 /
-    (max - min)) as uint16 against the float32 axis-aligned bounds)."""
+    """Positions as a client decodes them after ``encoding`` (float32 input), through the wire
+    protocol's own encoder and decoder."""
     x = np.asarray(x, np.float32)
     if encoding == "float32":
         return x
     if encoding not in ENCODINGS:
         raise ValueError(f"unknown encoding {encoding!r}; choose from {ENCODINGS}")
-    proto = _protocol()
-    if proto is not None:
-        return np.array(proto.decode_state(proto.encode_state(0, 0, x, encoding=encoding)).positions, np.float32)
-    if encoding == "float16":
-        return np.clip(x, -65504.0, 65504.0).astype(np.float16).astype(np.float32)
-    lo = x.min(axis=0).astype(np.float64)
-    hi = x.max(axis=0).astype(np.float64)
-    ext = hi - lo
-    scale = np.divide(65535.0, ext, out=np.zeros(3), where=ext > 0)
-    q = np.rint(np.clip((x.astype(np.float64) - lo) * scale, 0, 65535))
-    return (lo + q * (ext / 65535.0)).astype(np.float32)
+    return np.array(P.decode_state(P.encode_state(0, 0, x, encoding=encoding)).positions, np.float32)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -760,7 +739,7 @@ def format_encoding_table(records: list[dict]) -> str:
 
 def plot(records: list[dict], path: Path, scene: str, size: int, error: str = "max_strain") -> Path | None:
     """Error against cost (ms per 1/60 s simulated), a series per solver, Pareto front marked."""
-    from . import imaging
+    from .plots import scatter_plot
 
     pts = [r for r in records if r["scene"] == scene and r["size"] == size and r["encoding"] == "float32"
            and r["finite"] and r.get(error) is not None and math.isfinite(r[error]) and r[error] > 0]
@@ -783,7 +762,7 @@ def plot(records: list[dict], path: Path, scene: str, size: int, error: str = "m
     unit = "%" if "strain" in error else "mm"
     label = {"max_strain": "max structural strain", "mean_strain": "mean structural strain",
              "rms_dev": "RMS deviation from reference", "rms_dev_early": "RMS deviation, first 0.5 s"}.get(error, error)
-    imaging.scatter_plot(
+    scatter_plot(
         path,
         {k: series[k] for k in sorted(series)},
         title=f"{scene} {size}x{size}: {label} vs cost",

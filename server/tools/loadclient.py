@@ -1,0 +1,198 @@
+"""One load-test client process: it behaves like a game client with many cloths.
+
+It submits its cloths (counting refused submits by error code: a server past its knee answers
+``overloaded``), then, once told to go, moves every cloth's pins once per tick (one batch
+control per tick with bundles, one control per cloth without) and records every state it
+receives: tick, latency (server timestamp -> receipt, one host so one clock) and the time from
+the payload's arrival to the state's delivery (the SDK's decode cost). The parent tells it which
+server ticks the measured window covers; only states of those ticks count.
+
+Runs in a ``spawn``-ed process: everything it needs comes through its arguments.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+@dataclass
+class ClientSpec:
+    """What one client process does: ``offered`` cloths of ``size`` x ``size`` vertices."""
+
+    index: int
+    offered: int
+    size: int = 32
+    features: tuple[str, ...] = ()
+    iterations: int = 10
+    substeps: int = 1
+    bending: bool = True
+    encoding: str = "float32"
+    tick_rate: float = 60.0
+    bundle: bool = True
+
+
+@dataclass
+class ClientResult:
+    """What one client saw in the measured window (server ticks ``lo + 1 .. hi``)."""
+
+    index: int
+    offered: int
+    admitted: int
+    refused: dict[str, int]  # refused submits by error code
+    received: int  # states of window ticks
+    expected: int  # admitted cloths x window ticks
+    lost: int  # window ticks some admitted cloth never received
+    duplicated: int
+    out_of_order: int
+    latencies_ms: np.ndarray  # per received state
+    decode_us_per_state: float  # mean of (per payload: arrival -> last state delivered) / states in it
+    decode_us_per_payload: float  # mean arrival -> last state delivered, per payload (bundle or state)
+    decode_s: float  # total decode time in the window
+    payloads: int  # bundles (or single states) received in the window
+    bytes: int
+    send_errors: int
+    cpu_s: float  # the process's CPU time over the window
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+class _Recorder:
+    """Per cloth: the states' ticks, latencies, arrival times and delivery delays, as lists
+    (appends are the cheapest thing a Zenoh callback can do)."""
+
+    def __init__(self) -> None:
+        self.ticks: list[int] = []
+        self.lat_ns: list[int] = []
+        self.rx_ns: list[int] = []
+        self.delay_ns: list[int] = []
+
+    def __call__(self, st: Any) -> None:
+        now = time.time_ns()
+        self.ticks.append(st.tick)
+        self.lat_ns.append(st.receive_time_ns - st.server_time_ns)
+        self.rx_ns.append(st.receive_time_ns)
+        self.delay_ns.append(now - st.receive_time_ns)
+
+
+def window_counts(ticks: np.ndarray, lo: int, hi: int) -> tuple[int, int, int, int]:
+    """Received, lost, duplicated and out-of-order states of one cloth over ticks ``lo+1 .. hi``
+    (``ticks`` in arrival order)."""
+    inside = ticks[(ticks > lo) & (ticks <= hi)]
+    uniq = np.unique(inside)
+    ooo = int(np.count_nonzero(np.diff(inside) < 0))
+    return len(inside), (hi - lo) - len(uniq), len(inside) - len(uniq), ooo
+
+
+def decode_cost(rx_ns: np.ndarray, delay_ns: np.ndarray) -> tuple[float, float, float, int]:
+    """Decode cost from each state's payload arrival time and delivery delay: states sharing an
+    arrival time came in one payload (a bundle); a payload's cost is its largest delay (arrival
+    to its last state delivered). Returns mean microseconds per state and per payload, total
+    seconds and the number of payloads."""
+    if not len(rx_ns):
+        return float("nan"), float("nan"), 0.0, 0
+    _, inverse, counts = np.unique(rx_ns, return_inverse=True, return_counts=True)
+    per_payload = np.zeros(len(counts), np.float64)
+    np.maximum.at(per_payload, inverse, delay_ns.astype(np.float64))
+    total = float(per_payload.sum())
+    return total / len(rx_ns) / 1e3, float(per_payload.mean()) / 1e3, total / 1e9, len(counts)
+
+
+def client_main(spec: ClientSpec, endpoint: str, server_id: str | None, shared: dict[str, Any], results: Any) -> None:
+    """The process body. ``shared``: events ``ready``, ``go``, ``stop`` and values ``admitted``,
+    ``receiving`` (1 once every admitted cloth got a state), ``progress`` (states so far) and the
+    window ``lo``, ``hi`` (server ticks, -1 until the parent knows them)."""
+    logging.basicConfig(level=logging.WARNING)
+    from drape.client import DrapeClient
+    from drape.client import protocol as P
+
+    n = spec.size
+    pins = [0, n - 1]
+    handles: list[Any] = []
+    recs: list[_Recorder] = []
+    refused: Counter[str] = Counter()
+    try:
+        with DrapeClient(endpoint, server_id=server_id, timeout=60.0, queue_size=4) as client:
+            for j in range(spec.offered):
+                try:
+                    h = client.submit_grid(
+                        n, n, 1.0, 1.0, origin=(1.5 * j, 1.0, 2.0 * spec.index), pinned=pins,
+                        links={"structural": True, "shear": True, "bending": spec.bending},
+                        features=list(spec.features), iterations=spec.iterations, substeps=spec.substeps,
+                        encoding=spec.encoding, bundle=spec.bundle,
+                    )
+                except P.DrapeError as e:
+                    refused[e.code] += 1
+                    continue
+                rec = _Recorder()
+                handles.append(h)
+                recs.append(rec)
+            if spec.bundle and handles and not all(h.bundled for h in handles):
+                raise RuntimeError("the server does not bundle states (protocol 1.0?)")
+            rest = [np.asarray(h.rest_positions[pins], np.float64) for h in handles]
+            shared["admitted"].value = len(handles)
+            shared["ready"].set()
+            shared["go"].wait()
+            cancels = [h.on_state(rec) for h, rec in zip(handles, recs, strict=True)]
+            cpu0, err0, opened = time.process_time(), client.send_errors, False
+            period = 1.0 / spec.tick_rate
+            t0 = next_t = time.monotonic()
+            while not shared["stop"].is_set():
+                t = time.monotonic() - t0
+                # like a game: every cloth's pins follow its character, once per tick
+                wave = np.array([0.0, 0.05 * math.sin(3.0 * t), 0.0])
+                if spec.bundle and handles:
+                    with client.batch() as b:
+                        for j, h in enumerate(handles):
+                            b.move_pins(h, pins, rest[j] + wave + [0.1 * math.sin(2.0 * t + j), 0.0, 0.0])
+                else:
+                    for j, h in enumerate(handles):
+                        h.move_pins(pins, rest[j] + wave + [0.1 * math.sin(2.0 * t + j), 0.0, 0.0], wait=False)
+                got = sum(len(r.ticks) for r in recs)
+                shared["progress"].value = got
+                if not shared["receiving"].value and all(r.ticks for r in recs):
+                    shared["receiving"].value = 1
+                if not opened and shared["lo"].value >= 0:
+                    cpu0, err0, opened = time.process_time(), client.send_errors, True
+                next_t += period
+                delay = next_t - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+                else:
+                    next_t = time.monotonic()
+            cpu_s = time.process_time() - cpu0
+            send_errors = client.send_errors - err0
+            per_state = P.state_size(n * n, spec.encoding)
+            lo, hi = int(shared["lo"].value), int(shared["hi"].value)
+            for cancel in cancels:  # stop recording before the client closes
+                cancel()
+            snapshot = [(np.asarray(r.ticks, np.int64), np.asarray(r.lat_ns, np.int64), np.asarray(r.rx_ns, np.int64),
+                         np.asarray(r.delay_ns, np.int64)) for r in recs]
+    except BaseException as e:  # report, don't hang the parent
+        results.put(("error", spec.index, repr(e)))
+        raise
+    received = lost = dup = ooo = 0
+    lat, rx, dl = [], [], []
+    for ticks, lat_ns, rx_ns, delay_ns in snapshot:
+        k = min(len(ticks), len(lat_ns), len(rx_ns), len(delay_ns))  # the callback may have raced the copy
+        ticks, lat_ns, rx_ns, delay_ns = ticks[:k], lat_ns[:k], rx_ns[:k], delay_ns[:k]
+        r, lo_, d, o = window_counts(ticks, lo, hi)
+        received, lost, dup, ooo = received + r, lost + lo_, dup + d, ooo + o
+        inside = (ticks > lo) & (ticks <= hi)
+        lat.append(lat_ns[inside])
+        rx.append(rx_ns[inside])
+        dl.append(delay_ns[inside])
+    lat_ms = (np.concatenate(lat) / 1e6).astype(np.float32) if lat else np.zeros(0, np.float32)
+    per_s, per_p, dec_s, payloads = decode_cost(np.concatenate(rx) if rx else np.zeros(0, np.int64),
+                                                np.concatenate(dl) if dl else np.zeros(0, np.int64))
+    results.put(("ok", ClientResult(
+        index=spec.index, offered=spec.offered, admitted=len(handles), refused=dict(refused), received=received,
+        expected=len(handles) * max(hi - lo, 0), lost=lost, duplicated=dup, out_of_order=ooo, latencies_ms=lat_ms,
+        decode_us_per_state=per_s, decode_us_per_payload=per_p, decode_s=dec_s, payloads=payloads,
+        bytes=received * per_state, send_errors=send_errors, cpu_s=cpu_s,
+    )))

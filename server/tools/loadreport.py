@@ -1,0 +1,226 @@
+"""What ``drape loadtest`` reports about one load: the figures of the measured window, computed
+from two of the server's stats publications (tick counters and timestamps) and the clients'
+results, and their outputs: printed summary, markdown table, JSON-ready dicts and plots.
+
+The measured window runs from one stats publication to a later one, both taken after every
+client is up and receiving, so start-up (submits, cooking, first publications) never counts.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .loadclient import ClientResult
+
+
+def achieved_rate(s0: Mapping[str, Any], s1: Mapping[str, Any]) -> float:
+    """Ticks per second between two stats publications of one server: the difference of their
+    tick counters over the difference of their server timestamps."""
+    for name, s in (("first", s0), ("second", s1)):
+        missing = [k for k in ("ticks", "time_ns") if k not in s]
+        if missing:
+            raise ValueError(f"{name} stats publication lacks {', '.join(missing)}")
+    span_s = (int(s1["time_ns"]) - int(s0["time_ns"])) / 1e9
+    ticks = int(s1["ticks"]) - int(s0["ticks"])
+    if span_s <= 0:
+        raise ValueError(f"the second stats publication is not later than the first ({span_s:.3f} s)")
+    if ticks < 0:
+        raise ValueError("tick counter went backwards: not the same server run")
+    return ticks / span_s
+
+
+def counter_delta(s0: Mapping[str, Any], s1: Mapping[str, Any], key: str) -> int:
+    return int(s1.get(key, 0)) - int(s0.get(key, 0))
+
+
+def phase_means(window: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, float]]:
+    """Mean and max milliseconds per server phase over stats publications (each carries its
+    own window's count, mean and max), weighted by count."""
+    acc: dict[str, list[tuple[float, float, float]]] = {}
+    for st in window:
+        for name, ph in st.get("phases", {}).items():
+            acc.setdefault(name, []).append((ph.get("count", 0), ph.get("mean_ms", 0.0), ph.get("max_ms", 0.0)))
+    out = {}
+    for name, rows in acc.items():
+        n = sum(c for c, _, _ in rows)
+        if n:
+            out[name] = {"mean": round(sum(c * m for c, m, _ in rows) / n, 3), "max": round(max(x for _, _, x in rows), 3)}
+    return out
+
+
+@dataclass
+class Report:
+    cloths: int  # admitted
+    offered: int
+    refused: dict[str, int]  # refused submits by error code
+    clients: int
+    vertices_per_cloth: int
+    iterations: int
+    features: list[str]
+    encoding: str
+    bundle: bool
+    window_ticks: tuple[int, int]  # server ticks lo+1 .. hi
+    seconds: float  # the window on the server's clock
+    tick_hz_target: float
+    tick_hz_achieved: float
+    ticks: int
+    missed_ticks: int
+    skipped_frames: int
+    latency_ms: dict[str, float]
+    states: int
+    expected_states: int
+    lost: int
+    duplicated: int
+    out_of_order: int
+    messages_per_s: float
+    bytes_per_s: float
+    send_errors: int
+    decode_us: dict[str, float]  # per state, per payload (bundle or state), clients' share of one core
+    server: dict[str, Any] = field(default_factory=dict)  # phases_ms, cpu_percent, rss_*_mb
+    clients_cpu_percent: float = float("nan")
+    host: str = ""
+
+    @property
+    def held(self) -> bool:
+        """No missed tick, nothing lost or coalesced, p99 within one tick."""
+        p99 = self.latency_ms.get("p99", float("nan"))
+        return (self.ticks > 0 and self.missed_ticks == 0 and self.lost == 0 and self.skipped_frames == 0
+                and math.isfinite(p99) and p99 <= 1000.0 / self.tick_hz_target)
+
+    def why_not_held(self) -> str:
+        why = []
+        if self.ticks <= 0:
+            why.append("no ticks in the window")
+        if self.missed_ticks:
+            why.append(f"{self.missed_ticks} missed ticks")
+        if self.skipped_frames:
+            why.append(f"{self.skipped_frames} frames coalesced")
+        if self.lost:
+            why.append(f"{self.lost} states lost")
+        p99 = self.latency_ms.get("p99", float("nan"))
+        if not (math.isfinite(p99) and p99 <= 1000.0 / self.tick_hz_target):
+            why.append(f"p99 {p99:.1f} ms > one tick")
+        return ", ".join(why) or "held"
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self) | {"held": self.held}
+
+
+def latency_summary(lat_ms: np.ndarray) -> dict[str, float]:
+    if not len(lat_ms):
+        return {"p50": float("nan"), "p99": float("nan"), "max": float("nan"), "mean": float("nan")}
+    p50, p99 = np.percentile(lat_ms, [50, 99])
+    return {"p50": round(float(p50), 3), "p99": round(float(p99), 3), "max": round(float(lat_ms.max()), 3),
+            "mean": round(float(lat_ms.mean()), 3)}
+
+
+def decode_summary(results: Sequence[ClientResult], seconds: float) -> dict[str, float]:
+    states = sum(r.received for r in results)
+    payloads = sum(r.payloads for r in results)
+    total = sum(r.decode_s for r in results)
+    return {"per_state": round(1e6 * total / states, 2) if states else float("nan"),
+            "per_payload": round(1e6 * total / payloads, 2) if payloads else float("nan"),
+            "cpu_percent": round(100.0 * total / seconds, 1) if seconds > 0 else float("nan")}
+
+
+# ------------------------------------------------------------------------------------------------
+# Output
+
+
+def print_report(r: Report) -> None:
+    lat, ph = r.latency_ms, r.server.get("phases_ms", {})
+    refused = ", ".join(f"{n} {code}" for code, n in sorted(r.refused.items())) or "none"
+    print(f"load: {r.cloths} cloths admitted of {r.offered} offered (refused: {refused}) over {r.clients} clients, "
+          f"{r.vertices_per_cloth} vertices, {r.iterations} iterations, features {r.features or 'none'}, {r.encoding}, "
+          f"{'bundles + batch control' if r.bundle else 'per-cloth states and controls'}")
+    print(f"  window: server ticks {r.window_ticks[0] + 1}..{r.window_ticks[1]} ({r.seconds:.2f} s on the server)")
+    print(f"  ticks: {r.tick_hz_achieved:.2f} Hz achieved of {r.tick_hz_target:g} Hz ({r.ticks} ticks); "
+          f"missed {r.missed_ticks}, coalesced {r.skipped_frames}")
+    print(f"  latency ms: p50 {lat['p50']:.2f}  p99 {lat['p99']:.2f}  max {lat['max']:.2f}")
+    print(f"  states: {r.states} of {r.expected_states} received, {r.lost} lost, {r.duplicated} duplicated, "
+          f"{r.out_of_order} out of order; {r.messages_per_s:.0f} msg/s, {r.bytes_per_s / 1e6:.2f} MB/s; "
+          f"control errors {r.send_errors}")
+    print(f"  client decode: {r.decode_us['per_state']:.1f} us per state, {r.decode_us['per_payload']:.1f} us per "
+          f"{'bundle' if r.bundle else 'state message'}, {r.decode_us['cpu_percent']:.0f}% of one core in all")
+    if ph:
+        print("  server ms per tick (mean/max): " + ", ".join(f"{k} {v['mean']:.2f}/{v['max']:.2f}" for k, v in ph.items()))
+    s = r.server
+    if "cpu_percent" in s:
+        print(f"  server CPU {s['cpu_percent']:.0f}%, RSS {s['rss_start_mb']:.0f} -> {s['rss_end_mb']:.0f} MB "
+              f"(max {s['rss_max_mb']:.0f} MB); clients CPU {r.clients_cpu_percent:.0f}%")
+    print(f"  held: {'yes' if r.held else 'NO (' + r.why_not_held() + ')'}")
+
+
+COLUMNS = ("cloths", "offered", "refused", "encoding", "Hz", "missed", "coalesced", "p50 ms", "p99 ms", "lost",
+           "MB/s", "solve ms", "readback ms", "encode ms", "publish ms", "tick ms", "decode us/state",
+           "decode us/bundle", "server CPU %", "RSS MB (start/end/max)", "held")
+
+
+def markdown_table(reports: Sequence[Report]) -> str:
+    """One row per load."""
+    lines = ["| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
+    for r in reports:
+        ph = r.server.get("phases_ms", {})
+        s = r.server
+
+        def phase(name: str, ph: dict = ph) -> str:
+            return f"{ph[name]['mean']:.2f}" if name in ph else "-"
+
+        rss = (f"{s['rss_start_mb']:.0f}/{s['rss_end_mb']:.0f}/{s['rss_max_mb']:.0f}" if "rss_max_mb" in s else "-")
+        row = [r.cloths, r.offered, sum(r.refused.values()), r.encoding, f"{r.tick_hz_achieved:.2f}", r.missed_ticks,
+               r.skipped_frames, f"{r.latency_ms['p50']:.2f}", f"{r.latency_ms['p99']:.2f}", r.lost,
+               f"{r.bytes_per_s / 1e6:.1f}", phase("solve"), phase("readback"), phase("encode"), phase("publish"),
+               phase("tick"), f"{r.decode_us['per_state']:.1f}", f"{r.decode_us['per_payload']:.1f}",
+               f"{s.get('cpu_percent', float('nan')):.0f}", rss, "yes" if r.held else "**no**"]
+        lines.append("| " + " | ".join(str(v) for v in row) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_plots(out: Path, report: Report, results: Sequence[ClientResult], window: Sequence[tuple[float, dict]],
+                tag: str) -> list[Path]:
+    """The latency histogram and the server's time per tick phase over the run."""
+    from .plots import histogram, line_plot
+
+    lat = np.concatenate([r.latencies_ms for r in results]) if results else np.zeros(0)
+    paths = [histogram(out / f"loadtest-{tag}-latency.png", lat,
+                       title=f"State latency, {report.cloths} cloths x {report.vertices_per_cloth} vertices "
+                             f"({report.encoding})",
+                       xlabel="server tick -> client receipt (ms)",
+                       markers={"p50": report.latency_ms["p50"], "p99": report.latency_ms["p99"]})]
+    if window:
+        t0 = window[0][0]
+        xs = [t - t0 for t, _ in window]
+        series: dict[str, tuple[list[float], list[float]]] = {}
+        for name in ("tick", "solve", "readback", "encode", "publish"):
+            series[f"{name} mean"] = (xs, [st.get("phases", {}).get(name, {}).get("mean_ms", math.nan) for _, st in window])
+        series["tick max"] = (xs, [st.get("phases", {}).get("tick", {}).get("max_ms", math.nan) for _, st in window])
+        series["budget (1 tick)"] = (xs, [1000.0 / report.tick_hz_target] * len(xs))
+        paths.append(line_plot(out / f"loadtest-{tag}-ticks.png", series, dashed=("budget (1 tick)",),
+                               title=f"Server time per tick phase, {report.cloths} cloths ({report.encoding})",
+                               xlabel="time in the measured window (s)", ylabel="ms per tick"))
+    return paths
+
+
+def write_summary_plot(path: Path, reports: Sequence[Report]) -> Path:
+    """Achieved tick rate and p99 latency against the load, one line per encoding."""
+    from .plots import line_plot
+
+    series: dict[str, tuple[list[float], list[float]]] = {}
+    for r in reports:
+        for what, y in (("Hz achieved", r.tick_hz_achieved), ("p99 ms", r.latency_ms["p99"])):
+            xs, ys = series.setdefault(f"{what}, {r.encoding}", ([], []))
+            xs.append(r.cloths)
+            ys.append(y)
+    if reports:
+        xs = sorted({r.cloths for r in reports})
+        series["target Hz"] = (xs, [reports[0].tick_hz_target] * len(xs))
+        series["one tick (ms)"] = (xs, [1000.0 / reports[0].tick_hz_target] * len(xs))
+    return line_plot(path, series, dashed=("target Hz", "one tick (ms)"), logx=True,
+                     title="Load test: achieved tick rate and p99 latency", xlabel="cloths admitted",
+                     ylabel="Hz / ms")

@@ -1,0 +1,130 @@
+"""What the tools share about processes: a free loopback port, ``drape serve`` as a child process,
+process CPU time and memory (psutil), progress bars (tqdm) and a clear error when an extra is
+missing.
+
+Imported only by the tools (``drape.server.tools``); it needs the ``tools`` extra (psutil, tqdm),
+checked by :func:`require_extra` with a message naming the extra to install.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+#: The Python modules each extra of pyproject.toml provides (import names, not package names).
+EXTRA_MODULES: dict[str, tuple[str, ...]] = {
+    "server": ("pyopencl",),
+    "tools": ("matplotlib", "PIL", "tqdm", "psutil"),
+}
+
+
+def require_extra(extra: str, command: str, modules: Sequence[str] | None = None) -> None:
+    """Exit with a clear message when a module of ``extra`` is not installed."""
+    missing = [m for m in (EXTRA_MODULES[extra] if modules is None else modules) if importlib.util.find_spec(m) is None]
+    if missing:
+        raise SystemExit(
+            f"drape {command} needs the '{extra}' extra ({', '.join(missing)} not installed): "
+            f"pip install 'drape[{extra}]'"
+        )
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on right now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def progress(iterable: Iterable[Any] | None = None, *, total: float | None = None, desc: str = "",
+             unit: str = "it", quiet: bool = False, **kw: Any) -> Any:
+    """A tqdm progress bar on stderr, disabled when stderr is not a terminal or ``quiet``."""
+    from tqdm import tqdm
+
+    disable = quiet or not sys.stderr.isatty()
+    return tqdm(iterable, total=total, desc=desc, unit=unit, disable=disable, leave=False, dynamic_ncols=True, **kw)
+
+
+@dataclass
+class ProcessFigures:
+    """CPU time and resident memory of one process, sampled over a run."""
+
+    pid: int
+    rss_mb: list[float] = field(default_factory=list)
+
+    def cpu_seconds(self) -> float:
+        """User + system CPU seconds of the process so far (NaN when it is gone)."""
+        import psutil
+
+        try:
+            t = psutil.Process(self.pid).cpu_times()
+        except (psutil.NoSuchProcess, psutil.AccessDenied):
+            return float("nan")
+        return float(t.user + t.system)
+
+    def sample_rss(self) -> float:
+        """Resident set size now, in MB; kept in ``rss_mb`` (NaN when the process is gone)."""
+        import psutil
+
+        try:
+            mb = psutil.Process(self.pid).memory_info().rss / 2**20
+        except (psutil.NoSuchProcess, psutil.AccessDenied):
+            return float("nan")
+        self.rss_mb.append(mb)
+        return float(mb)
+
+    def rss_summary(self) -> dict[str, float]:
+        """Start, end and maximum of the sampled RSS, in MB."""
+        if not self.rss_mb:
+            return {"rss_start_mb": float("nan"), "rss_end_mb": float("nan"), "rss_max_mb": float("nan")}
+        return {"rss_start_mb": round(self.rss_mb[0], 1), "rss_end_mb": round(self.rss_mb[-1], 1),
+                "rss_max_mb": round(max(self.rss_mb), 1)}
+
+
+class ServerProcess:
+    """``drape serve`` as a child process in its own session, on a free loopback port.
+
+    ``args`` are extra ``drape serve`` arguments. Stop it with :meth:`stop` (SIGTERM to its process
+    group, SIGKILL after ``grace`` seconds); usable as a context manager."""
+
+    def __init__(self, args: Sequence[str] = (), *, server_id: str | None = None, port: int = 0) -> None:
+        self.endpoint = f"tcp/127.0.0.1:{port or free_port()}"
+        self.server_id = server_id or f"tools-{os.getpid()}"
+        self.cmd = [sys.executable, "-m", "drape.server.cli", "serve", "--listen", self.endpoint,
+                    "--server-id", self.server_id, *args]
+        log.info("starting server: %s", " ".join(self.cmd))
+        self.proc = subprocess.Popen(self.cmd, start_new_session=True)
+        self.figures = ProcessFigures(self.proc.pid)
+
+    @property
+    def returncode(self) -> int | None:
+        return self.proc.returncode
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def stop(self, grace: float = 20.0) -> int | None:
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGTERM)
+            try:
+                self.proc.wait(grace)
+            except subprocess.TimeoutExpired:
+                log.warning("server %s did not stop in %.0f s: killing it", self.server_id, grace)
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait(10)
+        return self.proc.returncode
+
+    def __enter__(self) -> ServerProcess:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()

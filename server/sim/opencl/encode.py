@@ -273,12 +273,14 @@ class DeviceEncoder:
         self._hosts: list[_HostFrame] = []
         self._next = 0
         self._last: _HostFrame | None = None
+        self.kernel_event: cl.Event | None = None  # the last launch (profiling on a profiling queue)
 
     # -- plan ------------------------------------------------------------------------------
 
     def _pick_wg(self, max_n: int) -> int:
         limit = self.dev.info.max_work_group
-        want = self._local_size or (256 if self.dev.info.is_gpu else 64)
+        # CPU (PoCL): one work-item per cloth, no barrier bookkeeping, as the world's solvers
+        want = self._local_size or (256 if self.dev.info.is_gpu else 1)
         want = min(want, limit, 1 << max(0, int(max(max_n, 1) - 1).bit_length()))
         wg = 1
         while wg * 2 <= want:
@@ -287,7 +289,7 @@ class DeviceEncoder:
 
     def set_plan(self, plan: FramePlan) -> None:
         """Use ``plan`` from the next frame on: upload its table and template (blocking), size
-        the output and pinned host buffers. Views of earlier frames become invalid."""
+        the output and pinned host buffers. Views of earlier frames keep their bytes while held."""
         ctx, q = self.dev.ctx, self.dev.queue
         self._release_hosts()
         wg = self._pick_wg(plan.max_n)
@@ -318,15 +320,10 @@ class DeviceEncoder:
                   len(plan.rows), plan.size, wg)
 
     def _release_hosts(self) -> None:
-        for h in self._hosts:
-            for v in h.views:
-                v.release()
-            h.views = []
-            try:
-                h.mapping.release(self.dev.queue)  # type: ignore[attr-defined]
-            except Exception:  # a frame still viewed elsewhere keeps its memory alive
-                log.debug("pinned frame buffer still referenced; left mapped")
+        """Drop the pinned host frames. A view still held elsewhere keeps its memory (and its
+        mapping) alive until it is dropped too, so it never dangles."""
         self._hosts = []
+        self._last = None
 
     # -- per tick ----------------------------------------------------------------------------
 
@@ -362,8 +359,10 @@ class DeviceEncoder:
         else:
             f = np.zeros(k, np.uint16)
         if k and not np.array_equal(f, self._flags[:k]):
-            self._flags[:k] = f
+            self._flags = f.copy()  # a new array: the previous upload may still read the old one
             events.append(cl.enqueue_copy(queue, self._flags_buf, self._flags, is_blocking=False))
+        if self._last is not None and self._last.event is not None:
+            events.append(self._last.event)  # frames in order even when callers use several queues
         host = self._hosts[self._next]
         self._next = (self._next + 1) % len(self._hosts)
         if host.event is not None:
@@ -376,6 +375,7 @@ class DeviceEncoder:
             ev = cl.enqueue_nd_range_kernel(queue, self._kernel, (n_rows * self._wg,), (self._wg,),
                                             wait_for=events or None)
             events = [ev]
+            self.kernel_event = ev
         if plan.size:
             host.event = cl.enqueue_copy(queue, host.data[:plan.size], self._out, is_blocking=False,
                                          wait_for=events or None)
@@ -398,7 +398,7 @@ class DeviceEncoder:
 
     def slices(self) -> list[memoryview]:
         """Publication index -> its payload, views of the frame last encoded (waits for it)."""
-        return self._frame().views
+        return list(self._frame().views)
 
     def bounds(self) -> np.ndarray:
         """(rows, 2, 3) float32: the bounds min and max in each encoded cloth's header, in

@@ -1,0 +1,176 @@
+"""Encoding cost per frame: the host path against the frame encoded on the device.
+
+``python -m drape.server.tools.encodebench --cloths 4096`` builds N cloths of S x S vertices in
+one float4 device buffer (as the world holds them) and, for each encoding, times per frame:
+
+- host: read the float4 positions back (one copy), gather every cloth's xyz back to back (what
+  the tick loop hands the publisher), then :class:`drape.server.service.statecodec.FrameEncoder`
+  writes every publication into its own reused ``bytearray``;
+- device: :class:`drape.server.sim.opencl.encode.DeviceEncoder`: one launch and one copy of the
+  packed frame into pinned host memory, then the publications' views.
+
+Medians over ``--repeat`` frames after a warm-up; the first frame of both paths is compared byte
+for byte. ``--bundle B`` puts B cloths in each bundle (0: every cloth on its own key).
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import statistics
+import time
+
+import numpy as np
+import pyopencl as cl
+
+from drape.client import protocol as P
+
+from ..service.statecodec import FrameEncoder
+from ..sim.opencl.device import Device
+from ..sim.opencl.encode import ClothEntry, DeviceEncoder, FramePlan, Publication
+
+log = logging.getLogger(__name__)
+
+ENCODINGS = {"float32": P.ENC_FLOAT32, "float16": P.ENC_FLOAT16, "quant16": P.ENC_QUANT16}
+
+
+def _world(rng: np.random.Generator, cloths: int, side: int) -> tuple[np.ndarray, np.ndarray]:
+    """float4 positions (draped grids, each somewhere else) and unit normals of every cloth."""
+    u = np.linspace(0.0, 1.0, side, dtype=np.float32)
+    gx, gz = np.meshgrid(u, u)
+    grid = np.stack([gx.ravel(), np.zeros(side * side, np.float32), gz.ravel()], 1)
+    pos = np.zeros((cloths * side * side, 4), np.float32)
+    for c in range(cloths):
+        sl = slice(c * side * side, (c + 1) * side * side)
+        pos[sl, :3] = grid + rng.normal(0, 0.05, grid.shape) + rng.uniform(-50, 50, 3)
+    pos[:, 3] = 1.0
+    nrm = np.zeros_like(pos)
+    m = rng.normal(0, 1, (len(pos), 3))
+    nrm[:, :3] = m / np.linalg.norm(m, axis=1, keepdims=True)
+    return pos, nrm
+
+
+def _publications(n: int, bundle: int) -> list[Publication]:
+    if bundle <= 0:
+        return [Publication(f"drape/cloth/c{i}/state", (i,)) for i in range(n)]
+    return [Publication(f"drape/client/k{j}/states", tuple(range(s, min(n, s + bundle))), bundle=True)
+            for j, s in enumerate(range(0, n, bundle))]
+
+
+class HostPath:
+    """What the service does today: readback, gather, FrameEncoder into per-key bytearrays."""
+
+    def __init__(self, dev: Device, pos_buf: cl.Buffer, plan: FramePlan, side: int, nrm_host: np.ndarray | None):
+        self.dev, self.pos_buf, self.plan = dev, pos_buf, plan
+        self.k, self.nv = len(plan.cloths), side * side
+        self.host = np.zeros((self.k * self.nv, 4), np.float32)
+        self.offsets = np.arange(self.k + 1, dtype=np.int64) * self.nv
+        self.encoder = FrameEncoder()
+        self.bufs = [bytearray(int(s)) for s in plan.pub_size.tolist()]
+        self.nrm = [None if nrm_host is None else nrm_host[i * self.nv:(i + 1) * self.nv, :3].copy()
+                    for i in range(self.k)]
+        self.encs = [c.encoding for c in plan.cloths]
+        self.parts: dict[str, list[float]] = {"readback": [], "gather": [], "encode": []}
+
+    def frame(self, tick: int, time_ns: int) -> list[bytearray]:
+        t0 = time.perf_counter()
+        cl.enqueue_copy(self.dev.queue, self.host, self.pos_buf, is_blocking=True)
+        t1 = time.perf_counter()
+        pos = np.concatenate([self.host[i * self.nv:(i + 1) * self.nv, :3] for i in range(self.k)], axis=0)
+        t2 = time.perf_counter()
+        enc = self.encoder
+        enc.begin(tick, time_ns, pos, self.offsets)
+        enc.prepare(list(range(self.k)), self.encs)
+        for pub, buf in zip(self.plan.publications, self.bufs):
+            if pub.bundle:
+                enc.write_bundle(buf, [(self.plan.cloths[i].cloth, i, self.encs[i], 0, self.nrm[i]) for i in pub.cloths])
+            else:
+                i = pub.cloths[0]
+                enc.write_state(buf, 0, i, self.encs[i], 0, self.nrm[i])
+        t3 = time.perf_counter()
+        for name, dt in zip(self.parts, (t1 - t0, t2 - t1, t3 - t2)):
+            self.parts[name].append(dt)
+        return self.bufs
+
+
+def run(encoding: str, cloths: int, side: int, bundle: int, normals: bool, repeat: int, warmup: int,
+        dev: Device, seed: int = 1, local_size: int | None = None) -> dict[str, float]:
+    rng = np.random.default_rng(seed)
+    nv = side * side
+    pos, nrm = _world(rng, cloths, side)
+    pos_buf = cl.Buffer(dev.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=pos)
+    nrm_buf = cl.Buffer(dev.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=nrm)
+    encs = [ENCODINGS[encoding]] * cloths if encoding != "mixed" else [i % 3 for i in range(cloths)]
+    entries = [ClothEntry(f"c{i:05d}", i * nv, nv, encs[i], normals) for i in range(cloths)]
+    plan = FramePlan.build(entries, _publications(cloths, bundle))
+    host = HostPath(dev, pos_buf, plan, side, nrm if normals else None)
+    pq = cl.CommandQueue(dev.ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
+    denc = DeviceEncoder(dev, local_size=local_size)
+    denc.set_plan(plan)
+    flags = np.zeros(cloths, np.uint16)
+    host_t: list[float] = []
+    dev_t: list[float] = []
+    kern_t: list[float] = []
+    copy_t: list[float] = []
+    same = None
+    for f in range(warmup + repeat):
+        t0 = time.perf_counter()
+        hb = host.frame(f, 1000 + f)
+        t1 = time.perf_counter()
+        copy_ev = denc.encode(pq, pos_buf, nrm_buf if normals else None, f, 1000 + f, flags)
+        views = denc.slices()
+        t2 = time.perf_counter()
+        if f == 0:
+            differ = sum(bytes(a) != bytes(b) for a, b in zip(hb, views))
+            same = differ == 0
+            if differ:
+                log.warning("%s: %d of %d publications differ between host and device", encoding, differ, len(hb))
+        if f >= warmup:
+            host_t.append(t1 - t0)
+            dev_t.append(t2 - t1)
+            k = denc.kernel_event
+            if k is not None:
+                kern_t.append((k.profile.end - k.profile.start) * 1e-9)
+            copy_t.append((copy_ev.profile.end - copy_ev.profile.start) * 1e-9)
+    denc.close()
+    med = lambda xs: statistics.median(xs) * 1e3 if xs else float("nan")  # noqa: E731
+    return {
+        "host_ms": med(host_t), "readback_ms": med(host.parts["readback"][warmup:]),
+        "gather_ms": med(host.parts["gather"][warmup:]), "encode_ms": med(host.parts["encode"][warmup:]),
+        "device_ms": med(dev_t), "kernel_ms": med(kern_t), "copy_ms": med(copy_t),
+        "frame_mb": plan.size / 1e6, "same": bool(same),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m drape.server.tools.encodebench", description=__doc__.splitlines()[0])
+    ap.add_argument("--cloths", type=int, nargs="+", default=[64, 256, 1024], help="cloth counts (default 64 256 1024)")
+    ap.add_argument("--side", type=int, default=32, help="grid side: side x side vertices per cloth (default 32)")
+    ap.add_argument("--encoding", nargs="+", default=["float32", "float16", "quant16"],
+                    choices=[*ENCODINGS, "mixed"], help="encodings to time (mixed: a third of each)")
+    ap.add_argument("--bundle", type=int, default=0, help="cloths per bundle; 0 = each cloth on its own key")
+    ap.add_argument("--normals", action="store_true", help="normals in every state")
+    ap.add_argument("--repeat", type=int, default=20, help="timed frames (median)")
+    ap.add_argument("--warmup", type=int, default=3)
+    ap.add_argument("--local-size", type=int, default=None, help="encoder work-group size (default: per device)")
+    ap.add_argument("--device", default=None, help="DRAPE_DEVICE: auto, gpu, cpu or part of a name")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    dev = Device(args.device)
+    print(f"device: {dev.info.name}; {args.side}x{args.side} vertices per cloth, "
+          f"{'bundles of ' + str(args.bundle) if args.bundle > 0 else 'singles'}{', normals' if args.normals else ''}; "
+          f"median ms per frame over {args.repeat} frames")
+    print(f"{'encoding':9} {'cloths':>6} {'MB':>7} | {'host':>8} {'readback':>8} {'gather':>7} {'encode':>7} | "
+          f"{'device':>7} {'kernel':>7} {'copy':>7} | {'speed-up':>8} same")
+    for n in args.cloths:
+        for e in args.encoding:
+            r = run(e, n, args.side, args.bundle, args.normals, args.repeat, args.warmup, dev,
+                  local_size=args.local_size)
+            print(f"{e:9} {n:6d} {r['frame_mb']:7.2f} | {r['host_ms']:8.2f} {r['readback_ms']:8.2f} "
+                  f"{r['gather_ms']:7.2f} {r['encode_ms']:7.2f} | {r['device_ms']:7.2f} {r['kernel_ms']:7.2f} "
+                  f"{r['copy_ms']:7.2f} | {r['host_ms'] / r['device_ms']:7.1f}x {'yes' if r['same'] else 'NO'}",
+                  flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -5,17 +5,24 @@ greedily graph-coloured into independent batches and sorted by colour, triangles
 vertex adjacency the Jacobi solver gathers over (vertices packed by degree), per-vertex
 area (mass share) and tether anchors. It never changes after cooking, so cloths made from
 the same mesh, link options and pins share one fabric and its device buffers.
+
+Grid geometry and OBJ parsing are the wire protocol's (drape.client.protocol.geometry): one
+implementation, here kept in float64. Tether anchors (each free vertex's nearest pinned vertex)
+are found in bounded memory, and only for fabrics cooked with ``tethers=True`` or when first
+asked for (Fabric.tethers), so a cloth without tethers never pays for them.
 """
 from __future__ import annotations
 
 import hashlib
 import logging
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable
 
 import numpy as np
+
+from drape.client.protocol.geometry import grid_positions, parse_obj_exact
 
 from .params import LINK_BENDING, LINK_SHEAR, LINK_STRUCTURAL, LinkOptions
 
@@ -23,6 +30,7 @@ log = logging.getLogger(__name__)
 
 MAX_VERTICES = 1 << 20  # per cloth; a hard sanity cap against hostile submissions
 MIN_REST_LENGTH = 0.0  # zero-length links are kept and handled by the solvers (a weld)
+TETHER_PAIRS_PER_CHUNK = 1 << 21  # (free vertex, pin) distances held at once by the tether set-up (~16 MB each array)
 
 
 @dataclass(frozen=True, eq=False)
@@ -36,13 +44,39 @@ class Fabric:
     rest_length: np.ndarray  # (L,) float64
     colour_offsets: np.ndarray  # (C+1,) int32: colour c is links[colour_offsets[c]:colour_offsets[c+1]]
     vertex_area: np.ndarray  # (n,) float64: a third of the area of each incident triangle
-    tether_anchor: np.ndarray  # (n,) int32: nearest pinned vertex, -1 for pinned or none
-    tether_length: np.ndarray  # (n,) float64: rest distance to that anchor
     jacobi_order: np.ndarray  # (n,) int32: vertices sorted by degree, highest first
     jacobi_offsets: np.ndarray  # (n+1,) int32: CSR over jacobi_order positions
     jacobi_adj: np.ndarray  # (2L, 2) int32: (other vertex, link index) for each incidence
     vtri_offsets: np.ndarray  # (n+1,) int32: CSR of incident triangles per vertex
     vtri: np.ndarray  # (3m,) int32
+    # tether anchors, computed once on demand (see tethers()); a list so the frozen fabric can fill it
+    _tethers: list = field(default_factory=list, repr=False)
+    _tether_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def tethers(self) -> tuple[np.ndarray, np.ndarray]:
+        """(anchor, length): each free vertex's nearest pinned vertex (int32, -1 for pinned
+        vertices or when nothing is pinned) and its rest distance to it (float64). Computed on
+        the first call (thread-safe), in bounded memory."""
+        with self._tether_lock:
+            if not self._tethers:
+                anchor, length = tether_anchors(self.rest_positions, self.pinned)
+                anchor.setflags(write=False)
+                length.setflags(write=False)
+                self._tethers.extend((anchor, length))
+            return self._tethers[0], self._tethers[1]
+
+    @property
+    def tethers_ready(self) -> bool:
+        """Whether the tether anchors have been computed (cooked with tethers=True, or asked for)."""
+        return bool(self._tethers)
+
+    @property
+    def tether_anchor(self) -> np.ndarray:  # (n,) int32: nearest pinned vertex, -1 for pinned or none
+        return self.tethers()[0]
+
+    @property
+    def tether_length(self) -> np.ndarray:  # (n,) float64: rest distance to that anchor
+        return self.tethers()[1]
 
     @property
     def n_vertices(self) -> int:
@@ -75,64 +109,27 @@ def grid_mesh(
     orientation: str = "horizontal",
     origin: Iterable[float] = (0.0, 0.0, 0.0),
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices (rows*cols, 3) and triangles of a regular grid; vertex (r, c) is r*cols + c.
-
-    horizontal: in the XZ plane (x = columns, z = rows) at the origin's height.
-    vertical: in the XY plane, row 0 at the origin's height, rows going down (-y)."""
-    if cols < 1 or rows < 1:
-        raise ValueError("a grid needs at least one column and one row")
+    """Vertices (rows*cols, 3) float64 and triangles (int32) of a regular grid; vertex (r, c) is
+    r*cols + c. The protocol's grid geometry (drape.client.protocol.grid_positions): horizontal in
+    the XZ plane (x = columns, z = rows) at the origin's height; vertical in the XY plane, row 0
+    at the origin's height, rows going down (-y)."""
     if cols * rows > MAX_VERTICES:
         raise ValueError(f"grid of {cols}x{rows} exceeds {MAX_VERTICES} vertices")
-    ox, oy, oz = (float(v) for v in origin)
-    u = np.linspace(0.0, width, cols) if cols > 1 else np.zeros(1)
-    w = np.linspace(0.0, height, rows) if rows > 1 else np.zeros(1)
-    cc, rr = np.meshgrid(u, w)
-    verts = np.zeros((rows * cols, 3))
-    verts[:, 0] = ox + cc.ravel()
-    if orientation == "horizontal":
-        verts[:, 1] = oy
-        verts[:, 2] = oz + rr.ravel()
-    elif orientation == "vertical":
-        verts[:, 1] = oy - rr.ravel()
-        verts[:, 2] = oz
-    else:
-        raise ValueError("orientation must be 'horizontal' or 'vertical'")
-    r, c = np.meshgrid(np.arange(rows - 1), np.arange(cols - 1), indexing="ij")
-    a = (r * cols + c).ravel()
-    b, d, e = a + 1, a + cols, a + cols + 1
-    tris = np.concatenate([np.stack([a, d, b], 1), np.stack([b, d, e], 1)]).astype(np.int32)
-    return verts, tris
+    verts, tris = grid_positions(cols, rows, width, height, orientation, origin)
+    return verts, tris.astype(np.int32)
 
 
 def load_obj(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices and triangles of a Wavefront OBJ file (faces fan-triangulated; v/vt/vn indices
-    and negative indices accepted; everything else ignored)."""
+    """Vertices and triangles of a Wavefront OBJ file (parse_obj)."""
     return parse_obj(Path(path).read_text())
 
 
 def parse_obj(text: str) -> tuple[np.ndarray, np.ndarray]:
-    verts: list[tuple[float, float, float]] = []
-    tris: list[tuple[int, int, int]] = []
-    for lineno, line in enumerate(text.splitlines(), 1):
-        parts = line.split("#", 1)[0].split()
-        if not parts:
-            continue
-        if parts[0] == "v":
-            if len(parts) < 4:
-                raise ValueError(f"OBJ line {lineno}: vertex needs x y z")
-            verts.append((float(parts[1]), float(parts[2]), float(parts[3])))
-        elif parts[0] == "f":
-            idx = []
-            for p in parts[1:]:
-                i = int(p.split("/")[0])
-                idx.append(i - 1 if i > 0 else len(verts) + i)
-            if len(idx) < 3:
-                raise ValueError(f"OBJ line {lineno}: face needs three vertices")
-            for k in range(1, len(idx) - 1):
-                tris.append((idx[0], idx[k], idx[k + 1]))
-    v = np.asarray(verts, np.float64).reshape(-1, 3)
-    t = np.asarray(tris, np.int32).reshape(-1, 3)
-    return v, t
+    """Vertices (n, 3) float64 and triangles (m, 3) int32 of OBJ text, by the protocol's rules
+    (drape.client.protocol.parse_obj_exact: faces fan-triangulated, v/vt/vn and negative indices,
+    out-of-range references refused)."""
+    v, t = parse_obj_exact(text)
+    return v, t.astype(np.int32)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -259,9 +256,12 @@ def cook(
     links: np.ndarray,
     link_type: np.ndarray,
     pinned: Iterable[int] = (),
+    tethers: bool = True,
 ) -> Fabric:
     """Cook a fabric from a rest pose, triangles and candidate links (any order, duplicates
-    and self-links removed). Raises ValueError on malformed input."""
+    and self-links removed). Raises ValueError on malformed input. ``tethers``: compute the tether
+    anchors now (False: only if and when Fabric.tethers is first asked, e.g. by a cloth with the
+    tethers feature)."""
     v = np.asarray(vertices, np.float64)
     if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
         raise ValueError("vertices must be a non-empty (n, 3) array")
@@ -294,7 +294,6 @@ def cook(
 
     t32 = t.astype(np.int32)
     area = _vertex_area(v, t32)
-    anchor, tlen = _tethers(v, pin_mask)
     j_order, j_off, j_adj = _jacobi_adjacency(lk, n)
     vt_off, vt = _vertex_triangles(t32, n)
 
@@ -309,16 +308,16 @@ def cook(
         rest_length=rest,
         colour_offsets=colour_offsets,
         vertex_area=area,
-        tether_anchor=anchor,
-        tether_length=tlen,
         jacobi_order=j_order,
         jacobi_offsets=j_off,
         jacobi_adj=j_adj,
         vtri_offsets=vt_off,
         vtri=vt,
     )
-    for arr in (v, t32, pin_mask, lk, lt, rest, colour_offsets, area, anchor, tlen, j_order, j_off, j_adj, vt_off, vt):
+    for arr in (v, t32, pin_mask, lk, lt, rest, colour_offsets, area, j_order, j_off, j_adj, vt_off, vt):
         arr.setflags(write=False)
+    if tethers:
+        fab.tethers()
     log.debug("cooked fabric %s: %d vertices, %d links, %d colours", key[:8], n, len(lk), n_col)
     return fab
 
@@ -332,10 +331,11 @@ def cook_grid(
     pinned: Iterable[int] = (),
     orientation: str = "horizontal",
     origin: Iterable[float] = (0.0, 0.0, 0.0),
+    tethers: bool = True,
 ) -> Fabric:
     verts, tris = grid_mesh(cols, rows, width, height, orientation, origin)
     links, ltype = grid_links(cols, rows, options)
-    return cook(verts, tris, links, ltype, pinned)
+    return cook(verts, tris, links, ltype, pinned, tethers)
 
 
 def cook_mesh(
@@ -343,13 +343,14 @@ def cook_mesh(
     triangles: np.ndarray,
     options: LinkOptions = LinkOptions(),
     pinned: Iterable[int] = (),
+    tethers: bool = True,
 ) -> Fabric:
     t = np.asarray(triangles, np.int64).reshape(-1, 3)
     n = len(np.asarray(vertices).reshape(-1, 3))
     if t.size and (t.min() < 0 or t.max() >= n):
         raise ValueError("triangle index out of range")
     links, ltype = mesh_links(t.astype(np.int32), options)
-    return cook(vertices, t, links, ltype, pinned)
+    return cook(vertices, t, links, ltype, pinned, tethers)
 
 
 class FabricCache:
@@ -410,21 +411,44 @@ def vertex_masses(fabric: Fabric, total_mass: float) -> np.ndarray:
     return np.full(n, total_mass / n)
 
 
-def _tethers(v: np.ndarray, pinned: np.ndarray, chunk: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+def tether_anchors(v: np.ndarray, pinned: np.ndarray,
+                   pairs_per_chunk: int = TETHER_PAIRS_PER_CHUNK) -> tuple[np.ndarray, np.ndarray]:
+    """Each free vertex's nearest pinned vertex (int32, -1 for pinned vertices or when none is
+    pinned; the lowest index among equally near ones) and the rest distance to it (float64).
+
+    Free vertices go in chunks of at most ``pairs_per_chunk`` (vertex, pin) pairs: squared
+    distances come from one matrix product per chunk (|x|^2 - 2 x.p + |p|^2), then the pins within
+    that formula's rounding of the nearest are compared by their exact distance |x - p|. Memory is
+    a few arrays of ``pairs_per_chunk`` values whatever the cloth's size and pin count."""
     n = len(v)
     anchor = np.full(n, -1, np.int32)
     length = np.zeros(n)
     pins = np.flatnonzero(pinned)
-    if len(pins) == 0:
+    free = np.flatnonzero(~np.asarray(pinned, bool))
+    if len(pins) == 0 or len(free) == 0:
         return anchor, length
-    pv = v[pins]
-    free = np.flatnonzero(~pinned)
-    for s in range(0, len(free), chunk):
-        idx = free[s : s + chunk]
-        d = np.linalg.norm(v[idx, None, :] - pv[None, :, :], axis=2)
-        j = np.argmin(d, axis=1)
-        anchor[idx] = pins[j]
-        length[idx] = d[np.arange(len(idx)), j]
+    pv = np.ascontiguousarray(v[pins], np.float64)
+    p2 = np.einsum("ij,ij->i", pv, pv)
+    pm2t = np.ascontiguousarray(-2.0 * pv.T)  # exact: a power of two
+    p2max = float(p2.max())
+    rows = max(1, int(pairs_per_chunk) // len(pins))
+    for s in range(0, len(free), rows):
+        idx = free[s:s + rows]
+        x = v[idx]
+        x2 = np.einsum("ij,ij->i", x, x)
+        d2 = x @ pm2t  # |p|^2 - 2 x.p: the squared distance less |x|^2, the same for every pin of a row
+        d2 += p2[None, :]
+        near = d2.min(axis=1)
+        # the expansion's rounding error is a few ulps of |x|^2 + |p|^2: every pin within that
+        # of the nearest is a candidate, compared exactly below
+        tol = 64.0 * np.finfo(np.float64).eps * (x2 + p2max) + np.finfo(np.float64).tiny
+        rr, cc = np.nonzero(d2 <= (near + tol)[:, None])
+        del d2
+        exact = np.linalg.norm(x[rr] - pv[cc], axis=1)
+        order = np.lexsort((cc, exact, rr))  # by row, then distance, then pin index
+        first = order[np.r_[True, rr[order][1:] != rr[order][:-1]]]
+        anchor[idx[rr[first]]] = pins[cc[first]]
+        length[idx[rr[first]]] = exact[first]
     return anchor, length
 
 

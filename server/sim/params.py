@@ -1,7 +1,10 @@
-"""Plain data shared by every layer: materials, features, colliders and per-cloth settings.
+"""Plain data of the simulation: materials, features, colliders and per-cloth settings.
 
-Nothing here touches numpy buffers on a device or the network; the solver, the tick loop and
-the wire protocol all build on these dataclasses.
+The vocabulary (feature, link type and collider names, material fields with their ranges and
+defaults, default gravity, wind, iterations, substeps) is the wire protocol's
+(drape.client.protocol.vocabulary): these dataclasses are built from it, and add the server's
+side (kernel build options, collider packing for the device, validation of a whole cloth).
+Nothing here touches a device or the network.
 """
 from __future__ import annotations
 
@@ -11,10 +14,25 @@ from typing import Literal
 
 import numpy as np
 
-LINK_STRUCTURAL = 0
-LINK_SHEAR = 1
-LINK_BENDING = 2
-LINK_TYPE_NAMES = ("structural", "shear", "bending")
+from drape.client.protocol.vocabulary import (
+    COLLIDER_TYPES,
+    DEFAULT_CHEBYSHEV_RHO,
+    DEFAULT_GRAVITY,
+    DEFAULT_ITERATIONS,
+    DEFAULT_LIMITS,
+    DEFAULT_SUBSTEPS,
+    DEFAULT_WIND,
+    FEATURE_NAMES,
+    LINK_TYPE_NAMES,
+    MATERIAL_DEFAULTS,
+    MATERIAL_FIELDS,
+    MAX_COLLIDERS_PER_CLOTH,
+    Capsule,
+    Plane,
+    Sphere,
+)
+
+LINK_STRUCTURAL, LINK_SHEAR, LINK_BENDING = (LINK_TYPE_NAMES.index(n) for n in ("structural", "shear", "bending"))
 
 SOLVERS = ("workgroup", "coloured", "jacobi", "reference")
 SolverName = Literal["workgroup", "coloured", "jacobi", "reference"]
@@ -65,46 +83,32 @@ class Features:
         return [f.name for f in fields(self) if getattr(self, f.name)]
 
 
+# The flags are spelled out above for the solver's readers; they are the protocol's names, in order.
+assert tuple(f.name for f in fields(Features)) == FEATURE_NAMES, "params.Features must list protocol.FEATURE_NAMES"
+
+
 @dataclass(frozen=True)
 class Material:
-    """Per-cloth material. Stiffness and compliance are per link type
-    (structural, shear, bending)."""
+    """Per-cloth material: the protocol's fields (protocol.MATERIAL_FIELDS) with its defaults.
+    Stiffness and compliance are per link type (structural, shear, bending)."""
 
-    mass: float = 1.0  # total kg, spread over vertices by their share of the area
-    stiffness: tuple[float, float, float] = (1.0, 1.0, 1.0)  # PBD kLST in [0, 1]
-    compliance: tuple[float, float, float] = (0.0, 0.0, 0.0)  # XPBD, metres per newton
-    damping: float = 0.0  # kDP: fraction of velocity removed per step, [0, 1]
-    friction: float = 0.0  # Coulomb-like coefficient against colliders
-    drag: float = 0.0  # kDG
-    lift: float = 0.0  # kLF
-    air_density: float = 1.2  # rho, kg/m^3
-    tether_limit: float = 1.0  # a vertex may be this many times its rest distance from its anchor
-
-
-@dataclass(frozen=True)
-class Sphere:
-    center: tuple[float, float, float]
-    radius: float
+    mass: float = MATERIAL_DEFAULTS["mass"]  # total kg, spread over vertices by their share of the area
+    stiffness: tuple[float, float, float] = MATERIAL_DEFAULTS["stiffness"]  # PBD kLST in [0, 1]
+    compliance: tuple[float, float, float] = MATERIAL_DEFAULTS["compliance"]  # XPBD, metres per newton
+    damping: float = MATERIAL_DEFAULTS["damping"]  # kDP: fraction of velocity removed per step, [0, 1]
+    friction: float = MATERIAL_DEFAULTS["friction"]  # Coulomb-like coefficient against colliders
+    drag: float = MATERIAL_DEFAULTS["drag"]  # kDG
+    lift: float = MATERIAL_DEFAULTS["lift"]  # kLF
+    air_density: float = MATERIAL_DEFAULTS["air_density"]  # rho, kg/m^3
+    tether_limit: float = MATERIAL_DEFAULTS["tether_limit"]  # a vertex may be this many times its rest distance from its anchor
 
 
-@dataclass(frozen=True)
-class Capsule:
-    p0: tuple[float, float, float]
-    p1: tuple[float, float, float]
-    radius: float
+assert tuple(f.name for f in fields(Material)) == tuple(MATERIAL_FIELDS), "params.Material must list protocol.MATERIAL_FIELDS"
 
-
-@dataclass(frozen=True)
-class Plane:
-    """The half space n.x >= offset is outside; n is normalised on packing."""
-
-    normal: tuple[float, float, float]
-    offset: float
-
-
+# Colliders are the protocol's dataclasses (Sphere, Capsule, Plane: the half space n.x >= offset is
+# outside, n normalised on packing); their type ids on the device follow protocol.COLLIDER_TYPES.
 Collider = Sphere | Capsule | Plane
-COLLIDER_SPHERE, COLLIDER_CAPSULE, COLLIDER_PLANE = 0, 1, 2
-MAX_COLLIDERS_PER_CLOTH = 32
+COLLIDER_SPHERE, COLLIDER_CAPSULE, COLLIDER_PLANE = (COLLIDER_TYPES.index(n) for n in ("sphere", "capsule", "plane"))
 
 
 def pack_colliders(colliders: list[Collider] | tuple[Collider, ...]) -> np.ndarray:
@@ -138,45 +142,39 @@ class ClothParams:
 
     material: Material = field(default_factory=Material)
     features: Features = field(default_factory=Features)
-    gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
-    wind: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    iterations: int = 10
-    substeps: int = 1
+    gravity: tuple[float, float, float] = DEFAULT_GRAVITY
+    wind: tuple[float, float, float] = DEFAULT_WIND
+    iterations: int = DEFAULT_ITERATIONS
+    substeps: int = DEFAULT_SUBSTEPS
     # Jacobi only: Chebyshev semi-iterative acceleration (Wang 2015) with this estimate of the
     # spectral radius; 0 turns it off. Typical 0.9 .. 0.99.
-    chebyshev_rho: float = 0.0
+    chebyshev_rho: float = DEFAULT_CHEBYSHEV_RHO
 
     def with_(self, **changes) -> "ClothParams":
         return replace(self, **changes)
 
     def validate(self) -> None:
+        """ValueError unless every field is finite and in range: the material by the protocol's
+        ranges (protocol.MATERIAL_FIELDS, with 10^6 where it gives no upper bound), iterations
+        and substeps by the solvers' own (wider than the wire's: tools use them)."""
         m = self.material
         _finite("gravity", self.gravity)
         _finite("wind", self.wind)
-        _finite("stiffness", m.stiffness)
-        _finite("compliance", m.compliance)
         if not (0 <= self.iterations <= 1000):  # 0: no link solve (the talk's "no solver" row)
             raise ValueError("iterations must be in 0..1000")
         if not (0.0 <= self.chebyshev_rho < 1.0):
             raise ValueError("chebyshev_rho must be in [0, 1)")
         if not (1 <= self.substeps <= 100):
             raise ValueError("substeps must be in 1..100")
-        if not (math.isfinite(m.mass) and m.mass > 0):
-            raise ValueError("mass must be finite and > 0")
-        if any(not (0.0 <= s <= 1.0) for s in m.stiffness):
-            raise ValueError("stiffness must be in [0, 1]")
-        if any(c < 0 for c in m.compliance):
-            raise ValueError("compliance must be >= 0")
-        for name in ("damping",):
-            v = getattr(m, name)
-            if not (0.0 <= v <= 1.0):
-                raise ValueError(f"{name} must be in [0, 1]")
-        for name in ("friction", "drag", "lift", "air_density"):
-            v = getattr(m, name)
-            if not (math.isfinite(v) and v >= 0):
-                raise ValueError(f"{name} must be finite and >= 0")
-        if not (math.isfinite(m.tether_limit) and m.tether_limit >= 1.0):
-            raise ValueError("tether_limit must be finite and >= 1")
+        for name, (width, lo, lo_inclusive, hi) in MATERIAL_FIELDS.items():
+            value = getattr(m, name)
+            values = tuple(value) if width > 1 else (value,)
+            hi_eff = DEFAULT_LIMITS.max_material_value if hi is None else hi
+            for v in values:
+                if not (isinstance(v, (int, float)) and math.isfinite(v)):
+                    raise ValueError(f"{name} must be finite, got {value!r}")
+                if v < lo or (v == lo and not lo_inclusive) or v > hi_eff:
+                    raise ValueError(f"{name} must be in {'[' if lo_inclusive else '('}{lo:g}, {hi_eff:g}], got {value!r}")
 
 
 def _finite(name: str, values) -> None:

@@ -1,5 +1,8 @@
-"""Fabric cooking: link sets, colouring independence, degenerate input, sharing."""
+"""Fabric cooking: link sets, colouring independence, degenerate input, sharing, OBJ parsing (the
+protocol's), tether anchors (exact, bounded in memory, not computed for cloths without tethers)."""
 from __future__ import annotations
+
+import tracemalloc
 
 import numpy as np
 import pytest
@@ -14,6 +17,7 @@ from drape.server.sim.fabric import (
     greedy_colour,
     mesh_edges,
     parse_obj,
+    tether_anchors,
     vertex_masses,
 )
 from drape.server.sim.params import LINK_BENDING, LINK_SHEAR, LINK_STRUCTURAL, LinkOptions
@@ -110,6 +114,69 @@ def test_obj_loader_fan_triangulates_and_accepts_slashes_and_negative_indices():
     v, t = parse_obj(text)
     assert v.shape == (5, 3)
     assert t.tolist() == [[0, 1, 2], [0, 2, 3], [4, 1, 2]]
+
+
+@pytest.mark.parametrize("face,line", [("f 1 2 9", 4), ("f 0 1 2", 4), ("f -4 1 2", 4), ("f 1 2", 4),
+                                       ("f 1 2 x", 4)])
+def test_obj_loader_refuses_references_outside_the_vertices(face, line):
+    """One parser for client and server (the protocol's): a face naming a vertex that does not
+    exist (0, past the end, or negative before the first) is refused with the line, never
+    turned into a silent out-of-range or wrapped index."""
+    with pytest.raises(ValueError, match=f"line {line}"):
+        parse_obj(f"v 0 0 0\nv 1 0 0\nv 0 1 0\n{face}\n")
+
+
+def _nearest_pin_float64(v: np.ndarray, pinned: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The definition, in float64: every (free vertex, pin) distance at once, first minimum."""
+    anchor, length = np.full(len(v), -1, np.int32), np.zeros(len(v))
+    pins, free = np.flatnonzero(pinned), np.flatnonzero(~pinned)
+    if len(pins) and len(free):
+        d = np.linalg.norm(v[free, None, :] - v[pins][None, :, :], axis=2)
+        j = np.argmin(d, axis=1)
+        anchor[free], length[free] = pins[j], d[np.arange(len(free)), j]
+    return anchor, length
+
+
+@pytest.mark.parametrize("chunk", [1, 7, 1 << 21])
+def test_tether_anchors_are_the_nearest_pin_in_any_chunking(rng, chunk):
+    for _ in range(10):
+        f = random_grid_fabric(rng, n_pins=int(rng.integers(0, 10)))  # grids have at least 9 vertices
+        v = np.asarray(f.rest_positions) + rng.normal(0, 1e-3, f.rest_positions.shape) * rng.integers(0, 2)
+        v += rng.uniform(-1e3, 1e3, 3)  # far from the origin: the fast formula's rounding is largest
+        anchor, length = tether_anchors(v, f.pinned, chunk)
+        want_a, want_l = _nearest_pin_float64(v, f.pinned)
+        np.testing.assert_array_equal(anchor, want_a)  # ties: the lowest pin index, as the definition
+        np.testing.assert_array_equal(length, want_l)
+
+
+def test_tethers_are_not_set_up_for_a_cloth_without_tethers():
+    """256 x 256 with every other vertex pinned (32 768 pins): cooking without tethers does not
+    look for anchors at all (it took 65 s and 9.6 GB when it did); asking later computes them."""
+    f = cook_grid(256, 256, pinned=np.arange(0, 256 * 256, 2), tethers=False)
+    assert not f.tethers_ready
+    small = cook_grid(4, 4, pinned=[0], tethers=False)
+    assert not small.tethers_ready
+    assert small.tether_anchor[15] == 0 and small.tethers_ready  # computed on first use
+    assert cook_grid(4, 4, pinned=[0]).tethers_ready  # the default computes them while cooking
+
+
+def test_tether_set_up_memory_is_bounded_by_its_chunk():
+    """2 048 free vertices x 2 048 pins: all pairs at once would hold 4 M distances (32 MB per
+    array, 100 MB for the difference vectors); in chunks of 64 K pairs the set-up's peak stays
+    near a few chunks, counted by tracemalloc (numpy reports its buffers to it)."""
+    v = np.random.default_rng(0).uniform(-1, 1, (4096, 3))
+    pinned = np.zeros(4096, bool)
+    pinned[::2] = True
+    chunk = 1 << 16
+    tracemalloc.start()
+    try:
+        tracemalloc.reset_peak()
+        anchor, _ = tether_anchors(v, pinned, chunk)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 16 * chunk * 8, peak  # 8 MB: a handful of chunk-sized float64 arrays
+    assert (anchor[~pinned] >= 0).all() and (anchor[pinned] == -1).all()
 
 
 def test_tiny_cloths_cook():

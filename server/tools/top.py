@@ -28,7 +28,7 @@ from rich.table import Table
 from rich.text import Text
 
 from drape.client import protocol as P
-from drape.client.sdk import zenoh_config
+from drape.client.session import zenoh_config
 
 from ..service.metrics import overload_refusals
 from ..service.telemetry import PHASES

@@ -3,3 +3,5 @@
 pub mod wire;
 #[cfg(feature = "client")]
 pub mod client;
+#[cfg(feature = "client")]
+pub mod ffi;

@@ -316,3 +316,37 @@ def test_metrics_listen_setting():
             ServerConfig(metrics_listen=bad).validate()
     with pytest.raises(ValueError, match="log_format"):
         ServerConfig.load(env={"DRAPE_LOG_FORMAT": "xml"})
+
+
+def test_operations_files_name_only_metrics_that_exist():
+    """The alert rules, the dashboard and docs/operations.md use exposed names, and the docs list
+    every family."""
+    import re
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    exposed = set()
+    for name, kind, _ in METRICS:
+        exposed |= {
+            "counter": {name + "_total"},
+            "histogram": {name + s for s in ("_bucket", "_sum", "_count")},
+            "info": {name + "_info"},
+        }.get(kind, {name})
+    for rel in ("deploy/alerts.yml", "deploy/grafana-dashboard.json", "docs/operations.md"):
+        used = set(re.findall(r"\bdrape_[a-z_]+\b", (root / rel).read_text()))
+        assert used, rel
+        unknown = used - exposed - {name for name, _, _ in METRICS}
+        assert not unknown, f"{rel} names metrics that do not exist: {sorted(unknown)}"
+    docs = (root / "docs/operations.md").read_text()
+    for name, kind, _ in METRICS:
+        shown = {"counter": name + "_total", "info": name + "_info"}.get(kind, name)
+        assert f"`{shown}`" in docs, f"docs/operations.md does not list {shown}"
+    alerts = (root / "deploy/alerts.yml").read_text()
+    for metric in ("drape_missed_ticks_total", "drape_tick_phase_seconds_bucket", "drape_overload_refusals_total",
+                   "drape_nan_resets_total"):
+        assert metric in alerts
+    assert "histogram_quantile(0.99" in alerts
+    unit = (root / "deploy/drape.service").read_text()
+    assert "Type=notify" in unit and "WatchdogSec=" in unit
+    example = ServerConfig.load(root / "deploy/drape.toml", env={})
+    assert example.metrics_listen == "127.0.0.1:9464"

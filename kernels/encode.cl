@@ -22,9 +22,11 @@
  *            With ENC_FP64 0 (a device without cl_khr_fp64) the same formulas run in float and a
  *            value can differ from the reference by 1 (see encode.py, QUANT16_FP32_TOLERANCE).
  *
- * Build options (-D): ENC_WG (work-group size, a power of two), ENC_FP64 (0/1), and the
+ * Build options (-D): ENC_WG (work-group size, a power of two), ENC_FP64 (0/1), ENC_STRIDE
+ * (floats per vertex in the position and normal buffers: 4 or 3), and the
  * protocol's header offsets and constants (below).
- * Positions and normals are the world's float4 buffers (xyz, w ignored).
+ * Positions and normals: ENC_STRIDE floats per vertex, xyz first: 4 for the world's float4
+ * buffers (w ignored), 3 for packed xyz rows.
  */
 
 /* Table of encoded cloths: ENC_ROW_WORDS uints per row (parsed by encode.py, the one copy). */
@@ -51,6 +53,17 @@
 #endif
 #ifndef ENC_FP64
 #define ENC_FP64 0
+#endif
+#ifndef ENC_STRIDE
+#define ENC_STRIDE 4
+#endif
+
+#if ENC_STRIDE == 4
+#define LOAD3(buf, i) (((__global const float4 *)(buf))[i].xyz)
+#elif ENC_STRIDE == 3
+#define LOAD3(buf, i) vload3((i), (buf))
+#else
+#error "ENC_STRIDE must be 4 (float4 vertices) or 3 (packed xyz)"
 #endif
 
 #if ENC_FP64
@@ -88,8 +101,8 @@ inline short snorm(float n)
 }
 
 __kernel void encode_frame(
-    __global const float4 *pos,
-    __global const float4 *nrm,        /* any buffer when no row has normals */
+    __global const float *pos,         /* ENC_STRIDE floats per vertex */
+    __global const float *nrm,         /* the same layout; any buffer when no row has normals */
     __global const uint *table,        /* ENC_ROW_WORDS per row */
     __global const ushort *cloth_flags, /* per plan cloth, this tick's state flags */
     const ulong tick,
@@ -110,7 +123,7 @@ __kernel void encode_frame(
     /* 1. bounds */
     float3 mn = (float3)(INFINITY), mx = (float3)(-INFINITY);
     for (uint v = lid; v < n; v += ENC_WG) {
-        float3 p = pos[vbase + v].xyz;
+        float3 p = LOAD3(pos, vbase + v);
         mn = nmin3(mn, p);
         mx = nmax3(mx, p);
     }
@@ -149,16 +162,16 @@ __kernel void encode_frame(
     if (enc == 0) {
         __global float *o = (__global float *)data;
         for (uint v = lid; v < n; v += ENC_WG)
-            vstore3(pos[vbase + v].xyz, v, o);
+            vstore3(LOAD3(pos, vbase + v), v, o);
         if (has_nrm) {
             o += 3 * n;
             for (uint v = lid; v < n; v += ENC_WG)
-                vstore3(nrm[vbase + v].xyz, v, o);
+                vstore3(LOAD3(nrm, vbase + v), v, o);
         }
     } else if (enc == 1) {
         __global half *o = (__global half *)data;
         for (uint v = lid; v < n; v += ENC_WG) {
-            float3 p = pos[vbase + v].xyz;
+            float3 p = LOAD3(pos, vbase + v);
             p = (float3)(clipf(p.x, -(float)FLOAT16_MAX, (float)FLOAT16_MAX), clipf(p.y, -(float)FLOAT16_MAX, (float)FLOAT16_MAX),
                          clipf(p.z, -(float)FLOAT16_MAX, (float)FLOAT16_MAX));
             vstore_half3_rte(p, v, o);
@@ -166,7 +179,7 @@ __kernel void encode_frame(
         if (has_nrm) {
             o += 3 * n;
             for (uint v = lid; v < n; v += ENC_WG)
-                vstore_half3_rte(nrm[vbase + v].xyz, v, o);
+                vstore_half3_rte(LOAD3(nrm, vbase + v), v, o);
         }
     } else {
         qreal l[3] = {(qreal)lo.x, (qreal)lo.y, (qreal)lo.z};
@@ -176,13 +189,13 @@ __kernel void encode_frame(
             sc[a] = e[a] > (qreal)0 ? (qreal)QUANT_MAX / e[a] : (qreal)0;
         __global ushort *o = (__global ushort *)data;
         for (uint v = lid; v < n; v += ENC_WG) {
-            float3 p = pos[vbase + v].xyz;
+            float3 p = LOAD3(pos, vbase + v);
             vstore3((ushort3)(quant(p.x, l[0], sc[0]), quant(p.y, l[1], sc[1]), quant(p.z, l[2], sc[2])), v, o);
         }
         if (has_nrm) {
             __global short *on = (__global short *)(o + 3 * n);
             for (uint v = lid; v < n; v += ENC_WG) {
-                float3 m = nrm[vbase + v].xyz;
+                float3 m = LOAD3(nrm, vbase + v);
                 vstore3((short3)(snorm(m.x), snorm(m.y), snorm(m.z)), v, on);
             }
         }

@@ -23,15 +23,18 @@ def _buffer(device, host: np.ndarray) -> cl.Buffer:
 
 
 def _world_arrays(rng: np.random.Generator, cloths: list[ClothEntry], pos: list[np.ndarray],
-                  nrm: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """float4 position and normal arrays as the world holds them; the gaps between cloths and
-    the w components are NaN, so reading outside a cloth's range shows in its bounds."""
+                  nrm: list[np.ndarray], stride: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """float4 position and normal arrays as the world holds them (stride 3: packed xyz); the
+    gaps between cloths and the w components are NaN, so reading outside a cloth's range shows
+    in its bounds."""
     end = max((c.vbase + c.n for c in cloths), default=0) + int(rng.integers(0, 8))
     P4 = np.full((max(end, 1), 4), np.nan, np.float32)
     N4 = np.full((max(end, 1), 4), np.nan, np.float32)
     for c, p, m in zip(cloths, pos, nrm):
         P4[c.vbase:c.vbase + c.n, :3] = p
         N4[c.vbase:c.vbase + c.n, :3] = m
+    if stride == 3:
+        return np.ascontiguousarray(P4[:, :3]), np.ascontiguousarray(N4[:, :3])
     return P4, N4
 
 
@@ -125,13 +128,15 @@ def _assert_same(got: list[bytes], want: list[bytes], pubs) -> None:
             pytest.fail(f"{pub.key}: {len(d)} bytes differ, first at {d[:8].tolist()}")
 
 
-@pytest.mark.parametrize("k, local_size", [(1, None), (7, None), (40, None), (40, 16), (25, 256)])
-def test_random_frames_equal_the_protocol_encoder(device, rng, k, local_size):
-    """local_size None is the device's default (1 on a CPU); GPUs run 256 (a reduction tree)."""
+@pytest.mark.parametrize("k, local_size, stride", [(1, None, 4), (7, None, 4), (40, None, 4), (40, 16, 4),
+                                                   (25, 256, 4), (30, None, 3), (30, 64, 3)])
+def test_random_frames_equal_the_protocol_encoder(device, rng, k, local_size, stride):
+    """local_size None is the device's default (1 on a CPU); GPUs run 256 (a reduction tree).
+    stride 4: the world's float4 vertex buffers; 3: packed xyz rows."""
     cloths, pos, nrm, pubs = _random_frame(rng, k)
-    P4, N4 = _world_arrays(rng, cloths, pos, nrm)
+    P4, N4 = _world_arrays(rng, cloths, pos, nrm, stride)
     plan = FramePlan.build(cloths, pubs)
-    enc = DeviceEncoder(device, local_size=local_size)
+    enc = DeviceEncoder(device, local_size=local_size, stride=stride)
     enc.set_plan(plan)
     try:
         for tick in (1, 2**40 + 3):  # the same plan over ticks: dynamic fields rewritten, ring of host buffers
@@ -143,7 +148,7 @@ def test_random_frames_equal_the_protocol_encoder(device, rng, k, local_size):
             for view, off in zip(got, plan.pub_offset.tolist()):
                 assert whole[off:off + len(view)] == view
             pos = [p[rng.permutation(len(p))] for p in pos]  # new positions for the next tick
-            P4, N4 = _world_arrays(rng, cloths, pos, nrm)
+            P4, N4 = _world_arrays(rng, cloths, pos, nrm, stride)
         assert len(enc.nonfinite()) == 0
     finally:
         enc.close()
@@ -252,8 +257,8 @@ def test_non_finite_cloths_show_in_their_bounds(device, rng):
     flags = np.zeros(6, np.uint16)
     got = _encode(device, enc, P4, N4, 3, 4, flags)
     assert sorted(enc.nonfinite().tolist()) == [1, 4]
-    b1 = P.STATE_HEADER.unpack_from(got[1])[10:16]  # bounds min xyz, max xyz
-    b4 = P.STATE_HEADER.unpack_from(got[4])[10:16]
+    b1 = np.frombuffer(got[1], "<f4", 6, HEADER_OFFSETS["ST_MIN"])  # bounds min xyz, max xyz
+    b4 = np.frombuffer(got[4], "<f4", 6, HEADER_OFFSETS["ST_MIN"])
     assert np.isnan(b1[1]) and np.isnan(b1[4]) and b4[2] == -np.inf
     finite = [0, 2, 3, 5]
     want = _reference(cloths, pos, nrm, [pubs[i] for i in finite], 3, 4, flags)

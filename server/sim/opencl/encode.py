@@ -164,9 +164,7 @@ class FramePlan:
                     P.pack_bundle_entry(buf, e, c.cloth, state_size(c.n, c.encoding, c.normals))
             for i in pub.cloths:
                 c = cloths[i]
-                P.STATE_HEADER.pack_into(buf, int(state_offset[i]), P.STATE_MAGIC, P.PROTOCOL_MAJOR,
-                                         P.PROTOCOL_MINOR, P.STATE_HEADER_SIZE, c.encoding, 0, 0, c.n, 0, 0,
-                                         0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+                P.pack_state_header(buf, int(state_offset[i]), c.encoding, 0, c.n, 0, 0, (0.0,) * 3, (0.0,) * 3)
         table = np.array(rows, np.uint32).reshape(-1, W["ENC_ROW_WORDS"])
         enc_idx = table[:, W["ENC_ROW_CLOTH"]].astype(np.int64)
         plan = cls(cloths, publications, pub_offset, pub_size, state_offset, table, template)
@@ -203,19 +201,20 @@ def _find(packed: bytes, marker: bytes) -> int:
 
 
 def _header_offsets() -> dict[str, int]:
-    """Byte offsets of the dynamic header fields, found in drape.client.protocol's own structs
-    (the one copy of the layout) by packing marker values; passed to encode.cl as -D options."""
-    st = P.STATE_HEADER.pack(P.STATE_MAGIC, P.PROTOCOL_MAJOR, P.PROTOCOL_MINOR, P.STATE_HEADER_SIZE, 0, 0, 0xA5C3, 0,
-                             0x1122334455667788, 0x99AABBCCDDEEFF10, 1.5, 2.5, 3.5, 4.5, 5.5, 6.5)
+    """Byte offsets of the dynamic header fields, found by packing marker values with
+    drape.client.protocol's own header writers (the one copy of the layout); passed to
+    encode.cl as -D options."""
+    st = bytearray(P.STATE_HEADER_SIZE)
+    P.pack_state_header(st, 0, 0, 0xA5C3, 0, 0x1122334455667788, 0x99AABBCCDDEEFF10, (1.5, 2.5, 3.5), (4.5, 5.5, 6.5))
     bh = bytearray(P.BUNDLE_HEADER_SIZE)
     P.pack_bundle_header(bh, 0x1122334455667788, 0x99AABBCCDDEEFF10, 0)
     f32 = lambda x: np.float32(x).tobytes()  # noqa: E731
     return {
-        "ST_FLAGS": _find(st, (0xA5C3).to_bytes(2, "little")),
-        "ST_TICK": _find(st, (0x1122334455667788).to_bytes(8, "little")),
-        "ST_TIME": _find(st, (0x99AABBCCDDEEFF10).to_bytes(8, "little")),
-        "ST_MIN": _find(st, f32(1.5) + f32(2.5) + f32(3.5)),
-        "ST_MAX": _find(st, f32(4.5) + f32(5.5) + f32(6.5)),
+        "ST_FLAGS": _find(bytes(st), (0xA5C3).to_bytes(2, "little")),
+        "ST_TICK": _find(bytes(st), (0x1122334455667788).to_bytes(8, "little")),
+        "ST_TIME": _find(bytes(st), (0x99AABBCCDDEEFF10).to_bytes(8, "little")),
+        "ST_MIN": _find(bytes(st), f32(1.5) + f32(2.5) + f32(3.5)),
+        "ST_MAX": _find(bytes(st), f32(4.5) + f32(5.5) + f32(6.5)),
         "ST_DATA": P.STATE_HEADER_SIZE,
         "BH_TICK": _find(bytes(bh), (0x1122334455667788).to_bytes(8, "little")),
         "BH_TIME": _find(bytes(bh), (0x99AABBCCDDEEFF10).to_bytes(8, "little")),
@@ -243,14 +242,19 @@ class _HostFrame:
 class DeviceEncoder:
     """Encode whole frames on ``dev`` with a :class:`FramePlan`.
 
-    ``fp64`` (default: whether the device has cl_khr_fp64) evaluates quant16 in double, exactly
-    as the reference; ``host_buffers`` pinned host copies are used in turn, so the views of a
+    ``stride``: floats per vertex of the position and normal buffers, 4 for the world's float4
+    buffers (a cloth's ``vbase`` is its first vertex there), 3 for packed xyz rows (``vbase`` its
+    first row). ``fp64`` (default: whether the device has cl_khr_fp64) evaluates quant16 in
+    double, exactly as the reference; ``host_buffers`` pinned host copies are used in turn, so the views of a
     frame stay valid until that many more frames have been encoded."""
 
     def __init__(self, dev: Device, local_size: int | None = None, fp64: bool | None = None,
-                 host_buffers: int = 2) -> None:
+                 host_buffers: int = 2, stride: int = 4) -> None:
         if not dev.device.endian_little:
             raise RuntimeError(f"{dev.info.name} is big-endian; the wire format is little-endian")
+        if stride not in (3, 4):
+            raise ValueError(f"stride {stride}: vertices are float4 (4) or packed xyz (3)")
+        self.stride = stride
         if host_buffers < 1:
             raise ValueError("host_buffers must be at least 1")
         self.dev = dev
@@ -293,7 +297,7 @@ class DeviceEncoder:
         ctx, q = self.dev.ctx, self.dev.queue
         self._release_hosts()
         wg = self._pick_wg(plan.max_n)
-        opts = [f"-DENC_WG={wg}", f"-DENC_FP64={int(self.fp64)}", *(f"-D{k}={v}" for k, v in HEADER_OFFSETS.items())]
+        opts = [f"-DENC_WG={wg}", f"-DENC_FP64={int(self.fp64)}", f"-DENC_STRIDE={self.stride}", *(f"-D{k}={v}" for k, v in HEADER_OFFSETS.items())]
         self._kernel = cl.Kernel(self.dev.program(opts, source=SOURCE), "encode_frame")
         self._wg = wg
         size = max(plan.size, 8)
@@ -331,13 +335,14 @@ class DeviceEncoder:
                time_ns: int, flags: np.ndarray | None = None,
                wait_for: Sequence[cl.Event] | None = None) -> cl.Event:
         """Enqueue this tick's frame: one launch, one copy into the next pinned host buffer.
-        ``positions`` / ``normals``: float4 device buffers holding every plan cloth's range;
+        ``positions`` / ``normals``: device buffers (``stride`` floats per vertex) holding every
+        plan cloth's range;
         ``flags`` (plan cloths,) state flags (FLAG_RESET...; FLAG_NORMALS is set per the plan),
         None for all zero. Returns the copy's event; :meth:`read` waits for it."""
         plan = self.plan
         if plan is None or self._kernel is None:
             raise RuntimeError("DeviceEncoder.encode before set_plan")
-        need = plan.vertex_end * 16
+        need = plan.vertex_end * self.stride * 4
         if positions.size < need:
             raise ValueError(f"positions buffer of {positions.size} bytes; the plan reads {need}")
         if plan.normals:

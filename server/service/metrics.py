@@ -97,14 +97,16 @@ class StatsSource(Protocol):
 
 
 def phase_timers(server: Any) -> Mapping[str, PhaseTimer]:
-    """The server's per-phase timers: ``server.phase_timers`` (a mapping or a method returning
-    one) when the server offers it, else the ``_timers`` it keeps today; {} when neither."""
-    timers = getattr(server, "phase_timers", None)
-    if callable(timers):
-        timers = timers()
-    if timers is None:
-        timers = getattr(server, "_timers", None)
-    return timers or {}
+    """The server's per-phase timers: ``server.phase_timers`` (a mapping phase -> PhaseTimer, or
+    a method returning one) when the server offers it, else ``timers``, else the ``_timers`` it
+    kept before the service split; {} when none."""
+    for name in ("phase_timers", "timers", "_timers"):
+        timers = getattr(server, name, None)
+        if callable(timers):
+            timers = timers()
+        if timers:
+            return timers
+    return {}
 
 
 def overload_refusals(stats: Mapping[str, Any]) -> int:

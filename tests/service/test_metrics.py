@@ -350,3 +350,30 @@ def test_operations_files_name_only_metrics_that_exist():
     assert "Type=notify" in unit and "WatchdogSec=" in unit
     example = ServerConfig.load(root / "deploy/drape.toml", env={})
     assert example.metrics_listen == "127.0.0.1:9464"
+
+
+def test_overload_refusals_counted_when_admission_refuses(served):
+    """Admission with a cost model that predicts any second cloth over budget: the first submit
+    (empty server) is admitted, another client's is refused with ``overloaded``."""
+    server, ops = served
+    admission = getattr(server, "admission", None)
+    if admission is None:
+        pytest.skip("this Server has no admission control yet")
+    from drape.server.service.admission import FixedCost
+
+    before = scrape(ops)
+    saved = admission.model
+    admission.model = FixedCost(per_vertex_s=1.0)  # one vertex costs a whole second: nothing more fits
+    try:
+        with DrapeClient(server.config.listen[0], server_id=server.server_id, timeout=TIMEOUT) as a, \
+                DrapeClient(server.config.listen[0], server_id=server.server_id, timeout=TIMEOUT) as b:
+            with a.submit_grid(4, 4):
+                with pytest.raises(P.DrapeError) as refused:
+                    b.submit_grid(4, 4)
+                assert refused.value.code == getattr(P, "ERR_OVERLOADED", "overloaded")
+    finally:
+        admission.model = saved
+    after = scrape(ops)
+    assert value(after, "drape_overload_refusals_total") == value(before, "drape_overload_refusals_total") + 1
+    assert value(after, "drape_errors_total", code="overloaded") == \
+        value(before, "drape_errors_total", code="overloaded") + 1

@@ -80,14 +80,15 @@ class HostPath:
         enc = self.encoder
         enc.begin(tick, time_ns, pos, self.offsets)
         enc.prepare(list(range(self.k)), self.encs)
-        for pub, buf in zip(self.plan.publications, self.bufs):
+        for pub, buf in zip(self.plan.publications, self.bufs, strict=True):
             if pub.bundle:
-                enc.write_bundle(buf, [(self.plan.cloths[i].cloth, i, self.encs[i], 0, self.nrm[i]) for i in pub.cloths])
+                entries = [(self.plan.cloths[i].cloth, i, self.encs[i], 0, self.nrm[i]) for i in pub.cloths]
+                enc.write_bundle(buf, entries)
             else:
                 i = pub.cloths[0]
                 enc.write_state(buf, 0, i, self.encs[i], 0, self.nrm[i])
         t3 = time.perf_counter()
-        for name, dt in zip(self.parts, (t1 - t0, t2 - t1, t3 - t2)):
+        for name, dt in zip(self.parts, (t1 - t0, t2 - t1, t3 - t2), strict=True):
             self.parts[name].append(dt)
         return self.bufs
 
@@ -120,7 +121,7 @@ def run(encoding: str, cloths: int, side: int, bundle: int, normals: bool, repea
         views = denc.slices()
         t2 = time.perf_counter()
         if f == 0:
-            differ = sum(bytes(a) != bytes(b) for a, b in zip(hb, views))
+            differ = sum(bytes(a) != bytes(b) for a, b in zip(hb, views, strict=True))
             same = differ == 0
             if differ:
                 log.warning("%s: %d of %d publications differ between host and device", encoding, differ, len(hb))

@@ -8,10 +8,17 @@ from pathlib import Path
 import numpy as np
 import pyopencl as cl
 import pytest
+from conftest import random_grid_fabric
 
 from drape.client import protocol as P
-from drape.server.sim.opencl.encode import (HEADER_OFFSETS, QUANT16_FP32_TOLERANCE, ClothEntry, DeviceEncoder,
-                                            FramePlan, Publication)
+from drape.server.sim.opencl.encode import (
+    HEADER_OFFSETS,
+    QUANT16_FP32_TOLERANCE,
+    ClothEntry,
+    DeviceEncoder,
+    FramePlan,
+    Publication,
+)
 
 VECTORS = Path(__file__).resolve().parents[1] / "vectors"
 MF = cl.mem_flags
@@ -30,7 +37,7 @@ def _world_arrays(rng: np.random.Generator, cloths: list[ClothEntry], pos: list[
     end = max((c.vbase + c.n for c in cloths), default=0) + int(rng.integers(0, 8))
     P4 = np.full((max(end, 1), 4), np.nan, np.float32)
     N4 = np.full((max(end, 1), 4), np.nan, np.float32)
-    for c, p, m in zip(cloths, pos, nrm):
+    for c, p, m in zip(cloths, pos, nrm, strict=True):
         P4[c.vbase:c.vbase + c.n, :3] = p
         N4[c.vbase:c.vbase + c.n, :3] = m
     if stride == 3:
@@ -121,7 +128,7 @@ def _encode(device, enc: DeviceEncoder, P4, N4, tick, time_ns, flags) -> list[by
 
 def _assert_same(got: list[bytes], want: list[bytes], pubs) -> None:
     assert len(got) == len(want)
-    for g, w, pub in zip(got, want, pubs):
+    for g, w, pub in zip(got, want, pubs, strict=True):
         assert len(g) == len(w), pub
         if g != w:
             d = np.flatnonzero(np.frombuffer(g, np.uint8) != np.frombuffer(w, np.uint8))
@@ -145,7 +152,7 @@ def test_random_frames_equal_the_protocol_encoder(device, rng, k, local_size, st
             got = _encode(device, enc, P4, N4, tick, time_ns, flags)
             _assert_same(got, _reference(cloths, pos, nrm, pubs, tick, time_ns, flags), pubs)
             whole = bytes(enc.read())
-            for view, off in zip(got, plan.pub_offset.tolist()):
+            for view, off in zip(got, plan.pub_offset.tolist(), strict=True):
                 assert whole[off:off + len(view)] == view
             pos = [p[rng.permutation(len(p))] for p in pos]  # new positions for the next tick
             P4, N4 = _world_arrays(rng, cloths, pos, nrm, stride)
@@ -206,7 +213,7 @@ def test_without_fp64_quant16_within_tolerance(device, rng):
     got = _encode(device, enc, P4, N4, 5, 6, flags)
     want = _reference(cloths, pos, nrm, pubs, 5, 6, flags)
     worst = 0
-    for g, w, c in zip(got, want, cloths):
+    for g, w, c in zip(got, want, cloths, strict=True):
         assert g[:P.STATE_HEADER_SIZE] == w[:P.STATE_HEADER_SIZE]
         qg = np.frombuffer(g, "<u2", c.n * 3, P.STATE_HEADER_SIZE).astype(np.int64)
         qw = np.frombuffer(w, "<u2", c.n * 3, P.STATE_HEADER_SIZE).astype(np.int64)
@@ -319,3 +326,43 @@ def test_empty_plan(device):
     enc.encode(device.queue, _buffer(device, np.zeros((3, 4))), None, 1, 2).wait()
     assert enc.slices() == [] and len(enc.read()) == 0 and len(enc.nonfinite()) == 0
     enc.close()
+
+
+
+def test_frame_of_a_real_world(device, rng):
+    """Straight from a stepped CLWorld's float4 vertex buffers (each cloth at its vertex base):
+    the same bytes as the protocol encoder on the positions and normals those buffers hold."""
+    from drape.server.sim.opencl.clworld import CLWorld
+    from drape.server.sim.params import ClothParams, Features
+
+    world = CLWorld("workgroup", device=device)
+    handles, normals = [], []
+    for i in range(5):
+        with_normals = bool(i % 2)
+        handles.append(world.add(random_grid_fabric(rng), ClothParams(features=Features(normals=with_normals))))
+        normals.append(with_normals)
+    world.remove(handles.pop(2))  # a hole in the vertex buffers
+    normals.pop(2)
+    for _ in range(3):
+        world.step(1 / 60)
+    world.sync()
+    cloths = [ClothEntry(f"c{j}", world.rec[h].vbase, world.cloths[h].fabric.n_vertices, ENCS[j % 3], nr)
+              for j, (h, nr) in enumerate(zip(handles, normals, strict=True))]
+    pubs = [Publication("a", (0, 3), True), Publication("b", (1,)), Publication("c", (2,))]
+    enc = DeviceEncoder(device)
+    enc.set_plan(FramePlan.build(cloths, pubs))
+    flags = np.array([0, P.FLAG_RESET, 0, 0], np.uint16)
+    enc.encode(device.queue, world.pos.buf, world.nrm.buf, 77, 88, flags)
+    got = [bytes(v) for v in enc.slices()]
+    end = max(c.vbase + c.n for c in cloths)
+    P4 = np.empty((end, 4), np.float32)
+    N4 = np.empty((end, 4), np.float32)
+    cl.enqueue_copy(device.queue, P4, world.pos.buf)
+    cl.enqueue_copy(device.queue, N4, world.nrm.buf)
+    pos = [P4[c.vbase:c.vbase + c.n, :3] for c in cloths]
+    nrm = [N4[c.vbase:c.vbase + c.n, :3] for c in cloths]
+    assert all(np.isfinite(p).all() for p in pos)
+    assert all(np.isfinite(m).all() and np.abs(m).max() > 0.5 for m, c in zip(nrm, cloths, strict=True) if c.normals)
+    _assert_same(got, _reference(cloths, pos, nrm, pubs, 77, 88, flags), pubs)
+    enc.close()
+    world.close()

@@ -24,9 +24,9 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import Sequence
 
 import numpy as np
 import pyopencl as cl
@@ -100,7 +100,7 @@ class FramePlan:
         return int(self.template.size)
 
     @classmethod
-    def build(cls, cloths: Sequence[ClothEntry], publications: Sequence[Publication]) -> "FramePlan":
+    def build(cls, cloths: Sequence[ClothEntry], publications: Sequence[Publication]) -> FramePlan:
         """Lay out a frame. Raises ValueError on a bad entry (unknown encoding, negative range,
         a bundle with an invalid cloth id or no cloth, a single with other than one cloth, a
         cloth in two publications, an index out of range)."""
@@ -136,9 +136,9 @@ class FramePlan:
                     raise ValueError(f"bundle {pub.key!r}: invalid cloth id {cloths[i].cloth!r}")
             sizes = [state_size(cloths[i].n, cloths[i].encoding, cloths[i].normals) for i in idx]
             if pub.bundle:
-                size = P.bundle_size((cloths[i].cloth, s) for i, s in zip(idx, sizes))
+                size = P.bundle_size((cloths[i].cloth, s) for i, s in zip(idx, sizes, strict=True))
                 s_at = at + P.BUNDLE_HEADER_SIZE
-                for j, (i, s) in enumerate(zip(idx, sizes)):
+                for j, (i, s) in enumerate(zip(idx, sizes, strict=True)):
                     s_at += P.bundle_entry_header_size(cloths[i].cloth)
                     state_offset[i] = s_at
                     rows.append(cls._row(cloths[i], s_at, at if j == 0 else none, i))
@@ -153,7 +153,7 @@ class FramePlan:
         if at >= 2**32:
             raise ValueError(f"a frame of {at} bytes does not fit 32-bit offsets")
         template = np.zeros(at, np.uint8)
-        buf = memoryview(template).cast("B")
+        buf = memoryview(template).cast("B")  # type: ignore[arg-type]
         for off, pub in parts:
             if pub.bundle:
                 P.pack_bundle_header(buf[off:], 0, 0, len(pub.cloths))
@@ -297,7 +297,8 @@ class DeviceEncoder:
         ctx, q = self.dev.ctx, self.dev.queue
         self._release_hosts()
         wg = self._pick_wg(plan.max_n)
-        opts = [f"-DENC_WG={wg}", f"-DENC_FP64={int(self.fp64)}", f"-DENC_STRIDE={self.stride}", *(f"-D{k}={v}" for k, v in HEADER_OFFSETS.items())]
+        opts = [f"-DENC_WG={wg}", f"-DENC_FP64={int(self.fp64)}", f"-DENC_STRIDE={self.stride}",
+                *(f"-D{k}={v}" for k, v in HEADER_OFFSETS.items())]
         self._kernel = cl.Kernel(self.dev.program(opts, source=SOURCE), "encode_frame")
         self._wg = wg
         size = max(plan.size, 8)
@@ -305,17 +306,20 @@ class DeviceEncoder:
         if plan.size:
             cl.enqueue_copy(q, self._out, plan.template, is_blocking=True)
         rows = np.ascontiguousarray(plan.rows, np.uint32)
-        self._table = cl.Buffer(ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=rows if rows.size else np.zeros(1, np.uint32))
+        if not rows.size:
+            rows = np.zeros(1, np.uint32)
+        self._table = cl.Buffer(ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=rows)
         k = len(plan.cloths)
         self._flags = np.zeros(max(k, 1), np.uint16)
         self._flags_buf = cl.Buffer(ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=self._flags)
         for _ in range(self._host_buffers):
             hb = cl.Buffer(ctx, MF.READ_WRITE | MF.ALLOC_HOST_PTR, size)
-            data, _ev = cl.enqueue_map_buffer(q, hb, cl.map_flags.READ | cl.map_flags.WRITE, 0, (size,), np.uint8,
-                                              is_blocking=True)
+            data, _ev = cl.enqueue_map_buffer(  # type: ignore[misc]
+                q, hb, cl.map_flags.READ | cl.map_flags.WRITE, 0, (size,), np.uint8,  # type: ignore[arg-type,type-var]
+                is_blocking=True)
             data[:plan.size] = plan.template  # a frame read before any encode is the static bytes
-            mv = memoryview(data).cast("B")
-            views = [mv[o:o + s] for o, s in zip(plan.pub_offset.tolist(), plan.pub_size.tolist())]
+            mv = memoryview(data).cast("B")  # type: ignore[arg-type]
+            views = [mv[o:o + s] for o, s in zip(plan.pub_offset.tolist(), plan.pub_size.tolist(), strict=True)]
             self._hosts.append(_HostFrame(data.base, hb, data, views))
         self._next = 0
         self._last = None
@@ -340,7 +344,7 @@ class DeviceEncoder:
         ``flags`` (plan cloths,) state flags (FLAG_RESET...; FLAG_NORMALS is set per the plan),
         None for all zero. Returns the copy's event; :meth:`read` waits for it."""
         plan = self.plan
-        if plan is None or self._kernel is None:
+        if plan is None or self._kernel is None or self._out is None or self._flags_buf is None:
             raise RuntimeError("DeviceEncoder.encode before set_plan")
         need = plan.vertex_end * self.stride * 4
         if positions.size < need:
@@ -399,7 +403,7 @@ class DeviceEncoder:
     def read(self) -> memoryview:
         """The whole packed frame last encoded (waits for it), a view of pinned host memory."""
         assert self.plan is not None
-        return memoryview(self._frame().data).cast("B")[:self.plan.size]
+        return memoryview(self._frame().data).cast("B")[:self.plan.size]  # type: ignore[arg-type]
 
     def slices(self) -> list[memoryview]:
         """Publication index -> its payload, views of the frame last encoded (waits for it)."""

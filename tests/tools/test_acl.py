@@ -1,0 +1,269 @@
+"""``drape acl``: the generated access control loads in Zenoh and is enforced by a real Zenoh router
+(user/password authentication, TLS with a CA made by openssl) on loopback: client bob, acting as
+alice, is refused (her liveliness token, her bundle, an impostor queryable on the server's control
+key, a spoofed state), while the same actions on his own keys pass as positive controls.
+
+Every negative check is ordered behind a positive event that travels the same links after it, so
+"nothing arrived" is asserted only once anything that had been let through would have arrived.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import threading
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from drape.client.protocol import Keys
+from drape.server.tools import acl
+from drape.server.tools.procs import free_port
+
+REPO = Path(__file__).resolve().parents[2]
+EXAMPLE = REPO / "deploy" / "users.example.toml"
+WAIT = 20.0  # seconds to wait for a positive event (a loaded CI machine), never asserted on
+
+USERS = """
+namespace = "drape"
+[[user]]
+name = "eu-1"
+role = "server"
+id = "eu-1"
+password = "pw-server"
+[[user]]
+name = "alice"
+role = "client"
+id = "alice"
+password = "pw-alice"
+[[user]]
+name = "bob"
+role = "client"
+id = "bob"
+password = "pw-bob"
+"""
+
+
+def test_example_users_file_generates_a_section_zenoh_loads(tmp_path):
+    users = acl.load_users(EXAMPLE)
+    section = acl.access_control(users)
+    cfg = zenoh.Config()
+    cfg.insert_json5("access_control", json.dumps(section))
+    loaded = json.loads(cfg.get_json("access_control"))
+    assert loaded["default_permission"] == "deny" and loaded["enabled"] is True
+    assert {s["id"] for s in loaded["subjects"]} == {f"s-{u.name}" for u in users.users}
+    zenoh.Config.from_json5(json.dumps({"mode": "router", "access_control": section}))
+    # the whole router configuration, through the command
+    out = tmp_path / "router.json5"
+    dict_file = tmp_path / "users.txt"
+    args = _parse(["acl", str(EXAMPLE), "--router-config", str(REPO / "deploy/zenoh-router.json5"),
+                   "--out", str(out), "--dictionary", str(dict_file)])
+    assert acl.run(args) == 0
+    router = zenoh.Config.from_file(str(out))
+    assert json.loads(router.get_json("mode")) == "router"
+    assert json.loads(router.get_json("access_control"))["rules"] == json.loads(json.dumps(section["rules"]))
+    assert dict_file.read_text().splitlines()[0] == "eu-1:change-me-server"
+    assert dict_file.stat().st_mode & 0o077 == 0
+
+
+def test_client_rules_bind_keys_to_the_client_id():
+    users = acl.load_users(EXAMPLE)
+    keys = Keys(users.namespace)
+    section = acl.access_control(users)
+    rules = {r["id"]: r for r in section["rules"]}
+    assert rules["u-alice-token"]["key_exprs"] == [keys.alive_client("alice")]
+    assert rules["u-alice-subscribe"]["key_exprs"] == sorted([keys.bundle("alice"), keys.stats("*")])
+    assert all("declare_queryable" not in r["messages"] or r["flows"] == ["egress"]
+               for r in section["rules"] if r["id"].startswith(("u-alice", "u-bob")))
+    opened = acl.access_control(users, cloth_states="any")
+    assert keys.state("*") in {k for r in opened["rules"] if r["id"] == "u-bob-subscribe" for k in r["key_exprs"]}
+
+
+@pytest.mark.parametrize("bad, message", [
+    ('[[user]]\nname = "a"\nrole = "admin"\nid = "a"\n', "role must be one of"),
+    ('[[user]]\nname = "a b"\nrole = "client"\n', "name must be"),
+    ('[[user]]\nname = "a"\nrole = "client"\nid = "x"\n[[user]]\nname = "b"\nrole = "client"\nid = "x"\n',
+     "already belongs"),
+    ('namespace = "a//b"\n[[user]]\nname = "a"\nrole = "client"\n', "invalid namespace"),
+    ('[[user]]\nname = "a"\nrole = "client"\ncolour = 1\n', "unknown key"),
+    ("", "no [[user]]"),
+])
+def test_bad_users_files_are_refused_with_a_clear_error(tmp_path, bad, message):
+    p = tmp_path / "users.toml"
+    p.write_text(bad)
+    with pytest.raises(ValueError, match=message.replace("[", r"\[")):
+        acl.load_users(p)
+    assert acl.run(_parse(["acl", str(p)])) == 2
+
+
+def _parse(argv: list[str]):
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    parser.add_argument("cmd")
+    acl.configure(parser)
+    return parser.parse_args(argv)
+
+
+# ---------------------------------------------------------------------------------------------
+# Enforcement by a real router
+
+
+def _session(endpoint: str, user: str | None, password: str | None, tls: dict[str, str] | None) -> zenoh.Session:
+    c = zenoh.Config()
+    c.insert_json5("mode", '"client"')
+    c.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    c.insert_json5("scouting/multicast/enabled", "false")
+    if tls:
+        c.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(tls["ca"]))
+    if user:
+        c.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
+        c.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
+    return zenoh.open(c)
+
+
+def _make_certs(d: Path) -> dict[str, str]:
+    """A CA and a router certificate for localhost, as deploy/certs/README.md makes them."""
+    def ossl(*a: str) -> None:
+        subprocess.run(["openssl", *a], cwd=d, check=True, capture_output=True)
+
+    ossl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2", "-subj", "/CN=drape-test-ca",
+         "-keyout", "ca-key.pem", "-out", "ca.pem")
+    ossl("req", "-newkey", "rsa:2048", "-nodes", "-subj", "/CN=localhost", "-keyout", "router-key.pem",
+         "-out", "router.csr")
+    (d / "san.ext").write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\n")
+    ossl("x509", "-req", "-in", "router.csr", "-CA", "ca.pem", "-CAkey", "ca-key.pem", "-CAcreateserial",
+         "-days", "2", "-extfile", "san.ext", "-out", "router.pem")
+    return {"ca": str(d / "ca.pem"), "key": str(d / "router-key.pem"), "cert": str(d / "router.pem")}
+
+
+@pytest.fixture(params=["tcp", "tls"])
+def router(request, tmp_path):
+    """A Zenoh router with the generated access control and user/password authentication."""
+    users_file = tmp_path / "users.toml"
+    users_file.write_text(USERS)
+    users = acl.load_users(users_file)
+    (tmp_path / "dict.txt").write_text(acl.dictionary(users))
+    port = free_port()
+    c = zenoh.Config.from_file(str(REPO / "deploy/zenoh-router.json5"))
+    tls = None
+    if request.param == "tls":
+        if shutil.which("openssl") is None:
+            pytest.skip("openssl not installed")
+        tls = _make_certs(tmp_path)
+        endpoint = f"tls/localhost:{port}"
+        c.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(tls["ca"]))
+        c.insert_json5("transport/link/tls/listen_private_key", json.dumps(tls["key"]))
+        c.insert_json5("transport/link/tls/listen_certificate", json.dumps(tls["cert"]))
+    else:
+        endpoint = f"tcp/127.0.0.1:{port}"
+    c.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    c.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(tmp_path / "dict.txt")))
+    c.insert_json5("access_control", json.dumps(acl.access_control(users)))
+    r = zenoh.open(c)
+    opened: list[zenoh.Session] = []
+
+    def connect(user: str | None, password: str | None = None) -> zenoh.Session:
+        s = _session(endpoint, user, password, tls)
+        opened.append(s)
+        return s
+
+    yield connect
+    for s in reversed(opened):
+        s.close()
+    r.close()
+
+
+class Inbox:
+    """Samples received on a subscriber (or liveliness subscriber), with an event per key."""
+
+    def __init__(self) -> None:
+        self.keys: list[str] = []
+        self.payloads: list[bytes] = []
+        self._cond = threading.Condition()
+
+    def __call__(self, sample: zenoh.Sample) -> None:
+        with self._cond:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.keys.append(str(sample.key_expr))
+                self.payloads.append(sample.payload.to_bytes())
+            self._cond.notify_all()
+
+    def wait_for(self, predicate) -> bool:
+        with self._cond:
+            return self._cond.wait_for(lambda: predicate(self), WAIT)
+
+
+def test_bob_cannot_act_as_alice_through_the_router(router):
+    keys = Keys("drape")
+    server = router("eu-1", "pw-server")
+    alice = router("alice", "pw-alice")
+    bob = router("bob", "pw-bob")
+
+    # The server: its control queryable answers "server"; it sees client liveliness tokens.
+    served = []
+
+    def on_control(q: zenoh.Query) -> None:
+        served.append(q.payload.to_bytes() if q.payload is not None else b"")
+        q.reply(q.key_expr, b"server")
+
+    server_q = server.declare_queryable(keys.control("eu-1"), on_control)
+    tokens = Inbox()
+    server_lv = server.liveliness().declare_subscriber(keys.all_clients_alive, tokens, history=True)
+    bundle_a = server.declare_publisher(keys.bundle("alice"))
+    bundle_b = server.declare_publisher(keys.bundle("bob"))
+
+    def server_reachable(s: zenoh.Session, ping: bytes) -> list[bytes]:
+        return [r.ok.payload.to_bytes() for r in s.get(keys.control("eu-1"), payload=ping,
+                                                        target=zenoh.QueryTarget.ALL, timeout=WAIT) if r.ok]
+
+    # 1. Liveliness: bob declares alice's token (refused), then his own (positive control).
+    bob_as_alice = bob.liveliness().declare_token(keys.alive_client("alice"))
+    bob_token = bob.liveliness().declare_token(keys.alive_client("bob"))
+    assert tokens.wait_for(lambda i: keys.alive_client("bob") in i.keys), "the server never saw bob's own token"
+    assert keys.alive_client("alice") not in tokens.keys
+
+    # 2. Subscriptions: bob subscribes to alice's bundle (refused) and to his own.
+    a_inbox, b_inbox = Inbox(), Inbox()
+    alice.declare_subscriber(keys.bundle("alice"), a_inbox)
+    bob.declare_subscriber(keys.bundle("alice"), b_inbox)
+    bob.declare_subscriber(keys.bundle("bob"), b_inbox)
+    bob.declare_subscriber("drape/**", b_inbox)  # a wildcard is no way round
+    # 3. Spoofing: bob publishes a state into alice's bundle and on a cloth key (refused).
+    bob.put(keys.bundle("alice"), b"spoofed")
+    bob.put(keys.state("0123456789abcdef"), b"spoofed")
+    # 4. Impostor: bob declares a queryable on the server's control key (refused).
+    impostor = []
+
+    def on_impostor(q: zenoh.Query) -> None:
+        impostor.append(q.payload.to_bytes() if q.payload is not None else b"")
+        q.reply(q.key_expr, b"impostor")
+
+    bob_q = bob.declare_queryable(keys.control("eu-1"), on_impostor)
+    # Bob's query reaches the server only after the router handled all of the above from bob
+    # (his own session also answers it locally, from his own queryable: that stays in his process).
+    assert b"server" in server_reachable(bob, b"bob")
+    # Alice's query to every matching queryable: only the server answers, bob never sees it.
+    assert server_reachable(alice, b"alice") == [b"server"]
+    assert b"alice" not in impostor
+    # Publications to both bundles, then a marker each: anything let through arrives before it.
+    bundle_a.put(b"for-alice")
+    bundle_b.put(b"for-bob")
+    assert a_inbox.wait_for(lambda i: b"for-alice" in i.payloads)
+    assert b_inbox.wait_for(lambda i: b"for-bob" in i.payloads)
+    assert a_inbox.payloads == [b"for-alice"], "alice got something besides her own bundle (bob's spoof?)"
+    # (bob's own session delivers his spoofs to his own subscribers locally: not a leak)
+    assert b"for-alice" not in b_inbox.payloads, "bob read alice's bundle"
+    assert served == [b"bob", b"alice"]
+    for d in (bob_q, bob_token, bob_as_alice, server_lv, server_q):
+        d.undeclare()
+
+
+def test_unknown_user_or_wrong_password_cannot_connect(router):
+    with pytest.raises(zenoh.ZError):
+        router(None)
+    with pytest.raises(zenoh.ZError):
+        router("alice", "wrong")
+    with pytest.raises(zenoh.ZError):
+        router("mallory", "pw-alice")

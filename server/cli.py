@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import logging
 import os
 import sys
 
@@ -34,7 +33,8 @@ ZENOH_COMMANDS = ("demo", "serve", "top", "loadtest")
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = argparse.ArgumentParser(prog="drape", description="Cloth of many game clients on one OpenCL device, over Zenoh.")
+    parser = argparse.ArgumentParser(prog="drape",
+                                     description="Cloth of many game clients on one OpenCL device, over Zenoh.")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
     parser.add_argument("--log-format", choices=logs.LOG_FORMATS, default=None,
                         help="log lines as text or JSON objects, one a line (default: $DRAPE_LOG_FORMAT or text)")

@@ -19,7 +19,8 @@ import json
 import logging
 import sys
 import time
-from typing import Any, Iterator, TextIO
+from collections.abc import Iterator
+from typing import Any, TextIO
 
 LOG_FORMATS = ("text", "json")
 CONTEXT_KEYS = ("server_id", "cloth", "client")

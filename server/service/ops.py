@@ -21,9 +21,10 @@ import os
 import socket
 import threading
 import time
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-from typing import Any, Callable
+from typing import Any
 
 from prometheus_client.exposition import choose_encoder
 
@@ -40,7 +41,7 @@ WATCH_INTERVAL_S = 0.1  # between two looks at the tick counter (well inside the
 # systemd notify
 
 
-def sd_notify(message: str, env: dict[str, str] | None = None) -> bool:
+def sd_notify(message: str, env: Mapping[str, str] | None = None) -> bool:
     """Send one sd_notify datagram (``READY=1``, ``WATCHDOG=1``...) to ``$NOTIFY_SOCKET``;
     False when there is no such socket (not under systemd) or it cannot be reached."""
     path = (os.environ if env is None else env).get("NOTIFY_SOCKET")
@@ -58,12 +59,12 @@ def sd_notify(message: str, env: dict[str, str] | None = None) -> bool:
         return False
 
 
-def watchdog_interval(env: dict[str, str] | None = None) -> float | None:
+def watchdog_interval(env: Mapping[str, str] | None = None) -> float | None:
     """Half of systemd's ``WatchdogSec`` (``$WATCHDOG_USEC``) when the watchdog is on for this
     process, else None."""
-    env = os.environ if env is None else env
-    usec = env.get("WATCHDOG_USEC")
-    pid = env.get("WATCHDOG_PID")
+    e: Mapping[str, str] = os.environ if env is None else env
+    usec = e.get("WATCHDOG_USEC")
+    pid = e.get("WATCHDOG_PID")
     if not usec or (pid and pid.isdigit() and int(pid) != os.getpid()):
         return None
     try:
@@ -120,7 +121,7 @@ class TickWatch:
 
 
 class _Handler(BaseHTTPRequestHandler):
-    server: "_HTTPServer"
+    server: _HTTPServer
     protocol_version = "HTTP/1.1"
 
     def do_GET(self) -> None:  # noqa: N802 (http.server's name)
@@ -154,15 +155,16 @@ class _Handler(BaseHTTPRequestHandler):
 
 class _HTTPServer(ThreadingHTTPServer):
     daemon_threads = True
-    ops: "Ops"
+    ops: Ops
+
+
+class _HTTPServer6(_HTTPServer):
+    address_family = socket.AF_INET6
 
 
 def _http_server(listen: str) -> _HTTPServer:
     host, port = parse_listen(listen)
-    cls = _HTTPServer
-    if ":" in host:
-        cls = type("_HTTPServer6", (_HTTPServer,), {"address_family": socket.AF_INET6})
-    return cls((host, port), _Handler)
+    return (_HTTPServer6 if ":" in host else _HTTPServer)((host, port), _Handler)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -173,7 +175,7 @@ class Ops:
     """The listener and the watch of one server; see the module docstring."""
 
     def __init__(self, server: Any, config: ServerConfig | None = None, *, slack_s: float = DEFAULT_SLACK_S,
-                 env: dict[str, str] | None = None) -> None:
+                 env: Mapping[str, str] | None = None) -> None:
         self.server = server
         self.config = config or server.config
         self.env = dict(os.environ if env is None else env)
@@ -198,7 +200,7 @@ class Ops:
         host, port = self.address
         return f"http://[{host}]:{port}" if ":" in host else f"http://{host}:{port}"
 
-    def start(self) -> "Ops":
+    def start(self) -> Ops:
         sid = self.config.server_id
         if self.config.metrics_listen is not None:
             self._http = _http_server(self.config.metrics_listen)
@@ -228,7 +230,7 @@ class Ops:
         if self.notify:  # after the watch ended, so no WATCHDOG=1 follows it
             self._notify("STOPPING=1")
 
-    def __enter__(self) -> "Ops":
+    def __enter__(self) -> Ops:
         return self
 
     def __exit__(self, *exc: object) -> None:

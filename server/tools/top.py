@@ -210,7 +210,8 @@ def print_frame(views: list[ServerView], source: str, out: TextIO) -> None:
 
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--endpoint", action="append", default=None,
-                        help=f"Zenoh endpoint to connect to (a server or router; repeatable; default {P.DEFAULT_ENDPOINT})")
+                        help=f"Zenoh endpoint to connect to (a server or router; repeatable; "
+                             f"default {P.DEFAULT_ENDPOINT})")
     parser.add_argument("--namespace", default=P.DEFAULT_NAMESPACE, help="key namespace of the servers")
     parser.add_argument("--server", default=None, help="show this server only (default: every server seen)")
     parser.add_argument("--mode", default="peer", choices=("peer", "client"), help="Zenoh mode of this session")

@@ -106,7 +106,7 @@ class TickBlock:
         self.entered.set()
         self.release.wait(60.0)
 
-    def __enter__(self) -> "TickBlock":
+    def __enter__(self) -> TickBlock:
         self.thread.start()
         assert self.entered.wait(TIMEOUT), "the tick thread never ran the call"
         return self
@@ -131,7 +131,8 @@ def test_exposition_parses_and_carries_every_metric_with_its_type(served):
             assert key not in fams
             continue
         assert key in fams, f"{name} missing from /metrics"
-        assert fams[key].type == ("gauge" if kind == "info" else kind), (name, fams[key].type)  # text format: info is a gauge
+        expected = "gauge" if kind == "info" else kind  # the text format has no info type
+        assert fams[key].type == expected, (name, fams[key].type)
     assert all(n.startswith(("drape_", "process_")) for n in fams)
     info = fams["drape_server_info"].samples[0]
     assert info.labels["server"] == server.server_id and info.labels["solver"] == "workgroup"

@@ -11,11 +11,11 @@ import time
 import pytest
 
 from drape.client import DrapeClient
+from drape.client import protocol as P
 from drape.server.cli import main
 from drape.server.service.config import ServerConfig
 from drape.server.service.tickloop import Server
 from drape.server.tools.top import COLUMNS, StatsBoard, print_frame
-from drape.client import protocol as P
 
 TIMEOUT = 10.0
 
@@ -77,10 +77,10 @@ def test_once_renders_every_server_on_the_network(capsys):
     assert re.split(r"\s{2,}", header.strip()) == list(COLUMNS)
     rows = frame_rows(out)
     assert set(rows) == {a.server_id, b.server_id}
-    ra = dict(zip(COLUMNS, rows[a.server_id]))
+    ra = dict(zip(COLUMNS, rows[a.server_id], strict=True))
     assert (ra["CLOTHS"], ra["CLIENTS"], ra["VERTICES"], ra["QUALITY"]) == ("2", "1", "40", "fast:2")
     assert ra["TICK/s"].endswith("/60") and ra["OVERLOAD"] == "0"
-    assert dict(zip(COLUMNS, rows[b.server_id]))["CLOTHS"] == "0"
+    assert dict(zip(COLUMNS, rows[b.server_id], strict=True))["CLOTHS"] == "0"
     assert "\x1b[" not in out  # plain text: no terminal control codes
 
 
@@ -112,7 +112,7 @@ def test_rates_from_two_publications(capsys):
     board.add("s1", {**base, "time_ns": 3_000_000_000, "ticks": 220, "published": 1600, "published_bytes": 5_010_000,
                      "missed_ticks": 6})
     print_frame(board.views(), "test", sys.stdout)
-    row = dict(zip(COLUMNS, frame_rows(capsys.readouterr().out, "s1")["s1"]))
+    row = dict(zip(COLUMNS, frame_rows(capsys.readouterr().out, "s1")["s1"], strict=True))
     assert row["TICK/s"] == "60.0/60" and row["STATES/s"] == "300" and row["BYTES/s"] == "2.5 MB"
     assert row["MISSED/s"] == "2.0" and row["TICK ms"] == "2.50" and row["MAX ms"] == "9.00"
     assert row["SOLVE"] == "1.25" and row["READBK"] == "-"

@@ -12,6 +12,20 @@ float4 position and normal buffers, and one copy brings the whole frame into pin
 :meth:`DeviceEncoder.slices` then gives each publication's bytes as a memoryview of that memory,
 without copying. No per-cloth Python runs per tick.
 
+Use (the service's tick path; no per-cloth Python per tick)::
+
+    plan = FramePlan.build([ClothEntry(id, vbase, n, encoding, normals), ...],
+                           [Publication(key, (i,)), Publication(bundle_key, (j, k), bundle=True), ...])
+    encoder = DeviceEncoder(device)             # once
+    encoder.set_plan(plan)                      # when cloths, encodings, normals or bundles change
+    encoder.encode(queue, world_pos_buf, world_nrm_buf, tick, time_ns, flags)  # every tick
+    for i in encoder.nonfinite(): ...           # reset those cloths, encode the frame again
+    for pub, payload in zip(plan.publications, encoder.slices()): put(pub.key, payload)
+
+``vbase`` is the cloth's first vertex in the world's float4 vertex buffers (``stride=4``), or its
+first row in a packed xyz buffer (``stride=3``). A frame's views stay valid until
+``host_buffers`` (2) more frames have been encoded, or while held across a new plan.
+
 The bytes equal :func:`drape.client.protocol.encode_state` / :func:`~drape.client.protocol.encode_bundle`
 (tests/sim/test_device_encode.py), with two documented exceptions:
 

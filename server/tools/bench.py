@@ -12,6 +12,7 @@ Workloads
 A frame is one ``World.step`` plus waiting for the device (``World.sync``): median of the timed
 frames after warm-up. Records go to ``--json PATH``; the table is printed.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -20,6 +21,7 @@ import logging
 import platform
 import statistics
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -28,6 +30,7 @@ import numpy as np
 from ..sim.fabric import Fabric, cook_grid
 from ..sim.params import Capsule, ClothParams, Features, LinkOptions, Material, Plane, Sphere, pack_colliders
 from ..sim.world import World, make_world
+from .procs import progress, require_extra
 
 log = logging.getLogger(__name__)
 
@@ -101,17 +104,24 @@ def _record(workload, solver, world, fabrics_params, times, extra=None) -> Recor
     return rec
 
 
+Step = Callable[[str], None]
+
+
+def _no_step(label: str) -> None:
+    log.debug("%s", label)
+
+
 def make(solver: str, device: str | None) -> World:
     return make_world(solver) if solver == "reference" else make_world(solver, device=device)
 
 
-def bench_seed(solvers, device, frames, max_seconds) -> list[Record]:
+def bench_seed(solvers, device, frames, max_seconds, step: Step = _no_step) -> list[Record]:
     fab = cook_grid(150, 150, 1.0, 1.0, LinkOptions(structural=True, shear=True), pinned=[0, 149], origin=(0, 1, 0))
     out = []
     cases = [("no-solver", solvers[0] if solvers[0] != "reference" else "workgroup", 0)]
     cases += [(s, s, 10) for s in solvers]
     for label, solver, iters in cases:
-        log.info("seed: %s", label)
+        step(f"seed: {label}")
         w = make(solver, device)
         p = ClothParams(iterations=iters)
         w.add(fab, p)
@@ -126,17 +136,17 @@ def bench_seed(solvers, device, frames, max_seconds) -> list[Record]:
     return out
 
 
-def bench_many(solvers, device, counts, frames, max_seconds) -> list[Record]:
+def bench_many(solvers, device, counts, frames, max_seconds, step: Step = _no_step) -> list[Record]:
     fab = cook_grid(32, 32, 1.0, 1.0, LinkOptions(bending=True), pinned=[0, 31], origin=(0, 1, 0))
     out = []
     for solver in solvers:
         for n in counts:
             if solver == "reference" and n > 64:
                 continue  # numpy over thousands of cloths says nothing new
-            log.info("many: %s x %d cloths", solver, n)
+            step(f"many: {solver} x {n} cloths")
             w = make(solver, device)
             p = ClothParams(iterations=10)
-            for i in range(n):
+            for _ in range(n):
                 w.add(fab, p)
             t = time_frames(w, warmup=2, frames=frames, max_seconds=max_seconds)
             out.append(_record("many", solver, w, [(fab, p)] * n, t, _launch_shape(w)))
@@ -156,16 +166,17 @@ FEATURE_CASES: list[tuple[str, Features]] = [
 ]
 
 
-def bench_features(solvers, device, count, frames, max_seconds) -> list[Record]:
+def bench_features(solvers, device, count, frames, max_seconds, step: Step = _no_step) -> list[Record]:
     fab = cook_grid(32, 32, 1.0, 1.0, LinkOptions(bending=True), pinned=[0, 31], origin=(0, 1, 0))
-    colliders = pack_colliders([Sphere((0.5, 0.4, 0.5), 0.2), Capsule((0.0, 0.2, 0.3), (1.0, 0.2, 0.6), 0.05),
-                                Plane((0.0, 1.0, 0.0), -0.5)])
+    colliders = pack_colliders(
+        [Sphere((0.5, 0.4, 0.5), 0.2), Capsule((0.0, 0.2, 0.3), (1.0, 0.2, 0.6), 0.05), Plane((0.0, 1.0, 0.0), -0.5)]
+    )
     out = []
     for solver in solvers:
         if solver == "reference":
             continue
         for label, feats in FEATURE_CASES:
-            log.info("features: %s %s x %d", solver, label, count)
+            step(f"features: {solver} {label} x {count}")
             w = make(solver, device)
             mat = Material(compliance=(1e-6, 1e-6, 1e-4), drag=1.0, lift=0.5, friction=0.3, tether_limit=1.05)
             fps = []
@@ -193,15 +204,16 @@ def stretch(x: np.ndarray, fab: Fabric) -> tuple[float, float]:
     return float(ratio.max()), float(ratio.mean())
 
 
-def bench_hang(solvers, device, sizes, frames, max_seconds) -> list[Record]:
+def bench_hang(solvers, device, sizes, frames, max_seconds, step: Step = _no_step) -> list[Record]:
     out = []
     for n in sizes:
-        fab = cook_grid(n, n, 1.0, 1.0, LinkOptions(structural=True, shear=True, bending=True), pinned=[0, n - 1],
-                        origin=(0, 1, 0))
+        fab = cook_grid(
+            n, n, 1.0, 1.0, LinkOptions(structural=True, shear=True, bending=True), pinned=[0, n - 1], origin=(0, 1, 0)
+        )
         for solver in solvers:
             if solver == "reference" and n > 64:
                 continue
-            log.info("hang: %s %dx%d", solver, n, n)
+            step(f"hang: {solver} {n}x{n}")
             w = make(solver, device)
             p = ClothParams(iterations=10)
             h = w.add(fab, p)
@@ -215,8 +227,12 @@ def bench_hang(solvers, device, sizes, frames, max_seconds) -> list[Record]:
             x = w.positions(h)
             mx, mean = stretch(x, fab)
             rec = _record(f"hang{n}", solver, w, [(fab, p)], times[5:] or times)
-            rec.extra.update(max_stretch=round(mx, 5), mean_stretch=round(mean, 5), finite=bool(np.isfinite(x).all()),
-                             lowest_y=round(float(x[:, 1].min()), 4))
+            rec.extra.update(
+                max_stretch=round(mx, 5),
+                mean_stretch=round(mean, 5),
+                finite=bool(np.isfinite(x).all()),
+                lowest_y=round(float(x[:, 1].min()), 4),
+            )
             out.append(rec)
             w.close()
     return out
@@ -227,47 +243,66 @@ def _launch_shape(w: World) -> dict:
     groups = getattr(w, "groups", {})
     if not groups:
         return {}
-    return {"wg": ",".join(f"{g.local_size}{'L' if g.use_local else 'G'}/{w._kernel_limit(g)}" for g in groups.values())}
+    limit = w._kernel_limit  # type: ignore[attr-defined]  # an OpenCL world's
+    return {"wg": ",".join(f"{g.local_size}{'L' if g.use_local else 'G'}/{limit(g)}" for g in groups.values())}
 
 
 def print_table(records: list[Record]) -> None:
-    head = f"{'workload':<10} {'solver':<10} {'cloths':>6} {'vertices':>9} {'links':>10} {'it':>3} {'ms/frame':>10} {'G link-it/s':>11}  extra"
+    head = (
+        f"{'workload':<10} {'solver':<10} {'cloths':>6} {'vertices':>9} {'links':>10} {'it':>3} {'ms/frame':>10} "
+        f"{'G link-it/s':>11}  extra"
+    )
     print(head)
     print("-" * len(head))
     for r in records:
         extra = " ".join(f"{k}={v}" for k, v in r.extra.items())
-        print(f"{r.workload:<10} {r.solver:<10} {r.cloths:>6} {r.vertices:>9} {r.links:>10} {r.iterations:>3} "
-              f"{r.ms_per_frame:>10.3f} {r.link_iters_per_s / 1e9:>11.3f}  {extra}")
+        print(
+            f"{r.workload:<10} {r.solver:<10} {r.cloths:>6} {r.vertices:>9} {r.links:>10} {r.iterations:>3} "
+            f"{r.ms_per_frame:>10.3f} {r.link_iters_per_s / 1e9:>11.3f}  {extra}"
+        )
     if records:
         print(f"device: {records[0].device}; host: {platform.node()} {platform.processor() or platform.machine()}")
 
 
 def markdown_table(records: list[Record]) -> str:
     """The records as a Markdown table (what docs/benchmarks.md quotes)."""
-    rows = ["| workload | solver | cloths | vertices | links | iterations | ms/frame (median) | G link-it/s | notes |",
-            "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
+    rows = [
+        "| workload | solver | cloths | vertices | links | iterations | ms/frame (median) | G link-it/s | notes |",
+        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |",
+    ]
     for r in records:
         notes = ", ".join(f"{k} {v}" for k, v in r.extra.items())
-        rows.append(f"| {r.workload} | {r.solver} | {r.cloths} | {r.vertices} | {r.links} | {r.iterations} | "
-                    f"{r.ms_per_frame:.3f} | {r.link_iters_per_s / 1e9:.2f} | {notes} |")
+        rows.append(
+            f"| {r.workload} | {r.solver} | {r.cloths} | {r.vertices} | {r.links} | {r.iterations} | "
+            f"{r.ms_per_frame:.3f} | {r.link_iters_per_s / 1e9:.2f} | {notes} |"
+        )
     if records:
         rows.append(f"\nDevice: {records[0].device}.")
     return "\n".join(rows) + "\n"
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
+    require_extra("server", "bench")
+    require_extra("tools", "bench")
     parser.add_argument("workloads", nargs="*", metavar="WORKLOAD", help="seed, many, hang, features (default: all)")
-    parser.add_argument("--feature-cloths", type=int, default=None,
-                        help="cloths in the 'features' workload (default 4096 on a GPU, 128 on a CPU)")
+    parser.add_argument(
+        "--feature-cloths",
+        type=int,
+        default=None,
+        help="cloths in the 'features' workload (default 4096 on a GPU, 128 on a CPU)",
+    )
     parser.add_argument("--solvers", default="coloured,workgroup,jacobi,reference")
     parser.add_argument("--device", default=None, help="OpenCL device: auto, gpu, cpu or a name substring")
-    parser.add_argument("--counts", default=None, help="cloth counts for 'many' (default 64..4096 on a GPU, 64..512 on a CPU)")
+    parser.add_argument(
+        "--counts", default=None, help="cloth counts for 'many' (default 64..4096 on a GPU, 64..512 on a CPU)"
+    )
     parser.add_argument("--sizes", default="32,64,150", help="n for the n x n 'hang' cloths")
     parser.add_argument("--frames", type=int, default=30, help="timed frames per case (median reported)")
     parser.add_argument("--max-seconds", type=float, default=20.0, help="stop timing a case after this long")
     parser.add_argument("--json", type=Path, default=None, help="write the records here")
     parser.add_argument("--markdown", type=Path, default=None, help="write the table as Markdown here")
     parser.add_argument("--quick", action="store_true", help="small counts and few frames (CI smoke run)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -290,14 +325,21 @@ def run(args: argparse.Namespace) -> int:
     feature_cloths = args.feature_cloths or (16 if args.quick else 4096 if gpu else 128)
     sizes = [int(s) for s in args.sizes.split(",")] if not args.quick else [32]
     records: list[Record] = []
-    if "seed" in workloads:
-        records += bench_seed(solvers, args.device, frames, args.max_seconds)
-    if "many" in workloads:
-        records += bench_many(solvers, args.device, counts, frames, args.max_seconds)
-    if "hang" in workloads:
-        records += bench_hang(solvers, args.device, sizes, frames, args.max_seconds)
-    if "features" in workloads:
-        records += bench_features(solvers, args.device, feature_cloths, frames, args.max_seconds)
+    with progress(desc="bench", unit="case", quiet=args.quiet) as bar:
+
+        def step(label: str) -> None:
+            log.debug("%s", label)
+            bar.set_description(label, refresh=False)
+            bar.update()
+
+        if "seed" in workloads:
+            records += bench_seed(solvers, args.device, frames, args.max_seconds, step)
+        if "many" in workloads:
+            records += bench_many(solvers, args.device, counts, frames, args.max_seconds, step)
+        if "hang" in workloads:
+            records += bench_hang(solvers, args.device, sizes, frames, args.max_seconds, step)
+        if "features" in workloads:
+            records += bench_features(solvers, args.device, feature_cloths, frames, args.max_seconds, step)
     print_table(records)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -12,6 +12,7 @@ each through the client SDK and steer it every tick, as a game would:
 Each client keeps the states it received over Zenoh; the demo then renders them into PNG
 frames and an animated GIF in ``--out`` and prints where they are.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -26,9 +27,6 @@ from pathlib import Path
 import numpy as np
 
 from .procs import ServerProcess, require_extra
-
-require_extra("tools", "demo")
-require_extra("server", "demo")
 
 log = logging.getLogger(__name__)
 
@@ -85,27 +83,52 @@ def run_client(kind: str, endpoint: str, seconds: float, fps: float, out: str, r
         if kind == "flag":
             cols, rows = 24, 16
             cloth = client.submit_grid(
-                cols, rows, 1.2, 0.8, orientation="vertical", origin=(0.0, 2.1, 0.0),
-                pinned=[r * cols for r in range(rows)], features=["wind", "xpbd"],
+                cols,
+                rows,
+                1.2,
+                0.8,
+                orientation="vertical",
+                origin=(0.0, 2.1, 0.0),
+                pinned=[r * cols for r in range(rows)],
+                features=["wind", "xpbd"],
                 material={"drag": 1.2, "lift": 0.6, "mass": 0.3, "compliance": (1e-5, 1e-4, 1e-2)},
-                wind=(5.0, 0.0, 1.0), iterations=10, substeps=2,
+                wind=(5.0, 0.0, 1.0),
+                iterations=10,
+                substeps=2,
             )
         elif kind == "curtain":
             cols, rows = 28, 26
             cloth = client.submit_grid(
-                cols, rows, 1.3, 1.6, orientation="vertical", origin=(1.75, 2.15, 0.0),
-                pinned=list(range(cols)), features=["colliders"], links={"bending": True},
-                material={"mass": 0.8, "friction": 0.3, "damping": 0.01}, iterations=12,
+                cols,
+                rows,
+                1.3,
+                1.6,
+                orientation="vertical",
+                origin=(1.75, 2.15, 0.0),
+                pinned=list(range(cols)),
+                features=["colliders"],
+                links={"bending": True},
+                material={"mass": 0.8, "friction": 0.3, "damping": 0.01},
+                iterations=12,
             )
         else:
             cols, rows = 16, 20
             cloth = client.submit_grid(
-                cols, rows, 0.6, 0.9, orientation="vertical", origin=(3.45, 1.75, 0.0),
-                pinned=list(range(cols)), features=["colliders", "tethers"], links={"bending": True},
+                cols,
+                rows,
+                0.6,
+                0.9,
+                orientation="vertical",
+                origin=(3.45, 1.75, 0.0),
+                pinned=list(range(cols)),
+                features=["colliders", "tethers"],
+                links={"bending": True},
                 material={"mass": 0.6, "friction": 0.4, "tether_limit": 1.05, "damping": 0.01},
-                iterations=10, substeps=2,
+                iterations=10,
+                substeps=2,
             )
         ready.set()
+        assert cloth.rest_positions is not None, "the SDK keeps a submitted cloth's rest positions"
         rest_top = np.asarray(cloth.rest_positions[:cols], np.float64)
         start = time.monotonic()
         first_tick = None
@@ -157,8 +180,17 @@ def load_recording(out: Path, kind: str) -> Recording:
     d = np.load(out / f"{kind}.npz")
     coll = json.loads((out / f"{kind}-colliders.json").read_text())
     spheres, capsules = coll["spheres"], coll["capsules"]
-    return Recording(kind, d["ticks"], d["positions"], d["triangles"], list(spheres), list(capsules),
-                     int(d["received"]), int(d["missing"]), int(d["duplicates"]))
+    return Recording(
+        kind,
+        d["ticks"],
+        d["positions"],
+        d["triangles"],
+        list(spheres),
+        list(capsules),
+        int(d["received"]),
+        int(d["missing"]),
+        int(d["duplicates"]),
+    )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -179,8 +211,15 @@ def render(recs: list[Recording], out: Path, size: tuple[int, int], fps: float) 
             cloths.append((r.positions[i], r.triangles, COLOURS[r.kind]))
             spheres += r.spheres[i]
             capsules += r.capsules[i]
-        img = render_scene(size, cloths, view="iso", bounds=BOUNDS, spheres=spheres, capsules=capsules,
-                           title=f"Drape demo  tick {tick}")
+        img = render_scene(
+            size,
+            cloths,
+            view="iso",
+            bounds=BOUNDS,
+            spheres=spheres,
+            capsules=capsules,
+            title=f"Drape demo  tick {tick}",
+        )
         p = out / f"frame_{k:04d}.png"
         write_png(p, img)
         paths.append(p)
@@ -195,6 +234,8 @@ def render(recs: list[Recording], out: Path, size: tuple[int, int], fps: float) 
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
+    require_extra("server", "demo")
+    require_extra("tools", "demo")
     parser.add_argument("--seconds", type=float, default=5.0, help="how long the clients run")
     parser.add_argument("--out", type=Path, default=Path("out/demo"), help="where frames and the GIF go")
     parser.add_argument("--fps", type=float, default=15.0, help="frames per second recorded and in the GIF")
@@ -220,8 +261,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         for kind in kinds:
             ready = ctx.Event()
-            p = ctx.Process(target=run_client, args=(kind, endpoint, args.seconds, args.fps, str(out), ready),
-                            name=f"demo-{kind}")
+            p = ctx.Process(
+                target=run_client, args=(kind, endpoint, args.seconds, args.fps, str(out), ready), name=f"demo-{kind}"
+            )
             p.start()
             procs.append((p, ready))
         for p, ready in procs:

@@ -121,10 +121,18 @@ def client_main(spec: ClientSpec, endpoint: str, server_id: str | None, shared: 
             for j in range(spec.offered):
                 try:
                     h = client.submit_grid(
-                        n, n, 1.0, 1.0, origin=(1.5 * j, 1.0, 2.0 * spec.index), pinned=pins,
+                        n,
+                        n,
+                        1.0,
+                        1.0,
+                        origin=(1.5 * j, 1.0, 2.0 * spec.index),
+                        pinned=pins,
                         links={"structural": True, "shear": True, "bending": spec.bending},
-                        features=list(spec.features), iterations=spec.iterations, substeps=spec.substeps,
-                        encoding=spec.encoding, bundle=spec.bundle,
+                        features=list(spec.features),
+                        iterations=spec.iterations,
+                        substeps=spec.substeps,
+                        encoding=spec.encoding,
+                        bundle=spec.bundle,
                     )
                 except P.DrapeError as e:
                     refused[e.code] += 1
@@ -171,8 +179,15 @@ def client_main(spec: ClientSpec, endpoint: str, server_id: str | None, shared: 
             lo, hi = int(shared["lo"].value), int(shared["hi"].value)
             for cancel in cancels:  # stop recording before the client closes
                 cancel()
-            snapshot = [(np.asarray(r.ticks, np.int64), np.asarray(r.lat_ns, np.int64), np.asarray(r.rx_ns, np.int64),
-                         np.asarray(r.delay_ns, np.int64)) for r in recs]
+            snapshot = [
+                (
+                    np.asarray(r.ticks, np.int64),
+                    np.asarray(r.lat_ns, np.int64),
+                    np.asarray(r.rx_ns, np.int64),
+                    np.asarray(r.delay_ns, np.int64),
+                )
+                for r in recs
+            ]
     except BaseException as e:  # report, don't hang the parent
         results.put(("error", spec.index, repr(e)))
         raise
@@ -188,11 +203,30 @@ def client_main(spec: ClientSpec, endpoint: str, server_id: str | None, shared: 
         rx.append(rx_ns[inside])
         dl.append(delay_ns[inside])
     lat_ms = (np.concatenate(lat) / 1e6).astype(np.float32) if lat else np.zeros(0, np.float32)
-    per_s, per_p, dec_s, payloads = decode_cost(np.concatenate(rx) if rx else np.zeros(0, np.int64),
-                                                np.concatenate(dl) if dl else np.zeros(0, np.int64))
-    results.put(("ok", ClientResult(
-        index=spec.index, offered=spec.offered, admitted=len(handles), refused=dict(refused), received=received,
-        expected=len(handles) * max(hi - lo, 0), lost=lost, duplicated=dup, out_of_order=ooo, latencies_ms=lat_ms,
-        decode_us_per_state=per_s, decode_us_per_payload=per_p, decode_s=dec_s, payloads=payloads,
-        bytes=received * per_state, send_errors=send_errors, cpu_s=cpu_s,
-    )))
+    per_s, per_p, dec_s, payloads = decode_cost(
+        np.concatenate(rx) if rx else np.zeros(0, np.int64), np.concatenate(dl) if dl else np.zeros(0, np.int64)
+    )
+    results.put(
+        (
+            "ok",
+            ClientResult(
+                index=spec.index,
+                offered=spec.offered,
+                admitted=len(handles),
+                refused=dict(refused),
+                received=received,
+                expected=len(handles) * max(hi - lo, 0),
+                lost=lost,
+                duplicated=dup,
+                out_of_order=ooo,
+                latencies_ms=lat_ms,
+                decode_us_per_state=per_s,
+                decode_us_per_payload=per_p,
+                decode_s=dec_s,
+                payloads=payloads,
+                bytes=received * per_state,
+                send_errors=send_errors,
+                cpu_s=cpu_s,
+            ),
+        )
+    )

@@ -50,7 +50,10 @@ def phase_means(window: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, floa
     for name, rows in acc.items():
         n = sum(c for c, _, _ in rows)
         if n:
-            out[name] = {"mean": round(sum(c * m for c, m, _ in rows) / n, 3), "max": round(max(x for _, _, x in rows), 3)}
+            out[name] = {
+                "mean": round(sum(c * m for c, m, _ in rows) / n, 3),
+                "max": round(max(x for _, _, x in rows), 3),
+            }
     return out
 
 
@@ -90,8 +93,14 @@ class Report:
     def held(self) -> bool:
         """No missed tick, nothing lost or coalesced, p99 within one tick."""
         p99 = self.latency_ms.get("p99", float("nan"))
-        return (self.ticks > 0 and self.missed_ticks == 0 and self.lost == 0 and self.skipped_frames == 0
-                and math.isfinite(p99) and p99 <= 1000.0 / self.tick_hz_target)
+        return (
+            self.ticks > 0
+            and self.missed_ticks == 0
+            and self.lost == 0
+            and self.skipped_frames == 0
+            and math.isfinite(p99)
+            and p99 <= 1000.0 / self.tick_hz_target
+        )
 
     def why_not_held(self) -> str:
         why = []
@@ -116,17 +125,23 @@ def latency_summary(lat_ms: np.ndarray) -> dict[str, float]:
     if not len(lat_ms):
         return {"p50": float("nan"), "p99": float("nan"), "max": float("nan"), "mean": float("nan")}
     p50, p99 = np.percentile(lat_ms, [50, 99])
-    return {"p50": round(float(p50), 3), "p99": round(float(p99), 3), "max": round(float(lat_ms.max()), 3),
-            "mean": round(float(lat_ms.mean()), 3)}
+    return {
+        "p50": round(float(p50), 3),
+        "p99": round(float(p99), 3),
+        "max": round(float(lat_ms.max()), 3),
+        "mean": round(float(lat_ms.mean()), 3),
+    }
 
 
 def decode_summary(results: Sequence[ClientResult], seconds: float) -> dict[str, float]:
     states = sum(r.received for r in results)
     payloads = sum(r.payloads for r in results)
     total = sum(r.decode_s for r in results)
-    return {"per_state": round(1e6 * total / states, 2) if states else float("nan"),
-            "per_payload": round(1e6 * total / payloads, 2) if payloads else float("nan"),
-            "cpu_percent": round(100.0 * total / seconds, 1) if seconds > 0 else float("nan")}
+    return {
+        "per_state": round(1e6 * total / states, 2) if states else float("nan"),
+        "per_payload": round(1e6 * total / payloads, 2) if payloads else float("nan"),
+        "cpu_percent": round(100.0 * total / seconds, 1) if seconds > 0 else float("nan"),
+    }
 
 
 # ------------------------------------------------------------------------------------------------
@@ -136,30 +151,63 @@ def decode_summary(results: Sequence[ClientResult], seconds: float) -> dict[str,
 def print_report(r: Report) -> None:
     lat, ph = r.latency_ms, r.server.get("phases_ms", {})
     refused = ", ".join(f"{n} {code}" for code, n in sorted(r.refused.items())) or "none"
-    print(f"load: {r.cloths} cloths admitted of {r.offered} offered (refused: {refused}) over {r.clients} clients, "
-          f"{r.vertices_per_cloth} vertices, {r.iterations} iterations, features {r.features or 'none'}, {r.encoding}, "
-          f"{'bundles + batch control' if r.bundle else 'per-cloth states and controls'}")
+    print(
+        f"load: {r.cloths} cloths admitted of {r.offered} offered (refused: {refused}) over {r.clients} clients, "
+        f"{r.vertices_per_cloth} vertices, {r.iterations} iterations, features {r.features or 'none'}, {r.encoding}, "
+        f"{'bundles + batch control' if r.bundle else 'per-cloth states and controls'}"
+    )
     print(f"  window: server ticks {r.window_ticks[0] + 1}..{r.window_ticks[1]} ({r.seconds:.2f} s on the server)")
-    print(f"  ticks: {r.tick_hz_achieved:.2f} Hz achieved of {r.tick_hz_target:g} Hz ({r.ticks} ticks); "
-          f"missed {r.missed_ticks}, coalesced {r.skipped_frames}")
+    print(
+        f"  ticks: {r.tick_hz_achieved:.2f} Hz achieved of {r.tick_hz_target:g} Hz ({r.ticks} ticks); "
+        f"missed {r.missed_ticks}, coalesced {r.skipped_frames}"
+    )
     print(f"  latency ms: p50 {lat['p50']:.2f}  p99 {lat['p99']:.2f}  max {lat['max']:.2f}")
-    print(f"  states: {r.states} of {r.expected_states} received, {r.lost} lost, {r.duplicated} duplicated, "
-          f"{r.out_of_order} out of order; {r.messages_per_s:.0f} msg/s, {r.bytes_per_s / 1e6:.2f} MB/s; "
-          f"control errors {r.send_errors}")
-    print(f"  client decode: {r.decode_us['per_state']:.1f} us per state, {r.decode_us['per_payload']:.1f} us per "
-          f"{'bundle' if r.bundle else 'state message'}, {r.decode_us['cpu_percent']:.0f}% of one core in all")
+    print(
+        f"  states: {r.states} of {r.expected_states} received, {r.lost} lost, {r.duplicated} duplicated, "
+        f"{r.out_of_order} out of order; {r.messages_per_s:.0f} msg/s, {r.bytes_per_s / 1e6:.2f} MB/s; "
+        f"control errors {r.send_errors}"
+    )
+    print(
+        f"  client decode: {r.decode_us['per_state']:.1f} us per state, {r.decode_us['per_payload']:.1f} us per "
+        f"{'bundle' if r.bundle else 'state message'}, {r.decode_us['cpu_percent']:.0f}% of one core in all"
+    )
     if ph:
-        print("  server ms per tick (mean/max): " + ", ".join(f"{k} {v['mean']:.2f}/{v['max']:.2f}" for k, v in ph.items()))
+        print(
+            "  server ms per tick (mean/max): "
+            + ", ".join(f"{k} {v['mean']:.2f}/{v['max']:.2f}" for k, v in ph.items())
+        )
     s = r.server
     if "cpu_percent" in s:
-        print(f"  server CPU {s['cpu_percent']:.0f}%, RSS {s['rss_start_mb']:.0f} -> {s['rss_end_mb']:.0f} MB "
-              f"(max {s['rss_max_mb']:.0f} MB); clients CPU {r.clients_cpu_percent:.0f}%")
+        print(
+            f"  server CPU {s['cpu_percent']:.0f}%, RSS {s['rss_start_mb']:.0f} -> {s['rss_end_mb']:.0f} MB "
+            f"(max {s['rss_max_mb']:.0f} MB); clients CPU {r.clients_cpu_percent:.0f}%"
+        )
     print(f"  held: {'yes' if r.held else 'NO (' + r.why_not_held() + ')'}")
 
 
-COLUMNS = ("cloths", "offered", "refused", "encoding", "Hz", "missed", "coalesced", "p50 ms", "p99 ms", "lost",
-           "MB/s", "solve ms", "readback ms", "encode ms", "publish ms", "tick ms", "decode us/state",
-           "decode us/bundle", "server CPU %", "RSS MB (start/end/max)", "held")
+COLUMNS = (
+    "cloths",
+    "offered",
+    "refused",
+    "encoding",
+    "Hz",
+    "missed",
+    "coalesced",
+    "p50 ms",
+    "p99 ms",
+    "lost",
+    "MB/s",
+    "solve ms",
+    "readback ms",
+    "encode ms",
+    "publish ms",
+    "tick ms",
+    "decode us/state",
+    "decode us/bundle",
+    "server CPU %",
+    "RSS MB (start/end/max)",
+    "held",
+)
 
 
 def markdown_table(reports: Sequence[Report]) -> str:
@@ -172,38 +220,71 @@ def markdown_table(reports: Sequence[Report]) -> str:
         def phase(name: str, ph: dict = ph) -> str:
             return f"{ph[name]['mean']:.2f}" if name in ph else "-"
 
-        rss = (f"{s['rss_start_mb']:.0f}/{s['rss_end_mb']:.0f}/{s['rss_max_mb']:.0f}" if "rss_max_mb" in s else "-")
-        row = [r.cloths, r.offered, sum(r.refused.values()), r.encoding, f"{r.tick_hz_achieved:.2f}", r.missed_ticks,
-               r.skipped_frames, f"{r.latency_ms['p50']:.2f}", f"{r.latency_ms['p99']:.2f}", r.lost,
-               f"{r.bytes_per_s / 1e6:.1f}", phase("solve"), phase("readback"), phase("encode"), phase("publish"),
-               phase("tick"), f"{r.decode_us['per_state']:.1f}", f"{r.decode_us['per_payload']:.1f}",
-               f"{s.get('cpu_percent', float('nan')):.0f}", rss, "yes" if r.held else "**no**"]
+        rss = f"{s['rss_start_mb']:.0f}/{s['rss_end_mb']:.0f}/{s['rss_max_mb']:.0f}" if "rss_max_mb" in s else "-"
+        row = [
+            r.cloths,
+            r.offered,
+            sum(r.refused.values()),
+            r.encoding,
+            f"{r.tick_hz_achieved:.2f}",
+            r.missed_ticks,
+            r.skipped_frames,
+            f"{r.latency_ms['p50']:.2f}",
+            f"{r.latency_ms['p99']:.2f}",
+            r.lost,
+            f"{r.bytes_per_s / 1e6:.1f}",
+            phase("solve"),
+            phase("readback"),
+            phase("encode"),
+            phase("publish"),
+            phase("tick"),
+            f"{r.decode_us['per_state']:.1f}",
+            f"{r.decode_us['per_payload']:.1f}",
+            f"{s.get('cpu_percent', float('nan')):.0f}",
+            rss,
+            "yes" if r.held else "**no**",
+        ]
         lines.append("| " + " | ".join(str(v) for v in row) + " |")
     return "\n".join(lines) + "\n"
 
 
-def write_plots(out: Path, report: Report, results: Sequence[ClientResult], window: Sequence[tuple[float, dict]],
-                tag: str) -> list[Path]:
+def write_plots(
+    out: Path, report: Report, results: Sequence[ClientResult], window: Sequence[tuple[float, dict]], tag: str
+) -> list[Path]:
     """The latency histogram and the server's time per tick phase over the run."""
     from .plots import histogram, line_plot
 
     lat = np.concatenate([r.latencies_ms for r in results]) if results else np.zeros(0)
-    paths = [histogram(out / f"loadtest-{tag}-latency.png", lat,
-                       title=f"State latency, {report.cloths} cloths x {report.vertices_per_cloth} vertices "
-                             f"({report.encoding})",
-                       xlabel="server tick -> client receipt (ms)",
-                       markers={"p50": report.latency_ms["p50"], "p99": report.latency_ms["p99"]})]
+    paths = [
+        histogram(
+            out / f"loadtest-{tag}-latency.png",
+            lat,
+            title=f"State latency, {report.cloths} cloths x {report.vertices_per_cloth} vertices ({report.encoding})",
+            xlabel="server tick -> client receipt (ms)",
+            markers={"p50": report.latency_ms["p50"], "p99": report.latency_ms["p99"]},
+        )
+    ]
     if window:
         t0 = window[0][0]
         xs = [t - t0 for t, _ in window]
         series: dict[str, tuple[list[float], list[float]]] = {}
         for name in ("tick", "solve", "readback", "encode", "publish"):
-            series[f"{name} mean"] = (xs, [st.get("phases", {}).get(name, {}).get("mean_ms", math.nan) for _, st in window])
+            series[f"{name} mean"] = (
+                xs,
+                [st.get("phases", {}).get(name, {}).get("mean_ms", math.nan) for _, st in window],
+            )
         series["tick max"] = (xs, [st.get("phases", {}).get("tick", {}).get("max_ms", math.nan) for _, st in window])
         series["budget (1 tick)"] = (xs, [1000.0 / report.tick_hz_target] * len(xs))
-        paths.append(line_plot(out / f"loadtest-{tag}-ticks.png", series, dashed=("budget (1 tick)",),
-                               title=f"Server time per tick phase, {report.cloths} cloths ({report.encoding})",
-                               xlabel="time in the measured window (s)", ylabel="ms per tick"))
+        paths.append(
+            line_plot(
+                out / f"loadtest-{tag}-ticks.png",
+                series,
+                dashed=("budget (1 tick)",),
+                title=f"Server time per tick phase, {report.cloths} cloths ({report.encoding})",
+                xlabel="time in the measured window (s)",
+                ylabel="ms per tick",
+            )
+        )
     return paths
 
 
@@ -221,6 +302,12 @@ def write_summary_plot(path: Path, reports: Sequence[Report]) -> Path:
         xs = sorted({r.cloths for r in reports})
         series["target Hz"] = (xs, [reports[0].tick_hz_target] * len(xs))
         series["one tick (ms)"] = (xs, [1000.0 / reports[0].tick_hz_target] * len(xs))
-    return line_plot(path, series, dashed=("target Hz", "one tick (ms)"), logx=True,
-                     title="Load test: achieved tick rate and p99 latency", xlabel="cloths admitted",
-                     ylabel="Hz / ms")
+    return line_plot(
+        path,
+        series,
+        dashed=("target Hz", "one tick (ms)"),
+        logx=True,
+        title="Load test: achieved tick rate and p99 latency",
+        xlabel="cloths admitted",
+        ylabel="Hz / ms",
+    )

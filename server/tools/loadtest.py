@@ -57,8 +57,6 @@ from .loadreport import (
 )
 from .procs import ServerProcess, progress, require_extra
 
-require_extra("tools", "loadtest")
-
 log = logging.getLogger(__name__)
 
 
@@ -81,10 +79,21 @@ class LoadSpec:
         """Each client's share of the offered cloths (the first ones take the remainder)."""
         total = int(math.ceil(self.cloths * self.offered))
         base, extra = divmod(total, self.clients)
-        return [ClientSpec(index=i, offered=base + (i < extra), size=self.size, features=self.features,
-                           iterations=self.iterations, substeps=self.substeps, bending=self.bending,
-                           encoding=self.encoding, tick_rate=self.tick_rate, bundle=self.bundle)
-                for i in range(self.clients)]
+        return [
+            ClientSpec(
+                index=i,
+                offered=base + (i < extra),
+                size=self.size,
+                features=self.features,
+                iterations=self.iterations,
+                substeps=self.substeps,
+                bending=self.bending,
+                encoding=self.encoding,
+                tick_rate=self.tick_rate,
+                bundle=self.bundle,
+            )
+            for i in range(self.clients)
+        ]
 
 
 class StatsWatch:
@@ -129,17 +138,39 @@ def _wait(cond: Any, what: str, deadline: float, procs: list[Any]) -> None:
         time.sleep(0.05)
 
 
-def run_load(spec: LoadSpec, endpoint: str, server_id: str | None, server: ServerProcess | None,
-             stats: StatsWatch, quiet: bool = False) -> tuple[Report, list[ClientResult], list[tuple[float, dict]]]:
+def run_load(
+    spec: LoadSpec,
+    endpoint: str,
+    server_id: str | None,
+    server: ServerProcess | None,
+    stats: StatsWatch,
+    quiet: bool = False,
+) -> tuple[Report, list[ClientResult], list[tuple[float, dict]]]:
     """Run one load and measure it over a window of server ticks (see the module docstring)."""
     ctx = mp.get_context("spawn")
     cspecs = spec.client_specs()
-    shared = [{"ready": ctx.Event(), "go": ctx.Event(), "stop": ctx.Event(), "admitted": ctx.Value("l", -1, lock=False),
-               "receiving": ctx.Value("l", 0, lock=False), "progress": ctx.Value("l", 0, lock=False),
-               "lo": ctx.Value("q", -1, lock=False), "hi": ctx.Value("q", -1, lock=False)} for _ in cspecs]
+    shared = [
+        {
+            "ready": ctx.Event(),
+            "go": ctx.Event(),
+            "stop": ctx.Event(),
+            "admitted": ctx.Value("l", -1, lock=False),
+            "receiving": ctx.Value("l", 0, lock=False),
+            "progress": ctx.Value("l", 0, lock=False),
+            "lo": ctx.Value("q", -1, lock=False),
+            "hi": ctx.Value("q", -1, lock=False),
+        }
+        for _ in cspecs
+    ]
     results = ctx.Queue()
-    procs = [ctx.Process(target=client_main, name=f"loadtest-client-{c.index}",
-                         args=(c, endpoint, server_id, shared[c.index], results)) for c in cspecs]
+    procs = [
+        ctx.Process(
+            target=client_main,
+            name=f"loadtest-client-{c.index}",
+            args=(c, endpoint, server_id, shared[c.index], results),
+        )
+        for c in cspecs
+    ]
     figures = server.figures if server else None
     if figures:
         figures.rss_mb.clear()
@@ -153,12 +184,20 @@ def run_load(spec: LoadSpec, endpoint: str, server_id: str | None, server: Serve
         deadline = time.monotonic() + 120 + 0.05 * offered
         _wait(lambda: all(s["ready"].is_set() for s in shared), "the clients' submits", deadline, procs)
         admitted = sum(int(s["admitted"].value) for s in shared)
-        log.info("%d of %d cloths admitted in %.1f s; waiting for their states", admitted, offered,
-                 time.monotonic() - t_start)
+        log.info(
+            "%d of %d cloths admitted in %.1f s; waiting for their states",
+            admitted,
+            offered,
+            time.monotonic() - t_start,
+        )
         for s in shared:
             s["go"].set()
-        _wait(lambda: all(s["receiving"].value for s in shared), "states of every admitted cloth",
-              time.monotonic() + 60 + 0.02 * admitted, procs)
+        _wait(
+            lambda: all(s["receiving"].value for s in shared),
+            "states of every admitted cloth",
+            time.monotonic() + 60 + 0.02 * admitted,
+            procs,
+        )
         # the window opens at the next stats publication, closes at the first one --seconds later
         i0, s0 = stats.next_after(stats.count(), timeout=30)
         for s in shared:
@@ -201,7 +240,7 @@ def run_load(spec: LoadSpec, endpoint: str, server_id: str | None, server: Serve
             p.join(5)
             if p.is_alive():
                 p.terminate()
-    window = stats.samples[i0 + 1:i1 + 1]
+    window = stats.samples[i0 + 1 : i1 + 1]
     seconds = (int(s1["time_ns"]) - int(s0["time_ns"])) / 1e9
     lat = np.concatenate([r.latencies_ms for r in out]) if out else np.zeros(0)
     refused: Counter[str] = Counter()
@@ -213,17 +252,33 @@ def run_load(spec: LoadSpec, endpoint: str, server_id: str | None, server: Serve
         server_info.update(figures.rss_summary())
     states = sum(r.received for r in out)
     report = Report(
-        cloths=sum(r.admitted for r in out), offered=sum(r.offered for r in out), refused=dict(refused),
-        clients=spec.clients, vertices_per_cloth=spec.size * spec.size, iterations=spec.iterations,
-        features=list(spec.features), encoding=spec.encoding, bundle=spec.bundle,
-        window_ticks=(int(s0["tick"]), int(s1["tick"])), seconds=round(seconds, 3), tick_hz_target=spec.tick_rate,
-        tick_hz_achieved=round(achieved_rate(s0, s1), 2), ticks=counter_delta(s0, s1, "ticks"),
-        missed_ticks=counter_delta(s0, s1, "missed_ticks"), skipped_frames=counter_delta(s0, s1, "skipped_frames"),
-        latency_ms=latency_summary(lat), states=states, expected_states=sum(r.expected for r in out),
-        lost=sum(r.lost for r in out), duplicated=sum(r.duplicated for r in out),
-        out_of_order=sum(r.out_of_order for r in out), messages_per_s=round(states / seconds, 1),
-        bytes_per_s=round(sum(r.bytes for r in out) / seconds, 1), send_errors=sum(r.send_errors for r in out),
-        decode_us=decode_summary(out, seconds), server=server_info,
+        cloths=sum(r.admitted for r in out),
+        offered=sum(r.offered for r in out),
+        refused=dict(refused),
+        clients=spec.clients,
+        vertices_per_cloth=spec.size * spec.size,
+        iterations=spec.iterations,
+        features=list(spec.features),
+        encoding=spec.encoding,
+        bundle=spec.bundle,
+        window_ticks=(int(s0["tick"]), int(s1["tick"])),
+        seconds=round(seconds, 3),
+        tick_hz_target=spec.tick_rate,
+        tick_hz_achieved=round(achieved_rate(s0, s1), 2),
+        ticks=counter_delta(s0, s1, "ticks"),
+        missed_ticks=counter_delta(s0, s1, "missed_ticks"),
+        skipped_frames=counter_delta(s0, s1, "skipped_frames"),
+        latency_ms=latency_summary(lat),
+        states=states,
+        expected_states=sum(r.expected for r in out),
+        lost=sum(r.lost for r in out),
+        duplicated=sum(r.duplicated for r in out),
+        out_of_order=sum(r.out_of_order for r in out),
+        messages_per_s=round(states / seconds, 1),
+        bytes_per_s=round(sum(r.bytes for r in out) / seconds, 1),
+        send_errors=sum(r.send_errors for r in out),
+        decode_us=decode_summary(out, seconds),
+        server=server_info,
         clients_cpu_percent=round(100.0 * sum(r.cpu_s for r in out) / elapsed, 1),
         host=f"{platform.node()} {os.cpu_count()} cores",
     )
@@ -246,13 +301,21 @@ def parse_loads(text: str, default_encoding: str) -> list[tuple[int, str]]:
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
+    require_extra("tools", "loadtest")
     parser.add_argument("--clients", type=int, default=4, help="client processes (16-64 for thousands of cloths)")
     parser.add_argument("--cloths", type=int, default=16, help="cloths per client (without --loads)")
-    parser.add_argument("--loads", default=None,
-                        help="total cloths per load, comma-separated, each optionally :ENCODING "
-                             "(e.g. 128,256,4096:quant16); run one after another on one server")
-    parser.add_argument("--offered", type=float, default=1.0,
-                        help="offer this many times each load (2: past the knee; refused submits are counted)")
+    parser.add_argument(
+        "--loads",
+        default=None,
+        help="total cloths per load, comma-separated, each optionally :ENCODING "
+        "(e.g. 128,256,4096:quant16); run one after another on one server",
+    )
+    parser.add_argument(
+        "--offered",
+        type=float,
+        default=1.0,
+        help="offer this many times each load (2: past the knee; refused submits are counted)",
+    )
     parser.add_argument("--size", type=int, default=32, help="each cloth is SIZE x SIZE vertices")
     parser.add_argument("--seconds", type=float, default=5.0, help="measured window per load (server stats to stats)")
     parser.add_argument("--iterations", type=int, default=10)
@@ -261,9 +324,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-bending", action="store_true", help="structural and shear links only")
     parser.add_argument("--encoding", default="float32", choices=["float32", "float16", "quant16"])
     parser.add_argument("--tick-rate", type=float, default=60.0)
-    parser.add_argument("--bundle", action=argparse.BooleanOptionalAction, default=True,
-                        help="bundled states and one batch control per client per tick (protocol 1.1); "
-                             "--no-bundle: one state and one control per cloth per tick")
+    parser.add_argument(
+        "--bundle",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="bundled states and one batch control per client per tick (protocol 1.1); "
+        "--no-bundle: one state and one control per cloth per tick",
+    )
     parser.add_argument("--endpoint", default=None, help="target a running server instead of starting one")
     parser.add_argument("--server-id", default=None, help="with --endpoint: which server (default: the one seen)")
     parser.add_argument("--solver", default=None, help="solver of the started server")
@@ -271,8 +338,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--server-arg", action="append", default=[], help="extra argument for drape serve")
     parser.add_argument("--find-knee", action="store_true", help="double the load until it is not held")
     parser.add_argument("--max-cloths", type=int, default=8192, help="--find-knee stops here (total cloths)")
-    parser.add_argument("--max-total-seconds", type=float, default=None,
-                        help="skip the loads that would start after this many seconds (said in the output)")
+    parser.add_argument(
+        "--max-total-seconds",
+        type=float,
+        default=None,
+        help="skip the loads that would start after this many seconds (said in the output)",
+    )
     parser.add_argument("--json", type=Path, default=None, help="write the reports here (a list, one per load)")
     parser.add_argument("--markdown", type=Path, default=None, help="write a markdown table here (a row per load)")
     parser.add_argument("--out", type=Path, default=Path("out/loadtest"), help="PNG plots go here")
@@ -280,9 +351,22 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def _serve_args(args: argparse.Namespace) -> list[str]:
-    cmd = ["--tick-rate", str(args.tick_rate), "--max-cloths", "100000", "--max-cloths-per-client", "100000",
-           "--max-total-vertices", str(1 << 26), "--stats-period", "0.5", "--max-pending-requests", "1000000",
-           "--max-batch-items", "100000"]
+    cmd = [
+        "--tick-rate",
+        str(args.tick_rate),
+        "--max-cloths",
+        "100000",
+        "--max-cloths-per-client",
+        "100000",
+        "--max-total-vertices",
+        str(1 << 26),
+        "--stats-period",
+        "0.5",
+        "--max-pending-requests",
+        "1000000",
+        "--max-batch-items",
+        "100000",
+    ]
     if args.solver:
         cmd += ["--solver", args.solver]
     if args.device:
@@ -293,10 +377,20 @@ def _serve_args(args: argparse.Namespace) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     if not 1 <= args.clients <= 256:
         raise SystemExit("--clients must be 1..256")
-    base = LoadSpec(clients=args.clients, cloths=args.clients * args.cloths, size=args.size, seconds=args.seconds,
-                    features=tuple(f for f in args.features.split(",") if f), iterations=args.iterations,
-                    substeps=args.substeps, bending=not args.no_bending, encoding=args.encoding,
-                    tick_rate=args.tick_rate, bundle=args.bundle, offered=args.offered)
+    base = LoadSpec(
+        clients=args.clients,
+        cloths=args.clients * args.cloths,
+        size=args.size,
+        seconds=args.seconds,
+        features=tuple(f for f in args.features.split(",") if f),
+        iterations=args.iterations,
+        substeps=args.substeps,
+        bending=not args.no_bending,
+        encoding=args.encoding,
+        tick_rate=args.tick_rate,
+        bundle=args.bundle,
+        offered=args.offered,
+    )
     loads = parse_loads(args.loads, args.encoding) if args.loads else [(base.cloths, base.encoding)]
     server = None
     if args.endpoint:
@@ -346,8 +440,10 @@ def run(args: argparse.Namespace) -> int:
         held = [r for r in reports if r.held]
         knee = max((r.cloths for r in held), default=0)
         bad = reports[-1] if not reports[-1].held else None
-        print(f"knee: {knee} cloths held at {base.tick_rate:g} Hz; next load "
-              f"({bad.cloths if bad else '-'} cloths): {bad.why_not_held() if bad else 'not reached within --max-cloths'}")
+        print(
+            f"knee: {knee} cloths held at {base.tick_rate:g} Hz; next load "
+            f"({bad.cloths if bad else '-'} cloths): {bad.why_not_held() if bad else 'not reached within --max-cloths'}"
+        )
     if len(reports) > 1:
         print(f"wrote {write_summary_plot(args.out / 'loadtest-summary.png', reports)}")
     if args.json:

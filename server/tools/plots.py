@@ -47,9 +47,17 @@ def _finite(xs: Any, ys: Any, logx: bool = False, logy: bool = False) -> tuple[n
     return x[ok], y[ok]
 
 
-def histogram(path: str | Path, values: Any, *, bins: int = 60, title: str = "", xlabel: str = "",
-              ylabel: str = "count", markers: Mapping[str, float] | None = None,
-              size: tuple[int, int] = (800, 500)) -> Path:
+def histogram(
+    path: str | Path,
+    values: Any,
+    *,
+    bins: int = 60,
+    title: str = "",
+    xlabel: str = "",
+    ylabel: str = "count",
+    markers: Mapping[str, float] | None = None,
+    size: tuple[int, int] = (800, 500),
+) -> Path:
     """Histogram of the finite ``values`` with a dashed vertical line per marker
     (``{"p50": 1.2, "p99": 3.4}``); the legend gives the sample count and each marker's value."""
     v = np.asarray(values, np.float64).ravel()
@@ -66,8 +74,9 @@ def histogram(path: str | Path, values: Any, *, bins: int = 60, title: str = "",
     for i, (name, x) in enumerate(sorted((markers or {}).items(), key=lambda kv: kv[1])):
         if x is None or not math.isfinite(float(x)):
             continue
-        ax.axvline(float(x), color=colours[i % len(colours)], linestyle="--", linewidth=1.5,
-                   label=f"{name} = {float(x):.4g}")
+        ax.axvline(
+            float(x), color=colours[i % len(colours)], linestyle="--", linewidth=1.5, label=f"{name} = {float(x):.4g}"
+        )
     ax.set(title=title, xlabel=xlabel, ylabel=ylabel)
     ax.grid(alpha=0.3)
     if len(v):
@@ -75,9 +84,18 @@ def histogram(path: str | Path, values: Any, *, bins: int = 60, title: str = "",
     return _save(fig, path)
 
 
-def line_plot(path: str | Path, series: Mapping[str, tuple[Any, Any]], *, title: str = "", xlabel: str = "",
-              ylabel: str = "", logx: bool = False, logy: bool = False, dashed: Sequence[str] = (),
-              size: tuple[int, int] = (800, 500)) -> Path:
+def line_plot(
+    path: str | Path,
+    series: Mapping[str, tuple[Any, Any]],
+    *,
+    title: str = "",
+    xlabel: str = "",
+    ylabel: str = "",
+    logx: bool = False,
+    logy: bool = False,
+    dashed: Sequence[str] = (),
+    size: tuple[int, int] = (800, 500),
+) -> Path:
     """One line per series ``{label: (xs, ys)}``; series named in ``dashed`` are dashed without
     markers (budgets, limits). Non-finite points are left out."""
     fig = _figure(size)
@@ -99,10 +117,19 @@ def line_plot(path: str | Path, series: Mapping[str, tuple[Any, Any]], *, title:
     return _save(fig, path)
 
 
-def scatter_plot(path: str | Path, series: Mapping[str, tuple[Any, Any]], *, title: str = "", xlabel: str = "",
-                 ylabel: str = "", logx: bool = False, logy: bool = False,
-                 highlight: tuple[Any, Any] | None = None, highlight_label: str = "",
-                 size: tuple[int, int] = (1000, 640)) -> Path:
+def scatter_plot(
+    path: str | Path,
+    series: Mapping[str, tuple[Any, Any]],
+    *,
+    title: str = "",
+    xlabel: str = "",
+    ylabel: str = "",
+    logx: bool = False,
+    logy: bool = False,
+    highlight: tuple[Any, Any] | None = None,
+    highlight_label: str = "",
+    size: tuple[int, int] = (1000, 640),
+) -> Path:
     """Points per series ``{label: (xs, ys)}`` (a colour and marker each); ``highlight`` is drawn
     as a black line with dots over them (a Pareto front)."""
     fig = _figure(size)

@@ -45,8 +45,15 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def progress(iterable: Iterable[Any] | None = None, *, total: float | None = None, desc: str = "",
-             unit: str = "it", quiet: bool = False, **kw: Any) -> Any:
+def progress(
+    iterable: Iterable[Any] | None = None,
+    *,
+    total: float | None = None,
+    desc: str = "",
+    unit: str = "it",
+    quiet: bool = False,
+    **kw: Any,
+) -> Any:
     """A tqdm progress bar on stderr, disabled when stderr is not a terminal or ``quiet``."""
     from tqdm import tqdm
 
@@ -86,8 +93,11 @@ class ProcessFigures:
         """Start, end and maximum of the sampled RSS, in MB."""
         if not self.rss_mb:
             return {"rss_start_mb": float("nan"), "rss_end_mb": float("nan"), "rss_max_mb": float("nan")}
-        return {"rss_start_mb": round(self.rss_mb[0], 1), "rss_end_mb": round(self.rss_mb[-1], 1),
-                "rss_max_mb": round(max(self.rss_mb), 1)}
+        return {
+            "rss_start_mb": round(self.rss_mb[0], 1),
+            "rss_end_mb": round(self.rss_mb[-1], 1),
+            "rss_max_mb": round(max(self.rss_mb), 1),
+        }
 
 
 class ServerProcess:
@@ -99,8 +109,17 @@ class ServerProcess:
     def __init__(self, args: Sequence[str] = (), *, server_id: str | None = None, port: int = 0) -> None:
         self.endpoint = f"tcp/127.0.0.1:{port or free_port()}"
         self.server_id = server_id or f"tools-{os.getpid()}"
-        self.cmd = [sys.executable, "-m", "drape.server.cli", "serve", "--listen", self.endpoint,
-                    "--server-id", self.server_id, *args]
+        self.cmd = [
+            sys.executable,
+            "-m",
+            "drape.server.cli",
+            "serve",
+            "--listen",
+            self.endpoint,
+            "--server-id",
+            self.server_id,
+            *args,
+        ]
         log.info("starting server: %s", " ".join(self.cmd))
         self.proc = subprocess.Popen(self.cmd, start_new_session=True)
         self.figures = ProcessFigures(self.proc.pid)

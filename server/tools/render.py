@@ -69,8 +69,9 @@ class Camera:
 
     def screen(self, v: np.ndarray) -> np.ndarray:
         """View coordinates (..., 3) to pixels (..., 2)."""
-        return np.stack([self.cx + (v[..., 0] - self.uc) * self.scale, self.cy - (v[..., 1] - self.vc) * self.scale],
-                        axis=-1)
+        return np.stack(
+            [self.cx + (v[..., 0] - self.uc) * self.scale, self.cy - (v[..., 1] - self.vc) * self.scale], axis=-1
+        )
 
 
 def fit_bounds(points: Sequence[np.ndarray], margin: float = 0.05) -> np.ndarray:
@@ -82,6 +83,10 @@ def fit_bounds(points: Sequence[np.ndarray], margin: float = 0.05) -> np.ndarray
     lo, hi = p.min(0), p.max(0)
     ext = max(float((hi - lo).max()), 1e-6)
     return np.array([lo - margin * ext, hi + margin * ext])
+
+
+def _rgb(c: Sequence[int]) -> Colour:
+    return int(c[0]), int(c[1]), int(c[2])
 
 
 def shade(colour: Sequence[int], intensity: np.ndarray) -> np.ndarray:
@@ -132,9 +137,18 @@ def _draw_floor(draw: Any, cam: Camera, bounds: np.ndarray, y: float, width: int
     draw.line([tuple(p) for p in sc.tolist()] + [tuple(sc[0].tolist())], fill=FLOOR_EDGE, width=width)
 
 
-def render_scene(size: tuple[int, int], cloths: Sequence[tuple[Any, Any, Sequence[int]]], *, view: str = "iso",
-                 bounds: Any = None, title: str | None = None, spheres: Sequence[Sequence[Any]] = (),
-                 capsules: Sequence[Sequence[Any]] = (), floor: bool = True, supersample: int = 2) -> np.ndarray:
+def render_scene(
+    size: tuple[int, int],
+    cloths: Sequence[tuple[Any, Any, Sequence[int]]],
+    *,
+    view: str = "iso",
+    bounds: Any = None,
+    title: str | None = None,
+    spheres: Sequence[Sequence[Any]] = (),
+    capsules: Sequence[Sequence[Any]] = (),
+    floor: bool = True,
+    supersample: int = 2,
+) -> np.ndarray:
     """Render cloths ``(positions (n, 3), triangles (m, 3), colour)`` with colliders.
 
     ``spheres`` are ``(centre, radius[, colour])`` and ``capsules`` ``(p0, p1, radius[, colour])``
@@ -155,7 +169,7 @@ def render_scene(size: tuple[int, int], cloths: Sequence[tuple[Any, Any, Sequenc
         t = np.asarray(tris, np.int64).reshape(-1, 3)
         if len(t) and (t.min() < 0 or t.max() >= len(p)):
             raise ValueError(f"triangle indices out of range for {len(p)} positions")
-        cl.append((p, t, tuple(int(c) for c in colour[:3])))
+        cl.append((p, t, _rgb(colour)))
     if bounds is None:
         pts = [p for p, _, _ in cl] + [np.array([np.subtract(s[0], s[1]), np.add(s[0], s[1])]) for s in spheres]
         pts += [np.array([np.subtract(c[0], c[2]), np.add(c[1], c[2])]) for c in capsules]
@@ -186,10 +200,10 @@ def render_scene(size: tuple[int, int], cloths: Sequence[tuple[Any, Any, Sequenc
         dep.append(v[:, :, 2].mean(axis=1))
     balls: list[tuple[np.ndarray, float, Colour]] = []
     for s in spheres:
-        balls.append((cam.view(s[0]), float(s[1]), tuple(s[2][:3]) if len(s) > 2 else COLLIDER))
+        balls.append((cam.view(s[0]), float(s[1]), _rgb(s[2]) if len(s) > 2 else COLLIDER))
     for c in capsules:
         a, bb, r = cam.view(c[0]), cam.view(c[1]), float(c[2])
-        colour = tuple(c[3][:3]) if len(c) > 3 else COLLIDER
+        colour = _rgb(c[3]) if len(c) > 3 else COLLIDER
         n = int(min(400, max(2, math.ceil(np.linalg.norm((bb - a)[:2]) * cam.scale / max(0.15 * r * cam.scale, 0.5)))))
         balls += [(a + f * (bb - a), r, colour) for f in np.linspace(0, 1, n)]
     ts = np.concatenate(scr) if scr else np.zeros((0, 3, 2))
@@ -228,8 +242,9 @@ def write_png(path: str | Path, rgb: np.ndarray) -> Path:
     return p
 
 
-def write_gif(path: str | Path, frames: Sequence[np.ndarray], fps: float = 15.0, colours: int = 128,
-              dither: bool = False) -> Path:
+def write_gif(
+    path: str | Path, frames: Sequence[np.ndarray], fps: float = 15.0, colours: int = 128, dither: bool = False
+) -> Path:
     """Write uint8 (H, W, 3) frames as a looping GIF. One palette of ``colours`` colours, made
     from a few frames spread over the animation, is used for every frame (no flicker); frames
     are mapped to it without dithering unless ``dither`` (dithering triples the file size)."""
@@ -248,6 +263,5 @@ def write_gif(path: str | Path, frames: Sequence[np.ndarray], fps: float = 15.0,
     pal = [im.quantize(palette=palette, dither=mode) for im in imgs]
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    pal[0].save(p, save_all=True, append_images=pal[1:], duration=round(1000 / fps), loop=0, optimize=False,
-                disposal=1)
+    pal[0].save(p, save_all=True, append_images=pal[1:], duration=round(1000 / fps), loop=0, optimize=False, disposal=1)
     return p

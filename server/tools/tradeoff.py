@@ -40,6 +40,7 @@ Metrics of one run (every one over the 2 s, on what a client would decode):
   fraction of real time the device spends (ms_per_frame x tick rate / 1000);
   ``ms_per_60hz``: cost of 1/60 s of simulated time, to compare tick rates.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -50,10 +51,11 @@ import math
 import os
 import statistics
 import time
+from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Any
 
 import numpy as np
 
@@ -61,6 +63,7 @@ from drape.client import protocol as P
 
 from ..sim.fabric import Fabric, cook_grid, vertex_masses
 from ..sim.params import LINK_STRUCTURAL, SOLVERS, Capsule, ClothParams, Features, Material, pack_colliders
+from .procs import progress, require_extra
 
 log = logging.getLogger(__name__)
 
@@ -118,8 +121,9 @@ def make_scene(name: str, n: int) -> Scene:
         return Scene(name, n, fab, ClothParams(material=Material(mass=1.0)))
     if name == "flag":
         fab = cook_grid(n, n, 1.0, 1.0, pinned=np.arange(n) * n, orientation="vertical", origin=(0.0, 2.0, 0.0))
-        params = ClothParams(material=Material(mass=1.0, drag=1.0, lift=0.5), features=Features(wind=True),
-                             wind=FLAG_WIND)
+        params = ClothParams(
+            material=Material(mass=1.0, drag=1.0, lift=0.5), features=Features(wind=True), wind=FLAG_WIND
+        )
         return Scene(name, n, fab, params)
     if name == "cape":
         fab = cook_grid(n, n, 1.0, 1.0, pinned=np.arange(n), orientation="vertical", origin=(-0.5, 1.5, 0.0))
@@ -206,7 +210,7 @@ class Config:
         return s + f" {self.tick_hz}Hz"
 
     @classmethod
-    def from_preset(cls, name: str, solver: str = "workgroup", tick_hz: int = 60) -> "Config":
+    def from_preset(cls, name: str, solver: str = "workgroup", tick_hz: int = 60) -> Config:
         from ..sim.quality import PRESETS
 
         p = PRESETS[name]  # presets keep the material: compliance 0 and tether limit 1 here
@@ -404,7 +408,7 @@ def simulate(
         meters = {e: _Meter(fab) for e in encodings}
         x0 = (scene.positions if scene.positions is not None else fab.rest_positions).astype(np.float64)
         e0 = _energy(x0, None, dt, mass, free)
-        x_prev = x0
+        x_prev: np.ndarray | None = x0
         gain = 0.0
         drift = 0.0
         times: list[float] = []
@@ -441,13 +445,21 @@ def simulate(
                 if compare and truth is not None and k < len(truth):
                     m.compare(xe, truth[k], early=t <= EARLY_S + 1e-9)
         timed = times[WARMUP_FRAMES:] or times
-        metrics = {enc: m.result() for enc, m in meters.items()}
+        metrics: dict[str, dict[str, float]] = {enc: m.result() for enc, m in meters.items()}
         if not finite:
             inf = float("inf")
-            for m in metrics.values():
-                for key in ("max_strain", "mean_strain", "end_max_strain", "end_mean_strain", "late_max_strain",
-                            "rms_dev", "max_dev", "rms_dev_early"):
-                    m[key] = inf
+            for mt in metrics.values():
+                for key in (
+                    "max_strain",
+                    "mean_strain",
+                    "end_max_strain",
+                    "end_mean_strain",
+                    "late_max_strain",
+                    "rms_dev",
+                    "max_dev",
+                    "rms_dev_early",
+                ):
+                    mt[key] = inf
             drift = gain = inf
         return RunResult(
             config=cfg,
@@ -511,10 +523,16 @@ def _compute_truth(args: tuple[str, int, float, int, int, str]) -> str:
     scene_name, size, duration, substeps, iterations, path = args
     scene = make_scene(scene_name, size)
     t0 = time.perf_counter()
-    res = simulate(scene, reference_config(substeps, iterations), encodings=("float32",), duration=duration,
-                   keep_snapshots=True)
-    stats = {**res.metrics["float32"], "energy_drift": res.energy_drift, "energy_gain": res.energy_gain,
-             "seconds": time.perf_counter() - t0, "finite": res.finite}
+    res = simulate(
+        scene, reference_config(substeps, iterations), encodings=("float32",), duration=duration, keep_snapshots=True
+    )
+    stats = {
+        **res.metrics["float32"],
+        "energy_drift": res.energy_drift,
+        "energy_gain": res.energy_gain,
+        "seconds": time.perf_counter() - t0,
+        "finite": res.finite,
+    }
     tmp = path + ".tmp.npz"
     np.savez_compressed(tmp, snapshots=np.array(res.snapshots), stats=json.dumps(stats))
     os.replace(tmp, path)
@@ -529,11 +547,18 @@ def ensure_truths(
     paths = {w: truth_path(cache, *w, duration, substeps, iterations) for w in wanted}
     missing = [w for w, p in paths.items() if not p.exists()]
     if missing:
-        log.info("computing %d ground truth(s) (float64 reference, XPBD %d substeps x %d iterations) in %d "
-                 "process(es): %s", len(missing), substeps, iterations, min(jobs, len(missing)),
-                 ", ".join(f"{s}{n}" for s, n in missing))
+        log.info(
+            "computing %d ground truth(s) (float64 reference, XPBD %d substeps x %d iterations) in %d process(es): %s",
+            len(missing),
+            substeps,
+            iterations,
+            min(jobs, len(missing)),
+            ", ".join(f"{s}{n}" for s, n in missing),
+        )
         t0 = time.perf_counter()
-        work = [(s, n, duration, substeps, iterations, str(paths[(s, n)])) for s, n in missing]
+        work: list[tuple[str, int, float, int, int, str]] = [
+            (s, n, duration, substeps, iterations, str(paths[(s, n)])) for s, n in missing
+        ]
         # largest first so the pool finishes together
         work.sort(key=lambda w: -w[1])
         if jobs > 1 and len(work) > 1:
@@ -541,12 +566,15 @@ def ensure_truths(
                 for p in ex.map(_compute_truth, work):
                     log.info("  ground truth written: %s (%.0f s so far)", Path(p).name, time.perf_counter() - t0)
         else:
-            for w in work:
-                p = _compute_truth(w)
-                log.info("  ground truth written: %s (%.0f s so far)", Path(p).name, time.perf_counter() - t0)
+            for item in work:
+                log.info(
+                    "  ground truth written: %s (%.0f s so far)",
+                    Path(_compute_truth(item)).name,
+                    time.perf_counter() - t0,
+                )
     out = {}
-    for w, p in paths.items():
-        z = np.load(p)
+    for w, path in paths.items():
+        z = np.load(path)
         out[w] = (z["snapshots"], json.loads(str(z["stats"])))
     return out
 
@@ -562,6 +590,16 @@ def main_sweep(level: str, solvers: list[str]) -> list[Config]:
     """Every knob on the main scene. ``level``: quick, default or full."""
     cfgs: list[Config] = []
     gpu_solvers = [s for s in ("workgroup", "coloured", "jacobi") if s in solvers]
+    iters: tuple[int, ...]
+    subs: tuple[int, ...]
+    grid: tuple[tuple[int, int], ...]
+    teth_iters: tuple[int, ...]
+    teth_subs: tuple[int, ...]
+    ref_iters: tuple[int, ...]
+    ticks: tuple[int, ...]
+    compl: tuple[float, ...]
+    cheb_iters: tuple[int, ...]
+    rhos: tuple[float, ...]
     if level == "quick":
         iters = (1, 5, 10, 30)
         subs = (1, 5, 10)
@@ -644,8 +682,11 @@ def sweep_layout(level: str, scenes: list[str], sizes: list[str] | None) -> list
     and 150."""
     if sizes is not None:
         ns = [int(v) for v in sizes]
-        return [(s, n, (i == 0 and j == 0) or (level == "full" and j == 0))
-                for i, s in enumerate(scenes) for j, n in enumerate(ns)]
+        return [
+            (s, n, (i == 0 and j == 0) or (level == "full" and j == 0))
+            for i, s in enumerate(scenes)
+            for j, n in enumerate(ns)
+        ]
     if level == "quick":
         return [(s, 32, i == 0) for i, s in enumerate(scenes)]
     if level == "full":
@@ -662,7 +703,7 @@ def preset_configs(solver: str) -> list[Config]:
 
 
 def _dedupe(cfgs: list[Config]) -> list[Config]:
-    seen: dict[tuple, Config] = {}
+    seen: dict[str, Config] = {}
     for c in cfgs:
         k = replace(c, tag="").__repr__()
         if k not in seen or c.tag.startswith("preset:"):
@@ -697,9 +738,11 @@ def _mm(v: float) -> str:
 
 
 def format_table(records: list[dict], encoding: str = "float32") -> str:
-    head = (f"{'scene':10} {'solver':9} {'mode':8} {'it':>3} {'ss':>3} {'teth':4} {'Hz':>3} {'ms/frame':>8} "
-            f"{'load%':>6} {'max%':>6} {'mean%':>6} {'late%':>6} {'end%':>6} {'rms mm':>7} {'early mm':>8} {'max mm':>7} "
-            f"{'energy':>7}  tag")
+    head = (
+        f"{'scene':10} {'solver':9} {'mode':8} {'it':>3} {'ss':>3} {'teth':4} {'Hz':>3} {'ms/frame':>8} "
+        f"{'load%':>6} {'max%':>6} {'mean%':>6} {'late%':>6} {'end%':>6} {'rms mm':>7} {'early mm':>8} {'max mm':>7} "
+        f"{'energy':>7}  tag"
+    )
     lines = [head, "-" * len(head)]
     for r in records:
         if r["encoding"] != encoding:
@@ -714,22 +757,36 @@ def format_table(records: list[dict], encoding: str = "float32") -> str:
             f"{r['scene'] + str(r['size']):10} {r['solver']:9} {mode:8} {r['iterations']:>3} {r['substeps']:>3} "
             f"{'on' if r['tethers'] else 'off':4} {r['tick_hz']:>3} {r['ms_per_frame']:8.2f} "
             f"{100 * r['load']:6.1f} {_pct(r['max_strain'])} {_pct(r['mean_strain'])} "
-            f"{_pct(r['late_max_strain'])} {_pct(r['end_max_strain'])} {_mm(r['rms_dev'])} {_mm(r['rms_dev_early']):>8} {_mm(r['max_dev'])} "
+            f"{_pct(r['late_max_strain'])} {_pct(r['end_max_strain'])} {_mm(r['rms_dev'])} "
+            f"{_mm(r['rms_dev_early']):>8} {_mm(r['max_dev'])} "
             f"{energy:7.3f}  {r['tag']}"
         )
     return "\n".join(lines)
 
 
 def format_encoding_table(records: list[dict]) -> str:
-    head = (f"{'scene':10} {'config':38} {'encoding':8} {'enc rms mm':>10} {'enc max mm':>10} {'max%':>6} "
-            f"{'mean%':>6} {'rms mm':>7}")
+    head = (
+        f"{'scene':10} {'config':38} {'encoding':8} {'enc rms mm':>10} {'enc max mm':>10} {'max%':>6} "
+        f"{'mean%':>6} {'rms mm':>7}"
+    )
     lines = [head, "-" * len(head)]
     for r in records:
-        if not (r["tag"].startswith("preset:") or (r["iterations"] == 10 and r["substeps"] == 1 and not r["xpbd"]
-                                                  and not r["tethers"] and r["tick_hz"] == 60)):
+        if not (
+            r["tag"].startswith("preset:")
+            or (
+                r["iterations"] == 10
+                and r["substeps"] == 1
+                and not r["xpbd"]
+                and not r["tethers"]
+                and r["tick_hz"] == 60
+            )
+        ):
             continue
-        cfg = f"{r['solver']} {'xpbd' if r['xpbd'] else 'pbd'} {r['iterations']}x{r['substeps']}" + (
-            " +teth" if r["tethers"] else "") + (f" ({r['tag']})" if r["tag"].startswith("preset") else "")
+        cfg = (
+            f"{r['solver']} {'xpbd' if r['xpbd'] else 'pbd'} {r['iterations']}x{r['substeps']}"
+            + (" +teth" if r["tethers"] else "")
+            + (f" ({r['tag']})" if r["tag"].startswith("preset") else "")
+        )
         lines.append(
             f"{r['scene'] + str(r['size']):10} {cfg:38} {r['encoding']:8} {1e3 * r['enc_err_rms']:10.3f} "
             f"{1e3 * r['enc_err_max']:10.3f} {_pct(r['max_strain'])} {_pct(r['mean_strain'])} {_mm(r['rms_dev'])}"
@@ -741,17 +798,31 @@ def plot(records: list[dict], path: Path, scene: str, size: int, error: str = "m
     """Error against cost (ms per 1/60 s simulated), a series per solver, Pareto front marked."""
     from .plots import scatter_plot
 
-    pts = [r for r in records if r["scene"] == scene and r["size"] == size and r["encoding"] == "float32"
-           and r["finite"] and r.get(error) is not None and math.isfinite(r[error]) and r[error] > 0]
+    pts = [
+        r
+        for r in records
+        if r["scene"] == scene
+        and r["size"] == size
+        and r["encoding"] == "float32"
+        and r["finite"]
+        and r.get(error) is not None
+        and math.isfinite(r[error])
+        and r[error] > 0
+    ]
     if not pts:
         return None
     series: dict[str, tuple[list[float], list[float]]] = {}
     for r in pts:
-        family = (f"{r['solver']} {'XPBD' if r['xpbd'] else 'PBD'}{' +tethers' if r['tethers'] else ''}"
-                  f"{' +Chebyshev' if r.get('chebyshev_rho') else ''}")
+        family = (
+            f"{r['solver']} {'XPBD' if r['xpbd'] else 'PBD'}{' +tethers' if r['tethers'] else ''}"
+            f"{' +Chebyshev' if r.get('chebyshev_rho') else ''}"
+        )
         if r["tag"].startswith("preset:"):
-            family = "quality presets (" + "/".join(
-                q["tag"][7:] for q in pts if q["tag"].startswith("preset:") and q["solver"] == r["solver"]) + ")"
+            family = (
+                "quality presets ("
+                + "/".join(q["tag"][7:] for q in pts if q["tag"].startswith("preset:") and q["solver"] == r["solver"])
+                + ")"
+            )
         xs, ys = series.setdefault(family, ([], []))
         xs.append(r["ms_per_60hz"])
         ys.append(r[error] * (100.0 if "strain" in error else 1e3))
@@ -760,8 +831,12 @@ def plot(records: list[dict], path: Path, scene: str, size: int, error: str = "m
     hx = [allp[i][0] for i in front]
     hy = [allp[i][1] * (100.0 if "strain" in error else 1e3) for i in front]
     unit = "%" if "strain" in error else "mm"
-    label = {"max_strain": "max structural strain", "mean_strain": "mean structural strain",
-             "rms_dev": "RMS deviation from reference", "rms_dev_early": "RMS deviation, first 0.5 s"}.get(error, error)
+    label = {
+        "max_strain": "max structural strain",
+        "mean_strain": "mean structural strain",
+        "rms_dev": "RMS deviation from reference",
+        "rms_dev_early": "RMS deviation, first 0.5 s",
+    }.get(error, error)
     scatter_plot(
         path,
         {k: series[k] for k in sorted(series)},
@@ -787,10 +862,16 @@ def code_version() -> str:
 
     root = Path(__file__).resolve().parent.parent
     try:
-        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True,
-                             timeout=10).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
-                               capture_output=True, text=True, timeout=10).stdout.strip()
+        rev = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        ).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return "unknown"
     return (rev or "unknown") + ("+dirty" if dirty else "")
@@ -805,13 +886,19 @@ def _csv(text: str) -> list[str]:
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scenes", default=None,
-                        help=f"comma list of {','.join(SCENES)} (default: all; --quick: hanging)")
-    parser.add_argument("--sizes", default=None,
-                        help="comma list of grid sizes n (n x n), for every scene; the main sweep runs on "
-                             "the first scene at the first size (default: the main sweep on hanging 64 and a "
-                             "few points on every scene at 32; --quick: hanging 32; --full: the main sweep "
-                             "on every scene at 64, points at 32 and 150)")
+    require_extra("server", "tradeoff")
+    require_extra("tools", "tradeoff")
+    parser.add_argument(
+        "--scenes", default=None, help=f"comma list of {','.join(SCENES)} (default: all; --quick: hanging)"
+    )
+    parser.add_argument(
+        "--sizes",
+        default=None,
+        help="comma list of grid sizes n (n x n), for every scene; the main sweep runs on "
+        "the first scene at the first size (default: the main sweep on hanging 64 and a "
+        "few points on every scene at 32; --quick: hanging 32; --full: the main sweep "
+        "on every scene at 64, points at 32 and 150)",
+    )
     parser.add_argument("--solvers", default=",".join(SOLVERS), help="comma list of solvers to sweep")
     level = parser.add_mutually_exclusive_group()
     level.add_argument("--quick", action="store_true", help="a small sweep (about a minute on 2 CPU cores)")
@@ -819,14 +906,27 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="out/tradeoff", help="output folder (table, JSON, plots, ground-truth cache)")
     parser.add_argument("--json", default=None, help="write the records here (default OUT/tradeoff.json)")
     parser.add_argument("--duration", type=float, default=DURATION, help="simulated seconds per run")
-    parser.add_argument("--ref-substeps", type=int, default=None,
-                        help=f"ground-truth substeps (default {REF_SUBSTEPS}; --quick {QUICK_REF_SUBSTEPS})")
+    parser.add_argument(
+        "--ref-substeps",
+        type=int,
+        default=None,
+        help=f"ground-truth substeps (default {REF_SUBSTEPS}; --quick {QUICK_REF_SUBSTEPS})",
+    )
     parser.add_argument("--ref-iterations", type=int, default=REF_ITERATIONS, help="ground-truth iterations")
-    parser.add_argument("--timing-rounds", type=int, default=TIMING_ROUNDS,
-                        help="the cost is the lowest of this many medians (1: the measured run's only)")
-    parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
-                        help="processes for the ground truths (computed before any timing)")
+    parser.add_argument(
+        "--timing-rounds",
+        type=int,
+        default=TIMING_ROUNDS,
+        help="the cost is the lowest of this many medians (1: the measured run's only)",
+    )
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=os.cpu_count() or 1,
+        help="processes for the ground truths (computed before any timing)",
+    )
     parser.add_argument("--device", default=None, help="OpenCL device: auto, gpu, cpu or a name substring")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -847,25 +947,38 @@ def run(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
 
     plan: list[tuple[str, int, Config]] = []
-    for scene, size, main in sweep_layout(level, scenes, _csv(args.sizes) if args.sizes else None):
+    for scene_name, size, main in sweep_layout(level, scenes, _csv(args.sizes) if args.sizes else None):
         cfgs = main_sweep(level, solvers) if main else side_sweep(level, solvers)
-        plan += [(scene, size, c) for c in cfgs]
+        plan += [(scene_name, size, c) for c in cfgs]
     wanted = list(dict.fromkeys((s, n) for s, n, _ in plan))
-    log.info("tradeoff (%s): %d runs over %s, %.1f s simulated each", level, len(plan),
-             ", ".join(f"{s}{n}" for s, n in wanted), args.duration)
+    log.info(
+        "tradeoff (%s): %d runs over %s, %.1f s simulated each",
+        level,
+        len(plan),
+        ", ".join(f"{s}{n}" for s, n in wanted),
+        args.duration,
+    )
     truths = ensure_truths(wanted, out / "refcache", args.duration, ref_substeps, args.ref_iterations, args.jobs)
     for (s, n), (_, st) in truths.items():
-        log.info("ground truth %s%d: its own max strain %.2f%%, mean %.3f%%, energy drift %.3f (computed in %.0f s)",
-                 s, n, 100 * st["max_strain"], 100 * st["mean_strain"], st["energy_drift"], st["seconds"])
+        log.info(
+            "ground truth %s%d: its own max strain %.2f%%, mean %.3f%%, energy drift %.3f (computed in %.0f s)",
+            s,
+            n,
+            100 * st["max_strain"],
+            100 * st["mean_strain"],
+            st["energy_drift"],
+            st["seconds"],
+        )
 
     device = Device(args.device) if any(c.solver != "reference" for _, _, c in plan) else None
     version = code_version()
     records: list[dict] = []
     scene_cache: dict[tuple[str, int], Scene] = {}
     per_run: list[list[dict]] = []
-    for i, (s, n, cfg) in enumerate(plan, 1):
-        scene = scene_cache.get((s, n)) or scene_cache.setdefault((s, n), make_scene(s, n))
-        res = simulate(scene, cfg, device, truth=truths[(s, n)][0], duration=args.duration)
+    bar = progress(total=len(plan) * args.timing_rounds, desc="tradeoff", unit="run", quiet=args.quiet)
+    for i, (sname, n, cfg) in enumerate(plan, 1):
+        scene = scene_cache.get((sname, n)) or scene_cache.setdefault((sname, n), make_scene(sname, n))
+        res = simulate(scene, cfg, device, truth=truths[(sname, n)][0], duration=args.duration)
         recs = res.records()
         for r in recs:
             r["code"] = version
@@ -873,12 +986,23 @@ def run(args: argparse.Namespace) -> int:
         records += recs
         per_run.append(recs)
         m = res.metrics["float32"]
-        log.info("[%d/%d] %s %s: %.2f ms/frame, strain max %.2f%% mean %.3f%%, rms dev %.1f mm (early %.1f mm)",
-                 i, len(plan), scene.label, cfg.describe(), res.ms_per_frame, 100 * m["max_strain"],
-                 100 * m["mean_strain"], 1e3 * m["rms_dev"], 1e3 * m["rms_dev_early"])
+        bar.set_description(f"{sname}{n} {cfg.describe()}", refresh=False)
+        bar.update()
+        log.debug(
+            "[%d/%d] %s %s: %.2f ms/frame, strain max %.2f%% mean %.3f%%, rms dev %.1f mm (early %.1f mm)",
+            i,
+            len(plan),
+            scene.label,
+            cfg.describe(),
+            res.ms_per_frame,
+            100 * m["max_strain"],
+            100 * m["mean_strain"],
+            1e3 * m["rms_dev"],
+            1e3 * m["rms_dev_early"],
+        )
 
     for rnd in range(1, args.timing_rounds):
-        log.info("timing round %d of %d (%d frames per configuration)", rnd + 1, args.timing_rounds, TIMING_FRAMES)
+        log.debug("timing round %d of %d (%d frames per configuration)", rnd + 1, args.timing_rounds, TIMING_FRAMES)
         order = list(range(len(plan)))
         if rnd % 2:
             order.reverse()  # so no configuration always sits next to the same neighbours in time
@@ -886,8 +1010,11 @@ def run(args: argparse.Namespace) -> int:
             s, n, cfg = plan[j]
             frames = TIMING_FRAMES if cfg.solver != "reference" else 10
             ms = time_config(scene_cache[(s, n)], cfg, device, frames)
+            bar.set_description(f"timing round {rnd + 1}: {s}{n} {cfg.describe()}", refresh=False)
+            bar.update()
             for r in per_run[j]:
                 r["ms_rounds"].append(ms)
+    bar.close()
     for recs in per_run:
         for r in recs:
             r["ms_per_frame"] = min(r["ms_rounds"])
@@ -895,30 +1022,55 @@ def run(args: argparse.Namespace) -> int:
             r["load"] = r["ms_per_frame"] * r["tick_hz"] / 1000.0
 
     for (s, n), (_, st) in truths.items():
-        records.append({
-            "scene": s, "size": n, "solver": "reference", "iterations": args.ref_iterations,
-            "substeps": ref_substeps, "xpbd": True, "tethers": False, "compliance": 0.0,
-            "tick_hz": REF_TICK_HZ, "encoding": "float64", "tag": "ground-truth", "device": "numpy float64",
-            "ms_per_frame": 1e3 * st["seconds"] / (args.duration * REF_TICK_HZ), "ms_p90": None,
-            "ms_per_60hz": 1e3 * st["seconds"] / (args.duration * REF_TICK_HZ), "load": None, "finite": st["finite"],
-            "energy_drift": st["energy_drift"], "energy_gain": st["energy_gain"],
-            **{k: st.get(k, float("nan")) for k in ("max_strain", "mean_strain", "end_max_strain", "end_mean_strain",
-                                                   "late_max_strain")},
-            "rms_dev": 0.0, "max_dev": 0.0, "rms_dev_early": 0.0, "enc_err_max": 0.0, "enc_err_rms": 0.0,
-            "code": version,
-        })
+        records.append(
+            {
+                "scene": s,
+                "size": n,
+                "solver": "reference",
+                "iterations": args.ref_iterations,
+                "substeps": ref_substeps,
+                "xpbd": True,
+                "tethers": False,
+                "compliance": 0.0,
+                "tick_hz": REF_TICK_HZ,
+                "encoding": "float64",
+                "tag": "ground-truth",
+                "device": "numpy float64",
+                "ms_per_frame": 1e3 * st["seconds"] / (args.duration * REF_TICK_HZ),
+                "ms_p90": None,
+                "ms_per_60hz": 1e3 * st["seconds"] / (args.duration * REF_TICK_HZ),
+                "load": None,
+                "finite": st["finite"],
+                "energy_drift": st["energy_drift"],
+                "energy_gain": st["energy_gain"],
+                **{
+                    k: st.get(k, float("nan"))
+                    for k in ("max_strain", "mean_strain", "end_max_strain", "end_mean_strain", "late_max_strain")
+                },
+                "rms_dev": 0.0,
+                "max_dev": 0.0,
+                "rms_dev_early": 0.0,
+                "enc_err_max": 0.0,
+                "enc_err_rms": 0.0,
+                "code": version,
+            }
+        )
 
-    print(f"\nDrape tradeoff ({level}, code {version}) on {records[0]['device'] if records else '?'}; "
-          f"{args.duration:g} s simulated "
-          f"per run; ground truth: float64 reference, XPBD {ref_substeps} substeps x {args.ref_iterations} "
-          f"iterations at {REF_TICK_HZ} Hz\n")
+    print(
+        f"\nDrape tradeoff ({level}, code {version}) on {records[0]['device'] if records else '?'}; "
+        f"{args.duration:g} s simulated "
+        f"per run; ground truth: float64 reference, XPBD {ref_substeps} substeps x {args.ref_iterations} "
+        f"iterations at {REF_TICK_HZ} Hz\n"
+    )
     print(format_table(records))
     for r in records:
         if r["tag"] == "ground-truth":
-            print(f"ground truth {r['scene']}{r['size']}: float64 reference, XPBD {r['substeps']} substeps x "
-                  f"{r['iterations']} iterations: its own strain max {_pct(r['max_strain']).strip()}% mean "
-                  f"{_pct(r['mean_strain']).strip()}%, at 2 s max {_pct(r['end_max_strain']).strip()}%; energy drift "
-                  f"{r['energy_drift']:.3f}; {r['ms_per_frame']:.0f} ms per frame")
+            print(
+                f"ground truth {r['scene']}{r['size']}: float64 reference, XPBD {r['substeps']} substeps x "
+                f"{r['iterations']} iterations: its own strain max {_pct(r['max_strain']).strip()}% mean "
+                f"{_pct(r['mean_strain']).strip()}%, at 2 s max {_pct(r['end_max_strain']).strip()}%; energy drift "
+                f"{r['energy_drift']:.3f}; {r['ms_per_frame']:.0f} ms per frame"
+            )
     print("\nEncodings (strain and deviation measured on what the client decodes):\n")
     print(format_encoding_table(records))
     summary = preset_summary(records)
@@ -942,17 +1094,25 @@ def preset_summary(records: list[dict]) -> str:
     """Each preset's error and its cost relative to the plain 10-iteration PBD solve of the same
     scene, size, solver and tick rate, measured in this process."""
     lines = []
-    base = {(r["scene"], r["size"], r["solver"], r["tick_hz"]): r for r in records
-            if r["encoding"] == "float32" and not r["xpbd"] and not r["tethers"] and r["iterations"] == 10
-            and r["substeps"] == 1}
+    base = {
+        (r["scene"], r["size"], r["solver"], r["tick_hz"]): r
+        for r in records
+        if r["encoding"] == "float32"
+        and not r["xpbd"]
+        and not r["tethers"]
+        and r["iterations"] == 10
+        and r["substeps"] == 1
+    }
     for r in records:
         if r["encoding"] != "float32" or not r["tag"].startswith("preset:"):
             continue
         b = base.get((r["scene"], r["size"], r["solver"], r["tick_hz"]))
         ratio = r["ms_per_frame"] / b["ms_per_frame"] if b else float("nan")
-        lines.append(f"{r['scene'] + str(r['size']):10} {r['tag'][7:]:9} {r['solver']:9} "
-                     f"{r['ms_per_frame']:7.2f} ms ({ratio:4.2f}x the 10-iteration PBD solve)  strain max "
-                     f"{_pct(r['max_strain'])}% mean {_pct(r['mean_strain'])}%  rms dev {_mm(r['rms_dev'])} mm")
+        lines.append(
+            f"{r['scene'] + str(r['size']):10} {r['tag'][7:]:9} {r['solver']:9} "
+            f"{r['ms_per_frame']:7.2f} ms ({ratio:4.2f}x the 10-iteration PBD solve)  strain max "
+            f"{_pct(r['max_strain'])}% mean {_pct(r['mean_strain'])}%  rms dev {_mm(r['rms_dev'])} mm"
+        )
     return ("Presets against the plain 10-iteration solve:\n" + "\n".join(lines)) if lines else ""
 
 

@@ -1,36 +1,113 @@
-"""A short load test as CI runs it: a real ``drape serve`` process, client processes moving pins
-every tick over Zenoh on loopback. Nothing may be lost, duplicated or reordered, and every tick
-must be published (no frame coalesced). Deadlines may slip on a busy CI box; tick numbers do
-not, so that is reported, not asserted."""
+"""``drape loadtest``: the window arithmetic on plain data (achieved rate from two stats maps,
+per-cloth window counts, decode cost from arrival times), then a load as CI runs it: a real
+``drape serve`` process and client processes moving pins every tick over Zenoh on loopback,
+with one submit more than the server admits. Tick numbers and counters are asserted, never
+durations: deadlines may slip on a busy CI box."""
+
 from __future__ import annotations
 
 import json
 
+import numpy as np
+import pytest
+from PIL import Image
+
 from drape.server.tools import loadtest as lt
+from drape.server.tools.loadclient import decode_cost, window_counts
+from drape.server.tools.loadreport import achieved_rate, markdown_table, write_summary_plot
+from drape.server.tools.procs import ServerProcess
 
 
-def test_short_load_loses_nothing_and_publishes_every_tick(tmp_path):
-    spec = lt.LoadSpec(clients=2, cloths=3, size=12, seconds=3.0, iterations=4)
-    server = lt.ServerProcess(spec.tick_rate, "workgroup", None, [])
+def test_achieved_rate_is_ticks_over_server_time_between_two_publications():
+    s0 = {"ticks": 1000, "time_ns": 5_000_000_000, "tick": 1000}
+    s1 = {"ticks": 1150, "time_ns": 7_500_000_000, "tick": 1150}
+    assert achieved_rate(s0, s1) == pytest.approx(60.0)
+    # a slow server: 32 ticks in 2 s
+    assert achieved_rate(s0, {"ticks": 1032, "time_ns": 7_000_000_000}) == pytest.approx(16.0)
+
+
+@pytest.mark.parametrize(
+    "s0, s1, match",
+    [
+        ({}, {"ticks": 1, "time_ns": 1}, "first stats publication lacks ticks, time_ns"),
+        ({"ticks": 1, "time_ns": 5}, {"ticks": 2}, "second stats publication lacks time_ns"),
+        ({"ticks": 1, "time_ns": 5}, {"ticks": 2, "time_ns": 5}, "not later"),
+        ({"ticks": 9, "time_ns": 5}, {"ticks": 2, "time_ns": 6}, "backwards"),
+    ],
+)
+def test_achieved_rate_refuses_what_cannot_be_a_window(s0, s1, match):
+    with pytest.raises(ValueError, match=match):
+        achieved_rate(s0, s1)
+
+
+def test_window_counts_only_the_window_ticks():
+    # ticks 10..20 are the window (lo=9, hi=20); 5..9 are warm-up, 21.. after it
+    ticks = np.array([5, 6, 9, 10, 11, 13, 12, 12, 14, 15, 16, 17, 18, 19, 20, 21, 22])
+    received, lost, dup, ooo = window_counts(ticks, 9, 20)
+    assert (received, lost, dup, ooo) == (12, 0, 1, 1)
+    received, lost, dup, ooo = window_counts(np.array([10, 12, 20]), 9, 20)
+    assert (received, lost, dup, ooo) == (3, 8, 0, 0)
+
+
+def test_decode_cost_groups_states_by_payload():
+    # two bundles of three states (arrival 100 and 200 ns) and one single state (300 ns)
+    rx = np.array([100, 100, 100, 200, 200, 200, 300])
+    delay = np.array([1000, 2000, 3000, 500, 900, 4000, 600])
+    per_state_us, per_payload_us, total_s, payloads = decode_cost(rx, delay)
+    assert payloads == 3
+    assert total_s == pytest.approx((3000 + 4000 + 600) / 1e9)
+    assert per_payload_us == pytest.approx(7600 / 3 / 1e3)
+    assert per_state_us == pytest.approx(7600 / 7 / 1e3)
+    assert np.isnan(decode_cost(np.zeros(0, np.int64), np.zeros(0, np.int64))[0])
+
+
+def test_clients_share_an_offered_load():
+    specs = lt.LoadSpec(clients=3, cloths=10, offered=2.0).client_specs()
+    assert [c.offered for c in specs] == [7, 7, 6]
+    assert [c.index for c in specs] == [0, 1, 2]
+    assert lt.parse_loads("128, 4096:quant16", "float32") == [(128, "float32"), (4096, "quant16")]
+    with pytest.raises(Exception, match="positive number"):
+        lt.parse_loads("12x", "float32")
+
+
+def test_short_load_measures_only_its_window(tmp_path):
+    """2 clients offer 3 cloths each to a server admitting 5: one submit is refused (counted by
+    its code); the 5 admitted cloths receive every tick of the window."""
+    spec = lt.LoadSpec(clients=2, cloths=6, size=12, seconds=2.0, iterations=4)
+    server = ServerProcess(
+        ["--tick-rate", "60", "--stats-period", "0.5", "--max-cloths", "5", "--solver", "workgroup"], server_id="lt-ci"
+    )
     try:
         stats = lt.StatsWatch(server.endpoint, server.server_id)
         try:
-            report, results, window = lt.run_load(spec, server.endpoint, server.server_id, server, stats)
+            report, results, window = lt.run_load(spec, server.endpoint, server.server_id, server, stats, quiet=True)
         finally:
             stats.close()
     finally:
-        server.stop()
-    assert server.proc.returncode == 0, "drape serve did not stop cleanly"
-    print(json.dumps(lt.asdict(report), indent=1))
-    assert len(results) == 2 and all(r.cloths == 3 for r in results)
-    assert report.ticks > 0.5 * spec.seconds * spec.tick_rate
-    assert report.lost == 0 and report.duplicated == 0 and report.out_of_order == 0
+        assert server.stop() == 0, "drape serve did not stop cleanly"
+    print(json.dumps(report.to_dict(), indent=1))
+    assert report.offered == 6 and report.cloths == 5
+    assert report.refused == {"limit_exceeded": 1}
+    # the window is whole server ticks between two publications, after start-up
+    lo, hi = report.window_ticks
+    assert lo > 0 and hi > lo and report.ticks == hi - lo
+    assert report.tick_hz_achieved > 0
+    assert report.tick_hz_achieved == pytest.approx(report.ticks / report.seconds, rel=0.01)
+    assert report.expected_states == 5 * report.ticks
+    assert report.states == report.expected_states and report.lost == 0
+    assert report.duplicated == 0 and report.out_of_order == 0
     assert report.skipped_frames == 0, "every tick is published"
     assert report.send_errors == 0
-    # every cloth saw a contiguous run of ticks covering most of the window
-    for r in results:
-        assert r.received >= r.cloths * 0.5 * spec.seconds * spec.tick_rate
-    assert report.latency_ms["p50"] > 0 and report.latency_ms["max"] < 5000
+    assert np.isfinite(report.latency_ms["p99"]) and report.latency_ms["p50"] > 0
+    assert report.decode_us["per_state"] > 0 and report.decode_us["per_payload"] >= report.decode_us["per_state"]
     assert {"solve", "publish", "tick"} <= set(report.server["phases_ms"])
+    assert report.server["rss_max_mb"] >= report.server["rss_start_mb"] > 0
+    assert sum(r.admitted for r in results) == 5
     paths = lt.write_plots(tmp_path, report, results, window, "ci")
-    assert all(p.stat().st_size > 1000 for p in paths)
+    paths.append(write_summary_plot(tmp_path / "summary.png", [report, report]))
+    for p in paths:
+        with Image.open(p) as im:
+            assert im.format == "PNG" and im.size == (800, 500)
+            assert np.asarray(im.convert("L")).std() > 5, f"{p.name} is blank"
+    table = markdown_table([report])
+    assert table.count("\n") == 3 and "| 5 | 6 | 1 | float32 |" in table

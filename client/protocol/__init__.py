@@ -14,7 +14,7 @@ both, one module per job:
 - :mod:`.state` and :mod:`.bundle`: the binary ``DRPS`` state and ``DRPB`` bundle layouts with the
   float16 / quant16 arithmetic;
 - :mod:`.geometry`: grid geometry and OBJ parsing;
-- :mod:`.schema`: JSON Schemas of the msgpack maps and the C header of the binary layouts,
+- :mod:`.schemagen`: JSON Schemas of the msgpack maps and the C header of the binary layouts,
   generated from the modules above (``client/protocol/schema/``, ``client/protocol/drape_wire.h``).
 
 Every public name of every module is re-exported here, so ``from drape.client import protocol as P``

@@ -11,12 +11,31 @@ from .keys import PROTOCOL_MAJOR, PROTOCOL_MINOR, VERSION_STRING, valid_id
 from .state import ClothState, decode_state
 
 BUNDLE_MAGIC = b"DRPB"
-#: magic, major, minor, header_size, count, flags, tick, server time
-BUNDLE_HEADER = struct.Struct("<4sBBHIIQQ")
+#: The bundle header, field by field: (name, struct code, meaning); BUNDLE_HEADER and the C header
+#: client/protocol/drape_wire.h are this list.
+BUNDLE_HEADER_FIELDS: tuple[tuple[str, str, str], ...] = (
+    ("magic", "4s", 'ASCII "DRPB"'),
+    ("major", "B", "protocol major version (1)"),
+    ("minor", "B", "protocol minor version of the writer; readers accept any"),
+    ("header_size", "H", "byte offset of the first entry (32 up to 1.2)"),
+    ("count", "I", "number of entries"),
+    ("flags", "I", "none defined up to 1.2 (0)"),
+    ("tick", "Q", "tick number"),
+    ("server_time_ns", "Q", "Unix epoch nanoseconds, as in the states"),
+)
+BUNDLE_HEADER = struct.Struct("<" + "".join(code for _, code, _ in BUNDLE_HEADER_FIELDS))
+assert BUNDLE_HEADER.format == "<4sBBHIIQQ"
 BUNDLE_HEADER_SIZE = BUNDLE_HEADER.size  # 32
 assert BUNDLE_HEADER_SIZE == 32
-#: per entry: entry header size (offset of the state from the entry start), id length, reserved, state size
-BUNDLE_ENTRY = struct.Struct("<HBxI")
+#: An entry's fixed part: (name, struct code, meaning); then the cloth id and zeros up to header_size.
+BUNDLE_ENTRY_FIELDS: tuple[tuple[str, str, str], ...] = (
+    ("header_size", "H", "h: offset of the state from the entry start, 8 + id_length rounded up to 8"),
+    ("id_length", "B", "L: length of the cloth id (1..64)"),
+    ("reserved", "x", "0"),
+    ("state_size", "I", "s: size of the state payload in bytes"),
+)
+BUNDLE_ENTRY = struct.Struct("<" + "".join(code for _, code, _ in BUNDLE_ENTRY_FIELDS))
+assert BUNDLE_ENTRY.format == "<HBxI"
 BUNDLE_ENTRY_SIZE = BUNDLE_ENTRY.size  # 8, then the cloth id, then zeros up to the entry header size
 BUNDLE_ALIGN = 8  # entries and states start at multiples of 8 from the start of the bundle
 

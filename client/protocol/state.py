@@ -13,8 +13,25 @@ from .keys import PROTOCOL_MAJOR, PROTOCOL_MINOR, VERSION_STRING
 from .vocabulary import ENC_FLOAT16, ENC_FLOAT32, ENCODING_IDS, ENCODING_NAMES, ENCODINGS, Vec3
 
 STATE_MAGIC = b"DRPS"
-#: magic, major, minor, header_size, encoding, reserved, flags, n, tick, server time, bounds min, bounds max, 8 reserved
-STATE_HEADER = struct.Struct("<4sBBHBBHIQQ3f3f8x")
+#: The state header, field by field: (name, struct code, meaning). STATE_HEADER, the C header
+#: client/protocol/drape_wire.h and PROTOCOL.md's table are all this one list.
+STATE_HEADER_FIELDS: tuple[tuple[str, str, str], ...] = (
+    ("magic", "4s", 'ASCII "DRPS"'),
+    ("major", "B", "protocol major version (1)"),
+    ("minor", "B", "protocol minor version of the writer; readers accept any"),
+    ("header_size", "H", "byte offset of the vertex data (64 up to 1.2)"),
+    ("encoding", "B", "0 float32, 1 float16, 2 quant16"),
+    ("reserved0", "x", "0"),
+    ("flags", "H", "bit 0: normals follow the positions; bit 1: reset state"),
+    ("vertex_count", "I", "n, the number of vertices"),
+    ("tick", "Q", "tick number"),
+    ("server_time_ns", "Q", "Unix epoch nanoseconds (server wall clock) when the tick was read back"),
+    ("bounds_min", "3f", "x, y, z minimum of the positions"),
+    ("bounds_max", "3f", "x, y, z maximum of the positions"),
+    ("reserved1", "8x", "0"),
+)
+STATE_HEADER = struct.Struct("<" + "".join(code for _, code, _ in STATE_HEADER_FIELDS))
+assert STATE_HEADER.format == "<4sBBHBxHIQQ3f3f8x"
 STATE_HEADER_SIZE = STATE_HEADER.size  # 64
 assert STATE_HEADER_SIZE == 64
 
@@ -73,7 +90,7 @@ def state_size(n_vertices: int, encoding: str | int = "float32", normals: bool =
 def pack_state_header(out: bytearray | memoryview, at: int, encoding: int, flags: int, n: int, tick: int,
                       server_time_ns: int, lo: Sequence[float], hi: Sequence[float]) -> None:
     """Write a state header (this side's version, header_size 64) at ``at``."""
-    STATE_HEADER.pack_into(out, at, STATE_MAGIC, PROTOCOL_MAJOR, PROTOCOL_MINOR, STATE_HEADER_SIZE, encoding, 0, flags,
+    STATE_HEADER.pack_into(out, at, STATE_MAGIC, PROTOCOL_MAJOR, PROTOCOL_MINOR, STATE_HEADER_SIZE, encoding, flags,
                            n, tick, server_time_ns, lo[0], lo[1], lo[2], hi[0], hi[1], hi[2])
 
 
@@ -178,7 +195,7 @@ def decode_state(data: bytes | bytearray | memoryview, cloth: str = "", receive_
     buf = memoryview(data).cast("B") if not isinstance(data, (bytes, bytearray)) else data
     if len(buf) < STATE_HEADER_SIZE:
         raise ProtocolError(ERR_MALFORMED, f"state payload of {len(buf)} bytes is shorter than the {STATE_HEADER_SIZE}-byte header")
-    (magic, major, minor, hsize, enc, _res, flags, n, tick, t_ns,
+    (magic, major, minor, hsize, enc, flags, n, tick, t_ns,
      x0, y0, z0, x1, y1, z1) = STATE_HEADER.unpack_from(buf, 0)
     if magic != STATE_MAGIC:
         raise ProtocolError(ERR_MALFORMED, f"state payload magic {bytes(magic)!r} is not {STATE_MAGIC!r}")

@@ -45,6 +45,10 @@ def _reply_encoders(kind: str, m: dict) -> bytes:
         return P.encode_remove_reply(P.RemoveReply(P.tick_reply_from_map(m), m["rid"]))
     if kind == "reply_control_batch":
         return P.encode_control_batch_reply(P.control_batch_reply_from_map(m))
+    if kind == "reply_info":
+        return P.encode_ok(m["rid"], **{k: v for k, v in m.items() if k not in ("v", "rid", "ok")})
+    if kind == "stats":
+        return P.encode_stats({k: v for k, v in m.items() if k not in ("v", "rid")})
     err = P.decode_error_map(m)
     return P.encode_error(err.code, err.message, err.rid)
 
@@ -83,6 +87,8 @@ def test_message_vectors(vec):
                 P.decode_reply(data)
             assert e.value.code == wire["error"]["code"] and e.value.message == wire["error"]["message"]
             m = P.unpack_message(data)
+        elif kind == "stats":
+            m = P.decode_stats(data)
         else:
             m = P.decode_reply(data)
         assert _reply_encoders(kind, m) == data

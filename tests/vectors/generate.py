@@ -233,6 +233,23 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
                    "the cloth's resulting feature set.",
                    P.encode_control_batch_reply(P.ControlBatchReply(1050, [
                        P.BatchItemResult(1050, features=("xpbd", "tethers"))], 12))),
+        msg_vector("reply_info", "reply_info", "An info reply (1.2 server, defaults).", P.encode_ok(
+            6, server="s1", version=P.VERSION_STRING, solver="workgroup", device="pthread-cpu", tick_rate=60.0,
+            tick=1042, cloths=2, clients=1, vertices=2048,
+            limits={"max_cloths": 1024, "max_cloths_per_client": 64, "max_vertices_per_cloth": 65536,
+                    "max_total_vertices": 2097152, "max_message_bytes": 8 << 20, "max_pin_updates": 4096,
+                    "max_batch_items": 64, "max_colliders": 32, "max_iterations": 100, "max_substeps": 100},
+            encodings=list(P.ENCODINGS), features=list(P.FEATURE_NAMES), grace_period_s=5.0, stats_period_s=1.0)),
+        msg_vector("stats", "stats", "A stats publication (informational: fields may be added in any minor "
+                   "version).", P.encode_stats({
+                       "server": "s1", "tick": 1042, "time_ns": 1_700_000_000_123_456_789, "uptime_s": 17.4,
+                       "tick_rate": 60.0, "cloths": 2, "clients": 1, "alive_clients": 1, "vertices": 2048,
+                       "requests": {"submit": 2, "control": 40}, "errors": {"forbidden": 1}, "ticks": 1043,
+                       "missed_ticks": 0, "skipped_frames": 0, "nan_resets": 0, "reclaimed": 0, "published": 2086,
+                       "unwatched": 0, "publish_errors": 0, "bundles": 0, "batch_items": 0,
+                       "phases": {"tick": {"mean_ms": 1.5, "max_ms": 3.25, "count": 60, "total_mean_ms": 1.5}},
+                       "quality": {"adaptive": True, "presets": {"balanced": 2}, "degraded": 0,
+                                   "degraded_since_ns": None, "degraded_s": 0.0, "changes": 0, "last_change": None}})),
         msg_vector("reply_error_overloaded", "error", "1.2: a submission refused because admitting it would break "
                    "the server's tick budget.", P.encode_error(
                        "overloaded", "admitting 65536 more vertices would exceed the tick budget; retry later or "

@@ -1,0 +1,303 @@
+"""Machine-readable descriptions for clients in other languages, generated from this package:
+a JSON Schema (draft 2020-12) for every msgpack map (requests, replies, stats) and a C header of
+the binary layouts (the DRPS state and DRPB bundle headers as packed structs, with the constants).
+
+    python -m drape.client.protocol.schemagen      # rewrites client/protocol/schema/*.json and drape_wire.h
+
+Everything comes from the vocabulary, limits, error codes and struct field tables of the other
+modules; nothing is transcribed. JSON has no binary type, so a msgpack ``bin`` field appears in
+the schemas in the JSON form the test vectors use, ``{"u32": [...]}`` or ``{"f32": [...]}`` (its
+little-endian elements), marked ``"x-msgpack": "bin"``. What a schema cannot say (finite floats,
+indices below the vertex count, equal pin and target counts) is the decoder's job: PROTOCOL.md
+states it, and :mod:`.codec` enforces it.
+"""
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Any
+
+from .bundle import BUNDLE_ALIGN, BUNDLE_ENTRY_FIELDS, BUNDLE_HEADER_FIELDS, BUNDLE_MAGIC
+from .errors import ERROR_CODES
+from .keys import ID_RE, PROTOCOL_MAJOR, PROTOCOL_MINOR, TOKEN_RE, VERSION_STRING
+from .state import (FLAG_NORMALS, FLAG_RESET, FLOAT16_MAX, QUANT_MAX, SNORM_MAX, STATE_HEADER_FIELDS, STATE_MAGIC)
+from .vocabulary import (COLLIDER_TYPES, DEFAULT_LIMITS, ENCODING_IDS, ENCODINGS, FEATURE_NAMES, MATERIAL_DEFAULTS,
+                         MATERIAL_FIELDS, MAX_MAP_KEYS, ORIENTATIONS, QUALITY_PRESETS, LinkSpec)
+
+HERE = Path(__file__).resolve().parent
+SCHEMA_DIR = HERE / "schema"
+C_HEADER = HERE / "drape_wire.h"
+BASE_URI = "https://drape.invalid/protocol/1/"  # schema ids only; nothing is fetched
+L = DEFAULT_LIMITS
+U64_MAX = (1 << 64) - 1
+
+
+def _nullable(s: dict[str, Any]) -> dict[str, Any]:
+    """An optional request field: absent, nil, or ``s``."""
+    return {"anyOf": [s, {"type": "null"}]}
+
+
+def _num(lo: float | None = None, hi: float | None = None, lo_inclusive: bool = True) -> dict[str, Any]:
+    s: dict[str, Any] = {"type": "number", "description": "any msgpack int or float, finite"}
+    if lo is not None:
+        s["minimum" if lo_inclusive else "exclusiveMinimum"] = lo
+    if hi is not None:
+        s["maximum"] = hi
+    return s
+
+
+def _int(lo: int, hi: int) -> dict[str, Any]:
+    return {"type": "integer", "minimum": lo, "maximum": hi}
+
+
+def _vec3(bound: float) -> dict[str, Any]:
+    return {"type": "array", "items": _num(-bound, bound), "minItems": 3, "maxItems": 3}
+
+
+def _bin(elem: str, max_items: int | None = None) -> dict[str, Any]:
+    item = {"u32": _int(0, (1 << 32) - 1), "f32": {"type": "number"}}[elem]
+    arr: dict[str, Any] = {"type": "array", "items": item}
+    if max_items is not None:
+        arr["maxItems"] = max_items
+    return {"type": "object", "x-msgpack": "bin", "x-element": elem,
+            "description": f"msgpack bin of little-endian {elem} values, here in JSON form",
+            "properties": {elem: arr}, "required": [elem], "additionalProperties": False}
+
+
+def _obj(props: dict[str, Any], required: tuple[str, ...] = (), closed: bool = False, **extra: Any) -> dict[str, Any]:
+    s: dict[str, Any] = {"type": "object", "properties": props, "maxProperties": MAX_MAP_KEYS}
+    if required:
+        s["required"] = list(required)
+    if closed:
+        s["additionalProperties"] = False
+    s.update(extra)
+    return s
+
+
+def _defs() -> dict[str, Any]:
+    cap = L.max_material_value
+    material = {}
+    for name, (width, lo, lo_inc, hi) in MATERIAL_FIELDS.items():
+        one = _num(lo, cap if hi is None else hi, lo_inc)
+        s = one if width == 1 else {"type": "array", "items": one, "minItems": width, "maxItems": width}
+        material[name] = {**_nullable(s), "default": MATERIAL_DEFAULTS[name]}
+    bound = L.max_coordinate
+    colliders = {
+        "sphere": {"center": _vec3(bound), "radius": _num(0.0, bound)},
+        "capsule": {"p0": _vec3(bound), "p1": _vec3(bound), "radius": _num(0.0, bound)},
+        "plane": {"normal": _vec3(bound), "offset": _num(-bound, bound)},
+    }
+    assert tuple(colliders) == COLLIDER_TYPES
+    return {
+        "version": {"type": "array", "description": "[major, minor]", "minItems": 2, "maxItems": 2,
+                    "prefixItems": [{"const": PROTOCOL_MAJOR}, _int(0, 255)], "items": _int(0, 255)},
+        "rid": _int(0, U64_MAX),
+        "id": {"type": "string", "pattern": ID_RE.pattern},
+        "token": {"type": "string", "pattern": TOKEN_RE.pattern},
+        "features": {"type": "array", "items": {"enum": list(FEATURE_NAMES)}, "maxItems": L.max_features},
+        "material": _obj(material),
+        "collider": {"oneOf": [_obj({"type": {"const": k}, **v}, ("type", *v)) for k, v in colliders.items()]},
+        "colliders": {"type": "array", "items": {"$ref": "#/$defs/collider"}, "maxItems": L.max_colliders},
+        "pins": _obj({"indices": _bin("u32", L.max_pin_updates), "targets": _bin("f32", 3 * L.max_pin_updates)},
+                     ("indices", "targets")),
+        "state": _obj({"normals": _nullable({"type": "boolean"}), "encoding": _nullable({"enum": list(ENCODINGS)}),
+                       "bundle": _nullable({"type": "boolean"})}),
+        "quality": {"enum": list(QUALITY_PRESETS)},
+        "tick": _int(0, U64_MAX),
+        "error": _obj({"code": {"type": "string", "description": f"known codes: {', '.join(ERROR_CODES)}; "
+                                "treat unknown ones as errors"}, "message": {"type": "string"}}, ("code",)),
+    }
+
+
+def _solver_fields() -> dict[str, Any]:
+    acc = L.max_acceleration
+    return {
+        "material": _nullable({"$ref": "#/$defs/material"}),
+        "features": _nullable({"$ref": "#/$defs/features"}),
+        "gravity": _nullable(_vec3(acc)),
+        "wind": _nullable(_vec3(acc)),
+        "iterations": _nullable(_int(0, L.max_iterations)),
+        "substeps": _nullable(_int(1, L.max_substeps)),
+        "chebyshev_rho": _nullable({"type": "number", "minimum": 0, "exclusiveMaximum": 1}),
+        "colliders": _nullable({"$ref": "#/$defs/colliders"}),
+        "state": _nullable({"$ref": "#/$defs/state"}),
+        "quality": _nullable({"$ref": "#/$defs/quality"}),
+    }
+
+
+def _control_item() -> dict[str, Any]:
+    return {
+        "cloth": {"$ref": "#/$defs/id"},
+        "token": {"$ref": "#/$defs/token"},
+        "pins": _nullable({"$ref": "#/$defs/pins"}),
+        **_solver_fields(),
+        "features_add": _nullable({"$ref": "#/$defs/features"}),
+        "features_remove": _nullable({"$ref": "#/$defs/features"}),
+        "reset": _nullable({"type": "boolean"}),
+    }
+
+
+def _head() -> dict[str, Any]:
+    return {"v": {"$ref": "#/$defs/version"}, "rid": {"$ref": "#/$defs/rid"}}
+
+
+def _reply(props: dict[str, Any], required: tuple[str, ...]) -> dict[str, Any]:
+    return _obj({**_head(), "ok": {"const": True}, **props}, ("v", "ok", *required))
+
+
+def schemas() -> dict[str, dict[str, Any]]:
+    """Every message's JSON Schema, by message name (the ``message`` of the test vectors)."""
+    bound = L.max_coordinate
+    link = {k: _nullable({"type": "boolean", "default": v}) for k, v in vars(LinkSpec()).items()}
+    grid = _obj({"cols": _int(1, L.max_vertices), "rows": _int(1, L.max_vertices),
+                 "width": _nullable(_num(0.0, bound, False)), "height": _nullable(_num(0.0, bound, False)),
+                 "orientation": _nullable({"enum": list(ORIENTATIONS)}), "origin": _nullable(_vec3(bound))},
+                ("cols", "rows"))
+    mesh = _obj({"vertices": _bin("f32", 3 * L.max_vertices), "triangles": _bin("u32", 3 * L.max_triangles)},
+                ("vertices", "triangles"))
+    out: dict[str, dict[str, Any]] = {
+        "submit": _obj({**_head(), "client": {"$ref": "#/$defs/id"}, "grid": grid, "mesh": mesh,
+                        "pinned": _nullable(_bin("u32", L.max_vertices)), "links": _nullable(_obj(link)),
+                        **_solver_fields()}, ("v", "client"),
+                       oneOf=[{"required": ["grid"]}, {"required": ["mesh"]}]),
+        "control": _obj({**_head(), **_control_item()}, ("v", "cloth", "token")),
+        "control_batch": _obj({**_head(), "client": {"$ref": "#/$defs/id"},
+                               "items": {"type": "array", "minItems": 1, "maxItems": L.max_batch_items,
+                                         "items": _obj(_control_item(), ("cloth", "token"))}},
+                              ("v", "client", "items")),
+        "remove": _obj({**_head(), "cloth": {"$ref": "#/$defs/id"}, "token": {"$ref": "#/$defs/token"}},
+                       ("v", "cloth", "token")),
+        "info": _obj(_head(), ("v",)),
+        "reply_submit": _reply({"cloth": {"$ref": "#/$defs/id"}, "token": {"$ref": "#/$defs/token"},
+                                "key": {"type": "string"}, "vertices": _int(1, (1 << 32) - 1),
+                                "tick": {"$ref": "#/$defs/tick"}, "bundle_key": {"type": "string"}},
+                               ("cloth", "token", "key", "vertices", "tick")),
+        "reply_control": _reply({"tick": {"$ref": "#/$defs/tick"},
+                                 "features": {"type": "array", "items": {"type": "string"}}}, ("tick",)),
+        "reply_remove": _reply({"tick": {"$ref": "#/$defs/tick"}}, ("tick",)),
+        "reply_control_batch": _reply({
+            "tick": {"$ref": "#/$defs/tick"}, "failed": _int(0, L.max_batch_items),
+            "results": {"type": "array", "items": {"oneOf": [
+                _obj({"ok": {"const": True}, "tick": {"$ref": "#/$defs/tick"},
+                      "features": {"type": "array", "items": {"type": "string"}}}, ("ok", "tick")),
+                _obj({"ok": {"const": False}, "error": {"$ref": "#/$defs/error"}}, ("ok", "error"))]}}},
+            ("tick", "failed", "results")),
+        "reply_info": _reply({
+            "server": {"$ref": "#/$defs/id"}, "version": {"type": "string", "pattern": r"^[0-9]+\.[0-9]+$"},
+            "solver": {"type": "string"}, "device": {"type": "string"}, "tick_rate": {"type": "number"},
+            "tick": {"$ref": "#/$defs/tick"}, "cloths": {"type": "integer"}, "clients": {"type": "integer"},
+            "vertices": {"type": "integer"},
+            "limits": _obj({k: {"type": "integer", "minimum": 0} for k in (
+                "max_cloths", "max_cloths_per_client", "max_vertices_per_cloth", "max_total_vertices",
+                "max_message_bytes", "max_pin_updates", "max_batch_items", "max_colliders", "max_iterations",
+                "max_substeps")}),
+            "encodings": {"type": "array", "items": {"type": "string"}},
+            "features": {"type": "array", "items": {"type": "string"}},
+            "grace_period_s": {"type": "number"}, "stats_period_s": {"type": "number"}},
+            ("server", "version", "limits")),
+        "error": _obj({**_head(), "ok": {"const": False}, "error": {"$ref": "#/$defs/error"}}, ("v", "ok", "error")),
+        "stats": _obj({**_head(), **{k: {"type": "integer", "minimum": 0} for k in (
+            "tick", "time_ns", "cloths", "clients", "alive_clients", "vertices", "ticks", "missed_ticks",
+            "skipped_frames", "nan_resets", "reclaimed", "published", "unwatched", "publish_errors", "bundles",
+            "batch_items")},
+            "server": {"$ref": "#/$defs/id"}, "uptime_s": {"type": "number"}, "tick_rate": {"type": "number"},
+            "requests": {"type": "object", "additionalProperties": {"type": "integer"}},
+            "errors": {"type": "object", "additionalProperties": {"type": "integer"}},
+            "phases": {"type": "object", "additionalProperties": {"type": "object"}},
+            "quality": {"type": "object"}}, ("v", "server", "tick")),
+    }
+    defs = _defs()
+    for name, s in out.items():
+        s["$schema"] = "https://json-schema.org/draft/2020-12/schema"
+        s["$id"] = f"{BASE_URI}{name}.json"
+        s["title"] = f"Drape protocol {VERSION_STRING}: {name}"
+        s["$defs"] = defs
+    return {name: dict(sorted(s.items(), key=lambda kv: not kv[0].startswith("$"))) for name, s in out.items()}
+
+
+# ---------------------------------------------------------------------------------------------
+# C header
+
+_C_TYPES = {"B": "uint8_t", "H": "uint16_t", "I": "uint32_t", "Q": "uint64_t", "f": "float", "s": "char", "x": "uint8_t"}
+
+
+def _c_struct(name: str, fields: tuple[tuple[str, str, str], ...]) -> list[str]:
+    lines = [f"typedef struct drape_{name} {{"]
+    for fname, code, meaning in fields:
+        m = re.fullmatch(r"(\d*)([BHIQfsx])", code)
+        assert m, code
+        count, kind = int(m.group(1) or 1), m.group(2)
+        decl = f"{_C_TYPES[kind]} {fname}" + (f"[{count}]" if count > 1 or kind == "s" else "")
+        lines.append(f"    {decl + ';':<28} /* {meaning} */")
+    lines.append(f"}} drape_{name};")
+    return lines
+
+
+def c_header() -> str:
+    """drape_wire.h: the binary layouts as packed little-endian structs, and the constants."""
+    from .bundle import BUNDLE_ENTRY, BUNDLE_HEADER
+    from .state import STATE_HEADER
+
+    defines = [
+        ("DRAPE_PROTOCOL_MAJOR", PROTOCOL_MAJOR), ("DRAPE_PROTOCOL_MINOR", PROTOCOL_MINOR),
+        ("DRAPE_STATE_MAGIC", f'"{STATE_MAGIC.decode()}"'), ("DRAPE_BUNDLE_MAGIC", f'"{BUNDLE_MAGIC.decode()}"'),
+        ("DRAPE_STATE_HEADER_SIZE", STATE_HEADER.size), ("DRAPE_BUNDLE_HEADER_SIZE", BUNDLE_HEADER.size),
+        ("DRAPE_BUNDLE_ENTRY_SIZE", BUNDLE_ENTRY.size), ("DRAPE_BUNDLE_ALIGN", BUNDLE_ALIGN),
+        *((f"DRAPE_ENCODING_{k.upper()}", v) for k, v in ENCODING_IDS.items()),
+        ("DRAPE_FLAG_NORMALS", FLAG_NORMALS), ("DRAPE_FLAG_RESET", FLAG_RESET),
+        ("DRAPE_QUANT16_MAX", QUANT_MAX), ("DRAPE_SNORM16_MAX", SNORM_MAX), ("DRAPE_FLOAT16_MAX", f"{FLOAT16_MAX:.1f}f"),
+    ]
+    out = [
+        "/* drape_wire.h: the binary layouts of the Drape wire protocol " + VERSION_STRING + " (PROTOCOL.md sections 9, 9.1).",
+        " * GENERATED by `python -m drape.client.protocol.schemagen` from drape.client.protocol: do not edit.",
+        " * Every field is little-endian; read a payload with memcpy into these packed structs (on a",
+        " * big-endian host, swap each field). Readers honour header_size: later minor versions may lengthen",
+        " * a header, so the vertex data of a state starts at header_size, not at sizeof(drape_state_header). */",
+        "#ifndef DRAPE_WIRE_H",
+        "#define DRAPE_WIRE_H",
+        "",
+        "#include <stdint.h>",
+        "",
+        *(f"#define {k} {v}" for k, v in defines),
+        "",
+        "#pragma pack(push, 1)",
+        "",
+        *_c_struct("state_header", STATE_HEADER_FIELDS),
+        "",
+        *_c_struct("bundle_header", BUNDLE_HEADER_FIELDS),
+        "",
+        "/* followed by id_length bytes of the cloth id, zeros up to header_size, then the state */",
+        *_c_struct("bundle_entry", BUNDLE_ENTRY_FIELDS),
+        "",
+        "#pragma pack(pop)",
+        "",
+        "#if defined(__STDC_VERSION__) && __STDC_VERSION__ >= 201112L",
+        "_Static_assert(sizeof(drape_state_header) == DRAPE_STATE_HEADER_SIZE, \"state header size\");",
+        "_Static_assert(sizeof(drape_bundle_header) == DRAPE_BUNDLE_HEADER_SIZE, \"bundle header size\");",
+        "_Static_assert(sizeof(drape_bundle_entry) == DRAPE_BUNDLE_ENTRY_SIZE, \"bundle entry size\");",
+        "#endif",
+        "",
+        "#endif /* DRAPE_WIRE_H */",
+        "",
+    ]
+    return "\n".join(out)
+
+
+def write(folder: Path = HERE) -> list[Path]:
+    """Write schema/<message>.json and drape_wire.h under ``folder``; returns the paths."""
+    paths = []
+    (folder / "schema").mkdir(parents=True, exist_ok=True)
+    for name, s in schemas().items():
+        p = folder / "schema" / f"{name}.json"
+        p.write_text(json.dumps(s, indent=1) + "\n")
+        paths.append(p)
+    p = folder / "drape_wire.h"
+    p.write_text(c_header())
+    paths.append(p)
+    return paths
+
+
+if __name__ == "__main__":
+    for path in write():
+        print(f"wrote {path}")

@@ -1,0 +1,88 @@
+"""drape.client.session: the Zenoh configuration shared by the SDK and the server, and the sample
+JSON5 configurations shipped in deploy/ (they load, and sessions built from them talk over real
+Zenoh on loopback); the SDK's side of protocol 1.2 (features_add / features_remove)."""
+from __future__ import annotations
+
+import queue
+import socket
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from drape.client import protocol as P
+
+DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
+SAMPLES = {"peer": DEPLOY / "zenoh-peer.json5", "client": DEPLOY / "zenoh-client.json5"}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_zenoh_config_has_one_home_and_the_old_paths_still_work():
+    import drape.client
+    import drape.client.sdk
+    from drape.client.session import zenoh_config
+
+    assert drape.client.zenoh_config is zenoh_config
+    assert drape.client.sdk.zenoh_config is zenoh_config
+    cfg = zenoh_config("client", listen=["tcp/127.0.0.1:1"], connect=["tcp/127.0.0.1:7447"])
+    assert cfg.get_json("mode") == '"client"' and cfg.get_json("connect/endpoints") == '["tcp/127.0.0.1:7447"]'
+    assert cfg.get_json("scouting/multicast/enabled") == "false"
+    with pytest.raises(ValueError, match="mode"):
+        zenoh_config("server")
+
+
+@pytest.mark.parametrize("mode", SAMPLES)
+def test_the_sample_configurations_load(mode):
+    cfg = zenoh.Config.from_file(str(SAMPLES[mode]))
+    assert cfg.get_json("mode") == f'"{mode}"'
+    assert cfg.get_json("connect/endpoints") == f'["{P.DEFAULT_ENDPOINT}"]'
+    assert cfg.get_json("scouting/multicast/enabled") == "false"
+
+
+def test_a_peer_built_from_the_sample_reaches_a_listening_peer():
+    """The sample peer configuration as a base file, its endpoint overridden, talks to a peer that
+    listens on its own port: a publication arrives (the test waits for the event, not a time)."""
+    from drape.client.session import zenoh_config
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    got: queue.Queue[bytes] = queue.Queue()
+    server = zenoh.open(zenoh_config("peer", listen=[endpoint]))
+    try:
+        sub = server.declare_subscriber("drape-test/session/ping", lambda s: got.put(s.payload.to_bytes()))
+        client = zenoh.open(zenoh_config("peer", connect=[endpoint], base_file=str(SAMPLES["peer"])))
+        try:
+            pub = client.declare_publisher("drape-test/session/ping")
+            for _ in range(600):  # until the subscription has propagated; at most a minute
+                pub.put(b"ping")
+                try:
+                    assert got.get(timeout=0.1) == b"ping"
+                    break
+                except queue.Empty:
+                    continue
+            else:
+                pytest.fail("no publication arrived in 60 s")
+        finally:
+            client.close()
+        sub.undeclare()
+    finally:
+        server.close()
+
+
+def test_sdk_features_delta_is_validated_before_anything_is_sent():
+    from drape.client.sdk import _set_changes
+
+    ch = _set_changes(None, None, None, None, None, None, None, None, None, False, None,
+                      features_add=["wind"], features_remove="tethers")
+    req = P.ControlRequest("abc", "0" * 32, **ch)
+    assert req.features_add == ("wind",) and req.features_remove == ("tethers",) and req.features is None
+    assert P.decode_control(P.encode_control(req)) == req
+    with pytest.raises(ValueError, match="hologram"):
+        _set_changes(None, None, None, None, None, None, None, None, None, False, None, features_add=["hologram"])
+    with pytest.raises(ValueError, match="both"):
+        _set_changes(None, None, None, None, None, None, None, None, None, False, None, features_add=["wind"],
+                     features_remove=["wind"])

@@ -150,45 +150,70 @@ def _phase(stats: dict[str, Any], name: str, key: str = "mean_ms") -> float | No
 
 COLUMNS = ("SERVER", "TICK/s", "TICK ms", "MAX ms", "SOLVE", "READBK", "ENCODE", "PUBLSH", "CLOTHS", "CLIENTS",
            "VERTICES", "STATES/s", "BYTES/s", "MISSED/s", "QUALITY", "OVERLOAD", "ERRORS", "UPTIME")
+#: The phase behind each phase column (mean milliseconds over the last stats period).
+PHASE_COLUMNS = {"SOLVE": "solve", "READBK": "readback", "ENCODE": "encode", "PUBLSH": "publish"}
+#: What a narrow terminal keeps, most important first (columns keep their order on screen).
+PRIORITY = ("SERVER", "TICK/s", "TICK ms", "CLOTHS", "CLIENTS", "MISSED/s", "OVERLOAD", "STATES/s", "MAX ms",
+            "ERRORS", "QUALITY", "SOLVE", "VERTICES", "BYTES/s", "PUBLSH", "ENCODE", "READBK", "UPTIME")
+assert sorted(PRIORITY) == sorted(COLUMNS) and set(PHASE_COLUMNS.values()) <= set(PHASES)
 
 
-def render(views: list[ServerView], source: str, now: float | None = None) -> Group:
-    """One frame: a summary line and a row per server."""
+def row_cells(v: ServerView, now: float) -> dict[str, str]:
+    """Every column's text for one server."""
+    s = v.last
+    period = v.period_s() or 1.0
+    stale = now - v.received > STALE_PERIODS * max(period, 0.1)
+    tick_rate = v.rate("ticks")
+    if tick_rate is None and s.get("uptime_s"):
+        tick_rate = float(s.get("ticks", 0)) / float(s["uptime_s"])
+    cells = {
+        "SERVER": v.server + (" (stale)" if stale else ""),
+        "TICK/s": f"{_f(tick_rate)}/{float(s.get('tick_rate', 0)):g}",
+        "TICK ms": _f(_phase(s, "tick"), "{:.2f}"),
+        "MAX ms": _f(_phase(s, "tick", "max_ms"), "{:.2f}"),
+        "CLOTHS": str(s.get("cloths", 0)),
+        "CLIENTS": str(s.get("clients", 0)),
+        "VERTICES": str(s.get("vertices", 0)),
+        "STATES/s": _f(v.rate("published"), "{:.0f}"),
+        "BYTES/s": _bytes(v.rate("published_bytes")) if "published_bytes" in s else "-",
+        "MISSED/s": _f(v.rate("missed_ticks"), "{:.1f}"),
+        "QUALITY": _quality(s.get("quality") or {}),
+        "OVERLOAD": str(overload_refusals(s)),
+        "ERRORS": str(sum(int(n) for n in (s.get("errors") or {}).values())),
+        "UPTIME": _uptime(float(s.get("uptime_s", 0.0))),
+    }
+    cells.update({c: _f(_phase(s, p), "{:.2f}") for c, p in PHASE_COLUMNS.items()})
+    return cells
+
+
+def fit_columns(rows: list[dict[str, str]], width: int | None) -> list[str]:
+    """The columns that fit ``width`` characters, by PRIORITY, in COLUMNS order (all when None)."""
+    if width is None:
+        return list(COLUMNS)
+    chosen: set[str] = set()
+    used = 0
+    for c in PRIORITY:
+        w = max([len(c)] + [len(r[c]) for r in rows]) + 3  # padding either side and a separator
+        if used + w > width and chosen:
+            continue
+        chosen.add(c)
+        used += w
+    return [c for c in COLUMNS if c in chosen]
+
+
+def render(views: list[ServerView], source: str, now: float | None = None, width: int | None = None) -> Group:
+    """One frame: a summary line and a row per server, in the columns that fit ``width``."""
     now = time.monotonic() if now is None else now
+    rows = [row_cells(v, now) for v in views]
+    columns = fit_columns(rows, width)
     table = Table(box=box.SIMPLE_HEAD, show_edge=False, pad_edge=False, expand=False, header_style="bold")
-    for c in COLUMNS:
+    for c in columns:
         table.add_column(c, justify="left" if c in ("SERVER", "QUALITY") else "right", no_wrap=True)
-    totals = {"cloths": 0, "clients": 0, "vertices": 0}
-    for v in views:
-        s = v.last
-        for k in totals:
-            totals[k] += int(s.get(k, 0))
-        period = v.period_s() or float(s.get("stats_period", 1.0) or 1.0)
-        stale = now - v.received > STALE_PERIODS * max(period, 0.1)
-        tick_rate = v.rate("ticks")
-        if tick_rate is None and s.get("uptime_s"):
-            tick_rate = float(s.get("ticks", 0)) / float(s["uptime_s"])
-        errors = sum(int(n) for n in (s.get("errors") or {}).values())
-        table.add_row(
-            v.server + (" (stale)" if stale else ""),
-            f"{_f(tick_rate)}/{float(s.get('tick_rate', 0)):g}",
-            _f(_phase(s, "tick"), "{:.2f}"),
-            _f(_phase(s, "tick", "max_ms"), "{:.2f}"),
-            *(_f(_phase(s, p), "{:.2f}") for p in PHASES if p not in ("tick", "apply")),
-            str(s.get("cloths", 0)),
-            str(s.get("clients", 0)),
-            str(s.get("vertices", 0)),
-            _f(v.rate("published"), "{:.0f}"),
-            _bytes(v.rate("published_bytes")) if "published_bytes" in s else "-",
-            _f(v.rate("missed_ticks"), "{:.1f}"),
-            _quality(s.get("quality") or {}),
-            str(overload_refusals(s)),
-            str(errors),
-            _uptime(float(s.get("uptime_s", 0.0))),
-            style="dim" if stale else None,
-        )
-    head = Text(f"drape top - {source} - {len(views)} server(s), {totals['cloths']} cloths, "
-                f"{totals['clients']} clients, {totals['vertices']} vertices")
+    for r in rows:
+        table.add_row(*(r[c] for c in columns), style="dim" if r["SERVER"].endswith("(stale)") else None)
+    totals = {k: sum(int(v.last.get(k, 0)) for v in views) for k in ("cloths", "clients", "vertices")}
+    head = Text(f"drape top - {len(views)} server(s), {totals['cloths']} cloths, {totals['clients']} clients, "
+                f"{totals['vertices']} vertices - {source}")
     return Group(head, table)
 
 
@@ -264,10 +289,10 @@ def _once(session: zenoh.Session, keys: P.Keys, board: StatsBoard, args: argpars
 def _live(board: StatsBoard, source: str, refresh: float) -> int:
     console = Console()
     try:
-        with Live(render(board.views(), source), console=console, refresh_per_second=max(1.0, 1.0 / refresh),
-                  screen=False, transient=False) as live:
+        with Live(render(board.views(), source, width=console.width), console=console,
+                  refresh_per_second=max(1.0, 1.0 / refresh), screen=False, transient=False) as live:
             while True:
                 time.sleep(refresh)
-                live.update(render(board.views(), source))
+                live.update(render(board.views(), source, width=console.width))
     except KeyboardInterrupt:
         return 0

@@ -15,7 +15,7 @@ from drape.client import protocol as P
 from drape.server.cli import main
 from drape.server.service.config import ServerConfig
 from drape.server.service.tickloop import Server
-from drape.server.tools.top import COLUMNS, StatsBoard, print_frame
+from drape.server.tools.top import COLUMNS, PRIORITY, StatsBoard, fit_columns, print_frame, render, row_cells
 
 TIMEOUT = 10.0
 
@@ -137,3 +137,22 @@ def test_undecodable_stats_are_counted_not_shown(payload):
             time.sleep(0.01)
         sub.undeclare()
     assert board.invalid == 1 and board.views() == []
+
+
+def test_narrow_terminals_keep_the_important_columns_in_order():
+    board = StatsBoard(P.Keys())
+    board.add("a-long-server-name", {"server": "a-long-server-name", "time_ns": 1, "ticks": 1, "tick_rate": 60.0})
+    rows = [row_cells(v, time.monotonic()) for v in board.views()]
+    assert fit_columns(rows, None) == list(COLUMNS)
+    assert fit_columns(rows, 10) == ["SERVER"]  # the server is always shown
+    for width in (40, 80, 120):
+        cols = fit_columns(rows, width)
+        assert cols[:3] == ["SERVER", "TICK/s", "TICK ms"] and cols == [c for c in COLUMNS if c in cols]
+        assert set(PRIORITY[:3]) <= set(cols)
+    assert len(fit_columns(rows, 80)) < len(fit_columns(rows, 120)) < len(COLUMNS)
+    from rich.console import Console
+
+    console = Console(width=80, force_terminal=False, color_system=None, record=True)
+    console.print(render(board.views(), "test", width=80))
+    lines = console.export_text().splitlines()
+    assert all(len(line.rstrip()) <= 80 for line in lines) and not any("…" in line for line in lines)

@@ -556,6 +556,14 @@ __kernel void scatter_targets(const int n, __global const int *index, __global c
         target[index[i]] = value[i];
 }
 
+/* the frame read back: row i of out = xyz of vertex src[i] (every cloth's rows back to back) */
+__kernel void pack_rows(const int n, __global const int *src, __global const float4 *from, __global float *out)
+{
+    const int i = get_global_id(0);
+    if (i < n)
+        vstore3(from[src[i]].xyz, i, out);
+}
+
 /* copy positions of every chunk (closes an odd number of Jacobi iterations) */
 __kernel void copy_positions(const int chunk, __global const int2 *chunks, __global const int *ci,
                              __global const float4 *src, __global float4 *dst)

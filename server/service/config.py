@@ -89,6 +89,11 @@ class ServerConfig:
     # --- quality -------------------------------------------------------------------------------
     adaptive_quality: bool = True  # lower cloths' presets while ticks overrun, restore them after
     quality_budget: float = 0.8  # share of a tick the tick's own work may take before that
+    # --- admission and misbehaving cloths -------------------------------------------------------
+    admission: bool = True  # refuse submits ("overloaded") that would push ticks over admission_budget
+    admission_budget: float = 0.85  # share of a tick the predicted tick cost may take
+    nan_max_resets: int = 5  # a cloth reset this many times for non-finite state within nan_window...
+    nan_window: float = 10.0  # ...seconds is removed
     # --- operations ----------------------------------------------------------------------------
     metrics_listen: str | None = None  # host:port of /metrics /healthz /readyz; None = off (127.0.0.1:9464)
     log_format: str = "text"  # text | json (drape.server.service.logs)
@@ -120,6 +125,10 @@ class ServerConfig:
             raise ValueError("max_iterations <= 1000 and max_substeps <= 100 (the solver's own bounds)")
         if not (0.05 <= self.quality_budget <= 10.0):
             raise ValueError("quality_budget must be in 0.05..10 (a share of one tick)")
+        if not (0.0 < self.admission_budget <= 100.0):
+            raise ValueError("admission_budget must be in (0, 100] (a share of one tick)")
+        if self.nan_max_resets < 1 or self.nan_window <= 0:
+            raise ValueError("nan_max_resets must be >= 1 and nan_window > 0")
         if self.log_format not in LOG_FORMATS:
             raise ValueError(f"log_format must be one of {LOG_FORMATS}, got {self.log_format!r}")
         if self.log_level.lower() not in LOG_LEVELS:
@@ -280,6 +289,10 @@ HELP = {
     "drop_max_bytes": "auto congestion: largest state published with DROP",
     "adaptive_quality": "step cloths' quality presets down while ticks overrun, back up after",
     "quality_budget": "share of a tick the tick's work may take before quality is lowered",
+    "admission": "refuse submissions that would push the tick over admission_budget ('overloaded')",
+    "admission_budget": "share of a tick the predicted tick cost may take when admitting a cloth",
+    "nan_max_resets": "non-finite resets of one cloth within nan_window before it is removed",
+    "nan_window": "seconds over which nan_max_resets counts",
     "metrics_listen": "HOST:PORT of the operator HTTP listener (/metrics /healthz /readyz), e.g. 127.0.0.1:9464",
     "log_format": "log lines as text or json (one object per line)",
     "log_level": "lowest level logged",

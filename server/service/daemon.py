@@ -39,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
 
 def serve(config: ServerConfig) -> int:
     """Run a server in this process until SIGINT/SIGTERM (main thread only)."""
-    from .tickloop import Server  # Zenoh and OpenCL only when actually serving
+    from .server import Server  # Zenoh and OpenCL only when actually serving
 
     stop = threading.Event()
 

@@ -35,9 +35,7 @@ from .params import (
     ClothParams,
 )
 
-JACOBI_OMEGA = 1.5
-EPS_LEN2 = 1e-20  # below this squared length a direction is undefined: no correction
-EPS_DENOM = 1e-30
+from .shared import EPS_DENOM, EPS_LEN2, JACOBI_OMEGA, vertex_normals  # noqa: F401 (re-exported)
 
 
 @dataclass
@@ -311,25 +309,6 @@ def _friction(x, x_prev, mask, n, pen, cdisp, mu):
     ok = tl > 1e-12
     scale = np.where(ok, corr / np.where(ok, tl, 1.0), 0.0)
     x[mask] -= tang * scale[:, None]
-
-
-def vertex_normals(x: np.ndarray, fabric: Fabric) -> tuple[np.ndarray, np.ndarray]:
-    """Unit vertex normals (area-weighted face normals; (0, 0, 0) where there are none) and
-    per-vertex areas (a third of each incident triangle)."""
-    t = fabric.triangles
-    normals = np.zeros_like(x)
-    area = np.zeros(len(x), x.dtype)
-    if len(t):
-        fn = np.cross(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]])
-        fa = 0.5 * np.linalg.norm(fn, axis=1)
-        for k in range(3):
-            np.add.at(normals, t[:, k], fn)
-            np.add.at(area, t[:, k], fa / 3.0)
-    ln = np.linalg.norm(normals, axis=1)
-    ok = ln > 1e-30
-    normals[ok] /= ln[ok, None]
-    normals[~ok] = 0.0
-    return normals, area
 
 
 def aero_dv(v, normals, area, invm, h, wind, drag, lift, rho):

@@ -1,22 +1,31 @@
 """A world of many cloths stepped together: the interface the tick loop drives.
 
-``make_world(solver)`` returns a ``ReferenceWorld`` (numpy, float64, the tests' ground truth) or a
-``CLWorld`` (drape.server.sim.opencl.clworld: OpenCL work-group, coloured or Jacobi solver). Both keep the
-same bookkeeping: cloths are added and removed between steps without touching the others, each
-with its own parameters, pin targets and colliders.
+``drape.server.sim.make_world(solver)`` returns a ``ReferenceWorld`` (here: numpy, float64, the
+tests' ground truth) or a ``CLWorld`` (drape.server.sim.opencl.clworld: OpenCL work-group,
+coloured or Jacobi solver). Both keep the same bookkeeping: cloths are added and removed between
+steps without touching the others, each with its own parameters, pin targets and colliders.
+The World is the one owner of every cloth's parameters (``world.cloths[h].params``).
+
+A step's result is a :class:`Frame`: every cloth's positions back to back in ONE contiguous
+(N, 3) float32 host array (cloth ``i`` of the frame in rows ``offsets[i]:offsets[i + 1]``, in
+the order of ``handles``), read back in one copy into a host buffer the World reuses. Frames
+are valid until their buffer is reused: the World keeps at least the last two fetched frames
+intact; a consumer that needs one longer ``hold()``s it and ``release()``s it when done.
 """
 from __future__ import annotations
 
 import itertools
 import logging
 from abc import ABC, abstractmethod
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
 from . import reference
 from .fabric import Fabric, vertex_masses
-from .params import MAX_COLLIDERS_PER_CLOTH, SOLVERS, ClothParams
+from .params import MAX_COLLIDERS_PER_CLOTH, ClothParams
 
 log = logging.getLogger(__name__)
 
@@ -29,16 +38,178 @@ class Cloth:
     colliders: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 4), np.float32))
 
 
-@dataclass
-class Frame:
-    """Host copy of every cloth's state after a step. ``positions[h]`` is (n, 3) float32."""
+@dataclass(frozen=True, eq=False)
+class Layout:
+    """Where each cloth sits in a frame; rebuilt only when cloths come, go or switch normals."""
 
-    step: int
-    positions: dict[int, np.ndarray]
-    normals: dict[int, np.ndarray]
+    version: int
+    handles: np.ndarray  # (k,) int64, frame order
+    offsets: np.ndarray  # (k + 1,) int64 row offsets
+    normals: np.ndarray  # (k,) bool: the cloth's state carries normals
+    index: Mapping[int, int]  # handle -> frame index
+
+    @property
+    def n_rows(self) -> int:
+        return int(self.offsets[-1])
+
+
+class HostBuffer:
+    """One reusable host array pair (positions, normals) a frame is read back into."""
+
+    def __init__(self, alloc: Callable[[int], np.ndarray]) -> None:
+        self._alloc = alloc
+        self.xyz = np.zeros((0, 3), np.float32)
+        self.nrm = np.zeros((0, 3), np.float32)
+        self.held = False
+
+    def ensure(self, rows: int, normals: bool) -> None:
+        if len(self.xyz) < rows:
+            self.xyz = self._alloc(max(rows, 2 * len(self.xyz)))
+        if normals and len(self.nrm) < rows:
+            self.nrm = self._alloc(max(rows, 2 * len(self.nrm)))
+
+
+class FramePool:
+    """Host buffers for frames: the least recently used one not held and not among the last
+    two handed out is reused; a new one is made only while more are held (bounded by the
+    consumer, e.g. the service's publisher holds at most two)."""
+
+    def __init__(self, alloc: Callable[[int], np.ndarray] | None = None) -> None:
+        self.alloc = alloc or (lambda rows: np.zeros((rows, 3), np.float32))
+        self.buffers: list[HostBuffer] = []
+
+    def acquire(self, rows: int, normals: bool) -> HostBuffer:
+        recent = self.buffers[-2:]
+        buf = next((b for b in self.buffers if not b.held and b not in recent), None)
+        if buf is None:
+            buf = HostBuffer(self.alloc)
+        else:
+            self.buffers.remove(buf)
+        self.buffers.append(buf)  # most recently used last
+        buf.ensure(rows, normals)
+        return buf
+
+
+class _Rows(Mapping):
+    """``frame.positions[h]`` / ``frame.normals[h]``: views of the frame's contiguous rows."""
+
+    def __init__(self, frame: "Frame", data: np.ndarray | None, mask: np.ndarray | None) -> None:
+        self._f, self._data, self._mask = frame, data, mask
+
+    def _i(self, handle: int) -> int:
+        i = self._f.layout.index.get(handle)
+        if i is None or self._data is None or (self._mask is not None and not self._mask[i]):
+            raise KeyError(handle)
+        return i
+
+    def __getitem__(self, handle: int) -> np.ndarray:
+        i = self._i(handle)
+        off = self._f.layout.offsets
+        return self._data[off[i]:off[i + 1]]  # type: ignore[index]
+
+    def __contains__(self, handle: object) -> bool:
+        try:
+            self._i(handle)  # type: ignore[arg-type]
+            return True
+        except KeyError:
+            return False
+
+    def __iter__(self) -> Iterator[int]:
+        hs = self._f.layout.handles
+        if self._data is None:
+            return iter(())
+        return iter(hs.tolist() if self._mask is None else hs[self._mask].tolist())
+
+    def __len__(self) -> int:
+        if self._data is None:
+            return 0
+        return len(self._f.layout.handles) if self._mask is None else int(self._mask.sum())
+
+
+class Frame:
+    """Host copy of every cloth's state after a step: ``xyz`` (N, 3) float32, C-contiguous,
+    cloth ``i`` (``layout.handles[i]``) in rows ``layout.offsets[i]:layout.offsets[i + 1]``;
+    ``nxyz`` the same for normals (rows of cloths without normals are unspecified), or None.
+    ``positions[h]`` / ``normals[h]`` are views of those rows by handle."""
+
+    def __init__(self, step: int, layout: Layout, xyz: np.ndarray, nxyz: np.ndarray | None,
+                 buffer: HostBuffer | None = None) -> None:
+        self.step = step
+        self.layout = layout
+        self.xyz = xyz
+        self.nxyz = nxyz
+        self._buffer = buffer
+
+    @property
+    def handles(self) -> np.ndarray:
+        return self.layout.handles
+
+    @property
+    def offsets(self) -> np.ndarray:
+        return self.layout.offsets
+
+    @property
+    def positions(self) -> Mapping[int, np.ndarray]:
+        return _Rows(self, self.xyz, None)
+
+    @property
+    def normals(self) -> Mapping[int, np.ndarray]:
+        return _Rows(self, self.nxyz, self.layout.normals)
+
+    def rows(self, handle: int) -> slice:
+        i = self.layout.index[handle]
+        return slice(int(self.layout.offsets[i]), int(self.layout.offsets[i + 1]))
 
     def finite(self, handle: int) -> bool:
         return bool(np.isfinite(self.positions[handle]).all())
+
+    def nonfinite(self) -> np.ndarray:
+        """Frame indices of the cloths with a non-finite position (or normal, where they carry
+        normals): one pass over the frame, a reduceat only when something is wrong."""
+        lay = self.layout
+        if not len(lay.handles):
+            return np.zeros(0, np.int64)
+        bad = np.zeros(len(lay.handles), bool)
+        for data, mask in ((self.xyz, None), (self.nxyz if lay.normals.any() else None, lay.normals)):
+            if data is None:
+                continue
+            ok = np.isfinite(data)
+            if ok.all():
+                continue
+            rows_ok = ok.all(axis=1)
+            cloth_ok = np.logical_and.reduceat(rows_ok, lay.offsets[:-1])
+            bad |= ~cloth_ok if mask is None else (~cloth_ok & mask)
+        return np.flatnonzero(bad)
+
+    def hold(self) -> "Frame":
+        """Keep this frame's buffer from being reused until ``release``."""
+        if self._buffer is not None:
+            self._buffer.held = True
+        return self
+
+    def release(self) -> None:
+        if self._buffer is not None:
+            self._buffer.held = False
+            self._buffer = None
+
+
+class PendingFrame:
+    """A frame whose readback may still be in flight: ``wait()`` returns it."""
+
+    def __init__(self, frame: Frame, wait: Callable[[], None] | None = None,
+                 device_s: Callable[[], float | None] | None = None) -> None:
+        self._frame, self._wait, self._device_s = frame, wait, device_s
+
+    def wait(self) -> Frame:
+        if self._wait is not None:
+            self._wait()
+            self._wait = None
+        return self._frame
+
+    @property
+    def device_s(self) -> float | None:
+        """Device time from the start of the step to the end of the readback (after wait)."""
+        return self._device_s() if self._device_s is not None else None
 
 
 class World(ABC):
@@ -48,6 +219,8 @@ class World(ABC):
         self.cloths: dict[int, Cloth] = {}
         self._handles = itertools.count(1)
         self.steps = 0
+        self._layout: Layout | None = None
+        self._layout_version = 0
 
     # --- cloth lifecycle -------------------------------------------------------------------
     def add(self, fabric: Fabric, params: ClothParams, positions: np.ndarray | None = None) -> int:
@@ -59,12 +232,18 @@ class World(ABC):
         h = next(self._handles)
         cloth = Cloth(h, fabric, params)
         self.cloths[h] = cloth
-        self._add(cloth, positions)
+        try:
+            self._add(cloth, positions)
+        except BaseException:
+            del self.cloths[h]
+            raise
+        self._layout = None
         return h
 
     def remove(self, handle: int) -> None:
         cloth = self.cloths.pop(handle)
         self._remove(cloth)
+        self._layout = None
 
     def set_params(self, handle: int, params: ClothParams) -> None:
         params.validate()
@@ -72,6 +251,12 @@ class World(ABC):
         old = cloth.params
         cloth.params = params
         self._set_params(cloth, old)
+        if old.features.normals != params.features.normals:
+            self._layout = None
+
+    def prepare(self, fabric: Fabric, params: ClothParams) -> None:
+        """Build whatever a cloth of ``fabric`` and ``params`` will need (kernels) now, so that
+        adding it later does not. Touches no cloth: may run on another thread than the ticks."""
 
     def set_pin_targets(self, handle: int, indices: np.ndarray, targets: np.ndarray) -> None:
         """Where pinned vertices ``indices`` are at the end of the next step (interpolated
@@ -106,17 +291,39 @@ class World(ABC):
         pos = cloth.fabric.rest_positions if positions is None else np.asarray(positions, np.float64)
         self._reset(cloth, pos.reshape(-1, 3))
 
+    # --- frames ---------------------------------------------------------------------------
+    def layout(self) -> Layout:
+        """Where each cloth is in the frames from now on (cached until cloths change)."""
+        if self._layout is None:
+            cl = list(self.cloths.values())
+            handles = np.fromiter((c.handle for c in cl), np.int64, len(cl))
+            offsets = np.zeros(len(cl) + 1, np.int64)
+            np.cumsum(np.fromiter((c.fabric.n_vertices for c in cl), np.int64, len(cl)), out=offsets[1:])
+            normals = np.fromiter((c.params.features.normals for c in cl), bool, len(cl))
+            self._layout_version += 1
+            self._layout = Layout(self._layout_version, handles, offsets, normals,
+                                  {int(h): i for i, h in enumerate(handles.tolist())})
+            self._layout_changed(self._layout)
+        return self._layout
+
+    def _layout_changed(self, layout: Layout) -> None:
+        """Back-end hook: the frame layout was rebuilt."""
+
     # --- stepping ------------------------------------------------------------------------
     @abstractmethod
     def step(self, dt: float) -> None:
         """Advance every cloth by dt (may return before the device has finished)."""
 
     @abstractmethod
+    def fetch_async(self) -> PendingFrame:
+        """Start reading back the state after the last step; ``.wait()`` gives the Frame."""
+
     def fetch(self) -> Frame:
-        """Wait for the last step and return host copies of every cloth's state."""
+        """Wait for the last step and return the frame of every cloth's state."""
+        return self.fetch_async().wait()
 
     def positions(self, handle: int) -> np.ndarray:
-        return self.fetch().positions[handle]
+        return self.fetch().positions[handle].copy()
 
     def sync(self) -> None:
         """Wait until every step asked for so far has finished (for timing)."""
@@ -173,6 +380,7 @@ class ReferenceWorld(World):
         self.dtype = dtype
         self.states: dict[int, reference.ClothState] = {}
         self.device_name = f"numpy {np.dtype(dtype).name} ({mode})"
+        self._pool = FramePool()
 
     def _add(self, cloth, positions):
         st = reference.ClothState.initial(cloth.fabric, cloth.params, self.dtype, positions)
@@ -203,24 +411,28 @@ class ReferenceWorld(World):
             st.colliders_prev = st.colliders  # a collider not moved again stays where it is
         self.steps += 1
 
-    def fetch(self) -> Frame:
-        pos = {h: st.x.astype(np.float32) for h, st in self.states.items()}
-        nrm = {
-            h: st.normals.astype(np.float32)
-            for h, st in self.states.items()
-            if st.normals is not None and self.cloths[h].params.features.normals
-        }
-        return Frame(self.steps, pos, nrm)
+    def fetch_async(self) -> PendingFrame:
+        lay = self.layout()
+        n = lay.n_rows
+        want_nrm = bool(lay.normals.any())
+        buf = self._pool.acquire(n, want_nrm)
+        xyz, nxyz = buf.xyz[:n], (buf.nrm[:n] if want_nrm else None)
+        for i, h in enumerate(lay.handles.tolist()):  # the reference is per cloth anyway
+            st, sl = self.states[h], slice(int(lay.offsets[i]), int(lay.offsets[i + 1]))
+            xyz[sl] = st.x
+            if nxyz is not None and lay.normals[i] and st.normals is not None:
+                nxyz[sl] = st.normals
+        return PendingFrame(Frame(self.steps, lay, xyz, nxyz, buf))
 
     def state(self, handle: int) -> reference.ClothState:
         return self.states[handle]
 
 
-def make_world(solver: str = "workgroup", device: str | None = None, **kw) -> World:
-    if solver not in SOLVERS:
-        raise ValueError(f"unknown solver {solver!r}; choose from {SOLVERS}")
-    if solver == "reference":
-        return ReferenceWorld(**kw)
-    from .opencl.clworld import CLWorld  # OpenCL only when asked for
+def __getattr__(name: str):
+    """``make_world`` lives in drape.server.sim (this module must not import the OpenCL world,
+    which imports it); old imports of it from here still work."""
+    if name == "make_world":
+        from . import make_world
 
-    return CLWorld(strategy=solver, device=device, **kw)
+        return make_world
+    raise AttributeError(name)

@@ -10,6 +10,12 @@ Layout (see kernels/layout.h):
 
 Cloths are grouped by the kernels they need (feature set, and substeps or local-memory fit):
 one program per build-option set, one launch (or one batch sequence) per group.
+
+A frame is read back whole: one ``pack_rows`` launch gathers every cloth's positions (xyz,
+without the inverse mass) back to back in the layout's order into one device buffer, and one
+non-blocking copy brings it into a host buffer mapped from ``ALLOC_HOST_PTR`` memory (pinned
+where the driver does that), reused from tick to tick. ``fetch_async`` returns at once; its
+``wait`` waits on that copy's event only.
 """
 from __future__ import annotations
 
@@ -23,8 +29,8 @@ import pyopencl as cl
 from .device import Device, layout
 from ..fabric import Fabric
 from ..params import ClothParams, Features
-from ..reference import JACOBI_OMEGA
-from ..world import Cloth, Frame, World, inverse_masses
+from ..shared import JACOBI_OMEGA
+from ..world import Cloth, Frame, FramePool, Layout, PendingFrame, World, inverse_masses
 
 log = logging.getLogger(__name__)
 
@@ -240,9 +246,12 @@ class CLWorld(World):
         self._free_slots: list[int] = list(range(63, -1, -1))
         self._tables_dirty = True
         self.groups: dict[tuple, Group] = {}
-        self._host = [np.zeros((0, 4), np.float32), np.zeros((0, 4), np.float32)]
-        self._host_nrm = np.zeros((0, 4), np.float32)
-        self._flip = 0
+        self._pool = FramePool(self._host_array)
+        self._pinned: list[cl.Buffer] = []  # host buffers of the frames, alive as long as the world
+        self._pack_src = DevArray(q, np.int32, 1, 1024)  # frame row -> vertex of the buffers
+        self._packed = DevArray(q, np.float32, 3, 1024)
+        self._packed_nrm = DevArray(q, np.float32, 3, 1024)
+        self._step_marker: cl.Event | None = None
         self._pending_targets: list[tuple[np.ndarray, np.ndarray]] = []
         self._scatter_idx = DevArray(q, np.int32, 1, 1024)
         self._scatter_val = DevArray(q, np.float32, 4, 1024)
@@ -517,11 +526,27 @@ class CLWorld(World):
             )
         g.dirty = False
 
+    def prepare(self, fabric: Fabric, params: ClothParams) -> None:
+        """Build the kernels of the group such a cloth joins (Device.program is thread-safe and
+        builds without blocking the other threads' use of built kernels)."""
+        _, local = self._group_key(Cloth(0, fabric, params))
+        opts = self._options_for(params.features, local)
+        if self.solver == "workgroup":
+            names = ["wg_step"]
+        else:
+            names = ["cl_predict", "cl_finish", "cl_normals", "copy_positions",
+                     "cl_links" if self.solver == "coloured" else "jacobi_iter"]
+        for name in names:
+            self.dev.kernel(opts, name)
+
     def _options(self, g: Group, local: bool | None = None) -> list[str]:
-        use_local = g.use_local if local is None else local
+        return self._options_for(g.features, g.use_local if local is None else local)
+
+    def _options_for(self, features: Features, use_local: bool) -> list[str]:
+        g_features = features
         unroll = os.environ.get("DRAPE_LINK_UNROLL_LOCAL" if use_local else "DRAPE_LINK_UNROLL_GLOBAL")
         unroll = int(unroll) if unroll else (LINK_UNROLL_LOCAL if use_local else LINK_UNROLL_GLOBAL)
-        opts = [*g.features.build_options(), f"-DUSE_LOCAL={int(use_local)}", f"-DJACOBI_OMEGA={JACOBI_OMEGA}f",
+        opts = [*g_features.build_options(), f"-DUSE_LOCAL={int(use_local)}", f"-DJACOBI_OMEGA={JACOBI_OMEGA}f",
                 f"-DLINK_UNROLL={unroll}"]
         regs = os.environ.get("DRAPE_NV_MAXRREG", "64")
         if not use_local and self.dev.info.is_nvidia and regs != "0":
@@ -537,6 +562,7 @@ class CLWorld(World):
     def step(self, dt: float) -> None:
         self._flush()
         q = self.dev.queue
+        self._step_marker = cl.enqueue_marker(q)
         dt32 = np.float32(dt)
         for g in self.groups.values():
             opts = self._options(g)
@@ -619,32 +645,58 @@ class CLWorld(World):
         self._moved.clear()
         self._coll_dirty = True
 
-    def fetch(self) -> Frame:
-        q = self.dev.queue
-        hw = self.vert.high_water
-        self._flip ^= 1
-        host = self._host[self._flip]
-        if len(host) < hw:
-            host = self._host[self._flip] = np.zeros((self.vert.capacity, 4), np.float32)
-        if hw:
-            cl.enqueue_copy(q, host[:hw], self.pos.buf, is_blocking=False)
-        want_normals = any(c.params.features.normals for c in self.cloths.values())
-        if want_normals and hw:
-            if len(self._host_nrm) < hw:
-                self._host_nrm = np.zeros((self.vert.capacity, 4), np.float32)
-            cl.enqueue_copy(q, self._host_nrm[:hw], self.nrm.buf, is_blocking=False)
-        q.finish()
-        pos, nrm = {}, {}
-        for h, c in self.cloths.items():
-            rec = self.rec[h]
-            sl = slice(rec.vbase, rec.vbase + c.fabric.n_vertices)
-            pos[h] = host[sl, :3]
-            if c.params.features.normals:
-                nrm[h] = self._host_nrm[sl, :3].copy()
-        return Frame(self.steps, pos, nrm)
+    # --- frames ---------------------------------------------------------------------------
+    def _host_array(self, rows: int) -> np.ndarray:
+        """A (rows, 3) float32 host array in ALLOC_HOST_PTR memory, mapped once for good."""
+        try:
+            buf = cl.Buffer(self.dev.ctx, MF.READ_WRITE | MF.ALLOC_HOST_PTR, rows * 12)
+            arr, _ = cl.enqueue_map_buffer(self.dev.queue, buf, cl.map_flags.READ | cl.map_flags.WRITE, 0,
+                                           (rows, 3), np.float32, is_blocking=True)
+            self._pinned.append(buf)
+            return arr
+        except cl.Error as e:  # a driver without mappable host memory: plain numpy
+            log.debug("no mapped host buffer (%s): plain host memory", e)
+            return np.zeros((rows, 3), np.float32)
 
-    def positions(self, handle: int) -> np.ndarray:
-        return self.fetch().positions[handle].copy()
+    def _layout_changed(self, layout: Layout) -> None:
+        n = layout.n_rows
+        counts = np.diff(layout.offsets)
+        vbase = np.fromiter((self.rec[h].vbase for h in layout.handles.tolist()), np.int64, len(counts))
+        src = (np.repeat(vbase - layout.offsets[:-1], counts) + np.arange(n)).astype(np.int32)
+        for arr in (self._pack_src, self._packed, self._packed_nrm):
+            if arr.capacity < n:
+                arr.resize(2 * n)
+        self._pack_src.write(0, src)
+
+    def _pack(self, n: int, src: DevArray, out: DevArray) -> None:
+        k = self.dev.kernel(self._base_options, "pack_rows")
+        k(self.dev.queue, (-(-n // 64) * 64,), (64,), np.int32(n), self._pack_src.buf, src.buf, out.buf)
+
+    def fetch_async(self) -> PendingFrame:
+        lay = self.layout()
+        n = lay.n_rows
+        want_nrm = bool(lay.normals.any())
+        buf = self._pool.acquire(n, want_nrm)
+        xyz, nxyz = buf.xyz[:n], (buf.nrm[:n] if want_nrm else None)
+        frame = Frame(self.steps, lay, xyz, nxyz, buf)
+        if not n:
+            return PendingFrame(frame)
+        q = self.dev.queue
+        self._pack(n, self.pos, self._packed)
+        if want_nrm:
+            self._pack(n, self.nrm, self._packed_nrm)
+        ev = cl.enqueue_copy(q, xyz, self._packed.buf, is_blocking=False)
+        if nxyz is not None:
+            ev = cl.enqueue_copy(q, nxyz, self._packed_nrm.buf, is_blocking=False)
+        marker = self._step_marker
+
+        def device_s() -> float | None:
+            try:
+                return 1e-9 * (ev.profile.end - marker.profile.start) if marker is not None else None
+            except Exception:  # no profiling on this queue or device
+                return None
+
+        return PendingFrame(frame, ev.wait, device_s)
 
     def sync(self) -> None:
         self.dev.queue.finish()

@@ -119,9 +119,13 @@ class Device:
     def __init__(self, spec: str | None = None) -> None:
         self.device = choose_device(spec)
         self.ctx = cl.Context([self.device])
-        self.queue = cl.CommandQueue(self.ctx)
+        try:  # event timestamps give the device time of a tick (the service's cost model)
+            self.queue = cl.CommandQueue(self.ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
+        except cl.Error:
+            self.queue = cl.CommandQueue(self.ctx)
         self._programs: dict[tuple[str, ...], cl.Program] = {}
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # guards the caches, never held while a program builds
+        self._building: dict[tuple[str, ...], threading.Lock] = {}
         d = self.device
         self.info = DeviceInfo(
             name=describe(d),
@@ -135,15 +139,25 @@ class Device:
                  self.info.max_work_group)
 
     def program(self, options: list[str], source: str = "cloth.cl") -> cl.Program:
+        """The program of ``source`` built with ``options``, built once. Thread-safe: a build
+        holds only its own key's lock, so other threads keep using built kernels meanwhile."""
         key = (source, *sorted(options))
         with self._lock:
             prg = self._programs.get(key)
+            if prg is not None:
+                return prg
+            building = self._building.setdefault(key, threading.Lock())
+        with building:
+            with self._lock:
+                prg = self._programs.get(key)
             if prg is None:
                 text = (kernel_dir() / source).read_text()
                 opts = [*options, *os.environ.get("DRAPE_CL_FLAGS", "").split(), "-I", str(kernel_dir())]
                 log.debug("building %s with %s", source, " ".join(options))
                 prg = cl.Program(self.ctx, text).build(options=opts)
-                self._programs[key] = prg
+                with self._lock:
+                    self._programs[key] = prg
+                    self._building.pop(key, None)
             return prg
 
     def kernel(self, options: list[str], name: str) -> cl.Kernel:

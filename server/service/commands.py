@@ -1,0 +1,189 @@
+"""Commands from the Zenoh callbacks (and the cook worker) to the tick thread, and the bounded
+per-tick intake that carries them.
+
+Two lanes, both bounded by ``max_pending_requests`` (a full lane answers ``busy``, counted in
+the stats' errors):
+
+- **structural** commands (add, remove, call), first in first out, at most
+  ``MAX_STRUCTURAL_PER_TICK`` applied per tick;
+- **controls**, coalesced per cloth: a control for a cloth that already has one pending this
+  tick is merged into it (latest value wins field by field, pin targets by index, material by
+  key, reset if either asked), so however many controls a cloth gets in one tick the World sees
+  one change. Every request still gets its reply (the tick from which the merged change holds);
+  a batch control's items join the same per-cloth slots and the batch is answered once all of
+  its items are applied. The lane holds at most one slot per cloth and at most
+  ``max_pending_requests`` waiting replies.
+"""
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from dataclasses import dataclass, field, replace
+from typing import Any, Callable
+
+import numpy as np
+import zenoh
+
+from drape.client import protocol as P
+
+from ..sim.world import World
+from .registry import ClothRecord
+from .replies import Reply, send, undeclare  # noqa: F401 (re-exported)
+
+log = logging.getLogger(__name__)
+
+MAX_STRUCTURAL_PER_TICK = 256
+
+
+@dataclass(eq=False)
+class Add:
+    record: ClothRecord
+    params: Any  # ClothParams: handed to the World, which owns them from then on
+    colliders: np.ndarray | None
+    query: zenoh.Query
+    rid: int
+
+
+@dataclass(eq=False)
+class Remove:
+    record: ClothRecord
+    query: zenoh.Query
+    rid: int
+
+
+@dataclass(eq=False)
+class Call:
+    fn: Callable[[World], Any]
+    done: threading.Event = field(default_factory=threading.Event)
+    result: Any = None
+    error: BaseException | None = None
+
+
+@dataclass(eq=False)
+class BatchControl:
+    """A batch control's reply, filled item by item (items refused on arrival already are)."""
+
+    query: zenoh.Query
+    rid: int
+    results: list[P.BatchItemResult | None]
+    pending: int = 0  # items still to apply
+
+
+@dataclass(eq=False)
+class ControlSlot:
+    """Every control for one cloth this tick, merged; who waits for the outcome."""
+
+    record: ClothRecord
+    req: P.ControlRequest
+    colliders: np.ndarray | None
+    waiters: list[tuple[Any, int]] = field(default_factory=list)  # (query, rid) or (BatchControl, item index)
+    merged: int = 1  # requests in this slot
+
+
+def merge_controls(a: P.ControlRequest, b: P.ControlRequest) -> P.ControlRequest:
+    """``a`` then ``b`` as one control: b's fields win where given."""
+    pins = a.pins
+    if b.pins is not None and len(b.pins.indices):
+        if pins is None or not len(pins.indices):
+            pins = b.pins
+        else:
+            idx = np.concatenate([pins.indices, b.pins.indices])
+            tgt = np.concatenate([np.asarray(pins.targets).reshape(-1, 3), np.asarray(b.pins.targets).reshape(-1, 3)])
+            rev = idx[::-1]
+            _, first = np.unique(rev, return_index=True)  # last occurrence of each index wins
+            keep = np.sort(len(idx) - 1 - first)
+            pins = replace(b.pins, indices=idx[keep], targets=tgt[keep])
+    changes: dict[str, Any] = {"pins": pins, "material": {**a.material, **b.material}, "reset": a.reset or b.reset,
+                               "rid": b.rid}
+    for name in ("colliders", "gravity", "wind", "iterations", "substeps", "chebyshev_rho", "quality"):
+        v = getattr(b, name)
+        changes[name] = v if v is not None else getattr(a, name)
+    if a.state is not None or b.state is not None:
+        sa, sb = a.state or P.StateOptions(), b.state or P.StateOptions()
+        changes["state"] = replace(sa, **{k: v for k, v in vars(sb).items() if v is not None})
+    if hasattr(b, "features_add"):
+        add_a, rem_a = set(a.features_add or ()), set(a.features_remove or ())
+        add_b, rem_b = set(b.features_add or ()), set(b.features_remove or ())
+        if b.features is not None:
+            changes.update(features=b.features, features_add=b.features_add, features_remove=b.features_remove)
+        else:
+            add, rem = (add_a - rem_b) | add_b, (rem_a - add_b) | rem_b
+            changes.update(features=a.features, features_add=tuple(sorted(add)) or None,
+                           features_remove=tuple(sorted(rem)) or None)
+    else:
+        changes["features"] = b.features if b.features is not None else a.features
+    return replace(b, **changes)
+
+
+class Intake:
+    """The bounded command intake of the tick thread (thread-safe)."""
+
+    def __init__(self, max_pending: int) -> None:
+        self.max_pending = max_pending
+        self._structural: queue.Queue = queue.Queue(max_pending)
+        self._lock = threading.Lock()
+        self._slots: dict[str, ControlSlot] = {}
+        self._waiting = 0
+        self.coalesced = 0  # controls merged into a pending one (cumulative)
+
+    # --- producers ---------------------------------------------------------------------------
+    def put(self, cmd: Any, rid: int = 0) -> None:
+        """Queue a structural command, or raise Busy."""
+        try:
+            self._structural.put_nowait(cmd)
+        except queue.Full:
+            raise P.Busy(P.ERR_BUSY, "server request queue is full, retry later", rid) from None
+
+    def put_call(self, cmd: Call, timeout: float) -> None:
+        self._structural.put(cmd, timeout=timeout)
+
+    def put_controls(self, items: list[tuple[ClothRecord, P.ControlRequest, np.ndarray | None, Any, int]],
+                     rid: int = 0) -> None:
+        """Coalesce controls ``(record, request, packed colliders, waiter, waiter index or rid)``
+        into the per-cloth slots, all or none; raises Busy when the waiting replies would exceed
+        the bound."""
+        with self._lock:
+            if self._waiting + len(items) > self.max_pending:
+                raise P.Busy(P.ERR_BUSY, "server request queue is full, retry later", rid)
+            self._waiting += len(items)
+            for rec, req, packed, waiter, tag in items:
+                slot = self._slots.get(rec.id)
+                if slot is None:
+                    self._slots[rec.id] = ControlSlot(rec, req, packed, [(waiter, tag)])
+                    continue
+                slot.req = merge_controls(slot.req, req)
+                if req.colliders is not None:
+                    slot.colliders = packed
+                slot.waiters.append((waiter, tag))
+                slot.merged += 1
+                self.coalesced += 1
+
+    # --- the tick thread -----------------------------------------------------------------------
+    def take_structural(self) -> list[Any]:
+        out = []
+        for _ in range(MAX_STRUCTURAL_PER_TICK):
+            try:
+                out.append(self._structural.get_nowait())
+            except queue.Empty:
+                break
+        return out
+
+    def take_controls(self) -> list[ControlSlot]:
+        with self._lock:
+            if not self._slots:
+                return []
+            slots = list(self._slots.values())
+            self._slots.clear()
+            self._waiting = 0
+            return slots
+
+    def drain(self) -> tuple[list[Any], list[ControlSlot]]:
+        """Everything still queued (shutdown)."""
+        out = []
+        while True:
+            try:
+                out.append(self._structural.get_nowait())
+            except queue.Empty:
+                break
+        return out, self.take_controls()

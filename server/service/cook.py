@@ -1,0 +1,169 @@
+"""The cook worker: turns accepted submissions into what the tick thread adds, off the tick
+path. For each submission: the fabric (from the one fabric cache below, cooked when new), the
+cloth parameters and colliders, and the kernels the cloth needs, built now (``World.prepare``)
+so that the first cloth with a new feature combination does not compile on the tick path.
+
+:class:`FabricStore` is the service's only fabric cache: fabrics by a digest of the request's
+geometry, shared by every cloth of the same geometry (so the World's device arena holds each
+once), reference counted, and the last ``RETAIN`` unused ones kept for resubmissions.
+"""
+from __future__ import annotations
+
+import hashlib
+import logging
+import queue
+import threading
+from collections import OrderedDict
+from typing import Callable
+
+import numpy as np
+
+from drape.client import protocol as P
+
+from ..sim.fabric import Fabric, cook_grid, cook_mesh
+from ..sim.params import LinkOptions
+from ..sim.world import World
+from .commands import Add, Intake
+from .config import ServerConfig
+from .registry import Registry
+from .replies import Replies, send
+from .requests import pack, params_from_submit, with_preset
+
+log = logging.getLogger(__name__)
+
+RETAIN = 64  # unused fabrics kept for resubmission
+
+
+class FabricStore:
+    """Cooked fabrics by request digest, reference counted (thread-safe)."""
+
+    def __init__(self, retain: int = RETAIN) -> None:
+        self._lock = threading.Lock()
+        self._live: dict[str, tuple[Fabric, int]] = {}
+        self._spare: OrderedDict[str, Fabric] = OrderedDict()
+        self._digest: dict[int, str] = {}  # id(fabric) -> digest
+        self.retain = retain
+
+    @staticmethod
+    def digest(req: P.SubmitRequest, links: LinkOptions, pinned: np.ndarray) -> str:
+        h = hashlib.sha1()
+        h.update(repr((req.grid, links)).encode())
+        h.update(pinned.tobytes())
+        if req.mesh is not None:
+            h.update(req.mesh.vertices.tobytes())
+            h.update(req.mesh.triangles.tobytes())
+        return h.hexdigest()
+
+    def acquire(self, key: str, cook: Callable[[], Fabric]) -> Fabric:
+        with self._lock:
+            have = self._live.get(key)
+            if have is not None:
+                self._live[key] = (have[0], have[1] + 1)
+                return have[0]
+            fab = self._spare.pop(key, None)
+        if fab is None:
+            fab = cook()  # outside the lock: cooking a big mesh takes a while
+        with self._lock:
+            have = self._live.get(key)
+            if have is not None:  # cooked twice at once: keep the first
+                self._live[key] = (have[0], have[1] + 1)
+                return have[0]
+            self._live[key] = (fab, 1)
+            self._digest[id(fab)] = key
+            return fab
+
+    def release(self, fabric: Fabric) -> None:
+        with self._lock:
+            key = self._digest.get(id(fabric))
+            have = self._live.get(key) if key is not None else None
+            if have is None:
+                return
+            if have[1] > 1:
+                self._live[key] = (have[0], have[1] - 1)  # type: ignore[index]
+                return
+            del self._live[key]  # type: ignore[arg-type]
+            del self._digest[id(fabric)]
+            self._spare[key] = fabric  # type: ignore[index]
+            while len(self._spare) > self.retain:
+                self._spare.popitem(last=False)
+
+    def __len__(self) -> int:
+        return len(self._live)
+
+
+def cook_fabric(req: P.SubmitRequest, links: LinkOptions, pinned: np.ndarray) -> Fabric:
+    if req.grid is not None:
+        g = req.grid
+        return cook_grid(g.cols, g.rows, g.width, g.height, links, pinned.tolist(), g.orientation, g.origin)
+    assert req.mesh is not None
+    return cook_mesh(req.mesh.vertices.astype(np.float64), req.mesh.triangles.astype(np.int64), links,
+                     pinned.tolist())
+
+
+class CookWorker:
+    """The cook thread: ``queue`` holds (record, request, query) of accepted submissions."""
+
+    def __init__(self, config: ServerConfig, registry: Registry, replies: Replies, intake: Intake,
+                 world: Callable[[], World | None], stopping: Callable[[], bool]) -> None:
+        self.config, self.registry, self.replies, self.intake = config, registry, replies, intake
+        self.queue: queue.Queue = queue.Queue(config.max_pending_requests)
+        self.fabrics = FabricStore()
+        self._world, self._stopping = world, stopping
+
+    def run(self) -> None:
+        while True:
+            item = self.queue.get()
+            if item is None:
+                break
+            self._one(*item)
+        while True:  # drain what is left
+            try:
+                item = self.queue.get_nowait()
+            except queue.Empty:
+                break
+            if item is not None:
+                rec, req, query = item
+                self.registry.unreserve(rec)
+                self.replies.send_error(query, P.ERR_BUSY, "server is shutting down", req.rid)
+
+    def _one(self, rec, req: P.SubmitRequest, query) -> None:
+        if self._stopping():
+            self.registry.unreserve(rec)
+            self.replies.send_error(query, P.ERR_BUSY, "server is shutting down", req.rid)
+            return
+        try:
+            links = LinkOptions(**vars(req.links)) if req.links is not None else LinkOptions()
+            pinned = np.unique(req.pinned.astype(np.int64))
+            fabric = self.fabrics.acquire(FabricStore.digest(req, links, pinned),
+                                          lambda: cook_fabric(req, links, pinned))
+        except ValueError as e:
+            self.registry.unreserve(rec)
+            self.replies.send_error(query, P.ERR_INVALID_VALUE, f"cannot build the cloth: {e}", req.rid)
+            return
+        except Exception as e:
+            log.exception("cooking failed")
+            self.registry.unreserve(rec)
+            self.replies.send_error(query, P.ERR_INTERNAL, f"cooking failed: {type(e).__name__}", req.rid)
+            return
+        try:
+            params = params_from_submit(req)
+            if req.quality is not None:
+                params = with_preset(self.config, params, req.quality, req.rid)
+                rec.quality_wanted = rec.quality = req.quality
+            packed = pack(req.colliders, req.rid) if req.colliders else None
+            world = self._world()
+            if world is not None:
+                world.prepare(fabric, params)  # kernels built here, not on the tick path
+            rec.fabric = fabric
+            self.intake.put(Add(rec, params, packed, query, req.rid), req.rid)
+        except P.DrapeError as e:
+            rec.fabric = None
+            self.fabrics.release(fabric)
+            self.registry.unreserve(rec)
+            send(self.replies.error(query, e.code, e.message, req.rid))
+        except Exception as e:
+            log.exception("preparing cloth %s failed", rec.id)
+            rec.fabric = None
+            self.fabrics.release(fabric)
+            self.registry.unreserve(rec)
+            self.replies.send_error(query, P.ERR_INTERNAL, f"preparing the cloth failed: {type(e).__name__}", req.rid)

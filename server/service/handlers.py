@@ -1,0 +1,161 @@
+"""The Zenoh queryable callbacks: decode and validate every request with drape.client.protocol,
+check ownership and quotas against the registry, admission against the cost model, then hand
+the work on (submissions to the cook worker, everything else to the tick thread's intake). A bad
+request gets its error reply right here; nothing else notices it. A batch control is validated
+item by item: a bad item gets its own error in the reply, the others go ahead.
+"""
+from __future__ import annotations
+
+import logging
+import queue
+import secrets
+from collections import Counter
+from typing import Any, Callable
+
+import numpy as np
+import zenoh
+
+from drape.client import protocol as P
+
+from .admission import ERR_OVERLOADED, Admission
+from .commands import BatchControl, Intake, Remove
+from .config import ServerConfig
+from .registry import ClothRecord, Registry
+from .replies import Replies, Reply, send
+from .requests import pack
+
+log = logging.getLogger(__name__)
+
+
+class Handlers:
+    def __init__(self, config: ServerConfig, keys: P.Keys, registry: Registry, replies: Replies, intake: Intake,
+                 cook_q: queue.Queue, admission: Admission, tick: Callable[[], int], info: Callable[[], dict],
+                 stopping: Callable[[], bool]) -> None:
+        self.config, self.keys, self.registry, self.replies = config, keys, registry, replies
+        self.intake, self.cook_q, self.admission = intake, cook_q, admission
+        self.limits = config.limits()
+        self._tick, self._info, self._stopping = tick, info, stopping
+
+    def endpoints(self) -> list[tuple[str, Callable[[zenoh.Query], None]]]:
+        return [(name, self._guard(name, cb)) for name, cb in (
+            ("submit", self.on_submit), ("control", self.on_control), ("control_batch", self.on_control_batch),
+            ("remove", self.on_remove), ("info", self.on_info))]
+
+    def _guard(self, name: str, cb: Callable[[zenoh.Query, bytes], None]) -> Callable[[zenoh.Query], None]:
+        reg = self.registry
+
+        def handler(query: zenoh.Query) -> None:
+            with reg.lock:
+                reg.requests[name] += 1
+            rid: int | None = 0
+            try:
+                if self._stopping():
+                    raise P.Busy(P.ERR_BUSY, "server is shutting down")
+                payload = query.payload.to_bytes() if query.payload is not None else b""
+                cb(query, payload)
+            except P.DrapeError as e:
+                rid = e.rid
+                if e.code == ERR_OVERLOADED:
+                    reg.count("overload_refusals")
+                self.replies.send_error(query, e.code, e.message, rid)
+            except Exception as e:  # never let a request kill a Zenoh thread
+                log.exception("internal error handling %s", name)
+                self.replies.send_error(query, P.ERR_INTERNAL, f"internal error: {type(e).__name__}", rid)
+
+        return handler
+
+    # --- submit ------------------------------------------------------------------------------------
+    def on_submit(self, query: zenoh.Query, payload: bytes) -> None:
+        req = P.decode_submit(payload, self.limits)
+        rec = ClothRecord(
+            id=secrets.token_hex(8),
+            client=req.client,
+            token=secrets.token_hex(16),
+            key="",
+            n_vertices=req.n_vertices,
+            encoding=(req.state.encoding if req.state and req.state.encoding else "float32"),
+        )
+        rec.key = self.keys.state(rec.id)
+        if req.state is not None and req.state.bundle:
+            rec.bundle_key = self.keys.bundle(req.client)
+        with self.registry.lock:
+            before = self.registry.vertices
+        self.admission.check(before, rec.n_vertices, req.rid)
+        self.registry.reserve(rec, req.rid)
+        try:
+            self.cook_q.put_nowait((rec, req, query))
+        except queue.Full:
+            self.registry.unreserve(rec)
+            raise P.Busy(P.ERR_BUSY, "server request queue is full, retry later", req.rid) from None
+
+    # --- controls ----------------------------------------------------------------------------------
+    def check_control(self, req: P.ControlRequest, client: str | None = None) -> tuple[ClothRecord, np.ndarray | None]:
+        """Ownership (and, in a batch, that the cloth is the batch client's), pin indices and
+        colliders of one control; raises the DrapeError that refuses it."""
+        rec = self.registry.owned(req.cloth, req.token, req.rid)
+        assert rec.fabric is not None
+        if client is not None and rec.client != client:
+            raise P.Forbidden(P.ERR_FORBIDDEN, f"cloth {rec.id!r} is not a cloth of client {client!r}", req.rid)
+        if req.pins is not None and len(req.pins.indices):
+            idx = req.pins.indices
+            top = int(idx.max())
+            if top >= rec.n_vertices:
+                raise P.ProtocolError(P.ERR_INDEX_OUT_OF_RANGE, f"'pins.indices' refers to vertex {top} but cloth "
+                                      f"{rec.id!r} has {rec.n_vertices} vertices", req.rid)
+            free = idx[~rec.fabric.pinned[idx]]
+            if len(free):
+                raise P.ProtocolError(P.ERR_INVALID_VALUE, f"vertex {int(free[0])} of cloth {rec.id!r} is not pinned; "
+                                      "only pinned vertices take targets", req.rid)
+        packed = pack(req.colliders, req.rid) if req.colliders is not None else None
+        return rec, packed
+
+    def on_control(self, query: zenoh.Query, payload: bytes) -> None:
+        req = P.decode_control(payload, self.limits)
+        rec, packed = self.check_control(req)
+        self.intake.put_controls([(rec, req, packed, query, req.rid)], req.rid)
+
+    def on_control_batch(self, query: zenoh.Query, payload: bytes) -> None:
+        batch = P.decode_control_batch(payload, self.limits)  # the envelope: all or nothing
+        results: list[P.BatchItemResult | None] = [None] * len(batch.items)
+        waiter = BatchControl(query, batch.rid, results)
+        todo: list[tuple[ClothRecord, P.ControlRequest, np.ndarray | None, Any, int]] = []
+        failed: Counter[str] = Counter()
+        for i, item in enumerate(batch.items):
+            try:
+                if isinstance(item, P.ProtocolError):
+                    raise item
+                rec, packed = self.check_control(item, batch.client)
+            except P.DrapeError as e:
+                results[i] = P.BatchItemResult(None, e.code, e.message)
+                failed[e.code] += 1
+                continue
+            todo.append((rec, item, packed, waiter, i))
+        reg = self.registry
+        with reg.lock:
+            reg.errors.update(failed)
+            reg.counters["batch_items"] += len(batch.items)
+        if failed:
+            log.debug("batch control of client %s: %d of %d items refused: %s", batch.client, sum(failed.values()),
+                      len(batch.items), dict(failed))
+        if not todo:  # nothing to apply: answer now
+            rep = P.ControlBatchReply(self._tick() + 1, results, batch.rid)  # type: ignore[arg-type]
+            send(Reply(query, P.encode_control_batch_reply(rep)))
+            return
+        waiter.pending = len(todo)
+        self.intake.put_controls(todo, batch.rid)
+
+    # --- remove, info, liveliness ----------------------------------------------------------------------
+    def on_remove(self, query: zenoh.Query, payload: bytes) -> None:
+        req = P.decode_remove(payload, self.limits)
+        rec = self.registry.owned(req.cloth, req.token, req.rid)
+        self.intake.put(Remove(rec, query, req.rid), req.rid)
+
+    def on_info(self, query: zenoh.Query, payload: bytes) -> None:
+        req = P.decode_info(payload, self.limits)
+        send(Reply(query, P.encode_ok(req.rid, **self._info())))
+
+    def on_client_liveliness(self, sample: zenoh.Sample) -> None:
+        client = self.keys.last_chunk(str(sample.key_expr))
+        alive = sample.kind == zenoh.SampleKind.PUT
+        self.registry.client_alive(client, alive)
+        log.debug("client %s %s", client, "alive" if alive else "gone")

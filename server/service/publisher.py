@@ -1,0 +1,258 @@
+"""The publisher thread: everything sent for one tick, in order: the replies of the commands
+applied before it, the states (encoded by drape.server.service.statecodec straight from the
+frame's contiguous positions, each cloth on its own key or, for cloths submitted with
+``state.bundle``, one bundle per client), the undeclarations of removed cloths' publishers, the
+replies sent after it (removes) and the periodic stats.
+
+Per tick it works per *publication* (a state or a bundle), never per live cloth: the
+:class:`Roster` (ids, keys, encodings, normals, singles and bundle groups as arrays in the
+frame's order) is built by the tick thread only when cloths come, go or change how they are
+published. States or bundles whose key has no subscriber are not encoded (counted
+``unwatched``). A frame the publisher had not taken when the next one was ready is dropped and
+its replies carried over (counted ``skipped_frames`` by the tick thread): the tick thread never
+waits for the network.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import zenoh
+
+from drape.client import protocol as P
+
+from ..sim.world import Frame
+from .config import ServerConfig
+from .registry import Registry
+from .replies import Reply, send, undeclare
+from .statecodec import FrameEncoder
+from .telemetry import PhaseTimer
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(eq=False)
+class Roster:
+    """How each cloth of a frame layout is published (frame order)."""
+
+    version: tuple[int, int]  # (layout version, publication changes)
+    ids: list[str]
+    keys: list[str]
+    encodings: list[int]  # protocol ids
+    normals: np.ndarray  # (k,) bool
+    singles: np.ndarray  # frame indices published on their own key
+    bundles: list[tuple[str, np.ndarray]]  # (bundle key, frame indices)
+
+
+@dataclass(eq=False)
+class Job:
+    tick: int = 0
+    time_ns: int = 0
+    frame: Frame | None = None  # held until published (or dropped)
+    roster: Roster | None = None
+    flags: np.ndarray | None = None  # (k,) per cloth state flags (FLAG_RESET)
+    before: list[Reply] = field(default_factory=list)
+    removed: list[str] = field(default_factory=list)
+    after: list[Reply] = field(default_factory=list)
+    stats: bytes | None = None
+
+    def absorb(self, older: "Job") -> None:
+        """Coalesce: keep this job's frame, every reply and removal of the older one first."""
+        self.before = older.before + self.before
+        self.removed = older.removed + self.removed
+        self.after = older.after + self.after
+        if self.stats is None:
+            self.stats = older.stats
+        if (older.flags is not None and self.flags is not None and older.roster is not None
+                and self.roster is not None and older.roster.version == self.roster.version):
+            self.flags |= older.flags  # a reset flag is not lost with its frame
+        if older.frame is not None:
+            older.frame.release()
+            older.frame = None
+
+
+class Mailbox:
+    """A one-slot hand-off from the tick thread to the publisher that never blocks the producer."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._job: Job | None = None
+        self._closed = False
+
+    def put(self, job: Job) -> bool:
+        """Hand over a job; True when it replaced one the publisher had not taken yet."""
+        with self._cond:
+            coalesced = self._job is not None
+            if coalesced:
+                job.absorb(self._job)  # type: ignore[arg-type]
+            self._job = job
+            self._cond.notify()
+            return coalesced
+
+    def take(self) -> Job | None:
+        with self._cond:
+            while self._job is None and not self._closed:
+                self._cond.wait()
+            job, self._job = self._job, None
+            return job
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+
+class Publisher:
+    def __init__(self, config: ServerConfig, keys: P.Keys, registry: Registry, timers: dict[str, PhaseTimer]) -> None:
+        self.config, self.keys, self.registry, self.timers = config, keys, registry, timers
+        self.mailbox = Mailbox()
+        self.session: zenoh.Session | None = None
+        self.stats_pub: zenoh.Publisher | None = None
+        self._pubs: dict[str, tuple[zenoh.Publisher, bool]] = {}  # per cloth id
+        self._bundle_pubs: dict[str, tuple[zenoh.Publisher, bool]] = {}  # per bundle key
+        self._buffers: dict[str, bytearray] = {}  # payload buffers reused per key
+        self._encoder = FrameEncoder()
+        self._roster_version: tuple[int, int] | None = None
+
+    def run(self) -> None:
+        while True:
+            job = self.mailbox.take()
+            if job is None:
+                break
+            try:
+                self.publish(job)
+            except Exception:
+                log.exception("publishing tick %d failed", job.tick)
+                self.registry.count("publish_errors")
+            finally:
+                if job.frame is not None:
+                    job.frame.release()
+
+    def close(self) -> None:
+        for pub, _ in list(self._pubs.values()) + list(self._bundle_pubs.values()):
+            undeclare(pub)
+        self._pubs.clear()
+        self._bundle_pubs.clear()
+        if self.stats_pub is not None:
+            undeclare(self.stats_pub)
+            self.stats_pub = None
+
+    def _publisher(self, store: dict[str, tuple[zenoh.Publisher, bool]], ident: str, key: str,
+                   size: int) -> zenoh.Publisher:
+        """The publisher of ``key``, re-declared when the congestion control its payload size
+        calls for changes (``auto``)."""
+        mode = self.config.state_congestion
+        block = mode == "block" or (mode == "auto" and size > self.config.drop_max_bytes)
+        have = store.get(ident)
+        if have is not None and have[1] == block:
+            return have[0]
+        if have is not None:
+            undeclare(have[0])
+        assert self.session is not None
+        cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        pub = self.session.declare_publisher(key, congestion_control=cc)
+        store[ident] = (pub, block)
+        return pub
+
+    def _buffer(self, key: str, size: int) -> bytearray:
+        buf = self._buffers.get(key)
+        if buf is None or len(buf) != size:
+            buf = self._buffers[key] = bytearray(size)
+        return buf
+
+    def publish(self, job: Job) -> None:
+        for r in job.before:
+            send(r)
+        if job.frame is not None and job.roster is not None and job.roster.ids:
+            self._publish_states(job)
+        for cid in job.removed:
+            have = self._pubs.pop(cid, None)
+            if have is not None:
+                undeclare(have[0])
+                self._buffers.pop(self.keys.state(cid), None)
+        if job.roster is not None and job.roster.version != self._roster_version:
+            self._roster_version = job.roster.version
+            live = {k for k, _ in job.roster.bundles}
+            for bkey in [k for k in self._bundle_pubs if k not in live]:  # the client has no bundled cloth left
+                undeclare(self._bundle_pubs.pop(bkey)[0])
+                self._buffers.pop(bkey, None)
+        for r in job.after:
+            send(r)
+        if job.stats is not None and self.stats_pub is not None:
+            self.stats_pub.put(job.stats)
+
+    def _publish_states(self, job: Job) -> None:
+        t0 = time.perf_counter()
+        enc, ro, frame = self._encoder, job.roster, job.frame
+        assert ro is not None and frame is not None and job.flags is not None
+        off = frame.offsets
+        nxyz = frame.nxyz
+        flags = job.flags.tolist()
+
+        def normals(i: int) -> np.ndarray | None:
+            return nxyz[off[i]:off[i + 1]] if nxyz is not None and ro.normals[i] else None
+
+        enc.begin(job.tick, job.time_ns, frame.xyz, off)
+        singles: list[tuple[int, zenoh.Publisher, int]] = []
+        unwatched = errors = 0
+        for i in ro.singles.tolist():
+            try:
+                size = enc.state_size(i, ro.encodings[i], bool(ro.normals[i]))
+                pub = self._publisher(self._pubs, ro.ids[i], ro.keys[i], size)
+                if pub.matching_status.matching:
+                    singles.append((i, pub, size))
+                else:  # nobody subscribed: skip the work
+                    unwatched += 1
+            except Exception as e:
+                errors += 1
+                log.warning("publishing cloth %s at tick %d failed: %s", ro.ids[i], job.tick, e)
+        bundles: list[tuple[str, list[int], zenoh.Publisher, int]] = []
+        for bkey, idx_arr in ro.bundles:
+            idx = idx_arr.tolist()
+            try:
+                size = enc.bundle_size([(ro.ids[i], i, ro.encodings[i], bool(ro.normals[i])) for i in idx])
+                pub = self._publisher(self._bundle_pubs, bkey, bkey, size)
+                if pub.matching_status.matching:
+                    bundles.append((bkey, idx, pub, size))
+                else:
+                    unwatched += len(idx)
+            except Exception as e:
+                errors += len(idx)
+                log.warning("publishing bundle %s at tick %d failed: %s", bkey, job.tick, e)
+        selected = [i for i, _, _ in singles] + [i for _, idx, _, _ in bundles for i in idx]
+        enc.prepare(selected, ro.encodings)
+        enc_t, pub_t = time.perf_counter() - t0, 0.0
+        published = n_bundles = 0
+        for i, pub, size in singles:
+            try:
+                a = time.perf_counter()
+                buf = self._buffer(ro.keys[i], size)
+                enc.write_state(buf, 0, i, ro.encodings[i], flags[i], normals(i))
+                b = time.perf_counter()
+                pub.put(buf)
+                enc_t += b - a
+                pub_t += time.perf_counter() - b
+                published += 1
+            except Exception as e:
+                errors += 1
+                log.warning("publishing cloth %s at tick %d failed: %s", ro.ids[i], job.tick, e)
+        for bkey, idx, pub, size in bundles:
+            try:
+                a = time.perf_counter()
+                buf = self._buffer(bkey, size)
+                enc.write_bundle(buf, [(ro.ids[i], i, ro.encodings[i], flags[i], normals(i)) for i in idx])
+                b = time.perf_counter()
+                pub.put(buf)
+                enc_t += b - a
+                pub_t += time.perf_counter() - b
+                published += len(idx)
+                n_bundles += 1
+            except Exception as e:
+                errors += len(idx)
+                log.warning("publishing bundle %s at tick %d failed: %s", bkey, job.tick, e)
+        self.timers["encode"].add(enc_t)
+        self.timers["publish"].add(pub_t)
+        self.registry.count_many(published=published, unwatched=unwatched, publish_errors=errors, bundles=n_bundles)

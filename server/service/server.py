@@ -1,0 +1,278 @@
+"""The Drape server: composition and lifecycle of the service's parts around one World.
+
+``Server(config).start()`` ... ``.stop()``, or ``with Server(config) as s: ...``. Parts, each
+owning one job (and one thread's state):
+
+- registry (registry.py): cloths, clients, ownership, quotas, counters; lock-protected;
+- handlers (handlers.py): the Zenoh queryable callbacks, on Zenoh's threads;
+- commands (commands.py): the bounded, per-cloth coalescing intake of the tick thread;
+- cook (cook.py): the cook thread, fabrics (the one fabric cache) and kernel builds;
+- ticker (ticker.py): the tick thread, the only one touching the World;
+- publisher (publisher.py): the publisher thread, encode and put;
+- admission (admission.py) and adaptive quality (adaptive.py): the tick-cost policies;
+- replies (replies.py): answering queries, error replies counted.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import replace
+from typing import Any, Callable, Mapping, TypeVar
+
+import zenoh
+
+from drape.client import protocol as P
+
+from ..sim import make_world
+from ..sim.world import World
+from .adaptive import AdaptiveQuality
+from .admission import Admission
+from .commands import Call, Intake
+from .config import ServerConfig
+from .cook import CookWorker
+from .handlers import Handlers
+from .publisher import Publisher
+from .registry import Registry
+from .replies import Replies, undeclare
+from .telemetry import PHASES, PhaseTimer
+from .ticker import Ticker
+
+try:  # the SDK's session settings (drape.client.session once the protocol engineer lands it)
+    from drape.client.session import zenoh_config
+except ImportError:  # pragma: no cover
+    from drape.client.sdk import zenoh_config
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+STAT_COUNTERS = ("ticks", "missed_ticks", "skipped_frames", "nan_resets", "reclaimed", "published", "unwatched",
+                 "publish_errors", "bundles", "batch_items", "overload_refusals", "nan_removals", "controls_applied",
+                 "controls_coalesced")
+
+
+class Server:
+    """``config`` defaults to ServerConfig(); keyword overrides replace its fields
+    (``Server(tick_rate=30, listen=["tcp/127.0.0.1:7500"])``)."""
+
+    def __init__(self, config: ServerConfig | None = None, *, warmup: bool = True, **overrides: Any) -> None:
+        cfg = config or ServerConfig()
+        self.config: ServerConfig = (replace(cfg, **overrides) if overrides else cfg).validate()
+        self.keys = P.Keys(self.config.namespace)
+        self.limits = self.config.limits()
+        self.warmup = warmup
+        self.device_name = "?"
+        self._timers = {p: PhaseTimer() for p in PHASES}
+        self._stopping = threading.Event()
+        self._stopped = threading.Event()
+        self._started_at = 0.0
+        self.registry = Registry(self.config)
+        self.replies = Replies(self.registry)
+        self.intake = Intake(self.config.max_pending_requests)
+        self.admission = Admission(self.config)
+        self.quality = AdaptiveQuality(self.config)
+        self.publisher = Publisher(self.config, self.keys, self.registry, self._timers)
+        self.ticker = Ticker(self.config, self.registry, self.replies, self.intake, self.publisher.mailbox, None,  # type: ignore[arg-type]
+                             self.admission, self.quality, self._timers, self._stats_bytes)
+        self.cook = CookWorker(self.config, self.registry, self.replies, self.intake, lambda: self.ticker.world,
+                               self._stopping.is_set)
+        self.ticker.fabrics = self.cook.fabrics
+        self.handlers = Handlers(self.config, self.keys, self.registry, self.replies, self.intake, self.cook.queue,
+                                 self.admission, lambda: self.ticker.tick, self.info, self._stopping.is_set)
+        self._session: zenoh.Session | None = None
+        self._declared: list[Any] = []
+        self._token: Any = None
+        self._threads: list[threading.Thread] = []
+
+    # --- lifecycle ---------------------------------------------------------------------------
+    def start(self) -> "Server":
+        """Create the World, open the Zenoh session, start the threads, declare the endpoints
+        and finally the server's liveliness token. On failure everything is torn down again."""
+        try:
+            self._start()
+        except BaseException:
+            self.stop()
+            raise
+        return self
+
+    def _start(self) -> None:
+        cfg = self.config
+        kw = {} if cfg.solver == "reference" else {"device": cfg.device}
+        self.ticker.world = make_world(cfg.solver, **kw)
+        self.device_name = getattr(self.ticker.world, "device_name", cfg.solver)
+        if self.warmup:
+            self.ticker.warm_up()
+        zc = zenoh_config(cfg.mode, cfg.listen, cfg.connect, cfg.multicast_scouting, cfg.zenoh_config)
+        if cfg.zenoh_config is None:
+            # States go out in bursts under DROP congestion control; Zenoh's default data queue (2
+            # batches, drop after 1 ms) lost states of a briefly descheduled server on a busy 2-core
+            # box. Sixteen batches (Zenoh's maximum) ride that out.
+            zc.insert_json5("transport/link/tx/queue/size/data", "16")
+        self._session = s = zenoh.open(zc)
+        self.publisher.session = s
+        sid = cfg.server_id
+        self._started_at = time.monotonic()
+        self._threads = [
+            threading.Thread(target=self.publisher.run, name=f"drape-publish-{sid}", daemon=True),
+            threading.Thread(target=self.cook.run, name=f"drape-cook-{sid}", daemon=True),
+            threading.Thread(target=self.ticker.run, name=f"drape-tick-{sid}", daemon=True),
+        ]
+        for t in self._threads:
+            t.start()
+        self.publisher.stats_pub = s.declare_publisher(self.keys.stats(sid),
+                                                       congestion_control=zenoh.CongestionControl.DROP)
+        lv = s.liveliness()
+        self._declared.append(lv.declare_subscriber(self.keys.all_clients_alive, self.handlers.on_client_liveliness,
+                                                    history=True))
+        for name, cb in self.handlers.endpoints():
+            self._declared.append(s.declare_queryable(getattr(self.keys, name)(sid), cb))
+        self._token = lv.declare_token(self.keys.alive_server(sid))
+        log.info("drape server %s up: %s solver on %s, %.0f Hz, %s mode, listen %s connect %s, namespace %r",
+                 sid, cfg.solver, self.device_name, cfg.tick_rate, cfg.mode, cfg.listen, cfg.connect, cfg.namespace)
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Stop serving: no new requests, last tick finishes, publishing stops, everything is
+        undeclared and the session closed. Idempotent."""
+        if self._stopping.is_set():
+            self._stopped.wait(timeout)
+            return
+        self._stopping.set()
+        log.info("drape server %s stopping", self.config.server_id)
+        try:
+            if self._token is not None:
+                self._token.undeclare()
+                self._token = None
+            for d in self._declared:
+                undeclare(d)
+            self._declared.clear()
+            self.cook.queue.put(None)
+            self.ticker.stop_event.set()
+            deadline = time.monotonic() + timeout
+            others = [t for t in self._threads if not t.name.startswith("drape-publish")]
+            for t in others:
+                t.join(max(0.0, deadline - time.monotonic()))
+            self.ticker.shutdown_commands()  # anything the cook thread queued after the tick thread ended
+            self.publisher.mailbox.close()
+            for t in self._threads:
+                if t.name.startswith("drape-publish"):
+                    t.join(max(0.0, deadline - time.monotonic()))
+            self.publisher.close()
+            if self.ticker.world is not None:
+                self.ticker.world.close()
+            if self._session is not None:
+                self._session.close()
+                self._session = None
+        finally:
+            self._stopped.set()
+            log.info("drape server %s stopped after %d ticks", self.config.server_id, self.ticker.tick)
+
+    def __enter__(self) -> "Server":
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # --- state -------------------------------------------------------------------------------
+    @property
+    def running(self) -> bool:
+        return self._session is not None and not self._stopping.is_set()
+
+    @property
+    def tick(self) -> int:
+        return self.ticker.tick
+
+    @property
+    def failure(self) -> BaseException | None:
+        return self.ticker.failure
+
+    @failure.setter
+    def failure(self, e: BaseException | None) -> None:
+        self.ticker.failure = e
+
+    @property
+    def server_id(self) -> str:
+        return self.config.server_id
+
+    @property
+    def phase_timers(self) -> Mapping[str, PhaseTimer]:
+        return self._timers
+
+    def wait_stopped(self, timeout: float | None = None) -> bool:
+        return self._stopped.wait(timeout)
+
+    def call(self, fn: Callable[[World], T], timeout: float = 10.0) -> T:
+        """Run ``fn(world)`` on the tick thread between two ticks and return its result (for
+        tools and tests; the World must only ever be touched there)."""
+        cmd = Call(fn)
+        self.intake.put_call(cmd, timeout)
+        if not cmd.done.wait(timeout):
+            raise TimeoutError("the tick thread did not run the call in time")
+        if cmd.error is not None:
+            raise cmd.error
+        return cmd.result  # type: ignore[return-value]
+
+    def world_handle(self, cloth_id: str) -> int | None:
+        """The World handle of a cloth (for ``call``)."""
+        rec = self.registry.get(cloth_id)
+        return None if rec is None else rec.handle
+
+    # --- stats -------------------------------------------------------------------------------
+    def stats(self) -> dict[str, Any]:
+        """Cumulative counters and the phase timings of the current stats window."""
+        return self._stats(reset_window=False)
+
+    def _stats_bytes(self) -> bytes:
+        return P.encode_stats(self._stats(reset_window=True))
+
+    def _stats(self, reset_window: bool) -> dict[str, Any]:
+        reg = self.registry
+        with reg.lock:
+            c = dict(reg.counters)
+            out: dict[str, Any] = {
+                "server": self.config.server_id,
+                "tick": self.ticker.tick,
+                "time_ns": time.time_ns(),
+                "uptime_s": time.monotonic() - self._started_at if self._started_at else 0.0,
+                "tick_rate": self.config.tick_rate,
+                "cloths": len(reg.cloths),
+                "clients": len(reg.by_client),
+                "alive_clients": len(reg.alive),
+                "vertices": reg.vertices,
+                "requests": dict(reg.requests),
+                "errors": dict(reg.errors),
+            }
+            recs = list(reg.cloths.values())
+        for k in STAT_COUNTERS:
+            out[k] = c.get(k, 0)
+        out["phases"] = {p: t.snapshot(reset_window) for p, t in self._timers.items()}
+        out["quality"] = self.quality.stats(recs)
+        return out
+
+    def info(self) -> dict[str, Any]:
+        cfg = self.config
+        return {
+            "server": cfg.server_id,
+            "version": P.VERSION_STRING,
+            "solver": cfg.solver,
+            "device": self.device_name,
+            "tick_rate": cfg.tick_rate,
+            "tick": self.ticker.tick,
+            **self.registry.counts(),
+            "limits": {
+                "max_cloths": cfg.max_cloths,
+                "max_cloths_per_client": cfg.max_cloths_per_client,
+                "max_vertices_per_cloth": cfg.max_vertices_per_cloth,
+                "max_total_vertices": cfg.max_total_vertices,
+                "max_message_bytes": cfg.max_message_bytes,
+                "max_pin_updates": cfg.max_pin_updates,
+                "max_batch_items": cfg.max_batch_items,
+                "max_colliders": self.limits.max_colliders,
+                "max_iterations": cfg.max_iterations,
+                "max_substeps": cfg.max_substeps,
+            },
+            "encodings": list(P.ENCODINGS),
+            "features": list(P.FEATURE_NAMES),
+            "grace_period_s": cfg.grace_period,
+            "stats_period_s": cfg.stats_period,
+        }

@@ -90,8 +90,9 @@ class Report:
     host: str = ""
 
     @property
-    def held(self) -> bool:
-        """No missed tick, nothing lost or coalesced, p99 within one tick."""
+    def served(self) -> bool:
+        """The admitted cloths were served: no missed tick, nothing lost or coalesced, p99 within
+        one tick."""
         p99 = self.latency_ms.get("p99", float("nan"))
         return (
             self.ticks > 0
@@ -102,8 +103,15 @@ class Report:
             and p99 <= 1000.0 / self.tick_hz_target
         )
 
+    @property
+    def held(self) -> bool:
+        """The whole load was held: every submit admitted and the admitted cloths served."""
+        return self.served and self.cloths == self.offered
+
     def why_not_held(self) -> str:
         why = []
+        if self.refused:
+            why.append(", ".join(f"{n} submits refused ({code})" for code, n in sorted(self.refused.items())))
         if self.ticks <= 0:
             why.append("no ticks in the window")
         if self.missed_ticks:
@@ -118,7 +126,7 @@ class Report:
         return ", ".join(why) or "held"
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self) | {"held": self.held}
+        return asdict(self) | {"served": self.served, "held": self.held}
 
 
 def latency_summary(lat_ms: np.ndarray) -> dict[str, float]:
@@ -182,6 +190,8 @@ def print_report(r: Report) -> None:
             f"  server CPU {s['cpu_percent']:.0f}%, RSS {s['rss_start_mb']:.0f} -> {s['rss_end_mb']:.0f} MB "
             f"(max {s['rss_max_mb']:.0f} MB); clients CPU {r.clients_cpu_percent:.0f}%"
         )
+    if r.cloths != r.offered:
+        print(f"  admitted cloths served: {'yes' if r.served else 'NO'}")
     print(f"  held: {'yes' if r.held else 'NO (' + r.why_not_held() + ')'}")
 
 
@@ -206,6 +216,7 @@ COLUMNS = (
     "decode us/bundle",
     "server CPU %",
     "RSS MB (start/end/max)",
+    "served",
     "held",
 )
 
@@ -242,6 +253,7 @@ def markdown_table(reports: Sequence[Report]) -> str:
             f"{r.decode_us['per_payload']:.1f}",
             f"{s.get('cpu_percent', float('nan')):.0f}",
             rss,
+            "yes" if r.served else "**no**",
             "yes" if r.held else "**no**",
         ]
         lines.append("| " + " | ".join(str(v) for v in row) + " |")

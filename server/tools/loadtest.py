@@ -333,6 +333,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--endpoint", default=None, help="target a running server instead of starting one")
     parser.add_argument("--server-id", default=None, help="with --endpoint: which server (default: the one seen)")
+    parser.add_argument(
+        "--admission",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="the started server refuses submits it cannot serve ('overloaded'); --no-admission: "
+        "it takes every cloth (the raw capacity)",
+    )
     parser.add_argument("--solver", default=None, help="solver of the started server")
     parser.add_argument("--device", default=None, help="OpenCL device of the started server")
     parser.add_argument("--server-arg", action="append", default=[], help="extra argument for drape serve")
@@ -367,6 +374,8 @@ def _serve_args(args: argparse.Namespace) -> list[str]:
         "--max-batch-items",
         "100000",
     ]
+    if not args.admission:
+        cmd += ["--no-admission"]
     if args.solver:
         cmd += ["--solver", args.solver]
     if args.device:

@@ -62,6 +62,10 @@ METRICS: tuple[tuple[str, str, str], ...] = (
     ("drape_overload_refusals", "counter", "Submits refused because the server is overloaded"),
     ("drape_nan_resets", "counter", "Cloths reset to their rest pose because they went non-finite"),
     ("drape_reclaimed_cloths", "counter", "Cloths removed because their client's liveliness token vanished"),
+    ("drape_nan_removals", "counter", "Cloths removed because they kept going non-finite (when the server reports it)"),
+    ("drape_controls_applied", "counter", "Controls applied by the tick thread (when the server reports it)"),
+    ("drape_controls_coalesced", "counter", "Controls replaced by a newer one for the same cloth before a tick "
+                                            "(when the server reports it)"),
     ("drape_quality_cloths", "gauge", "Cloths at each quality preset now"),
     ("drape_quality_degraded_cloths", "gauge", "Cloths below the preset their client asked for"),
     ("drape_quality_degraded_seconds", "counter", "Seconds with any cloth degraded"),
@@ -88,8 +92,14 @@ _GAUGES = {
     "alive_clients": "drape_alive_clients",
     "vertices": "drape_vertices",
 }
-#: Counters and gauges only exported when the server's stats carry them.
-_OPTIONAL = {"published_bytes": ("drape_published_bytes", "counter"), "links": ("drape_links", "gauge")}
+#: stats() key -> (name, type) of the counters and gauges exported only when the stats carry them.
+OPTIONAL = {
+    "published_bytes": ("drape_published_bytes", "counter"),
+    "links": ("drape_links", "gauge"),
+    "nan_removals": ("drape_nan_removals", "counter"),
+    "controls_applied": ("drape_controls_applied", "counter"),
+    "controls_coalesced": ("drape_controls_coalesced", "counter"),
+}
 
 _HELP = {name: help_ for name, _, help_ in METRICS}
 
@@ -170,7 +180,7 @@ def families(stats: Mapping[str, Any], info: Mapping[str, Any], timers: Mapping[
         yield _counter(name, stats.get(key))
     for key, name in _GAUGES.items():
         yield _gauge(name, stats.get(key))
-    for key, (name, kind) in _OPTIONAL.items():
+    for key, (name, kind) in OPTIONAL.items():
         if key in stats:
             yield (_counter if kind == "counter" else _gauge)(name, stats[key])
 

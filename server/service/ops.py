@@ -106,7 +106,7 @@ class TickWatch:
         s = self.server
         if getattr(s, "failure", None) is not None:
             return Readiness(False, f"tick loop failed: {s.failure}")
-        if getattr(s, "_world", True) is None:  # the World holds the device
+        if getattr(s, "device_name", "?") == "?":  # set once the World has built its device
             return Readiness(False, "device not built")
         if not s.running:
             return Readiness(False, "zenoh session not up (starting or stopping)")

@@ -177,6 +177,6 @@ def test_drape_serve_writes_json_lines(tmp_path):
     assert records and all(all(k in r for k in STABLE) for r in records)
     assert all(r.get("server_id") == sid for r in records)
     by_message = {r["message"].split(":")[0]: r for r in records}
-    assert by_message[f"drape server {sid} up"]["logger"] == "drape.server.service.tickloop"
+    assert by_message[f"drape server {sid} up"]["logger"].startswith("drape.server.service.")
     assert any("added for client" in r["message"] for r in records)
     assert any(r["message"].startswith(f"drape server {sid} stopped") for r in records)

@@ -20,7 +20,7 @@ from drape.client import DrapeClient, LimitExceeded
 from drape.client import protocol as P
 from drape.server.service import ops as OPS
 from drape.server.service.config import ServerConfig, add_arguments, from_args
-from drape.server.service.metrics import METRICS, families, overload_refusals
+from drape.server.service.metrics import METRICS, OPTIONAL, families, overload_refusals
 from drape.server.service.telemetry import PHASES, PhaseTimer
 from drape.server.service.tickloop import Server
 
@@ -122,12 +122,11 @@ class TickBlock:
 def test_exposition_parses_and_carries_every_metric_with_its_type(served):
     server, ops = served
     fams = scrape(ops)
-    optional = {"drape_links", "drape_published_bytes"}  # only when the server's stats carry them
+    optional = {name: key for key, (name, _) in OPTIONAL.items()}  # only when the server's stats carry them
     stats = server.stats()
     for name, kind, _ in METRICS:
         key = {"drape_server": "drape_server_info"}.get(name, name)
-        if name in optional and ({"drape_links": "links", "drape_published_bytes": "published_bytes"}[name]
-                                 not in stats):
+        if name in optional and optional[name] not in stats:
             assert key not in fams
             continue
         assert key in fams, f"{name} missing from /metrics"
@@ -170,11 +169,14 @@ def test_counters_follow_submit_control_refusal_and_remove(served, client):
         cape.move_pins([0, 5], [[0, 0, 0], [1, 0, 0]])
         with pytest.raises(LimitExceeded):  # max_cloths_per_client = 1
             client.submit_grid(4, 4)
+        published = value(before, "drape_published_states_total")
+        # The publisher counts a state after putting it, the client's token arrives on its own path.
+        assert wait_until(lambda: server.stats()["published"] > published and server.stats()["alive_clients"] >= 1)
         during = scrape(ops)
         assert value(during, "drape_cloths") == 1 and value(during, "drape_vertices") == 30
         assert value(during, "drape_clients") == 1 and value(during, "drape_alive_clients") >= 1
         assert value(during, "drape_quality_cloths", preset="fast") == 1
-        assert value(during, "drape_published_states_total") > value(before, "drape_published_states_total")
+        assert value(during, "drape_published_states_total") > published
     assert wait_until(lambda: server.stats()["cloths"] == 0)
     after = scrape(ops)
 

@@ -72,32 +72,48 @@
 /* No fused multiply-adds: the reference rounds every operation on its own. */
 #pragma OPENCL FP_CONTRACT OFF
 
-/* min / max that propagate NaN (numpy.minimum semantics) instead of ignoring it like fmin. */
-inline float nmin(float a, float b) { return (isnan(b) || b < a) ? b : a; }
-inline float nmax(float a, float b) { return (isnan(b) || b > a) ? b : a; }
-inline float3 nmin3(float3 a, float3 b) { return (float3)(nmin(a.x, b.x), nmin(a.y, b.y), nmin(a.z, b.z)); }
-inline float3 nmax3(float3 a, float3 b) { return (float3)(nmax(a.x, b.x), nmax(a.y, b.y), nmax(a.z, b.z)); }
+/* Lane-wise min / max that propagate NaN (numpy.minimum semantics) instead of ignoring it like
+ * fmin: once an accumulator is NaN it stays NaN. float4 so that a CPU compiles them to SIMD
+ * compares and blends (float3 scalarises). */
+inline float4 nmin4(float4 a, float4 b) { return select(a, b, isnan(b) | (b < a)); }
+inline float4 nmax4(float4 a, float4 b) { return select(a, b, isnan(b) | (b > a)); }
 
-/* numpy.clip: NaN stays NaN. */
-inline float clipf(float x, float lo, float hi) { return x < lo ? lo : (x > hi ? hi : x); }
-
-#if ENC_FP64
-typedef double qreal;
-#else
-typedef float qreal;
-#endif
-
-inline ushort quant(float x, qreal lo, qreal scale)
+/* numpy.clip on every lane: NaN stays NaN. */
+inline float4 clip4(float4 x, float lo, float hi)
 {
-    qreal d = ((qreal)x - lo) * scale;
-    d = d < (qreal)0 ? (qreal)0 : (d > (qreal)QUANT_MAX ? (qreal)QUANT_MAX : d);
-    return (ushort)rint(d);
+    x = select(x, (float4)(lo), x < (float4)(lo));
+    return select(x, (float4)(hi), x > (float4)(hi));
 }
 
-inline short snorm(float n)
+/* quant16 arithmetic in double (the reference's float64), or float without cl_khr_fp64 */
+#if ENC_FP64
+typedef double4 qreal4;
+#define TO_QREAL4(x) convert_double4(x)
+#else
+typedef float4 qreal4;
+#define TO_QREAL4(x) (x)
+#endif
+
+/* rint(clip((x - lo) * scale, 0, QUANT_MAX)): integral and in range, so the conversion is exact */
+inline ushort4 quant4(float4 x, qreal4 lo, qreal4 scale)
 {
-    qreal c = (qreal)clipf(n, -1.0f, 1.0f);
-    return (short)rint(c * (qreal)SNORM_MAX);
+    qreal4 d = (TO_QREAL4(x) - lo) * scale;
+    d = select(d, (qreal4)(0), d < (qreal4)(0));
+    d = select(d, (qreal4)(QUANT_MAX), d > (qreal4)(QUANT_MAX));
+    return convert_ushort4(rint(d));
+}
+
+/* snorm16: rint(clip(n, -1, 1) * SNORM_MAX); clipping before the exact widening is the same */
+inline short4 snorm4(float4 n)
+{
+    return convert_short4(rint(TO_QREAL4(clip4(n, -1.0f, 1.0f)) * (qreal4)(SNORM_MAX)));
+}
+
+/* a vertex as float4 whose w repeats x (so that w, the world's inverse mass, never enters) */
+inline float4 load4(__global const float *buf, uint i)
+{
+    float3 p = LOAD3(buf, i);
+    return (float4)(p, p.x);
 }
 
 __kernel void encode_frame(
@@ -120,20 +136,20 @@ __kernel void encode_frame(
     const uint has_nrm = r[ENC_ROW_NORMALS];
     const uint so = r[ENC_ROW_STATE];
 
-    /* 1. bounds */
-    float3 mn = (float3)(INFINITY), mx = (float3)(-INFINITY);
+    /* 1. bounds (lane w repeats x: the world's w, the inverse mass, never enters) */
+    float4 mn = (float4)(INFINITY), mx = (float4)(-INFINITY);
     for (uint v = lid; v < n; v += ENC_WG) {
-        float3 p = LOAD3(pos, vbase + v);
-        mn = nmin3(mn, p);
-        mx = nmax3(mx, p);
+        float4 p = load4(pos, vbase + v);
+        mn = nmin4(mn, p);
+        mx = nmax4(mx, p);
     }
-    lmin[lid] = (float4)(mn, 0.0f);
-    lmax[lid] = (float4)(mx, 0.0f);
+    lmin[lid] = mn;
+    lmax[lid] = mx;
     barrier(CLK_LOCAL_MEM_FENCE);
     for (uint s = ENC_WG / 2; s > 0; s >>= 1) {
         if (lid < s) {
-            lmin[lid] = (float4)(nmin3(lmin[lid].xyz, lmin[lid + s].xyz), 0.0f);
-            lmax[lid] = (float4)(nmax3(lmax[lid].xyz, lmax[lid + s].xyz), 0.0f);
+            lmin[lid] = nmin4(lmin[lid], lmin[lid + s]);
+            lmax[lid] = nmax4(lmax[lid], lmax[lid + s]);
         }
         barrier(CLK_LOCAL_MEM_FENCE);
     }
@@ -170,34 +186,25 @@ __kernel void encode_frame(
         }
     } else if (enc == 1) {
         __global half *o = (__global half *)data;
-        for (uint v = lid; v < n; v += ENC_WG) {
-            float3 p = LOAD3(pos, vbase + v);
-            p = (float3)(clipf(p.x, -(float)FLOAT16_MAX, (float)FLOAT16_MAX), clipf(p.y, -(float)FLOAT16_MAX, (float)FLOAT16_MAX),
-                         clipf(p.z, -(float)FLOAT16_MAX, (float)FLOAT16_MAX));
-            vstore_half3_rte(p, v, o);
-        }
+        for (uint v = lid; v < n; v += ENC_WG)
+            vstore_half3_rte(clip4(load4(pos, vbase + v), -(float)FLOAT16_MAX, (float)FLOAT16_MAX).xyz, v, o);
         if (has_nrm) {
             o += 3 * n;
             for (uint v = lid; v < n; v += ENC_WG)
                 vstore_half3_rte(LOAD3(nrm, vbase + v), v, o);
         }
     } else {
-        qreal l[3] = {(qreal)lo.x, (qreal)lo.y, (qreal)lo.z};
-        qreal e[3] = {(qreal)hi.x - l[0], (qreal)hi.y - l[1], (qreal)hi.z - l[2]};
-        qreal sc[3];
-        for (int a = 0; a < 3; a++)
-            sc[a] = e[a] > (qreal)0 ? (qreal)QUANT_MAX / e[a] : (qreal)0;
+        float4 lo4 = (float4)(lo, lo.x), hi4 = (float4)(hi, hi.x);
+        qreal4 l = TO_QREAL4(lo4);
+        qreal4 e = TO_QREAL4(hi4) - l;
+        qreal4 sc = select((qreal4)(0), (qreal4)(QUANT_MAX) / e, e > (qreal4)(0));
         __global ushort *o = (__global ushort *)data;
-        for (uint v = lid; v < n; v += ENC_WG) {
-            float3 p = LOAD3(pos, vbase + v);
-            vstore3((ushort3)(quant(p.x, l[0], sc[0]), quant(p.y, l[1], sc[1]), quant(p.z, l[2], sc[2])), v, o);
-        }
+        for (uint v = lid; v < n; v += ENC_WG)
+            vstore3(quant4(load4(pos, vbase + v), l, sc).xyz, v, o);
         if (has_nrm) {
             __global short *on = (__global short *)(o + 3 * n);
-            for (uint v = lid; v < n; v += ENC_WG) {
-                float3 m = LOAD3(nrm, vbase + v);
-                vstore3((short3)(snorm(m.x), snorm(m.y), snorm(m.z)), v, on);
-            }
+            for (uint v = lid; v < n; v += ENC_WG)
+                vstore3(snorm4(load4(nrm, vbase + v)).xyz, v, on);
         }
     }
 }

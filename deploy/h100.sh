@@ -4,7 +4,13 @@
 #
 #   bash deploy/h100.sh bench [EXTRA ARGS...]     # drape bench on the GPU
 #   bash deploy/h100.sh tune                      # work-group sizes for the 'many' workload
-#   bash deploy/h100.sh tradeoff|loadtest [ARGS]  # the other benchmarks
+#   bash deploy/h100.sh tradeoff [ARGS]           # speed against accuracy
+#   bash deploy/h100.sh loadtest [ARGS]           # the load-test table (below); ARGS override it
+#
+# The load-test table: 16 client processes, 32x32 cloths with bending, 10 iterations, bundles,
+# loads of 128 .. 4096 cloths in float32 and 4096 in quant16, one server (admission off: the raw
+# capacity), LT_SECONDS (default 20) measured seconds each so the whole table stays under
+# 9 minutes; one JSON, a markdown table, the summary plot and the largest load's plots.
 #
 # Results land in $OUT (the device tool's folder) or out/h100. Wheels come from .whl/ (see
 # docs/benchmarks.md for the pip download line that fills it).
@@ -43,9 +49,13 @@ case "$what" in
     tradeoff)
         drape tradeoff --json "$OUT/tradeoff-h100.json" --out "$OUT" "$@" 2>&1 | tee "$OUT/tradeoff-h100.txt" ;;
     loadtest)
-        # the device tool brings back at most 8 files: keep the plots of the last load only
-        drape loadtest --json "$OUT/loadtest-h100.json" --out /tmp/lt-plots "$@" 2>&1 | tee "$OUT/loadtest-h100.txt"
-        for f in $(ls -t /tmp/lt-plots/*.png | head -4); do cp "$f" "$OUT/"; done ;;
+        drape loadtest --clients 16 --size 32 --iterations 10 --bundle --no-admission \
+            --loads 128,256,512,1024,2048,4096,4096:quant16 --seconds "${LT_SECONDS:-20}" --max-total-seconds 480 \
+            --quiet --json "$OUT/loadtest-h100.json" --markdown "$OUT/loadtest-h100.md" --out /tmp/lt-plots "$@" \
+            2>&1 | grep -v " INFO drape.server.service" | tee "$OUT/loadtest-h100.txt"
+        # the summary plot and the plots of the last load run (the rest stay on the machine)
+        cp /tmp/lt-plots/loadtest-summary.png "$OUT/" 2>/dev/null || true
+        for f in $(ls -t /tmp/lt-plots/loadtest-[0-9]*.png | head -2); do cp "$f" "$OUT/"; done ;;
     *)
         echo "unknown: $what" >&2; exit 2 ;;
 esac

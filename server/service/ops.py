@@ -202,8 +202,15 @@ class Ops:
 
     def start(self) -> Ops:
         sid = self.config.server_id
+        if self.watchdog_s is not None and 2 * self.watchdog_s < 2 * self.server.config.dt:
+            log.warning("WatchdogSec (%.1f s) is shorter than two tick periods (%.1f s): systemd will restart a "
+                        "healthy server; raise WatchdogSec", 2 * self.watchdog_s, 2 * self.server.config.dt)
         if self.config.metrics_listen is not None:
-            self._http = _http_server(self.config.metrics_listen)
+            try:
+                self._http = _http_server(self.config.metrics_listen)
+            except OSError as e:
+                raise OSError(e.errno, f"cannot listen on metrics_listen {self.config.metrics_listen!r}: "
+                                       f"{e.strerror or e}") from None
             self._http.ops = self
             t = threading.Thread(target=self._http.serve_forever, kwargs={"poll_interval": 0.2},
                                  name=f"drape-ops-http-{sid}", daemon=True)

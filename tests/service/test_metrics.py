@@ -380,3 +380,11 @@ def test_overload_refusals_counted_when_admission_refuses(served):
     assert value(after, "drape_overload_refusals_total") == value(before, "drape_overload_refusals_total") + 1
     assert value(after, "drape_errors_total", code="overloaded") == \
         value(before, "drape_errors_total", code="overloaded") + 1
+
+
+def test_a_busy_metrics_port_is_a_clear_error(served):
+    server, ops = served
+    host, port = ops.address
+    taken = dataclasses.replace(server.config, metrics_listen=f"{host}:{port}")
+    with pytest.raises(OSError, match="cannot listen on metrics_listen"):
+        OPS.start(server, taken, env={})

@@ -119,3 +119,21 @@ def test_bundle_parser_survives_every_truncation_and_corruption(rng):
     with pytest.raises(ValueError):
         P.encode_bundle(1, 1, [("not/an/id", b"")])
     assert P.decode_bundle(bytes(P.encode_bundle(1, 2, []))) == []  # an empty bundle is well formed
+
+
+def test_a_float32_quant16_decoder_is_within_the_documented_tolerance(rng):
+    """PROTOCOL.md section 9: the vectors decode quant16 in float64 rounded to float32; a decoder
+    evaluating in float32 is within 4 float32 ulps of max(|min|, |max|) of each axis."""
+    for scale in (1.0, 100.0, 1.0e4):
+        pos = (rng.normal(0, 1, (500, 3)) * scale + rng.uniform(-scale, scale, 3)).astype(np.float32)
+        st = P.decode_state(P.encode_state(1, 2, pos, encoding="quant16"))
+        lo, hi = (np.array(b, np.float32) for b in st.bounds)
+        data = bytes(P.encode_state(1, 2, pos, encoding="quant16"))
+        q = np.frombuffer(data, "<u2", offset=P.STATE_HEADER_SIZE).reshape(-1, 3).astype(np.float32)
+        f32 = lo + q * ((hi - lo) / np.float32(P.QUANT_MAX))  # all float32
+        assert f32.dtype == np.float32
+        ulp = np.spacing(np.maximum(np.abs(lo), np.abs(hi)))
+        assert (np.abs(f32 - st.positions) <= 4 * ulp).all()
+        # and the encoding error itself is within half a quantisation step (plus float32 rounding)
+        step = (hi.astype(np.float64) - lo) / P.QUANT_MAX
+        assert (np.abs(st.positions.astype(np.float64) - pos) <= step / 2 + ulp).all()

@@ -278,3 +278,20 @@ def test_the_document_s_hex_examples_are_the_vectors():
     assert len(dumps) == 3, "the remove message, a state and a bundle"
     for d in dumps:
         assert d in known, d[:64]
+
+
+def test_the_document_states_the_protocol_s_limits_and_codes():
+    """PROTOCOL.md's limits table and error table are this package's values."""
+    text = (Path(__file__).resolve().parents[2] / "PROTOCOL.md").read_text()
+    assert text.startswith(f"# Drape wire protocol, version {P.VERSION_STRING}")
+    lim = P.DEFAULT_LIMITS
+    assert f"| `max_iterations`, `max_substeps` | {lim.max_iterations}, {lim.max_substeps} |" in text
+    assert f"| `max_colliders` (colliders per cloth) | {lim.max_colliders} |" in text
+    def sp(n: int) -> str:  # 65 536
+        return f"{n:,}".replace(",", " ")
+
+    assert f"| {P.MAX_NESTING}, {P.MAX_MAP_KEYS}, {sp(P.MAX_ARRAY_LENGTH)}, {sp(P.MAX_STRING_BYTES)} |" in text
+    assert f"| values per message (1.2, fixed) | {sp(P.MAX_ELEMENTS)} |" in text
+    for code in P.ERROR_CODES:
+        if code != P.ERR_UNAVAILABLE:  # the SDK's own, never on the wire
+            assert f"| `{code}` |" in text, code

@@ -247,13 +247,13 @@ class Ops:
         return sd_notify(message, self.env)
 
     def _run_watch(self) -> None:
-        interval = WATCH_INTERVAL_S
+        interval = WATCH_INTERVAL_S if self.watchdog_s is None else min(WATCH_INTERVAL_S, self.watchdog_s / 2)
         last_ping_tick = self.server.tick
         next_ping = time.monotonic() + (self.watchdog_s or 0.0)
         stalled = False
         while not self._stop.wait(interval):
             tick, age = self.watch.sample()
-            if (age > self.watch.stall_s) != stalled:
+            if self.server.running and (age > self.watch.stall_s) != stalled:
                 stalled = not stalled
                 if stalled:
                     log.warning("tick %d has not advanced for %.2f s", tick, age)

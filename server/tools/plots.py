@@ -33,6 +33,26 @@ def _save(fig: Any, path: str | Path) -> Path:
     return p
 
 
+def _scales(ax: Any, logx: bool, logy: bool) -> None:
+    """Log axes where asked, their ticks written as plain numbers (0.5, 2, 100)."""
+    from matplotlib.ticker import FuncFormatter
+
+    def minor_label(axis: Any) -> Any:
+        def fmt(v: float, _: Any) -> str:
+            lo, hi = axis.get_view_interval()
+            if v <= 0 or lo <= 0 or hi / lo > 100:  # two decades or more: the powers of ten suffice
+                return ""
+            return f"{v:g}" if round(v / 10 ** math.floor(math.log10(v))) in (2, 3, 5) else ""
+
+        return FuncFormatter(fmt)
+
+    for on, axis, scale in ((logx, ax.xaxis, ax.set_xscale), (logy, ax.yaxis, ax.set_yscale)):
+        if on:
+            scale("log")
+            axis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+            axis.set_minor_formatter(minor_label(axis))
+
+
 def _finite(xs: Any, ys: Any, logx: bool = False, logy: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The points with finite coordinates (and positive ones on log axes)."""
     x = np.asarray(xs, np.float64).ravel()
@@ -107,10 +127,7 @@ def line_plot(
         else:
             ax.plot(x, y, marker=MARKERS[i % len(MARKERS)], markersize=3, linewidth=1.2, label=name)
     ax.set(title=title, xlabel=xlabel, ylabel=ylabel)
-    if logx:
-        ax.set_xscale("log")
-    if logy:
-        ax.set_yscale("log")
+    _scales(ax, logx, logy)
     ax.grid(alpha=0.3, which="both")
     if series:
         ax.legend(fontsize="small")
@@ -142,10 +159,7 @@ def scatter_plot(
         order = np.argsort(x, kind="stable")
         ax.plot(x[order], y[order], "k-", marker="o", markersize=4, linewidth=1.5, label=highlight_label or None)
     ax.set(title=title, xlabel=xlabel, ylabel=ylabel)
-    if logx:
-        ax.set_xscale("log")
-    if logy:
-        ax.set_yscale("log")
+    _scales(ax, logx, logy)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize="small", loc="best")
     return _save(fig, path)

@@ -28,9 +28,10 @@ import secrets
 import threading
 import time
 from collections import deque
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import fields, is_dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import zenoh
@@ -51,7 +52,7 @@ class BatchError(DrapeError):
     """Raised by a waited-for batch (``client.batch(wait=True)``) when some of its items were
     refused: ``results`` holds, per item in order, the tick it applies from or its DrapeError."""
 
-    def __init__(self, results: list["int | DrapeError"]) -> None:
+    def __init__(self, results: list[int | DrapeError]) -> None:
         errors = [r for r in results if isinstance(r, DrapeError)]
         first = errors[0]
         super().__init__(first.code, f"{len(errors)} of {len(results)} batch items refused; first: {first.message}",
@@ -69,7 +70,7 @@ class ClothHandle:
 
     def __init__(
         self,
-        client: "DrapeClient",
+        client: DrapeClient,
         reply: P.SubmitReply,
         rest_positions: np.ndarray | None = None,
         triangles: np.ndarray | None = None,
@@ -256,7 +257,8 @@ class ClothHandle:
         if self.closed:
             return None
         try:
-            rep = self.client.request("remove", P.encode_remove(P.RemoveRequest(self.id, self.token, self.client._next_rid())),
+            rep = self.client.request("remove", P.encode_remove(P.RemoveRequest(self.id, self.token,
+                                                                                self.client._next_rid())),
                                       timeout=timeout)
             last: int | None = P.tick_reply_from_map(rep)
         except (P.NotFound, Unavailable):
@@ -282,7 +284,7 @@ class ClothHandle:
                 pass
         self.client._forget(self)
 
-    def __enter__(self) -> "ClothHandle":
+    def __enter__(self) -> ClothHandle:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -350,7 +352,7 @@ class DrapeClient:
         log.debug("drape client %s connected to %s", self.client_id, list(connect))
 
     # --- session ------------------------------------------------------------------------------
-    def __enter__(self) -> "DrapeClient":
+    def __enter__(self) -> DrapeClient:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -550,7 +552,7 @@ class DrapeClient:
 
     # --- batch control (protocol 1.1) -------------------------------------------------------------
     def batch(self, *, wait: bool = False, on_error: ErrorCallback | None = None,
-              timeout: float | None = None) -> "ControlBatch":
+              timeout: float | None = None) -> ControlBatch:
         """Collect controls of many of this client's cloths and send them as one batch control
         request when the ``with`` block ends (or on ``send()``): the per-tick call of a game
         loop with many cloths. ``wait=False``: the reply is not waited for; refused items are
@@ -617,7 +619,7 @@ class DrapeClient:
         if not limit:  # a 1.0 server: one control per item
             log.debug("server speaks %s: batch sent as %d controls", self._server_version, len(items))
             out: list[int | DrapeError] = []
-            for h, req in items:
+            for _, req in items:
                 if wait:
                     try:
                         out.append(P.tick_reply_from_map(self.request("control", P.encode_control(req), timeout)))
@@ -718,7 +720,8 @@ class DrapeClient:
         verts, tris = P.grid_geometry(cols, rows, width, height, orientation, origin)
         return self._submit(grid=grid, rest=verts, tris=tris, **options)
 
-    def submit_mesh(self, vertices: np.ndarray | Sequence, triangles: np.ndarray | Sequence, **options: Any) -> ClothHandle:
+    def submit_mesh(self, vertices: np.ndarray | Sequence, triangles: np.ndarray | Sequence,
+                    **options: Any) -> ClothHandle:
         """A triangle mesh cloth: vertices (n, 3) metres, triangles (m, 3) vertex indices."""
         v = np.ascontiguousarray(np.asarray(vertices, np.float32).reshape(-1, 3))
         t = np.asarray(triangles, np.int64).reshape(-1, 3)
@@ -794,7 +797,7 @@ class ControlBatch:
     ends without an exception) or call ``send()``. Every method takes the ClothHandle first
     and the same arguments as the ClothHandle method of the same name."""
 
-    def __init__(self, client: "DrapeClient", *, wait: bool = False, on_error: ErrorCallback | None = None,
+    def __init__(self, client: DrapeClient, *, wait: bool = False, on_error: ErrorCallback | None = None,
                  timeout: float | None = None) -> None:
         self.client = client
         self.wait = wait
@@ -807,7 +810,7 @@ class ControlBatch:
     def __len__(self) -> int:
         return len(self.items)
 
-    def add(self, handle: ClothHandle, **changes: Any) -> "ControlBatch":
+    def add(self, handle: ClothHandle, **changes: Any) -> ControlBatch:
         """Any ControlRequest fields for ``handle``."""
         if handle.client is not self.client:
             raise ValueError(f"cloth {handle.id} belongs to another DrapeClient")
@@ -816,10 +819,11 @@ class ControlBatch:
         return self
 
     def move_pins(self, handle: ClothHandle, indices: Sequence[int] | np.ndarray,
-                  targets: Sequence[Sequence[float]] | np.ndarray, *, colliders: Sequence[Any] | None = None) -> "ControlBatch":
+                  targets: Sequence[Sequence[float]] | np.ndarray, *,
+                  colliders: Sequence[Any] | None = None) -> ControlBatch:
         return self.add(handle, **_pin_changes(indices, targets, colliders))
 
-    def set_colliders(self, handle: ClothHandle, colliders: Sequence[Any]) -> "ControlBatch":
+    def set_colliders(self, handle: ClothHandle, colliders: Sequence[Any]) -> ControlBatch:
         return self.add(handle, colliders=tuple(_collider(c) for c in colliders))
 
     def set(self, handle: ClothHandle, *, gravity: Sequence[float] | None = None, wind: Sequence[float] | None = None,
@@ -827,12 +831,12 @@ class ControlBatch:
             iterations: int | None = None, substeps: int | None = None, chebyshev_rho: float | None = None,
             normals: bool | None = None, encoding: str | None = None, reset: bool = False,
             quality: str | None = None, features_add: Iterable[str] | None = None,
-            features_remove: Iterable[str] | None = None) -> "ControlBatch":
+            features_remove: Iterable[str] | None = None) -> ControlBatch:
         """As ClothHandle.set, for one item of the batch (``features_add`` / ``features_remove``: 1.2)."""
         return self.add(handle, **_set_changes(gravity, wind, material, features, iterations, substeps, chebyshev_rho,
                                                normals, encoding, reset, quality, features_add, features_remove))
 
-    def reset(self, handle: ClothHandle) -> "ControlBatch":
+    def reset(self, handle: ClothHandle) -> ControlBatch:
         return self.add(handle, reset=True)
 
     def send(self) -> list[int | DrapeError] | None:
@@ -847,7 +851,7 @@ class ControlBatch:
             raise BatchError(results)
         return results
 
-    def __enter__(self) -> "ControlBatch":
+    def __enter__(self) -> ControlBatch:
         return self
 
     def __exit__(self, exc_type: Any, *exc: object) -> None:
@@ -860,7 +864,7 @@ def _item_outcomes(chunk: list[tuple[ClothHandle, P.ControlRequest]], rep: P.Con
     if len(rep.results) != len(chunk):
         raise DrapeError(P.ERR_INTERNAL, f"batch reply has {len(rep.results)} results for {len(chunk)} items", rid)
     out: list[int | DrapeError] = []
-    for (h, _), r in zip(chunk, rep.results):
+    for (h, _), r in zip(chunk, rep.results, strict=True):
         if r.ok:
             out.append(rep.tick if r.tick is None else r.tick)
         else:

@@ -8,7 +8,7 @@ Imports Zenoh; ``drape.client.protocol`` does not.
 from __future__ import annotations
 
 import json
-from typing import Iterable
+from collections.abc import Iterable
 
 import zenoh
 

@@ -27,12 +27,12 @@ without Zenoh or OpenCL installed.
 """
 from __future__ import annotations
 
-from .keys import *  # noqa: F401,F403
-from .errors import *  # noqa: F401,F403
-from .vocabulary import *  # noqa: F401,F403
-from .messages import *  # noqa: F401,F403
-from .validate import *  # noqa: F401,F403
-from .state import *  # noqa: F401,F403
 from .bundle import *  # noqa: F401,F403
 from .codec import *  # noqa: F401,F403
+from .errors import *  # noqa: F401,F403
 from .geometry import *  # noqa: F401,F403
+from .keys import *  # noqa: F401,F403
+from .messages import *  # noqa: F401,F403
+from .state import *  # noqa: F401,F403
+from .validate import *  # noqa: F401,F403
+from .vocabulary import *  # noqa: F401,F403

@@ -3,8 +3,8 @@ at one tick in one payload."""
 from __future__ import annotations
 
 import struct
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Iterable, Sequence
 
 from .errors import ERR_MALFORMED, ERR_UNSUPPORTED_VERSION, ProtocolError
 from .keys import PROTOCOL_MAJOR, PROTOCOL_MINOR, VERSION_STRING, valid_id
@@ -125,7 +125,8 @@ def parse_bundle(data: bytes | bytearray | memoryview) -> Bundle:
     buf = data if isinstance(data, (bytes, bytearray)) else memoryview(data).cast("B")
     size = len(buf)
     if size < BUNDLE_HEADER_SIZE:
-        raise ProtocolError(ERR_MALFORMED, f"bundle of {size} bytes is shorter than the {BUNDLE_HEADER_SIZE}-byte header")
+        raise ProtocolError(ERR_MALFORMED,
+                            f"bundle of {size} bytes is shorter than the {BUNDLE_HEADER_SIZE}-byte header")
     magic, major, minor, hsize, count, flags, tick, t_ns = BUNDLE_HEADER.unpack_from(buf, 0)
     if magic != BUNDLE_MAGIC:
         raise ProtocolError(ERR_MALFORMED, f"bundle magic {bytes(magic)!r} is not {BUNDLE_MAGIC!r}")
@@ -138,10 +139,12 @@ def parse_bundle(data: bytes | bytearray | memoryview) -> Bundle:
     entries: list[BundleEntry] = []
     for i in range(count):
         if at + BUNDLE_ENTRY_SIZE > size:
-            raise ProtocolError(ERR_MALFORMED, f"bundle entry {i} of {count} starts at byte {at}, past the end ({size})")
+            raise ProtocolError(ERR_MALFORMED,
+                                f"bundle entry {i} of {count} starts at byte {at}, past the end ({size})")
         h, id_len, st_size = BUNDLE_ENTRY.unpack_from(buf, at)
         if h < BUNDLE_ENTRY_SIZE + id_len:
-            raise ProtocolError(ERR_MALFORMED, f"bundle entry {i}: entry header size {h} is below 8 + id length {id_len}")
+            raise ProtocolError(ERR_MALFORMED,
+                                f"bundle entry {i}: entry header size {h} is below 8 + id length {id_len}")
         if at + h + st_size > size:
             raise ProtocolError(ERR_MALFORMED, f"bundle entry {i}: state of {st_size} bytes at byte {at + h} runs past "
                                 f"the end ({size})")

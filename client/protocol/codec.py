@@ -2,21 +2,70 @@
 remove, info, replies, errors, stats (PROTOCOL.md sections 4-8, 10)."""
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
-from .errors import (ERR_INDEX_OUT_OF_RANGE, ERR_INVALID_TYPE, ERR_INVALID_VALUE, ERR_MALFORMED, ERR_MISSING_FIELD,
-                     ERR_TOO_LARGE, ERROR_CODES, ProtocolError)
+from .errors import (
+    ERR_INDEX_OUT_OF_RANGE,
+    ERR_INVALID_TYPE,
+    ERR_INVALID_VALUE,
+    ERR_MALFORMED,
+    ERR_MISSING_FIELD,
+    ERR_TOO_LARGE,
+    ERROR_CODES,
+    ProtocolError,
+)
 from .keys import ID_RE, TOKEN_RE
-from .messages import (BatchItemResult, ControlBatchReply, ControlBatchRequest, ControlReply, ControlRequest,
-                       DecodedControlBatch, ErrorReply, InfoRequest, RemoveReply, RemoveRequest, SubmitReply,
-                       SubmitRequest, feature_list)
-from .validate import (_blob, _check_finite_array, _f, _header, _peek_rid, _read_colliders, _read_features,
-                       _read_material, _read_rho, _read_state_options, _Reader, _rid, _state_map, _tname, _v3,
-                       collider_to_map, material_to_map, pack, unpack_message)
-from .vocabulary import (DEFAULT_LIMITS, ORIENTATIONS, QUALITY_PRESETS, GridSpec, LinkSpec, Limits, MeshSpec, PinUpdate,
-                         _empty_u32)
+from .messages import (
+    BatchItemResult,
+    ControlBatchReply,
+    ControlBatchRequest,
+    ControlReply,
+    ControlRequest,
+    DecodedControlBatch,
+    ErrorReply,
+    InfoRequest,
+    RemoveReply,
+    RemoveRequest,
+    SubmitReply,
+    SubmitRequest,
+    feature_list,
+)
+from .validate import (
+    _blob,
+    _check_finite_array,
+    _f,
+    _header,
+    _peek_rid,
+    _read_colliders,
+    _read_features,
+    _read_material,
+    _read_rho,
+    _read_state_options,
+    _Reader,
+    _rid,
+    _state_map,
+    _tname,
+    _v3,
+    collider_to_map,
+    material_to_map,
+    pack,
+    unpack_message,
+)
+from .vocabulary import (
+    DEFAULT_LIMITS,
+    ORIENTATIONS,
+    QUALITY_PRESETS,
+    GridSpec,
+    Limits,
+    LinkSpec,
+    MeshSpec,
+    PinUpdate,
+    _empty_u32,
+)
+
 
 def submit_to_map(req: SubmitRequest) -> dict[str, Any]:
     m = _header(req.rid)
@@ -103,7 +152,8 @@ def submit_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS) -> Su
         if tris.size:
             mx = int(tris.max())
             if mx >= n:
-                raise r.fail(ERR_INDEX_OUT_OF_RANGE, f"'mesh.triangles' refers to vertex {mx} but the mesh has {n} vertices")
+                raise r.fail(ERR_INDEX_OUT_OF_RANGE,
+                             f"'mesh.triangles' refers to vertex {mx} but the mesh has {n} vertices")
             if np.any((tris[:, 0] == tris[:, 1]) | (tris[:, 1] == tris[:, 2]) | (tris[:, 0] == tris[:, 2])):
                 raise r.fail(ERR_INVALID_VALUE, "'mesh.triangles' has a triangle with a repeated vertex")
         mesh = MeshSpec(verts, tris)
@@ -111,7 +161,8 @@ def submit_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS) -> Su
     if pinned is None:
         pinned = _empty_u32()
     if pinned.size and int(pinned.max()) >= n:
-        raise r.fail(ERR_INDEX_OUT_OF_RANGE, f"'pinned' refers to vertex {int(pinned.max())} but the cloth has {n} vertices")
+        raise r.fail(ERR_INDEX_OUT_OF_RANGE,
+                     f"'pinned' refers to vertex {int(pinned.max())} but the cloth has {n} vertices")
     lr = r.sub("links")
     links = None
     if lr is not None:
@@ -189,7 +240,8 @@ def encode_control(req: ControlRequest) -> bytes:
     return pack(control_to_map(req))
 
 
-def decode_control(data: bytes | bytearray, limits: Limits = DEFAULT_LIMITS, n_vertices: int | None = None) -> ControlRequest:
+def decode_control(data: bytes | bytearray, limits: Limits = DEFAULT_LIMITS,
+                   n_vertices: int | None = None) -> ControlRequest:
     """Validate a control message; with ``n_vertices`` pin indices are range-checked too."""
     return control_from_map(unpack_message(data, limits), limits, n_vertices)
 
@@ -200,7 +252,8 @@ def _owner_fields(r: _Reader) -> tuple[str, str]:
     return cloth, token  # type: ignore[return-value]
 
 
-def control_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS, n_vertices: int | None = None) -> ControlRequest:
+def control_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS,
+                     n_vertices: int | None = None) -> ControlRequest:
     r = _Reader(m, "", _peek_rid(dict(m)), limits)
     return _read_control(r, _rid(r), n_vertices)
 

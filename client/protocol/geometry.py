@@ -3,7 +3,7 @@ OBJ parsing (PROTOCOL.md section 4). drape.server.sim.fabric uses these same fun
 the float64 positions; the wire and the device get them rounded to float32)."""
 from __future__ import annotations
 
-from typing import Iterable
+from collections.abc import Iterable
 
 import numpy as np
 

@@ -10,6 +10,7 @@ import numpy as np
 from .errors import DrapeError, ProtocolError, error_for
 from .vocabulary import FEATURE_NAMES, Collider, GridSpec, LinkSpec, MeshSpec, PinUpdate, StateOptions, Vec3, _empty_u32
 
+
 @dataclass(eq=False)
 class SubmitRequest:
     """Add a cloth. Exactly one of ``grid`` and ``mesh``. ``None`` means "server default"."""

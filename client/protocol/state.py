@@ -3,8 +3,8 @@ float16/quant16/snorm16 arithmetic (the server's whole-frame encoder uses the sa
 from __future__ import annotations
 
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
@@ -194,7 +194,8 @@ def decode_state(data: bytes | bytearray | memoryview, cloth: str = "", receive_
     (a later minor version) and trailing bytes are ignored."""
     buf = memoryview(data).cast("B") if not isinstance(data, (bytes, bytearray)) else data
     if len(buf) < STATE_HEADER_SIZE:
-        raise ProtocolError(ERR_MALFORMED, f"state payload of {len(buf)} bytes is shorter than the {STATE_HEADER_SIZE}-byte header")
+        raise ProtocolError(ERR_MALFORMED,
+                            f"state payload of {len(buf)} bytes is shorter than the {STATE_HEADER_SIZE}-byte header")
     (magic, major, minor, hsize, enc, flags, n, tick, t_ns,
      x0, y0, z0, x1, y1, z1) = STATE_HEADER.unpack_from(buf, 0)
     if magic != STATE_MAGIC:

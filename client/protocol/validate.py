@@ -4,18 +4,43 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import fields
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any
 
 import msgpack
 import numpy as np
 
-from .errors import (ERR_INDEX_OUT_OF_RANGE, ERR_INVALID_TYPE, ERR_INVALID_VALUE, ERR_MALFORMED, ERR_MISSING_FIELD,
-                     ERR_TOO_LARGE, ERR_UNSUPPORTED_VERSION, ProtocolError)
+from .errors import (
+    ERR_INVALID_TYPE,
+    ERR_INVALID_VALUE,
+    ERR_MALFORMED,
+    ERR_MISSING_FIELD,
+    ERR_TOO_LARGE,
+    ERR_UNSUPPORTED_VERSION,
+    ProtocolError,
+)
 from .keys import PROTOCOL_MAJOR, PROTOCOL_MINOR, VERSION_STRING
-from .vocabulary import (COLLIDER_TYPES, DEFAULT_LIMITS, ENCODINGS, FEATURE_NAMES, MATERIAL_FIELDS, MAX_ARRAY_LENGTH,
-                         MAX_ELEMENTS, MAX_MAP_KEYS, MAX_NESTING, MAX_STRING_BYTES, Capsule, Collider, Limits, Plane,
-                         Sphere, StateOptions, Vec3)
+from .vocabulary import (
+    COLLIDER_TYPES,
+    DEFAULT_LIMITS,
+    ENCODINGS,
+    FEATURE_NAMES,
+    MATERIAL_FIELDS,
+    MAX_ARRAY_LENGTH,
+    MAX_ELEMENTS,
+    MAX_MAP_KEYS,
+    MAX_NESTING,
+    MAX_STRING_BYTES,
+    Capsule,
+    Collider,
+    Limits,
+    Plane,
+    Sphere,
+    StateOptions,
+    Vec3,
+)
+
 
 def pack(obj: Mapping[str, Any]) -> bytes:
     return msgpack.packb(obj, use_bin_type=True)
@@ -29,7 +54,8 @@ def unpack_message(data: bytes | bytearray, limits: Limits = DEFAULT_LIMITS) -> 
     if not isinstance(data, (bytes, bytearray)):
         raise ProtocolError(ERR_MALFORMED, f"payload must be bytes, got {type(data).__name__}")
     if len(data) > limits.max_message_bytes:
-        raise ProtocolError(ERR_TOO_LARGE, f"message of {len(data)} bytes exceeds the limit of {limits.max_message_bytes}")
+        raise ProtocolError(ERR_TOO_LARGE,
+                            f"message of {len(data)} bytes exceeds the limit of {limits.max_message_bytes}")
     if not data:
         raise ProtocolError(ERR_MALFORMED, "empty payload: expected a msgpack map")
     try:
@@ -38,7 +64,8 @@ def unpack_message(data: bytes | bytearray, limits: Limits = DEFAULT_LIMITS) -> 
         raise ProtocolError(ERR_MALFORMED, f"payload is not valid msgpack within the protocol's caps "
                             f"({type(e).__name__}: {str(e)[:120]})") from None
     except Exception as e:  # anything else msgpack raises on hostile bytes (ExtraData, FormatError, ...)
-        raise ProtocolError(ERR_MALFORMED, f"payload is not valid msgpack ({type(e).__name__}: {str(e)[:120]})") from None
+        raise ProtocolError(ERR_MALFORMED,
+                            f"payload is not valid msgpack ({type(e).__name__}: {str(e)[:120]})") from None
     _check_shape(obj)
     if not isinstance(obj, dict):
         raise ProtocolError(ERR_MALFORMED, f"payload must be a msgpack map, got {type(obj).__name__}")
@@ -52,7 +79,8 @@ def unpack_message(data: bytes | bytearray, limits: Limits = DEFAULT_LIMITS) -> 
     if v[0] != PROTOCOL_MAJOR:
         raise ProtocolError(
             ERR_UNSUPPORTED_VERSION,
-            f"protocol version {v[0]}.{v[1]} is not supported; this side speaks {VERSION_STRING} (major {PROTOCOL_MAJOR})",
+            f"protocol version {v[0]}.{v[1]} is not supported; this side speaks {VERSION_STRING} "
+            f"(major {PROTOCOL_MAJOR})",
             rid,
         )
     return obj
@@ -139,7 +167,7 @@ class _Reader:
             return None
         return self.m[key]
 
-    def sub(self, key: str, required: bool = False) -> "_Reader | None":
+    def sub(self, key: str, required: bool = False) -> _Reader | None:
         v = self.raw(key, required)
         if v is None:
             return None
@@ -223,7 +251,8 @@ def _tname(v: object) -> str:
     return type(v).__name__
 
 
-def _check_num(r: _Reader, name: str, v: object, lo: float | None, hi: float | None, lo_inclusive: bool = True) -> float:
+def _check_num(r: _Reader, name: str, v: object, lo: float | None, hi: float | None,
+               lo_inclusive: bool = True) -> float:
     if not _is_num(v):
         raise r.fail(ERR_INVALID_TYPE, f"'{name}' must be a number, got {_tname(v)}")
     f = float(v)  # type: ignore[arg-type]
@@ -289,7 +318,8 @@ def _read_features(r: _Reader, key: str = "features") -> tuple[str, ...] | None:
         if not isinstance(x, str):
             raise r.fail(ERR_INVALID_TYPE, f"'{r.name(key)}[{i}]' must be a string, got {_tname(x)}")
         if x not in FEATURE_NAMES:
-            raise r.fail(ERR_INVALID_VALUE, f"unknown feature {x[:40]!r} in '{r.name(key)}'; known: {list(FEATURE_NAMES)}")
+            raise r.fail(ERR_INVALID_VALUE,
+                         f"unknown feature {x[:40]!r} in '{r.name(key)}'; known: {list(FEATURE_NAMES)}")
         if x not in out:
             out.append(x)
     return tuple(out)
@@ -302,7 +332,8 @@ def _read_colliders(r: _Reader, key: str = "colliders") -> tuple[Collider, ...] 
     if not isinstance(v, list):
         raise r.fail(ERR_INVALID_TYPE, f"'{r.name(key)}' must be an array of collider maps, got {_tname(v)}")
     if len(v) > r.limits.max_colliders:
-        raise r.fail(ERR_TOO_LARGE, f"'{r.name(key)}' has {len(v)} colliders, more than the limit of {r.limits.max_colliders}")
+        raise r.fail(ERR_TOO_LARGE,
+                     f"'{r.name(key)}' has {len(v)} colliders, more than the limit of {r.limits.max_colliders}")
     out: list[Collider] = []
     bound = r.limits.max_coordinate
     for i, c in enumerate(v):
@@ -331,7 +362,8 @@ def _read_state_options(r: _Reader, key: str = "state", submit: bool = True) -> 
         return None
     bundle = sub.bool_("bundle")
     if bundle is not None and not submit:
-        raise r.fail(ERR_INVALID_VALUE, f"'{sub.name('bundle')}' can only be chosen at submission, not changed by a control")
+        raise r.fail(ERR_INVALID_VALUE,
+                     f"'{sub.name('bundle')}' can only be chosen at submission, not changed by a control")
     return StateOptions(sub.bool_("normals"), sub.str_("encoding", choices=ENCODINGS), bundle)
 
 
@@ -383,7 +415,8 @@ def material_to_map(material: Any) -> dict[str, Any]:
     drape.server.sim.params.Material (all of its fields)."""
     if material is None:
         return {}
-    items = material.items() if isinstance(material, Mapping) else ((f.name, getattr(material, f.name)) for f in fields(material))
+    items = material.items() if isinstance(material, Mapping) else ((f.name, getattr(material,
+                                                                                     f.name)) for f in fields(material))
     out: dict[str, Any] = {}
     for k, v in items:
         if k not in MATERIAL_FIELDS:

@@ -85,7 +85,8 @@ class FrameEncoder:
             if len(idx) == k:  # every cloth: the frame as is
                 src, local = pos, off
             else:
-                src = np.concatenate([pos[off[i]:off[i + 1]] for i in idx]) if len(idx) > 1 else pos[off[idx[0]]:off[idx[0] + 1]]
+                src = (np.concatenate([pos[off[i]:off[i + 1]] for i in idx]) if len(idx) > 1
+                       else pos[off[idx[0]]:off[idx[0] + 1]])
                 counts = np.array([self._counts[i] for i in idx], np.int64)
                 local = np.zeros(len(idx) + 1, np.int64)
                 np.cumsum(counts, out=local[1:])

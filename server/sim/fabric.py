@@ -16,9 +16,9 @@ from __future__ import annotations
 import hashlib
 import logging
 import threading
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable
 
 import numpy as np
 
@@ -327,7 +327,7 @@ def cook_grid(
     rows: int,
     width: float = 1.0,
     height: float = 1.0,
-    options: LinkOptions = LinkOptions(),
+    options: LinkOptions = LinkOptions(),  # noqa: B008 (frozen)
     pinned: Iterable[int] = (),
     orientation: str = "horizontal",
     origin: Iterable[float] = (0.0, 0.0, 0.0),
@@ -341,7 +341,7 @@ def cook_grid(
 def cook_mesh(
     vertices: np.ndarray,
     triangles: np.ndarray,
-    options: LinkOptions = LinkOptions(),
+    options: LinkOptions = LinkOptions(),  # noqa: B008 (frozen)
     pinned: Iterable[int] = (),
     tethers: bool = True,
 ) -> Fabric:

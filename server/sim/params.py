@@ -26,7 +26,7 @@ from drape.client.protocol.vocabulary import (
     LINK_TYPE_NAMES,
     MATERIAL_DEFAULTS,
     MATERIAL_FIELDS,
-    MAX_COLLIDERS_PER_CLOTH,
+    MAX_COLLIDERS_PER_CLOTH,  # noqa: F401 (re-exported: the server's collider capacity)
     Capsule,
     Plane,
     Sphere,
@@ -72,7 +72,7 @@ class Features:
         return self.wind or self.normals
 
     @classmethod
-    def from_names(cls, names: list[str] | tuple[str, ...]) -> "Features":
+    def from_names(cls, names: list[str] | tuple[str, ...]) -> Features:
         valid = {f.name for f in fields(cls)}
         bad = [n for n in names if n not in valid]
         if bad:
@@ -100,10 +100,12 @@ class Material:
     drag: float = MATERIAL_DEFAULTS["drag"]  # kDG
     lift: float = MATERIAL_DEFAULTS["lift"]  # kLF
     air_density: float = MATERIAL_DEFAULTS["air_density"]  # rho, kg/m^3
-    tether_limit: float = MATERIAL_DEFAULTS["tether_limit"]  # a vertex may be this many times its rest distance from its anchor
+    # a vertex may be this many times its rest distance from its anchor
+    tether_limit: float = MATERIAL_DEFAULTS["tether_limit"]
 
 
-assert tuple(f.name for f in fields(Material)) == tuple(MATERIAL_FIELDS), "params.Material must list protocol.MATERIAL_FIELDS"
+assert tuple(f.name for f in fields(Material)) == tuple(MATERIAL_FIELDS), \
+    "params.Material must list protocol.MATERIAL_FIELDS"
 
 # Colliders are the protocol's dataclasses (Sphere, Capsule, Plane: the half space n.x >= offset is
 # outside, n normalised on packing); their type ids on the device follow protocol.COLLIDER_TYPES.
@@ -150,7 +152,7 @@ class ClothParams:
     # spectral radius; 0 turns it off. Typical 0.9 .. 0.99.
     chebyshev_rho: float = DEFAULT_CHEBYSHEV_RHO
 
-    def with_(self, **changes) -> "ClothParams":
+    def with_(self, **changes) -> ClothParams:
         return replace(self, **changes)
 
     def validate(self) -> None:
@@ -174,7 +176,8 @@ class ClothParams:
                 if not (isinstance(v, (int, float)) and math.isfinite(v)):
                     raise ValueError(f"{name} must be finite, got {value!r}")
                 if v < lo or (v == lo and not lo_inclusive) or v > hi_eff:
-                    raise ValueError(f"{name} must be in {'[' if lo_inclusive else '('}{lo:g}, {hi_eff:g}], got {value!r}")
+                    bracket = "[" if lo_inclusive else "("
+                    raise ValueError(f"{name} must be in {bracket}{lo:g}, {hi_eff:g}], got {value!r}")
 
 
 def _finite(name: str, values) -> None:

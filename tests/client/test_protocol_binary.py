@@ -2,15 +2,8 @@
 truncation and corruption."""
 from __future__ import annotations
 
-import dataclasses
-import json
-import math
 import struct
-import subprocess
-import sys
-from pathlib import Path
 
-import msgpack
 import numpy as np
 import pytest
 

@@ -132,7 +132,8 @@ def test_features_add_and_remove_round_trip_and_are_validated_like_features():
     back = P.decode_control(P.encode_control(req))
     assert back == req and back.features is None
     assert P.decode_control(P.encode_control(P.ControlRequest("abc", TOKEN))).features_add is None
-    for bad, code in [({"features_add": "wind"}, P.ERR_INVALID_TYPE), ({"features_remove": ["air"]}, P.ERR_INVALID_VALUE),
+    for bad, code in [({"features_add": "wind"}, P.ERR_INVALID_TYPE), ({"features_remove": ["air"]},
+                                                                       P.ERR_INVALID_VALUE),
                       ({"features_add": ["wind"] * 17}, P.ERR_TOO_LARGE),
                       ({"features_add": ["wind"], "features_remove": ["wind"]}, P.ERR_INVALID_VALUE)]:
         with pytest.raises(P.ProtocolError) as e:

@@ -3,12 +3,7 @@ that name the field, 1.1 bundle options and batch control, key expressions."""
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-import struct
-import subprocess
-import sys
-from pathlib import Path
 
 import msgpack
 import numpy as np
@@ -185,7 +180,8 @@ BAD_SUBMITS = [
 
 
 def _mesh(v, t, **kw):
-    return raw(sub(grid=None, mesh={"vertices": np.asarray(v, "<f4").tobytes(), "triangles": np.asarray(t, "<u4").tobytes()},
+    return raw(sub(grid=None, mesh={"vertices": np.asarray(v, "<f4").tobytes(), "triangles": np.asarray(t,
+                                                                                                        "<u4").tobytes()},
                    **kw))
 
 

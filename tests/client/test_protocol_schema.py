@@ -87,7 +87,7 @@ LAYOUTS = {"state_header": P.STATE_HEADER_FIELDS, "bundle_header": P.BUNDLE_HEAD
 def test_c_header_declares_every_field_of_the_python_layouts():
     text = schemagen.C_HEADER.read_text()
     for struct_name, fields in LAYOUTS.items():
-        body = re.search(r"typedef struct drape_%s \{(.*?)\} drape_%s;" % (struct_name, struct_name), text, re.S)
+        body = re.search(rf"typedef struct drape_{struct_name} \{{(.*?)\}} drape_{struct_name};", text, re.S)
         assert body, struct_name
         names = re.findall(r"^\s+\w+ (\w+)(?:\[\d+\])?;", body.group(1), re.M)
         assert names == [f[0] for f in fields]

@@ -2,11 +2,8 @@
 1.0 and 1.1 vectors still read, and the hex dumps of PROTOCOL.md."""
 from __future__ import annotations
 
-import dataclasses
 import json
-import math
 import struct
-import subprocess
 import sys
 from pathlib import Path
 
@@ -18,7 +15,8 @@ from drape.client import protocol as P
 
 VECTORS = Path(__file__).resolve().parents[1] / "vectors"
 sys.path.insert(0, str(VECTORS))
-from generate import json_to_wire, vectors as fresh_vectors  # noqa: E402
+from generate import json_to_wire  # noqa: E402
+from generate import vectors as fresh_vectors  # noqa: E402
 
 
 def load(group: str) -> list[dict]:
@@ -141,9 +139,10 @@ def test_bundle_vectors(vec):
     assert [s.cloth for s in P.decode_bundle(data, 5)] == [e["cloth"] for e in val["entries"]]
     # meaning -> identical bytes
     inp = vec["input"]
-    again = P.encode_bundle(inp["tick"], inp["server_time_ns"], [(s["cloth"], bytes.fromhex(s["hex"])) for s in inp["states"]])
+    again = P.encode_bundle(inp["tick"], inp["server_time_ns"], [(s["cloth"],
+                                                                  bytes.fromhex(s["hex"])) for s in inp["states"]])
     assert bytes(again) == data
-    for s, e in zip(inp["states"], val["entries"]):
+    for s, e in zip(inp["states"], val["entries"], strict=True):
         assert data[e["state_offset"]:e["state_offset"] + e["state_size"]].hex() == s["hex"]
 
 
@@ -177,7 +176,7 @@ def test_accepted_vectors():
             assert (b.minor, b.tick, b.server_time_ns, b.flags, len(b.entries)) == (
                 val["minor"], val["tick"], val["server_time_ns"], val["flags"], val["count"])
             assert struct.unpack_from("<H", data, 6)[0] == val["header_size"] and len(data) == val["size"]
-            for e, ev in zip(b.entries, val["entries"]):
+            for e, ev in zip(b.entries, val["entries"], strict=True):
                 assert (e.cloth, e.offset, e.size) == (ev["cloth"], ev["state_offset"], ev["state_size"])
                 st = P.decode_state(data[e.offset:e.offset + e.size])
                 assert st.positions.tolist() == ev["state"]["positions"]

@@ -3,14 +3,9 @@ server), and the client side needs no server code."""
 from __future__ import annotations
 
 import dataclasses
-import json
-import math
-import struct
 import subprocess
 import sys
-from pathlib import Path
 
-import msgpack
 import numpy as np
 import pytest
 
@@ -21,7 +16,8 @@ def test_vocabulary_matches_the_server_params():
     from drape.server.sim.params import ClothParams, Features, LinkOptions, Material
 
     assert tuple(f.name for f in dataclasses.fields(Features)) == P.FEATURE_NAMES
-    assert tuple(f.name for f in dataclasses.fields(LinkOptions)) == tuple(f.name for f in dataclasses.fields(P.LinkSpec))
+    assert tuple(f.name for f in dataclasses.fields(LinkOptions)) == tuple(
+        f.name for f in dataclasses.fields(P.LinkSpec))
     assert dataclasses.asdict(LinkOptions()) == dataclasses.asdict(P.LinkSpec())
     assert set(P.MATERIAL_FIELDS) == {f.name for f in dataclasses.fields(Material)}
     assert dataclasses.asdict(Material()) == P.MATERIAL_DEFAULTS

@@ -258,7 +258,8 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
     tri = [[0.0, 2.0, 0.0], [1.0, 1.5, -0.25], [0.5, 1.0, 0.75]]
     nrm = [[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, -1.0, 0.0]]
     state = [
-        state_vector("state_float32", "Three vertices, float32.", 1042, 1_700_000_000_123_456_789, tri, None, "float32"),
+        state_vector("state_float32", "Three vertices, float32.", 1042, 1_700_000_000_123_456_789, tri, None,
+                     "float32"),
         state_vector("state_float32_normals", "Three vertices with normals, float32, after a reset.", 7, 42, tri, nrm,
                      "float32", P.FLAG_RESET),
         state_vector("state_float16", "Three vertices with normals, float16 (0.1 and 1.3 round).", 8, 43,

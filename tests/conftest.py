@@ -1,14 +1,21 @@
-"""Shared fixtures: fresh random inputs every run (the seed is printed so a failure can be replayed)
-and one OpenCL device per test session (PoCL's CPU device on CI)."""
+"""Shared fixtures: fresh random inputs every run (the seed is printed so a failure can be replayed),
+one OpenCL device per test session (PoCL's CPU device on CI), random fabrics, and the service
+tests' helpers (a server configuration on its own port, connect, collect, wait_until)."""
 from __future__ import annotations
 
 import os
+import socket
+import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from drape.server.sim.fabric import cook, cook_grid, grid_links, grid_mesh, mesh_links
 from drape.server.sim.params import LinkOptions
+
+# Imported lazily by the helpers below: the client SDK and the service config (no OpenCL, no Zenoh
+# session at import time).
 
 
 @pytest.fixture
@@ -51,4 +58,78 @@ def random_grid_fabric(rng: np.random.Generator, options: LinkOptions = LinkOpti
                      orientation=str(rng.choice(["horizontal", "vertical"])))
 
 
-__all__ = ["random_mesh_fabric", "random_grid_fabric", "grid_links"]
+# ---------------------------------------------------------------------------------------------
+# The service end to end: helpers (plain functions, also offered as the ``svc`` fixture)
+
+GRACE = 1.0  # grace period of the test servers' vanished clients
+TIMEOUT = 5.0
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def endpoint() -> str:
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+def make_config(**kw) -> "ServerConfig":
+    """A test server's configuration on its own free port. Admission control runs with a budget
+    of 50 ticks (it never refuses on a loaded CI machine); tests of admission set their own."""
+    from drape.server.service.config import ServerConfig
+
+    ep = kw.pop("listen", None) or [endpoint()]
+    base = dict(
+        listen=ep,
+        server_id=f"test-{ep[0].rsplit(':', 1)[1]}",
+        solver="workgroup",
+        tick_rate=60.0,
+        grace_period=GRACE,
+        stats_period=0.25,
+        max_cloths_per_client=6,
+        max_vertices_per_cloth=4096,
+        max_total_vertices=40000,
+        max_message_bytes=1 << 20,
+        max_pin_updates=64,
+        multicast_scouting=False,
+        admission_budget=50.0,
+    )
+    base.update(kw)
+    return ServerConfig(**base).validate()
+
+
+def connect(server, **kw):
+    from drape.client import DrapeClient
+
+    return DrapeClient(server.config.listen[0], server_id=server.server_id, timeout=TIMEOUT, **kw)
+
+
+def collect(handle, n: int, timeout: float = TIMEOUT) -> list:
+    out = []
+    deadline = time.monotonic() + timeout
+    while len(out) < n:
+        out.append(handle.next_state(max(0.0, deadline - time.monotonic())))
+    return out
+
+
+def wait_until(pred, timeout: float = TIMEOUT, step: float = 0.02) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(step)
+    return pred()
+
+
+@pytest.fixture
+def svc() -> SimpleNamespace:
+    """The service test helpers: make_config, connect, collect, wait_until, free_port, endpoint,
+    TIMEOUT, GRACE."""
+    return SimpleNamespace(make_config=make_config, connect=connect, collect=collect, wait_until=wait_until,
+                           free_port=free_port, endpoint=endpoint, TIMEOUT=TIMEOUT, GRACE=GRACE)
+
+
+__all__ = ["random_mesh_fabric", "random_grid_fabric", "grid_links", "make_config", "connect", "collect",
+           "wait_until", "free_port", "endpoint", "TIMEOUT", "GRACE"]

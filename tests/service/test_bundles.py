@@ -13,8 +13,8 @@ import pytest
 
 from drape.client import BatchError, Forbidden, protocol as P
 from drape.server.service.statecodec import FrameEncoder
-from drape.server.service.tickloop import Server
-from test_service import TIMEOUT, connect, make_config, wait_until
+from drape.server.service import Server
+from conftest import TIMEOUT, connect, make_config, wait_until
 
 MAX_ITEMS = 8
 

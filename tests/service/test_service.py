@@ -25,41 +25,10 @@ from drape.client import protocol as P
 from drape.server.service.config import ServerConfig, add_arguments, from_args
 from drape.server.sim.fabric import cook_grid
 from drape.server.sim.params import ClothParams, Features, LinkOptions, Plane
-from drape.server.service.tickloop import Server
+from drape.server.service import Server
 from drape.server.sim.world import make_world
 
-GRACE = 1.0
-TIMEOUT = 5.0
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def endpoint() -> str:
-    return f"tcp/127.0.0.1:{free_port()}"
-
-
-def make_config(**kw) -> ServerConfig:
-    ep = kw.pop("listen", None) or [endpoint()]
-    base = dict(
-        listen=ep,
-        server_id=f"test-{ep[0].rsplit(':', 1)[1]}",
-        solver="workgroup",
-        tick_rate=60.0,
-        grace_period=GRACE,
-        stats_period=0.25,
-        max_cloths_per_client=6,
-        max_vertices_per_cloth=4096,
-        max_total_vertices=40000,
-        max_message_bytes=1 << 20,
-        max_pin_updates=64,
-        multicast_scouting=False,
-    )
-    base.update(kw)
-    return ServerConfig(**base).validate()
+from conftest import GRACE, TIMEOUT, collect, connect, endpoint, make_config, wait_until  # shared helpers
 
 
 @pytest.fixture(scope="module")
@@ -70,32 +39,11 @@ def server():
     assert s.failure is None
 
 
-def connect(server: Server, **kw) -> DrapeClient:
-    return DrapeClient(server.config.listen[0], server_id=server.server_id, timeout=TIMEOUT, **kw)
-
-
 @pytest.fixture
 def client(server):
     c = connect(server)
     yield c
     c.close()
-
-
-def collect(handle, n: int, timeout: float = TIMEOUT) -> list[P.ClothState]:
-    out = []
-    deadline = time.monotonic() + timeout
-    while len(out) < n:
-        out.append(handle.next_state(max(0.0, deadline - time.monotonic())))
-    return out
-
-
-def wait_until(pred, timeout: float = TIMEOUT, step: float = 0.02) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(step)
-    return pred()
 
 
 # ---------------------------------------------------------------------------------------------

@@ -397,18 +397,26 @@ def _vertex_area(v: np.ndarray, t: np.ndarray) -> np.ndarray:
     return area
 
 
+MIN_AREA_SHARE = 1.0e-6  # of the mean: sliver triangles never make a vertex massless
+
+
 def vertex_masses(fabric: Fabric, total_mass: float) -> np.ndarray:
-    """Mass of each vertex: the total spread by area share (uniform where there is no area)."""
+    """Mass of each vertex: the total spread by area share (the mean share where there is no area).
+
+    Every share is at least MIN_AREA_SHARE of the mean (then all are renormalised), so with any
+    total mass the protocol accepts (>= protocol.MIN_MASS) each vertex's mass and inverse mass are
+    normal, finite float32 values whatever sliver triangles a mesh has."""
     area = fabric.vertex_area
     total = float(area.sum())
     n = fabric.n_vertices
-    if total > 0 and np.all(area > 0):
+    if not total > 0:
+        return np.full(n, total_mass / n)
+    floor = MIN_AREA_SHARE * total / n
+    if np.all(area >= floor):
         return total_mass * area / total
-    if total > 0:
-        # vertices touching no triangle get the mean share, then all are renormalised
-        a = np.where(area > 0, area, total / n)
-        return total_mass * a / a.sum()
-    return np.full(n, total_mass / n)
+    # vertices touching no triangle get the mean share, slivers the floor; then all are renormalised
+    a = np.where(area > 0, np.maximum(area, floor), total / n)
+    return total_mass * a / a.sum()
 
 
 def tether_anchors(v: np.ndarray, pinned: np.ndarray,

@@ -222,3 +222,17 @@ def test_identical_submissions_share_one_fabric(device):
     cache.release(a)
     cache.release(b)
     assert len(cache) == 1
+
+
+def test_sliver_triangles_never_give_a_vertex_a_mass_float32_cannot_invert():
+    """A mesh with a sliver (area 1e-30 of the rest) and the least total mass the protocol
+    accepts: every vertex mass and inverse mass is a normal, finite float32."""
+    from drape.client.protocol import MIN_MASS
+
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1e-30, 0]], np.float64)
+    f = cook_mesh(v, np.array([[0, 1, 2], [0, 3, 1]]))
+    assert f.vertex_area[3] < 1e-29  # the sliver vertex
+    for total in (MIN_MASS, 1.0, 1.0e6):
+        m = vertex_masses(f, total).astype(np.float32)
+        assert np.isclose(float(m.astype(np.float64).sum()), total, rtol=1e-5)
+        assert (m >= np.finfo(np.float32).tiny).all() and np.isfinite(np.float32(1.0) / m).all()

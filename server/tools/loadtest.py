@@ -343,7 +343,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--solver", default=None, help="solver of the started server")
     parser.add_argument("--device", default=None, help="OpenCL device of the started server")
     parser.add_argument("--server-arg", action="append", default=[], help="extra argument for drape serve")
-    parser.add_argument("--find-knee", action="store_true", help="double the load until it is not held")
+    parser.add_argument(
+        "--find-knee",
+        action="store_true",
+        help="from the first load, double it until it is not held (a failed load is run twice)",
+    )
     parser.add_argument("--max-cloths", type=int, default=8192, help="--find-knee stops here (total cloths)")
     parser.add_argument(
         "--max-total-seconds",
@@ -415,6 +419,8 @@ def run(args: argparse.Namespace) -> int:
         stats = StatsWatch(endpoint, server_id)
         try:
             queue = [replace(base, cloths=n, encoding=enc) for n, enc in loads]
+            if args.find_knee:  # from the first load up, doubling
+                queue = queue[:1]
             retried = False
             while queue:
                 spec = queue.pop(0)

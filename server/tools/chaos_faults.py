@@ -1,0 +1,398 @@
+"""The ``drape chaos`` scenarios: each starts its own ``drape serve`` (and good clients), measures a
+baseline, applies one fault or abuse, measures again and returns the figures and its verdict
+against the targets of issue 11 (see :mod:`drape.server.tools.chaos`).
+
+Scenarios: ``fuzz`` (in :mod:`.chaos_fuzz`), ``flood-ids``, ``big-submit``, ``big-cook``,
+``tiny-mass``, ``new-features``, ``kill``, ``pause``. Every one is bounded in messages and seconds
+and talks only to 127.0.0.1.
+"""
+from __future__ import annotations
+
+import itertools
+import logging
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+import zenoh
+
+from drape.client import protocol as P
+
+from . import chaos_fuzz
+from .chaos_harness import ChaosServer, GoodClient, Window, reply_outcome, zenoh_session
+
+log = logging.getLogger(__name__)
+
+TICK_HZ = 60.0
+RATE_FLOOR = 0.95  # a good client's state rate must stay within 5 % of the tick rate
+RSS_SLACK = 0.10  # RSS back within 10 % of where it was
+FAILOVER_GAP_S = 1.0  # kill and pause: every cloth back within this
+RETRY_LATER = ("busy", "overloaded")  # error codes that ask the client to try again later
+
+
+@dataclass
+class Context:
+    """What every scenario gets from the command line."""
+
+    out: Path
+    seconds: float = 5.0  # measured window after the abuse, where a scenario has one
+    baseline_s: float = 2.0
+    fuzz_count: int = 2000
+    flood_ids: int = 2000
+    pause_s: float = 20.0
+    max_message_bytes: int = 8 << 20
+    rss_limit_mb: float = 4096.0
+    seed: int = 1
+    grace_period: float = 5.0
+
+
+class Stage:
+    """A server plus one measured good client: ``with Stage(ctx, "name") as st``."""
+
+    def __init__(self, ctx: Context, name: str, server_args: tuple[str, ...] = (), good_cloths: int = 1) -> None:
+        self.ctx = ctx
+        self.server = ChaosServer(ctx.out, name, ("--grace-period", str(ctx.grace_period),
+                                                  "--max-message-bytes", str(ctx.max_message_bytes), *server_args),
+                                  rss_limit_mb=ctx.rss_limit_mb)
+        self.good: GoodClient | None = None
+        self.name = name
+        self.good_cloths = good_cloths
+        self.session: zenoh.Session | None = None
+        self.keys = P.Keys()
+
+    def __enter__(self) -> Stage:
+        try:
+            self.server.wait_ready()
+            self.good = GoodClient(self.server.endpoint, self.server.server_id, self.name, self.good_cloths)
+            self.good.wait_ready()
+            self.session = zenoh_session(self.server.endpoint)
+        except BaseException:
+            self.__exit__()
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.good is not None:
+            self.good.close()
+        if self.session is not None:
+            self.session.close()
+        self.server.stop()
+
+    def baseline(self) -> dict[str, Any]:
+        """The good client and the server, undisturbed, for ``baseline_s`` (the machine's own noise)."""
+        w = Window.open(self.server)
+        time.sleep(self.ctx.baseline_s)
+        b = w.close([self.good] if self.good else [])
+        return {k: b[k] for k in ("good_rate_hz", "missed_ticks", "good_lost", "good_worst_gap_ms", "server_tick_hz",
+                                  "rss_after_mb") if k in b}
+
+    def request(self, queryable: str, payload: bytes, timeout: float = 60.0) -> tuple[str, dict[str, Any]]:
+        """One query; (outcome, reply map) with outcome ``ok``, an error code, or ``no_reply``."""
+        assert self.session is not None
+        for reply in self.session.get(getattr(self.keys, queryable)(self.server.server_id), payload=payload,
+                                      timeout=timeout):
+            outcome = reply_outcome(reply)
+            data = reply.ok.payload.to_bytes() if reply.ok is not None else b""
+            return outcome, (msgpack.unpackb(data, raw=False) if data else {})
+        return "no_reply", {}
+
+    def submit(self, req: P.SubmitRequest, timeout: float = 60.0) -> tuple[str, dict[str, Any]]:
+        return self.request("submit", P.encode_submit(req), timeout)
+
+    def submit_retrying(self, req: P.SubmitRequest, attempts: int = 10) -> str:
+        """A submit, retried (1 s apart, at most ``attempts`` times) while the server answers with a
+        code that means "later" (busy, overloaded); the last outcome."""
+        outcome = "no_reply"
+        for _ in range(attempts):
+            outcome, _ = self.submit(req)
+            if outcome not in RETRY_LATER:
+                break
+            time.sleep(1.0)
+        return outcome
+
+    def submit_async(self, req: P.SubmitRequest, timeout: float = 120.0) -> dict[str, Any]:
+        """Send a submit without waiting; the returned dict gets ``outcome``/``reply`` when it comes."""
+        assert self.session is not None
+        box: dict[str, Any] = {"done": threading.Event()}
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            box["outcome"] = reply_outcome(reply)
+            if reply.ok is not None:
+                box["reply"] = msgpack.unpackb(reply.ok.payload.to_bytes(), raw=False)
+
+        self.session.get(self.keys.submit(self.server.server_id),
+                         zenoh.handlers.Callback(on_reply, box["done"].set), payload=P.encode_submit(req),
+                         timeout=timeout)
+        return box
+
+    def remove(self, reply: dict[str, Any]) -> str:
+        if "cloth" not in reply:
+            return "nothing to remove"
+        return self.request("remove", P.encode_remove(P.RemoveRequest(reply["cloth"], reply["token"])))[0]
+
+
+def grid_request(client: str, n: int = 16, **kw: Any) -> P.SubmitRequest:
+    return P.SubmitRequest(client=client, grid=P.GridSpec(n, n), pinned=np.array([0, n - 1], np.uint32), **kw)
+
+
+def judge(m: dict[str, Any], *, good: bool = True, rss: bool = True) -> list[str]:
+    """Which targets a window missed: good clients at the tick rate, 0 missed ticks, nothing lost,
+    0 tracebacks, the server alive and publishing, RSS back within 10 %."""
+    fails = []
+    if not m.get("server_alive", True):
+        fails.append("server died" + (" (killed at the RSS cap)" if m.get("killed_for_rss") else ""))
+    if m.get("stats_stalled"):
+        fails.append("server stopped publishing stats")
+    if good:
+        if m.get("good_rate_hz", 0.0) < RATE_FLOOR * TICK_HZ:
+            fails.append(f"good client at {m.get('good_rate_hz')} Hz < {RATE_FLOOR * TICK_HZ:.0f}")
+        if m.get("missed_ticks", 0):
+            fails.append(f"{m['missed_ticks']} missed ticks")
+        if m.get("good_lost", 0):
+            fails.append(f"{m['good_lost']} good states lost")
+    if m.get("tracebacks", 0):
+        fails.append(f"{m['tracebacks']} tracebacks in the server log")
+    if rss and m.get("rss_after_mb", 0) > (1 + RSS_SLACK) * m.get("rss_before_mb", float("inf")):
+        fails.append(f"RSS {m['rss_before_mb']} -> {m['rss_after_mb']} MB (> +{RSS_SLACK:.0%})")
+    return fails
+
+
+# ---------------------------------------------------------------------------------------------
+# Scenarios
+
+
+def fuzz(ctx: Context, count: int | None = None) -> dict[str, Any]:
+    """Malformed messages on every queryable, then a valid submit must still be served."""
+    count = ctx.fuzz_count if count is None else count
+    with Stage(ctx, "fuzz") as st:
+        base = st.baseline()
+        outcome, reply = st.submit(grid_request("fuzzer", 8))
+        cloth, token = reply.get("cloth", "0123456789abcdef"), reply.get("token", "0" * 32)
+        w = Window.open(st.server)
+        msgs = chaos_fuzz.messages(count, ctx.seed, "fuzzer", cloth, token, ctx.max_message_bytes)
+        assert st.session is not None
+        c = chaos_fuzz.send_all(st.session, st.keys, st.server.server_id, msgs)
+        m = w.close([st.good] if st.good else [], settle_s=ctx.grace_period + 2.0)
+        after = st.submit_retrying(grid_request("after-fuzz", 8))
+    m.update(baseline=base, sent=c.sent, outcomes=dict(c.outcomes), no_reply=c.no_reply,
+             internal=c.outcomes.get("internal", 0), internal_kinds=dict(c.internal_kinds.most_common(10)),
+             by_kind=dict(c.by_kind), valid_submit_after=after, first_submit=outcome)
+    fails = judge(m)
+    if m["internal"]:
+        fails.append(f"{m['internal']} 'internal' error replies")
+    if c.outcomes.get("unparseable"):
+        fails.append(f"{c.outcomes['unparseable']} error replies that are not Drape error maps")
+    if c.no_reply:
+        fails.append(f"{c.no_reply} messages got no reply")
+    if after != "ok":
+        fails.append(f"a valid submit afterwards got {after}")
+    return {**m, "fails": fails}
+
+
+def flood_ids(ctx: Context) -> dict[str, Any]:
+    """Many self-declared client ids, one small cloth each (no liveliness token: reclaimed after grace)."""
+    with Stage(ctx, "flood-ids") as st:
+        base = st.baseline()
+        w = Window.open(st.server)
+        outcomes: dict[str, int] = {}
+        slots = threading.BoundedSemaphore(16)
+        lock = threading.Lock()
+        assert st.session is not None
+        for i in range(ctx.flood_ids):
+            slots.acquire(timeout=120)
+
+            def on_reply(reply: zenoh.Reply) -> None:
+                with lock:
+                    o = reply_outcome(reply)
+                    outcomes[o] = outcomes.get(o, 0) + 1
+
+            st.session.get(st.keys.submit(st.server.server_id), zenoh.handlers.Callback(on_reply, slots.release),
+                           payload=P.encode_submit(grid_request(f"flood-{i}", 8)), timeout=60)
+        for _ in range(16):
+            slots.acquire(timeout=120)
+        peak = st.server.stats.next(10) or {}
+        newcomer = st.submit_retrying(grid_request("newcomer", 8))
+        rss_peak = st.server.rss_mb()
+        m = w.close([st.good] if st.good else [], settle_s=ctx.grace_period + 3.0)
+    m.update(baseline=base, submitted=ctx.flood_ids, outcomes=outcomes, cloths_at_peak=peak.get("cloths"),
+             rss_peak_mb=round(rss_peak, 1), newcomer_submit=newcomer)
+    fails = judge(m)
+    if newcomer != "ok":
+        fails.append(f"a new genuine client's submit got {newcomer} during the flood")
+    return {**m, "fails": fails}
+
+
+def _one_heavy(ctx: Context, name: str, req: P.SubmitRequest, wait_s: float) -> dict[str, Any]:
+    """Submit one heavy cloth without waiting, measure ``wait_s`` seconds, remove it, settle."""
+    with Stage(ctx, name) as st:
+        base = st.baseline()
+        w = Window.open(st.server)
+        t0 = time.monotonic()
+        box = st.submit_async(req)
+        box["done"].wait(wait_s)
+        replied_s = time.monotonic() - t0 if box["done"].is_set() else None
+        time.sleep(max(0.0, wait_s - (time.monotonic() - t0)))
+        m = w.close([st.good] if st.good else [])
+        removed = st.remove(box.get("reply", {})) if st.server.alive() else "server gone"
+        time.sleep(2.0)
+        m["rss_after_mb"] = round(st.server.rss_mb(), 1)
+    m.update(baseline=base, submit_outcome=box.get("outcome", "no reply yet"),
+             submit_reply_s=None if replied_s is None else round(replied_s, 2), removed=removed)
+    return {**m, "fails": judge(m)}
+
+
+def big_submit(ctx: Context) -> dict[str, Any]:
+    """One valid 256x256 cloth at 100 iterations x 100 substeps."""
+    req = grid_request("heavy", 256, iterations=100, substeps=100)
+    return _one_heavy(ctx, "big-submit", req, max(ctx.seconds, 10.0))
+
+
+def big_cook(ctx: Context) -> dict[str, Any]:
+    """A 256x256 cloth with 32,768 pinned vertices (every other one): the cook's cost."""
+    req = P.SubmitRequest(client="cook", grid=P.GridSpec(256, 256), pinned=np.arange(0, 65536, 2, dtype=np.uint32),
+                          features=("tethers",))
+    return _one_heavy(ctx, "big-cook", req, max(ctx.seconds, 20.0))
+
+
+def tiny_mass(ctx: Context, cloths: int = 64) -> dict[str, Any]:
+    """64 cloths of mass 5e-324 (valid: > 0), which go non-finite every tick."""
+    with Stage(ctx, "tiny-mass") as st:
+        base = st.baseline()
+        replies = [st.submit(grid_request("tiny", 16, material={"mass": 5e-324})) for _ in range(cloths)]
+        w = Window.open(st.server)
+        time.sleep(ctx.seconds)
+        m = w.close([st.good] if st.good else [])
+        for _, r in replies:
+            st.remove(r)
+        time.sleep(1.0)
+        m["rss_after_mb"] = round(st.server.rss_mb(), 1)
+    m.update(baseline=base, accepted=sum(o == "ok" for o, _ in replies),
+             nan_resets_per_s=round(m["nan_resets"] / max(m["seconds"], 1e-9), 1),
+             log_warnings_per_s=round(m["log_warnings"] / max(m["seconds"], 1e-9), 1))
+    fails = judge(m)
+    if m["log_warnings_per_s"] > 1.0:
+        fails.append(f"{m['log_warnings_per_s']} warning lines per second in the server log")
+    return {**m, "fails": fails}
+
+
+def new_features(ctx: Context) -> dict[str, Any]:
+    """The first cloth of each feature combination (all 32 subsets), one after the other."""
+    combos = [c for n in range(len(P.FEATURE_NAMES) + 1) for c in itertools.combinations(P.FEATURE_NAMES, n)]
+    with Stage(ctx, "new-features") as st:
+        base = st.baseline()
+        w = Window.open(st.server)
+        outcomes = []
+        for combo in combos:
+            o, r = st.submit(grid_request("features", 16, features=combo))
+            outcomes.append(o)
+            st.remove(r)
+        time.sleep(0.5)
+        m = w.close([st.good] if st.good else [])
+    m.update(baseline=base, combinations=len(combos), accepted=outcomes.count("ok"))
+    fails = judge(m, rss=False)
+    if m.get("good_worst_gap_ms", 0) > 2000.0 / TICK_HZ:
+        fails.append(f"worst gap between good states {m['good_worst_gap_ms']} ms > 2 ticks")
+    return {**m, "fails": fails}
+
+
+def kill(ctx: Context, cloths: int = 4) -> dict[str, Any]:
+    """kill -9 of one of two connected servers while clients hold cloths on both; then restart it
+    (same id and endpoint). Which of the victim's cloths are served again, and after how long."""
+    a = ChaosServer(ctx.out, "kill-a", ("--grace-period", str(ctx.grace_period)), rss_limit_mb=ctx.rss_limit_mb)
+    b: ChaosServer | None = None
+    clients: list[GoodClient] = []
+    try:
+        a.wait_ready()
+        b = ChaosServer(ctx.out, "kill-b", ("--grace-period", str(ctx.grace_period)), connect=[a.endpoint],
+                        rss_limit_mb=ctx.rss_limit_mb)
+        b.wait_ready()
+        victim = GoodClient(a.endpoint, a.server_id, "victim", cloths)
+        bystander = GoodClient(b.endpoint, b.server_id, "bystander", 1)
+        clients = [victim, bystander]
+        for c in clients:
+            c.wait_ready()
+        time.sleep(1.0)
+        wb = Window.open(b)
+        t_kill = time.monotonic()
+        a.kill(signal.SIGKILL)
+        a.proc.wait(10)
+        time.sleep(ctx.seconds)
+        a2 = ChaosServer(ctx.out, "kill-a-restarted", ("--grace-period", str(ctx.grace_period)),
+                         rss_limit_mb=ctx.rss_limit_mb, endpoint=a.endpoint, server_id=a.server_id)
+        try:
+            a2.wait_ready()
+            time.sleep(ctx.seconds)
+        finally:
+            a2.stop()
+        m = wb.close([bystander])
+        back = []
+        for j in range(cloths):
+            first = victim.first_receipt_after(j, t_kill + 0.5)
+            back.append({"cloth": j, "back": first is not None,
+                         "gap_s": None if first is None else round(first - t_kill, 2)})
+    finally:
+        for c in clients:
+            c.close()
+        for s in (a, b):
+            if s is not None:
+                s.stop()
+    n_back = sum(x["back"] for x in back)
+    m.update(cloths=cloths, back=n_back, back_pct=round(100.0 * n_back / cloths, 1), per_cloth=back,
+             restarted_same_id=True)
+    fails = judge(m, rss=False)
+    if n_back < cloths:
+        fails.append(f"{n_back} of {cloths} cloths of the killed server came back ({m['back_pct']} %)")
+    gaps = [x["gap_s"] for x in back if x["gap_s"] is not None]
+    if gaps and max(gaps) > FAILOVER_GAP_S:
+        fails.append(f"longest gap {max(gaps)} s > {FAILOVER_GAP_S} s")
+    return {**m, "fails": fails}
+
+
+def pause(ctx: Context, cloths: int = 2) -> dict[str, Any]:
+    """SIGSTOP a client process for ``pause_s`` seconds, then SIGCONT: are its cloths still served?"""
+    with Stage(ctx, "pause") as st:
+        sleeper = GoodClient(st.server.endpoint, st.server.server_id, "sleeper", cloths)
+        try:
+            sleeper.wait_ready()
+            time.sleep(1.0)
+            w = Window.open(st.server)
+            os.kill(sleeper.proc.pid, signal.SIGSTOP)
+            time.sleep(ctx.pause_s)
+            t_cont = time.monotonic()
+            os.kill(sleeper.proc.pid, signal.SIGCONT)
+            time.sleep(max(3.0, FAILOVER_GAP_S * 3))
+            m = w.close([st.good] if st.good else [])
+            back = []
+            for j in range(cloths):
+                first = sleeper.first_receipt_after(j, t_cont)
+                back.append({"cloth": j, "back": first is not None and first - t_cont <= FAILOVER_GAP_S,
+                             "after_s": None if first is None else round(first - t_cont, 2)})
+        finally:
+            sleeper.close()
+    n_back = sum(x["back"] for x in back)
+    m.update(paused_s=ctx.pause_s, cloths=cloths, back=n_back, back_pct=round(100.0 * n_back / cloths, 1),
+             per_cloth=back)
+    fails = judge(m, rss=False)
+    if n_back < cloths:
+        fails.append(f"{n_back} of {cloths} cloths served within {FAILOVER_GAP_S} s of SIGCONT "
+                     f"(reclaimed by the server: {m.get('reclaimed', 0)})")
+    return {**m, "fails": fails}
+
+
+SCENARIOS: dict[str, Callable[[Context], dict[str, Any]]] = {
+    "fuzz": fuzz,
+    "flood-ids": flood_ids,
+    "big-submit": big_submit,
+    "big-cook": big_cook,
+    "tiny-mass": tiny_mass,
+    "new-features": new_features,
+    "kill": kill,
+    "pause": pause,
+}

@@ -1,0 +1,353 @@
+"""What every ``drape chaos`` scenario stands on: a ``drape serve`` child process with its log in a
+file (tracebacks and warnings counted there, RSS sampled with psutil, killed when it passes an RSS
+cap), the server's stats publications, good game clients in their own processes recording every
+state they receive, and the measurement of a window: tick rate, missed ticks, states lost, worst
+gap between states, errors by code, RSS before and after.
+
+Everything talks only to 127.0.0.1; every wait is bounded.
+"""
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+import multiprocessing as mp
+import os
+import queue
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+import zenoh
+
+from drape.client import protocol as P
+from drape.server.tools.procs import ProcessFigures, free_port
+
+log = logging.getLogger(__name__)
+
+_RUNS = itertools.count()
+WAIT = 60.0  # the longest any start-up or reply is waited for (a loaded 2-core machine)
+
+
+def zenoh_session(endpoint: str) -> zenoh.Session:
+    """A plain client-side Zenoh session connected to one loopback endpoint (no scouting)."""
+    c = zenoh.Config()
+    c.insert_json5("mode", '"peer"')
+    c.insert_json5("listen/endpoints", "[]")
+    c.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    c.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(c)
+
+
+def reply_outcome(reply: zenoh.Reply) -> str:
+    """``ok``, an error code, or ``unparseable`` for an error reply that is not a Drape error map."""
+    if reply.ok is not None:
+        return "ok"
+    try:
+        m = msgpack.unpackb(reply.err.payload.to_bytes(), raw=False)
+        return str(m["error"]["code"])
+    except Exception:
+        return "unparseable"
+
+
+class ChaosServer:
+    """``drape serve`` on a free loopback port, its stderr in ``log_path``."""
+
+    def __init__(self, out: Path, name: str, args: Sequence[str] = (), connect: Sequence[str] = (),
+                 rss_limit_mb: float = 4096.0, endpoint: str | None = None, server_id: str | None = None) -> None:
+        self.server_id = server_id or f"chaos-{name}-{os.getpid()}"
+        self.endpoint = endpoint or f"tcp/127.0.0.1:{free_port()}"
+        self.log_path = out / f"{name}-{os.getpid()}-{next(_RUNS)}.log"
+        self.rss_limit_mb = rss_limit_mb
+        self.killed_for_rss = False
+        self.cmd = [sys.executable, "-m", "drape.server.cli", "serve", "--listen", self.endpoint,
+                    "--server-id", self.server_id, "--stats-period", "0.5", "--device", "cpu", *args]
+        for c in connect:
+            self.cmd += ["--connect", c]
+        log.info("starting %s", " ".join(self.cmd))
+        self._log_fh = open(self.log_path, "w")
+        self.proc = subprocess.Popen(self.cmd, stdout=self._log_fh, stderr=subprocess.STDOUT, start_new_session=True)
+        self.figures = ProcessFigures(self.proc.pid)
+        self.stats = StatsWatch(self.endpoint, self.server_id)
+        self._watch_stop = threading.Event()
+        self._watch = threading.Thread(target=self._rss_watch, daemon=True, name=f"rss-{self.server_id}")
+        self._watch.start()
+
+    def _rss_watch(self) -> None:
+        """Sample RSS every 0.2 s; SIGKILL the server when it passes the cap (it would take the machine)."""
+        while not self._watch_stop.wait(0.2) and self.alive():
+            if self.figures.sample_rss() > self.rss_limit_mb:
+                log.error("server %s passed the RSS cap of %.0f MB: killing it", self.server_id, self.rss_limit_mb)
+                self.killed_for_rss = True
+                self.kill(signal.SIGKILL)
+
+    def wait_ready(self, timeout: float = WAIT) -> None:
+        """Until the server published stats twice (it ticks and its session is up)."""
+        t_end = time.monotonic() + timeout
+        while not self.stats.wait_count(2, 0.5):
+            if not self.alive() or time.monotonic() > t_end:
+                break
+        if not self.stats.wait_count(2, 0):
+            raise RuntimeError(f"server {self.server_id} did not come up in {timeout:.0f} s "
+                               f"(exit {self.proc.poll()}); log: {self.log_path}")
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def rss_mb(self) -> float:
+        return self.figures.sample_rss() if self.alive() else float("nan")
+
+    def log_counts(self) -> dict[str, int]:
+        """Lines of the server's log containing 'Traceback', ' WARNING ' and ' ERROR '."""
+        counts = {"tracebacks": 0, "warnings": 0, "errors": 0}
+        try:
+            with open(self.log_path, errors="replace") as fh:
+                for line in fh:
+                    counts["tracebacks"] += "Traceback" in line
+                    counts["warnings"] += "WARNING" in line
+                    counts["errors"] += "ERROR" in line
+        except OSError:
+            pass
+        return counts
+
+    def kill(self, sig: int) -> None:
+        if self.alive():
+            os.killpg(self.proc.pid, sig)
+
+    def stop(self, grace: float = 15.0) -> None:
+        self._watch_stop.set()
+        self.stats.close()
+        if self.alive():
+            self.kill(signal.SIGTERM)
+            try:
+                self.proc.wait(grace)
+            except subprocess.TimeoutExpired:
+                log.warning("server %s did not stop in %.0f s: killing it", self.server_id, grace)
+                self.kill(signal.SIGKILL)
+        try:
+            self.proc.wait(10)
+        except subprocess.TimeoutExpired:
+            pass
+        self._log_fh.close()
+
+
+class StatsWatch:
+    """A server's stats publications (msgpack maps) with the monotonic time they arrived."""
+
+    def __init__(self, endpoint: str, server_id: str, namespace: str = P.DEFAULT_NAMESPACE) -> None:
+        self.session = zenoh_session(endpoint)
+        self.samples: list[tuple[float, dict[str, Any]]] = []
+        self._cond = threading.Condition()
+        self._sub = self.session.declare_subscriber(P.Keys(namespace).stats(server_id), self._on)
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        try:
+            stats = msgpack.unpackb(sample.payload.to_bytes(), raw=False)
+        except Exception:
+            return
+        with self._cond:
+            self.samples.append((time.monotonic(), stats))
+            self._cond.notify_all()
+
+    def wait_count(self, n: int, timeout: float) -> bool:
+        with self._cond:
+            return self._cond.wait_for(lambda: len(self.samples) >= n, timeout)
+
+    def next(self, timeout: float = 5.0) -> dict[str, Any] | None:
+        """The next publication after now (None when none came: the server is stalled or gone)."""
+        with self._cond:
+            n = len(self.samples)
+            if self._cond.wait_for(lambda: len(self.samples) > n, timeout):
+                return self.samples[-1][1]
+        return None
+
+    def latest(self) -> dict[str, Any]:
+        with self._cond:
+            return self.samples[-1][1] if self.samples else {}
+
+    def close(self) -> None:
+        try:
+            self._sub.undeclare()
+            self.session.close()
+        except Exception:
+            pass
+
+
+# ---------------------------------------------------------------------------------------------
+# Good clients: one process each, the SDK, recording (tick, receive time) of every state.
+
+
+def _good_client_main(endpoint: str, server_id: str, client_id: str, cloths: int, size: int, records: Any,
+                      ready: Any, stop: Any) -> None:
+    logging.basicConfig(level=logging.WARNING)
+    from drape.client import DrapeClient
+
+    try:
+        with DrapeClient(endpoint, server_id=server_id, client_id=client_id, timeout=WAIT) as client:
+            handles = []
+            for j in range(cloths):
+                h = client.submit_grid(size, size, origin=(1.5 * j, 1.0, 0.0), pinned=[0, size - 1])
+                h.on_state(lambda st, j=j: records.put((j, int(st.tick), time.monotonic())))
+                handles.append(h)
+            records.put(("ready", [h.id for h in handles], client.client_id, time.monotonic()))
+            ready.set()
+            stop.wait()
+            client.close(remove=False)
+    except BaseException as e:  # report, never hang the parent
+        records.put(("error", repr(e), client_id, time.monotonic()))
+
+
+@dataclass
+class StateLog:
+    """States one good client received: per cloth index, (tick, receive time) pairs."""
+
+    ticks: dict[int, list[tuple[int, float]]] = field(default_factory=dict)
+    cloth_ids: list[str] = field(default_factory=list)
+    error: str | None = None
+
+
+class GoodClient:
+    """A game client process holding ``cloths`` small cloths on one server and receiving every state."""
+
+    def __init__(self, endpoint: str, server_id: str, name: str, cloths: int = 1, size: int = 16) -> None:
+        ctx = mp.get_context("spawn")
+        self.client_id = f"good-{name}-{os.getpid()}"
+        self.records = ctx.Queue()
+        self.ready, self.stop_event = ctx.Event(), ctx.Event()
+        self.log = StateLog()
+        self._lock = threading.Lock()
+        self.proc = ctx.Process(target=_good_client_main, name=self.client_id, daemon=True,
+                                args=(endpoint, server_id, self.client_id, cloths, size, self.records, self.ready,
+                                      self.stop_event))
+        self.proc.start()
+        self._drain = threading.Thread(target=self._drain_loop, daemon=True)
+        self._drain.start()
+
+    def _drain_loop(self) -> None:
+        while True:
+            try:
+                rec = self.records.get(timeout=0.5)
+            except queue.Empty:
+                if not self.proc.is_alive() and self.records.empty():
+                    return
+                continue
+            except (EOFError, OSError, ValueError):
+                return
+            with self._lock:
+                if rec[0] == "ready":
+                    self.log.cloth_ids = list(rec[1])
+                elif rec[0] == "error":
+                    self.log.error = rec[1]
+                else:
+                    self.log.ticks.setdefault(rec[0], []).append((rec[1], rec[2]))
+
+    def wait_ready(self, timeout: float = WAIT) -> None:
+        if not self.ready.wait(timeout):
+            raise RuntimeError(f"good client {self.client_id} not ready in {timeout:.0f} s: {self.log.error}")
+
+    def window(self, t0: float, t1: float) -> dict[str, Any]:
+        """States received in [t0, t1): count, ticks covered, lost (gaps), worst gap between receipts."""
+        with self._lock:
+            per = {j: [(k, t) for k, t in v if t0 <= t < t1] for j, v in self.log.ticks.items()}
+        received = lost = 0
+        worst_gap = 0.0
+        rates = []
+        for j in range(len(self.log.cloth_ids)):
+            v = per.get(j, [])
+            if not v:
+                worst_gap = max(worst_gap, t1 - t0)
+                rates.append(0.0)
+                continue
+            ticks = np.unique([k for k, _ in v])
+            times = np.asarray([t0] + sorted(t for _, t in v) + [t1])
+            received += len(ticks)
+            lost += int(ticks[-1] - ticks[0] + 1 - len(ticks))
+            worst_gap = max(worst_gap, float(np.max(np.diff(times))))
+            rates.append(len(ticks) / max(t1 - t0, 1e-9))
+        return {"states": received, "lost": lost, "worst_gap_ms": round(1000 * worst_gap, 1),
+                "rate_hz": round(float(min(rates)) if rates else 0.0, 1)}
+
+    def last_receipt(self, cloth: int) -> float:
+        with self._lock:
+            v = self.log.ticks.get(cloth, [])
+            return v[-1][1] if v else float("-inf")
+
+    def first_receipt_after(self, cloth: int, t: float) -> float | None:
+        with self._lock:
+            for _, tr in self.log.ticks.get(cloth, []):
+                if tr >= t:
+                    return tr
+        return None
+
+    def close(self) -> None:
+        self.stop_event.set()
+        self.proc.join(10)
+        if self.proc.is_alive():
+            self.proc.kill()
+            self.proc.join(5)
+
+
+# ---------------------------------------------------------------------------------------------
+# A measured window
+
+
+def stats_delta(s0: dict[str, Any], s1: dict[str, Any]) -> dict[str, Any]:
+    """Server figures between two stats publications: tick rate, missed ticks, errors by code."""
+    out: dict[str, Any] = {}
+    dt = (s1.get("time_ns", 0) - s0.get("time_ns", 0)) / 1e9
+    ticks = s1.get("ticks", 0) - s0.get("ticks", 0)
+    out["server_tick_hz"] = round(ticks / dt, 1) if dt > 0 else float("nan")
+    for k in ("missed_ticks", "nan_resets", "reclaimed", "skipped_frames"):
+        out[k] = s1.get(k, 0) - s0.get(k, 0)
+    e0, e1 = s0.get("errors", {}) or {}, s1.get("errors", {}) or {}
+    out["errors"] = {c: e1[c] - e0.get(c, 0) for c in sorted(e1) if e1[c] - e0.get(c, 0)}
+    return out
+
+
+@dataclass
+class Window:
+    """Start-of-window figures of one server; :meth:`close` measures the window."""
+
+    server: ChaosServer
+    t0: float
+    stats0: dict[str, Any]
+    rss0: float
+    log0: dict[str, int]
+
+    @classmethod
+    def open(cls, server: ChaosServer) -> Window:
+        stats0 = server.stats.next(WAIT) or server.stats.latest()
+        return cls(server, time.monotonic(), stats0, server.rss_mb(), server.log_counts())
+
+    def close(self, clients: Sequence[GoodClient] = (), settle_s: float = 0.0) -> dict[str, Any]:
+        """Measure up to now; then let the server settle ``settle_s`` seconds and sample its RSS."""
+        t1 = time.monotonic()
+        stats1 = self.server.stats.next(10.0)
+        stalled = stats1 is None
+        out: dict[str, Any] = {"seconds": round(t1 - self.t0, 1), "server_alive": self.server.alive(),
+                               "stats_stalled": stalled}
+        out.update(stats_delta(self.stats0, stats1 or self.server.stats.latest()))
+        if clients:
+            per = [c.window(self.t0, t1) for c in clients]
+            out["good_states"] = sum(p["states"] for p in per)
+            out["good_lost"] = sum(p["lost"] for p in per)
+            out["good_rate_hz"] = min(p["rate_hz"] for p in per)
+            out["good_worst_gap_ms"] = max(p["worst_gap_ms"] for p in per)
+        if settle_s > 0:
+            time.sleep(settle_s)
+        log1 = self.server.log_counts()
+        out["tracebacks"] = log1["tracebacks"] - self.log0["tracebacks"]
+        out["log_warnings"] = log1["warnings"] - self.log0["warnings"]
+        out["rss_before_mb"] = round(self.rss0, 1)
+        out["rss_after_mb"] = round(self.server.rss_mb(), 1)
+        out["rss_max_mb"] = round(max(self.server.figures.rss_mb or [float("nan")]), 1)
+        out["killed_for_rss"] = self.server.killed_for_rss
+        return out

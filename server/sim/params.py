@@ -19,7 +19,6 @@ from drape.client.protocol.vocabulary import (
     DEFAULT_CHEBYSHEV_RHO,
     DEFAULT_GRAVITY,
     DEFAULT_ITERATIONS,
-    DEFAULT_LIMITS,
     DEFAULT_SUBSTEPS,
     DEFAULT_WIND,
     FEATURE_NAMES,
@@ -157,8 +156,9 @@ class ClothParams:
 
     def validate(self) -> None:
         """ValueError unless every field is finite and in range: the material by the protocol's
-        ranges (protocol.MATERIAL_FIELDS, with 10^6 where it gives no upper bound), iterations
-        and substeps by the solvers' own (wider than the wire's: tools use them)."""
+        ranges (protocol.MATERIAL_FIELDS; the wire's general cap of 10^6 is the decoder's, not a
+        solver limit), iterations and substeps by the solvers' own (wider than the wire's: tools
+        use them)."""
         m = self.material
         _finite("gravity", self.gravity)
         _finite("wind", self.wind)
@@ -171,7 +171,7 @@ class ClothParams:
         for name, (width, lo, lo_inclusive, hi) in MATERIAL_FIELDS.items():
             value = getattr(m, name)
             values = tuple(value) if width > 1 else (value,)
-            hi_eff = DEFAULT_LIMITS.max_material_value if hi is None else hi
+            hi_eff = math.inf if hi is None else hi
             for v in values:
                 if not (isinstance(v, (int, float)) and math.isfinite(v)):
                     raise ValueError(f"{name} must be finite, got {value!r}")

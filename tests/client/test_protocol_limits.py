@@ -207,3 +207,34 @@ def test_overloaded_is_a_known_code_with_its_own_exception():
     from drape.client import Overloaded
 
     assert Overloaded is P.Overloaded
+
+
+def test_corrupted_vectors_never_raise_anything_but_protocol_errors(rng):
+    """Every committed message vector, corrupted at random (bytes changed, cut, repeated): each
+    decoder either accepts it or raises ProtocolError (decode_reply: the DrapeError an error reply
+    carries), never another exception."""
+    import json
+    from pathlib import Path
+
+    folder = Path(__file__).resolve().parents[1] / "vectors"
+    seeds = [bytes.fromhex(v["hex"]) for g in ("submit", "control", "misc", "invalid", "accepted")
+             for v in json.loads((folder / f"{g}.json").read_text())]
+    decoders = [*DECODERS, P.decode_error, P.decode_state, P.decode_bundle]
+    for _ in range(3000):
+        data = bytearray(seeds[int(rng.integers(len(seeds)))])
+        for _ in range(int(rng.integers(1, 4))):
+            kind = int(rng.integers(3))
+            if kind == 0 and data:
+                data[int(rng.integers(len(data)))] = int(rng.integers(256))
+            elif kind == 1 and data:
+                data = data[:int(rng.integers(len(data)))]
+            else:
+                at = int(rng.integers(len(data) + 1))
+                data = data[:at] + data[at:at + int(rng.integers(1, 16))] * 2 + data[at + 16:]
+        for decode in decoders:
+            try:
+                decode(bytes(data))
+            except P.ProtocolError:
+                pass
+            except P.DrapeError:
+                assert decode is P.decode_reply

@@ -20,9 +20,12 @@ DPI = 100
 
 
 def _figure(size: tuple[int, int]) -> Any:
+    """A figure on its own Agg canvas: no pyplot, no global backend, safe in any thread."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(size[0] / DPI, size[1] / DPI), dpi=DPI, layout="constrained")
+    FigureCanvasAgg(fig)
     return fig
 
 

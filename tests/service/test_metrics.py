@@ -389,3 +389,42 @@ def test_a_busy_metrics_port_is_a_clear_error(served):
     taken = dataclasses.replace(server.config, metrics_listen=f"{host}:{port}")
     with pytest.raises(OSError, match="cannot listen on metrics_listen"):
         OPS.start(server, taken, env={})
+
+
+def test_drape_serve_notifies_systemd_and_serves_metrics(tmp_path):
+    """The daemon end to end: READY=1, /readyz, /metrics, WATCHDOG=1, STOPPING=1, exit 0."""
+    import signal
+    import subprocess
+    import sys
+
+    from drape.server.service import daemon
+
+    if not hasattr(daemon, "start_ops"):
+        pytest.skip("drape serve does not start the operator endpoints yet (daemon.start_ops)")
+    port, mport = free_port(), free_port()
+    path = str(tmp_path / "notify.sock")
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+        sock.bind(path)
+        sock.settimeout(3 * TIMEOUT)
+        env = {**os.environ, "NOTIFY_SOCKET": path, "WATCHDOG_USEC": "1000000", "RUST_LOG": "error"}
+        env.pop("WATCHDOG_PID", None)
+        env.pop("DRAPE_CONFIG", None)
+        proc = subprocess.Popen([sys.executable, "-m", "drape.server.cli", "serve", "--listen",
+                                 f"tcp/127.0.0.1:{port}", "--server-id", f"notify-{port}", "--solver", "reference",
+                                 "--metrics-listen", f"127.0.0.1:{mport}", "--no-multicast-scouting"],
+                                env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        try:
+            ready = sock.recv(4096).decode().split("\n")
+            assert ready[0] == "READY=1", ready
+            url = f"http://127.0.0.1:{mport}"
+            assert wait_until(lambda: get(url + "/readyz")[0] == 200)
+            fams = {m.name: m for m in text_string_to_metric_families(get(url + "/metrics")[1])}
+            assert fams["drape_server_info"].samples[0].labels["server"] == f"notify-{port}"
+            assert sock.recv(4096) == b"WATCHDOG=1"
+            proc.send_signal(signal.SIGTERM)
+            assert proc.wait(TIMEOUT) == 0
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        assert "STOPPING=1" in _drain(sock, 1.0)

@@ -31,6 +31,7 @@ log = logging.getLogger(__name__)
 MAX_VERTICES = 1 << 20  # per cloth; a hard sanity cap against hostile submissions
 MIN_REST_LENGTH = 0.0  # zero-length links are kept and handled by the solvers (a weld)
 TETHER_PAIRS_PER_CHUNK = 1 << 21  # (free vertex, pin) distances held at once by the tether set-up (~16 MB each array)
+TETHER_GROUP = 256  # neighbouring free vertices that share one candidate-pin search
 
 
 @dataclass(frozen=True, eq=False)
@@ -455,9 +456,6 @@ def tether_anchors(v: np.ndarray, pinned: np.ndarray,
             anchor[idx[s:s + rows]] = pins[sel[a]]
             length[idx[s:s + rows]] = d
     return anchor, length
-
-
-TETHER_GROUP = 256  # free vertices that share one candidate-pin search
 
 
 def _nearest_pins(x: np.ndarray, pv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -8,12 +8,13 @@ work for metrics: a scrape costs a few short lock acquisitions and no per-cloth 
 
 ``METRICS`` lists every metric family (name without the ``_total`` a counter gets in the
 exposition, type, help); docs/operations.md shows the same list. ``exposition(server)`` renders the
-text format, which ``drape.server.service.ops`` serves on ``/metrics``.
+text format; ``drape.server.service.ops`` serves ``registry(...)`` on ``/metrics``, with its
+readiness probe behind ``drape_ready`` and ``drape_tick_age_seconds``.
 """
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from typing import Any, Protocol
 
 from prometheus_client import CollectorRegistry, ProcessCollector, generate_latest
@@ -39,6 +40,8 @@ PREFIX = "drape"
 METRICS: tuple[tuple[str, str, str], ...] = (
     ("drape_server", "info", "The server: id, solver, OpenCL device, protocol version, namespace"),
     ("drape_up_seconds", "gauge", "Seconds since the server started"),
+    ("drape_ready", "gauge", "1 when /readyz answers 200 (device built, Zenoh up, ticking on time), else 0"),
+    ("drape_tick_age_seconds", "gauge", "Seconds since the tick counter last advanced (as the operator listener saw)"),
     ("drape_tick_rate_hertz", "gauge", "Configured ticks per second"),
     ("drape_tick", "gauge", "The last tick number"),
     ("drape_ticks", "counter", "Ticks run"),
@@ -223,11 +226,30 @@ def _counter(name: str, value: Any) -> CounterMetricFamily:
     return CounterMetricFamily(name, _HELP[name], value=_num(value))
 
 
-def registry(server: StatsSource, process: bool = True, namespace: str | None = None) -> CollectorRegistry:
-    """A registry holding the server's collector (and the process' CPU, memory and file
-    descriptors, ``process_*``, when ``process``)."""
+class ReadinessCollector(Collector):
+    """``drape_ready`` and ``drape_tick_age_seconds`` from a readiness probe
+    ``() -> (ready, seconds since the tick counter advanced)`` (drape.server.service.ops)."""
+
+    def __init__(self, probe: Callable[[], tuple[bool, float]]) -> None:
+        self.probe = probe
+
+    def describe(self) -> Iterable[Metric]:
+        return []
+
+    def collect(self) -> Iterator[Metric]:
+        ready, age = self.probe()
+        yield _gauge("drape_ready", 1.0 if ready else 0.0)
+        yield _gauge("drape_tick_age_seconds", age)
+
+
+def registry(server: StatsSource, process: bool = True, namespace: str | None = None,
+             readiness: Callable[[], tuple[bool, float]] | None = None) -> CollectorRegistry:
+    """A registry holding the server's collector, the readiness gauges when given a probe, and
+    the process' CPU, memory and file descriptors (``process_*``) when ``process``."""
     reg = CollectorRegistry(auto_describe=False)
     reg.register(DrapeCollector(server, namespace))
+    if readiness is not None:
+        reg.register(ReadinessCollector(readiness))
     if process:
         ProcessCollector(registry=reg)
     return reg

@@ -81,6 +81,7 @@ def watchdog_interval(env: Mapping[str, str] | None = None) -> float | None:
 class Readiness:
     ready: bool
     reason: str
+    age_s: float = 0.0  # seconds since the tick counter last advanced
 
 
 class TickWatch:
@@ -104,16 +105,21 @@ class TickWatch:
 
     def readiness(self) -> Readiness:
         s = self.server
-        if getattr(s, "failure", None) is not None:
-            return Readiness(False, f"tick loop failed: {s.failure}")
-        if getattr(s, "device_name", "?") == "?":  # set once the World has built its device
-            return Readiness(False, "device not built")
-        if not s.running:
-            return Readiness(False, "zenoh session not up (starting or stopping)")
         tick, age = self.sample()
+        if getattr(s, "failure", None) is not None:
+            return Readiness(False, f"tick loop failed: {s.failure}", age)
+        if getattr(s, "device_name", "?") == "?":  # set once the World has built its device
+            return Readiness(False, "device not built", age)
+        if not s.running:
+            return Readiness(False, "zenoh session not up (starting or stopping)", age)
         if age > self.stall_s:
-            return Readiness(False, f"tick {tick} has not advanced for {age:.2f} s (limit {self.stall_s:.2f} s)")
-        return Readiness(True, f"ticking: tick {tick}")
+            return Readiness(False, f"tick {tick} has not advanced for {age:.2f} s (limit {self.stall_s:.2f} s)", age)
+        return Readiness(True, f"ticking: tick {tick}", age)
+
+    def probe(self) -> tuple[bool, float]:
+        """(ready, seconds since the tick counter advanced): the readiness gauges' source."""
+        r = self.readiness()
+        return r.ready, r.age_s
 
 
 # ---------------------------------------------------------------------------------------------
@@ -180,7 +186,7 @@ class Ops:
         self.config = config or server.config
         self.env = dict(os.environ if env is None else env)
         self.watch = TickWatch(server, slack_s)
-        self.registry = registry(server, namespace=self.config.namespace)
+        self.registry = registry(server, namespace=self.config.namespace, readiness=self.watch.probe)
         self.watchdog_s = watchdog_interval(self.env)
         self.notify = bool(self.env.get("NOTIFY_SOCKET"))
         self.pings = 0  # WATCHDOG=1 sent

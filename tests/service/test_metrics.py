@@ -223,13 +223,17 @@ def test_healthz_and_readyz_follow_the_tick_loop(served):
     assert get(ops.url + "/healthz") == (200, "ok\n")
     assert wait_until(lambda: get(ops.url + "/readyz")[0] == 200)
     assert get(ops.url + "/nothing")[0] == 404
+    assert wait_until(lambda: value(scrape(ops), "drape_ready") == 1)
     with TickBlock(server):
         assert wait_until(lambda: get(ops.url + "/readyz")[0] == 503)
         status, reason = get(ops.url + "/readyz")
         assert status == 503 and "has not advanced" in reason, reason
         assert get(ops.url + "/healthz")[0] == 200  # stalled, but alive
-        assert get(ops.url + "/metrics")[0] == 200  # a scrape never needs the tick thread
+        stalled = scrape(ops)  # a scrape never needs the tick thread
+        assert value(stalled, "drape_ready") == 0
+        assert value(stalled, "drape_tick_age_seconds") > ops.watch.stall_s
     assert wait_until(lambda: get(ops.url + "/readyz")[0] == 200)
+    assert wait_until(lambda: value(scrape(ops), "drape_ready") == 1)
 
 
 def test_systemd_ready_watchdog_only_while_ticking_and_stopping(served, tmp_path):

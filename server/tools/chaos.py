@@ -63,8 +63,8 @@ def run_scenarios(names: list[str], ctx: Context) -> dict[str, Any]:
 
 
 COLUMNS = (
-    ("scenario", 13), ("verdict", 7), ("good Hz", 8), ("missed", 7), ("lost", 6), ("gap ms", 8), ("tb", 4),
-    ("RSS MB before>after", 20), ("errors", 30),
+    ("scenario", 13), ("verdict", 7), ("base Hz/missed", 14), ("good Hz", 8), ("missed", 7), ("lost", 6),
+    ("gap ms", 8), ("tb", 4), ("RSS MB before>after", 20), ("errors", 30),
 )
 
 
@@ -78,9 +78,13 @@ def format_table(report: dict[str, Any]) -> str:
     for name, r in report["scenarios"].items():
         errors = ",".join(f"{k}:{v}" for k, v in (r.get("errors") or {}).items())
         rss = f"{_cell(r, 'rss_before_mb')}>{_cell(r, 'rss_after_mb')}"
-        cells = [name, "PASS" if r["passed"] else "FAIL", _cell(r, "good_rate_hz"), _cell(r, "missed_ticks"),
+        b = r.get("baseline") or {}
+        base = f"{_cell(b, 'good_rate_hz')}/{_cell(b, 'missed_ticks')}" if b else "-"
+        cells = [name, "PASS" if r["passed"] else "FAIL", base, _cell(r, "good_rate_hz"), _cell(r, "missed_ticks"),
                  _cell(r, "good_lost"), _cell(r, "good_worst_gap_ms"), _cell(r, "tracebacks"), rss, errors[:30]]
         lines.append("  ".join(c.ljust(w) for c, (_, w) in zip(cells, COLUMNS, strict=True)))
+    lines.append("(base: the good client and missed ticks before the abuse, the machine's own noise; "
+                 "gap: worst gap between a good client's states; tb: tracebacks in the server log)")
     lines.append("")
     for name, r in report["scenarios"].items():
         for f in r["fails"]:

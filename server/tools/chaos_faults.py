@@ -14,6 +14,7 @@ import os
 import signal
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -274,6 +275,7 @@ def tiny_mass(ctx: Context, cloths: int = 64) -> dict[str, Any]:
         time.sleep(1.0)
         m["rss_after_mb"] = round(st.server.rss_mb(), 1)
     m.update(baseline=base, accepted=sum(o == "ok" for o, _ in replies),
+             submit_outcomes=dict(Counter(o for o, _ in replies)),
              nan_resets_per_s=round(m["nan_resets"] / max(m["seconds"], 1e-9), 1),
              log_warnings_per_s=round(m["log_warnings"] / max(m["seconds"], 1e-9), 1))
     fails = judge(m)
@@ -295,7 +297,8 @@ def new_features(ctx: Context) -> dict[str, Any]:
             st.remove(r)
         time.sleep(0.5)
         m = w.close([st.good] if st.good else [])
-    m.update(baseline=base, combinations=len(combos), accepted=outcomes.count("ok"))
+    m.update(baseline=base, combinations=len(combos), accepted=outcomes.count("ok"),
+             submit_outcomes=dict(Counter(outcomes)))
     fails = judge(m, rss=False)
     if m.get("good_worst_gap_ms", 0) > 2000.0 / TICK_HZ:
         fails.append(f"worst gap between good states {m['good_worst_gap_ms']} ms > 2 ticks")
@@ -363,12 +366,17 @@ def pause(ctx: Context, cloths: int = 2) -> dict[str, Any]:
             sleeper.wait_ready()
             time.sleep(1.0)
             w = Window.open(st.server)
+            t_stop = time.monotonic()
+            reclaimed0 = st.server.stats.latest().get("reclaimed", 0)
             os.kill(sleeper.proc.pid, signal.SIGSTOP)
             time.sleep(ctx.pause_s)
             t_cont = time.monotonic()
             os.kill(sleeper.proc.pid, signal.SIGCONT)
             time.sleep(max(3.0, FAILOVER_GAP_S * 3))
             m = w.close([st.good] if st.good else [])
+            # when the server gave the sleeper's cloths up: the first stats publication counting them
+            gone = [t for t, s in list(st.server.stats.samples) if t > t_stop and s.get("reclaimed", 0) > reclaimed0]
+            m["reclaimed_after_s"] = round(gone[0] - t_stop, 1) if gone else None
             back = []
             for j in range(cloths):
                 first = sleeper.first_receipt_after(j, t_cont)

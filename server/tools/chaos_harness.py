@@ -188,13 +188,24 @@ class StatsWatch:
 def _good_client_main(endpoint: str, server_id: str, client_id: str, cloths: int, size: int, records: Any,
                       ready: Any, stop: Any) -> None:
     logging.basicConfig(level=logging.WARNING)
-    from drape.client import DrapeClient
+    from drape.client import DrapeClient, DrapeError
+
+    def submit(client: Any, j: int) -> Any:
+        """Like a game: retry (bounded) while the server says "later" (overloaded, busy)."""
+        t_end = time.monotonic() + WAIT
+        while True:
+            try:
+                return client.submit_grid(size, size, origin=(1.5 * j, 1.0, 0.0), pinned=[0, size - 1])
+            except DrapeError as e:
+                if e.code not in ("overloaded", "busy") or time.monotonic() > t_end:
+                    raise
+                time.sleep(0.5)
 
     try:
         with DrapeClient(endpoint, server_id=server_id, client_id=client_id, timeout=WAIT) as client:
             handles = []
             for j in range(cloths):
-                h = client.submit_grid(size, size, origin=(1.5 * j, 1.0, 0.0), pinned=[0, size - 1])
+                h = submit(client, j)
                 h.on_state(lambda st, j=j: records.put((j, int(st.tick), time.monotonic())))
                 handles.append(h)
             records.put(("ready", [h.id for h in handles], client.client_id, time.monotonic()))
@@ -250,7 +261,11 @@ class GoodClient:
                     self.log.ticks.setdefault(rec[0], []).append((rec[1], rec[2]))
 
     def wait_ready(self, timeout: float = WAIT) -> None:
-        if not self.ready.wait(timeout):
+        t_end = time.monotonic() + timeout
+        while not self.ready.wait(0.25):
+            if self.log.error is not None or not self.proc.is_alive() or time.monotonic() > t_end:
+                break
+        if not self.ready.is_set():
             raise RuntimeError(f"good client {self.client_id} not ready in {timeout:.0f} s: {self.log.error}")
 
     def window(self, t0: float, t1: float) -> dict[str, Any]:

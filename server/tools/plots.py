@@ -107,6 +107,19 @@ def histogram(
     return _save(fig, path)
 
 
+def _lines(ax: Any, series: Mapping[str, tuple[Any, Any]], dashed: Sequence[str], logx: bool, logy: bool) -> None:
+    for i, (name, (xs, ys)) in enumerate(series.items()):
+        x, y = _finite(xs, ys, logx, logy)
+        if name in dashed:
+            ax.plot(x, y, linestyle="--", color="0.35", label=name)
+        else:
+            ax.plot(x, y, marker=MARKERS[i % len(MARKERS)], markersize=3, linewidth=1.2, label=name)
+    _scales(ax, logx, logy)
+    ax.grid(alpha=0.3, which="both")
+    if series:
+        ax.legend(fontsize="small")
+
+
 def line_plot(
     path: str | Path,
     series: Mapping[str, tuple[Any, Any]],
@@ -123,17 +136,29 @@ def line_plot(
     markers (budgets, limits). Non-finite points are left out."""
     fig = _figure(size)
     ax = fig.add_subplot()
-    for i, (name, (xs, ys)) in enumerate(series.items()):
-        x, y = _finite(xs, ys, logx, logy)
-        if name in dashed:
-            ax.plot(x, y, linestyle="--", color="0.35", label=name)
-        else:
-            ax.plot(x, y, marker=MARKERS[i % len(MARKERS)], markersize=3, linewidth=1.2, label=name)
+    _lines(ax, series, dashed, logx, logy)
     ax.set(title=title, xlabel=xlabel, ylabel=ylabel)
-    _scales(ax, logx, logy)
-    ax.grid(alpha=0.3, which="both")
-    if series:
-        ax.legend(fontsize="small")
+    return _save(fig, path)
+
+
+def stacked_line_plots(
+    path: str | Path,
+    panels: Sequence[tuple[str, Mapping[str, tuple[Any, Any]]]],
+    *,
+    title: str = "",
+    xlabel: str = "",
+    logx: bool = False,
+    dashed: Sequence[str] = (),
+    size: tuple[int, int] = (800, 700),
+) -> Path:
+    """Panels ``(ylabel, series)`` stacked over one shared x axis, each drawn as in :func:`line_plot`."""
+    fig = _figure(size)
+    axes = fig.subplots(len(panels), 1, sharex=True, squeeze=False)[:, 0]
+    for ax, (ylabel, series) in zip(axes, panels, strict=True):
+        _lines(ax, series, dashed, logx, False)
+        ax.set(ylabel=ylabel)
+    axes[0].set(title=title)
+    axes[-1].set(xlabel=xlabel)
     return _save(fig, path)
 
 

@@ -98,9 +98,12 @@ def test_short_load_measures_only_its_window(tmp_path):
     assert report.tick_hz_achieved > 0
     assert report.tick_hz_achieved == pytest.approx(report.ticks / report.seconds, rel=0.01)
     assert report.expected_states == 5 * report.ticks
-    assert report.states == report.expected_states and report.lost == 0
+    # every state of every published frame arrives; a frame the server coalesced (a busy CI box)
+    # is missing for every cloth, and only those are counted lost. (The counter counts a
+    # coalesced frame at the next tick: one at either edge of the window may fall outside it.)
+    assert report.lost % 5 == 0 and abs(report.lost - 5 * report.skipped_frames) <= 5
+    assert report.states == report.expected_states - report.lost
     assert report.duplicated == 0 and report.out_of_order == 0
-    assert report.skipped_frames == 0, "every tick is published"
     assert report.send_errors == 0
     assert np.isfinite(report.latency_ms["p99"]) and report.latency_ms["p50"] > 0
     assert report.decode_us["per_state"] > 0 and report.decode_us["per_payload"] >= report.decode_us["per_state"]
@@ -111,7 +114,7 @@ def test_short_load_measures_only_its_window(tmp_path):
     paths.append(write_summary_plot(tmp_path / "summary.png", [report, report]))
     for p in paths:
         with Image.open(p) as im:
-            assert im.format == "PNG" and im.size == (800, 500)
+            assert im.format == "PNG" and im.size == ((800, 700) if p.name == "summary.png" else (800, 500))
             assert np.asarray(im.convert("L")).std() > 5, f"{p.name} is blank"
     table = markdown_table([report])
     assert table.count("\n") == 3 and "| 5 | 6 | 1 | float32 |" in table and table.endswith(" | **no** |\n")

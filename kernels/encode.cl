@@ -23,7 +23,8 @@
  *            value can differ from the reference by 1 (see encode.py, QUANT16_FP32_TOLERANCE).
  *
  * Build options (-D): ENC_WG (work-group size, a power of two), ENC_FP64 (0/1), ENC_STRIDE
- * (floats per vertex in the position and normal buffers: 4 or 3), and the
+ * (floats per vertex in the position and normal buffers: 4 or 3), ENC_SOFT_HALF (1: float16 by
+ * integer SIMD instead of vstore_half_rte, faster on CPUs), and the
  * protocol's header offsets and constants (below).
  * Positions and normals: ENC_STRIDE floats per vertex, xyz first: 4 for the world's float4
  * buffers (w ignored), 3 for packed xyz rows.
@@ -56,6 +57,9 @@
 #endif
 #ifndef ENC_STRIDE
 #define ENC_STRIDE 4
+#endif
+#ifndef ENC_SOFT_HALF
+#define ENC_SOFT_HALF 0
 #endif
 
 #if ENC_STRIDE == 4
@@ -108,6 +112,42 @@ inline short4 snorm4(float4 n)
 {
     return convert_short4(rint(TO_QREAL4(clip4(n, -1.0f, 1.0f)) * (qreal4)(SNORM_MAX)));
 }
+
+/* float -> IEEE half bits, round to nearest even, on 4 lanes with integer SIMD: numpy's
+ * npy_floatbits_to_halfbits bit for bit (subnormals, overflow to infinity, NaN payloads). For
+ * CPUs, where vstore_half_rte is a scalar library routine; GPUs convert in hardware. */
+inline ushort4 half4_rte(float4 x)
+{
+    uint4 f = as_uint4(x);
+    uint4 sign = (f >> 16) & (uint4)(0x8000u);
+    uint4 a = f & (uint4)(0x7fffffffu);
+    uint4 one = (uint4)(1u), zero = (uint4)(0u);
+    /* normal halves: rebias the exponent, round the 13 dropped bits (a carry may reach inf) */
+    uint4 hn = (a - (uint4)(0x38000000u)) >> 13;
+    uint4 rn = a & (uint4)(0x1fffu);
+    hn += select(zero, one, (rn > (uint4)(0x1000u)) | ((rn == (uint4)(0x1000u)) & ((hn & one) == one)));
+    /* subnormal halves (2^-25 < |x| < 2^-14): the significand shifted right by 126 - exponent */
+    uint4 e = clamp(a >> 23, (uint4)(102u), (uint4)(125u));
+    uint4 sh = (uint4)(126u) - e;
+    uint4 m = (a & (uint4)(0x7fffffu)) | (uint4)(0x800000u);
+    uint4 hs = m >> sh;
+    uint4 rs = m & ((one << sh) - one);
+    uint4 hv = one << (sh - one);
+    hs += select(zero, one, (rs > hv) | ((rs == hv) & ((hs & one) == one)));
+    uint4 h = select(hn, hs, a < (uint4)(0x38800000u));
+    h = select(h, zero, a <= (uint4)(0x33000000u));
+    h = select(h, (uint4)(0x7c00u), a >= (uint4)(0x477ff000u));
+    uint4 nan = (uint4)(0x7c00u) + ((a & (uint4)(0x7fffffu)) >> 13);
+    nan = select(nan, (uint4)(0x7c01u), nan == (uint4)(0x7c00u));
+    h = select(h, nan, a > (uint4)(0x7f800000u));
+    return convert_ushort4(h | sign);
+}
+
+#if ENC_SOFT_HALF
+#define STORE_HALF3(x4, v, o) vstore3(half4_rte(x4).xyz, (v), (__global ushort *)(o))
+#else
+#define STORE_HALF3(x4, v, o) vstore_half3_rte((x4).xyz, (v), (o))
+#endif
 
 /* a vertex as float4 whose w repeats x (so that w, the world's inverse mass, never enters) */
 inline float4 load4(__global const float *buf, uint i)
@@ -187,11 +227,11 @@ __kernel void encode_frame(
     } else if (enc == 1) {
         __global half *o = (__global half *)data;
         for (uint v = lid; v < n; v += ENC_WG)
-            vstore_half3_rte(clip4(load4(pos, vbase + v), -(float)FLOAT16_MAX, (float)FLOAT16_MAX).xyz, v, o);
+            STORE_HALF3(clip4(load4(pos, vbase + v), -(float)FLOAT16_MAX, (float)FLOAT16_MAX), v, o);
         if (has_nrm) {
             o += 3 * n;
             for (uint v = lid; v < n; v += ENC_WG)
-                vstore_half3_rte(LOAD3(nrm, vbase + v), v, o);
+                STORE_HALF3(load4(nrm, vbase + v), v, o);
         }
     } else {
         float4 lo4 = (float4)(lo, lo.x), hi4 = (float4)(hi, hi.x);

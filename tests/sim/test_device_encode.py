@@ -135,15 +135,17 @@ def _assert_same(got: list[bytes], want: list[bytes], pubs) -> None:
             pytest.fail(f"{pub.key}: {len(d)} bytes differ, first at {d[:8].tolist()}")
 
 
-@pytest.mark.parametrize("k, local_size, stride", [(1, None, 4), (7, None, 4), (40, None, 4), (40, 16, 4),
-                                                   (25, 256, 4), (30, None, 3), (30, 64, 3)])
-def test_random_frames_equal_the_protocol_encoder(device, rng, k, local_size, stride):
+@pytest.mark.parametrize("k, local_size, stride, soft_half", [
+    (1, None, 4, None), (7, None, 4, None), (40, None, 4, None), (40, 16, 4, False), (25, 256, 4, False),
+    (30, None, 3, None), (30, 64, 3, True)])
+def test_random_frames_equal_the_protocol_encoder(device, rng, k, local_size, stride, soft_half):
     """local_size None is the device's default (1 on a CPU); GPUs run 256 (a reduction tree).
-    stride 4: the world's float4 vertex buffers; 3: packed xyz rows."""
+    stride 4: the world's float4 vertex buffers; 3: packed xyz rows. soft_half None is the
+    device's default (integer float16 conversion on a CPU); GPUs use vstore_half_rte (False)."""
     cloths, pos, nrm, pubs = _random_frame(rng, k)
     P4, N4 = _world_arrays(rng, cloths, pos, nrm, stride)
     plan = FramePlan.build(cloths, pubs)
-    enc = DeviceEncoder(device, local_size=local_size, stride=stride)
+    enc = DeviceEncoder(device, local_size=local_size, stride=stride, soft_half=soft_half)
     enc.set_plan(plan)
     try:
         for tick in (1, 2**40 + 3):  # the same plan over ticks: dynamic fields rewritten, ring of host buffers
@@ -198,6 +200,40 @@ def test_state_vectors(device):
                       np.array([v["input"]["flags"]], np.uint16))
         assert got[0] == bytes.fromhex(v["hex"]), v["name"]
         enc.close()
+
+
+@pytest.mark.parametrize("soft_half", [True, False])
+def test_float16_over_every_exponent(device, rng, soft_half):
+    """float16 of float32 values of every exponent (subnormal halves, ties, overflow to +-inf,
+    float32 subnormals, zeros of both signs) equals numpy's round-to-nearest-even: positions
+    (clamped) and normals (not clamped; with the integer conversion also infinities and NaNs)."""
+    exps = np.repeat(np.arange(256, dtype=np.uint32), 40)
+    mant = rng.integers(0, 1 << 23, len(exps), dtype=np.uint32)
+    mant[::4] &= ~np.uint32(0xFFF)  # exact ties and near-ties of the dropped bits
+    mant[1::4] |= 0xFFF
+    sign = rng.integers(0, 2, len(exps), dtype=np.uint32) << 31
+    vals = (sign | (exps << 23) | mant).view(np.float32)
+    extra = np.array([0.0, -0.0, 65504.0, 65519.99, 65520.0, -65520.0, 2.0**-24, 2.0**-25, 1.5 * 2.0**-25,
+                      2.0**-14, 2.0**-14 * (1 - 2.0**-11), 1e-45, np.inf, -np.inf], np.float32)
+    vals = np.concatenate([vals, extra])
+    vals = np.concatenate([vals, np.zeros((-len(vals)) % 3, np.float32)]).reshape(-1, 3)
+    finite = np.isfinite(vals).all(axis=1)
+    pos = np.where(np.isfinite(vals), vals, np.float32(1.0))  # positions are finite
+    nrm = vals if soft_half else vals[finite]
+    if not soft_half:
+        pos = pos[finite]
+    n = len(pos)
+    c = ClothEntry("h", 0, n, P.ENC_FLOAT16, True)
+    P4 = np.zeros((n, 4), np.float32)
+    N4 = np.zeros((n, 4), np.float32)
+    P4[:, :3], N4[:, :3] = pos, nrm
+    enc = DeviceEncoder(device, soft_half=soft_half)
+    enc.set_plan(FramePlan.build([c], [Publication("k", (0,))]))
+    got = _encode(device, enc, P4, N4, 1, 2, np.zeros(1, np.uint16))[0]
+    with np.errstate(all="ignore"):
+        want = bytes(P.encode_state(1, 2, pos, nrm, "float16"))
+    _assert_same([got], [want], [Publication("k", (0,))])
+    enc.close()
 
 
 def test_without_fp64_quant16_within_tolerance(device, rng):

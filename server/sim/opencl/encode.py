@@ -263,12 +263,14 @@ class DeviceEncoder:
     frame stay valid until that many more frames have been encoded."""
 
     def __init__(self, dev: Device, local_size: int | None = None, fp64: bool | None = None,
-                 host_buffers: int = 2, stride: int = 4) -> None:
+                 host_buffers: int = 2, stride: int = 4, soft_half: bool | None = None) -> None:
         if not dev.device.endian_little:
             raise RuntimeError(f"{dev.info.name} is big-endian; the wire format is little-endian")
         if stride not in (3, 4):
             raise ValueError(f"stride {stride}: vertices are float4 (4) or packed xyz (3)")
         self.stride = stride
+        # float16 by integer SIMD (bit-exact with numpy) on CPUs, vstore_half_rte (hardware) on GPUs
+        self.soft_half = (not dev.info.is_gpu) if soft_half is None else bool(soft_half)
         if host_buffers < 1:
             raise ValueError("host_buffers must be at least 1")
         self.dev = dev
@@ -312,6 +314,7 @@ class DeviceEncoder:
         self._release_hosts()
         wg = self._pick_wg(plan.max_n)
         opts = [f"-DENC_WG={wg}", f"-DENC_FP64={int(self.fp64)}", f"-DENC_STRIDE={self.stride}",
+                f"-DENC_SOFT_HALF={int(self.soft_half)}",
                 *(f"-D{k}={v}" for k, v in HEADER_OFFSETS.items())]
         self._kernel = cl.Kernel(self.dev.program(opts, source=SOURCE), "encode_frame")
         self._wg = wg

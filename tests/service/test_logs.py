@@ -8,13 +8,13 @@ import json
 import logging
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
 import time
 
 import pytest
+from conftest import free_port  # shared helpers
 
 from drape.client import DrapeClient
 from drape.server import cli
@@ -23,12 +23,6 @@ from drape.server.service.config import add_arguments
 
 TIMEOUT = 20.0
 STABLE = ("time", "level", "logger", "message")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture

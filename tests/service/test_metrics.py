@@ -13,42 +13,25 @@ import urllib.error
 import urllib.request
 
 import pytest
+from conftest import free_port, wait_until  # shared helpers
+from conftest import make_config as shared_config
 from prometheus_client.openmetrics.parser import text_string_to_metric_families as parse_openmetrics
 from prometheus_client.parser import text_string_to_metric_families
 
 from drape.client import DrapeClient, LimitExceeded
 from drape.client import protocol as P
+from drape.server.service import Server
 from drape.server.service import ops as OPS
 from drape.server.service.config import ServerConfig, add_arguments, from_args
 from drape.server.service.metrics import METRICS, OPTIONAL, families, overload_refusals
 from drape.server.service.telemetry import PHASES, PhaseTimer
-from drape.server.service.tickloop import Server
 
 TIMEOUT = 10.0
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def make_config(**kw) -> ServerConfig:
-    port = free_port()
-    base = dict(listen=[f"tcp/127.0.0.1:{port}"], server_id=f"metrics-{port}", tick_rate=60.0, grace_period=1.0,
-                stats_period=0.25, max_cloths_per_client=1, max_vertices_per_cloth=4096, max_total_vertices=40000,
-                multicast_scouting=False, metrics_listen="127.0.0.1:0")
-    base.update(kw)
-    return ServerConfig(**base).validate()
-
-
-def wait_until(pred, timeout: float = TIMEOUT, step: float = 0.02) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(step)
-    return pred()
+    """conftest's test server, one cloth per client, with the operator listener on a free port."""
+    return shared_config(**{"max_cloths_per_client": 1, "metrics_listen": "127.0.0.1:0", **kw})
 
 
 def get(url: str, accept: str | None = None) -> tuple[int, str]:

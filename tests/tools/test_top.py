@@ -4,17 +4,16 @@ from __future__ import annotations
 
 import logging
 import re
-import socket
 import sys
 import time
 
 import pytest
+from conftest import free_port, make_config  # shared helpers
 
 from drape.client import DrapeClient
 from drape.client import protocol as P
 from drape.server.cli import main
-from drape.server.service.config import ServerConfig
-from drape.server.service.tickloop import Server
+from drape.server.service import Server
 from drape.server.tools.top import COLUMNS, PRIORITY, StatsBoard, fit_columns, print_frame, render, row_cells
 
 TIMEOUT = 10.0
@@ -30,21 +29,7 @@ def root_logging():
     root.setLevel(level)
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def make_config(**kw) -> ServerConfig:
-    port = free_port()
-    base = dict(listen=[f"tcp/127.0.0.1:{port}"], server_id=f"top-{port}", tick_rate=60.0, stats_period=0.25,
-                multicast_scouting=False)
-    base.update(kw)
-    return ServerConfig(**base).validate()
-
-
-def frame_rows(text: str, prefix: str = "top-") -> dict[str, list[str]]:
+def frame_rows(text: str, prefix: str = "test-") -> dict[str, list[str]]:
     """Row cells by server id (cells are separated by two or more spaces)."""
     rows = {}
     for line in text.splitlines():

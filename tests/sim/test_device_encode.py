@@ -402,3 +402,19 @@ def test_frame_of_a_real_world(device, rng):
     _assert_same(got, _reference(cloths, pos, nrm, pubs, 77, 88, flags), pubs)
     enc.close()
     world.close()
+
+
+def test_cloth_without_vertices(device):
+    """A cloth of 0 vertices: zero bounds and no data, as the protocol encoder writes it."""
+    cloths = [ClothEntry("e", 0, 0, P.ENC_QUANT16, True), ClothEntry("f", 0, 2, P.ENC_FLOAT16)]
+    pubs = [Publication("b", (0, 1), True), Publication("s", (0,))]
+    with pytest.raises(ValueError, match="publications 0 and 1"):
+        FramePlan.build(cloths, pubs)
+    pubs = [Publication("b", (1, 0), True)]
+    P4 = np.array([[1, 2, 3, 0], [4, 5, 6, 0]], np.float32)
+    enc = DeviceEncoder(device, local_size=64)
+    enc.set_plan(FramePlan.build(cloths, pubs))
+    got = _encode(device, enc, P4, P4, 9, 10, np.zeros(2, np.uint16))
+    pos = [np.zeros((0, 3), np.float32), P4[:, :3]]
+    _assert_same(got, _reference(cloths, pos, pos, pubs, 9, 10, np.zeros(2)), pubs)
+    enc.close()

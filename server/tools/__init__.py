@@ -1,1 +1,3 @@
-"""The ``drape`` tools: demo, bench, tradeoff, loadtest, devices. Never imported by sim or service."""
+"""The ``drape`` tools: demo, bench, tradeoff, loadtest, devices (one module per subcommand, with
+their helpers: procs, plots, render, loadclient, loadreport, tradeoffrun, tradeoffreport). They
+need the ``tools`` extra; never imported by sim or service."""

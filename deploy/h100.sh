@@ -11,6 +11,7 @@
 # loads of 128 .. 4096 cloths in float32 and 4096 in quant16, one server (admission off: the raw
 # capacity), LT_SECONDS (default 20) measured seconds each so the whole table stays under
 # 9 minutes; one JSON, a markdown table, the summary plot and the largest load's plots.
+# LT_OFFERED=2048 adds a run offering twice 2048 cloths to a server with admission on.
 #
 # Results land in $OUT (the device tool's folder) or out/h100. Wheels come from .whl/ (see
 # docs/benchmarks.md for the pip download line that fills it).
@@ -55,7 +56,15 @@ case "$what" in
             2>&1 | grep -v " INFO drape.server.service" | tee "$OUT/loadtest-h100.txt"
         # the summary plot and the plots of the last load run (the rest stay on the machine)
         cp /tmp/lt-plots/loadtest-summary.png "$OUT/" 2>/dev/null || true
-        for f in $(ls -t /tmp/lt-plots/loadtest-[0-9]*.png | head -2); do cp "$f" "$OUT/"; done ;;
+        for f in $(ls -t /tmp/lt-plots/loadtest-[0-9]*.png | head -2); do cp "$f" "$OUT/"; done
+        # LT_OFFERED=N: then offer twice N cloths to a server with admission on (past the knee):
+        # admitted against refused submits and the admitted cloths' figures (about a minute more)
+        if [[ -n "${LT_OFFERED:-}" ]]; then
+            drape loadtest --clients 16 --size 32 --iterations 10 --bundle --admission --loads "$LT_OFFERED" \
+                --offered 2 --seconds 10 --quiet --json "$OUT/loadtest-h100-offered.json" \
+                --markdown "$OUT/loadtest-h100-offered.md" --out /tmp/lt-offered 2>&1 \
+                | grep -v " INFO drape.server.service" | tee "$OUT/loadtest-h100-offered.txt"
+        fi ;;
     *)
         echo "unknown: $what" >&2; exit 2 ;;
 esac

@@ -308,27 +308,27 @@ class DeviceEncoder:
         return wg
 
     def set_plan(self, plan: FramePlan) -> None:
-        """Use ``plan`` from the next frame on: upload its table and template (blocking), size
-        the output and pinned host buffers. Views of earlier frames keep their bytes while held."""
+        """Use ``plan`` from the next frame on: build the kernel, upload its table and template
+        (blocking), size the output and pinned host buffers. Everything is made before anything
+        is replaced, so a failure leaves the previous plan in use. Views of earlier frames keep
+        their bytes while held."""
         ctx, q = self.dev.ctx, self.dev.queue
-        self._release_hosts()
         wg = self._pick_wg(plan.max_n)
         opts = [f"-DENC_WG={wg}", f"-DENC_FP64={int(self.fp64)}", f"-DENC_STRIDE={self.stride}",
                 f"-DENC_SOFT_HALF={int(self.soft_half)}",
                 *(f"-D{k}={v}" for k, v in HEADER_OFFSETS.items())]
-        self._kernel = cl.Kernel(self.dev.program(opts, source=SOURCE), "encode_frame")
-        self._wg = wg
+        kernel = cl.Kernel(self.dev.program(opts, source=SOURCE), "encode_frame")
         size = max(plan.size, 8)
-        self._out = cl.Buffer(ctx, MF.READ_WRITE, size)
+        out = cl.Buffer(ctx, MF.READ_WRITE, size)
         if plan.size:
-            cl.enqueue_copy(q, self._out, plan.template, is_blocking=True)
+            cl.enqueue_copy(q, out, plan.template, is_blocking=True)
         rows = np.ascontiguousarray(plan.rows, np.uint32)
         if not rows.size:
             rows = np.zeros(1, np.uint32)
-        self._table = cl.Buffer(ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=rows)
-        k = len(plan.cloths)
-        self._flags = np.zeros(max(k, 1), np.uint16)
-        self._flags_buf = cl.Buffer(ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=self._flags)
+        table = cl.Buffer(ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=rows)
+        flags = np.zeros(max(len(plan.cloths), 1), np.uint16)
+        flags_buf = cl.Buffer(ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=flags)
+        hosts = []
         for _ in range(self._host_buffers):
             hb = cl.Buffer(ctx, MF.READ_WRITE | MF.ALLOC_HOST_PTR, size)
             data, _ev = cl.enqueue_map_buffer(  # type: ignore[misc]
@@ -337,9 +337,11 @@ class DeviceEncoder:
             data[:plan.size] = plan.template  # a frame read before any encode is the static bytes
             mv = memoryview(data).cast("B")  # type: ignore[arg-type]
             views = [mv[o:o + s] for o, s in zip(plan.pub_offset.tolist(), plan.pub_size.tolist(), strict=True)]
-            self._hosts.append(_HostFrame(data.base, hb, data, views))
-        self._next = 0
-        self._last = None
+            hosts.append(_HostFrame(data.base, hb, data, views))
+        self._release_hosts()
+        self._kernel, self._wg, self._out, self._table = kernel, wg, out, table
+        self._flags, self._flags_buf = flags, flags_buf
+        self._hosts, self._next = hosts, 0
         self.plan = plan
         log.debug("frame plan: %d publications, %d cloths, %d bytes, work-group %d", len(plan.publications),
                   len(plan.rows), plan.size, wg)

@@ -114,8 +114,11 @@ def load_users(path: str | Path) -> UsersFile:
     return UsersFile(ns, tuple(users))
 
 
-def _rule(rid: str, messages: list[str], flow: str, keys: list[str]) -> dict[str, Any]:
-    return {"id": rid, "messages": messages, "flows": [flow], "permission": "allow", "key_exprs": sorted(set(keys))}
+def _rules(rid: str, messages: list[str], flow: str, keys: list[str]) -> list[dict[str, Any]]:
+    """One allow rule per message kind, ``{rid}-{message}``: each permission reads (and is audited)
+    on its own."""
+    return [{"id": f"{rid}-{m}", "messages": [m], "flows": [flow], "permission": "allow",
+             "key_exprs": sorted(set(keys))} for m in messages]
 
 
 def server_rules(keys: Keys, user: User) -> list[dict[str, Any]]:
@@ -124,15 +127,16 @@ def server_rules(keys: Keys, user: User) -> list[dict[str, Any]]:
     queryables = [getattr(keys, q)(sid) for q in QUERYABLES]
     publications = [keys.state("*"), keys.bundle("*"), keys.stats(sid)]
     return [
-        _rule(f"{p}-serve", ["declare_queryable", "reply"], "ingress", queryables),
-        _rule(f"{p}-publish", ["put"], "ingress", publications),
-        _rule(f"{p}-token", ["liveliness_token"], "ingress", [keys.alive_server(sid)]),
-        _rule(f"{p}-watch", ["declare_liveliness_subscriber", "liveliness_query"], "ingress",
+        *_rules(f"{p}-serve", ["declare_queryable", "reply"], "ingress", queryables),
+        *_rules(f"{p}-publish", ["put"], "ingress", publications),
+        *_rules(f"{p}-token", ["liveliness_token"], "ingress", [keys.alive_server(sid)]),
+        *_rules(f"{p}-watch", ["declare_liveliness_subscriber", "liveliness_query"], "ingress",
               [keys.all_clients_alive]),
         # to the server: the queries, the subscriptions that make its publications matched, client tokens
-        _rule(f"{p}-queries", ["query"], "egress", queryables),
-        _rule(f"{p}-matched", ["declare_subscriber"], "egress", publications),
-        _rule(f"{p}-clients", ["liveliness_token"], "egress", [keys.all_clients_alive]),
+        *_rules(f"{p}-queries", ["query"], "egress", queryables),
+        *_rules(f"{p}-matched", ["declare_subscriber"], "egress", publications),
+        # (the answers to a liveliness query travel as liveliness_query messages)
+        *_rules(f"{p}-clients", ["liveliness_token", "liveliness_query"], "egress", [keys.all_clients_alive]),
     ]
 
 
@@ -147,15 +151,15 @@ def client_rules(keys: Keys, user: User, cloth_states: str = "deny", stats: bool
     if cloth_states == "any":
         readable.append(keys.state("*"))
     return [
-        _rule(f"{p}-request", ["query"], "ingress", queryables),
-        _rule(f"{p}-subscribe", ["declare_subscriber"], "ingress", readable),
-        _rule(f"{p}-token", ["liveliness_token"], "ingress", [keys.alive_client(cid)]),
-        _rule(f"{p}-discover", ["declare_liveliness_subscriber", "liveliness_query"], "ingress",
+        *_rules(f"{p}-request", ["query"], "ingress", queryables),
+        *_rules(f"{p}-subscribe", ["declare_subscriber"], "ingress", readable),
+        *_rules(f"{p}-token", ["liveliness_token"], "ingress", [keys.alive_client(cid)]),
+        *_rules(f"{p}-discover", ["declare_liveliness_subscriber", "liveliness_query"], "ingress",
               [keys.all_servers_alive]),
         # to the client: replies, its readable publications, servers' tokens and queryables
-        _rule(f"{p}-replies", ["reply", "declare_queryable"], "egress", queryables),
-        _rule(f"{p}-receive", ["put"], "egress", readable),
-        _rule(f"{p}-servers", ["liveliness_token"], "egress", [keys.all_servers_alive]),
+        *_rules(f"{p}-replies", ["reply", "declare_queryable"], "egress", queryables),
+        *_rules(f"{p}-receive", ["put"], "egress", readable),
+        *_rules(f"{p}-servers", ["liveliness_token", "liveliness_query"], "egress", [keys.all_servers_alive]),
     ]
 
 

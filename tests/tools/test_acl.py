@@ -72,12 +72,12 @@ def test_client_rules_bind_keys_to_the_client_id():
     keys = Keys(users.namespace)
     section = acl.access_control(users)
     rules = {r["id"]: r for r in section["rules"]}
-    assert rules["u-alice-token"]["key_exprs"] == [keys.alive_client("alice")]
-    assert rules["u-alice-subscribe"]["key_exprs"] == sorted([keys.bundle("alice"), keys.stats("*")])
+    assert rules["u-alice-token-liveliness_token"]["key_exprs"] == [keys.alive_client("alice")]
+    assert rules["u-alice-subscribe-declare_subscriber"]["key_exprs"] == sorted([keys.bundle("alice"), keys.stats("*")])
     assert all("declare_queryable" not in r["messages"] or r["flows"] == ["egress"]
                for r in section["rules"] if r["id"].startswith(("u-alice", "u-bob")))
     opened = acl.access_control(users, cloth_states="any")
-    assert keys.state("*") in {k for r in opened["rules"] if r["id"] == "u-bob-subscribe" for k in r["key_exprs"]}
+    assert keys.state("*") in {k for r in opened["rules"] if r["id"] == "u-bob-subscribe-declare_subscriber" for k in r["key_exprs"]}
 
 
 @pytest.mark.parametrize("bad, message", [

@@ -335,20 +335,21 @@ def kill(ctx: Context, cloths: int = 4) -> dict[str, Any]:
         finally:
             a2.stop()
         m = wb.close([bystander])
-        back = []
-        for j in range(cloths):
-            first = victim.first_receipt_after(j, t_kill + 0.5)
-            back.append({"cloth": j, "back": first is not None,
-                         "gap_s": None if first is None else round(first - t_kill, 2)})
     finally:
         for c in clients:
             c.close()
         for s in (a, b):
             if s is not None:
                 s.stop()
+    back = []
+    for j in range(cloths):
+        first = victim.first_receipt_after(j, t_kill + 0.5)
+        where = victim.log.where[j] if j < len(victim.log.where) else None
+        gap = None if first is None else round(first - t_kill, 2)
+        back.append({"cloth": j, "back": first is not None, "gap_s": gap, "server_at_end": where})
     n_back = sum(x["back"] for x in back)
     m.update(cloths=cloths, back=n_back, back_pct=round(100.0 * n_back / cloths, 1), per_cloth=back,
-             restarted_same_id=True)
+             killed=a.server_id, other=b.server_id if b else None, restarted_same_id=True)
     fails = judge(m, rss=False)
     if n_back < cloths:
         fails.append(f"{n_back} of {cloths} cloths of the killed server came back ({m['back_pct']} %)")

@@ -211,6 +211,9 @@ def _good_client_main(endpoint: str, server_id: str, client_id: str, cloths: int
             records.put(("ready", [h.id for h in handles], client.client_id, time.monotonic()))
             ready.set()
             stop.wait()
+            # where each cloth is served at the end (a failover may move it to another server)
+            records.put(("where", [str(getattr(h, "server_id", None) or client.server_id) for h in handles],
+                         client_id, time.monotonic()))
             client.close(remove=False)
     except BaseException as e:  # report, never hang the parent
         records.put(("error", repr(e), client_id, time.monotonic()))
@@ -222,6 +225,7 @@ class StateLog:
 
     ticks: dict[int, list[tuple[int, float]]] = field(default_factory=dict)
     cloth_ids: list[str] = field(default_factory=list)
+    where: list[str] = field(default_factory=list)  # the server of each cloth when the client stopped
     error: str | None = None
 
 
@@ -255,6 +259,8 @@ class GoodClient:
             with self._lock:
                 if rec[0] == "ready":
                     self.log.cloth_ids = list(rec[1])
+                elif rec[0] == "where":
+                    self.log.where = list(rec[1])
                 elif rec[0] == "error":
                     self.log.error = rec[1]
                 else:
@@ -305,6 +311,7 @@ class GoodClient:
     def close(self) -> None:
         self.stop_event.set()
         self.proc.join(10)
+        self._drain.join(2)
         if self.proc.is_alive():
             self.proc.kill()
             self.proc.join(5)

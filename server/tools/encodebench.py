@@ -62,7 +62,11 @@ class HostPath:
     def __init__(self, dev: Device, pos_buf: cl.Buffer, plan: FramePlan, side: int, nrm_host: np.ndarray | None):
         self.dev, self.pos_buf, self.plan = dev, pos_buf, plan
         self.k, self.nv = len(plan.cloths), side * side
-        self.host = np.zeros((self.k * self.nv, 4), np.float32)
+        # pinned host memory, as the world reads frames back into
+        self._pinned = cl.Buffer(dev.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.ALLOC_HOST_PTR, self.k * self.nv * 16)
+        self.host, _ = cl.enqueue_map_buffer(  # type: ignore[misc,type-var]
+            dev.queue, self._pinned, cl.map_flags.READ | cl.map_flags.WRITE, 0,  # type: ignore[arg-type]
+            (self.k * self.nv, 4), np.float32, is_blocking=True)
         self.offsets = np.arange(self.k + 1, dtype=np.int64) * self.nv
         self.encoder = FrameEncoder()
         self.bufs = [bytearray(int(s)) for s in plan.pub_size.tolist()]

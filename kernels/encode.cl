@@ -15,19 +15,17 @@
  *
  * Encodings (byte-exact with drape.client.protocol.encode_state):
  *   float32  as is;
- *   float16  clamped to +-65504, IEEE half round-to-nearest-even (vstore_half_rte); normals
- *            unclamped;
+ *   float16  clamped to +-65504, IEEE half round-to-nearest-even (vstore_half_rte, or
+ *            half4_rte with ENC_SOFT_HALF); normals unclamped;
  *   quant16  q = rint(clamp((x - min) * (65535 / (max - min)), 0, 65535)) evaluated in double
  *            from the float32 bounds (q = 0 where max == min); normals rint(clamp(n, -1, 1) * 32767).
  *            With ENC_FP64 0 (a device without cl_khr_fp64) the same formulas run in float and a
  *            value can differ from the reference by 1 (see encode.py, QUANT16_FP32_TOLERANCE).
  *
  * Build options (-D): ENC_WG (work-group size, a power of two), ENC_FP64 (0/1), ENC_STRIDE
- * (floats per vertex in the position and normal buffers: 4 or 3), ENC_SOFT_HALF (1: float16 by
- * integer SIMD instead of vstore_half_rte, faster on CPUs), and the
- * protocol's header offsets and constants (below).
- * Positions and normals: ENC_STRIDE floats per vertex, xyz first: 4 for the world's float4
- * buffers (w ignored), 3 for packed xyz rows.
+ * (floats per vertex in the position and normal buffers, xyz first: 4 for the world's float4
+ * buffers, w ignored; 3 for packed xyz rows), ENC_SOFT_HALF (1: float16 by integer SIMD instead
+ * of vstore_half_rte, faster on CPUs), and the protocol's header offsets and constants (below).
  */
 
 /* Table of encoded cloths: ENC_ROW_WORDS uints per row (parsed by encode.py, the one copy). */

@@ -236,14 +236,15 @@ def test_float16_over_every_exponent(device, rng, soft_half):
     enc.close()
 
 
-def test_without_fp64_quant16_within_tolerance(device, rng):
+@pytest.mark.parametrize("local_size", [None, 64])
+def test_without_fp64_quant16_within_tolerance(device, rng, local_size):
     """A device without cl_khr_fp64 evaluates quant16 in float: every byte equal but quant16
     positions and snorm16 normals, which differ by at most QUANT16_FP32_TOLERANCE."""
     cloths, pos, nrm, _ = _random_frame(rng, 12, 400)
     cloths = [ClothEntry(c.cloth, c.vbase, c.n, P.ENC_QUANT16, c.normals) for c in cloths]
     pubs = [Publication(str(i), (i,)) for i in range(len(cloths))]
     P4, N4 = _world_arrays(rng, cloths, pos, nrm)
-    enc = DeviceEncoder(device, fp64=False)
+    enc = DeviceEncoder(device, fp64=False, local_size=local_size)
     enc.set_plan(FramePlan.build(cloths, pubs))
     flags = np.zeros(len(cloths), np.uint16)
     got = _encode(device, enc, P4, N4, 5, 6, flags)

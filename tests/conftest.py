@@ -7,12 +7,16 @@ import os
 import socket
 import time
 from types import SimpleNamespace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
 
 from drape.server.sim.fabric import cook, cook_grid, grid_links, grid_mesh, mesh_links
 from drape.server.sim.params import LinkOptions
+
+if TYPE_CHECKING:
+    from drape.server.service.config import ServerConfig
 
 # Imported lazily by the helpers below: the client SDK and the service config (no OpenCL, no Zenoh
 # session at import time).
@@ -75,7 +79,7 @@ def endpoint() -> str:
     return f"tcp/127.0.0.1:{free_port()}"
 
 
-def make_config(**kw) -> "ServerConfig":
+def make_config(**kw) -> ServerConfig:
     """A test server's configuration on its own free port. Admission control runs with a budget
     of 50 ticks (it never refuses on a loaded CI machine); tests of admission set their own."""
     from drape.server.service.config import ServerConfig

@@ -10,7 +10,8 @@ import logging
 import queue
 import secrets
 from collections import Counter
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import zenoh

@@ -59,7 +59,7 @@ class Job:
     after: list[Reply] = field(default_factory=list)
     stats: bytes | None = None
 
-    def absorb(self, older: "Job") -> None:
+    def absorb(self, older: Job) -> None:
         """Coalesce: keep this job's frame, every reply and removal of the older one first."""
         self.before = older.before + self.before
         self.removed = older.removed + self.removed

@@ -52,6 +52,17 @@ def changes_params(req: P.ControlRequest, p: ClothParams) -> bool:
     )
 
 
+def pins_only(req: P.ControlRequest) -> bool:
+    """Whether a control carries pin targets and nothing else."""
+    return bool(
+        req.pins is not None and len(req.pins.indices) and req.colliders is None and req.gravity is None
+        and req.wind is None and not req.material and req.features is None and req.iterations is None
+        and req.substeps is None and req.chebyshev_rho is None and req.state is None and not req.reset
+        and req.quality is None and not getattr(req, "features_add", None)
+        and not getattr(req, "features_remove", None)
+    )
+
+
 def params_with(base: ClothParams, req: P.SubmitRequest | P.ControlRequest, material: Material,
                 features: set[str]) -> ClothParams:
     """``base`` with the solver fields a submit or control request gives (absent ones kept)."""

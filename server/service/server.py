@@ -17,8 +17,9 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable, Mapping
 from dataclasses import replace
-from typing import Any, Callable, Mapping, TypeVar
+from typing import Any, TypeVar
 
 import zenoh
 
@@ -86,7 +87,7 @@ class Server:
         self._threads: list[threading.Thread] = []
 
     # --- lifecycle ---------------------------------------------------------------------------
-    def start(self) -> "Server":
+    def start(self) -> Server:
         """Create the World, open the Zenoh session, start the threads, declare the endpoints
         and finally the server's liveliness token. On failure everything is torn down again."""
         try:
@@ -167,7 +168,7 @@ class Server:
             self._stopped.set()
             log.info("drape server %s stopped after %d ticks", self.config.server_id, self.ticker.tick)
 
-    def __enter__(self) -> "Server":
+    def __enter__(self) -> Server:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:

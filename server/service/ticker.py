@@ -18,7 +18,8 @@ import logging
 import threading
 import time
 from collections import deque
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -37,7 +38,7 @@ from .cook import FabricStore
 from .publisher import Job, Mailbox, Roster
 from .registry import ClothRecord, Registry
 from .replies import Replies, Reply, send
-from .requests import changes_params, params_after_control, with_preset
+from .requests import changes_params, params_after_control, pins_only, with_preset
 from .telemetry import PhaseTimer
 
 log = logging.getLogger(__name__)
@@ -293,10 +294,13 @@ class Ticker:
                  rec.fabric.n_links)
 
     def _apply_controls(self, slots: list[ControlSlot], job: Job) -> None:
+        """Each cloth's merged control; the pin targets of all of them gathered into one call
+        (one upload before the step)."""
         tick = self.tick + 1
+        pins: tuple[list[int], list[np.ndarray], list[np.ndarray]] = ([], [], [])
         for slot in slots:
             try:
-                err = self._apply_control(slot)
+                err = self._apply_control(slot, pins)
             except Exception as e:  # one cloth's failure must not leave the others unanswered
                 log.exception("applying a control of cloth %s failed", slot.record.id)
                 err = (P.ERR_INTERNAL, f"internal error: {type(e).__name__}: {e}")
@@ -314,10 +318,14 @@ class Ticker:
                     job.before.append(Reply(waiter, P.encode_control_reply(P.ControlReply(tick, tag))))
                 else:
                     job.before.append(self.replies.error(waiter, err[0], err[1], tag))
+        if pins[0]:
+            assert self.world is not None
+            self.world.set_pin_targets_many(*pins, validated=True)  # checked by the handlers and the decoder
         self.registry.count_many(controls_applied=len(slots),
                                  controls_coalesced=sum(s.merged - 1 for s in slots))
 
-    def _apply_control(self, slot: ControlSlot) -> tuple[str, str] | None:
+    def _apply_control(self, slot: ControlSlot,
+                       pins: tuple[list[int], list[np.ndarray], list[np.ndarray]]) -> tuple[str, str] | None:
         """Apply one cloth's merged control: None, or (code, message) when it is refused now (the
         cloth went away, or its new parameters are invalid); nothing of a refused control is applied."""
         w = self.world
@@ -326,6 +334,11 @@ class Ticker:
         if rec.removed or rec.handle is None or rec.handle not in self.live:
             return P.ERR_NOT_FOUND, f"no cloth {rec.id!r}"
         h = rec.handle
+        if pins_only(req):  # the per-tick game-loop control: nothing but pin targets
+            pins[0].append(h)
+            pins[1].append(req.pins.indices)  # type: ignore[union-attr]
+            pins[2].append(req.pins.targets)  # type: ignore[union-attr]
+            return None
         p = w.cloths[h].params
         if changes_params(req, p):
             try:
@@ -345,7 +358,12 @@ class Ticker:
         if slot.colliders is not None:
             w.set_colliders(h, slot.colliders)
         if req.pins is not None and len(req.pins.indices):
-            w.set_pin_targets(h, req.pins.indices.astype(np.int64), req.pins.targets)
+            if req.reset:  # the reset puts the pins back: targets before it
+                w.set_pin_targets(h, req.pins.indices.astype(np.int64), req.pins.targets)
+            else:
+                pins[0].append(h)
+                pins[1].append(req.pins.indices)
+                pins[2].append(req.pins.targets)
         if req.reset:
             w.reset(h)
             self._reset_flags.add(h)

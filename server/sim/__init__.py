@@ -12,7 +12,7 @@ if TYPE_CHECKING:
     from .world import World
 
 
-def make_world(solver: str = "workgroup", device: Any = None, **kw: Any) -> "World":
+def make_world(solver: str = "workgroup", device: Any = None, **kw: Any) -> World:
     from .params import SOLVERS
 
     if solver not in SOLVERS:

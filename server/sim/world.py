@@ -17,9 +17,8 @@ from __future__ import annotations
 import itertools
 import logging
 from abc import ABC, abstractmethod
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
@@ -93,7 +92,7 @@ class FramePool:
 class _Rows(Mapping):
     """``frame.positions[h]`` / ``frame.normals[h]``: views of the frame's contiguous rows."""
 
-    def __init__(self, frame: "Frame", data: np.ndarray | None, mask: np.ndarray | None) -> None:
+    def __init__(self, frame: Frame, data: np.ndarray | None, mask: np.ndarray | None) -> None:
         self._f, self._data, self._mask = frame, data, mask
 
     def _i(self, handle: int) -> int:
@@ -181,7 +180,7 @@ class Frame:
             bad |= ~cloth_ok if mask is None else (~cloth_ok & mask)
         return np.flatnonzero(bad)
 
-    def hold(self) -> "Frame":
+    def hold(self) -> Frame:
         """Keep this frame's buffer from being reused until ``release``."""
         if self._buffer is not None:
             self._buffer.held = True
@@ -254,7 +253,7 @@ class World(ABC):
         if old.features.normals != params.features.normals:
             self._layout = None
 
-    def prepare(self, fabric: Fabric, params: ClothParams) -> None:
+    def prepare(self, fabric: Fabric, params: ClothParams) -> None:  # noqa: B027 (optional hook)
         """Build whatever a cloth of ``fabric`` and ``params`` will need (kernels) now, so that
         adding it later does not. Touches no cloth: may run on another thread than the ticks."""
 
@@ -273,6 +272,22 @@ class World(ABC):
         if not np.all(np.isfinite(tgt)):
             raise ValueError("targets must be finite")
         self._set_targets(cloth, idx, tgt)
+
+    def set_pin_targets_many(self, handles: list[int], indices: list[np.ndarray], targets: list[np.ndarray],
+                             validated: bool = False) -> None:
+        """Pin targets of many cloths at once (one upload before the next step): cloth
+        ``handles[j]`` gets ``targets[j]`` for its vertices ``indices[j]``. ``validated``: the
+        caller has checked ranges, pinned vertices and finiteness (the service's handlers do)."""
+        if not validated:
+            for h, i, t in zip(handles, indices, targets, strict=True):
+                self.set_pin_targets(h, i, t)
+            return
+        if handles:
+            self._set_targets_many(handles, indices, targets)
+
+    def _set_targets_many(self, handles: list[int], indices: list[np.ndarray], targets: list[np.ndarray]) -> None:
+        for h, i, t in zip(handles, indices, targets, strict=True):
+            self._set_targets(self.cloths[h], np.asarray(i, np.int64), np.asarray(t, np.float64).reshape(-1, 3))
 
     def set_colliders(self, handle: int, packed: np.ndarray) -> None:
         """Collider poses (see params.pack_colliders) for the end of the next step."""
@@ -306,7 +321,7 @@ class World(ABC):
             self._layout_changed(self._layout)
         return self._layout
 
-    def _layout_changed(self, layout: Layout) -> None:
+    def _layout_changed(self, layout: Layout) -> None:  # noqa: B027 (optional hook)
         """Back-end hook: the frame layout was rebuilt."""
 
     # --- stepping ------------------------------------------------------------------------

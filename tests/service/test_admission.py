@@ -7,11 +7,11 @@ import threading
 
 import numpy as np
 import pytest
+from conftest import TIMEOUT, collect, connect, make_config, wait_until
 
 from drape.client import DrapeError, NotFound
 from drape.server.service import Server
 from drape.server.service.admission import FixedCost
-from conftest import TIMEOUT, collect, connect, make_config, wait_until
 
 
 def test_submits_beyond_capacity_are_overloaded_and_admitted_cloths_keep_their_rate():
@@ -77,8 +77,8 @@ def test_a_cloth_that_keeps_going_non_finite_is_removed_with_a_reason():
             collect(h, 2)
             for k in range(1, 3):
                 handle = srv.world_handle(h.id)
-                srv.call(lambda w: w.reset(handle, np.full((25, 3), np.nan)))
-                assert wait_until(lambda: srv.stats()["nan_resets"] == k)
+                srv.call(lambda w, h=handle: w.reset(h, np.full((25, 3), np.nan)))
+                assert wait_until(lambda k=k: srv.stats()["nan_resets"] == k)
             handle = srv.world_handle(h.id)
             srv.call(lambda w: w.reset(handle, np.full((25, 3), np.nan)))
             assert wait_until(lambda: srv.stats()["nan_removals"] == 1)

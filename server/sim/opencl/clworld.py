@@ -26,93 +26,18 @@ from dataclasses import dataclass, field
 import numpy as np
 import pyopencl as cl
 
-from .device import Device, layout
 from ..fabric import Fabric
 from ..params import ClothParams, Features
 from ..shared import JACOBI_OMEGA
-from ..world import Cloth, Frame, FramePool, Layout, PendingFrame, World, inverse_masses
+from ..world import Cloth, World, inverse_masses
+from .buffers import DevArray, RangeAllocator, fabric_blob  # noqa: F401 (RangeAllocator re-exported)
+from .device import Device, layout
+from .frames import FrameReadback
 
 log = logging.getLogger(__name__)
 
 L = layout()
 MF = cl.mem_flags
-
-
-class RangeAllocator:
-    """First-fit allocator of [start, start + n) ranges inside [0, capacity), coalescing frees."""
-
-    def __init__(self) -> None:
-        self.capacity = 0
-        self.free: list[list[int]] = []  # sorted [start, size]
-
-    def alloc(self, n: int) -> int | None:
-        if n == 0:
-            return 0
-        for i, (s, size) in enumerate(self.free):
-            if size >= n:
-                if size == n:
-                    self.free.pop(i)
-                else:
-                    self.free[i] = [s + n, size - n]
-                return s
-        return None
-
-    def grow(self, capacity: int) -> None:
-        if capacity > self.capacity:
-            self.release(self.capacity, capacity - self.capacity)
-            self.capacity = capacity
-
-    def release(self, start: int, n: int) -> None:
-        if n == 0:
-            return
-        self.free.append([start, n])
-        self.free.sort()
-        merged: list[list[int]] = []
-        for s, size in self.free:
-            if merged and merged[-1][0] + merged[-1][1] == s:
-                merged[-1][1] += size
-            else:
-                merged.append([s, size])
-        self.free = merged
-
-    @property
-    def high_water(self) -> int:
-        """End of the last allocated range."""
-        if self.free and self.free[-1][0] + self.free[-1][1] == self.capacity:
-            return self.free[-1][0]
-        return self.capacity
-
-
-class DevArray:
-    """A growable device buffer of ``capacity`` items of ``width`` elements of ``dtype``."""
-
-    def __init__(self, dev: Device, dtype, width: int = 1, capacity: int = 64) -> None:
-        self.dev = dev
-        self.dtype = np.dtype(dtype)
-        self.width = width
-        self.itembytes = self.dtype.itemsize * width
-        self.capacity = 0
-        self.buf: cl.Buffer | None = None
-        self.resize(capacity)
-
-    def resize(self, capacity: int) -> None:
-        capacity = max(capacity, 1)
-        new = cl.Buffer(self.dev.ctx, MF.READ_WRITE, capacity * self.itembytes)
-        if self.buf is not None and self.capacity:
-            n = min(self.capacity, capacity) * self.itembytes
-            cl.enqueue_copy(self.dev.queue, new, self.buf, byte_count=n)
-        self.buf, self.capacity = new, capacity
-
-    def write(self, start: int, host: np.ndarray) -> None:
-        host = np.ascontiguousarray(host, self.dtype)
-        if host.size:
-            cl.enqueue_copy(self.dev.queue, self.buf, host, dst_offset=start * self.itembytes)
-
-    def read(self, start: int, n: int) -> np.ndarray:
-        out = np.empty((n, self.width), self.dtype)
-        if n:
-            cl.enqueue_copy(self.dev.queue, out, self.buf, src_offset=start * self.itembytes)
-        return out
 
 
 @dataclass
@@ -155,33 +80,6 @@ class Group:
     local_size: int = 64
 
 
-def fabric_blob(f: Fabric) -> tuple[np.ndarray, dict[str, int]]:
-    """Every fabric array the kernels read, as one int32 blob, and where each part starts."""
-    links = np.zeros((f.n_links, L["LINK_WORDS"]), np.int32)
-    links[:, :2] = f.links
-    links[:, 2] = f.link_type
-    links[:, 3] = f.rest_length.astype(np.float32).view(np.int32)
-    anchor = np.zeros((f.n_vertices, L["ANCHOR_WORDS"]), np.int32)
-    anchor[:, 0] = f.tether_anchor
-    anchor[:, 1] = f.tether_length.astype(np.float32).view(np.int32)
-    parts = {
-        "CI_OFF_LINKS": links.ravel(),
-        "CI_OFF_COLOURS": f.colour_offsets.astype(np.int32),
-        "CI_OFF_ANCHOR": anchor.ravel(),
-        "CI_OFF_JORDER": f.jacobi_order.astype(np.int32),
-        "CI_OFF_JOFF": f.jacobi_offsets.astype(np.int32),
-        "CI_OFF_JADJ": f.jacobi_adj.astype(np.int32).ravel(),
-        "CI_OFF_VTRIOFF": f.vtri_offsets.astype(np.int32),
-        "CI_OFF_VTRI": f.vtri.astype(np.int32),
-        "CI_OFF_TRIS": f.triangles.astype(np.int32).ravel(),
-    }
-    offsets, pos = {}, 0
-    for name, arr in parts.items():
-        offsets[name] = pos
-        pos += len(arr)
-    return np.concatenate(list(parts.values())).astype(np.int32), offsets
-
-
 # Measured on the H100 (docs/benchmarks.md): the local path is fastest without unrolling
 # (157 vs 146 G link-it/s at 4), the global path with 4 (1.31 vs 1.87 ms for the seed cloth).
 LINK_UNROLL_LOCAL = 1
@@ -192,7 +90,7 @@ def _next_pow2(n: int) -> int:
     return 1 << max(0, int(n - 1).bit_length())
 
 
-class CLWorld(World):
+class CLWorld(FrameReadback, World):
     def __init__(
         self,
         strategy: str = "workgroup",
@@ -246,12 +144,7 @@ class CLWorld(World):
         self._free_slots: list[int] = list(range(63, -1, -1))
         self._tables_dirty = True
         self.groups: dict[tuple, Group] = {}
-        self._pool = FramePool(self._host_array)
-        self._pinned: list[cl.Buffer] = []  # host buffers of the frames, alive as long as the world
-        self._pack_src = DevArray(q, np.int32, 1, 1024)  # frame row -> vertex of the buffers
-        self._packed = DevArray(q, np.float32, 3, 1024)
-        self._packed_nrm = DevArray(q, np.float32, 3, 1024)
-        self._step_marker: cl.Event | None = None
+        self._init_frames()
         self._pending_targets: list[tuple[np.ndarray, np.ndarray]] = []
         self._scatter_idx = DevArray(q, np.int32, 1, 1024)
         self._scatter_val = DevArray(q, np.float32, 4, 1024)
@@ -421,6 +314,13 @@ class CLWorld(World):
         if len(idx):
             self._pending_targets.append((idx + self.rec[cloth.handle].vbase, targets))
 
+    def _set_targets_many(self, handles: list[int], indices: list[np.ndarray], targets: list[np.ndarray]) -> None:
+        rec = self.rec
+        vb = np.fromiter((rec[h].vbase for h in handles), np.int64, len(handles))
+        counts = np.fromiter((len(i) for i in indices), np.int64, len(indices))
+        rows = np.concatenate(indices).astype(np.int64) + np.repeat(vb, counts)
+        self._pending_targets.append((rows, np.concatenate(targets).reshape(-1, 3)))
+
     def _upload_targets(self) -> None:
         idx = np.concatenate([i for i, _ in self._pending_targets]).astype(np.int32)
         val = np.zeros((len(idx), 4), np.float32)
@@ -503,7 +403,8 @@ class CLWorld(World):
         else:
             cap = self.max_local_size
             widest = min(widest, self.chunk)
-            chunks = [(r.slot, v0) for r, c in zip(recs, cloths) for v0 in range(0, c.fabric.n_vertices, self.chunk)]
+            chunks = [(r.slot, v0) for r, c in zip(recs, cloths, strict=True)
+                      for v0 in range(0, c.fabric.n_vertices, self.chunk)]
             g.n_chunks = len(chunks)
             g.chunks_buf = cl.Buffer(self.dev.ctx, MF.READ_ONLY | MF.COPY_HOST_PTR,
                                      hostbuf=np.ascontiguousarray(chunks, np.int32))
@@ -562,7 +463,7 @@ class CLWorld(World):
     def step(self, dt: float) -> None:
         self._flush()
         q = self.dev.queue
-        self._step_marker = cl.enqueue_marker(q)
+        self._step_marker = cl.enqueue_marker(q)  # device time of the step: frames.py
         dt32 = np.float32(dt)
         for g in self.groups.values():
             opts = self._options(g)
@@ -644,59 +545,6 @@ class CLWorld(World):
             self.coll_host[sl, 0:2] = self.coll_host[sl, 2:4]
         self._moved.clear()
         self._coll_dirty = True
-
-    # --- frames ---------------------------------------------------------------------------
-    def _host_array(self, rows: int) -> np.ndarray:
-        """A (rows, 3) float32 host array in ALLOC_HOST_PTR memory, mapped once for good."""
-        try:
-            buf = cl.Buffer(self.dev.ctx, MF.READ_WRITE | MF.ALLOC_HOST_PTR, rows * 12)
-            arr, _ = cl.enqueue_map_buffer(self.dev.queue, buf, cl.map_flags.READ | cl.map_flags.WRITE, 0,
-                                           (rows, 3), np.float32, is_blocking=True)
-            self._pinned.append(buf)
-            return arr
-        except cl.Error as e:  # a driver without mappable host memory: plain numpy
-            log.debug("no mapped host buffer (%s): plain host memory", e)
-            return np.zeros((rows, 3), np.float32)
-
-    def _layout_changed(self, layout: Layout) -> None:
-        n = layout.n_rows
-        counts = np.diff(layout.offsets)
-        vbase = np.fromiter((self.rec[h].vbase for h in layout.handles.tolist()), np.int64, len(counts))
-        src = (np.repeat(vbase - layout.offsets[:-1], counts) + np.arange(n)).astype(np.int32)
-        for arr in (self._pack_src, self._packed, self._packed_nrm):
-            if arr.capacity < n:
-                arr.resize(2 * n)
-        self._pack_src.write(0, src)
-
-    def _pack(self, n: int, src: DevArray, out: DevArray) -> None:
-        k = self.dev.kernel(self._base_options, "pack_rows")
-        k(self.dev.queue, (-(-n // 64) * 64,), (64,), np.int32(n), self._pack_src.buf, src.buf, out.buf)
-
-    def fetch_async(self) -> PendingFrame:
-        lay = self.layout()
-        n = lay.n_rows
-        want_nrm = bool(lay.normals.any())
-        buf = self._pool.acquire(n, want_nrm)
-        xyz, nxyz = buf.xyz[:n], (buf.nrm[:n] if want_nrm else None)
-        frame = Frame(self.steps, lay, xyz, nxyz, buf)
-        if not n:
-            return PendingFrame(frame)
-        q = self.dev.queue
-        self._pack(n, self.pos, self._packed)
-        if want_nrm:
-            self._pack(n, self.nrm, self._packed_nrm)
-        ev = cl.enqueue_copy(q, xyz, self._packed.buf, is_blocking=False)
-        if nxyz is not None:
-            ev = cl.enqueue_copy(q, nxyz, self._packed_nrm.buf, is_blocking=False)
-        marker = self._step_marker
-
-        def device_s() -> float | None:
-            try:
-                return 1e-9 * (ev.profile.end - marker.profile.start) if marker is not None else None
-            except Exception:  # no profiling on this queue or device
-                return None
-
-        return PendingFrame(frame, ev.wait, device_s)
 
     def sync(self) -> None:
         self.dev.queue.finish()

@@ -11,7 +11,7 @@ import os
 import re
 import threading
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache, lru_cache
 from importlib import resources
 from pathlib import Path
 
@@ -58,7 +58,7 @@ NO_USABLE_CPU_HINT = (
 )
 
 
-@lru_cache(maxsize=None)
+@cache
 def _builds(dev: cl.Device) -> bool:
     """Whether ``dev`` compiles a trivial kernel: an OpenCL platform can list a device whose
     compiler does not know the host CPU (old PoCL on a new CPU)."""

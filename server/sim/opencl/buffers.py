@@ -1,0 +1,117 @@
+"""Device memory bookkeeping of the OpenCL world: a first-fit range allocator, growable device
+arrays and the int32 blob a fabric is uploaded as (its parts' offsets go into the cloth tables,
+kernels/layout.h)."""
+from __future__ import annotations
+
+import numpy as np
+import pyopencl as cl
+
+from ..fabric import Fabric
+from .device import Device, layout
+
+L = layout()
+MF = cl.mem_flags
+
+
+class RangeAllocator:
+    """First-fit allocator of [start, start + n) ranges inside [0, capacity), coalescing frees."""
+
+    def __init__(self) -> None:
+        self.capacity = 0
+        self.free: list[list[int]] = []  # sorted [start, size]
+
+    def alloc(self, n: int) -> int | None:
+        if n == 0:
+            return 0
+        for i, (s, size) in enumerate(self.free):
+            if size >= n:
+                if size == n:
+                    self.free.pop(i)
+                else:
+                    self.free[i] = [s + n, size - n]
+                return s
+        return None
+
+    def grow(self, capacity: int) -> None:
+        if capacity > self.capacity:
+            self.release(self.capacity, capacity - self.capacity)
+            self.capacity = capacity
+
+    def release(self, start: int, n: int) -> None:
+        if n == 0:
+            return
+        self.free.append([start, n])
+        self.free.sort()
+        merged: list[list[int]] = []
+        for s, size in self.free:
+            if merged and merged[-1][0] + merged[-1][1] == s:
+                merged[-1][1] += size
+            else:
+                merged.append([s, size])
+        self.free = merged
+
+    @property
+    def high_water(self) -> int:
+        """End of the last allocated range."""
+        if self.free and self.free[-1][0] + self.free[-1][1] == self.capacity:
+            return self.free[-1][0]
+        return self.capacity
+
+
+class DevArray:
+    """A growable device buffer of ``capacity`` items of ``width`` elements of ``dtype``."""
+
+    def __init__(self, dev: Device, dtype, width: int = 1, capacity: int = 64) -> None:
+        self.dev = dev
+        self.dtype = np.dtype(dtype)
+        self.width = width
+        self.itembytes = self.dtype.itemsize * width
+        self.capacity = 0
+        self.buf: cl.Buffer | None = None
+        self.resize(capacity)
+
+    def resize(self, capacity: int) -> None:
+        capacity = max(capacity, 1)
+        new = cl.Buffer(self.dev.ctx, MF.READ_WRITE, capacity * self.itembytes)
+        if self.buf is not None and self.capacity:
+            n = min(self.capacity, capacity) * self.itembytes
+            cl.enqueue_copy(self.dev.queue, new, self.buf, byte_count=n)
+        self.buf, self.capacity = new, capacity
+
+    def write(self, start: int, host: np.ndarray) -> None:
+        host = np.ascontiguousarray(host, self.dtype)
+        if host.size:
+            cl.enqueue_copy(self.dev.queue, self.buf, host, dst_offset=start * self.itembytes)
+
+    def read(self, start: int, n: int) -> np.ndarray:
+        out = np.empty((n, self.width), self.dtype)
+        if n:
+            cl.enqueue_copy(self.dev.queue, out, self.buf, src_offset=start * self.itembytes)
+        return out
+
+
+def fabric_blob(f: Fabric) -> tuple[np.ndarray, dict[str, int]]:
+    """Every fabric array the kernels read, as one int32 blob, and where each part starts."""
+    links = np.zeros((f.n_links, L["LINK_WORDS"]), np.int32)
+    links[:, :2] = f.links
+    links[:, 2] = f.link_type
+    links[:, 3] = f.rest_length.astype(np.float32).view(np.int32)
+    anchor = np.zeros((f.n_vertices, L["ANCHOR_WORDS"]), np.int32)
+    anchor[:, 0] = f.tether_anchor
+    anchor[:, 1] = f.tether_length.astype(np.float32).view(np.int32)
+    parts = {
+        "CI_OFF_LINKS": links.ravel(),
+        "CI_OFF_COLOURS": f.colour_offsets.astype(np.int32),
+        "CI_OFF_ANCHOR": anchor.ravel(),
+        "CI_OFF_JORDER": f.jacobi_order.astype(np.int32),
+        "CI_OFF_JOFF": f.jacobi_offsets.astype(np.int32),
+        "CI_OFF_JADJ": f.jacobi_adj.astype(np.int32).ravel(),
+        "CI_OFF_VTRIOFF": f.vtri_offsets.astype(np.int32),
+        "CI_OFF_VTRI": f.vtri.astype(np.int32),
+        "CI_OFF_TRIS": f.triangles.astype(np.int32).ravel(),
+    }
+    offsets, pos = {}, 0
+    for name, arr in parts.items():
+        offsets[name] = pos
+        pos += len(arr)
+    return np.concatenate(list(parts.values())).astype(np.int32), offsets

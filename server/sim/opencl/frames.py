@@ -1,0 +1,89 @@
+"""The OpenCL world's frame readback (a mixin of CLWorld).
+
+One ``pack_rows`` launch gathers every cloth's positions (xyz, without the inverse mass) back to
+back in the layout's order into one device buffer (normals likewise when a cloth carries them),
+and one non-blocking copy brings it into a host buffer mapped from ``ALLOC_HOST_PTR`` memory
+(pinned where the driver does that), reused from tick to tick (world.FramePool). The gather map
+(frame row -> vertex) is uploaded only when the layout changes. ``fetch_async`` returns at once;
+its ``wait`` waits on that copy's event only; ``device_s`` is the step-to-readback device time
+from the queue's profiling timestamps.
+"""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pyopencl as cl
+
+from ..world import Frame, FramePool, Layout, PendingFrame
+from .buffers import DevArray
+
+log = logging.getLogger(__name__)
+
+MF = cl.mem_flags
+
+
+class FrameReadback:
+    """Needs ``dev``, ``rec`` (handle -> slot with ``vbase``), ``pos``, ``nrm``, ``steps``,
+    ``layout()`` and ``_base_options`` from the world."""
+
+    def _init_frames(self) -> None:
+        q = self.dev  # type: ignore[attr-defined]
+        self._pool = FramePool(self._host_array)
+        self._pinned: list[cl.Buffer] = []  # host buffers of the frames, alive as long as the world
+        self._pack_src = DevArray(q, np.int32, 1, 1024)  # frame row -> vertex of the buffers
+        self._packed = DevArray(q, np.float32, 3, 1024)
+        self._packed_nrm = DevArray(q, np.float32, 3, 1024)
+        self._step_marker: cl.Event | None = None
+
+    def _host_array(self, rows: int) -> np.ndarray:
+        """A (rows, 3) float32 host array in ALLOC_HOST_PTR memory, mapped once for good."""
+        try:
+            buf = cl.Buffer(self.dev.ctx, MF.READ_WRITE | MF.ALLOC_HOST_PTR, rows * 12)
+            arr, _ = cl.enqueue_map_buffer(self.dev.queue, buf, cl.map_flags.READ | cl.map_flags.WRITE, 0,
+                                           (rows, 3), np.float32, is_blocking=True)
+            self._pinned.append(buf)
+            return arr
+        except cl.Error as e:  # a driver without mappable host memory: plain numpy
+            log.debug("no mapped host buffer (%s): plain host memory", e)
+            return np.zeros((rows, 3), np.float32)
+
+    def _layout_changed(self, layout: Layout) -> None:
+        n = layout.n_rows
+        counts = np.diff(layout.offsets)
+        vbase = np.fromiter((self.rec[h].vbase for h in layout.handles.tolist()), np.int64, len(counts))
+        src = (np.repeat(vbase - layout.offsets[:-1], counts) + np.arange(n)).astype(np.int32)
+        for arr in (self._pack_src, self._packed, self._packed_nrm):
+            if arr.capacity < n:
+                arr.resize(2 * n)
+        self._pack_src.write(0, src)
+
+    def _pack(self, n: int, src: DevArray, out: DevArray) -> None:
+        k = self.dev.kernel(self._base_options, "pack_rows")
+        k(self.dev.queue, (-(-n // 64) * 64,), (64,), np.int32(n), self._pack_src.buf, src.buf, out.buf)
+
+    def fetch_async(self) -> PendingFrame:
+        lay = self.layout()
+        n = lay.n_rows
+        want_nrm = bool(lay.normals.any())
+        buf = self._pool.acquire(n, want_nrm)
+        xyz, nxyz = buf.xyz[:n], (buf.nrm[:n] if want_nrm else None)
+        frame = Frame(self.steps, lay, xyz, nxyz, buf)
+        if not n:
+            return PendingFrame(frame)
+        q = self.dev.queue
+        self._pack(n, self.pos, self._packed)
+        if want_nrm:
+            self._pack(n, self.nrm, self._packed_nrm)
+        ev = cl.enqueue_copy(q, xyz, self._packed.buf, is_blocking=False)
+        if nxyz is not None:
+            ev = cl.enqueue_copy(q, nxyz, self._packed_nrm.buf, is_blocking=False)
+        marker = self._step_marker
+
+        def device_s() -> float | None:
+            try:
+                return 1e-9 * (ev.profile.end - marker.profile.start) if marker is not None else None
+            except Exception:  # no profiling on this queue or device
+                return None
+
+        return PendingFrame(frame, ev.wait, device_s)

@@ -23,6 +23,7 @@ import multiprocessing as mp
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -70,8 +71,9 @@ def _walker(t: float) -> tuple[np.ndarray, np.ndarray]:
     return pos, rot
 
 
-def run_client(kind: str, endpoint: str, seconds: float, fps: float, out: str, ready) -> None:
-    """One game client: submit, steer every tick, record states at ``fps``."""
+def run_client(kind: str, endpoint: str, seconds: float, fps: float, out: str, ready: Any, go: Any) -> None:
+    """One game client: submit, then (once every client has its cloth: ``go``) steer every tick
+    and record states at ``fps`` for ``seconds``."""
     logging.basicConfig(level=logging.WARNING)
     from drape.client import DrapeClient
 
@@ -128,6 +130,8 @@ def run_client(kind: str, endpoint: str, seconds: float, fps: float, out: str, r
                 substeps=2,
             )
         ready.set()
+        go.wait()
+        cloth.clear()  # the recordings start together: states queued while others submitted go
         assert cloth.rest_positions is not None, "the SDK keeps a submitted cloth's rest positions"
         rest_top = np.asarray(cloth.rest_positions[:cols], np.float64)
         start = time.monotonic()
@@ -258,17 +262,21 @@ def run(args: argparse.Namespace) -> int:
     ctx = mp.get_context("spawn")
     kinds = ["flag", "curtain", "cape"]
     procs = []
+    go = ctx.Event()
     try:
         for kind in kinds:
             ready = ctx.Event()
             p = ctx.Process(
-                target=run_client, args=(kind, endpoint, args.seconds, args.fps, str(out), ready), name=f"demo-{kind}"
+                target=run_client,
+                args=(kind, endpoint, args.seconds, args.fps, str(out), ready, go),
+                name=f"demo-{kind}",
             )
             p.start()
             procs.append((p, ready))
         for p, ready in procs:
             if not ready.wait(60):
                 raise RuntimeError(f"{p.name} did not get its cloth accepted in 60 s")
+        go.set()
         log.info("clients running for %.1f s", args.seconds)
         for p, _ in procs:
             p.join(args.seconds + 60)

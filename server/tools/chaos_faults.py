@@ -343,10 +343,10 @@ def kill(ctx: Context, cloths: int = 4) -> dict[str, Any]:
                 s.stop()
     back = []
     for j in range(cloths):
-        first = victim.first_receipt_after(j, t_kill + 0.5)
+        gap = victim.outage(j, t_kill)
         where = victim.log.where[j] if j < len(victim.log.where) else None
-        gap = None if first is None else round(first - t_kill, 2)
-        back.append({"cloth": j, "back": first is not None, "gap_s": gap, "server_at_end": where})
+        back.append({"cloth": j, "back": gap is not None, "gap_s": None if gap is None else round(gap, 2),
+                     "server_at_end": where})
     n_back = sum(x["back"] for x in back)
     m.update(cloths=cloths, back=n_back, back_pct=round(100.0 * n_back / cloths, 1), per_cloth=back,
              killed=a.server_id, other=b.server_id if b else None, restarted_same_id=True)

@@ -301,6 +301,19 @@ class GoodClient:
             v = self.log.ticks.get(cloth, [])
             return v[-1][1] if v else float("-inf")
 
+    def outage(self, cloth: int, t: float, settle: float = 0.5) -> float | None:
+        """Seconds without a state around a fault at ``t``: the longest interval between successive
+        receipts from the last one before ``t`` to the first one later than ``t + settle`` (states
+        in flight at the fault arrive within ``settle``). None when no state came after that."""
+        with self._lock:
+            times = sorted(tr for _, tr in self.log.ticks.get(cloth, []))
+        before = [x for x in times if x <= t]
+        after = [x for x in times if x > t + settle]
+        if not after:
+            return None
+        span = ([before[-1]] if before else [t]) + [x for x in times if t < x <= after[0]]
+        return float(np.max(np.diff(span))) if len(span) > 1 else 0.0
+
     def first_receipt_after(self, cloth: int, t: float) -> float | None:
         with self._lock:
             for _, tr in self.log.ticks.get(cloth, []):

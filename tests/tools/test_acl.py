@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
+import sys
 import threading
 from pathlib import Path
 
@@ -77,7 +78,8 @@ def test_client_rules_bind_keys_to_the_client_id():
     assert all("declare_queryable" not in r["messages"] or r["flows"] == ["egress"]
                for r in section["rules"] if r["id"].startswith(("u-alice", "u-bob")))
     opened = acl.access_control(users, cloth_states="any")
-    assert keys.state("*") in {k for r in opened["rules"] if r["id"] == "u-bob-subscribe-declare_subscriber" for k in r["key_exprs"]}
+    bob_reads = {k for r in opened["rules"] if r["id"] == "u-bob-subscribe-declare_subscriber" for k in r["key_exprs"]}
+    assert keys.state("*") in bob_reads
 
 
 @pytest.mark.parametrize("bad, message", [
@@ -267,3 +269,64 @@ def test_unknown_user_or_wrong_password_cannot_connect(router):
         router("alice", "wrong")
     with pytest.raises(zenoh.ZError):
         router("mallory", "pw-alice")
+
+
+# ---------------------------------------------------------------------------------------------
+# Drape itself behind the router: drape serve and the SDK, in client mode, with the generated ACL
+
+
+def _user_file(d: Path, user: str, password: str) -> str:
+    p = d / f"{user}.json5"
+    auth = {"usrpwd": {"user": user, "password": password}}
+    p.write_text(json.dumps({"mode": "client", "transport": {"auth": auth}}))
+    return str(p)
+
+
+def test_drape_serve_and_the_sdk_work_through_the_acl_router(tmp_path):
+    from drape.client import DrapeClient, NotFound
+    from drape.client import protocol as P
+
+    users_file = tmp_path / "users.toml"
+    users_file.write_text(USERS)
+    users = acl.load_users(users_file)
+    (tmp_path / "dict.txt").write_text(acl.dictionary(users))
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    c = zenoh.Config.from_file(str(REPO / "deploy/zenoh-router.json5"))
+    c.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    c.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(tmp_path / "dict.txt")))
+    c.insert_json5("access_control", json.dumps(acl.access_control(users)))
+    router = zenoh.open(c)
+    log = open(tmp_path / "server.log", "w")
+    server = subprocess.Popen([sys.executable, "-m", "drape.server.cli", "serve", "--mode", "client",
+                               "--connect", endpoint, "--zenoh-config", _user_file(tmp_path, "eu-1", "pw-server"),
+                               "--server-id", "eu-1", "--stats-period", "0.5"], stdout=log, stderr=subprocess.STDOUT)
+    clients: list[DrapeClient] = []
+    try:
+        alice = DrapeClient(endpoint, mode="client", client_id="alice", timeout=WAIT,
+                            zenoh_config_file=_user_file(tmp_path, "alice", "pw-alice"))
+        clients.append(alice)
+        assert alice.server_id == "eu-1"  # found through the server's liveliness token
+        cloth = alice.submit_grid(8, 8, pinned=[0, 7], bundle=True)
+        state = cloth.next_state(timeout=WAIT)
+        assert state.positions.shape == (64, 3)
+        with pytest.raises(NotFound):  # an error reply crosses the router too
+            alice.request("remove", P.encode_remove(P.RemoveRequest("0123456789abcdef", "0" * 32)))
+
+        bob = DrapeClient(endpoint, mode="client", client_id="bob", timeout=WAIT,
+                          zenoh_config_file=_user_file(tmp_path, "bob", "pw-bob"))
+        clients.append(bob)
+        stolen = Inbox()
+        bob.session.declare_subscriber(Keys("drape").bundle("alice"), stolen)
+        own = bob.submit_grid(8, 8, pinned=[0, 7], bundle=True)
+        # alice's bundle is published every tick: 10 of bob's own states later, any let through is here
+        first = own.next_state(timeout=WAIT).tick
+        own.wait_for_tick(first + 10, timeout=WAIT)
+        assert stolen.payloads == []
+        assert cloth.next_state(timeout=WAIT).tick > state.tick  # alice is still served
+    finally:
+        for cl in reversed(clients):
+            cl.close()
+        server.terminate()
+        server.wait(30)
+        log.close()
+        router.close()

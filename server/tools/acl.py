@@ -73,8 +73,8 @@ def load_users(path: str | Path) -> UsersFile:
     with open(path, "rb") as fh:
         try:
             data = tomllib.load(fh)
-        except tomllib.TOMLDecodeError as e:
-            raise ValueError(f"{path}: not valid TOML: {e}") from None
+        except tomllib.TOMLDecodeError as err:
+            raise ValueError(f"{path}: not valid TOML: {err}") from None
     unknown = set(data) - {"namespace", "user"}
     if unknown:
         raise ValueError(f"{path}: unknown top-level key(s) {sorted(unknown)}")

@@ -341,7 +341,7 @@ def kill(ctx: Context, cloths: int = 4) -> dict[str, Any]:
         for s in (a, b):
             if s is not None:
                 s.stop()
-    back = []
+    back: list[dict[str, Any]] = []
     for j in range(cloths):
         gap = victim.outage(j, t_kill)
         where = victim.log.where[j] if j < len(victim.log.where) else None
@@ -353,7 +353,7 @@ def kill(ctx: Context, cloths: int = 4) -> dict[str, Any]:
     fails = judge(m, rss=False)
     if n_back < cloths:
         fails.append(f"{n_back} of {cloths} cloths of the killed server came back ({m['back_pct']} %)")
-    gaps = [x["gap_s"] for x in back if x["gap_s"] is not None]
+    gaps = [float(x["gap_s"]) for x in back if x["gap_s"] is not None]
     if gaps and max(gaps) > FAILOVER_GAP_S:
         fails.append(f"longest gap {max(gaps)} s > {FAILOVER_GAP_S} s")
     return {**m, "fails": fails}
@@ -369,16 +369,19 @@ def pause(ctx: Context, cloths: int = 2) -> dict[str, Any]:
             w = Window.open(st.server)
             t_stop = time.monotonic()
             reclaimed0 = st.server.stats.latest().get("reclaimed", 0)
-            os.kill(sleeper.proc.pid, signal.SIGSTOP)
+            pid = sleeper.proc.pid
+            if pid is None or pid <= 0:  # never signal a process group by accident
+                raise RuntimeError("the paused client has no process id")
+            os.kill(pid, signal.SIGSTOP)
             time.sleep(ctx.pause_s)
             t_cont = time.monotonic()
-            os.kill(sleeper.proc.pid, signal.SIGCONT)
+            os.kill(pid, signal.SIGCONT)
             time.sleep(max(3.0, FAILOVER_GAP_S * 3))
             m = w.close([st.good] if st.good else [])
             # when the server gave the sleeper's cloths up: the first stats publication counting them
             gone = [t for t, s in list(st.server.stats.samples) if t > t_stop and s.get("reclaimed", 0) > reclaimed0]
             m["reclaimed_after_s"] = round(gone[0] - t_stop, 1) if gone else None
-            back = []
+            back: list[dict[str, Any]] = []
             for j in range(cloths):
                 first = sleeper.first_receipt_after(j, t_cont)
                 back.append({"cloth": j, "back": first is not None and first - t_cont <= FAILOVER_GAP_S,

@@ -51,6 +51,8 @@ def reply_outcome(reply: zenoh.Reply) -> str:
     """``ok``, an error code, or ``unparseable`` for an error reply that is not a Drape error map."""
     if reply.ok is not None:
         return "ok"
+    if reply.err is None:
+        return "unparseable"
     try:
         m = msgpack.unpackb(reply.err.payload.to_bytes(), raw=False)
         return str(m["error"]["code"])

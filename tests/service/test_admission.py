@@ -88,3 +88,18 @@ def test_a_cloth_that_keeps_going_non_finite_is_removed_with_a_reason():
             assert "non-finite" in e.value.message
         finally:
             c.close()
+
+
+def test_a_new_feature_combination_is_built_by_the_cook_thread_not_the_tick():
+    with Server(make_config()) as srv:
+        dev = srv.call(lambda w: w.dev)
+        before = len(dev.builds)
+        c = connect(srv)
+        try:
+            h = c.submit_grid(6, 6, pinned=[0, 5], features=["tethers"], wind=(3.0, 0.0, 1.0))
+            collect(h, 3)
+        finally:
+            c.close()
+        new = dev.builds[before:]
+        assert new, "a program with the tethers and wind features should have been built"
+        assert all(thread.startswith("drape-cook") for _, thread in new), new

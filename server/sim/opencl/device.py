@@ -126,6 +126,7 @@ class Device:
         self._programs: dict[tuple[str, ...], cl.Program] = {}
         self._lock = threading.Lock()  # guards the caches, never held while a program builds
         self._building: dict[tuple[str, ...], threading.Lock] = {}
+        self.builds: list[tuple[tuple[str, ...], str]] = []  # (program key, thread that built it), in order
         d = self.device
         self.info = DeviceInfo(
             name=describe(d),
@@ -157,6 +158,7 @@ class Device:
                 prg = cl.Program(self.ctx, text).build(options=opts)
                 with self._lock:
                     self._programs[key] = prg
+                    self.builds.append((key, threading.current_thread().name))
                     self._building.pop(key, None)
             return prg
 

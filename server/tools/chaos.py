@@ -25,6 +25,7 @@ import json
 import logging
 import os
 import platform
+import shlex
 import sys
 import tempfile
 import time
@@ -110,6 +111,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="kill a server whose RSS passes this (default 4096)")
     parser.add_argument("--grace-period", type=float, default=5.0, help="the servers' grace period (default 5)")
     parser.add_argument("--seed", type=int, default=1, help="fuzz seed (default 1)")
+    parser.add_argument("--serve-args", default="", metavar="ARGS",
+                        help="extra `drape serve` arguments for every server, e.g. \"--no-admission\"")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -126,7 +129,8 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     ctx = Context(out=out, seconds=args.seconds, baseline_s=args.baseline, fuzz_count=args.fuzz_count,
                   flood_ids=args.flood_ids, pause_s=args.pause_seconds, max_message_bytes=args.max_message_bytes,
-                  rss_limit_mb=args.rss_limit_mb, seed=args.seed, grace_period=args.grace_period)
+                  rss_limit_mb=args.rss_limit_mb, seed=args.seed, grace_period=args.grace_period,
+                  serve_args=tuple(shlex.split(args.serve_args)))
     report = run_scenarios(names, ctx)
     print(format_table(report))
     print(f"server logs: {out}")

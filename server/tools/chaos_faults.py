@@ -52,6 +52,7 @@ class Context:
     rss_limit_mb: float = 4096.0
     seed: int = 1
     grace_period: float = 5.0
+    serve_args: tuple[str, ...] = ()  # extra `drape serve` arguments for every server
 
 
 class Stage:
@@ -60,7 +61,8 @@ class Stage:
     def __init__(self, ctx: Context, name: str, server_args: tuple[str, ...] = (), good_cloths: int = 1) -> None:
         self.ctx = ctx
         self.server = ChaosServer(ctx.out, name, ("--grace-period", str(ctx.grace_period),
-                                                  "--max-message-bytes", str(ctx.max_message_bytes), *server_args),
+                                                  "--max-message-bytes", str(ctx.max_message_bytes), *ctx.serve_args,
+                                                  *server_args),
                                   rss_limit_mb=ctx.rss_limit_mb)
         self.good: GoodClient | None = None
         self.name = name
@@ -308,13 +310,13 @@ def new_features(ctx: Context) -> dict[str, Any]:
 def kill(ctx: Context, cloths: int = 4) -> dict[str, Any]:
     """kill -9 of one of two connected servers while clients hold cloths on both; then restart it
     (same id and endpoint). Which of the victim's cloths are served again, and after how long."""
-    a = ChaosServer(ctx.out, "kill-a", ("--grace-period", str(ctx.grace_period)), rss_limit_mb=ctx.rss_limit_mb)
+    args = ("--grace-period", str(ctx.grace_period), *ctx.serve_args)
+    a = ChaosServer(ctx.out, "kill-a", args, rss_limit_mb=ctx.rss_limit_mb)
     b: ChaosServer | None = None
     clients: list[GoodClient] = []
     try:
         a.wait_ready()
-        b = ChaosServer(ctx.out, "kill-b", ("--grace-period", str(ctx.grace_period)), connect=[a.endpoint],
-                        rss_limit_mb=ctx.rss_limit_mb)
+        b = ChaosServer(ctx.out, "kill-b", args, connect=[a.endpoint], rss_limit_mb=ctx.rss_limit_mb)
         b.wait_ready()
         victim = GoodClient(a.endpoint, a.server_id, "victim", cloths)
         bystander = GoodClient(b.endpoint, b.server_id, "bystander", 1)
@@ -327,8 +329,8 @@ def kill(ctx: Context, cloths: int = 4) -> dict[str, Any]:
         a.kill(signal.SIGKILL)
         a.proc.wait(10)
         time.sleep(ctx.seconds)
-        a2 = ChaosServer(ctx.out, "kill-a-restarted", ("--grace-period", str(ctx.grace_period)),
-                         rss_limit_mb=ctx.rss_limit_mb, endpoint=a.endpoint, server_id=a.server_id)
+        a2 = ChaosServer(ctx.out, "kill-a-restarted", args, rss_limit_mb=ctx.rss_limit_mb, endpoint=a.endpoint,
+                         server_id=a.server_id)
         try:
             a2.wait_ready()
             time.sleep(ctx.seconds)

@@ -299,7 +299,8 @@ def test_drape_serve_and_the_sdk_work_through_the_acl_router(tmp_path):
     log = open(tmp_path / "server.log", "w")
     server = subprocess.Popen([sys.executable, "-m", "drape.server.cli", "serve", "--mode", "client",
                                "--connect", endpoint, "--zenoh-config", _user_file(tmp_path, "eu-1", "pw-server"),
-                               "--server-id", "eu-1", "--stats-period", "0.5"], stdout=log, stderr=subprocess.STDOUT)
+                               "--server-id", "eu-1", "--stats-period", "0.5", "--no-admission"],
+                              stdout=log, stderr=subprocess.STDOUT)  # admission: not this test's subject
     clients: list[DrapeClient] = []
     try:
         alice = DrapeClient(endpoint, mode="client", client_id="alice", timeout=WAIT,

@@ -48,8 +48,10 @@ def test_valid_bases_decode_and_their_mutations_do_not():
 
 
 def test_fuzz_leaves_no_traceback_no_internal_error_and_the_server_serving(tmp_path):
+    # Admission control off: on a loaded CI machine it may refuse the final valid submit with
+    # `overloaded`, which is right for a server but not what this test is about.
     ctx = chaos_faults.Context(out=tmp_path, fuzz_count=CI_COUNT, max_message_bytes=CI_MAX_BYTES, grace_period=1.0,
-                               baseline_s=0.5, seed=11)
+                               baseline_s=0.5, seed=11, serve_args=("--no-admission",))
     r = chaos_faults.fuzz(ctx)
     assert r["sent"] == CI_COUNT
     assert r["server_alive"]

@@ -1,11 +1,13 @@
 #!/usr/bin/env bash
-# CI for the Rust client (run after the Python tests, from any directory):
-#   client/rust/ci.sh
-# Builds the crate, runs `cargo test` (protocol vectors, header check, live tests against a
-# real `drape serve`), then builds the C example against the static library and runs it
-# against a `drape serve` started here. Exits non-zero on any failure. The server binary is
-# $DRAPE_BIN (default: <repo>/.venv/bin/drape); CI=true (the default here) makes a missing
-# server a test failure rather than a skip.
+# CI for the Rust client (run after `bash deploy/setup.sh test` created <repo>/.venv, from any
+# directory):
+#   bash client/rust/ci.sh
+# Checks the tools, builds the crate (also without the Zenoh client), runs `cargo test`
+# (protocol vectors of every version, hostile input, drape_wire.h layouts, the C header, live
+# tests against real `drape serve` processes), then builds the C example against the static
+# library and runs it against a `drape serve` started here. Exits non-zero on any failure. The
+# server binary is $DRAPE_BIN (default: <repo>/.venv/bin/drape); CI=true (the default here)
+# makes a missing server a test failure, never a skip. Cargo runs with -j 2 and --locked.
 set -euo pipefail
 crate="$(cd "$(dirname "$0")" && pwd)"
 repo="$(cd "$crate/../.." && pwd)"
@@ -13,24 +15,55 @@ export CI="${CI:-true}"
 export DRAPE_BIN="${DRAPE_BIN:-$repo/.venv/bin/drape}"
 export CARGO_TERM_COLOR="${CARGO_TERM_COLOR:-never}"
 cd "$crate"
+start=$SECONDS
+step() { echo "== [$((SECONDS - start)) s] $*"; }
+die() { echo "ci.sh: FAILED: $*" >&2; exit 1; }
 
-echo "== cargo test (vectors, header, live tests with $DRAPE_BIN)"
-cargo test -j 2 --locked
+step "tools"
+for tool in cargo rustc "${CC:-cc}" python3; do
+    command -v "$tool" >/dev/null || die "$tool is not installed"
+done
+[[ -x "$DRAPE_BIN" ]] || die "the drape server $DRAPE_BIN is missing (run \`bash deploy/setup.sh test\` first, or set DRAPE_BIN)"
+"$DRAPE_BIN" serve --help >/dev/null || die "$DRAPE_BIN serve does not start"
+[[ -f "$repo/client/protocol/drape_wire.h" && -f "$repo/tests/vectors/control.json" ]] \
+    || die "the protocol's vectors or drape_wire.h are missing under $repo"
+cargo --version
+rustc --version
 
-echo "== C example"
+step "cargo build --no-default-features (the wire layer alone)"
+cargo build -j 2 --locked --no-default-features --lib
+
+step "cargo test (vectors, hostile input, layouts, header, live tests with $DRAPE_BIN)"
+cargo test -j 2 --locked --no-fail-fast
+
+step "C example"
 examples/c/build.sh
-if [[ ! -x "$DRAPE_BIN" ]]; then
-    echo "ci.sh: the drape server $DRAPE_BIN is missing (create the venv first)" >&2
-    exit 1
-fi
 port="$(python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')"
 log="$(mktemp)"
 "$DRAPE_BIN" serve --listen "tcp/127.0.0.1:$port" --server-id "ci-c-$port" >"$log" 2>&1 &
 server=$!
 trap 'kill "$server" 2>/dev/null || true; rm -f "$log"' EXIT
+# Up when its liveliness token is seen (up to 120 s: a cold device builds its kernels first).
+"$(dirname "$DRAPE_BIN")/python" - "$port" "$server" <<'EOF' || { cat "$log" >&2; die "drape serve did not come up"; }
+import os, sys, time, zenoh
+port, pid = sys.argv[1], int(sys.argv[2])
+c = zenoh.Config()
+c.insert_json5("mode", '"peer"')
+c.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
+c.insert_json5("listen/endpoints", "[]")
+c.insert_json5("scouting/multicast/enabled", "false")
+with zenoh.open(c) as s:
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 120:
+        os.kill(pid, 0)  # raises when the server exited
+        if any(r.ok is not None for r in s.liveliness().get(f"drape/alive/server/ci-c-{port}", timeout=1.0)):
+            sys.exit(0)
+        time.sleep(0.2)
+sys.exit(1)
+EOF
 if ! timeout 120 examples/c/build/cape "tcp/127.0.0.1:$port" 60; then
     echo "ci.sh: the C example failed; server log:" >&2
     cat "$log" >&2
-    exit 1
+    die "C example"
 fi
-echo "ci.sh: all Rust client checks passed"
+step "all Rust client checks passed"

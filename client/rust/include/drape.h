@@ -59,8 +59,27 @@
 // An error code this version does not know.
 #define DRAPE_E_UNKNOWN 16
 
+// Protocol 1.2 (submit): the server cannot admit the cloth within its tick budget; retry later
+// or on another server (numbered after the 1.1 codes so that no earlier code changes).
+#define DRAPE_E_OVERLOADED 17
+
 // Not an error: no new state / no event.
 #define DRAPE_NO_DATA 100
+
+// Feature bits (protocol 1.2 feature changes, `drape_cloth_features`): one bit per feature,
+// in the protocol's order.
+#define DRAPE_FEATURE_XPBD 1
+
+#define DRAPE_FEATURE_TETHERS 2
+
+#define DRAPE_FEATURE_COLLIDERS 4
+
+#define DRAPE_FEATURE_WIND 8
+
+#define DRAPE_FEATURE_NORMALS 16
+
+// A feature mask the server did not report (a reply without `features`).
+#define DRAPE_FEATURES_UNKNOWN 4294967295
 
 // Event kinds (`DrapeEvent.kind`).
 #define DRAPE_EVENT_SERVER_FOUND 1
@@ -164,7 +183,7 @@ typedef struct DrapeStateInfo {
 extern "C" {
 #endif // __cplusplus
 
-// The library's version and the protocol version it speaks, e.g. "drape-client 0.1.0, protocol 1.1".
+// The library's version and the protocol version it speaks, e.g. "drape-client 0.2.0, protocol 1.2".
 const char *drape_version(void);
 
 // The message of this thread's last error, copied into `buf` (NUL-terminated, truncated).
@@ -272,6 +291,24 @@ int32_t drape_cloth_set_gravity(const struct DrapeCloth *cloth,
                                 bool wait,
                                 uint64_t *tick);
 
+// Protocol 1.2: switch features on (`add`, a mask of DRAPE_FEATURE_* bits) and off (`remove`),
+// keeping the others; a bit in both is INVALID_VALUE. Needs a 1.2 server (INVALID_VALUE,
+// nothing sent, otherwise). `wait`: block for the reply; `*tick` (may be NULL) gets the first
+// tick showing the change and `*features` (may be NULL) the cloth's resulting feature mask
+// (DRAPE_FEATURES_UNKNOWN if the reply did not report it).
+// Not waiting: return at once; `drape_cloth_features` has the set once the reply arrived.
+int32_t drape_cloth_change_features(const struct DrapeCloth *cloth,
+                                    uint32_t add,
+                                    uint32_t remove,
+                                    bool wait,
+                                    uint64_t *tick,
+                                    uint32_t *features);
+
+// Protocol 1.2: the cloth's feature mask (DRAPE_FEATURE_* bits) as its server last reported it
+// in a control or batch reply: DRAPE_OK with `*features` set, or DRAPE_NO_DATA when none was
+// reported yet (no control answered yet, or a server older than 1.2).
+int32_t drape_cloth_features(const struct DrapeCloth *cloth, uint32_t *features);
+
 // Back to the rest pose with zero velocity.
 int32_t drape_cloth_reset(const struct DrapeCloth *cloth, bool wait, uint64_t *tick);
 
@@ -290,6 +327,13 @@ int32_t drape_batch_move_pins(struct DrapeBatch *batch,
                               const uint32_t *indices,
                               size_t count,
                               const float *targets);
+
+// Protocol 1.2: add an item switching features on and off (as `drape_cloth_change_features`;
+// checked when the batch is sent). The resulting set: `drape_cloth_features` after the reply.
+int32_t drape_batch_change_features(struct DrapeBatch *batch,
+                                    const struct DrapeCloth *cloth,
+                                    uint32_t add,
+                                    uint32_t remove);
 
 // Send the batch (and empty it for reuse). `wait`: block for the replies; item i's status
 // goes to `codes[i]` and its first tick to `ticks[i]` (either may be NULL; `len` is their

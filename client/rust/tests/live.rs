@@ -70,9 +70,14 @@ fn grid_states_and_pins() {
             break;
         }
     }
-    // Controls without waiting: nothing comes back but states.
+    // Controls without waiting: nothing comes back but states, and the last target wins.
     for k in 0..10 {
         cloth.move_pins(&[0], &[0.0, 2.5 + k as f32 * 0.01, 0.0], false).unwrap();
+    }
+    let t0 = Instant::now();
+    while pos[0..3] != [0.0, 2.59, 0.0] {
+        assert!(t0.elapsed() < Duration::from_secs(5), "the unwaited pin moves are not applied: {:?}", &pos[0..3]);
+        wait(&cloth, &mut pos);
     }
     let last_tick = cloth.remove().unwrap();
     assert!(last_tick >= tick);
@@ -215,4 +220,148 @@ fn lost_server_is_reported_and_failover_resubmits() {
     lost.remove().unwrap();
     fo.close(true);
     plain.close(true);
+}
+
+fn names(v: &[&str]) -> Option<Vec<String>> {
+    Some(v.iter().map(|x| x.to_string()).collect())
+}
+
+/// Protocol 1.2 feature changes against the real server: `features_add` / `features_remove`
+/// switch single features and keep the others (seen in the states: the normals flag), and a
+/// 1.2 server reports the resulting set in every control reply and applied batch result.
+#[test]
+fn feature_changes_keep_the_other_features() {
+    let Some(s) = shared() else { return };
+    let client = connect(&[s], Some(&s.id), false);
+    let info = client.info().unwrap();
+    let version = drape::wire::reader::Reader::new(&info, "").str("version", true).unwrap().unwrap().to_string();
+    assert_eq!(version, "1.2", "the server speaks protocol 1.2");
+    let state = StateOptions { normals: Some(true), ..Default::default() };
+    let cloth = client.submit_grid(Grid::new(6, 6), Submit { pinned: vec![0, 5], state: Some(state), ..opts() }).unwrap();
+    let (mut pos, mut nrm) = (vec![0f32; 108], vec![0f32; 108]);
+    assert!(cloth.wait_state(&mut pos, Some(&mut nrm), Duration::from_secs(5)).unwrap().unwrap().has_normals);
+    assert_eq!(cloth.features(), None, "nothing reported before a control");
+
+    // Client-side checks: a name in both lists, an unknown name.
+    assert_eq!(cloth.change_features(&["wind"], &["wind"], true).unwrap_err().code, ErrorCode::InvalidValue);
+    assert_eq!(cloth.change_features(&["gravity"], &[], true).unwrap_err().code, ErrorCode::InvalidValue);
+
+    // wind on: normals (switched on by state.normals at submission) stay on.
+    let on = cloth.change_features(&["wind"], &[], true).unwrap().unwrap();
+    // normals off, wind kept: the states from the reply's tick on carry no normals.
+    let off = cloth.change_features(&[], &["normals"], true).unwrap().unwrap();
+    loop {
+        let st = cloth.wait_state(&mut pos, Some(&mut nrm), Duration::from_secs(5)).unwrap().expect("a state within 5 s");
+        if st.tick >= off.tick {
+            assert!(!st.has_normals, "normals removed from tick {}: {st:?}", off.tick);
+            break;
+        }
+        assert!(st.has_normals, "normals still on before tick {}", off.tick);
+    }
+    // In a batch item: xpbd on, wind off.
+    let mut batch = client.batch();
+    batch.change_features(&cloth, &["xpbd"], &["wind"]);
+    let item = client.send_batch_applied(batch).unwrap().remove(0).unwrap();
+    // Not waited for: the reply's set is kept on the cloth when it comes.
+    assert!(cloth.change_features(&["tethers"], &[], false).unwrap().is_none());
+    let t0 = Instant::now();
+    while cloth.features().is_none_or(|f| !f.contains(&"tethers".to_string())) && t0.elapsed() < Duration::from_secs(5) {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let later = cloth.features();
+    cloth.remove().unwrap();
+    client.close(true);
+
+    // What a 1.2 server reports (PROTOCOL.md section 5: `features` in control replies and in
+    // applied batch results), in the protocol's order.
+    assert_eq!(on.features, names(&["wind", "normals"]), "control reply after features_add [wind]");
+    assert_eq!(off.features, names(&["wind"]), "control reply after features_remove [normals]");
+    assert_eq!(item.features, names(&["xpbd"]), "batch result after features_add [xpbd], features_remove [wind]");
+    assert_eq!(later, names(&["xpbd", "tethers"]), "the set kept from an unwaited control's reply");
+}
+
+/// The C ABI of 1.2: feature masks, the resulting set, `overloaded` named.
+#[test]
+fn c_abi_feature_changes() {
+    use drape::ffi::*;
+    use std::ffi::{CStr, CString};
+    let Some(s) = shared() else { return };
+    let connect = CString::new(s.endpoint.clone()).unwrap();
+    let server = CString::new(s.id.clone()).unwrap();
+    let name = |code: i32| unsafe { CStr::from_ptr(drape_error_name(code)) }.to_str().unwrap().to_string();
+    assert_eq!(name(DRAPE_E_OVERLOADED), "overloaded");
+    assert_eq!(name(DRAPE_E_UNKNOWN), "unknown");
+    assert!(unsafe { CStr::from_ptr(drape_version()) }.to_str().unwrap().ends_with("protocol 1.2"));
+    unsafe {
+        let opts = DrapeClientOptions {
+            connect: connect.as_ptr(),
+            server_id: server.as_ptr(),
+            client_id: std::ptr::null(),
+            namespace_: std::ptr::null(),
+            timeout_ms: 60_000,
+            failover: false,
+        };
+        let mut client = std::ptr::null_mut();
+        assert_eq!(drape_client_open(&opts, &mut client), DRAPE_OK);
+        let grid = DrapeGrid { cols: 4, rows: 4, width: 0.0, height: 0.0, vertical: false, origin: [0.0; 3] };
+        let pins = [0u32, 3];
+        let copts = DrapeClothOptions {
+            pinned: pins.as_ptr(),
+            pinned_count: 2,
+            encoding: 0,
+            normals: true,
+            bundle: false,
+            quality: std::ptr::null(),
+            gravity: std::ptr::null(),
+        };
+        let mut cloth = std::ptr::null_mut();
+        assert_eq!(drape_submit_grid(client, &grid, &copts, &mut cloth), DRAPE_OK);
+        let mut mask = 0u32;
+        assert_eq!(drape_cloth_features(cloth, &mut mask), DRAPE_NO_DATA);
+        assert_eq!(drape_cloth_change_features(cloth, 1 << 5, 0, true, std::ptr::null_mut(), &mut mask), DRAPE_E_INVALID_VALUE);
+        let both = drape_cloth_change_features(cloth, DRAPE_FEATURE_WIND, DRAPE_FEATURE_WIND, true, std::ptr::null_mut(), &mut mask);
+        assert_eq!(both, DRAPE_E_INVALID_VALUE);
+        let mut tick = 0u64;
+        let rc = drape_cloth_change_features(cloth, DRAPE_FEATURE_WIND, DRAPE_FEATURE_NORMALS, true, &mut tick, &mut mask);
+        assert_eq!(rc, DRAPE_OK);
+        assert!(tick > 0);
+        let after_control = mask;
+        let batch = drape_batch_new();
+        assert_eq!(drape_batch_change_features(batch, cloth, DRAPE_FEATURE_XPBD, DRAPE_FEATURE_WIND), DRAPE_OK);
+        assert_eq!(drape_batch_change_features(batch, cloth, 1 << 31, 0), DRAPE_E_INVALID_VALUE);
+        let mut codes = [-1i32; 1];
+        let mut ticks = [0u64; 1];
+        assert_eq!(drape_batch_send(client, batch, true, codes.as_mut_ptr(), ticks.as_mut_ptr(), 1), DRAPE_OK);
+        assert_eq!(codes[0], DRAPE_OK);
+        drape_batch_free(batch);
+        let mut after_batch = 0u32;
+        let reported = drape_cloth_features(cloth, &mut after_batch);
+        assert_eq!(drape_cloth_remove(cloth, std::ptr::null_mut()), DRAPE_OK);
+        drape_cloth_free(cloth);
+        drape_client_close(client, true);
+        // a 1.2 server reports the resulting sets
+        assert_eq!(after_control, DRAPE_FEATURE_WIND, "mask after wind on, normals off");
+        assert_eq!((reported, after_batch), (DRAPE_OK, DRAPE_FEATURE_XPBD), "mask after the batch item");
+    }
+}
+
+/// 1.2 admission control: a server that cannot fit another cloth in its tick budget answers
+/// `overloaded` (code 17, retryable), in Rust and through the C ABI's code.
+#[test]
+fn overloaded_submissions() {
+    let Some(bin) = common::drape_bin() else { return };
+    // a budget of 0.01 % of a tick: the first cloth is admitted (an empty server admits), the
+    // next ones are not once a tick has measured the cost per vertex
+    let s = common::start(&bin, &["--admission", "--admission-budget", "0.0001"]);
+    let client = connect(&[&s], Some(&s.id), false);
+    let first = client.submit_grid(Grid::new(8, 8), Submit { pinned: vec![0, 7], ..opts() }).unwrap();
+    let mut pos = vec![0f32; 192];
+    wait(&first, &mut pos);
+    wait(&first, &mut pos);
+    let e = client.submit_grid(Grid::new(8, 8), Submit { pinned: vec![0, 7], ..opts() }).unwrap_err();
+    assert_eq!(e.code, ErrorCode::Overloaded, "{e}");
+    assert!(e.code.is_retryable() && !e.code.is_bad_request());
+    assert_eq!(e.code as i32, drape::ffi::DRAPE_E_OVERLOADED);
+    first.remove().unwrap();
+    client.close(true);
 }

@@ -1,8 +1,9 @@
 //! The protocol test vectors of the repository (`../../tests/vectors/*.json`, PROTOCOL.md
 //! section 16) checked both ways: bytes -> meaning, and meaning -> identical bytes. The frozen
-//! 1.0 vectors (`v1.0/`) must still be read as they mean.
+//! 1.0 and 1.1 vectors (`v1.0/`, `v1.1/`) must still be read as they mean, and written back
+//! they differ only in the version.
 use drape::wire::msg::{encode_info, encode_remove};
-use drape::wire::reader::{unpack_message, Reader, Value};
+use drape::wire::reader::{pack, unpack_message, Reader, Value};
 use drape::wire::replies::{decode_reply, encode_tick_reply, tick_of};
 use drape::wire::*;
 use serde_json::{json, Value as Json};
@@ -45,6 +46,14 @@ fn to_json(v: &Value, key: &str) -> Json {
     }
 }
 
+/// Every vector set: its directory, the version its messages carry. The current set is 1.2;
+/// the 1.0 and 1.1 sets are frozen and must be read as they mean (PROTOCOL.md section 15).
+const SETS: [(&str, u64); 3] = [("", PROTOCOL_MINOR as u64), ("v1.1/", 1), ("v1.0/", 0)];
+
+fn load_set(dir_prefix: &str, name: &str) -> Vec<Json> {
+    if dir().join(dir_prefix).join(name).exists() { load(&format!("{dir_prefix}{name}")) } else { Vec::new() }
+}
+
 fn check_message(v: &Json) {
     let name = v["name"].as_str().unwrap();
     let data = unhex(v);
@@ -62,18 +71,46 @@ fn check_message(v: &Json) {
             c.validate(&Limits::default(), None).unwrap();
             c.encode(rid)
         }
-        "control_batch" => ControlBatch::decode(&data).unwrap().encode(),
+        "control_batch" => {
+            let (client, items) = ControlBatch::decode_items(&data, &Limits::default()).unwrap();
+            let items: Vec<Control> = items.into_iter().map(|r| r.unwrap_or_else(|e| panic!("{name}: {e}"))).collect();
+            ControlBatch { rid, client, items }.encode()
+        }
         "remove" => {
             let r = Reader::new(&m, "");
             encode_remove(r.str("cloth", true).unwrap().unwrap(), r.str("token", true).unwrap().unwrap(), rid)
         }
         "info" => encode_info(rid),
         "reply_submit" => SubmitReply::from_map(&decode_reply(&data).unwrap()).unwrap().encode(),
-        "reply_control" | "reply_remove" => encode_tick_reply(tick_of(&decode_reply(&data).unwrap()).unwrap(), rid),
-        "reply_control_batch" => BatchReply::from_map(&decode_reply(&data).unwrap()).unwrap().encode(),
+        "reply_control" => {
+            let a = Applied::from_map(&decode_reply(&data).unwrap()).unwrap();
+            assert_eq!(a.features.is_some(), !v["value"]["features"].is_null(), "{name}: features");
+            a.encode_reply(rid)
+        }
+        "reply_remove" => encode_tick_reply(tick_of(&decode_reply(&data).unwrap()).unwrap(), rid),
+        "reply_control_batch" => {
+            let rep = BatchReply::from_map(&decode_reply(&data).unwrap()).unwrap();
+            for (r, w) in rep.results.iter().zip(v["value"]["results"].as_array().unwrap()) {
+                match r {
+                    Ok(a) => assert_eq!(json!(a.features), w["features"], "{name}: item features"),
+                    Err(e) => assert_eq!(json!(e.code), w["error"]["code"], "{name}: item error"),
+                }
+            }
+            rep.encode()
+        }
+        // Informational maps a client reads generically (fields may be added in any minor):
+        // decoded within the caps and written back as decoded.
+        "reply_info" => {
+            let m = decode_reply(&data).unwrap();
+            let version = Reader::new(&m, "").str("version", true).unwrap().unwrap().to_string();
+            assert_eq!(json!(version), v["value"]["version"], "{name}");
+            pack(&Value::Map(m))
+        }
+        "stats" => pack(&Value::Map(m.clone())),
         "error" => {
             let e = decode_reply(&data).unwrap_err();
             assert_eq!(e.code.as_str(), v["value"]["error"]["code"], "{name}");
+            assert_ne!(e.code, ErrorCode::Unknown, "{name}: every code of this version is known");
             assert_eq!(e.rid, rid);
             ErrorReply::from_map(&m).unwrap().encode()
         }
@@ -82,32 +119,64 @@ fn check_message(v: &Json) {
     assert_eq!(again, data, "{name}: re-encoded bytes differ");
 }
 
+/// An earlier version's message with its version replaced by this one's: the `v` array
+/// `[1, minor]` (0x92 0x01 minor) is the first thing of every message map.
+fn as_current(v: &Json, minor: u64) -> Json {
+    let data = unhex(v);
+    let at = data.windows(3).position(|w| w == [0x92, 1, minor as u8]).expect("the version array");
+    let mut bytes = data.clone();
+    bytes[at + 2] = PROTOCOL_MINOR;
+    let mut out = v.clone();
+    out["hex"] = json!(bytes.iter().map(|b| format!("{b:02x}")).collect::<String>());
+    out["value"]["v"] = json!([1, PROTOCOL_MINOR]);
+    out
+}
+
 #[test]
 fn messages_both_ways() {
-    for file in ["submit.json", "control.json", "misc.json", "v1.0/submit.json", "v1.0/control.json", "v1.0/misc.json"] {
-        for v in load(file) {
-            if file.starts_with("v1.0") {
-                // 1.0 vectors: read as they mean; written back they differ only in the version.
-                let data = unhex(&v);
-                let m = unpack_message(&data).unwrap();
-                let mut want = v["value"].clone();
-                assert_eq!(want["v"], json!([1, 0]));
-                want["v"] = json!([1, 1]);
-                let mut got = to_json(&Value::Map(m), "");
-                got["v"] = json!([1, 1]);
-                assert_eq!(got, want, "{file} {}", v["name"]);
-                let mut v11 = v.clone();
-                let mut bytes = data.clone();
-                let at = bytes.windows(3).position(|w| w == [0x92, 1, 0]).unwrap();
-                bytes[at + 2] = 1;
-                v11["hex"] = json!(bytes.iter().map(|b| format!("{b:02x}")).collect::<String>());
-                v11["value"] = want;
-                check_message(&v11);
-            } else {
-                check_message(&v);
+    let mut seen = 0;
+    for (set, minor) in SETS {
+        for file in ["submit.json", "control.json", "misc.json"] {
+            let vectors = load_set(set, file);
+            assert!(!vectors.is_empty(), "{set}{file} is missing");
+            for v in vectors {
+                let name = format!("{set}{file} {}", v["name"].as_str().unwrap());
+                assert_eq!(v["value"]["v"], json!([1, minor]), "{name}");
+                if minor == PROTOCOL_MINOR as u64 {
+                    check_message(&v);
+                } else {
+                    // Read as it means: the same value but for the version ...
+                    let data = unhex(&v);
+                    let m = unpack_message(&data).unwrap_or_else(|e| panic!("{name}: {e}"));
+                    assert_eq!(to_json(&Value::Map(m), ""), v["value"], "{name}: decoded value");
+                    // ... and written back differing only in the version.
+                    check_message(&as_current(&v, minor));
+                }
+                seen += 1;
             }
         }
     }
+    assert!(seen >= 40, "only {seen} message vectors");
+}
+
+/// The 1.2 messages: what a control carries and what its replies report.
+#[test]
+fn features_add_remove_and_overloaded() {
+    let v = load("control.json").into_iter().find(|v| v["name"] == "control_features_add_remove").unwrap();
+    let (c, _) = Control::decode(&unhex(&v)).unwrap();
+    assert_eq!(c.features_add.as_deref(), Some(&["wind".to_string()][..]));
+    assert_eq!(c.features_remove.as_deref(), Some(&["tethers".to_string()][..]));
+    assert!(c.features.is_none() && c.needs_1_2());
+    let misc = load("misc.json");
+    let by = |n: &str| unhex(misc.iter().find(|v| v["name"] == n).unwrap());
+    let a = Applied::from_map(&decode_reply(&by("reply_control_features")).unwrap()).unwrap();
+    assert_eq!((a.tick, a.has("wind"), a.has("xpbd")), (1050, Some(true), Some(false)));
+    let old = Applied::from_map(&decode_reply(&by("reply_control")).unwrap()).unwrap();
+    assert_eq!((old.features.clone(), old.has("wind")), (None, None), "a reply without features: not reported");
+    let e = decode_reply(&by("reply_error_overloaded")).unwrap_err();
+    assert_eq!((e.code, e.code as i32, e.code.is_retryable(), e.code.is_bad_request()), (ErrorCode::Overloaded, 17, true, false));
+    assert_eq!(ErrorCode::from_name("overloaded"), ErrorCode::Overloaded);
+    assert_eq!(ErrorCode::from_name("from_a_later_version"), ErrorCode::Unknown);
 }
 
 fn f32s(v: &Json) -> Vec<f32> {
@@ -138,45 +207,58 @@ fn check_state(name: &str, data: &[u8], want: &Json) {
 
 #[test]
 fn states_both_ways() {
-    for file in ["state.json", "v1.0/state.json"] {
-        for v in load(file) {
-            let name = format!("{file} {}", v["name"].as_str().unwrap());
+    let mut seen = 0;
+    for (set, minor) in SETS {
+        for v in load_set(set, "state.json") {
+            let name = format!("{set}state.json {}", v["name"].as_str().unwrap());
             let data = unhex(&v);
             let want = &v["value"];
+            assert_eq!((data[5] as u64, want["minor"].as_u64().unwrap()), (minor, minor), "{name}");
             check_state(&name, &data, want);
             let input = &v["input"];
             let normals = if input["normals"].is_null() { None } else { Some(f32s(&input["normals"])) };
             let enc = Encoding::from_name(want["encoding"].as_str().unwrap()).unwrap();
             let mut again = encode_state(want["tick"].as_u64().unwrap(), want["server_time_ns"].as_u64().unwrap(),
                 &f32s(&input["positions"]), normals.as_deref(), enc, input["flags"].as_u64().unwrap() as u16).unwrap();
-            again[5] = data[5]; // a 1.0 vector differs only in the minor version byte
+            assert_eq!(again[5], PROTOCOL_MINOR);
+            again[5] = data[5]; // an earlier version's vector differs only in the minor version byte
             assert_eq!(again, data, "{name}: re-encoded bytes differ");
+            seen += 1;
         }
     }
+    assert!(seen >= 12, "only {seen} state vectors");
 }
 
 #[test]
 fn bundles_both_ways() {
-    for v in load("bundle.json") {
-        let name = v["name"].as_str().unwrap();
-        let data = unhex(&v);
-        let want = &v["value"];
-        let b = parse_bundle(&data).unwrap();
-        assert_eq!((b.major as u64, b.minor as u64, b.header_size as u64), (1, 1, 32));
-        assert_eq!(json!([b.entries.len(), b.flags, b.tick, b.server_time_ns, data.len()]),
-                   json!([want["count"], want["flags"], want["tick"], want["server_time_ns"], want["size"]]), "{name}");
-        let mut states: Vec<(String, Vec<u8>)> = Vec::new();
-        for (i, (e, w)) in b.entries.iter().zip(want["entries"].as_array().unwrap()).enumerate() {
-            assert_eq!(json!([e.cloth, e.entry_offset, e.state_offset - e.entry_offset, e.state_offset, e.state_size]),
-                       json!([w["cloth"], w["entry_offset"], w["entry_header_size"], w["state_offset"], w["state_size"]]), "{name}");
-            check_state(&format!("{name} entry {i}"), b.payload(i), &w["state"]);
-            let input = &v["input"]["states"][i];
-            assert_eq!(input["cloth"], json!(e.cloth));
-            states.push((e.cloth.to_string(), unhex(input)));
+    let mut seen = 0;
+    for (set, minor) in SETS {
+        for v in load_set(set, "bundle.json") {
+            let name = format!("{set}bundle.json {}", v["name"].as_str().unwrap());
+            let data = unhex(&v);
+            let want = &v["value"];
+            let b = parse_bundle(&data).unwrap();
+            assert_eq!((b.major as u64, b.minor as u64, b.header_size as u64), (1, minor, 32), "{name}");
+            assert_eq!(json!([b.entries.len(), b.flags, b.tick, b.server_time_ns, data.len()]),
+                       json!([want["count"], want["flags"], want["tick"], want["server_time_ns"], want["size"]]), "{name}");
+            let mut states: Vec<(String, Vec<u8>)> = Vec::new();
+            for (i, (e, w)) in b.entries.iter().zip(want["entries"].as_array().unwrap()).enumerate() {
+                assert_eq!(json!([e.cloth, e.entry_offset, e.state_offset - e.entry_offset, e.state_offset, e.state_size]),
+                           json!([w["cloth"], w["entry_offset"], w["entry_header_size"], w["state_offset"], w["state_size"]]), "{name}");
+                check_state(&format!("{name} entry {i}"), b.payload(i), &w["state"]);
+                let input = &v["input"]["states"][i];
+                assert_eq!(input["cloth"], json!(e.cloth));
+                states.push((e.cloth.to_string(), unhex(input)));
+            }
+            let refs: Vec<(&str, &[u8])> = states.iter().map(|(c, s)| (c.as_str(), s.as_slice())).collect();
+            let mut again = encode_bundle(b.tick, b.server_time_ns, &refs, 0).unwrap();
+            assert_eq!(again[5], PROTOCOL_MINOR);
+            again[5] = data[5]; // the states inside are carried as given
+            assert_eq!(again, data, "{name}: re-encoded");
+            seen += 1;
         }
-        let refs: Vec<(&str, &[u8])> = states.iter().map(|(c, s)| (c.as_str(), s.as_slice())).collect();
-        assert_eq!(encode_bundle(b.tick, b.server_time_ns, &refs, 0).unwrap(), data, "{name}: re-encoded");
     }
+    assert!(seen >= 4, "only {seen} bundle vectors");
 }
 
 #[test]
@@ -188,6 +270,7 @@ fn invalid_payloads_are_rejected_with_their_code() {
         let got: Result<()> = match v["message"].as_str().unwrap() {
             "bundle" => parse_bundle(&data).and_then(|b| (0..b.entries.len()).try_for_each(|i| parse_state(b.payload(i)).map(|_| ()))),
             "submit" => Submit::decode(&data).and_then(|s| s.validate(&lim)),
+            "control" => Control::decode(&data).and_then(|(c, _)| c.validate(&lim, None)),
             "remove" => unpack_message(&data).and_then(|m| {
                 let r = Reader::new(&m, "");
                 validate::validate_owner(r.str("cloth", true)?.unwrap(), r.str("token", true)?.unwrap())

@@ -8,7 +8,7 @@ crate="$(cd "$here/../.." && pwd)"
 profile=debug
 flags=()
 if [[ "${1:-}" == "--release" ]]; then profile=release; flags=(--release); fi
-cargo build -j 2 --lib "${flags[@]}" --manifest-path "$crate/Cargo.toml"
+cargo build -j 2 --locked --lib "${flags[@]}" --manifest-path "$crate/Cargo.toml"
 target="${CARGO_TARGET_DIR:-$crate/target}"
 mkdir -p "$here/build"
 ${CC:-cc} -std=c11 -Wall -Wextra -O2 -I "$crate/include" "$here/cape.c" \

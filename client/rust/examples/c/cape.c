@@ -46,6 +46,19 @@ int main(int argc, char **argv) {
     drape_cloth_id(cape, id, sizeof id);
     printf("cape %s: %u vertices, %u triangles\n", id, n, drape_cloth_triangle_count(cape));
 
+    /* Protocol 1.2: switch wind on without touching the other features (a 1.1 server is refused
+     * client-side with INVALID_VALUE: it would ignore the change). */
+    uint32_t features = 0;
+    int32_t frc = drape_cloth_change_features(cape, DRAPE_FEATURE_WIND, 0, true, NULL, &features);
+    if (frc == DRAPE_OK && features == DRAPE_FEATURES_UNKNOWN)
+        printf("wind on; the server did not report the resulting features\n");
+    else if (frc == DRAPE_OK)
+        printf("wind on; features now 0x%x\n", features);
+    else if (frc == DRAPE_E_INVALID_VALUE)
+        printf("no feature change: the server is older than protocol 1.2\n");
+    else
+        check(frc, "drape_cloth_change_features");
+
     float *positions = malloc(sizeof(float) * 3 * n); /* one buffer, reused every frame */
     int received = 0;
     for (int frame = 0; frame < frames; frame++) {

@@ -4,10 +4,10 @@ use super::recv::Latest;
 use super::{Event, Inner};
 use crate::wire::error::{Error, ErrorCode, Result};
 use crate::wire::msg::{ControlBatch, Pins, Submit};
-use crate::wire::replies::{tick_of, BatchReply};
+use crate::wire::replies::{tick_of, Applied, BatchReply};
 use crate::wire::{decode_state_into, Control, Encoding};
 use std::collections::BTreeMap;
-use std::sync::{Arc, Condvar, Mutex};
+use std::sync::{Arc, Condvar, Mutex, Weak};
 use std::time::Duration;
 use zenoh::pubsub::Subscriber;
 
@@ -34,6 +34,8 @@ pub(crate) struct Slot {
     pub(crate) received: u64,
     pub(crate) dropped: u64,
     pub(crate) invalid: u64,
+    /// 1.2: the feature set the newest control reply reported, with that reply's tick.
+    pub(crate) features: Option<(u64, Vec<String>)>,
 }
 
 pub(crate) struct ClothInner {
@@ -64,8 +66,20 @@ impl ClothInner {
             received: 0,
             dropped: 0,
             invalid: 0,
+            features: None,
         };
         Arc::new(ClothInner { handle, submit, rest, triangles, n_vertices, slot: Mutex::new(slot), cv: Condvar::new() })
+    }
+
+    /// Keep the feature set a control reply reported (replies may arrive out of order: the
+    /// one applied at the latest tick wins).
+    pub(crate) fn note_applied(&self, a: &Applied) {
+        if let Some(f) = &a.features {
+            let mut s = self.slot.lock().unwrap();
+            if s.features.as_ref().is_none_or(|(t, _)| *t <= a.tick) {
+                s.features = Some((a.tick, f.clone()));
+            }
+        }
     }
 
     /// (server, cloth id, token, vertex count) of a live cloth, else why it is not live.
@@ -201,9 +215,33 @@ impl Cloth {
         self.control(ctl, wait)
     }
 
-    /// Any control (its `cloth` and `token` are filled in here).
+    /// Any control (its `cloth` and `token` are filled in here). `wait`: the tick it applies
+    /// from; otherwise return at once (failures become events).
     pub fn control(&self, ctl: Control, wait: bool) -> Result<Option<u64>> {
+        Ok(self.client.control(&self.inner, ctl, wait)?.map(|a| a.tick))
+    }
+
+    /// Any control, waited for: the tick it applies from and, from a 1.2 server, the cloth's
+    /// feature set after it ([`Applied::features`]).
+    pub fn apply(&self, ctl: Control) -> Result<Applied> {
+        Ok(self.client.control(&self.inner, ctl, true)?.expect("a waited control has a reply"))
+    }
+
+    /// 1.2: switch features on (`add`) and off (`remove`), keeping the others (PROTOCOL.md
+    /// section 5.2; names from [`crate::wire::FEATURE_NAMES`], none in both lists). Needs a 1.2
+    /// server (`invalid_value` otherwise, nothing sent). `wait`: the reply, with the resulting
+    /// set; otherwise return at once (the set is kept for [`Cloth::features`] when it comes).
+    pub fn change_features(&self, add: &[&str], remove: &[&str], wait: bool) -> Result<Option<Applied>> {
+        let list = |v: &[&str]| (!v.is_empty()).then(|| v.iter().map(|x| x.to_string()).collect());
+        let ctl = Control { features_add: list(add), features_remove: list(remove), ..Default::default() };
         self.client.control(&self.inner, ctl, wait)
+    }
+
+    /// 1.2: the cloth's feature set as the server last reported it in a control reply (waited
+    /// for or not, batch replies included), in the protocol's order; `None` before any such
+    /// reply, from a server older than 1.2, and after a failover resubmission until the next.
+    pub fn features(&self) -> Option<Vec<String>> {
+        self.inner.slot.lock().unwrap().features.as_ref().map(|(_, f)| f.clone())
     }
 
     /// Back to the rest pose with zero velocity.
@@ -258,6 +296,11 @@ impl Batch {
         let pins = Pins { indices: indices.to_vec(), targets: targets.to_vec() };
         self.add(cloth, Control { pins: Some(pins), ..Default::default() })
     }
+    /// 1.2: an item switching features on and off (as [`Cloth::change_features`]).
+    pub fn change_features(&mut self, cloth: &Cloth, add: &[&str], remove: &[&str]) -> &mut Self {
+        let list = |v: &[&str]| (!v.is_empty()).then(|| v.iter().map(|x| x.to_string()).collect());
+        self.add(cloth, Control { features_add: list(add), features_remove: list(remove), ..Default::default() })
+    }
     pub fn len(&self) -> usize {
         self.items.len()
     }
@@ -266,16 +309,16 @@ impl Batch {
     }
 }
 
-pub(crate) fn send_batch(inner: &Arc<Inner>, batch: Batch, wait: bool) -> Result<Option<Vec<Result<u64>>>> {
-    let mut results: Vec<Result<u64>> = vec![Ok(0); batch.items.len()];
-    let mut by_server: BTreeMap<String, Vec<(usize, u64, Control)>> = BTreeMap::new();
+pub(crate) fn send_batch(inner: &Arc<Inner>, batch: Batch, wait: bool) -> Result<Option<Vec<Result<Applied>>>> {
+    let mut results: Vec<Result<Applied>> = vec![Ok(Applied::default()); batch.items.len()];
+    let mut by_server: BTreeMap<String, Vec<(usize, Arc<ClothInner>, Control)>> = BTreeMap::new();
     for (i, (c, mut ctl)) in batch.items.into_iter().enumerate() {
         match c.owner() {
             Ok((server, id, token, n)) => {
                 ctl.cloth = id;
                 ctl.token = token;
-                match ctl.validate(&inner.limits(&server), Some(n)) {
-                    Ok(()) => by_server.entry(server).or_default().push((i, c.handle, ctl)),
+                match ctl.validate(&inner.limits(&server), Some(n)).and_then(|_| inner.check_version(&server, &ctl)) {
+                    Ok(()) => by_server.entry(server).or_default().push((i, c, ctl)),
                     Err(e) => results[i] = Err(e),
                 }
             }
@@ -290,12 +333,11 @@ pub(crate) fn send_batch(inner: &Arc<Inner>, batch: Batch, wait: bool) -> Result
     for (server, items) in by_server {
         let (_, lim) = inner.server_info(&server)?;
         if lim.max_batch_items == 0 {
-            for (i, handle, ctl) in items {
-                let payload = ctl.encode(inner.next_rid());
-                if wait {
-                    results[i] = inner.request(&server, "control", payload).and_then(|m| tick_of(&m));
-                } else {
-                    inner.send(&server, "control", payload, Some(handle), None)?;
+            for (i, c, ctl) in items {
+                // a 1.0 server: one control per item (validated again there, on the same data)
+                match inner.control(&c, ctl, wait) {
+                    Err(e) if !wait => return Err(e),
+                    r => results[i] = r.map(Option::unwrap_or_default),
                 }
             }
             continue;
@@ -305,19 +347,27 @@ pub(crate) fn send_batch(inner: &Arc<Inner>, batch: Batch, wait: bool) -> Result
             if wait {
                 match inner.request(&server, "control_batch", req.encode()).and_then(|m| BatchReply::from_map(&m)) {
                     Ok(rep) => {
-                        for ((i, _, _), r) in chunk.iter().zip(rep.results) {
+                        for ((i, c, _), r) in chunk.iter().zip(rep.results) {
+                            if let Ok(a) = &r {
+                                c.note_applied(a);
+                            }
                             results[*i] = r.map_err(|e| e.into_error());
                         }
                     }
                     Err(e) => chunk.iter().for_each(|(i, _, _)| results[*i] = Err(e.clone())),
                 }
             } else {
-                let handles: Vec<u64> = chunk.iter().map(|x| x.1).collect();
+                let cloths: Vec<(u64, Weak<ClothInner>)> = chunk.iter().map(|x| (x.1.handle, Arc::downgrade(&x.1))).collect();
                 let on_ok = move |inner: &Inner, m: crate::wire::reader::Map| match BatchReply::from_map(&m) {
                     Ok(rep) => {
-                        for (h, r) in handles.iter().zip(rep.results) {
-                            if let Err(e) = r {
-                                inner.push_event(Event::RequestFailed { handle: Some(*h), error: e.into_error() });
+                        for ((h, c), r) in cloths.iter().zip(rep.results) {
+                            match r {
+                                Ok(a) => {
+                                    if let Some(c) = c.upgrade() {
+                                        c.note_applied(&a);
+                                    }
+                                }
+                                Err(e) => inner.push_event(Event::RequestFailed { handle: Some(*h), error: e.into_error() }),
                             }
                         }
                     }

@@ -10,7 +10,7 @@ pub use cloth::{Batch, Cloth, StateInfo};
 use crate::wire::error::{Error, ErrorCode, Result};
 use crate::wire::msg::{encode_info, Control, Grid, Mesh, Shape, Submit};
 use crate::wire::reader::{Map, Reader};
-use crate::wire::replies::{decode_reply, SubmitReply};
+use crate::wire::replies::{decode_reply, Applied, SubmitReply};
 use crate::wire::{grid_geometry, parse_obj, valid_id, valid_namespace, Keys, Limits, DEFAULT_ENDPOINT, DEFAULT_NAMESPACE};
 use std::collections::{BTreeSet, HashMap, VecDeque};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -260,7 +260,14 @@ impl Client {
     /// per item to a 1.0 server). `wait`: return each item's first tick or its error;
     /// otherwise return at once and report failures as [`Event::RequestFailed`].
     pub fn send_batch(&self, batch: Batch, wait: bool) -> Result<Option<Vec<Result<u64>>>> {
-        cloth::send_batch(&self.inner, batch, wait)
+        let out = cloth::send_batch(&self.inner, batch, wait)?;
+        Ok(out.map(|v| v.into_iter().map(|r| r.map(|a| a.tick)).collect()))
+    }
+
+    /// Send a batch control and wait: each item's [`Applied`] (the tick it applies from and,
+    /// from a 1.2 server, the cloth's feature set after it) or its error.
+    pub fn send_batch_applied(&self, batch: Batch) -> Result<Vec<Result<Applied>>> {
+        Ok(cloth::send_batch(&self.inner, batch, true)?.unwrap_or_default())
     }
 
     /// Remove this client's cloths (if `remove`), withdraw its liveliness token and close the
@@ -468,18 +475,45 @@ impl Inner {
         Ok(())
     }
 
-    /// A control of one cloth (waited for: its tick).
-    pub(crate) fn control(self: &Arc<Self>, c: &Arc<cloth::ClothInner>, mut ctl: Control, wait: bool) -> Result<Option<u64>> {
+    /// Refuse a control that uses 1.2 fields (`features_add` / `features_remove`) toward a
+    /// server older than 1.2, which would ignore them silently (PROTOCOL.md section 5.2).
+    pub(crate) fn check_version(&self, server: &str, ctl: &Control) -> Result<()> {
+        if !ctl.needs_1_2() {
+            return Ok(());
+        }
+        let ((ma, mi), _) = self.server_info(server)?;
+        if (ma, mi) < (1, 2) {
+            return Err(Error::new(
+                ErrorCode::InvalidValue,
+                format!("features_add / features_remove need a protocol 1.2 server; server {server} speaks {ma}.{mi} \
+                         (it would ignore them): send the whole set with `features` instead"),
+            ));
+        }
+        Ok(())
+    }
+
+    /// A control of one cloth (waited for: the tick it applies from and, 1.2, the cloth's
+    /// features). The features a reply reports are kept on the cloth, waited for or not.
+    pub(crate) fn control(self: &Arc<Self>, c: &Arc<cloth::ClothInner>, mut ctl: Control, wait: bool) -> Result<Option<Applied>> {
         let (server, id, token, n) = c.owner()?;
         ctl.cloth = id;
         ctl.token = token;
         ctl.validate(&self.limits(&server), Some(n))?;
+        self.check_version(&server, &ctl)?;
         let payload = ctl.encode(self.next_rid());
         if wait {
             let m = self.request(&server, "control", payload)?;
-            return Ok(Some(crate::wire::replies::tick_of(&m)?));
+            let a = Applied::from_map(&m)?;
+            c.note_applied(&a);
+            return Ok(Some(a));
         }
-        self.send(&server, "control", payload, Some(c.handle), None)?;
+        let weak = Arc::downgrade(c);
+        let on_ok = move |_: &Inner, m: Map| {
+            if let (Some(c), Ok(a)) = (weak.upgrade(), Applied::from_map(&m)) {
+                c.note_applied(&a);
+            }
+        };
+        self.send(&server, "control", payload, Some(c.handle), Some(Box::new(on_ok)))?;
         Ok(None)
     }
 }

@@ -121,6 +121,7 @@ pub(crate) fn attach(inner: &Arc<Inner>, c: &Arc<ClothInner>, server: &str, rep:
         s.status = Status::Live;
         s.latest = None;
         s.fresh = false;
+        s.features = None; // a new placement: nothing reported by its server yet
         s.sub = sub;
         old
     };

@@ -2,7 +2,7 @@
 //! batch controls. See `mod.rs` for the conventions and thread safety.
 use super::{bad, fail, guard, new_cloth, opt_str, DrapeClient, DRAPE_NO_DATA, DRAPE_OK};
 use crate::client::{Batch, Cloth, StateInfo};
-use crate::wire::{Control, Encoding, Grid, Orientation, Shape, StateOptions, Submit};
+use crate::wire::{Control, Encoding, Grid, Orientation, Shape, StateOptions, Submit, FEATURE_NAMES};
 use std::ffi::c_char;
 use std::time::Duration;
 
@@ -304,6 +304,70 @@ pub unsafe extern "C" fn drape_cloth_set_gravity(cloth: *const DrapeCloth, gravi
     })
 }
 
+/// Feature names of a mask of DRAPE_FEATURE_* bits (None: unknown bits, or empty mask).
+fn names_of(mask: u32) -> Result<Option<Vec<String>>, i32> {
+    if mask >> FEATURE_NAMES.len() != 0 {
+        return Err(bad(&format!("unknown feature bits 0x{mask:x} (DRAPE_FEATURE_* are 0x1..0x10)")));
+    }
+    let names: Vec<String> = FEATURE_NAMES.iter().enumerate().filter(|(i, _)| mask & (1 << i) != 0).map(|(_, n)| n.to_string()).collect();
+    Ok((!names.is_empty()).then_some(names))
+}
+
+/// The DRAPE_FEATURE_* mask of a feature list (names this version does not know are left out).
+fn mask_of(names: &[String]) -> u32 {
+    names.iter().filter_map(|n| FEATURE_NAMES.iter().position(|f| f == n)).fold(0, |m, i| m | 1 << i)
+}
+
+/// Protocol 1.2: switch features on (`add`, a mask of DRAPE_FEATURE_* bits) and off (`remove`),
+/// keeping the others; a bit in both is INVALID_VALUE. Needs a 1.2 server (INVALID_VALUE,
+/// nothing sent, otherwise). `wait`: block for the reply; `*tick` (may be NULL) gets the first
+/// tick showing the change and `*features` (may be NULL) the cloth's resulting feature mask
+/// (DRAPE_FEATURES_UNKNOWN if the reply did not report it).
+/// Not waiting: return at once; `drape_cloth_features` has the set once the reply arrived.
+#[no_mangle]
+pub unsafe extern "C" fn drape_cloth_change_features(cloth: *const DrapeCloth, add: u32, remove: u32, wait: bool,
+                                                     tick: *mut u64, features: *mut u32) -> i32 {
+    guard(|| {
+        let Some(c) = cloth.as_ref() else { return bad("cloth is NULL") };
+        let (add, remove) = match (names_of(add), names_of(remove)) {
+            (Ok(a), Ok(r)) => (a, r),
+            (Err(code), _) | (_, Err(code)) => return code,
+        };
+        let ctl = Control { features_add: add, features_remove: remove, ..Default::default() };
+        let r = if wait { c.cloth.apply(ctl).map(Some) } else { c.cloth.control(ctl, false).map(|_| None) };
+        match r {
+            Ok(Some(a)) => {
+                if !tick.is_null() {
+                    *tick = a.tick;
+                }
+                if !features.is_null() {
+                    *features = a.features.as_deref().map_or(super::DRAPE_FEATURES_UNKNOWN, mask_of);
+                }
+                DRAPE_OK
+            }
+            Ok(None) => DRAPE_OK,
+            Err(e) => fail(e),
+        }
+    })
+}
+
+/// Protocol 1.2: the cloth's feature mask (DRAPE_FEATURE_* bits) as its server last reported it
+/// in a control or batch reply: DRAPE_OK with `*features` set, or DRAPE_NO_DATA when none was
+/// reported yet (no control answered yet, or a server older than 1.2).
+#[no_mangle]
+pub unsafe extern "C" fn drape_cloth_features(cloth: *const DrapeCloth, features: *mut u32) -> i32 {
+    guard(|| {
+        let (Some(c), false) = (cloth.as_ref(), features.is_null()) else { return bad("cloth or features is NULL") };
+        match c.cloth.features() {
+            Some(f) => {
+                *features = mask_of(&f);
+                DRAPE_OK
+            }
+            None => DRAPE_NO_DATA,
+        }
+    })
+}
+
 /// Back to the rest pose with zero velocity.
 #[no_mangle]
 pub unsafe extern "C" fn drape_cloth_reset(cloth: *const DrapeCloth, wait: bool, tick: *mut u64) -> i32 {
@@ -353,6 +417,23 @@ pub unsafe extern "C" fn drape_batch_move_pins(batch: *mut DrapeBatch, cloth: *c
                 DRAPE_OK
             }
             None => bad("indices or targets is NULL"),
+        }
+    })
+}
+
+/// Protocol 1.2: add an item switching features on and off (as `drape_cloth_change_features`;
+/// checked when the batch is sent). The resulting set: `drape_cloth_features` after the reply.
+#[no_mangle]
+pub unsafe extern "C" fn drape_batch_change_features(batch: *mut DrapeBatch, cloth: *const DrapeCloth, add: u32,
+                                                     remove: u32) -> i32 {
+    guard(|| {
+        let (Some(b), Some(c)) = (batch.as_mut(), cloth.as_ref()) else { return bad("batch or cloth is NULL") };
+        match (names_of(add), names_of(remove)) {
+            (Ok(features_add), Ok(features_remove)) => {
+                b.batch.add(&c.cloth, Control { features_add, features_remove, ..Default::default() });
+                DRAPE_OK
+            }
+            (Err(code), _) | (_, Err(code)) => code,
         }
     })
 }

@@ -40,8 +40,21 @@ pub const DRAPE_E_SERVER_LOST: i32 = 14;
 pub const DRAPE_E_CLOSED: i32 = 15;
 /// An error code this version does not know.
 pub const DRAPE_E_UNKNOWN: i32 = 16;
+/// Protocol 1.2 (submit): the server cannot admit the cloth within its tick budget; retry later
+/// or on another server (numbered after the 1.1 codes so that no earlier code changes).
+pub const DRAPE_E_OVERLOADED: i32 = 17;
 /// Not an error: no new state / no event.
 pub const DRAPE_NO_DATA: i32 = 100;
+
+/// Feature bits (protocol 1.2 feature changes, `drape_cloth_features`): one bit per feature,
+/// in the protocol's order.
+pub const DRAPE_FEATURE_XPBD: u32 = 1;
+pub const DRAPE_FEATURE_TETHERS: u32 = 2;
+pub const DRAPE_FEATURE_COLLIDERS: u32 = 4;
+pub const DRAPE_FEATURE_WIND: u32 = 8;
+pub const DRAPE_FEATURE_NORMALS: u32 = 16;
+/// A feature mask the server did not report (a reply without `features`).
+pub const DRAPE_FEATURES_UNKNOWN: u32 = 0xFFFF_FFFF;
 
 /// Event kinds (`DrapeEvent.kind`).
 pub const DRAPE_EVENT_SERVER_FOUND: i32 = 1;
@@ -132,10 +145,10 @@ fn fill(dst: &mut [c_char], s: &str) {
     dst[n] = 0;
 }
 
-/// The library's version and the protocol version it speaks, e.g. "drape-client 0.1.0, protocol 1.1".
+/// The library's version and the protocol version it speaks, e.g. "drape-client 0.2.0, protocol 1.2".
 #[no_mangle]
 pub extern "C" fn drape_version() -> *const c_char {
-    concat!("drape-client ", env!("CARGO_PKG_VERSION"), ", protocol 1.1\0").as_ptr() as *const c_char
+    concat!("drape-client ", env!("CARGO_PKG_VERSION"), ", protocol 1.2\0").as_ptr() as *const c_char
 }
 
 /// The message of this thread's last error, copied into `buf` (NUL-terminated, truncated).
@@ -151,9 +164,25 @@ pub extern "C" fn drape_error_name(code: i32) -> *const c_char {
         DRAPE_OK => "ok\0",
         DRAPE_NO_DATA => "no_data\0",
         _ => match ErrorCode::ALL.iter().find(|c| **c as i32 == code) {
-            Some(c) => ["malformed\0", "unsupported_version\0", "missing_field\0", "invalid_type\0", "invalid_value\0",
-                "index_out_of_range\0", "too_large\0", "limit_exceeded\0", "not_found\0", "forbidden\0", "busy\0",
-                "internal\0", "unavailable\0", "server_lost\0", "closed\0", "unknown\0"][*c as usize - 1],
+            Some(c) => match c {
+                ErrorCode::Malformed => "malformed\0",
+                ErrorCode::UnsupportedVersion => "unsupported_version\0",
+                ErrorCode::MissingField => "missing_field\0",
+                ErrorCode::InvalidType => "invalid_type\0",
+                ErrorCode::InvalidValue => "invalid_value\0",
+                ErrorCode::IndexOutOfRange => "index_out_of_range\0",
+                ErrorCode::TooLarge => "too_large\0",
+                ErrorCode::LimitExceeded => "limit_exceeded\0",
+                ErrorCode::NotFound => "not_found\0",
+                ErrorCode::Forbidden => "forbidden\0",
+                ErrorCode::Busy => "busy\0",
+                ErrorCode::Internal => "internal\0",
+                ErrorCode::Unavailable => "unavailable\0",
+                ErrorCode::ServerLost => "server_lost\0",
+                ErrorCode::Closed => "closed\0",
+                ErrorCode::Unknown => "unknown\0",
+                ErrorCode::Overloaded => "overloaded\0",
+            },
             None => "?\0",
         },
     };

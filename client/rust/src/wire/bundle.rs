@@ -2,16 +2,17 @@
 //! (entries point into the payload, nothing is copied) and encoding.
 use super::error::{malformed, Error, ErrorCode, Result};
 use super::keys::valid_id;
+use super::layout::{bundle as B, entry as E, BUNDLE_ALIGN};
 use super::state::{decode_state_into, StateHeader};
 use super::{PROTOCOL_MAJOR, PROTOCOL_MINOR};
 
 pub const BUNDLE_MAGIC: &[u8; 4] = b"DRPB";
-pub const BUNDLE_HEADER_SIZE: usize = 32;
-const ENTRY_SIZE: usize = 8;
+pub const BUNDLE_HEADER_SIZE: usize = B::SIZE;
+const ENTRY_SIZE: usize = E::SIZE;
 
 /// Round up to a multiple of 8.
 pub fn align8(n: usize) -> usize {
-    (n + 7) & !7
+    (n + BUNDLE_ALIGN - 1) & !(BUNDLE_ALIGN - 1)
 }
 
 /// One entry of a bundle: the cloth id and where its state payload lies in the bundle.
@@ -57,33 +58,33 @@ pub fn parse_bundle(data: &[u8]) -> Result<Bundle<'_>> {
     if size < BUNDLE_HEADER_SIZE {
         return Err(malformed(format!("bundle of {size} bytes is shorter than the 32-byte header")));
     }
-    if &data[0..4] != BUNDLE_MAGIC {
-        return Err(malformed(format!("bundle magic {:?} is not \"DRPB\"", String::from_utf8_lossy(&data[0..4]))));
+    if B::MAGIC.get(data) != BUNDLE_MAGIC {
+        return Err(malformed(format!("bundle magic {:?} is not \"DRPB\"", String::from_utf8_lossy(B::MAGIC.get(data)))));
     }
-    let (major, minor) = (data[4], data[5]);
+    let (major, minor) = (B::MAJOR.u8(data), B::MINOR.u8(data));
     if major != PROTOCOL_MAJOR {
         return Err(Error::new(
             ErrorCode::UnsupportedVersion,
             format!("bundle version {major}.{minor} is not supported; this side speaks {PROTOCOL_MAJOR}.{PROTOCOL_MINOR}"),
         ));
     }
-    let header_size = u16::from_le_bytes([data[6], data[7]]);
+    let header_size = B::HEADER_SIZE.u16(data);
     if (header_size as usize) < BUNDLE_HEADER_SIZE {
         return Err(malformed(format!("bundle header_size {header_size} is below 32")));
     }
-    let count = u32::from_le_bytes(data[8..12].try_into().unwrap()) as usize;
-    let flags = u32::from_le_bytes(data[12..16].try_into().unwrap());
-    let tick = u64::from_le_bytes(data[16..24].try_into().unwrap());
-    let server_time_ns = u64::from_le_bytes(data[24..32].try_into().unwrap());
+    let count = B::COUNT.u32(data) as usize;
+    let flags = B::FLAGS.u32(data);
+    let tick = B::TICK.u64(data);
+    let server_time_ns = B::SERVER_TIME_NS.u64(data);
     let mut entries = Vec::with_capacity(count.min(1024));
     let mut at = header_size as usize;
     for i in 0..count {
         if at + ENTRY_SIZE > size {
             return Err(malformed(format!("bundle entry {i} of {count} starts at byte {at}, past the end ({size})")));
         }
-        let h = u16::from_le_bytes([data[at], data[at + 1]]) as usize;
-        let id_len = data[at + 2] as usize;
-        let st_size = u32::from_le_bytes(data[at + 4..at + 8].try_into().unwrap()) as usize;
+        let h = u16::from_le_bytes(E::HEADER_SIZE.at(data, at).try_into().unwrap()) as usize;
+        let id_len = E::ID_LENGTH.at(data, at)[0] as usize;
+        let st_size = u32::from_le_bytes(E::STATE_SIZE.at(data, at).try_into().unwrap()) as usize;
         if h < ENTRY_SIZE + id_len {
             return Err(malformed(format!("bundle entry {i}: entry header size {h} is below 8 + id length {id_len}")));
         }
@@ -106,22 +107,25 @@ pub fn parse_bundle(data: &[u8]) -> Result<Bundle<'_>> {
 /// Encode a bundle of (cloth id, state payload) pairs in order (each state should carry the
 /// bundle's tick and server time).
 pub fn encode_bundle(tick: u64, server_time_ns: u64, states: &[(&str, &[u8])], flags: u32) -> Result<Vec<u8>> {
-    let mut out = Vec::new();
-    out.extend_from_slice(BUNDLE_MAGIC);
-    out.extend_from_slice(&[PROTOCOL_MAJOR, PROTOCOL_MINOR]);
-    out.extend_from_slice(&(BUNDLE_HEADER_SIZE as u16).to_le_bytes());
-    out.extend_from_slice(&(states.len() as u32).to_le_bytes());
-    out.extend_from_slice(&flags.to_le_bytes());
-    out.extend_from_slice(&tick.to_le_bytes());
-    out.extend_from_slice(&server_time_ns.to_le_bytes());
+    let mut out = vec![0u8; BUNDLE_HEADER_SIZE];
+    B::MAGIC.put(&mut out, 0, BUNDLE_MAGIC);
+    B::MAJOR.put(&mut out, 0, &[PROTOCOL_MAJOR]);
+    B::MINOR.put(&mut out, 0, &[PROTOCOL_MINOR]);
+    B::HEADER_SIZE.put(&mut out, 0, &(BUNDLE_HEADER_SIZE as u16).to_le_bytes());
+    B::COUNT.put(&mut out, 0, &(states.len() as u32).to_le_bytes());
+    B::FLAGS.put(&mut out, 0, &flags.to_le_bytes());
+    B::TICK.put(&mut out, 0, &tick.to_le_bytes());
+    B::SERVER_TIME_NS.put(&mut out, 0, &server_time_ns.to_le_bytes());
     for (cloth, st) in states {
         if !valid_id(cloth) {
             return Err(super::error::invalid(format!("invalid cloth id {cloth:?}")));
         }
         let h = align8(ENTRY_SIZE + cloth.len());
-        out.extend_from_slice(&(h as u16).to_le_bytes());
-        out.extend_from_slice(&[cloth.len() as u8, 0]);
-        out.extend_from_slice(&(st.len() as u32).to_le_bytes());
+        let e = out.len();
+        out.resize(e + ENTRY_SIZE, 0);
+        E::HEADER_SIZE.put(&mut out, e, &(h as u16).to_le_bytes());
+        E::ID_LENGTH.put(&mut out, e, &[cloth.len() as u8]);
+        E::STATE_SIZE.put(&mut out, e, &(st.len() as u32).to_le_bytes());
         out.extend_from_slice(cloth.as_bytes());
         out.resize(out.len() + h - ENTRY_SIZE - cloth.len(), 0);
         out.extend_from_slice(st);

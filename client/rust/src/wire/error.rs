@@ -1,4 +1,5 @@
-//! Error codes of PROTOCOL.md section 8 plus the client-side ones, and the crate's error type.
+//! Error codes of PROTOCOL.md section 8 (1.2: `overloaded`) plus the client-side ones, and the
+//! crate's error type.
 use std::fmt;
 
 /// An error code: the protocol's codes (same names, PROTOCOL.md section 8) and client-side ones.
@@ -26,14 +27,29 @@ pub enum ErrorCode {
     Closed = 15,
     /// A code this version does not know (a later minor version may add codes): an error.
     Unknown = 16,
+    /// 1.2 (submit): the server cannot admit the cloth without breaking its tick budget; retry
+    /// later or on another server. (Numbered after the 1.1 codes so that no code changes.)
+    Overloaded = 17,
 }
 
 impl ErrorCode {
-    pub const ALL: [ErrorCode; 16] = [
+    pub const ALL: [ErrorCode; 17] = [
         Self::Malformed, Self::UnsupportedVersion, Self::MissingField, Self::InvalidType, Self::InvalidValue,
         Self::IndexOutOfRange, Self::TooLarge, Self::LimitExceeded, Self::NotFound, Self::Forbidden, Self::Busy,
-        Self::Internal, Self::Unavailable, Self::ServerLost, Self::Closed, Self::Unknown,
+        Self::Internal, Self::Unavailable, Self::ServerLost, Self::Closed, Self::Unknown, Self::Overloaded,
     ];
+
+    /// Whether the request itself is wrong (PROTOCOL.md section 8: `malformed` to `too_large`;
+    /// retrying it unchanged gets the same answer).
+    pub fn is_bad_request(self) -> bool {
+        (self as i32) <= Self::TooLarge as i32
+    }
+
+    /// Whether the server cannot take the request now (`limit_exceeded`, `busy`, `overloaded`):
+    /// retry later or elsewhere.
+    pub fn is_retryable(self) -> bool {
+        matches!(self, Self::LimitExceeded | Self::Busy | Self::Overloaded)
+    }
 
     /// The wire name (`"malformed"`, ...); client-side codes have names too.
     pub fn as_str(self) -> &'static str {
@@ -54,6 +70,7 @@ impl ErrorCode {
             Self::ServerLost => "server_lost",
             Self::Closed => "closed",
             Self::Unknown => "unknown",
+            Self::Overloaded => "overloaded",
         }
     }
 

@@ -1,4 +1,4 @@
-//! The Drape wire protocol 1.1 (PROTOCOL.md) without any network: key expressions, msgpack
+//! The Drape wire protocol 1.2 (PROTOCOL.md) without any network: key expressions, msgpack
 //! requests and replies, the binary state (`DRPS`) and bundle (`DRPB`) payloads, float16 /
 //! quant16 and the geometry a client needs (grids, OBJ files). Everything here is pure and
 //! allocation-conscious: states decode straight into caller-provided `f32` slices.
@@ -7,6 +7,7 @@ pub mod error;
 pub mod geometry;
 pub mod half;
 pub mod keys;
+pub mod layout;
 pub mod msg;
 mod msg_decode;
 pub mod reader;
@@ -22,13 +23,13 @@ pub use msg::{
     Collider, Control, ControlBatch, Encoding, Grid, Links, Material, Mesh, Orientation, Pins, Shape,
     StateOptions, Submit,
 };
-pub use replies::{BatchItem, BatchReply, ErrorReply, SubmitReply};
+pub use replies::{Applied, BatchItem, BatchReply, ErrorReply, SubmitReply};
 pub use validate::Limits;
 pub use state::{decode_state_into, encode_state, parse_state, state_size, StateHeader, STATE_HEADER_SIZE};
 
-/// The protocol version this crate speaks: `[1, 1]`.
+/// The protocol version this crate speaks: `[1, 2]` (it reads every minor of major 1).
 pub const PROTOCOL_MAJOR: u8 = 1;
-pub const PROTOCOL_MINOR: u8 = 1;
+pub const PROTOCOL_MINOR: u8 = 2;
 /// The default namespace and server endpoint.
 pub const DEFAULT_NAMESPACE: &str = "drape";
 pub const DEFAULT_ENDPOINT: &str = "tcp/127.0.0.1:7447";
@@ -40,5 +41,17 @@ pub const MAX_BATCH_ITEMS: usize = 64;
 pub const MAX_PIN_UPDATES: usize = 4096;
 pub const MAX_COLLIDERS: usize = 32;
 pub const MAX_FEATURES: usize = 16;
+/// The features, in the protocol's canonical order (the order of a reply's `features`).
 pub const FEATURE_NAMES: [&str; 5] = ["xpbd", "tethers", "colliders", "wind", "normals"];
 pub const QUALITY_PRESETS: [&str; 4] = ["fast", "balanced", "accurate", "exact"];
+/// 1.2: the least total `material.mass` (kg); smaller masses make float32 per-vertex masses
+/// subnormal or infinite (PROTOCOL.md section 4).
+pub const MIN_MASS: f64 = 1.0e-9;
+/// 1.2 decoding caps (PROTOCOL.md sections 3 and 13): deeper nesting, more keys in a map, a
+/// longer array or string, or an extension type are `malformed`; more values than
+/// `MAX_VALUES` in one message is `too_large`. The message map is nesting level 1.
+pub const MAX_NESTING: usize = 16;
+pub const MAX_MAP_KEYS: usize = 128;
+pub const MAX_ARRAY_LENGTH: usize = 1024;
+pub const MAX_STRING_BYTES: usize = 1 << 16;
+pub const MAX_VALUES: usize = 1 << 16;

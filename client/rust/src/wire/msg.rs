@@ -168,7 +168,12 @@ pub struct Control {
     pub gravity: Option<[f64; 3]>,
     pub wind: Option<[f64; 3]>,
     pub material: Material,
+    /// Replaces the whole feature set (1.0 meaning; prefer `features_add` / `features_remove`).
     pub features: Option<Vec<String>>,
+    /// 1.2: features switched on, the others kept (send only to a server of version >= 1.2).
+    pub features_add: Option<Vec<String>>,
+    /// 1.2: features switched off, the others kept; a name in both lists is `invalid_value`.
+    pub features_remove: Option<Vec<String>>,
     pub iterations: Option<u32>,
     pub substeps: Option<u32>,
     pub chebyshev_rho: Option<f64>,
@@ -398,6 +403,12 @@ impl Control {
         if let Some(f) = &self.features {
             m.push((s("features"), strings(f)));
         }
+        if let Some(f) = &self.features_add {
+            m.push((s("features_add"), strings(f)));
+        }
+        if let Some(f) = &self.features_remove {
+            m.push((s("features_remove"), strings(f)));
+        }
         common_tail(&mut m, None, None, self.iterations, self.substeps, self.chebyshev_rho);
         if let Some(st) = &self.state {
             m.push((s("state"), state_map(st)));
@@ -432,6 +443,8 @@ impl Control {
             wind: r.vec3("wind", false)?,
             material: read_material(r)?,
             features: read_strings(r, "features")?,
+            features_add: read_strings(r, "features_add")?,
+            features_remove: read_strings(r, "features_remove")?,
             iterations: u32v(r, "iterations", false)?,
             substeps: u32v(r, "substeps", false)?,
             chebyshev_rho: r.f64("chebyshev_rho", false)?,

@@ -3,7 +3,7 @@
 //! envelope rules of PROTOCOL.md section 3, and a typed field reader whose errors carry the
 //! protocol's codes and the field path.
 use super::error::{malformed, Error, ErrorCode, Result};
-use super::{PROTOCOL_MAJOR, PROTOCOL_MINOR};
+use super::{MAX_ARRAY_LENGTH, MAX_MAP_KEYS, MAX_NESTING, MAX_STRING_BYTES, MAX_VALUES, PROTOCOL_MAJOR, PROTOCOL_MINOR};
 pub use rmpv::Value;
 
 pub type Map = Vec<(Value, Value)>;
@@ -36,13 +36,15 @@ pub fn pack(v: &Value) -> Vec<u8> {
     out
 }
 
-/// Unpack one message: a msgpack map with string keys and nothing after it, whose `v` is
-/// `[1, minor]`. Errors: `malformed`, `missing_field` (no `v`), `invalid_type`,
+/// Unpack one message: a msgpack map with string keys and nothing after it, within the 1.2
+/// decoding caps (see [`scan`]), whose `v` is `[1, minor]`. Errors: `malformed`, `too_large`
+/// (more than `MAX_VALUES` values), `missing_field` (no `v`), `invalid_type`,
 /// `unsupported_version` (another major).
 pub fn unpack_message(data: &[u8]) -> Result<Map> {
     if data.is_empty() {
         return Err(malformed("empty message"));
     }
+    scan(data)?;
     let mut rest = data;
     let v = rmpv::decode::read_value(&mut rest).map_err(|e| malformed(format!("not msgpack: {e}")))?;
     if !rest.is_empty() {
@@ -72,6 +74,119 @@ pub fn unpack_message(data: &[u8]) -> Result<Map> {
         _ => return Err(Error::new(ErrorCode::InvalidType, "'v' must be [major, minor]").with_rid(rid)),
     }
     Ok(m)
+}
+
+/// One open container while scanning: items still to read, and for a map whether the next one
+/// is a key.
+struct Frame {
+    left: u64,
+    map: bool,
+    key_next: bool,
+}
+
+/// Check one msgpack value in `data` against the protocol's decoding caps (PROTOCOL.md sections
+/// 3, 8 and 13) before anything is built from it, without recursion and in one pass over the
+/// bytes: maps and arrays nested deeper than `MAX_NESTING` (the outer map is level 1), a map of
+/// more than `MAX_MAP_KEYS` keys, an array of more than `MAX_ARRAY_LENGTH` elements, a string
+/// of more than `MAX_STRING_BYTES` bytes or not UTF-8, a non-string map key, an extension type,
+/// the reserved byte 0xc1, a value running past the end or bytes after the value are
+/// `malformed`; more than `MAX_VALUES` values (map keys count, containers count) is `too_large`.
+/// Hostile lengths never allocate: every length is checked against the bytes left.
+pub fn scan(data: &[u8]) -> Result<()> {
+    let mut pos = 0usize;
+    let mut values = 0usize;
+    let mut stack: Vec<Frame> = Vec::new();
+    let short = |what: &str| malformed(format!("truncated msgpack: {what} runs past the end of the {} bytes", data.len()));
+    loop {
+        let depth = stack.len() + 1;
+        let is_key = stack.last().is_some_and(|f| f.map && f.key_next);
+        let b = *data.get(pos).ok_or_else(|| short("a value"))?;
+        pos += 1;
+        values += 1;
+        if values > MAX_VALUES {
+            return Err(Error::new(ErrorCode::TooLarge, format!("message holds more than {MAX_VALUES} values")));
+        }
+        let take = |pos: &mut usize, n: usize| -> Result<u64> {
+            let end = pos.checked_add(n).filter(|e| *e <= data.len()).ok_or_else(|| short("a length"))?;
+            let v = data[*pos..end].iter().fold(0u64, |acc, x| (acc << 8) | *x as u64);
+            *pos = end;
+            Ok(v)
+        };
+        let is_str = matches!(b, 0xa0..=0xbf | 0xd9..=0xdb);
+        if is_key && !is_str {
+            return Err(malformed(format!("a map key at byte {} is not a string", pos - 1)));
+        }
+        // (container: map?, count) or a scalar already skipped
+        let mut container: Option<(bool, u64)> = None;
+        match b {
+            0x00..=0x7f | 0xe0..=0xff | 0xc0 | 0xc2 | 0xc3 => {}
+            0x80..=0x8f => container = Some((true, (b & 0x0f) as u64)),
+            0x90..=0x9f => container = Some((false, (b & 0x0f) as u64)),
+            0xde => container = Some((true, take(&mut pos, 2)?)),
+            0xdf => container = Some((true, take(&mut pos, 4)?)),
+            0xdc => container = Some((false, take(&mut pos, 2)?)),
+            0xdd => container = Some((false, take(&mut pos, 4)?)),
+            0xa0..=0xbf | 0xd9..=0xdb => {
+                let n = match b {
+                    0xd9 => take(&mut pos, 1)?,
+                    0xda => take(&mut pos, 2)?,
+                    0xdb => take(&mut pos, 4)?,
+                    _ => (b & 0x1f) as u64,
+                } as usize;
+                if n > MAX_STRING_BYTES {
+                    return Err(malformed(format!("a string of {n} bytes exceeds the cap of {MAX_STRING_BYTES}")));
+                }
+                let end = pos.checked_add(n).filter(|e| *e <= data.len()).ok_or_else(|| short("a string"))?;
+                if std::str::from_utf8(&data[pos..end]).is_err() {
+                    return Err(malformed(format!("a string at byte {pos} is not valid UTF-8")));
+                }
+                pos = end;
+            }
+            0xc4..=0xc6 => {
+                let n = take(&mut pos, 1 << (b - 0xc4))? as usize;
+                pos = pos.checked_add(n).filter(|e| *e <= data.len()).ok_or_else(|| short("a bin"))?;
+            }
+            0xca..=0xd3 => {
+                let n = match b {
+                    0xca => 4,
+                    0xcb => 8,
+                    0xcc..=0xcf => 1 << (b - 0xcc),
+                    _ => 1 << (b - 0xd0),
+                };
+                take(&mut pos, n)?;
+            }
+            0xc7..=0xc9 | 0xd4..=0xd8 => return Err(malformed("msgpack extension types are not part of the protocol")),
+            0xc1 => return Err(malformed("byte 0xc1 is not msgpack")),
+        }
+        if let Some(f) = stack.last_mut() {
+            f.left -= 1;
+            f.key_next = !f.key_next;
+        }
+        if let Some((map, n)) = container {
+            if depth > MAX_NESTING {
+                return Err(malformed(format!("maps and arrays nested deeper than {MAX_NESTING} levels")));
+            }
+            if map && n > MAX_MAP_KEYS as u64 {
+                return Err(malformed(format!("a map of {n} keys exceeds the cap of {MAX_MAP_KEYS}")));
+            }
+            if !map && n > MAX_ARRAY_LENGTH as u64 {
+                return Err(malformed(format!("an array of {n} elements exceeds the cap of {MAX_ARRAY_LENGTH}")));
+            }
+            if n > 0 {
+                stack.push(Frame { left: if map { 2 * n } else { n }, map, key_next: true });
+            }
+        }
+        while stack.last().is_some_and(|f| f.left == 0) {
+            stack.pop();
+        }
+        if stack.is_empty() {
+            break;
+        }
+    }
+    if pos != data.len() {
+        return Err(malformed(format!("{} trailing bytes after the message", data.len() - pos)));
+    }
+    Ok(())
 }
 
 fn check_keys(m: &Map) -> Result<()> {

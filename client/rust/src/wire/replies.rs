@@ -1,5 +1,6 @@
-//! Replies (PROTOCOL.md sections 4-8): success maps of submit, control, batch control and
-//! remove, and error replies, decoded into types (and encoded, for the test vectors).
+//! Replies (PROTOCOL.md sections 4-8): success maps of submit, control (1.2: with the cloth's
+//! resulting `features`), batch control and remove, and error replies, decoded into types (and
+//! encoded, for the test vectors).
 use super::error::{malformed, Error, ErrorCode, Result};
 use super::keys::{valid_id, valid_token};
 use super::reader::{header, pack, s, type_name, unpack_message, Map, Reader, Value};
@@ -105,15 +106,63 @@ pub fn tick_of(m: &Map) -> Result<u64> {
     Ok(Reader::new(m, "").u64("tick", true)?.unwrap())
 }
 
-/// `{v, rid, ok: true, tick}`: the reply of control and remove.
+/// `{v, rid, ok: true, tick}`: the reply of remove (and of control from a 1.0 / 1.1 server).
 pub fn encode_tick_reply(tick: u64, rid: u64) -> Vec<u8> {
     let mut m = ok_header(rid);
     m.push((s("tick"), Value::from(tick)));
     pack(&Value::Map(m))
 }
 
-/// One item's outcome in a batch reply: the tick it applies from, or its error.
-pub type BatchItem = std::result::Result<u64, ErrorReply>;
+/// An applied control (a control reply, or an applied item of a batch reply): the first tick
+/// whose state reflects it and (1.2) the cloth's feature set after it, in the protocol's
+/// order (`None` from a 1.0 or 1.1 server, which does not report it).
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct Applied {
+    pub tick: u64,
+    pub features: Option<Vec<String>>,
+}
+
+impl Applied {
+    /// Read `tick` and the optional `features` of a control reply or a batch result map.
+    pub fn from_map(m: &Map) -> Result<Applied> {
+        Self::from_reader(&Reader::new(m, ""))
+    }
+    fn from_reader(r: &Reader<'_>) -> Result<Applied> {
+        let features = match r.array("features", false)? {
+            None => None,
+            Some(a) => Some(
+                a.iter()
+                    .enumerate()
+                    .map(|(i, v)| match v.as_str() {
+                        // kept as sent, names a later minor version may add included
+                        Some(f) => Ok(f.to_string()),
+                        None => Err(malformed(format!("'{}[{i}]' must be a string, got {}", r.name("features"), type_name(v)))),
+                    })
+                    .collect::<Result<Vec<_>>>()?,
+            ),
+        };
+        Ok(Applied { tick: r.u64("tick", true)?.unwrap(), features })
+    }
+    /// Whether the reported set holds `feature` (`None`: not reported, a server before 1.2).
+    pub fn has(&self, feature: &str) -> Option<bool> {
+        self.features.as_ref().map(|f| f.iter().any(|x| x == feature))
+    }
+    fn push(&self, m: &mut Map) {
+        m.push((s("tick"), Value::from(self.tick)));
+        if let Some(f) = &self.features {
+            m.push((s("features"), Value::Array(f.iter().map(|x| s(x)).collect())));
+        }
+    }
+    /// `{v, rid, ok: true, tick[, features]}`: a control reply.
+    pub fn encode_reply(&self, rid: u64) -> Vec<u8> {
+        let mut m = ok_header(rid);
+        self.push(&mut m);
+        pack(&Value::Map(m))
+    }
+}
+
+/// One item's outcome in a batch reply: applied (its tick and, 1.2, features), or its error.
+pub type BatchItem = std::result::Result<Applied, ErrorReply>;
 
 #[derive(Debug, Clone, PartialEq)]
 pub struct BatchReply {
@@ -132,7 +181,7 @@ impl BatchReply {
             let Value::Map(xm) = x else { return Err(malformed(format!("results[{i}] is not a map"))) };
             let xr = Reader::new(xm, &format!("results[{i}]"));
             if xr.bool("ok", true)?.unwrap() {
-                results.push(Ok(xr.u64("tick", true)?.unwrap()));
+                results.push(Ok(Applied::from_reader(&xr)?));
             } else {
                 let e = xr.sub("error", true)?.unwrap();
                 results.push(Err(ErrorReply {
@@ -150,7 +199,11 @@ impl BatchReply {
         m.push((s("failed"), Value::from(self.results.iter().filter(|x| x.is_err()).count() as u64)));
         let items = self.results.iter().map(|x| {
             Value::Map(match x {
-                Ok(t) => vec![(s("ok"), Value::Boolean(true)), (s("tick"), Value::from(*t))],
+                Ok(a) => {
+                    let mut im = vec![(s("ok"), Value::Boolean(true))];
+                    a.push(&mut im);
+                    im
+                }
                 Err(e) => vec![
                     (s("ok"), Value::Boolean(false)),
                     (s("error"), Value::Map(vec![(s("code"), s(&e.code)), (s("message"), s(&e.message))])),

@@ -2,11 +2,12 @@
 //! rules, decoding into caller-provided `f32` buffers (no allocation), and encoding.
 use super::error::{invalid, malformed, Error, ErrorCode, Result};
 use super::half::{f16_to_f32, f32_to_f16, quant_scale, quantize, snorm, FLOAT16_MAX, QUANT_MAX, SNORM_MAX};
+use super::layout::state as L;
 use super::msg::Encoding;
 use super::{FLAG_NORMALS, PROTOCOL_MAJOR, PROTOCOL_MINOR};
 
 pub const STATE_MAGIC: &[u8; 4] = b"DRPS";
-pub const STATE_HEADER_SIZE: usize = 64;
+pub const STATE_HEADER_SIZE: usize = L::SIZE;
 
 /// Every header field of a state payload.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -48,19 +49,6 @@ pub fn state_size(vertices: usize, encoding: Encoding, normals: bool) -> usize {
     STATE_HEADER_SIZE + vertices * 3 * encoding.element_size() * if normals { 2 } else { 1 }
 }
 
-fn u16_at(d: &[u8], at: usize) -> u16 {
-    u16::from_le_bytes([d[at], d[at + 1]])
-}
-fn u32_at(d: &[u8], at: usize) -> u32 {
-    u32::from_le_bytes(d[at..at + 4].try_into().unwrap())
-}
-fn u64_at(d: &[u8], at: usize) -> u64 {
-    u64::from_le_bytes(d[at..at + 8].try_into().unwrap())
-}
-fn f32_at(d: &[u8], at: usize) -> f32 {
-    f32::from_le_bytes(d[at..at + 4].try_into().unwrap())
-}
-
 /// Parse and check a state header by the reading rules: bad magic, unknown major, header_size
 /// below 64, unknown encoding or a payload shorter than announced are errors; a longer header,
 /// unknown flags and trailing bytes are accepted.
@@ -68,32 +56,33 @@ pub fn parse_state(data: &[u8]) -> Result<StateHeader> {
     if data.len() < STATE_HEADER_SIZE {
         return Err(malformed(format!("state payload of {} bytes is shorter than the 64-byte header", data.len())));
     }
-    if &data[0..4] != STATE_MAGIC {
-        return Err(malformed(format!("state payload magic {:?} is not \"DRPS\"", String::from_utf8_lossy(&data[0..4]))));
+    if L::MAGIC.get(data) != STATE_MAGIC {
+        return Err(malformed(format!("state payload magic {:?} is not \"DRPS\"", String::from_utf8_lossy(L::MAGIC.get(data)))));
     }
-    let (major, minor) = (data[4], data[5]);
+    let (major, minor) = (L::MAJOR.u8(data), L::MINOR.u8(data));
     if major != PROTOCOL_MAJOR {
         return Err(Error::new(
             ErrorCode::UnsupportedVersion,
             format!("state version {major}.{minor} is not supported; this side speaks {PROTOCOL_MAJOR}.{PROTOCOL_MINOR}"),
         ));
     }
-    let header_size = u16_at(data, 6);
+    let header_size = L::HEADER_SIZE.u16(data);
     if (header_size as usize) < STATE_HEADER_SIZE {
         return Err(malformed(format!("state header_size {header_size} is below 64")));
     }
-    let encoding = Encoding::from_id(data[8]).ok_or_else(|| invalid(format!("unknown state encoding {}", data[8])))?;
+    let enc = L::ENCODING.u8(data);
+    let encoding = Encoding::from_id(enc).ok_or_else(|| invalid(format!("unknown state encoding {enc}")))?;
     let h = StateHeader {
         major,
         minor,
         header_size,
         encoding,
-        flags: u16_at(data, 10),
-        vertex_count: u32_at(data, 12),
-        tick: u64_at(data, 16),
-        server_time_ns: u64_at(data, 24),
-        bounds_min: [f32_at(data, 32), f32_at(data, 36), f32_at(data, 40)],
-        bounds_max: [f32_at(data, 44), f32_at(data, 48), f32_at(data, 52)],
+        flags: L::FLAGS.u16(data),
+        vertex_count: L::VERTEX_COUNT.u32(data),
+        tick: L::TICK.u64(data),
+        server_time_ns: L::SERVER_TIME_NS.u64(data),
+        bounds_min: L::BOUNDS_MIN.f32x3(data),
+        bounds_max: L::BOUNDS_MAX.f32x3(data),
     };
     if data.len() < h.needed_size() {
         return Err(malformed(format!(
@@ -198,18 +187,18 @@ pub fn encode_state(
         }
     }
     let mut out = Vec::with_capacity(state_size(n, encoding, normals.is_some()));
-    out.extend_from_slice(STATE_MAGIC);
-    out.extend_from_slice(&[PROTOCOL_MAJOR, PROTOCOL_MINOR]);
-    out.extend_from_slice(&(STATE_HEADER_SIZE as u16).to_le_bytes());
-    out.extend_from_slice(&[encoding as u8, 0]);
-    out.extend_from_slice(&flags.to_le_bytes());
-    out.extend_from_slice(&(n as u32).to_le_bytes());
-    out.extend_from_slice(&tick.to_le_bytes());
-    out.extend_from_slice(&server_time_ns.to_le_bytes());
-    for v in lo.iter().chain(hi.iter()) {
-        out.extend_from_slice(&v.to_le_bytes());
-    }
-    out.extend_from_slice(&[0u8; 8]);
+    out.resize(STATE_HEADER_SIZE, 0); // reserved fields stay 0
+    L::MAGIC.put(&mut out, 0, STATE_MAGIC);
+    L::MAJOR.put(&mut out, 0, &[PROTOCOL_MAJOR]);
+    L::MINOR.put(&mut out, 0, &[PROTOCOL_MINOR]);
+    L::HEADER_SIZE.put(&mut out, 0, &(STATE_HEADER_SIZE as u16).to_le_bytes());
+    L::ENCODING.put(&mut out, 0, &[encoding as u8]);
+    L::FLAGS.put(&mut out, 0, &flags.to_le_bytes());
+    L::VERTEX_COUNT.put(&mut out, 0, &(n as u32).to_le_bytes());
+    L::TICK.put(&mut out, 0, &tick.to_le_bytes());
+    L::SERVER_TIME_NS.put(&mut out, 0, &server_time_ns.to_le_bytes());
+    L::BOUNDS_MIN.put(&mut out, 0, &lo.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<_>>());
+    L::BOUNDS_MAX.put(&mut out, 0, &hi.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<_>>());
     match encoding {
         Encoding::Float32 => {
             for v in positions.iter().chain(normals.unwrap_or(&[])) {

@@ -5,7 +5,7 @@ use super::error::{invalid, Error, ErrorCode, Result};
 use super::keys::{valid_id, valid_token};
 use super::msg::{Collider, Control, ControlBatch, Material, Shape, Submit};
 use super::reader::{unpack_message, Reader, Value};
-use super::{FEATURE_NAMES, MAX_BATCH_ITEMS, MAX_COLLIDERS, MAX_FEATURES, MAX_PIN_UPDATES, QUALITY_PRESETS};
+use super::{FEATURE_NAMES, MAX_BATCH_ITEMS, MAX_COLLIDERS, MAX_FEATURES, MAX_PIN_UPDATES, MIN_MASS, QUALITY_PRESETS};
 
 /// Per-server limits a client checks against (PROTOCOL.md section 13 defaults, or `info`'s).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -53,8 +53,8 @@ fn vec3(name: &str, v: Option<[f64; 3]>, bound: f64) -> Result<()> {
 
 fn material(m: &Material) -> Result<()> {
     if let Some(x) = m.mass {
-        if !(x > 0.0) || x > UPPER {
-            return Err(invalid(format!("'material.mass' = {x} must be > 0")));
+        if !(MIN_MASS..=UPPER).contains(&x) {
+            return Err(invalid(format!("'material.mass' = {x} must be within [{MIN_MASS}, {UPPER}] kg")));
         }
     }
     for (name, v, hi) in [("stiffness", m.stiffness, 1.0), ("compliance", m.compliance, UPPER)] {
@@ -102,15 +102,22 @@ fn colliders(c: &Option<Vec<Collider>>) -> Result<()> {
     Ok(())
 }
 
-fn options(features: Option<&[String]>, quality: Option<&str>, iters: Option<u32>, substeps: Option<u32>,
-           rho: Option<f64>, lim: &Limits) -> Result<()> {
+/// A feature list (`features`, and 1.2's `features_add` / `features_remove`): at most
+/// `MAX_FEATURES` known names.
+fn feature_list(key: &str, features: Option<&[String]>) -> Result<()> {
     let features = features.unwrap_or_default();
     if features.len() > MAX_FEATURES {
-        return Err(err(ErrorCode::TooLarge, format!("{} features, at most {MAX_FEATURES}", features.len())));
+        return Err(err(ErrorCode::TooLarge, format!("'{key}' has {} entries, at most {MAX_FEATURES}", features.len())));
     }
     if let Some(f) = features.iter().find(|f| !FEATURE_NAMES.contains(&f.as_str())) {
-        return Err(invalid(format!("unknown feature {f:?}; known: {FEATURE_NAMES:?}")));
+        return Err(invalid(format!("unknown feature {f:?} in '{key}'; known: {FEATURE_NAMES:?}")));
     }
+    Ok(())
+}
+
+fn options(features: Option<&[String]>, quality: Option<&str>, iters: Option<u32>, substeps: Option<u32>,
+           rho: Option<f64>, lim: &Limits) -> Result<()> {
+    feature_list("features", features)?;
     if let Some(q) = quality.filter(|q| !QUALITY_PRESETS.contains(q)) {
         return Err(invalid(format!("unknown quality {q:?}; known: {QUALITY_PRESETS:?}")));
     }
@@ -222,7 +229,20 @@ impl Control {
         vec3("wind", self.wind, ACCEL)?;
         material(&self.material)?;
         colliders(&self.colliders)?;
-        options(self.features.as_deref(), self.quality.as_deref(), self.iterations, self.substeps, self.chebyshev_rho, lim)
+        options(self.features.as_deref(), self.quality.as_deref(), self.iterations, self.substeps, self.chebyshev_rho, lim)?;
+        feature_list("features_add", self.features_add.as_deref())?;
+        feature_list("features_remove", self.features_remove.as_deref())?;
+        let add = self.features_add.as_deref().unwrap_or_default();
+        if let Some(f) = self.features_remove.as_deref().unwrap_or_default().iter().find(|f| add.contains(f)) {
+            return Err(invalid(format!("feature {f:?} is in both 'features_add' and 'features_remove'")));
+        }
+        Ok(())
+    }
+
+    /// Whether the control uses a field a 1.1 server would silently ignore (1.2's
+    /// `features_add` / `features_remove`).
+    pub fn needs_1_2(&self) -> bool {
+        self.features_add.is_some() || self.features_remove.is_some()
     }
 }
 

@@ -37,6 +37,14 @@ def run(args: argparse.Namespace) -> int:
     return serve(config)
 
 
+def start_ops(server, config: ServerConfig):
+    """The operator endpoints (/metrics, /healthz, /readyz) and systemd notifications of a
+    started server (drape.server.service.ops); stop them before the server."""
+    from . import ops
+
+    return ops.start(server, config)
+
+
 def serve(config: ServerConfig) -> int:
     """Run a server in this process until SIGINT/SIGTERM (main thread only)."""
     from .server import Server  # Zenoh and OpenCL only when actually serving
@@ -49,8 +57,10 @@ def serve(config: ServerConfig) -> int:
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     server = Server(config)
+    operator = None
     try:
         server.start()
+        operator = start_ops(server, config)
         while not stop.wait(0.25):
             if server.failure is not None:
                 log.error("tick loop failed: %s", server.failure)
@@ -60,6 +70,8 @@ def serve(config: ServerConfig) -> int:
         log.debug("details", exc_info=True)
         server.failure = server.failure or e
     finally:
+        if operator is not None:
+            operator.stop()
         server.stop()
         for s, h in previous.items():
             signal.signal(s, h)

@@ -271,6 +271,60 @@ def test_unknown_user_or_wrong_password_cannot_connect(router):
         router("mallory", "pw-alice")
 
 
+def test_routerless_the_servers_own_peer_session_enforces_the_acl(tmp_path):
+    """No router: the ACL and the user dictionary in the server's own (peer) session; clients in
+    client mode connect straight to it. Zenoh applies the ACL on each of that session's transports."""
+    keys = Keys("drape")
+    users_file = tmp_path / "users.toml"
+    users_file.write_text(USERS)
+    users = acl.load_users(users_file)
+    (tmp_path / "dict.txt").write_text(acl.dictionary(users))
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    c = zenoh.Config()
+    c.insert_json5("mode", '"peer"')
+    c.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    c.insert_json5("scouting/multicast/enabled", "false")
+    c.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(tmp_path / "dict.txt")))
+    c.insert_json5("access_control", json.dumps(acl.access_control(users)))
+    server = zenoh.open(c)
+    alice = _session(endpoint, "alice", "pw-alice", None)
+    bob = _session(endpoint, "bob", "pw-bob", None)
+    try:
+        tokens = Inbox()
+        server.liveliness().declare_subscriber(keys.all_clients_alive, tokens, history=True)
+        server.declare_queryable(keys.control("eu-1"), lambda q: q.reply(q.key_expr, b"server"))
+        impostor: list[bytes] = []
+        bob.declare_queryable(keys.control("eu-1"), lambda q: impostor.append(q.payload.to_bytes() if q.payload
+                                                                               is not None else b""))
+        bob.liveliness().declare_token(keys.alive_client("alice"))
+        bob.liveliness().declare_token(keys.alive_client("bob"))
+        assert tokens.wait_for(lambda i: keys.alive_client("bob") in i.keys)
+        assert keys.alive_client("alice") not in tokens.keys
+
+        b_inbox = Inbox()
+        bob.declare_subscriber(keys.bundle("alice"), b_inbox)
+        bob.declare_subscriber(keys.bundle("bob"), b_inbox)
+        pub_a, pub_b = server.declare_publisher(keys.bundle("alice")), server.declare_publisher(keys.bundle("bob"))
+
+        def published_until_bob_has_his() -> bool:
+            for _ in range(int(WAIT / 0.05)):
+                pub_a.put(b"for-alice")
+                pub_b.put(b"for-bob")
+                if b"for-bob" in b_inbox.payloads:
+                    return True
+                threading.Event().wait(0.05)
+            return False
+
+        assert published_until_bob_has_his()
+        assert b"for-alice" not in b_inbox.payloads
+        replies = [r.ok.payload.to_bytes() for r in alice.get(keys.control("eu-1"), payload=b"alice",
+                                                              target=zenoh.QueryTarget.ALL, timeout=WAIT) if r.ok]
+        assert replies == [b"server"] and b"alice" not in impostor
+    finally:
+        for sess in (bob, alice, server):
+            sess.close()
+
+
 # ---------------------------------------------------------------------------------------------
 # Drape itself behind the router: drape serve and the SDK, in client mode, with the generated ACL
 

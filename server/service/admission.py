@@ -1,7 +1,8 @@
 """Admission control: refuse a submission that would push the tick over its budget.
 
-The tick thread reports each tick's cost (its own host work plus the device's time for the
-step and readback) with the number of vertices stepped; :class:`MeasuredCost` keeps an EWMA of
+The tick thread reports each tick's cost (its own host work, the device's time for the step and
+readback, and the publisher's encode and put of the frame before) with the number of vertices
+stepped; :class:`MeasuredCost` keeps an EWMA of
 the cost and of the cost per vertex (above the cost of an empty tick). A submit is refused with
 the protocol's ``overloaded`` error when the predicted cost with its vertices (and those of every
 cloth already admitted but not yet stepped) exceeds ``admission_budget`` of a tick, so the cloths

@@ -116,6 +116,7 @@ class Publisher:
         self._buffers: dict[str, bytearray] = {}  # payload buffers reused per key
         self._encoder = FrameEncoder()
         self._roster_version: tuple[int, int] | None = None
+        self.last_cost_s = 0.0  # encode + put of the last frame (the tick's cost model adds it)
 
     def run(self) -> None:
         while True:
@@ -255,4 +256,5 @@ class Publisher:
                 log.warning("publishing bundle %s at tick %d failed: %s", bkey, job.tick, e)
         self.timers["encode"].add(enc_t)
         self.timers["publish"].add(pub_t)
+        self.last_cost_s = enc_t + pub_t
         self.registry.count_many(published=published, unwatched=unwatched, publish_errors=errors, bundles=n_bundles)

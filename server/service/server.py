@@ -79,6 +79,7 @@ class Server:
         self.cook = CookWorker(self.config, self.registry, self.replies, self.intake, lambda: self.ticker.world,
                                self._stopping.is_set)
         self.ticker.fabrics = self.cook.fabrics
+        self.ticker.publish_cost = lambda: self.publisher.last_cost_s
         self.handlers = Handlers(self.config, self.keys, self.registry, self.replies, self.intake, self.cook.queue,
                                  self.admission, lambda: self.ticker.tick, self.info, self._stopping.is_set)
         self._session: zenoh.Session | None = None

@@ -53,6 +53,7 @@ class Ticker:
         self.config, self.registry, self.replies, self.intake, self.mailbox = config, registry, replies, intake, mailbox
         self.fabrics, self.admission, self.adaptive, self.timers = fabrics, admission, adaptive, timers
         self.make_stats = make_stats
+        self.publish_cost: Callable[[], float] = lambda: 0.0
         self.world: World | None = None
         self.live: dict[int, ClothRecord] = {}  # by World handle
         self.tick = 0
@@ -142,7 +143,9 @@ class Ticker:
         device_s = pending.device_s
         self.timers["readback"].add(waited)
         self.timers["solve"].add(device_s if device_s is not None else waited)
-        cost = host_s + (device_s if device_s is not None else waited)
+        # the whole tick's cost: the tick thread's host work, the device's step and readback, and
+        # the publisher's encode and put of the frame before (Python in both threads shares the GIL)
+        cost = host_s + (device_s if device_s is not None else waited) + self.publish_cost()
         self.admission.model.observe(cost, int(frame.offsets[-1]))
         self.adaptive.observe(cost, job.tick, lambda: list(self.live.values()), self.world, self._set_preset)
         return job

@@ -24,6 +24,7 @@ from typing import Any, TypeVar
 import zenoh
 
 from drape.client import protocol as P
+from drape.client.session import zenoh_config
 
 from ..sim import make_world
 from ..sim.world import World
@@ -38,11 +39,6 @@ from .registry import Registry
 from .replies import Replies, undeclare
 from .telemetry import PHASES, PhaseTimer
 from .ticker import Ticker
-
-try:  # the SDK's session settings (drape.client.session once the protocol engineer lands it)
-    from drape.client.session import zenoh_config
-except ImportError:  # pragma: no cover
-    from drape.client.sdk import zenoh_config
 
 log = logging.getLogger(__name__)
 

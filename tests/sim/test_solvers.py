@@ -270,3 +270,35 @@ def test_chebyshev_jacobi_matches_reference_and_converges_faster(device, rng):
         ratios.append(residual(f, p0, cheb) / residual(f, p0, base))
     assert np.median(ratios) < 0.9, ratios
     assert max(ratios) < 1.05, ratios
+
+
+@pytest.mark.parametrize("solver", ["workgroup", "reference"])
+def test_frame_is_one_contiguous_array_with_ranges_and_held_frames_survive(device, rng, solver):
+    w = CLWorld("workgroup", device=device) if solver == "workgroup" else ReferenceWorld()
+    fabs = [random_grid_fabric(rng) for _ in range(3)]
+    hs = [w.add(f, ClothParams(features=Features(normals=(i == 1)))) for i, f in enumerate(fabs)]
+    w.step(1 / 60)
+    f1 = w.fetch()
+    n = sum(f.n_vertices for f in fabs)
+    assert f1.xyz.shape == (n, 3) and f1.xyz.dtype == np.float32 and f1.xyz.flags.c_contiguous
+    assert f1.handles.tolist() == hs and f1.offsets.tolist() == [0, *np.cumsum([f.n_vertices for f in fabs])]
+    for h in hs:
+        np.testing.assert_array_equal(f1.positions[h], f1.xyz[f1.rows(h)])
+    assert list(f1.normals) == [hs[1]] and f1.normals[hs[1]].shape == (fabs[1].n_vertices, 3)
+    assert len(f1.nonfinite()) == 0
+    kept = f1.xyz.copy()
+    f1.hold()
+    for _ in range(4):  # more fetches than there are unheld buffers
+        w.step(1 / 60)
+        f2 = w.fetch()
+    np.testing.assert_array_equal(f1.xyz, kept)  # a held frame is never overwritten
+    assert not np.array_equal(f2.xyz, kept)
+    f1.release()
+    assert w.layout() is f2.layout  # unchanged until cloths change
+    w.reset(hs[2], np.full((fabs[2].n_vertices, 3), np.nan))
+    w.step(1 / 60)
+    assert w.fetch().nonfinite().tolist() == [2]
+    w.remove(hs[0])
+    f3 = w.fetch()
+    assert f3.handles.tolist() == hs[1:] and f3.layout is not f2.layout and len(f3.xyz) == n - fabs[0].n_vertices
+    w.close()

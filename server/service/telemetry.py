@@ -4,6 +4,13 @@ the Zenoh stats and of the tick-phase histograms an operator scrapes.
 A PhaseTimer keeps a cumulative count, sum and fixed-bucket histogram (never reset, as Prometheus
 expects) and a window (mean and max since the last stats publication, reset by it). ``add`` is a
 few additions under a lock: cheap enough for every phase of every tick.
+
+The phases (ticks are pipelined, drape.server.service.ticker): ``apply`` the tick thread's
+commands and reclaims; ``solve`` the device's time from the start of a step to the end of its
+readback (OpenCL profiling timestamps; the host's wait where the queue has none); ``readback``
+the tick thread's wait for the previous step's readback plus its non-finite check (near zero
+while the device keeps up); ``encode`` and ``publish`` the publisher thread's encoding and puts
+of one frame; ``tick`` the tick thread's own work per tick.
 """
 from __future__ import annotations
 

@@ -16,6 +16,7 @@ export DRAPE_BIN="${DRAPE_BIN:-$repo/.venv/bin/drape}"
 export CARGO_TERM_COLOR="${CARGO_TERM_COLOR:-never}"
 cd "$crate"
 start=$SECONDS
+failed=()
 step() { echo "== [$((SECONDS - start)) s] $*"; }
 die() { echo "ci.sh: FAILED: $*" >&2; exit 1; }
 
@@ -34,7 +35,10 @@ step "cargo build --no-default-features (the wire layer alone)"
 cargo build -j 2 --locked --no-default-features --lib
 
 step "cargo test (vectors, hostile input, layouts, header, live tests with $DRAPE_BIN)"
-cargo test -j 2 --locked --no-fail-fast
+# every test binary runs (--no-fail-fast); a failure fails ci.sh after the C example has run too
+if ! cargo test -j 2 --locked --no-fail-fast; then
+    failed+=("cargo test (see the failures above)")
+fi
 
 step "C example"
 examples/c/build.sh
@@ -64,6 +68,9 @@ EOF
 if ! timeout 120 examples/c/build/cape "tcp/127.0.0.1:$port" 60; then
     echo "ci.sh: the C example failed; server log:" >&2
     cat "$log" >&2
-    die "C example"
+    failed+=("C example")
+fi
+if (( ${#failed[@]} )); then
+    die "$(printf '%s; ' "${failed[@]}")after $((SECONDS - start)) s"
 fi
 step "all Rust client checks passed"

@@ -11,7 +11,7 @@ from conftest import TIMEOUT, collect, connect, make_config, wait_until
 
 from drape.client import DrapeError, NotFound
 from drape.server.service import Server
-from drape.server.service.admission import FixedCost
+from drape.server.service.admission import FixedCost, MeasuredCost
 
 
 def test_submits_beyond_capacity_are_overloaded_and_admitted_cloths_keep_their_rate():
@@ -103,3 +103,17 @@ def test_a_new_feature_combination_is_built_by_the_cook_thread_not_the_tick():
         new = dev.builds[before:]
         assert new, "a program with the tethers and wind features should have been built"
         assert all(thread.startswith("drape-cook") for _, thread in new), new
+
+
+def test_measured_cost_fits_the_marginal_cost_and_does_not_extrapolate_from_an_idle_server():
+    m = MeasuredCost()
+    assert m.predict(1000, budget_s=0.014) is None  # nothing measured yet
+    for _ in range(50):  # one small cloth: 0.5 ms of fixed cost, 1 us per vertex
+        m.observe(0.0005 + 1e-6 * 16, 16)
+    assert m.predict(16 + 1024, budget_s=0.014) is None  # idle: C / V would wildly overestimate
+    for v in [16 + 1024 * k for k in range(1, 13) for _ in range(20)]:  # cloths come: V spreads
+        m.observe(0.0005 + 1e-6 * v, v)
+    per_vertex, fitted = m.per_vertex_s
+    assert fitted and per_vertex == pytest.approx(1e-6, rel=0.05)
+    v = m.vertices
+    assert m.predict(v + 2048, budget_s=0.014) == pytest.approx(0.0005 + 1e-6 * (v + 2048), rel=0.05)

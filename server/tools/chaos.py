@@ -112,7 +112,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--grace-period", type=float, default=5.0, help="the servers' grace period (default 5)")
     parser.add_argument("--seed", type=int, default=1, help="fuzz seed (default 1)")
     parser.add_argument("--serve-args", default="", metavar="ARGS",
-                        help="extra `drape serve` arguments for every server, e.g. \"--no-admission\"")
+                        help="extra `drape serve` arguments for every server, e.g. --serve-args=--no-admission")
 
 
 def run(args: argparse.Namespace) -> int:

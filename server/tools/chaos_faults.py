@@ -265,7 +265,7 @@ def big_cook(ctx: Context) -> dict[str, Any]:
 
 
 def tiny_mass(ctx: Context, cloths: int = 64) -> dict[str, Any]:
-    """64 cloths of mass 5e-324 (valid: > 0), which go non-finite every tick."""
+    """64 cloths of mass 5e-324 (valid in protocol 1.1: > 0), which went non-finite every tick."""
     with Stage(ctx, "tiny-mass") as st:
         base = st.baseline()
         replies = [st.submit(grid_request("tiny", 16, material={"mass": 5e-324})) for _ in range(cloths)]

@@ -25,6 +25,7 @@ from drape.server.tools.procs import free_port
 REPO = Path(__file__).resolve().parents[2]
 EXAMPLE = REPO / "deploy" / "users.example.toml"
 WAIT = 20.0  # seconds to wait for a positive event (a loaded CI machine), never asserted on
+SERVER_WAIT = 90.0  # a drape serve starting (OpenCL warm-up) on a loaded CI machine
 
 USERS = """
 namespace = "drape"
@@ -357,7 +358,7 @@ def test_drape_serve_and_the_sdk_work_through_the_acl_router(tmp_path):
                               stdout=log, stderr=subprocess.STDOUT)  # admission: not this test's subject
     clients: list[DrapeClient] = []
     try:
-        alice = DrapeClient(endpoint, mode="client", client_id="alice", timeout=WAIT,
+        alice = DrapeClient(endpoint, mode="client", client_id="alice", timeout=SERVER_WAIT,
                             zenoh_config_file=_user_file(tmp_path, "alice", "pw-alice"))
         clients.append(alice)
         assert alice.server_id == "eu-1"  # found through the server's liveliness token

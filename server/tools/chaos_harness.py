@@ -274,7 +274,9 @@ class GoodClient:
             if self.log.error is not None or not self.proc.is_alive() or time.monotonic() > t_end:
                 break
         if not self.ready.is_set():
-            raise RuntimeError(f"good client {self.client_id} not ready in {timeout:.0f} s: {self.log.error}")
+            why = self.log.error or (f"its process exited with {self.proc.exitcode}" if not self.proc.is_alive()
+                                     else f"not ready in {timeout:.0f} s")
+            raise RuntimeError(f"good client {self.client_id}: {why}")
 
     def window(self, t0: float, t1: float) -> dict[str, Any]:
         """States received in [t0, t1): count, ticks covered, lost (gaps), worst gap between receipts."""

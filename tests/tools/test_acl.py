@@ -113,13 +113,20 @@ def _parse(argv: list[str]):
 # Enforcement by a real router
 
 
-def _session(endpoint: str, user: str | None, password: str | None, tls: dict[str, str] | None) -> zenoh.Session:
+def _session(endpoint: str, user: str | None, password: str | None, tls: dict[str, str] | None,
+             cert: str | None = None) -> zenoh.Session:
+    """A client-mode session; ``cert``: present that certificate (``{cert}.pem``, mutual TLS)."""
     c = zenoh.Config()
     c.insert_json5("mode", '"client"')
     c.insert_json5("connect/endpoints", json.dumps([endpoint]))
     c.insert_json5("scouting/multicast/enabled", "false")
     if tls:
         c.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(tls["ca"]))
+    if tls and cert:
+        d = Path(tls["ca"]).parent
+        c.insert_json5("transport/link/tls/enable_mtls", "true")  # the connecting side must say so too
+        c.insert_json5("transport/link/tls/connect_private_key", json.dumps(str(d / f"{cert}-key.pem")))
+        c.insert_json5("transport/link/tls/connect_certificate", json.dumps(str(d / f"{cert}.pem")))
     if user:
         c.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
         c.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
@@ -138,6 +145,12 @@ def _make_certs(d: Path) -> dict[str, str]:
     (d / "san.ext").write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\n")
     ossl("x509", "-req", "-in", "router.csr", "-CA", "ca.pem", "-CAkey", "ca-key.pem", "-CAcreateserial",
          "-days", "2", "-extfile", "san.ext", "-out", "router.pem")
+    (d / "client.ext").write_text("extendedKeyUsage=clientAuth\n")
+    for name in ("eu-1", "alice", "bob"):  # mutual TLS: one certificate per party, CN = name.drape.test
+        ossl("req", "-newkey", "rsa:2048", "-nodes", "-subj", f"/CN={name}.drape.test", "-keyout", f"{name}-key.pem",
+             "-out", f"{name}.csr")
+        ossl("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.pem", "-CAkey", "ca-key.pem", "-CAcreateserial",
+             "-days", "2", "-extfile", "client.ext", "-out", f"{name}.pem")
     return {"ca": str(d / "ca.pem"), "key": str(d / "router-key.pem"), "cert": str(d / "router.pem")}
 
 
@@ -270,6 +283,52 @@ def test_unknown_user_or_wrong_password_cannot_connect(router):
         router("alice", "wrong")
     with pytest.raises(zenoh.ZError):
         router("mallory", "pw-alice")
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl not installed")
+def test_mutual_tls_binds_each_user_to_its_certificate(tmp_path):
+    """enable_mtls on the router and cert_common_name in the users file: a session needs a CA-signed
+    certificate, and a user presenting another user's certificate matches no subject (denied)."""
+    keys = Keys("drape")
+    users_file = tmp_path / "users.toml"
+    text = USERS
+    for name, pw in (("eu-1", "pw-server"), ("alice", "pw-alice"), ("bob", "pw-bob")):
+        text = text.replace(f'password = "{pw}"', f'password = "{pw}"\ncert_common_name = "{name}.drape.test"')
+    users_file.write_text(text)
+    users = acl.load_users(users_file)
+    assert all(u.cert_common_name for u in users.users)
+    (tmp_path / "dict.txt").write_text(acl.dictionary(users))
+    tls = _make_certs(tmp_path)
+    endpoint = f"tls/localhost:{free_port()}"
+    c = zenoh.Config.from_file(str(REPO / "deploy/zenoh-router.json5"))
+    c.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    c.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(tls["ca"]))
+    c.insert_json5("transport/link/tls/listen_private_key", json.dumps(tls["key"]))
+    c.insert_json5("transport/link/tls/listen_certificate", json.dumps(tls["cert"]))
+    c.insert_json5("transport/link/tls/enable_mtls", "true")
+    c.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(tmp_path / "dict.txt")))
+    c.insert_json5("access_control", json.dumps(acl.access_control(users)))
+    router = zenoh.open(c)
+    opened: list[zenoh.Session] = []
+    try:
+        with pytest.raises(zenoh.ZError):  # no client certificate
+            opened.append(_session(endpoint, "alice", "pw-alice", tls))
+        server = _session(endpoint, "eu-1", "pw-server", tls, cert="eu-1")
+        opened.append(server)
+        server.declare_queryable(keys.info("eu-1"), lambda q: q.reply(q.key_expr, b"server"))
+
+        def ask(s: zenoh.Session) -> list[bytes]:
+            return [r.ok.payload.to_bytes() for r in s.get(keys.info("eu-1"), timeout=WAIT) if r.ok]
+
+        bob = _session(endpoint, "bob", "pw-bob", tls, cert="bob")
+        bob_with_alices_cert = _session(endpoint, "bob", "pw-bob", tls, cert="alice")
+        opened += [bob, bob_with_alices_cert]
+        assert ask(bob) == [b"server"]
+        assert ask(bob_with_alices_cert) == []
+    finally:
+        for sess in reversed(opened):
+            sess.close()
+        router.close()
 
 
 def test_routerless_the_servers_own_peer_session_enforces_the_acl(tmp_path):

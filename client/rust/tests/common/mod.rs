@@ -23,7 +23,7 @@ pub fn drape_bin() -> Option<PathBuf> {
     }
     let msg = format!("live tests need the drape server: {} does not exist (set DRAPE_BIN, or create the venv: \
                        python3 -m venv .venv && .venv/bin/pip install -e .)", bin.display());
-    if std::env::var("CI").map(|v| v == "true" || v == "1").unwrap_or(false) {
+    if std::env::var("CI").map(|v| v.eq_ignore_ascii_case("true") || v == "1").unwrap_or(false) {
         panic!("{msg}");
     }
     eprintln!("SKIPPED: {msg}");

@@ -26,6 +26,9 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "tradeoff": ("drape.server.tools.tradeoff", "measure speed against accuracy, write table, JSON and plot"),
     "loadtest": ("drape.server.tools.loadtest", "load-test a server with many client processes"),
     "devices": ("drape.server.tools.devices", "list OpenCL devices and the one Drape would pick"),
+    "chaos": ("drape.server.tools.chaos",
+              "fault and abuse suite: fuzz, floods, heavy cloths, kill and pause (docs/reliability.md)"),
+    "acl": ("drape.server.tools.acl", "generate the Zenoh router's access control from a users file"),
 }
 #: Subcommands that open Zenoh sessions: their Zenoh log level is set before they do.
 ZENOH_COMMANDS = ("demo", "serve", "top", "loadtest")
@@ -58,7 +61,14 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as e:
         print(f"drape: {e}", file=sys.stderr)
         return 2
-    return int(module.run(args) or 0)
+    try:
+        return int(module.run(args) or 0)
+    except ModuleNotFoundError as e:
+        if e.name and e.name.split(".")[0] in ("pyopencl", "pocl_binary_distribution"):
+            print(f"drape {pre.command} needs the 'server' extra ({e.name} is missing): pip install 'drape[server]'",
+                  file=sys.stderr)
+            return 2
+        raise
 
 
 def _log_settings(pre: argparse.Namespace, args: argparse.Namespace) -> tuple[str, str, str | None]:

@@ -8,8 +8,11 @@ the stats' errors):
   ``MAX_STRUCTURAL_PER_TICK`` applied per tick;
 - **controls**, coalesced per cloth: a control for a cloth that already has one pending this
   tick is merged into it (latest value wins field by field, pin targets by index, material by
-  key, reset if either asked), so however many controls a cloth gets in one tick the World sees
-  one change. Every request still gets its reply (the tick from which the merged change holds);
+  key), so however many controls a cloth gets in one tick the World sees one change. Controls
+  whose merge would not equal applying them one after the other (either changes the feature
+  set, pins after a reset, a cleared collider list after a new one) are not merged: the later
+  one waits for the next tick's slot. Every request still gets its reply (the tick from which
+  its change holds);
   a batch control's items join the same per-cloth slots and the batch is answered once all of
   its items are applied. The lane holds at most one slot per cloth and at most
   ``max_pending_requests`` waiting replies.
@@ -69,6 +72,7 @@ class BatchControl:
     rid: int
     results: list[P.BatchItemResult | None]
     pending: int = 0  # items still to apply
+    features: bool = False  # a 1.2 request: applied results carry the cloth's feature set
 
 
 @dataclass(eq=False)
@@ -78,8 +82,23 @@ class ControlSlot:
     record: ClothRecord
     req: P.ControlRequest
     colliders: np.ndarray | None
-    waiters: list[tuple[Any, int]] = field(default_factory=list)  # (query, rid) or (BatchControl, item index)
+    # (query, (rid, reply with features)) or (BatchControl, item index)
+    waiters: list[tuple[Any, Any]] = field(default_factory=list)
     merged: int = 1  # requests in this slot
+
+
+def _touches_features(r: P.ControlRequest) -> bool:
+    return bool(r.features is not None or getattr(r, "features_add", None) or getattr(r, "features_remove", None)
+                or (r.state is not None and r.state.normals is not None) or r.quality is not None)
+
+
+def mergeable(a: P.ControlRequest, b: P.ControlRequest) -> bool:
+    """Whether ``merge_controls(a, b)`` does exactly what ``a`` then ``b`` would."""
+    if _touches_features(a) or _touches_features(b):
+        return False
+    if a.reset and b.pins is not None and len(b.pins.indices):  # pins after a reset are kept
+        return False
+    return not (a.colliders and b.colliders is not None and not b.colliders)  # [] keeps the feature a set
 
 
 def merge_controls(a: P.ControlRequest, b: P.ControlRequest) -> P.ControlRequest:
@@ -124,7 +143,7 @@ class Intake:
         self.max_pending = max_pending
         self._structural: queue.Queue = queue.Queue(max_pending)
         self._lock = threading.Lock()
-        self._slots: dict[str, ControlSlot] = {}
+        self._gens: list[dict[str, ControlSlot]] = [{}]  # this tick's slots, then later ticks' ones
         self._waiting = 0
         self.coalesced = 0  # controls merged into a pending one (cumulative)
 
@@ -149,9 +168,17 @@ class Intake:
                 raise P.Busy(P.ERR_BUSY, "server request queue is full, retry later", rid)
             self._waiting += len(items)
             for rec, req, packed, waiter, tag in items:
-                slot = self._slots.get(rec.id)
+                g = len(self._gens) - 1
+                while g > 0 and rec.id not in self._gens[g]:
+                    g -= 1
+                slot = self._gens[g].get(rec.id)
+                if slot is not None and not mergeable(slot.req, req):
+                    g += 1
+                    if g == len(self._gens):
+                        self._gens.append({})
+                    slot = None
                 if slot is None:
-                    self._slots[rec.id] = ControlSlot(rec, req, packed, [(waiter, tag)])
+                    self._gens[g][rec.id] = ControlSlot(rec, req, packed, [(waiter, tag)])
                     continue
                 slot.req = merge_controls(slot.req, req)
                 if req.colliders is not None:
@@ -171,12 +198,13 @@ class Intake:
         return out
 
     def take_controls(self) -> list[ControlSlot]:
+        """This tick's slots (at most one per cloth); later ones move up a tick."""
         with self._lock:
-            if not self._slots:
-                return []
-            slots = list(self._slots.values())
-            self._slots.clear()
-            self._waiting = 0
+            gen = self._gens.pop(0)
+            if not self._gens:
+                self._gens.append({})
+            slots = list(gen.values())
+            self._waiting -= sum(len(s.waiters) for s in slots)
             return slots
 
     def drain(self) -> tuple[list[Any], list[ControlSlot]]:
@@ -187,4 +215,10 @@ class Intake:
                 out.append(self._structural.get_nowait())
             except queue.Empty:
                 break
-        return out, self.take_controls()
+        slots: list[ControlSlot] = []
+        with self._lock:
+            for gen in self._gens:
+                slots.extend(gen.values())
+            self._gens = [{}]
+            self._waiting = 0
+        return out, slots

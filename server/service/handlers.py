@@ -13,6 +13,7 @@ from collections import Counter
 from collections.abc import Callable
 from typing import Any
 
+import msgpack
 import numpy as np
 import zenoh
 
@@ -26,6 +27,23 @@ from .replies import Replies, Reply, send
 from .requests import pack
 
 log = logging.getLogger(__name__)
+
+
+def reports_features(payload: bytes) -> bool:
+    """Whether a request is stamped 1.2 or later (its replies then carry ``features``): reads
+    the ``v`` entry only, without decoding the rest again."""
+    try:
+        up = msgpack.Unpacker(raw=False)
+        up.feed(payload)
+        for _ in range(up.read_map_header()):
+            key = up.unpack()
+            if key == "v":
+                v = up.unpack()
+                return tuple(v[:2]) >= (1, 2)
+            up.skip()
+    except Exception:
+        pass
+    return False
 
 
 class Handlers:
@@ -113,12 +131,12 @@ class Handlers:
     def on_control(self, query: zenoh.Query, payload: bytes) -> None:
         req = P.decode_control(payload, self.limits)
         rec, packed = self.check_control(req)
-        self.intake.put_controls([(rec, req, packed, query, req.rid)], req.rid)
+        self.intake.put_controls([(rec, req, packed, query, (req.rid, reports_features(payload)))], req.rid)
 
     def on_control_batch(self, query: zenoh.Query, payload: bytes) -> None:
         batch = P.decode_control_batch(payload, self.limits)  # the envelope: all or nothing
         results: list[P.BatchItemResult | None] = [None] * len(batch.items)
-        waiter = BatchControl(query, batch.rid, results)
+        waiter = BatchControl(query, batch.rid, results, features=reports_features(payload))
         todo: list[tuple[ClothRecord, P.ControlRequest, np.ndarray | None, Any, int]] = []
         failed: Counter[str] = Counter()
         for i, item in enumerate(batch.items):

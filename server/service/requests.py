@@ -29,15 +29,8 @@ def pack(colliders: tuple[P.Collider, ...] | None, rid: int) -> np.ndarray:
 
 
 def features_after(req: P.ControlRequest, p: ClothParams) -> set[str]:
-    """The cloth's feature names once ``req`` is applied."""
-    feats = set(req.features) if req.features is not None else set(p.features.names())
-    feats |= set(getattr(req, "features_add", None) or ())
-    feats -= set(getattr(req, "features_remove", None) or ())
-    if req.colliders:
-        feats.add("colliders")
-    if req.state is not None and req.state.normals is not None:
-        (feats.add if req.state.normals else feats.discard)("normals")
-    return feats
+    """The cloth's feature names once ``req`` is applied (the protocol's own rule)."""
+    return set(P.resolve_features(frozenset(p.features.names()), req))
 
 
 def changes_params(req: P.ControlRequest, p: ClothParams) -> bool:

@@ -308,9 +308,11 @@ class Ticker:
                 log.exception("applying a control of cloth %s failed", slot.record.id)
                 err = (P.ERR_INTERNAL, f"internal error: {type(e).__name__}: {e}")
             self.applied_controls += 1
+            feats = self._features(slot.record) if err is None else None
             for waiter, tag in slot.waiters:
                 if isinstance(waiter, BatchControl):
-                    waiter.results[tag] = P.BatchItemResult(tick) if err is None else P.BatchItemResult(None, *err)
+                    waiter.results[tag] = (P.BatchItemResult(tick, features=feats if waiter.features else None)
+                                           if err is None else P.BatchItemResult(None, *err))
                     if err is not None:
                         self.registry.error(err[0])
                     waiter.pending -= 1
@@ -318,9 +320,11 @@ class Ticker:
                         rep = P.ControlBatchReply(tick, waiter.results, waiter.rid)  # type: ignore[arg-type]
                         job.before.append(Reply(waiter.query, P.encode_control_batch_reply(rep)))
                 elif err is None:
-                    job.before.append(Reply(waiter, P.encode_control_reply(P.ControlReply(tick, tag))))
+                    rid, with_features = tag
+                    rep = P.ControlReply(tick, rid, feats if with_features else None)
+                    job.before.append(Reply(waiter, P.encode_control_reply(rep)))
                 else:
-                    job.before.append(self.replies.error(waiter, err[0], err[1], tag))
+                    job.before.append(self.replies.error(waiter, err[0], err[1], tag[0]))
         if pins[0]:
             assert self.world is not None
             self.world.set_pin_targets_many(*pins, validated=True)  # checked by the handlers and the decoder
@@ -375,6 +379,12 @@ class Ticker:
             self._pub_changes += 1
         return None
 
+    def _features(self, rec: ClothRecord) -> tuple[str, ...] | None:
+        """The cloth's feature set for a 1.2 reply (protocol order)."""
+        w = self.world
+        cloth = w.cloths.get(rec.handle) if w is not None and rec.handle is not None else None  # type: ignore[arg-type]
+        return tuple(cloth.params.features.names()) if cloth is not None else None
+
     def _set_preset(self, rec: ClothRecord, name: str) -> bool:
         w = self.world
         if rec.handle is None or w is None or name == rec.quality:
@@ -426,4 +436,4 @@ class Ticker:
                         answered.add(id(waiter))
                         send(self.replies.error(waiter.query, P.ERR_BUSY, "server is shutting down", waiter.rid))
                 else:
-                    send(self.replies.error(waiter, P.ERR_BUSY, "server is shutting down", tag))
+                    send(self.replies.error(waiter, P.ERR_BUSY, "server is shutting down", tag[0]))

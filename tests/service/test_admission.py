@@ -117,3 +117,34 @@ def test_measured_cost_fits_the_marginal_cost_and_does_not_extrapolate_from_an_i
     assert fitted and per_vertex == pytest.approx(1e-6, rel=0.05)
     v = m.vertices
     assert m.predict(v + 2048, budget_s=0.014) == pytest.approx(0.0005 + 1e-6 * (v + 2048), rel=0.05)
+
+
+def test_a_feature_change_is_never_merged_and_replies_report_the_feature_set():
+    with Server(make_config()) as srv:
+        c = connect(srv)
+        try:
+            h = c.submit_grid(6, 6, pinned=[0, 5])
+            collect(h, 2)
+            before, coalesced0 = srv.stats(), srv.intake.coalesced
+            gate, inside = threading.Event(), threading.Event()
+            held = threading.Thread(target=srv.call, args=(lambda w: (inside.set(), gate.wait(TIMEOUT)),), daemon=True)
+            held.start()
+            assert inside.wait(TIMEOUT)
+            for k in range(5):
+                h.move_pins([0], [[0.0, 0.01 * (k + 1), 0.0]], wait=False)
+            h.set(features_add=["wind"], wind=(2.0, 0.0, 0.0), wait=False)
+            for k in range(5):
+                h.move_pins([0], [[0.0, 0.1 + 0.01 * (k + 1), 0.0]], wait=False)
+            assert wait_until(lambda: srv.intake.coalesced - coalesced0 == 8)  # all eleven are in
+            gate.set()
+            held.join(TIMEOUT)
+            # pins, then the feature change alone, then the later pins: three applies, eight merges
+            assert wait_until(lambda: srv.stats()["controls_applied"] - before["controls_applied"] == 3)
+            assert srv.stats()["controls_coalesced"] - before["controls_coalesced"] == 8
+            assert wait_until(lambda: h.latest() is not None and np.allclose(h.latest().positions[0], [0.0, 0.15, 0.0]))
+            handle = srv.world_handle(h.id)
+            assert srv.call(lambda w: w.cloths[handle].params.features.wind)
+            tick = h.set(features_add=["tethers"])  # a waited 1.2 control: the reply carries the set
+            assert tick > 0 and h.features == ("tethers", "wind")
+        finally:
+            c.close()

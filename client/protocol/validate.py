@@ -113,6 +113,8 @@ def _check_shape(obj: Any) -> None:
         if seen > MAX_ELEMENTS:
             raise ProtocolError(ERR_TOO_LARGE, f"message holds more than {MAX_ELEMENTS} values")
         if isinstance(o, dict):
+            if not all(isinstance(k, str) for k in o):  # msgpack's strict_map_key still lets bin keys through
+                raise ProtocolError(ERR_MALFORMED, "map keys must be strings")
             children: Iterable[Any] = o.values()
             seen += len(o)  # the keys (strings)
         elif isinstance(o, list):

@@ -238,3 +238,13 @@ def test_corrupted_vectors_never_raise_anything_but_protocol_errors(rng):
                 pass
             except P.DrapeError:
                 assert decode is P.decode_reply
+
+
+def test_a_binary_map_key_anywhere_is_malformed():
+    """PROTOCOL.md §8: map keys are strings; msgpack's strict_map_key alone lets bin keys through."""
+    for payload in ({"v": [1, 2], "rid": 1, b"cloth": "x"},
+                    {"v": [1, 2], "rid": 1, "material": {b"mass": 1.0}}):
+        data = msgpack.packb(payload, use_bin_type=True)
+        with pytest.raises(P.ProtocolError) as e:
+            P.unpack_message(data)
+        assert e.value.code == P.ERR_MALFORMED

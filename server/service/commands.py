@@ -85,6 +85,15 @@ class ControlSlot:
     # (query, (rid, reply with features)) or (BatchControl, item index)
     waiters: list[tuple[Any, Any]] = field(default_factory=list)
     merged: int = 1  # requests in this slot
+    deferred: int = 0  # ticks it waited for its kernels to be built
+
+
+@dataclass(eq=False)
+class Prepare:
+    """For the cook worker: build the kernels of a cloth's coming parameters."""
+
+    fabric: Any
+    params: Any
 
 
 def _touches_features(r: P.ControlRequest) -> bool:
@@ -206,6 +215,18 @@ class Intake:
             slots = list(gen.values())
             self._waiting -= sum(len(s.waiters) for s in slots)
             return slots
+
+    def requeue(self, slots: list[ControlSlot]) -> None:
+        """Slots taken this tick but not applied (their kernels are being built): first in line
+        next tick, before anything that arrived for the same cloths meanwhile."""
+        with self._lock:
+            front = self._gens[0]
+            if any(s.record.id in front for s in slots):
+                front = {}
+                self._gens.insert(0, front)
+            for s in slots:
+                front[s.record.id] = s
+                self._waiting += len(s.waiters)
 
     def drain(self) -> tuple[list[Any], list[ControlSlot]]:
         """Everything still queued (shutdown)."""

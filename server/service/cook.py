@@ -23,7 +23,7 @@ from drape.client import protocol as P
 from ..sim.fabric import Fabric, cook_grid, cook_mesh
 from ..sim.params import LinkOptions
 from ..sim.world import World
-from .commands import Add, Intake
+from .commands import Add, Intake, Prepare
 from .config import ServerConfig
 from .registry import Registry
 from .replies import Replies, send
@@ -109,22 +109,55 @@ class CookWorker:
         self.queue: queue.Queue = queue.Queue(config.max_pending_requests)
         self.fabrics = FabricStore()
         self._world, self._stopping = world, stopping
+        self._asked: set = set()  # feature keys whose kernels were asked for (controls)
+        self._asked_lock = threading.Lock()
 
     def run(self) -> None:
         while True:
             item = self.queue.get()
             if item is None:
                 break
+            if isinstance(item, Prepare):
+                self._prepare(item)
+                continue
             self._one(*item)
         while True:  # drain what is left
             try:
                 item = self.queue.get_nowait()
             except queue.Empty:
                 break
-            if item is not None:
+            if item is not None and not isinstance(item, Prepare):
                 rec, req, query = item
                 self.registry.unreserve(rec)
                 self.replies.send_error(query, P.ERR_BUSY, "server is shutting down", req.rid)
+
+    def request_prepare(self, fabric: Fabric, params) -> bool:
+        """Ask for a cloth's kernels to be built (tick thread; never blocks). False when the
+        queue is full: the tick thread asks again next tick."""
+        key = (params.features.key(), fabric.key)
+        with self._asked_lock:
+            if key in self._asked:
+                return True
+            if len(self._asked) > 4096:
+                self._asked.clear()
+            self._asked.add(key)
+        try:
+            self.queue.put_nowait(Prepare(fabric, params))
+            return True
+        except queue.Full:
+            with self._asked_lock:
+                self._asked.discard(key)
+            return False
+
+    def _prepare(self, item: Prepare) -> None:
+        world = self._world()
+        try:
+            if world is not None:
+                world.prepare(item.fabric, item.params)
+        except Exception:
+            with self._asked_lock:
+                self._asked.discard((item.params.features.key(), item.fabric.key))
+            log.exception("building kernels for a control failed")  # the tick thread builds them then
 
     def _one(self, rec, req: P.SubmitRequest, query) -> None:
         if self._stopping():

@@ -76,6 +76,7 @@ class Server:
                                self._stopping.is_set)
         self.ticker.fabrics = self.cook.fabrics
         self.ticker.publish_cost = lambda: self.publisher.last_cost_s
+        self.ticker.request_prepare = self.cook.request_prepare
         self.handlers = Handlers(self.config, self.keys, self.registry, self.replies, self.intake, self.cook.queue,
                                  self.admission, lambda: self.ticker.tick, self.info, self._stopping.is_set)
         self._session: zenoh.Session | None = None

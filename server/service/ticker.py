@@ -44,6 +44,8 @@ from .telemetry import PhaseTimer
 log = logging.getLogger(__name__)
 
 NAN_WARN_EVERY_S = 1.0  # at most one non-finite warning per second (the rest are counted)
+MAX_DEFER_TICKS = 600  # a control waits at most this many ticks for its kernels, then builds them itself
+_DEFER = ("defer", "")  # _apply_control: not applied this tick, kernels being built
 
 
 class Ticker:
@@ -67,6 +69,7 @@ class Ticker:
         self._nan_times: dict[str, deque[float]] = {}
         self._nan_warned_at = 0.0
         self._nan_quiet = 0
+        self.request_prepare: Callable[[Any, Any], bool] = lambda fabric, params: False
 
     # --- set-up ----------------------------------------------------------------------------------
     def warm_up(self) -> None:
@@ -301,12 +304,17 @@ class Ticker:
         (one upload before the step)."""
         tick = self.tick + 1
         pins: tuple[list[int], list[np.ndarray], list[np.ndarray]] = ([], [], [])
+        deferred: list[ControlSlot] = []
         for slot in slots:
             try:
                 err = self._apply_control(slot, pins)
             except Exception as e:  # one cloth's failure must not leave the others unanswered
                 log.exception("applying a control of cloth %s failed", slot.record.id)
                 err = (P.ERR_INTERNAL, f"internal error: {type(e).__name__}: {e}")
+            if err is _DEFER:
+                slot.deferred += 1
+                deferred.append(slot)
+                continue
             self.applied_controls += 1
             feats = self._features(slot.record) if err is None else None
             for waiter, tag in slot.waiters:
@@ -328,6 +336,9 @@ class Ticker:
         if pins[0]:
             assert self.world is not None
             self.world.set_pin_targets_many(*pins, validated=True)  # checked by the handlers and the decoder
+        if deferred:
+            self.intake.requeue(deferred)
+            slots = [s for s in slots if s not in deferred]
         self.registry.count_many(controls_applied=len(slots),
                                  controls_coalesced=sum(s.merged - 1 for s in slots))
 
@@ -360,6 +371,10 @@ class Ticker:
                 except P.DrapeError as e:
                     return e.code, e.message
                 rec.quality_wanted, rec.quality = req.quality, eff
+            if new.features != p.features and slot.deferred < MAX_DEFER_TICKS and rec.fabric is not None \
+                    and not w.ready(rec.fabric, new):
+                self.request_prepare(rec.fabric, new)  # the cook thread builds; applied once built
+                return _DEFER
             if new != p:
                 w.set_params(h, new)
         if slot.colliders is not None:

@@ -257,6 +257,10 @@ class World(ABC):
         """Build whatever a cloth of ``fabric`` and ``params`` will need (kernels) now, so that
         adding it later does not. Touches no cloth: may run on another thread than the ticks."""
 
+    def ready(self, fabric: Fabric, params: ClothParams) -> bool:
+        """Whether a cloth of ``fabric`` and ``params`` needs nothing built (see ``prepare``)."""
+        return True
+
     def set_pin_targets(self, handle: int, indices: np.ndarray, targets: np.ndarray) -> None:
         """Where pinned vertices ``indices`` are at the end of the next step (interpolated
         over its substeps). Every index must be a pinned vertex of the cloth's fabric."""

@@ -91,6 +91,7 @@ def test_a_cloth_that_keeps_going_non_finite_is_removed_with_a_reason():
 
 
 def test_a_new_feature_combination_is_built_by_the_cook_thread_not_the_tick():
+    """At submit and by control: the tick thread never compiles."""
     with Server(make_config()) as srv:
         dev = srv.call(lambda w: w.dev)
         before = len(dev.builds)
@@ -98,10 +99,14 @@ def test_a_new_feature_combination_is_built_by_the_cook_thread_not_the_tick():
         try:
             h = c.submit_grid(6, 6, pinned=[0, 5], features=["tethers"], wind=(3.0, 0.0, 1.0))
             collect(h, 3)
+            assert dev.builds[before:], "a program with the tethers feature should have been built"
+            at = len(dev.builds)
+            tick = h.set(features_add=["wind", "xpbd"])  # a control too: its kernels built off the tick
+            assert h.wait_for_tick(tick, TIMEOUT).tick == tick and h.features == ("xpbd", "tethers", "wind")
+            assert len(dev.builds) > at
         finally:
             c.close()
         new = dev.builds[before:]
-        assert new, "a program with the tethers and wind features should have been built"
         assert all(thread.startswith("drape-cook") for _, thread in new), new
 
 

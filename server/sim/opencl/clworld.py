@@ -427,6 +427,10 @@ class CLWorld(FrameReadback, World):
             )
         g.dirty = False
 
+    def ready(self, fabric: Fabric, params: ClothParams) -> bool:
+        _, local = self._group_key(Cloth(0, fabric, params))
+        return self.dev.built(self._options_for(params.features, local))
+
     def prepare(self, fabric: Fabric, params: ClothParams) -> None:
         """Build the kernels of the group such a cloth joins (Device.program is thread-safe and
         builds without blocking the other threads' use of built kernels)."""

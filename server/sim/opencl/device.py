@@ -162,6 +162,11 @@ class Device:
                     self._building.pop(key, None)
             return prg
 
+    def built(self, options: list[str], source: str = "cloth.cl") -> bool:
+        """Whether the program of ``source`` with ``options`` is built already."""
+        with self._lock:
+            return (source, *sorted(options)) in self._programs
+
     def kernel(self, options: list[str], name: str) -> cl.Kernel:
         key = ("kernel", name, *sorted(options))
         with self._lock:

@@ -1,9 +1,9 @@
 """Admission control: refuse a submission that would push the tick over its budget.
 
-The tick thread reports each tick's cost (its own host work, the device's time for the step and
-readback, and the publisher's encode and put of the frame before) with the number of vertices
-stepped; :class:`MeasuredCost` keeps an EWMA of
-the cost and the marginal cost per vertex (see MeasuredCost). A submit is refused with
+The tick thread reports the cost of each steady tick (no cloth came or went since the frame
+before: those ticks carry one-off rebuilds) — its own host work, the device's time for the step
+and readback, and the publisher's encode and put of the frame before — with the number of
+vertices stepped; :class:`MeasuredCost` turns that into a cost per vertex (see there). A submit is refused with
 the protocol's ``overloaded`` error when the predicted cost with its vertices (and those of every
 cloth already admitted but not yet stepped) exceeds ``admission_budget`` of a tick, so the cloths
 already admitted keep their rate. Refusals are counted (``overload_refusals``). A server with no
@@ -14,7 +14,9 @@ Tests and operators may replace the model (``Admission.model``) with a :class:`F
 from __future__ import annotations
 
 import logging
+import statistics
 import threading
+from collections import deque
 from dataclasses import dataclass
 
 from drape.client import protocol as P
@@ -42,56 +44,40 @@ class FixedCost:
 
 
 class MeasuredCost:
-    """The tick's cost ``C`` (EWMA) at the vertex count ``V`` stepped, and the marginal cost per
-    vertex: the slope of an exponentially weighted least-squares line through recent (V, cost)
-    samples once V has varied enough (as cloths come and go), else the proportional ``C / V``
-    (conservative: it counts the fixed per-tick costs as per-vertex ones). ``predict`` answers
-    None (no opinion) while nothing was measured, or while only the proportional slope is known
-    and the tick takes less than ``trust`` of the budget: a nearly idle server admits rather than
-    extrapolate from a few small cloths."""
+    """The tick's cost per vertex stepped, as the median over the last ``window`` ticks (so
+    ticks stretched by one-offs, an add's rebuild, a burst of requests taking the GIL, a
+    descheduled thread, do not count unless they are the rule), times the vertices. It counts the per-tick fixed costs as per-vertex ones, so it errs on the side of
+    refusing once loaded; ``predict`` answers None (no opinion) while the current cost is under
+    ``trust`` of the budget: a lightly loaded server admits rather than extrapolate from a few
+    small cloths."""
 
-    def __init__(self, alpha: float = 0.02, trust: float = 0.5) -> None:
-        self.alpha, self.trust = alpha, trust
-        self.tick_s: float | None = None
-        self.vertices = 0
-        self._m = [0.0, 0.0, 0.0, 0.0]  # EWMA of V, C, V^2, V*C
+    def __init__(self, window: int = 30, trust: float = 0.5) -> None:
+        self.trust = trust
+        self._samples: deque[tuple[int, float]] = deque(maxlen=window)  # (vertices, cost)
         self._lock = threading.Lock()
 
     def observe(self, tick_s: float, vertices: int) -> None:
-        if vertices <= 0:
-            return
-        a = self.alpha
-        with self._lock:
-            if self.tick_s is None:
-                self.tick_s, self._m = tick_s, [vertices, tick_s, vertices * vertices, vertices * tick_s]
-            else:
-                self.tick_s += 5 * a * (tick_s - self.tick_s)  # the current cost: a faster average
-                for i, x in enumerate((vertices, tick_s, vertices * vertices, vertices * tick_s)):
-                    self._m[i] += a * (x - self._m[i])
-            self.vertices = vertices
+        if vertices > 0:
+            with self._lock:
+                self._samples.append((vertices, tick_s))
 
     @property
-    def per_vertex_s(self) -> tuple[float, bool] | None:
-        """(seconds per vertex, from the regression) or None."""
+    def per_vertex_s(self) -> float | None:
         with self._lock:
-            if self.tick_s is None or self.vertices <= 0:
+            if not self._samples:
                 return None
-            mv, mc, mvv, mvc = self._m
-            var = mvv - mv * mv
-            if var > (0.1 * mv) ** 2:
-                slope = (mvc - mv * mc) / var
-                if slope > 0:
-                    return slope, True
-            return self.tick_s / self.vertices, False
+            return statistics.median(c / v for v, c in self._samples)
+
+    @property
+    def vertices(self) -> int:
+        with self._lock:
+            return self._samples[-1][0] if self._samples else 0
 
     def predict(self, vertices: int, budget_s: float = float("inf")) -> float | None:
-        slope = self.per_vertex_s
-        if slope is None or self.tick_s is None:
+        per_vertex, now = self.per_vertex_s, self.vertices
+        if per_vertex is None or per_vertex * now < self.trust * budget_s:
             return None
-        per_vertex, fitted = slope
-        if not fitted and self.tick_s < self.trust * budget_s:
-            return None
-        return self.tick_s + per_vertex * max(vertices - self.vertices, 0)
+        return per_vertex * vertices
 
 
 class Admission:

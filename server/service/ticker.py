@@ -69,6 +69,7 @@ class Ticker:
         self._nan_times: dict[str, deque[float]] = {}
         self._nan_warned_at = 0.0
         self._nan_quiet = 0
+        self._cost_layout = -1  # layout version of the last frame whose cost was measured
         self.request_prepare: Callable[[Any, Any], bool] = lambda fabric, params: False
 
     # --- set-up ----------------------------------------------------------------------------------
@@ -149,7 +150,9 @@ class Ticker:
         # the whole tick's cost: the tick thread's host work, the device's step and readback, and
         # the publisher's encode and put of the frame before (Python in both threads shares the GIL)
         cost = host_s + (device_s if device_s is not None else waited) + self.publish_cost()
-        self.admission.model.observe(cost, int(frame.offsets[-1]))
+        if frame.layout.version == self._cost_layout:  # not a tick of cloths coming or going (rebuilds)
+            self.admission.model.observe(cost, int(frame.offsets[-1]))
+        self._cost_layout = frame.layout.version
         self.adaptive.observe(cost, job.tick, lambda: list(self.live.values()), self.world, self._set_preset)
         return job
 

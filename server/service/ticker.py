@@ -70,6 +70,7 @@ class Ticker:
         self._nan_warned_at = 0.0
         self._nan_quiet = 0
         self._cost_layout = -1  # layout version of the last frame whose cost was measured
+        self._after_next: list[Reply] = []  # remove replies, sent after the next frame
         self.request_prepare: Callable[[Any, Any], bool] = lambda fabric, params: False
 
     # --- set-up ----------------------------------------------------------------------------------
@@ -127,6 +128,9 @@ class Ticker:
             log.exception("tick loop failed")
             self.failure = e
         finally:
+            if self._pending is not None:
+                for r in self._pending[1].after:  # removes whose frame will not be published
+                    send(r)
             self._pending = None  # its frame was never held
             self.shutdown_commands()
 
@@ -161,7 +165,9 @@ class Ticker:
         w = self.world
         assert w is not None
         self.tick += 1
+        after, self._after_next = self._after_next, []
         if not self.live:
+            job.after.extend(after)  # no next frame: after this one
             return
         w.step(self.config.dt)
         pending = w.fetch_async()
@@ -172,7 +178,7 @@ class Ticker:
             idx = [lay.index[h] for h in self._reset_flags if h in lay.index]
             flags[idx] = P.FLAG_RESET
             self._reset_flags.clear()
-        self._pending = (pending, Job(tick=self.tick, roster=roster, flags=flags), 0.0)
+        self._pending = (pending, Job(tick=self.tick, roster=roster, flags=flags, after=after), 0.0)
 
     def _roster_for(self, lay) -> Roster:
         version = (lay.version, self._pub_changes)
@@ -259,7 +265,9 @@ class Ticker:
                 return
             last = self.tick
             self._drop(rec, job)
-            job.after.append(Reply(cmd.query, P.encode_remove_reply(P.RemoveReply(last, cmd.rid))))
+            # answered after the first frame without the cloth, not right behind its last state:
+            # a reply and a publication sent back to back may overtake each other on the wire
+            self._after_next.append(Reply(cmd.query, P.encode_remove_reply(P.RemoveReply(last, cmd.rid))))
             log.info("cloth %s removed by client %s", rec.id, rec.client)
 
     def _add(self, cmd: Add, job: Job) -> None:

@@ -222,17 +222,26 @@ class World(ABC):
         self._layout_version = 0
 
     # --- cloth lifecycle -------------------------------------------------------------------
-    def add(self, fabric: Fabric, params: ClothParams, positions: np.ndarray | None = None) -> int:
+    def add(self, fabric: Fabric, params: ClothParams, positions: np.ndarray | None = None,
+            velocities: np.ndarray | None = None) -> int:
+        """Add a cloth at ``positions`` (default: its rest pose) moving at ``velocities`` (m/s,
+        default zero; protocol 1.3 ``resume``: a cloth continued from another server's state).
+        Pinned vertices start at ``positions`` with their pin targets there, and keep zero velocity."""
         params.validate()
         if positions is not None:
             positions = np.asarray(positions, np.float64).reshape(fabric.n_vertices, 3)
             if not np.all(np.isfinite(positions)):
                 raise ValueError("positions must be finite")
+        if velocities is not None:
+            velocities = np.array(velocities, np.float64).reshape(fabric.n_vertices, 3)
+            if not np.all(np.isfinite(velocities)):
+                raise ValueError("velocities must be finite")
+            velocities[fabric.pinned] = 0.0  # kinematic vertices move only with their targets
         h = next(self._handles)
         cloth = Cloth(h, fabric, params)
         self.cloths[h] = cloth
         try:
-            self._add(cloth, positions)
+            self._add(cloth, positions, velocities)
         except BaseException:
             del self.cloths[h]
             raise
@@ -365,7 +374,7 @@ class World(ABC):
 
     # --- backend hooks --------------------------------------------------------------------
     @abstractmethod
-    def _add(self, cloth: Cloth, positions: np.ndarray | None) -> None: ...
+    def _add(self, cloth: Cloth, positions: np.ndarray | None, velocities: np.ndarray | None = None) -> None: ...
 
     @abstractmethod
     def _remove(self, cloth: Cloth) -> None: ...
@@ -401,8 +410,10 @@ class ReferenceWorld(World):
         self.device_name = f"numpy {np.dtype(dtype).name} ({mode})"
         self._pool = FramePool()
 
-    def _add(self, cloth, positions):
+    def _add(self, cloth, positions, velocities=None):
         st = reference.ClothState.initial(cloth.fabric, cloth.params, self.dtype, positions)
+        if velocities is not None:
+            st.v[:] = velocities
         self.states[cloth.handle] = st
 
     def _remove(self, cloth):

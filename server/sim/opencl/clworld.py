@@ -188,7 +188,7 @@ class CLWorld(FrameReadback, World):
         return self._free_slots.pop()
 
     # --- World hooks -----------------------------------------------------------------------
-    def _add(self, cloth: Cloth, positions: np.ndarray | None) -> None:
+    def _add(self, cloth: Cloth, positions: np.ndarray | None, velocities: np.ndarray | None = None) -> None:
         f = cloth.fabric
         n = f.n_vertices
         vbase = self._alloc(self.vert, self._vertex_arrays(), n)
@@ -196,6 +196,10 @@ class CLWorld(FrameReadback, World):
         self.rec[cloth.handle] = rec
         x = f.rest_positions if positions is None else positions
         self._write_vertices(cloth, rec, x)
+        if velocities is not None:  # protocol 1.3 resume: the velocity buffer is the state (xyz, w unused)
+            v = np.zeros((n, 4), np.float32)
+            v[:, :3] = velocities
+            self.vel.write(rec.vbase, v)
         self._write_tables(cloth, rec)
         self._regroup(cloth, rec)
 

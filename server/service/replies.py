@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
 
 import zenoh
 
@@ -17,18 +17,22 @@ log = logging.getLogger(__name__)
 
 @dataclass(eq=False)
 class Reply:
+    """A reply to send; ``payload`` may be a function making it, so that the tick thread only
+    builds the reply and the publisher thread encodes it."""
+
     query: zenoh.Query
-    payload: bytes
+    payload: bytes | Callable[[], bytes]
     error: bool = False
 
 
 def send(reply: Reply) -> None:
     """Answer a query and let it go."""
     try:
+        payload = reply.payload() if callable(reply.payload) else reply.payload
         if reply.error:
-            reply.query.reply_err(reply.payload)
+            reply.query.reply_err(payload)
         else:
-            reply.query.reply(reply.query.key_expr, reply.payload)
+            reply.query.reply(reply.query.key_expr, payload)
     except Exception as e:
         log.debug("reply failed: %s", e)
     finally:

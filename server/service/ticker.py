@@ -18,6 +18,7 @@ import logging
 import threading
 import time
 from collections import deque
+from functools import partial
 from collections.abc import Callable
 from typing import Any
 
@@ -337,11 +338,11 @@ class Ticker:
                     waiter.pending -= 1
                     if waiter.pending == 0:
                         rep = P.ControlBatchReply(tick, waiter.results, waiter.rid)  # type: ignore[arg-type]
-                        job.before.append(Reply(waiter.query, P.encode_control_batch_reply(rep)))
+                        job.before.append(Reply(waiter.query, partial(P.encode_control_batch_reply, rep)))
                 elif err is None:
                     rid, with_features = tag
                     rep = P.ControlReply(tick, rid, feats if with_features else None)
-                    job.before.append(Reply(waiter, P.encode_control_reply(rep)))
+                    job.before.append(Reply(waiter, partial(P.encode_control_reply, rep)))
                 else:
                     job.before.append(self.replies.error(waiter, err[0], err[1], tag[0]))
         if pins[0]:

@@ -1,4 +1,4 @@
-"""The Drape wire protocol, version 1.2 (see PROTOCOL.md at the repository root).
+"""The Drape wire protocol, version 1.3 (see PROTOCOL.md at the repository root).
 
 Requests and replies are msgpack maps; the per-tick cloth state is a fixed little-endian binary
 layout that any language reads with a struct. This package is the single source of truth for
@@ -20,7 +20,8 @@ both, one module per job:
 Every public name of every module is re-exported here, so ``from drape.client import protocol as P``
 then ``P.<name>`` works for all of them. 1.1 added state bundles and batch control; 1.2 adds
 ``features_add`` / ``features_remove`` in controls, the resulting ``features`` in control replies,
-the ``overloaded`` error code and documented decoding caps (PROTOCOL.md section 15).
+the ``overloaded`` error code and documented decoding caps; 1.3 adds ``resume`` in submissions
+(:class:`ResumeState`: continue a cloth from its last state after a failover; PROTOCOL.md 4.1, 11.1).
 
 It imports only numpy, msgpack and the standard library, so a game client or a tool can use it
 without Zenoh or OpenCL installed.

@@ -63,6 +63,7 @@ from .vocabulary import (
     LinkSpec,
     MeshSpec,
     PinUpdate,
+    ResumeState,
     _empty_u32,
 )
 
@@ -101,7 +102,46 @@ def submit_to_map(req: SubmitRequest) -> dict[str, Any]:
         m["state"] = _state_map(req.state)
     if req.quality is not None:
         m["quality"] = str(req.quality)
+    if req.resume is not None:
+        m["resume"] = resume_to_map(req.resume)
     return m
+
+
+def resume_to_map(rs: ResumeState) -> dict[str, Any]:
+    """1.3: the ``resume`` map of a submission (PROTOCOL.md section 4.1)."""
+    m: dict[str, Any] = {"positions": _blob(rs.positions, "f4")}
+    if rs.velocities is not None:
+        m["velocities"] = _blob(rs.velocities, "f4")
+    if rs.tick is not None:
+        m["tick"] = int(rs.tick)
+    if rs.from_server is not None:
+        m["from_server"] = str(rs.from_server)
+    if rs.cloth is not None:
+        m["cloth"] = str(rs.cloth)
+    return m
+
+
+def _read_resume(r: _Reader, n: int, limits: Limits) -> ResumeState | None:
+    """1.3 ``resume``: positions (and velocities) of exactly ``n`` vertices, finite, positions
+    within max_coordinate and velocities within max_acceleration (m/s)."""
+    rr = r.sub("resume")
+    if rr is None:
+        return None
+    pos = rr.blob("positions", "f4", 3, limits.max_vertices, True)
+    vel = rr.blob("velocities", "f4", 3, limits.max_vertices)
+    assert pos is not None
+    for name, arr in (("positions", pos), ("velocities", vel)):
+        if arr is not None and len(arr) != n:
+            raise r.fail(ERR_INVALID_VALUE, f"'resume.{name}' has {len(arr)} vertices but the cloth has {n}")
+    _check_finite_array(r, "resume.positions", pos, limits.max_coordinate)
+    if vel is not None:
+        _check_finite_array(r, "resume.velocities", vel, limits.max_acceleration)
+    return ResumeState(
+        pos, vel,
+        rr.int_("tick", 0, (1 << 64) - 1),
+        rr.str_("from_server", pattern=ID_RE, what="1-64 characters of [A-Za-z0-9_.-]"),
+        rr.str_("cloth", pattern=ID_RE, what="1-64 characters of [A-Za-z0-9_.-]"),
+    )
 
 
 def encode_submit(req: SubmitRequest) -> bytes:
@@ -187,6 +227,7 @@ def submit_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS) -> Su
         state=_read_state_options(r),
         quality=r.str_("quality", choices=QUALITY_PRESETS),
         rid=rid,
+        resume=_read_resume(r, n, limits),
     )
 
 

@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from .errors import DrapeError, ProtocolError, error_for
-from .vocabulary import FEATURE_NAMES, Collider, GridSpec, LinkSpec, MeshSpec, PinUpdate, StateOptions, Vec3, _empty_u32
+from .vocabulary import FEATURE_NAMES, Collider, GridSpec, LinkSpec, MeshSpec, PinUpdate, ResumeState, StateOptions, Vec3, _empty_u32
 
 
 @dataclass(eq=False)
@@ -31,6 +31,7 @@ class SubmitRequest:
     state: StateOptions | None = None
     quality: str | None = None  # 1.1: a QUALITY_PRESETS name; sets iterations, substeps, xpbd, tethers
     rid: int = 0
+    resume: ResumeState | None = None  # 1.3: start from this state instead of the rest pose
 
     @property
     def n_vertices(self) -> int:

@@ -167,10 +167,15 @@ def schemas() -> dict[str, dict[str, Any]]:
                 ("cols", "rows"))
     mesh = _obj({"vertices": _bin("f32", 3 * L.max_vertices), "triangles": _bin("u32", 3 * L.max_triangles)},
                 ("vertices", "triangles"))
+    resume = _obj({"positions": _bin("f32", 3 * L.max_vertices), "velocities": _nullable(_bin("f32", 3 * L.max_vertices)),
+                   "tick": _nullable(_int(0, U64_MAX)), "from_server": _nullable({"$ref": "#/$defs/id"}),
+                   "cloth": _nullable({"$ref": "#/$defs/id"})}, ("positions",),
+                  description="1.3: continue the cloth from this state (positions within max_coordinate, "
+                              "velocities within max_acceleration m/s, both of the cloth's vertex count, finite)")
     out: dict[str, dict[str, Any]] = {
         "submit": _obj({**_head(), "client": {"$ref": "#/$defs/id"}, "grid": grid, "mesh": mesh,
                         "pinned": _nullable(_bin("u32", L.max_vertices)), "links": _nullable(_obj(link)),
-                        **_solver_fields()}, ("v", "client"),
+                        **_solver_fields(), "resume": _nullable(resume)}, ("v", "client"),
                        oneOf=[{"required": ["grid"]}, {"required": ["mesh"]}]),
         "control": _obj({**_head(), **_control_item()}, ("v", "cloth", "token")),
         "control_batch": _obj({**_head(), "client": {"$ref": "#/$defs/id"},

@@ -178,5 +178,29 @@ class PinUpdate:
         )
 
 
+@dataclass(frozen=True, eq=False)
+class ResumeState:
+    """1.3, submit only: continue a cloth from its last known state instead of its rest pose (a
+    failover to another server, or a resubmission after the cloth was reclaimed). ``positions``
+    (n, 3) float32 metres; ``velocities`` (n, 3) float32 m/s, None = zero; pinned vertices start
+    at ``positions`` (their pin targets there) with zero velocity. ``tick``, ``from_server`` and
+    ``cloth``: where the state came from, informational (logged by the server, never trusted)."""
+
+    positions: np.ndarray
+    velocities: np.ndarray | None = None
+    tick: int | None = None
+    from_server: str | None = None
+    cloth: str | None = None
+
+    def __eq__(self, other: object) -> bool:
+        return (
+            isinstance(other, ResumeState)
+            and np.array_equal(self.positions, other.positions)
+            and (self.velocities is None) == (other.velocities is None)
+            and (self.velocities is None or np.array_equal(self.velocities, other.velocities))
+            and (self.tick, self.from_server, self.cloth) == (other.tick, other.from_server, other.cloth)
+        )
+
+
 def _empty_u32() -> np.ndarray:
     return np.zeros(0, np.uint32)

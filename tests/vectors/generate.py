@@ -25,7 +25,8 @@ from drape.client import protocol as P
 HERE = Path(__file__).resolve().parent
 
 #: bin fields and the little-endian element type of their contents
-BIN_TYPES = {"pinned": "u32", "vertices": "f32", "triangles": "u32", "indices": "u32", "targets": "f32"}
+BIN_TYPES = {"pinned": "u32", "vertices": "f32", "triangles": "u32", "indices": "u32", "targets": "f32",
+             "positions": "f32", "velocities": "f32"}  # 1.3: resume
 INVALID_NOTE = ("Validation only: the verdicts are the decoder's, on the bytes alone. A server then also checks that "
                 "each cloth exists and that the token owns it (not_found, forbidden), which these vectors do not "
                 "exercise: their cloth ids and tokens are placeholders.")
@@ -179,6 +180,19 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
                    P.encode_submit(P.SubmitRequest(client="c1", mesh=P.MeshSpec(quad_v, quad_t),
                                                    pinned=np.array([0], np.uint32),
                                                    state=P.StateOptions(None, "quant16"), rid=2))),
+        msg_vector("submit_resume", "submit", "1.3: a 2x2 grid resubmitted after a failover, continuing from the "
+                   "state of tick 1042 of cloth 5ba88a14c526242f on server s1: positions and velocities of its 4 "
+                   "vertices (vertex 0 pinned: it starts at its given position with zero velocity).",
+                   P.encode_submit(P.SubmitRequest(
+                       client="c1", grid=P.GridSpec(2, 2), pinned=np.array([0], np.uint32), rid=9,
+                       resume=P.ResumeState(
+                           np.array([[0, 1, 0], [1, 0.75, 0.25], [0, 0.5, 1], [1, 0.25, 1]], np.float32),
+                           np.array([[0, 0, 0], [0.5, -1, 0], [0, -1.5, 0.25], [0.5, -2, 0]], np.float32),
+                           1042, "s1", CLOTH)))),
+        msg_vector("submit_resume_positions", "submit", "1.3: the least resume: positions only (velocities zero).",
+                   P.encode_submit(P.SubmitRequest(
+                       client="c1", grid=P.GridSpec(2, 1),
+                       resume=P.ResumeState(np.array([[0, 2, 0], [1, 2, 0]], np.float32))))),
     ]
     control = [
         msg_vector("control_full", "control", "Pins, colliders, gravity, wind, material, features, iterations, "
@@ -329,6 +343,27 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
                                           "features": ["wind"] * (P.MAX_ARRAY_LENGTH + 1)}), "submit", "malformed"),
         ("ext_type", msgpack.packb({"v": [1, 2], "client": "c1", "x": msgpack.ExtType(1, b"z")}), "submit",
          "malformed"),
+    ]
+    grid22 = {"v": [1, 3], "client": "c1", "grid": {"cols": 2, "rows": 2}}
+    four = np.zeros((4, 3), "<f4")
+    bad_cases += [
+        ("resume_wrong_count", msgpack.packb({**grid22, "resume": {"positions": np.zeros((3, 3), "<f4").tobytes()}},
+                                             use_bin_type=True), "submit", "invalid_value"),
+        ("resume_velocities_wrong_count", msgpack.packb({**grid22, "resume": {
+            "positions": four.tobytes(), "velocities": np.zeros((5, 3), "<f4").tobytes()}}, use_bin_type=True),
+         "submit", "invalid_value"),
+        ("resume_nan", msgpack.packb({**grid22, "resume": {"positions": np.array(
+            [[0, 0, 0], [1, 0, 0], [0, np.nan, 1], [1, 0, 1]], "<f4").tobytes()}}, use_bin_type=True),
+         "submit", "invalid_value"),
+        ("resume_out_of_bounds", msgpack.packb({**grid22, "resume": {"positions": np.array(
+            [[0, 0, 0], [1, 0, 0], [0, 0, 1], [2e5, 0, 1]], "<f4").tobytes()}}, use_bin_type=True),
+         "submit", "invalid_value"),
+        ("resume_velocity_too_fast", msgpack.packb({**grid22, "resume": {
+            "positions": four.tobytes(), "velocities": np.full((4, 3), 2e4, "<f4").tobytes()}}, use_bin_type=True),
+         "submit", "invalid_value"),
+        ("resume_no_positions", msgpack.packb({**grid22, "resume": {"tick": 5}}), "submit", "missing_field"),
+        ("resume_positions_not_bin", msgpack.packb({**grid22, "resume": {"positions": [0.0] * 12}}), "submit",
+         "invalid_type"),
     ]
     invalid = [{"name": n, "message": m, "hex": d.hex(), "error": code} for n, d, m, code in bad_cases]
     # A batch whose envelope is valid: each item stands alone, only the bad ones are refused.

@@ -37,6 +37,7 @@ import numpy as np
 import zenoh
 
 from . import protocol as P
+from .failover import Failover, FailoverCallback, FailoverEvent  # noqa: F401  (re-exported)
 from .protocol import ClothState, DrapeError, Unavailable
 from .session import zenoh_config  # noqa: F401  (drape.client.sdk.zenoh_config, the pre-1.2 path)
 
@@ -75,8 +76,20 @@ class ClothHandle:
         rest_positions: np.ndarray | None = None,
         triangles: np.ndarray | None = None,
         queue_size: int = 64,
+        server_id: str = "",
+        request: P.SubmitRequest | None = None,
     ) -> None:
         self.client = client
+        self.server_id = server_id  # the server holding the cloth now (failover may change it)
+        self.request = request  # the submission as sent (what a failover resubmits)
+        self.lost = False  # a failover is under way
+        self.failovers = 0
+        self.last_receipt = time.monotonic()  # of the last state (or of the submit reply)
+        self.last_probe = 0.0
+        self._prev: ClothState | None = None  # the state before ``_latest`` (velocities for a failover)
+        self._fresh = False  # rebound by a failover: the next state starts a new tick sequence
+        self._last_pins: dict[int, np.ndarray] = {}  # pinned vertex -> the last target sent
+        self._last_colliders: tuple[P.Collider, ...] | None = None
         self.id = reply.cloth
         self.token = reply.token
         self.key = reply.key
@@ -126,7 +139,9 @@ class ClothHandle:
             with self._cond:
                 if self.closed:
                     return
-                self._latest = st
+                self._prev, self._latest = (None if self._fresh else self._latest), st
+                self._fresh = False
+                self.last_receipt = time.monotonic()
                 if len(self._queue) == self._queue.maxlen:
                     self.dropped += 1
                 self._queue.append(st)
@@ -138,6 +153,55 @@ class ClothHandle:
                     cb(st)
                 except Exception:
                     log.exception("cloth %s: on_state callback failed", self.id)
+
+    def last_states(self) -> tuple[ClothState | None, ClothState | None]:
+        """The last two states received from the cloth's current server (older, newer; the older
+        None when there is only one): what a failover resumes from."""
+        with self._cond:
+            return (None if self._fresh else self._prev), self._latest
+
+    def _rebind(self, reply: P.SubmitReply, server: str) -> None:
+        """Failover: the cloth lives on as ``reply.cloth`` on ``server``; states keep flowing to
+        this handle (its queue, callbacks and iterators)."""
+        old_sub = None
+        with self._cond:
+            old_sub, self._sub = self._sub, None
+            self.id, self.token, self.key = reply.cloth, reply.token, reply.key
+            self.bundle_key = reply.bundle_key
+            self.first_tick = reply.tick
+            self.server_id = server
+            self.last_receipt = time.monotonic()
+            self._fresh = True
+        if old_sub is not None:
+            try:
+                old_sub.undeclare()
+            except Exception:
+                pass
+        if self.bundle_key is None:
+            self._sub = self.client.session.declare_subscriber(self.key, self._on_sample)
+
+    def _note_controls(self, changes: dict[str, Any]) -> None:
+        """Remember the last pin targets and colliders sent (a failover sends them again)."""
+        pins = changes.get("pins")
+        if pins is not None:
+            for i, t in zip(pins.indices.tolist(), np.asarray(pins.targets, np.float32).reshape(-1, 3), strict=True):
+                self._last_pins[i] = t
+        if changes.get("colliders") is not None:
+            self._last_colliders = changes["colliders"]
+        if changes.get("reset"):
+            self._last_pins.clear()
+
+    def _resend_controls(self) -> None:
+        """After a failover: the last pin targets and colliders, again (not waited for)."""
+        changes: dict[str, Any] = {}
+        if self._last_pins:
+            idx = np.fromiter(self._last_pins, np.uint32, len(self._last_pins))
+            changes["pins"] = P.PinUpdate(idx, np.stack(list(self._last_pins.values())).astype(np.float32))
+        if self._last_colliders is not None:
+            changes["colliders"] = self._last_colliders
+        if changes:
+            req = P.ControlRequest(self.id, self.token, rid=self.client._next_rid(), **changes)
+            self.client.send("control", P.encode_control(req), server=self.server_id)
 
     def on_state(self, callback: StateCallback) -> Callable[[], None]:
         """Call ``callback(state)`` for every state (on a Zenoh thread). Returns an unsubscribe function."""
@@ -243,10 +307,17 @@ class ClothHandle:
         self._check_open()
         req = P.ControlRequest(self.id, self.token, rid=self.client._next_rid(), **changes)
         self.client._require_features_delta((req,))
+        self._note_controls(changes)
         if not wait:
-            self.client.send("control", P.encode_control(req))
+            self.client.send("control", P.encode_control(req), self.client._watch_not_found(self, None),
+                             server=self.server_id)
             return None
-        rep = P.control_reply_from_map(self.client.request("control", P.encode_control(req)))
+        try:
+            rep = P.control_reply_from_map(self.client.request("control", P.encode_control(req),
+                                                               server=self.server_id))
+        except P.NotFound:
+            self.client._cloth_not_found(self)
+            raise
         if rep.features is not None:  # 1.2 servers report the feature set after the change
             self.features = rep.features
         return rep.tick
@@ -259,7 +330,7 @@ class ClothHandle:
         try:
             rep = self.client.request("remove", P.encode_remove(P.RemoveRequest(self.id, self.token,
                                                                                 self.client._next_rid())),
-                                      timeout=timeout)
+                                      timeout=timeout, server=self.server_id)
             last: int | None = P.tick_reply_from_map(rep)
         except (P.NotFound, Unavailable):
             last = None
@@ -316,6 +387,8 @@ class DrapeClient:
         multicast_scouting: bool = False,
         zenoh_config_file: str | None = None,
         queue_size: int = 64,
+        failover: bool = False,
+        stall_timeout: float = 0.5,
     ) -> None:
         if connect is None:
             connect = [P.DEFAULT_ENDPOINT]
@@ -343,12 +416,15 @@ class DrapeClient:
         self._orphans: dict[str, list[ClothState]] = {}  # their states that arrived before the reply
         self._server_version: tuple[int, int] | None = None
         self._max_batch_items = P.DEFAULT_LIMITS.max_batch_items
+        self._failover: Failover | None = None
         self.session: zenoh.Session = zenoh.open(
             zenoh_config(mode, listen, list(connect), multicast_scouting, zenoh_config_file)
         )
         lv = self.session.liveliness()
         self._server_watch = lv.declare_subscriber(self.keys.all_servers_alive, self._on_server, history=True)
         self._token = lv.declare_token(self.keys.alive_client(self.client_id))
+        # failover=True: cloths survive the loss of their server (client/failover.py, PROTOCOL.md 11.1)
+        self._failover: Failover | None = Failover(self, stall_timeout=stall_timeout) if failover else None
         log.debug("drape client %s connected to %s", self.client_id, list(connect))
 
     # --- session ------------------------------------------------------------------------------
@@ -370,6 +446,8 @@ class DrapeClient:
                 except DrapeError as e:
                     log.debug("removing %s on close: %s", h.id, e)
         self._closed = True
+        if self._failover is not None:
+            self._failover.close()
         for obj in (self._bundle_sub, self._token, self._server_watch):
             if obj is None:
                 continue
@@ -392,8 +470,13 @@ class DrapeClient:
                 self._servers_cond.notify_all()
             else:
                 self._servers.discard(sid)
-                if sid == self._server_id:
-                    gone = list(self._handles.values())
+                gone = [h for h in self._handles.values() if h.server_id == sid]
+        if self._failover is not None:
+            if gone:
+                self._failover.server_lost(sid)
+            else:
+                self._failover.wake()
+            return
         for h in gone:
             h._close(f"server {sid} went away")
 
@@ -412,6 +495,55 @@ class DrapeClient:
                 self._server_id = found[0]
         return self._server_id
 
+    def live_servers(self) -> list[str]:
+        """Ids of the servers whose liveliness tokens this client currently sees (its watch)."""
+        with self._lock:
+            return sorted(self._servers)
+
+    @property
+    def failover(self) -> bool:
+        """Whether this client fails its cloths over when their server is lost."""
+        return self._failover is not None
+
+    def on_failover(self, callback: FailoverCallback) -> Callable[[], None]:
+        """Call ``callback(FailoverEvent)`` once per cloth failed over (or lost for good), on the
+        failover thread. Needs ``failover=True``. Returns an unsubscribe function."""
+        if self._failover is None:
+            raise ValueError("this DrapeClient was created with failover=False")
+        return self._failover.on_failover(callback)
+
+    @property
+    def failover_events(self) -> list[FailoverEvent]:
+        """Every failover so far, in order (empty without failover)."""
+        return list(self._failover.events) if self._failover is not None else []
+
+    def _handles_on(self, server: str) -> list[ClothHandle]:
+        with self._lock:
+            return [h for h in self._handles.values() if h.server_id == server]
+
+    def _open_handles(self) -> list[ClothHandle]:
+        with self._lock:
+            return list(self._handles.values())
+
+    def _cloth_not_found(self, h: ClothHandle) -> None:
+        """A control of ``h`` was answered not_found: reclaimed (or its server restarted)."""
+        if self._failover is not None and not h.closed:
+            self._failover.cloth_lost(h, "reclaimed")
+
+    def _watch_not_found(self, h: ClothHandle, on_error: ErrorCallback | None) -> ErrorCallback | None:
+        if self._failover is None:
+            return on_error
+
+        def cb(err: DrapeError) -> None:
+            if isinstance(err, P.NotFound):
+                self._cloth_not_found(h)
+            if on_error is not None:
+                on_error(err)
+            else:
+                log.warning("request failed: %s", err)
+
+        return cb
+
     def servers(self, timeout: float = 1.0) -> list[str]:
         """Ids of the servers whose liveliness tokens are visible now."""
         replies = self.session.liveliness().get(self.keys.all_servers_alive, timeout=timeout)
@@ -422,7 +554,8 @@ class DrapeClient:
 
     def _forget(self, handle: ClothHandle) -> None:
         with self._lock:
-            self._handles.pop(handle.id, None)
+            if self._handles.get(handle.id) is handle:
+                del self._handles[handle.id]
 
     # --- bundles (protocol 1.1) -------------------------------------------------------------------
     @property
@@ -473,13 +606,15 @@ class DrapeClient:
             h._deliver(st)
 
     # --- requests -----------------------------------------------------------------------------
-    def request(self, kind: str, payload: bytes | bytearray, timeout: float | None = None) -> dict[str, Any]:
-        """Send a raw request payload to the server's ``kind`` queryable (submit, control,
-        remove, info) and return the success reply's map; raises the DrapeError subclass of
-        an error reply, or Unavailable when no server answers in time."""
+    def request(self, kind: str, payload: bytes | bytearray, timeout: float | None = None,
+                server: str | None = None) -> dict[str, Any]:
+        """Send a raw request payload to the ``kind`` queryable (submit, control, remove, info)
+        of ``server`` (default: this client's server) and return the success reply's map;
+        raises the DrapeError subclass of an error reply, or Unavailable when no server answers
+        in time."""
         if self._closed:
             raise DrapeError(P.ERR_UNAVAILABLE, "client is closed")
-        key = getattr(self.keys, kind)(self.server_id)
+        key = getattr(self.keys, kind)(server or self.server_id)
         timeout = self.timeout if timeout is None else timeout
         deadline = time.monotonic() + timeout
         while True:
@@ -504,14 +639,15 @@ class DrapeClient:
             raise Unavailable(P.ERR_UNAVAILABLE, f"no reply from {key} within {timeout} s")
 
     def send(self, kind: str, payload: bytes | bytearray, on_error: Callable[[DrapeError], None] | None = None,
-             timeout: float | None = None, on_ok: Callable[[dict[str, Any]], None] | None = None) -> None:
+             timeout: float | None = None, on_ok: Callable[[dict[str, Any]], None] | None = None,
+             server: str | None = None) -> None:
         """Send a request without waiting for its reply (what a game does with per-tick pin
         updates): the reply is read on a Zenoh thread; an error reply or no reply at all is
         counted in ``send_errors`` and handed to ``on_error`` (default: logged). ``on_ok``, if
         given, gets a success reply's map (on the Zenoh thread)."""
         if self._closed:
             raise DrapeError(P.ERR_UNAVAILABLE, "client is closed")
-        key = getattr(self.keys, kind)(self.server_id)
+        key = getattr(self.keys, kind)(server or self.server_id)
         answered = []
 
         def on_reply(reply: zenoh.Reply) -> None:
@@ -614,19 +750,35 @@ class DrapeClient:
                        on_error: ErrorCallback | None, timeout: float | None) -> list[int | DrapeError] | None:
         if not items:
             return [] if wait else None
+        servers = {h.server_id for h, _ in items}
+        if len(servers) > 1:  # after a failover a client's cloths may live on several servers
+            order: dict[str, list[int]] = {}
+            for i, (h, _) in enumerate(items):
+                order.setdefault(h.server_id, []).append(i)
+            merged: list[int | DrapeError | None] = [None] * len(items)
+            for idx in order.values():
+                part = self._send_controls([items[i] for i in idx], wait, on_error, timeout)
+                for i, r in zip(idx, part or (), strict=False):
+                    merged[i] = r
+            return merged if wait else None  # type: ignore[return-value]
+        server = items[0][0].server_id or None
         self._require_features_delta(r for _, r in items)
         limit = self._server_batch_limit()
         if not limit:  # a 1.0 server: one control per item
             log.debug("server speaks %s: batch sent as %d controls", self._server_version, len(items))
             out: list[int | DrapeError] = []
-            for _, req in items:
+            for h, req in items:
                 if wait:
                     try:
-                        out.append(P.tick_reply_from_map(self.request("control", P.encode_control(req), timeout)))
+                        out.append(P.tick_reply_from_map(self.request("control", P.encode_control(req), timeout,
+                                                                      server=server)))
                     except DrapeError as e:
+                        if isinstance(e, P.NotFound):
+                            self._cloth_not_found(h)
                         out.append(e)
                 else:
-                    self.send("control", P.encode_control(req), on_error, timeout)
+                    self.send("control", P.encode_control(req), self._watch_not_found(h, on_error), timeout,
+                              server=server)
             return out if wait else None
         results: list[int | DrapeError] = []
         for start in range(0, len(items), limit):
@@ -634,19 +786,26 @@ class DrapeClient:
             rid = self._next_rid()
             payload = P.encode_control_batch(P.ControlBatchRequest(self.client_id, [r for _, r in chunk], rid))
             if wait:
-                rep = P.control_batch_reply_from_map(self.request("control_batch", payload, timeout))
-                results.extend(_item_outcomes(chunk, rep, rid))
+                rep = P.control_batch_reply_from_map(self.request("control_batch", payload, timeout, server=server))
+                outcomes = _item_outcomes(chunk, rep, rid)
+                for (h, _), r in zip(chunk, outcomes, strict=True):
+                    if isinstance(r, P.NotFound):
+                        self._cloth_not_found(h)
+                results.extend(outcomes)
             else:
                 self.send("control_batch", payload, on_error, timeout,
-                          on_ok=lambda m, chunk=chunk, rid=rid: self._batch_replied(chunk, m, rid, on_error))
+                          on_ok=lambda m, chunk=chunk, rid=rid: self._batch_replied(chunk, m, rid, on_error),
+                          server=server)
         return results if wait else None
 
     def _batch_replied(self, chunk: list[tuple[ClothHandle, P.ControlRequest]], m: dict[str, Any], rid: int,
                        on_error: ErrorCallback | None) -> None:
         rep = P.control_batch_reply_from_map(m)
         if rep.failed:
-            for r in _item_outcomes(chunk, rep, rid):
+            for (h, _), r in zip(chunk, _item_outcomes(chunk, rep, rid), strict=True):
                 if isinstance(r, DrapeError):
+                    if isinstance(r, P.NotFound):
+                        self._cloth_not_found(h)
                     self._send_failed(r, on_error)
 
     def info(self, timeout: float | None = None) -> dict[str, Any]:
@@ -677,19 +836,36 @@ class DrapeClient:
         """Send a SubmitRequest as is and subscribe to the new cloth's state (with
         ``req.state.bundle``: to this client's bundle, once for all its bundled cloths; a 1.0
         server ignores the option and the handle subscribes to the cloth's own key)."""
+        server = self.server_id
+        return self._place(None, req, server, timeout, lambda rep: ClothHandle(
+            self, rep, rest_positions, triangles, queue_size or self.queue_size, server, req))
+
+    def _place(self, h: ClothHandle | None, req: P.SubmitRequest, server: str, timeout: float | None = None,
+               make: Callable[[P.SubmitReply], ClothHandle] | None = None) -> ClothHandle:
+        """Submit ``req`` to ``server``: a new handle (``make``), or, in a failover, the cloth of
+        the existing handle ``h`` continued under the new reply's id."""
         bundled = bool(req.state is not None and req.state.bundle)
         if bundled:
             self._ensure_bundle_subscriber()
             with self._lock:
                 self._bundled_submits += 1
         try:
-            rep = P.submit_reply_from_map(self.request("submit", P.encode_submit(req), timeout))
+            rep = P.submit_reply_from_map(self.request("submit", P.encode_submit(req), timeout, server=server))
             if bundled and rep.bundle_key is None:
-                log.info("server %s does not bundle states (protocol 1.0): cloth %s on its own key", self.server_id,
+                log.info("server %s does not bundle states (protocol 1.0): cloth %s on its own key", server,
                          rep.cloth)
-            h = ClothHandle(self, rep, rest_positions, triangles, queue_size or self.queue_size)
+            old_id = None
+            if h is None:
+                assert make is not None
+                h = make(rep)
+            else:
+                old_id = h.id
             with h._deliver_lock:  # states of the bundle reach the handle only after these
+                if old_id is not None:
+                    h._rebind(rep, server)
                 with self._lock:
+                    if old_id is not None and self._handles.get(old_id) is h:
+                        del self._handles[old_id]
                     self._handles[h.id] = h
                     early = self._orphans.pop(h.id, []) if bundled else []
                 for st in early:
@@ -815,6 +991,7 @@ class ControlBatch:
         if handle.client is not self.client:
             raise ValueError(f"cloth {handle.id} belongs to another DrapeClient")
         handle._check_open()
+        handle._note_controls(changes)
         self.items.append((handle, P.ControlRequest(handle.id, handle.token, **changes)))
         return self
 

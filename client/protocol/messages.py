@@ -8,7 +8,18 @@ from typing import Any
 import numpy as np
 
 from .errors import DrapeError, ProtocolError, error_for
-from .vocabulary import FEATURE_NAMES, Collider, GridSpec, LinkSpec, MeshSpec, PinUpdate, ResumeState, StateOptions, Vec3, _empty_u32
+from .vocabulary import (
+    FEATURE_NAMES,
+    Collider,
+    GridSpec,
+    LinkSpec,
+    MeshSpec,
+    PinUpdate,
+    ResumeState,
+    StateOptions,
+    Vec3,
+    _empty_u32,
+)
 
 
 @dataclass(eq=False)

@@ -167,7 +167,8 @@ def schemas() -> dict[str, dict[str, Any]]:
                 ("cols", "rows"))
     mesh = _obj({"vertices": _bin("f32", 3 * L.max_vertices), "triangles": _bin("u32", 3 * L.max_triangles)},
                 ("vertices", "triangles"))
-    resume = _obj({"positions": _bin("f32", 3 * L.max_vertices), "velocities": _nullable(_bin("f32", 3 * L.max_vertices)),
+    resume = _obj({"positions": _bin("f32", 3 * L.max_vertices),
+                   "velocities": _nullable(_bin("f32", 3 * L.max_vertices)),
                    "tick": _nullable(_int(0, U64_MAX)), "from_server": _nullable({"$ref": "#/$defs/id"}),
                    "cloth": _nullable({"$ref": "#/$defs/id"})}, ("positions",),
                   description="1.3: continue the cloth from this state (positions within max_coordinate, "

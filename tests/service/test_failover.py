@@ -5,6 +5,11 @@ state; a client whose cloths were reclaimed while it was away gets them back whe
 Real Zenoh sessions on loopback, real ``drape serve`` processes, PoCL's CPU OpenCL."""
 from __future__ import annotations
 
+import signal
+import subprocess
+import sys
+import time
+
 import numpy as np
 import pytest
 
@@ -62,3 +67,157 @@ def test_staged_state_applies_to_its_params_only(device):
     h3 = world.add(fab, p1)  # consumed once
     assert np.allclose(world.state(h1).x, x0)
     assert np.allclose(world.state(h2).x, fab.rest_positions) and np.allclose(world.state(h3).x, fab.rest_positions)
+
+
+# ---------------------------------------------------------------------------------------------
+# End to end: real `drape serve` processes, the SDK with failover=True
+
+SERVER_WAIT = 90.0  # a drape serve starting (OpenCL warm-up) on a loaded CI machine
+EVENT_WAIT = 30.0  # generous: the loaded CI machine
+
+
+class Serve:
+    """One ``drape serve`` child process on its own port (stopped by ``stop``; ``kill`` = SIGKILL)."""
+
+    def __init__(self, tmp_path, name: str, port: int | None = None, extra: tuple[str, ...] = ()) -> None:
+        from drape.server.tools.procs import free_port
+
+        self.port = port or free_port()
+        self.endpoint = f"tcp/127.0.0.1:{self.port}"
+        self.server_id = name
+        self.log = open(tmp_path / f"{name}-{self.port}.log", "w")  # noqa: SIM115 (closed in stop)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "drape.server.cli", "serve", "--listen", self.endpoint, "--server-id", name,
+             "--grace-period", "1", "--stats-period", "0.25", "--no-admission", "--device", "cpu", *extra],
+            stdout=self.log, stderr=subprocess.STDOUT)
+
+    def kill(self) -> None:
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait(30)
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(30)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(10)
+        self.log.close()
+
+
+@pytest.fixture
+def two_servers(tmp_path):
+    servers = [Serve(tmp_path, "fo-a"), Serve(tmp_path, "fo-b")]
+    try:
+        yield servers
+    finally:
+        for s in servers:
+            s.stop()
+
+
+def _wait(pred, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(0.05)
+    return pred()
+
+
+def _client(servers, server_id: str, **kw):
+    from drape.client import DrapeClient
+
+    c = DrapeClient([s.endpoint for s in servers], server_id=server_id, timeout=10.0, failover=True, **kw)
+    assert _wait(lambda: {s.server_id for s in servers} <= set(c.live_servers()), SERVER_WAIT), \
+        f"servers not up: {c.live_servers()}"
+    return c
+
+
+def _settle(handles, n: int = 30) -> None:
+    """Consume ``n`` states of each (the submit's first states may be close to the reply)."""
+    for h in handles:
+        for _ in range(n):
+            h.next_state(EVENT_WAIT)
+
+
+def test_kill_9_fails_every_cloth_over_under_the_same_handle(two_servers):
+    """SIGKILL of server A: every cloth comes back on B under the same handle, its first state
+    within 1 cm of the last one received from A (a slow cloth: damped, hanging still) and with
+    continuous velocity; states keep arriving; bundled cloths too; pins re-sent."""
+    a, b = two_servers
+    with _client(two_servers, a.server_id) as client:
+        events = []
+        client.on_failover(events.append)
+        handles = [client.submit_grid(6, 6, 0.5, 0.5, orientation="vertical", origin=(1.0 * j, 2.0, 0.0),
+                                      pinned=[0, 5], material={"damping": 0.2}, bundle=(j % 2 == 1))
+                   for j in range(4)]
+        handles[0].move_pins([0, 5], [[0.0, 2.0, 0.0], [0.5, 2.0, 0.0]], wait=True)
+        _settle(handles, 120)  # 2 s: hanging nearly still
+        assert all(h.server_id == a.server_id for h in handles)
+        before = {id(h): h.last_states() for h in handles}
+        old_ids = {id(h): h.id for h in handles}
+        for h in handles:
+            h.clear()
+        a.kill()
+        assert _wait(lambda: len(events) >= len(handles), EVENT_WAIT), f"{len(events)} failover events"
+        assert all(e.ok and not e.kept and e.new_server == b.server_id for e in events), events
+        assert {e.handle for e in events} == set(handles)
+        for h in handles:
+            assert h.server_id == b.server_id and h.id != old_ids[id(h)] and not h.closed and not h.lost
+            prev, last = before[id(h)]
+            first = h.next_state(EVENT_WAIT)  # the first state from B (A's stale ones were cleared)
+            while first.cloth != h.id:
+                first = h.next_state(EVENT_WAIT)
+            assert np.isfinite(first.positions).all()
+            jump = float(np.linalg.norm(first.positions - last.positions, axis=1).max())
+            assert jump < 0.01, f"cloth {h.id}: first state after failover {jump * 100:.2f} cm from the last before"
+            second = h.next_state(EVENT_WAIT)
+            v_before = (last.positions - prev.positions) * 60.0 / (last.tick - prev.tick)
+            v_after = (second.positions - first.positions) * 60.0 / (second.tick - first.tick)
+            assert float(np.abs(v_after - v_before).max()) < 0.5, "velocity not continuous"
+            _settle([h], 30)  # states keep arriving
+        assert np.allclose(handles[0].latest().positions[[0, 5]], [[0.0, 2.0, 0.0], [0.5, 2.0, 0.0]], atol=1e-5)
+        assert handles[0].move_pins([0, 5], [[0.0, 2.1, 0.0], [0.5, 2.1, 0.0]]) is not None  # controls go to B
+
+
+def test_reclaimed_cloths_come_back_when_the_client_returns(tmp_path):
+    """A client away longer than lease + grace (its liveliness withdrawn, as the server sees a
+    SIGSTOPped client): the server reclaims its cloths; when the client is back, the stalled
+    states are probed, answered not_found, and every cloth is resubmitted from its last state."""
+    from drape.client import DrapeClient
+
+    srv = Serve(tmp_path, "fo-pause")
+    try:
+        with _client([srv], srv.server_id) as client, \
+                DrapeClient(srv.endpoint, server_id=srv.server_id, timeout=10.0) as watcher:
+            stats = []
+            watcher.on_stats(stats.append)
+            events = []
+            client.on_failover(events.append)
+            handles = [client.submit_grid(5, 5, 0.5, 0.5, orientation="vertical", origin=(j, 1.0, 0.0), pinned=[0, 4],
+                                          material={"damping": 0.2})
+                       for j in range(3)]
+            _settle(handles, 60)
+            # away: the failover thread stops (as the whole process would) and the token goes
+            client._failover.pause()
+            client._token.undeclare()
+            assert _wait(lambda: any(s.get("reclaimed", 0) >= len(handles) for s in stats), EVENT_WAIT), \
+                "the server should reclaim the absent client's cloths"
+            last = {id(h): h.latest() for h in handles}  # the last states before the reclaim
+            for h in handles:
+                h.clear()
+            client._token = client.session.liveliness().declare_token(client.keys.alive_client(client.client_id))
+            t_back = time.monotonic()
+            client._failover.resume()
+            assert _wait(lambda: len(events) >= len(handles), EVENT_WAIT), f"{len(events)} failover events"
+            assert all(e.ok and e.reason == "reclaimed" and e.new_server == srv.server_id for e in events), events
+            for h in handles:
+                first = h.next_state(EVENT_WAIT)
+                assert first.cloth == h.id and np.isfinite(first.positions).all()
+                jump = float(np.linalg.norm(first.positions - last[id(h)].positions, axis=1).max())
+                assert jump < 0.01, f"first state after the resubmission {jump * 100:.2f} cm from the last before"
+            back_s = max(e.done_ns for e in events) / 1e9 - t_back
+            print(f"cloths back {back_s:.2f} s after the client returned")
+    finally:
+        srv.stop()

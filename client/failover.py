@@ -1,0 +1,321 @@
+"""Failover of the Python SDK (PROTOCOL.md section 11.1): a DrapeClient created with
+``failover=True`` keeps every cloth it submitted alive across the loss of its server.
+
+Detection, on Zenoh threads: the server's liveliness token disappears (``DrapeClient._on_server``
+calls :meth:`Failover.server_lost`), or a cloth's states stall and a probe (an empty control)
+is answered ``not_found`` (the server reclaimed it while this client was paused or cut off), or
+a control of the game is answered ``not_found``.
+
+Recovery, on this module's one worker thread: for each lost cloth, if its own server is live
+again (a restart under the same id, or this client's own link came back) the cloth is probed
+there first and kept when it still exists; otherwise it is resubmitted, with ``resume`` (its last
+received positions and the velocities of its last two states), to the least loaded live server
+by the servers' stats publications (fewest vertices, then lowest mean tick cost; not round
+robin), under the same :class:`~drape.client.sdk.ClothHandle`: its ``id``, ``token``, ``key`` and
+``server_id`` change, its queue, callbacks and ``states()`` iterator carry on. The last pin
+targets and colliders the game sent are sent again right after. ``on_failover`` callbacks get a
+:class:`FailoverEvent` per cloth.
+
+Per state, the handle only keeps references to the last two decoded states (no copies, no
+per-vertex Python).
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import zenoh
+
+from . import protocol as P
+from .protocol import DrapeError
+
+if TYPE_CHECKING:
+    from .sdk import ClothHandle, DrapeClient
+
+log = logging.getLogger(__name__)
+
+DEFAULT_TICK_RATE = 60.0  # Hz, when the lost server's stats never said
+
+
+@dataclass(frozen=True)
+class FailoverEvent:
+    """One cloth's failover: ``reason`` is ``server_lost`` or ``reclaimed``; on success
+    ``new_cloth`` / ``new_server`` name where it lives now (``kept``: it was still there) and
+    ``resumed_tick`` the tick of the state it continued from (None: started from its rest pose,
+    no state had been received); on failure ``error`` says why and the handle is closed.
+    ``detected_ns`` / ``done_ns``: time.monotonic_ns() of the detection and of the new reply."""
+
+    handle: ClothHandle
+    reason: str
+    old_cloth: str
+    old_server: str
+    new_cloth: str | None = None
+    new_server: str | None = None
+    resumed_tick: int | None = None
+    kept: bool = False
+    error: DrapeError | None = None
+    detected_ns: int = 0
+    done_ns: int = 0
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+
+FailoverCallback = Callable[[FailoverEvent], None]
+
+
+def resume_from(states: tuple[Any, Any], from_server: str, cloth: str, tick_rate: float) -> P.ResumeState | None:
+    """The ``resume`` of a resubmission from a handle's last two states (older, newer): positions
+    of the newer; velocities (x_k - x_{k-1}) / (dt (t_k - t_{k-1})) when both exist and are finite.
+    None when no finite state was received (the cloth then starts from its rest pose)."""
+    prev, last = states
+    if last is None or not np.isfinite(last.positions).all():
+        return None
+    pos = np.ascontiguousarray(last.positions, np.float32)
+    vel = None
+    if prev is not None and prev.tick < last.tick and np.isfinite(prev.positions).all():
+        dt = (last.tick - prev.tick) / tick_rate
+        bound = P.DEFAULT_LIMITS.max_acceleration
+        vel = np.clip((last.positions.astype(np.float64) - prev.positions) / dt, -bound, bound).astype(np.float32)
+    return P.ResumeState(pos, vel, int(last.tick), from_server, cloth)
+
+
+class Failover:
+    """The failover worker of one DrapeClient (see the module docstring)."""
+
+    def __init__(self, client: DrapeClient, *, stall_timeout: float = 0.5, give_up_after: float = 60.0) -> None:
+        self.client = client
+        self.stall_timeout = stall_timeout  # no state for this long: probe the cloth
+        self.give_up_after = give_up_after  # no live server for this long: close the handle
+        self.events: list[FailoverEvent] = []
+        self._callbacks: list[FailoverCallback] = []
+        self._cond = threading.Condition()
+        self._lost: dict[int, tuple[ClothHandle, str, str, int]] = {}  # id(handle) -> (handle, server, reason, t)
+        self._stats: dict[str, dict[str, Any]] = {}
+        self._closed = False
+        self._paused = False
+        self._stats_sub = client.session.declare_subscriber(client.keys.stats("*"), self._on_stats)
+        self._thread = threading.Thread(target=self._run, name="drape-failover", daemon=True)
+        self._thread.start()
+
+    # --- inputs (Zenoh threads) -------------------------------------------------------------
+    def _on_stats(self, sample: zenoh.Sample) -> None:
+        try:
+            st = P.decode_stats(sample.payload.to_bytes())
+        except Exception:
+            return
+        sid = str(st.get("server") or str(sample.key_expr).split("/")[-2])
+        with self._cond:
+            self._stats[sid] = st
+
+    def server_lost(self, server: str) -> None:
+        """The liveliness token of ``server`` vanished: every cloth on it is lost."""
+        for h in self.client._handles_on(server):
+            self.cloth_lost(h, "server_lost")
+
+    def cloth_lost(self, h: ClothHandle, reason: str) -> None:
+        with self._cond:
+            if h.closed or id(h) in self._lost:
+                return
+            h.lost = True
+            self._lost[id(h)] = (h, h.server_id, reason, time.monotonic_ns())
+            self._cond.notify_all()
+        log.info("cloth %s on server %s lost (%s): failing over", h.id, h.server_id, reason)
+
+    def pause(self) -> None:
+        """Stop acting (detections are still recorded) until :meth:`resume`: what a suspended
+        process does; tests use it to stand for a SIGSTOP."""
+        with self._cond:
+            self._paused = True
+
+    def resume(self) -> None:
+        with self._cond:
+            self._paused = False
+            self._cond.notify_all()
+
+    def wake(self) -> None:
+        with self._cond:
+            self._cond.notify_all()
+
+    def on_failover(self, callback: FailoverCallback) -> Callable[[], None]:
+        with self._cond:
+            self._callbacks.append(callback)
+
+        def cancel() -> None:
+            with self._cond:
+                if callback in self._callbacks:
+                    self._callbacks.remove(callback)
+
+        return cancel
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+        try:
+            self._stats_sub.undeclare()
+        except Exception:
+            pass
+        if threading.current_thread() is not self._thread:
+            self._thread.join(timeout=5.0)
+
+    # --- choice of a server ------------------------------------------------------------------
+    def load(self, server: str) -> tuple[float, float]:
+        """A server's load from its last stats: (vertices, mean tick cost in ms); unknown = high."""
+        with self._cond:
+            st = self._stats.get(server)
+        if st is None:
+            return (float("inf"), float("inf"))
+        tick = ((st.get("phases") or {}).get("tick") or {}).get("mean_ms") or 0.0
+        return (float(st.get("vertices") or 0), float(tick))
+
+    def pick(self, exclude: set[str], extra: dict[str, int]) -> str | None:
+        """The least loaded live server not in ``exclude`` (``extra``: vertices this failover
+        round already placed on each, so a burst of resubmissions spreads)."""
+        live = [s for s in self.client.live_servers() if s not in exclude]
+        if not live:
+            return None
+        return min(live, key=lambda s: (self.load(s)[0] + extra.get(s, 0), self.load(s)[1], s))
+
+    # --- the worker ----------------------------------------------------------------------------
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                if self._closed:
+                    return
+                self._cond.wait(0.1)
+                if self._closed:
+                    return
+                if self._paused:
+                    continue
+                todo = list(self._lost.values())
+            try:
+                if todo:
+                    self._recover(todo)
+                self._watch()
+            except Exception:
+                log.exception("failover worker")
+
+    def _recover(self, todo: list[tuple[ClothHandle, str, str, int]]) -> None:
+        placed: dict[str, int] = {}
+        for h, old_server, reason, t0 in todo:
+            if h.closed:
+                self._done(h)
+                continue
+            live = set(self.client.live_servers())
+            if old_server in live and self._still_there(h):  # back, and the cloth with it
+                h.lost = False
+                self._done(h)
+                self._emit(FailoverEvent(h, reason, h.id, old_server, h.id, old_server, None, True,
+                                         detected_ns=t0, done_ns=time.monotonic_ns()))
+                continue
+            self._resubmit(h, old_server, reason, t0, placed)
+
+    def _resubmit(self, h: ClothHandle, old_server: str, reason: str, t0: int, placed: dict[str, int]) -> None:
+        c = self.client
+        tried: set[str] = set()
+        last_err: DrapeError | None = None
+        while True:
+            target = self.pick(tried, placed)
+            if target is None:
+                break
+            tried.add(target)
+            st = self._stats.get(old_server) or {}
+            resume = resume_from(h.last_states(), old_server, h.id, float(st.get("tick_rate") or DEFAULT_TICK_RATE))
+            old_id = h.id
+            req = dataclasses.replace(h.request, rid=c._next_rid(), resume=resume)
+            try:
+                c._place(h, req, target)
+            except DrapeError as e:  # overloaded, busy, unavailable...: the next best server
+                last_err = e
+                log.warning("resubmitting cloth %s to server %s failed: %s", old_id, target, e)
+                continue
+            placed[target] = placed.get(target, 0) + h.n_vertices
+            h.failovers += 1
+            self._done(h)
+            h.lost = False
+            h._resend_controls()
+            self._emit(FailoverEvent(h, reason, old_id, old_server, h.id, target,
+                                     None if resume is None else resume.tick, False,
+                                     detected_ns=t0, done_ns=time.monotonic_ns()))
+            return
+        if time.monotonic_ns() - t0 > self.give_up_after * 1e9:
+            err = last_err or P.Unavailable(P.ERR_UNAVAILABLE, f"no live server to fail cloth {h.id} over to "
+                                                               f"within {self.give_up_after} s")
+            self._done(h)
+            h._close(f"failover failed: {err}")
+            self._emit(FailoverEvent(h, reason, h.id, old_server, error=err, detected_ns=t0,
+                                     done_ns=time.monotonic_ns()))
+        # else: stays lost; tried again on the next pass (a server may appear)
+
+    def _still_there(self, h: ClothHandle) -> bool:
+        """Probe with an empty control: True when the server still holds the cloth."""
+        try:
+            probe = P.ControlRequest(h.id, h.token, rid=self.client._next_rid())
+            self.client.request("control", P.encode_control(probe), timeout=min(self.client.timeout, 2.0),
+                                server=h.server_id)
+            return True
+        except P.NotFound:
+            return False
+        except DrapeError:
+            return False
+
+    def _watch(self) -> None:
+        """Cloths whose states stalled: probed (without waiting); ``not_found`` means reclaimed."""
+        now = time.monotonic()
+        for h in self.client._open_handles():
+            if h.lost or now - h.last_receipt < self.stall_timeout or now - h.last_probe < self.stall_timeout:
+                continue
+            h.last_probe = now
+            self._probe_async(h)
+
+    def _probe_async(self, h: ClothHandle) -> None:
+        c = self.client
+        cloth = h.id
+        payload = P.encode_control(P.ControlRequest(cloth, h.token, rid=c._next_rid()))
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                return
+            try:
+                P.decode_reply(reply.err.payload.to_bytes())
+            except P.NotFound:
+                if h.id == cloth:
+                    self.cloth_lost(h, "reclaimed")
+            except Exception:
+                pass
+
+        try:
+            c.session.get(c.keys.control(h.server_id), zenoh.handlers.Callback(on_reply, lambda: None),
+                          payload=payload, timeout=min(c.timeout, 2.0))
+        except Exception as e:
+            log.debug("probe of cloth %s failed: %s", cloth, e)
+
+    def _done(self, h: ClothHandle) -> None:
+        with self._cond:
+            self._lost.pop(id(h), None)
+
+    def _emit(self, ev: FailoverEvent) -> None:
+        with self._cond:
+            self.events.append(ev)
+            callbacks = list(self._callbacks)
+        if ev.ok:
+            log.info("cloth %s of server %s %s as %s on server %s", ev.old_cloth, ev.old_server,
+                     "kept" if ev.kept else "resubmitted", ev.new_cloth, ev.new_server)
+        else:
+            log.warning("cloth %s of server %s lost: %s", ev.old_cloth, ev.old_server, ev.error)
+        for cb in callbacks:
+            try:
+                cb(ev)
+            except Exception:
+                log.exception("on_failover callback failed")
+
+
+__all__ = ["FailoverEvent", "FailoverCallback", "Failover", "resume_from"]

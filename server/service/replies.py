@@ -3,8 +3,9 @@ replies, each counted by error code in the registry's stats."""
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import zenoh
 

@@ -18,8 +18,8 @@ import logging
 import threading
 import time
 from collections import deque
-from functools import partial
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -72,6 +72,7 @@ class Ticker:
         self._nan_quiet = 0
         self._cost_layout = -1  # layout version of the last frame whose cost was measured
         self._after_next: list[Reply] = []  # remove replies, sent after the next frame
+        self._carry: list[Reply] = []  # those of a tick that stepped nothing
         self.request_prepare: Callable[[Any, Any], bool] = lambda fabric, params: False
 
     # --- set-up ----------------------------------------------------------------------------------
@@ -129,16 +130,17 @@ class Ticker:
             log.exception("tick loop failed")
             self.failure = e
         finally:
-            if self._pending is not None:
-                for r in self._pending[1].after:  # removes whose frame will not be published
-                    send(r)
+            for r in (self._pending[1].after if self._pending is not None else []) + self._carry:
+                send(r)  # removes whose next frame will not be published
             self._pending = None  # its frame was never held
             self.shutdown_commands()
 
     def _finish_previous(self) -> Job:
         """The job of the tick stepped last time: its frame read back, checked, flagged."""
-        if self._pending is None:
-            return Job(tick=self.tick, time_ns=time.time_ns())
+        if self._pending is None:  # nothing was stepped: carries what waited for a next frame
+            job = Job(tick=self.tick, time_ns=time.time_ns(), after=self._carry)
+            self._carry = []
+            return job
         pending, job, host_s = self._pending
         self._pending = None
         t = time.monotonic()
@@ -168,7 +170,7 @@ class Ticker:
         self.tick += 1
         after, self._after_next = self._after_next, []
         if not self.live:
-            job.after.extend(after)  # no next frame: after this one
+            self._carry = after  # no next frame: sent in the next tick's own publisher pass
             return
         w.step(self.config.dt)
         pending = w.fetch_async()

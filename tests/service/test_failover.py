@@ -13,6 +13,7 @@ import time
 import numpy as np
 import pytest
 
+from drape.client import protocol as P
 from drape.server.sim import make_world
 from drape.server.sim.fabric import cook_grid
 from drape.server.sim.params import ClothParams
@@ -149,13 +150,16 @@ def test_kill_9_fails_every_cloth_over_under_the_same_handle(two_servers):
     with _client(two_servers, a.server_id) as client:
         events = []
         client.on_failover(events.append)
-        handles = [client.submit_grid(6, 6, 0.5, 0.5, orientation="vertical", origin=(1.0 * j, 2.0, 0.0),
+        # horizontal at rest, hanging from two corners after a second: far from its rest pose
+        handles = [client.submit_grid(6, 6, 0.5, 0.5, origin=(1.0 * j, 2.0, 0.0),
                                       pinned=[0, 5], material={"damping": 0.2}, bundle=(j % 2 == 1))
                    for j in range(4)]
         handles[0].move_pins([0, 5], [[0.0, 2.0, 0.0], [0.5, 2.0, 0.0]], wait=True)
         _settle(handles, 120)  # 2 s: hanging nearly still
         assert all(h.server_id == a.server_id for h in handles)
         before = {id(h): h.last_states() for h in handles}
+        rest = P.grid_geometry(6, 6, 0.5, 0.5, "horizontal", (0.0, 2.0, 0.0))[0]
+        assert float(np.abs(before[id(handles[0])][1].positions - rest).max()) > 0.1  # the check below can fail
         old_ids = {id(h): h.id for h in handles}
         for h in handles:
             h.clear()

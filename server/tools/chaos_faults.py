@@ -416,7 +416,7 @@ class FailoverClient(GoodClient):
         return out
 
 
-def kill(ctx: Context, cloths: int = 4) -> dict[str, Any]:
+def kill(ctx: Context, cloths: int = 8) -> dict[str, Any]:
     """kill -9 of one of two servers while a failover client (the SDK, ``failover=True``, connected
     to both) holds cloths on it and a bystander holds one on the other; then restart it (same id
     and endpoint). Which of the victim's cloths are served again, after how long from the loss of

@@ -47,6 +47,8 @@ class Add:
     colliders: np.ndarray | None
     query: zenoh.Query
     rid: int
+    positions: np.ndarray | None = None  # 1.3 resume: the state the cloth starts at
+    velocities: np.ndarray | None = None
 
 
 @dataclass(eq=False)

@@ -187,13 +187,14 @@ class CookWorker:
             world = self._world()
             if world is not None:
                 world.prepare(fabric, params)  # kernels built here, not on the tick path
-                if req.resume is not None:  # 1.3: the tick thread adds the cloth at this state
-                    rs = req.resume
-                    world.stage_initial_state(params, rs.positions, rs.velocities)
-                    log.info("cloth %s of client %s resumes %s of server %s at tick %s", rec.id, rec.client,
-                             rs.cloth or "a cloth", rs.from_server or "?", rs.tick)
+            add = Add(rec, params, packed, query, req.rid)
+            rs = getattr(req, "resume", None)
+            if rs is not None:  # 1.3: the tick thread adds the cloth at this state
+                add.positions, add.velocities = rs.positions, rs.velocities
+                log.info("cloth %s of client %s resumes %s of server %s at tick %s", rec.id, rec.client,
+                         rs.cloth or "a cloth", rs.from_server or "?", rs.tick)
             rec.fabric = fabric
-            self.intake.put(Add(rec, params, packed, query, req.rid), req.rid)
+            self.intake.put(add, req.rid)
         except P.DrapeError as e:
             rec.fabric = None
             self.fabrics.release(fabric)

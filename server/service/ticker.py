@@ -291,7 +291,7 @@ class Ticker:
                 params = quality.apply_preset(params, rec.quality, self.config.tick_rate)
         h = None
         try:
-            h = w.add(rec.fabric, params)
+            h = w.add(rec.fabric, params, cmd.positions, cmd.velocities)
             if cmd.colliders is not None:
                 w.set_colliders(h, cmd.colliders)
         except Exception as e:

@@ -11,7 +11,7 @@ again (a restart under the same id, or this client's own link came back) the clo
 there first and kept when it still exists; otherwise it is resubmitted, with ``resume`` (its last
 received positions and the velocities of its last two states), to the least loaded live server
 by the servers' stats publications (fewest vertices, then lowest mean tick cost; not round
-robin), under the same :class:`~drape.client.sdk.ClothHandle`: its ``id``, ``token``, ``key`` and
+robin), under the same :class:`~drape.client.handle.ClothHandle`: its ``id``, ``token``, ``key`` and
 ``server_id`` change, its queue, callbacks and ``states()`` iterator carry on. The last pin
 targets and colliders the game sent are sent again right after. ``on_failover`` callbacks get a
 :class:`FailoverEvent` per cloth.
@@ -36,7 +36,8 @@ from . import protocol as P
 from .protocol import DrapeError
 
 if TYPE_CHECKING:
-    from .sdk import ClothHandle, DrapeClient
+    from .handle import ClothHandle
+    from .sdk import DrapeClient
 
 log = logging.getLogger(__name__)
 

@@ -1,0 +1,329 @@
+"""One submitted cloth of the Python SDK (:class:`ClothHandle`): its state stream (queue,
+callbacks, iterators), its controls, and what a failover needs of it (its submission, its last
+two states, the last pin targets and colliders sent; ``_rebind`` moves it to its new incarnation)."""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import zenoh
+
+from . import protocol as P
+from .controls import _collider, _pin_changes, _set_changes
+from .protocol import ClothState, DrapeError, Unavailable
+
+if TYPE_CHECKING:
+    from .sdk import DrapeClient
+
+log = logging.getLogger("drape.client.sdk")
+
+StateCallback = Callable[[ClothState], None]
+
+
+class ClothHandle:
+    """One submitted cloth: its state stream and its controls. A context manager that removes
+    the cloth on exit.
+
+    States arrive on a Zenoh thread. ``on_state`` callbacks run there (keep them short); the
+    ``states()`` iterator and ``next_state()`` read a bounded queue (oldest states are dropped,
+    and counted in ``dropped``, when the consumer is slower than the tick rate)."""
+
+    def __init__(
+        self,
+        client: DrapeClient,
+        reply: P.SubmitReply,
+        rest_positions: np.ndarray | None = None,
+        triangles: np.ndarray | None = None,
+        queue_size: int = 64,
+        server_id: str = "",
+        request: P.SubmitRequest | None = None,
+    ) -> None:
+        self.client = client
+        self.server_id = server_id  # the server holding the cloth now (failover may change it)
+        self.request = request  # the submission as sent (what a failover resubmits)
+        self.lost = False  # a failover is under way
+        self.failovers = 0
+        self.last_receipt = time.monotonic()  # of the last state (or of the submit reply)
+        self.last_probe = 0.0
+        self._prev: ClothState | None = None  # the state before ``_latest`` (velocities for a failover)
+        self._fresh = False  # rebound by a failover: the next state starts a new tick sequence
+        self._last_pins: dict[int, np.ndarray] = {}  # pinned vertex -> the last target sent
+        self._last_colliders: tuple[P.Collider, ...] | None = None
+        self.id = reply.cloth
+        self.token = reply.token
+        self.key = reply.key
+        self.bundle_key = reply.bundle_key  # 1.1: the state arrives in the client's bundle, not on ``key``
+        self.n_vertices = reply.vertices
+        self.first_tick = reply.tick
+        self.features: tuple[str, ...] | None = None  # 1.2: as the last waited control's reply reported it
+        self.rest_positions = rest_positions
+        self.triangles = triangles
+        self.received = 0
+        self.dropped = 0
+        self.invalid = 0
+        self.closed = False
+        self.close_reason = ""
+        self._cond = threading.Condition()
+        self._deliver_lock = threading.RLock()  # states are delivered one at a time, in order
+        self._queue: deque[ClothState] = deque(maxlen=max(1, queue_size))
+        self._latest: ClothState | None = None
+        self._callbacks: list[StateCallback] = []
+        self._sub: Any = None
+        if self.bundle_key is None:
+            self._sub = client.session.declare_subscriber(self.key, self._on_sample)
+
+    @property
+    def bundled(self) -> bool:
+        """Whether the state arrives inside the client's bundle (submitted with bundle=True to
+        a 1.1 server)."""
+        return self.bundle_key is not None
+
+    def __repr__(self) -> str:
+        return f"ClothHandle({self.id!r}, {self.n_vertices} vertices{', closed' if self.closed else ''})"
+
+    # --- states ------------------------------------------------------------------------------
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        now = time.time_ns()
+        try:
+            st = P.decode_state(sample.payload.to_bytes(), self.id, now)
+        except DrapeError as e:
+            self.invalid += 1
+            log.warning("cloth %s: invalid state payload: %s", self.id, e)
+            return
+        self._deliver(st)
+
+    def _deliver(self, st: ClothState) -> None:
+        """Queue a state and run the callbacks (on the thread that received it)."""
+        with self._deliver_lock:
+            with self._cond:
+                if self.closed:
+                    return
+                self._prev, self._latest = (None if self._fresh else self._latest), st
+                self._fresh = False
+                self.last_receipt = time.monotonic()
+                if len(self._queue) == self._queue.maxlen:
+                    self.dropped += 1
+                self._queue.append(st)
+                self.received += 1
+                self._cond.notify_all()
+                callbacks = list(self._callbacks)
+            for cb in callbacks:
+                try:
+                    cb(st)
+                except Exception:
+                    log.exception("cloth %s: on_state callback failed", self.id)
+
+    def last_states(self) -> tuple[ClothState | None, ClothState | None]:
+        """The last two states received from the cloth's current server (older, newer; the older
+        None when there is only one): what a failover resumes from."""
+        with self._cond:
+            return (None if self._fresh else self._prev), self._latest
+
+    def _rebind(self, reply: P.SubmitReply, server: str) -> None:
+        """Failover: the cloth lives on as ``reply.cloth`` on ``server``; states keep flowing to
+        this handle (its queue, callbacks and iterators)."""
+        old_sub = None
+        with self._cond:
+            old_sub, self._sub = self._sub, None
+            self.id, self.token, self.key = reply.cloth, reply.token, reply.key
+            self.bundle_key = reply.bundle_key
+            self.first_tick = reply.tick
+            self.server_id = server
+            self.last_receipt = time.monotonic()
+            self._fresh = True
+        if old_sub is not None:
+            try:
+                old_sub.undeclare()
+            except Exception:
+                pass
+        if self.bundle_key is None:
+            self._sub = self.client.session.declare_subscriber(self.key, self._on_sample)
+
+    def _note_controls(self, changes: dict[str, Any]) -> None:
+        """Remember the last pin targets and colliders sent (a failover sends them again)."""
+        pins = changes.get("pins")
+        if pins is not None:
+            for i, t in zip(pins.indices.tolist(), np.asarray(pins.targets, np.float32).reshape(-1, 3), strict=True):
+                self._last_pins[i] = t
+        if changes.get("colliders") is not None:
+            self._last_colliders = changes["colliders"]
+        if changes.get("reset"):
+            self._last_pins.clear()
+
+    def _resend_controls(self) -> None:
+        """After a failover: the last pin targets and colliders, again (not waited for)."""
+        changes: dict[str, Any] = {}
+        if self._last_pins:
+            idx = np.fromiter(self._last_pins, np.uint32, len(self._last_pins))
+            changes["pins"] = P.PinUpdate(idx, np.stack(list(self._last_pins.values())).astype(np.float32))
+        if self._last_colliders is not None:
+            changes["colliders"] = self._last_colliders
+        if changes:
+            req = P.ControlRequest(self.id, self.token, rid=self.client._next_rid(), **changes)
+            self.client.send("control", P.encode_control(req), server=self.server_id)
+
+    def on_state(self, callback: StateCallback) -> Callable[[], None]:
+        """Call ``callback(state)`` for every state (on a Zenoh thread). Returns an unsubscribe function."""
+        with self._cond:
+            self._callbacks.append(callback)
+
+        def cancel() -> None:
+            with self._cond:
+                if callback in self._callbacks:
+                    self._callbacks.remove(callback)
+
+        return cancel
+
+    def latest(self) -> ClothState | None:
+        """The most recent state received (None before the first)."""
+        return self._latest
+
+    def next_state(self, timeout: float | None = None) -> ClothState:
+        """The oldest queued state, waiting up to ``timeout`` seconds. Raises TimeoutError, or
+        DrapeError when the cloth was removed or the server went away."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._cond:
+            while not self._queue:
+                if self.closed:
+                    raise DrapeError(P.ERR_NOT_FOUND, f"cloth {self.id} is closed: {self.close_reason}")
+                remaining = None if deadline is None else deadline - time.monotonic()
+                if remaining is not None and remaining <= 0:
+                    raise TimeoutError(f"no state for cloth {self.id} within {timeout} s")
+                self._cond.wait(remaining)
+            return self._queue.popleft()
+
+    def states(self, timeout: float | None = None) -> Iterator[ClothState]:
+        """Iterate over states as they arrive. Ends when none arrives within ``timeout`` seconds
+        (None: wait forever), or when the cloth is removed or its server goes away."""
+        while True:
+            try:
+                yield self.next_state(timeout)
+            except (TimeoutError, DrapeError):
+                return
+
+    def wait_for_tick(self, tick: int, timeout: float | None = None) -> ClothState:
+        """Consume queued states until one with ``state.tick >= tick``."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+            st = self.next_state(remaining)
+            if st.tick >= tick:
+                return st
+
+    def clear(self) -> None:
+        """Forget queued states."""
+        with self._cond:
+            self._queue.clear()
+
+    # --- controls (each returns the first tick whose state reflects it) -------------------------
+    def move_pins(self, indices: Sequence[int] | np.ndarray, targets: Sequence[Sequence[float]] | np.ndarray,
+                  *, wait: bool = True, colliders: Sequence[Any] | None = None) -> int | None:
+        """Move pinned vertices ``indices`` to ``targets`` ((k, 3) metres) by the end of the next
+        tick (and, if given, the colliders with them, in the same message). ``wait=False`` does
+        not wait for the reply (see DrapeClient.send): the per-tick call of a game loop."""
+        return self._control(wait, **_pin_changes(indices, targets, colliders))
+
+    def set_colliders(self, colliders: Sequence[Any], *, wait: bool = True) -> int | None:
+        """Replace the cloth's colliders (Sphere, Capsule, Plane of this package or of
+        drape.server.sim.params); [] removes them. Colliders move to their new pose over the next tick."""
+        return self._control(wait, colliders=tuple(_collider(c) for c in colliders))
+
+    def set(
+        self,
+        *,
+        gravity: Sequence[float] | None = None,
+        wind: Sequence[float] | None = None,
+        material: Mapping[str, Any] | Any = None,
+        features: Iterable[str] | None = None,
+        iterations: int | None = None,
+        substeps: int | None = None,
+        chebyshev_rho: float | None = None,
+        normals: bool | None = None,
+        encoding: str | None = None,
+        reset: bool = False,
+        wait: bool = True,
+        quality: str | None = None,
+        features_add: Iterable[str] | None = None,
+        features_remove: Iterable[str] | None = None,
+    ) -> int | None:
+        """Change any of the cloth's settings from the next tick on; fields left None stay as
+        they are (``material`` may name only the fields to change; ``quality``: a preset of
+        protocol.QUALITY_PRESETS, which sets iterations, substeps, XPBD and tethers).
+
+        ``features`` replaces the whole feature set (dropping, say, ``normals`` the submission
+        turned on); ``features_add`` / ``features_remove`` (protocol 1.2) switch only the names
+        given. A 1.2 server reports the resulting set, kept in :attr:`features` after a waited
+        control."""
+        return self._control(wait, **_set_changes(gravity, wind, material, features, iterations, substeps,
+                                                  chebyshev_rho, normals, encoding, reset, quality,
+                                                  features_add, features_remove))
+
+    def reset(self) -> int:
+        """Back to the rest pose with zero velocity."""
+        return self._control(True, reset=True)
+
+    def _control(self, wait: bool, **changes: Any) -> int | None:
+        self._check_open()
+        req = P.ControlRequest(self.id, self.token, rid=self.client._next_rid(), **changes)
+        self.client._require_features_delta((req,))
+        self._note_controls(changes)
+        if not wait:
+            self.client.send("control", P.encode_control(req), self.client._watch_not_found(self, None),
+                             server=self.server_id)
+            return None
+        try:
+            rep = P.control_reply_from_map(self.client.request("control", P.encode_control(req),
+                                                               server=self.server_id))
+        except P.NotFound:
+            self.client._cloth_not_found(self)
+            raise
+        if rep.features is not None:  # 1.2 servers report the feature set after the change
+            self.features = rep.features
+        return rep.tick
+
+    def remove(self, timeout: float | None = None) -> int | None:
+        """Remove the cloth; returns the last tick published for it (None if it was already
+        gone). Idempotent."""
+        if self.closed:
+            return None
+        try:
+            rep = self.client.request("remove", P.encode_remove(P.RemoveRequest(self.id, self.token,
+                                                                                self.client._next_rid())),
+                                      timeout=timeout, server=self.server_id)
+            last: int | None = P.tick_reply_from_map(rep)
+        except (P.NotFound, Unavailable):
+            last = None
+        self._close("removed")
+        return last
+
+    def _check_open(self) -> None:
+        if self.closed:
+            raise DrapeError(P.ERR_NOT_FOUND, f"cloth {self.id} is closed: {self.close_reason}")
+
+    def _close(self, reason: str) -> None:
+        with self._cond:
+            if self.closed:
+                return
+            self.closed = True
+            self.close_reason = reason
+            self._cond.notify_all()
+        if self._sub is not None:
+            try:
+                self._sub.undeclare()
+            except Exception:
+                pass
+        self.client._forget(self)
+
+    def __enter__(self) -> ClothHandle:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            self.remove()
+        except DrapeError as e:
+            log.warning("removing cloth %s failed: %s", self.id, e)

@@ -28,8 +28,6 @@ from .params import MAX_COLLIDERS_PER_CLOTH, ClothParams
 
 log = logging.getLogger(__name__)
 
-MAX_STAGED = 256  # initial states staged for cloths not added yet (stage_initial_state)
-
 
 @dataclass
 class Cloth:
@@ -222,18 +220,6 @@ class World(ABC):
         self.steps = 0
         self._layout: Layout | None = None
         self._layout_version = 0
-        self._staged: dict[int, tuple[ClothParams, np.ndarray, np.ndarray | None]] = {}
-
-    def stage_initial_state(self, params: ClothParams, positions: np.ndarray,
-                            velocities: np.ndarray | None = None) -> None:
-        """The next ``add`` with this very ``params`` object (and no positions of its own) starts
-        the cloth at ``positions`` moving at ``velocities``: how the service hands a resumed
-        cloth's state (protocol 1.3) from its cook thread, which makes the params, to its tick
-        thread, which adds the cloth. Thread-safe (one dict operation each way); at most
-        ``MAX_STAGED`` wait, the oldest dropped."""
-        self._staged[id(params)] = (params, positions, velocities)
-        while len(self._staged) > MAX_STAGED:
-            self._staged.pop(next(iter(self._staged)))
 
     # --- cloth lifecycle -------------------------------------------------------------------
     def add(self, fabric: Fabric, params: ClothParams, positions: np.ndarray | None = None,
@@ -242,9 +228,6 @@ class World(ABC):
         default zero; protocol 1.3 ``resume``: a cloth continued from another server's state).
         Pinned vertices start at ``positions`` with their pin targets there, and keep zero velocity."""
         params.validate()
-        staged = self._staged.pop(id(params), None)
-        if staged is not None and staged[0] is params and positions is None:
-            positions, velocities = staged[1], staged[2] if velocities is None else velocities
         if positions is not None:
             positions = np.asarray(positions, np.float64).reshape(fabric.n_vertices, 3)
             if not np.all(np.isfinite(positions)):

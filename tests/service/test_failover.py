@@ -55,21 +55,6 @@ def test_resumed_pinned_vertices_stay_put(solver, device):
     assert np.allclose(got[[0, 3]], x0[[0, 3]], atol=1e-5)
 
 
-def test_staged_state_applies_to_its_params_only(device):
-    """The service's cook thread stages a resumed cloth's state for the params object it made; the
-    tick thread's add with exactly that object starts there, any other add from the rest pose."""
-    fab = cook_grid(3, 3, pinned=[])
-    world = make_world("reference")
-    p1, p2 = ClothParams(), ClothParams()
-    x0 = fab.rest_positions + 7.0
-    world.stage_initial_state(p1, x0, np.zeros_like(x0))
-    h2 = world.add(fab, p2)
-    h1 = world.add(fab, p1)
-    h3 = world.add(fab, p1)  # consumed once
-    assert np.allclose(world.state(h1).x, x0)
-    assert np.allclose(world.state(h2).x, fab.rest_positions) and np.allclose(world.state(h3).x, fab.rest_positions)
-
-
 # ---------------------------------------------------------------------------------------------
 # End to end: real `drape serve` processes, the SDK with failover=True
 

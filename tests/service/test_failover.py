@@ -210,3 +210,35 @@ def test_reclaimed_cloths_come_back_when_the_client_returns(tmp_path):
             print(f"cloths back {back_s:.2f} s after the client returned")
     finally:
         srv.stop()
+
+
+def test_a_server_restarted_under_the_same_id_gets_the_cloths_back(tmp_path):
+    """The only server is killed and comes back (same id, same endpoint, a new process): the
+    client waits for it, finds its cloths gone there (probe: not_found) and resubmits them to it."""
+    srv = Serve(tmp_path, "fo-restart")
+    again = None
+    try:
+        with _client([srv], srv.server_id) as client:
+            events = []
+            client.on_failover(events.append)
+            handles = [client.submit_grid(5, 5, 0.5, 0.5, origin=(j, 1.0, 0.0), pinned=[0, 4],
+                                          material={"damping": 0.2}) for j in range(2)]
+            _settle(handles, 60)
+            old_ids = [h.id for h in handles]
+            srv.kill()
+            assert _wait(lambda: all(h.lost for h in handles), EVENT_WAIT), "the loss should be noticed"
+            last = {id(h): h.latest() for h in handles}
+            for h in handles:
+                h.clear()
+            again = Serve(tmp_path, "fo-restart", port=srv.port)
+            assert _wait(lambda: len(events) >= len(handles), SERVER_WAIT), f"{len(events)} failover events"
+            assert all(e.ok and not e.kept and e.new_server == srv.server_id for e in events), events
+            for h, old in zip(handles, old_ids, strict=True):
+                assert h.id != old and not h.closed
+                first = h.next_state(EVENT_WAIT)
+                assert first.cloth == h.id
+                assert float(np.linalg.norm(first.positions - last[id(h)].positions, axis=1).max()) < 0.01
+    finally:
+        srv.stop()
+        if again is not None:
+            again.stop()

@@ -223,6 +223,13 @@ class Failover:
         c = self.client
         tried: set[str] = set()
         last_err: DrapeError | None = None
+        if h.request is None:  # a handle made outside DrapeClient.submit: nothing to resubmit
+            self._done(h)
+            err = DrapeError(P.ERR_NOT_FOUND, f"cloth {h.id} lost and its submission is unknown")
+            h._close(str(err))
+            self._emit(FailoverEvent(h, reason, h.id, old_server, error=err, detected_ns=t0,
+                                     done_ns=time.monotonic_ns()))
+            return
         while True:
             target = self.pick(tried, placed)
             if target is None:
@@ -283,7 +290,7 @@ class Failover:
         payload = P.encode_control(P.ControlRequest(cloth, h.token, rid=c._next_rid()))
 
         def on_reply(reply: zenoh.Reply) -> None:
-            if reply.ok is not None:
+            if reply.err is None:
                 return
             try:
                 P.decode_reply(reply.err.payload.to_bytes())

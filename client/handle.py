@@ -265,7 +265,9 @@ class ClothHandle:
 
     def reset(self) -> int:
         """Back to the rest pose with zero velocity."""
-        return self._control(True, reset=True)
+        tick = self._control(True, reset=True)
+        assert tick is not None  # a waited control answers with a tick
+        return tick
 
     def _control(self, wait: bool, **changes: Any) -> int | None:
         self._check_open()

@@ -122,7 +122,7 @@ class DrapeClient:
         self._server_watch = lv.declare_subscriber(self.keys.all_servers_alive, self._on_server, history=True)
         self._token = lv.declare_token(self.keys.alive_client(self.client_id))
         # failover=True: cloths survive the loss of their server (client/failover.py, PROTOCOL.md 11.1)
-        self._failover: Failover | None = Failover(self, stall_timeout=stall_timeout) if failover else None
+        self._failover = Failover(self, stall_timeout=stall_timeout) if failover else None
         log.debug("drape client %s connected to %s", self.client_id, list(connect))
 
     # --- session ------------------------------------------------------------------------------

@@ -197,7 +197,8 @@ class ResumeState:
             isinstance(other, ResumeState)
             and np.array_equal(self.positions, other.positions)
             and (self.velocities is None) == (other.velocities is None)
-            and (self.velocities is None or np.array_equal(self.velocities, other.velocities))
+            and (self.velocities is None or other.velocities is None
+                 or np.array_equal(self.velocities, other.velocities))
             and (self.tick, self.from_server, self.cloth) == (other.tick, other.from_server, other.cloth)
         )
 

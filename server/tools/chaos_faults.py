@@ -8,6 +8,7 @@ and talks only to 127.0.0.1.
 """
 from __future__ import annotations
 
+import functools
 import itertools
 import logging
 import os
@@ -336,7 +337,7 @@ def _failover_client_main(endpoints: list[str], server_id: str, client_id: str, 
                 # horizontal at rest: hanging from two corners after a second or two, far from its rest pose
                 h = client.submit_grid(size, size, 0.5, 0.5, origin=(1.0 * j, 2.0, 0.0), pinned=[0, size - 1],
                                        material={"damping": 0.1})
-                h.on_state(lambda st, j=j: on_state(st, j))
+                h.on_state(functools.partial(on_state, j=j))
                 handles.append(h)
             records.put(("ready", [h.id for h in handles], client.client_id, time.monotonic()))
             ready.set()

@@ -86,6 +86,7 @@ class ServerConfig:
     stats_period: float = 1.0  # seconds between stats publications
     state_congestion: str = "drop"  # drop | block | auto (see PROTOCOL.md, "Congestion control")
     drop_max_bytes: int = 60000  # auto: states up to this size use DROP, larger ones BLOCK
+    device_encode: bool = True  # OpenCL worlds: states encoded on the device (one launch, one readback)
     # --- quality -------------------------------------------------------------------------------
     adaptive_quality: bool = True  # lower cloths' presets while ticks overrun, restore them after
     quality_budget: float = 0.8  # share of a tick the tick's own work may take before that
@@ -287,6 +288,7 @@ HELP = {
     "stats_period": "seconds between stats publications",
     "state_congestion": "Zenoh congestion control of state publications",
     "drop_max_bytes": "auto congestion: largest state published with DROP",
+    "device_encode": "encode the states on the OpenCL device, one packed frame per tick (reference: host)",
     "adaptive_quality": "step cloths' quality presets down while ticks overrun, back up after",
     "quality_budget": "share of a tick the tick's work may take before quality is lowered",
     "admission": "refuse submissions that would push the tick over admission_budget ('overloaded')",

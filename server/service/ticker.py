@@ -36,6 +36,7 @@ from .admission import Admission
 from .commands import Add, BatchControl, Call, ControlSlot, Intake, Remove
 from .config import ServerConfig
 from .cook import FabricStore
+from .devencode import DeviceFrames, device_world
 from .publisher import Job, Mailbox, Roster
 from .registry import ClothRecord, Registry
 from .replies import Replies, Reply, send
@@ -64,6 +65,7 @@ class Ticker:
         self.stop_event = threading.Event()
         self.applied_controls = 0  # coalesced controls applied (one per cloth per tick at most)
         self._pending: tuple[PendingFrame, Job, float] | None = None  # the frame in flight, its job, host s
+        self.device: DeviceFrames | None = None  # device-encoded frames (config device_encode, OpenCL worlds)
         self._roster: Roster | None = None
         self._pub_changes = 0
         self._reset_flags: set[int] = set()
@@ -145,9 +147,13 @@ class Ticker:
         self._pending = None
         t = time.monotonic()
         frame = pending.wait()
-        job.time_ns = time.time_ns()
         job.frame = frame.hold()
-        bad = frame.nonfinite()
+        if self.device is not None and job.roster is not None:  # encoded on the device at enqueue time
+            job.encoded = self.device.hold()
+            bad = self.device.nonfinite()
+        else:
+            job.time_ns = time.time_ns()
+            bad = frame.nonfinite()
         if len(bad):
             self._non_finite(job, bad)
         waited = time.monotonic() - t
@@ -173,7 +179,11 @@ class Ticker:
             self._carry = after  # no next frame: sent in the next tick's own publisher pass
             return
         w.step(self.config.dt)
-        pending = w.fetch_async()
+        dev = device_world(w, self.config.device_encode)
+        if dev is None:
+            pending = w.fetch_async()
+        elif self.device is None or self.device.world is not dev:
+            self.device = DeviceFrames(dev)
         lay = w.layout()  # the frame's own layout (fetch_async just used it)
         roster = self._roster_for(lay)
         flags = np.zeros(len(lay.handles), np.int64)
@@ -181,7 +191,12 @@ class Ticker:
             idx = [lay.index[h] for h in self._reset_flags if h in lay.index]
             flags[idx] = P.FLAG_RESET
             self._reset_flags.clear()
-        self._pending = (pending, Job(tick=self.tick, roster=roster, flags=flags, after=after), 0.0)
+        job = Job(tick=self.tick, roster=roster, flags=flags, after=after)
+        if dev is not None:
+            assert self.device is not None
+            job.time_ns = time.time_ns()
+            pending = self.device.encode(roster, lay, self.tick, job.time_ns, flags)
+        self._pending = (pending, job, 0.0)
 
     def _roster_for(self, lay) -> Roster:
         version = (lay.version, self._pub_changes)
@@ -203,15 +218,18 @@ class Ticker:
         assert w is not None and job.frame is not None and job.flags is not None
         frame, now = job.frame, time.monotonic()
         off = frame.offsets
+        on_device = job.encoded is not None
+        reset: list[tuple[int, Any]] = []  # on the device: (handle, fabric) of reset cloths with normals
         for i in bad.tolist():
             h = int(frame.handles[i])
             rec = self.live.get(h)
             if rec is None or rec.fabric is None:
                 continue
             sl = slice(int(off[i]), int(off[i + 1]))
-            frame.xyz[sl] = rec.fabric.rest_positions
-            if frame.nxyz is not None and frame.layout.normals[i]:
-                frame.nxyz[sl] = vertex_normals(rec.fabric.rest_positions, rec.fabric)[0]
+            if not on_device:
+                frame.xyz[sl] = rec.fabric.rest_positions
+                if frame.nxyz is not None and frame.layout.normals[i]:
+                    frame.nxyz[sl] = vertex_normals(rec.fabric.rest_positions, rec.fabric)[0]
             job.flags[i] |= P.FLAG_RESET
             times = self._nan_times.setdefault(rec.id, deque())
             times.append(now)
@@ -226,6 +244,8 @@ class Ticker:
                 self._drop(rec, job)
                 continue
             w.reset(h)
+            if frame.layout.normals[i]:
+                reset.append((h, rec.fabric))
             self.registry.count("nan_resets")
             if now - self._nan_warned_at >= NAN_WARN_EVERY_S:
                 more = f" ({self._nan_quiet} more since the last warning)" if self._nan_quiet else ""
@@ -234,6 +254,9 @@ class Ticker:
                 self._nan_warned_at, self._nan_quiet = now, 0
             else:
                 self._nan_quiet += 1
+        if on_device and self.device is not None and job.encoded is not None:
+            # the frame again, the reset cloths at rest with the reset flag (as the host path publishes)
+            job.encoded = self.device.reencode(job.encoded, job.tick, job.time_ns, job.flags, reset)
 
     # --- commands ----------------------------------------------------------------------------------
     def _apply(self, job: Job) -> None:

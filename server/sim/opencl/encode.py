@@ -28,7 +28,9 @@ zero-copy path.)
 
 ``vbase`` is the cloth's first vertex in the world's float4 vertex buffers (``stride=4``), or its
 first row in a packed xyz buffer (``stride=3``). A frame's views stay valid until
-``host_buffers`` (2) more frames have been encoded, or while held across a new plan.
+``host_buffers`` (2) more frames have been encoded, or while held across a new plan;
+:meth:`DeviceEncoder.hold` keeps a frame from reuse until it is released (the service's
+publisher holds the frame it publishes while the next ones are encoded).
 
 The bytes equal :func:`drape.client.protocol.encode_state` / :func:`~drape.client.protocol.encode_bundle`
 (tests/sim/test_device_encode.py), with two documented exceptions:
@@ -255,6 +257,37 @@ class _HostFrame:
     data: np.ndarray  # (size,) uint8
     views: list[memoryview]
     event: cl.Event | None = None
+    plan: FramePlan | None = None
+    held: bool = False
+
+
+class EncodedFrame:
+    """A frame kept from reuse (:meth:`DeviceEncoder.hold`) until :meth:`release`: the
+    publications' payload views (``slices``) of its pinned host memory, in plan order."""
+
+    def __init__(self, host: _HostFrame) -> None:
+        assert host.plan is not None
+        self._host: _HostFrame | None = host
+        self.plan = host.plan
+        self.views = list(host.views)
+        host.held = True
+
+    def add_flags(self, cloths: Sequence[int], flags: int) -> None:
+        """OR ``flags`` into the state headers of plan cloths ``cloths`` (e.g. FLAG_RESET carried
+        over from a frame that was dropped); cloths in no publication are ignored."""
+        if self._host is None:
+            raise RuntimeError("frame already released")
+        at = self.plan.state_offset[np.asarray(list(cloths), np.int64)]
+        at = at[at >= 0] + HEADER_OFFSETS["ST_FLAGS"]
+        if len(at):
+            f = self._host.data[at] | np.uint8(flags & 0xFF)
+            f2 = self._host.data[at + 1] | np.uint8((flags >> 8) & 0xFF)
+            self._host.data[at], self._host.data[at + 1] = f, f2
+
+    def release(self) -> None:
+        if self._host is not None:
+            self._host.held = False
+            self._host = None
 
 
 class DeviceEncoder:
@@ -332,16 +365,7 @@ class DeviceEncoder:
         table = cl.Buffer(ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=rows)
         flags = np.zeros(max(len(plan.cloths), 1), np.uint16)
         flags_buf = cl.Buffer(ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=flags)
-        hosts = []
-        for _ in range(self._host_buffers):
-            hb = cl.Buffer(ctx, MF.READ_WRITE | MF.ALLOC_HOST_PTR, size)
-            data, _ev = cl.enqueue_map_buffer(  # type: ignore[misc]
-                q, hb, cl.map_flags.READ | cl.map_flags.WRITE, 0, (size,), np.uint8,  # type: ignore[arg-type,type-var]
-                is_blocking=True)
-            data[:plan.size] = plan.template  # a frame read before any encode is the static bytes
-            mv = memoryview(data).cast("B")  # type: ignore[arg-type]
-            views = [mv[o:o + s] for o, s in zip(plan.pub_offset.tolist(), plan.pub_size.tolist(), strict=True)]
-            hosts.append(_HostFrame(data.base, hb, data, views))
+        hosts = [self._host_frame(plan) for _ in range(self._host_buffers)]
         self._release_hosts()
         self._kernel, self._wg, self._out, self._table = kernel, wg, out, table
         self._flags, self._flags_buf = flags, flags_buf
@@ -349,6 +373,18 @@ class DeviceEncoder:
         self.plan = plan
         log.debug("frame plan: %d publications, %d cloths, %d bytes, work-group %d", len(plan.publications),
                   len(plan.rows), plan.size, wg)
+
+    def _host_frame(self, plan: FramePlan) -> _HostFrame:
+        """One pinned (ALLOC_HOST_PTR, mapped for good) host copy of a frame of ``plan``."""
+        size = max(plan.size, 8)
+        hb = cl.Buffer(self.dev.ctx, MF.READ_WRITE | MF.ALLOC_HOST_PTR, size)
+        data, _ev = cl.enqueue_map_buffer(  # type: ignore[misc]
+            self.dev.queue, hb, cl.map_flags.READ | cl.map_flags.WRITE, 0, (size,), np.uint8,  # type: ignore[arg-type,type-var]
+            is_blocking=True)
+        data[:plan.size] = plan.template  # a frame read before any encode is the static bytes
+        mv = memoryview(data).cast("B")  # type: ignore[arg-type]
+        views = [mv[o:o + s] for o, s in zip(plan.pub_offset.tolist(), plan.pub_size.tolist(), strict=True)]
+        return _HostFrame(data.base, hb, data, views, plan=plan)
 
     def _release_hosts(self) -> None:
         """Drop the pinned host frames. A view still held elsewhere keeps its memory (and its
@@ -395,8 +431,7 @@ class DeviceEncoder:
             events.append(cl.enqueue_copy(queue, self._flags_buf, self._flags, is_blocking=False))
         if self._last is not None and self._last.event is not None:
             events.append(self._last.event)  # frames in order even when callers use several queues
-        host = self._hosts[self._next]
-        self._next = (self._next + 1) % len(self._hosts)
+        host = self._free_host()
         if host.event is not None:
             host.event.wait()  # its last copy (normally long done)
         n_rows = len(plan.rows)
@@ -415,6 +450,25 @@ class DeviceEncoder:
             host.event = cl.enqueue_marker(queue, wait_for=events or None)
         self._last = host
         return host.event
+
+    def _free_host(self) -> _HostFrame:
+        """The next host frame in turn that is not held; a new one when all are (a consumer
+        holding frames longer than ``host_buffers`` ticks)."""
+        for _ in range(len(self._hosts)):
+            host = self._hosts[self._next]
+            self._next = (self._next + 1) % len(self._hosts)
+            if not host.held:
+                return host
+        assert self.plan is not None
+        host = self._host_frame(self.plan)
+        self._hosts.append(host)
+        if len(self._hosts) == 8 * self._host_buffers + 1:
+            log.warning("%d pinned frames held: is a consumer not releasing them?", len(self._hosts))
+        return host
+
+    def hold(self) -> EncodedFrame:
+        """The frame last encoded (waits for it), kept from reuse until its ``release()``."""
+        return EncodedFrame(self._frame())
 
     def _frame(self) -> _HostFrame:
         if self._last is None:

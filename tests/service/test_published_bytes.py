@@ -1,0 +1,103 @@
+"""The bytes a server puts on Zenoh are drape.client.protocol's encoding of the cloth's positions,
+byte for byte, on both publication paths: states encoded on the OpenCL device (one packed frame
+per tick, ``device_encode = true``) and by the host's FrameEncoder (``device_encode = false``).
+
+The cloths are random triangle meshes with every vertex pinned, so their positions stay exactly
+the submitted float32 vertices at every tick: the expected payload of any tick is
+``encode_state(tick, time, vertices, encoding, flags)`` (and ``encode_bundle`` of those for a
+client's bundle), with the tick, time and flags read from the received header.
+"""
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from drape.client import protocol as P
+from drape.server.service import Server
+
+from conftest import TIMEOUT, connect, make_config, wait_until
+
+ENCODINGS = ("float32", "float16", "quant16")
+
+
+class Raw:
+    """A raw subscriber: every payload received on a key, as bytes."""
+
+    def __init__(self, session, key: str) -> None:
+        self.got: list[bytes] = []
+        self._lock = threading.Lock()
+        self.sub = session.declare_subscriber(key, self._on)
+
+    def _on(self, sample) -> None:
+        with self._lock:
+            self.got.append(sample.payload.to_bytes())
+
+    def payloads(self) -> list[bytes]:
+        with self._lock:
+            return list(self.got)
+
+
+def random_mesh(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    cols, rows = int(rng.integers(3, 12)), int(rng.integers(3, 12))
+    x, y = np.meshgrid(np.arange(cols), np.arange(rows))
+    v = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], 1) * rng.uniform(0.05, 0.3)
+    v = (v + rng.normal(0, 0.01, v.shape) + rng.uniform(-5, 5, 3)).astype(np.float32)
+    t = []
+    for r in range(rows - 1):
+        for c in range(cols - 1):
+            a = r * cols + c
+            t += [(a, a + 1, a + cols), (a + 1, a + cols + 1, a + cols)]
+    return v, np.array(t, np.int64)
+
+
+def expected_state(payload: bytes | memoryview, vertices: np.ndarray, encoding: str) -> bytes:
+    st = P.decode_state(payload)
+    return bytes(P.encode_state(st.tick, st.server_time_ns, vertices, encoding=encoding, flags=st.flags))
+
+
+@pytest.mark.parametrize("device_encode", [True, False], ids=["device", "host"])
+def test_published_bytes_equal_the_protocol_encoding(device_encode, rng):
+    server = Server(make_config(device_encode=device_encode, max_cloths_per_client=12)).start()
+    try:
+        client = connect(server)
+        try:
+            cloths = []  # (handle, vertices, encoding, bundled)
+            for bundled in (False, True):
+                for enc in ENCODINGS + tuple(rng.choice(ENCODINGS, 2)):
+                    v, t = random_mesh(rng)
+                    h = client.submit_mesh(v, t, pinned=list(range(len(v))), encoding=str(enc), bundle=bundled)
+                    cloths.append((h, v, str(enc), bundled))
+            raws = {h.id: Raw(client.session, h.key) for h, _, _, b in cloths if not b}
+            bundle_raw = Raw(client.session, client.bundle_key)
+            assert wait_until(lambda: all(len(r.payloads()) >= 5 for r in raws.values())
+                              and len(bundle_raw.payloads()) >= 5, TIMEOUT)
+            if device_encode:
+                assert server.ticker.device is not None and server.ticker.device.plans >= 1
+            else:
+                assert server.ticker.device is None
+            checked = 0
+            for h, v, enc, bundled in cloths:
+                if bundled:
+                    continue
+                for payload in raws[h.id].payloads()[-5:]:
+                    assert payload == expected_state(payload, v, enc), f"{enc} single {h.id}"
+                    checked += 1
+            by_id = {h.id: (v, enc) for h, v, enc, b in cloths if b}
+            for payload in bundle_raw.payloads()[-5:]:
+                b = P.parse_bundle(payload)
+                if {e.cloth for e in b.entries} != set(by_id):
+                    continue  # a bundle from before every cloth was added
+                states = []
+                for i, e in enumerate(b.entries):
+                    v, enc = by_id[e.cloth]
+                    states.append((e.cloth, expected_state(b.payload(i), v, enc)))
+                assert payload == bytes(P.encode_bundle(b.tick, b.server_time_ns, states, b.flags))
+                checked += 1
+            assert checked >= 5 * 5 + 1  # every single state, and bundles
+        finally:
+            client.close()
+    finally:
+        server.stop()
+    assert server.failure is None

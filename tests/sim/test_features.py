@@ -28,10 +28,28 @@ FEATURE_SETS = [
 ]
 
 
-@pytest.mark.parametrize("solver", OPENCL)
-@pytest.mark.parametrize("features", FEATURE_SETS, ids=lambda f: "+".join(f.names()))
-@pytest.mark.parametrize("local_size", [1, 64], ids=["serial", "parallel"])
-def test_every_feature_on_every_solver_agrees_with_reference(device, rng, solver, features, local_size):
+# How far float32 rounding alone may carry the device from the float64 reference, in units of
+# the float32 reference's own distance from it (see compare_with_reference). Measured over 400
+# seeds x 30 combinations: the device's error is at most 1.6x the float32 reference's wherever the
+# latter exceeds 1e-5 m; 4 leaves room for rounding orders the sweep did not draw.
+F32_SPREAD = 4.0
+
+
+def run_scene(world, fab, params, colliders, steps: int = 10):
+    """Step one cloth under three colliders that slide along x every step (a plane's normal
+    tilts with them); returns the world, its handle and the final frame."""
+    h = world.add(fab, params)
+    packed = pack_colliders(colliders)
+    for step in range(steps):
+        moved = packed + np.float32(0.02 * step) * np.array([1, 0, 0, 0], np.float32)
+        moved[:, 1, 3] = packed[:, 1, 3]
+        world.set_colliders(h, moved)
+        world.step(DT)
+    return h, world.fetch()
+
+
+def feature_scene(rng, features):
+    """A random grid (random size, pins, orientation), a random wind and three colliders under it."""
     fab = random_grid_fabric(rng, LinkOptions(bending=True), n_pins=2)
     params = ClothParams(
         features=features,
@@ -47,22 +65,56 @@ def test_every_feature_on_every_solver_agrees_with_reference(device, rng, solver
         Capsule(tuple(centre + [-0.5, -0.6, 0]), tuple(centre + [0.5, -0.6, 0.1]), 0.1),
         Plane((0.0, 1.0, 0.0), float(lo[1] - 0.4)),
     ]
-    w = CLWorld(solver, device=device, local_size=local_size, chunk=48)  # cloths span several chunks
-    ref = ReferenceWorld("jacobi" if solver == "jacobi" else "coloured")
-    h, r = w.add(fab, params), ref.add(fab, params)
-    for step in range(10):
-        moved = pack_colliders(colliders) + np.float32(0.02 * step) * np.array([1, 0, 0, 0], np.float32)
-        moved[:, 1, 3] = pack_colliders(colliders)[:, 1, 3]
-        w.set_colliders(h, moved)
-        ref.set_colliders(r, moved)
-        w.step(DT)
-        ref.step(DT)
-    fw, fr = w.fetch(), ref.fetch()
-    a, b = fw.positions[h], fr.positions[r]
-    assert np.all(np.isfinite(a))
-    np.testing.assert_allclose(a, b, atol=3e-4 * max(1.0, np.abs(b).max()))
+    return fab, params, colliders
+
+
+def compare_with_reference(device, rng, solver, features, local_size):
+    """Run one random scene on an OpenCL solver, on the float64 reference and on the same
+    reference in float32; return the device's and the float32 reference's positions (and normals)
+    with the float64 reference's, and the tolerances they are held to.
+
+    Why the float32 reference sets part of the tolerance: the device computes in float32, so it
+    may differ from the float64 ground truth by float32 rounding amplified through the step. In
+    most scenes that amplification is small (errors ~1e-6 m). But when the cloth folds onto itself
+    over the sphere, a bending link can shrink to a millimetre or less (seed 211990349: 1.5 mm
+    against a 111 mm rest length), and the XPBD correction along its direction d / |d| turns a
+    1e-6 m rounding difference into a 1e-4 m one (condition ~ rest / |d| ~ 70). The float32
+    reference -- the same algorithm, in the same colour order, rounded to float32 -- reproduces
+    that divergence (6.97e-4 m for that seed against the device's 6.37e-4 m), so its distance from
+    the float64 reference measures this scene's float32 sensitivity. The device must then be
+    within 3e-4 (scaled by the cloth's extent) + F32_SPREAD x that sensitivity: a scene without
+    an ill-conditioned moment keeps the plain 3e-4 bound, and a kernel that drops a term still
+    fails, since the float32 reference has every term (the sensitivity comes from the reference,
+    never from the device under test)."""
+    fab, params, colliders = feature_scene(rng, features)
+    mode = "jacobi" if solver == "jacobi" else "coloured"
+    h, fw = run_scene(CLWorld(solver, device=device, local_size=local_size, chunk=48), fab, params, colliders)
+    r, fr = run_scene(ReferenceWorld(mode), fab, params, colliders)
+    r32, f32 = run_scene(ReferenceWorld(mode, np.float32), fab, params, colliders)
+    b = fr.positions[r].astype(np.float64)
+    out = dict(device=fw.positions[h].astype(np.float64), ref=b, ref32=f32.positions[r32].astype(np.float64))
+    sens = float(np.abs(out["ref32"] - b).max())
+    out["sens"] = sens
+    out["atol"] = 3e-4 * max(1.0, float(np.abs(b).max())) + F32_SPREAD * sens
     if features.normals:
-        np.testing.assert_allclose(fw.normals[h], fr.normals[r], atol=2e-3)
+        n64 = fr.normals[r].astype(np.float64)
+        out.update(device_n=fw.normals[h].astype(np.float64), ref_n=n64, ref32_n=f32.normals[r32].astype(np.float64))
+        out["atol_n"] = 2e-3 + F32_SPREAD * float(np.abs(out["ref32_n"] - n64).max())
+    return out
+
+
+@pytest.mark.parametrize("solver", OPENCL)
+@pytest.mark.parametrize("features", FEATURE_SETS, ids=lambda f: "+".join(f.names()))
+@pytest.mark.parametrize("local_size", [1, 64], ids=["serial", "parallel"])
+def test_every_feature_on_every_solver_agrees_with_reference(device, rng, solver, features, local_size):
+    """The device within float32 reach of the float64 reference (compare_with_reference)."""
+    c = compare_with_reference(device, rng, solver, features, local_size)
+    assert np.all(np.isfinite(c["device"])) and np.all(np.isfinite(c["ref32"]))
+    assert np.isfinite(c["atol"])
+    np.testing.assert_allclose(c["device"], c["ref"], atol=c["atol"], rtol=0)
+    if features.normals:
+        assert np.all(np.isfinite(c["device_n"])) and np.isfinite(c["atol_n"])
+        np.testing.assert_allclose(c["device_n"], c["ref_n"], atol=c["atol_n"], rtol=0)
 
 
 def steady_sag(solver: str, xpbd: bool, iterations: int, device, n: int = 16) -> float:

@@ -19,9 +19,10 @@ from conftest import TIMEOUT, connect, make_config, wait_until
 MAX_ITEMS = 8
 
 
-@pytest.fixture(scope="module")
-def server():
-    s = Server(make_config(max_cloths_per_client=12, max_batch_items=MAX_ITEMS)).start()
+@pytest.fixture(scope="module", params=[True, False], ids=["device-encode", "host-encode"])
+def server(request):
+    """One server per publication path: states encoded on the OpenCL device, or by the host."""
+    s = Server(make_config(max_cloths_per_client=12, max_batch_items=MAX_ITEMS, device_encode=request.param)).start()
     yield s
     s.stop()
     assert s.failure is None

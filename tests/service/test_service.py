@@ -31,9 +31,10 @@ from drape.server.sim.world import make_world
 from conftest import GRACE, TIMEOUT, collect, connect, endpoint, make_config, wait_until  # shared helpers
 
 
-@pytest.fixture(scope="module")
-def server():
-    s = Server(make_config()).start()
+@pytest.fixture(scope="module", params=[True, False], ids=["device-encode", "host-encode"])
+def server(request):
+    """One server per publication path: states encoded on the OpenCL device, or by the host."""
+    s = Server(make_config(device_encode=request.param)).start()
     yield s
     s.stop()
     assert s.failure is None
@@ -56,6 +57,7 @@ def test_states_every_tick_match_the_in_process_solver(server, client):
         states = collect(h, 30)
     ticks = [s.tick for s in states]
     assert ticks == list(range(ticks[0], ticks[0] + len(ticks))), f"a tick went missing: {ticks}"
+    assert (server.ticker.device is not None) == server.config.device_encode  # the path this server runs
     assert ticks[0] >= h.first_tick
     assert all(s.positions.shape == (48, 3) and s.positions.dtype == np.float32 for s in states)
     assert all(s.receive_time_ns >= s.server_time_ns > 0 for s in states)
@@ -329,6 +331,7 @@ def test_non_finite_cloth_is_reset_never_published(server, client):
         assert reset, "the reset state is flagged"
         np.testing.assert_allclose(reset[0].positions, h.rest_positions, atol=1e-6)
         assert server.stats()["nan_resets"] == before + 1
+        assert (server.ticker.device is not None) == server.config.device_encode
 
 
 def test_encodings_normals_and_info(server, client):

@@ -181,6 +181,40 @@ def test_views_of_the_previous_frame_stay_valid(device, rng):
                  pubs)
 
 
+def test_a_held_frame_is_never_reused_and_takes_flags(device, rng):
+    """hold() keeps a frame's pinned memory out of the ring until released, however many frames
+    follow (the service's publisher holds the frame it is putting); add_flags ORs a flag into
+    the given cloths' state headers (a reset flag carried over from a dropped frame)."""
+    cloths, pos, nrm, pubs = _random_frame(rng, 6, 80)
+    P4, N4 = _world_arrays(rng, cloths, pos, nrm)
+    enc = DeviceEncoder(device, host_buffers=2)
+    enc.set_plan(FramePlan.build(cloths, pubs))
+    zeros = np.zeros(len(cloths), np.uint16)
+    pb, nb = _buffer(device, P4), _buffer(device, N4)
+    try:
+        enc.encode(device.queue, pb, nb, 10, 100, zeros)
+        held = enc.hold()
+        pb2 = _buffer(device, P4 * 3)
+        for t in range(11, 16):  # more frames than host buffers
+            enc.encode(device.queue, pb2, nb, t, t * 10, zeros)
+            enc.read()
+        _assert_same([bytes(v) for v in held.views], _reference(cloths, pos, nrm, pubs, 10, 100, zeros), pubs)
+        bad = [int(i) for i in rng.choice(len(cloths), 2, replace=False)]
+        held.add_flags(bad, P.FLAG_RESET)
+        want = zeros.copy()
+        want[bad] = P.FLAG_RESET
+        _assert_same([bytes(v) for v in held.views], _reference(cloths, pos, nrm, pubs, 10, 100, want), pubs)
+        held.release()
+        with pytest.raises(RuntimeError):
+            held.add_flags(bad, P.FLAG_RESET)
+        hosts = len(enc._hosts)
+        for t in range(16, 20):  # released: back in the ring, no new buffer
+            enc.encode(device.queue, pb2, nb, t, t * 10, zeros)
+        assert len(enc._hosts) == hosts
+    finally:
+        enc.close()
+
+
 def test_state_vectors(device):
     """tests/vectors/state.json (PROTOCOL.md's test vectors) reproduced by the device."""
     vectors = json.loads((VECTORS / "state.json").read_text())

@@ -26,6 +26,7 @@ import zenoh
 from drape.client import protocol as P
 
 from ..sim.world import Frame
+
 if TYPE_CHECKING:
     from ..sim.opencl.encode import EncodedFrame
 from .config import ServerConfig

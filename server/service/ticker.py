@@ -89,6 +89,10 @@ class Ticker:
         w.fetch()
         w.remove(h)
         w.fetch()
+        dev = device_world(w, self.config.device_encode)
+        if dev is not None:  # the frame encoder's kernels too: the tick thread never compiles
+            self.device = DeviceFrames(dev)
+            self.device.encoder.build_all()
         log.debug("warm-up took %.3f s", time.perf_counter() - t)
 
     # --- the loop --------------------------------------------------------------------------------
@@ -148,11 +152,12 @@ class Ticker:
         t = time.monotonic()
         frame = pending.wait()
         job.frame = frame.hold()
+        job.time_ns = time.time_ns()  # PROTOCOL.md: the server time is when the tick was read back
         if self.device is not None and job.roster is not None:  # encoded on the device at enqueue time
             job.encoded = self.device.hold()
+            job.encoded.set_time(job.time_ns)
             bad = self.device.nonfinite()
         else:
-            job.time_ns = time.time_ns()
             bad = frame.nonfinite()
         if len(bad):
             self._non_finite(job, bad)
@@ -193,9 +198,8 @@ class Ticker:
             self._reset_flags.clear()
         job = Job(tick=self.tick, roster=roster, flags=flags, after=after)
         if dev is not None:
-            assert self.device is not None
-            job.time_ns = time.time_ns()
-            pending = self.device.encode(roster, lay, self.tick, job.time_ns, flags)
+            assert self.device is not None  # the server time is stamped after the readback (set_time)
+            pending = self.device.encode(roster, lay, self.tick, 0, flags)
         self._pending = (pending, job, 0.0)
 
     def _roster_for(self, lay) -> Roster:

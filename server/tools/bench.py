@@ -27,9 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..sim import make_world
 from ..sim.fabric import Fabric, cook_grid
 from ..sim.params import Capsule, ClothParams, Features, LinkOptions, Material, Plane, Sphere, pack_colliders
-from ..sim.world import World, make_world
+from ..sim.world import World
 from .procs import progress, require_extra
 
 log = logging.getLogger(__name__)

@@ -327,7 +327,7 @@ class RunResult:
 
 
 def make_world_for(solver: str, device=None):
-    from ..sim.world import make_world
+    from ..sim import make_world
 
     if solver == "reference":
         return make_world("reference")

@@ -10,11 +10,12 @@ import time
 import msgpack
 import numpy as np
 import pytest
-
-from drape.client import BatchError, Forbidden, protocol as P
-from drape.server.service.statecodec import FrameEncoder
-from drape.server.service import Server
 from conftest import TIMEOUT, connect, make_config, wait_until
+
+from drape.client import BatchError, Forbidden
+from drape.client import protocol as P
+from drape.server.service import Server
+from drape.server.service.statecodec import FrameEncoder
 
 MAX_ITEMS = 8
 

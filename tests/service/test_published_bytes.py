@@ -13,11 +13,10 @@ import threading
 
 import numpy as np
 import pytest
+from conftest import TIMEOUT, connect, make_config, wait_until
 
 from drape.client import protocol as P
 from drape.server.service import Server
-
-from conftest import TIMEOUT, connect, make_config, wait_until
 
 ENCODINGS = ("float32", "float16", "quant16")
 

@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import msgpack
 import pytest
+from conftest import make_config, wait_until
 
 from drape.client import DrapeClient, ProtocolError
 from drape.client import protocol as P
-from drape.server.sim import quality
-from drape.server.service.config import ServerConfig
 from drape.server.service import Server
-from conftest import make_config, wait_until
+from drape.server.sim import quality
 
 TIMEOUT = 10.0
 

@@ -8,27 +8,24 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import textwrap
-import threading
 import time
 from pathlib import Path
 
 import msgpack
 import numpy as np
 import pytest
+from conftest import GRACE, TIMEOUT, collect, connect, endpoint, make_config, wait_until  # shared helpers
 
 from drape.client import DrapeClient, Forbidden, LimitExceeded, NotFound, ProtocolError, Sphere
 from drape.client import protocol as P
-from drape.server.service.config import ServerConfig, add_arguments, from_args
-from drape.server.sim.fabric import cook_grid
-from drape.server.sim.params import ClothParams, Features, LinkOptions, Plane
 from drape.server.service import Server
-from drape.server.sim.world import make_world
-
-from conftest import GRACE, TIMEOUT, collect, connect, endpoint, make_config, wait_until  # shared helpers
+from drape.server.service.config import ServerConfig, add_arguments, from_args
+from drape.server.sim import make_world
+from drape.server.sim.fabric import cook_grid
+from drape.server.sim.params import ClothParams, LinkOptions, Plane
 
 
 @pytest.fixture(scope="module", params=[True, False], ids=["device-encode", "host-encode"])

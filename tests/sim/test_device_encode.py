@@ -204,6 +204,9 @@ def test_a_held_frame_is_never_reused_and_takes_flags(device, rng):
         want = zeros.copy()
         want[bad] = P.FLAG_RESET
         _assert_same([bytes(v) for v in held.views], _reference(cloths, pos, nrm, pubs, 10, 100, want), pubs)
+        held.set_time(2**63 + 12345)  # the server time, known after the readback
+        _assert_same([bytes(v) for v in held.views], _reference(cloths, pos, nrm, pubs, 10, 2**63 + 12345, want),
+                     pubs)
         held.release()
         with pytest.raises(RuntimeError):
             held.add_flags(bad, P.FLAG_RESET)
@@ -213,6 +216,16 @@ def test_a_held_frame_is_never_reused_and_takes_flags(device, rng):
         assert len(enc._hosts) == hosts
     finally:
         enc.close()
+
+
+def test_build_all_leaves_no_plan_to_compile(device, rng):
+    """The service builds every encoder program at warm-up: any plan's is built already."""
+    enc = DeviceEncoder(device)
+    assert enc.build_all() >= 1
+    for k, max_n in ((1, 2), (6, 80), (30, 700)):
+        cloths, _, _, pubs = _random_frame(rng, k, max_n)
+        plan = FramePlan.build(cloths, pubs)
+        assert device.built(enc._options(enc._pick_wg(plan.max_n)), source="encode.cl")
 
 
 def test_state_vectors(device):

@@ -9,13 +9,15 @@ Layout (see kernels/layout.h):
 - per-cloth int/float tables carry ranges and parameters; kernels read them by cloth index.
 
 Cloths are grouped by the kernels they need (feature set, and substeps or local-memory fit):
-one program per build-option set, one launch (or one batch sequence) per group.
+one program per build-option set, one launch (or one batch sequence) per group; the groups'
+launch set-up and the coloured and Jacobi launches are in launch.py (GroupLaunches).
 
 A frame is read back whole: one ``pack_rows`` launch gathers every cloth's positions (xyz,
 without the inverse mass) back to back in the layout's order into one device buffer, and one
 non-blocking copy brings it into a host buffer mapped from ``ALLOC_HOST_PTR`` memory (pinned
 where the driver does that), reused from tick to tick. ``fetch_async`` returns at once; its
-``wait`` waits on that copy's event only.
+``wait`` waits on that copy's event only (frames.py). The service's device-encoded frames
+read the float4 ``pos`` and ``nrm`` buffers directly instead (encode.py).
 """
 from __future__ import annotations
 
@@ -33,6 +35,7 @@ from ..world import Cloth, World, inverse_masses
 from .buffers import DevArray, RangeAllocator, fabric_blob  # noqa: F401 (RangeAllocator re-exported)
 from .device import Device, layout
 from .frames import FrameReadback
+from .launch import GroupLaunches, _next_pow2  # noqa: F401 (_next_pow2 re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -86,11 +89,7 @@ LINK_UNROLL_LOCAL = 1
 LINK_UNROLL_GLOBAL = 4
 
 
-def _next_pow2(n: int) -> int:
-    return 1 << max(0, int(n - 1).bit_length())
-
-
-class CLWorld(FrameReadback, World):
+class CLWorld(GroupLaunches, FrameReadback, World):
     def __init__(
         self,
         strategy: str = "workgroup",
@@ -388,49 +387,6 @@ class CLWorld(FrameReadback, World):
             if g.dirty:
                 self._build_group(g)
 
-    def _build_group(self, g: Group) -> None:
-        handles = sorted(g.handles)
-        recs = [self.rec[h] for h in handles]
-        cloths = [self.cloths[h] for h in handles]
-        g.slots = np.array([r.slot for r in recs], np.int32)
-        g.cloths_buf = cl.Buffer(self.dev.ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=g.slots)
-        g.max_iters = max(c.params.iterations for c in cloths)
-        g.max_colours = max(c.fabric.n_colours for c in cloths)
-        g.max_vertices = max(c.fabric.n_vertices for c in cloths)
-        g.substeps = cloths[0].params.substeps
-        widest = max(
-            max(c.fabric.n_vertices for c in cloths),
-            max((int(np.diff(c.fabric.colour_offsets).max()) if c.fabric.n_colours else 1) for c in cloths),
-        )
-        if self.solver == "workgroup":
-            cap = self.max_local_size if g.use_local else self.max_global_path_size
-        else:
-            cap = self.max_local_size
-            widest = min(widest, self.chunk)
-            chunks = [(r.slot, v0) for r, c in zip(recs, cloths, strict=True)
-                      for v0 in range(0, c.fabric.n_vertices, self.chunk)]
-            g.n_chunks = len(chunks)
-            g.chunks_buf = cl.Buffer(self.dev.ctx, MF.READ_ONLY | MF.COPY_HOST_PTR,
-                                     hostbuf=np.ascontiguousarray(chunks, np.int32))
-        g.local_size = int(min(cap, max(min(32, cap), _next_pow2(widest))))
-        g.local_size = min(g.local_size, self._kernel_limit(g))
-        if self.solver == "coloured" and g.max_colours == 0:  # cloths without links (1 vertex)
-            g.colour_totals, g.prefix_buf = [], None
-        elif self.solver == "coloured":
-            counts = np.zeros((g.max_colours, len(cloths) + 1), np.int32)
-            for j, c in enumerate(cloths):
-                sizes = np.diff(c.fabric.colour_offsets)
-                counts[: len(sizes), j + 1] = sizes
-            prefix = np.cumsum(counts, axis=1, dtype=np.int64)
-            if prefix.size and prefix.max() >= 2**31:
-                raise RuntimeError("too many links in one colour batch")
-            prefix = prefix.astype(np.int32)
-            g.colour_totals = [int(t) for t in prefix[:, -1]]
-            g.prefix_buf = cl.Buffer(
-                self.dev.ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(prefix)
-            )
-        g.dirty = False
-
     def ready(self, fabric: Fabric, params: ClothParams) -> bool:
         _, local = self._group_key(Cloth(0, fabric, params))
         return self.dev.built(self._options_for(params.features, local))
@@ -486,62 +442,6 @@ class CLWorld(FrameReadback, World):
             self.dev.kernel(opts, "wg_step")(q, (len(g.slots) * ls,), (ls,), *args)
         self.steps += 1
         self._after_step()
-
-    def _vertex_phase_step(self, g: Group, dt32, opts) -> None:
-        """Coloured or Jacobi: per substep normals (wind), predict, iterations, finish."""
-        q = self.dev.queue
-        ls = g.local_size
-        gsize = (g.n_chunks * ls,)
-        ch = np.int32(self.chunk)
-        predict = self.dev.kernel(opts, "cl_predict")
-        finish = self.dev.kernel(opts, "cl_finish")
-        normals = self.dev.kernel(opts, "cl_normals")
-        normal_args = (ch, g.chunks_buf, self.ci.buf, self.cf.buf, self.fab.buf, self.pos.buf, self.nrm.buf)
-        for s in range(g.substeps):
-            si = np.int32(s)
-            if g.features.wind:
-                normals(q, gsize, (ls,), *normal_args)
-            predict(q, gsize, (ls,), dt32, si, ch, g.chunks_buf, self.ci.buf, self.cf.buf, self.fab.buf,
-                    self.pos.buf, self.vel.buf, self.prev.buf, self.target.buf, self.nrm.buf, self.lam.buf)
-            if self.solver == "coloured":
-                self._coloured_iterations(g, dt32, opts)
-            else:
-                self._jacobi_iterations(g, dt32, opts, gsize, ls)
-            finish(q, gsize, (ls,), dt32, si, ch, g.chunks_buf, self.ci.buf, self.cf.buf, self.fab.buf,
-                   self.pos.buf, self.vel.buf, self.prev.buf, self.coll.buf)
-        if g.features.normals:
-            normals(q, gsize, (ls,), *normal_args)
-
-    def _coloured_iterations(self, g: Group, dt32, opts) -> None:
-        k = self.dev.kernel(opts, "cl_links")
-        q = self.dev.queue
-        lg = self.link_group_size
-        ngc = np.int32(len(g.slots))
-        # arguments set once; per dispatch only the colour and the iteration change
-        k.set_args(dt32, np.int32(0), np.int32(0), ngc, g.prefix_buf, g.cloths_buf, self.ci.buf, self.cf.buf,
-                   self.fab.buf, self.pos.buf, self.lam.buf)
-        sizes = [((-(-total // lg) * lg,), c) for c, total in enumerate(g.colour_totals) if total]
-        for it in range(g.max_iters):
-            k.set_arg(2, np.int32(it))
-            for gsize, c in sizes:
-                k.set_arg(1, np.int32(c))
-                cl.enqueue_nd_range_kernel(q, k, gsize, (lg,))
-
-    def _jacobi_iterations(self, g: Group, dt32, opts, gsize, ls) -> None:
-        k = self.dev.kernel(opts, "jacobi_iter")
-        q = self.dev.queue
-        bufs = [self.pos.buf, self.pos2.buf]
-        ch = np.int32(self.chunk)
-        k.set_args(dt32, np.int32(0), ch, g.chunks_buf, self.ci.buf, self.cf.buf, self.fab.buf, bufs[0], bufs[1],
-                   self.lam.buf)
-        for it in range(g.max_iters):
-            k.set_arg(1, np.int32(it))
-            k.set_arg(7, bufs[it & 1])
-            k.set_arg(8, bufs[(it + 1) & 1])
-            cl.enqueue_nd_range_kernel(q, k, gsize, (ls,))
-        if g.max_iters & 1:
-            self.dev.kernel(opts, "copy_positions")(q, gsize, (ls,), ch, g.chunks_buf, self.ci.buf, self.pos2.buf,
-                                                     self.pos.buf)
 
     def _after_step(self) -> None:
         """A collider not moved again before the next step stays where it is."""

@@ -114,6 +114,7 @@ class FramePlan:
     vertex_end: int = 0  # one past the last vertex any row reads
     normals: bool = False  # whether any row reads normals
     _bounds_at: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    _time_at: np.ndarray | None = None
 
     @property
     def size(self) -> int:
@@ -208,6 +209,15 @@ class FramePlan:
         row[W["ENC_ROW_CLOTH"]] = index
         return row
 
+    def time_offsets(self) -> np.ndarray:
+        """Byte offsets of every server-time field of the frame (each encoded state's, each
+        bundle's), computed once per plan."""
+        if self._time_at is None:
+            states = self._bounds_at + HEADER_OFFSETS["ST_TIME"]
+            bundles = self.pub_offset[np.array([p.bundle for p in self.publications], bool)] + HEADER_OFFSETS["BH_TIME"]
+            self._time_at = np.concatenate([states, bundles]).astype(np.int64)
+        return self._time_at
+
     @property
     def encoded(self) -> np.ndarray:
         """Plan cloth indices that are encoded (in some publication), in row order."""
@@ -284,6 +294,16 @@ class EncodedFrame:
             f2 = self._host.data[at + 1] | np.uint8((flags >> 8) & 0xFF)
             self._host.data[at], self._host.data[at + 1] = f, f2
 
+    def set_time(self, time_ns: int) -> None:
+        """Rewrite the server time of every state and bundle header (PROTOCOL.md: when the tick
+        was read back, known only after the encode): one vectorised write per frame."""
+        if self._host is None:
+            raise RuntimeError("frame already released")
+        at = self.plan.time_offsets()
+        if len(at):
+            stamp = np.frombuffer(int(time_ns).to_bytes(8, "little"), np.uint8)
+            self._host.data[(at[:, None] + np.arange(8)).ravel()] = np.tile(stamp, len(at))
+
     def release(self) -> None:
         if self._host is not None:
             self._host.held = False
@@ -344,6 +364,20 @@ class DeviceEncoder:
             wg *= 2
         return wg
 
+    def _options(self, wg: int) -> list[str]:
+        return [f"-DENC_WG={wg}", f"-DENC_FP64={int(self.fp64)}", f"-DENC_STRIDE={self.stride}",
+                f"-DENC_SOFT_HALF={int(self.soft_half)}", *(f"-D{k}={v}" for k, v in HEADER_OFFSETS.items())]
+
+    def build_all(self) -> int:
+        """Build the program for every work-group size a plan may pick (one on a CPU, the
+        powers of two up to the cap on a GPU), so that no later ``set_plan`` compiles (the
+        service's tick thread never compiles). Returns how many were built."""
+        wg, top = 1, self._pick_wg(2**31)
+        while wg <= top:
+            self.dev.program(self._options(wg), source=SOURCE)
+            wg *= 2
+        return top.bit_length()
+
     def set_plan(self, plan: FramePlan) -> None:
         """Use ``plan`` from the next frame on: build the kernel, upload its table and template
         (blocking), size the output and pinned host buffers. Everything is made before anything
@@ -351,10 +385,7 @@ class DeviceEncoder:
         their bytes while held."""
         ctx, q = self.dev.ctx, self.dev.queue
         wg = self._pick_wg(plan.max_n)
-        opts = [f"-DENC_WG={wg}", f"-DENC_FP64={int(self.fp64)}", f"-DENC_STRIDE={self.stride}",
-                f"-DENC_SOFT_HALF={int(self.soft_half)}",
-                *(f"-D{k}={v}" for k, v in HEADER_OFFSETS.items())]
-        kernel = cl.Kernel(self.dev.program(opts, source=SOURCE), "encode_frame")
+        kernel = cl.Kernel(self.dev.program(self._options(wg), source=SOURCE), "encode_frame")
         size = max(plan.size, 8)
         out = cl.Buffer(ctx, MF.READ_WRITE, size)
         if plan.size:

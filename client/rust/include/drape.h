@@ -183,7 +183,7 @@ typedef struct DrapeStateInfo {
 extern "C" {
 #endif // __cplusplus
 
-// The library's version and the protocol version it speaks, e.g. "drape-client 0.2.0, protocol 1.2".
+// The library's version and the protocol version it speaks, e.g. "drape-client 0.2.0, protocol 1.3".
 const char *drape_version(void);
 
 // The message of this thread's last error, copied into `buf` (NUL-terminated, truncated).

@@ -1,7 +1,7 @@
 //! The protocol test vectors of the repository (`../../tests/vectors/*.json`, PROTOCOL.md
 //! section 16) checked both ways: bytes -> meaning, and meaning -> identical bytes. The frozen
-//! 1.0 and 1.1 vectors (`v1.0/`, `v1.1/`) must still be read as they mean, and written back
-//! they differ only in the version.
+//! 1.0, 1.1 and 1.2 vectors (`v1.0/`, `v1.1/`, `v1.2/`) must still be read as they mean, and
+//! written back they differ only in the version.
 use drape::wire::msg::{encode_info, encode_remove};
 use drape::wire::reader::{pack, unpack_message, Reader, Value};
 use drape::wire::replies::{decode_reply, encode_tick_reply, tick_of};
@@ -36,7 +36,7 @@ fn to_json(v: &Value, key: &str) -> Json {
         Value::Binary(b) => {
             let four = b.chunks_exact(4).map(|c| c.try_into().unwrap());
             match key {
-                "vertices" | "targets" => json!({"f32": four.map(|c: [u8; 4]| f32::from_le_bytes(c) as f64).collect::<Vec<_>>()}),
+                "vertices" | "targets" | "positions" | "velocities" => json!({"f32": four.map(|c: [u8; 4]| f32::from_le_bytes(c) as f64).collect::<Vec<_>>()}),
                 _ => json!({"u32": four.map(u32::from_le_bytes).collect::<Vec<_>>()}),
             }
         }
@@ -46,9 +46,9 @@ fn to_json(v: &Value, key: &str) -> Json {
     }
 }
 
-/// Every vector set: its directory, the version its messages carry. The current set is 1.2;
-/// the 1.0 and 1.1 sets are frozen and must be read as they mean (PROTOCOL.md section 15).
-const SETS: [(&str, u64); 3] = [("", PROTOCOL_MINOR as u64), ("v1.1/", 1), ("v1.0/", 0)];
+/// Every vector set: its directory, the version its messages carry. The current set is 1.3;
+/// the 1.0, 1.1 and 1.2 sets are frozen and must be read as they mean (PROTOCOL.md section 15).
+const SETS: [(&str, u64); 4] = [("", PROTOCOL_MINOR as u64), ("v1.2/", 2), ("v1.1/", 1), ("v1.0/", 0)];
 
 fn load_set(dir_prefix: &str, name: &str) -> Vec<Json> {
     if dir().join(dir_prefix).join(name).exists() { load(&format!("{dir_prefix}{name}")) } else { Vec::new() }
@@ -156,7 +156,7 @@ fn messages_both_ways() {
             }
         }
     }
-    assert!(seen >= 40, "only {seen} message vectors");
+    assert!(seen >= 60, "only {seen} message vectors");
 }
 
 /// The 1.2 messages: what a control carries and what its replies report.
@@ -177,6 +177,34 @@ fn features_add_remove_and_overloaded() {
     assert_eq!((e.code, e.code as i32, e.code.is_retryable(), e.code.is_bad_request()), (ErrorCode::Overloaded, 17, true, false));
     assert_eq!(ErrorCode::from_name("overloaded"), ErrorCode::Overloaded);
     assert_eq!(ErrorCode::from_name("from_a_later_version"), ErrorCode::Unknown);
+}
+
+/// The 1.3 `resume` of a submission: decoded field by field, validated against the cloth.
+#[test]
+fn resume_in_submit() {
+    let subs = load("submit.json");
+    let by = |n: &str| unhex(subs.iter().find(|v| v["name"] == n).unwrap_or_else(|| panic!("no vector {n}")));
+    let s = Submit::decode(&by("submit_resume")).unwrap();
+    let r = s.resume.as_ref().expect("resume");
+    assert_eq!(r.positions, vec![0.0, 1.0, 0.0, 1.0, 0.75, 0.25, 0.0, 0.5, 1.0, 1.0, 0.25, 1.0]);
+    assert_eq!(r.velocities.as_ref().unwrap()[3..6], [0.5, -1.0, 0.0]);
+    assert_eq!((r.tick, r.from_server.as_deref(), r.cloth.as_deref()), (Some(1042), Some("s1"), Some("5ba88a14c526242f")));
+    let least = Submit::decode(&by("submit_resume_positions")).unwrap();
+    let r = least.resume.as_ref().unwrap();
+    assert_eq!((r.positions.len(), r.velocities.is_none(), r.tick, r.from_server.is_none()), (6, true, None, true));
+    // validated against the cloth's vertex count and bounds
+    let lim = Limits::default();
+    let mut bad = s.clone();
+    bad.resume.as_mut().unwrap().positions.truncate(9);
+    assert_eq!(bad.validate(&lim).unwrap_err().code, ErrorCode::InvalidValue);
+    let mut bad = s.clone();
+    bad.resume.as_mut().unwrap().velocities.as_mut().unwrap()[4] = 2e4;
+    assert_eq!(bad.validate(&lim).unwrap_err().code, ErrorCode::InvalidValue);
+    let mut bad = s.clone();
+    bad.resume.as_mut().unwrap().positions[0] = f32::NAN;
+    assert_eq!(bad.validate(&lim).unwrap_err().code, ErrorCode::InvalidValue);
+    // an earlier version's submission has none
+    assert!(load_set("v1.2/", "submit.json").iter().all(|v| Submit::decode(&unhex(v)).unwrap().resume.is_none()));
 }
 
 fn f32s(v: &Json) -> Vec<f32> {

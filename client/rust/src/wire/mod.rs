@@ -1,4 +1,4 @@
-//! The Drape wire protocol 1.2 (PROTOCOL.md) without any network: key expressions, msgpack
+//! The Drape wire protocol 1.3 (PROTOCOL.md) without any network: key expressions, msgpack
 //! requests and replies, the binary state (`DRPS`) and bundle (`DRPB`) payloads, float16 /
 //! quant16 and the geometry a client needs (grids, OBJ files). Everything here is pure and
 //! allocation-conscious: states decode straight into caller-provided `f32` slices.
@@ -20,16 +20,16 @@ pub use error::{Error, ErrorCode, Result};
 pub use geometry::{grid_geometry, parse_obj};
 pub use keys::{valid_id, valid_namespace, valid_token, Keys};
 pub use msg::{
-    Collider, Control, ControlBatch, Encoding, Grid, Links, Material, Mesh, Orientation, Pins, Shape,
+    Collider, Control, ControlBatch, Encoding, Grid, Links, Material, Mesh, Orientation, Pins, Resume, Shape,
     StateOptions, Submit,
 };
 pub use replies::{Applied, BatchItem, BatchReply, ErrorReply, SubmitReply};
 pub use validate::Limits;
 pub use state::{decode_state_into, encode_state, parse_state, state_size, StateHeader, STATE_HEADER_SIZE};
 
-/// The protocol version this crate speaks: `[1, 2]` (it reads every minor of major 1).
+/// The protocol version this crate speaks: `[1, 3]` (it reads every minor of major 1).
 pub const PROTOCOL_MAJOR: u8 = 1;
-pub const PROTOCOL_MINOR: u8 = 2;
+pub const PROTOCOL_MINOR: u8 = 3;
 /// The default namespace and server endpoint.
 pub const DEFAULT_NAMESPACE: &str = "drape";
 pub const DEFAULT_ENDPOINT: &str = "tcp/127.0.0.1:7447";

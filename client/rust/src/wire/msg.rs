@@ -116,6 +116,50 @@ pub struct Pins {
     pub targets: Vec<f32>,
 }
 
+/// 1.3: the state a resubmitted cloth continues from (PROTOCOL.md section 4.1): positions
+/// (and velocities, m/s) of every vertex, xyz interleaved; the other fields are informational.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Resume {
+    pub positions: Vec<f32>,
+    /// Absent = zero velocities.
+    pub velocities: Option<Vec<f32>>,
+    /// The tick of the state resumed from, on the server it came from.
+    pub tick: Option<u64>,
+    pub from_server: Option<String>,
+    /// The cloth's id on that server.
+    pub cloth: Option<String>,
+}
+
+impl Resume {
+    pub fn to_value(&self) -> Value {
+        let mut m = vec![(s("positions"), bin_f32(&self.positions))];
+        if let Some(v) = &self.velocities {
+            m.push((s("velocities"), bin_f32(v)));
+        }
+        if let Some(t) = self.tick {
+            m.push((s("tick"), Value::from(t)));
+        }
+        if let Some(x) = &self.from_server {
+            m.push((s("from_server"), s(x)));
+        }
+        if let Some(x) = &self.cloth {
+            m.push((s("cloth"), s(x)));
+        }
+        Value::Map(m)
+    }
+
+    /// Read a `resume` map (types only; [`Submit::validate`] checks counts and bounds).
+    pub fn from_reader(r: &Reader<'_>) -> Result<Resume> {
+        Ok(Resume {
+            positions: r.f32s("positions", true)?.unwrap(),
+            velocities: r.f32s("velocities", false)?,
+            tick: r.u64("tick", false)?,
+            from_server: r.str("from_server", false)?.map(str::to_string),
+            cloth: r.str("cloth", false)?.map(str::to_string),
+        })
+    }
+}
+
 /// A submit request (section 4).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Submit {
@@ -134,6 +178,8 @@ pub struct Submit {
     pub colliders: Option<Vec<Collider>>,
     pub state: Option<StateOptions>,
     pub quality: Option<String>,
+    /// 1.3: continue from this state instead of the rest pose (a 1.2 server ignores it).
+    pub resume: Option<Resume>,
 }
 
 impl Submit {
@@ -154,6 +200,7 @@ impl Submit {
             colliders: None,
             state: None,
             quality: None,
+            resume: None,
         }
     }
 }
@@ -297,6 +344,9 @@ impl Submit {
         if let Some(q) = &self.quality {
             m.push((s("quality"), s(q)));
         }
+        if let Some(r) = &self.resume {
+            m.push((s("resume"), r.to_value()));
+        }
         Value::Map(m)
     }
 
@@ -353,6 +403,10 @@ impl Submit {
             colliders: read_colliders(&r)?,
             state: read_state(&r)?,
             quality: r.str("quality", false)?.map(str::to_string),
+            resume: match r.sub("resume", false)? {
+                None => None,
+                Some(x) => Some(Resume::from_reader(&x)?),
+            },
         })
     }
 }

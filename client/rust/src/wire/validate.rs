@@ -3,7 +3,7 @@
 //! of a round trip. Quotas that depend on the server's load (`limit_exceeded`) stay server-side.
 use super::error::{invalid, Error, ErrorCode, Result};
 use super::keys::{valid_id, valid_token};
-use super::msg::{Collider, Control, ControlBatch, Material, Shape, Submit};
+use super::msg::{Collider, Control, ControlBatch, Material, Resume, Shape, Submit};
 use super::reader::{unpack_message, Reader, Value};
 use super::{FEATURE_NAMES, MAX_BATCH_ITEMS, MAX_COLLIDERS, MAX_FEATURES, MAX_PIN_UPDATES, MIN_MASS, QUALITY_PRESETS};
 
@@ -192,7 +192,43 @@ impl Submit {
         vec3("wind", self.wind, ACCEL)?;
         material(&self.material)?;
         colliders(&self.colliders)?;
-        options(Some(&self.features), self.quality.as_deref(), self.iterations, self.substeps, self.chebyshev_rho, lim)
+        options(Some(&self.features), self.quality.as_deref(), self.iterations, self.substeps, self.chebyshev_rho, lim)?;
+        match &self.resume {
+            Some(r) => r.validate(n, lim),
+            None => Ok(()),
+        }
+    }
+}
+
+impl Resume {
+    /// 1.3 (PROTOCOL.md section 4.1): positions and velocities of exactly `n` vertices, finite,
+    /// positions within ±1e5 m and velocities within ±1e4 m/s; ids well formed.
+    pub fn validate(&self, n: u64, lim: &Limits) -> Result<()> {
+        for (name, v, bound) in [("positions", Some(&self.positions), COORD), ("velocities", self.velocities.as_ref(), ACCEL)] {
+            let Some(v) = v else { continue };
+            if v.len() % 3 != 0 {
+                return Err(invalid(format!("'resume.{name}' must hold 3 floats per vertex")));
+            }
+            let count = (v.len() / 3) as u64;
+            if count > lim.max_vertices_per_cloth {
+                return Err(err(ErrorCode::TooLarge, format!("'resume.{name}' has {count} vertices, at most {}", lim.max_vertices_per_cloth)));
+            }
+            if count != n {
+                return Err(invalid(format!("'resume.{name}' has {count} vertices but the cloth has {n}")));
+            }
+            if let Some(x) = v.iter().find(|x| !x.is_finite()) {
+                return Err(invalid(format!("'resume.{name}' must be finite (holds {x})")));
+            }
+            if let Some(x) = v.iter().find(|x| x.abs() as f64 > bound) {
+                return Err(invalid(format!("'resume.{name}' values must be within ±{bound}, got {x}")));
+            }
+        }
+        for (name, id) in [("from_server", &self.from_server), ("cloth", &self.cloth)] {
+            if let Some(id) = id.as_deref().filter(|id| !valid_id(id)) {
+                return Err(invalid(format!("'resume.{name}' = {id:?} is not a valid id")));
+            }
+        }
+        Ok(())
     }
 }
 

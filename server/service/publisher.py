@@ -7,7 +7,10 @@ replies sent after it (removes) and the periodic stats.
 Per tick it works per *publication* (a state or a bundle), never per live cloth: the
 :class:`Roster` (ids, keys, encodings, normals, singles and bundle groups as arrays in the
 frame's order) is built by the tick thread only when cloths come, go or change how they are
-published. States or bundles whose key has no subscriber are not encoded (counted
+published. A device-encoded frame (``Job.encoded``, config ``device_encode``) is already bytes:
+each publication's slice is put with one ``bytes`` copy (zenoh's ZBytes takes no memoryview;
+copying each slice is cheaper than one copy of the whole frame sliced again). States or bundles
+whose key has no subscriber are not encoded or copied (counted
 ``unwatched``). A frame the publisher had not taken when the next one was ready is dropped and
 its replies carried over (counted ``skipped_frames`` by the tick thread): the tick thread never
 waits for the network.

@@ -8,6 +8,11 @@ ones first, then each cloth's coalesced control), reclaims vanished clients' clo
 step N and its readback without waiting, and hands frame N - 1 to the publisher. So the device
 steps tick N while the host publishes tick N - 1.
 
+With ``device_encode`` on an OpenCL world, one launch right behind the step encodes every
+publication's bytes into one packed buffer, read back once into pinned memory (devencode.py);
+its bounds tell the non-finite cloths, reset and encoded again. The reference World keeps the
+host path (the publisher's FrameEncoder).
+
 Per tick the Python work is O(commands + changed cloths + non-finite cloths): the frame is one
 contiguous array, its publication roster (drape.server.service.publisher.Roster) is rebuilt
 only when the World's layout or a cloth's publication changes, and flags are one array.

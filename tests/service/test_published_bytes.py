@@ -100,3 +100,36 @@ def test_published_bytes_equal_the_protocol_encoding(device_encode, rng):
     finally:
         server.stop()
     assert server.failure is None
+
+
+@pytest.mark.parametrize("device_encode", [True, False], ids=["device", "host"])
+def test_non_finite_cloth_with_normals_is_published_at_rest_with_rest_normals(device_encode):
+    """A cloth gone non-finite is reset: its next state is its rest pose with the rest pose's
+    normals and the reset flag, on both paths (the device path writes the rest normals and
+    encodes the frame again)."""
+    from drape.server.sim.shared import vertex_normals
+
+    server = Server(make_config(device_encode=device_encode)).start()
+    try:
+        client = connect(server)
+        try:
+            with client.submit_grid(6, 5, pinned=[0], normals=True) as h:
+                h.next_state(TIMEOUT)
+                handle = server.world_handle(h.id)
+                fabric = server.call(lambda w: w.cloths[handle].fabric)
+                server.call(lambda w: w.reset(handle, np.full((30, 3), np.nan)))
+                for _ in range(20):
+                    s = h.next_state(TIMEOUT)
+                    assert np.isfinite(s.positions).all() and np.isfinite(s.normals).all()
+                    if s.reset:
+                        break
+                assert s.reset, "the reset state is flagged"
+                np.testing.assert_allclose(s.positions, h.rest_positions, atol=1e-6)
+                want = vertex_normals(fabric.rest_positions, fabric)[0]
+                np.testing.assert_allclose(s.normals, want, atol=1e-6)
+                assert (server.ticker.device is not None) == device_encode
+        finally:
+            client.close()
+    finally:
+        server.stop()
+    assert server.failure is None

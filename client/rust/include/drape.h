@@ -92,6 +92,12 @@
 
 #define DRAPE_EVENT_REQUEST_FAILED 5
 
+// Why a cloth failed over (`DrapeEvent.reason` of DRAPE_EVENT_CLOTH_RESUBMITTED; 0 otherwise):
+// its server's liveliness vanished, or its server no longer had it (reclaimed, restarted).
+#define DRAPE_REASON_SERVER_LOST 1
+
+#define DRAPE_REASON_RECLAIMED 2
+
 // Controls of many cloths sent as one batch control (opaque; not synchronized).
 typedef struct DrapeBatch DrapeBatch;
 
@@ -114,7 +120,10 @@ typedef struct DrapeClientOptions {
   const char *namespace_;
   // Request and discovery timeout in milliseconds (0: 5000).
   uint32_t timeout_ms;
-  // Opt-in: resubmit a lost server's cloths to another live server (README.md).
+  // Opt-in failover (protocol 1.3, PROTOCOL.md 11.1; README.md "Failover"): a cloth lost
+  // with its server, or reclaimed, is resubmitted to the least loaded live server with its
+  // last received state (positions and velocities), its last pins and colliders sent again,
+  // under the same handle (DRAPE_EVENT_CLOTH_RESUBMITTED).
   bool failover;
 } DrapeClientOptions;
 
@@ -130,6 +139,19 @@ typedef struct DrapeEvent {
   char cloth[72];
   char old_cloth[72];
   char message[256];
+  // CLOTH_RESUBMITTED: the server the cloth was on (else empty).
+  char old_server[72];
+  // CLOTH_RESUBMITTED: the tick (on `old_server`) of the state it continued from, when
+  // `resumed`; else 0.
+  uint64_t resumed_tick;
+  // CLOTH_RESUBMITTED: DRAPE_REASON_* (else 0).
+  int32_t reason;
+  // CLOTH_RESUBMITTED: it continued from its last received state (false: from its rest
+  // pose, no state had been received, or it was kept).
+  bool resumed;
+  // CLOTH_RESUBMITTED: its own server still held it; nothing was resubmitted
+  // (`cloth` == `old_cloth`).
+  bool kept;
 } DrapeEvent;
 
 // A regular grid (PROTOCOL.md section 4): vertex (r, c) is r * cols + c.

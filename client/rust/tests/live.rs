@@ -1,10 +1,10 @@
 //! End-to-end tests against real `drape serve` processes on loopback (see tests/common): real
 //! Zenoh, a real server, no mocks. Submissions of grids, meshes and OBJ text, states on single
 //! keys and in bundles, controls waited for or not, batch control, errors, removal, and a
-//! server killed under its cloths (reported, and resubmitted with the opt-in failover).
+//! server killed under its cloths (reported, and resumed elsewhere with the opt-in failover).
 mod common;
 
-use drape::client::{Client, ClientOptions, Cloth, Event};
+use drape::client::{Client, ClientOptions, Cloth, Event, LossReason};
 use drape::wire::{Collider, Control, Encoding, ErrorCode, Grid, Orientation, StateOptions, Submit};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
@@ -171,20 +171,54 @@ fn bundles_and_batch_control() {
     client.close(true);
 }
 
+/// The largest distance between two vertices of the same index (xyz interleaved).
+fn max_dist(a: &[f32], b: &[f32]) -> f32 {
+    a.chunks_exact(3).zip(b.chunks_exact(3))
+        .map(|(p, q)| ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2) + (p[2] - q[2]).powi(2)).sqrt())
+        .fold(0.0, f32::max)
+}
+
+/// kill -9 of the server under the cloths. Without failover: reported, lost. With failover
+/// (PROTOCOL.md 11.1): resubmitted to the other server under the same handle, resumed from the
+/// last received state (within 1 cm of it, and the cloth hangs far from its rest pose, so a
+/// restart from the rest pose fails this), the moved pins sent again.
 #[test]
-fn lost_server_is_reported_and_failover_resubmits() {
+fn lost_server_is_reported_and_failover_resumes() {
     let Some(bin) = common::drape_bin() else { return };
     let (a, b) = (common::start(&bin, &[]), common::start(&bin, &[]));
     let plain = connect(&[&a], Some(&a.id), false);
     let fo = connect(&[&a, &b], Some(&a.id), true);
-    let sub = || Submit { pinned: vec![0, 3], ..opts() };
+    // A horizontal 4x4 grid pinned at two corners of its first row: it swings down and hangs
+    // (damped), far from its flat rest pose.
+    let material = drape::wire::Material { damping: Some(0.05), ..Default::default() };
+    let sub = || Submit { pinned: vec![0, 3], material, ..opts() };
     let lost = plain.submit_grid(Grid::new(4, 4), sub()).unwrap();
     let moved = fo.submit_grid(Grid::new(4, 4), sub()).unwrap();
     let bundled = fo.submit_grid(Grid::new(4, 4), Submit { state: Some(StateOptions { bundle: Some(true), ..Default::default() }), ..sub() }).unwrap();
     let mut pos = vec![0f32; 48];
-    for c in [&lost, &moved, &bundled] {
+    // the pins raised by 0.5 m: the resubmission must keep them there
+    let lifted = [0.0, 0.5, 0.0, 1.0, 0.5, 0.0];
+    for c in [&moved, &bundled] {
         wait(c, &mut pos);
         assert_eq!(c.server(), a.id);
+        c.move_pins(&[0, 3], &lifted, true).unwrap();
+    }
+    wait(&lost, &mut pos);
+    let t0 = Instant::now();
+    let mut last = [vec![0f32; 48], vec![0f32; 48]];
+    loop {
+        for (c, l) in [&moved, &bundled].iter().zip(last.iter_mut()) {
+            c.wait_state(l, None, Duration::from_secs(5)).unwrap().expect("a state");
+        }
+        let far = last.iter().zip([&moved, &bundled]).all(|(l, c)| max_dist(l, c.rest_positions()) > 0.5);
+        if far && t0.elapsed() > Duration::from_secs(3) {
+            break;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(20), "the cloths did not swing down");
+    }
+    // the client's last received states, just before the kill
+    for (c, l) in [&moved, &bundled].iter().zip(last.iter_mut()) {
+        c.latest_state(l, None).unwrap().unwrap();
     }
     let (old, handle) = (moved.id(), moved.handle());
     a.kill();
@@ -206,15 +240,23 @@ fn lost_server_is_reported_and_failover_resubmits() {
     let mut pending = vec![moved.handle(), bundled.handle()]; // resubmitted in any order
     while !pending.is_empty() {
         let e = until(&fo, &|e| matches!(e, Event::ClothResubmitted { handle, .. } if pending.contains(handle)));
-        let Event::ClothResubmitted { handle, server, .. } = e else { unreachable!() };
-        assert_eq!(server, b.id);
+        let Event::ClothResubmitted { handle, server, old_server, reason, resumed_tick, kept, .. } = e else { unreachable!() };
+        assert_eq!((server, old_server, reason, kept), (b.id.clone(), a.id.clone(), LossReason::ServerLost, false));
+        assert!(resumed_tick.is_some(), "resumed from a received state");
         pending.retain(|h| *h != handle);
     }
     assert_eq!((moved.handle(), moved.server()), (handle, b.id.clone()));
     assert_ne!(moved.id(), old);
-    for c in [&moved, &bundled] {
+    for (c, l) in [&moved, &bundled].iter().zip(&last) {
         let st = wait(c, &mut pos);
         assert!(st.tick >= c.first_tick(), "states come from the new server");
+        let (from_last, from_rest) = (max_dist(&pos, l), max_dist(&pos, c.rest_positions()));
+        assert!(from_last < 0.01, "the first state after the failover is {from_last} m from the last one before it");
+        assert!(from_rest > 0.5, "the cloth did not restart from its rest pose ({from_rest} m from it)");
+        // the pins stay where the game moved them
+        std::thread::sleep(Duration::from_millis(200));
+        c.latest_state(&mut pos, None).unwrap().unwrap();
+        assert!(max_dist(&pos[..3], &lifted[..3]) < 1e-3 && max_dist(&pos[9..12], &lifted[3..]) < 1e-3, "pins: {:?}", &pos[..12]);
         assert!(c.move_pins(&[0], &[0.0, 0.5, 0.0], true).unwrap().is_some());
     }
     assert_eq!(fo.server_id().unwrap(), b.id, "new submissions go to the live server");

@@ -5,10 +5,10 @@ use super::{Event, Inner};
 use crate::wire::error::{Error, ErrorCode, Result};
 use crate::wire::msg::{ControlBatch, Pins, Submit};
 use crate::wire::replies::{tick_of, Applied, BatchReply};
-use crate::wire::{decode_state_into, Control, Encoding};
-use std::collections::BTreeMap;
+use crate::wire::{decode_state_into, Collider, Control, Encoding};
+use std::collections::{BTreeMap, HashMap};
 use std::sync::{Arc, Condvar, Mutex, Weak};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 use zenoh::pubsub::Subscriber;
 
 #[derive(Debug, Clone, PartialEq)]
@@ -30,12 +30,27 @@ pub(crate) struct Slot {
     pub(crate) first_tick: u64,
     pub(crate) sub: Option<Subscriber<()>>,
     pub(crate) latest: Option<Latest>,
+    /// The state received before `latest` from the same placement (failover velocities; a
+    /// reference to the received payload, nothing copied).
+    pub(crate) prev: Option<Latest>,
+    /// When the last state arrived (or the cloth was placed), and when it was last probed
+    /// (failover's stall detection).
+    pub(crate) last_receipt: Instant,
+    pub(crate) last_probe: Instant,
     pub(crate) fresh: bool,
     pub(crate) received: u64,
     pub(crate) dropped: u64,
     pub(crate) invalid: u64,
     /// 1.2: the feature set the newest control reply reported, with that reply's tick.
     pub(crate) features: Option<(u64, Vec<String>)>,
+}
+
+/// What the game last sent by controls that a failover sends again (PROTOCOL.md 11.1): the last
+/// target of each pinned vertex moved, and the last collider list.
+#[derive(Default)]
+pub(crate) struct Sent {
+    pub(crate) pins: HashMap<u32, [f32; 3]>,
+    pub(crate) colliders: Option<Vec<Collider>>,
 }
 
 pub(crate) struct ClothInner {
@@ -47,6 +62,7 @@ pub(crate) struct ClothInner {
     pub(crate) n_vertices: u32,
     pub(crate) slot: Mutex<Slot>,
     pub(crate) cv: Condvar,
+    pub(crate) sent: Mutex<Sent>,
 }
 
 impl ClothInner {
@@ -62,13 +78,46 @@ impl ClothInner {
             first_tick: 0,
             sub: None,
             latest: None,
+            prev: None,
+            last_receipt: Instant::now(),
+            last_probe: Instant::now(),
             fresh: false,
             received: 0,
             dropped: 0,
             invalid: 0,
             features: None,
         };
-        Arc::new(ClothInner { handle, submit, rest, triangles, n_vertices, slot: Mutex::new(slot), cv: Condvar::new() })
+        Arc::new(ClothInner {
+            handle,
+            submit,
+            rest,
+            triangles,
+            n_vertices,
+            slot: Mutex::new(slot),
+            cv: Condvar::new(),
+            sent: Mutex::new(Sent::default()),
+        })
+    }
+
+    /// Remember the pin targets and colliders of a control about to be sent (a failover sends
+    /// the last ones again); a reset drops the pin targets, as the server does. No allocation
+    /// once each pinned vertex has been seen.
+    pub(crate) fn note_sent(&self, ctl: &Control) {
+        if ctl.pins.is_none() && ctl.colliders.is_none() && !ctl.reset {
+            return;
+        }
+        let mut sent = self.sent.lock().unwrap();
+        if let Some(p) = &ctl.pins {
+            for (i, t) in p.indices.iter().zip(p.targets.chunks_exact(3)) {
+                sent.pins.insert(*i, [t[0], t[1], t[2]]);
+            }
+        }
+        if let Some(c) = &ctl.colliders {
+            sent.colliders = Some(c.clone());
+        }
+        if ctl.reset {
+            sent.pins.clear();
+        }
     }
 
     /// Keep the feature set a control reply reported (replies may arrive out of order: the
@@ -264,6 +313,8 @@ impl Cloth {
                 }
             }
             Err(e) if e.code == ErrorCode::ServerLost => 0,
+            // being failed over: forgotten (the failover worker drops it)
+            Err(_) if c.slot.lock().unwrap().status == Status::Resubmitting => 0,
             Err(e) => return Err(e),
         };
         let (id, sub) = {
@@ -318,7 +369,10 @@ pub(crate) fn send_batch(inner: &Arc<Inner>, batch: Batch, wait: bool) -> Result
                 ctl.cloth = id;
                 ctl.token = token;
                 match ctl.validate(&inner.limits(&server), Some(n)).and_then(|_| inner.check_version(&server, &ctl)) {
-                    Ok(()) => by_server.entry(server).or_default().push((i, c, ctl)),
+                    Ok(()) => {
+                        c.note_sent(&ctl);
+                        by_server.entry(server).or_default().push((i, c, ctl))
+                    }
                     Err(e) => results[i] = Err(e),
                 }
             }
@@ -347,33 +401,44 @@ pub(crate) fn send_batch(inner: &Arc<Inner>, batch: Batch, wait: bool) -> Result
             if wait {
                 match inner.request(&server, "control_batch", req.encode()).and_then(|m| BatchReply::from_map(&m)) {
                     Ok(rep) => {
-                        for ((i, c, _), r) in chunk.iter().zip(rep.results) {
+                        for ((i, c, ctl), r) in chunk.iter().zip(rep.results) {
                             if let Ok(a) = &r {
                                 c.note_applied(a);
                             }
-                            results[*i] = r.map_err(|e| e.into_error());
+                            let r = r.map_err(|e| e.into_error());
+                            if r.as_ref().is_err_and(|e| e.code == ErrorCode::NotFound) {
+                                super::failover::cloth_not_found(inner, c, &ctl.cloth);
+                            }
+                            results[*i] = r;
                         }
                     }
                     Err(e) => chunk.iter().for_each(|(i, _, _)| results[*i] = Err(e.clone())),
                 }
             } else {
-                let cloths: Vec<(u64, Weak<ClothInner>)> = chunk.iter().map(|x| (x.1.handle, Arc::downgrade(&x.1))).collect();
-                let on_ok = move |inner: &Inner, m: crate::wire::reader::Map| match BatchReply::from_map(&m) {
+                let cloths: Vec<(u64, Weak<ClothInner>, String)> =
+                    chunk.iter().map(|x| (x.1.handle, Arc::downgrade(&x.1), x.2.cloth.clone())).collect();
+                let on_ok = move |inner: &Arc<Inner>, m: crate::wire::reader::Map| match BatchReply::from_map(&m) {
                     Ok(rep) => {
-                        for ((h, c), r) in cloths.iter().zip(rep.results) {
+                        for ((h, c, id), r) in cloths.iter().zip(rep.results) {
                             match r {
                                 Ok(a) => {
                                     if let Some(c) = c.upgrade() {
                                         c.note_applied(&a);
                                     }
                                 }
-                                Err(e) => inner.push_event(Event::RequestFailed { handle: Some(*h), error: e.into_error() }),
+                                Err(e) => {
+                                    let error = e.into_error();
+                                    if let (ErrorCode::NotFound, Some(c)) = (error.code, c.upgrade()) {
+                                        super::failover::cloth_not_found(inner, &c, id);
+                                    }
+                                    inner.push_event(Event::RequestFailed { handle: Some(*h), error })
+                                }
                             }
                         }
                     }
                     Err(error) => inner.push_event(Event::RequestFailed { handle: None, error }),
                 };
-                inner.send(&server, "control_batch", req.encode(), None, Some(Box::new(on_ok)))?;
+                inner.send(&server, "control_batch", req.encode(), None, Some(Box::new(on_ok)), None)?;
             }
         }
     }

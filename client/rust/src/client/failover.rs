@@ -1,93 +1,415 @@
-//! Lost servers: when a server's liveliness token vanishes its cloths are marked lost and
-//! reported; with the opt-in failover a worker thread resubmits each of them, from the
-//! client's own copy of its submission, to another live server under the same handle.
-use super::cloth::Status;
-use super::{Event, Inner};
+//! Failover (PROTOCOL.md section 11.1, protocol 1.3), opt-in with `ClientOptions::failover`.
+//!
+//! Detection: a server's liveliness token vanishes (every cloth on it is lost), or a cloth was
+//! reclaimed while this client was paused or cut off: its states stalled and a probe (an empty
+//! control) is answered `not_found`, or a control of the game is answered `not_found`.
+//!
+//! Recovery, on this module's one worker thread: if the cloth's own server is live again, the
+//! cloth is probed there first and kept when it still exists; otherwise it is resubmitted, from
+//! the client's copy of its submission plus `resume` (the positions of its last received state
+//! and the velocities of its last two), to the least loaded live server by the servers' stats
+//! publications (fewest vertices, then the lowest mean tick cost; vertices placed during this
+//! round count), under the same handle. The last pin targets and colliders the game sent are
+//! sent again right after, and an [`Event::ClothResubmitted`] reports it.
+//!
+//! Per state nothing is copied or decoded for this: a cloth keeps references to its last two
+//! received payloads (the buffers Zenoh delivered); they are decoded only when a failover needs
+//! them.
+use super::cloth::{ClothInner, Status};
+use super::recv::Latest;
+use super::{Event, Inner, LossReason};
 use crate::wire::error::{Error, ErrorCode};
-use std::sync::{mpsc, Arc};
+use crate::wire::msg::{Control, Pins, Resume};
+use crate::wire::reader::{unpack_message, Reader};
+use crate::wire::decode_state_into;
+use std::collections::{HashMap, HashSet};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::{Duration, Instant};
+use zenoh::pubsub::Subscriber;
+use zenoh::Wait;
 
-pub(crate) fn start_worker(inner: &Arc<Inner>) {
-    let (tx, rx) = mpsc::channel::<String>();
-    *inner.worker.lock().unwrap() = Some(tx);
+/// The tick rate assumed when the lost server's stats and info never said (Hz).
+pub(crate) const DEFAULT_TICK_RATE: f64 = 60.0;
+/// The bound of resumed velocities (PROTOCOL.md 4.1: `max_acceleration`, m/s).
+const MAX_VELOCITY: f64 = 1e4;
+
+/// A server's load from its last stats publication.
+#[derive(Debug, Clone, Copy)]
+struct Load {
+    vertices: f64,
+    tick_ms: f64,
+}
+
+struct LostCloth {
+    cloth: Arc<ClothInner>,
+    server: String,
+    reason: LossReason,
+    since: Instant,
+}
+
+/// The failover state of one client.
+pub(crate) struct Failover {
+    pub(crate) stall_timeout: Duration,
+    pub(crate) give_up_after: Duration,
+    lost: Mutex<HashMap<u64, LostCloth>>,
+    cv: Condvar,
+    loads: Mutex<HashMap<String, Load>>,
+    stats_sub: Mutex<Option<Subscriber<()>>>,
+}
+
+impl Failover {
+    pub(crate) fn new(stall_timeout: Duration, give_up_after: Duration) -> Failover {
+        Failover {
+            stall_timeout,
+            give_up_after,
+            lost: Mutex::new(HashMap::new()),
+            cv: Condvar::new(),
+            loads: Mutex::new(HashMap::new()),
+            stats_sub: Mutex::new(None),
+        }
+    }
+
+    pub(crate) fn wake(&self) {
+        let _g = self.lost.lock().unwrap();
+        self.cv.notify_all();
+    }
+
+    pub(crate) fn close(&self) {
+        self.stats_sub.lock().unwrap().take();
+        self.lost.lock().unwrap().clear();
+        self.cv.notify_all();
+    }
+}
+
+/// Subscribe to the servers' stats and start the worker thread.
+pub(crate) fn start(inner: &Arc<Inner>) -> crate::wire::Result<()> {
+    let Some(fo) = inner.fo.as_ref() else { return Ok(()) };
+    let weak = Arc::downgrade(inner);
+    let sub = inner
+        .session
+        .declare_subscriber(inner.keys.stats("*"))
+        .callback(move |s| {
+            if let Some(inner) = weak.upgrade() {
+                on_stats(&inner, s.key_expr().as_str(), &s.payload().to_bytes());
+            }
+        })
+        .wait()
+        .map_err(|e| super::zerr("stats subscriber", e))?;
+    *fo.stats_sub.lock().unwrap() = Some(sub);
     let weak = Arc::downgrade(inner);
     std::thread::Builder::new()
         .name("drape-failover".into())
-        .spawn(move || {
-            while let Ok(lost) = rx.recv() {
-                let Some(inner) = weak.upgrade() else { break };
-                resubmit_all(&inner, &lost);
+        .spawn(move || loop {
+            let Some(inner) = weak.upgrade() else { break };
+            if inner.closed.load(std::sync::atomic::Ordering::SeqCst) {
+                break;
             }
+            let fo = inner.fo.as_ref().expect("failover state");
+            let todo: Vec<(u64, Arc<ClothInner>, String, LossReason, Instant)> = {
+                let g = fo.lost.lock().unwrap();
+                let (g, _) = fo.cv.wait_timeout(g, Duration::from_millis(100)).unwrap();
+                g.iter().map(|(h, l)| (*h, l.cloth.clone(), l.server.clone(), l.reason, l.since)).collect()
+            };
+            if inner.closed.load(std::sync::atomic::Ordering::SeqCst) {
+                break;
+            }
+            if !todo.is_empty() {
+                recover(&inner, todo);
+            }
+            watch(&inner);
         })
-        .expect("cannot start the failover thread");
+        .map_err(|e| Error::new(ErrorCode::Internal, format!("cannot start the failover thread: {e}")))?;
+    Ok(())
 }
 
-/// Called on the Zenoh thread when `server`'s token vanished.
+/// A stats publication (PROTOCOL.md section 10): the server's load and tick rate.
+fn on_stats(inner: &Inner, key: &str, payload: &[u8]) {
+    let Ok(m) = unpack_message(payload) else { return };
+    let r = Reader::new(&m, "");
+    let from_key = key.rsplit('/').nth(1).unwrap_or_default();
+    let server = r.str("server", false).ok().flatten().unwrap_or(from_key).to_string();
+    let vertices = r.u64("vertices", false).ok().flatten().unwrap_or(0) as f64;
+    let tick_ms = r
+        .sub("phases", false)
+        .ok()
+        .flatten()
+        .and_then(|p| p.sub("tick", false).ok().flatten())
+        .and_then(|t| t.f64("mean_ms", false).ok().flatten())
+        .unwrap_or(0.0);
+    if let Some(rate) = r.f64("tick_rate", false).ok().flatten().filter(|x| *x > 0.0 && x.is_finite()) {
+        inner.servers.lock().unwrap().rates.insert(server.clone(), rate);
+    }
+    if let Some(fo) = inner.fo.as_ref() {
+        fo.loads.lock().unwrap().insert(server, Load { vertices, tick_ms });
+    }
+}
+
+/// Called on a Zenoh thread when `server`'s liveliness token vanished.
 pub(crate) fn server_lost(inner: &Arc<Inner>, server: &str) {
-    let failover = inner.failover && inner.worker.lock().unwrap().is_some();
-    if failover {
+    {
         let mut s = inner.servers.lock().unwrap();
-        if s.current.as_deref() == Some(server) {
+        if inner.fo.is_some() && s.current.as_deref() == Some(server) {
             s.current = None;
         }
     }
     let cloths: Vec<_> = inner.reg.lock().unwrap().by_handle.values().cloned().collect();
     let lost_error = Error::new(ErrorCode::ServerLost, format!("server {server} lost its liveliness (it is gone, with its cloths)"));
     for c in cloths {
+        if inner.fo.is_some() {
+            let on_it = { c.slot.lock().unwrap().server == server };
+            if on_it {
+                cloth_lost(inner, &c, LossReason::ServerLost);
+            }
+            continue;
+        }
         let mut s = c.slot.lock().unwrap();
         if s.server != server || s.status != Status::Live {
             continue;
         }
-        s.status = if failover { Status::Resubmitting } else { Status::Lost(lost_error.clone()) };
+        s.status = Status::Lost(lost_error.clone());
         let id = s.id.clone();
         drop(s);
         c.cv.notify_all();
-        if !failover {
-            inner.push_event(Event::ClothLost { handle: c.handle, cloth: id, server: server.to_string(), error: lost_error.clone() });
-        }
-    }
-    if failover {
-        if let Some(tx) = inner.worker.lock().unwrap().as_ref() {
-            let _ = tx.send(server.to_string());
-        }
+        inner.push_event(Event::ClothLost { handle: c.handle, cloth: id, server: server.to_string(), error: lost_error.clone() });
     }
 }
 
-fn resubmit_all(inner: &Arc<Inner>, lost: &str) {
-    let target = {
-        let s = inner.servers.lock().unwrap();
-        let (mut s, _) = inner.servers_cv.wait_timeout_while(s, inner.timeout, |s| s.live.iter().all(|x| x == lost)).unwrap();
-        let t = s.live.iter().find(|x| *x != lost).cloned();
-        if s.current.is_none() {
-            s.current = t.clone();
+/// A request about cloth `id` was answered `not_found`: when `id` is still the cloth's current
+/// id, it was reclaimed (or its server restarted) and fails over.
+pub(crate) fn cloth_not_found(inner: &Arc<Inner>, c: &Arc<ClothInner>, id: &str) {
+    if inner.fo.is_none() {
+        return;
+    }
+    let current = { c.slot.lock().unwrap().id == id };
+    if current {
+        cloth_lost(inner, c, LossReason::Reclaimed);
+    }
+}
+
+/// Mark a live cloth lost and hand it to the worker.
+fn cloth_lost(inner: &Arc<Inner>, c: &Arc<ClothInner>, reason: LossReason) {
+    let Some(fo) = inner.fo.as_ref() else { return };
+    let server = {
+        let mut s = c.slot.lock().unwrap();
+        if s.status != Status::Live {
+            return;
         }
-        t
+        s.status = Status::Resubmitting;
+        s.server.clone()
     };
+    c.cv.notify_all();
+    let mut lost = fo.lost.lock().unwrap();
+    lost.entry(c.handle).or_insert(LostCloth { cloth: c.clone(), server, reason, since: Instant::now() });
+    fo.cv.notify_all();
+}
+
+fn done(inner: &Inner, handle: u64) {
+    if let Some(fo) = inner.fo.as_ref() {
+        fo.lost.lock().unwrap().remove(&handle);
+    }
+}
+
+fn recover(inner: &Arc<Inner>, todo: Vec<(u64, Arc<ClothInner>, String, LossReason, Instant)>) {
+    let mut placed: HashMap<String, f64> = HashMap::new();
+    for (handle, c, old_server, reason, since) in todo {
+        let (status, old_id, token) = {
+            let s = c.slot.lock().unwrap();
+            (s.status.clone(), s.id.clone(), s.token.clone())
+        };
+        if status != Status::Resubmitting || inner.closed.load(std::sync::atomic::Ordering::SeqCst) {
+            done(inner, handle); // removed meanwhile
+            continue;
+        }
+        let live = inner.servers.lock().unwrap().live.contains(&old_server);
+        if live && probe(inner, &old_server, &old_id, &token).is_ok() {
+            // Its server is back (or this client's link was), and the cloth with it.
+            {
+                let mut s = c.slot.lock().unwrap();
+                if s.status == Status::Resubmitting {
+                    s.status = Status::Live;
+                    s.last_receipt = Instant::now();
+                }
+            }
+            c.cv.notify_all();
+            done(inner, handle);
+            inner.push_event(Event::ClothResubmitted {
+                handle,
+                reason,
+                old_cloth: old_id.clone(),
+                old_server: old_server.clone(),
+                cloth: old_id,
+                server: old_server,
+                resumed_tick: None,
+                kept: true,
+            });
+            continue;
+        }
+        resubmit(inner, &c, &old_server, &old_id, reason, since, &mut placed);
+    }
+}
+
+/// An empty control (PROTOCOL.md 11.1's probe), waited for: `Ok` while the cloth exists.
+fn probe(inner: &Inner, server: &str, id: &str, token: &str) -> crate::wire::Result<()> {
+    let payload = Control::new(id, token).encode(inner.next_rid());
+    inner.request_within(server, "control", payload, inner.timeout.min(Duration::from_secs(2))).map(|_| ())
+}
+
+/// The least loaded live server not in `tried` (fewest vertices, `placed` included, then the
+/// lowest mean tick cost, then the id); servers without stats come last.
+fn pick(inner: &Inner, tried: &HashSet<String>, placed: &HashMap<String, f64>) -> Option<String> {
+    let live: Vec<String> = inner.servers.lock().unwrap().live.iter().filter(|s| !tried.contains(*s)).cloned().collect();
+    let loads = inner.fo.as_ref().map(|f| f.loads.lock().unwrap().clone()).unwrap_or_default();
+    let key = |s: &String| match loads.get(s) {
+        Some(l) => (l.vertices + placed.get(s).copied().unwrap_or(0.0), l.tick_ms),
+        None => (f64::INFINITY, f64::INFINITY),
+    };
+    live.into_iter().min_by(|a, b| {
+        let (ka, kb) = (key(a), key(b));
+        ka.0.total_cmp(&kb.0).then(ka.1.total_cmp(&kb.1)).then(a.cmp(b))
+    })
+}
+
+/// The `resume` of a resubmission from the cloth's last two received states (PROTOCOL.md 4.1):
+/// the newer one's positions; velocities `(x_k - x_{k-1}) / (dt (t_k - t_{k-1}))` when both
+/// exist, are finite and in tick order. `None` when no finite state was received.
+pub(crate) fn resume_from(prev: Option<&Latest>, last: Option<&Latest>, n: usize, tick_rate: f64,
+                          from_server: &str, cloth: &str) -> Option<Resume> {
+    let last = last?;
+    let mut positions = vec![0f32; 3 * n];
+    let h = last.buf.with(|d| decode_state_into(&d[last.off..last.off + last.len], &mut positions, None)).ok()?;
+    if positions.iter().any(|x| !x.is_finite()) {
+        return None;
+    }
+    let mut velocities = None;
+    if let Some(p) = prev {
+        let mut before = vec![0f32; 3 * n];
+        if let Ok(hp) = p.buf.with(|d| decode_state_into(&d[p.off..p.off + p.len], &mut before, None)) {
+            if hp.tick < h.tick && before.iter().all(|x| x.is_finite()) {
+                let dt = (h.tick - hp.tick) as f64 / tick_rate;
+                for (b, x) in before.iter_mut().zip(&positions) {
+                    *b = ((*x as f64 - *b as f64) / dt).clamp(-MAX_VELOCITY, MAX_VELOCITY) as f32;
+                }
+                velocities = Some(before);
+            }
+        }
+    }
+    Some(Resume {
+        positions,
+        velocities,
+        tick: Some(h.tick),
+        from_server: crate::wire::valid_id(from_server).then(|| from_server.to_string()),
+        cloth: crate::wire::valid_id(cloth).then(|| cloth.to_string()),
+    })
+}
+
+fn resubmit(inner: &Arc<Inner>, c: &Arc<ClothInner>, old_server: &str, old_id: &str, reason: LossReason, since: Instant,
+            placed: &mut HashMap<String, f64>) {
+    let (prev, last, old_sub) = {
+        let mut s = c.slot.lock().unwrap();
+        (s.prev.clone(), s.latest.clone(), s.sub.take())
+    };
+    drop(old_sub); // outside the slot's lock: its callback takes it
+    let rate = inner.servers.lock().unwrap().rates.get(old_server).copied().unwrap_or(DEFAULT_TICK_RATE);
+    let resume = resume_from(prev.as_ref(), last.as_ref(), c.n_vertices as usize, rate, old_server, old_id);
+    let resumed_tick = resume.as_ref().and_then(|r| r.tick);
+    let mut tried = HashSet::new();
+    let mut last_err = None;
+    while let Some(target) = pick(inner, &tried, placed) {
+        tried.insert(target.clone());
+        match inner.place(c, &target, resume.clone()) {
+            Ok(rep) => {
+                *placed.entry(target.clone()).or_insert(0.0) += c.n_vertices as f64;
+                {
+                    let mut s = inner.servers.lock().unwrap();
+                    if s.current.is_none() {
+                        s.current = Some(target.clone());
+                    }
+                }
+                done(inner, c.handle);
+                resend_controls(inner, c);
+                inner.push_event(Event::ClothResubmitted {
+                    handle: c.handle,
+                    reason,
+                    old_cloth: old_id.to_string(),
+                    old_server: old_server.to_string(),
+                    cloth: rep.cloth,
+                    server: target,
+                    resumed_tick,
+                    kept: false,
+                });
+                return;
+            }
+            // overloaded, busy, unavailable...: the next best server
+            Err(e) => last_err = Some(e),
+        }
+    }
+    let give_up = inner.fo.as_ref().map_or(Duration::ZERO, |f| f.give_up_after);
+    if since.elapsed() >= give_up {
+        let error = last_err.unwrap_or_else(|| {
+            Error::new(ErrorCode::Unavailable, format!("no live server to fail cloth {old_id} over to within {give_up:?}"))
+        });
+        done(inner, c.handle);
+        c.slot.lock().unwrap().status = Status::Lost(error.clone());
+        c.cv.notify_all();
+        inner.push_event(Event::ClothLost { handle: c.handle, cloth: old_id.to_string(), server: old_server.to_string(), error });
+    }
+    // else: stays lost; tried again on the next pass (a server may appear)
+}
+
+/// After a resubmission: the last pin targets and colliders the game sent, as one control (not
+/// waited for; a failure becomes an event).
+fn resend_controls(inner: &Arc<Inner>, c: &Arc<ClothInner>) {
+    let ctl = {
+        let sent = c.sent.lock().unwrap();
+        let mut idx: Vec<u32> = sent.pins.keys().copied().collect();
+        idx.sort_unstable();
+        let targets: Vec<f32> = idx.iter().flat_map(|i| sent.pins[i]).collect();
+        Control {
+            pins: (!idx.is_empty()).then(|| Pins { indices: idx, targets }),
+            colliders: sent.colliders.clone(),
+            ..Default::default()
+        }
+    };
+    if ctl.pins.is_none() && ctl.colliders.is_none() {
+        return;
+    }
+    if let Err(error) = inner.control(c, ctl, false) {
+        inner.push_event(Event::RequestFailed { handle: Some(c.handle), error });
+    }
+}
+
+/// Cloths whose states stalled for `stall_timeout`: probed without waiting; `not_found` means
+/// reclaimed.
+fn watch(inner: &Arc<Inner>) {
+    let Some(fo) = inner.fo.as_ref() else { return };
+    let now = Instant::now();
     let cloths: Vec<_> = inner.reg.lock().unwrap().by_handle.values().cloned().collect();
     for c in cloths {
-        let (old_id, old_sub) = {
+        let (server, id, token) = {
             let mut s = c.slot.lock().unwrap();
-            if s.server != lost || s.status != Status::Resubmitting {
+            if s.status != Status::Live || now - s.last_receipt < fo.stall_timeout || now - s.last_probe < fo.stall_timeout {
                 continue;
             }
-            (s.id.clone(), s.sub.take())
+            s.last_probe = now;
+            (s.server.clone(), s.id.clone(), s.token.clone())
         };
-        drop(old_sub);
-        let res = match &target {
-            Some(t) => inner.place(&c, t),
-            None => Err(Error::new(ErrorCode::Unavailable, format!("no live server to resubmit to after {lost} was lost"))),
-        };
-        match res {
-            Ok(rep) => inner.push_event(Event::ClothResubmitted {
-                handle: c.handle,
-                old_cloth: old_id,
-                cloth: rep.cloth,
-                server: target.clone().unwrap_or_default(),
-            }),
-            Err(error) => {
-                c.slot.lock().unwrap().status = Status::Lost(error.clone());
-                c.cv.notify_all();
-                inner.push_event(Event::ClothLost { handle: c.handle, cloth: old_id, server: lost.to_string(), error });
-            }
-        }
+        let payload = Control::new(&id, &token).encode(inner.next_rid());
+        let weak = Arc::downgrade(inner);
+        let cw = Arc::downgrade(&c);
+        let key = inner.keys.query(&server, "control");
+        let _ = inner
+            .session
+            .get(key.clone())
+            .payload(payload)
+            .timeout(inner.timeout.min(Duration::from_secs(2)))
+            .callback(move |r| {
+                let (Some(inner), Some(c)) = (weak.upgrade(), cw.upgrade()) else { return };
+                if let Err(e) = super::reply_result(&key, r) {
+                    if e.code == ErrorCode::NotFound {
+                        cloth_not_found(&inner, &c, &id);
+                    }
+                }
+            })
+            .wait();
     }
 }

@@ -1,6 +1,7 @@
 //! The Zenoh client: a session with this client's liveliness token, server discovery by
 //! liveliness, requests (waited for or not), submissions, state reception (single keys and
-//! bundles) and, opt-in, resubmission of a lost server's cloths to another live server.
+//! bundles) and, opt-in, the failover of PROTOCOL.md section 11.1 (protocol 1.3): lost or
+//! reclaimed cloths resumed on the least loaded live server from their last received states.
 mod cloth;
 mod failover;
 mod recv;
@@ -8,7 +9,7 @@ mod recv;
 pub use cloth::{Batch, Cloth, StateInfo};
 
 use crate::wire::error::{Error, ErrorCode, Result};
-use crate::wire::msg::{encode_info, Control, Grid, Mesh, Shape, Submit};
+use crate::wire::msg::{encode_info, Control, Grid, Mesh, Resume, Shape, Submit};
 use crate::wire::reader::{Map, Reader};
 use crate::wire::replies::{decode_reply, Applied, SubmitReply};
 use crate::wire::{grid_geometry, parse_obj, valid_id, valid_namespace, Keys, Limits, DEFAULT_ENDPOINT, DEFAULT_NAMESPACE};
@@ -35,9 +36,16 @@ pub struct ClientOptions {
     pub timeout: Duration,
     /// Zenoh mode: "peer" (default) or "client".
     pub mode: String,
-    /// Opt-in: when a server loses its liveliness, resubmit its cloths to another live server
-    /// from this client's copy of each submission (README.md, "Lost servers").
+    /// Opt-in failover (PROTOCOL.md 11.1, README.md "Failover"): a cloth lost with its server,
+    /// or reclaimed while this client was away, is resubmitted with `resume` (its last received
+    /// state) to the least loaded live server, under the same handle.
     pub failover: bool,
+    /// Failover: a cloth without a state for this long is probed (an empty control); `not_found`
+    /// means it was reclaimed. Default 0.5 s.
+    pub stall_timeout: Duration,
+    /// Failover: how long a lost cloth waits for a live server before it is given up
+    /// (`Event::ClothLost`). Default 60 s.
+    pub failover_give_up: Duration,
 }
 
 impl Default for ClientOptions {
@@ -50,6 +58,8 @@ impl Default for ClientOptions {
             timeout: Duration::from_secs(5),
             mode: "peer".to_string(),
             failover: false,
+            stall_timeout: Duration::from_millis(500),
+            failover_give_up: Duration::from_secs(60),
         }
     }
 }
@@ -61,12 +71,34 @@ pub enum Event {
     ServerFound { server: String },
     /// A server's liveliness token vanished: it is gone with every cloth it held.
     ServerLost { server: String },
-    /// A cloth was lost with its server (no failover, or resubmission failed: `error`).
+    /// A cloth was lost with its server (no failover, or failover gave up: `error`).
     ClothLost { handle: u64, cloth: String, server: String, error: Error },
-    /// Failover: the cloth was resubmitted to `server` under the same handle, as `cloth`.
-    ClothResubmitted { handle: u64, old_cloth: String, cloth: String, server: String },
+    /// Failover (PROTOCOL.md 11.1): the cloth (lost for `reason`) lives on under the same
+    /// handle as `cloth` on `server`. `resumed_tick`: the tick (on `old_server`) of the state it
+    /// continued from, `None` when it restarted from its rest pose (no state received). `kept`:
+    /// its own server still held it (`cloth == old_cloth`, nothing resubmitted).
+    ClothResubmitted {
+        handle: u64,
+        reason: LossReason,
+        old_cloth: String,
+        old_server: String,
+        cloth: String,
+        server: String,
+        resumed_tick: Option<u64>,
+        kept: bool,
+    },
     /// A request sent without waiting failed (an error reply, a refused batch item, no reply).
     RequestFailed { handle: Option<u64>, error: Error },
+}
+
+/// Why a cloth failed over.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LossReason {
+    /// Its server's liveliness token vanished.
+    ServerLost,
+    /// Its server no longer has it (`not_found` to a probe after its states stalled, or to a
+    /// control): reclaimed while this client was paused or cut off, or the server restarted.
+    Reclaimed,
 }
 
 pub(crate) struct Inner {
@@ -74,7 +106,8 @@ pub(crate) struct Inner {
     pub(crate) keys: Keys,
     pub(crate) client_id: String,
     pub(crate) timeout: Duration,
-    pub(crate) failover: bool,
+    /// The failover state (`ClientOptions::failover`).
+    pub(crate) fo: Option<failover::Failover>,
     rid: AtomicU64,
     next_handle: AtomicU64,
     pub(crate) servers: Mutex<Servers>,
@@ -86,7 +119,6 @@ pub(crate) struct Inner {
     bundle_sub: Mutex<Option<Subscriber<()>>>,
     watch: Mutex<Option<Subscriber<()>>>,
     token: Mutex<Option<LivelinessToken>>,
-    pub(crate) worker: Mutex<Option<std::sync::mpsc::Sender<String>>>,
 }
 
 #[derive(Default)]
@@ -95,6 +127,9 @@ pub(crate) struct Servers {
     pub(crate) current: Option<String>,
     /// Per server: protocol version and limits from its info reply.
     pub(crate) info: HashMap<String, ((u8, u8), Limits)>,
+    /// Per server: its tick rate (Hz) from its info or stats (kept after it is lost: a failover
+    /// computes velocities from it).
+    pub(crate) rates: HashMap<String, f64>,
 }
 
 /// A Drape client. Cheap to share: `Client` is `Send + Sync`; every method may be called from
@@ -141,7 +176,7 @@ impl Client {
             keys,
             client_id,
             timeout: opts.timeout,
-            failover: opts.failover,
+            fo: opts.failover.then(|| failover::Failover::new(opts.stall_timeout, opts.failover_give_up)),
             rid: AtomicU64::new(1),
             next_handle: AtomicU64::new(1),
             servers: Mutex::new(Servers { current: opts.server_id.clone(), ..Default::default() }),
@@ -153,7 +188,6 @@ impl Client {
             bundle_sub: Mutex::new(None),
             watch: Mutex::new(None),
             token: Mutex::new(None),
-            worker: Mutex::new(None),
         });
         let weak = Arc::downgrade(&inner);
         let watch = inner
@@ -177,9 +211,7 @@ impl Client {
             .wait()
             .map_err(|e| zerr("liveliness token", e))?;
         *inner.token.lock().unwrap() = Some(token);
-        if inner.failover {
-            failover::start_worker(&inner);
-        }
+        failover::start(&inner)?;
         Ok(Client { inner })
     }
 
@@ -247,7 +279,7 @@ impl Client {
         submit.validate(&lim)?;
         let handle = self.inner.next_handle.fetch_add(1, Ordering::Relaxed);
         let c = cloth::ClothInner::new(handle, submit, rest, triangles);
-        self.inner.place(&c, &server)?;
+        self.inner.place(&c, &server, None)?;
         Ok(Cloth { inner: c, client: self.inner.clone() })
     }
 
@@ -283,7 +315,9 @@ impl Client {
             }
         }
         self.inner.closed.store(true, Ordering::SeqCst);
-        self.inner.worker.lock().unwrap().take();
+        if let Some(fo) = self.inner.fo.as_ref() {
+            fo.close();
+        }
         self.inner.reg.lock().unwrap().clear();
         self.inner.bundle_sub.lock().unwrap().take();
         self.inner.watch.lock().unwrap().take();
@@ -333,6 +367,9 @@ impl Inner {
                 drop(s);
                 self.servers_cv.notify_all();
                 self.push_event(Event::ServerFound { server: id });
+                if let Some(fo) = self.fo.as_ref() {
+                    fo.wake(); // lost cloths may go there
+                }
             }
             return;
         }
@@ -358,6 +395,9 @@ impl Inner {
         let (ma, mi) = version.split_once('.').unwrap_or((version, "0"));
         let v = (ma.parse().unwrap_or(1), mi.parse().unwrap_or(0));
         let mut lim = Limits::default();
+        if let Some(rate) = r.f64("tick_rate", false).ok().flatten().filter(|x| *x > 0.0 && x.is_finite()) {
+            self.servers.lock().unwrap().rates.insert(server.to_string(), rate);
+        }
         if let Some(l) = r.sub("limits", false)? {
             let get = |k: &str| l.u64(k, false).ok().flatten();
             lim.max_vertices_per_cloth = get("max_vertices_per_cloth").unwrap_or(lim.max_vertices_per_cloth);
@@ -372,9 +412,14 @@ impl Inner {
 
     /// A waited-for request: the success map, the server's error, or `unavailable`.
     pub(crate) fn request(&self, server: &str, kind: &str, payload: Vec<u8>) -> Result<Map> {
+        self.request_within(server, kind, payload, self.timeout)
+    }
+
+    /// A waited-for request with its own timeout.
+    pub(crate) fn request_within(&self, server: &str, kind: &str, payload: Vec<u8>, timeout: Duration) -> Result<Map> {
         self.check_open()?;
         let key = self.keys.query(server, kind);
-        let deadline = Instant::now() + self.timeout;
+        let deadline = Instant::now() + timeout;
         loop {
             let left = deadline.saturating_duration_since(Instant::now()).max(Duration::from_millis(10));
             let started = Instant::now();
@@ -387,14 +432,16 @@ impl Inner {
                 std::thread::sleep(Duration::from_millis(50));
                 continue;
             }
-            return Err(Error::new(ErrorCode::Unavailable, format!("no reply from {key} within {:?}", self.timeout)));
+            return Err(Error::new(ErrorCode::Unavailable, format!("no reply from {key} within {timeout:?}")));
         }
     }
 
     /// A request not waited for: failures become [`Event::RequestFailed`]; `on_ok` gets a
     /// success map (on a Zenoh thread).
+    /// `watch`: the cloth (and its id then) whose `not_found` answer means it was reclaimed.
     pub(crate) fn send(self: &Arc<Self>, server: &str, kind: &str, payload: Vec<u8>, handle: Option<u64>,
-                       on_ok: Option<Box<dyn Fn(&Inner, Map) + Send + Sync>>) -> Result<()> {
+                       on_ok: Option<Box<dyn Fn(&Arc<Inner>, Map) + Send + Sync>>,
+                       watch: Option<(std::sync::Weak<cloth::ClothInner>, String)>) -> Result<()> {
         self.check_open()?;
         let key = self.keys.query(server, kind);
         struct Done {
@@ -427,7 +474,14 @@ impl Inner {
                             f(&inner, m)
                         }
                     }
-                    Err(error) => inner.push_event(Event::RequestFailed { handle: done.handle, error }),
+                    Err(error) => {
+                        if let (ErrorCode::NotFound, Some((c, id))) = (error.code, &watch) {
+                            if let Some(c) = c.upgrade() {
+                                failover::cloth_not_found(&inner, &c, id);
+                            }
+                        }
+                        inner.push_event(Event::RequestFailed { handle: done.handle, error })
+                    }
                 }
             })
             .wait()
@@ -435,7 +489,8 @@ impl Inner {
     }
 
     /// Submit `c`'s stored request to `server` and start receiving its states.
-    pub(crate) fn place(self: &Arc<Self>, c: &Arc<cloth::ClothInner>, server: &str) -> Result<SubmitReply> {
+    /// `resume` (1.3, failover): the state it continues from.
+    pub(crate) fn place(self: &Arc<Self>, c: &Arc<cloth::ClothInner>, server: &str, resume: Option<Resume>) -> Result<SubmitReply> {
         self.check_open()?;
         let bundled = c.submit.state.and_then(|s| s.bundle).unwrap_or(false);
         if bundled {
@@ -444,6 +499,7 @@ impl Inner {
         }
         let mut req = c.submit.clone();
         req.rid = self.next_rid();
+        req.resume = resume;
         let res = self.request(server, "submit", req.encode()).and_then(|m| SubmitReply::from_map(&m));
         let out = res.and_then(|rep| recv::attach(self, c, server, rep.clone()).map(|_| rep));
         if bundled {
@@ -501,19 +557,27 @@ impl Inner {
         ctl.validate(&self.limits(&server), Some(n))?;
         self.check_version(&server, &ctl)?;
         let payload = ctl.encode(self.next_rid());
+        c.note_sent(&ctl);
         if wait {
-            let m = self.request(&server, "control", payload)?;
+            let m = match self.request(&server, "control", payload) {
+                Err(e) if e.code == ErrorCode::NotFound => {
+                    failover::cloth_not_found(self, c, &ctl.cloth);
+                    return Err(e);
+                }
+                r => r?,
+            };
             let a = Applied::from_map(&m)?;
             c.note_applied(&a);
             return Ok(Some(a));
         }
         let weak = Arc::downgrade(c);
-        let on_ok = move |_: &Inner, m: Map| {
+        let on_ok = move |_: &Arc<Inner>, m: Map| {
             if let (Some(c), Ok(a)) = (weak.upgrade(), Applied::from_map(&m)) {
                 c.note_applied(&a);
             }
         };
-        self.send(&server, "control", payload, Some(c.handle), Some(Box::new(on_ok)))?;
+        let watch = Some((Arc::downgrade(c), ctl.cloth.clone()));
+        self.send(&server, "control", payload, Some(c.handle), Some(Box::new(on_ok)), watch)?;
         Ok(None)
     }
 }

@@ -82,7 +82,8 @@ pub(crate) fn deliver(c: &ClothInner, l: Latest) {
     if s.fresh {
         s.dropped += 1; // the previous one was never read
     }
-    s.latest = Some(l);
+    s.prev = s.latest.replace(l); // the last two states: references, nothing copied
+    s.last_receipt = std::time::Instant::now();
     s.fresh = true;
     s.received += 1;
     drop(s);
@@ -120,6 +121,8 @@ pub(crate) fn attach(inner: &Arc<Inner>, c: &Arc<ClothInner>, server: &str, rep:
         s.first_tick = rep.tick;
         s.status = Status::Live;
         s.latest = None;
+        s.prev = None; // velocities never span two placements (tick numbers differ)
+        s.last_receipt = std::time::Instant::now();
         s.fresh = false;
         s.features = None; // a new placement: nothing reported by its server yet
         s.sub = sub;

@@ -11,7 +11,7 @@
 mod cloth;
 pub use cloth::*;
 
-use crate::client::{Client, ClientOptions, Cloth, Event};
+use crate::client::{Client, ClientOptions, Cloth, Event, LossReason};
 use crate::wire::error::{Error, ErrorCode};
 use std::cell::RefCell;
 use std::ffi::{c_char, CStr};
@@ -63,6 +63,11 @@ pub const DRAPE_EVENT_CLOTH_LOST: i32 = 3;
 pub const DRAPE_EVENT_CLOTH_RESUBMITTED: i32 = 4;
 pub const DRAPE_EVENT_REQUEST_FAILED: i32 = 5;
 
+/// Why a cloth failed over (`DrapeEvent.reason` of DRAPE_EVENT_CLOTH_RESUBMITTED; 0 otherwise):
+/// its server's liveliness vanished, or its server no longer had it (reclaimed, restarted).
+pub const DRAPE_REASON_SERVER_LOST: i32 = 1;
+pub const DRAPE_REASON_RECLAIMED: i32 = 2;
+
 /// A client (opaque): a Zenoh session to the Drape server(s).
 pub struct DrapeClient {
     pub(crate) client: Client,
@@ -81,7 +86,10 @@ pub struct DrapeClientOptions {
     pub namespace_: *const c_char,
     /// Request and discovery timeout in milliseconds (0: 5000).
     pub timeout_ms: u32,
-    /// Opt-in: resubmit a lost server's cloths to another live server (README.md).
+    /// Opt-in failover (protocol 1.3, PROTOCOL.md 11.1; README.md "Failover"): a cloth lost
+    /// with its server, or reclaimed, is resubmitted to the least loaded live server with its
+    /// last received state (positions and velocities), its last pins and colliders sent again,
+    /// under the same handle (DRAPE_EVENT_CLOTH_RESUBMITTED).
     pub failover: bool,
 }
 
@@ -98,6 +106,19 @@ pub struct DrapeEvent {
     pub cloth: [c_char; 72],
     pub old_cloth: [c_char; 72],
     pub message: [c_char; 256],
+    /// CLOTH_RESUBMITTED: the server the cloth was on (else empty).
+    pub old_server: [c_char; 72],
+    /// CLOTH_RESUBMITTED: the tick (on `old_server`) of the state it continued from, when
+    /// `resumed`; else 0.
+    pub resumed_tick: u64,
+    /// CLOTH_RESUBMITTED: DRAPE_REASON_* (else 0).
+    pub reason: i32,
+    /// CLOTH_RESUBMITTED: it continued from its last received state (false: from its rest
+    /// pose, no state had been received, or it was kept).
+    pub resumed: bool,
+    /// CLOTH_RESUBMITTED: its own server still held it; nothing was resubmitted
+    /// (`cloth` == `old_cloth`).
+    pub kept: bool,
 }
 
 thread_local! {
@@ -274,13 +295,28 @@ pub unsafe extern "C" fn drape_client_poll_event(client: *const DrapeClient, tim
             Event::ClothLost { handle, cloth, server, error } => {
                 (DRAPE_EVENT_CLOTH_LOST, error.code as i32, *handle, server.as_str(), cloth.as_str(), "", error.to_string())
             }
-            Event::ClothResubmitted { handle, old_cloth, cloth, server } => {
+            Event::ClothResubmitted { handle, old_cloth, cloth, server, .. } => {
                 (DRAPE_EVENT_CLOTH_RESUBMITTED, 0, *handle, server.as_str(), cloth.as_str(), old_cloth.as_str(), String::new())
             }
             Event::RequestFailed { handle, error } => {
                 (DRAPE_EVENT_REQUEST_FAILED, error.code as i32, handle.unwrap_or(0), "", "", "", error.to_string())
             }
         };
+        let (old_server, resumed_tick, reason, kept) = match &ev {
+            Event::ClothResubmitted { old_server, resumed_tick, reason, kept, .. } => {
+                let r = match reason {
+                    LossReason::ServerLost => DRAPE_REASON_SERVER_LOST,
+                    LossReason::Reclaimed => DRAPE_REASON_RECLAIMED,
+                };
+                (old_server.as_str(), *resumed_tick, r, *kept)
+            }
+            _ => ("", None, 0, false),
+        };
+        fill(&mut out.old_server, old_server);
+        out.resumed_tick = resumed_tick.unwrap_or(0);
+        out.resumed = resumed_tick.is_some();
+        out.reason = reason;
+        out.kept = kept;
         out.kind = kind;
         out.code = code;
         out.handle = handle;

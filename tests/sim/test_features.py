@@ -28,17 +28,17 @@ FEATURE_SETS = [
 ]
 
 
-# How far float32 rounding alone may carry the device from the float64 reference, in units of
-# the float32 reference's own distance from it (see compare_with_reference). Measured over 400
-# seeds x 30 combinations: the device's error is at most 1.6x the float32 reference's wherever the
-# latter exceeds 1e-5 m; 4 leaves room for rounding orders the sweep did not draw.
-F32_SPREAD = 4.0
+# The float32 ensemble that measures a scene's float32 sensitivity (see compare_with_reference):
+# the float32 reference from the rest pose and from ENSEMBLE - 1 copies of it moved by at most
+# one float32 ulp per coordinate; the device may stray F32_SPREAD x as far as the farthest of them.
+ENSEMBLE = 8
+F32_SPREAD = 2.0
 
 
-def run_scene(world, fab, params, colliders, steps: int = 10):
-    """Step one cloth under three colliders that slide along x every step (a plane's normal
-    tilts with them); returns the world, its handle and the final frame."""
-    h = world.add(fab, params)
+def run_scene(world, fab, params, colliders, steps: int = 10, positions=None):
+    """Step one cloth (from ``positions``, default its rest pose) under three colliders that slide
+    along x every step (a plane's normal tilts with them); returns its handle and the final frame."""
+    h = world.add(fab, params, positions=positions)
     packed = pack_colliders(colliders)
     for step in range(steps):
         moved = packed + np.float32(0.02 * step) * np.array([1, 0, 0, 0], np.float32)
@@ -68,38 +68,61 @@ def feature_scene(rng, features):
     return fab, params, colliders
 
 
-def compare_with_reference(device, rng, solver, features, local_size):
-    """Run one random scene on an OpenCL solver, on the float64 reference and on the same
-    reference in float32; return the device's and the float32 reference's positions (and normals)
-    with the float64 reference's, and the tolerances they are held to.
+def float32_sensitivity(fab, params, colliders, mode: str, ref, ref_n=None) -> tuple[float, float]:
+    """How far float32 rounding alone carries this scene from the float64 reference ``ref``
+    (positions; ``ref_n`` normals): the largest distance of ENSEMBLE float32 reference runs, the
+    first from the rest pose, the others from it moved by -1, 0 or +1 ulp per coordinate (fixed
+    seed: the same ensemble every run). NaN when a run is not finite."""
+    ulp_rng = np.random.default_rng(0)
+    x0 = fab.rest_positions.astype(np.float32)
+    sens = sens_n = 0.0
+    for k in range(ENSEMBLE):
+        start = x0 if k == 0 else x0 + ulp_rng.integers(-1, 2, x0.shape) * np.spacing(np.abs(x0))
+        h, f = run_scene(ReferenceWorld(mode, np.float32), fab, params, colliders, positions=start)
+        x = f.positions[h].astype(np.float64)
+        if not np.all(np.isfinite(x)):
+            return float("nan"), float("nan")
+        sens = max(sens, float(np.abs(x - ref).max()))
+        if ref_n is not None:
+            sens_n = max(sens_n, float(np.abs(f.normals[h].astype(np.float64) - ref_n).max()))
+    return sens, sens_n
 
-    Why the float32 reference sets part of the tolerance: the device computes in float32, so it
-    may differ from the float64 ground truth by float32 rounding amplified through the step. In
-    most scenes that amplification is small (errors ~1e-6 m). But when the cloth folds onto itself
-    over the sphere, a bending link can shrink to a millimetre or less (seed 211990349: 1.5 mm
-    against a 111 mm rest length), and the XPBD correction along its direction d / |d| turns a
-    1e-6 m rounding difference into a 1e-4 m one (condition ~ rest / |d| ~ 70). The float32
-    reference -- the same algorithm, in the same colour order, rounded to float32 -- reproduces
-    that divergence (6.97e-4 m for that seed against the device's 6.37e-4 m), so its distance from
-    the float64 reference measures this scene's float32 sensitivity. The device must then be
-    within 3e-4 (scaled by the cloth's extent) + F32_SPREAD x that sensitivity: a scene without
-    an ill-conditioned moment keeps the plain 3e-4 bound, and a kernel that drops a term still
-    fails, since the float32 reference has every term (the sensitivity comes from the reference,
-    never from the device under test)."""
+
+def compare_with_reference(device, rng, solver, features, local_size, always_ensemble: bool = False) -> dict:
+    """Run one random scene on an OpenCL solver and on the float64 reference; return both
+    (positions, and normals when asked), the plain tolerances (3e-4 m scaled by the cloth's extent;
+    2e-3 on normals) and, where the device exceeds them (or ``always_ensemble``), the scene's
+    float32 sensitivity and the tolerances widened by it.
+
+    Why float32 sensitivity: the device computes in float32, so it differs from the float64 ground
+    truth by float32 rounding amplified through the step. Usually that stays ~1e-6 m. But when the
+    cloth folds onto itself over the sphere, a bending link can shrink to a millimetre (seed
+    211990349: 1.5 mm against its 111 mm rest length) and the XPBD correction along its
+    direction d / |d| turns a 1e-6 m rounding difference into 1e-4 m (condition ~ rest / |d|);
+    in other scenes a vertex sits on a branch (inside or outside a collider, lift on or off) and
+    the two precisions take different sides. The float32 reference -- the same algorithm in the
+    same order, rounded to float32 -- shows the same divergence: for seed 211990349 the device is
+    6.4e-4 m from the float64 reference, float32 reference runs 1.7e-4 .. 1.4e-3 m. So a device
+    result beyond the plain tolerance still passes if it is within F32_SPREAD x the farthest
+    float32 reference run (float32_sensitivity); the sensitivity comes from the reference, never
+    from the device under test, so a kernel that drops or changes a term still fails (dropping
+    friction, the lift or the collider's interpolation over substeps fails 8-10 of 10 seeds)."""
     fab, params, colliders = feature_scene(rng, features)
     mode = "jacobi" if solver == "jacobi" else "coloured"
     h, fw = run_scene(CLWorld(solver, device=device, local_size=local_size, chunk=48), fab, params, colliders)
     r, fr = run_scene(ReferenceWorld(mode), fab, params, colliders)
-    r32, f32 = run_scene(ReferenceWorld(mode, np.float32), fab, params, colliders)
     b = fr.positions[r].astype(np.float64)
-    out = dict(device=fw.positions[h].astype(np.float64), ref=b, ref32=f32.positions[r32].astype(np.float64))
-    sens = float(np.abs(out["ref32"] - b).max())
-    out["sens"] = sens
-    out["atol"] = 3e-4 * max(1.0, float(np.abs(b).max())) + F32_SPREAD * sens
+    out = dict(device=fw.positions[h].astype(np.float64), ref=b, sens=0.0, sens_n=0.0)
+    out["atol"] = out["plain_atol"] = 3e-4 * max(1.0, float(np.abs(b).max()))
+    out["atol_n"] = out["plain_atol_n"] = 2e-3
+    exceeded = not np.abs(out["device"] - b).max() <= out["atol"]
     if features.normals:
-        n64 = fr.normals[r].astype(np.float64)
-        out.update(device_n=fw.normals[h].astype(np.float64), ref_n=n64, ref32_n=f32.normals[r32].astype(np.float64))
-        out["atol_n"] = 2e-3 + F32_SPREAD * float(np.abs(out["ref32_n"] - n64).max())
+        out.update(device_n=fw.normals[h].astype(np.float64), ref_n=fr.normals[r].astype(np.float64))
+        exceeded |= not np.abs(out["device_n"] - out["ref_n"]).max() <= out["atol_n"]
+    if exceeded or always_ensemble:
+        out["sens"], out["sens_n"] = float32_sensitivity(fab, params, colliders, mode, b, out.get("ref_n"))
+        out["atol"] += F32_SPREAD * out["sens"]
+        out["atol_n"] += F32_SPREAD * out["sens_n"]
     return out
 
 
@@ -109,11 +132,11 @@ def compare_with_reference(device, rng, solver, features, local_size):
 def test_every_feature_on_every_solver_agrees_with_reference(device, rng, solver, features, local_size):
     """The device within float32 reach of the float64 reference (compare_with_reference)."""
     c = compare_with_reference(device, rng, solver, features, local_size)
-    assert np.all(np.isfinite(c["device"])) and np.all(np.isfinite(c["ref32"]))
-    assert np.isfinite(c["atol"])
+    assert np.all(np.isfinite(c["device"]))
+    assert np.isfinite(c["atol"]) and np.isfinite(c["atol_n"]), "the float32 reference is not finite"
     np.testing.assert_allclose(c["device"], c["ref"], atol=c["atol"], rtol=0)
     if features.normals:
-        assert np.all(np.isfinite(c["device_n"])) and np.isfinite(c["atol_n"])
+        assert np.all(np.isfinite(c["device_n"]))
         np.testing.assert_allclose(c["device_n"], c["ref_n"], atol=c["atol_n"], rtol=0)
 
 

@@ -204,6 +204,21 @@ fn lost_server_is_reported_and_failover_resumes() {
         c.move_pins(&[0, 3], &lifted, true).unwrap();
     }
     wait(&lost, &mut pos);
+    // The same through the C ABI: a client with DrapeClientOptions.failover.
+    use drape::ffi::*;
+    let (c_connect, c_server) = (std::ffi::CString::new(format!("{},{}", a.endpoint, b.endpoint)).unwrap(), std::ffi::CString::new(a.id.clone()).unwrap());
+    let c_opts = DrapeClientOptions { connect: c_connect.as_ptr(), server_id: c_server.as_ptr(), client_id: std::ptr::null(),
+                                      namespace_: std::ptr::null(), timeout_ms: 10_000, failover: true };
+    let (mut cclient, mut ccloth) = (std::ptr::null_mut(), std::ptr::null_mut());
+    let pins = [0u32, 3];
+    let grid = DrapeGrid { cols: 4, rows: 4, width: 1.0, height: 1.0, vertical: false, origin: [0.0; 3] };
+    unsafe {
+        assert_eq!(drape_client_open(&c_opts, &mut cclient), DRAPE_OK);
+        let o = DrapeClothOptions { pinned: pins.as_ptr(), pinned_count: 2, encoding: 0, normals: false, bundle: false,
+                                    quality: std::ptr::null(), gravity: std::ptr::null() };
+        assert_eq!(drape_submit_grid(cclient, &grid, &o, &mut ccloth), DRAPE_OK);
+        assert_eq!(drape_cloth_wait_state(ccloth, pos.as_mut_ptr(), 48, std::ptr::null_mut(), 0, 5000, std::ptr::null_mut()), DRAPE_OK);
+    }
     let t0 = Instant::now();
     let mut last = [vec![0f32; 48], vec![0f32; 48]];
     loop {
@@ -260,9 +275,86 @@ fn lost_server_is_reported_and_failover_resumes() {
         assert!(c.move_pins(&[0], &[0.0, 0.5, 0.0], true).unwrap().is_some());
     }
     assert_eq!(fo.server_id().unwrap(), b.id, "new submissions go to the live server");
+    unsafe {
+        let t0 = Instant::now();
+        let ev = loop {
+            assert!(t0.elapsed() < Duration::from_secs(15), "C ABI: no DRAPE_EVENT_CLOTH_RESUBMITTED within 15 s");
+            let mut ev: DrapeEvent = std::mem::zeroed();
+            if drape_client_poll_event(cclient, 200, &mut ev) == DRAPE_OK && ev.kind == DRAPE_EVENT_CLOTH_RESUBMITTED {
+                break ev;
+            }
+        };
+        let text = |b: &[std::ffi::c_char]| std::ffi::CStr::from_ptr(b.as_ptr()).to_str().unwrap().to_string();
+        assert_eq!((ev.handle, ev.reason, ev.resumed, ev.kept), (drape_cloth_handle(ccloth), DRAPE_REASON_SERVER_LOST, true, false));
+        assert_eq!((text(&ev.server), text(&ev.old_server)), (b.id.clone(), a.id.clone()));
+        assert!(ev.resumed_tick > 0);
+        // (what it resumed from is checked on the Rust cloths above: the same code)
+        assert_eq!(drape_cloth_wait_state(ccloth, pos.as_mut_ptr(), 48, std::ptr::null_mut(), 0, 5000, std::ptr::null_mut()), DRAPE_OK);
+        drape_cloth_free(ccloth);
+        drape_client_close(cclient, true);
+    }
     lost.remove().unwrap();
     fo.close(true);
     plain.close(true);
+}
+
+/// A reclaim (PROTOCOL.md 11.1, case 2): the server no longer has the cloth (here another
+/// party removed it with its token, as the server does when it reclaims the cloths of a client
+/// away past its grace period). Its states stall, the probe is answered `not_found`, and the
+/// failover resubmits it to the live server (the same one) from its last received state.
+#[test]
+fn reclaimed_cloth_is_resumed() {
+    use zenoh::Wait;
+    let Some(s) = shared() else { return };
+    let fo = connect(&[s], Some(&s.id), true);
+    let material = drape::wire::Material { damping: Some(0.05), ..Default::default() };
+    let cloth = fo.submit_grid(Grid::new(4, 4), Submit { pinned: vec![0, 3], material, ..opts() }).unwrap();
+    let mut last = vec![0f32; 48];
+    let t0 = Instant::now();
+    while t0.elapsed() < Duration::from_secs(2) || max_dist(&last, cloth.rest_positions()) < 0.5 {
+        assert!(t0.elapsed() < Duration::from_secs(20), "the cloth did not swing down");
+        wait(&cloth, &mut last);
+    }
+    let (old, handle) = (cloth.id(), cloth.handle());
+    // Removed behind the client's back.
+    let mut cfg = zenoh::Config::default();
+    cfg.insert_json5("mode", "\"peer\"").unwrap();
+    cfg.insert_json5("connect/endpoints", &format!("[\"{}\"]", s.endpoint)).unwrap();
+    cfg.insert_json5("listen/endpoints", "[]").unwrap();
+    cfg.insert_json5("scouting/multicast/enabled", "false").unwrap();
+    let other = zenoh::open(cfg).wait().unwrap();
+    let payload = drape::wire::msg::encode_remove(&old, &cloth.token(), 1);
+    let t0 = Instant::now();
+    loop {
+        let replies = other.get(format!("drape/server/{}/remove", s.id)).payload(payload.clone()).timeout(Duration::from_secs(5)).wait().unwrap();
+        if let Ok(r) = replies.recv() {
+            assert!(r.result().is_ok(), "the remove was refused");
+            break;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(10), "no reply to the remove");
+    }
+    // the last state received before the removal (no state comes after it)
+    std::thread::sleep(Duration::from_millis(150));
+    cloth.latest_state(&mut last, None).unwrap().unwrap();
+    let t0 = Instant::now();
+    let ev = loop {
+        assert!(t0.elapsed() < Duration::from_secs(15), "no failover within 15 s");
+        if let Some(e @ Event::ClothResubmitted { .. }) = fo.poll_event(Duration::from_millis(200)) {
+            break e;
+        }
+    };
+    let Event::ClothResubmitted { handle: h, reason, old_cloth, server, resumed_tick, kept, .. } = ev else { unreachable!() };
+    assert_eq!((h, reason, old_cloth, server, kept), (handle, LossReason::Reclaimed, old.clone(), s.id.clone(), false));
+    assert!(resumed_tick.is_some());
+    assert_ne!(cloth.id(), old);
+    let mut pos = vec![0f32; 48];
+    wait(&cloth, &mut pos);
+    let (from_last, from_rest) = (max_dist(&pos, &last), max_dist(&pos, cloth.rest_positions()));
+    assert!(from_last < 0.01, "the first state after the failover is {from_last} m from the last one before it");
+    assert!(from_rest > 0.5, "restarted from the rest pose ({from_rest} m from it)");
+    cloth.remove().unwrap();
+    fo.close(true);
+    let _ = other.close().wait();
 }
 
 fn names(v: &[&str]) -> Option<Vec<String>> {

@@ -184,6 +184,11 @@ impl Cloth {
     pub fn server(&self) -> String {
         self.inner.slot.lock().unwrap().server.clone()
     }
+    /// The cloth's ownership token on its current server (PROTOCOL.md section 11: keep it
+    /// secret; it changes when failover resubmits the cloth).
+    pub fn token(&self) -> String {
+        self.inner.slot.lock().unwrap().token.clone()
+    }
     pub fn vertex_count(&self) -> u32 {
         self.inner.n_vertices
     }

@@ -365,7 +365,7 @@ fn resend_controls(inner: &Arc<Inner>, c: &Arc<ClothInner>) {
         idx.sort_unstable();
         let targets: Vec<f32> = idx.iter().flat_map(|i| sent.pins[i]).collect();
         Control {
-            pins: (!idx.is_empty()).then(|| Pins { indices: idx, targets }),
+            pins: (!idx.is_empty()).then_some(Pins { indices: idx, targets }),
             colliders: sent.colliders.clone(),
             ..Default::default()
         }
@@ -411,5 +411,38 @@ fn watch(inner: &Arc<Inner>) {
                 }
             })
             .wait();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::recv::{Buf, Latest};
+    use super::resume_from;
+    use crate::wire::{encode_state, Encoding};
+    use std::sync::Arc;
+
+    fn state(tick: u64, positions: &[f32]) -> Latest {
+        let data = encode_state(tick, 0, positions, None, Encoding::Float32, 0).unwrap();
+        let len = data.len();
+        Latest { buf: Buf::V(Arc::new(data)), off: 0, len, receive_time_ns: 0 }
+    }
+
+    #[test]
+    fn resume_positions_and_velocities_from_the_last_two_states() {
+        let (a, b) = ([0.0, 1.0, 0.0, 1.0, 1.0, 0.0], [0.0, 1.0, 0.0, 1.0, 0.9, 0.2]);
+        let r = resume_from(Some(&state(10, &a)), Some(&state(12, &b)), 2, 60.0, "s1", "c1").unwrap();
+        assert_eq!((r.positions.as_slice(), r.tick, r.from_server.as_deref(), r.cloth.as_deref()), (&b[..], Some(12), Some("s1"), Some("c1")));
+        let v = r.velocities.unwrap();
+        let want = [0.0, 0.0, 0.0, 0.0, -3.0, 6.0]; // (b - a) / (2 ticks / 60 Hz)
+        assert!(v.iter().zip(want).all(|(x, w)| (x - w).abs() < 1e-4), "{v:?}");
+        // one state: positions only; none: no resume; out of order: no velocities
+        assert!(resume_from(None, Some(&state(12, &b)), 2, 60.0, "s1", "c1").unwrap().velocities.is_none());
+        assert!(resume_from(None, None, 2, 60.0, "s1", "c1").is_none());
+        assert!(resume_from(Some(&state(12, &a)), Some(&state(12, &b)), 2, 60.0, "s1", "c1").unwrap().velocities.is_none());
+        // velocities are clamped to the protocol's bound
+        let far = [0.0, 1.0, 0.0, 1.0e3, 1.0, 0.0];
+        let r = resume_from(Some(&state(1, &a)), Some(&state(2, &far)), 2, 60.0, "s1", "c1").unwrap();
+        assert_eq!(r.velocities.as_ref().unwrap()[3], 1.0e4);
+        r.validate(2, &Default::default()).unwrap();
     }
 }

@@ -91,6 +91,9 @@ pub enum Event {
     RequestFailed { handle: Option<u64>, error: Error },
 }
 
+/// What a request sent without waiting does with its success map (on a Zenoh thread).
+pub(crate) type OnOk = Box<dyn Fn(&Arc<Inner>, Map) + Send + Sync>;
+
 /// Why a cloth failed over.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum LossReason {
@@ -440,7 +443,7 @@ impl Inner {
     /// success map (on a Zenoh thread).
     /// `watch`: the cloth (and its id then) whose `not_found` answer means it was reclaimed.
     pub(crate) fn send(self: &Arc<Self>, server: &str, kind: &str, payload: Vec<u8>, handle: Option<u64>,
-                       on_ok: Option<Box<dyn Fn(&Arc<Inner>, Map) + Send + Sync>>,
+                       on_ok: Option<OnOk>,
                        watch: Option<(std::sync::Weak<cloth::ClothInner>, String)>) -> Result<()> {
         self.check_open()?;
         let key = self.keys.query(server, kind);

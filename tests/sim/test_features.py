@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from conftest import random_grid_fabric
 
-from drape.server.sim.opencl.clworld import CLWorld
 from drape.server.sim.fabric import cook_grid
+from drape.server.sim.opencl.clworld import CLWorld
 from drape.server.sim.params import Capsule, ClothParams, Features, LinkOptions, Material, Plane, Sphere, pack_colliders
 from drape.server.sim.world import ReferenceWorld, make_world
 
@@ -31,6 +31,8 @@ FEATURE_SETS = [
 # The float32 ensemble that measures a scene's float32 sensitivity (see compare_with_reference):
 # the float32 reference from the rest pose and from ENSEMBLE - 1 copies of it moved by at most
 # one float32 ulp per coordinate; the device may stray F32_SPREAD x as far as the farthest of them.
+# Measured on all features (408 seeds x workgroup, jacobi): wherever that farthest run is over
+# 1e-5 m (29 cases) the device is at most 1.05x as far (normals: 0.96x); 2 leaves the margin.
 ENSEMBLE = 8
 F32_SPREAD = 2.0
 
@@ -97,16 +99,17 @@ def compare_with_reference(device, rng, solver, features, local_size, always_ens
     Why float32 sensitivity: the device computes in float32, so it differs from the float64 ground
     truth by float32 rounding amplified through the step. Usually that stays ~1e-6 m. But when the
     cloth folds onto itself over the sphere, a bending link can shrink to a millimetre (seed
-    211990349: 1.5 mm against its 111 mm rest length) and the XPBD correction along its
-    direction d / |d| turns a 1e-6 m rounding difference into 1e-4 m (condition ~ rest / |d|);
-    in other scenes a vertex sits on a branch (inside or outside a collider, lift on or off) and
-    the two precisions take different sides. The float32 reference -- the same algorithm in the
-    same order, rounded to float32 -- shows the same divergence: for seed 211990349 the device is
-    6.4e-4 m from the float64 reference, float32 reference runs 1.7e-4 .. 1.4e-3 m. So a device
-    result beyond the plain tolerance still passes if it is within F32_SPREAD x the farthest
-    float32 reference run (float32_sensitivity); the sensitivity comes from the reference, never
-    from the device under test, so a kernel that drops or changes a term still fails (dropping
-    friction, the lift or the collider's interpolation over substeps fails 8-10 of 10 seeds)."""
+    211990349: 1.5 mm against its 111 mm rest length) and the XPBD correction along its direction
+    d / |d| turns a 1e-6 m rounding difference into 1e-4 m (condition ~ rest / |d|); in other
+    scenes (seed 1048) float32 runs split between two outcomes 2e-4 m apart, a branch taken one
+    way or the other. The float32 reference -- the same algorithm in the same order, rounded to
+    float32 -- diverges the same way: for seed 211990349 the device is 6.4e-4 m from the float64
+    reference and the ENSEMBLE float32 reference runs 1.7e-4 .. 2.2e-3 m. So a device result beyond
+    the plain tolerance still passes within F32_SPREAD x the farthest float32 reference run
+    (float32_sensitivity). The sensitivity comes from the reference, never from the device under
+    test, so a kernel that drops or changes a term still fails: without friction, lift or the
+    colliders' interpolation over substeps, 7 to 10 of 10 seeds fail (the others never touch a
+    collider)."""
     fab, params, colliders = feature_scene(rng, features)
     mode = "jacobi" if solver == "jacobi" else "coloured"
     h, fw = run_scene(CLWorld(solver, device=device, local_size=local_size, chunk=48), fab, params, colliders)

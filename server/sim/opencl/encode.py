@@ -1,16 +1,16 @@
 """The frame encoded on the device: one packed buffer of every publication's bytes per tick.
 
-:class:`FramePlan` (frameplan.py, re-exported here) lays a frame out once (when the set of published cloths, their encodings,
-normals or bundling changes): every publication (a single state, or a client's section 9.1
-bundle) at an 8-byte aligned offset of one buffer, every cloth's state at a known offset, and a
-*template* holding every static byte (magics, versions, header sizes, encodings, vertex counts,
-bundle entry tables and cloth ids, zero padding), built with :mod:`drape.client.protocol`'s own
-structs. :class:`DeviceEncoder` uploads the template once into the device output buffer; per
-tick one launch of ``encode_frame`` (kernels/encode.cl: one work-group per cloth) writes only the
-dynamic bytes (flags, tick, time, bounds, vertex data, normals) straight from the world's
-float4 position and normal buffers, and one copy brings the whole frame into pinned host memory.
-:meth:`DeviceEncoder.slices` then gives each publication's bytes as a memoryview of that memory,
-without copying. No per-cloth Python runs per tick.
+:class:`FramePlan` (frameplan.py, re-exported here) lays a frame out once (when the set of
+published cloths, their encodings, normals or bundling changes): every publication (a single
+state, or a client's section 9.1 bundle) at an 8-byte aligned offset of one buffer, every
+cloth's state at a known offset, and a *template* holding every static byte (magics, versions,
+header sizes, encodings, vertex counts, bundle entry tables and cloth ids, zero padding), built
+with :mod:`drape.client.protocol`'s own structs. :class:`DeviceEncoder` uploads the template
+once into the device output buffer; per tick one launch of ``encode_frame`` (kernels/encode.cl:
+one work-group per cloth) writes only the dynamic bytes (flags, tick, time, bounds, vertex data,
+normals) straight from the world's float4 position and normal buffers, and one copy brings the
+whole frame into pinned host memory. :meth:`DeviceEncoder.slices` then gives each publication's
+bytes as a memoryview of that memory, without copying. No per-cloth Python runs per tick.
 
 Use (the service's tick path; no per-cloth Python per tick)::
 

@@ -31,8 +31,10 @@ FEATURE_SETS = [
 # The float32 ensemble that measures a scene's float32 sensitivity (see compare_with_reference):
 # the float32 reference from the rest pose and from ENSEMBLE - 1 copies of it moved by at most
 # one float32 ulp per coordinate; the device may stray F32_SPREAD x as far as the farthest of them.
-# Measured on all features (408 seeds x workgroup, jacobi): wherever that farthest run is over
-# 1e-5 m (29 cases) the device is at most 1.05x as far (normals: 0.96x); 2 leaves the margin.
+# Measured on all features (527 seeds x workgroup, jacobi, plane out of reach): wherever that
+# farthest run is over 1e-5 m (34 cases) the device is at most 1.05x as far (normals: 1.01x), and
+# likewise (0.98x, normals 1.0x) for the 4 of 400 x 30 cases over the plain bound with the plane
+# in reach; 2 leaves the margin.
 ENSEMBLE = 8
 F32_SPREAD = 2.0
 
@@ -51,7 +53,9 @@ def run_scene(world, fab, params, colliders, steps: int = 10, positions=None):
 
 
 def feature_scene(rng, features):
-    """A random grid (random size, pins, orientation), a random wind and three colliders under it."""
+    """A random grid (random size, pins, orientation), a random wind and three colliders under it:
+    a sphere and a capsule, and a plane 5 cm below the cloth's lowest vertex, which it reaches
+    within the 10 steps (0.4 m below, no vertex ever touched it and dropping it went unnoticed)."""
     fab = random_grid_fabric(rng, LinkOptions(bending=True), n_pins=2)
     params = ClothParams(
         features=features,
@@ -65,7 +69,7 @@ def feature_scene(rng, features):
     colliders = [
         Sphere(tuple(centre - [0, 0.3, 0]), 0.25),
         Capsule(tuple(centre + [-0.5, -0.6, 0]), tuple(centre + [0.5, -0.6, 0.1]), 0.1),
-        Plane((0.0, 1.0, 0.0), float(lo[1] - 0.4)),
+        Plane((0.0, 1.0, 0.0), float(lo[1] - 0.05)),
     ]
     return fab, params, colliders
 

@@ -34,8 +34,9 @@ import secrets
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
+from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import zenoh
@@ -322,6 +323,7 @@ class DrapeClient:
             for r in replies:
                 if r.ok is not None:
                     return P.decode_reply(r.ok.payload.to_bytes())
+                assert r.err is not None  # a reply is either ok or an error
                 data = r.err.payload.to_bytes()
                 try:
                     P.unpack_message(data)
@@ -359,7 +361,9 @@ class DrapeClient:
                     except Exception:
                         log.exception("%s: reply handler failed", key)
                 return
+            assert reply.err is not None  # a reply is either ok or an error
             data = reply.err.payload.to_bytes()
+            err: DrapeError
             try:
                 P.decode_reply(data)
                 err = Unavailable(P.ERR_UNAVAILABLE, f"{key}: error reply without an error")
@@ -415,7 +419,8 @@ class DrapeClient:
             shared = False
         b = self.batch(wait=wait, on_error=on_error)
         for j, h in enumerate(handles):
-            b.move_pins(h, indices if shared else indices[j], targets[j],
+            idx = cast("Sequence[int] | np.ndarray", indices if shared else indices[j])
+            b.move_pins(h, idx, targets[j],
                         colliders=None if colliders is None else colliders[j])
         return b.send()
 
@@ -492,7 +497,7 @@ class DrapeClient:
                 results.extend(outcomes)
             else:
                 self.send("control_batch", payload, on_error, timeout,
-                          on_ok=lambda m, chunk=chunk, rid=rid: self._batch_replied(chunk, m, rid, on_error),
+                          on_ok=partial(self._batch_replied, chunk, rid=rid, on_error=on_error),
                           server=server)
         return results if wait else None
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Iterable
-from typing import Any
+from typing import Any, cast
 
 from ..sim import quality
 from ..sim.world import World
@@ -43,7 +43,7 @@ class AdaptiveQuality:
         cap = self.governor.current
         return wanted if _RANK[wanted] <= _RANK[cap] else cap
 
-    def observe(self, tick_s: float, tick: int, records: Callable[[], Iterable[ClothRecord]], world: World,
+    def observe(self, tick_s: float, tick: int, records: Callable[[], Iterable[ClothRecord]], world: World | None,
                 apply: Callable[[ClothRecord, str], bool]) -> None:
         """One tick's cost; steps presets when the governor moves. ``apply(record, preset)``
         sets a cloth's preset (True when it changed)."""
@@ -61,13 +61,14 @@ class AdaptiveQuality:
             return
         recs = [r for r in records() if r.quality_wanted is not None and r.handle is not None]
         if _RANK[g.current] < _RANK[before]:
-            top = max((_RANK[r.quality or r.quality_wanted] for r in recs), default=0)
+            top = max((_RANK[r.quality or cast(str, r.quality_wanted)] for r in recs), default=0)
             if top <= _RANK[g.current]:  # the cap was above every cloth: step down from the highest one
                 g.current = quality.ORDER[max(top - 1, 0)]
             direction = "down"
         else:
             direction = "up"
-        changed = sum(1 for r in recs if apply(r, self.preset_for(r.quality_wanted)))  # type: ignore[arg-type]
+        # cast: recs has only records with a wanted preset
+        changed = sum(1 for r in recs if apply(r, self.preset_for(cast(str, r.quality_wanted))))
         if not changed:
             if direction == "down" and recs:
                 g.current = before  # nothing cheaper to go to

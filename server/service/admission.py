@@ -46,10 +46,10 @@ class FixedCost:
 class MeasuredCost:
     """The tick's cost per vertex stepped, as the median over the last ``window`` ticks (so
     ticks stretched by one-offs, an add's rebuild, a burst of requests taking the GIL, a
-    descheduled thread, do not count unless they are the rule), times the vertices. It counts the per-tick fixed costs as per-vertex ones, so it errs on the side of
-    refusing once loaded; ``predict`` answers None (no opinion) while the current cost is under
-    ``trust`` of the budget: a lightly loaded server admits rather than extrapolate from a few
-    small cloths."""
+    descheduled thread, do not count unless they are the rule), times the vertices. It counts
+    the per-tick fixed costs as per-vertex ones, so it errs on the side of refusing once loaded;
+    ``predict`` answers None (no opinion) while the current cost is under ``trust`` of the
+    budget: a lightly loaded server admits rather than extrapolate from a few small cloths."""
 
     def __init__(self, window: int = 30, trust: float = 0.5) -> None:
         self.trust = trust

@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 import queue
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -169,11 +169,12 @@ class Intake:
     def put_call(self, cmd: Call, timeout: float) -> None:
         self._structural.put(cmd, timeout=timeout)
 
-    def put_controls(self, items: list[tuple[ClothRecord, P.ControlRequest, np.ndarray | None, Any, int]],
+    def put_controls(self, items: Sequence[tuple[ClothRecord, P.ControlRequest, np.ndarray | None, Any,
+                                                 int | tuple[int, bool]]],
                      rid: int = 0) -> None:
-        """Coalesce controls ``(record, request, packed colliders, waiter, waiter index or rid)``
-        into the per-cloth slots, all or none; raises Busy when the waiting replies would exceed
-        the bound."""
+        """Coalesce controls ``(record, request, packed colliders, waiter, tag)`` into the
+        per-cloth slots, all or none (the tag: a batch's item index, or a single control's
+        (rid, with features)); raises Busy when the waiting replies would exceed the bound."""
         with self._lock:
             if self._waiting + len(items) > self.max_pending:
                 raise P.Busy(P.ERR_BUSY, "server request queue is full, retry later", rid)

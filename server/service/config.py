@@ -35,11 +35,13 @@ import socket
 import tomllib
 import types
 import typing
+from collections.abc import Mapping
 from dataclasses import MISSING, dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 from drape.client.protocol import DEFAULT_ENDPOINT, DEFAULT_NAMESPACE, ID_RE, NAMESPACE_RE, Limits
+
 from ..sim.params import MAX_COLLIDERS_PER_CLOTH, SOLVERS
 
 log = logging.getLogger(__name__)
@@ -104,7 +106,7 @@ class ServerConfig:
         if not self.server_id:
             self.server_id = default_server_id()
 
-    def validate(self) -> "ServerConfig":
+    def validate(self) -> ServerConfig:
         if self.mode not in ZENOH_MODES:
             raise ValueError(f"mode must be one of {ZENOH_MODES}, got {self.mode!r}")
         if not NAMESPACE_RE.match(self.namespace):
@@ -163,7 +165,7 @@ class ServerConfig:
         path: str | Path | None = None,
         env: Mapping[str, str] | None = None,
         overrides: Mapping[str, Any] | None = None,
-    ) -> "ServerConfig":
+    ) -> ServerConfig:
         """Defaults, then the TOML file (``path`` or $DRAPE_CONFIG), then DRAPE_* variables of
         ``env`` (default os.environ), then ``overrides`` (None values are ignored)."""
         env = os.environ if env is None else env
@@ -178,7 +180,7 @@ class ServerConfig:
             raise ValueError(f"unknown configuration key(s) {sorted(unknown)}")
         return cls(**values).validate()
 
-    def with_(self, **changes: Any) -> "ServerConfig":
+    def with_(self, **changes: Any) -> ServerConfig:
         return replace(self, **changes).validate()
 
 

@@ -18,6 +18,7 @@ import time
 
 import numpy as np
 
+from ..sim.fabric import Fabric
 from ..sim.opencl.clworld import CLWorld
 from ..sim.opencl.encode import ClothEntry, DeviceEncoder, EncodedFrame, FramePlan, Publication
 from ..sim.shared import vertex_normals
@@ -78,14 +79,14 @@ class DeviceFrames:
         return self.encoder.nonfinite()
 
     def reencode(self, old: EncodedFrame, tick: int, time_ns: int, flags: np.ndarray,
-                 reset: list[tuple[int, object]]) -> EncodedFrame:
+                 reset: list[tuple[int, Fabric]]) -> EncodedFrame:
         """The frame encoded again after the World reset some cloths (``reset``: (handle,
         fabric) of those carrying normals, whose rest normals are written first)."""
         w = self.world
         for h, fabric in reset:
-            n = fabric.n_vertices  # type: ignore[attr-defined]
+            n = fabric.n_vertices
             nrm = np.zeros((n, 4), np.float32)
-            nrm[:, :3] = vertex_normals(fabric.rest_positions, fabric)[0]  # type: ignore[attr-defined]
+            nrm[:, :3] = vertex_normals(fabric.rest_positions, fabric)[0]
             w.nrm.write(w.rec[h].vbase, nrm)
         old.release()
         t = time.perf_counter()

@@ -232,7 +232,7 @@ class Publisher:
             try:
                 size = enc.state_size(i, ro.encodings[i], bool(ro.normals[i]))
                 pub = self._publisher(self._pubs, ro.ids[i], ro.keys[i], size)
-                if pub.matching_status.matching:
+                if pub.matching_status.matching:  # type: ignore[attr-defined]  # the stub says bool: a MatchingStatus
                     singles.append((i, pub, size))
                 else:  # nobody subscribed: skip the work
                     unwatched += 1
@@ -245,7 +245,7 @@ class Publisher:
             try:
                 size = enc.bundle_size([(ro.ids[i], i, ro.encodings[i], bool(ro.normals[i])) for i in idx])
                 pub = self._publisher(self._bundle_pubs, bkey, bkey, size)
-                if pub.matching_status.matching:
+                if pub.matching_status.matching:  # type: ignore[attr-defined]  # the stub says bool: a MatchingStatus
                     bundles.append((bkey, idx, pub, size))
                 else:
                     unwatched += len(idx)
@@ -298,7 +298,8 @@ class Publisher:
         for (ident, key, idx, bundle), view in zip(ro.publications(), enc.views, strict=True):
             try:
                 pub = self._publisher(self._bundle_pubs if bundle else self._pubs, ident, key, len(view))
-                if not pub.matching_status.matching:  # nobody subscribed: skip the copy and the put
+                # nobody subscribed: skip the copy and the put (zenoh's stub types matching_status as bool)
+                if not pub.matching_status.matching:  # type: ignore[attr-defined]
                     unwatched += len(idx)
                     continue
                 a = time.perf_counter()

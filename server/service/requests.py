@@ -14,7 +14,7 @@ from .config import ServerConfig
 
 
 def pack(colliders: tuple[P.Collider, ...] | None, rid: int) -> np.ndarray:
-    out = []
+    out: list[Sphere | Capsule | Plane] = []
     for c in colliders or ():
         if isinstance(c, P.Sphere):
             out.append(Sphere(c.center, c.radius))

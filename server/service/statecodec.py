@@ -102,7 +102,8 @@ class FrameEncoder:
                 starts_b = {i: int(off[i]) * 3 * es for i in idx}
             else:
                 starts_b = {i: int(local[j]) * 3 * es for j, i in enumerate(idx)}
-            self._groups[enc] = _Group(memoryview(np.ascontiguousarray(block)).cast("B"), starts_b)
+            # numpy's stubs give ndarray __buffer__ only for Python >= 3.12 (we check as 3.11)
+            self._groups[enc] = _Group(memoryview(np.ascontiguousarray(block)).cast("B"), starts_b)  # type: ignore[arg-type]
 
     def state_size(self, i: int, encoding: int, normals: bool) -> int:
         return state_bytes(self._counts[i], encoding, normals)

@@ -53,7 +53,7 @@ class PhaseTimer:
         """Cumulative ``[(upper bound, count <= bound), ..., (inf, count)]``, sum and count."""
         with self._lock:
             out, acc = [], 0
-            for bound, n in zip((*BUCKETS_S, float("inf")), self.buckets):
+            for bound, n in zip((*BUCKETS_S, float("inf")), self.buckets, strict=True):
                 acc += n
                 out.append((bound, acc))
             return out, self.total, self.count

@@ -371,8 +371,8 @@ class Ticker:
                         self.registry.error(err[0])
                     waiter.pending -= 1
                     if waiter.pending == 0:
-                        rep = P.ControlBatchReply(tick, waiter.results, waiter.rid)  # type: ignore[arg-type]
-                        job.before.append(Reply(waiter.query, partial(P.encode_control_batch_reply, rep)))
+                        batch_rep = P.ControlBatchReply(tick, waiter.results, waiter.rid)  # type: ignore[arg-type]
+                        job.before.append(Reply(waiter.query, partial(P.encode_control_batch_reply, batch_rep)))
                 elif err is None:
                     rid, with_features = tag
                     rep = P.ControlReply(tick, rid, feats if with_features else None)

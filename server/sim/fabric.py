@@ -169,7 +169,7 @@ def grid_links(cols: int, rows: int, options: LinkOptions) -> tuple[np.ndarray, 
     diagonals, bending = neighbours two apart along rows and columns."""
     idx = np.arange(rows * cols).reshape(rows, cols)
     parts: list[np.ndarray] = []
-    types: list[int] = []
+    types: list[tuple[int, int]] = []  # (link type, number of links) of each part
 
     def add(a: np.ndarray, b: np.ndarray, t: int) -> None:
         if a.size:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, fields, replace
-from typing import Literal
+from typing import Literal, cast
 
 import numpy as np
 
@@ -32,6 +32,10 @@ from drape.client.protocol.vocabulary import (
 )
 
 LINK_STRUCTURAL, LINK_SHEAR, LINK_BENDING = (LINK_TYPE_NAMES.index(n) for n in ("structural", "shear", "bending"))
+
+# MATERIAL_DEFAULTS maps every field to a float or a 3-tuple: these views type each kind's fields
+_FLOAT_DEFAULTS = cast("dict[str, float]", MATERIAL_DEFAULTS)  # one-component fields
+_VEC3_DEFAULTS = cast("dict[str, tuple[float, float, float]]", MATERIAL_DEFAULTS)  # stiffness, compliance
 
 SOLVERS = ("workgroup", "coloured", "jacobi", "reference")
 SolverName = Literal["workgroup", "coloured", "jacobi", "reference"]
@@ -91,16 +95,16 @@ class Material:
     """Per-cloth material: the protocol's fields (protocol.MATERIAL_FIELDS) with its defaults.
     Stiffness and compliance are per link type (structural, shear, bending)."""
 
-    mass: float = MATERIAL_DEFAULTS["mass"]  # total kg, spread over vertices by their share of the area
-    stiffness: tuple[float, float, float] = MATERIAL_DEFAULTS["stiffness"]  # PBD kLST in [0, 1]
-    compliance: tuple[float, float, float] = MATERIAL_DEFAULTS["compliance"]  # XPBD, metres per newton
-    damping: float = MATERIAL_DEFAULTS["damping"]  # kDP: fraction of velocity removed per step, [0, 1]
-    friction: float = MATERIAL_DEFAULTS["friction"]  # Coulomb-like coefficient against colliders
-    drag: float = MATERIAL_DEFAULTS["drag"]  # kDG
-    lift: float = MATERIAL_DEFAULTS["lift"]  # kLF
-    air_density: float = MATERIAL_DEFAULTS["air_density"]  # rho, kg/m^3
+    mass: float = _FLOAT_DEFAULTS["mass"]  # total kg, spread over vertices by their share of the area
+    stiffness: tuple[float, float, float] = _VEC3_DEFAULTS["stiffness"]  # PBD kLST in [0, 1]
+    compliance: tuple[float, float, float] = _VEC3_DEFAULTS["compliance"]  # XPBD, metres per newton
+    damping: float = _FLOAT_DEFAULTS["damping"]  # kDP: fraction of velocity removed per step, [0, 1]
+    friction: float = _FLOAT_DEFAULTS["friction"]  # Coulomb-like coefficient against colliders
+    drag: float = _FLOAT_DEFAULTS["drag"]  # kDG
+    lift: float = _FLOAT_DEFAULTS["lift"]  # kLF
+    air_density: float = _FLOAT_DEFAULTS["air_density"]  # rho, kg/m^3
     # a vertex may be this many times its rest distance from its anchor
-    tether_limit: float = MATERIAL_DEFAULTS["tether_limit"]
+    tether_limit: float = _FLOAT_DEFAULTS["tether_limit"]
 
 
 assert tuple(f.name for f in fields(Material)) == tuple(MATERIAL_FIELDS), \

@@ -353,10 +353,10 @@ class World(ABC):
     def positions(self, handle: int) -> np.ndarray:
         return self.fetch().positions[handle].copy()
 
-    def sync(self) -> None:
+    def sync(self) -> None:  # noqa: B027 (an optional hook: a no-op for a world that steps synchronously)
         """Wait until every step asked for so far has finished (for timing)."""
 
-    def close(self) -> None:
+    def close(self) -> None:  # noqa: B027 (an optional hook: a no-op for a world without resources)
         pass
 
     # --- stats ----------------------------------------------------------------------------

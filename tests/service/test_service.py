@@ -226,7 +226,8 @@ HOSTILE_SUBMITS = [
     ("pinned as array", _raw(_submit(pinned=[0, 1])), "invalid_type"),
     ("grid and mesh", _raw(_submit(mesh={"vertices": b"", "triangles": b""})), "invalid_value"),
     ("no geometry", _raw(_submit(grid=None)), "missing_field"),
-    ("mesh bad vertex bytes", _raw(_submit(grid=None, mesh={"vertices": b"\x00" * 13, "triangles": b""})), "invalid_value"),
+    ("mesh bad vertex bytes", _raw(_submit(grid=None, mesh={"vertices": b"\x00" * 13, "triangles": b""})),
+     "invalid_value"),
     ("mesh triangle out of range", _raw(_submit(grid=None, mesh={
         "vertices": np.zeros((3, 3), "<f4").tobytes(), "triangles": np.array([[0, 1, 7]], "<u4").tobytes()})),
      "index_out_of_range"),

@@ -67,13 +67,13 @@ class DevArray:
         self.width = width
         self.itembytes = self.dtype.itemsize * width
         self.capacity = 0
-        self.buf: cl.Buffer | None = None
+        self.buf: cl.Buffer  # set by resize below (never None after)
         self.resize(capacity)
 
     def resize(self, capacity: int) -> None:
         capacity = max(capacity, 1)
         new = cl.Buffer(self.dev.ctx, MF.READ_WRITE, capacity * self.itembytes)
-        if self.buf is not None and self.capacity:
+        if self.capacity:  # capacity is 0 only before the first buffer
             n = min(self.capacity, capacity) * self.itembytes
             cl.enqueue_copy(self.dev.queue, new, self.buf, byte_count=n)
         self.buf, self.capacity = new, capacity

@@ -24,6 +24,7 @@ from __future__ import annotations
 import logging
 import os
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import pyopencl as cl
@@ -276,11 +277,13 @@ class CLWorld(GroupLaunches, FrameReadback, World):
         rec.group = key
 
     def _leave_group(self, handle: int, rec: ClothSlot) -> None:
-        g = self.groups[rec.group]
+        key = rec.group
+        assert key is not None  # called for a cloth in a group only
+        g = self.groups[key]
         g.handles.discard(handle)
         g.dirty = True
         if not g.handles:
-            del self.groups[rec.group]
+            del self.groups[key]
         rec.group = None
 
     def _remove(self, cloth: Cloth) -> None:
@@ -409,8 +412,8 @@ class CLWorld(GroupLaunches, FrameReadback, World):
 
     def _options_for(self, features: Features, use_local: bool) -> list[str]:
         g_features = features
-        unroll = os.environ.get("DRAPE_LINK_UNROLL_LOCAL" if use_local else "DRAPE_LINK_UNROLL_GLOBAL")
-        unroll = int(unroll) if unroll else (LINK_UNROLL_LOCAL if use_local else LINK_UNROLL_GLOBAL)
+        env_unroll = os.environ.get("DRAPE_LINK_UNROLL_LOCAL" if use_local else "DRAPE_LINK_UNROLL_GLOBAL")
+        unroll = int(env_unroll) if env_unroll else (LINK_UNROLL_LOCAL if use_local else LINK_UNROLL_GLOBAL)
         opts = [*g_features.build_options(), f"-DUSE_LOCAL={int(use_local)}", f"-DJACOBI_OMEGA={JACOBI_OMEGA}f",
                 f"-DLINK_UNROLL={unroll}"]
         regs = os.environ.get("DRAPE_NV_MAXRREG", "64")
@@ -434,11 +437,13 @@ class CLWorld(GroupLaunches, FrameReadback, World):
             if self.solver != "workgroup":
                 self._vertex_phase_step(g, dt32, opts)
                 continue
-            args = [dt32, g.cloths_buf, self.ci.buf, self.cf.buf, self.fab.buf, self.pos.buf, self.vel.buf,
+            # kernel arguments (Any: pyopencl's stub of Kernel.__call__ leaves out LocalMemory)
+            args: list[Any] = [dt32, g.cloths_buf, self.ci.buf, self.cf.buf, self.fab.buf, self.pos.buf, self.vel.buf,
                     self.prev.buf, self.target.buf, self.nrm.buf, self.coll.buf, self.lam.buf]
             if g.use_local:
                 args.append(cl.LocalMemory(16 * g.max_vertices))
             ls = g.local_size
+            assert g.slots is not None  # set by _build_group
             self.dev.kernel(opts, "wg_step")(q, (len(g.slots) * ls,), (ls,), *args)
         self.steps += 1
         self._after_step()

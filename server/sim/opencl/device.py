@@ -124,6 +124,7 @@ class Device:
         except cl.Error:
             self.queue = cl.CommandQueue(self.ctx)
         self._programs: dict[tuple[str, ...], cl.Program] = {}
+        self._kernels: dict[tuple[str, ...], cl.Kernel] = {}
         self._lock = threading.Lock()  # guards the caches, never held while a program builds
         self._building: dict[tuple[str, ...], threading.Lock] = {}
         self.builds: list[tuple[tuple[str, ...], str]] = []  # (program key, thread that built it), in order
@@ -170,9 +171,9 @@ class Device:
     def kernel(self, options: list[str], name: str) -> cl.Kernel:
         key = ("kernel", name, *sorted(options))
         with self._lock:
-            k = self._programs.get(key)
+            k = self._kernels.get(key)
         if k is None:
             k = cl.Kernel(self.program(options), name)
             with self._lock:
-                self._programs[key] = k
+                self._kernels[key] = k
         return k

@@ -11,12 +11,17 @@ from the queue's profiling timestamps.
 from __future__ import annotations
 
 import logging
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pyopencl as cl
 
 from ..world import Frame, FramePool, Layout, PendingFrame
 from .buffers import DevArray
+
+if TYPE_CHECKING:
+    from .clworld import ClothSlot
+    from .device import Device
 
 log = logging.getLogger(__name__)
 
@@ -27,8 +32,20 @@ class FrameReadback:
     """Needs ``dev``, ``rec`` (handle -> slot with ``vbase``), ``pos``, ``nrm``, ``steps``,
     ``layout()`` and ``_base_options`` from the world."""
 
+    # declared for the type checker only (no values: CLWorld.__init__ and World.__init__ set them)
+    dev: Device
+    rec: dict[int, ClothSlot]
+    pos: DevArray
+    nrm: DevArray
+    steps: int
+    _base_options: list[str]
+
+    if TYPE_CHECKING:
+
+        def layout(self) -> Layout: ...
+
     def _init_frames(self) -> None:
-        q = self.dev  # type: ignore[attr-defined]
+        q = self.dev
         self._pool = FramePool(self._host_array)
         self._pinned: list[cl.Buffer] = []  # host buffers of the frames, alive as long as the world
         self._pack_src = DevArray(q, np.int32, 1, 1024)  # frame row -> vertex of the buffers
@@ -40,8 +57,12 @@ class FrameReadback:
         """A (rows, 3) float32 host array in ALLOC_HOST_PTR memory, mapped once for good."""
         try:
             buf = cl.Buffer(self.dev.ctx, MF.READ_WRITE | MF.ALLOC_HOST_PTR, rows * 12)
-            arr, _ = cl.enqueue_map_buffer(self.dev.queue, buf, cl.map_flags.READ | cl.map_flags.WRITE, 0,
-                                           (rows, 3), np.float32, is_blocking=True)
+            # pyopencl's stub is wrong here: flags are OR-ed map_flags (an int), dtype any dtype-like,
+            # and the call returns (array, event)
+            flags = cl.map_flags.READ | cl.map_flags.WRITE
+            arr, _ = cl.enqueue_map_buffer(  # type: ignore[type-var, misc]
+                self.dev.queue, buf, flags, 0, (rows, 3), np.float32, is_blocking=True  # type: ignore[arg-type]
+            )
             self._pinned.append(buf)
             return arr
         except cl.Error as e:  # a driver without mappable host memory: plain numpy

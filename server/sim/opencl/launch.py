@@ -14,7 +14,10 @@ import numpy as np
 import pyopencl as cl
 
 if TYPE_CHECKING:
-    from .clworld import Group
+    from ..world import Cloth
+    from .buffers import DevArray
+    from .clworld import ClothSlot, Group
+    from .device import Device
 
 MF = cl.mem_flags
 
@@ -26,6 +29,31 @@ def _next_pow2(n: int) -> int:
 class GroupLaunches:
     """Needs ``dev``, ``rec``, ``cloths``, ``solver``, ``chunk``, ``link_group_size``, the size
     caps, the device buffers and ``_kernel_limit`` from the world."""
+
+    # declared for the type checker only (no values: CLWorld.__init__ and World.__init__ set them)
+    dev: Device
+    rec: dict[int, ClothSlot]
+    cloths: dict[int, Cloth]
+    solver: str
+    chunk: int
+    link_group_size: int
+    max_local_size: int
+    max_global_path_size: int
+    ci: DevArray
+    cf: DevArray
+    fab: DevArray
+    pos: DevArray
+    pos2: DevArray | None  # the Jacobi solver's second position buffer
+    vel: DevArray
+    prev: DevArray
+    target: DevArray
+    nrm: DevArray
+    lam: DevArray
+    coll: DevArray
+
+    if TYPE_CHECKING:
+
+        def _kernel_limit(self, g: Group) -> int: ...
 
     def _build_group(self, g: Group) -> None:
         handles = sorted(g.handles)
@@ -99,6 +127,7 @@ class GroupLaunches:
         k = self.dev.kernel(opts, "cl_links")
         q = self.dev.queue
         lg = self.link_group_size
+        assert g.slots is not None  # set by _build_group
         ngc = np.int32(len(g.slots))
         # arguments set once; per dispatch only the colour and the iteration change
         k.set_args(dt32, np.int32(0), np.int32(0), ngc, g.prefix_buf, g.cloths_buf, self.ci.buf, self.cf.buf,
@@ -113,7 +142,9 @@ class GroupLaunches:
     def _jacobi_iterations(self, g: Group, dt32, opts, gsize, ls) -> None:
         k = self.dev.kernel(opts, "jacobi_iter")
         q = self.dev.queue
-        bufs = [self.pos.buf, self.pos2.buf]
+        pos2 = self.pos2
+        assert pos2 is not None  # the Jacobi solver's world has it
+        bufs = [self.pos.buf, pos2.buf]
         ch = np.int32(self.chunk)
         k.set_args(dt32, np.int32(0), ch, g.chunks_buf, self.ci.buf, self.cf.buf, self.fab.buf, bufs[0], bufs[1],
                    self.lam.buf)
@@ -123,5 +154,5 @@ class GroupLaunches:
             k.set_arg(8, bufs[(it + 1) & 1])
             cl.enqueue_nd_range_kernel(q, k, gsize, (ls,))
         if g.max_iters & 1:
-            self.dev.kernel(opts, "copy_positions")(q, gsize, (ls,), ch, g.chunks_buf, self.ci.buf, self.pos2.buf,
+            self.dev.kernel(opts, "copy_positions")(q, gsize, (ls,), ch, g.chunks_buf, self.ci.buf, pos2.buf,
                                                      self.pos.buf)

@@ -6,6 +6,7 @@ server (``zenoh_config``, in ``drape.client.session``) add Zenoh and are importe
 a tool that only encodes or decodes messages does not need Zenoh installed. Nothing here imports
 drape.server or OpenCL.
 """
+
 from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any

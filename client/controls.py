@@ -1,6 +1,7 @@
 """Controls of the Python SDK that do not need a session: the batch of many cloths' controls
 (:class:`ControlBatch`, protocol 1.1), its error (:class:`BatchError`), and the conversions of
 the SDK's friendly arguments (pins, settings, colliders, links, vectors) into protocol values."""
+
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -26,8 +27,9 @@ class BatchError(DrapeError):
     def __init__(self, results: list[int | DrapeError]) -> None:
         errors = [r for r in results if isinstance(r, DrapeError)]
         first = errors[0]
-        super().__init__(first.code, f"{len(errors)} of {len(results)} batch items refused; first: {first.message}",
-                         first.rid)
+        super().__init__(
+            first.code, f"{len(errors)} of {len(results)} batch items refused; first: {first.message}", first.rid
+        )
         self.results = results
 
 
@@ -37,8 +39,14 @@ class ControlBatch:
     ends without an exception) or call ``send()``. Every method takes the ClothHandle first
     and the same arguments as the ClothHandle method of the same name."""
 
-    def __init__(self, client: DrapeClient, *, wait: bool = False, on_error: ErrorCallback | None = None,
-                 timeout: float | None = None) -> None:
+    def __init__(
+        self,
+        client: DrapeClient,
+        *,
+        wait: bool = False,
+        on_error: ErrorCallback | None = None,
+        timeout: float | None = None,
+    ) -> None:
         self.client = client
         self.wait = wait
         self.on_error = on_error
@@ -59,23 +67,56 @@ class ControlBatch:
         self.items.append((handle, P.ControlRequest(handle.id, handle.token, **changes)))
         return self
 
-    def move_pins(self, handle: ClothHandle, indices: Sequence[int] | np.ndarray,
-                  targets: Sequence[Sequence[float]] | np.ndarray, *,
-                  colliders: Sequence[Any] | None = None) -> ControlBatch:
+    def move_pins(
+        self,
+        handle: ClothHandle,
+        indices: Sequence[int] | np.ndarray,
+        targets: Sequence[Sequence[float]] | np.ndarray,
+        *,
+        colliders: Sequence[Any] | None = None,
+    ) -> ControlBatch:
         return self.add(handle, **_pin_changes(indices, targets, colliders))
 
     def set_colliders(self, handle: ClothHandle, colliders: Sequence[Any]) -> ControlBatch:
         return self.add(handle, colliders=tuple(_collider(c) for c in colliders))
 
-    def set(self, handle: ClothHandle, *, gravity: Sequence[float] | None = None, wind: Sequence[float] | None = None,
-            material: Mapping[str, Any] | Any = None, features: Iterable[str] | None = None,
-            iterations: int | None = None, substeps: int | None = None, chebyshev_rho: float | None = None,
-            normals: bool | None = None, encoding: str | None = None, reset: bool = False,
-            quality: str | None = None, features_add: Iterable[str] | None = None,
-            features_remove: Iterable[str] | None = None) -> ControlBatch:
+    def set(
+        self,
+        handle: ClothHandle,
+        *,
+        gravity: Sequence[float] | None = None,
+        wind: Sequence[float] | None = None,
+        material: Mapping[str, Any] | Any = None,
+        features: Iterable[str] | None = None,
+        iterations: int | None = None,
+        substeps: int | None = None,
+        chebyshev_rho: float | None = None,
+        normals: bool | None = None,
+        encoding: str | None = None,
+        reset: bool = False,
+        quality: str | None = None,
+        features_add: Iterable[str] | None = None,
+        features_remove: Iterable[str] | None = None,
+    ) -> ControlBatch:
         """As ClothHandle.set, for one item of the batch (``features_add`` / ``features_remove``: 1.2)."""
-        return self.add(handle, **_set_changes(gravity, wind, material, features, iterations, substeps, chebyshev_rho,
-                                               normals, encoding, reset, quality, features_add, features_remove))
+        return self.add(
+            handle,
+            **_set_changes(
+                gravity,
+                wind,
+                material,
+                features,
+                iterations,
+                substeps,
+                chebyshev_rho,
+                normals,
+                encoding,
+                reset,
+                quality,
+                features_add,
+                features_remove,
+            ),
+        )
 
     def reset(self, handle: ClothHandle) -> ControlBatch:
         return self.add(handle, reset=True)
@@ -100,8 +141,9 @@ class ControlBatch:
             self.send()
 
 
-def _item_outcomes(chunk: list[tuple[ClothHandle, P.ControlRequest]], rep: P.ControlBatchReply,
-                   rid: int) -> list[int | DrapeError]:
+def _item_outcomes(
+    chunk: list[tuple[ClothHandle, P.ControlRequest]], rep: P.ControlBatchReply, rid: int
+) -> list[int | DrapeError]:
     if len(rep.results) != len(chunk):
         raise DrapeError(P.ERR_INTERNAL, f"batch reply has {len(rep.results)} results for {len(chunk)} items", rid)
     out: list[int | DrapeError] = []
@@ -113,8 +155,11 @@ def _item_outcomes(chunk: list[tuple[ClothHandle, P.ControlRequest]], rep: P.Con
     return out
 
 
-def _pin_changes(indices: Sequence[int] | np.ndarray, targets: Sequence[Sequence[float]] | np.ndarray,
-                 colliders: Sequence[Any] | None) -> dict[str, Any]:
+def _pin_changes(
+    indices: Sequence[int] | np.ndarray,
+    targets: Sequence[Sequence[float]] | np.ndarray,
+    colliders: Sequence[Any] | None,
+) -> dict[str, Any]:
     idx = np.asarray(indices, np.int64).reshape(-1)
     tgt = np.asarray(targets, np.float32).reshape(-1, 3)
     if len(idx) != len(tgt):
@@ -127,11 +172,21 @@ def _pin_changes(indices: Sequence[int] | np.ndarray, targets: Sequence[Sequence
     return out
 
 
-def _set_changes(gravity: Sequence[float] | None, wind: Sequence[float] | None, material: Any,
-                 features: Iterable[str] | None, iterations: int | None, substeps: int | None,
-                 chebyshev_rho: float | None, normals: bool | None, encoding: str | None, reset: bool,
-                 quality: str | None = None, features_add: Iterable[str] | None = None,
-                 features_remove: Iterable[str] | None = None) -> dict[str, Any]:
+def _set_changes(
+    gravity: Sequence[float] | None,
+    wind: Sequence[float] | None,
+    material: Any,
+    features: Iterable[str] | None,
+    iterations: int | None,
+    substeps: int | None,
+    chebyshev_rho: float | None,
+    normals: bool | None,
+    encoding: str | None,
+    reset: bool,
+    quality: str | None = None,
+    features_add: Iterable[str] | None = None,
+    features_remove: Iterable[str] | None = None,
+) -> dict[str, Any]:
     state = P.StateOptions(normals, encoding) if (normals is not None or encoding is not None) else None
     add = _feature_names(features_add)
     remove = _feature_names(features_remove)

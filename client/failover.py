@@ -19,6 +19,7 @@ targets and colliders the game sent are sent again right after. ``on_failover`` 
 Per state, the handle only keeps references to the last two decoded states (no copies, no
 per-vertex Python).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -214,8 +215,20 @@ class Failover:
             if old_server in live and self._still_there(h):  # back, and the cloth with it
                 h.lost = False
                 self._done(h)
-                self._emit(FailoverEvent(h, reason, h.id, old_server, h.id, old_server, None, True,
-                                         detected_ns=t0, done_ns=time.monotonic_ns()))
+                self._emit(
+                    FailoverEvent(
+                        h,
+                        reason,
+                        h.id,
+                        old_server,
+                        h.id,
+                        old_server,
+                        None,
+                        True,
+                        detected_ns=t0,
+                        done_ns=time.monotonic_ns(),
+                    )
+                )
                 continue
             self._resubmit(h, old_server, reason, t0, placed)
 
@@ -227,8 +240,9 @@ class Failover:
             self._done(h)
             err = DrapeError(P.ERR_NOT_FOUND, f"cloth {h.id} lost and its submission is unknown")
             h._close(str(err))
-            self._emit(FailoverEvent(h, reason, h.id, old_server, error=err, detected_ns=t0,
-                                     done_ns=time.monotonic_ns()))
+            self._emit(
+                FailoverEvent(h, reason, h.id, old_server, error=err, detected_ns=t0, done_ns=time.monotonic_ns())
+            )
             return
         while True:
             target = self.pick(tried, placed)
@@ -250,25 +264,39 @@ class Failover:
             self._done(h)
             h.lost = False
             h._resend_controls()
-            self._emit(FailoverEvent(h, reason, old_id, old_server, h.id, target,
-                                     None if resume is None else resume.tick, False,
-                                     detected_ns=t0, done_ns=time.monotonic_ns()))
+            self._emit(
+                FailoverEvent(
+                    h,
+                    reason,
+                    old_id,
+                    old_server,
+                    h.id,
+                    target,
+                    None if resume is None else resume.tick,
+                    False,
+                    detected_ns=t0,
+                    done_ns=time.monotonic_ns(),
+                )
+            )
             return
         if time.monotonic_ns() - t0 > self.give_up_after * 1e9:
-            err = last_err or P.Unavailable(P.ERR_UNAVAILABLE, f"no live server to fail cloth {h.id} over to "
-                                                               f"within {self.give_up_after} s")
+            err = last_err or P.Unavailable(
+                P.ERR_UNAVAILABLE, f"no live server to fail cloth {h.id} over to within {self.give_up_after} s"
+            )
             self._done(h)
             h._close(f"failover failed: {err}")
-            self._emit(FailoverEvent(h, reason, h.id, old_server, error=err, detected_ns=t0,
-                                     done_ns=time.monotonic_ns()))
+            self._emit(
+                FailoverEvent(h, reason, h.id, old_server, error=err, detected_ns=t0, done_ns=time.monotonic_ns())
+            )
         # else: stays lost; tried again on the next pass (a server may appear)
 
     def _still_there(self, h: ClothHandle) -> bool:
         """Probe with an empty control: True when the server still holds the cloth."""
         try:
             probe = P.ControlRequest(h.id, h.token, rid=self.client._next_rid())
-            self.client.request("control", P.encode_control(probe), timeout=min(self.client.timeout, 2.0),
-                                server=h.server_id)
+            self.client.request(
+                "control", P.encode_control(probe), timeout=min(self.client.timeout, 2.0), server=h.server_id
+            )
             return True
         except P.NotFound:
             return False
@@ -301,8 +329,12 @@ class Failover:
                 pass
 
         try:
-            c.session.get(c.keys.control(h.server_id), zenoh.handlers.Callback(on_reply, lambda: None),
-                          payload=payload, timeout=min(c.timeout, 2.0))
+            c.session.get(
+                c.keys.control(h.server_id),
+                zenoh.handlers.Callback(on_reply, lambda: None),
+                payload=payload,
+                timeout=min(c.timeout, 2.0),
+            )
         except Exception as e:
             log.debug("probe of cloth %s failed: %s", cloth, e)
 
@@ -315,8 +347,14 @@ class Failover:
             self.events.append(ev)
             callbacks = list(self._callbacks)
         if ev.ok:
-            log.info("cloth %s of server %s %s as %s on server %s", ev.old_cloth, ev.old_server,
-                     "kept" if ev.kept else "resubmitted", ev.new_cloth, ev.new_server)
+            log.info(
+                "cloth %s of server %s %s as %s on server %s",
+                ev.old_cloth,
+                ev.old_server,
+                "kept" if ev.kept else "resubmitted",
+                ev.new_cloth,
+                ev.new_server,
+            )
         else:
             log.warning("cloth %s of server %s lost: %s", ev.old_cloth, ev.old_server, ev.error)
         for cb in callbacks:

@@ -1,6 +1,7 @@
 """One submitted cloth of the Python SDK (:class:`ClothHandle`): its state stream (queue,
 callbacks, iterators), its controls, and what a failover needs of it (its submission, its last
 two states, the last pin targets and colliders sent; ``_rebind`` moves it to its new incarnation)."""
+
 from __future__ import annotations
 
 import logging
@@ -221,8 +222,14 @@ class ClothHandle:
             self._queue.clear()
 
     # --- controls (each returns the first tick whose state reflects it) -------------------------
-    def move_pins(self, indices: Sequence[int] | np.ndarray, targets: Sequence[Sequence[float]] | np.ndarray,
-                  *, wait: bool = True, colliders: Sequence[Any] | None = None) -> int | None:
+    def move_pins(
+        self,
+        indices: Sequence[int] | np.ndarray,
+        targets: Sequence[Sequence[float]] | np.ndarray,
+        *,
+        wait: bool = True,
+        colliders: Sequence[Any] | None = None,
+    ) -> int | None:
         """Move pinned vertices ``indices`` to ``targets`` ((k, 3) metres) by the end of the next
         tick (and, if given, the colliders with them, in the same message). ``wait=False`` does
         not wait for the reply (see DrapeClient.send): the per-tick call of a game loop."""
@@ -259,9 +266,24 @@ class ClothHandle:
         turned on); ``features_add`` / ``features_remove`` (protocol 1.2) switch only the names
         given. A 1.2 server reports the resulting set, kept in :attr:`features` after a waited
         control."""
-        return self._control(wait, **_set_changes(gravity, wind, material, features, iterations, substeps,
-                                                  chebyshev_rho, normals, encoding, reset, quality,
-                                                  features_add, features_remove))
+        return self._control(
+            wait,
+            **_set_changes(
+                gravity,
+                wind,
+                material,
+                features,
+                iterations,
+                substeps,
+                chebyshev_rho,
+                normals,
+                encoding,
+                reset,
+                quality,
+                features_add,
+                features_remove,
+            ),
+        )
 
     def reset(self) -> int:
         """Back to the rest pose with zero velocity."""
@@ -275,12 +297,12 @@ class ClothHandle:
         self.client._require_features_delta((req,))
         self._note_controls(changes)
         if not wait:
-            self.client.send("control", P.encode_control(req), self.client._watch_not_found(self, None),
-                             server=self.server_id)
+            self.client.send(
+                "control", P.encode_control(req), self.client._watch_not_found(self, None), server=self.server_id
+            )
             return None
         try:
-            rep = P.control_reply_from_map(self.client.request("control", P.encode_control(req),
-                                                               server=self.server_id))
+            rep = P.control_reply_from_map(self.client.request("control", P.encode_control(req), server=self.server_id))
         except P.NotFound:
             self.client._cloth_not_found(self)
             raise
@@ -294,9 +316,12 @@ class ClothHandle:
         if self.closed:
             return None
         try:
-            rep = self.client.request("remove", P.encode_remove(P.RemoveRequest(self.id, self.token,
-                                                                                self.client._next_rid())),
-                                      timeout=timeout, server=self.server_id)
+            rep = self.client.request(
+                "remove",
+                P.encode_remove(P.RemoveRequest(self.id, self.token, self.client._next_rid())),
+                timeout=timeout,
+                server=self.server_id,
+            )
             last: int | None = P.tick_reply_from_map(rep)
         except (P.NotFound, Unavailable):
             last = None

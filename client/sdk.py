@@ -26,6 +26,7 @@ This module holds the session (:class:`DrapeClient`); :mod:`.handle` the ClothHa
 re-exported here). Needs numpy, msgpack and eclipse-zenoh only: nothing here imports drape.server
 or OpenCL.
 """
+
 from __future__ import annotations
 
 import itertools
@@ -186,8 +187,10 @@ class DrapeClient:
             with self._servers_cond:
                 self._servers_cond.wait_for(lambda: bool(self._servers), self.timeout)
                 if not self._servers:
-                    raise Unavailable(P.ERR_UNAVAILABLE, f"no Drape server seen in namespace {self.keys.namespace!r} "
-                                      f"within {self.timeout} s")
+                    raise Unavailable(
+                        P.ERR_UNAVAILABLE,
+                        f"no Drape server seen in namespace {self.keys.namespace!r} within {self.timeout} s",
+                    )
                 found = sorted(self._servers)
                 if len(found) > 1:
                     log.warning("several Drape servers %s: using %s (pass server_id to choose)", found, found[0])
@@ -285,12 +288,13 @@ class DrapeClient:
                     h = self._handles.get(entry.cloth)
                     if h is None:
                         # A cloth whose submit reply has not been handled yet: keep its states for it.
-                        if self._bundled_submits and (entry.cloth in self._orphans
-                                                      or len(self._orphans) < MAX_ORPHAN_CLOTHS):
+                        if self._bundled_submits and (
+                            entry.cloth in self._orphans or len(self._orphans) < MAX_ORPHAN_CLOTHS
+                        ):
                             try:
                                 q = self._orphans.setdefault(entry.cloth, [])
                                 q.append(bundle.state(i, now))
-                                del q[:-self.queue_size]
+                                del q[: -self.queue_size]
                             except DrapeError:
                                 pass
                         continue
@@ -305,8 +309,9 @@ class DrapeClient:
             h._deliver(st)
 
     # --- requests -----------------------------------------------------------------------------
-    def request(self, kind: str, payload: bytes | bytearray, timeout: float | None = None,
-                server: str | None = None) -> dict[str, Any]:
+    def request(
+        self, kind: str, payload: bytes | bytearray, timeout: float | None = None, server: str | None = None
+    ) -> dict[str, Any]:
         """Send a raw request payload to the ``kind`` queryable (submit, control, remove, info)
         of ``server`` (default: this client's server) and return the success reply's map;
         raises the DrapeError subclass of an error reply, or Unavailable when no server answers
@@ -338,9 +343,15 @@ class DrapeClient:
                 continue
             raise Unavailable(P.ERR_UNAVAILABLE, f"no reply from {key} within {timeout} s")
 
-    def send(self, kind: str, payload: bytes | bytearray, on_error: Callable[[DrapeError], None] | None = None,
-             timeout: float | None = None, on_ok: Callable[[dict[str, Any]], None] | None = None,
-             server: str | None = None) -> None:
+    def send(
+        self,
+        kind: str,
+        payload: bytes | bytearray,
+        on_error: Callable[[DrapeError], None] | None = None,
+        timeout: float | None = None,
+        on_ok: Callable[[dict[str, Any]], None] | None = None,
+        server: str | None = None,
+    ) -> None:
         """Send a request without waiting for its reply (what a game does with per-tick pin
         updates): the reply is read on a Zenoh thread; an error reply or no reply at all is
         counted in ``send_errors`` and handed to ``on_error`` (default: logged). ``on_ok``, if
@@ -377,8 +388,12 @@ class DrapeClient:
             if not answered:
                 self._send_failed(Unavailable(P.ERR_UNAVAILABLE, f"no reply from {key}"), on_error)
 
-        self.session.get(key, zenoh.handlers.Callback(on_reply, on_done), payload=bytes(payload),
-                         timeout=self.timeout if timeout is None else timeout)
+        self.session.get(
+            key,
+            zenoh.handlers.Callback(on_reply, on_done),
+            payload=bytes(payload),
+            timeout=self.timeout if timeout is None else timeout,
+        )
 
     def _send_failed(self, err: DrapeError, on_error: Callable[[DrapeError], None] | None) -> None:
         with self._lock:
@@ -389,8 +404,9 @@ class DrapeClient:
             log.warning("request failed: %s", err)
 
     # --- batch control (protocol 1.1) -------------------------------------------------------------
-    def batch(self, *, wait: bool = False, on_error: ErrorCallback | None = None,
-              timeout: float | None = None) -> ControlBatch:
+    def batch(
+        self, *, wait: bool = False, on_error: ErrorCallback | None = None, timeout: float | None = None
+    ) -> ControlBatch:
         """Collect controls of many of this client's cloths and send them as one batch control
         request when the ``with`` block ends (or on ``send()``): the per-tick call of a game
         loop with many cloths. ``wait=False``: the reply is not waited for; refused items are
@@ -420,8 +436,7 @@ class DrapeClient:
         b = self.batch(wait=wait, on_error=on_error)
         for j, h in enumerate(handles):
             idx = cast("Sequence[int] | np.ndarray", indices if shared else indices[j])
-            b.move_pins(h, idx, targets[j],
-                        colliders=None if colliders is None else colliders[j])
+            b.move_pins(h, idx, targets[j], colliders=None if colliders is None else colliders[j])
         return b.send()
 
     @property
@@ -443,14 +458,24 @@ class DrapeClient:
     def _require_features_delta(self, reqs: Iterable[P.ControlRequest]) -> None:
         """features_add / features_remove need a 1.2 server: an older one ignores unknown keys, so
         the change would be silently lost. Raises ProtocolError before anything is sent."""
-        if any(r.features_add is not None or r.features_remove is not None for r in reqs) \
-                and self.server_version < (1, 2):
-            raise P.ProtocolError(P.ERR_INVALID_VALUE, "features_add / features_remove need a protocol 1.2 server; "
-                                  f"this one speaks {self.server_version[0]}.{self.server_version[1]}: send the "
-                                  "whole set with features= instead")
+        if any(r.features_add is not None or r.features_remove is not None for r in reqs) and self.server_version < (
+            1,
+            2,
+        ):
+            raise P.ProtocolError(
+                P.ERR_INVALID_VALUE,
+                "features_add / features_remove need a protocol 1.2 server; "
+                f"this one speaks {self.server_version[0]}.{self.server_version[1]}: send the "
+                "whole set with features= instead",
+            )
 
-    def _send_controls(self, items: list[tuple[ClothHandle, P.ControlRequest]], wait: bool,
-                       on_error: ErrorCallback | None, timeout: float | None) -> list[int | DrapeError] | None:
+    def _send_controls(
+        self,
+        items: list[tuple[ClothHandle, P.ControlRequest]],
+        wait: bool,
+        on_error: ErrorCallback | None,
+        timeout: float | None,
+    ) -> list[int | DrapeError] | None:
         if not items:
             return [] if wait else None
         servers = {h.server_id for h, _ in items}
@@ -473,19 +498,23 @@ class DrapeClient:
             for h, req in items:
                 if wait:
                     try:
-                        out.append(P.tick_reply_from_map(self.request("control", P.encode_control(req), timeout,
-                                                                      server=server)))
+                        out.append(
+                            P.tick_reply_from_map(
+                                self.request("control", P.encode_control(req), timeout, server=server)
+                            )
+                        )
                     except DrapeError as e:
                         if isinstance(e, P.NotFound):
                             self._cloth_not_found(h)
                         out.append(e)
                 else:
-                    self.send("control", P.encode_control(req), self._watch_not_found(h, on_error), timeout,
-                              server=server)
+                    self.send(
+                        "control", P.encode_control(req), self._watch_not_found(h, on_error), timeout, server=server
+                    )
             return out if wait else None
         results: list[int | DrapeError] = []
         for start in range(0, len(items), limit):
-            chunk = items[start:start + limit]
+            chunk = items[start : start + limit]
             rid = self._next_rid()
             payload = P.encode_control_batch(P.ControlBatchRequest(self.client_id, [r for _, r in chunk], rid))
             if wait:
@@ -496,13 +525,23 @@ class DrapeClient:
                         self._cloth_not_found(h)
                 results.extend(outcomes)
             else:
-                self.send("control_batch", payload, on_error, timeout,
-                          on_ok=partial(self._batch_replied, chunk, rid=rid, on_error=on_error),
-                          server=server)
+                self.send(
+                    "control_batch",
+                    payload,
+                    on_error,
+                    timeout,
+                    on_ok=partial(self._batch_replied, chunk, rid=rid, on_error=on_error),
+                    server=server,
+                )
         return results if wait else None
 
-    def _batch_replied(self, chunk: list[tuple[ClothHandle, P.ControlRequest]], m: dict[str, Any], rid: int,
-                       on_error: ErrorCallback | None) -> None:
+    def _batch_replied(
+        self,
+        chunk: list[tuple[ClothHandle, P.ControlRequest]],
+        m: dict[str, Any],
+        rid: int,
+        on_error: ErrorCallback | None,
+    ) -> None:
         rep = P.control_batch_reply_from_map(m)
         if rep.failed:
             for (h, _), r in zip(chunk, _item_outcomes(chunk, rep, rid), strict=True):
@@ -540,11 +579,22 @@ class DrapeClient:
         ``req.state.bundle``: to this client's bundle, once for all its bundled cloths; a 1.0
         server ignores the option and the handle subscribes to the cloth's own key)."""
         server = self.server_id
-        return self._place(None, req, server, timeout, lambda rep: ClothHandle(
-            self, rep, rest_positions, triangles, queue_size or self.queue_size, server, req))
+        return self._place(
+            None,
+            req,
+            server,
+            timeout,
+            lambda rep: ClothHandle(self, rep, rest_positions, triangles, queue_size or self.queue_size, server, req),
+        )
 
-    def _place(self, h: ClothHandle | None, req: P.SubmitRequest, server: str, timeout: float | None = None,
-               make: Callable[[P.SubmitReply], ClothHandle] | None = None) -> ClothHandle:
+    def _place(
+        self,
+        h: ClothHandle | None,
+        req: P.SubmitRequest,
+        server: str,
+        timeout: float | None = None,
+        make: Callable[[P.SubmitReply], ClothHandle] | None = None,
+    ) -> ClothHandle:
         """Submit ``req`` to ``server``: a new handle (``make``), or, in a failover, the cloth of
         the existing handle ``h`` continued under the new reply's id."""
         bundled = bool(req.state is not None and req.state.bundle)
@@ -555,8 +605,7 @@ class DrapeClient:
         try:
             rep = P.submit_reply_from_map(self.request("submit", P.encode_submit(req), timeout, server=server))
             if bundled and rep.bundle_key is None:
-                log.info("server %s does not bundle states (protocol 1.0): cloth %s on its own key", server,
-                         rep.cloth)
+                log.info("server %s does not bundle states (protocol 1.0): cloth %s on its own key", server, rep.cloth)
             old_id = None
             if h is None:
                 assert make is not None
@@ -594,13 +643,20 @@ class DrapeClient:
     ) -> ClothHandle:
         """A regular grid cloth; vertex (row r, column c) is r * cols + c. ``options``: see
         ``cloth_options``."""
-        grid = P.GridSpec(int(cols), int(rows), float(width), float(height), orientation,
-                          tuple(float(v) for v in origin))  # type: ignore[arg-type]
+        grid = P.GridSpec(
+            int(cols),
+            int(rows),
+            float(width),
+            float(height),
+            orientation,
+            tuple(float(v) for v in origin),  # type: ignore[arg-type]
+        )
         verts, tris = P.grid_geometry(cols, rows, width, height, orientation, origin)
         return self._submit(grid=grid, rest=verts, tris=tris, **options)
 
-    def submit_mesh(self, vertices: np.ndarray | Sequence, triangles: np.ndarray | Sequence,
-                    **options: Any) -> ClothHandle:
+    def submit_mesh(
+        self, vertices: np.ndarray | Sequence, triangles: np.ndarray | Sequence, **options: Any
+    ) -> ClothHandle:
         """A triangle mesh cloth: vertices (n, 3) metres, triangles (m, 3) vertex indices."""
         v = np.ascontiguousarray(np.asarray(vertices, np.float32).reshape(-1, 3))
         t = np.asarray(triangles, np.int64).reshape(-1, 3)
@@ -655,8 +711,11 @@ class DrapeClient:
             substeps=substeps,
             chebyshev_rho=chebyshev_rho,
             colliders=tuple(_collider(c) for c in colliders) if colliders is not None else None,
-            state=(P.StateOptions(bool(normals), encoding, True if bundle else None)
-                   if (normals or encoding != "float32" or bundle) else None),
+            state=(
+                P.StateOptions(bool(normals), encoding, True if bundle else None)
+                if (normals or encoding != "float32" or bundle)
+                else None
+            ),
             quality=quality,
             rid=self._next_rid(),
         )
@@ -665,6 +724,20 @@ class DrapeClient:
 
 # Options every submit_* method takes, for documentation and for tools wrapping the SDK.
 cloth_options = (
-    "pinned", "links", "material", "features", "gravity", "wind", "iterations", "substeps",
-    "chebyshev_rho", "colliders", "normals", "encoding", "bundle", "quality", "timeout", "queue_size",
+    "pinned",
+    "links",
+    "material",
+    "features",
+    "gravity",
+    "wind",
+    "iterations",
+    "substeps",
+    "chebyshev_rho",
+    "colliders",
+    "normals",
+    "encoding",
+    "bundle",
+    "quality",
+    "timeout",
+    "queue_size",
 )

@@ -5,6 +5,7 @@ authentication, access control; ``deploy/zenoh-peer.json5`` and ``deploy/zenoh-c
 samples), then the mode, the listen and connect endpoints and multicast scouting set explicitly.
 Imports Zenoh; ``drape.client.protocol`` does not.
 """
+
 from __future__ import annotations
 
 import json

@@ -9,6 +9,7 @@ text|json`` and ``--log-level`` before the subcommand name, or ``DRAPE_LOG_FORMA
 ``DRAPE_LOG_LEVEL``; ``drape serve`` also takes them after its name and from its TOML file
 (``log_format``, ``log_level``), like every other setting of the server.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -26,8 +27,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "tradeoff": ("drape.server.tools.tradeoff", "measure speed against accuracy, write table, JSON and plot"),
     "loadtest": ("drape.server.tools.loadtest", "load-test a server with many client processes"),
     "devices": ("drape.server.tools.devices", "list OpenCL devices and the one Drape would pick"),
-    "chaos": ("drape.server.tools.chaos",
-              "fault and abuse suite: fuzz, floods, heavy cloths, kill and pause (docs/reliability.md)"),
+    "chaos": (
+        "drape.server.tools.chaos",
+        "fault and abuse suite: fuzz, floods, heavy cloths, kill and pause (docs/reliability.md)",
+    ),
     "acl": ("drape.server.tools.acl", "generate the Zenoh router's access control from a users file"),
 }
 #: Subcommands that open Zenoh sessions: their Zenoh log level is set before they do.
@@ -36,13 +39,23 @@ ZENOH_COMMANDS = ("demo", "serve", "top", "loadtest")
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = argparse.ArgumentParser(prog="drape",
-                                     description="Cloth of many game clients on one OpenCL device, over Zenoh.")
+    parser = argparse.ArgumentParser(
+        prog="drape", description="Cloth of many game clients on one OpenCL device, over Zenoh."
+    )
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
-    parser.add_argument("--log-format", choices=logs.LOG_FORMATS, default=None,
-                        help="log lines as text or JSON objects, one a line (default: $DRAPE_LOG_FORMAT or text)")
-    parser.add_argument("--log-level", type=str.lower, choices=("debug", "info", "warning", "error", "critical"),
-                        default=None, help="lowest level logged (default: $DRAPE_LOG_LEVEL or info)")
+    parser.add_argument(
+        "--log-format",
+        choices=logs.LOG_FORMATS,
+        default=None,
+        help="log lines as text or JSON objects, one a line (default: $DRAPE_LOG_FORMAT or text)",
+    )
+    parser.add_argument(
+        "--log-level",
+        type=str.lower,
+        choices=("debug", "info", "warning", "error", "critical"),
+        default=None,
+        help="lowest level logged (default: $DRAPE_LOG_LEVEL or info)",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (_, help_) in SUBCOMMANDS.items():
         sub.add_parser(name, help=help_, add_help=False)
@@ -65,8 +78,10 @@ def main(argv: list[str] | None = None) -> int:
         return int(module.run(args) or 0)
     except ModuleNotFoundError as e:
         if e.name and e.name.split(".")[0] in ("pyopencl", "pocl_binary_distribution"):
-            print(f"drape {pre.command} needs the 'server' extra ({e.name} is missing): pip install 'drape[server]'",
-                  file=sys.stderr)
+            print(
+                f"drape {pre.command} needs the 'server' extra ({e.name} is missing): pip install 'drape[server]'",
+                file=sys.stderr,
+            )
             return 2
         raise
 

@@ -1,6 +1,7 @@
 """Shared fixtures: fresh random inputs every run (the seed is printed so a failure can be replayed),
 one OpenCL device per test session (PoCL's CPU device on CI), random fabrics, and the service
 tests' helpers (a server configuration on its own port, connect, collect, wait_until)."""
+
 from __future__ import annotations
 
 import os
@@ -58,8 +59,15 @@ def random_mesh_fabric(rng: np.random.Generator, options: LinkOptions = LinkOpti
 def random_grid_fabric(rng: np.random.Generator, options: LinkOptions = LinkOptions(bending=True), n_pins: int = 2):
     cols, rows = int(rng.integers(3, 14)), int(rng.integers(3, 14))
     pins = rng.choice(cols * rows, size=n_pins, replace=False) if n_pins else []
-    return cook_grid(cols, rows, rng.uniform(0.5, 2.0), rng.uniform(0.5, 2.0), options, pins,
-                     orientation=str(rng.choice(["horizontal", "vertical"])))
+    return cook_grid(
+        cols,
+        rows,
+        rng.uniform(0.5, 2.0),
+        rng.uniform(0.5, 2.0),
+        options,
+        pins,
+        orientation=str(rng.choice(["horizontal", "vertical"])),
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -131,9 +139,28 @@ def wait_until(pred, timeout: float = TIMEOUT, step: float = 0.02) -> bool:
 def svc() -> SimpleNamespace:
     """The service test helpers: make_config, connect, collect, wait_until, free_port, endpoint,
     TIMEOUT, GRACE."""
-    return SimpleNamespace(make_config=make_config, connect=connect, collect=collect, wait_until=wait_until,
-                           free_port=free_port, endpoint=endpoint, TIMEOUT=TIMEOUT, GRACE=GRACE)
+    return SimpleNamespace(
+        make_config=make_config,
+        connect=connect,
+        collect=collect,
+        wait_until=wait_until,
+        free_port=free_port,
+        endpoint=endpoint,
+        TIMEOUT=TIMEOUT,
+        GRACE=GRACE,
+    )
 
 
-__all__ = ["random_mesh_fabric", "random_grid_fabric", "grid_links", "make_config", "connect", "collect",
-           "wait_until", "free_port", "endpoint", "TIMEOUT", "GRACE"]
+__all__ = [
+    "random_mesh_fabric",
+    "random_grid_fabric",
+    "grid_links",
+    "make_config",
+    "connect",
+    "collect",
+    "wait_until",
+    "free_port",
+    "endpoint",
+    "TIMEOUT",
+    "GRACE",
+]

@@ -26,6 +26,7 @@ the ``overloaded`` error code and documented decoding caps; 1.3 adds ``resume`` 
 It imports only numpy, msgpack and the standard library, so a game client or a tool can use it
 without Zenoh or OpenCL installed.
 """
+
 from __future__ import annotations
 
 from .bundle import *  # noqa: F401,F403

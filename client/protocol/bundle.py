@@ -1,5 +1,6 @@
 """State bundles "DRPB" (1.1, PROTOCOL.md section 9.1): the states of one client's bundled cloths
 at one tick in one payload."""
+
 from __future__ import annotations
 
 import struct
@@ -55,8 +56,9 @@ def bundle_size(entries: Iterable[tuple[str, int]]) -> int:
 
 
 def pack_bundle_header(out: bytearray | memoryview, tick: int, server_time_ns: int, count: int, flags: int = 0) -> None:
-    BUNDLE_HEADER.pack_into(out, 0, BUNDLE_MAGIC, PROTOCOL_MAJOR, PROTOCOL_MINOR, BUNDLE_HEADER_SIZE, count, flags,
-                            tick, server_time_ns)
+    BUNDLE_HEADER.pack_into(
+        out, 0, BUNDLE_MAGIC, PROTOCOL_MAJOR, PROTOCOL_MINOR, BUNDLE_HEADER_SIZE, count, flags, tick, server_time_ns
+    )
 
 
 def pack_bundle_entry(out: bytearray | memoryview, at: int, cloth: str, state_size: int) -> int:
@@ -65,13 +67,14 @@ def pack_bundle_entry(out: bytearray | memoryview, at: int, cloth: str, state_si
     h = align8(BUNDLE_ENTRY_SIZE + len(cid))
     BUNDLE_ENTRY.pack_into(out, at, h, len(cid), state_size)
     end = at + BUNDLE_ENTRY_SIZE + len(cid)
-    out[at + BUNDLE_ENTRY_SIZE:end] = cid
-    out[end:at + h] = bytes(at + h - end)
+    out[at + BUNDLE_ENTRY_SIZE : end] = cid
+    out[end : at + h] = bytes(at + h - end)
     return at + h
 
 
-def encode_bundle(tick: int, server_time_ns: int, states: Sequence[tuple[str, bytes | bytearray | memoryview]],
-                  flags: int = 0) -> bytearray:
+def encode_bundle(
+    tick: int, server_time_ns: int, states: Sequence[tuple[str, bytes | bytearray | memoryview]], flags: int = 0
+) -> bytearray:
     """The bundle payload of (cloth id, state payload) pairs, in order. Every state should carry
     the bundle's tick and server time (encode_state(tick, server_time_ns, ...))."""
     out = bytearray(bundle_size((c, len(st)) for c, st in states))
@@ -81,7 +84,7 @@ def encode_bundle(tick: int, server_time_ns: int, states: Sequence[tuple[str, by
         if not valid_id(cloth):
             raise ValueError(f"invalid cloth id {cloth!r}")
         off = pack_bundle_entry(out, at, cloth, len(st))
-        out[off:off + len(st)] = st
+        out[off : off + len(st)] = st
         at = off + align8(len(st))  # the padding is already zero
     return out
 
@@ -106,7 +109,7 @@ class Bundle:
 
     def payload(self, i: int) -> memoryview:
         e = self.entries[i]
-        return memoryview(self.data)[e.offset:e.offset + e.size]
+        return memoryview(self.data)[e.offset : e.offset + e.size]
 
     def state(self, i: int, receive_time_ns: int = 0) -> ClothState:
         """Entry ``i`` decoded with decode_state (float32 arrays are views of the bundle)."""
@@ -125,31 +128,37 @@ def parse_bundle(data: bytes | bytearray | memoryview) -> Bundle:
     buf = data if isinstance(data, (bytes, bytearray)) else memoryview(data).cast("B")
     size = len(buf)
     if size < BUNDLE_HEADER_SIZE:
-        raise ProtocolError(ERR_MALFORMED,
-                            f"bundle of {size} bytes is shorter than the {BUNDLE_HEADER_SIZE}-byte header")
+        raise ProtocolError(
+            ERR_MALFORMED, f"bundle of {size} bytes is shorter than the {BUNDLE_HEADER_SIZE}-byte header"
+        )
     magic, major, minor, hsize, count, flags, tick, t_ns = BUNDLE_HEADER.unpack_from(buf, 0)
     if magic != BUNDLE_MAGIC:
         raise ProtocolError(ERR_MALFORMED, f"bundle magic {bytes(magic)!r} is not {BUNDLE_MAGIC!r}")
     if major != PROTOCOL_MAJOR:
-        raise ProtocolError(ERR_UNSUPPORTED_VERSION, f"bundle version {major}.{minor} is not supported; this side "
-                            f"speaks {VERSION_STRING}")
+        raise ProtocolError(
+            ERR_UNSUPPORTED_VERSION,
+            f"bundle version {major}.{minor} is not supported; this side speaks {VERSION_STRING}",
+        )
     if hsize < BUNDLE_HEADER_SIZE:
         raise ProtocolError(ERR_MALFORMED, f"bundle header_size {hsize} is below {BUNDLE_HEADER_SIZE}")
     at = hsize
     entries: list[BundleEntry] = []
     for i in range(count):
         if at + BUNDLE_ENTRY_SIZE > size:
-            raise ProtocolError(ERR_MALFORMED,
-                                f"bundle entry {i} of {count} starts at byte {at}, past the end ({size})")
+            raise ProtocolError(
+                ERR_MALFORMED, f"bundle entry {i} of {count} starts at byte {at}, past the end ({size})"
+            )
         h, id_len, st_size = BUNDLE_ENTRY.unpack_from(buf, at)
         if h < BUNDLE_ENTRY_SIZE + id_len:
-            raise ProtocolError(ERR_MALFORMED,
-                                f"bundle entry {i}: entry header size {h} is below 8 + id length {id_len}")
+            raise ProtocolError(
+                ERR_MALFORMED, f"bundle entry {i}: entry header size {h} is below 8 + id length {id_len}"
+            )
         if at + h + st_size > size:
-            raise ProtocolError(ERR_MALFORMED, f"bundle entry {i}: state of {st_size} bytes at byte {at + h} runs past "
-                                f"the end ({size})")
+            raise ProtocolError(
+                ERR_MALFORMED, f"bundle entry {i}: state of {st_size} bytes at byte {at + h} runs past the end ({size})"
+            )
         try:
-            cloth = bytes(buf[at + BUNDLE_ENTRY_SIZE:at + BUNDLE_ENTRY_SIZE + id_len]).decode("ascii")
+            cloth = bytes(buf[at + BUNDLE_ENTRY_SIZE : at + BUNDLE_ENTRY_SIZE + id_len]).decode("ascii")
         except UnicodeDecodeError:
             cloth = ""
         if not valid_id(cloth):

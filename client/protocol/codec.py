@@ -1,5 +1,6 @@
 """Encoders and validating decoders of every msgpack message: submit, control, batch control,
 remove, info, replies, errors, stats (PROTOCOL.md sections 4-8, 10)."""
+
 from __future__ import annotations
 
 from collections.abc import Mapping
@@ -73,15 +74,24 @@ def submit_to_map(req: SubmitRequest) -> dict[str, Any]:
     m["client"] = req.client
     if req.grid is not None:
         g = req.grid
-        m["grid"] = {"cols": int(g.cols), "rows": int(g.rows), "width": _f(g.width), "height": _f(g.height),
-                     "orientation": g.orientation, "origin": _v3(g.origin)}
+        m["grid"] = {
+            "cols": int(g.cols),
+            "rows": int(g.rows),
+            "width": _f(g.width),
+            "height": _f(g.height),
+            "orientation": g.orientation,
+            "origin": _v3(g.origin),
+        }
     if req.mesh is not None:
         m["mesh"] = {"vertices": _blob(req.mesh.vertices, "f4"), "triangles": _blob(req.mesh.triangles, "u4")}
     if len(req.pinned):
         m["pinned"] = _blob(req.pinned, "u4")
     if req.links is not None:
-        m["links"] = {"structural": bool(req.links.structural), "shear": bool(req.links.shear),
-                      "bending": bool(req.links.bending)}
+        m["links"] = {
+            "structural": bool(req.links.structural),
+            "shear": bool(req.links.shear),
+            "bending": bool(req.links.bending),
+        }
     if req.material:
         m["material"] = material_to_map(req.material)
     if req.features:
@@ -137,7 +147,8 @@ def _read_resume(r: _Reader, n: int, limits: Limits) -> ResumeState | None:
     if vel is not None:
         _check_finite_array(r, "resume.velocities", vel, limits.max_acceleration)
     return ResumeState(
-        pos, vel,
+        pos,
+        vel,
         rr.int_("tick", 0, (1 << 64) - 1),
         rr.str_("from_server", pattern=ID_RE, what="1-64 characters of [A-Za-z0-9_.-]"),
         rr.str_("cloth", pattern=ID_RE, what="1-64 characters of [A-Za-z0-9_.-]"),
@@ -168,12 +179,16 @@ def submit_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS) -> Su
         rows = gr.int_("rows", 1, limits.max_vertices, True, over=ERR_TOO_LARGE)
         assert cols is not None and rows is not None
         if cols * rows > limits.max_vertices:
-            raise r.fail(ERR_TOO_LARGE, f"grid of {cols}x{rows} = {cols * rows} vertices exceeds the limit of "
-                         f"{limits.max_vertices} vertices per cloth")
+            raise r.fail(
+                ERR_TOO_LARGE,
+                f"grid of {cols}x{rows} = {cols * rows} vertices exceeds the limit of "
+                f"{limits.max_vertices} vertices per cloth",
+            )
         width = gr.num("width", 0.0, bound, lo_inclusive=False)
         height = gr.num("height", 0.0, bound, lo_inclusive=False)
         grid = GridSpec(
-            cols, rows,
+            cols,
+            rows,
             1.0 if width is None else width,
             1.0 if height is None else height,
             gr.str_("orientation", choices=ORIENTATIONS) or "horizontal",
@@ -192,8 +207,9 @@ def submit_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS) -> Su
         if tris.size:
             mx = int(tris.max())
             if mx >= n:
-                raise r.fail(ERR_INDEX_OUT_OF_RANGE,
-                             f"'mesh.triangles' refers to vertex {mx} but the mesh has {n} vertices")
+                raise r.fail(
+                    ERR_INDEX_OUT_OF_RANGE, f"'mesh.triangles' refers to vertex {mx} but the mesh has {n} vertices"
+                )
             if np.any((tris[:, 0] == tris[:, 1]) | (tris[:, 1] == tris[:, 2]) | (tris[:, 0] == tris[:, 2])):
                 raise r.fail(ERR_INVALID_VALUE, "'mesh.triangles' has a triangle with a repeated vertex")
         mesh = MeshSpec(verts, tris)
@@ -201,8 +217,9 @@ def submit_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS) -> Su
     if pinned is None:
         pinned = _empty_u32()
     if pinned.size and int(pinned.max()) >= n:
-        raise r.fail(ERR_INDEX_OUT_OF_RANGE,
-                     f"'pinned' refers to vertex {int(pinned.max())} but the cloth has {n} vertices")
+        raise r.fail(
+            ERR_INDEX_OUT_OF_RANGE, f"'pinned' refers to vertex {int(pinned.max())} but the cloth has {n} vertices"
+        )
     lr = r.sub("links")
     links = None
     if lr is not None:
@@ -281,8 +298,9 @@ def encode_control(req: ControlRequest) -> bytes:
     return pack(control_to_map(req))
 
 
-def decode_control(data: bytes | bytearray, limits: Limits = DEFAULT_LIMITS,
-                   n_vertices: int | None = None) -> ControlRequest:
+def decode_control(
+    data: bytes | bytearray, limits: Limits = DEFAULT_LIMITS, n_vertices: int | None = None
+) -> ControlRequest:
     """Validate a control message; with ``n_vertices`` pin indices are range-checked too."""
     return control_from_map(unpack_message(data, limits), limits, n_vertices)
 
@@ -293,8 +311,9 @@ def _owner_fields(r: _Reader) -> tuple[str, str]:
     return cloth, token  # type: ignore[return-value]
 
 
-def control_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS,
-                     n_vertices: int | None = None) -> ControlRequest:
+def control_from_map(
+    m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS, n_vertices: int | None = None
+) -> ControlRequest:
     r = _Reader(m, "", _peek_rid(dict(m)), limits)
     return _read_control(r, _rid(r), n_vertices)
 
@@ -314,8 +333,10 @@ def _read_control(r: _Reader, rid: int, n_vertices: int | None = None) -> Contro
         if len(idx) != len(tgt):
             raise r.fail(ERR_INVALID_VALUE, f"'{r.name('pins')}' has {len(idx)} indices but {len(tgt)} targets")
         if n_vertices is not None and idx.size and int(idx.max()) >= n_vertices:
-            raise r.fail(ERR_INDEX_OUT_OF_RANGE, f"'{pr.name('indices')}' refers to vertex {int(idx.max())} but the "
-                         f"cloth has {n_vertices} vertices")
+            raise r.fail(
+                ERR_INDEX_OUT_OF_RANGE,
+                f"'{pr.name('indices')}' refers to vertex {int(idx.max())} but the cloth has {n_vertices} vertices",
+            )
         _check_finite_array(r, pr.name("targets"), tgt, limits.max_coordinate)
         pins = PinUpdate(idx, tgt)
     acc = limits.max_acceleration
@@ -324,8 +345,10 @@ def _read_control(r: _Reader, rid: int, n_vertices: int | None = None) -> Contro
     remove = _read_features(r, "features_remove") if "features_remove" in m else None
     both = set(add or ()) & set(remove or ())
     if both:
-        raise r.fail(ERR_INVALID_VALUE, f"feature(s) {sorted(both)} in both '{r.name('features_add')}' and "
-                     f"'{r.name('features_remove')}'")
+        raise r.fail(
+            ERR_INVALID_VALUE,
+            f"feature(s) {sorted(both)} in both '{r.name('features_add')}' and '{r.name('features_remove')}'",
+        )
     return ControlRequest(
         cloth=cloth,
         token=token,
@@ -414,8 +437,9 @@ def control_batch_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS
     if not raw_items:
         raise r.fail(ERR_INVALID_VALUE, "'items' must hold at least one control")
     if len(raw_items) > limits.max_batch_items:
-        raise r.fail(ERR_TOO_LARGE, f"'items' has {len(raw_items)} controls, more than the limit of "
-                     f"{limits.max_batch_items}")
+        raise r.fail(
+            ERR_TOO_LARGE, f"'items' has {len(raw_items)} controls, more than the limit of {limits.max_batch_items}"
+        )
     items: list[ControlRequest | ProtocolError] = []
     for i, it in enumerate(raw_items):
         name = f"items[{i}]"
@@ -459,8 +483,7 @@ def control_batch_reply_from_map(m: Mapping[str, Any]) -> ControlBatchReply:
             raise r.fail(ERR_INVALID_TYPE, f"'results[{i}]' must be a map, got {_tname(x)}")
         xr = _Reader(x, f"results[{i}]", r.rid, DEFAULT_LIMITS)
         if xr.bool_("ok", True):
-            results.append(BatchItemResult(tick=xr.int_("tick", 0, (1 << 64) - 1, True),
-                                           features=_reply_features(xr)))
+            results.append(BatchItemResult(tick=xr.int_("tick", 0, (1 << 64) - 1, True), features=_reply_features(xr)))
         else:
             er = xr.sub("error", True)
             assert er is not None

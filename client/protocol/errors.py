@@ -1,4 +1,5 @@
 """Error codes (PROTOCOL.md section 8) and the exception class of each."""
+
 from __future__ import annotations
 
 ERR_MALFORMED = "malformed"  # not a msgpack map (truncated, garbage, trailing bytes)

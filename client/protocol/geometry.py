@@ -1,6 +1,7 @@
 """Geometry a client needs without the server package: grid rest pose and triangles, Wavefront
 OBJ parsing (PROTOCOL.md section 4). drape.server.sim.fabric uses these same functions (it keeps
 the float64 positions; the wire and the device get them rounded to float32)."""
+
 from __future__ import annotations
 
 from collections.abc import Iterable

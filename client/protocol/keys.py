@@ -1,4 +1,5 @@
 """Protocol versions, ids and every key expression of a Drape namespace (PROTOCOL.md sections 2, 3, 15)."""
+
 from __future__ import annotations
 
 import re

@@ -1,5 +1,6 @@
 """Every request and reply as a dataclass (PROTOCOL.md sections 4-8), and the feature-set rule
 of a control (:func:`resolve_features`)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field

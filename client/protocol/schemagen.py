@@ -11,6 +11,7 @@ little-endian elements), marked ``"x-msgpack": "bin"``. What a schema cannot say
 indices below the vertex count, equal pin and target counts) is the decoder's job: PROTOCOL.md
 states it, and :mod:`.codec` enforces it.
 """
+
 from __future__ import annotations
 
 import json
@@ -71,9 +72,15 @@ def _bin(elem: str, max_items: int | None = None) -> dict[str, Any]:
     arr: dict[str, Any] = {"type": "array", "items": item}
     if max_items is not None:
         arr["maxItems"] = max_items
-    return {"type": "object", "x-msgpack": "bin", "x-element": elem,
-            "description": f"msgpack bin of little-endian {elem} values, here in JSON form",
-            "properties": {elem: arr}, "required": [elem], "additionalProperties": False}
+    return {
+        "type": "object",
+        "x-msgpack": "bin",
+        "x-element": elem,
+        "description": f"msgpack bin of little-endian {elem} values, here in JSON form",
+        "properties": {elem: arr},
+        "required": [elem],
+        "additionalProperties": False,
+    }
 
 
 def _obj(props: dict[str, Any], required: tuple[str, ...] = (), closed: bool = False, **extra: Any) -> dict[str, Any]:
@@ -101,8 +108,14 @@ def _defs() -> dict[str, Any]:
     }
     assert tuple(colliders) == COLLIDER_TYPES
     return {
-        "version": {"type": "array", "description": "[major, minor]", "minItems": 2, "maxItems": 2,
-                    "prefixItems": [{"const": PROTOCOL_MAJOR}, _int(0, 255)], "items": _int(0, 255)},
+        "version": {
+            "type": "array",
+            "description": "[major, minor]",
+            "minItems": 2,
+            "maxItems": 2,
+            "prefixItems": [{"const": PROTOCOL_MAJOR}, _int(0, 255)],
+            "items": _int(0, 255),
+        },
         "rid": _int(0, U64_MAX),
         "id": {"type": "string", "pattern": ID_RE.pattern},
         "token": {"type": "string", "pattern": TOKEN_RE.pattern},
@@ -110,14 +123,29 @@ def _defs() -> dict[str, Any]:
         "material": _obj(material),
         "collider": {"oneOf": [_obj({"type": {"const": k}, **v}, ("type", *v)) for k, v in colliders.items()]},
         "colliders": {"type": "array", "items": {"$ref": "#/$defs/collider"}, "maxItems": L.max_colliders},
-        "pins": _obj({"indices": _bin("u32", L.max_pin_updates), "targets": _bin("f32", 3 * L.max_pin_updates)},
-                     ("indices", "targets")),
-        "state": _obj({"normals": _nullable({"type": "boolean"}), "encoding": _nullable({"enum": list(ENCODINGS)}),
-                       "bundle": _nullable({"type": "boolean"})}),
+        "pins": _obj(
+            {"indices": _bin("u32", L.max_pin_updates), "targets": _bin("f32", 3 * L.max_pin_updates)},
+            ("indices", "targets"),
+        ),
+        "state": _obj(
+            {
+                "normals": _nullable({"type": "boolean"}),
+                "encoding": _nullable({"enum": list(ENCODINGS)}),
+                "bundle": _nullable({"type": "boolean"}),
+            }
+        ),
         "quality": {"enum": list(QUALITY_PRESETS)},
         "tick": _int(0, U64_MAX),
-        "error": _obj({"code": {"type": "string", "description": f"known codes: {', '.join(ERROR_CODES)}; "
-                                "treat unknown ones as errors"}, "message": {"type": "string"}}, ("code",)),
+        "error": _obj(
+            {
+                "code": {
+                    "type": "string",
+                    "description": f"known codes: {', '.join(ERROR_CODES)}; treat unknown ones as errors",
+                },
+                "message": {"type": "string"},
+            },
+            ("code",),
+        ),
     }
 
 
@@ -161,68 +189,174 @@ def schemas() -> dict[str, dict[str, Any]]:
     """Every message's JSON Schema, by message name (the ``message`` of the test vectors)."""
     bound = L.max_coordinate
     link = {k: _nullable({"type": "boolean", "default": v}) for k, v in vars(LinkSpec()).items()}
-    grid = _obj({"cols": _int(1, L.max_vertices), "rows": _int(1, L.max_vertices),
-                 "width": _nullable(_num(0.0, bound, False)), "height": _nullable(_num(0.0, bound, False)),
-                 "orientation": _nullable({"enum": list(ORIENTATIONS)}), "origin": _nullable(_vec3(bound))},
-                ("cols", "rows"))
-    mesh = _obj({"vertices": _bin("f32", 3 * L.max_vertices), "triangles": _bin("u32", 3 * L.max_triangles)},
-                ("vertices", "triangles"))
-    resume = _obj({"positions": _bin("f32", 3 * L.max_vertices),
-                   "velocities": _nullable(_bin("f32", 3 * L.max_vertices)),
-                   "tick": _nullable(_int(0, U64_MAX)), "from_server": _nullable({"$ref": "#/$defs/id"}),
-                   "cloth": _nullable({"$ref": "#/$defs/id"})}, ("positions",),
-                  description="1.3: continue the cloth from this state (positions within max_coordinate, "
-                              "velocities within max_acceleration m/s, both of the cloth's vertex count, finite)")
+    grid = _obj(
+        {
+            "cols": _int(1, L.max_vertices),
+            "rows": _int(1, L.max_vertices),
+            "width": _nullable(_num(0.0, bound, False)),
+            "height": _nullable(_num(0.0, bound, False)),
+            "orientation": _nullable({"enum": list(ORIENTATIONS)}),
+            "origin": _nullable(_vec3(bound)),
+        },
+        ("cols", "rows"),
+    )
+    mesh = _obj(
+        {"vertices": _bin("f32", 3 * L.max_vertices), "triangles": _bin("u32", 3 * L.max_triangles)},
+        ("vertices", "triangles"),
+    )
+    resume = _obj(
+        {
+            "positions": _bin("f32", 3 * L.max_vertices),
+            "velocities": _nullable(_bin("f32", 3 * L.max_vertices)),
+            "tick": _nullable(_int(0, U64_MAX)),
+            "from_server": _nullable({"$ref": "#/$defs/id"}),
+            "cloth": _nullable({"$ref": "#/$defs/id"}),
+        },
+        ("positions",),
+        description="1.3: continue the cloth from this state (positions within max_coordinate, "
+        "velocities within max_acceleration m/s, both of the cloth's vertex count, finite)",
+    )
     out: dict[str, dict[str, Any]] = {
-        "submit": _obj({**_head(), "client": {"$ref": "#/$defs/id"}, "grid": grid, "mesh": mesh,
-                        "pinned": _nullable(_bin("u32", L.max_vertices)), "links": _nullable(_obj(link)),
-                        **_solver_fields(), "resume": _nullable(resume)}, ("v", "client"),
-                       oneOf=[{"required": ["grid"]}, {"required": ["mesh"]}]),
+        "submit": _obj(
+            {
+                **_head(),
+                "client": {"$ref": "#/$defs/id"},
+                "grid": grid,
+                "mesh": mesh,
+                "pinned": _nullable(_bin("u32", L.max_vertices)),
+                "links": _nullable(_obj(link)),
+                **_solver_fields(),
+                "resume": _nullable(resume),
+            },
+            ("v", "client"),
+            oneOf=[{"required": ["grid"]}, {"required": ["mesh"]}],
+        ),
         "control": _obj({**_head(), **_control_item()}, ("v", "cloth", "token")),
-        "control_batch": _obj({**_head(), "client": {"$ref": "#/$defs/id"},
-                               "items": {"type": "array", "minItems": 1, "maxItems": L.max_batch_items,
-                                         "items": _obj(_control_item(), ("cloth", "token"))}},
-                              ("v", "client", "items")),
-        "remove": _obj({**_head(), "cloth": {"$ref": "#/$defs/id"}, "token": {"$ref": "#/$defs/token"}},
-                       ("v", "cloth", "token")),
+        "control_batch": _obj(
+            {
+                **_head(),
+                "client": {"$ref": "#/$defs/id"},
+                "items": {
+                    "type": "array",
+                    "minItems": 1,
+                    "maxItems": L.max_batch_items,
+                    "items": _obj(_control_item(), ("cloth", "token")),
+                },
+            },
+            ("v", "client", "items"),
+        ),
+        "remove": _obj(
+            {**_head(), "cloth": {"$ref": "#/$defs/id"}, "token": {"$ref": "#/$defs/token"}}, ("v", "cloth", "token")
+        ),
         "info": _obj(_head(), ("v",)),
-        "reply_submit": _reply({"cloth": {"$ref": "#/$defs/id"}, "token": {"$ref": "#/$defs/token"},
-                                "key": {"type": "string"}, "vertices": _int(1, (1 << 32) - 1),
-                                "tick": {"$ref": "#/$defs/tick"}, "bundle_key": {"type": "string"}},
-                               ("cloth", "token", "key", "vertices", "tick")),
-        "reply_control": _reply({"tick": {"$ref": "#/$defs/tick"},
-                                 "features": {"type": "array", "items": {"type": "string"}}}, ("tick",)),
+        "reply_submit": _reply(
+            {
+                "cloth": {"$ref": "#/$defs/id"},
+                "token": {"$ref": "#/$defs/token"},
+                "key": {"type": "string"},
+                "vertices": _int(1, (1 << 32) - 1),
+                "tick": {"$ref": "#/$defs/tick"},
+                "bundle_key": {"type": "string"},
+            },
+            ("cloth", "token", "key", "vertices", "tick"),
+        ),
+        "reply_control": _reply(
+            {"tick": {"$ref": "#/$defs/tick"}, "features": {"type": "array", "items": {"type": "string"}}}, ("tick",)
+        ),
         "reply_remove": _reply({"tick": {"$ref": "#/$defs/tick"}}, ("tick",)),
-        "reply_control_batch": _reply({
-            "tick": {"$ref": "#/$defs/tick"}, "failed": _int(0, L.max_batch_items),
-            "results": {"type": "array", "items": {"oneOf": [
-                _obj({"ok": {"const": True}, "tick": {"$ref": "#/$defs/tick"},
-                      "features": {"type": "array", "items": {"type": "string"}}}, ("ok", "tick")),
-                _obj({"ok": {"const": False}, "error": {"$ref": "#/$defs/error"}}, ("ok", "error"))]}}},
-            ("tick", "failed", "results")),
-        "reply_info": _reply({
-            "server": {"$ref": "#/$defs/id"}, "version": {"type": "string", "pattern": r"^[0-9]+\.[0-9]+$"},
-            "solver": {"type": "string"}, "device": {"type": "string"}, "tick_rate": {"type": "number"},
-            "tick": {"$ref": "#/$defs/tick"}, "cloths": {"type": "integer"}, "clients": {"type": "integer"},
-            "vertices": {"type": "integer"},
-            "limits": _obj({k: {"type": "integer", "minimum": 0} for k in (
-                "max_cloths", "max_cloths_per_client", "max_vertices_per_cloth", "max_total_vertices",
-                "max_message_bytes", "max_pin_updates", "max_batch_items", "max_colliders", "max_iterations",
-                "max_substeps")}),
-            "encodings": {"type": "array", "items": {"type": "string"}},
-            "features": {"type": "array", "items": {"type": "string"}},
-            "grace_period_s": {"type": "number"}, "stats_period_s": {"type": "number"}},
-            ("server", "version", "limits")),
+        "reply_control_batch": _reply(
+            {
+                "tick": {"$ref": "#/$defs/tick"},
+                "failed": _int(0, L.max_batch_items),
+                "results": {
+                    "type": "array",
+                    "items": {
+                        "oneOf": [
+                            _obj(
+                                {
+                                    "ok": {"const": True},
+                                    "tick": {"$ref": "#/$defs/tick"},
+                                    "features": {"type": "array", "items": {"type": "string"}},
+                                },
+                                ("ok", "tick"),
+                            ),
+                            _obj({"ok": {"const": False}, "error": {"$ref": "#/$defs/error"}}, ("ok", "error")),
+                        ]
+                    },
+                },
+            },
+            ("tick", "failed", "results"),
+        ),
+        "reply_info": _reply(
+            {
+                "server": {"$ref": "#/$defs/id"},
+                "version": {"type": "string", "pattern": r"^[0-9]+\.[0-9]+$"},
+                "solver": {"type": "string"},
+                "device": {"type": "string"},
+                "tick_rate": {"type": "number"},
+                "tick": {"$ref": "#/$defs/tick"},
+                "cloths": {"type": "integer"},
+                "clients": {"type": "integer"},
+                "vertices": {"type": "integer"},
+                "limits": _obj(
+                    {
+                        k: {"type": "integer", "minimum": 0}
+                        for k in (
+                            "max_cloths",
+                            "max_cloths_per_client",
+                            "max_vertices_per_cloth",
+                            "max_total_vertices",
+                            "max_message_bytes",
+                            "max_pin_updates",
+                            "max_batch_items",
+                            "max_colliders",
+                            "max_iterations",
+                            "max_substeps",
+                        )
+                    }
+                ),
+                "encodings": {"type": "array", "items": {"type": "string"}},
+                "features": {"type": "array", "items": {"type": "string"}},
+                "grace_period_s": {"type": "number"},
+                "stats_period_s": {"type": "number"},
+            },
+            ("server", "version", "limits"),
+        ),
         "error": _obj({**_head(), "ok": {"const": False}, "error": {"$ref": "#/$defs/error"}}, ("v", "ok", "error")),
-        "stats": _obj({**_head(), **{k: {"type": "integer", "minimum": 0} for k in (
-            "tick", "time_ns", "cloths", "clients", "alive_clients", "vertices", "ticks", "missed_ticks",
-            "skipped_frames", "nan_resets", "reclaimed", "published", "unwatched", "publish_errors", "bundles",
-            "batch_items")},
-            "server": {"$ref": "#/$defs/id"}, "uptime_s": {"type": "number"}, "tick_rate": {"type": "number"},
-            "requests": {"type": "object", "additionalProperties": {"type": "integer"}},
-            "errors": {"type": "object", "additionalProperties": {"type": "integer"}},
-            "phases": {"type": "object", "additionalProperties": {"type": "object"}},
-            "quality": {"type": "object"}}, ("v", "server", "tick")),
+        "stats": _obj(
+            {
+                **_head(),
+                **{
+                    k: {"type": "integer", "minimum": 0}
+                    for k in (
+                        "tick",
+                        "time_ns",
+                        "cloths",
+                        "clients",
+                        "alive_clients",
+                        "vertices",
+                        "ticks",
+                        "missed_ticks",
+                        "skipped_frames",
+                        "nan_resets",
+                        "reclaimed",
+                        "published",
+                        "unwatched",
+                        "publish_errors",
+                        "bundles",
+                        "batch_items",
+                    )
+                },
+                "server": {"$ref": "#/$defs/id"},
+                "uptime_s": {"type": "number"},
+                "tick_rate": {"type": "number"},
+                "requests": {"type": "object", "additionalProperties": {"type": "integer"}},
+                "errors": {"type": "object", "additionalProperties": {"type": "integer"}},
+                "phases": {"type": "object", "additionalProperties": {"type": "object"}},
+                "quality": {"type": "object"},
+            },
+            ("v", "server", "tick"),
+        ),
     }
     defs = _defs()
     for name, s in out.items():
@@ -236,8 +370,15 @@ def schemas() -> dict[str, dict[str, Any]]:
 # ---------------------------------------------------------------------------------------------
 # C header
 
-_C_TYPES = {"B": "uint8_t", "H": "uint16_t", "I": "uint32_t", "Q": "uint64_t", "f": "float", "s": "char",
-            "x": "uint8_t"}
+_C_TYPES = {
+    "B": "uint8_t",
+    "H": "uint16_t",
+    "I": "uint32_t",
+    "Q": "uint64_t",
+    "f": "float",
+    "s": "char",
+    "x": "uint8_t",
+}
 
 
 def _c_struct(name: str, fields: tuple[tuple[str, str, str], ...]) -> list[str]:
@@ -258,14 +399,20 @@ def c_header() -> str:
     from .state import STATE_HEADER
 
     defines = [
-        ("DRAPE_PROTOCOL_MAJOR", PROTOCOL_MAJOR), ("DRAPE_PROTOCOL_MINOR", PROTOCOL_MINOR),
-        ("DRAPE_STATE_MAGIC", f'"{STATE_MAGIC.decode()}"'), ("DRAPE_BUNDLE_MAGIC", f'"{BUNDLE_MAGIC.decode()}"'),
-        ("DRAPE_STATE_HEADER_SIZE", STATE_HEADER.size), ("DRAPE_BUNDLE_HEADER_SIZE", BUNDLE_HEADER.size),
-        ("DRAPE_BUNDLE_ENTRY_SIZE", BUNDLE_ENTRY.size), ("DRAPE_BUNDLE_ALIGN", BUNDLE_ALIGN),
+        ("DRAPE_PROTOCOL_MAJOR", PROTOCOL_MAJOR),
+        ("DRAPE_PROTOCOL_MINOR", PROTOCOL_MINOR),
+        ("DRAPE_STATE_MAGIC", f'"{STATE_MAGIC.decode()}"'),
+        ("DRAPE_BUNDLE_MAGIC", f'"{BUNDLE_MAGIC.decode()}"'),
+        ("DRAPE_STATE_HEADER_SIZE", STATE_HEADER.size),
+        ("DRAPE_BUNDLE_HEADER_SIZE", BUNDLE_HEADER.size),
+        ("DRAPE_BUNDLE_ENTRY_SIZE", BUNDLE_ENTRY.size),
+        ("DRAPE_BUNDLE_ALIGN", BUNDLE_ALIGN),
         *((f"DRAPE_ENCODING_{k.upper()}", v) for k, v in ENCODING_IDS.items()),
-        ("DRAPE_FLAG_NORMALS", FLAG_NORMALS), ("DRAPE_FLAG_RESET", FLAG_RESET),
-        ("DRAPE_QUANT16_MAX", QUANT_MAX), ("DRAPE_SNORM16_MAX", SNORM_MAX), ("DRAPE_FLOAT16_MAX",
-                                                                             f"{FLOAT16_MAX:.1f}f"),
+        ("DRAPE_FLAG_NORMALS", FLAG_NORMALS),
+        ("DRAPE_FLAG_RESET", FLAG_RESET),
+        ("DRAPE_QUANT16_MAX", QUANT_MAX),
+        ("DRAPE_SNORM16_MAX", SNORM_MAX),
+        ("DRAPE_FLOAT16_MAX", f"{FLOAT16_MAX:.1f}f"),
     ]
     out = [
         f"/* drape_wire.h: the binary layouts of the Drape wire protocol {VERSION_STRING} (PROTOCOL.md 9, 9.1).",
@@ -292,9 +439,9 @@ def c_header() -> str:
         "#pragma pack(pop)",
         "",
         "#if defined(__STDC_VERSION__) && __STDC_VERSION__ >= 201112L",
-        "_Static_assert(sizeof(drape_state_header) == DRAPE_STATE_HEADER_SIZE, \"state header size\");",
-        "_Static_assert(sizeof(drape_bundle_header) == DRAPE_BUNDLE_HEADER_SIZE, \"bundle header size\");",
-        "_Static_assert(sizeof(drape_bundle_entry) == DRAPE_BUNDLE_ENTRY_SIZE, \"bundle entry size\");",
+        '_Static_assert(sizeof(drape_state_header) == DRAPE_STATE_HEADER_SIZE, "state header size");',
+        '_Static_assert(sizeof(drape_bundle_header) == DRAPE_BUNDLE_HEADER_SIZE, "bundle header size");',
+        '_Static_assert(sizeof(drape_bundle_entry) == DRAPE_BUNDLE_ENTRY_SIZE, "bundle entry size");',
         "#endif",
         "",
         "#endif /* DRAPE_WIRE_H */",

@@ -1,5 +1,6 @@
 """The binary cloth state "DRPS" (PROTOCOL.md section 9): header layout, encodings and the
 float16/quant16/snorm16 arithmetic (the server's whole-frame encoder uses the same functions)."""
+
 from __future__ import annotations
 
 import struct
@@ -87,11 +88,37 @@ def state_size(n_vertices: int, encoding: str | int = "float32", normals: bool =
     return STATE_HEADER_SIZE + n_vertices * 3 * e * (2 if normals else 1)
 
 
-def pack_state_header(out: bytearray | memoryview, at: int, encoding: int, flags: int, n: int, tick: int,
-                      server_time_ns: int, lo: Sequence[float], hi: Sequence[float]) -> None:
+def pack_state_header(
+    out: bytearray | memoryview,
+    at: int,
+    encoding: int,
+    flags: int,
+    n: int,
+    tick: int,
+    server_time_ns: int,
+    lo: Sequence[float],
+    hi: Sequence[float],
+) -> None:
     """Write a state header (this side's version, header_size 64) at ``at``."""
-    STATE_HEADER.pack_into(out, at, STATE_MAGIC, PROTOCOL_MAJOR, PROTOCOL_MINOR, STATE_HEADER_SIZE, encoding, flags,
-                           n, tick, server_time_ns, lo[0], lo[1], lo[2], hi[0], hi[1], hi[2])
+    STATE_HEADER.pack_into(
+        out,
+        at,
+        STATE_MAGIC,
+        PROTOCOL_MAJOR,
+        PROTOCOL_MINOR,
+        STATE_HEADER_SIZE,
+        encoding,
+        flags,
+        n,
+        tick,
+        server_time_ns,
+        lo[0],
+        lo[1],
+        lo[2],
+        hi[0],
+        hi[1],
+        hi[2],
+    )
 
 
 def float16_values(x: np.ndarray) -> np.ndarray:
@@ -194,15 +221,17 @@ def decode_state(data: bytes | bytearray | memoryview, cloth: str = "", receive_
     (a later minor version) and trailing bytes are ignored."""
     buf = memoryview(data).cast("B") if not isinstance(data, (bytes, bytearray)) else data
     if len(buf) < STATE_HEADER_SIZE:
-        raise ProtocolError(ERR_MALFORMED,
-                            f"state payload of {len(buf)} bytes is shorter than the {STATE_HEADER_SIZE}-byte header")
-    (magic, major, minor, hsize, enc, flags, n, tick, t_ns,
-     x0, y0, z0, x1, y1, z1) = STATE_HEADER.unpack_from(buf, 0)
+        raise ProtocolError(
+            ERR_MALFORMED, f"state payload of {len(buf)} bytes is shorter than the {STATE_HEADER_SIZE}-byte header"
+        )
+    (magic, major, minor, hsize, enc, flags, n, tick, t_ns, x0, y0, z0, x1, y1, z1) = STATE_HEADER.unpack_from(buf, 0)
     if magic != STATE_MAGIC:
         raise ProtocolError(ERR_MALFORMED, f"state payload magic {bytes(magic)!r} is not {STATE_MAGIC!r}")
     if major != PROTOCOL_MAJOR:
-        raise ProtocolError(ERR_UNSUPPORTED_VERSION, f"state version {major}.{minor} is not supported; this side "
-                            f"speaks {VERSION_STRING}")
+        raise ProtocolError(
+            ERR_UNSUPPORTED_VERSION,
+            f"state version {major}.{minor} is not supported; this side speaks {VERSION_STRING}",
+        )
     if hsize < STATE_HEADER_SIZE:
         raise ProtocolError(ERR_MALFORMED, f"state header_size {hsize} is below {STATE_HEADER_SIZE}")
     if enc not in ENCODING_NAMES:
@@ -212,8 +241,11 @@ def decode_state(data: bytes | bytearray | memoryview, cloth: str = "", receive_
     has_n = bool(flags & FLAG_NORMALS)
     need = hsize + block * (2 if has_n else 1)
     if len(buf) < need:
-        raise ProtocolError(ERR_MALFORMED, f"state payload of {len(buf)} bytes is shorter than the {need} bytes its "
-                            f"header announces ({n} vertices, {ENCODING_NAMES[enc]}{', normals' if has_n else ''})")
+        raise ProtocolError(
+            ERR_MALFORMED,
+            f"state payload of {len(buf)} bytes is shorter than the {need} bytes its "
+            f"header announces ({n} vertices, {ENCODING_NAMES[enc]}{', normals' if has_n else ''})",
+        )
     lo = np.array((x0, y0, z0), np.float32)
     hi = np.array((x1, y1, z1), np.float32)
     nrm = None

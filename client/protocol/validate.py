@@ -1,5 +1,6 @@
 """msgpack framing with hostile-input caps, and the typed field readers every decoder validates
 with: anything malformed becomes a ProtocolError naming the field (PROTOCOL.md sections 3, 8)."""
+
 from __future__ import annotations
 
 import math
@@ -54,25 +55,32 @@ def unpack_message(data: bytes | bytearray, limits: Limits = DEFAULT_LIMITS) -> 
     if not isinstance(data, (bytes, bytearray)):
         raise ProtocolError(ERR_MALFORMED, f"payload must be bytes, got {type(data).__name__}")
     if len(data) > limits.max_message_bytes:
-        raise ProtocolError(ERR_TOO_LARGE,
-                            f"message of {len(data)} bytes exceeds the limit of {limits.max_message_bytes}")
+        raise ProtocolError(
+            ERR_TOO_LARGE, f"message of {len(data)} bytes exceeds the limit of {limits.max_message_bytes}"
+        )
     if not data:
         raise ProtocolError(ERR_MALFORMED, "empty payload: expected a msgpack map")
     try:
         obj = msgpack.unpackb(bytes(data), **_unpack_caps(limits))
     except ValueError as e:  # truncated, trailing bytes, bad utf-8, a cap exceeded, nesting beyond msgpack's own stack
-        raise ProtocolError(ERR_MALFORMED, f"payload is not valid msgpack within the protocol's caps "
-                            f"({type(e).__name__}: {str(e)[:120]})") from None
+        raise ProtocolError(
+            ERR_MALFORMED,
+            f"payload is not valid msgpack within the protocol's caps ({type(e).__name__}: {str(e)[:120]})",
+        ) from None
     except Exception as e:  # anything else msgpack raises on hostile bytes (ExtraData, FormatError, ...)
-        raise ProtocolError(ERR_MALFORMED,
-                            f"payload is not valid msgpack ({type(e).__name__}: {str(e)[:120]})") from None
+        raise ProtocolError(
+            ERR_MALFORMED, f"payload is not valid msgpack ({type(e).__name__}: {str(e)[:120]})"
+        ) from None
     _check_shape(obj)
     if not isinstance(obj, dict):
         raise ProtocolError(ERR_MALFORMED, f"payload must be a msgpack map, got {type(obj).__name__}")
     rid = _peek_rid(obj)
     if "v" not in obj:
-        raise ProtocolError(ERR_MISSING_FIELD, f"field 'v' (protocol version [major, minor]) is required; "
-                            f"this side speaks {VERSION_STRING}", rid)
+        raise ProtocolError(
+            ERR_MISSING_FIELD,
+            f"field 'v' (protocol version [major, minor]) is required; this side speaks {VERSION_STRING}",
+            rid,
+        )
     v = obj["v"]
     if not (isinstance(v, list) and len(v) == 2 and all(_is_int(x) and 0 <= x <= 255 for x in v)):
         raise ProtocolError(ERR_INVALID_TYPE, f"'v' must be [major, minor] (two integers 0..255), got {v!r:.60}", rid)
@@ -195,8 +203,14 @@ class _Reader:
             raise self.fail(ERR_INVALID_TYPE, f"'{self.name(key)}' must be a boolean, got {_tname(v)}")
         return v
 
-    def str_(self, key: str, required: bool = False, choices: Sequence[str] | None = None,
-             pattern: re.Pattern[str] | None = None, what: str = "") -> str | None:
+    def str_(
+        self,
+        key: str,
+        required: bool = False,
+        choices: Sequence[str] | None = None,
+        pattern: re.Pattern[str] | None = None,
+        what: str = "",
+    ) -> str | None:
         v = self.raw(key, required)
         if v is None:
             return None
@@ -208,8 +222,14 @@ class _Reader:
             raise self.fail(ERR_INVALID_VALUE, f"'{self.name(key)}' must be {what or pattern.pattern}, got {v[:70]!r}")
         return v
 
-    def num(self, key: str, lo: float | None = None, hi: float | None = None, required: bool = False,
-            lo_inclusive: bool = True) -> float | None:
+    def num(
+        self,
+        key: str,
+        lo: float | None = None,
+        hi: float | None = None,
+        required: bool = False,
+        lo_inclusive: bool = True,
+    ) -> float | None:
         v = self.raw(key, required)
         if v is None:
             return None
@@ -227,13 +247,17 @@ class _Reader:
         if v is None:
             return None
         if not isinstance(v, (bytes, bytearray)):
-            raise self.fail(ERR_INVALID_TYPE, f"'{self.name(key)}' must be binary (msgpack bin) of "
-                            f"little-endian {dtype}, got {_tname(v)}")
+            raise self.fail(
+                ERR_INVALID_TYPE,
+                f"'{self.name(key)}' must be binary (msgpack bin) of little-endian {dtype}, got {_tname(v)}",
+            )
         dt = np.dtype(dtype).newbyteorder("<")
         item = dt.itemsize * width
         if len(v) % item:
-            raise self.fail(ERR_INVALID_VALUE, f"'{self.name(key)}' has {len(v)} bytes, not a multiple of {item} "
-                            f"({width} x {dtype})")
+            raise self.fail(
+                ERR_INVALID_VALUE,
+                f"'{self.name(key)}' has {len(v)} bytes, not a multiple of {item} ({width} x {dtype})",
+            )
         count = len(v) // item
         if count > max_count:
             raise self.fail(ERR_TOO_LARGE, f"'{self.name(key)}' has {count} items, more than the limit of {max_count}")
@@ -253,8 +277,9 @@ def _tname(v: object) -> str:
     return type(v).__name__
 
 
-def _check_num(r: _Reader, name: str, v: object, lo: float | None, hi: float | None,
-               lo_inclusive: bool = True) -> float:
+def _check_num(
+    r: _Reader, name: str, v: object, lo: float | None, hi: float | None, lo_inclusive: bool = True
+) -> float:
     if not _is_num(v):
         raise r.fail(ERR_INVALID_TYPE, f"'{name}' must be a number, got {_tname(v)}")
     f = float(v)  # type: ignore[arg-type]
@@ -269,8 +294,11 @@ def _check_num(r: _Reader, name: str, v: object, lo: float | None, hi: float | N
 
 def _check_vec3(r: _Reader, name: str, v: object, bound: float) -> Vec3:
     if not (isinstance(v, list) and len(v) == 3):
-        raise r.fail(ERR_INVALID_TYPE, f"'{name}' must be an array of 3 numbers, got {_tname(v)}"
-                     + (f" of length {len(v)}" if isinstance(v, list) else ""))
+        raise r.fail(
+            ERR_INVALID_TYPE,
+            f"'{name}' must be an array of 3 numbers, got {_tname(v)}"
+            + (f" of length {len(v)}" if isinstance(v, list) else ""),
+        )
     out = tuple(_check_num(r, f"{name}[{i}]", x, -bound, bound) for i, x in enumerate(v))
     return out  # type: ignore[return-value]
 
@@ -301,8 +329,10 @@ def _read_material(r: _Reader, key: str = "material") -> dict[str, Any]:
         else:
             v = sub.raw(name, True)
             if not (isinstance(v, list) and len(v) == width):
-                raise r.fail(ERR_INVALID_TYPE, f"'{sub.name(name)}' must be an array of {width} numbers "
-                             "(structural, shear, bending)")
+                raise r.fail(
+                    ERR_INVALID_TYPE,
+                    f"'{sub.name(name)}' must be an array of {width} numbers (structural, shear, bending)",
+                )
             out[name] = tuple(_check_num(r, f"{sub.name(name)}[{i}]", x, lo, hi_eff, lo_inc) for i, x in enumerate(v))
     return out
 
@@ -320,8 +350,9 @@ def _read_features(r: _Reader, key: str = "features") -> tuple[str, ...] | None:
         if not isinstance(x, str):
             raise r.fail(ERR_INVALID_TYPE, f"'{r.name(key)}[{i}]' must be a string, got {_tname(x)}")
         if x not in FEATURE_NAMES:
-            raise r.fail(ERR_INVALID_VALUE,
-                         f"unknown feature {x[:40]!r} in '{r.name(key)}'; known: {list(FEATURE_NAMES)}")
+            raise r.fail(
+                ERR_INVALID_VALUE, f"unknown feature {x[:40]!r} in '{r.name(key)}'; known: {list(FEATURE_NAMES)}"
+            )
         if x not in out:
             out.append(x)
     return tuple(out)
@@ -334,8 +365,9 @@ def _read_colliders(r: _Reader, key: str = "colliders") -> tuple[Collider, ...] 
     if not isinstance(v, list):
         raise r.fail(ERR_INVALID_TYPE, f"'{r.name(key)}' must be an array of collider maps, got {_tname(v)}")
     if len(v) > r.limits.max_colliders:
-        raise r.fail(ERR_TOO_LARGE,
-                     f"'{r.name(key)}' has {len(v)} colliders, more than the limit of {r.limits.max_colliders}")
+        raise r.fail(
+            ERR_TOO_LARGE, f"'{r.name(key)}' has {len(v)} colliders, more than the limit of {r.limits.max_colliders}"
+        )
     out: list[Collider] = []
     bound = r.limits.max_coordinate
     for i, c in enumerate(v):
@@ -347,8 +379,13 @@ def _read_colliders(r: _Reader, key: str = "colliders") -> tuple[Collider, ...] 
         if kind == "sphere":
             out.append(Sphere(cr.vec3("center", bound, True), cr.num("radius", 0.0, bound, True)))  # type: ignore[arg-type]
         elif kind == "capsule":
-            out.append(Capsule(cr.vec3("p0", bound, True), cr.vec3("p1", bound, True),  # type: ignore[arg-type]
-                               cr.num("radius", 0.0, bound, True)))  # type: ignore[arg-type]
+            out.append(
+                Capsule(
+                    cr.vec3("p0", bound, True),  # type: ignore[arg-type]
+                    cr.vec3("p1", bound, True),  # type: ignore[arg-type]
+                    cr.num("radius", 0.0, bound, True),  # type: ignore[arg-type]
+                )
+            )
         else:
             n = cr.vec3("normal", bound, True)
             assert n is not None
@@ -364,8 +401,9 @@ def _read_state_options(r: _Reader, key: str = "state", submit: bool = True) -> 
         return None
     bundle = sub.bool_("bundle")
     if bundle is not None and not submit:
-        raise r.fail(ERR_INVALID_VALUE,
-                     f"'{sub.name('bundle')}' can only be chosen at submission, not changed by a control")
+        raise r.fail(
+            ERR_INVALID_VALUE, f"'{sub.name('bundle')}' can only be chosen at submission, not changed by a control"
+        )
     return StateOptions(sub.bool_("normals"), sub.str_("encoding", choices=ENCODINGS), bundle)
 
 
@@ -417,8 +455,11 @@ def material_to_map(material: Any) -> dict[str, Any]:
     drape.server.sim.params.Material (all of its fields)."""
     if material is None:
         return {}
-    items = material.items() if isinstance(material, Mapping) else ((f.name, getattr(material,
-                                                                                     f.name)) for f in fields(material))
+    items = (
+        material.items()
+        if isinstance(material, Mapping)
+        else ((f.name, getattr(material, f.name)) for f in fields(material))
+    )
     out: dict[str, Any] = {}
     for k, v in items:
         if k not in MATERIAL_FIELDS:

@@ -2,6 +2,7 @@
 material fields with their ranges and defaults, link options, grid/mesh/state/pin specs and the
 decoder caps (PROTOCOL.md sections 4, 5, 13). The server (drape.server.sim.params) takes its names,
 defaults and ranges from here."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -197,8 +198,9 @@ class ResumeState:
             isinstance(other, ResumeState)
             and np.array_equal(self.positions, other.positions)
             and (self.velocities is None) == (other.velocities is None)
-            and (self.velocities is None or other.velocities is None
-                 or np.array_equal(self.velocities, other.velocities))
+            and (
+                self.velocities is None or other.velocities is None or np.array_equal(self.velocities, other.velocities)
+            )
             and (self.tick, self.from_server, self.cloth) == (other.tick, other.from_server, other.cloth)
         )
 

@@ -2,6 +2,7 @@
 
 ``Server`` is imported lazily, so that ``drape.server.service.config`` (and the daemon's
 argument parsing) needs neither Zenoh's session nor OpenCL."""
+
 from __future__ import annotations
 
 from typing import Any

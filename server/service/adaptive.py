@@ -6,6 +6,7 @@ governor steps the cap down or back up, every cloth that chose a preset gets ``m
 cap)`` (the only O(cloths) work, on a change). ``measure`` maps the measured seconds to the
 cost fed to the governor; tests replace it to drive the loop deterministically.
 """
+
 from __future__ import annotations
 
 import logging
@@ -29,8 +30,9 @@ _RANK = {name: i for i, name in enumerate(quality.ORDER)}
 class AdaptiveQuality:
     def __init__(self, config: ServerConfig) -> None:
         self.config = config
-        self.governor = quality.QualityGovernor(quality.ORDER[-1], 1e3 * config.quality_budget * config.dt,
-                                                QUALITY_PATIENCE, QUALITY_HEADROOM)
+        self.governor = quality.QualityGovernor(
+            quality.ORDER[-1], 1e3 * config.quality_budget * config.dt, QUALITY_PATIENCE, QUALITY_HEADROOM
+        )
         self.measure: Callable[[float], float] = lambda seconds: seconds
         self.events = 0
         self.last: dict[str, Any] | None = None
@@ -43,8 +45,14 @@ class AdaptiveQuality:
         cap = self.governor.current
         return wanted if _RANK[wanted] <= _RANK[cap] else cap
 
-    def observe(self, tick_s: float, tick: int, records: Callable[[], Iterable[ClothRecord]], world: World | None,
-                apply: Callable[[ClothRecord, str], bool]) -> None:
+    def observe(
+        self,
+        tick_s: float,
+        tick: int,
+        records: Callable[[], Iterable[ClothRecord]],
+        world: World | None,
+        apply: Callable[[ClothRecord, str], bool],
+    ) -> None:
         """One tick's cost; steps presets when the governor moves. ``apply(record, preset)``
         sets a cloth's preset (True when it changed)."""
         now = time.monotonic()
@@ -80,8 +88,13 @@ class AdaptiveQuality:
             self.degraded_since = None
         self.events += 1
         self.last = {"tick": tick, "time_ns": time.time_ns(), "direction": direction, "cloths": changed}
-        log.info("adaptive quality: %d cloths one preset %s at tick %d (%d below what they asked for)", changed,
-                 direction, tick, degraded)
+        log.info(
+            "adaptive quality: %d cloths one preset %s at tick %d (%d below what they asked for)",
+            changed,
+            direction,
+            tick,
+            degraded,
+        )
 
     def stats(self, records: Iterable[ClothRecord]) -> dict[str, Any]:
         by: dict[str, int] = {}

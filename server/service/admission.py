@@ -11,6 +11,7 @@ cloth admits (there is nothing to protect and no per-vertex cost to predict from
 
 Tests and operators may replace the model (``Admission.model``) with a :class:`FixedCost`.
 """
+
 from __future__ import annotations
 
 import logging
@@ -95,6 +96,10 @@ class Admission:
             return
         predicted = self.model.predict(vertices_before + n_vertices, self.budget_s)
         if predicted is not None and predicted > self.budget_s:
-            raise _OVERLOADED_EXC(ERR_OVERLOADED, f"server overloaded: a tick would take {1e3 * predicted:.1f} ms with "
-                                  f"this cloth, over the budget of {1e3 * self.budget_s:.1f} ms; retry later or "
-                                  "elsewhere", rid)
+            raise _OVERLOADED_EXC(
+                ERR_OVERLOADED,
+                f"server overloaded: a tick would take {1e3 * predicted:.1f} ms with "
+                f"this cloth, over the budget of {1e3 * self.budget_s:.1f} ms; retry later or "
+                "elsewhere",
+                rid,
+            )

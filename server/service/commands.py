@@ -17,6 +17,7 @@ the stats' errors):
   its items are applied. The lane holds at most one slot per cloth and at most
   ``max_pending_requests`` waiting replies.
 """
+
 from __future__ import annotations
 
 import logging
@@ -99,8 +100,13 @@ class Prepare:
 
 
 def _touches_features(r: P.ControlRequest) -> bool:
-    return bool(r.features is not None or getattr(r, "features_add", None) or getattr(r, "features_remove", None)
-                or (r.state is not None and r.state.normals is not None) or r.quality is not None)
+    return bool(
+        r.features is not None
+        or getattr(r, "features_add", None)
+        or getattr(r, "features_remove", None)
+        or (r.state is not None and r.state.normals is not None)
+        or r.quality is not None
+    )
 
 
 def mergeable(a: P.ControlRequest, b: P.ControlRequest) -> bool:
@@ -125,8 +131,12 @@ def merge_controls(a: P.ControlRequest, b: P.ControlRequest) -> P.ControlRequest
             _, first = np.unique(rev, return_index=True)  # last occurrence of each index wins
             keep = np.sort(len(idx) - 1 - first)
             pins = replace(b.pins, indices=idx[keep], targets=tgt[keep])
-    changes: dict[str, Any] = {"pins": pins, "material": {**a.material, **b.material}, "reset": a.reset or b.reset,
-                               "rid": b.rid}
+    changes: dict[str, Any] = {
+        "pins": pins,
+        "material": {**a.material, **b.material},
+        "reset": a.reset or b.reset,
+        "rid": b.rid,
+    }
     for name in ("colliders", "gravity", "wind", "iterations", "substeps", "chebyshev_rho", "quality"):
         v = getattr(b, name)
         changes[name] = v if v is not None else getattr(a, name)
@@ -140,8 +150,9 @@ def merge_controls(a: P.ControlRequest, b: P.ControlRequest) -> P.ControlRequest
             changes.update(features=b.features, features_add=b.features_add, features_remove=b.features_remove)
         else:
             add, rem = (add_a - rem_b) | add_b, (rem_a - add_b) | rem_b
-            changes.update(features=a.features, features_add=tuple(sorted(add)) or None,
-                           features_remove=tuple(sorted(rem)) or None)
+            changes.update(
+                features=a.features, features_add=tuple(sorted(add)) or None, features_remove=tuple(sorted(rem)) or None
+            )
     else:
         changes["features"] = b.features if b.features is not None else a.features
     return replace(b, **changes)
@@ -169,9 +180,11 @@ class Intake:
     def put_call(self, cmd: Call, timeout: float) -> None:
         self._structural.put(cmd, timeout=timeout)
 
-    def put_controls(self, items: Sequence[tuple[ClothRecord, P.ControlRequest, np.ndarray | None, Any,
-                                                 int | tuple[int, bool]]],
-                     rid: int = 0) -> None:
+    def put_controls(
+        self,
+        items: Sequence[tuple[ClothRecord, P.ControlRequest, np.ndarray | None, Any, int | tuple[int, bool]]],
+        rid: int = 0,
+    ) -> None:
         """Coalesce controls ``(record, request, packed colliders, waiter, tag)`` into the
         per-cloth slots, all or none (the tag: a batch's item index, or a single control's
         (rid, with features)); raises Busy when the waiting replies would exceed the bound."""

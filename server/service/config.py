@@ -25,6 +25,7 @@ Every field is also an environment variable ``DRAPE_<FIELD>`` (``DRAPE_TICK_RATE
 comma-separated: ``DRAPE_LISTEN=tcp/0.0.0.0:7447,tcp/[::]:7447``) and a flag ``--field-name``.
 ``DRAPE_CONFIG`` or ``--config`` names the TOML file.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -119,9 +120,18 @@ class ServerConfig:
             raise ValueError("tick_rate must be in 0.1..10000 Hz")
         if self.state_congestion not in CONGESTION_CHOICES:
             raise ValueError(f"state_congestion must be one of {CONGESTION_CHOICES}")
-        for name in ("max_cloths", "max_cloths_per_client", "max_vertices_per_cloth", "max_total_vertices",
-                     "max_message_bytes", "max_pin_updates", "max_batch_items", "max_iterations", "max_substeps",
-                     "max_pending_requests"):
+        for name in (
+            "max_cloths",
+            "max_cloths_per_client",
+            "max_vertices_per_cloth",
+            "max_total_vertices",
+            "max_message_bytes",
+            "max_pin_updates",
+            "max_batch_items",
+            "max_iterations",
+            "max_substeps",
+            "max_pending_requests",
+        ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1")
         if self.max_iterations > 1000 or self.max_substeps > 100:
@@ -314,11 +324,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         if kind is bool:
             parser.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=None, help=help_)
         elif kind is list:
-            parser.add_argument(flag, dest=f.name, action="append", metavar="ENDPOINT", default=None,
-                                help=f"{help_}; repeatable")
+            parser.add_argument(
+                flag, dest=f.name, action="append", metavar="ENDPOINT", default=None, help=f"{help_}; repeatable"
+            )
         else:
-            choices = {"mode": ZENOH_MODES, "solver": SOLVERS, "state_congestion": CONGESTION_CHOICES,
-                       "log_format": LOG_FORMATS, "log_level": LOG_LEVELS}.get(f.name)
+            choices = {
+                "mode": ZENOH_MODES,
+                "solver": SOLVERS,
+                "state_congestion": CONGESTION_CHOICES,
+                "log_format": LOG_FORMATS,
+                "log_level": LOG_LEVELS,
+            }.get(f.name)
             parser.add_argument(flag, dest=f.name, type=kind, default=None, choices=choices, help=help_)
 
 

@@ -7,6 +7,7 @@ so that the first cloth with a new feature combination does not compile on the t
 geometry, shared by every cloth of the same geometry (so the World's device arena holds each
 once), reference counted, and the last ``RETAIN`` unused ones kept for resubmissions.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -96,15 +97,21 @@ def cook_fabric(req: P.SubmitRequest, links: LinkOptions, pinned: np.ndarray) ->
         g = req.grid
         return cook_grid(g.cols, g.rows, g.width, g.height, links, pinned.tolist(), g.orientation, g.origin)
     assert req.mesh is not None
-    return cook_mesh(req.mesh.vertices.astype(np.float64), req.mesh.triangles.astype(np.int64), links,
-                     pinned.tolist())
+    return cook_mesh(req.mesh.vertices.astype(np.float64), req.mesh.triangles.astype(np.int64), links, pinned.tolist())
 
 
 class CookWorker:
     """The cook thread: ``queue`` holds (record, request, query) of accepted submissions."""
 
-    def __init__(self, config: ServerConfig, registry: Registry, replies: Replies, intake: Intake,
-                 world: Callable[[], World | None], stopping: Callable[[], bool]) -> None:
+    def __init__(
+        self,
+        config: ServerConfig,
+        registry: Registry,
+        replies: Replies,
+        intake: Intake,
+        world: Callable[[], World | None],
+        stopping: Callable[[], bool],
+    ) -> None:
         self.config, self.registry, self.replies, self.intake = config, registry, replies, intake
         self.queue: queue.Queue = queue.Queue(config.max_pending_requests)
         self.fabrics = FabricStore()
@@ -167,8 +174,9 @@ class CookWorker:
         try:
             links = LinkOptions(**vars(req.links)) if req.links is not None else LinkOptions()
             pinned = np.unique(req.pinned.astype(np.int64))
-            fabric = self.fabrics.acquire(FabricStore.digest(req, links, pinned),
-                                          lambda: cook_fabric(req, links, pinned))
+            fabric = self.fabrics.acquire(
+                FabricStore.digest(req, links, pinned), lambda: cook_fabric(req, links, pinned)
+            )
         except ValueError as e:
             self.registry.unreserve(rec)
             self.replies.send_error(query, P.ERR_INVALID_VALUE, f"cannot build the cloth: {e}", req.rid)
@@ -191,8 +199,14 @@ class CookWorker:
             rs = getattr(req, "resume", None)
             if rs is not None:  # 1.3: the tick thread adds the cloth at this state
                 add.positions, add.velocities = rs.positions, rs.velocities
-                log.info("cloth %s of client %s resumes %s of server %s at tick %s", rec.id, rec.client,
-                         rs.cloth or "a cloth", rs.from_server or "?", rs.tick)
+                log.info(
+                    "cloth %s of client %s resumes %s of server %s at tick %s",
+                    rec.id,
+                    rec.client,
+                    rs.cloth or "a cloth",
+                    rs.from_server or "?",
+                    rs.tick,
+                )
             rec.fabric = fabric
             self.intake.put(add, req.rid)
         except P.DrapeError as e:

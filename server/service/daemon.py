@@ -5,6 +5,7 @@ variables < flags; see drape.server.service.daemon.config. On a signal the serve
 what is still queued with ``busy``, undeclares everything and closes its Zenoh session; the
 exit status is 0 after a clean stop, 1 when the tick loop failed, 2 for a bad configuration.
 """
+
 from __future__ import annotations
 
 import argparse

@@ -11,6 +11,7 @@ Non-finite cloths show as non-finite bounds in their headers (``DeviceEncoder.no
 the tick thread resets them in the World and :meth:`DeviceFrames.reencode` writes the frame
 again with their rest pose and the reset flag: the same bytes the host path publishes.
 """
+
 from __future__ import annotations
 
 import logging
@@ -47,8 +48,12 @@ class DeviceFrames:
             return
         w = self.world
         counts = np.diff(lay.offsets).tolist()
-        cloths = [ClothEntry(cid, w.rec[h].vbase, n, enc, bool(nr)) for cid, h, n, enc, nr in
-                  zip(roster.ids, lay.handles.tolist(), counts, roster.encodings, roster.normals.tolist(), strict=True)]
+        cloths = [
+            ClothEntry(cid, w.rec[h].vbase, n, enc, bool(nr))
+            for cid, h, n, enc, nr in zip(
+                roster.ids, lay.handles.tolist(), counts, roster.encodings, roster.normals.tolist(), strict=True
+            )
+        ]
         pubs = [Publication(key, tuple(idx), bundle) for _, key, idx, bundle in roster.publications()]
         self.encoder.set_plan(FramePlan.build(cloths, pubs))
         self._plan_version = roster.version
@@ -78,8 +83,9 @@ class DeviceFrames:
         """Frame indices of the cloths whose last encoded positions were not finite."""
         return self.encoder.nonfinite()
 
-    def reencode(self, old: EncodedFrame, tick: int, time_ns: int, flags: np.ndarray,
-                 reset: list[tuple[int, Fabric]]) -> EncodedFrame:
+    def reencode(
+        self, old: EncodedFrame, tick: int, time_ns: int, flags: np.ndarray, reset: list[tuple[int, Fabric]]
+    ) -> EncodedFrame:
         """The frame encoded again after the World reset some cloths (``reset``: (handle,
         fabric) of those carrying normals, whose rest normals are written first)."""
         w = self.world

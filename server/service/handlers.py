@@ -4,6 +4,7 @@ the work on (submissions to the cook worker, everything else to the tick thread'
 request gets its error reply right here; nothing else notices it. A batch control is validated
 item by item: a bad item gets its own error in the reply, the others go ahead.
 """
+
 from __future__ import annotations
 
 import logging
@@ -47,18 +48,35 @@ def reports_features(payload: bytes) -> bool:
 
 
 class Handlers:
-    def __init__(self, config: ServerConfig, keys: P.Keys, registry: Registry, replies: Replies, intake: Intake,
-                 cook_q: queue.Queue, admission: Admission, tick: Callable[[], int], info: Callable[[], dict],
-                 stopping: Callable[[], bool]) -> None:
+    def __init__(
+        self,
+        config: ServerConfig,
+        keys: P.Keys,
+        registry: Registry,
+        replies: Replies,
+        intake: Intake,
+        cook_q: queue.Queue,
+        admission: Admission,
+        tick: Callable[[], int],
+        info: Callable[[], dict],
+        stopping: Callable[[], bool],
+    ) -> None:
         self.config, self.keys, self.registry, self.replies = config, keys, registry, replies
         self.intake, self.cook_q, self.admission = intake, cook_q, admission
         self.limits = config.limits()
         self._tick, self._info, self._stopping = tick, info, stopping
 
     def endpoints(self) -> list[tuple[str, Callable[[zenoh.Query], None]]]:
-        return [(name, self._guard(name, cb)) for name, cb in (
-            ("submit", self.on_submit), ("control", self.on_control), ("control_batch", self.on_control_batch),
-            ("remove", self.on_remove), ("info", self.on_info))]
+        return [
+            (name, self._guard(name, cb))
+            for name, cb in (
+                ("submit", self.on_submit),
+                ("control", self.on_control),
+                ("control_batch", self.on_control_batch),
+                ("remove", self.on_remove),
+                ("info", self.on_info),
+            )
+        ]
 
     def _guard(self, name: str, cb: Callable[[zenoh.Query, bytes], None]) -> Callable[[zenoh.Query], None]:
         reg = self.registry
@@ -119,12 +137,18 @@ class Handlers:
             idx = req.pins.indices
             top = int(idx.max())
             if top >= rec.n_vertices:
-                raise P.ProtocolError(P.ERR_INDEX_OUT_OF_RANGE, f"'pins.indices' refers to vertex {top} but cloth "
-                                      f"{rec.id!r} has {rec.n_vertices} vertices", req.rid)
+                raise P.ProtocolError(
+                    P.ERR_INDEX_OUT_OF_RANGE,
+                    f"'pins.indices' refers to vertex {top} but cloth {rec.id!r} has {rec.n_vertices} vertices",
+                    req.rid,
+                )
             free = idx[~rec.fabric.pinned[idx]]
             if len(free):
-                raise P.ProtocolError(P.ERR_INVALID_VALUE, f"vertex {int(free[0])} of cloth {rec.id!r} is not pinned; "
-                                      "only pinned vertices take targets", req.rid)
+                raise P.ProtocolError(
+                    P.ERR_INVALID_VALUE,
+                    f"vertex {int(free[0])} of cloth {rec.id!r} is not pinned; only pinned vertices take targets",
+                    req.rid,
+                )
         packed = pack(req.colliders, req.rid) if req.colliders is not None else None
         return rec, packed
 
@@ -154,8 +178,13 @@ class Handlers:
             reg.errors.update(failed)
             reg.counters["batch_items"] += len(batch.items)
         if failed:
-            log.debug("batch control of client %s: %d of %d items refused: %s", batch.client, sum(failed.values()),
-                      len(batch.items), dict(failed))
+            log.debug(
+                "batch control of client %s: %d of %d items refused: %s",
+                batch.client,
+                sum(failed.values()),
+                len(batch.items),
+                dict(failed),
+            )
         if not todo:  # nothing to apply: answer now
             rep = P.ControlBatchReply(self._tick() + 1, results, batch.rid)  # type: ignore[arg-type]
             send(Reply(query, P.encode_control_batch_reply(rep)))

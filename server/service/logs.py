@@ -11,6 +11,7 @@ unless the context names another.
 Zenoh writes its own log lines (Rust ``tracing``, not Python ``logging``) to the terminal:
 ``setup`` starts them at level ``error`` unless ``RUST_LOG`` says otherwise (``RUST_LOG=zenoh=info``).
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -126,8 +127,13 @@ def make_handler(fmt: str = "text", stream: TextIO | None = None, server_id: str
     return handler
 
 
-def setup(fmt: str = "text", level: str | int = "info", server_id: str | None = None,
-          stream: TextIO | None = None, zenoh_level: str | None = "error") -> logging.Handler:
+def setup(
+    fmt: str = "text",
+    level: str | int = "info",
+    server_id: str | None = None,
+    stream: TextIO | None = None,
+    zenoh_level: str | None = "error",
+) -> logging.Handler:
     """Configure the root logger: one handler in ``fmt`` at ``level`` (replacing the one a
     previous call installed, so calling again, e.g. once the server id is known, is fine), and
     Zenoh's own log at ``zenoh_level`` unless ``RUST_LOG`` is set (None: leave Zenoh alone, for

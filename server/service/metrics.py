@@ -11,6 +11,7 @@ exposition, type, help); docs/operations.md shows the same list. ``exposition(se
 text format; ``drape.server.service.ops`` serves ``registry(...)`` on ``/metrics``, with its
 readiness probe behind ``drape_ready`` and ``drape_tick_age_seconds``.
 """
+
 from __future__ import annotations
 
 import logging
@@ -47,8 +48,12 @@ METRICS: tuple[tuple[str, str, str], ...] = (
     ("drape_ticks", "counter", "Ticks run"),
     ("drape_missed_ticks", "counter", "Tick deadlines skipped because a tick overran"),
     ("drape_skipped_frames", "counter", "Frames the publisher had not sent when the next was ready (coalesced)"),
-    ("drape_tick_phase_seconds", "histogram", "Duration of each tick phase (apply, solve, readback, encode, "
-                                              "publish; tick = apply to readback, the tick's own work)"),
+    (
+        "drape_tick_phase_seconds",
+        "histogram",
+        "Duration of each tick phase (apply, solve, readback, encode, "
+        "publish; tick = apply to readback, the tick's own work)",
+    ),
     ("drape_cloths", "gauge", "Cloths on the server (accepted, including those still being cooked)"),
     ("drape_clients", "gauge", "Clients owning cloths"),
     ("drape_alive_clients", "gauge", "Clients whose liveliness token is present"),
@@ -67,8 +72,11 @@ METRICS: tuple[tuple[str, str, str], ...] = (
     ("drape_reclaimed_cloths", "counter", "Cloths removed because their client's liveliness token vanished"),
     ("drape_nan_removals", "counter", "Cloths removed because they kept going non-finite (when the server reports it)"),
     ("drape_controls_applied", "counter", "Controls applied by the tick thread (when the server reports it)"),
-    ("drape_controls_coalesced", "counter", "Controls replaced by a newer one for the same cloth before a tick "
-                                            "(when the server reports it)"),
+    (
+        "drape_controls_coalesced",
+        "counter",
+        "Controls replaced by a newer one for the same cloth before a tick (when the server reports it)",
+    ),
     ("drape_quality_cloths", "gauge", "Cloths at each quality preset now"),
     ("drape_quality_degraded_cloths", "gauge", "Cloths below the preset their client asked for"),
     ("drape_quality_degraded_seconds", "counter", "Seconds with any cloth degraded"),
@@ -163,18 +171,22 @@ class DrapeCollector(Collector):
         yield from families(stats, info, phase_timers(self.server), self.namespace)
 
 
-def families(stats: Mapping[str, Any], info: Mapping[str, Any], timers: Mapping[str, PhaseTimer],
-             namespace: str | None = None) -> Iterator[Metric]:
+def families(
+    stats: Mapping[str, Any], info: Mapping[str, Any], timers: Mapping[str, PhaseTimer], namespace: str | None = None
+) -> Iterator[Metric]:
     """Every metric family of METRICS from one stats() dict, one info() dict and the timers."""
     server = str(stats.get("server") or info.get("server") or "")
     i = InfoMetricFamily("drape_server", _HELP["drape_server"])
-    i.add_metric([], {
-        "server": server,
-        "solver": str(info.get("solver", "")),
-        "device": str(info.get("device", "")),
-        "version": str(info.get("version", P.VERSION_STRING)),
-        "namespace": str(namespace if namespace is not None else info.get("namespace", "")),
-    })
+    i.add_metric(
+        [],
+        {
+            "server": server,
+            "solver": str(info.get("solver", "")),
+            "device": str(info.get("device", "")),
+            "version": str(info.get("version", P.VERSION_STRING)),
+            "namespace": str(namespace if namespace is not None else info.get("namespace", "")),
+        },
+    )
     yield i
     yield _gauge("drape_up_seconds", stats.get("uptime_s"))
     yield _gauge("drape_tick_rate_hertz", stats.get("tick_rate", info.get("tick_rate")))
@@ -242,8 +254,12 @@ class ReadinessCollector(Collector):
         yield _gauge("drape_tick_age_seconds", age)
 
 
-def registry(server: StatsSource, process: bool = True, namespace: str | None = None,
-             readiness: Callable[[], tuple[bool, float]] | None = None) -> CollectorRegistry:
+def registry(
+    server: StatsSource,
+    process: bool = True,
+    namespace: str | None = None,
+    readiness: Callable[[], tuple[bool, float]] | None = None,
+) -> CollectorRegistry:
     """A registry holding the server's collector, the readiness gauges when given a probe, and
     the process' CPU, memory and file descriptors (``process_*``) when ``process``."""
     reg = CollectorRegistry(auto_describe=False)

@@ -14,6 +14,7 @@
   every half ``WatchdogSec`` only if the tick counter advanced since the previous ping, so a
   wedged tick loop stops the pings and systemd restarts the service.
 """
+
 from __future__ import annotations
 
 import logging
@@ -180,8 +181,14 @@ def _http_server(listen: str) -> _HTTPServer:
 class Ops:
     """The listener and the watch of one server; see the module docstring."""
 
-    def __init__(self, server: Any, config: ServerConfig | None = None, *, slack_s: float = DEFAULT_SLACK_S,
-                 env: Mapping[str, str] | None = None) -> None:
+    def __init__(
+        self,
+        server: Any,
+        config: ServerConfig | None = None,
+        *,
+        slack_s: float = DEFAULT_SLACK_S,
+        env: Mapping[str, str] | None = None,
+    ) -> None:
         self.server = server
         self.config = config or server.config
         self.env = dict(os.environ if env is None else env)
@@ -209,17 +216,26 @@ class Ops:
     def start(self) -> Ops:
         sid = self.config.server_id
         if self.watchdog_s is not None and 2 * self.watchdog_s < 2 * self.server.config.dt:
-            log.warning("WatchdogSec (%.1f s) is shorter than two tick periods (%.1f s): systemd will restart a "
-                        "healthy server; raise WatchdogSec", 2 * self.watchdog_s, 2 * self.server.config.dt)
+            log.warning(
+                "WatchdogSec (%.1f s) is shorter than two tick periods (%.1f s): systemd will restart a "
+                "healthy server; raise WatchdogSec",
+                2 * self.watchdog_s,
+                2 * self.server.config.dt,
+            )
         if self.config.metrics_listen is not None:
             try:
                 self._http = _http_server(self.config.metrics_listen)
             except OSError as e:
-                raise OSError(e.errno, f"cannot listen on metrics_listen {self.config.metrics_listen!r}: "
-                                       f"{e.strerror or e}") from None
+                raise OSError(
+                    e.errno, f"cannot listen on metrics_listen {self.config.metrics_listen!r}: {e.strerror or e}"
+                ) from None
             self._http.ops = self
-            t = threading.Thread(target=self._http.serve_forever, kwargs={"poll_interval": 0.2},
-                                 name=f"drape-ops-http-{sid}", daemon=True)
+            t = threading.Thread(
+                target=self._http.serve_forever,
+                kwargs={"poll_interval": 0.2},
+                name=f"drape-ops-http-{sid}",
+                daemon=True,
+            )
             self._threads.append(t)
             t.start()
             log.info("operator endpoints on %s: /metrics /healthz /readyz", self.url)

@@ -15,6 +15,7 @@ whose key has no subscriber are not encoded or copied (counted
 its replies carried over (counted ``skipped_frames`` by the tick thread): the tick thread never
 waits for the network.
 """
+
 from __future__ import annotations
 
 import logging
@@ -58,8 +59,9 @@ class Roster:
         """(publisher ident: cloth id or bundle key, key, frame indices, bundle) per payload:
         the singles, then the bundles (the device-encoded frame's publication order)."""
         if self._pubs is None:
-            self._pubs = ([(self.ids[i], self.keys[i], [i], False) for i in self.singles.tolist()]
-                          + [(k, k, idx.tolist(), True) for k, idx in self.bundles])
+            self._pubs = [(self.ids[i], self.keys[i], [i], False) for i in self.singles.tolist()] + [
+                (k, k, idx.tolist(), True) for k, idx in self.bundles
+            ]
         return self._pubs
 
 
@@ -83,8 +85,13 @@ class Job:
         self.after = older.after + self.after
         if self.stats is None:
             self.stats = older.stats
-        if (older.flags is not None and self.flags is not None and older.roster is not None
-                and self.roster is not None and older.roster.version == self.roster.version):
+        if (
+            older.flags is not None
+            and self.flags is not None
+            and older.roster is not None
+            and self.roster is not None
+            and older.roster.version == self.roster.version
+        ):
             self.flags |= older.flags  # a reset flag is not lost with its frame
             if self.encoded is not None and older.flags.any():  # already encoded: into its bytes
                 bad = np.flatnonzero(older.flags & P.FLAG_RESET)
@@ -168,8 +175,9 @@ class Publisher:
             undeclare(self.stats_pub)
             self.stats_pub = None
 
-    def _publisher(self, store: dict[str, tuple[zenoh.Publisher, bool]], ident: str, key: str,
-                   size: int) -> zenoh.Publisher:
+    def _publisher(
+        self, store: dict[str, tuple[zenoh.Publisher, bool]], ident: str, key: str, size: int
+    ) -> zenoh.Publisher:
         """The publisher of ``key``, re-declared when the congestion control its payload size
         calls for changes (``auto``)."""
         mode = self.config.state_congestion
@@ -223,7 +231,7 @@ class Publisher:
         flags = job.flags.tolist()
 
         def normals(i: int) -> np.ndarray | None:
-            return nxyz[off[i]:off[i + 1]] if nxyz is not None and ro.normals[i] else None
+            return nxyz[off[i] : off[i + 1]] if nxyz is not None and ro.normals[i] else None
 
         enc.begin(job.tick, job.time_ns, frame.xyz, off)
         singles: list[tuple[int, zenoh.Publisher, int]] = []

@@ -6,6 +6,7 @@ thread. It does NOT hold cloth parameters: the World is their one owner (``world
 keys, token, the fabric (immutable, for validating pin indices), the handle once added, the
 state encoding and the quality presets asked for and in force.
 """
+
 from __future__ import annotations
 
 import hmac
@@ -88,11 +89,17 @@ class Registry:
             if len(self.cloths) >= cfg.max_cloths:
                 raise P.LimitExceeded(P.ERR_LIMIT_EXCEEDED, f"server is full: {cfg.max_cloths} cloths", rid)
             if len(mine) >= cfg.max_cloths_per_client:
-                raise P.LimitExceeded(P.ERR_LIMIT_EXCEEDED, f"client {rec.client!r} already has "
-                                      f"{len(mine)} cloths (limit {cfg.max_cloths_per_client})", rid)
+                raise P.LimitExceeded(
+                    P.ERR_LIMIT_EXCEEDED,
+                    f"client {rec.client!r} already has {len(mine)} cloths (limit {cfg.max_cloths_per_client})",
+                    rid,
+                )
             if self.vertices + rec.n_vertices > cfg.max_total_vertices:
-                raise P.LimitExceeded(P.ERR_LIMIT_EXCEEDED, f"server vertex budget exhausted: {self.vertices} + "
-                                      f"{rec.n_vertices} > {cfg.max_total_vertices}", rid)
+                raise P.LimitExceeded(
+                    P.ERR_LIMIT_EXCEEDED,
+                    f"server vertex budget exhausted: {self.vertices} + {rec.n_vertices} > {cfg.max_total_vertices}",
+                    rid,
+                )
             self.cloths[rec.id] = rec
             self.by_client.setdefault(rec.client, set()).add(rec.id)
             self.vertices += rec.n_vertices

@@ -1,5 +1,6 @@
 """Replies to queries: sending them (never raising: the querier may be gone) and building error
 replies, each counted by error code in the registry's stats."""
+
 from __future__ import annotations
 
 import logging

@@ -1,5 +1,6 @@
 """From validated protocol requests to what the World takes: cloth parameters (one helper for
 submit and control), packed colliders, feature sets after a control."""
+
 from __future__ import annotations
 
 from dataclasses import replace
@@ -37,9 +38,16 @@ def changes_params(req: P.ControlRequest, p: ClothParams) -> bool:
     """Whether a control changes the cloth's parameters (the common per-tick control, pins and
     colliders of a cloth whose colliders feature is on, changes none)."""
     return bool(
-        req.material or req.features is not None or req.gravity is not None or req.wind is not None
-        or req.iterations is not None or req.substeps is not None or req.chebyshev_rho is not None
-        or req.quality is not None or getattr(req, "features_add", None) or getattr(req, "features_remove", None)
+        req.material
+        or req.features is not None
+        or req.gravity is not None
+        or req.wind is not None
+        or req.iterations is not None
+        or req.substeps is not None
+        or req.chebyshev_rho is not None
+        or req.quality is not None
+        or getattr(req, "features_add", None)
+        or getattr(req, "features_remove", None)
         or (req.colliders and not p.features.colliders)
         or (req.state is not None and req.state.normals is not None and req.state.normals != p.features.normals)
     )
@@ -48,16 +56,27 @@ def changes_params(req: P.ControlRequest, p: ClothParams) -> bool:
 def pins_only(req: P.ControlRequest) -> bool:
     """Whether a control carries pin targets and nothing else."""
     return bool(
-        req.pins is not None and len(req.pins.indices) and req.colliders is None and req.gravity is None
-        and req.wind is None and not req.material and req.features is None and req.iterations is None
-        and req.substeps is None and req.chebyshev_rho is None and req.state is None and not req.reset
-        and req.quality is None and not getattr(req, "features_add", None)
+        req.pins is not None
+        and len(req.pins.indices)
+        and req.colliders is None
+        and req.gravity is None
+        and req.wind is None
+        and not req.material
+        and req.features is None
+        and req.iterations is None
+        and req.substeps is None
+        and req.chebyshev_rho is None
+        and req.state is None
+        and not req.reset
+        and req.quality is None
+        and not getattr(req, "features_add", None)
         and not getattr(req, "features_remove", None)
     )
 
 
-def params_with(base: ClothParams, req: P.SubmitRequest | P.ControlRequest, material: Material,
-                features: set[str]) -> ClothParams:
+def params_with(
+    base: ClothParams, req: P.SubmitRequest | P.ControlRequest, material: Material, features: set[str]
+) -> ClothParams:
     """``base`` with the solver fields a submit or control request gives (absent ones kept)."""
     return base.with_(
         material=material,
@@ -96,7 +115,11 @@ def with_preset(config: ServerConfig, params: ClothParams, name: str, rid: int) 
     """``params`` with quality preset ``name`` at this server's tick rate, within its limits."""
     out = quality.apply_preset(params, name, config.tick_rate)
     if out.substeps > config.max_substeps or out.iterations > config.max_iterations:
-        raise P.LimitExceeded(P.ERR_LIMIT_EXCEEDED, f"quality {name!r} needs {out.substeps} substeps x "
-                              f"{out.iterations} iterations; this server allows {config.max_substeps} x "
-                              f"{config.max_iterations}", rid)
+        raise P.LimitExceeded(
+            P.ERR_LIMIT_EXCEEDED,
+            f"quality {name!r} needs {out.substeps} substeps x "
+            f"{out.iterations} iterations; this server allows {config.max_substeps} x "
+            f"{config.max_iterations}",
+            rid,
+        )
     return out

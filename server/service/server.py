@@ -12,6 +12,7 @@ owning one job (and one thread's state):
 - admission (admission.py) and adaptive quality (adaptive.py): the tick-cost policies;
 - replies (replies.py): answering queries, error replies counted.
 """
+
 from __future__ import annotations
 
 import logging
@@ -44,9 +45,22 @@ log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
-STAT_COUNTERS = ("ticks", "missed_ticks", "skipped_frames", "nan_resets", "reclaimed", "published", "unwatched",
-                 "publish_errors", "bundles", "batch_items", "overload_refusals", "nan_removals", "controls_applied",
-                 "controls_coalesced")
+STAT_COUNTERS = (
+    "ticks",
+    "missed_ticks",
+    "skipped_frames",
+    "nan_resets",
+    "reclaimed",
+    "published",
+    "unwatched",
+    "publish_errors",
+    "bundles",
+    "batch_items",
+    "overload_refusals",
+    "nan_removals",
+    "controls_applied",
+    "controls_coalesced",
+)
 
 
 #: Queries wait in a bounded Zenoh channel per endpoint and are decoded and handled on a Python
@@ -83,15 +97,36 @@ class Server:
         self.admission = Admission(self.config)
         self.quality = AdaptiveQuality(self.config)
         self.publisher = Publisher(self.config, self.keys, self.registry, self._timers)
-        self.ticker = Ticker(self.config, self.registry, self.replies, self.intake, self.publisher.mailbox, None,  # type: ignore[arg-type]
-                             self.admission, self.quality, self._timers, self._stats_bytes)
-        self.cook = CookWorker(self.config, self.registry, self.replies, self.intake, lambda: self.ticker.world,
-                               self._stopping.is_set)
+        self.ticker = Ticker(
+            self.config,
+            self.registry,
+            self.replies,
+            self.intake,
+            self.publisher.mailbox,
+            None,  # type: ignore[arg-type]
+            self.admission,
+            self.quality,
+            self._timers,
+            self._stats_bytes,
+        )
+        self.cook = CookWorker(
+            self.config, self.registry, self.replies, self.intake, lambda: self.ticker.world, self._stopping.is_set
+        )
         self.ticker.fabrics = self.cook.fabrics
         self.ticker.publish_cost = lambda: self.publisher.last_cost_s
         self.ticker.request_prepare = self.cook.request_prepare
-        self.handlers = Handlers(self.config, self.keys, self.registry, self.replies, self.intake, self.cook.queue,
-                                 self.admission, lambda: self.ticker.tick, self.info, self._stopping.is_set)
+        self.handlers = Handlers(
+            self.config,
+            self.keys,
+            self.registry,
+            self.replies,
+            self.intake,
+            self.cook.queue,
+            self.admission,
+            lambda: self.ticker.tick,
+            self.info,
+            self._stopping.is_set,
+        )
         self._session: zenoh.Session | None = None
         self._declared: list[Any] = []
         self._query_threads: list[threading.Thread] = []  # one per endpoint, see QUERY_CHANNEL
@@ -133,11 +168,13 @@ class Server:
         ]
         for t in self._threads:
             t.start()
-        self.publisher.stats_pub = s.declare_publisher(self.keys.stats(sid),
-                                                       congestion_control=zenoh.CongestionControl.DROP)
+        self.publisher.stats_pub = s.declare_publisher(
+            self.keys.stats(sid), congestion_control=zenoh.CongestionControl.DROP
+        )
         lv = s.liveliness()
-        self._declared.append(lv.declare_subscriber(self.keys.all_clients_alive, self.handlers.on_client_liveliness,
-                                                    history=True))
+        self._declared.append(
+            lv.declare_subscriber(self.keys.all_clients_alive, self.handlers.on_client_liveliness, history=True)
+        )
         for name, cb in self.handlers.endpoints():
             q = s.declare_queryable(getattr(self.keys, name)(sid), zenoh.handlers.FifoChannel(QUERY_CHANNEL))
             self._declared.append(q)
@@ -145,8 +182,17 @@ class Server:
             t.start()
             self._query_threads.append(t)
         self._token = lv.declare_token(self.keys.alive_server(sid))
-        log.info("drape server %s up: %s solver on %s, %.0f Hz, %s mode, listen %s connect %s, namespace %r",
-                 sid, cfg.solver, self.device_name, cfg.tick_rate, cfg.mode, cfg.listen, cfg.connect, cfg.namespace)
+        log.info(
+            "drape server %s up: %s solver on %s, %.0f Hz, %s mode, listen %s connect %s, namespace %r",
+            sid,
+            cfg.solver,
+            self.device_name,
+            cfg.tick_rate,
+            cfg.mode,
+            cfg.listen,
+            cfg.connect,
+            cfg.namespace,
+        )
 
     def stop(self, timeout: float = 10.0) -> None:
         """Stop serving: no new requests, last tick finishes, publishing stops, everything is

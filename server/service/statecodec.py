@@ -15,6 +15,7 @@ The bytes are exactly those of :func:`drape.client.protocol.encode_state` and
 every layout number, size and the float16 / quant16 / snorm16 arithmetic come from the protocol
 package (``drape.client.protocol.state`` and ``.bundle``); only the batching over cloths is here.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -85,8 +86,11 @@ class FrameEncoder:
             if len(idx) == k:  # every cloth: the frame as is
                 src, local = pos, off
             else:
-                src = (np.concatenate([pos[off[i]:off[i + 1]] for i in idx]) if len(idx) > 1
-                       else pos[off[idx[0]]:off[idx[0] + 1]])
+                src = (
+                    np.concatenate([pos[off[i] : off[i + 1]] for i in idx])
+                    if len(idx) > 1
+                    else pos[off[idx[0]] : off[idx[0] + 1]]
+                )
                 counts = np.array([self._counts[i] for i in idx], np.int64)
                 local = np.zeros(len(idx) + 1, np.int64)
                 np.cumsum(counts, out=local[1:])
@@ -108,8 +112,9 @@ class FrameEncoder:
     def state_size(self, i: int, encoding: int, normals: bool) -> int:
         return state_bytes(self._counts[i], encoding, normals)
 
-    def write_state(self, out: bytearray, at: int, i: int, encoding: int, flags: int,
-                    normals: np.ndarray | None) -> int:
+    def write_state(
+        self, out: bytearray, at: int, i: int, encoding: int, flags: int, normals: np.ndarray | None
+    ) -> int:
         """Write cloth ``i``'s state payload into ``out`` at ``at``; returns where it ends."""
         n = self._counts[i]
         block = n * 3 * P.element_size(encoding)
@@ -118,7 +123,7 @@ class FrameEncoder:
         g = self._groups[encoding]
         s = g.start[i]
         p0 = at + P.STATE_HEADER_SIZE
-        out[p0:p0 + block] = g.data[s:s + block]
+        out[p0 : p0 + block] = g.data[s : s + block]
         end = p0 + block
         if normals is not None:
             P.encode_normals_into(out, end, normals, encoding)
@@ -127,8 +132,9 @@ class FrameEncoder:
 
     def bundle_size(self, cloths: list[tuple[str, int, int, bool]]) -> int:
         """Bytes of a bundle of (cloth id, frame index, encoding, normals) entries."""
-        return P.BUNDLE_HEADER_SIZE + sum(P.bundle_entry_header_size(c) + P.align8(self.state_size(i, e, nr))
-                                          for c, i, e, nr in cloths)
+        return P.BUNDLE_HEADER_SIZE + sum(
+            P.bundle_entry_header_size(c) + P.align8(self.state_size(i, e, nr)) for c, i, e, nr in cloths
+        )
 
     def write_bundle(self, out: bytearray, entries: list[tuple[str, int, int, int, np.ndarray | None]]) -> int:
         """Write a bundle of (cloth id, frame index, encoding, flags, normals) entries into
@@ -146,11 +152,11 @@ class FrameEncoder:
             n_state = self.state_size(i, enc, nrm is not None)
             P.BUNDLE_ENTRY.pack_into(out, at, h, len(cid), n_state)
             e = at + P.BUNDLE_ENTRY_SIZE + len(cid)
-            out[at + P.BUNDLE_ENTRY_SIZE:e] = cid
-            out[e:at + h] = _ENTRY_PAD[:at + h - e]
+            out[at + P.BUNDLE_ENTRY_SIZE : e] = cid
+            out[e : at + h] = _ENTRY_PAD[: at + h - e]
             end = self.write_state(out, at + h, i, enc, flags, nrm)
             at = P.align8(end)
-            out[end:at] = _ENTRY_PAD[:at - end]  # the buffer is reused: padding must be rewritten
+            out[end:at] = _ENTRY_PAD[: at - end]  # the buffer is reused: padding must be rewritten
         return at
 
 

@@ -12,6 +12,7 @@ the tick thread's wait for the previous step's readback plus its non-finite chec
 while the device keeps up); ``encode`` and ``publish`` the publisher thread's encoding and puts
 of one frame; ``tick`` the tick thread's own work per tick.
 """
+
 from __future__ import annotations
 
 import bisect
@@ -22,7 +23,22 @@ PHASES = ("apply", "solve", "readback", "encode", "publish", "tick")
 #: Upper bounds of the phase-duration histogram buckets, in seconds (+Inf is implied): fine
 #: around one 60 Hz tick (16.7 ms), coarse beyond.
 BUCKETS_S: tuple[float, ...] = (
-    0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.004, 0.008, 0.012, 0.0167, 0.025, 0.0333, 0.05, 0.1, 0.25, 0.5, 1.0,
+    0.0001,
+    0.00025,
+    0.0005,
+    0.001,
+    0.002,
+    0.004,
+    0.008,
+    0.012,
+    0.0167,
+    0.025,
+    0.0333,
+    0.05,
+    0.1,
+    0.25,
+    0.5,
+    1.0,
 )
 
 

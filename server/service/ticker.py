@@ -17,6 +17,7 @@ Per tick the Python work is O(commands + changed cloths + non-finite cloths): th
 contiguous array, its publication roster (drape.server.service.publisher.Roster) is rebuilt
 only when the World's layout or a cloth's publication changes, and flags are one array.
 """
+
 from __future__ import annotations
 
 import logging
@@ -56,9 +57,19 @@ _DEFER = ("defer", "")  # _apply_control: not applied this tick, kernels being b
 
 
 class Ticker:
-    def __init__(self, config: ServerConfig, registry: Registry, replies: Replies, intake: Intake, mailbox: Mailbox,
-                 fabrics: FabricStore, admission: Admission, adaptive: AdaptiveQuality,
-                 timers: dict[str, PhaseTimer], make_stats: Callable[[], bytes]) -> None:
+    def __init__(
+        self,
+        config: ServerConfig,
+        registry: Registry,
+        replies: Replies,
+        intake: Intake,
+        mailbox: Mailbox,
+        fabrics: FabricStore,
+        admission: Admission,
+        adaptive: AdaptiveQuality,
+        timers: dict[str, PhaseTimer],
+        make_stats: Callable[[], bytes],
+    ) -> None:
         self.config, self.registry, self.replies, self.intake, self.mailbox = config, registry, replies, intake, mailbox
         self.fabrics, self.admission, self.adaptive, self.timers = fabrics, admission, adaptive, timers
         self.make_stats = make_stats
@@ -216,9 +227,15 @@ class Ticker:
         singles: list[int] = []
         for i, r in enumerate(recs):
             (bundles.setdefault(r.bundle_key, []) if r.bundle_key else singles).append(i)
-        self._roster = Roster(version, [r.id for r in recs], [r.key for r in recs],
-                              [P.ENCODING_IDS[r.encoding] for r in recs], lay.normals.copy(),
-                              np.array(singles, np.int64), [(k, np.array(v, np.int64)) for k, v in bundles.items()])
+        self._roster = Roster(
+            version,
+            [r.id for r in recs],
+            [r.key for r in recs],
+            [P.ENCODING_IDS[r.encoding] for r in recs],
+            lay.normals.copy(),
+            np.array(singles, np.int64),
+            [(k, np.array(v, np.int64)) for k, v in bundles.items()],
+        )
         return self._roster
 
     # --- non-finite cloths -------------------------------------------------------------------------
@@ -245,11 +262,19 @@ class Ticker:
             while times and now - times[0] > self.config.nan_window:
                 times.popleft()
             if len(times) > self.config.nan_max_resets:
-                log.warning("cloth %s of client %s went non-finite %d times in %.0f s: removed", rec.id, rec.client,
-                            len(times), self.config.nan_window)
+                log.warning(
+                    "cloth %s of client %s went non-finite %d times in %.0f s: removed",
+                    rec.id,
+                    rec.client,
+                    len(times),
+                    self.config.nan_window,
+                )
                 self.registry.count("nan_removals")
-                self.registry.bury(rec.id, f"removed by the server: its state went non-finite {len(times)} times "
-                                           f"in {self.config.nan_window:.0f} s")
+                self.registry.bury(
+                    rec.id,
+                    f"removed by the server: its state went non-finite {len(times)} times "
+                    f"in {self.config.nan_window:.0f} s",
+                )
                 self._drop(rec, job)
                 continue
             w.reset(h)
@@ -258,8 +283,13 @@ class Ticker:
             self.registry.count("nan_resets")
             if now - self._nan_warned_at >= NAN_WARN_EVERY_S:
                 more = f" ({self._nan_quiet} more since the last warning)" if self._nan_quiet else ""
-                log.warning("cloth %s of client %s went non-finite at tick %d: reset to its rest pose%s",
-                            rec.id, rec.client, job.tick, more)
+                log.warning(
+                    "cloth %s of client %s went non-finite at tick %d: reset to its rest pose%s",
+                    rec.id,
+                    rec.client,
+                    job.tick,
+                    more,
+                )
                 self._nan_warned_at, self._nan_quiet = now, 0
             else:
                 self._nan_quiet += 1
@@ -276,8 +306,11 @@ class Ticker:
                 log.exception("applying %s failed", type(cmd).__name__)
                 q = getattr(cmd, "query", None)
                 if q is not None:
-                    job.before.append(self.replies.error(q, P.ERR_INTERNAL, f"internal error: {type(e).__name__}: {e}",
-                                                         getattr(cmd, "rid", 0)))
+                    job.before.append(
+                        self.replies.error(
+                            q, P.ERR_INTERNAL, f"internal error: {type(e).__name__}: {e}", getattr(cmd, "rid", 0)
+                        )
+                    )
         slots = self.intake.take_controls()
         if slots:
             self._apply_controls(slots, job)
@@ -312,8 +345,14 @@ class Ticker:
         if rec.removed:  # its client vanished while it was being cooked
             if rec.fabric is not None:
                 self.fabrics.release(rec.fabric)
-            job.before.append(self.replies.error(cmd.query, P.ERR_NOT_FOUND, "cloth was reclaimed before it was added "
-                                                 "(client liveliness token gone)", cmd.rid))
+            job.before.append(
+                self.replies.error(
+                    cmd.query,
+                    P.ERR_NOT_FOUND,
+                    "cloth was reclaimed before it was added (client liveliness token gone)",
+                    cmd.rid,
+                )
+            )
             return
         assert rec.fabric is not None
         params = cmd.params
@@ -335,15 +374,23 @@ class Ticker:
                 job.before.append(self.replies.error(cmd.query, P.ERR_INVALID_VALUE, str(e), cmd.rid))
             else:
                 log.exception("adding cloth %s failed", rec.id)
-                job.before.append(self.replies.error(cmd.query, P.ERR_INTERNAL, f"adding the cloth failed: "
-                                                     f"{type(e).__name__}", cmd.rid))
+                job.before.append(
+                    self.replies.error(
+                        cmd.query, P.ERR_INTERNAL, f"adding the cloth failed: {type(e).__name__}", cmd.rid
+                    )
+                )
             return
         rec.handle = h
         self.live[h] = rec
         rep = P.SubmitReply(rec.id, rec.token, rec.key, rec.n_vertices, self.tick + 1, cmd.rid, rec.bundle_key)
         job.before.append(Reply(cmd.query, P.encode_submit_reply(rep)))
-        log.info("cloth %s added for client %s: %d vertices, %d links", rec.id, rec.client, rec.n_vertices,
-                 rec.fabric.n_links)
+        log.info(
+            "cloth %s added for client %s: %d vertices, %d links",
+            rec.id,
+            rec.client,
+            rec.n_vertices,
+            rec.fabric.n_links,
+        )
 
     def _apply_controls(self, slots: list[ControlSlot], job: Job) -> None:
         """Each cloth's merged control; the pin targets of all of them gathered into one call
@@ -365,8 +412,11 @@ class Ticker:
             feats = self._features(slot.record) if err is None else None
             for waiter, tag in slot.waiters:
                 if isinstance(waiter, BatchControl):
-                    waiter.results[tag] = (P.BatchItemResult(tick, features=feats if waiter.features else None)
-                                           if err is None else P.BatchItemResult(None, *err))
+                    waiter.results[tag] = (
+                        P.BatchItemResult(tick, features=feats if waiter.features else None)
+                        if err is None
+                        else P.BatchItemResult(None, *err)
+                    )
                     if err is not None:
                         self.registry.error(err[0])
                     waiter.pending -= 1
@@ -385,11 +435,11 @@ class Ticker:
         if deferred:
             self.intake.requeue(deferred)
             slots = [s for s in slots if s not in deferred]
-        self.registry.count_many(controls_applied=len(slots),
-                                 controls_coalesced=sum(s.merged - 1 for s in slots))
+        self.registry.count_many(controls_applied=len(slots), controls_coalesced=sum(s.merged - 1 for s in slots))
 
-    def _apply_control(self, slot: ControlSlot,
-                       pins: tuple[list[int], list[np.ndarray], list[np.ndarray]]) -> tuple[str, str] | None:
+    def _apply_control(
+        self, slot: ControlSlot, pins: tuple[list[int], list[np.ndarray], list[np.ndarray]]
+    ) -> tuple[str, str] | None:
         """Apply one cloth's merged control: None, or (code, message) when it is refused now (the
         cloth went away, or its new parameters are invalid); nothing of a refused control is applied."""
         w = self.world
@@ -417,8 +467,12 @@ class Ticker:
                 except P.DrapeError as e:
                     return e.code, e.message
                 rec.quality_wanted, rec.quality = req.quality, eff
-            if new.features != p.features and slot.deferred < MAX_DEFER_TICKS and rec.fabric is not None \
-                    and not w.ready(rec.fabric, new):
+            if (
+                new.features != p.features
+                and slot.deferred < MAX_DEFER_TICKS
+                and rec.fabric is not None
+                and not w.ready(rec.fabric, new)
+            ):
                 self.request_prepare(rec.fabric, new)  # the cook thread builds; applied once built
                 return _DEFER
             if new != p:

@@ -4,6 +4,7 @@ quality presets. numpy and OpenCL only: no Zenoh, no threads.
 ``make_world(solver)`` is the one place that picks a World back end (world.py defines the
 interface and the reference back end, opencl/clworld.py the OpenCL one; neither imports the
 other's module the other way round)."""
+
 from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any

@@ -11,6 +11,7 @@ implementation, here kept in float64. Tether anchors (each free vertex's nearest
 are found in bounded memory, and only for fabrics cooked with ``tethers=True`` or when first
 asked for (Fabric.tethers), so a cloth without tethers never pays for them.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -420,8 +421,9 @@ def vertex_masses(fabric: Fabric, total_mass: float) -> np.ndarray:
     return total_mass * a / a.sum()
 
 
-def tether_anchors(v: np.ndarray, pinned: np.ndarray,
-                   pairs_per_chunk: int = TETHER_PAIRS_PER_CHUNK) -> tuple[np.ndarray, np.ndarray]:
+def tether_anchors(
+    v: np.ndarray, pinned: np.ndarray, pairs_per_chunk: int = TETHER_PAIRS_PER_CHUNK
+) -> tuple[np.ndarray, np.ndarray]:
     """Each free vertex's nearest pinned vertex (int32, -1 for pinned vertices or when none is
     pinned; the lowest index among equally near ones) and the rest distance to it (float64).
 
@@ -442,7 +444,7 @@ def tether_anchors(v: np.ndarray, pinned: np.ndarray,
     pv = np.ascontiguousarray(v[pins])
     free = free[np.argsort(_morton(v[free]), kind="stable")]
     for g in range(0, len(free), TETHER_GROUP):
-        idx = free[g:g + TETHER_GROUP]
+        idx = free[g : g + TETHER_GROUP]
         x = v[idx]
         centre = 0.5 * (x.min(axis=0) + x.max(axis=0))
         radius = float(np.sqrt(((x - centre) ** 2).sum(axis=1).max()))
@@ -452,9 +454,9 @@ def tether_anchors(v: np.ndarray, pinned: np.ndarray,
         sel = np.flatnonzero(dc <= reach)  # ascending: ties still go to the lowest pin index
         rows = max(1, int(pairs_per_chunk) // len(sel))
         for s in range(0, len(idx), rows):
-            a, d = _nearest_pins(x[s:s + rows], pv[sel])
-            anchor[idx[s:s + rows]] = pins[sel[a]]
-            length[idx[s:s + rows]] = d
+            a, d = _nearest_pins(x[s : s + rows], pv[sel])
+            anchor[idx[s : s + rows]] = pins[sel[a]]
+            length[idx[s : s + rows]] = d
     return anchor, length
 
 

@@ -6,6 +6,7 @@ defaults, default gravity, wind, iterations, substeps) is the wire protocol's
 side (kernel build options, collider packing for the device, validation of a whole cloth).
 Nothing here touches a device or the network.
 """
+
 from __future__ import annotations
 
 import math
@@ -107,8 +108,9 @@ class Material:
     tether_limit: float = _FLOAT_DEFAULTS["tether_limit"]
 
 
-assert tuple(f.name for f in fields(Material)) == tuple(MATERIAL_FIELDS), \
+assert tuple(f.name for f in fields(Material)) == tuple(MATERIAL_FIELDS), (
     "params.Material must list protocol.MATERIAL_FIELDS"
+)
 
 # Colliders are the protocol's dataclasses (Sphere, Capsule, Plane: the half space n.x >= offset is
 # outside, n normalised on packing); their type ids on the device follow protocol.COLLIDER_TYPES.

@@ -20,6 +20,7 @@ Adaptive quality, for a server under load (the tick loop owns the policy; this i
 (``World.set_params``) between ticks. Changing iterations or tethers keeps a cloth in the same
 kernel group; switching XPBD on or off or changing substeps regroups it (see clworld).
 """
+
 from __future__ import annotations
 
 import math
@@ -48,15 +49,43 @@ class Preset:
 PRESETS: dict[str, Preset] = {
     p.name: p
     for p in (
-        Preset("fast", 1, 5, True, True, cost=0.97, max_strain=1.70, mean_strain=0.051,
-               note="Small Steps and tethers for less than the plain 10-iteration solve (which "
-                    "stretches 44x at its worst, 26% on average)"),
-        Preset("balanced", 1, 20, True, True, cost=3.3, max_strain=0.36, mean_strain=0.0071,
-               note="mean strain under 1%"),
-        Preset("accurate", 1, 80, True, True, cost=12.6, max_strain=0.067, mean_strain=0.0011,
-               note="max strain under 10% through the whole fall and swing, mean 0.1%"),
-        Preset("exact", 2, 100, True, True, cost=27.0, max_strain=0.055, mean_strain=0.0005,
-               note="reference-like: mean 0.05%, max under 1% once swinging (0.8% at t = 2 s)"),
+        Preset(
+            "fast",
+            1,
+            5,
+            True,
+            True,
+            cost=0.97,
+            max_strain=1.70,
+            mean_strain=0.051,
+            note="Small Steps and tethers for less than the plain 10-iteration solve (which "
+            "stretches 44x at its worst, 26% on average)",
+        ),
+        Preset(
+            "balanced", 1, 20, True, True, cost=3.3, max_strain=0.36, mean_strain=0.0071, note="mean strain under 1%"
+        ),
+        Preset(
+            "accurate",
+            1,
+            80,
+            True,
+            True,
+            cost=12.6,
+            max_strain=0.067,
+            mean_strain=0.0011,
+            note="max strain under 10% through the whole fall and swing, mean 0.1%",
+        ),
+        Preset(
+            "exact",
+            2,
+            100,
+            True,
+            True,
+            cost=27.0,
+            max_strain=0.055,
+            mean_strain=0.0005,
+            note="reference-like: mean 0.05%, max under 1% once swinging (0.8% at t = 2 s)",
+        ),
     )
 }
 ORDER: tuple[str, ...] = tuple(PRESETS)
@@ -126,8 +155,9 @@ class QualityGovernor:
     predicted to fit, from the presets' measured relative costs): one step back up toward
     ``wanted``."""
 
-    def __init__(self, wanted: str = DEFAULT, budget_ms: float = 16.0, patience: int = 3,
-                 headroom: float = 0.6) -> None:
+    def __init__(
+        self, wanted: str = DEFAULT, budget_ms: float = 16.0, patience: int = 3, headroom: float = 0.6
+    ) -> None:
         self.wanted = preset(wanted).name
         self.current = self.wanted
         self.budget_ms = float(budget_ms)

@@ -12,6 +12,7 @@ the order of ``handles``), read back in one copy into a host buffer the World re
 are valid until their buffer is reused: the World keeps at least the last two fetched frames
 intact; a consumer that needs one longer ``hold()``s it and ``release()``s it when done.
 """
+
 from __future__ import annotations
 
 import itertools
@@ -104,7 +105,7 @@ class _Rows(Mapping):
     def __getitem__(self, handle: int) -> np.ndarray:
         i = self._i(handle)
         off = self._f.layout.offsets
-        return self._data[off[i]:off[i + 1]]  # type: ignore[index]
+        return self._data[off[i] : off[i + 1]]  # type: ignore[index]
 
     def __contains__(self, handle: object) -> bool:
         try:
@@ -131,8 +132,9 @@ class Frame:
     ``nxyz`` the same for normals (rows of cloths without normals are unspecified), or None.
     ``positions[h]`` / ``normals[h]`` are views of those rows by handle."""
 
-    def __init__(self, step: int, layout: Layout, xyz: np.ndarray, nxyz: np.ndarray | None,
-                 buffer: HostBuffer | None = None) -> None:
+    def __init__(
+        self, step: int, layout: Layout, xyz: np.ndarray, nxyz: np.ndarray | None, buffer: HostBuffer | None = None
+    ) -> None:
         self.step = step
         self.layout = layout
         self.xyz = xyz
@@ -195,8 +197,9 @@ class Frame:
 class PendingFrame:
     """A frame whose readback may still be in flight: ``wait()`` returns it."""
 
-    def __init__(self, frame: Frame, wait: Callable[[], None] | None = None,
-                 device_s: Callable[[], float | None] | None = None) -> None:
+    def __init__(
+        self, frame: Frame, wait: Callable[[], None] | None = None, device_s: Callable[[], float | None] | None = None
+    ) -> None:
         self._frame, self._wait, self._device_s = frame, wait, device_s
 
     def wait(self) -> Frame:
@@ -222,8 +225,13 @@ class World(ABC):
         self._layout_version = 0
 
     # --- cloth lifecycle -------------------------------------------------------------------
-    def add(self, fabric: Fabric, params: ClothParams, positions: np.ndarray | None = None,
-            velocities: np.ndarray | None = None) -> int:
+    def add(
+        self,
+        fabric: Fabric,
+        params: ClothParams,
+        positions: np.ndarray | None = None,
+        velocities: np.ndarray | None = None,
+    ) -> int:
         """Add a cloth at ``positions`` (default: its rest pose) moving at ``velocities`` (m/s,
         default zero; protocol 1.3 ``resume``: a cloth continued from another server's state).
         Pinned vertices start at ``positions`` with their pin targets there, and keep zero velocity."""
@@ -286,8 +294,9 @@ class World(ABC):
             raise ValueError("targets must be finite")
         self._set_targets(cloth, idx, tgt)
 
-    def set_pin_targets_many(self, handles: list[int], indices: list[np.ndarray], targets: list[np.ndarray],
-                             validated: bool = False) -> None:
+    def set_pin_targets_many(
+        self, handles: list[int], indices: list[np.ndarray], targets: list[np.ndarray], validated: bool = False
+    ) -> None:
         """Pin targets of many cloths at once (one upload before the next step): cloth
         ``handles[j]`` gets ``targets[j]`` for its vertices ``indices[j]``. ``validated``: the
         caller has checked ranges, pinned vertices and finiteness (the service's handlers do)."""
@@ -329,8 +338,9 @@ class World(ABC):
             np.cumsum(np.fromiter((c.fabric.n_vertices for c in cl), np.int64, len(cl)), out=offsets[1:])
             normals = np.fromiter((c.params.features.normals for c in cl), bool, len(cl))
             self._layout_version += 1
-            self._layout = Layout(self._layout_version, handles, offsets, normals,
-                                  {int(h): i for i, h in enumerate(handles.tolist())})
+            self._layout = Layout(
+                self._layout_version, handles, offsets, normals, {int(h): i for i, h in enumerate(handles.tolist())}
+            )
             self._layout_changed(self._layout)
         return self._layout
 

@@ -30,6 +30,7 @@ Writes the section as JSON (``--out``, default stdout), or a whole router config
 (``--router-config deploy/zenoh-router.json5 --out router.json5``), and optionally the
 user/password dictionary file of Zenoh's usrpwd authentication (``--dictionary``).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -117,8 +118,10 @@ def load_users(path: str | Path) -> UsersFile:
 def _rules(rid: str, messages: list[str], flow: str, keys: list[str]) -> list[dict[str, Any]]:
     """One allow rule per message kind, ``{rid}-{message}``: each permission reads (and is audited)
     on its own."""
-    return [{"id": f"{rid}-{m}", "messages": [m], "flows": [flow], "permission": "allow",
-             "key_exprs": sorted(set(keys))} for m in messages]
+    return [
+        {"id": f"{rid}-{m}", "messages": [m], "flows": [flow], "permission": "allow", "key_exprs": sorted(set(keys))}
+        for m in messages
+    ]
 
 
 def server_rules(keys: Keys, user: User) -> list[dict[str, Any]]:
@@ -130,8 +133,9 @@ def server_rules(keys: Keys, user: User) -> list[dict[str, Any]]:
         *_rules(f"{p}-serve", ["declare_queryable", "reply"], "ingress", queryables),
         *_rules(f"{p}-publish", ["put"], "ingress", publications),
         *_rules(f"{p}-token", ["liveliness_token"], "ingress", [keys.alive_server(sid)]),
-        *_rules(f"{p}-watch", ["declare_liveliness_subscriber", "liveliness_query"], "ingress",
-              [keys.all_clients_alive]),
+        *_rules(
+            f"{p}-watch", ["declare_liveliness_subscriber", "liveliness_query"], "ingress", [keys.all_clients_alive]
+        ),
         # to the server: the queries, the subscriptions that make its publications matched, client tokens
         *_rules(f"{p}-queries", ["query"], "egress", queryables),
         *_rules(f"{p}-matched", ["declare_subscriber"], "egress", publications),
@@ -154,8 +158,9 @@ def client_rules(keys: Keys, user: User, cloth_states: str = "deny", stats: bool
         *_rules(f"{p}-request", ["query"], "ingress", queryables),
         *_rules(f"{p}-subscribe", ["declare_subscriber"], "ingress", readable),
         *_rules(f"{p}-token", ["liveliness_token"], "ingress", [keys.alive_client(cid)]),
-        *_rules(f"{p}-discover", ["declare_liveliness_subscriber", "liveliness_query"], "ingress",
-              [keys.all_servers_alive]),
+        *_rules(
+            f"{p}-discover", ["declare_liveliness_subscriber", "liveliness_query"], "ingress", [keys.all_servers_alive]
+        ),
         # to the client: replies, its readable publications, servers' tokens and queryables
         *_rules(f"{p}-replies", ["reply", "declare_queryable"], "egress", queryables),
         *_rules(f"{p}-receive", ["put"], "egress", readable),
@@ -179,8 +184,7 @@ def access_control(users: UsersFile, cloth_states: str = "deny", stats: bool = T
             subject["cert_common_names"] = [u.cert_common_name]
         subjects.append(subject)
         policies.append({"id": f"p-{u.name}", "rules": [r["id"] for r in mine], "subjects": [subject["id"]]})
-    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
-            "policies": policies}
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 
 
 def dictionary(users: UsersFile) -> str:
@@ -206,24 +210,38 @@ def router_config(template: str | Path, section: dict[str, Any]) -> str:
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("users", help="users file (TOML), e.g. deploy/users.example.toml")
     parser.add_argument("--out", "-o", help="write here instead of stdout")
-    parser.add_argument("--router-config", metavar="JSON5",
-                        help="write this router configuration with the generated access_control inserted "
-                             "(e.g. deploy/zenoh-router.json5) instead of the section alone")
-    parser.add_argument("--cloth-states", choices=CLOTH_STATE_POLICIES, default="deny",
-                        help="per-cloth state keys carry no client id: deny them to clients (bundles only) or "
-                             "let any client read any cloth (default: deny)")
-    parser.add_argument("--no-stats", dest="stats", action="store_false",
-                        help="do not let clients subscribe to the servers' stats")
-    parser.add_argument("--dictionary", metavar="FILE",
-                        help="also write Zenoh's user:password dictionary (mode 0600) from the users' passwords")
+    parser.add_argument(
+        "--router-config",
+        metavar="JSON5",
+        help="write this router configuration with the generated access_control inserted "
+        "(e.g. deploy/zenoh-router.json5) instead of the section alone",
+    )
+    parser.add_argument(
+        "--cloth-states",
+        choices=CLOTH_STATE_POLICIES,
+        default="deny",
+        help="per-cloth state keys carry no client id: deny them to clients (bundles only) or "
+        "let any client read any cloth (default: deny)",
+    )
+    parser.add_argument(
+        "--no-stats", dest="stats", action="store_false", help="do not let clients subscribe to the servers' stats"
+    )
+    parser.add_argument(
+        "--dictionary",
+        metavar="FILE",
+        help="also write Zenoh's user:password dictionary (mode 0600) from the users' passwords",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     try:
         users = load_users(args.users)
         section = access_control(users, args.cloth_states, args.stats)
-        text = (router_config(args.router_config, section) if args.router_config
-                else json.dumps({"access_control": section}, indent=2) + "\n")
+        text = (
+            router_config(args.router_config, section)
+            if args.router_config
+            else json.dumps({"access_control": section}, indent=2) + "\n"
+        )
         secrets_text = dictionary(users) if args.dictionary else None
     except (OSError, ValueError) as e:
         log.error("%s", e)

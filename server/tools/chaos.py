@@ -18,6 +18,7 @@ Scenarios (``drape chaos --list``): fuzz, flood-ids, big-submit, big-cook, tiny-
 new-features, kill, pause. Each is bounded in messages and seconds; a server passing
 ``--rss-limit-mb`` is killed (and that is a failure). Prints a table; ``--json`` writes the report.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -42,8 +43,12 @@ def run_scenarios(names: list[str], ctx: Context) -> dict[str, Any]:
     """Run the named scenarios one after the other; a scenario that raises is a failure too."""
     report: dict[str, Any] = {
         "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
-                    "load_avg": os.getloadavg()},
+        "machine": {
+            "cpus": os.cpu_count(),
+            "platform": platform.platform(),
+            "python": platform.python_version(),
+            "load_avg": os.getloadavg(),
+        },
         "context": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(ctx).items()},
         "scenarios": {},
     }
@@ -64,8 +69,16 @@ def run_scenarios(names: list[str], ctx: Context) -> dict[str, Any]:
 
 
 COLUMNS = (
-    ("scenario", 13), ("verdict", 7), ("base Hz/missed", 14), ("good Hz", 8), ("missed", 7), ("lost", 6),
-    ("gap ms", 8), ("tb", 4), ("RSS MB before>after", 20), ("errors", 30),
+    ("scenario", 13),
+    ("verdict", 7),
+    ("base Hz/missed", 14),
+    ("good Hz", 8),
+    ("missed", 7),
+    ("lost", 6),
+    ("gap ms", 8),
+    ("tb", 4),
+    ("RSS MB before>after", 20),
+    ("errors", 30),
 )
 
 
@@ -81,11 +94,23 @@ def format_table(report: dict[str, Any]) -> str:
         rss = f"{_cell(r, 'rss_before_mb')}>{_cell(r, 'rss_after_mb')}"
         b = r.get("baseline") or {}
         base = f"{_cell(b, 'good_rate_hz')}/{_cell(b, 'missed_ticks')}" if b else "-"
-        cells = [name, "PASS" if r["passed"] else "FAIL", base, _cell(r, "good_rate_hz"), _cell(r, "missed_ticks"),
-                 _cell(r, "good_lost"), _cell(r, "good_worst_gap_ms"), _cell(r, "tracebacks"), rss, errors[:30]]
+        cells = [
+            name,
+            "PASS" if r["passed"] else "FAIL",
+            base,
+            _cell(r, "good_rate_hz"),
+            _cell(r, "missed_ticks"),
+            _cell(r, "good_lost"),
+            _cell(r, "good_worst_gap_ms"),
+            _cell(r, "tracebacks"),
+            rss,
+            errors[:30],
+        ]
         lines.append("  ".join(c.ljust(w) for c, (_, w) in zip(cells, COLUMNS, strict=True)))
-    lines.append("(base: the good client and missed ticks before the abuse, the machine's own noise; "
-                 "gap: worst gap between a good client's states; tb: tracebacks in the server log)")
+    lines.append(
+        "(base: the good client and missed ticks before the abuse, the machine's own noise; "
+        "gap: worst gap between a good client's states; tb: tracebacks in the server log)"
+    )
     lines.append("")
     for name, r in report["scenarios"].items():
         for f in r["fails"]:
@@ -95,8 +120,9 @@ def format_table(report: dict[str, Any]) -> str:
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("scenarios", nargs="*", metavar="SCENARIO",
-                        help=f"scenarios to run (default: all): {', '.join(SCENARIOS)}")
+    parser.add_argument(
+        "scenarios", nargs="*", metavar="SCENARIO", help=f"scenarios to run (default: all): {', '.join(SCENARIOS)}"
+    )
     parser.add_argument("--list", action="store_true", help="list the scenarios and exit")
     parser.add_argument("--json", metavar="FILE", help="write the report as JSON")
     parser.add_argument("--out", metavar="DIR", help="server logs go here (default: a temporary directory)")
@@ -105,14 +131,23 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fuzz-count", type=int, default=2000, help="fuzz: malformed messages (default 2000)")
     parser.add_argument("--flood-ids", type=int, default=2000, help="flood-ids: client ids (default 2000)")
     parser.add_argument("--pause-seconds", type=float, default=20.0, help="pause: SIGSTOP length (default 20)")
-    parser.add_argument("--max-message-bytes", type=int, default=8 << 20,
-                        help="the servers' max_message_bytes, the fuzzer's largest message (default 8 MiB)")
-    parser.add_argument("--rss-limit-mb", type=float, default=4096.0,
-                        help="kill a server whose RSS passes this (default 4096)")
+    parser.add_argument(
+        "--max-message-bytes",
+        type=int,
+        default=8 << 20,
+        help="the servers' max_message_bytes, the fuzzer's largest message (default 8 MiB)",
+    )
+    parser.add_argument(
+        "--rss-limit-mb", type=float, default=4096.0, help="kill a server whose RSS passes this (default 4096)"
+    )
     parser.add_argument("--grace-period", type=float, default=5.0, help="the servers' grace period (default 5)")
     parser.add_argument("--seed", type=int, default=1, help="fuzz seed (default 1)")
-    parser.add_argument("--serve-args", default="", metavar="ARGS",
-                        help="extra `drape serve` arguments for every server, e.g. --serve-args=--no-admission")
+    parser.add_argument(
+        "--serve-args",
+        default="",
+        metavar="ARGS",
+        help="extra `drape serve` arguments for every server, e.g. --serve-args=--no-admission",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -127,10 +162,19 @@ def run(args: argparse.Namespace) -> int:
         return 2
     out = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="drape-chaos-"))
     out.mkdir(parents=True, exist_ok=True)
-    ctx = Context(out=out, seconds=args.seconds, baseline_s=args.baseline, fuzz_count=args.fuzz_count,
-                  flood_ids=args.flood_ids, pause_s=args.pause_seconds, max_message_bytes=args.max_message_bytes,
-                  rss_limit_mb=args.rss_limit_mb, seed=args.seed, grace_period=args.grace_period,
-                  serve_args=tuple(shlex.split(args.serve_args)))
+    ctx = Context(
+        out=out,
+        seconds=args.seconds,
+        baseline_s=args.baseline,
+        fuzz_count=args.fuzz_count,
+        flood_ids=args.flood_ids,
+        pause_s=args.pause_seconds,
+        max_message_bytes=args.max_message_bytes,
+        rss_limit_mb=args.rss_limit_mb,
+        seed=args.seed,
+        grace_period=args.grace_period,
+        serve_args=tuple(shlex.split(args.serve_args)),
+    )
     report = run_scenarios(names, ctx)
     print(format_table(report))
     print(f"server logs: {out}")

@@ -6,6 +6,7 @@ Scenarios: ``fuzz`` (in :mod:`.chaos_fuzz`), ``flood-ids``, ``big-submit``, ``bi
 ``tiny-mass``, ``new-features``, ``kill``, ``pause``. Every one is bounded in messages and seconds
 and talks only to 127.0.0.1.
 """
+
 from __future__ import annotations
 
 import functools
@@ -61,10 +62,19 @@ class Stage:
 
     def __init__(self, ctx: Context, name: str, server_args: tuple[str, ...] = (), good_cloths: int = 1) -> None:
         self.ctx = ctx
-        self.server = ChaosServer(ctx.out, name, ("--grace-period", str(ctx.grace_period),
-                                                  "--max-message-bytes", str(ctx.max_message_bytes), *ctx.serve_args,
-                                                  *server_args),
-                                  rss_limit_mb=ctx.rss_limit_mb)
+        self.server = ChaosServer(
+            ctx.out,
+            name,
+            (
+                "--grace-period",
+                str(ctx.grace_period),
+                "--max-message-bytes",
+                str(ctx.max_message_bytes),
+                *ctx.serve_args,
+                *server_args,
+            ),
+            rss_limit_mb=ctx.rss_limit_mb,
+        )
         self.good: GoodClient | None = None
         self.name = name
         self.good_cloths = good_cloths
@@ -94,14 +104,25 @@ class Stage:
         w = Window.open(self.server)
         time.sleep(self.ctx.baseline_s)
         b = w.close([self.good] if self.good else [])
-        return {k: b[k] for k in ("good_rate_hz", "missed_ticks", "good_lost", "good_worst_gap_ms", "server_tick_hz",
-                                  "rss_after_mb") if k in b}
+        return {
+            k: b[k]
+            for k in (
+                "good_rate_hz",
+                "missed_ticks",
+                "good_lost",
+                "good_worst_gap_ms",
+                "server_tick_hz",
+                "rss_after_mb",
+            )
+            if k in b
+        }
 
     def request(self, queryable: str, payload: bytes, timeout: float = 60.0) -> tuple[str, dict[str, Any]]:
         """One query; (outcome, reply map) with outcome ``ok``, an error code, or ``no_reply``."""
         assert self.session is not None
-        for reply in self.session.get(getattr(self.keys, queryable)(self.server.server_id), payload=payload,
-                                      timeout=timeout):
+        for reply in self.session.get(
+            getattr(self.keys, queryable)(self.server.server_id), payload=payload, timeout=timeout
+        ):
             outcome = reply_outcome(reply)
             data = reply.ok.payload.to_bytes() if reply.ok is not None else b""
             return outcome, (msgpack.unpackb(data, raw=False) if data else {})
@@ -131,9 +152,12 @@ class Stage:
             if reply.ok is not None:
                 box["reply"] = msgpack.unpackb(reply.ok.payload.to_bytes(), raw=False)
 
-        self.session.get(self.keys.submit(self.server.server_id),
-                         zenoh.handlers.Callback(on_reply, box["done"].set), payload=P.encode_submit(req),
-                         timeout=timeout)
+        self.session.get(
+            self.keys.submit(self.server.server_id),
+            zenoh.handlers.Callback(on_reply, box["done"].set),
+            payload=P.encode_submit(req),
+            timeout=timeout,
+        )
         return box
 
     def remove(self, reply: dict[str, Any]) -> str:
@@ -185,9 +209,17 @@ def fuzz(ctx: Context, count: int | None = None) -> dict[str, Any]:
         c = chaos_fuzz.send_all(st.session, st.keys, st.server.server_id, msgs)
         m = w.close([st.good] if st.good else [], settle_s=ctx.grace_period + 2.0)
         after = st.submit_retrying(grid_request("after-fuzz", 8))
-    m.update(baseline=base, sent=c.sent, outcomes=dict(c.outcomes), no_reply=c.no_reply,
-             internal=c.outcomes.get("internal", 0), internal_kinds=dict(c.internal_kinds.most_common(10)),
-             by_kind=dict(c.by_kind), valid_submit_after=after, first_submit=outcome)
+    m.update(
+        baseline=base,
+        sent=c.sent,
+        outcomes=dict(c.outcomes),
+        no_reply=c.no_reply,
+        internal=c.outcomes.get("internal", 0),
+        internal_kinds=dict(c.internal_kinds.most_common(10)),
+        by_kind=dict(c.by_kind),
+        valid_submit_after=after,
+        first_submit=outcome,
+    )
     fails = judge(m)
     if m["internal"]:
         fails.append(f"{m['internal']} 'internal' error replies")
@@ -217,16 +249,26 @@ def flood_ids(ctx: Context) -> dict[str, Any]:
                     o = reply_outcome(reply)
                     outcomes[o] = outcomes.get(o, 0) + 1
 
-            st.session.get(st.keys.submit(st.server.server_id), zenoh.handlers.Callback(on_reply, slots.release),
-                           payload=P.encode_submit(grid_request(f"flood-{i}", 8)), timeout=60)
+            st.session.get(
+                st.keys.submit(st.server.server_id),
+                zenoh.handlers.Callback(on_reply, slots.release),
+                payload=P.encode_submit(grid_request(f"flood-{i}", 8)),
+                timeout=60,
+            )
         for _ in range(16):
             slots.acquire(timeout=120)
         peak = st.server.stats.next(10) or {}
         newcomer = st.submit_retrying(grid_request("newcomer", 8))
         rss_peak = st.server.rss_mb()
         m = w.close([st.good] if st.good else [], settle_s=ctx.grace_period + 3.0)
-    m.update(baseline=base, submitted=ctx.flood_ids, outcomes=outcomes, cloths_at_peak=peak.get("cloths"),
-             rss_peak_mb=round(rss_peak, 1), newcomer_submit=newcomer)
+    m.update(
+        baseline=base,
+        submitted=ctx.flood_ids,
+        outcomes=outcomes,
+        cloths_at_peak=peak.get("cloths"),
+        rss_peak_mb=round(rss_peak, 1),
+        newcomer_submit=newcomer,
+    )
     fails = judge(m)
     if newcomer != "ok":
         fails.append(f"a new genuine client's submit got {newcomer} during the flood")
@@ -247,8 +289,12 @@ def _one_heavy(ctx: Context, name: str, req: P.SubmitRequest, wait_s: float) -> 
         removed = st.remove(box.get("reply", {})) if st.server.alive() else "server gone"
         time.sleep(2.0)
         m["rss_after_mb"] = round(st.server.rss_mb(), 1)
-    m.update(baseline=base, submit_outcome=box.get("outcome", "no reply yet"),
-             submit_reply_s=None if replied_s is None else round(replied_s, 2), removed=removed)
+    m.update(
+        baseline=base,
+        submit_outcome=box.get("outcome", "no reply yet"),
+        submit_reply_s=None if replied_s is None else round(replied_s, 2),
+        removed=removed,
+    )
     return {**m, "fails": judge(m)}
 
 
@@ -260,8 +306,9 @@ def big_submit(ctx: Context) -> dict[str, Any]:
 
 def big_cook(ctx: Context) -> dict[str, Any]:
     """A 256x256 cloth with 32,768 pinned vertices (every other one): the cook's cost."""
-    req = P.SubmitRequest(client="cook", grid=P.GridSpec(256, 256), pinned=np.arange(0, 65536, 2, dtype=np.uint32),
-                          features=("tethers",))
+    req = P.SubmitRequest(
+        client="cook", grid=P.GridSpec(256, 256), pinned=np.arange(0, 65536, 2, dtype=np.uint32), features=("tethers",)
+    )
     return _one_heavy(ctx, "big-cook", req, max(ctx.seconds, 20.0))
 
 
@@ -277,10 +324,13 @@ def tiny_mass(ctx: Context, cloths: int = 64) -> dict[str, Any]:
             st.remove(r)
         time.sleep(1.0)
         m["rss_after_mb"] = round(st.server.rss_mb(), 1)
-    m.update(baseline=base, accepted=sum(o == "ok" for o, _ in replies),
-             submit_outcomes=dict(Counter(o for o, _ in replies)),
-             nan_resets_per_s=round(m["nan_resets"] / max(m["seconds"], 1e-9), 1),
-             log_warnings_per_s=round(m["log_warnings"] / max(m["seconds"], 1e-9), 1))
+    m.update(
+        baseline=base,
+        accepted=sum(o == "ok" for o, _ in replies),
+        submit_outcomes=dict(Counter(o for o, _ in replies)),
+        nan_resets_per_s=round(m["nan_resets"] / max(m["seconds"], 1e-9), 1),
+        log_warnings_per_s=round(m["log_warnings"] / max(m["seconds"], 1e-9), 1),
+    )
     fails = judge(m)
     if m["log_warnings_per_s"] > 1.0:
         fails.append(f"{m['log_warnings_per_s']} warning lines per second in the server log")
@@ -300,16 +350,18 @@ def new_features(ctx: Context) -> dict[str, Any]:
             st.remove(r)
         time.sleep(0.5)
         m = w.close([st.good] if st.good else [])
-    m.update(baseline=base, combinations=len(combos), accepted=outcomes.count("ok"),
-             submit_outcomes=dict(Counter(outcomes)))
+    m.update(
+        baseline=base, combinations=len(combos), accepted=outcomes.count("ok"), submit_outcomes=dict(Counter(outcomes))
+    )
     fails = judge(m, rss=False)
     if m.get("good_worst_gap_ms", 0) > 2000.0 / TICK_HZ:
         fails.append(f"worst gap between good states {m['good_worst_gap_ms']} ms > 2 ticks")
     return {**m, "fails": fails}
 
 
-def _failover_client_main(endpoints: list[str], server_id: str, client_id: str, cloths: int, size: int,
-                          records: Any, ready: Any, stop: Any) -> None:
+def _failover_client_main(
+    endpoints: list[str], server_id: str, client_id: str, cloths: int, size: int, records: Any, ready: Any, stop: Any
+) -> None:
     """A game client process with the SDK's failover on: its states as (cloth index, tick, time),
     each failover event, and the distance of the first state after a failover to the last before."""
     logging.basicConfig(level=logging.WARNING)
@@ -329,14 +381,26 @@ def _failover_client_main(endpoints: list[str], server_id: str, client_id: str, 
 
             def on_failover(ev: Any) -> None:
                 j = next((k for k, h in enumerate(handles) if h is ev.handle), -1)
-                records.put(("failover", j, ev.reason, ev.ok, ev.kept, ev.new_server, ev.detected_ns / 1e9,
-                             ev.done_ns / 1e9, ev.resumed_tick))
+                records.put(
+                    (
+                        "failover",
+                        j,
+                        ev.reason,
+                        ev.ok,
+                        ev.kept,
+                        ev.new_server,
+                        ev.detected_ns / 1e9,
+                        ev.done_ns / 1e9,
+                        ev.resumed_tick,
+                    )
+                )
 
             client.on_failover(on_failover)
             for j in range(cloths):
                 # horizontal at rest: hanging from two corners after a second or two, far from its rest pose
-                h = client.submit_grid(size, size, 0.5, 0.5, origin=(1.0 * j, 2.0, 0.0), pinned=[0, size - 1],
-                                       material={"damping": 0.1})
+                h = client.submit_grid(
+                    size, size, 0.5, 0.5, origin=(1.0 * j, 2.0, 0.0), pinned=[0, size - 1], material={"damping": 0.1}
+                )
                 h.on_state(functools.partial(on_state, j=j))
                 handles.append(h)
             records.put(("ready", [h.id for h in handles], client.client_id, time.monotonic()))
@@ -365,9 +429,12 @@ class FailoverClient(GoodClient):
         self.events: list[tuple[Any, ...]] = []
         self.jumps: dict[int, list[float]] = {}
         self._empty = queue_mod.Empty
-        self.proc = ctx.Process(target=_failover_client_main, name=self.client_id, daemon=True,
-                                args=(endpoints, server_id, self.client_id, cloths, size, self.records, self.ready,
-                                      self.stop_event))
+        self.proc = ctx.Process(
+            target=_failover_client_main,
+            name=self.client_id,
+            daemon=True,
+            args=(endpoints, server_id, self.client_id, cloths, size, self.records, self.ready, self.stop_event),
+        )
         self.proc.start()
         self._drain = threading.Thread(target=self._drain_loop, daemon=True)
         self._drain.start()
@@ -408,12 +475,26 @@ class FailoverClient(GoodClient):
             first = self.first_receipt_after(j, t_from + 1e-3)
             evs = [e for e in events if e[0] == j]
             outage = self.outage(j, t_fault)
-            out.append({"cloth": j, "back": first is not None,
-                        "gap_s": None if first is None else round(first - t_from, 3),
-                        "outage_s": None if outage is None else round(outage, 3),
-                        "events": [{"reason": e[1], "ok": e[2], "kept": e[3], "server": e[4],
-                                    "detect_to_reply_s": round(e[6] - e[5], 3), "resumed_tick": e[7]} for e in evs],
-                        "first_state_jump_cm": [round(100 * x, 2) for x in jumps.get(j, [])]})
+            out.append(
+                {
+                    "cloth": j,
+                    "back": first is not None,
+                    "gap_s": None if first is None else round(first - t_from, 3),
+                    "outage_s": None if outage is None else round(outage, 3),
+                    "events": [
+                        {
+                            "reason": e[1],
+                            "ok": e[2],
+                            "kept": e[3],
+                            "server": e[4],
+                            "detect_to_reply_s": round(e[6] - e[5], 3),
+                            "resumed_tick": e[7],
+                        }
+                        for e in evs
+                    ],
+                    "first_state_jump_cm": [round(100 * x, 2) for x in jumps.get(j, [])],
+                }
+            )
         return out
 
 
@@ -441,8 +522,9 @@ def kill(ctx: Context, cloths: int = 8) -> dict[str, Any]:
         a.kill(signal.SIGKILL)
         a.proc.wait(10)
         time.sleep(ctx.seconds)
-        a2 = ChaosServer(ctx.out, "kill-a-restarted", args, rss_limit_mb=ctx.rss_limit_mb, endpoint=a.endpoint,
-                         server_id=a.server_id)
+        a2 = ChaosServer(
+            ctx.out, "kill-a-restarted", args, rss_limit_mb=ctx.rss_limit_mb, endpoint=a.endpoint, server_id=a.server_id
+        )
         try:
             a2.wait_ready()
             time.sleep(ctx.seconds)
@@ -464,11 +546,18 @@ def kill(ctx: Context, cloths: int = 8) -> dict[str, Any]:
         x["server_at_end"] = where[x["cloth"]] if x["cloth"] < len(where) else None
     n_back = sum(x["back"] for x in back)
     jumps = [v for x in back for v in x["first_state_jump_cm"]]
-    m.update(cloths=cloths, back=n_back, back_pct=round(100.0 * n_back / cloths, 1), per_cloth=back,
-             killed=a.server_id, other=b.server_id if b else None, restarted_same_id=True,
-             liveliness_lost_after_kill_s=round(t_lost - t_kill, 3) if detected else None,
-             max_gap_after_liveliness_loss_s=max((x["gap_s"] for x in back if x["gap_s"] is not None), default=None),
-             max_first_state_jump_cm=max(jumps, default=None))
+    m.update(
+        cloths=cloths,
+        back=n_back,
+        back_pct=round(100.0 * n_back / cloths, 1),
+        per_cloth=back,
+        killed=a.server_id,
+        other=b.server_id if b else None,
+        restarted_same_id=True,
+        liveliness_lost_after_kill_s=round(t_lost - t_kill, 3) if detected else None,
+        max_gap_after_liveliness_loss_s=max((x["gap_s"] for x in back if x["gap_s"] is not None), default=None),
+        max_first_state_jump_cm=max(jumps, default=None),
+    )
     fails = judge(m, rss=False)
     if n_back < cloths:
         fails.append(f"{n_back} of {cloths} cloths of the killed server came back ({m['back_pct']} %)")
@@ -510,14 +599,21 @@ def pause(ctx: Context, cloths: int = 2) -> dict[str, Any]:
         x["back"] = x["gap_s"] is not None and x["gap_s"] <= FAILOVER_GAP_S
     n_back = sum(x["back"] for x in back)
     jumps = [v for x in back for v in x["first_state_jump_cm"]]
-    m.update(paused_s=ctx.pause_s, cloths=cloths, back=n_back, back_pct=round(100.0 * n_back / cloths, 1),
-             per_cloth=back, max_gap_after_sigcont_s=max((x["gap_s"] for x in back if x["gap_s"] is not None),
-                                                         default=None),
-             max_first_state_jump_cm=max(jumps, default=None))
+    m.update(
+        paused_s=ctx.pause_s,
+        cloths=cloths,
+        back=n_back,
+        back_pct=round(100.0 * n_back / cloths, 1),
+        per_cloth=back,
+        max_gap_after_sigcont_s=max((x["gap_s"] for x in back if x["gap_s"] is not None), default=None),
+        max_first_state_jump_cm=max(jumps, default=None),
+    )
     fails = judge(m, rss=False)
     if n_back < cloths:
-        fails.append(f"{n_back} of {cloths} cloths served within {FAILOVER_GAP_S} s of SIGCONT "
-                     f"(reclaimed by the server: {m.get('reclaimed', 0)})")
+        fails.append(
+            f"{n_back} of {cloths} cloths served within {FAILOVER_GAP_S} s of SIGCONT "
+            f"(reclaimed by the server: {m.get('reclaimed', 0)})"
+        )
     if jumps and max(jumps) > 1.0:
         fails.append(f"a first state after failover {max(jumps)} cm from the last before (> 1 cm)")
     return {**m, "fails": fails}

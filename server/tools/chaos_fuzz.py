@@ -10,6 +10,7 @@ for every field of valid submit / control / control_batch / remove / info reques
 every reply's error code (``internal`` is a server bug), replies that are not Drape error maps, and
 queries that got no reply at all (timeouts).
 """
+
 from __future__ import annotations
 
 import copy
@@ -36,9 +37,31 @@ DEPTH = 1000  # nesting depth of the deep messages
 
 #: Values of every msgpack type, put in place of a field's value.
 WRONG_VALUES: tuple[Any, ...] = (
-    None, True, False, 0, -1, 2**64 - 1, -(2**63), 1.5, float("nan"), float("inf"), -float("inf"), 1e308,
-    "", "x" * 300, "\u00e9\u4e2d", b"", b"\x00" * 7, b"\xff" * 4096, [], [1, 2, 3], [None] * 100,
-    {}, {"a": 1}, {"x": {"y": {"z": []}}}, msgpack.ExtType(5, b"abc"),
+    None,
+    True,
+    False,
+    0,
+    -1,
+    2**64 - 1,
+    -(2**63),
+    1.5,
+    float("nan"),
+    float("inf"),
+    -float("inf"),
+    1e308,
+    "",
+    "x" * 300,
+    "\u00e9\u4e2d",
+    b"",
+    b"\x00" * 7,
+    b"\xff" * 4096,
+    [],
+    [1, 2, 3],
+    [None] * 100,
+    {},
+    {"a": 1},
+    {"x": {"y": {"z": []}}},
+    msgpack.ExtType(5, b"abc"),
 )
 
 
@@ -57,18 +80,44 @@ def valid_requests(client: str, cloth: str = "0123456789abcdef", token: str = "0
     sphere = P.Sphere((0.0, 0.5, 0.0), 0.2)
     capsule, plane = P.Capsule((0, 0, 0), (1, 0, 0), 0.1), P.Plane((0, 1, 0), -1)
     grid = P.SubmitRequest(
-        client=client, grid=P.GridSpec(8, 8, 1.0, 1.0, "horizontal", (0.0, 1.0, 0.0)),
+        client=client,
+        grid=P.GridSpec(8, 8, 1.0, 1.0, "horizontal", (0.0, 1.0, 0.0)),
         pinned=np.array([0, 7], np.uint32),
-        links=P.LinkSpec(True, True, True), material={"mass": 1.0, "stiffness": (1.0, 0.9, 0.5), "damping": 0.01,
-                                                      "drag": 0.1, "tether_limit": 1.1},
-        features=("tethers", "wind"), gravity=(0.0, -9.81, 0.0), wind=(1.0, 0.0, 0.0), iterations=4, substeps=1,
-        chebyshev_rho=0.0, colliders=(sphere, capsule, plane), state=P.StateOptions(False, "float16", False), rid=7)
-    mesh = P.SubmitRequest(client=client, mesh=P.MeshSpec(verts.astype(np.float32), tris.astype(np.uint32)),
-                           pinned=np.array([0, 3], np.uint32), quality="fast", rid=8)
+        links=P.LinkSpec(True, True, True),
+        material={"mass": 1.0, "stiffness": (1.0, 0.9, 0.5), "damping": 0.01, "drag": 0.1, "tether_limit": 1.1},
+        features=("tethers", "wind"),
+        gravity=(0.0, -9.81, 0.0),
+        wind=(1.0, 0.0, 0.0),
+        iterations=4,
+        substeps=1,
+        chebyshev_rho=0.0,
+        colliders=(sphere, capsule, plane),
+        state=P.StateOptions(False, "float16", False),
+        rid=7,
+    )
+    mesh = P.SubmitRequest(
+        client=client,
+        mesh=P.MeshSpec(verts.astype(np.float32), tris.astype(np.uint32)),
+        pinned=np.array([0, 3], np.uint32),
+        quality="fast",
+        rid=8,
+    )
     pins = P.PinUpdate(np.array([0, 7], np.uint32), np.array([[0, 1, 0], [1, 1, 0]], np.float32))
-    control = P.ControlRequest(cloth, token, pins=pins, colliders=(sphere,), gravity=(0, -9.81, 0), wind=(0, 0, 1),
-                               material={"damping": 0.02}, features=("tethers",), iterations=5, substeps=1,
-                               state=P.StateOptions(True, "quant16"), reset=False, rid=9)
+    control = P.ControlRequest(
+        cloth,
+        token,
+        pins=pins,
+        colliders=(sphere,),
+        gravity=(0, -9.81, 0),
+        wind=(0, 0, 1),
+        material={"damping": 0.02},
+        features=("tethers",),
+        iterations=5,
+        substeps=1,
+        state=P.StateOptions(True, "quant16"),
+        reset=False,
+        rid=9,
+    )
     batch = P.ControlBatchRequest(client, [control, P.ControlRequest(cloth, token, reset=True)], rid=10)
     return [
         Base("submit", "grid", P.submit_to_map(grid)),
@@ -124,8 +173,9 @@ def _claims_more(n: int) -> bytes:
     return b"\xdf" + n.to_bytes(4, "big")
 
 
-def messages(count: int, seed: int, client: str, cloth: str, token: str,
-             max_bytes: int) -> Iterator[tuple[str, str, bytes]]:
+def messages(
+    count: int, seed: int, client: str, cloth: str, token: str, max_bytes: int
+) -> Iterator[tuple[str, str, bytes]]:
     """``count`` hostile (queryable, kind, payload) triples, the same for the same arguments.
 
     Roughly: 45 % field mutations of valid requests, 15 % truncated, 10 % random bytes, the rest
@@ -140,8 +190,18 @@ def messages(count: int, seed: int, client: str, cloth: str, token: str,
             mutations.append((b.queryable, f"delete {b.name}.{name}", _set(b.message, path, None, delete=True)))
             for v in WRONG_VALUES:
                 mutations.append((b.queryable, f"type {b.name}.{name}={type(v).__name__}", _set(b.message, path, v)))
-        for extra in ({"v": [2, 0]}, {"v": [1]}, {"v": "1.1"}, {"v": [1, 256]}, {"rid": -1}, {"rid": 2**64},
-                      {"unknown": [1] * 10}, {"client": "../../x"}, {"cloth": "*"}, {"token": "A" * 32}):
+        for extra in (
+            {"v": [2, 0]},
+            {"v": [1]},
+            {"v": "1.1"},
+            {"v": [1, 256]},
+            {"rid": -1},
+            {"rid": 2**64},
+            {"unknown": [1] * 10},
+            {"client": "../../x"},
+            {"cloth": "*"},
+            {"token": "A" * 32},
+        ):
             mutations.append((b.queryable, f"value {b.name}.{list(extra)[0]}", {**b.message, **extra}))
     order = rng.permutation(len(mutations))
     mi = 0
@@ -220,8 +280,15 @@ class FuzzCounts:
     by_kind: Counter = field(default_factory=Counter)
 
 
-def send_all(session: zenoh.Session, keys: P.Keys, server_id: str, msgs: Iterator[tuple[str, str, bytes]],
-             in_flight: int = 16, timeout: float = 30.0, deadline_s: float = 600.0) -> FuzzCounts:
+def send_all(
+    session: zenoh.Session,
+    keys: P.Keys,
+    server_id: str,
+    msgs: Iterator[tuple[str, str, bytes]],
+    in_flight: int = 16,
+    timeout: float = 30.0,
+    deadline_s: float = 600.0,
+) -> FuzzCounts:
     """Send every message as a query, at most ``in_flight`` unanswered at once; count the outcomes.
     Stops sending after ``deadline_s`` seconds (what was not sent is not counted as sent)."""
     counts = FuzzCounts()
@@ -255,8 +322,9 @@ def send_all(session: zenoh.Session, keys: P.Keys, server_id: str, msgs: Iterato
         with lock:
             counts.sent += 1
             counts.by_kind[kind.split(" ")[0]] += 1
-        session.get(getattr(keys, q)(server_id), zenoh.handlers.Callback(on_reply, on_done), payload=payload,
-                    timeout=timeout)
+        session.get(
+            getattr(keys, q)(server_id), zenoh.handlers.Callback(on_reply, on_done), payload=payload, timeout=timeout
+        )
     for _ in range(in_flight):  # wait for the last replies
         slots.acquire(timeout=timeout + 5)
     return counts

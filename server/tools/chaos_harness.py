@@ -6,6 +6,7 @@ gap between states, errors by code, RSS before and after.
 
 Everything talks only to 127.0.0.1; every wait is bounded.
 """
+
 from __future__ import annotations
 
 import itertools
@@ -63,15 +64,36 @@ def reply_outcome(reply: zenoh.Reply) -> str:
 class ChaosServer:
     """``drape serve`` on a free loopback port, its stderr in ``log_path``."""
 
-    def __init__(self, out: Path, name: str, args: Sequence[str] = (), connect: Sequence[str] = (),
-                 rss_limit_mb: float = 4096.0, endpoint: str | None = None, server_id: str | None = None) -> None:
+    def __init__(
+        self,
+        out: Path,
+        name: str,
+        args: Sequence[str] = (),
+        connect: Sequence[str] = (),
+        rss_limit_mb: float = 4096.0,
+        endpoint: str | None = None,
+        server_id: str | None = None,
+    ) -> None:
         self.server_id = server_id or f"chaos-{name}-{os.getpid()}"
         self.endpoint = endpoint or f"tcp/127.0.0.1:{free_port()}"
         self.log_path = out / f"{name}-{os.getpid()}-{next(_RUNS)}.log"
         self.rss_limit_mb = rss_limit_mb
         self.killed_for_rss = False
-        self.cmd = [sys.executable, "-m", "drape.server.cli", "serve", "--listen", self.endpoint,
-                    "--server-id", self.server_id, "--stats-period", "0.5", "--device", "cpu", *args]
+        self.cmd = [
+            sys.executable,
+            "-m",
+            "drape.server.cli",
+            "serve",
+            "--listen",
+            self.endpoint,
+            "--server-id",
+            self.server_id,
+            "--stats-period",
+            "0.5",
+            "--device",
+            "cpu",
+            *args,
+        ]
         for c in connect:
             self.cmd += ["--connect", c]
         log.info("starting %s", " ".join(self.cmd))
@@ -98,8 +120,10 @@ class ChaosServer:
             if not self.alive() or time.monotonic() > t_end:
                 break
         if not self.stats.wait_count(2, 0):
-            raise RuntimeError(f"server {self.server_id} did not come up in {timeout:.0f} s "
-                               f"(exit {self.proc.poll()}); log: {self.log_path}")
+            raise RuntimeError(
+                f"server {self.server_id} did not come up in {timeout:.0f} s "
+                f"(exit {self.proc.poll()}); log: {self.log_path}"
+            )
 
     def alive(self) -> bool:
         return self.proc.poll() is None
@@ -187,8 +211,9 @@ class StatsWatch:
 # Good clients: one process each, the SDK, recording (tick, receive time) of every state.
 
 
-def _good_client_main(endpoint: str, server_id: str, client_id: str, cloths: int, size: int, records: Any,
-                      ready: Any, stop: Any) -> None:
+def _good_client_main(
+    endpoint: str, server_id: str, client_id: str, cloths: int, size: int, records: Any, ready: Any, stop: Any
+) -> None:
     logging.basicConfig(level=logging.WARNING)
     from drape.client import DrapeClient, DrapeError
 
@@ -214,8 +239,14 @@ def _good_client_main(endpoint: str, server_id: str, client_id: str, cloths: int
             ready.set()
             stop.wait()
             # where each cloth is served at the end (a failover may move it to another server)
-            records.put(("where", [str(getattr(h, "server_id", None) or client.server_id) for h in handles],
-                         client_id, time.monotonic()))
+            records.put(
+                (
+                    "where",
+                    [str(getattr(h, "server_id", None) or client.server_id) for h in handles],
+                    client_id,
+                    time.monotonic(),
+                )
+            )
             client.close(remove=False)
     except BaseException as e:  # report, never hang the parent
         records.put(("error", repr(e), client_id, time.monotonic()))
@@ -241,9 +272,12 @@ class GoodClient:
         self.ready, self.stop_event = ctx.Event(), ctx.Event()
         self.log = StateLog()
         self._lock = threading.Lock()
-        self.proc = ctx.Process(target=_good_client_main, name=self.client_id, daemon=True,
-                                args=(endpoint, server_id, self.client_id, cloths, size, self.records, self.ready,
-                                      self.stop_event))
+        self.proc = ctx.Process(
+            target=_good_client_main,
+            name=self.client_id,
+            daemon=True,
+            args=(endpoint, server_id, self.client_id, cloths, size, self.records, self.ready, self.stop_event),
+        )
         self.proc.start()
         self._drain = threading.Thread(target=self._drain_loop, daemon=True)
         self._drain.start()
@@ -274,8 +308,11 @@ class GoodClient:
             if self.log.error is not None or not self.proc.is_alive() or time.monotonic() > t_end:
                 break
         if not self.ready.is_set():
-            why = self.log.error or (f"its process exited with {self.proc.exitcode}" if not self.proc.is_alive()
-                                     else f"not ready in {timeout:.0f} s")
+            why = self.log.error or (
+                f"its process exited with {self.proc.exitcode}"
+                if not self.proc.is_alive()
+                else f"not ready in {timeout:.0f} s"
+            )
             raise RuntimeError(f"good client {self.client_id}: {why}")
 
     def window(self, t0: float, t1: float) -> dict[str, Any]:
@@ -297,8 +334,12 @@ class GoodClient:
             lost += int(ticks[-1] - ticks[0] + 1 - len(ticks))
             worst_gap = max(worst_gap, float(np.max(np.diff(times))))
             rates.append(len(ticks) / max(t1 - t0, 1e-9))
-        return {"states": received, "lost": lost, "worst_gap_ms": round(1000 * worst_gap, 1),
-                "rate_hz": round(float(min(rates)) if rates else 0.0, 1)}
+        return {
+            "states": received,
+            "lost": lost,
+            "worst_gap_ms": round(1000 * worst_gap, 1),
+            "rate_hz": round(float(min(rates)) if rates else 0.0, 1),
+        }
 
     def last_receipt(self, cloth: int) -> float:
         with self._lock:
@@ -371,8 +412,11 @@ class Window:
         t1 = time.monotonic()
         stats1 = self.server.stats.next(10.0)
         stalled = stats1 is None
-        out: dict[str, Any] = {"seconds": round(t1 - self.t0, 1), "server_alive": self.server.alive(),
-                               "stats_stalled": stalled}
+        out: dict[str, Any] = {
+            "seconds": round(t1 - self.t0, 1),
+            "server_alive": self.server.alive(),
+            "stats_stalled": stalled,
+        }
         out.update(stats_delta(self.stats0, stats1 or self.server.stats.latest()))
         if clients:
             per = [c.window(self.t0, t1) for c in clients]

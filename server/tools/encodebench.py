@@ -12,6 +12,7 @@ one float4 device buffer (as the world holds them) and, for each encoding, times
 Medians over ``--repeat`` frames after a warm-up; the first frame of both paths is compared byte
 for byte. ``--bundle B`` puts B cloths in each bundle (0: every cloth on its own key).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -52,8 +53,10 @@ def _world(rng: np.random.Generator, cloths: int, side: int) -> tuple[np.ndarray
 def _publications(n: int, bundle: int) -> list[Publication]:
     if bundle <= 0:
         return [Publication(f"drape/cloth/c{i}/state", (i,)) for i in range(n)]
-    return [Publication(f"drape/client/k{j}/states", tuple(range(s, min(n, s + bundle))), bundle=True)
-            for j, s in enumerate(range(0, n, bundle))]
+    return [
+        Publication(f"drape/client/k{j}/states", tuple(range(s, min(n, s + bundle))), bundle=True)
+        for j, s in enumerate(range(0, n, bundle))
+    ]
 
 
 class HostPath:
@@ -65,13 +68,20 @@ class HostPath:
         # pinned host memory, as the world reads frames back into
         self._pinned = cl.Buffer(dev.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.ALLOC_HOST_PTR, self.k * self.nv * 16)
         self.host, _ = cl.enqueue_map_buffer(  # type: ignore[misc,type-var]
-            dev.queue, self._pinned, cl.map_flags.READ | cl.map_flags.WRITE, 0,  # type: ignore[arg-type]
-            (self.k * self.nv, 4), np.float32, is_blocking=True)
+            dev.queue,
+            self._pinned,
+            cl.map_flags.READ | cl.map_flags.WRITE,  # type: ignore[arg-type]
+            0,
+            (self.k * self.nv, 4),
+            np.float32,
+            is_blocking=True,
+        )
         self.offsets = np.arange(self.k + 1, dtype=np.int64) * self.nv
         self.encoder = FrameEncoder()
         self.bufs = [bytearray(int(s)) for s in plan.pub_size.tolist()]
-        self.nrm = [None if nrm_host is None else nrm_host[i * self.nv:(i + 1) * self.nv, :3].copy()
-                    for i in range(self.k)]
+        self.nrm = [
+            None if nrm_host is None else nrm_host[i * self.nv : (i + 1) * self.nv, :3].copy() for i in range(self.k)
+        ]
         self.encs = [c.encoding for c in plan.cloths]
         self.parts: dict[str, list[float]] = {"readback": [], "gather": [], "encode": []}
 
@@ -79,7 +89,7 @@ class HostPath:
         t0 = time.perf_counter()
         cl.enqueue_copy(self.dev.queue, self.host, self.pos_buf, is_blocking=True)
         t1 = time.perf_counter()
-        pos = np.concatenate([self.host[i * self.nv:(i + 1) * self.nv, :3] for i in range(self.k)], axis=0)
+        pos = np.concatenate([self.host[i * self.nv : (i + 1) * self.nv, :3] for i in range(self.k)], axis=0)
         t2 = time.perf_counter()
         enc = self.encoder
         enc.begin(tick, time_ns, pos, self.offsets)
@@ -97,8 +107,18 @@ class HostPath:
         return self.bufs
 
 
-def run(encoding: str, cloths: int, side: int, bundle: int, normals: bool, repeat: int, warmup: int,
-        dev: Device, seed: int = 1, local_size: int | None = None) -> dict[str, float]:
+def run(
+    encoding: str,
+    cloths: int,
+    side: int,
+    bundle: int,
+    normals: bool,
+    repeat: int,
+    warmup: int,
+    dev: Device,
+    seed: int = 1,
+    local_size: int | None = None,
+) -> dict[str, float]:
     rng = np.random.default_rng(seed)
     nv = side * side
     pos, nrm = _world(rng, cloths, side)
@@ -139,10 +159,15 @@ def run(encoding: str, cloths: int, side: int, bundle: int, normals: bool, repea
     denc.close()
     med = lambda xs: statistics.median(xs) * 1e3 if xs else float("nan")  # noqa: E731
     return {
-        "host_ms": med(host_t), "readback_ms": med(host.parts["readback"][warmup:]),
-        "gather_ms": med(host.parts["gather"][warmup:]), "encode_ms": med(host.parts["encode"][warmup:]),
-        "device_ms": med(dev_t), "kernel_ms": med(kern_t), "copy_ms": med(copy_t),
-        "frame_mb": plan.size / 1e6, "same": bool(same),
+        "host_ms": med(host_t),
+        "readback_ms": med(host.parts["readback"][warmup:]),
+        "gather_ms": med(host.parts["gather"][warmup:]),
+        "encode_ms": med(host.parts["encode"][warmup:]),
+        "device_ms": med(dev_t),
+        "kernel_ms": med(kern_t),
+        "copy_ms": med(copy_t),
+        "frame_mb": plan.size / 1e6,
+        "same": bool(same),
     }
 
 
@@ -150,8 +175,13 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m drape.server.tools.encodebench", description=__doc__.splitlines()[0])
     ap.add_argument("--cloths", type=int, nargs="+", default=[64, 256, 1024], help="cloth counts (default 64 256 1024)")
     ap.add_argument("--side", type=int, default=32, help="grid side: side x side vertices per cloth (default 32)")
-    ap.add_argument("--encoding", nargs="+", default=["float32", "float16", "quant16"],
-                    choices=[*ENCODINGS, "mixed"], help="encodings to time (mixed: a third of each)")
+    ap.add_argument(
+        "--encoding",
+        nargs="+",
+        default=["float32", "float16", "quant16"],
+        choices=[*ENCODINGS, "mixed"],
+        help="encodings to time (mixed: a third of each)",
+    )
     ap.add_argument("--bundle", type=int, default=0, help="cloths per bundle; 0 = each cloth on its own key")
     ap.add_argument("--normals", action="store_true", help="normals in every state")
     ap.add_argument("--repeat", type=int, default=20, help="timed frames (median)")
@@ -161,19 +191,26 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     dev = Device(args.device)
-    print(f"device: {dev.info.name}; {args.side}x{args.side} vertices per cloth, "
-          f"{'bundles of ' + str(args.bundle) if args.bundle > 0 else 'singles'}{', normals' if args.normals else ''}; "
-          f"median ms per frame over {args.repeat} frames")
-    print(f"{'encoding':9} {'cloths':>6} {'MB':>7} | {'host':>8} {'readback':>8} {'gather':>7} {'encode':>7} | "
-          f"{'device':>7} {'kernel':>7} {'copy':>7} | {'speed-up':>8} same")
+    print(
+        f"device: {dev.info.name}; {args.side}x{args.side} vertices per cloth, "
+        f"{'bundles of ' + str(args.bundle) if args.bundle > 0 else 'singles'}{', normals' if args.normals else ''}; "
+        f"median ms per frame over {args.repeat} frames"
+    )
+    print(
+        f"{'encoding':9} {'cloths':>6} {'MB':>7} | {'host':>8} {'readback':>8} {'gather':>7} {'encode':>7} | "
+        f"{'device':>7} {'kernel':>7} {'copy':>7} | {'speed-up':>8} same"
+    )
     for n in args.cloths:
         for e in args.encoding:
-            r = run(e, n, args.side, args.bundle, args.normals, args.repeat, args.warmup, dev,
-                  local_size=args.local_size)
-            print(f"{e:9} {n:6d} {r['frame_mb']:7.2f} | {r['host_ms']:8.2f} {r['readback_ms']:8.2f} "
-                  f"{r['gather_ms']:7.2f} {r['encode_ms']:7.2f} | {r['device_ms']:7.2f} {r['kernel_ms']:7.2f} "
-                  f"{r['copy_ms']:7.2f} | {r['host_ms'] / r['device_ms']:7.1f}x {'yes' if r['same'] else 'NO'}",
-                  flush=True)
+            r = run(
+                e, n, args.side, args.bundle, args.normals, args.repeat, args.warmup, dev, local_size=args.local_size
+            )
+            print(
+                f"{e:9} {n:6d} {r['frame_mb']:7.2f} | {r['host_ms']:8.2f} {r['readback_ms']:8.2f} "
+                f"{r['gather_ms']:7.2f} {r['encode_ms']:7.2f} | {r['device_ms']:7.2f} {r['kernel_ms']:7.2f} "
+                f"{r['copy_ms']:7.2f} | {r['host_ms'] / r['device_ms']:7.1f}x {'yes' if r['same'] else 'NO'}",
+                flush=True,
+            )
     return 0
 
 

@@ -10,6 +10,7 @@ the same server (the server's own clock), so they are exact over its stats perio
 ``drape top --once`` finds the servers by their liveliness tokens, waits (``--wait``) for two
 publications of each, prints one frame as plain text and exits: for scripts and tests.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -148,13 +149,49 @@ def _phase(stats: dict[str, Any], name: str, key: str = "mean_ms") -> float | No
     return None if p is None else float(p.get(key, 0.0))
 
 
-COLUMNS = ("SERVER", "TICK/s", "TICK ms", "MAX ms", "SOLVE", "READBK", "ENCODE", "PUBLSH", "CLOTHS", "CLIENTS",
-           "VERTICES", "STATES/s", "BYTES/s", "MISSED/s", "QUALITY", "OVERLOAD", "ERRORS", "UPTIME")
+COLUMNS = (
+    "SERVER",
+    "TICK/s",
+    "TICK ms",
+    "MAX ms",
+    "SOLVE",
+    "READBK",
+    "ENCODE",
+    "PUBLSH",
+    "CLOTHS",
+    "CLIENTS",
+    "VERTICES",
+    "STATES/s",
+    "BYTES/s",
+    "MISSED/s",
+    "QUALITY",
+    "OVERLOAD",
+    "ERRORS",
+    "UPTIME",
+)
 #: The phase behind each phase column (mean milliseconds over the last stats period).
 PHASE_COLUMNS = {"SOLVE": "solve", "READBK": "readback", "ENCODE": "encode", "PUBLSH": "publish"}
 #: What a narrow terminal keeps, most important first (columns keep their order on screen).
-PRIORITY = ("SERVER", "TICK/s", "TICK ms", "CLOTHS", "CLIENTS", "MISSED/s", "OVERLOAD", "STATES/s", "MAX ms",
-            "ERRORS", "QUALITY", "SOLVE", "VERTICES", "BYTES/s", "PUBLSH", "ENCODE", "READBK", "UPTIME")
+PRIORITY = (
+    "SERVER",
+    "TICK/s",
+    "TICK ms",
+    "CLOTHS",
+    "CLIENTS",
+    "MISSED/s",
+    "OVERLOAD",
+    "STATES/s",
+    "MAX ms",
+    "ERRORS",
+    "QUALITY",
+    "SOLVE",
+    "VERTICES",
+    "BYTES/s",
+    "PUBLSH",
+    "ENCODE",
+    "READBK",
+    "UPTIME",
+)
 assert sorted(PRIORITY) == sorted(COLUMNS) and set(PHASE_COLUMNS.values()) <= set(PHASES)
 
 
@@ -212,8 +249,10 @@ def render(views: list[ServerView], source: str, now: float | None = None, width
     for r in rows:
         table.add_row(*(r[c] for c in columns), style="dim" if r["SERVER"].endswith("(stale)") else None)
     totals = {k: sum(int(v.last.get(k, 0)) for v in views) for k in ("cloths", "clients", "vertices")}
-    head = Text(f"drape top - {len(views)} server(s), {totals['cloths']} cloths, {totals['clients']} clients, "
-                f"{totals['vertices']} vertices - {source}")
+    head = Text(
+        f"drape top - {len(views)} server(s), {totals['cloths']} cloths, {totals['clients']} clients, "
+        f"{totals['vertices']} vertices - {source}"
+    )
     return Group(head, table)
 
 
@@ -234,16 +273,20 @@ def print_frame(views: list[ServerView], source: str, out: TextIO) -> None:
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--endpoint", action="append", default=None,
-                        help=f"Zenoh endpoint to connect to (a server or router; repeatable; "
-                             f"default {P.DEFAULT_ENDPOINT})")
+    parser.add_argument(
+        "--endpoint",
+        action="append",
+        default=None,
+        help=f"Zenoh endpoint to connect to (a server or router; repeatable; default {P.DEFAULT_ENDPOINT})",
+    )
     parser.add_argument("--namespace", default=P.DEFAULT_NAMESPACE, help="key namespace of the servers")
     parser.add_argument("--server", default=None, help="show this server only (default: every server seen)")
     parser.add_argument("--mode", default="peer", choices=("peer", "client"), help="Zenoh mode of this session")
     parser.add_argument("--zenoh-config", default=None, help="Zenoh JSON5 file (TLS, authentication)")
     parser.add_argument("--once", action="store_true", help="print one frame as plain text and exit")
-    parser.add_argument("--wait", type=float, default=5.0,
-                        help="--once: seconds to wait for two stats publications of every server")
+    parser.add_argument(
+        "--wait", type=float, default=5.0, help="--once: seconds to wait for two stats publications of every server"
+    )
     parser.add_argument("--refresh", type=float, default=0.5, help="seconds between redraws")
 
 
@@ -273,11 +316,11 @@ def _once(session: zenoh.Session, keys: P.Keys, board: StatsBoard, args: argpars
     replies = session.liveliness().get(keys.alive_server(args.server or "*"), timeout=min(args.wait, 2.0))
     servers = {keys.last_chunk(str(r.ok.key_expr)) for r in replies if r.ok is not None}
     if servers:
-        board.wait(lambda vs: all(s in vs and vs[s].count >= 2 for s in servers),
-                   max(0.0, deadline - time.monotonic()))
+        board.wait(lambda vs: all(s in vs and vs[s].count >= 2 for s in servers), max(0.0, deadline - time.monotonic()))
     else:  # no token seen (an old server, or a router that does not forward them): take what comes
-        board.wait(lambda vs: bool(vs) and all(v.count >= 2 for v in vs.values()),
-                   max(0.0, deadline - time.monotonic()))
+        board.wait(
+            lambda vs: bool(vs) and all(v.count >= 2 for v in vs.values()), max(0.0, deadline - time.monotonic())
+        )
     views = board.views()
     if not views:
         print(f"drape top: no stats from any Drape server on {source} within {args.wait:g} s", file=sys.stderr)
@@ -289,8 +332,13 @@ def _once(session: zenoh.Session, keys: P.Keys, board: StatsBoard, args: argpars
 def _live(board: StatsBoard, source: str, refresh: float) -> int:
     console = Console()
     try:
-        with Live(render(board.views(), source, width=console.width), console=console,
-                  refresh_per_second=max(1.0, 1.0 / refresh), screen=False, transient=False) as live:
+        with Live(
+            render(board.views(), source, width=console.width),
+            console=console,
+            refresh_per_second=max(1.0, 1.0 / refresh),
+            screen=False,
+            transient=False,
+        ) as live:
             while True:
                 time.sleep(refresh)
                 live.update(render(board.views(), source, width=console.width))

@@ -2,6 +2,7 @@
 (PROTOCOL.md 11.1): the newer state's positions, velocities (x_k - x_{k-1}) / (dt (t_k - t_{k-1}))
 against a float64 reference, and no resume from nothing or from a non-finite state. The resume
 then encodes and decodes as protocol 1.3 says."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -27,8 +28,9 @@ def test_velocities_from_the_last_two_states(rng):
     assert rs.velocities is not None and np.isfinite(rs.velocities).all()
     assert np.abs(rs.velocities - want).max() < 1e-3 * max(1.0, np.abs(want).max())
     # a 1.3 submission carrying it decodes to the same arrays
-    req = P.SubmitRequest(client="c", mesh=P.MeshSpec(np.zeros((7, 3), np.float32), np.zeros((0, 3), np.uint32)),
-                          resume=rs)
+    req = P.SubmitRequest(
+        client="c", mesh=P.MeshSpec(np.zeros((7, 3), np.float32), np.zeros((0, 3), np.uint32)), resume=rs
+    )
     got = P.decode_submit(P.encode_submit(req)).resume
     assert got == rs
 

@@ -1,5 +1,6 @@
 """The binary payloads: the DRPS state layout and its encodings, the DRPB bundle parser against
 truncation and corruption."""
+
 from __future__ import annotations
 
 import struct
@@ -45,7 +46,7 @@ def test_state_encodings_round_trip_within_their_precision(encoding):
     if encoding == "float32":
         assert err_p == 0 and err_n == 0
     elif encoding == "float16":
-        assert err_p <= 2.0 * 2 ** -11 and err_n <= 2 ** -11  # half an ulp of |x| < 2
+        assert err_p <= 2.0 * 2**-11 and err_n <= 2**-11  # half an ulp of |x| < 2
     else:
         ext = pos.max(0) - pos.min(0)
         assert np.all(np.abs(st.positions - pos) <= ext / 65535 * 0.5 + 1e-6)
@@ -91,8 +92,11 @@ def test_state_decoder_is_strict_where_it_must_be_and_lenient_where_it_may():
 
 def test_bundle_parser_survives_every_truncation_and_corruption(rng):
     tri = np.arange(9, dtype=np.float32).reshape(3, 3)
-    data = bytes(P.encode_bundle(3, 4, [("a", P.encode_state(3, 4, tri)),
-                                        ("bb", P.encode_state(3, 4, tri, tri / 10, "quant16"))]))
+    data = bytes(
+        P.encode_bundle(
+            3, 4, [("a", P.encode_state(3, 4, tri)), ("bb", P.encode_state(3, 4, tri, tri / 10, "quant16"))]
+        )
+    )
     assert len(data) % 8 == 0
     b = P.parse_bundle(data)
     end = b.entries[-1].offset + b.entries[-1].size  # the last entry's padding is not needed

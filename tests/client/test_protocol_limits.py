@@ -2,6 +2,7 @@
 count) give documented bad-request errors, never a traceback; masses float32 cannot hold are
 refused; features_add / features_remove and the pure feature-set rule resolve_features; the
 overloaded error code."""
+
 from __future__ import annotations
 
 import msgpack
@@ -31,8 +32,16 @@ def packed_with(m: dict, key: str, raw: bytes) -> bytes:
     return bytes([0x80 | (len(m) + 1)]) + b"".join(packed(k) + packed(v) for k, v in m.items()) + packed(key) + raw
 
 
-DECODERS = [P.decode_submit, P.decode_control, P.decode_remove, P.decode_info, P.decode_control_batch,
-            P.decode_reply, P.decode_stats, P.unpack_message]
+DECODERS = [
+    P.decode_submit,
+    P.decode_control,
+    P.decode_remove,
+    P.decode_info,
+    P.decode_control_batch,
+    P.decode_reply,
+    P.decode_stats,
+    P.unpack_message,
+]
 
 
 @pytest.mark.parametrize("depth", [P.MAX_NESTING + 1, 1000, 5000])
@@ -66,11 +75,14 @@ def test_a_map_of_200k_keys_is_refused_by_the_parser_before_any_field_is_read():
     assert e.value.code == P.ERR_MALFORMED and "max_map_len" in e.value.message
 
 
-@pytest.mark.parametrize("value,what", [
-    (["wind"] * (P.MAX_ARRAY_LENGTH + 1), "max_array_len"),
-    ("x" * (P.MAX_STRING_BYTES + 1), "max_str_len"),
-    (msgpack.ExtType(3, b"abc"), "max_ext_len"),
-])
+@pytest.mark.parametrize(
+    "value,what",
+    [
+        (["wind"] * (P.MAX_ARRAY_LENGTH + 1), "max_array_len"),
+        ("x" * (P.MAX_STRING_BYTES + 1), "max_str_len"),
+        (msgpack.ExtType(3, b"abc"), "max_ext_len"),
+    ],
+)
 def test_unknown_keys_are_bounded_in_length(value, what):
     with pytest.raises(P.ProtocolError) as e:
         P.decode_submit(packed({**GRID, "unknown": value}))
@@ -91,9 +103,15 @@ def test_too_many_values_in_one_message_is_too_large_and_cheap():
 
 
 def test_every_truncation_of_a_message_is_a_protocol_error():
-    data = P.encode_control(P.ControlRequest("abc", TOKEN, pins=P.PinUpdate(np.array([0], np.uint32),
-                                                                           np.zeros((1, 3), np.float32)),
-                                             colliders=(P.Sphere((0, 0, 0), 1.0),), features_add=("wind",)))
+    data = P.encode_control(
+        P.ControlRequest(
+            "abc",
+            TOKEN,
+            pins=P.PinUpdate(np.array([0], np.uint32), np.zeros((1, 3), np.float32)),
+            colliders=(P.Sphere((0, 0, 0), 1.0),),
+            features_add=("wind",),
+        )
+    )
     for n in range(len(data)):
         with pytest.raises(P.ProtocolError):
             P.decode_control(data[:n])
@@ -132,18 +150,29 @@ def test_features_add_and_remove_round_trip_and_are_validated_like_features():
     back = P.decode_control(P.encode_control(req))
     assert back == req and back.features is None
     assert P.decode_control(P.encode_control(P.ControlRequest("abc", TOKEN))).features_add is None
-    for bad, code in [({"features_add": "wind"}, P.ERR_INVALID_TYPE), ({"features_remove": ["air"]},
-                                                                       P.ERR_INVALID_VALUE),
-                      ({"features_add": ["wind"] * 17}, P.ERR_TOO_LARGE),
-                      ({"features_add": ["wind"], "features_remove": ["wind"]}, P.ERR_INVALID_VALUE)]:
+    for bad, code in [
+        ({"features_add": "wind"}, P.ERR_INVALID_TYPE),
+        ({"features_remove": ["air"]}, P.ERR_INVALID_VALUE),
+        ({"features_add": ["wind"] * 17}, P.ERR_TOO_LARGE),
+        ({"features_add": ["wind"], "features_remove": ["wind"]}, P.ERR_INVALID_VALUE),
+    ]:
         with pytest.raises(P.ProtocolError) as e:
             P.decode_control(packed({**CONTROL, **bad}))
         assert e.value.code == code, bad
         assert "features_" in e.value.message
     # in a batch, a bad item is refused alone and named
-    items = P.decode_control_batch(packed({"v": [1, 2], "client": "me", "items": [
-        {"cloth": "a", "token": TOKEN, "features_add": ["wind"]},
-        {"cloth": "a", "token": TOKEN, "features_remove": ["nope"]}]})).items
+    items = P.decode_control_batch(
+        packed(
+            {
+                "v": [1, 2],
+                "client": "me",
+                "items": [
+                    {"cloth": "a", "token": TOKEN, "features_add": ["wind"]},
+                    {"cloth": "a", "token": TOKEN, "features_remove": ["nope"]},
+                ],
+            }
+        )
+    ).items
     assert items[0].features_add == ("wind",) and items[1].code == P.ERR_INVALID_VALUE
     assert "items[1].features_remove" in items[1].message
 
@@ -152,24 +181,27 @@ def _ctl(**kw) -> P.ControlRequest:
     return P.ControlRequest("abc", TOKEN, **kw)
 
 
-@pytest.mark.parametrize("current,req,want", [
-    ({"normals", "colliders"}, _ctl(), {"normals", "colliders"}),
-    # the 1.1 trap, unchanged in meaning: features replaces the set
-    ({"normals"}, _ctl(features=("wind",)), {"wind"}),
-    ({"colliders", "tethers"}, _ctl(features=("normals",)), {"normals"}),
-    # 1.2: add and remove keep everything else
-    ({"normals"}, _ctl(features_add=("wind",)), {"normals", "wind"}),
-    ({"colliders", "tethers"}, _ctl(features_add=("normals",)), {"colliders", "tethers", "normals"}),
-    ({"colliders", "tethers", "xpbd"}, _ctl(features_remove=("tethers", "wind")), {"colliders", "xpbd"}),
-    ({"xpbd"}, _ctl(features=("wind",), features_add=("normals",), features_remove=("wind",)), {"normals"}),
-    # colliders and state.normals switch their features, after the lists
-    ({"wind"}, _ctl(colliders=(P.Sphere((0, 0, 0), 1.0),)), {"wind", "colliders"}),
-    ({"colliders"}, _ctl(colliders=()), {"colliders"}),
-    ({"colliders"}, _ctl(features_remove=("colliders",), colliders=(P.Plane((0, 1, 0), 0.0),)), {"colliders"}),
-    ({"wind"}, _ctl(state=P.StateOptions(normals=True)), {"wind", "normals"}),
-    ({"normals"}, _ctl(features_add=("normals",), state=P.StateOptions(normals=False)), set()),
-    ({"normals"}, _ctl(state=P.StateOptions(encoding="quant16")), {"normals"}),
-])
+@pytest.mark.parametrize(
+    "current,req,want",
+    [
+        ({"normals", "colliders"}, _ctl(), {"normals", "colliders"}),
+        # the 1.1 trap, unchanged in meaning: features replaces the set
+        ({"normals"}, _ctl(features=("wind",)), {"wind"}),
+        ({"colliders", "tethers"}, _ctl(features=("normals",)), {"normals"}),
+        # 1.2: add and remove keep everything else
+        ({"normals"}, _ctl(features_add=("wind",)), {"normals", "wind"}),
+        ({"colliders", "tethers"}, _ctl(features_add=("normals",)), {"colliders", "tethers", "normals"}),
+        ({"colliders", "tethers", "xpbd"}, _ctl(features_remove=("tethers", "wind")), {"colliders", "xpbd"}),
+        ({"xpbd"}, _ctl(features=("wind",), features_add=("normals",), features_remove=("wind",)), {"normals"}),
+        # colliders and state.normals switch their features, after the lists
+        ({"wind"}, _ctl(colliders=(P.Sphere((0, 0, 0), 1.0),)), {"wind", "colliders"}),
+        ({"colliders"}, _ctl(colliders=()), {"colliders"}),
+        ({"colliders"}, _ctl(features_remove=("colliders",), colliders=(P.Plane((0, 1, 0), 0.0),)), {"colliders"}),
+        ({"wind"}, _ctl(state=P.StateOptions(normals=True)), {"wind", "normals"}),
+        ({"normals"}, _ctl(features_add=("normals",), state=P.StateOptions(normals=False)), set()),
+        ({"normals"}, _ctl(state=P.StateOptions(encoding="quant16")), {"normals"}),
+    ],
+)
 def test_resolve_features(current, req, want):
     got = P.resolve_features(frozenset(current), req)
     assert got == frozenset(want) and isinstance(got, frozenset)
@@ -217,8 +249,11 @@ def test_corrupted_vectors_never_raise_anything_but_protocol_errors(rng):
     from pathlib import Path
 
     folder = Path(__file__).resolve().parents[1] / "vectors"
-    seeds = [bytes.fromhex(v["hex"]) for g in ("submit", "control", "misc", "invalid", "accepted")
-             for v in json.loads((folder / f"{g}.json").read_text())]
+    seeds = [
+        bytes.fromhex(v["hex"])
+        for g in ("submit", "control", "misc", "invalid", "accepted")
+        for v in json.loads((folder / f"{g}.json").read_text())
+    ]
     decoders = [*DECODERS, P.decode_error, P.decode_state, P.decode_bundle]
     for _ in range(3000):
         data = bytearray(seeds[int(rng.integers(len(seeds)))])
@@ -227,10 +262,10 @@ def test_corrupted_vectors_never_raise_anything_but_protocol_errors(rng):
             if kind == 0 and data:
                 data[int(rng.integers(len(data)))] = int(rng.integers(256))
             elif kind == 1 and data:
-                data = data[:int(rng.integers(len(data)))]
+                data = data[: int(rng.integers(len(data)))]
             else:
                 at = int(rng.integers(len(data) + 1))
-                data = data[:at] + data[at:at + int(rng.integers(1, 16))] * 2 + data[at + 16:]
+                data = data[:at] + data[at : at + int(rng.integers(1, 16))] * 2 + data[at + 16 :]
         for decode in decoders:
             try:
                 decode(bytes(data))
@@ -242,8 +277,7 @@ def test_corrupted_vectors_never_raise_anything_but_protocol_errors(rng):
 
 def test_a_binary_map_key_anywhere_is_malformed():
     """PROTOCOL.md §8: map keys are strings; msgpack's strict_map_key alone lets bin keys through."""
-    for payload in ({"v": [1, 2], "rid": 1, b"cloth": "x"},
-                    {"v": [1, 2], "rid": 1, "material": {b"mass": 1.0}}):
+    for payload in ({"v": [1, 2], "rid": 1, b"cloth": "x"}, {"v": [1, 2], "rid": 1, "material": {b"mass": 1.0}}):
         data = msgpack.packb(payload, use_bin_type=True)
         with pytest.raises(P.ProtocolError) as e:
             P.unpack_message(data)

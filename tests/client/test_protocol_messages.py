@@ -1,5 +1,6 @@
 """The msgpack messages: round trips, validation of hostile input with stable codes and messages
 that name the field, 1.1 bundle options and batch control, key expressions."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -28,8 +29,17 @@ def full_submit() -> P.SubmitRequest:
         grid=P.GridSpec(5, 3, 2.0, 1.0, "vertical", (1.0, 2.0, 3.0)),
         pinned=np.array([0, 4], np.uint32),
         links=P.LinkSpec(True, False, True),
-        material={"mass": 2.0, "stiffness": (1.0, 0.5, 0.25), "compliance": (0.0, 1e-4, 1e-3), "damping": 0.1,
-                  "friction": 0.3, "drag": 0.2, "lift": 0.1, "air_density": 1.0, "tether_limit": 1.1},
+        material={
+            "mass": 2.0,
+            "stiffness": (1.0, 0.5, 0.25),
+            "compliance": (0.0, 1e-4, 1e-3),
+            "damping": 0.1,
+            "friction": 0.3,
+            "drag": 0.2,
+            "lift": 0.1,
+            "air_density": 1.0,
+            "tether_limit": 1.1,
+        },
         features=("xpbd", "tethers", "wind"),
         gravity=(0.0, -9.81, 0.0),
         wind=(3.0, 0.0, 1.0),
@@ -45,17 +55,28 @@ def full_submit() -> P.SubmitRequest:
 def test_submit_round_trip():
     req = full_submit()
     assert P.decode_submit(P.encode_submit(req)) == req
-    mesh = P.SubmitRequest("c", mesh=P.MeshSpec(np.random.rand(10, 3).astype(np.float32),
-                                                np.array([[0, 1, 2], [2, 3, 4]], np.uint32)))
+    mesh = P.SubmitRequest(
+        "c", mesh=P.MeshSpec(np.random.rand(10, 3).astype(np.float32), np.array([[0, 1, 2], [2, 3, 4]], np.uint32))
+    )
     back = P.decode_submit(P.encode_submit(mesh))
     assert back == mesh and back.n_vertices == 10 and back.grid is None
 
 
 def test_control_remove_info_replies_round_trip():
     ctl = P.ControlRequest(
-        "abc", TOKEN, pins=P.PinUpdate(np.array([1, 2], np.uint32), np.ones((2, 3), np.float32)),
-        colliders=(), gravity=(0, 0, 0), material={"damping": 0.5}, features=(), iterations=3, substeps=2,
-        chebyshev_rho=0.0, state=P.StateOptions(None, "float16"), reset=True, rid=4,
+        "abc",
+        TOKEN,
+        pins=P.PinUpdate(np.array([1, 2], np.uint32), np.ones((2, 3), np.float32)),
+        colliders=(),
+        gravity=(0, 0, 0),
+        material={"damping": 0.5},
+        features=(),
+        iterations=3,
+        substeps=2,
+        chebyshev_rho=0.0,
+        state=P.StateOptions(None, "float16"),
+        reset=True,
+        rid=4,
     )
     back = P.decode_control(P.encode_control(ctl))
     assert back == ctl and back.colliders == () and back.features == ()
@@ -76,8 +97,15 @@ def test_control_remove_info_replies_round_trip():
 def test_error_classes():
     assert isinstance(P.error_for("not_found", "x"), P.NotFound)
     assert isinstance(P.error_for("limit_exceeded", "x"), P.LimitExceeded)
-    for code in ("malformed", "invalid_type", "invalid_value", "index_out_of_range", "too_large",
-                 "missing_field", "unsupported_version"):
+    for code in (
+        "malformed",
+        "invalid_type",
+        "invalid_value",
+        "index_out_of_range",
+        "too_large",
+        "missing_field",
+        "unsupported_version",
+    ):
         err = P.error_for(code, "x")
         assert isinstance(err, P.ProtocolError) and isinstance(err, P.DrapeError) and err.code == code
     assert type(P.error_for("some_future_code", "x")) is P.DrapeError  # unknown codes still raise
@@ -169,8 +197,10 @@ BAD_SUBMITS = [
     (raw(sub(colliders=[{"type": "sphere", "center": [0, 0, 0]}])), "missing_field"),
     (raw(sub(colliders=[{"type": "sphere", "center": [0, 0, 0], "radius": -1}])), "invalid_value"),
     (raw(sub(colliders=[{"type": "plane", "normal": [0, 0, 0], "offset": 0}])), "invalid_value"),
-    (raw(sub(colliders=[{"type": "capsule", "p0": [0, 0, 0], "p1": [1, 0, float("nan")], "radius": 1}])),
-     "invalid_value"),
+    (
+        raw(sub(colliders=[{"type": "capsule", "p0": [0, 0, 0], "p1": [1, 0, float("nan")], "radius": 1}])),
+        "invalid_value",
+    ),
     (raw(sub(colliders=[{"type": "sphere", "center": [0, 0, 0], "radius": 1}] * 33)), "too_large"),
     (raw(sub(state={"encoding": "png"})), "invalid_value"),
     (raw(sub(state={"normals": 1})), "invalid_type"),
@@ -180,9 +210,13 @@ BAD_SUBMITS = [
 
 
 def _mesh(v, t, **kw):
-    return raw(sub(grid=None, mesh={"vertices": np.asarray(v, "<f4").tobytes(), "triangles": np.asarray(t,
-                                                                                                        "<u4").tobytes()},
-                   **kw))
+    return raw(
+        sub(
+            grid=None,
+            mesh={"vertices": np.asarray(v, "<f4").tobytes(), "triangles": np.asarray(t, "<u4").tobytes()},
+            **kw,
+        )
+    )
 
 
 TRI = [[0, 0, 0], [1, 0, 0], [0, 1, 0]]
@@ -301,18 +335,27 @@ def test_bundle_option_and_reply_round_trip():
 
 
 def test_control_batch_round_trip_and_item_errors_name_the_item():
-    items = [P.ControlRequest("a", TOKEN, pins=P.PinUpdate(np.array([1], np.uint32), np.ones((1, 3), np.float32))),
-             P.ControlRequest("b", TOKEN, gravity=(0, 0, 0), colliders=(), reset=True)]
+    items = [
+        P.ControlRequest("a", TOKEN, pins=P.PinUpdate(np.array([1], np.uint32), np.ones((1, 3), np.float32))),
+        P.ControlRequest("b", TOKEN, gravity=(0, 0, 0), colliders=(), reset=True),
+    ]
     req = P.ControlBatchRequest("me", items, rid=77)
     back = P.decode_control_batch(P.encode_control_batch(req))
     assert (back.client, back.rid) == ("me", 77)
     assert back.items == [dataclasses.replace(it, rid=77) for it in items]  # errors of an item echo the batch's rid
-    bad = raw({"v": [1, 1], "rid": 3, "client": "me", "items": [
-        {"cloth": "a", "token": TOKEN, "pins": pins([0], [[0, np.inf, 0]])},
-        {"cloth": "a", "token": TOKEN, "material": {"stiffness": [1, 1, 2]}},
-        {"cloth": "a", "token": TOKEN, "pins": pins(range(5), np.zeros((5, 3)))},
-        {"cloth": "a", "token": TOKEN},
-    ]})
+    bad = raw(
+        {
+            "v": [1, 1],
+            "rid": 3,
+            "client": "me",
+            "items": [
+                {"cloth": "a", "token": TOKEN, "pins": pins([0], [[0, np.inf, 0]])},
+                {"cloth": "a", "token": TOKEN, "material": {"stiffness": [1, 1, 2]}},
+                {"cloth": "a", "token": TOKEN, "pins": pins(range(5), np.zeros((5, 3)))},
+                {"cloth": "a", "token": TOKEN},
+            ],
+        }
+    )
     got = P.decode_control_batch(bad, LIMITS).items
     assert [getattr(x, "code", None) for x in got] == ["invalid_value", "invalid_value", "too_large", None]
     assert "items[0].pins.targets" in got[0].message and "items[1].material.stiffness[2]" in got[1].message
@@ -330,4 +373,3 @@ def test_control_batch_round_trip_and_item_errors_name_the_item():
     m = P.decode_reply(P.encode_control_batch_reply(rep))
     assert m["failed"] == 1 and P.control_batch_reply_from_map(m) == rep
     assert isinstance(rep.results[1].exception(), P.NotFound) and rep.results[0].exception() is None
-

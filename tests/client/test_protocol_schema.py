@@ -2,6 +2,7 @@
 header are what the generator writes; every vector's decoded map validates against its message's
 schema (and the schema refuses what it can express of the invalid ones); the C header's packed
 structs have the Python struct layout, checked by compiling a C program with ``cc``."""
+
 from __future__ import annotations
 
 import json
@@ -40,8 +41,9 @@ def _validator(message: str) -> jsonschema.Draft202012Validator:
 def test_committed_schemas_and_header_are_generated():
     for name, s in schemagen.schemas().items():
         jsonschema.Draft202012Validator.check_schema(s)
-        assert json.loads((schemagen.SCHEMA_DIR / f"{name}.json").read_text()) == json.loads(json.dumps(s)), \
+        assert json.loads((schemagen.SCHEMA_DIR / f"{name}.json").read_text()) == json.loads(json.dumps(s)), (
             f"client/protocol/schema/{name}.json is stale: python -m drape.client.protocol.schemagen"
+        )
     assert schemagen.C_HEADER.read_text() == schemagen.c_header(), "client/protocol/drape_wire.h is stale"
 
 
@@ -58,10 +60,23 @@ def test_a_control_batch_item_validates_as_the_batch_schema_s_item():
     _validator("control_batch").validate({"v": [1, 2], "client": "me", "items": [item]})
 
 
-SCHEMA_REFUSES = ("unknown_major", "no_version", "cols_as_string", "grid_too_large", "token_not_hex",
-                  "batch_no_items", "batch_items_not_array", "batch_empty", "batch_too_many", "batch_bad_client",
-                  "features_add_unknown", "mass_subnormal", "mass_below_minimum", "map_too_many_keys",
-                  "array_too_long")
+SCHEMA_REFUSES = (
+    "unknown_major",
+    "no_version",
+    "cols_as_string",
+    "grid_too_large",
+    "token_not_hex",
+    "batch_no_items",
+    "batch_items_not_array",
+    "batch_empty",
+    "batch_too_many",
+    "batch_bad_client",
+    "features_add_unknown",
+    "mass_subnormal",
+    "mass_below_minimum",
+    "map_too_many_keys",
+    "array_too_long",
+)
 
 
 @pytest.mark.parametrize("name", SCHEMA_REFUSES)
@@ -80,8 +95,11 @@ def _python_layout(fields: tuple[tuple[str, str, str], ...]) -> list[tuple[str, 
     return out
 
 
-LAYOUTS = {"state_header": P.STATE_HEADER_FIELDS, "bundle_header": P.BUNDLE_HEADER_FIELDS,
-           "bundle_entry": P.BUNDLE_ENTRY_FIELDS}
+LAYOUTS = {
+    "state_header": P.STATE_HEADER_FIELDS,
+    "bundle_header": P.BUNDLE_HEADER_FIELDS,
+    "bundle_entry": P.BUNDLE_ENTRY_FIELDS,
+}
 
 
 def test_c_header_declares_every_field_of_the_python_layouts():
@@ -102,14 +120,19 @@ def test_c_header_offsets_and_sizes_equal_the_python_struct_layout(tmp_path):
         t = f"drape_{struct_name}"
         prints.append(f'printf("{struct_name} sizeof %zu\\n", sizeof({t}));')
         for name, _, _ in fields:
-            prints.append(f'printf("{struct_name} {name} %zu %zu\\n", offsetof({t}, {name}), '
-                          f"sizeof((({t} *)0)->{name}));")
+            prints.append(
+                f'printf("{struct_name} {name} %zu %zu\\n", offsetof({t}, {name}), sizeof((({t} *)0)->{name}));'
+            )
     src = tmp_path / "layout.c"
-    src.write_text("#include <stddef.h>\n#include <stdio.h>\n#include \"drape_wire.h\"\n"
-                   "int main(void) {\n" + "\n".join(prints) + "\nreturn 0;\n}\n")
+    src.write_text(
+        '#include <stddef.h>\n#include <stdio.h>\n#include "drape_wire.h"\n'
+        "int main(void) {\n" + "\n".join(prints) + "\nreturn 0;\n}\n"
+    )
     exe = tmp_path / "layout"
-    subprocess.run(["cc", "-std=c11", "-Wall", "-Werror", "-I", str(schemagen.C_HEADER.parent), str(src), "-o",
-                    str(exe)], check=True)
+    subprocess.run(
+        ["cc", "-std=c11", "-Wall", "-Werror", "-I", str(schemagen.C_HEADER.parent), str(src), "-o", str(exe)],
+        check=True,
+    )
     got = subprocess.run([str(exe)], check=True, capture_output=True, text=True).stdout.split("\n")
     want = []
     for struct_name, fields in LAYOUTS.items():
@@ -117,5 +140,7 @@ def test_c_header_offsets_and_sizes_equal_the_python_struct_layout(tmp_path):
         want += [f"{struct_name} {n} {off} {size}" for n, off, size in _python_layout(fields)]
     assert got[:-1] == want
     assert [line for line in want if "sizeof" in line] == [
-        f"state_header sizeof {P.STATE_HEADER_SIZE}", f"bundle_header sizeof {P.BUNDLE_HEADER_SIZE}",
-        f"bundle_entry sizeof {P.BUNDLE_ENTRY_SIZE}"]
+        f"state_header sizeof {P.STATE_HEADER_SIZE}",
+        f"bundle_header sizeof {P.BUNDLE_HEADER_SIZE}",
+        f"bundle_entry sizeof {P.BUNDLE_ENTRY_SIZE}",
+    ]

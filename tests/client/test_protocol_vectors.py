@@ -1,5 +1,6 @@
 """The committed test vectors, both ways (bytes -> meaning, meaning -> identical bytes), the frozen
 1.0 and 1.1 vectors still read, and the hex dumps of PROTOCOL.md."""
+
 from __future__ import annotations
 
 import json
@@ -106,8 +107,14 @@ def test_state_vectors(vec):
     assert (st.normals is None and val["normals"] is None) or st.normals.tolist() == val["normals"]
     inp = vec["input"]
     normals = None if inp["normals"] is None else np.array(inp["normals"], np.float32)
-    again = P.encode_state(val["tick"], val["server_time_ns"], np.array(inp["positions"], np.float32), normals,
-                           val["encoding"], inp["flags"])
+    again = P.encode_state(
+        val["tick"],
+        val["server_time_ns"],
+        np.array(inp["positions"], np.float32),
+        normals,
+        val["encoding"],
+        inp["flags"],
+    )
     assert bytes(again) == data
 
 
@@ -118,19 +125,31 @@ def test_bundle_vectors(vec):
     # bytes -> meaning, read with struct as the document's offset table says
     magic, major, minor, hsize, count, flags, tick, t_ns = struct.unpack_from("<4sBBHIIQQ", data, 0)
     assert (magic.decode(), major, minor, hsize, count, flags, tick, t_ns) == (
-        val["magic"], val["major"], val["minor"], val["header_size"], val["count"], val["flags"], val["tick"],
-        val["server_time_ns"])
+        val["magic"],
+        val["major"],
+        val["minor"],
+        val["header_size"],
+        val["count"],
+        val["flags"],
+        val["tick"],
+        val["server_time_ns"],
+    )
     assert len(data) == val["size"] and len(data) % 8 == 0
     for e in val["entries"]:
         at = e["entry_offset"]
         h, id_len, reserved, size = struct.unpack_from("<HBBI", data, at)
         assert (h, size, reserved) == (e["entry_header_size"], e["state_size"], 0)
-        assert data[at + 8:at + 8 + id_len].decode() == e["cloth"] and not any(data[at + 8 + id_len:at + h])
+        assert data[at + 8 : at + 8 + id_len].decode() == e["cloth"] and not any(data[at + 8 + id_len : at + h])
         assert at % 8 == 0 and e["state_offset"] == at + h and e["state_offset"] % 8 == 0
-        st = P.decode_state(data[at + h:at + h + size], e["cloth"])
+        st = P.decode_state(data[at + h : at + h + size], e["cloth"])
         sv = e["state"]
         assert (st.tick, st.server_time_ns, st.encoding, st.flags, st.n_vertices) == (
-            sv["tick"], sv["server_time_ns"], sv["encoding"], sv["flags"], sv["vertex_count"])
+            sv["tick"],
+            sv["server_time_ns"],
+            sv["encoding"],
+            sv["flags"],
+            sv["vertex_count"],
+        )
         assert st.positions.tolist() == sv["positions"]
         assert (st.normals is None and sv["normals"] is None) or st.normals.tolist() == sv["normals"]
     # the decoder agrees
@@ -139,15 +158,21 @@ def test_bundle_vectors(vec):
     assert [s.cloth for s in P.decode_bundle(data, 5)] == [e["cloth"] for e in val["entries"]]
     # meaning -> identical bytes
     inp = vec["input"]
-    again = P.encode_bundle(inp["tick"], inp["server_time_ns"], [(s["cloth"],
-                                                                  bytes.fromhex(s["hex"])) for s in inp["states"]])
+    again = P.encode_bundle(
+        inp["tick"], inp["server_time_ns"], [(s["cloth"], bytes.fromhex(s["hex"])) for s in inp["states"]]
+    )
     assert bytes(again) == data
     for s, e in zip(inp["states"], val["entries"], strict=True):
-        assert data[e["state_offset"]:e["state_offset"] + e["state_size"]].hex() == s["hex"]
+        assert data[e["state_offset"] : e["state_offset"] + e["state_size"]].hex() == s["hex"]
 
 
-DECODERS = {"submit": P.decode_submit, "control": P.decode_control, "remove": P.decode_remove,
-            "control_batch": P.decode_control_batch, "bundle": P.decode_bundle}
+DECODERS = {
+    "submit": P.decode_submit,
+    "control": P.decode_control,
+    "remove": P.decode_remove,
+    "control_batch": P.decode_control_batch,
+    "bundle": P.decode_bundle,
+}
 
 
 @pytest.mark.parametrize("vec", load("invalid"), ids=lambda v: v["name"])
@@ -174,11 +199,16 @@ def test_accepted_vectors():
             assert st.cloth == "c" and st.tick == 7 and st.encoding == "float16"
             b = P.parse_bundle(data)
             assert (b.minor, b.tick, b.server_time_ns, b.flags, len(b.entries)) == (
-                val["minor"], val["tick"], val["server_time_ns"], val["flags"], val["count"])
+                val["minor"],
+                val["tick"],
+                val["server_time_ns"],
+                val["flags"],
+                val["count"],
+            )
             assert struct.unpack_from("<H", data, 6)[0] == val["header_size"] and len(data) == val["size"]
             for e, ev in zip(b.entries, val["entries"], strict=True):
                 assert (e.cloth, e.offset, e.size) == (ev["cloth"], ev["state_offset"], ev["state_size"])
-                st = P.decode_state(data[e.offset:e.offset + e.size])
+                st = P.decode_state(data[e.offset : e.offset + e.size])
                 assert st.positions.tolist() == ev["state"]["positions"]
             continue
         assert msgpack.unpackb(data, raw=False) == json_to_wire(val)
@@ -197,9 +227,14 @@ def _as_current(wire: dict) -> dict:
 
 
 def _frozen(groups: tuple[str, ...]) -> list:
-    return [pytest.param(ver, v, id=f"{ver}-{v['name']}") for ver, d in FROZEN.items() for g in groups
-            if (d / f"{g}.json").exists() for v in json.loads((d / f"{g}.json").read_text())
-            if v["message"] != "stats"]  # stats are informational: fields may come and go in any minor
+    return [
+        pytest.param(ver, v, id=f"{ver}-{v['name']}")
+        for ver, d in FROZEN.items()
+        for g in groups
+        if (d / f"{g}.json").exists()
+        for v in json.loads((d / f"{g}.json").read_text())
+        if v["message"] != "stats"
+    ]  # stats are informational: fields may come and go in any minor
 
 
 @pytest.mark.parametrize("version,vec", _frozen(("submit", "control", "misc")))
@@ -231,8 +266,16 @@ def test_frozen_state_vectors_still_read(version, vec):
     assert (st.normals is None and val["normals"] is None) or st.normals.tolist() == val["normals"]
     inp = vec["input"]
     normals = None if inp["normals"] is None else np.array(inp["normals"], np.float32)
-    again = bytes(P.encode_state(val["tick"], val["server_time_ns"], np.array(inp["positions"], np.float32), normals,
-                                 val["encoding"], inp["flags"]))
+    again = bytes(
+        P.encode_state(
+            val["tick"],
+            val["server_time_ns"],
+            np.array(inp["positions"], np.float32),
+            normals,
+            val["encoding"],
+            inp["flags"],
+        )
+    )
     assert again[:5] + again[6:] == data[:5] + data[6:] and again[5] == P.PROTOCOL_MINOR  # only the minor byte
 
 
@@ -246,8 +289,11 @@ def test_frozen_bundle_vectors_still_read(version, vec):
         st = b.state(i)
         assert st.cloth == ev["cloth"] and st.positions.tolist() == ev["state"]["positions"]
     inp = vec["input"]
-    again = bytes(P.encode_bundle(inp["tick"], inp["server_time_ns"],
-                                  [(s["cloth"], bytes.fromhex(s["hex"])) for s in inp["states"]]))
+    again = bytes(
+        P.encode_bundle(
+            inp["tick"], inp["server_time_ns"], [(s["cloth"], bytes.fromhex(s["hex"])) for s in inp["states"]]
+        )
+    )
     assert again[:5] + again[6:] == data[:5] + data[6:] and again[5] == P.PROTOCOL_MINOR  # only the minor byte
 
 
@@ -287,6 +333,7 @@ def test_the_document_states_the_protocol_s_limits_and_codes():
     lim = P.DEFAULT_LIMITS
     assert f"| `max_iterations`, `max_substeps` | {lim.max_iterations}, {lim.max_substeps} |" in text
     assert f"| `max_colliders` (colliders per cloth) | {lim.max_colliders} |" in text
+
     def sp(n: int) -> str:  # 65 536
         return f"{n:,}".replace(",", " ")
 

@@ -1,5 +1,6 @@
 """The protocol's vocabulary and geometry are the server's (one definition, imported by the
 server), and the client side needs no server code."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -17,13 +18,19 @@ def test_vocabulary_matches_the_server_params():
 
     assert tuple(f.name for f in dataclasses.fields(Features)) == P.FEATURE_NAMES
     assert tuple(f.name for f in dataclasses.fields(LinkOptions)) == tuple(
-        f.name for f in dataclasses.fields(P.LinkSpec))
+        f.name for f in dataclasses.fields(P.LinkSpec)
+    )
     assert dataclasses.asdict(LinkOptions()) == dataclasses.asdict(P.LinkSpec())
     assert set(P.MATERIAL_FIELDS) == {f.name for f in dataclasses.fields(Material)}
     assert dataclasses.asdict(Material()) == P.MATERIAL_DEFAULTS
     d = ClothParams()
     assert (d.gravity, d.wind, d.iterations, d.substeps, d.chebyshev_rho) == (
-        P.DEFAULT_GRAVITY, P.DEFAULT_WIND, P.DEFAULT_ITERATIONS, P.DEFAULT_SUBSTEPS, P.DEFAULT_CHEBYSHEV_RHO)
+        P.DEFAULT_GRAVITY,
+        P.DEFAULT_WIND,
+        P.DEFAULT_ITERATIONS,
+        P.DEFAULT_SUBSTEPS,
+        P.DEFAULT_CHEBYSHEV_RHO,
+    )
     # every per-cloth parameter can be sent in a submission and changed by a control
     submit_fields = {f.name for f in dataclasses.fields(P.SubmitRequest)}
     control_fields = {f.name for f in dataclasses.fields(P.ControlRequest)}

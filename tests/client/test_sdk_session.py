@@ -1,6 +1,7 @@
 """drape.client.session: the Zenoh configuration shared by the SDK and the server, and the sample
 JSON5 configurations shipped in deploy/ (they load, and sessions built from them talk over real
 Zenoh on loopback); the SDK's side of protocol 1.2 (features_add / features_remove)."""
+
 from __future__ import annotations
 
 import queue
@@ -76,13 +77,39 @@ def test_a_peer_built_from_the_sample_reaches_a_listening_peer():
 def test_sdk_features_delta_is_validated_before_anything_is_sent():
     from drape.client.sdk import _set_changes
 
-    ch = _set_changes(None, None, None, None, None, None, None, None, None, False, None,
-                      features_add=["wind"], features_remove="tethers")
+    ch = _set_changes(
+        None,
+        None,
+        None,
+        None,
+        None,
+        None,
+        None,
+        None,
+        None,
+        False,
+        None,
+        features_add=["wind"],
+        features_remove="tethers",
+    )
     req = P.ControlRequest("abc", "0" * 32, **ch)
     assert req.features_add == ("wind",) and req.features_remove == ("tethers",) and req.features is None
     assert P.decode_control(P.encode_control(req)) == req
     with pytest.raises(ValueError, match="hologram"):
         _set_changes(None, None, None, None, None, None, None, None, None, False, None, features_add=["hologram"])
     with pytest.raises(ValueError, match="both"):
-        _set_changes(None, None, None, None, None, None, None, None, None, False, None, features_add=["wind"],
-                     features_remove=["wind"])
+        _set_changes(
+            None,
+            None,
+            None,
+            None,
+            None,
+            None,
+            None,
+            None,
+            None,
+            False,
+            None,
+            features_add=["wind"],
+            features_remove=["wind"],
+        )

@@ -1,6 +1,7 @@
 """Overload without collapse: admission control refuses what the tick budget cannot hold
 ('overloaded', counted), controls for one cloth coalesce within a tick, a cloth that keeps going
 non-finite is removed. Costs are injected and ticks held on purpose: nothing depends on timing."""
+
 from __future__ import annotations
 
 import threading
@@ -62,8 +63,13 @@ def test_controls_for_one_cloth_in_one_tick_coalesce_latest_wins():
             after = srv.stats()
             assert after["controls_applied"] - before["controls_applied"] == 1  # one apply for 11 controls
             assert after["controls_coalesced"] - before["controls_coalesced"] == n
-            assert wait_until(lambda: h.latest() is not None and np.allclose(h.latest().positions[0], [0.0, 0.1, 0.0])
-                              and np.allclose(h.latest().positions[5], [1.0, 0.5, 0.0]))
+            assert wait_until(
+                lambda: (
+                    h.latest() is not None
+                    and np.allclose(h.latest().positions[0], [0.0, 0.1, 0.0])
+                    and np.allclose(h.latest().positions[5], [1.0, 0.5, 0.0])
+                )
+            )
             assert c.send_errors == 0
         finally:
             c.close()

@@ -1,6 +1,7 @@
 """Protocol 1.1 end to end: state bundles and batch control over real Zenoh on loopback (own
 ports, no scouting), one module-scoped server; and the publisher's vectorised encoder against
 the reference encoders of drape.client.protocol, byte for byte."""
+
 from __future__ import annotations
 
 import struct
@@ -78,7 +79,7 @@ class Recorder:
 def test_frame_encoder_matches_the_reference_encoders(rng):
     sizes = [int(n) for n in rng.integers(1, 300, 9)] + [1]
     pos = (rng.normal(size=(sum(sizes), 3)) * rng.uniform(0.1, 50)).astype(np.float32)
-    pos[:sizes[0], 1] = 0.5  # a flat axis: quant16's degenerate case
+    pos[: sizes[0], 1] = 0.5  # a flat axis: quant16's degenerate case
     pos[5, 0] = 70000.0  # beyond float16's range: clamped
     off = np.zeros(len(sizes) + 1, np.int64)
     np.cumsum(sizes, out=off[1:])
@@ -88,7 +89,9 @@ def test_frame_encoder_matches_the_reference_encoders(rng):
     ids = [f"{i:016x}" if i % 2 else f"c{i}" for i in range(len(sizes))]
 
     def ref(i: int) -> bytes:
-        return bytes(P.encode_state(99, 1234, pos[off[i]:off[i + 1]], normals[i], P.ENCODING_NAMES[encs[i]], flags[i]))
+        return bytes(
+            P.encode_state(99, 1234, pos[off[i] : off[i + 1]], normals[i], P.ENCODING_NAMES[encs[i]], flags[i])
+        )
 
     enc = FrameEncoder()
     for subset in (list(range(len(sizes))), [1, 3, 4], [len(sizes) - 1]):
@@ -157,8 +160,9 @@ def test_unwatched_states_are_not_encoded_and_watched_ones_never_skip(server, cl
     try:
         sub_req = P.SubmitRequest(other.client_id, grid=P.GridSpec(4, 4), state=P.StateOptions(bundle=True), rid=1)
         rep = P.submit_reply_from_map(other.request("submit", P.encode_submit(sub_req)))
-        plain = P.submit_reply_from_map(other.request("submit", P.encode_submit(
-            P.SubmitRequest(other.client_id, grid=P.GridSpec(4, 4), rid=2))))
+        plain = P.submit_reply_from_map(
+            other.request("submit", P.encode_submit(P.SubmitRequest(other.client_id, grid=P.GridSpec(4, 4), rid=2)))
+        )
         assert rep.bundle_key == P.Keys().bundle(other.client_id) and plain.bundle_key is None
         time.sleep(0.2)
         before = server.stats()
@@ -171,7 +175,8 @@ def test_unwatched_states_are_not_encoded_and_watched_ones_never_skip(server, cl
         rec = Recorder(client.session, rep.bundle_key)
         plain_ticks: list[int] = []
         psub = client.session.declare_subscriber(
-            plain.key, lambda smp: plain_ticks.append(P.decode_state(smp.payload.to_bytes()).tick))
+            plain.key, lambda smp: plain_ticks.append(P.decode_state(smp.payload.to_bytes()).tick)
+        )
         try:
             assert wait_until(lambda: len(rec.snapshot()) >= 40 and len(plain_ticks) >= 40)
             coalesced = server.stats()["skipped_frames"] - skipped  # the only excuse for a gap: counted
@@ -246,20 +251,28 @@ def test_batch_control_applies_good_items_and_refuses_bad_ones_each_alone(server
             return {"cloth": h.id, "token": h.token, **kw}
 
         items = [
-            item(mine[0], pins=pins([0])),                                     # ok
-            item(theirs, pins=pins([0])),                                      # right token, another client's cloth
-            {**item(mine[1], pins=pins([0])), "token": theirs.token},         # a real token, not for this cloth
-            item(mine[1], pins=pins([1])),                                     # vertex 1 is not pinned
-            item(mine[1], pins=pins([16])),                                    # no vertex 16
+            item(mine[0], pins=pins([0])),  # ok
+            item(theirs, pins=pins([0])),  # right token, another client's cloth
+            {**item(mine[1], pins=pins([0])), "token": theirs.token},  # a real token, not for this cloth
+            item(mine[1], pins=pins([1])),  # vertex 1 is not pinned
+            item(mine[1], pins=pins([16])),  # no vertex 16
             "not a map",
             {"cloth": "0123456789abcdef", "token": mine[1].token, "reset": True},  # no such cloth
-            item(mine[1], material={"damping": 3.0}),                          # out of range
+            item(mine[1], material={"damping": 3.0}),  # out of range
         ]
         req = {"v": [1, 1], "rid": 42, "client": client.client_id, "items": items}
         rep = P.control_batch_reply_from_map(client.request("control_batch", msgpack.packb(req, use_bin_type=True)))
         codes = [r.code or None for r in rep.results]
-        assert codes == [None, "forbidden", "forbidden", "invalid_value", "index_out_of_range", "invalid_type",
-                         "not_found", "invalid_value"], [(r.code, r.message) for r in rep.results]
+        assert codes == [
+            None,
+            "forbidden",
+            "forbidden",
+            "invalid_value",
+            "index_out_of_range",
+            "invalid_type",
+            "not_found",
+            "invalid_value",
+        ], [(r.code, r.message) for r in rep.results]
         assert rep.rid == 42 and rep.failed == 7 and rep.results[0].tick == rep.tick
         assert "items[7].material.damping" in rep.results[7].message
         st = mine[0].wait_for_tick(rep.tick, TIMEOUT)
@@ -288,8 +301,9 @@ def test_batch_control_applies_good_items_and_refuses_bad_ones_each_alone(server
             client.batch().move_pins(theirs, [0], tgt)
         # move_pins_many: more cloths than one request may carry is split in several
         many = mine * 4  # 12 items > MAX_ITEMS
-        ticks = client.move_pins_many(many, [0, 3], [np.array([[0, 0.1 * k, 0], [1, 0, 0]]) for k in range(12)],
-                                      wait=True)
+        ticks = client.move_pins_many(
+            many, [0, 3], [np.array([[0, 0.1 * k, 0], [1, 0, 0]]) for k in range(12)], wait=True
+        )
         assert len(ticks) == 12 and all(isinstance(t, int) for t in ticks)
         s = mine[0].wait_for_tick(max(ticks), TIMEOUT)
         np.testing.assert_allclose(s.positions[0], [0, 0.9, 0], atol=1e-6)  # the last item for it wins
@@ -339,15 +353,31 @@ def test_hostile_batch_and_bundle_requests_get_errors_and_the_server_keeps_servi
         # items hostile on their own: each refused, the good one applied
         big = {"indices": np.zeros(65, "<u4").tobytes(), "targets": np.zeros(65 * 3, "<f4").tobytes()}
         nan = {"indices": np.zeros(1, "<u4").tobytes(), "targets": np.array([0, np.nan, 0], "<f4").tobytes()}
-        items = [{**ok_item, "pins": big}, {**ok_item, "pins": nan}, {**ok_item, "gravity": "down"},
-                 {**ok_item, "state": {"bundle": False}}, {**ok_item, "token": 5}, {}, ok_item]
+        items = [
+            {**ok_item, "pins": big},
+            {**ok_item, "pins": nan},
+            {**ok_item, "gravity": "down"},
+            {**ok_item, "state": {"bundle": False}},
+            {**ok_item, "token": 5},
+            {},
+            ok_item,
+        ]
         rep = P.control_batch_reply_from_map(client.request("control_batch", _raw({**env, "items": items})))
-        assert [r.code or None for r in rep.results] == ["too_large", "invalid_value", "invalid_type",
-                                                          "invalid_value", "invalid_type", "missing_field", None]
+        assert [r.code or None for r in rep.results] == [
+            "too_large",
+            "invalid_value",
+            "invalid_type",
+            "invalid_value",
+            "invalid_type",
+            "missing_field",
+            None,
+        ]
         # bundle option abuse
         sub = {"v": [1, 1], "client": client.client_id, "grid": {"cols": 2, "rows": 2}}
-        for m, code in [({**sub, "state": {"bundle": "yes"}}, "invalid_type"),
-                        ({**sub, "state": {"bundle": 1}}, "invalid_type")]:
+        for m, code in [
+            ({**sub, "state": {"bundle": "yes"}}, "invalid_type"),
+            ({**sub, "state": {"bundle": 1}}, "invalid_type"),
+        ]:
             with pytest.raises(P.DrapeError) as e:
                 client.request("submit", _raw(m))
             assert e.value.code == code
@@ -371,8 +401,17 @@ def test_a_v1_0_client_is_served_unchanged(server, client):
     """Messages stamped 1.0, without any 1.1 field: the same replies (new keys absent), states on
     the cloth's own key in the 1.0 layout (only the minor byte says 1)."""
     v10 = {"v": [1, 0], "rid": 3}
-    m = client.request("submit", _raw({**v10, "client": client.client_id, "grid": {"cols": 3, "rows": 3},
-                                       "pinned": np.array([0], "<u4").tobytes()}))
+    m = client.request(
+        "submit",
+        _raw(
+            {
+                **v10,
+                "client": client.client_id,
+                "grid": {"cols": 3, "rows": 3},
+                "pinned": np.array([0], "<u4").tobytes(),
+            }
+        ),
+    )
     assert m["v"][0] == 1 and set(m) == {"v", "rid", "ok", "cloth", "token", "key", "vertices", "tick"}
     got: list[bytes] = []
     sub = client.session.declare_subscriber(m["key"], lambda smp: got.append(smp.payload.to_bytes()))
@@ -381,9 +420,20 @@ def test_a_v1_0_client_is_served_unchanged(server, client):
         data = got[-1]
         magic, major, minor, hsize, enc, _, flags, n, tick = struct.unpack_from("<4sBBHBBHIQ", data)
         assert (magic, major, hsize, enc, flags, n) == (b"DRPS", 1, 64, 0, 0, 9) and len(data) == 64 + 9 * 12
-        c = client.request("control", _raw({**v10, "cloth": m["cloth"], "token": m["token"],
-                                            "pins": {"indices": np.array([0], "<u4").tobytes(),
-                                                     "targets": np.array([0, 1, 0], "<f4").tobytes()}}))
+        c = client.request(
+            "control",
+            _raw(
+                {
+                    **v10,
+                    "cloth": m["cloth"],
+                    "token": m["token"],
+                    "pins": {
+                        "indices": np.array([0], "<u4").tobytes(),
+                        "targets": np.array([0, 1, 0], "<f4").tobytes(),
+                    },
+                }
+            ),
+        )
         assert set(c) == {"v", "rid", "ok", "tick"} and c["rid"] == 3
         with pytest.raises(Forbidden):
             client.request("control", _raw({**v10, "cloth": m["cloth"], "token": "0" * 32}))

@@ -3,6 +3,7 @@ given positions and velocities on every back end; a server killed with SIGKILL h
 resubmitted by the SDK to another live server under the same handles, continuing from their last
 state; a client whose cloths were reclaimed while it was away gets them back when it returns.
 Real Zenoh sessions on loopback, real ``drape serve`` processes, PoCL's CPU OpenCL."""
+
 from __future__ import annotations
 
 import signal
@@ -73,9 +74,27 @@ class Serve:
         self.server_id = name
         self.log = open(tmp_path / f"{name}-{self.port}.log", "w")  # noqa: SIM115 (closed in stop)
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "drape.server.cli", "serve", "--listen", self.endpoint, "--server-id", name,
-             "--grace-period", "1", "--stats-period", "0.25", "--no-admission", "--device", "cpu", *extra],
-            stdout=self.log, stderr=subprocess.STDOUT)
+            [
+                sys.executable,
+                "-m",
+                "drape.server.cli",
+                "serve",
+                "--listen",
+                self.endpoint,
+                "--server-id",
+                name,
+                "--grace-period",
+                "1",
+                "--stats-period",
+                "0.25",
+                "--no-admission",
+                "--device",
+                "cpu",
+                *extra,
+            ],
+            stdout=self.log,
+            stderr=subprocess.STDOUT,
+        )
 
     def kill(self) -> None:
         self.proc.send_signal(signal.SIGKILL)
@@ -115,8 +134,9 @@ def _client(servers, server_id: str, **kw):
     from drape.client import DrapeClient
 
     c = DrapeClient([s.endpoint for s in servers], server_id=server_id, timeout=10.0, failover=True, **kw)
-    assert _wait(lambda: {s.server_id for s in servers} <= set(c.live_servers()), SERVER_WAIT), \
+    assert _wait(lambda: {s.server_id for s in servers} <= set(c.live_servers()), SERVER_WAIT), (
         f"servers not up: {c.live_servers()}"
+    )
     return c
 
 
@@ -136,9 +156,19 @@ def test_kill_9_fails_every_cloth_over_under_the_same_handle(two_servers):
         events = []
         client.on_failover(events.append)
         # horizontal at rest, hanging from two corners after a second: far from its rest pose
-        handles = [client.submit_grid(6, 6, 0.5, 0.5, origin=(1.0 * j, 2.0, 0.0),
-                                      pinned=[0, 5], material={"damping": 0.2}, bundle=(j % 2 == 1))
-                   for j in range(4)]
+        handles = [
+            client.submit_grid(
+                6,
+                6,
+                0.5,
+                0.5,
+                origin=(1.0 * j, 2.0, 0.0),
+                pinned=[0, 5],
+                material={"damping": 0.2},
+                bundle=(j % 2 == 1),
+            )
+            for j in range(4)
+        ]
         handles[0].move_pins([0, 5], [[0.0, 2.0, 0.0], [0.5, 2.0, 0.0]], wait=True)
         _settle(handles, 120)  # 2 s: hanging nearly still
         assert all(h.server_id == a.server_id for h in handles)
@@ -178,21 +208,34 @@ def test_reclaimed_cloths_come_back_when_the_client_returns(tmp_path):
 
     srv = Serve(tmp_path, "fo-pause")
     try:
-        with _client([srv], srv.server_id) as client, \
-                DrapeClient(srv.endpoint, server_id=srv.server_id, timeout=10.0) as watcher:
+        with (
+            _client([srv], srv.server_id) as client,
+            DrapeClient(srv.endpoint, server_id=srv.server_id, timeout=10.0) as watcher,
+        ):
             stats = []
             watcher.on_stats(stats.append)
             events = []
             client.on_failover(events.append)
-            handles = [client.submit_grid(5, 5, 0.5, 0.5, orientation="vertical", origin=(j, 1.0, 0.0), pinned=[0, 4],
-                                          material={"damping": 0.2})
-                       for j in range(3)]
+            handles = [
+                client.submit_grid(
+                    5,
+                    5,
+                    0.5,
+                    0.5,
+                    orientation="vertical",
+                    origin=(j, 1.0, 0.0),
+                    pinned=[0, 4],
+                    material={"damping": 0.2},
+                )
+                for j in range(3)
+            ]
             _settle(handles, 60)
             # away: the failover thread stops (as the whole process would) and the token goes
             client._failover.pause()
             client._token.undeclare()
-            assert _wait(lambda: any(s.get("reclaimed", 0) >= len(handles) for s in stats), EVENT_WAIT), \
+            assert _wait(lambda: any(s.get("reclaimed", 0) >= len(handles) for s in stats), EVENT_WAIT), (
                 "the server should reclaim the absent client's cloths"
+            )
             last = {id(h): h.latest() for h in handles}  # the last states before the reclaim
             for h in handles:
                 h.clear()
@@ -221,8 +264,10 @@ def test_a_server_restarted_under_the_same_id_gets_the_cloths_back(tmp_path):
         with _client([srv], srv.server_id) as client:
             events = []
             client.on_failover(events.append)
-            handles = [client.submit_grid(5, 5, 0.5, 0.5, origin=(j, 1.0, 0.0), pinned=[0, 4],
-                                          material={"damping": 0.2}) for j in range(2)]
+            handles = [
+                client.submit_grid(5, 5, 0.5, 0.5, origin=(j, 1.0, 0.0), pinned=[0, 4], material={"damping": 0.2})
+                for j in range(2)
+            ]
             _settle(handles, 60)
             old_ids = [h.id for h in handles]
             srv.kill()

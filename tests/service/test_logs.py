@@ -1,5 +1,6 @@
 """Log output: JSON lines with stable keys (in-process through the handler, and from a real
 ``drape serve`` process), cloth/client context, text lines, and where the settings come from."""
+
 from __future__ import annotations
 
 import argparse
@@ -64,8 +65,12 @@ def test_json_lines_with_context(capture):
     for rec in got:
         assert all(k in rec for k in STABLE) and rec["logger"] == log.name
         assert rec["time"].endswith("Z") and time.strptime(rec["time"][:19], "%Y-%m-%dT%H:%M:%S")
-    assert got[0] == {**{k: got[0][k] for k in ("time", "logger")}, "level": "info", "message": "plain 1",
-                      "server_id": "eu-1"}
+    assert got[0] == {
+        **{k: got[0][k] for k in ("time", "logger")},
+        "level": "info",
+        "message": "plain 1",
+        "server_id": "eu-1",
+    }
     assert (got[1]["level"], got[1]["cloth"], got[1]["client"]) == ("warning", "c1", "k1")
     assert got[2]["client"] == "k2" and "cloth" not in got[2] and got[2]["message"] == "in context\nwith a newline"
     assert (got[3]["cloth"], got[3]["client"], got[3]["server_id"], got[3]["level"]) == ("c9", "k2", "other", "debug")
@@ -127,8 +132,9 @@ def test_settings_precedence(tmp_path, monkeypatch):
     assert settings(["-vv"], [], serve=False) == ("text", "debug", None)
     assert settings([], ["--config", str(toml)]) == ("json", "warning", "from-toml")
     assert settings(["--log-format", "text"], ["--config", str(toml)])[0] == "text"
-    assert settings(["--log-format", "text"], ["--config", str(toml), "--log-format", "json", "--log-level",
-                                              "debug"])[:2] == ("json", "debug")
+    assert settings(["--log-format", "text"], ["--config", str(toml), "--log-format", "json", "--log-level", "debug"])[
+        :2
+    ] == ("json", "debug")
     monkeypatch.setenv("DRAPE_LOG_FORMAT", "json")
     assert settings([], [], serve=False)[0] == "json"
     assert settings([], ["--server-id", "x"]) == ("json", "info", "x")
@@ -140,9 +146,26 @@ def test_drape_serve_writes_json_lines(tmp_path):
     env = {**os.environ, "RUST_LOG": "error"}
     env.pop("DRAPE_CONFIG", None)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "drape.server.cli", "serve", "--log-format", "json", "--listen",
-         f"tcp/127.0.0.1:{port}", "--server-id", sid, "--solver", "reference", "--no-multicast-scouting"],
-        stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env)
+        [
+            sys.executable,
+            "-m",
+            "drape.server.cli",
+            "serve",
+            "--log-format",
+            "json",
+            "--listen",
+            f"tcp/127.0.0.1:{port}",
+            "--server-id",
+            sid,
+            "--solver",
+            "reference",
+            "--no-multicast-scouting",
+        ],
+        stderr=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
     raw: list[str] = []
     up = threading.Event()
 

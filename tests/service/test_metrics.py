@@ -1,6 +1,7 @@
 """Operator endpoints of a real server (PoCL, Zenoh on loopback): the Prometheus exposition and
 its counters, /healthz and /readyz, systemd's notify protocol over a real Unix datagram socket,
 and the metrics_listen setting."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -164,8 +165,11 @@ def test_counters_follow_submit_control_refusal_and_remove(served, client):
     after = scrape(ops)
 
     def moved(name: str, **labels) -> float:
-        return value(after, name, **labels) - value(before, name, **labels) if _has(before, name, **labels) \
+        return (
+            value(after, name, **labels) - value(before, name, **labels)
+            if _has(before, name, **labels)
             else value(after, name, **labels)
+        )
 
     assert moved("drape_requests_total", kind="submit") == 2
     assert moved("drape_requests_total", kind="control") == 1
@@ -192,8 +196,14 @@ def test_overload_refusals_from_stats_or_error_code():
     assert overload_refusals({"errors": {"overloaded": 3}, "overload_refusals": 5}) == 5
     timer = PhaseTimer()
     timer.add(0.003)
-    fams = {m.name: m for m in families({"server": "s", "errors": {"overloaded": 2}, "published_bytes": 1234,
-                                         "links": 99}, {"solver": "jacobi"}, {"tick": timer})}
+    fams = {
+        m.name: m
+        for m in families(
+            {"server": "s", "errors": {"overloaded": 2}, "published_bytes": 1234, "links": 99},
+            {"solver": "jacobi"},
+            {"tick": timer},
+        )
+    }
     assert fams["drape_overload_refusals"].samples[0].value == 2
     assert fams["drape_published_bytes"].samples[0].value == 1234 and fams["drape_links"].samples[0].value == 99
     h = {(s.name, s.labels.get("le")): s.value for s in fams["drape_tick_phase_seconds"].samples}
@@ -333,8 +343,12 @@ def test_operations_files_name_only_metrics_that_exist():
         shown = {"counter": name + "_total", "info": name + "_info"}.get(kind, name)
         assert f"`{shown}`" in docs, f"docs/operations.md does not list {shown}"
     alerts = (root / "deploy/alerts.yml").read_text()
-    for metric in ("drape_missed_ticks_total", "drape_tick_phase_seconds_bucket", "drape_overload_refusals_total",
-                   "drape_nan_resets_total"):
+    for metric in (
+        "drape_missed_ticks_total",
+        "drape_tick_phase_seconds_bucket",
+        "drape_overload_refusals_total",
+        "drape_nan_resets_total",
+    ):
         assert metric in alerts
     assert "histogram_quantile(0.99" in alerts
     unit = (root / "deploy/drape.service").read_text()
@@ -356,8 +370,10 @@ def test_overload_refusals_counted_when_admission_refuses(served):
     saved = admission.model
     admission.model = FixedCost(per_vertex_s=1.0)  # one vertex costs a whole second: nothing more fits
     try:
-        with DrapeClient(server.config.listen[0], server_id=server.server_id, timeout=TIMEOUT) as a, \
-                DrapeClient(server.config.listen[0], server_id=server.server_id, timeout=TIMEOUT) as b:
+        with (
+            DrapeClient(server.config.listen[0], server_id=server.server_id, timeout=TIMEOUT) as a,
+            DrapeClient(server.config.listen[0], server_id=server.server_id, timeout=TIMEOUT) as b,
+        ):
             with a.submit_grid(4, 4):
                 with pytest.raises(P.DrapeError) as refused:
                     b.submit_grid(4, 4)
@@ -366,8 +382,10 @@ def test_overload_refusals_counted_when_admission_refuses(served):
         admission.model = saved
     after = scrape(ops)
     assert value(after, "drape_overload_refusals_total") == value(before, "drape_overload_refusals_total") + 1
-    assert value(after, "drape_errors_total", code="overloaded") == \
-        value(before, "drape_errors_total", code="overloaded") + 1
+    assert (
+        value(after, "drape_errors_total", code="overloaded")
+        == value(before, "drape_errors_total", code="overloaded") + 1
+    )
 
 
 def test_a_busy_metrics_port_is_a_clear_error(served):
@@ -396,10 +414,27 @@ def test_drape_serve_notifies_systemd_and_serves_metrics(tmp_path):
         env = {**os.environ, "NOTIFY_SOCKET": path, "WATCHDOG_USEC": "1000000", "RUST_LOG": "error"}
         env.pop("WATCHDOG_PID", None)
         env.pop("DRAPE_CONFIG", None)
-        proc = subprocess.Popen([sys.executable, "-m", "drape.server.cli", "serve", "--listen",
-                                 f"tcp/127.0.0.1:{port}", "--server-id", f"notify-{port}", "--solver", "reference",
-                                 "--metrics-listen", f"127.0.0.1:{mport}", "--no-multicast-scouting"],
-                                env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "drape.server.cli",
+                "serve",
+                "--listen",
+                f"tcp/127.0.0.1:{port}",
+                "--server-id",
+                f"notify-{port}",
+                "--solver",
+                "reference",
+                "--metrics-listen",
+                f"127.0.0.1:{mport}",
+                "--no-multicast-scouting",
+            ],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         try:
             ready = sock.recv(4096).decode().split("\n")
             assert ready[0] == "READY=1", ready

@@ -7,6 +7,7 @@ the submitted float32 vertices at every tick: the expected payload of any tick i
 ``encode_state(tick, time, vertices, encoding, flags)`` (and ``encode_bundle`` of those for a
 client's bundle), with the tick, time and flags read from the received header.
 """
+
 from __future__ import annotations
 
 import threading
@@ -70,8 +71,9 @@ def test_published_bytes_equal_the_protocol_encoding(device_encode, rng):
                     cloths.append((h, v, str(enc), bundled))
             raws = {h.id: Raw(client.session, h.key) for h, _, _, b in cloths if not b}
             bundle_raw = Raw(client.session, client.bundle_key)
-            assert wait_until(lambda: all(len(r.payloads()) >= 5 for r in raws.values())
-                              and len(bundle_raw.payloads()) >= 5, TIMEOUT)
+            assert wait_until(
+                lambda: all(len(r.payloads()) >= 5 for r in raws.values()) and len(bundle_raw.payloads()) >= 5, TIMEOUT
+            )
             if device_encode:
                 assert server.ticker.device is not None and server.ticker.device.plans >= 1
             else:

@@ -1,5 +1,6 @@
 """Quality presets through the service: chosen at submit or by control, lowered by the server
 while ticks overrun and restored afterwards, reported in stats."""
+
 from __future__ import annotations
 
 import msgpack
@@ -15,8 +16,9 @@ TIMEOUT = 10.0
 
 
 def test_protocol_carries_quality_both_ways():
-    req = P.SubmitRequest(client="c1", grid=P.GridSpec(4, 4, 1.0, 1.0, "horizontal", (0.0, 0.0, 0.0)),
-                          quality="accurate", rid=3)
+    req = P.SubmitRequest(
+        client="c1", grid=P.GridSpec(4, 4, 1.0, 1.0, "horizontal", (0.0, 0.0, 0.0)), quality="accurate", rid=3
+    )
     back = P.decode_submit(P.encode_submit(req))
     assert back.quality == "accurate" and back == req
     ctl = P.ControlRequest("a" * 16, "0" * 32, quality="fast", rid=4)
@@ -33,14 +35,20 @@ def _params(srv: Server, cloth_id: str):
 
 
 def test_preset_at_submit_and_by_control():
-    with Server(make_config(adaptive_quality=False)) as srv, \
-            DrapeClient(srv.config.listen[0], server_id=srv.server_id, timeout=TIMEOUT) as client:
+    with (
+        Server(make_config(adaptive_quality=False)) as srv,
+        DrapeClient(srv.config.listen[0], server_id=srv.server_id, timeout=TIMEOUT) as client,
+    ):
         with client.submit_grid(8, 8, pinned=[0, 7], quality="balanced") as h:
             h.next_state(TIMEOUT)
             p = _params(srv, h.id)
             want = quality.apply_preset(p, "balanced", srv.config.tick_rate)
-            assert (p.iterations, p.substeps, p.features.xpbd, p.features.tethers) == \
-                   (want.iterations, want.substeps, True, True)
+            assert (p.iterations, p.substeps, p.features.xpbd, p.features.tethers) == (
+                want.iterations,
+                want.substeps,
+                True,
+                True,
+            )
             tick = h.set(quality="fast")
             h.wait_for_tick(tick, TIMEOUT)
             assert _params(srv, h.id).substeps == quality.PRESETS["fast"].substeps
@@ -50,8 +58,10 @@ def test_preset_at_submit_and_by_control():
 def test_server_lowers_quality_under_load_and_restores_it():
     # Deterministic: the governor is fed injected tick costs (counted ticks, no wall-clock
     # dependence): first twice the budget, every tick, then nothing.
-    with Server(make_config(quality_budget=0.05)) as srv, \
-            DrapeClient(srv.config.listen[0], server_id=srv.server_id, timeout=TIMEOUT) as client:
+    with (
+        Server(make_config(quality_budget=0.05)) as srv,
+        DrapeClient(srv.config.listen[0], server_id=srv.server_id, timeout=TIMEOUT) as client,
+    ):
         budget_s = srv.config.quality_budget * srv.config.dt
         srv.quality.measure = lambda seconds: 2.0 * budget_s
         cloths = [client.submit_grid(16, 16, pinned=[0, 15], quality="accurate") for _ in range(2)]

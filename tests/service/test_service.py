@@ -4,6 +4,7 @@ scouting), a real server (in-process Server, and once ``drape serve`` as a proce
 Most tests share one module-scoped server (it also shows that nothing one test's client does
 disturbs another's cloths); tests needing their own configuration start and stop their own.
 """
+
 from __future__ import annotations
 
 import os
@@ -145,8 +146,10 @@ def test_second_client_cannot_control_or_remove(server, client):
     other = connect(server)
     try:
         with client.submit_grid(4, 4, pinned=[0]) as h, other.submit_grid(3, 3) as mine:
-            forged = [P.ControlRequest(h.id, "0" * 32, reset=True, rid=5),
-                      P.ControlRequest(h.id, mine.token, gravity=(0, 0, 0))]  # a real token, not for h
+            forged = [
+                P.ControlRequest(h.id, "0" * 32, reset=True, rid=5),
+                P.ControlRequest(h.id, mine.token, gravity=(0, 0, 0)),
+            ]  # a real token, not for h
             for req in forged:
                 with pytest.raises(Forbidden) as e:
                     other.request("control", P.encode_control(req))
@@ -226,24 +229,53 @@ HOSTILE_SUBMITS = [
     ("pinned as array", _raw(_submit(pinned=[0, 1])), "invalid_type"),
     ("grid and mesh", _raw(_submit(mesh={"vertices": b"", "triangles": b""})), "invalid_value"),
     ("no geometry", _raw(_submit(grid=None)), "missing_field"),
-    ("mesh bad vertex bytes", _raw(_submit(grid=None, mesh={"vertices": b"\x00" * 13, "triangles": b""})),
-     "invalid_value"),
-    ("mesh triangle out of range", _raw(_submit(grid=None, mesh={
-        "vertices": np.zeros((3, 3), "<f4").tobytes(), "triangles": np.array([[0, 1, 7]], "<u4").tobytes()})),
-     "index_out_of_range"),
-    ("mesh nan vertex", _raw(_submit(grid=None, mesh={
-        "vertices": np.array([[0, 0, 0], [1, 0, 0], [0, np.nan, 0]], "<f4").tobytes(),
-        "triangles": np.array([[0, 1, 2]], "<u4").tobytes()})), "invalid_value"),
-    ("too many vertices", _raw(_submit(grid=None, mesh={
-        "vertices": np.zeros((5000, 3), "<f4").tobytes(), "triangles": b""})), "too_large"),
+    (
+        "mesh bad vertex bytes",
+        _raw(_submit(grid=None, mesh={"vertices": b"\x00" * 13, "triangles": b""})),
+        "invalid_value",
+    ),
+    (
+        "mesh triangle out of range",
+        _raw(
+            _submit(
+                grid=None,
+                mesh={
+                    "vertices": np.zeros((3, 3), "<f4").tobytes(),
+                    "triangles": np.array([[0, 1, 7]], "<u4").tobytes(),
+                },
+            )
+        ),
+        "index_out_of_range",
+    ),
+    (
+        "mesh nan vertex",
+        _raw(
+            _submit(
+                grid=None,
+                mesh={
+                    "vertices": np.array([[0, 0, 0], [1, 0, 0], [0, np.nan, 0]], "<f4").tobytes(),
+                    "triangles": np.array([[0, 1, 2]], "<u4").tobytes(),
+                },
+            )
+        ),
+        "invalid_value",
+    ),
+    (
+        "too many vertices",
+        _raw(_submit(grid=None, mesh={"vertices": np.zeros((5000, 3), "<f4").tobytes(), "triangles": b""})),
+        "too_large",
+    ),
     ("message too large", _raw(_submit(padding=b"\x00" * (1 << 20))), "too_large"),
     ("unknown feature", _raw(_submit(features=["xpbd", "antigravity"])), "invalid_value"),
     ("damping out of range", _raw(_submit(material={"damping": 2.0})), "invalid_value"),
     ("stiffness wrong length", _raw(_submit(material={"stiffness": [1.0, 1.0]})), "invalid_type"),
-    ("too many colliders", _raw(_submit(colliders=[{"type": "sphere", "center": [0, 0, 0], "radius": 1}] * 33)),
-     "too_large"),
+    (
+        "too many colliders",
+        _raw(_submit(colliders=[{"type": "sphere", "center": [0, 0, 0], "radius": 1}] * 33)),
+        "too_large",
+    ),
     ("bad collider", _raw(_submit(colliders=[{"type": "torus"}])), "invalid_value"),
-    ("iterations too many", _raw(_submit(iterations=10 ** 9)), "invalid_value"),
+    ("iterations too many", _raw(_submit(iterations=10**9)), "invalid_value"),
     ("bad client id", _raw(_submit(client="../*")), "invalid_value"),
     ("unknown encoding", _raw(_submit(state={"encoding": "jpeg"})), "invalid_value"),
     ("coordinates absurd", _raw(_submit(grid={"cols": 2, "rows": 2, "origin": [1e30, 0, 0]})), "invalid_value"),
@@ -266,16 +298,35 @@ def test_hostile_messages_get_errors_and_others_keep_being_served(server, client
         # control: owned cloth, hostile contents
         ok = {"v": V, "rid": 3, "cloth": bystander.id, "token": bystander.token}
         hostile_controls = [
-            ({**ok, "pins": {"indices": np.array([99], "<u4").tobytes(), "targets": np.zeros(3, "<f4").tobytes()}},
-             "index_out_of_range"),
-            ({**ok, "pins": {"indices": np.array([7], "<u4").tobytes(), "targets": np.zeros(3, "<f4").tobytes()}},
-             "invalid_value"),  # vertex 7 is not pinned
-            ({**ok, "pins": {"indices": np.array([0], "<u4").tobytes(),
-                             "targets": np.array([0, np.nan, 0], "<f4").tobytes()}}, "invalid_value"),
-            ({**ok, "pins": {"indices": np.zeros(65, "<u4").tobytes(), "targets": np.zeros(65 * 3, "<f4").tobytes()}},
-             "too_large"),
-            ({**ok, "pins": {"indices": np.zeros(2, "<u4").tobytes(), "targets": np.zeros(3, "<f4").tobytes()}},
-             "invalid_value"),
+            (
+                {**ok, "pins": {"indices": np.array([99], "<u4").tobytes(), "targets": np.zeros(3, "<f4").tobytes()}},
+                "index_out_of_range",
+            ),
+            (
+                {**ok, "pins": {"indices": np.array([7], "<u4").tobytes(), "targets": np.zeros(3, "<f4").tobytes()}},
+                "invalid_value",
+            ),  # vertex 7 is not pinned
+            (
+                {
+                    **ok,
+                    "pins": {
+                        "indices": np.array([0], "<u4").tobytes(),
+                        "targets": np.array([0, np.nan, 0], "<f4").tobytes(),
+                    },
+                },
+                "invalid_value",
+            ),
+            (
+                {
+                    **ok,
+                    "pins": {"indices": np.zeros(65, "<u4").tobytes(), "targets": np.zeros(65 * 3, "<f4").tobytes()},
+                },
+                "too_large",
+            ),
+            (
+                {**ok, "pins": {"indices": np.zeros(2, "<u4").tobytes(), "targets": np.zeros(3, "<f4").tobytes()}},
+                "invalid_value",
+            ),
             ({**ok, "token": "not-hex"}, "invalid_value"),
             ({**ok, "cloth": "doesnotexist"}, "not_found"),
             ({**ok, "gravity": [0, 0]}, "invalid_type"),
@@ -445,11 +496,17 @@ def test_client_finds_the_server_by_liveliness_and_mesh_submission(server, tmp_p
 def test_drape_serve_process_stops_cleanly_on_sigterm(tmp_path: Path):
     ep = endpoint()
     cfg = tmp_path / "drape.toml"
-    cfg.write_text(f'listen = ["{ep}"]\nserver_id = "proc"\ntick_rate = 60.0\nsolver = "workgroup"\n'
-                   "grace_period = 2.0\n")
+    cfg.write_text(
+        f'listen = ["{ep}"]\nserver_id = "proc"\ntick_rate = 60.0\nsolver = "workgroup"\ngrace_period = 2.0\n'
+    )
     env = {**os.environ, "DRAPE_STATS_PERIOD": "0.5"}
-    proc = subprocess.Popen([sys.executable, "-m", "drape.server.cli", "serve", "--config", str(cfg)],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "drape.server.cli", "serve", "--config", str(cfg)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=env,
+    )
     try:
         with DrapeClient(ep, server_id="proc", timeout=15.0) as c:
             info = c.info()
@@ -479,8 +536,12 @@ def test_config_precedence(tmp_path: Path):
     f.write_text('[server]\ntick_rate = 30.0\nlisten = ["tcp/127.0.0.1:9000"]\nmax_cloths = 7\nsolver = "jacobi"\n')
     cfg = ServerConfig.load(f, env={})
     assert (cfg.tick_rate, cfg.listen, cfg.max_cloths, cfg.solver) == (30.0, ["tcp/127.0.0.1:9000"], 7, "jacobi")
-    env = {"DRAPE_TICK_RATE": "90", "DRAPE_CONNECT": "tcp/a:1,tcp/b:2", "DRAPE_MULTICAST_SCOUTING": "true",
-           "DRAPE_CONFIG": str(f)}
+    env = {
+        "DRAPE_TICK_RATE": "90",
+        "DRAPE_CONNECT": "tcp/a:1,tcp/b:2",
+        "DRAPE_MULTICAST_SCOUTING": "true",
+        "DRAPE_CONFIG": str(f),
+    }
     cfg = ServerConfig.load(env=env)
     assert cfg.tick_rate == 90.0 and cfg.connect == ["tcp/a:1", "tcp/b:2"] and cfg.multicast_scouting
     assert cfg.max_cloths == 7
@@ -488,8 +549,9 @@ def test_config_precedence(tmp_path: Path):
 
     p = argparse.ArgumentParser()
     add_arguments(p)
-    args = p.parse_args(["--tick-rate", "120", "--listen", "tcp/127.0.0.1:1", "--listen", "tcp/127.0.0.1:2",
-                         "--no-multicast-scouting"])
+    args = p.parse_args(
+        ["--tick-rate", "120", "--listen", "tcp/127.0.0.1:1", "--listen", "tcp/127.0.0.1:2", "--no-multicast-scouting"]
+    )
     cfg = from_args(args, env=env)
     assert cfg.tick_rate == 120.0 and cfg.listen == ["tcp/127.0.0.1:1", "tcp/127.0.0.1:2"]
     assert not cfg.multicast_scouting and cfg.max_cloths == 7 and cfg.solver == "jacobi"

@@ -1,5 +1,6 @@
 """The frame encoded on the device (drape.server.sim.opencl.encode, kernels/encode.cl): every
 publication's bytes equal drape.client.protocol's encode_state / encode_bundle, on real OpenCL."""
+
 from __future__ import annotations
 
 import json
@@ -29,8 +30,9 @@ def _buffer(device, host: np.ndarray) -> cl.Buffer:
     return cl.Buffer(device.ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(host, np.float32))
 
 
-def _world_arrays(rng: np.random.Generator, cloths: list[ClothEntry], pos: list[np.ndarray],
-                  nrm: list[np.ndarray], stride: int = 4) -> tuple[np.ndarray, np.ndarray]:
+def _world_arrays(
+    rng: np.random.Generator, cloths: list[ClothEntry], pos: list[np.ndarray], nrm: list[np.ndarray], stride: int = 4
+) -> tuple[np.ndarray, np.ndarray]:
     """float4 position and normal arrays as the world holds them (stride 3: packed xyz); the
     gaps between cloths and the w components are NaN, so reading outside a cloth's range shows
     in its bounds."""
@@ -38,8 +40,8 @@ def _world_arrays(rng: np.random.Generator, cloths: list[ClothEntry], pos: list[
     P4 = np.full((max(end, 1), 4), np.nan, np.float32)
     N4 = np.full((max(end, 1), 4), np.nan, np.float32)
     for c, p, m in zip(cloths, pos, nrm, strict=True):
-        P4[c.vbase:c.vbase + c.n, :3] = p
-        N4[c.vbase:c.vbase + c.n, :3] = m
+        P4[c.vbase : c.vbase + c.n, :3] = p
+        N4[c.vbase : c.vbase + c.n, :3] = m
     if stride == 3:
         return np.ascontiguousarray(P4[:, :3]), np.ascontiguousarray(N4[:, :3])
     return P4, N4
@@ -87,8 +89,10 @@ def _random_frame(rng: np.random.Generator, k: int, max_n: int = 700):
     for i in order:
         vbase[i] = at
         at += int(sizes[i]) + int(rng.integers(0, 5))
-    cloths = [ClothEntry(_random_id(rng), int(vbase[i]), int(sizes[i]), int(rng.choice(ENCS)), bool(rng.random() < 0.5))
-              for i in range(k)]
+    cloths = [
+        ClothEntry(_random_id(rng), int(vbase[i]), int(sizes[i]), int(rng.choice(ENCS)), bool(rng.random() < 0.5))
+        for i in range(k)
+    ]
     pos = [_random_positions(rng, c.n) for c in cloths]
     nrm = [_random_normals(rng, c.n) for c in cloths]
     published = rng.permutation(k)[: max(1, k - int(rng.integers(0, 3)))]
@@ -108,8 +112,9 @@ def _random_frame(rng: np.random.Generator, k: int, max_n: int = 700):
 def _reference(cloths, pos, nrm, pubs, tick, time_ns, flags) -> list[bytes]:
     def state(i: int) -> bytearray:
         c = cloths[i]
-        return P.encode_state(tick, time_ns, pos[i], nrm[i] if c.normals else None, P.ENCODING_NAMES[c.encoding],
-                              int(flags[i]))
+        return P.encode_state(
+            tick, time_ns, pos[i], nrm[i] if c.normals else None, P.ENCODING_NAMES[c.encoding], int(flags[i])
+        )
 
     out = []
     for pub in pubs:
@@ -135,9 +140,18 @@ def _assert_same(got: list[bytes], want: list[bytes], pubs) -> None:
             pytest.fail(f"{pub.key}: {len(d)} bytes differ, first at {d[:8].tolist()}")
 
 
-@pytest.mark.parametrize("k, local_size, stride, soft_half", [
-    (1, None, 4, None), (7, None, 4, None), (40, None, 4, None), (40, 16, 4, False), (25, 256, 4, False),
-    (30, None, 3, None), (30, 64, 3, True)])
+@pytest.mark.parametrize(
+    "k, local_size, stride, soft_half",
+    [
+        (1, None, 4, None),
+        (7, None, 4, None),
+        (40, None, 4, None),
+        (40, 16, 4, False),
+        (25, 256, 4, False),
+        (30, None, 3, None),
+        (30, 64, 3, True),
+    ],
+)
 def test_random_frames_equal_the_protocol_encoder(device, rng, k, local_size, stride, soft_half):
     """local_size None is the device's default (1 on a CPU); GPUs run 256 (a reduction tree).
     stride 4: the world's float4 vertex buffers; 3: packed xyz rows. soft_half None is the
@@ -155,7 +169,7 @@ def test_random_frames_equal_the_protocol_encoder(device, rng, k, local_size, st
             _assert_same(got, _reference(cloths, pos, nrm, pubs, tick, time_ns, flags), pubs)
             whole = bytes(enc.read())
             for view, off in zip(got, plan.pub_offset.tolist(), strict=True):
-                assert whole[off:off + len(view)] == view
+                assert whole[off : off + len(view)] == view
             pos = [p[rng.permutation(len(p))] for p in pos]  # new positions for the next tick
             P4, N4 = _world_arrays(rng, cloths, pos, nrm, stride)
         assert len(enc.nonfinite()) == 0
@@ -177,8 +191,7 @@ def test_views_of_the_previous_frame_stay_valid(device, rng):
     enc.set_plan(FramePlan.build(cloths[:1], [Publication("other", (0,))]))  # views outlive their plan
     enc.close()
     _assert_same([bytes(v) for v in first], _reference(cloths, pos, nrm, pubs, 10, 100, zeros), pubs)
-    _assert_same([bytes(v) for v in second], _reference(cloths, [p * 2 for p in pos], nrm, pubs, 11, 101, zeros),
-                 pubs)
+    _assert_same([bytes(v) for v in second], _reference(cloths, [p * 2 for p in pos], nrm, pubs, 11, 101, zeros), pubs)
 
 
 def test_a_held_frame_is_never_reused_and_takes_flags(device, rng):
@@ -205,8 +218,7 @@ def test_a_held_frame_is_never_reused_and_takes_flags(device, rng):
         want[bad] = P.FLAG_RESET
         _assert_same([bytes(v) for v in held.views], _reference(cloths, pos, nrm, pubs, 10, 100, want), pubs)
         held.set_time(2**63 + 12345)  # the server time, known after the readback
-        _assert_same([bytes(v) for v in held.views], _reference(cloths, pos, nrm, pubs, 10, 2**63 + 12345, want),
-                     pubs)
+        _assert_same([bytes(v) for v in held.views], _reference(cloths, pos, nrm, pubs, 10, 2**63 + 12345, want), pubs)
         held.release()
         with pytest.raises(RuntimeError):
             held.add_flags(bad, P.FLAG_RESET)
@@ -238,13 +250,20 @@ def test_state_vectors(device):
         c = ClothEntry("c", 2, len(pos), enc_id, nrm is not None)
         P4 = np.zeros((len(pos) + 4, 4), np.float32)
         N4 = np.zeros_like(P4)
-        P4[2:2 + len(pos), :3] = pos
+        P4[2 : 2 + len(pos), :3] = pos
         if nrm is not None:
-            N4[2:2 + len(pos), :3] = np.array(nrm, np.float32)
+            N4[2 : 2 + len(pos), :3] = np.array(nrm, np.float32)
         enc = DeviceEncoder(device)
         enc.set_plan(FramePlan.build([c], [Publication("k", (0,))]))
-        got = _encode(device, enc, P4, N4, v["value"]["tick"], v["value"]["server_time_ns"],
-                      np.array([v["input"]["flags"]], np.uint16))
+        got = _encode(
+            device,
+            enc,
+            P4,
+            N4,
+            v["value"]["tick"],
+            v["value"]["server_time_ns"],
+            np.array([v["input"]["flags"]], np.uint16),
+        )
         assert got[0] == bytes.fromhex(v["hex"]), v["name"]
         enc.close()
 
@@ -260,8 +279,25 @@ def test_float16_over_every_exponent(device, rng, soft_half):
     mant[1::4] |= 0xFFF
     sign = rng.integers(0, 2, len(exps), dtype=np.uint32) << 31
     vals = (sign | (exps << 23) | mant).view(np.float32)
-    extra = np.array([0.0, -0.0, 65504.0, 65519.99, 65520.0, -65520.0, 2.0**-24, 2.0**-25, 1.5 * 2.0**-25,
-                      2.0**-14, 2.0**-14 * (1 - 2.0**-11), 1e-45, np.inf, -np.inf], np.float32)
+    extra = np.array(
+        [
+            0.0,
+            -0.0,
+            65504.0,
+            65519.99,
+            65520.0,
+            -65520.0,
+            2.0**-24,
+            2.0**-25,
+            1.5 * 2.0**-25,
+            2.0**-14,
+            2.0**-14 * (1 - 2.0**-11),
+            1e-45,
+            np.inf,
+            -np.inf,
+        ],
+        np.float32,
+    )
     vals = np.concatenate([vals, extra])
     vals = np.concatenate([vals, np.zeros((-len(vals)) % 3, np.float32)]).reshape(-1, 3)
     finite = np.isfinite(vals).all(axis=1)
@@ -298,7 +334,7 @@ def test_without_fp64_quant16_within_tolerance(device, rng, local_size):
     want = _reference(cloths, pos, nrm, pubs, 5, 6, flags)
     worst = 0
     for g, w, c in zip(got, want, cloths, strict=True):
-        assert g[:P.STATE_HEADER_SIZE] == w[:P.STATE_HEADER_SIZE]
+        assert g[: P.STATE_HEADER_SIZE] == w[: P.STATE_HEADER_SIZE]
         qg = np.frombuffer(g, "<u2", c.n * 3, P.STATE_HEADER_SIZE).astype(np.int64)
         qw = np.frombuffer(w, "<u2", c.n * 3, P.STATE_HEADER_SIZE).astype(np.int64)
         worst = max(worst, int(np.abs(qg - qw).max()))
@@ -412,7 +448,6 @@ def test_empty_plan(device):
     enc.close()
 
 
-
 def test_frame_of_a_real_world(device, rng):
     """Straight from a stepped CLWorld's float4 vertex buffers (each cloth at its vertex base):
     the same bytes as the protocol encoder on the positions and normals those buffers hold."""
@@ -430,8 +465,10 @@ def test_frame_of_a_real_world(device, rng):
     for _ in range(3):
         world.step(1 / 60)
     world.sync()
-    cloths = [ClothEntry(f"c{j}", world.rec[h].vbase, world.cloths[h].fabric.n_vertices, ENCS[j % 3], nr)
-              for j, (h, nr) in enumerate(zip(handles, normals, strict=True))]
+    cloths = [
+        ClothEntry(f"c{j}", world.rec[h].vbase, world.cloths[h].fabric.n_vertices, ENCS[j % 3], nr)
+        for j, (h, nr) in enumerate(zip(handles, normals, strict=True))
+    ]
     pubs = [Publication("a", (0, 3), True), Publication("b", (1,)), Publication("c", (2,))]
     enc = DeviceEncoder(device)
     enc.set_plan(FramePlan.build(cloths, pubs))
@@ -443,8 +480,8 @@ def test_frame_of_a_real_world(device, rng):
     N4 = np.empty((end, 4), np.float32)
     cl.enqueue_copy(device.queue, P4, world.pos.buf)
     cl.enqueue_copy(device.queue, N4, world.nrm.buf)
-    pos = [P4[c.vbase:c.vbase + c.n, :3] for c in cloths]
-    nrm = [N4[c.vbase:c.vbase + c.n, :3] for c in cloths]
+    pos = [P4[c.vbase : c.vbase + c.n, :3] for c in cloths]
+    nrm = [N4[c.vbase : c.vbase + c.n, :3] for c in cloths]
     assert all(np.isfinite(p).all() for p in pos)
     assert all(np.isfinite(m).all() and np.abs(m).max() > 0.5 for m, c in zip(nrm, cloths, strict=True) if c.normals)
     _assert_same(got, _reference(cloths, pos, nrm, pubs, 77, 88, flags), pubs)

@@ -1,5 +1,6 @@
 """Fabric cooking: link sets, colouring independence, degenerate input, sharing, OBJ parsing (the
 protocol's), tether anchors (exact, bounded in memory, not computed for cloths without tethers)."""
+
 from __future__ import annotations
 
 import tracemalloc
@@ -116,8 +117,7 @@ def test_obj_loader_fan_triangulates_and_accepts_slashes_and_negative_indices():
     assert t.tolist() == [[0, 1, 2], [0, 2, 3], [4, 1, 2]]
 
 
-@pytest.mark.parametrize("face,line", [("f 1 2 9", 4), ("f 0 1 2", 4), ("f -4 1 2", 4), ("f 1 2", 4),
-                                       ("f 1 2 x", 4)])
+@pytest.mark.parametrize("face,line", [("f 1 2 9", 4), ("f 0 1 2", 4), ("f -4 1 2", 4), ("f 1 2", 4), ("f 1 2 x", 4)])
 def test_obj_loader_refuses_references_outside_the_vertices(face, line):
     """One parser for client and server (the protocol's): a face naming a vertex that does not
     exist (0, past the end, or negative before the first) is refused with the line, never

@@ -6,6 +6,7 @@ key, a spoofed state), while the same actions on his own keys pass as positive c
 Every negative check is ordered behind a positive event that travels the same links after it, so
 "nothing arrived" is asserted only once anything that had been let through would have arrived.
 """
+
 from __future__ import annotations
 
 import json
@@ -59,8 +60,18 @@ def test_example_users_file_generates_a_section_zenoh_loads(tmp_path):
     # the whole router configuration, through the command
     out = tmp_path / "router.json5"
     dict_file = tmp_path / "users.txt"
-    args = _parse(["acl", str(EXAMPLE), "--router-config", str(REPO / "deploy/zenoh-router.json5"),
-                   "--out", str(out), "--dictionary", str(dict_file)])
+    args = _parse(
+        [
+            "acl",
+            str(EXAMPLE),
+            "--router-config",
+            str(REPO / "deploy/zenoh-router.json5"),
+            "--out",
+            str(out),
+            "--dictionary",
+            str(dict_file),
+        ]
+    )
     assert acl.run(args) == 0
     router = zenoh.Config.from_file(str(out))
     assert json.loads(router.get_json("mode")) == "router"
@@ -76,22 +87,30 @@ def test_client_rules_bind_keys_to_the_client_id():
     rules = {r["id"]: r for r in section["rules"]}
     assert rules["u-alice-token-liveliness_token"]["key_exprs"] == [keys.alive_client("alice")]
     assert rules["u-alice-subscribe-declare_subscriber"]["key_exprs"] == sorted([keys.bundle("alice"), keys.stats("*")])
-    assert all("declare_queryable" not in r["messages"] or r["flows"] == ["egress"]
-               for r in section["rules"] if r["id"].startswith(("u-alice", "u-bob")))
+    assert all(
+        "declare_queryable" not in r["messages"] or r["flows"] == ["egress"]
+        for r in section["rules"]
+        if r["id"].startswith(("u-alice", "u-bob"))
+    )
     opened = acl.access_control(users, cloth_states="any")
     bob_reads = {k for r in opened["rules"] if r["id"] == "u-bob-subscribe-declare_subscriber" for k in r["key_exprs"]}
     assert keys.state("*") in bob_reads
 
 
-@pytest.mark.parametrize("bad, message", [
-    ('[[user]]\nname = "a"\nrole = "admin"\nid = "a"\n', "role must be one of"),
-    ('[[user]]\nname = "a b"\nrole = "client"\n', "name must be"),
-    ('[[user]]\nname = "a"\nrole = "client"\nid = "x"\n[[user]]\nname = "b"\nrole = "client"\nid = "x"\n',
-     "already belongs"),
-    ('namespace = "a//b"\n[[user]]\nname = "a"\nrole = "client"\n', "invalid namespace"),
-    ('[[user]]\nname = "a"\nrole = "client"\ncolour = 1\n', "unknown key"),
-    ("", "no [[user]]"),
-])
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        ('[[user]]\nname = "a"\nrole = "admin"\nid = "a"\n', "role must be one of"),
+        ('[[user]]\nname = "a b"\nrole = "client"\n', "name must be"),
+        (
+            '[[user]]\nname = "a"\nrole = "client"\nid = "x"\n[[user]]\nname = "b"\nrole = "client"\nid = "x"\n',
+            "already belongs",
+        ),
+        ('namespace = "a//b"\n[[user]]\nname = "a"\nrole = "client"\n', "invalid namespace"),
+        ('[[user]]\nname = "a"\nrole = "client"\ncolour = 1\n', "unknown key"),
+        ("", "no [[user]]"),
+    ],
+)
 def test_bad_users_files_are_refused_with_a_clear_error(tmp_path, bad, message):
     p = tmp_path / "users.toml"
     p.write_text(bad)
@@ -113,8 +132,9 @@ def _parse(argv: list[str]):
 # Enforcement by a real router
 
 
-def _session(endpoint: str, user: str | None, password: str | None, tls: dict[str, str] | None,
-             cert: str | None = None) -> zenoh.Session:
+def _session(
+    endpoint: str, user: str | None, password: str | None, tls: dict[str, str] | None, cert: str | None = None
+) -> zenoh.Session:
     """A client-mode session; ``cert``: present that certificate (``{cert}.pem``, mutual TLS)."""
     c = zenoh.Config()
     c.insert_json5("mode", '"client"')
@@ -135,22 +155,86 @@ def _session(endpoint: str, user: str | None, password: str | None, tls: dict[st
 
 def _make_certs(d: Path) -> dict[str, str]:
     """A CA and a router certificate for localhost, as deploy/certs/README.md makes them."""
+
     def ossl(*a: str) -> None:
         subprocess.run(["openssl", *a], cwd=d, check=True, capture_output=True)
 
-    ossl("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2", "-subj", "/CN=drape-test-ca",
-         "-keyout", "ca-key.pem", "-out", "ca.pem")
-    ossl("req", "-newkey", "rsa:2048", "-nodes", "-subj", "/CN=localhost", "-keyout", "router-key.pem",
-         "-out", "router.csr")
+    ossl(
+        "req",
+        "-x509",
+        "-newkey",
+        "rsa:2048",
+        "-nodes",
+        "-days",
+        "2",
+        "-subj",
+        "/CN=drape-test-ca",
+        "-keyout",
+        "ca-key.pem",
+        "-out",
+        "ca.pem",
+    )
+    ossl(
+        "req",
+        "-newkey",
+        "rsa:2048",
+        "-nodes",
+        "-subj",
+        "/CN=localhost",
+        "-keyout",
+        "router-key.pem",
+        "-out",
+        "router.csr",
+    )
     (d / "san.ext").write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\n")
-    ossl("x509", "-req", "-in", "router.csr", "-CA", "ca.pem", "-CAkey", "ca-key.pem", "-CAcreateserial",
-         "-days", "2", "-extfile", "san.ext", "-out", "router.pem")
+    ossl(
+        "x509",
+        "-req",
+        "-in",
+        "router.csr",
+        "-CA",
+        "ca.pem",
+        "-CAkey",
+        "ca-key.pem",
+        "-CAcreateserial",
+        "-days",
+        "2",
+        "-extfile",
+        "san.ext",
+        "-out",
+        "router.pem",
+    )
     (d / "client.ext").write_text("extendedKeyUsage=clientAuth\n")
     for name in ("eu-1", "alice", "bob"):  # mutual TLS: one certificate per party, CN = name.drape.test
-        ossl("req", "-newkey", "rsa:2048", "-nodes", "-subj", f"/CN={name}.drape.test", "-keyout", f"{name}-key.pem",
-             "-out", f"{name}.csr")
-        ossl("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.pem", "-CAkey", "ca-key.pem", "-CAcreateserial",
-             "-days", "2", "-extfile", "client.ext", "-out", f"{name}.pem")
+        ossl(
+            "req",
+            "-newkey",
+            "rsa:2048",
+            "-nodes",
+            "-subj",
+            f"/CN={name}.drape.test",
+            "-keyout",
+            f"{name}-key.pem",
+            "-out",
+            f"{name}.csr",
+        )
+        ossl(
+            "x509",
+            "-req",
+            "-in",
+            f"{name}.csr",
+            "-CA",
+            "ca.pem",
+            "-CAkey",
+            "ca-key.pem",
+            "-CAcreateserial",
+            "-days",
+            "2",
+            "-extfile",
+            "client.ext",
+            "-out",
+            f"{name}.pem",
+        )
     return {"ca": str(d / "ca.pem"), "key": str(d / "router-key.pem"), "cert": str(d / "router.pem")}
 
 
@@ -231,8 +315,11 @@ def test_bob_cannot_act_as_alice_through_the_router(router):
     bundle_b = server.declare_publisher(keys.bundle("bob"))
 
     def server_reachable(s: zenoh.Session, ping: bytes) -> list[bytes]:
-        return [r.ok.payload.to_bytes() for r in s.get(keys.control("eu-1"), payload=ping,
-                                                        target=zenoh.QueryTarget.ALL, timeout=WAIT) if r.ok]
+        return [
+            r.ok.payload.to_bytes()
+            for r in s.get(keys.control("eu-1"), payload=ping, target=zenoh.QueryTarget.ALL, timeout=WAIT)
+            if r.ok
+        ]
 
     # 1. Liveliness: bob declares alice's token (refused), then his own (positive control).
     bob_as_alice = bob.liveliness().declare_token(keys.alive_client("alice"))
@@ -354,8 +441,9 @@ def test_routerless_the_servers_own_peer_session_enforces_the_acl(tmp_path):
         server.liveliness().declare_subscriber(keys.all_clients_alive, tokens, history=True)
         server.declare_queryable(keys.control("eu-1"), lambda q: q.reply(q.key_expr, b"server"))
         impostor: list[bytes] = []
-        bob.declare_queryable(keys.control("eu-1"), lambda q: impostor.append(q.payload.to_bytes() if q.payload
-                                                                               is not None else b""))
+        bob.declare_queryable(
+            keys.control("eu-1"), lambda q: impostor.append(q.payload.to_bytes() if q.payload is not None else b"")
+        )
         bob.liveliness().declare_token(keys.alive_client("alice"))
         bob.liveliness().declare_token(keys.alive_client("bob"))
         assert tokens.wait_for(lambda i: keys.alive_client("bob") in i.keys)
@@ -377,8 +465,11 @@ def test_routerless_the_servers_own_peer_session_enforces_the_acl(tmp_path):
 
         assert published_until_bob_has_his()
         assert b"for-alice" not in b_inbox.payloads
-        replies = [r.ok.payload.to_bytes() for r in alice.get(keys.control("eu-1"), payload=b"alice",
-                                                              target=zenoh.QueryTarget.ALL, timeout=WAIT) if r.ok]
+        replies = [
+            r.ok.payload.to_bytes()
+            for r in alice.get(keys.control("eu-1"), payload=b"alice", target=zenoh.QueryTarget.ALL, timeout=WAIT)
+            if r.ok
+        ]
         assert replies == [b"server"] and b"alice" not in impostor
     finally:
         for sess in (bob, alice, server):
@@ -411,14 +502,36 @@ def test_drape_serve_and_the_sdk_work_through_the_acl_router(tmp_path):
     c.insert_json5("access_control", json.dumps(acl.access_control(users)))
     router = zenoh.open(c)
     log = open(tmp_path / "server.log", "w")
-    server = subprocess.Popen([sys.executable, "-m", "drape.server.cli", "serve", "--mode", "client",
-                               "--connect", endpoint, "--zenoh-config", _user_file(tmp_path, "eu-1", "pw-server"),
-                               "--server-id", "eu-1", "--stats-period", "0.5", "--no-admission"],
-                              stdout=log, stderr=subprocess.STDOUT)  # admission: not this test's subject
+    server = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "drape.server.cli",
+            "serve",
+            "--mode",
+            "client",
+            "--connect",
+            endpoint,
+            "--zenoh-config",
+            _user_file(tmp_path, "eu-1", "pw-server"),
+            "--server-id",
+            "eu-1",
+            "--stats-period",
+            "0.5",
+            "--no-admission",
+        ],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )  # admission: not this test's subject
     clients: list[DrapeClient] = []
     try:
-        alice = DrapeClient(endpoint, mode="client", client_id="alice", timeout=SERVER_WAIT,
-                            zenoh_config_file=_user_file(tmp_path, "alice", "pw-alice"))
+        alice = DrapeClient(
+            endpoint,
+            mode="client",
+            client_id="alice",
+            timeout=SERVER_WAIT,
+            zenoh_config_file=_user_file(tmp_path, "alice", "pw-alice"),
+        )
         clients.append(alice)
         assert alice.server_id == "eu-1"  # found through the server's liveliness token
         cloth = alice.submit_grid(8, 8, pinned=[0, 7], bundle=True)
@@ -427,8 +540,13 @@ def test_drape_serve_and_the_sdk_work_through_the_acl_router(tmp_path):
         with pytest.raises(NotFound):  # an error reply crosses the router too
             alice.request("remove", P.encode_remove(P.RemoveRequest("0123456789abcdef", "0" * 32)))
 
-        bob = DrapeClient(endpoint, mode="client", client_id="bob", timeout=WAIT,
-                          zenoh_config_file=_user_file(tmp_path, "bob", "pw-bob"))
+        bob = DrapeClient(
+            endpoint,
+            mode="client",
+            client_id="bob",
+            timeout=WAIT,
+            zenoh_config_file=_user_file(tmp_path, "bob", "pw-bob"),
+        )
         clients.append(bob)
         stolen = Inbox()
         bob.session.declare_subscriber(Keys("drape").bundle("alice"), stolen)

@@ -5,6 +5,7 @@ the server's log, no ``internal`` error reply, every malformed message answered 
 map, and a valid submit still served afterwards. The generator itself is checked to be
 deterministic and to cover every queryable and every kind of hostile message.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -26,8 +27,19 @@ def test_generator_is_deterministic_and_covers_every_queryable_and_kind():
     assert a == b and len(a) == CI_COUNT
     assert {q for q, _, _ in a} == set(chaos_fuzz.QUERYABLES)
     kinds = Counter(k.split(" ")[0] for _, k, _ in a)
-    for kind in ("type", "truncated", "random", "deep-array", "deep-map", "deep-field", "huge-map", "over-limit",
-                 "trailing", "bad-utf8", "non-string-keys"):
+    for kind in (
+        "type",
+        "truncated",
+        "random",
+        "deep-array",
+        "deep-map",
+        "deep-field",
+        "huge-map",
+        "over-limit",
+        "trailing",
+        "bad-utf8",
+        "non-string-keys",
+    ):
         assert kinds[kind] > 0, kind
     assert max(len(p) for _, _, p in a) == CI_MAX_BYTES + 1  # one just over the limit
     assert all(len(p) <= CI_MAX_BYTES for _, k, p in a if k != "over-limit")
@@ -36,8 +48,13 @@ def test_generator_is_deterministic_and_covers_every_queryable_and_kind():
 def test_valid_bases_decode_and_their_mutations_do_not():
     """The fuzzer starts from requests the protocol accepts: a mutation is what makes them hostile."""
     bases = chaos_fuzz.valid_requests("fuzzer", "0123456789abcdef", "0" * 32)
-    decoders = {"submit": P.decode_submit, "control": P.decode_control, "control_batch": P.decode_control_batch,
-                "remove": P.decode_remove, "info": P.decode_info}
+    decoders = {
+        "submit": P.decode_submit,
+        "control": P.decode_control,
+        "control_batch": P.decode_control_batch,
+        "remove": P.decode_remove,
+        "info": P.decode_info,
+    }
     for b in bases:
         decoders[b.queryable](msgpack.packb(b.message))
     deep = chaos_fuzz.deep(chaos_fuzz.DEPTH)
@@ -50,8 +67,15 @@ def test_valid_bases_decode_and_their_mutations_do_not():
 def test_fuzz_leaves_no_traceback_no_internal_error_and_the_server_serving(tmp_path):
     # Admission control off: on a loaded CI machine it may refuse the final valid submit with
     # `overloaded`, which is right for a server but not what this test is about.
-    ctx = chaos_faults.Context(out=tmp_path, fuzz_count=CI_COUNT, max_message_bytes=CI_MAX_BYTES, grace_period=1.0,
-                               baseline_s=0.5, seed=11, serve_args=("--no-admission",))
+    ctx = chaos_faults.Context(
+        out=tmp_path,
+        fuzz_count=CI_COUNT,
+        max_message_bytes=CI_MAX_BYTES,
+        grace_period=1.0,
+        baseline_s=0.5,
+        seed=11,
+        serve_args=("--no-admission",),
+    )
     r = chaos_faults.fuzz(ctx)
     assert r["sent"] == CI_COUNT
     assert r["server_alive"]
@@ -73,9 +97,17 @@ def test_command_lists_scenarios_and_refuses_unknown_ones(capsys):
 
 
 def test_table_reports_failures_as_failures():
-    report = {"passed": False, "scenarios": {
-        "kill": {"passed": False, "fails": ["0 of 4 cloths of the killed server came back (0.0 %)"], "back_pct": 0.0},
-        "fuzz": {"passed": True, "fails": [], "good_rate_hz": 60.0, "errors": {"malformed": 3}}}}
+    report = {
+        "passed": False,
+        "scenarios": {
+            "kill": {
+                "passed": False,
+                "fails": ["0 of 4 cloths of the killed server came back (0.0 %)"],
+                "back_pct": 0.0,
+            },
+            "fuzz": {"passed": True, "fails": [], "good_rate_hz": 60.0, "errors": {"malformed": 3}},
+        },
+    }
     text = chaos.format_table(report)
     assert "kill: FAIL 0 of 4 cloths" in text and "overall: FAIL" in text
     assert "malformed:3" in text

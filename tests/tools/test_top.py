@@ -1,5 +1,6 @@
 """``drape top``: one plain-text frame against real servers over Zenoh on loopback, rates from
 two publications, and the answer when no server is there."""
+
 from __future__ import annotations
 
 import logging
@@ -72,8 +73,10 @@ def test_once_renders_every_server_on_the_network(capsys):
 def test_once_one_server_only(capsys):
     a = Server(make_config()).start()
     try:
-        assert main(["top", "--once", "--endpoint", a.config.listen[0], "--server", a.server_id,
-                     "--wait", str(TIMEOUT)]) == 0
+        assert (
+            main(["top", "--once", "--endpoint", a.config.listen[0], "--server", a.server_id, "--wait", str(TIMEOUT)])
+            == 0
+        )
     finally:
         a.stop()
     out = capsys.readouterr().out
@@ -89,13 +92,39 @@ def test_once_without_servers_says_so(capsys):
 
 def test_rates_from_two_publications(capsys):
     board = StatsBoard(P.Keys())
-    base = {"server": "s1", "tick_rate": 60.0, "cloths": 3, "clients": 1, "vertices": 300, "uptime_s": 3725.0,
-            "errors": {"overloaded": 4, "busy": 1}, "quality": {"presets": {"balanced": 2, "fast": 1}, "degraded": 1},
-            "phases": {"tick": {"mean_ms": 2.5, "max_ms": 9.0}, "solve": {"mean_ms": 1.25}}}
-    board.add("s1", {**base, "time_ns": 1_000_000_000, "ticks": 100, "published": 1000, "published_bytes": 10_000,
-                     "missed_ticks": 2})
-    board.add("s1", {**base, "time_ns": 3_000_000_000, "ticks": 220, "published": 1600, "published_bytes": 5_010_000,
-                     "missed_ticks": 6})
+    base = {
+        "server": "s1",
+        "tick_rate": 60.0,
+        "cloths": 3,
+        "clients": 1,
+        "vertices": 300,
+        "uptime_s": 3725.0,
+        "errors": {"overloaded": 4, "busy": 1},
+        "quality": {"presets": {"balanced": 2, "fast": 1}, "degraded": 1},
+        "phases": {"tick": {"mean_ms": 2.5, "max_ms": 9.0}, "solve": {"mean_ms": 1.25}},
+    }
+    board.add(
+        "s1",
+        {
+            **base,
+            "time_ns": 1_000_000_000,
+            "ticks": 100,
+            "published": 1000,
+            "published_bytes": 10_000,
+            "missed_ticks": 2,
+        },
+    )
+    board.add(
+        "s1",
+        {
+            **base,
+            "time_ns": 3_000_000_000,
+            "ticks": 220,
+            "published": 1600,
+            "published_bytes": 5_010_000,
+            "missed_ticks": 6,
+        },
+    )
     print_frame(board.views(), "test", sys.stdout)
     row = dict(zip(COLUMNS, frame_rows(capsys.readouterr().out, "s1")["s1"], strict=True))
     assert row["TICK/s"] == "60.0/60" and row["STATES/s"] == "300" and row["BYTES/s"] == "2.5 MB"

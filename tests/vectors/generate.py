@@ -10,6 +10,7 @@ tests/vectors/v1.0/ and tests/vectors/v1.1/ hold the vectors of protocols 1.0 an
 committed, frozen: this script never rewrites them, and the tests check that this implementation
 still reads every one the same way.
 """
+
 from __future__ import annotations
 
 import json
@@ -25,11 +26,20 @@ from drape.client import protocol as P
 HERE = Path(__file__).resolve().parent
 
 #: bin fields and the little-endian element type of their contents
-BIN_TYPES = {"pinned": "u32", "vertices": "f32", "triangles": "u32", "indices": "u32", "targets": "f32",
-             "positions": "f32", "velocities": "f32"}  # 1.3: resume
-INVALID_NOTE = ("Validation only: the verdicts are the decoder's, on the bytes alone. A server then also checks that "
-                "each cloth exists and that the token owns it (not_found, forbidden), which these vectors do not "
-                "exercise: their cloth ids and tokens are placeholders.")
+BIN_TYPES = {
+    "pinned": "u32",
+    "vertices": "f32",
+    "triangles": "u32",
+    "indices": "u32",
+    "targets": "f32",
+    "positions": "f32",
+    "velocities": "f32",
+}  # 1.3: resume
+INVALID_NOTE = (
+    "Validation only: the verdicts are the decoder's, on the bytes alone. A server then also checks that "
+    "each cloth exists and that the token owns it (not_found, forbidden), which these vectors do not "
+    "exercise: their cloth ids and tokens are placeholders."
+)
 DTYPES = {"u32": "<u4", "f32": "<f4"}
 
 
@@ -73,8 +83,9 @@ def msg_vector(name: str, message: str, description: str, data: bytes) -> dict[s
     }
 
 
-def state_vector(name: str, description: str, tick: int, t_ns: int, positions, normals, encoding: str,
-                 flags: int = 0) -> dict[str, Any]:
+def state_vector(
+    name: str, description: str, tick: int, t_ns: int, positions, normals, encoding: str, flags: int = 0
+) -> dict[str, Any]:
     pos = np.asarray(positions, np.float32)
     nrm = None if normals is None else np.asarray(normals, np.float32)
     data = bytes(P.encode_state(tick, t_ns, pos, nrm, encoding, flags))
@@ -107,8 +118,9 @@ def state_value(st: P.ClothState, data: bytes | memoryview) -> dict[str, Any]:
     }
 
 
-def bundle_vector(name: str, description: str, tick: int, t_ns: int,
-                  cloths: list[tuple[str, Any, Any, str, int]]) -> dict[str, Any]:
+def bundle_vector(
+    name: str, description: str, tick: int, t_ns: int, cloths: list[tuple[str, Any, Any, str, int]]
+) -> dict[str, Any]:
     """cloths: (id, positions, normals, encoding, flags) per entry."""
     states = []
     for cid, pos, nrm, enc, flags in cloths:
@@ -120,14 +132,16 @@ def bundle_vector(name: str, description: str, tick: int, t_ns: int,
     entries = []
     at = P.BUNDLE_HEADER_SIZE
     for i, e in enumerate(b.entries):
-        entries.append({
-            "cloth": e.cloth,
-            "entry_offset": at,
-            "entry_header_size": e.offset - at,
-            "state_offset": e.offset,
-            "state_size": e.size,
-            "state": state_value(b.state(i), b.payload(i)),
-        })
+        entries.append(
+            {
+                "cloth": e.cloth,
+                "entry_offset": at,
+                "entry_header_size": e.offset - at,
+                "state_offset": e.offset,
+                "state_size": e.size,
+                "state": state_value(b.state(i), b.payload(i)),
+            }
+        )
         at = P.align8(e.offset + e.size)
     return {
         "name": name,
@@ -154,139 +168,366 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
     quad_v = np.array([[0, 0, 0], [1, 0, 0], [1, 0, 1], [0, 0, 1]], np.float32)
     quad_t = np.array([[0, 3, 1], [1, 3, 2]], np.uint32)
     submit = [
-        msg_vector("submit_grid_full", "submit", "A vertical 8x4 grid with every optional field.", P.encode_submit(
-            P.SubmitRequest(
-                client="game-7",
-                grid=P.GridSpec(8, 4, 1.6, 0.8, "vertical", (0.0, 2.0, 0.0)),
-                pinned=np.array([0, 7], np.uint32),
-                links=P.LinkSpec(True, True, True),
-                material={"mass": 0.5, "stiffness": (1.0, 0.9, 0.5), "damping": 0.01},
-                features=("tethers",),
-                gravity=(0.0, -9.81, 0.0),
-                wind=(1.0, 0.0, 0.0),
-                iterations=12,
-                substeps=2,
-                colliders=(P.Sphere((0.8, 1.5, 0.3), 0.25),),
-                state=P.StateOptions(True, "float32"),
-                rid=1,
-            ))),
-        msg_vector("submit_bundle", "submit", "1.1: a 4x4 grid whose state goes in the client's bundle, quant16.",
-                   P.encode_submit(P.SubmitRequest(client="game-7", grid=P.GridSpec(4, 4),
-                                                   pinned=np.array([0, 3], np.uint32),
-                                                   state=P.StateOptions(None, "quant16", True), rid=7))),
-        msg_vector("submit_grid_minimal", "submit", "The smallest submission: a 4x4 grid, server defaults.",
-                   P.encode_submit(P.SubmitRequest(client="c1", grid=P.GridSpec(4, 4)))),
-        msg_vector("submit_mesh", "submit", "A 4-vertex, 2-triangle mesh pinned at vertex 0, quantised states.",
-                   P.encode_submit(P.SubmitRequest(client="c1", mesh=P.MeshSpec(quad_v, quad_t),
-                                                   pinned=np.array([0], np.uint32),
-                                                   state=P.StateOptions(None, "quant16"), rid=2))),
-        msg_vector("submit_resume", "submit", "1.3: a 2x2 grid resubmitted after a failover, continuing from the "
-                   "state of tick 1042 of cloth 5ba88a14c526242f on server s1: positions and velocities of its 4 "
-                   "vertices (vertex 0 pinned: it starts at its given position with zero velocity).",
-                   P.encode_submit(P.SubmitRequest(
-                       client="c1", grid=P.GridSpec(2, 2), pinned=np.array([0], np.uint32), rid=9,
-                       resume=P.ResumeState(
-                           np.array([[0, 1, 0], [1, 0.75, 0.25], [0, 0.5, 1], [1, 0.25, 1]], np.float32),
-                           np.array([[0, 0, 0], [0.5, -1, 0], [0, -1.5, 0.25], [0.5, -2, 0]], np.float32),
-                           1042, "s1", CLOTH)))),
-        msg_vector("submit_resume_positions", "submit", "1.3: the least resume: positions only (velocities zero).",
-                   P.encode_submit(P.SubmitRequest(
-                       client="c1", grid=P.GridSpec(2, 1),
-                       resume=P.ResumeState(np.array([[0, 2, 0], [1, 2, 0]], np.float32))))),
+        msg_vector(
+            "submit_grid_full",
+            "submit",
+            "A vertical 8x4 grid with every optional field.",
+            P.encode_submit(
+                P.SubmitRequest(
+                    client="game-7",
+                    grid=P.GridSpec(8, 4, 1.6, 0.8, "vertical", (0.0, 2.0, 0.0)),
+                    pinned=np.array([0, 7], np.uint32),
+                    links=P.LinkSpec(True, True, True),
+                    material={"mass": 0.5, "stiffness": (1.0, 0.9, 0.5), "damping": 0.01},
+                    features=("tethers",),
+                    gravity=(0.0, -9.81, 0.0),
+                    wind=(1.0, 0.0, 0.0),
+                    iterations=12,
+                    substeps=2,
+                    colliders=(P.Sphere((0.8, 1.5, 0.3), 0.25),),
+                    state=P.StateOptions(True, "float32"),
+                    rid=1,
+                )
+            ),
+        ),
+        msg_vector(
+            "submit_bundle",
+            "submit",
+            "1.1: a 4x4 grid whose state goes in the client's bundle, quant16.",
+            P.encode_submit(
+                P.SubmitRequest(
+                    client="game-7",
+                    grid=P.GridSpec(4, 4),
+                    pinned=np.array([0, 3], np.uint32),
+                    state=P.StateOptions(None, "quant16", True),
+                    rid=7,
+                )
+            ),
+        ),
+        msg_vector(
+            "submit_grid_minimal",
+            "submit",
+            "The smallest submission: a 4x4 grid, server defaults.",
+            P.encode_submit(P.SubmitRequest(client="c1", grid=P.GridSpec(4, 4))),
+        ),
+        msg_vector(
+            "submit_mesh",
+            "submit",
+            "A 4-vertex, 2-triangle mesh pinned at vertex 0, quantised states.",
+            P.encode_submit(
+                P.SubmitRequest(
+                    client="c1",
+                    mesh=P.MeshSpec(quad_v, quad_t),
+                    pinned=np.array([0], np.uint32),
+                    state=P.StateOptions(None, "quant16"),
+                    rid=2,
+                )
+            ),
+        ),
+        msg_vector(
+            "submit_resume",
+            "submit",
+            "1.3: a 2x2 grid resubmitted after a failover, continuing from the "
+            "state of tick 1042 of cloth 5ba88a14c526242f on server s1: positions and velocities of its 4 "
+            "vertices (vertex 0 pinned: it starts at its given position with zero velocity).",
+            P.encode_submit(
+                P.SubmitRequest(
+                    client="c1",
+                    grid=P.GridSpec(2, 2),
+                    pinned=np.array([0], np.uint32),
+                    rid=9,
+                    resume=P.ResumeState(
+                        np.array([[0, 1, 0], [1, 0.75, 0.25], [0, 0.5, 1], [1, 0.25, 1]], np.float32),
+                        np.array([[0, 0, 0], [0.5, -1, 0], [0, -1.5, 0.25], [0.5, -2, 0]], np.float32),
+                        1042,
+                        "s1",
+                        CLOTH,
+                    ),
+                )
+            ),
+        ),
+        msg_vector(
+            "submit_resume_positions",
+            "submit",
+            "1.3: the least resume: positions only (velocities zero).",
+            P.encode_submit(
+                P.SubmitRequest(
+                    client="c1",
+                    grid=P.GridSpec(2, 1),
+                    resume=P.ResumeState(np.array([[0, 2, 0], [1, 2, 0]], np.float32)),
+                )
+            ),
+        ),
     ]
     control = [
-        msg_vector("control_full", "control", "Pins, colliders, gravity, wind, material, features, iterations, "
-                   "substeps, state options and a reset.", P.encode_control(P.ControlRequest(
-                       cloth=CLOTH, token=TOKEN,
-                       pins=P.PinUpdate(np.array([0, 7], np.uint32), np.array([[0, 2, 0], [1.5, 2, 0.25]], np.float32)),
-                       colliders=(P.Plane((0.0, 1.0, 0.0), -1.0), P.Capsule((0, 1, 0), (1, 1, 0), 0.1)),
-                       gravity=(0.0, -20.0, 0.0), wind=(0.0, 0.0, 3.0), material={"drag": 0.3, "lift": 0.1},
-                       features=("wind", "colliders"), iterations=8, substeps=1, state=P.StateOptions(False, "float16"),
-                       reset=True, rid=3))),
-        msg_vector("control_pins", "control", "Move pinned vertex 3.",
-                   P.encode_control(P.ControlRequest(CLOTH, TOKEN, pins=P.PinUpdate(
-                       np.array([3], np.uint32), np.array([[0.5, 1.0, -0.5]], np.float32)), rid=4))),
-        msg_vector("control_batch", "control_batch", "1.1: one request controlling two cloths of client game-7: "
-                   "pins and a collider for the first, a reset for the second.",
-                   P.encode_control_batch(P.ControlBatchRequest("game-7", [
-                       P.ControlRequest(CLOTH, TOKEN, pins=P.PinUpdate(
-                           np.array([0, 3], np.uint32), np.array([[0, 1, 0], [1, 1, 0]], np.float32)),
-                           colliders=(P.Sphere((0.5, 0.5, 0.0), 0.2),)),
-                       P.ControlRequest(CLOTH2, TOKEN2, reset=True),
-                   ], rid=10))),
-        msg_vector("control_features_add_remove", "control", "1.2: switch wind on and tethers off, keeping every "
-                   "other feature of the cloth (features_add / features_remove instead of replacing the set).",
-                   P.encode_control(P.ControlRequest(CLOTH, TOKEN, material={"drag": 0.3}, features_add=("wind",),
-                                                     features_remove=("tethers",), rid=11))),
+        msg_vector(
+            "control_full",
+            "control",
+            "Pins, colliders, gravity, wind, material, features, iterations, substeps, state options and a reset.",
+            P.encode_control(
+                P.ControlRequest(
+                    cloth=CLOTH,
+                    token=TOKEN,
+                    pins=P.PinUpdate(np.array([0, 7], np.uint32), np.array([[0, 2, 0], [1.5, 2, 0.25]], np.float32)),
+                    colliders=(P.Plane((0.0, 1.0, 0.0), -1.0), P.Capsule((0, 1, 0), (1, 1, 0), 0.1)),
+                    gravity=(0.0, -20.0, 0.0),
+                    wind=(0.0, 0.0, 3.0),
+                    material={"drag": 0.3, "lift": 0.1},
+                    features=("wind", "colliders"),
+                    iterations=8,
+                    substeps=1,
+                    state=P.StateOptions(False, "float16"),
+                    reset=True,
+                    rid=3,
+                )
+            ),
+        ),
+        msg_vector(
+            "control_pins",
+            "control",
+            "Move pinned vertex 3.",
+            P.encode_control(
+                P.ControlRequest(
+                    CLOTH,
+                    TOKEN,
+                    pins=P.PinUpdate(np.array([3], np.uint32), np.array([[0.5, 1.0, -0.5]], np.float32)),
+                    rid=4,
+                )
+            ),
+        ),
+        msg_vector(
+            "control_batch",
+            "control_batch",
+            "1.1: one request controlling two cloths of client game-7: "
+            "pins and a collider for the first, a reset for the second.",
+            P.encode_control_batch(
+                P.ControlBatchRequest(
+                    "game-7",
+                    [
+                        P.ControlRequest(
+                            CLOTH,
+                            TOKEN,
+                            pins=P.PinUpdate(np.array([0, 3], np.uint32), np.array([[0, 1, 0], [1, 1, 0]], np.float32)),
+                            colliders=(P.Sphere((0.5, 0.5, 0.0), 0.2),),
+                        ),
+                        P.ControlRequest(CLOTH2, TOKEN2, reset=True),
+                    ],
+                    rid=10,
+                )
+            ),
+        ),
+        msg_vector(
+            "control_features_add_remove",
+            "control",
+            "1.2: switch wind on and tethers off, keeping every "
+            "other feature of the cloth (features_add / features_remove instead of replacing the set).",
+            P.encode_control(
+                P.ControlRequest(
+                    CLOTH, TOKEN, material={"drag": 0.3}, features_add=("wind",), features_remove=("tethers",), rid=11
+                )
+            ),
+        ),
     ]
     other = [
         msg_vector("remove", "remove", "Remove a cloth.", P.encode_remove(P.RemoveRequest(CLOTH, TOKEN, 5))),
-        msg_vector("info", "info", "Ask for the server's description (an empty payload is accepted too).",
-                   P.encode_info(P.InfoRequest(6))),
-        msg_vector("reply_submit", "reply_submit", "A submission accepted.",
-                   P.encode_submit_reply(P.SubmitReply(CLOTH, TOKEN, f"drape/cloth/{CLOTH}/state", 32, 1042, 1))),
-        msg_vector("reply_control", "reply_control", "A control applied from tick 1050 on.",
-                   P.encode_control_reply(P.ControlReply(1050, 3))),
-        msg_vector("reply_submit_bundle", "reply_submit", "1.1: a bundled submission accepted: its state goes "
-                   "in client game-7's bundle.",
-                   P.encode_submit_reply(P.SubmitReply(CLOTH, TOKEN, f"drape/cloth/{CLOTH}/state", 16, 1042, 7,
-                                                       "drape/client/game-7/states"))),
-        msg_vector("reply_control_batch", "reply_control_batch", "1.1: a batch of two: the first applied from tick "
-                   "1050 on, the second refused (not the owner's token).",
-                   P.encode_control_batch_reply(P.ControlBatchReply(1050, [
-                       P.BatchItemResult(1050),
-                       P.BatchItemResult(None, "forbidden", f"the token does not own cloth '{CLOTH2}'")], 10))),
-        msg_vector("reply_remove", "reply_remove", "A cloth removed; 1061 was its last state.",
-                   P.encode_remove_reply(P.RemoveReply(1061, 5))),
-        msg_vector("reply_error", "error", "An error reply.", P.encode_error(
-            "index_out_of_range", "'pinned' refers to vertex 16 but the cloth has 16 vertices", 9)),
-        msg_vector("reply_control_features", "reply_control", "1.2: a control applied from tick 1050 on; the "
-                   "cloth's feature set after it, in the protocol's order.",
-                   P.encode_control_reply(P.ControlReply(1050, 11, ("colliders", "wind", "normals")))),
-        msg_vector("reply_control_batch_features", "reply_control_batch", "1.2: a batch of one applied item, with "
-                   "the cloth's resulting feature set.",
-                   P.encode_control_batch_reply(P.ControlBatchReply(1050, [
-                       P.BatchItemResult(1050, features=("xpbd", "tethers"))], 12))),
-        msg_vector("reply_info", "reply_info", "An info reply (1.2 server, defaults).", P.encode_ok(
-            6, server="s1", version=P.VERSION_STRING, solver="workgroup", device="pthread-cpu", tick_rate=60.0,
-            tick=1042, cloths=2, clients=1, vertices=2048,
-            limits={"max_cloths": 1024, "max_cloths_per_client": 64, "max_vertices_per_cloth": 65536,
-                    "max_total_vertices": 2097152, "max_message_bytes": 8 << 20, "max_pin_updates": 4096,
-                    "max_batch_items": 64, "max_colliders": 32, "max_iterations": 100, "max_substeps": 100},
-            encodings=list(P.ENCODINGS), features=list(P.FEATURE_NAMES), grace_period_s=5.0, stats_period_s=1.0)),
-        msg_vector("stats", "stats", "A stats publication (informational: fields may be added in any minor "
-                   "version).", P.encode_stats({
-                       "server": "s1", "tick": 1042, "time_ns": 1_700_000_000_123_456_789, "uptime_s": 17.4,
-                       "tick_rate": 60.0, "cloths": 2, "clients": 1, "alive_clients": 1, "vertices": 2048,
-                       "requests": {"submit": 2, "control": 40}, "errors": {"forbidden": 1}, "ticks": 1043,
-                       "missed_ticks": 0, "skipped_frames": 0, "nan_resets": 0, "reclaimed": 0, "published": 2086,
-                       "unwatched": 0, "publish_errors": 0, "bundles": 0, "batch_items": 0,
-                       "phases": {"tick": {"mean_ms": 1.5, "max_ms": 3.25, "count": 60, "total_mean_ms": 1.5}},
-                       "quality": {"adaptive": True, "presets": {"balanced": 2}, "degraded": 0,
-                                   "degraded_since_ns": None, "degraded_s": 0.0, "changes": 0, "last_change": None}})),
-        msg_vector("reply_error_overloaded", "error", "1.2: a submission refused because admitting it would break "
-                   "the server's tick budget.", P.encode_error(
-                       "overloaded", "admitting 65536 more vertices would exceed the tick budget; retry later or "
-                       "on another server", 13)),
+        msg_vector(
+            "info",
+            "info",
+            "Ask for the server's description (an empty payload is accepted too).",
+            P.encode_info(P.InfoRequest(6)),
+        ),
+        msg_vector(
+            "reply_submit",
+            "reply_submit",
+            "A submission accepted.",
+            P.encode_submit_reply(P.SubmitReply(CLOTH, TOKEN, f"drape/cloth/{CLOTH}/state", 32, 1042, 1)),
+        ),
+        msg_vector(
+            "reply_control",
+            "reply_control",
+            "A control applied from tick 1050 on.",
+            P.encode_control_reply(P.ControlReply(1050, 3)),
+        ),
+        msg_vector(
+            "reply_submit_bundle",
+            "reply_submit",
+            "1.1: a bundled submission accepted: its state goes in client game-7's bundle.",
+            P.encode_submit_reply(
+                P.SubmitReply(CLOTH, TOKEN, f"drape/cloth/{CLOTH}/state", 16, 1042, 7, "drape/client/game-7/states")
+            ),
+        ),
+        msg_vector(
+            "reply_control_batch",
+            "reply_control_batch",
+            "1.1: a batch of two: the first applied from tick 1050 on, the second refused (not the owner's token).",
+            P.encode_control_batch_reply(
+                P.ControlBatchReply(
+                    1050,
+                    [
+                        P.BatchItemResult(1050),
+                        P.BatchItemResult(None, "forbidden", f"the token does not own cloth '{CLOTH2}'"),
+                    ],
+                    10,
+                )
+            ),
+        ),
+        msg_vector(
+            "reply_remove",
+            "reply_remove",
+            "A cloth removed; 1061 was its last state.",
+            P.encode_remove_reply(P.RemoveReply(1061, 5)),
+        ),
+        msg_vector(
+            "reply_error",
+            "error",
+            "An error reply.",
+            P.encode_error("index_out_of_range", "'pinned' refers to vertex 16 but the cloth has 16 vertices", 9),
+        ),
+        msg_vector(
+            "reply_control_features",
+            "reply_control",
+            "1.2: a control applied from tick 1050 on; the cloth's feature set after it, in the protocol's order.",
+            P.encode_control_reply(P.ControlReply(1050, 11, ("colliders", "wind", "normals"))),
+        ),
+        msg_vector(
+            "reply_control_batch_features",
+            "reply_control_batch",
+            "1.2: a batch of one applied item, with the cloth's resulting feature set.",
+            P.encode_control_batch_reply(
+                P.ControlBatchReply(1050, [P.BatchItemResult(1050, features=("xpbd", "tethers"))], 12)
+            ),
+        ),
+        msg_vector(
+            "reply_info",
+            "reply_info",
+            "An info reply (1.2 server, defaults).",
+            P.encode_ok(
+                6,
+                server="s1",
+                version=P.VERSION_STRING,
+                solver="workgroup",
+                device="pthread-cpu",
+                tick_rate=60.0,
+                tick=1042,
+                cloths=2,
+                clients=1,
+                vertices=2048,
+                limits={
+                    "max_cloths": 1024,
+                    "max_cloths_per_client": 64,
+                    "max_vertices_per_cloth": 65536,
+                    "max_total_vertices": 2097152,
+                    "max_message_bytes": 8 << 20,
+                    "max_pin_updates": 4096,
+                    "max_batch_items": 64,
+                    "max_colliders": 32,
+                    "max_iterations": 100,
+                    "max_substeps": 100,
+                },
+                encodings=list(P.ENCODINGS),
+                features=list(P.FEATURE_NAMES),
+                grace_period_s=5.0,
+                stats_period_s=1.0,
+            ),
+        ),
+        msg_vector(
+            "stats",
+            "stats",
+            "A stats publication (informational: fields may be added in any minor version).",
+            P.encode_stats(
+                {
+                    "server": "s1",
+                    "tick": 1042,
+                    "time_ns": 1_700_000_000_123_456_789,
+                    "uptime_s": 17.4,
+                    "tick_rate": 60.0,
+                    "cloths": 2,
+                    "clients": 1,
+                    "alive_clients": 1,
+                    "vertices": 2048,
+                    "requests": {"submit": 2, "control": 40},
+                    "errors": {"forbidden": 1},
+                    "ticks": 1043,
+                    "missed_ticks": 0,
+                    "skipped_frames": 0,
+                    "nan_resets": 0,
+                    "reclaimed": 0,
+                    "published": 2086,
+                    "unwatched": 0,
+                    "publish_errors": 0,
+                    "bundles": 0,
+                    "batch_items": 0,
+                    "phases": {"tick": {"mean_ms": 1.5, "max_ms": 3.25, "count": 60, "total_mean_ms": 1.5}},
+                    "quality": {
+                        "adaptive": True,
+                        "presets": {"balanced": 2},
+                        "degraded": 0,
+                        "degraded_since_ns": None,
+                        "degraded_s": 0.0,
+                        "changes": 0,
+                        "last_change": None,
+                    },
+                }
+            ),
+        ),
+        msg_vector(
+            "reply_error_overloaded",
+            "error",
+            "1.2: a submission refused because admitting it would break the server's tick budget.",
+            P.encode_error(
+                "overloaded",
+                "admitting 65536 more vertices would exceed the tick budget; retry later or on another server",
+                13,
+            ),
+        ),
     ]
     tri = [[0.0, 2.0, 0.0], [1.0, 1.5, -0.25], [0.5, 1.0, 0.75]]
     nrm = [[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, -1.0, 0.0]]
     state = [
-        state_vector("state_float32", "Three vertices, float32.", 1042, 1_700_000_000_123_456_789, tri, None,
-                     "float32"),
-        state_vector("state_float32_normals", "Three vertices with normals, float32, after a reset.", 7, 42, tri, nrm,
-                     "float32", P.FLAG_RESET),
-        state_vector("state_float16", "Three vertices with normals, float16 (0.1 and 1.3 round).", 8, 43,
-                     [[0.1, 2.0, 0.0], [1.3, 1.5, -0.25], [0.5, 1.0, 0.75]], nrm, "float16"),
-        state_vector("state_quant16", "Three vertices with normals, uint16 quantised against the bounds, normals "
-                     "snorm16.", 9, 44, [[0.0, 2.0, 0.0], [1.0, 1.5, -0.25], [0.3, 1.2, 0.75]], nrm, "quant16"),
+        state_vector(
+            "state_float32", "Three vertices, float32.", 1042, 1_700_000_000_123_456_789, tri, None, "float32"
+        ),
+        state_vector(
+            "state_float32_normals",
+            "Three vertices with normals, float32, after a reset.",
+            7,
+            42,
+            tri,
+            nrm,
+            "float32",
+            P.FLAG_RESET,
+        ),
+        state_vector(
+            "state_float16",
+            "Three vertices with normals, float16 (0.1 and 1.3 round).",
+            8,
+            43,
+            [[0.1, 2.0, 0.0], [1.3, 1.5, -0.25], [0.5, 1.0, 0.75]],
+            nrm,
+            "float16",
+        ),
+        state_vector(
+            "state_quant16",
+            "Three vertices with normals, uint16 quantised against the bounds, normals snorm16.",
+            9,
+            44,
+            [[0.0, 2.0, 0.0], [1.0, 1.5, -0.25], [0.3, 1.2, 0.75]],
+            nrm,
+            "quant16",
+        ),
     ]
     bundles = [
-        bundle_vector("bundle_two", "Two cloths at tick 1042: a float32 one (16-character id) and a quant16 one "
-                      "with normals (6-character id, so its entry header is padded).", 1042,
-                      1_700_000_000_123_456_789,
-                      [(CLOTH, tri, None, "float32", 0),
-                       ("cape-2", [[0.0, 2.0, 0.0], [1.0, 1.5, -0.25]], nrm[:2], "quant16", P.FLAG_RESET)]),
+        bundle_vector(
+            "bundle_two",
+            "Two cloths at tick 1042: a float32 one (16-character id) and a quant16 one "
+            "with normals (6-character id, so its entry header is padded).",
+            1042,
+            1_700_000_000_123_456_789,
+            [
+                (CLOTH, tri, None, "float32", 0),
+                ("cape-2", [[0.0, 2.0, 0.0], [1.0, 1.5, -0.25]], nrm[:2], "quant16", P.FLAG_RESET),
+            ],
+        ),
         bundle_vector("bundle_one", "A bundle of one float16 cloth.", 7, 42, [("c", tri, None, "float16", 0)]),
     ]
     one = bytes.fromhex(bundles[1]["hex"])
@@ -294,15 +535,35 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
         ("truncated", P.encode_submit(P.SubmitRequest(client="c1", grid=P.GridSpec(4, 4)))[:-4], "submit", "malformed"),
         ("unknown_major", msgpack.packb({"v": [2, 0], "client": "c1"}), "submit", "unsupported_version"),
         ("no_version", msgpack.packb({"client": "c1", "grid": {"cols": 2, "rows": 2}}), "submit", "missing_field"),
-        ("cols_as_string", msgpack.packb({"v": [1, 0], "client": "c1", "grid": {"cols": "4", "rows": 4}}), "submit",
-         "invalid_type"),
-        ("nan_gravity", msgpack.packb({"v": [1, 0], "client": "c1", "grid": {"cols": 2, "rows": 2},
-                                       "gravity": [0.0, float("nan"), 0.0]}), "submit", "invalid_value"),
-        ("pin_out_of_range", msgpack.packb({"v": [1, 0], "client": "c1", "grid": {"cols": 2, "rows": 2},
-                                            "pinned": np.array([4], "<u4").tobytes()}, use_bin_type=True), "submit",
-         "index_out_of_range"),
-        ("grid_too_large", msgpack.packb({"v": [1, 0], "client": "c1", "grid": {"cols": 100000, "rows": 100000}}),
-         "submit", "too_large"),
+        (
+            "cols_as_string",
+            msgpack.packb({"v": [1, 0], "client": "c1", "grid": {"cols": "4", "rows": 4}}),
+            "submit",
+            "invalid_type",
+        ),
+        (
+            "nan_gravity",
+            msgpack.packb(
+                {"v": [1, 0], "client": "c1", "grid": {"cols": 2, "rows": 2}, "gravity": [0.0, float("nan"), 0.0]}
+            ),
+            "submit",
+            "invalid_value",
+        ),
+        (
+            "pin_out_of_range",
+            msgpack.packb(
+                {"v": [1, 0], "client": "c1", "grid": {"cols": 2, "rows": 2}, "pinned": np.array([4], "<u4").tobytes()},
+                use_bin_type=True,
+            ),
+            "submit",
+            "index_out_of_range",
+        ),
+        (
+            "grid_too_large",
+            msgpack.packb({"v": [1, 0], "client": "c1", "grid": {"cols": 100000, "rows": 100000}}),
+            "submit",
+            "too_large",
+        ),
         ("token_not_hex", msgpack.packb({"v": [1, 0], "cloth": CLOTH, "token": "secret"}), "remove", "invalid_value"),
     ]
     batch = {"v": [1, 1], "rid": 4, "client": "c1"}
@@ -312,8 +573,12 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
         ("batch_items_not_array", msgpack.packb({**batch, "items": item}), "control_batch", "invalid_type"),
         ("batch_empty", msgpack.packb({**batch, "items": []}), "control_batch", "invalid_value"),
         ("batch_too_many", msgpack.packb({**batch, "items": [item] * 65}), "control_batch", "too_large"),
-        ("batch_bad_client", msgpack.packb({**batch, "client": "a/b", "items": [item]}), "control_batch",
-         "invalid_value"),
+        (
+            "batch_bad_client",
+            msgpack.packb({**batch, "client": "a/b", "items": [item]}),
+            "control_batch",
+            "invalid_value",
+        ),
         ("bundle_bad_magic", b"DRPX" + one[4:], "bundle", "malformed"),
         ("bundle_major_2", one[:4] + b"\x02" + one[5:], "bundle", "unsupported_version"),
         ("bundle_truncated_header", one[:31], "bundle", "malformed"),
@@ -326,87 +591,215 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
     for _ in range(999):
         deep = [deep]
     bad_cases += [
-        ("features_add_and_remove", msgpack.packb({"v": [1, 2], "cloth": CLOTH, "token": TOKEN,
-                                                   "features_add": ["wind"], "features_remove": ["wind"]}),
-         "control", "invalid_value"),
-        ("features_add_unknown", msgpack.packb({"v": [1, 2], "cloth": CLOTH, "token": TOKEN,
-                                                "features_add": ["gravity"]}), "control", "invalid_value"),
-        ("mass_subnormal", msgpack.packb({"v": [1, 2], "client": "c1", "grid": {"cols": 2, "rows": 2},
-                                          "material": {"mass": 5e-324}}), "submit", "invalid_value"),
-        ("mass_below_minimum", msgpack.packb({"v": [1, 2], "client": "c1", "grid": {"cols": 2, "rows": 2},
-                                              "material": {"mass": 1e-10}}), "submit", "invalid_value"),
-        ("nested_1000_deep", msgpack.packb({"v": [1, 2], "client": "c1", "grid": {"cols": 2, "rows": 2},
-                                            "x": deep}), "submit", "malformed"),
-        ("map_too_many_keys", msgpack.packb({"v": [1, 2], "client": "c1", "grid": {"cols": 2, "rows": 2},
-                                             **{f"k{i}": 0 for i in range(P.MAX_MAP_KEYS)}}), "submit", "malformed"),
-        ("array_too_long", msgpack.packb({"v": [1, 2], "client": "c1", "grid": {"cols": 2, "rows": 2},
-                                          "features": ["wind"] * (P.MAX_ARRAY_LENGTH + 1)}), "submit", "malformed"),
-        ("ext_type", msgpack.packb({"v": [1, 2], "client": "c1", "x": msgpack.ExtType(1, b"z")}), "submit",
-         "malformed"),
+        (
+            "features_add_and_remove",
+            msgpack.packb(
+                {"v": [1, 2], "cloth": CLOTH, "token": TOKEN, "features_add": ["wind"], "features_remove": ["wind"]}
+            ),
+            "control",
+            "invalid_value",
+        ),
+        (
+            "features_add_unknown",
+            msgpack.packb({"v": [1, 2], "cloth": CLOTH, "token": TOKEN, "features_add": ["gravity"]}),
+            "control",
+            "invalid_value",
+        ),
+        (
+            "mass_subnormal",
+            msgpack.packb({"v": [1, 2], "client": "c1", "grid": {"cols": 2, "rows": 2}, "material": {"mass": 5e-324}}),
+            "submit",
+            "invalid_value",
+        ),
+        (
+            "mass_below_minimum",
+            msgpack.packb({"v": [1, 2], "client": "c1", "grid": {"cols": 2, "rows": 2}, "material": {"mass": 1e-10}}),
+            "submit",
+            "invalid_value",
+        ),
+        (
+            "nested_1000_deep",
+            msgpack.packb({"v": [1, 2], "client": "c1", "grid": {"cols": 2, "rows": 2}, "x": deep}),
+            "submit",
+            "malformed",
+        ),
+        (
+            "map_too_many_keys",
+            msgpack.packb(
+                {
+                    "v": [1, 2],
+                    "client": "c1",
+                    "grid": {"cols": 2, "rows": 2},
+                    **{f"k{i}": 0 for i in range(P.MAX_MAP_KEYS)},
+                }
+            ),
+            "submit",
+            "malformed",
+        ),
+        (
+            "array_too_long",
+            msgpack.packb(
+                {
+                    "v": [1, 2],
+                    "client": "c1",
+                    "grid": {"cols": 2, "rows": 2},
+                    "features": ["wind"] * (P.MAX_ARRAY_LENGTH + 1),
+                }
+            ),
+            "submit",
+            "malformed",
+        ),
+        (
+            "ext_type",
+            msgpack.packb({"v": [1, 2], "client": "c1", "x": msgpack.ExtType(1, b"z")}),
+            "submit",
+            "malformed",
+        ),
     ]
     grid22 = {"v": [1, 3], "client": "c1", "grid": {"cols": 2, "rows": 2}}
     four = np.zeros((4, 3), "<f4")
     bad_cases += [
-        ("resume_wrong_count", msgpack.packb({**grid22, "resume": {"positions": np.zeros((3, 3), "<f4").tobytes()}},
-                                             use_bin_type=True), "submit", "invalid_value"),
-        ("resume_velocities_wrong_count", msgpack.packb({**grid22, "resume": {
-            "positions": four.tobytes(), "velocities": np.zeros((5, 3), "<f4").tobytes()}}, use_bin_type=True),
-         "submit", "invalid_value"),
-        ("resume_nan", msgpack.packb({**grid22, "resume": {"positions": np.array(
-            [[0, 0, 0], [1, 0, 0], [0, np.nan, 1], [1, 0, 1]], "<f4").tobytes()}}, use_bin_type=True),
-         "submit", "invalid_value"),
-        ("resume_out_of_bounds", msgpack.packb({**grid22, "resume": {"positions": np.array(
-            [[0, 0, 0], [1, 0, 0], [0, 0, 1], [2e5, 0, 1]], "<f4").tobytes()}}, use_bin_type=True),
-         "submit", "invalid_value"),
-        ("resume_velocity_too_fast", msgpack.packb({**grid22, "resume": {
-            "positions": four.tobytes(), "velocities": np.full((4, 3), 2e4, "<f4").tobytes()}}, use_bin_type=True),
-         "submit", "invalid_value"),
+        (
+            "resume_wrong_count",
+            msgpack.packb({**grid22, "resume": {"positions": np.zeros((3, 3), "<f4").tobytes()}}, use_bin_type=True),
+            "submit",
+            "invalid_value",
+        ),
+        (
+            "resume_velocities_wrong_count",
+            msgpack.packb(
+                {**grid22, "resume": {"positions": four.tobytes(), "velocities": np.zeros((5, 3), "<f4").tobytes()}},
+                use_bin_type=True,
+            ),
+            "submit",
+            "invalid_value",
+        ),
+        (
+            "resume_nan",
+            msgpack.packb(
+                {
+                    **grid22,
+                    "resume": {
+                        "positions": np.array([[0, 0, 0], [1, 0, 0], [0, np.nan, 1], [1, 0, 1]], "<f4").tobytes()
+                    },
+                },
+                use_bin_type=True,
+            ),
+            "submit",
+            "invalid_value",
+        ),
+        (
+            "resume_out_of_bounds",
+            msgpack.packb(
+                {
+                    **grid22,
+                    "resume": {"positions": np.array([[0, 0, 0], [1, 0, 0], [0, 0, 1], [2e5, 0, 1]], "<f4").tobytes()},
+                },
+                use_bin_type=True,
+            ),
+            "submit",
+            "invalid_value",
+        ),
+        (
+            "resume_velocity_too_fast",
+            msgpack.packb(
+                {
+                    **grid22,
+                    "resume": {"positions": four.tobytes(), "velocities": np.full((4, 3), 2e4, "<f4").tobytes()},
+                },
+                use_bin_type=True,
+            ),
+            "submit",
+            "invalid_value",
+        ),
         ("resume_no_positions", msgpack.packb({**grid22, "resume": {"tick": 5}}), "submit", "missing_field"),
-        ("resume_positions_not_bin", msgpack.packb({**grid22, "resume": {"positions": [0.0] * 12}}), "submit",
-         "invalid_type"),
+        (
+            "resume_positions_not_bin",
+            msgpack.packb({**grid22, "resume": {"positions": [0.0] * 12}}),
+            "submit",
+            "invalid_type",
+        ),
     ]
     invalid = [{"name": n, "message": m, "hex": d.hex(), "error": code} for n, d, m, code in bad_cases]
     # A batch whose envelope is valid: each item stands alone, only the bad ones are refused.
-    partial = msgpack.packb({**batch, "items": [
-        item,
-        {**item, "pins": {"indices": np.array([0, 1], "<u4").tobytes(), "targets": np.zeros(3, "<f4").tobytes()}},
-        [1, 2],
-        {**item, "token": "not-a-token"},
-        {**item, "state": {"bundle": True}},
-        {**item, "gravity": [0.0, -9.81, 0.0]},
-    ]}, use_bin_type=True)
-    invalid.append({"name": "batch_partly_invalid", "message": "control_batch", "description": INVALID_NOTE,
-                    "hex": partial.hex(), "error": None,
-                    "item_errors": [None, "invalid_value", "invalid_type", "invalid_value", "invalid_value", None]})
+    partial = msgpack.packb(
+        {
+            **batch,
+            "items": [
+                item,
+                {
+                    **item,
+                    "pins": {"indices": np.array([0, 1], "<u4").tobytes(), "targets": np.zeros(3, "<f4").tobytes()},
+                },
+                [1, 2],
+                {**item, "token": "not-a-token"},
+                {**item, "state": {"bundle": True}},
+                {**item, "gravity": [0.0, -9.81, 0.0]},
+            ],
+        },
+        use_bin_type=True,
+    )
+    invalid.append(
+        {
+            "name": "batch_partly_invalid",
+            "message": "control_batch",
+            "description": INVALID_NOTE,
+            "hex": partial.hex(),
+            "error": None,
+            "item_errors": [None, "invalid_value", "invalid_type", "invalid_value", "invalid_value", None],
+        }
+    )
     # Unknown minor version and unknown keys are accepted within major 1:
-    future = {"name": "submit_future_minor", "message": "submit", "description": "Version 1.7 with a key this "
-              "version does not know: accepted, the key ignored.",
-              "hex": msgpack.packb({"v": [1, 7], "rid": 0, "client": "c1", "grid": {"cols": 2, "rows": 2},
-                                    "hologram": True}).hex(),
-              "value": {"v": [1, 7], "rid": 0, "client": "c1", "grid": {"cols": 2, "rows": 2}, "hologram": True},
-              "ignored": ["hologram"]}
+    future = {
+        "name": "submit_future_minor",
+        "message": "submit",
+        "description": "Version 1.7 with a key this version does not know: accepted, the key ignored.",
+        "hex": msgpack.packb(
+            {"v": [1, 7], "rid": 0, "client": "c1", "grid": {"cols": 2, "rows": 2}, "hologram": True}
+        ).hex(),
+        "value": {"v": [1, 7], "rid": 0, "client": "c1", "grid": {"cols": 2, "rows": 2}, "hologram": True},
+        "ignored": ["hologram"],
+    }
     # A bundle of a future minor version: a longer header, an unknown flag, bytes after the last entry.
     later = bytearray(one[:32] + b"\xee" * 8 + one[32:] + b"trailing")
     later[5] = 7
     later[6:8] = (40).to_bytes(2, "little")
     later[12:16] = (1 << 31).to_bytes(4, "little")
-    future_bundle = {"name": "bundle_future_minor", "message": "bundle", "description": "Version 1.7 bundle with a "
-                     "40-byte header, an unknown flag and trailing bytes: read as the bundle it contains.",
-                     "hex": bytes(later).hex(),
-                     "value": {**bundles[1]["value"], "minor": 7, "header_size": 40, "flags": 1 << 31,
-                               "size": len(later),
-                               "entries": [{**e, "entry_offset": e["entry_offset"] + 8,
-                                            "state_offset": e["state_offset"] + 8}
-                                           for e in bundles[1]["value"]["entries"]]}}
-    return {"submit": submit, "control": control, "misc": other, "state": state, "bundle": bundles,
-            "invalid": invalid, "accepted": [future, future_bundle]}
+    future_bundle = {
+        "name": "bundle_future_minor",
+        "message": "bundle",
+        "description": "Version 1.7 bundle with a "
+        "40-byte header, an unknown flag and trailing bytes: read as the bundle it contains.",
+        "hex": bytes(later).hex(),
+        "value": {
+            **bundles[1]["value"],
+            "minor": 7,
+            "header_size": 40,
+            "flags": 1 << 31,
+            "size": len(later),
+            "entries": [
+                {**e, "entry_offset": e["entry_offset"] + 8, "state_offset": e["state_offset"] + 8}
+                for e in bundles[1]["value"]["entries"]
+            ],
+        },
+    }
+    return {
+        "submit": submit,
+        "control": control,
+        "misc": other,
+        "state": state,
+        "bundle": bundles,
+        "invalid": invalid,
+        "accepted": [future, future_bundle],
+    }
 
 
 def dumps(items: list[dict[str, Any]]) -> str:
     """JSON with one line per scalar field and arrays of numbers kept on one line."""
     text = json.dumps(items, indent=1)
-    return re.sub(r"\[[-+0-9.e,\s]*\]", lambda m: re.sub(r"\s+", " ", m.group(0)).replace("[ ", "[").replace(" ]", "]"),
-                  text)
+    return re.sub(
+        r"\[[-+0-9.e,\s]*\]", lambda m: re.sub(r"\s+", " ", m.group(0)).replace("[ ", "[").replace(" ]", "]"), text
+    )
 
 
 def main() -> None:

@@ -1,6 +1,7 @@
 """Device memory bookkeeping of the OpenCL world: a first-fit range allocator, growable device
 arrays and the int32 blob a fabric is uploaded as (its parts' offsets go into the cloth tables,
 kernels/layout.h)."""
+
 from __future__ import annotations
 
 import numpy as np

@@ -19,6 +19,7 @@ where the driver does that), reused from tick to tick. ``fetch_async`` returns a
 ``wait`` waits on that copy's event only (frames.py). The service's device-encoded frames
 read the float4 ``pos`` and ``nrm`` buffers directly instead (encode.py).
 """
+
 from __future__ import annotations
 
 import logging
@@ -339,8 +340,15 @@ class CLWorld(GroupLaunches, FrameReadback, World):
         self._scatter_val.write(0, val)
         k = self.dev.kernel(self._base_options, "scatter_targets")
         n = len(idx)
-        k(self.dev.queue, (-(-n // 64) * 64,), (64,), np.int32(n), self._scatter_idx.buf, self._scatter_val.buf,
-          self.target.buf)
+        k(
+            self.dev.queue,
+            (-(-n // 64) * 64,),
+            (64,),
+            np.int32(n),
+            self._scatter_idx.buf,
+            self._scatter_val.buf,
+            self.target.buf,
+        )
 
     def _set_colliders(self, cloth: Cloth) -> None:
         rec = self.rec[cloth.handle]
@@ -402,8 +410,13 @@ class CLWorld(GroupLaunches, FrameReadback, World):
         if self.solver == "workgroup":
             names = ["wg_step"]
         else:
-            names = ["cl_predict", "cl_finish", "cl_normals", "copy_positions",
-                     "cl_links" if self.solver == "coloured" else "jacobi_iter"]
+            names = [
+                "cl_predict",
+                "cl_finish",
+                "cl_normals",
+                "copy_positions",
+                "cl_links" if self.solver == "coloured" else "jacobi_iter",
+            ]
         for name in names:
             self.dev.kernel(opts, name)
 
@@ -414,8 +427,12 @@ class CLWorld(GroupLaunches, FrameReadback, World):
         g_features = features
         env_unroll = os.environ.get("DRAPE_LINK_UNROLL_LOCAL" if use_local else "DRAPE_LINK_UNROLL_GLOBAL")
         unroll = int(env_unroll) if env_unroll else (LINK_UNROLL_LOCAL if use_local else LINK_UNROLL_GLOBAL)
-        opts = [*g_features.build_options(), f"-DUSE_LOCAL={int(use_local)}", f"-DJACOBI_OMEGA={JACOBI_OMEGA}f",
-                f"-DLINK_UNROLL={unroll}"]
+        opts = [
+            *g_features.build_options(),
+            f"-DUSE_LOCAL={int(use_local)}",
+            f"-DJACOBI_OMEGA={JACOBI_OMEGA}f",
+            f"-DLINK_UNROLL={unroll}",
+        ]
         regs = os.environ.get("DRAPE_NV_MAXRREG", "64")
         if not use_local and self.dev.info.is_nvidia and regs != "0":
             # cap registers so a global-path work-group may have 1024 work-items
@@ -438,8 +455,20 @@ class CLWorld(GroupLaunches, FrameReadback, World):
                 self._vertex_phase_step(g, dt32, opts)
                 continue
             # kernel arguments (Any: pyopencl's stub of Kernel.__call__ leaves out LocalMemory)
-            args: list[Any] = [dt32, g.cloths_buf, self.ci.buf, self.cf.buf, self.fab.buf, self.pos.buf, self.vel.buf,
-                    self.prev.buf, self.target.buf, self.nrm.buf, self.coll.buf, self.lam.buf]
+            args: list[Any] = [
+                dt32,
+                g.cloths_buf,
+                self.ci.buf,
+                self.cf.buf,
+                self.fab.buf,
+                self.pos.buf,
+                self.vel.buf,
+                self.prev.buf,
+                self.target.buf,
+                self.nrm.buf,
+                self.coll.buf,
+                self.lam.buf,
+            ]
             if g.use_local:
                 args.append(cl.LocalMemory(16 * g.max_vertices))
             ls = g.local_size

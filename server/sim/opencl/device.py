@@ -4,6 +4,7 @@ Device choice: ``DRAPE_DEVICE`` (or the ``device`` argument) is ``auto`` (a GPU 
 present, else a CPU device such as PoCL), ``gpu``, ``cpu``, or a substring of the platform or
 device name. Programs are built once per build-option set and cached for the context.
 """
+
 from __future__ import annotations
 
 import logging
@@ -66,8 +67,11 @@ def _builds(dev: cl.Device) -> bool:
         cl.Program(cl.Context([dev]), _PROBE).build()
         return True
     except Exception as e:  # pyopencl raises RuntimeError or cl.Error subclasses
-        log.warning("OpenCL device %s cannot build kernels (%s); skipping it",
-                    describe(dev), str(e).strip().splitlines()[-1][:200])
+        log.warning(
+            "OpenCL device %s cannot build kernels (%s); skipping it",
+            describe(dev),
+            str(e).strip().splitlines()[-1][:200],
+        )
         return False
 
 
@@ -84,8 +88,9 @@ def choose_device(spec: str | None = None) -> cl.Device:
         for d in cands:
             if _builds(d):
                 return d
-        raise RuntimeError(f"no {what} OpenCL device can build kernels (tried {[describe(d) for d in cands]}); "
-                           + NO_USABLE_CPU_HINT)
+        raise RuntimeError(
+            f"no {what} OpenCL device can build kernels (tried {[describe(d) for d in cands]}); " + NO_USABLE_CPU_HINT
+        )
 
     if low == "auto":
         return first_usable(gpus + cpus or devs, "usable")
@@ -137,8 +142,12 @@ class Device:
             compute_units=int(d.max_compute_units),
             is_nvidia="nvidia" in d.platform.name.lower(),
         )
-        log.info("OpenCL device: %s (local mem %d B, max work-group %d)", self.info.name, self.info.local_mem,
-                 self.info.max_work_group)
+        log.info(
+            "OpenCL device: %s (local mem %d B, max work-group %d)",
+            self.info.name,
+            self.info.local_mem,
+            self.info.max_work_group,
+        )
 
     def program(self, options: list[str], source: str = "cloth.cl") -> cl.Program:
         """The program of ``source`` built with ``options``, built once. Thread-safe: a build

@@ -40,6 +40,7 @@ The bytes equal :func:`drape.client.protocol.encode_state` / :func:`~drape.clien
 - on a device without ``cl_khr_fp64`` quant16 positions and snorm16 normals are evaluated in
   float and may differ from the float64 reference by :data:`QUANT16_FP32_TOLERANCE` (1 unit).
 """
+
 from __future__ import annotations
 
 import logging
@@ -129,8 +130,15 @@ class DeviceEncoder:
     double, exactly as the reference; ``host_buffers`` pinned host copies are used in turn, so the views of a
     frame stay valid until that many more frames have been encoded."""
 
-    def __init__(self, dev: Device, local_size: int | None = None, fp64: bool | None = None,
-                 host_buffers: int = 2, stride: int = 4, soft_half: bool | None = None) -> None:
+    def __init__(
+        self,
+        dev: Device,
+        local_size: int | None = None,
+        fp64: bool | None = None,
+        host_buffers: int = 2,
+        stride: int = 4,
+        soft_half: bool | None = None,
+    ) -> None:
         if not dev.device.endian_little:
             raise RuntimeError(f"{dev.info.name} is big-endian; the wire format is little-endian")
         if stride not in (3, 4):
@@ -146,8 +154,11 @@ class DeviceEncoder:
             raise ValueError(f"{dev.info.name} has no cl_khr_fp64")
         self.fp64 = has64 if fp64 is None else bool(fp64)
         if not self.fp64:
-            log.warning("%s: quant16 evaluated in float, may differ from the reference by %d",
-                        dev.info.name, QUANT16_FP32_TOLERANCE)
+            log.warning(
+                "%s: quant16 evaluated in float, may differ from the reference by %d",
+                dev.info.name,
+                QUANT16_FP32_TOLERANCE,
+            )
         self._local_size = local_size
         self._host_buffers = host_buffers
         self.plan: FramePlan | None = None
@@ -175,8 +186,13 @@ class DeviceEncoder:
         return wg
 
     def _options(self, wg: int) -> list[str]:
-        return [f"-DENC_WG={wg}", f"-DENC_FP64={int(self.fp64)}", f"-DENC_STRIDE={self.stride}",
-                f"-DENC_SOFT_HALF={int(self.soft_half)}", *(f"-D{k}={v}" for k, v in HEADER_OFFSETS.items())]
+        return [
+            f"-DENC_WG={wg}",
+            f"-DENC_FP64={int(self.fp64)}",
+            f"-DENC_STRIDE={self.stride}",
+            f"-DENC_SOFT_HALF={int(self.soft_half)}",
+            *(f"-D{k}={v}" for k, v in HEADER_OFFSETS.items()),
+        ]
 
     def build_all(self) -> int:
         """Build the program for every work-group size a plan may pick (one on a CPU, the
@@ -212,19 +228,30 @@ class DeviceEncoder:
         self._flags, self._flags_buf = flags, flags_buf
         self._hosts, self._next = hosts, 0
         self.plan = plan
-        log.debug("frame plan: %d publications, %d cloths, %d bytes, work-group %d", len(plan.publications),
-                  len(plan.rows), plan.size, wg)
+        log.debug(
+            "frame plan: %d publications, %d cloths, %d bytes, work-group %d",
+            len(plan.publications),
+            len(plan.rows),
+            plan.size,
+            wg,
+        )
 
     def _host_frame(self, plan: FramePlan) -> _HostFrame:
         """One pinned (ALLOC_HOST_PTR, mapped for good) host copy of a frame of ``plan``."""
         size = max(plan.size, 8)
         hb = cl.Buffer(self.dev.ctx, MF.READ_WRITE | MF.ALLOC_HOST_PTR, size)
         data, _ev = cl.enqueue_map_buffer(  # type: ignore[misc]
-            self.dev.queue, hb, cl.map_flags.READ | cl.map_flags.WRITE, 0, (size,), np.uint8,  # type: ignore[arg-type,type-var]
-            is_blocking=True)
-        data[:plan.size] = plan.template  # a frame read before any encode is the static bytes
+            self.dev.queue,
+            hb,
+            cl.map_flags.READ | cl.map_flags.WRITE,  # type: ignore[arg-type]
+            0,
+            (size,),
+            np.uint8,  # type: ignore[arg-type,type-var]
+            is_blocking=True,
+        )
+        data[: plan.size] = plan.template  # a frame read before any encode is the static bytes
         mv = memoryview(data).cast("B")  # type: ignore[arg-type]
-        views = [mv[o:o + s] for o, s in zip(plan.pub_offset.tolist(), plan.pub_size.tolist(), strict=True)]
+        views = [mv[o : o + s] for o, s in zip(plan.pub_offset.tolist(), plan.pub_size.tolist(), strict=True)]
         return _HostFrame(data.base, hb, data, views, plan=plan)
 
     def _release_hosts(self) -> None:
@@ -235,9 +262,16 @@ class DeviceEncoder:
 
     # -- per tick ----------------------------------------------------------------------------
 
-    def encode(self, queue: cl.CommandQueue, positions: cl.Buffer, normals: cl.Buffer | None, tick: int,
-               time_ns: int, flags: np.ndarray | None = None,
-               wait_for: Sequence[cl.Event] | None = None) -> cl.Event:
+    def encode(
+        self,
+        queue: cl.CommandQueue,
+        positions: cl.Buffer,
+        normals: cl.Buffer | None,
+        tick: int,
+        time_ns: int,
+        flags: np.ndarray | None = None,
+        wait_for: Sequence[cl.Event] | None = None,
+    ) -> cl.Event:
         """Enqueue this tick's frame: one launch, one copy into the next pinned host buffer.
         ``positions`` / ``normals``: device buffers (``stride`` floats per vertex) holding every
         plan cloth's range;
@@ -278,15 +312,18 @@ class DeviceEncoder:
         n_rows = len(plan.rows)
         if n_rows:
             nb = normals if normals is not None else positions
-            self._kernel.set_args(positions, nb, self._table, self._flags_buf, np.uint64(tick), np.uint64(time_ns),
-                                  self._out)
-            ev = cl.enqueue_nd_range_kernel(queue, self._kernel, (n_rows * self._wg,), (self._wg,),
-                                            wait_for=events or None)
+            self._kernel.set_args(
+                positions, nb, self._table, self._flags_buf, np.uint64(tick), np.uint64(time_ns), self._out
+            )
+            ev = cl.enqueue_nd_range_kernel(
+                queue, self._kernel, (n_rows * self._wg,), (self._wg,), wait_for=events or None
+            )
             events = [ev]
             self.kernel_event = ev
         if plan.size:
-            host.event = cl.enqueue_copy(queue, host.data[:plan.size], self._out, is_blocking=False,
-                                         wait_for=events or None)
+            host.event = cl.enqueue_copy(
+                queue, host.data[: plan.size], self._out, is_blocking=False, wait_for=events or None
+            )
         else:
             host.event = cl.enqueue_marker(queue, wait_for=events or None)
         self._last = host
@@ -321,7 +358,7 @@ class DeviceEncoder:
     def read(self) -> memoryview:
         """The whole packed frame last encoded (waits for it), a view of pinned host memory."""
         assert self.plan is not None
-        return memoryview(self._frame().data).cast("B")[:self.plan.size]  # type: ignore[arg-type]
+        return memoryview(self._frame().data).cast("B")[: self.plan.size]  # type: ignore[arg-type]
 
     def slices(self) -> list[memoryview]:
         """Publication index -> its payload, views of the frame last encoded (waits for it)."""

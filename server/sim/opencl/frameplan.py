@@ -4,6 +4,7 @@ lies in the packed buffer, and the frame's static bytes), its inputs (:class:`Cl
 header fields' offsets (:data:`HEADER_OFFSETS`, found with drape.client.protocol's own writers).
 encode.py's DeviceEncoder runs a plan on the device; see its docstring.
 """
+
 from __future__ import annotations
 
 import re

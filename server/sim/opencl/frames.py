@@ -8,6 +8,7 @@ and one non-blocking copy brings it into a host buffer mapped from ``ALLOC_HOST_
 its ``wait`` waits on that copy's event only; ``device_s`` is the step-to-readback device time
 from the queue's profiling timestamps.
 """
+
 from __future__ import annotations
 
 import logging
@@ -61,7 +62,13 @@ class FrameReadback:
             # and the call returns (array, event)
             flags = cl.map_flags.READ | cl.map_flags.WRITE
             arr, _ = cl.enqueue_map_buffer(  # type: ignore[type-var, misc]
-                self.dev.queue, buf, flags, 0, (rows, 3), np.float32, is_blocking=True  # type: ignore[arg-type]
+                self.dev.queue,
+                buf,
+                flags,  # type: ignore[arg-type]
+                0,
+                (rows, 3),
+                np.float32,
+                is_blocking=True,
             )
             self._pinned.append(buf)
             return arr

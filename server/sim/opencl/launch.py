@@ -6,6 +6,7 @@ per-colour link prefix sums) when its cloths change; the coloured and Jacobi sol
 vertex phases and iterations are enqueued here, the work-group solver's single launch by
 ``CLWorld.step``.
 """
+
 from __future__ import annotations
 
 from typing import TYPE_CHECKING
@@ -74,11 +75,15 @@ class GroupLaunches:
         else:
             cap = self.max_local_size
             widest = min(widest, self.chunk)
-            chunks = [(r.slot, v0) for r, c in zip(recs, cloths, strict=True)
-                      for v0 in range(0, c.fabric.n_vertices, self.chunk)]
+            chunks = [
+                (r.slot, v0)
+                for r, c in zip(recs, cloths, strict=True)
+                for v0 in range(0, c.fabric.n_vertices, self.chunk)
+            ]
             g.n_chunks = len(chunks)
-            g.chunks_buf = cl.Buffer(self.dev.ctx, MF.READ_ONLY | MF.COPY_HOST_PTR,
-                                     hostbuf=np.ascontiguousarray(chunks, np.int32))
+            g.chunks_buf = cl.Buffer(
+                self.dev.ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(chunks, np.int32)
+            )
         g.local_size = int(min(cap, max(min(32, cap), _next_pow2(widest))))
         g.local_size = min(g.local_size, self._kernel_limit(g))
         if self.solver == "coloured" and g.max_colours == 0:  # cloths without links (1 vertex)
@@ -112,14 +117,44 @@ class GroupLaunches:
             si = np.int32(s)
             if g.features.wind:
                 normals(q, gsize, (ls,), *normal_args)
-            predict(q, gsize, (ls,), dt32, si, ch, g.chunks_buf, self.ci.buf, self.cf.buf, self.fab.buf,
-                    self.pos.buf, self.vel.buf, self.prev.buf, self.target.buf, self.nrm.buf, self.lam.buf)
+            predict(
+                q,
+                gsize,
+                (ls,),
+                dt32,
+                si,
+                ch,
+                g.chunks_buf,
+                self.ci.buf,
+                self.cf.buf,
+                self.fab.buf,
+                self.pos.buf,
+                self.vel.buf,
+                self.prev.buf,
+                self.target.buf,
+                self.nrm.buf,
+                self.lam.buf,
+            )
             if self.solver == "coloured":
                 self._coloured_iterations(g, dt32, opts)
             else:
                 self._jacobi_iterations(g, dt32, opts, gsize, ls)
-            finish(q, gsize, (ls,), dt32, si, ch, g.chunks_buf, self.ci.buf, self.cf.buf, self.fab.buf,
-                   self.pos.buf, self.vel.buf, self.prev.buf, self.coll.buf)
+            finish(
+                q,
+                gsize,
+                (ls,),
+                dt32,
+                si,
+                ch,
+                g.chunks_buf,
+                self.ci.buf,
+                self.cf.buf,
+                self.fab.buf,
+                self.pos.buf,
+                self.vel.buf,
+                self.prev.buf,
+                self.coll.buf,
+            )
         if g.features.normals:
             normals(q, gsize, (ls,), *normal_args)
 
@@ -130,8 +165,19 @@ class GroupLaunches:
         assert g.slots is not None  # set by _build_group
         ngc = np.int32(len(g.slots))
         # arguments set once; per dispatch only the colour and the iteration change
-        k.set_args(dt32, np.int32(0), np.int32(0), ngc, g.prefix_buf, g.cloths_buf, self.ci.buf, self.cf.buf,
-                   self.fab.buf, self.pos.buf, self.lam.buf)
+        k.set_args(
+            dt32,
+            np.int32(0),
+            np.int32(0),
+            ngc,
+            g.prefix_buf,
+            g.cloths_buf,
+            self.ci.buf,
+            self.cf.buf,
+            self.fab.buf,
+            self.pos.buf,
+            self.lam.buf,
+        )
         sizes = [((-(-total // lg) * lg,), c) for c, total in enumerate(g.colour_totals) if total]
         for it in range(g.max_iters):
             k.set_arg(2, np.int32(it))
@@ -146,13 +192,15 @@ class GroupLaunches:
         assert pos2 is not None  # the Jacobi solver's world has it
         bufs = [self.pos.buf, pos2.buf]
         ch = np.int32(self.chunk)
-        k.set_args(dt32, np.int32(0), ch, g.chunks_buf, self.ci.buf, self.cf.buf, self.fab.buf, bufs[0], bufs[1],
-                   self.lam.buf)
+        k.set_args(
+            dt32, np.int32(0), ch, g.chunks_buf, self.ci.buf, self.cf.buf, self.fab.buf, bufs[0], bufs[1], self.lam.buf
+        )
         for it in range(g.max_iters):
             k.set_arg(1, np.int32(it))
             k.set_arg(7, bufs[it & 1])
             k.set_arg(8, bufs[(it + 1) & 1])
             cl.enqueue_nd_range_kernel(q, k, gsize, (ls,))
         if g.max_iters & 1:
-            self.dev.kernel(opts, "copy_positions")(q, gsize, (ls,), ch, g.chunks_buf, self.ci.buf, pos2.buf,
-                                                     self.pos.buf)
+            self.dev.kernel(opts, "copy_positions")(
+                q, gsize, (ls,), ch, g.chunks_buf, self.ci.buf, pos2.buf, self.pos.buf
+            )

@@ -21,6 +21,7 @@ One step of one cloth, in this order (the OpenCL kernels in kernels/cloth.cl do 
 so it is the same computation); ``mode="jacobi"`` mirrors the OpenCL vertex solver (corrections
 from the previous iterate, averaged per vertex and over-relaxed by ``JACOBI_OMEGA``).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -31,10 +32,8 @@ from .fabric import Fabric, vertex_masses
 from .params import (
     COLLIDER_CAPSULE,
     COLLIDER_PLANE,
-    COLLIDER_SPHERE,
     ClothParams,
 )
-
 from .shared import EPS_DENOM, EPS_LEN2, JACOBI_OMEGA, vertex_normals  # noqa: F401 (re-exported)
 
 
@@ -51,7 +50,7 @@ class ClothState:
     normals: np.ndarray | None = None  # (n, 3), filled when features ask for normals
 
     @classmethod
-    def initial(cls, fabric: Fabric, params: ClothParams, dtype=np.float64, positions=None) -> "ClothState":
+    def initial(cls, fabric: Fabric, params: ClothParams, dtype=np.float64, positions=None) -> ClothState:
         x = np.array(fabric.rest_positions if positions is None else positions, dtype=dtype)
         masses = vertex_masses(fabric, params.material.mass)
         invm = np.where(fabric.pinned, 0.0, 1.0 / masses).astype(dtype)
@@ -98,8 +97,9 @@ def step(state: ClothState, fabric: Fabric, params: ClothParams, dt: float, mode
             normals, area = vertex_normals(x, fabric)
             state.normals = normals
         if f.wind:  # from the velocity before this substep's gravity, as the kernels do
-            v[free] += aero_dv(v, normals, area, invm, h, np.asarray(params.wind, dtype), m.drag, m.lift,
-                               m.air_density)[free]
+            v[free] += aero_dv(
+                v, normals, area, invm, h, np.asarray(params.wind, dtype), m.drag, m.lift, m.air_density
+            )[free]
         v[free] += acc[free] * h
         x_prev = x.copy()
         x[free] += v[free] * h

@@ -2,6 +2,7 @@
 world and the service), so that no back end imports another: the Jacobi over-relaxation factor
 the kernels are built with, the epsilons of the link equation and area-weighted vertex normals.
 """
+
 from __future__ import annotations
 
 import numpy as np

@@ -1,4 +1,5 @@
 """Scene features: XPBD, tethers, pins, colliders, wind, normals, each on every solver."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -254,8 +255,9 @@ def test_wind_pushes_the_cloth_downwind(device, solver):
     xs = {}
     for wind in (0.0, 8.0):
         w = CLWorld(solver, device=device)
-        h = w.add(fab, ClothParams(features=Features(wind=True), wind=(0.0, 0.0, wind),
-                                   material=Material(drag=1.0, lift=0.5)))
+        h = w.add(
+            fab, ClothParams(features=Features(wind=True), wind=(0.0, 0.0, wind), material=Material(drag=1.0, lift=0.5))
+        )
         for _ in range(60):
             w.step(DT)
         xs[wind] = w.positions(h)[:, 2].mean()

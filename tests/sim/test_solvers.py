@@ -1,4 +1,5 @@
 """OpenCL solvers against the float64 CPU reference, and the solver invariants."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -6,8 +7,8 @@ import pytest
 from conftest import random_grid_fabric, random_mesh_fabric
 
 from drape.server.sim import reference
-from drape.server.sim.opencl.clworld import CLWorld, RangeAllocator
 from drape.server.sim.fabric import cook_grid
+from drape.server.sim.opencl.clworld import CLWorld, RangeAllocator
 from drape.server.sim.params import ClothParams, Features, LinkOptions, Material
 from drape.server.sim.world import ReferenceWorld, inverse_masses
 
@@ -67,10 +68,12 @@ def test_workgroup_global_memory_path_matches_local(device, rng):
     fab = random_grid_fabric(rng)
     params = random_params(rng)
     pos = random_state(rng, fab)
-    a, _ = run_pair(CLWorld("workgroup", device=device, use_local=True, local_size=64), ReferenceWorld(), fab,
-                    params, pos, 3)
-    b, r = run_pair(CLWorld("workgroup", device=device, use_local=False, local_size=64), ReferenceWorld(), fab,
-                    params, pos, 3)
+    a, _ = run_pair(
+        CLWorld("workgroup", device=device, use_local=True, local_size=64), ReferenceWorld(), fab, params, pos, 3
+    )
+    b, r = run_pair(
+        CLWorld("workgroup", device=device, use_local=False, local_size=64), ReferenceWorld(), fab, params, pos, 3
+    )
     np.testing.assert_allclose(a, r, atol=tol(r, 3), rtol=0)
     np.testing.assert_allclose(b, r, atol=tol(r, 3), rtol=0)
 
@@ -179,14 +182,16 @@ def test_per_cloth_parameters_in_one_world(device):
     fab = cook_grid(6, 6, pinned=[0, 5])
     w = CLWorld("coloured", device=device)
     ref = ReferenceWorld()
-    ps = [ClothParams(iterations=i, gravity=(0, g, 0), material=Material(stiffness=(s, s, s)))
-          for i, g, s in [(2, -9.8, 1.0), (9, -3.0, 0.5), (5, -20.0, 0.8)]]
+    ps = [
+        ClothParams(iterations=i, gravity=(0, g, 0), material=Material(stiffness=(s, s, s)))
+        for i, g, s in [(2, -9.8, 1.0), (9, -3.0, 0.5), (5, -20.0, 0.8)]
+    ]
     hs = [w.add(fab, p) for p in ps]
     rs = [ref.add(fab, p) for p in ps]
     for _ in range(10):
         w.step(DT)
         ref.step(DT)
-    for h, r in zip(hs, rs):
+    for h, r in zip(hs, rs, strict=True):
         np.testing.assert_allclose(w.positions(h), ref.positions(r), atol=2e-4)
     assert not np.allclose(w.positions(hs[0]), w.positions(hs[1]))
 

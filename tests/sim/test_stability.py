@@ -22,6 +22,7 @@ docs/accuracy.md (Stability).
 Inputs are random where they can be (sizes, pins, offsets, perturbations): a fresh seed each run,
 printed, replayable with DRAPE_TEST_SEED.
 """
+
 from __future__ import annotations
 
 import math
@@ -29,8 +30,8 @@ import math
 import numpy as np
 import pytest
 
-from drape.server.sim.opencl.clworld import CLWorld
 from drape.server.sim.fabric import cook, cook_grid, cook_mesh, grid_links, grid_mesh, vertex_masses
+from drape.server.sim.opencl.clworld import CLWorld
 from drape.server.sim.params import (
     LINK_STRUCTURAL,
     Capsule,
@@ -75,8 +76,18 @@ def violation(x: np.ndarray, fab) -> float:
     return float(np.abs(length - fab.rest_length).max())
 
 
-def check_run(world, fab, params: ClothParams, dt: float, steps: int, positions=None, strain_max: float | None = None,
-              colliders=None, what: str = "", strain_growth: bool = False) -> dict:
+def check_run(
+    world,
+    fab,
+    params: ClothParams,
+    dt: float,
+    steps: int,
+    positions=None,
+    strain_max: float | None = None,
+    colliders=None,
+    what: str = "",
+    strain_growth: bool = False,
+) -> dict:
     """Step one cloth ``steps`` times, checking the invariants after every step.
     ``strain_growth``: also require that the strain of the second half of the run stays within
     twice that of the first half plus 0.5 (a blow-up grows without bound)."""
@@ -111,7 +122,9 @@ def check_run(world, fab, params: ClothParams, dt: float, steps: int, positions=
         x = np.asarray(world.fetch().positions[h], np.float64)
         t = k * dt
         where = f"{what}: step {k} (t = {t:.4g} s)"
-        assert np.all(np.isfinite(x)), f"{where}: non-finite positions at vertices {np.flatnonzero(~np.isfinite(x).all(1))[:10]}"
+        assert np.all(np.isfinite(x)), (
+            f"{where}: non-finite positions at vertices {np.flatnonzero(~np.isfinite(x).all(1))[:10]}"
+        )
         reach = 2 * D + g * t * t + 2 * w * t + 16 * ulp
         moved = float(np.linalg.norm(x - x0, axis=1).max())
         assert moved <= reach, f"{where}: a vertex moved {moved:.4g} m, more than it could reach ({reach:.4g} m)"
@@ -138,8 +151,15 @@ def check_run(world, fab, params: ClothParams, dt: float, steps: int, positions=
 def random_grid(rng, lo=3, hi=10, pins=2, **kw):
     cols, rows = int(rng.integers(lo, hi + 1)), int(rng.integers(lo, hi + 1))
     pinned = rng.choice(cols * rows, size=min(pins, cols * rows), replace=False) if pins else []
-    return cook_grid(cols, rows, float(rng.uniform(0.5, 1.5)), float(rng.uniform(0.5, 1.5)), pinned=pinned,
-                     orientation=str(rng.choice(["horizontal", "vertical"])), **kw)
+    return cook_grid(
+        cols,
+        rows,
+        float(rng.uniform(0.5, 1.5)),
+        float(rng.uniform(0.5, 1.5)),
+        pinned=pinned,
+        orientation=str(rng.choice(["horizontal", "vertical"])),
+        **kw,
+    )
 
 
 def mode(xpbd: bool) -> Features:
@@ -156,31 +176,60 @@ def test_pbd_stiffness_zero_and_one(device, rng, solver, stiffness):
     fab = random_grid(rng)
     params = ClothParams(material=Material(stiffness=(stiffness,) * 3), iterations=int(rng.integers(1, 20)))
     # stiffness 0: the links do nothing, only the envelope bounds the stretch
-    check_run(new_world(solver, device), fab, params, DT, 60, strain_max=STIFF_STRAIN if stiffness else None,
-              what=f"{solver} PBD stiffness {stiffness}, {params.iterations} iterations")
+    check_run(
+        new_world(solver, device),
+        fab,
+        params,
+        DT,
+        60,
+        strain_max=STIFF_STRAIN if stiffness else None,
+        what=f"{solver} PBD stiffness {stiffness}, {params.iterations} iterations",
+    )
 
 
 @pytest.mark.parametrize("solver", SOLVERS)
-@pytest.mark.parametrize("compliance", [0.0, 1e-9, 1e-4, 1.0, 1e12, 1e30, 1e35, 1e300], ids=lambda c: f"compliance={c:g}")
+@pytest.mark.parametrize(
+    "compliance", [0.0, 1e-9, 1e-4, 1.0, 1e12, 1e30, 1e35, 1e300], ids=lambda c: f"compliance={c:g}"
+)
 def test_xpbd_compliance_zero_to_huge(device, rng, solver, compliance):
     fab = random_grid(rng)
     substeps = int(rng.integers(1, 5))
-    params = ClothParams(material=Material(compliance=(compliance,) * 3), features=mode(True), substeps=substeps,
-                         iterations=int(rng.integers(1, 10)))
-    check_run(new_world(solver, device), fab, params, DT, 40, strain_max=STIFF_STRAIN if compliance <= 1e-4 else None,
-              what=f"{solver} XPBD compliance {compliance:g}, {substeps} substeps")
+    params = ClothParams(
+        material=Material(compliance=(compliance,) * 3),
+        features=mode(True),
+        substeps=substeps,
+        iterations=int(rng.integers(1, 10)),
+    )
+    check_run(
+        new_world(solver, device),
+        fab,
+        params,
+        DT,
+        40,
+        strain_max=STIFF_STRAIN if compliance <= 1e-4 else None,
+        what=f"{solver} XPBD compliance {compliance:g}, {substeps} substeps",
+    )
 
 
 @pytest.mark.parametrize("solver", SOLVERS)
-@pytest.mark.parametrize("dt,steps", [(1e-4, 100), (1e-3, 60), (1 / 60, 60), (1 / 10, 40)],
-                         ids=["dt=1e-4", "dt=1e-3", "dt=1/60", "dt=1/10"])
+@pytest.mark.parametrize(
+    "dt,steps", [(1e-4, 100), (1e-3, 60), (1 / 60, 60), (1 / 10, 40)], ids=["dt=1e-4", "dt=1e-3", "dt=1/60", "dt=1/10"]
+)
 @pytest.mark.parametrize("xpbd", [False, True], ids=["pbd", "xpbd"])
 def test_timestep_extremes(device, rng, solver, dt, steps, xpbd):
     fab = random_grid(rng)
     params = ClothParams(features=mode(xpbd), iterations=int(rng.integers(1, 12)), substeps=int(rng.integers(1, 4)))
     big = dt > 0.05
-    check_run(new_world(solver, device), fab, params, dt, steps, strain_max=None if big else STIFF_STRAIN, strain_growth=big,
-              what=f"{solver} {'XPBD' if xpbd else 'PBD'} dt {dt:g}")
+    check_run(
+        new_world(solver, device),
+        fab,
+        params,
+        dt,
+        steps,
+        strain_max=None if big else STIFF_STRAIN,
+        strain_growth=big,
+        what=f"{solver} {'XPBD' if xpbd else 'PBD'} dt {dt:g}",
+    )
 
 
 @pytest.mark.parametrize("solver", SOLVERS)
@@ -189,8 +238,15 @@ def test_timestep_extremes(device, rng, solver, dt, steps, xpbd):
 def test_one_to_two_hundred_iterations(device, rng, solver, iterations, xpbd):
     fab = random_grid(rng, 3, 8)
     params = ClothParams(features=mode(xpbd), iterations=iterations, substeps=int(rng.integers(1, 3)))
-    check_run(new_world(solver, device), fab, params, DT, 20 if iterations > 100 else 60, strain_max=STIFF_STRAIN,
-              what=f"{solver} {iterations} iterations")
+    check_run(
+        new_world(solver, device),
+        fab,
+        params,
+        DT,
+        20 if iterations > 100 else 60,
+        strain_max=STIFF_STRAIN,
+        what=f"{solver} {iterations} iterations",
+    )
 
 
 def mass_ratio_fabric(rng, ratio=1e6):
@@ -237,7 +293,7 @@ def degenerate_fabric(rng):
     v[idx + c + 1, 0] = v[idx + c, 0]
     # ... and row r+1 sits 1e-9 m from row r (near-degenerate links)
     r = int(rng.integers(0, rows - 1))
-    v[(r + 1) * cols:(r + 2) * cols, 2] = v[r * cols:(r + 1) * cols, 2] + 1e-9
+    v[(r + 1) * cols : (r + 2) * cols, 2] = v[r * cols : (r + 1) * cols, 2] + 1e-9
     links, ltype = grid_links(cols, rows, LinkOptions(bending=True))
     return cook(v, t, links, ltype, [0, cols - 1])
 
@@ -263,8 +319,12 @@ def test_coincident_vertices(device, rng, solver, how, xpbd):
         for a, b in rng.integers(0, len(x), (len(x) // 2, 2)):
             x[b] = x[a]
     x[fab.pinned] = fab.rest_positions[fab.pinned]  # pins stay where their targets are
-    params = ClothParams(features=Features(xpbd=xpbd, wind=True, normals=True), iterations=int(rng.integers(1, 12)),
-                         material=Material(drag=1.0, lift=0.5), wind=(3.0, 0.0, 1.0))
+    params = ClothParams(
+        features=Features(xpbd=xpbd, wind=True, normals=True),
+        iterations=int(rng.integers(1, 12)),
+        material=Material(drag=1.0, lift=0.5),
+        wind=(3.0, 0.0, 1.0),
+    )
     check_run(new_world(solver, device), fab, params, DT, 60, positions=x, what=f"{solver} coincident ({how})")
 
 
@@ -301,8 +361,12 @@ def test_everything_pinned_stays_exactly_put(device, rng, solver, xpbd):
 def test_huge_gravity(device, rng, solver, xpbd):
     fab = random_grid(rng)
     g = tuple(float(v) for v in rng.normal(0, 1, 3) * 1e4)  # about a thousand g, any direction
-    params = ClothParams(features=Features(xpbd=xpbd, tethers=bool(rng.random() < 0.5)), gravity=g,
-                         iterations=int(rng.integers(1, 12)), substeps=int(rng.integers(1, 4)))
+    params = ClothParams(
+        features=Features(xpbd=xpbd, tethers=bool(rng.random() < 0.5)),
+        gravity=g,
+        iterations=int(rng.integers(1, 12)),
+        substeps=int(rng.integers(1, 4)),
+    )
     check_run(new_world(solver, device), fab, params, DT, 60, what=f"{solver} gravity {np.linalg.norm(g):.3g} m/s^2")
 
 
@@ -314,8 +378,12 @@ def test_huge_wind(device, rng, solver, speed):
     # mostly across the cloth (a wind along its plane barely touches it), randomly tilted
     d = np.array([0.0, 1.0, 0.0]) + rng.normal(0, 0.3, 3)
     wind = tuple(float(v) for v in d / np.linalg.norm(d) * speed)
-    params = ClothParams(features=Features(wind=True, xpbd=bool(rng.random() < 0.5)), wind=wind,
-                         material=Material(drag=1.0, lift=0.0), iterations=int(rng.integers(1, 12)))
+    params = ClothParams(
+        features=Features(wind=True, xpbd=bool(rng.random() < 0.5)),
+        wind=wind,
+        material=Material(drag=1.0, lift=0.0),
+        iterations=int(rng.integers(1, 12)),
+    )
     # drag alone pulls each vertex toward the wind's velocity, never past it: the envelope
     # (2 |wind| t) and the energy allowance (M (|wind| + |g| t)^2) hold a cloth blown at twice
     # the wind's speed
@@ -327,12 +395,21 @@ def test_every_feature_at_once_under_load(device, rng, solver):
     fab = random_grid(rng)
     lo, hi = fab.rest_positions.min(0), fab.rest_positions.max(0)
     c = (lo + hi) / 2
-    colliders = pack_colliders([Sphere(tuple(c - [0, 0.3, 0]), 0.3), Capsule(tuple(c - [0.5, 0.6, 0]),
-                                tuple(c + [0.5, -0.6, 0]), 0.1), Plane((0.0, 1.0, 0.0), float(lo[1] - 0.5))])
-    params = ClothParams(features=Features(xpbd=True, tethers=True, colliders=True, wind=True, normals=True),
-                         material=Material(drag=1.0, lift=0.5, friction=1.0, compliance=(1e-6, 1e-5, 1e-3)),
-                         gravity=(0.0, -100.0, 0.0), wind=(20.0, 0.0, 5.0), iterations=int(rng.integers(1, 12)),
-                         substeps=int(rng.integers(1, 5)))
+    colliders = pack_colliders(
+        [
+            Sphere(tuple(c - [0, 0.3, 0]), 0.3),
+            Capsule(tuple(c - [0.5, 0.6, 0]), tuple(c + [0.5, -0.6, 0]), 0.1),
+            Plane((0.0, 1.0, 0.0), float(lo[1] - 0.5)),
+        ]
+    )
+    params = ClothParams(
+        features=Features(xpbd=True, tethers=True, colliders=True, wind=True, normals=True),
+        material=Material(drag=1.0, lift=0.5, friction=1.0, compliance=(1e-6, 1e-5, 1e-3)),
+        gravity=(0.0, -100.0, 0.0),
+        wind=(20.0, 0.0, 5.0),
+        iterations=int(rng.integers(1, 12)),
+        substeps=int(rng.integers(1, 5)),
+    )
     check_run(new_world(solver, device), fab, params, DT, 60, colliders=colliders, what=f"{solver} every feature")
 
 
@@ -355,9 +432,13 @@ TINY = {
 @pytest.mark.parametrize("xpbd", [False, True], ids=["pbd", "xpbd"])
 def test_cloths_of_one_two_and_three_vertices(device, rng, solver, shape, xpbd):
     fab = TINY[shape]()
-    params = ClothParams(features=Features(xpbd=xpbd, tethers=True, wind=True, normals=True),
-                         material=Material(drag=1.0, lift=0.3), wind=(2.0, 0.0, 1.0),
-                         iterations=int(rng.integers(1, 12)), substeps=int(rng.integers(1, 3)))
+    params = ClothParams(
+        features=Features(xpbd=xpbd, tethers=True, wind=True, normals=True),
+        material=Material(drag=1.0, lift=0.3),
+        wind=(2.0, 0.0, 1.0),
+        iterations=int(rng.integers(1, 12)),
+        substeps=int(rng.integers(1, 3)),
+    )
     check_run(new_world(solver, device), fab, params, DT, 30, strain_max=0.5, what=f"{solver} {shape}")
 
 
@@ -379,6 +460,7 @@ def test_a_cloth_far_from_the_origin(device, rng, solver, xpbd):
     fab = cook_grid(cols, rows, 1.0, 1.0, pinned=[0, cols - 1], origin=offset)
     params = ClothParams(features=Features(xpbd=xpbd, tethers=True), iterations=10)
     # float32 carries ~1 mm at 1e4 m: the strain of ~0.15 m links is only known to ~2 %
-    worst = check_run(new_world(solver, device), fab, params, DT, 60, strain_max=1.0,
-                      what=f"{solver} {cols}x{rows} at {offset}")
+    worst = check_run(
+        new_world(solver, device), fab, params, DT, 60, strain_max=1.0, what=f"{solver} {cols}x{rows} at {offset}"
+    )
     assert worst["reach"] < 1.0

@@ -355,37 +355,6 @@ def cook_mesh(
     return cook(vertices, t, links, ltype, pinned, tethers)
 
 
-class FabricCache:
-    """Cooked fabrics by content key, so identical submissions share one fabric. Thread-safe;
-    entries are dropped when the last cloth using them is released."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._fabrics: dict[str, tuple[Fabric, int]] = {}
-
-    def intern(self, fabric: Fabric) -> Fabric:
-        with self._lock:
-            have = self._fabrics.get(fabric.key)
-            if have is not None:
-                self._fabrics[fabric.key] = (have[0], have[1] + 1)
-                return have[0]
-            self._fabrics[fabric.key] = (fabric, 1)
-            return fabric
-
-    def release(self, fabric: Fabric) -> None:
-        with self._lock:
-            have = self._fabrics.get(fabric.key)
-            if have is None:
-                return
-            if have[1] <= 1:
-                del self._fabrics[fabric.key]
-            else:
-                self._fabrics[fabric.key] = (have[0], have[1] - 1)
-
-    def __len__(self) -> int:
-        return len(self._fabrics)
-
-
 # ---------------------------------------------------------------------------------------------
 # Derived data
 

@@ -466,13 +466,3 @@ class ReferenceWorld(World):
 
     def state(self, handle: int) -> reference.ClothState:
         return self.states[handle]
-
-
-def __getattr__(name: str):
-    """``make_world`` lives in drape.server.sim (this module must not import the OpenCL world,
-    which imports it); old imports of it from here still work."""
-    if name == "make_world":
-        from . import make_world
-
-        return make_world
-    raise AttributeError(name)

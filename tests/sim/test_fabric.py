@@ -10,7 +10,6 @@ import pytest
 from conftest import random_grid_fabric, random_mesh_fabric
 
 from drape.server.sim.fabric import (
-    FabricCache,
     bending_pairs,
     cook,
     cook_grid,
@@ -201,15 +200,15 @@ def test_mass_follows_area_and_pins():
     assert m[4] > m[0]  # the centre touches more triangles than a corner
 
 
-def test_identical_submissions_share_one_fabric(device):
+def test_identical_fabrics_share_one_device_copy(device):
+    """The CL world keeps one device copy per fabric content key (the service's cook step keeps
+    one host fabric per request digest: tests/service)."""
     from drape.server.sim.opencl.clworld import CLWorld
     from drape.server.sim.params import ClothParams
 
-    cache = FabricCache()
-    a = cache.intern(cook_grid(8, 8, pinned=[0, 7]))
-    b = cache.intern(cook_grid(8, 8, pinned=[0, 7]))
-    c = cache.intern(cook_grid(8, 8, pinned=[0]))
-    assert a is b and a is not c and len(cache) == 2
+    a, b = cook_grid(8, 8, pinned=[0, 7]), cook_grid(8, 8, pinned=[0, 7])
+    c = cook_grid(8, 8, pinned=[0])
+    assert a is not b and a.key == b.key and a.key != c.key
     w = CLWorld("workgroup", device=device)
     h1, h2, h3 = w.add(a, ClothParams()), w.add(b, ClothParams()), w.add(c, ClothParams())
     assert len(w.fabrics) == 2 and w.rec[h1].fabric is w.rec[h2].fabric  # one device copy
@@ -219,9 +218,6 @@ def test_identical_submissions_share_one_fabric(device):
     assert len(w.fabrics) == 1
     w.remove(h3)
     assert len(w.fabrics) == 0
-    cache.release(a)
-    cache.release(b)
-    assert len(cache) == 1
 
 
 def test_sliver_triangles_never_give_a_vertex_a_mass_float32_cannot_invert():

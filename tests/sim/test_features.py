@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 from conftest import random_grid_fabric
 
+from drape.server.sim import make_world
 from drape.server.sim.fabric import cook_grid
 from drape.server.sim.opencl.clworld import CLWorld
 from drape.server.sim.params import Capsule, ClothParams, Features, LinkOptions, Material, Plane, Sphere, pack_colliders
-from drape.server.sim.world import ReferenceWorld, make_world
+from drape.server.sim.world import ReferenceWorld
 
 DT = 1 / 60
 OPENCL = ["workgroup", "coloured", "jacobi"]

@@ -35,7 +35,7 @@ if TYPE_CHECKING:
     from ..sim.opencl.encode import EncodedFrame
 from .config import ServerConfig
 from .registry import Registry
-from .replies import Reply, send, undeclare
+from .replies import Replier, Reply, send, undeclare
 from .statecodec import FrameEncoder
 from .telemetry import PhaseTimer
 
@@ -152,19 +152,24 @@ class Publisher:
         self._encoder = FrameEncoder()
         self._roster_version: tuple[int, int] | None = None
         self.last_cost_s = 0.0  # encode + put of the last frame (the tick's cost model adds it)
+        self.replier: Replier | None = None  # the run thread's (replies never wait in the publisher)
 
     def run(self) -> None:
-        while True:
-            job = self.mailbox.take()
-            if job is None:
-                break
-            try:
-                self.publish(job)
-            except Exception:
-                log.exception("publishing tick %d failed", job.tick)
-                self.registry.count("publish_errors")
-            finally:
-                job.release()
+        self.replier = Replier(f"{threading.current_thread().name}-replies")
+        try:
+            while True:
+                job = self.mailbox.take()
+                if job is None:
+                    break
+                try:
+                    self.publish(job)
+                except Exception:
+                    log.exception("publishing tick %d failed", job.tick)
+                    self.registry.count("publish_errors")
+                finally:
+                    job.release()
+        finally:
+            self.replier.close()
 
     def close(self) -> None:
         for pub, _ in list(self._pubs.values()) + list(self._bundle_pubs.values()):
@@ -200,8 +205,9 @@ class Publisher:
         return buf
 
     def publish(self, job: Job) -> None:
+        reply = self.replier.put if self.replier is not None else send
         for r in job.before:
-            send(r)
+            reply(r)
         if job.encoded is not None and job.roster is not None and job.roster.ids:
             self._publish_encoded(job)
         elif job.frame is not None and job.roster is not None and job.roster.ids:
@@ -218,7 +224,7 @@ class Publisher:
                 undeclare(self._bundle_pubs.pop(bkey)[0])
                 self._buffers.pop(bkey, None)
         for r in job.after:
-            send(r)
+            reply(r)
         if job.stats is not None and self.stats_pub is not None:
             self.stats_pub.put(job.stats)
 

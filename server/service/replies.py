@@ -4,6 +4,8 @@ replies, each counted by error code in the registry's stats."""
 from __future__ import annotations
 
 import logging
+import queue
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -42,6 +44,32 @@ def send(reply: Reply) -> None:
             reply.query.drop()
         except Exception:
             pass
+
+
+class Replier:
+    """Sends replies on a thread of its own, in the order they were handed over, so that the
+    publisher never waits for a querier's link: zenoh's ``Query.reply``/``drop`` block until the
+    transport takes the reply (on the H100 at 256 cloths the publisher spent 88-97 % of its time
+    there, and the frames it could not publish meanwhile were dropped). Bounded: past
+    ``capacity`` waiting replies, ``put`` waits (the publisher slows down rather than memory
+    growing)."""
+
+    def __init__(self, name: str, capacity: int = 65536) -> None:
+        self._queue: queue.Queue[Reply | None] = queue.Queue(capacity)
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def put(self, reply: Reply) -> None:
+        self._queue.put(reply)
+
+    def _run(self) -> None:
+        while (reply := self._queue.get()) is not None:
+            send(reply)
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Send what is queued, then stop."""
+        self._queue.put(None)
+        self._thread.join(timeout)
 
 
 def undeclare(obj: Any) -> None:

@@ -36,9 +36,13 @@ cargo build -j 2 --locked --no-default-features --lib
 
 step "cargo test (vectors, hostile input, layouts, header, live tests with $DRAPE_BIN)"
 # every test binary runs (--no-fail-fast); a failure fails ci.sh after the C example has run too
-if ! cargo test -j 2 --locked --no-fail-fast; then
+results="$(mktemp)"
+if ! cargo test -j 2 --locked --no-fail-fast 2>&1 | tee "$results"; then  # pipefail: cargo's status
     failed+=("cargo test (see the failures above)")
 fi
+# one closing line for all test binaries (the last binary, the doc-tests, runs none)
+summary="$(awk '/^test result:/ {p += $4; f += $6} END {printf "%d passed, %d failed", p, f}' "$results")"
+rm -f "$results"
 
 step "C example"
 examples/c/build.sh
@@ -74,3 +78,4 @@ if (( ${#failed[@]} )); then
     die "$(printf '%s; ' "${failed[@]}")after $((SECONDS - start)) s"
 fi
 step "all Rust client checks passed"
+echo "rust: ${summary}"

@@ -29,7 +29,7 @@ import zenoh
 from drape.client import protocol as P
 
 from . import chaos_fuzz
-from .chaos_harness import WAIT, ChaosServer, GoodClient, StateLog, Window, reply_outcome, zenoh_session
+from .chaos_harness import WAIT, ChaosServer, GoodClient, Window, reply_outcome, zenoh_session
 
 log = logging.getLogger(__name__)
 
@@ -417,51 +417,18 @@ class FailoverClient(GoodClient):
     servers; ``events`` and ``jumps`` as the process reported them."""
 
     def __init__(self, endpoints: list[str], server_id: str, name: str, cloths: int = 1, size: int = 8) -> None:
-        import multiprocessing as mp
-        import queue as queue_mod
-
-        ctx = mp.get_context("spawn")
-        self.client_id = f"failover-{name}-{os.getpid()}"
-        self.records = ctx.Queue()
-        self.ready, self.stop_event = ctx.Event(), ctx.Event()
-        self.log = StateLog()
-        self._lock = threading.Lock()
         self.events: list[tuple[Any, ...]] = []
         self.jumps: dict[int, list[float]] = {}
-        self._empty = queue_mod.Empty
-        self.proc = ctx.Process(
-            target=_failover_client_main,
-            name=self.client_id,
-            daemon=True,
-            args=(endpoints, server_id, self.client_id, cloths, size, self.records, self.ready, self.stop_event),
-        )
-        self.proc.start()
-        self._drain = threading.Thread(target=self._drain_loop, daemon=True)
-        self._drain.start()
+        self._start(_failover_client_main, "failover", endpoints, server_id, name, cloths, size)
 
-    def _drain_loop(self) -> None:
-        while True:
-            try:
-                rec = self.records.get(timeout=0.5)
-            except self._empty:
-                if not self.proc.is_alive() and self.records.empty():
-                    return
-                continue
-            except (EOFError, OSError, ValueError):
-                return
-            with self._lock:
-                if rec[0] == "failover":
-                    self.events.append(rec[1:])
-                elif rec[0] == "jump":
-                    self.jumps.setdefault(rec[1], []).append(rec[2])
-                elif rec[0] == "ready":
-                    self.log.cloth_ids = list(rec[1])
-                elif rec[0] == "where":
-                    self.log.where = list(rec[1])
-                elif rec[0] == "error":
-                    self.log.error = rec[1]
-                else:
-                    self.log.ticks.setdefault(rec[0], []).append((rec[1], rec[2]))
+    def _record(self, rec: tuple[Any, ...]) -> bool:
+        if rec[0] == "failover":
+            self.events.append(rec[1:])
+        elif rec[0] == "jump":
+            self.jumps.setdefault(rec[1], []).append(rec[2])
+        else:
+            return False
+        return True
 
     def failover_report(self, cloths: int, t_fault: float, t_from: float) -> list[dict[str, Any]]:
         """Per cloth: back (a state after ``t_from``), the gap from ``t_from`` (the liveliness

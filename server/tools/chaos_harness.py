@@ -266,21 +266,30 @@ class GoodClient:
     """A game client process holding ``cloths`` small cloths on one server and receiving every state."""
 
     def __init__(self, endpoint: str, server_id: str, name: str, cloths: int = 1, size: int = 16) -> None:
+        self._start(_good_client_main, "good", endpoint, server_id, name, cloths, size)
+
+    def _start(self, target: Any, kind: str, where: Any, server_id: str, name: str, cloths: int, size: int) -> None:
+        """Start the client process ``target(where, server_id, client_id, cloths, size, records,
+        ready, stop)`` and the thread draining its records."""
         ctx = mp.get_context("spawn")
-        self.client_id = f"good-{name}-{os.getpid()}"
+        self.client_id = f"{kind}-{name}-{os.getpid()}"
         self.records = ctx.Queue()
         self.ready, self.stop_event = ctx.Event(), ctx.Event()
         self.log = StateLog()
         self._lock = threading.Lock()
         self.proc = ctx.Process(
-            target=_good_client_main,
+            target=target,
             name=self.client_id,
             daemon=True,
-            args=(endpoint, server_id, self.client_id, cloths, size, self.records, self.ready, self.stop_event),
+            args=(where, server_id, self.client_id, cloths, size, self.records, self.ready, self.stop_event),
         )
         self.proc.start()
         self._drain = threading.Thread(target=self._drain_loop, daemon=True)
         self._drain.start()
+
+    def _record(self, rec: tuple[Any, ...]) -> bool:
+        """A record kind of a subclass's process (called under the lock): True when taken."""
+        return False
 
     def _drain_loop(self) -> None:
         while True:
@@ -293,6 +302,8 @@ class GoodClient:
             except (EOFError, OSError, ValueError):
                 return
             with self._lock:
+                if self._record(rec):
+                    continue
                 if rec[0] == "ready":
                     self.log.cloth_ids = list(rec[1])
                 elif rec[0] == "where":

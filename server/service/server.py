@@ -63,19 +63,6 @@ STAT_COUNTERS = (
 )
 
 
-#: Queries wait in a bounded Zenoh channel per endpoint and are decoded and handled on a Python
-#: thread of their own, so Zenoh's runtime threads never wait for the GIL. (As Python callbacks on
-#: those threads, request decoding under load held up the transport itself: on the H100 at 256
-#: cloths the publisher spent 88 % of its time blocked in query replies.)
-QUERY_CHANNEL = 1024
-
-
-def _serve_queries(queryable: zenoh.Queryable, handle: Callable[[zenoh.Query], None]) -> None:
-    """Handle the queries of one endpoint in arrival order until the queryable is undeclared."""
-    for query in queryable:
-        handle(query)
-
-
 class Server:
     """``config`` defaults to ServerConfig(); keyword overrides replace its fields
     (``Server(tick_rate=30, listen=["tcp/127.0.0.1:7500"])``)."""
@@ -129,7 +116,6 @@ class Server:
         )
         self._session: zenoh.Session | None = None
         self._declared: list[Any] = []
-        self._query_threads: list[threading.Thread] = []  # one per endpoint, see QUERY_CHANNEL
         self._token: Any = None
         self._threads: list[threading.Thread] = []
 
@@ -176,11 +162,7 @@ class Server:
             lv.declare_subscriber(self.keys.all_clients_alive, self.handlers.on_client_liveliness, history=True)
         )
         for name, cb in self.handlers.endpoints():
-            q = s.declare_queryable(getattr(self.keys, name)(sid), zenoh.handlers.FifoChannel(QUERY_CHANNEL))
-            self._declared.append(q)
-            t = threading.Thread(target=_serve_queries, args=(q, cb), name=f"drape-{name}-{sid}", daemon=True)
-            t.start()
-            self._query_threads.append(t)
+            self._declared.append(s.declare_queryable(getattr(self.keys, name)(sid), cb))
         self._token = lv.declare_token(self.keys.alive_server(sid))
         log.info(
             "drape server %s up: %s solver on %s, %.0f Hz, %s mode, listen %s connect %s, namespace %r",
@@ -209,9 +191,6 @@ class Server:
             for d in self._declared:
                 undeclare(d)
             self._declared.clear()
-            for t in self._query_threads:  # their queryables are gone: the channels end
-                t.join(1.0)
-            self._query_threads.clear()
             self.cook.queue.put(None)
             self.ticker.stop_event.set()
             deadline = time.monotonic() + timeout

@@ -112,49 +112,19 @@ class GroupLaunches:
         predict = self.dev.kernel(opts, "cl_predict")
         finish = self.dev.kernel(opts, "cl_finish")
         normals = self.dev.kernel(opts, "cl_normals")
-        normal_args = (ch, g.chunks_buf, self.ci.buf, self.cf.buf, self.fab.buf, self.pos.buf, self.nrm.buf)
+        cloth_args = (ch, g.chunks_buf, self.ci.buf, self.cf.buf, self.fab.buf, self.pos.buf)
+        normal_args = (*cloth_args, self.nrm.buf)
+        vertex_args = (*cloth_args, self.vel.buf, self.prev.buf)  # predict and finish, after dt and substep
         for s in range(g.substeps):
             si = np.int32(s)
             if g.features.wind:
                 normals(q, gsize, (ls,), *normal_args)
-            predict(
-                q,
-                gsize,
-                (ls,),
-                dt32,
-                si,
-                ch,
-                g.chunks_buf,
-                self.ci.buf,
-                self.cf.buf,
-                self.fab.buf,
-                self.pos.buf,
-                self.vel.buf,
-                self.prev.buf,
-                self.target.buf,
-                self.nrm.buf,
-                self.lam.buf,
-            )
+            predict(q, gsize, (ls,), dt32, si, *vertex_args, self.target.buf, self.nrm.buf, self.lam.buf)
             if self.solver == "coloured":
                 self._coloured_iterations(g, dt32, opts)
             else:
                 self._jacobi_iterations(g, dt32, opts, gsize, ls)
-            finish(
-                q,
-                gsize,
-                (ls,),
-                dt32,
-                si,
-                ch,
-                g.chunks_buf,
-                self.ci.buf,
-                self.cf.buf,
-                self.fab.buf,
-                self.pos.buf,
-                self.vel.buf,
-                self.prev.buf,
-                self.coll.buf,
-            )
+            finish(q, gsize, (ls,), dt32, si, *vertex_args, self.coll.buf)
         if g.features.normals:
             normals(q, gsize, (ls,), *normal_args)
 

@@ -218,7 +218,7 @@ def test_accepted_vectors():
         assert all(k not in known for k in vec["ignored"])
 
 
-FROZEN = {"1.0": VECTORS / "v1.0", "1.1": VECTORS / "v1.1", "1.2": VECTORS / "v1.2"}
+FROZEN = {"1.0": VECTORS / "v1.0", "1.1": VECTORS / "v1.1", "1.2": VECTORS / "v1.2", "1.3": VECTORS / "v1.3"}
 
 
 def _as_current(wire: dict) -> dict:

@@ -656,7 +656,7 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
             "malformed",
         ),
     ]
-    grid22 = {"v": [1, 3], "client": "c1", "grid": {"cols": 2, "rows": 2}}
+    grid22 = {"v": [1, 4], "client": "c1", "grid": {"cols": 2, "rows": 2}}
     four = np.zeros((4, 3), "<f4")
     bad_cases += [
         (

@@ -9,9 +9,10 @@ a control of the game is answered ``not_found``.
 Recovery, on this module's one worker thread: for each lost cloth, if its own server is live
 again (a restart under the same id, or this client's own link came back) the cloth is probed
 there first and kept when it still exists; otherwise it is resubmitted, with ``resume`` (its last
-received positions and the velocities of its last two states), to the least loaded live server
-by the servers' stats publications (fewest vertices, then lowest mean tick cost; not round
-robin), under the same :class:`~drape.client.handle.ClothHandle`: its ``id``, ``token``, ``key`` and
+received positions and the velocities of its last two states), to the live server the client's
+:class:`~drape.client.placement.Placement` ranks first by load (the servers' stats publications
+and what this client placed since; not round robin; a refusal tries the next), under the same
+:class:`~drape.client.handle.ClothHandle`: its ``id``, ``token``, ``key`` and
 ``server_id`` change, its queue, callbacks and ``states()`` iterator carry on. The last pin
 targets and colliders the game sent are sent again right after. ``on_failover`` callbacks get a
 :class:`FailoverEvent` per cloth.
@@ -100,23 +101,14 @@ class Failover:
         self._callbacks: list[FailoverCallback] = []
         self._cond = threading.Condition()
         self._lost: dict[int, tuple[ClothHandle, str, str, int]] = {}  # id(handle) -> (handle, server, reason, t)
-        self._stats: dict[str, dict[str, Any]] = {}
         self._closed = False
         self._paused = False
-        self._stats_sub = client.session.declare_subscriber(client.keys.stats("*"), self._on_stats)
+        self.placement = client.placement  # the servers' loads (client/placement.py)
+        self.placement.attach(client.session, client.keys)
         self._thread = threading.Thread(target=self._run, name="drape-failover", daemon=True)
         self._thread.start()
 
     # --- inputs (Zenoh threads) -------------------------------------------------------------
-    def _on_stats(self, sample: zenoh.Sample) -> None:
-        try:
-            st = P.decode_stats(sample.payload.to_bytes())
-        except Exception:
-            return
-        sid = str(st.get("server") or str(sample.key_expr).split("/")[-2])
-        with self._cond:
-            self._stats[sid] = st
-
     def server_lost(self, server: str) -> None:
         """The liveliness token of ``server`` vanished: every cloth on it is lost."""
         for h in self.client._handles_on(server):
@@ -161,30 +153,8 @@ class Failover:
         with self._cond:
             self._closed = True
             self._cond.notify_all()
-        try:
-            self._stats_sub.undeclare()
-        except Exception:
-            pass
         if threading.current_thread() is not self._thread:
             self._thread.join(timeout=5.0)
-
-    # --- choice of a server ------------------------------------------------------------------
-    def load(self, server: str) -> tuple[float, float]:
-        """A server's load from its last stats: (vertices, mean tick cost in ms); unknown = high."""
-        with self._cond:
-            st = self._stats.get(server)
-        if st is None:
-            return (float("inf"), float("inf"))
-        tick = ((st.get("phases") or {}).get("tick") or {}).get("mean_ms") or 0.0
-        return (float(st.get("vertices") or 0), float(tick))
-
-    def pick(self, exclude: set[str], extra: dict[str, int]) -> str | None:
-        """The least loaded live server not in ``exclude`` (``extra``: vertices this failover
-        round already placed on each, so a burst of resubmissions spreads)."""
-        live = [s for s in self.client.live_servers() if s not in exclude]
-        if not live:
-            return None
-        return min(live, key=lambda s: (self.load(s)[0] + extra.get(s, 0), self.load(s)[1], s))
 
     # --- the worker ----------------------------------------------------------------------------
     def _run(self) -> None:
@@ -206,7 +176,6 @@ class Failover:
                 log.exception("failover worker")
 
     def _recover(self, todo: list[tuple[ClothHandle, str, str, int]]) -> None:
-        placed: dict[str, int] = {}
         for h, old_server, reason, t0 in todo:
             if h.closed:
                 self._done(h)
@@ -230,9 +199,9 @@ class Failover:
                     )
                 )
                 continue
-            self._resubmit(h, old_server, reason, t0, placed)
+            self._resubmit(h, old_server, reason, t0)
 
-    def _resubmit(self, h: ClothHandle, old_server: str, reason: str, t0: int, placed: dict[str, int]) -> None:
+    def _resubmit(self, h: ClothHandle, old_server: str, reason: str, t0: int) -> None:
         c = self.client
         tried: set[str] = set()
         last_err: DrapeError | None = None
@@ -245,11 +214,12 @@ class Failover:
             )
             return
         while True:
-            target = self.pick(tried, placed)
+            # the least loaded live server (placement counts what this round already placed)
+            target = self.placement.choose(tried, wait=False)
             if target is None:
                 break
             tried.add(target)
-            st = self._stats.get(old_server) or {}
+            st = self.placement.stats(old_server) or {}
             resume = resume_from(h.last_states(), old_server, h.id, float(st.get("tick_rate") or DEFAULT_TICK_RATE))
             old_id = h.id
             req = dataclasses.replace(h.request, rid=c._next_rid(), resume=resume)
@@ -259,7 +229,6 @@ class Failover:
                 last_err = e
                 log.warning("resubmitting cloth %s to server %s failed: %s", old_id, target, e)
                 continue
-            placed[target] = placed.get(target, 0) + h.n_vertices
             h.failovers += 1
             self._done(h)
             h.lost = False

@@ -57,6 +57,7 @@ from .controls import (  # noqa: F401  (BatchError, ControlBatch and the helpers
 )
 from .failover import Failover, FailoverCallback, FailoverEvent  # noqa: F401  (re-exported)
 from .handle import ClothHandle, StateCallback  # noqa: F401  (drape.client.sdk.ClothHandle as before)
+from .placement import PLACE_ELSEWHERE, Placement
 from .protocol import ClothState, DrapeError, Unavailable  # noqa: F401
 from .session import zenoh_config  # noqa: F401  (drape.client.sdk.zenoh_config, the pre-1.2 path)
 
@@ -69,8 +70,9 @@ class DrapeClient:
     """A Zenoh session to a Drape server, with this client's liveliness token.
 
     ``connect``: endpoints of the server (or of a router); default tcp/127.0.0.1:7447.
-    ``server_id``: the server to talk to; None picks the one whose liveliness token is seen
-    (waiting up to ``timeout``). ``client_id``: this client's id (default: random); its
+    ``server_id``: the server to talk to; None: every submission is placed on the least loaded
+    live server (:mod:`.placement`, waiting up to ``timeout`` for one), so one client's cloths
+    may live on several servers (each handle's ``server_id``). ``client_id``: this client's id (default: random); its
     liveliness token tells the server the client is alive: when it disappears for longer than
     the server's grace period, the server reclaims the client's cloths."""
 
@@ -103,6 +105,7 @@ class DrapeClient:
         self.timeout = timeout
         self.queue_size = queue_size
         self._server_id = server_id
+        self._server_given = server_id is not None  # else: submissions are placed by load
         self._rid = itertools.count(1)
         self._lock = threading.Lock()
         self._handles: dict[str, ClothHandle] = {}
@@ -120,6 +123,10 @@ class DrapeClient:
         self.session: zenoh.Session = zenoh.open(
             zenoh_config(mode, listen, list(connect), multicast_scouting, zenoh_config_file)
         )
+        # where new cloths go: the servers' loads from their stats (client/placement.py)
+        self.placement = Placement(self.client_id, self.live_servers, stats_wait=min(timeout, 1.5))
+        if server_id is None or failover:
+            self.placement.attach(self.session, self.keys)
         lv = self.session.liveliness()
         self._server_watch = lv.declare_subscriber(self.keys.all_servers_alive, self._on_server, history=True)
         self._token = lv.declare_token(self.keys.alive_client(self.client_id))
@@ -148,6 +155,7 @@ class DrapeClient:
         self._closed = True
         if self._failover is not None:
             self._failover.close()
+        self.placement.close()
         for obj in (self._bundle_sub, self._token, self._server_watch):
             if obj is None:
                 continue
@@ -171,6 +179,8 @@ class DrapeClient:
             else:
                 self._servers.discard(sid)
                 gone = [h for h in self._handles.values() if h.server_id == sid]
+        if sample.kind != zenoh.SampleKind.PUT:
+            self.placement.server_gone(sid)
         if self._failover is not None:
             if gone:
                 self._failover.server_lost(sid)
@@ -182,20 +192,26 @@ class DrapeClient:
 
     @property
     def server_id(self) -> str:
-        """The server this client talks to (found through liveliness when not given)."""
-        if self._server_id is None:
-            with self._servers_cond:
-                self._servers_cond.wait_for(lambda: bool(self._servers), self.timeout)
-                if not self._servers:
-                    raise Unavailable(
-                        P.ERR_UNAVAILABLE,
-                        f"no Drape server seen in namespace {self.keys.namespace!r} within {self.timeout} s",
-                    )
-                found = sorted(self._servers)
-                if len(found) > 1:
-                    log.warning("several Drape servers %s: using %s (pass server_id to choose)", found, found[0])
-                self._server_id = found[0]
-        return self._server_id
+        """The server given, or else this client's default server for requests that name none
+        (info, stats): the placement's first choice among the live ones, kept while it is live
+        (waiting up to ``timeout`` for one to appear). Submissions are placed one by one."""
+        if self._server_given:
+            assert self._server_id is not None
+            return self._server_id
+        with self._servers_cond:
+            if self._server_id in self._servers:
+                return self._server_id
+            self._servers_cond.wait_for(lambda: bool(self._servers), self.timeout)
+            if not self._servers:
+                raise Unavailable(
+                    P.ERR_UNAVAILABLE,
+                    f"no Drape server seen in namespace {self.keys.namespace!r} within {self.timeout} s",
+                )
+        chosen = self.placement.choose()
+        if chosen is None:  # gone again meanwhile
+            return self.server_id
+        self._server_id = chosen
+        return chosen
 
     def live_servers(self) -> list[str]:
         """Ids of the servers whose liveliness tokens this client currently sees (its watch)."""
@@ -574,18 +590,41 @@ class DrapeClient:
         triangles: np.ndarray | None = None,
         timeout: float | None = None,
         queue_size: int | None = None,
+        server: str | None = None,
     ) -> ClothHandle:
         """Send a SubmitRequest as is and subscribe to the new cloth's state (with
         ``req.state.bundle``: to this client's bundle, once for all its bundled cloths; a 1.0
-        server ignores the option and the handle subscribes to the cloth's own key)."""
-        server = self.server_id
-        return self._place(
-            None,
-            req,
-            server,
-            timeout,
-            lambda rep: ClothHandle(self, rep, rest_positions, triangles, queue_size or self.queue_size, server, req),
-        )
+        server ignores the option and the handle subscribes to the cloth's own key).
+
+        To ``server``, else the client's ``server_id`` when one was given, else the live server
+        the placement ranks first (PROTOCOL.md 11.3); a refusal another server may not give
+        (``overloaded``, ``busy``, ``limit_exceeded``, no reply) tries the next one, and the last
+        refusal is raised when every live server refused."""
+
+        def make(target: str) -> Callable[[P.SubmitReply], ClothHandle]:
+            return lambda rep: ClothHandle(
+                self, rep, rest_positions, triangles, queue_size or self.queue_size, target, req
+            )
+
+        if server is not None or self._server_given:
+            target = server or self.server_id
+            return self._place(None, req, target, timeout, make(target))
+        tried: set[str] = set()
+        last: DrapeError | None = None
+        while True:
+            choice = self.placement.choose(tried)
+            if choice is None:
+                if last is not None:  # every live server refused: the last refusal
+                    raise last
+                choice = self.server_id  # none live yet: wait for one (or raise unavailable)
+            tried.add(choice)
+            try:
+                return self._place(None, req, choice, timeout, make(choice))
+            except DrapeError as e:
+                if e.code not in PLACE_ELSEWHERE:
+                    raise
+                log.info("server %s refused a cloth (%s): trying the next", choice, e.code)
+                last = e
 
     def _place(
         self,
@@ -602,8 +641,14 @@ class DrapeClient:
             self._ensure_bundle_subscriber()
             with self._lock:
                 self._bundled_submits += 1
+        ticket = self.placement.placing(server, req.n_vertices)  # counted there until its next stats
         try:
-            rep = P.submit_reply_from_map(self.request("submit", P.encode_submit(req), timeout, server=server))
+            try:
+                rep = P.submit_reply_from_map(self.request("submit", P.encode_submit(req), timeout, server=server))
+            except BaseException:
+                self.placement.placed(ticket, False)
+                raise
+            self.placement.placed(ticket, True)
             if bundled and rep.bundle_key is None:
                 log.info("server %s does not bundle states (protocol 1.0): cloth %s on its own key", server, rep.cloth)
             old_id = None
@@ -693,6 +738,7 @@ class DrapeClient:
         quality: str | None = None,
         timeout: float | None = None,
         queue_size: int | None = None,
+        server: str | None = None,
     ) -> ClothHandle:
         pins = np.asarray(list(pinned), np.int64).reshape(-1)
         if pins.size and (pins.min() < 0 or pins.max() >= len(rest)):
@@ -719,7 +765,7 @@ class DrapeClient:
             quality=quality,
             rid=self._next_rid(),
         )
-        return self.submit(req, rest, tris, timeout, queue_size)
+        return self.submit(req, rest, tris, timeout, queue_size, server)
 
 
 # Options every submit_* method takes, for documentation and for tools wrapping the SDK.
@@ -740,4 +786,5 @@ cloth_options = (
     "quality",
     "timeout",
     "queue_size",
+    "server",
 )

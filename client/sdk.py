@@ -59,7 +59,7 @@ from .failover import Failover, FailoverCallback, FailoverEvent  # noqa: F401  (
 from .handle import ClothHandle, StateCallback  # noqa: F401  (drape.client.sdk.ClothHandle as before)
 from .placement import PLACE_ELSEWHERE, Placement
 from .protocol import ClothState, DrapeError, Unavailable  # noqa: F401
-from .session import zenoh_config  # noqa: F401  (drape.client.sdk.zenoh_config, the pre-1.2 path)
+from .session import deployment_client_id, zenoh_config  # noqa: F401  (zenoh_config: the pre-1.2 path)
 
 log = logging.getLogger(__name__)
 
@@ -72,9 +72,16 @@ class DrapeClient:
     ``connect``: endpoints of the server (or of a router); default tcp/127.0.0.1:7447.
     ``server_id``: the server to talk to; None: every submission is placed on the least loaded
     live server (:mod:`.placement`, waiting up to ``timeout`` for one), so one client's cloths
-    may live on several servers (each handle's ``server_id``). ``client_id``: this client's id (default: random); its
-    liveliness token tells the server the client is alive: when it disappears for longer than
-    the server's grace period, the server reclaims the client's cloths."""
+    may live on several servers (each handle's ``server_id``). ``client_id``: this client's id; None: the deployment's
+    (``$DRAPE_CLIENT_ID``, else the sidecar file ``<zenoh_config_file>.client_id``), else a random
+    one. Its liveliness token tells the server the client is alive: when it disappears for longer
+    than the server's grace period, the server reclaims the client's cloths. Behind a router with
+    ``drape acl``'s access control it must be the id the users file gives this client's user.
+
+    Requests to a server speaking 1.4 go to this client's own keys
+    (``{ns}/server/{server}/client/{client}/{kind}``, PROTOCOL.md 11.2), to an older one to the
+    server-wide keys: the version is asked once per server with ``info`` (server-wide in every
+    version) before its first other request."""
 
     def __init__(
         self,
@@ -97,7 +104,7 @@ class DrapeClient:
         elif isinstance(connect, str):
             connect = [connect]
         self.keys = P.Keys(namespace)
-        self.client_id = client_id or f"c{secrets.token_hex(8)}"
+        self.client_id = client_id or deployment_client_id(zenoh_config_file) or f"c{secrets.token_hex(8)}"
         if not P.valid_id(self.client_id):
             raise ValueError(f"invalid client id {self.client_id!r}")
         if server_id is not None and not P.valid_id(server_id):
@@ -118,6 +125,7 @@ class DrapeClient:
         self._bundled_submits = 0  # bundled submissions waiting for their reply
         self._orphans: dict[str, list[ClothState]] = {}  # their states that arrived before the reply
         self._server_version: tuple[int, int] | None = None
+        self._scoped: dict[str, bool] = {}  # per server: whether it has client-scoped request keys (1.4)
         self._max_batch_items = P.DEFAULT_LIMITS.max_batch_items
         self._failover: Failover | None = None
         self.session: zenoh.Session = zenoh.open(
@@ -325,6 +333,28 @@ class DrapeClient:
             h._deliver(st)
 
     # --- requests -----------------------------------------------------------------------------
+    def _key(self, kind: str, server: str) -> str:
+        """The key of a ``kind`` request to ``server``: this client's own key (1.4) when the server
+        has them, else the server-wide key of 1.0-1.3 (always for info)."""
+        if kind in P.CLIENT_REQUESTS and self._client_scoped(server):
+            return self.keys.client_request(kind, server, self.client_id)
+        return str(getattr(self.keys, kind)(server))
+
+    def _client_scoped(self, server: str) -> bool:
+        """Whether ``server`` speaks 1.4 (client-scoped request keys): asked with info once (a 1.3
+        server has no such queryable, so trying one first would cost a timeout each time). An
+        unanswered info is not remembered: the caller's server-wide request fails or works alone."""
+        scoped = self._scoped.get(server)
+        if scoped is None:
+            try:
+                info = self.request("info", P.encode_info(P.InfoRequest(self._next_rid())), server=server)
+            except DrapeError as e:
+                log.debug("info of %s: %s; using the server-wide keys", server, e)
+                return False
+            major, _, minor = str(info.get("version", "1.0")).partition(".")
+            scoped = self._scoped[server] = (int(major), int(minor or 0)) >= (1, 4)
+        return scoped
+
     def request(
         self, kind: str, payload: bytes | bytearray, timeout: float | None = None, server: str | None = None
     ) -> dict[str, Any]:
@@ -334,7 +364,7 @@ class DrapeClient:
         in time."""
         if self._closed:
             raise DrapeError(P.ERR_UNAVAILABLE, "client is closed")
-        key = getattr(self.keys, kind)(server or self.server_id)
+        key = self._key(kind, server or self.server_id)
         timeout = self.timeout if timeout is None else timeout
         deadline = time.monotonic() + timeout
         while True:
@@ -374,7 +404,7 @@ class DrapeClient:
         given, gets a success reply's map (on the Zenoh thread)."""
         if self._closed:
             raise DrapeError(P.ERR_UNAVAILABLE, "client is closed")
-        key = getattr(self.keys, kind)(server or self.server_id)
+        key = self._key(kind, server or self.server_id)
         answered = []
 
         def on_reply(reply: zenoh.Reply) -> None:

@@ -21,6 +21,9 @@ ID_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
 NAMESPACE_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,64}(/[A-Za-z0-9_.\-]{1,64}){0,7}$")
 TOKEN_RE = re.compile(r"^[0-9a-f]{32}$")
 
+#: The requests a 1.4 client sends on its own client-scoped key (info stays server-wide).
+CLIENT_REQUESTS = ("submit", "control", "control_batch", "remove")
+
 
 def valid_id(s: object) -> bool:
     return isinstance(s, str) and bool(ID_RE.match(s))
@@ -59,6 +62,36 @@ class Keys:
 
     def bundle(self, client: str) -> str:  # publication, every tick, binary bundle (1.1)
         return f"{self.namespace}/client/{client}/states"
+
+    # --- 1.4: keys that name the client, so that a router can bind them to its user (section 11.2)
+    def client_request(self, kind: str, server: str, client: str) -> str:  # queryable (1.4)
+        """``{ns}/server/{server}/client/{client}/{kind}``, kind one of CLIENT_REQUESTS; the server
+        takes the request's client id from this key. ``client="*"``: what a server declares."""
+        if kind not in CLIENT_REQUESTS:
+            raise ValueError(f"no client-scoped {kind!r} request; one of {CLIENT_REQUESTS}")
+        return f"{self.namespace}/server/{server}/client/{client}/{kind}"
+
+    def client_state(self, client: str, cloth: str) -> str:  # publication, every tick, binary (1.4)
+        return f"{self.namespace}/client/{client}/cloth/{cloth}/state"
+
+    def client_all(self, client: str) -> str:
+        """Everything published for one client: its bundle and its cloths' states (1.4)."""
+        return f"{self.namespace}/client/{client}/**"
+
+    def request_client(self, key: str, kind: str) -> str | None:
+        """The client id of a client-scoped ``kind`` request key, or None when ``key`` is not one
+        naming exactly one valid client id (a wildcard or a foreign layout)."""
+        parts = str(key).split("/")
+        n = self.namespace.count("/") + 1
+        if (
+            len(parts) != n + 5
+            or "/".join(parts[:n]) != self.namespace
+            or parts[n] != "server"
+            or parts[n + 2] != "client"
+            or parts[n + 4] != kind
+        ):
+            return None
+        return parts[n + 3] if valid_id(parts[n + 3]) else None
 
     def alive_server(self, server: str) -> str:  # liveliness token
         return f"{self.namespace}/alive/server/{server}"

@@ -8,6 +8,7 @@ A TOML file holds the fields at its top level (or inside a ``[server]`` table)::
     connect = []
     namespace = "drape"
     server_id = "eu-1"
+    identity = "open"                  # open | keys (PROTOCOL.md 11.2)
     tick_rate = 60.0
     solver = "workgroup"               # workgroup | coloured | jacobi | reference
     device = "auto"                    # see drape devices
@@ -51,6 +52,10 @@ ZENOH_MODES = ("peer", "client", "router")
 CONGESTION_CHOICES = ("auto", "drop", "block")
 LOG_FORMATS = ("text", "json")
 LOG_LEVELS = ("debug", "info", "warning", "error", "critical")
+#: open: the 1.0-1.3 server-wide request queryables as well as the client-scoped ones (1.4), and a
+#: cloth submitted on a server-wide key publishes on {ns}/cloth/{cloth}/state; keys: only the
+#: client-scoped ones, so every request's client id is its key's (a router can bind it to a user).
+IDENTITY_MODES = ("open", "keys")
 
 
 def default_server_id() -> str:
@@ -69,6 +74,7 @@ class ServerConfig:
     zenoh_config: str | None = None  # a Zenoh JSON5 file (TLS, auth, ACL); the fields above override it
     namespace: str = DEFAULT_NAMESPACE
     server_id: str = ""  # "" = host name and process id
+    identity: str = "open"  # open | keys: where a request's client id comes from (IDENTITY_MODES)
     # --- simulation ----------------------------------------------------------------------------
     tick_rate: float = 60.0  # Hz; dt = 1 / tick_rate
     solver: str = "workgroup"
@@ -114,6 +120,8 @@ class ServerConfig:
             raise ValueError(f"invalid namespace {self.namespace!r}")
         if not ID_RE.match(self.server_id):
             raise ValueError(f"invalid server_id {self.server_id!r}: 1-64 characters of [A-Za-z0-9_.-]")
+        if self.identity not in IDENTITY_MODES:
+            raise ValueError(f"identity must be one of {IDENTITY_MODES}, got {self.identity!r}")
         if self.solver not in SOLVERS:
             raise ValueError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
         if not (0.1 <= self.tick_rate <= 10000):
@@ -283,6 +291,8 @@ HELP = {
     "zenoh_config": "Zenoh JSON5 configuration file (TLS, authentication, access control)",
     "namespace": "first key-expression chunk(s) of every key",
     "server_id": "this server's id in its keys (default: host-pid)",
+    "identity": "open: also serve 1.0-1.3 clients on the server-wide keys; keys: client-scoped keys only "
+    "(a router's ACL then binds every request to its user)",
     "tick_rate": "ticks per second; dt = 1/tick_rate",
     "solver": "World solver",
     "device": "OpenCL device: auto, gpu, cpu or part of a name",
@@ -330,6 +340,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         else:
             choices = {
                 "mode": ZENOH_MODES,
+                "identity": IDENTITY_MODES,
                 "solver": SOLVERS,
                 "state_congestion": CONGESTION_CHOICES,
                 "log_format": LOG_FORMATS,

@@ -3,6 +3,14 @@ check ownership and quotas against the registry, admission against the cost mode
 the work on (submissions to the cook worker, everything else to the tick thread's intake). A bad
 request gets its error reply right here; nothing else notices it. A batch control is validated
 item by item: a bad item gets its own error in the reply, the others go ahead.
+
+Identity (protocol 1.4, PROTOCOL.md 11.2): the submit, control, control_batch and remove
+queryables are declared on client-scoped keys, ``{ns}/server/{S}/client/*/{kind}``; a request there
+is the client's whose id the key names (a router binds that chunk to the authenticated user). The
+handler takes the client id from the key: a payload ``client`` that differs, or a control or remove
+of another client's cloth, is refused ``forbidden``, so quotas, bundles and liveliness hang on the
+key's id. With ``identity = "open"`` (the default) the server-wide queryables of 1.0-1.3 are
+declared as well and work as before; ``identity = "keys"`` declares only the client-scoped ones.
 """
 
 from __future__ import annotations
@@ -67,18 +75,24 @@ class Handlers:
         self._tick, self._info, self._stopping = tick, info, stopping
 
     def endpoints(self) -> list[tuple[str, Callable[[zenoh.Query], None]]]:
-        return [
-            (name, self._guard(name, cb))
-            for name, cb in (
-                ("submit", self.on_submit),
-                ("control", self.on_control),
-                ("control_batch", self.on_control_batch),
-                ("remove", self.on_remove),
-                ("info", self.on_info),
-            )
-        ]
+        """(key expression, callback) of every queryable this server declares: the client-scoped
+        request keys (1.4), the server-wide ones unless ``identity = "keys"``, and info."""
+        sid = self.config.server_id
+        callbacks: dict[str, Callable[..., None]] = {
+            "submit": self.on_submit,
+            "control": self.on_control,
+            "control_batch": self.on_control_batch,
+            "remove": self.on_remove,
+        }
+        out = [(self.keys.client_request(n, sid, "*"), self._guard(n, cb, scoped=True)) for n, cb in callbacks.items()]
+        if self.config.identity == "open":
+            out += [(getattr(self.keys, n)(sid), self._guard(n, cb)) for n, cb in callbacks.items()]
+        out.append((self.keys.info(sid), self._guard("info", self.on_info)))
+        return out
 
-    def _guard(self, name: str, cb: Callable[[zenoh.Query, bytes], None]) -> Callable[[zenoh.Query], None]:
+    def _guard(self, name: str, cb: Callable[..., None], scoped: bool = False) -> Callable[[zenoh.Query], None]:
+        """The queryable callback around ``cb(query, payload, client)``: counts, turns every
+        DrapeError into its error reply; ``scoped``: ``client`` is the id the query's key names."""
         reg = self.registry
 
         def handler(query: zenoh.Query) -> None:
@@ -88,8 +102,13 @@ class Handlers:
             try:
                 if self._stopping():
                     raise P.Busy(P.ERR_BUSY, "server is shutting down")
+                client = None
+                if scoped:
+                    client = self.keys.request_client(str(query.key_expr), name)
+                    if client is None:
+                        raise P.Forbidden(P.ERR_FORBIDDEN, f"{query.key_expr}: the key must name exactly one client id")
                 payload = query.payload.to_bytes() if query.payload is not None else b""
-                cb(query, payload)
+                cb(query, payload, client)
             except P.DrapeError as e:
                 rid = e.rid
                 if e.code == ERR_OVERLOADED:
@@ -102,8 +121,17 @@ class Handlers:
         return handler
 
     # --- submit ------------------------------------------------------------------------------------
-    def on_submit(self, query: zenoh.Query, payload: bytes) -> None:
+    @staticmethod
+    def same_client(named: str, key_client: str | None, rid: int) -> None:
+        """A request on a client-scoped key must name the key's client wherever it names one."""
+        if key_client is not None and named != key_client:
+            raise P.Forbidden(
+                P.ERR_FORBIDDEN, f"client {named!r} in a request on client {key_client!r}'s key (PROTOCOL.md 11.2)", rid
+            )
+
+    def on_submit(self, query: zenoh.Query, payload: bytes, client: str | None = None) -> None:
         req = P.decode_submit(payload, self.limits)
+        self.same_client(req.client, client, req.rid)
         rec = ClothRecord(
             id=secrets.token_hex(8),
             client=req.client,
@@ -112,7 +140,8 @@ class Handlers:
             n_vertices=req.n_vertices,
             encoding=(req.state.encoding if req.state and req.state.encoding else "float32"),
         )
-        rec.key = self.keys.state(rec.id)
+        # a cloth submitted on a client-scoped key (1.4) publishes on the client-scoped state key
+        rec.key = self.keys.state(rec.id) if client is None else self.keys.client_state(client, rec.id)
         if req.state is not None and req.state.bundle:
             rec.bundle_key = self.keys.bundle(req.client)
         with self.registry.lock:
@@ -152,13 +181,14 @@ class Handlers:
         packed = pack(req.colliders, req.rid) if req.colliders is not None else None
         return rec, packed
 
-    def on_control(self, query: zenoh.Query, payload: bytes) -> None:
+    def on_control(self, query: zenoh.Query, payload: bytes, client: str | None = None) -> None:
         req = P.decode_control(payload, self.limits)
-        rec, packed = self.check_control(req)
+        rec, packed = self.check_control(req, client)
         self.intake.put_controls([(rec, req, packed, query, (req.rid, reports_features(payload)))], req.rid)
 
-    def on_control_batch(self, query: zenoh.Query, payload: bytes) -> None:
+    def on_control_batch(self, query: zenoh.Query, payload: bytes, client: str | None = None) -> None:
         batch = P.decode_control_batch(payload, self.limits)  # the envelope: all or nothing
+        self.same_client(batch.client, client, batch.rid)  # then every item is checked against batch.client
         results: list[P.BatchItemResult | None] = [None] * len(batch.items)
         waiter = BatchControl(query, batch.rid, results, features=reports_features(payload))
         todo: list[tuple[ClothRecord, P.ControlRequest, np.ndarray | None, Any, int]] = []
@@ -193,12 +223,14 @@ class Handlers:
         self.intake.put_controls(todo, batch.rid)
 
     # --- remove, info, liveliness ----------------------------------------------------------------------
-    def on_remove(self, query: zenoh.Query, payload: bytes) -> None:
+    def on_remove(self, query: zenoh.Query, payload: bytes, client: str | None = None) -> None:
         req = P.decode_remove(payload, self.limits)
         rec = self.registry.owned(req.cloth, req.token, req.rid)
+        if client is not None and rec.client != client:
+            raise P.Forbidden(P.ERR_FORBIDDEN, f"cloth {rec.id!r} is not a cloth of client {client!r}", req.rid)
         self.intake.put(Remove(rec, query, req.rid), req.rid)
 
-    def on_info(self, query: zenoh.Query, payload: bytes) -> None:
+    def on_info(self, query: zenoh.Query, payload: bytes, client: str | None = None) -> None:
         req = P.decode_info(payload, self.limits)
         send(Reply(query, P.encode_ok(req.rid, **self._info())))
 

@@ -215,8 +215,8 @@ class Publisher:
         for cid in job.removed:
             have = self._pubs.pop(cid, None)
             if have is not None:
+                self._buffers.pop(str(have[0].key_expr), None)  # its state key: 1.0 or client-scoped (1.4)
                 undeclare(have[0])
-                self._buffers.pop(self.keys.state(cid), None)
         if job.roster is not None and job.roster.version != self._roster_version:
             self._roster_version = job.roster.version
             live = {k for k, _ in job.roster.bundles}

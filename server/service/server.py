@@ -161,11 +161,11 @@ class Server:
         self._declared.append(
             lv.declare_subscriber(self.keys.all_clients_alive, self.handlers.on_client_liveliness, history=True)
         )
-        for name, cb in self.handlers.endpoints():
-            self._declared.append(s.declare_queryable(getattr(self.keys, name)(sid), cb))
+        for key, cb in self.handlers.endpoints():
+            self._declared.append(s.declare_queryable(key, cb))
         self._token = lv.declare_token(self.keys.alive_server(sid))
         log.info(
-            "drape server %s up: %s solver on %s, %.0f Hz, %s mode, listen %s connect %s, namespace %r",
+            "drape server %s up: %s solver on %s, %.0f Hz, %s mode, listen %s connect %s, namespace %r, identity %s",
             sid,
             cfg.solver,
             self.device_name,
@@ -174,6 +174,7 @@ class Server:
             cfg.listen,
             cfg.connect,
             cfg.namespace,
+            cfg.identity,
         )
 
     def stop(self, timeout: float = 10.0) -> None:

@@ -51,7 +51,7 @@ def client(server):
 def test_states_every_tick_match_the_in_process_solver(server, client):
     pins = [0, 7]
     with client.submit_grid(8, 6, 1.0, 0.8, pinned=pins) as h:
-        assert h.n_vertices == 48 and h.key == P.Keys().state(h.id)
+        assert h.n_vertices == 48 and h.key == P.Keys().client_state(client.client_id, h.id)  # 1.4: client-scoped
         states = collect(h, 30)
     ticks = [s.tick for s in states]
     assert ticks == list(range(ticks[0], ticks[0] + len(ticks))), f"a tick went missing: {ticks}"

@@ -11,20 +11,27 @@ Zenoh's user/password authentication) with its role and Drape id::
     # password = "..."    # only read by --dictionary
     # cert_common_name = "eu-1.drape.example"   # with mutual TLS: the subject also needs this CN
 
-The generated ``access_control`` section (Zenoh 1.x: rules, subjects, policies, default deny) lets
+The generated ``access_control`` section (Zenoh 1.x: rules, subjects, policies, default deny) binds
+each user to the keys of its id (protocol 1.4's client-scoped keys, PROTOCOL.md 2 and 11.2). It lets
 
-- a ``server`` user declare its own queryables (submit, control, control_batch, remove, info) and
-  reply on them, publish states, bundles and its stats, declare its own server liveliness token
-  and watch client liveliness tokens;
-- a ``client`` user query every server's queryables, subscribe to its own bundle key and to the
-  servers' stats, declare only its own client liveliness token and watch server tokens. Per-cloth
-  state keys (``{ns}/cloth/{cloth}/state``) carry no client id, so the router cannot tell whose a
-  cloth is: ``--cloth-states deny`` (the default) refuses every per-cloth state subscription to
-  clients (they must use bundles), ``any`` allows any cloth's state to any client (a read leak).
+- a ``server`` user ``S`` declare its client-scoped request queryables
+  ``{ns}/server/S/client/*/{submit,control,control_batch,remove}`` and ``{ns}/server/S/info`` and
+  reply on them, publish bundles ``{ns}/client/*/states``, per-cloth states
+  ``{ns}/client/*/cloth/*/state`` and its stats, declare its own server liveliness token and watch
+  client liveliness tokens;
+- a ``client`` user ``C`` query only its own request keys ``{ns}/server/*/client/C/{...}`` (and
+  every server's info), subscribe only to ``{ns}/client/C/**`` (its bundle and its cloths' states)
+  and the servers' stats, declare only its own client liveliness token and watch server tokens.
 
-What the router cannot check with this key layout (the client id inside a submit's msgpack
-payload, whose cloth a token or a per-cloth state key belongs to) is listed in docs/reliability.md
-with the key changes that would make it checkable.
+The server-wide request keys of 1.0-1.3 (``{ns}/server/S/submit``...), whose client id is only in
+the payload, are denied to everyone: a deployment behind this router needs 1.4 clients, and its
+servers should run with ``identity = "keys"`` (an ``open`` server's server-wide queryables are
+simply never reached). The server takes a request's client id from its key, which the router has
+bound to the user, so bob cannot submit, control or remove as alice (docs/reliability.md 3-4).
+
+``--cloth-states`` is deprecated and has no effect: per-cloth states now live under their
+client's key, readable by their owner only (1.3 had ``any``, which let every client read every
+cloth's state).
 
 Writes the section as JSON (``--out``, default stdout), or a whole router configuration
 (``--router-config deploy/zenoh-router.json5 --out router.json5``), and optionally the
@@ -43,14 +50,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from drape.client.protocol import DEFAULT_NAMESPACE, ID_RE, NAMESPACE_RE, Keys
+from drape.client.protocol import CLIENT_REQUESTS, DEFAULT_NAMESPACE, ID_RE, NAMESPACE_RE, Keys
 
 log = logging.getLogger(__name__)
 
 ROLES = ("server", "client")
-#: The server queryables, by the name of their Keys method (PROTOCOL.md section 2).
-QUERYABLES = ("submit", "control", "control_batch", "remove", "info")
-CLOTH_STATE_POLICIES = ("deny", "any")
+CLOTH_STATE_POLICIES = ("deny", "any")  # --cloth-states: deprecated, no effect since protocol 1.4
 USER_RE = ID_RE  # Zenoh user names used as rule and subject ids: keep them to the id alphabet
 
 
@@ -124,11 +129,17 @@ def _rules(rid: str, messages: list[str], flow: str, keys: list[str]) -> list[di
     ]
 
 
+def server_queryables(keys: Keys, server: str, client: str = "*") -> list[str]:
+    """The queryables of ``server`` a ``client`` (``*``: any) may reach: its client-scoped request
+    keys and its info."""
+    return [keys.client_request(k, server, client) for k in CLIENT_REQUESTS] + [keys.info(server)]
+
+
 def server_rules(keys: Keys, user: User) -> list[dict[str, Any]]:
     """What a server user may do (ingress: from it into the router; egress: from the router to it)."""
     sid, p = user.id, f"u-{user.name}"
-    queryables = [getattr(keys, q)(sid) for q in QUERYABLES]
-    publications = [keys.state("*"), keys.bundle("*"), keys.stats(sid)]
+    queryables = server_queryables(keys, sid)
+    publications = [keys.client_state("*", "*"), keys.bundle("*"), keys.stats(sid)]
     return [
         *_rules(f"{p}-serve", ["declare_queryable", "reply"], "ingress", queryables),
         *_rules(f"{p}-publish", ["put"], "ingress", publications),
@@ -136,42 +147,47 @@ def server_rules(keys: Keys, user: User) -> list[dict[str, Any]]:
         *_rules(
             f"{p}-watch", ["declare_liveliness_subscriber", "liveliness_query"], "ingress", [keys.all_clients_alive]
         ),
-        # to the server: the queries, the subscriptions that make its publications matched, client tokens
+        # to the server: the queries, the subscriptions that make its publications matched (a client's
+        # {ns}/client/C/** too, or the server would never send it anything), client tokens
         *_rules(f"{p}-queries", ["query"], "egress", queryables),
-        *_rules(f"{p}-matched", ["declare_subscriber"], "egress", publications),
+        *_rules(f"{p}-matched", ["declare_subscriber"], "egress", [keys.client_all("*"), keys.stats(sid)]),
         # (the answers to a liveliness query travel as liveliness_query messages)
         *_rules(f"{p}-clients", ["liveliness_token", "liveliness_query"], "egress", [keys.all_clients_alive]),
     ]
 
 
 def client_rules(keys: Keys, user: User, cloth_states: str = "deny", stats: bool = True) -> list[dict[str, Any]]:
-    """What a client user may do: query any server, read its own bundle (and stats; per-cloth
-    states as ``cloth_states`` says), declare only its own client token."""
+    """What a client user may do: query its own request keys on any server (and info), read what
+    is published for it (``{ns}/client/C/**``: its bundle and cloths) and the stats, declare only
+    its own client token. ``cloth_states`` is deprecated and ignored (1.4)."""
     cid, p = user.id, f"u-{user.name}"
-    queryables = [getattr(keys, q)("*") for q in QUERYABLES]
-    readable = [keys.bundle(cid)]
+    requests = server_queryables(keys, "*", cid)
+    readable = [keys.client_all(cid)]
     if stats:
         readable.append(keys.stats("*"))
-    if cloth_states == "any":
-        readable.append(keys.state("*"))
     return [
-        *_rules(f"{p}-request", ["query"], "ingress", queryables),
+        *_rules(f"{p}-request", ["query"], "ingress", requests),
         *_rules(f"{p}-subscribe", ["declare_subscriber"], "ingress", readable),
         *_rules(f"{p}-token", ["liveliness_token"], "ingress", [keys.alive_client(cid)]),
         *_rules(
             f"{p}-discover", ["declare_liveliness_subscriber", "liveliness_query"], "ingress", [keys.all_servers_alive]
         ),
-        # to the client: replies, its readable publications, servers' tokens and queryables
-        *_rules(f"{p}-replies", ["reply", "declare_queryable"], "egress", queryables),
+        # to the client: replies on its own keys; the servers' queryables (declared for any client:
+        # knowing one exists is harmless, only servers may declare them); what it may read; servers' tokens
+        *_rules(f"{p}-replies", ["reply"], "egress", requests),
+        *_rules(f"{p}-queryables", ["declare_queryable"], "egress", server_queryables(keys, "*")),
         *_rules(f"{p}-receive", ["put"], "egress", readable),
         *_rules(f"{p}-servers", ["liveliness_token", "liveliness_query"], "egress", [keys.all_servers_alive]),
     ]
 
 
 def access_control(users: UsersFile, cloth_states: str = "deny", stats: bool = True) -> dict[str, Any]:
-    """The router's ``access_control`` section (Zenoh 1.x format), default deny."""
+    """The router's ``access_control`` section (Zenoh 1.x format), default deny. ``cloth_states``:
+    deprecated, no effect (per-cloth states are readable by their owner only since 1.4)."""
     if cloth_states not in CLOTH_STATE_POLICIES:
         raise ValueError(f"cloth_states must be one of {CLOTH_STATE_POLICIES}")
+    if cloth_states != "deny":
+        log.warning("--cloth-states is deprecated and has no effect: a client reads its own cloths' states only")
     keys = Keys(users.namespace)
     rules: list[dict[str, Any]] = []
     subjects: list[dict[str, Any]] = []
@@ -220,8 +236,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--cloth-states",
         choices=CLOTH_STATE_POLICIES,
         default="deny",
-        help="per-cloth state keys carry no client id: deny them to clients (bundles only) or "
-        "let any client read any cloth (default: deny)",
+        help="deprecated, no effect: since protocol 1.4 a client reads its own cloths' states "
+        "({ns}/client/C/**) and no one else's",
     )
     parser.add_argument(
         "--no-stats", dest="stats", action="store_false", help="do not let clients subscribe to the servers' stats"

@@ -1,0 +1,242 @@
+"""Shared fixtures of the access-control tests (test_acl.py, test_identity.py): a users file, a real
+Zenoh router with user/password authentication and the generated ACL (over TCP and TLS with a CA
+made by openssl), client-mode sessions of a user, an inbox of samples, ``drape serve`` behind the
+router. Helpers are offered as the ``acl_kit`` fixture (no test imports another test or this file).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+import threading
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import pytest
+import zenoh
+
+from drape.server.tools import acl
+from drape.server.tools.procs import free_port
+
+REPO = Path(__file__).resolve().parents[2]
+EXAMPLE = REPO / "deploy" / "users.example.toml"
+WAIT = 20.0  # seconds to wait for a positive event (a loaded CI machine), never asserted on
+SERVER_WAIT = 90.0  # a drape serve starting (OpenCL warm-up) on a loaded CI machine
+
+USERS = """
+namespace = "drape"
+[[user]]
+name = "eu-1"
+role = "server"
+id = "eu-1"
+password = "pw-server"
+[[user]]
+name = "alice"
+role = "client"
+id = "alice"
+password = "pw-alice"
+[[user]]
+name = "bob"
+role = "client"
+id = "bob"
+password = "pw-bob"
+"""
+PASSWORDS = {"eu-1": "pw-server", "alice": "pw-alice", "bob": "pw-bob"}
+
+
+def session(
+    endpoint: str, user: str | None, password: str | None, tls: dict[str, str] | None, cert: str | None = None
+) -> zenoh.Session:
+    """A client-mode session; ``cert``: present that certificate (``{cert}.pem``, mutual TLS)."""
+    c = zenoh.Config()
+    c.insert_json5("mode", '"client"')
+    c.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    c.insert_json5("scouting/multicast/enabled", "false")
+    if tls:
+        c.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(tls["ca"]))
+    if tls and cert:
+        d = Path(tls["ca"]).parent
+        c.insert_json5("transport/link/tls/enable_mtls", "true")  # the connecting side must say so too
+        c.insert_json5("transport/link/tls/connect_private_key", json.dumps(str(d / f"{cert}-key.pem")))
+        c.insert_json5("transport/link/tls/connect_certificate", json.dumps(str(d / f"{cert}.pem")))
+    if user:
+        c.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
+        c.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
+    return zenoh.open(c)
+
+
+def make_certs(d: Path) -> dict[str, str]:
+    """A CA, a router certificate for localhost and one client certificate per party
+    (CN = name.drape.test), as deploy/certs/README.md makes them."""
+
+    def ossl(*a: str) -> None:
+        subprocess.run(["openssl", *a], cwd=d, check=True, capture_output=True)
+
+    ossl(
+        *("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2", "-subj", "/CN=drape-test-ca"),
+        *("-keyout", "ca-key.pem", "-out", "ca.pem"),
+    )
+    ossl(
+        *("req", "-newkey", "rsa:2048", "-nodes", "-subj", "/CN=localhost"),
+        *("-keyout", "router-key.pem", "-out", "router.csr"),
+    )
+    (d / "san.ext").write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\n")
+    signed = ("-CA", "ca.pem", "-CAkey", "ca-key.pem", "-CAcreateserial", "-days", "2")
+    ossl("x509", "-req", "-in", "router.csr", *signed, "-extfile", "san.ext", "-out", "router.pem")
+    (d / "client.ext").write_text("extendedKeyUsage=clientAuth\n")
+    for name in PASSWORDS:  # mutual TLS: one certificate per party, CN = name.drape.test
+        ossl(
+            *("req", "-newkey", "rsa:2048", "-nodes", "-subj", f"/CN={name}.drape.test"),
+            *("-keyout", f"{name}-key.pem", "-out", f"{name}.csr"),
+        )
+        ossl("x509", "-req", "-in", f"{name}.csr", *signed, "-extfile", "client.ext", "-out", f"{name}.pem")
+    return {"ca": str(d / "ca.pem"), "key": str(d / "router-key.pem"), "cert": str(d / "router.pem")}
+
+
+class Inbox:
+    """Samples received on a subscriber (or liveliness subscriber), with an event per key."""
+
+    def __init__(self) -> None:
+        self.keys: list[str] = []
+        self.payloads: list[bytes] = []
+        self._cond = threading.Condition()
+
+    def __call__(self, sample: zenoh.Sample) -> None:
+        with self._cond:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.keys.append(str(sample.key_expr))
+                self.payloads.append(sample.payload.to_bytes())
+            self._cond.notify_all()
+
+    def wait_for(self, predicate: Callable[[Inbox], bool]) -> bool:
+        with self._cond:
+            return self._cond.wait_for(lambda: predicate(self), WAIT)
+
+
+def user_file(d: Path, user: str, password: str) -> str:
+    """A client-mode Zenoh JSON5 file with the user's name and password (what a deployment ships)."""
+    p = d / f"{user}.json5"
+    auth = {"usrpwd": {"user": user, "password": password}}
+    p.write_text(json.dumps({"mode": "client", "transport": {"auth": auth}}))
+    return str(p)
+
+
+def router_config(tmp_path: Path, endpoint: str, users_text: str = USERS) -> tuple[zenoh.Config, acl.UsersFile]:
+    """deploy/zenoh-router.json5 listening on ``endpoint`` with the users' dictionary and ACL."""
+    users_file = tmp_path / "users.toml"
+    users_file.write_text(users_text)
+    users = acl.load_users(users_file)
+    (tmp_path / "dict.txt").write_text(acl.dictionary(users))
+    c = zenoh.Config.from_file(str(REPO / "deploy/zenoh-router.json5"))
+    c.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    c.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(tmp_path / "dict.txt")))
+    c.insert_json5("access_control", json.dumps(acl.access_control(users)))
+    return c, users
+
+
+@pytest.fixture
+def acl_kit() -> SimpleNamespace:
+    """The helpers above: USERS, PASSWORDS, EXAMPLE, REPO, WAIT, SERVER_WAIT, Inbox, session,
+    make_certs, user_file, router_config."""
+    return SimpleNamespace(
+        USERS=USERS,
+        PASSWORDS=PASSWORDS,
+        EXAMPLE=EXAMPLE,
+        REPO=REPO,
+        WAIT=WAIT,
+        SERVER_WAIT=SERVER_WAIT,
+        Inbox=Inbox,
+        session=session,
+        make_certs=make_certs,
+        user_file=user_file,
+        router_config=router_config,
+    )
+
+
+@pytest.fixture(params=["tcp", "tls"])
+def router(request, tmp_path) -> Iterator[Callable[..., zenoh.Session]]:
+    """A Zenoh router with the generated access control and user/password authentication;
+    yields ``connect(user, password=None)``, a client-mode session of that user."""
+    port = free_port()
+    tls = None
+    if request.param == "tls":
+        if shutil.which("openssl") is None:
+            pytest.skip("openssl not installed")
+        tls = make_certs(tmp_path)
+        endpoint = f"tls/localhost:{port}"
+    else:
+        endpoint = f"tcp/127.0.0.1:{port}"
+    c, _ = router_config(tmp_path, endpoint)
+    if tls:
+        c.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(tls["ca"]))
+        c.insert_json5("transport/link/tls/listen_private_key", json.dumps(tls["key"]))
+        c.insert_json5("transport/link/tls/listen_certificate", json.dumps(tls["cert"]))
+    r = zenoh.open(c)
+    opened: list[zenoh.Session] = []
+
+    def connect(user: str | None, password: str | None = None) -> zenoh.Session:
+        s = session(endpoint, user, PASSWORDS.get(user or "") if password is None else password, tls)
+        opened.append(s)
+        return s
+
+    yield connect
+    for s in reversed(opened):
+        s.close()
+    r.close()
+
+
+@dataclass
+class DrapeBehindRouter:
+    """A TCP router with the generated ACL and ``drape serve`` (server eu-1, client mode) behind it."""
+
+    endpoint: str
+    tmp_path: Path
+    server: subprocess.Popen[Any]
+
+    def client_file(self, user: str) -> str:
+        return user_file(self.tmp_path, user, PASSWORDS[user])
+
+    def session(self, user: str) -> zenoh.Session:
+        return session(self.endpoint, user, PASSWORDS[user], None)
+
+
+@pytest.fixture
+def drape_behind_router(tmp_path, request) -> Iterator[DrapeBehindRouter]:
+    """``drape serve`` as server user eu-1 behind an ACL router; extra ``drape serve`` arguments
+    from the test's ``serve_args`` marker (``@pytest.mark.serve_args("--identity", "keys")``)."""
+    marker = request.node.get_closest_marker("serve_args")
+    extra = list(marker.args) if marker else []
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    c, _ = router_config(tmp_path, endpoint)
+    r = zenoh.open(c)
+    log = open(tmp_path / "server.log", "w")
+    server = subprocess.Popen(
+        [
+            *(sys.executable, "-m", "drape.server.cli", "serve", "--mode", "client", "--connect", endpoint),
+            *("--zenoh-config", user_file(tmp_path, "eu-1", "pw-server"), "--server-id", "eu-1"),
+            *("--stats-period", "0.5", "--no-admission"),  # admission: not these tests' subject
+            *extra,
+        ],
+        stdout=log,
+        stderr=subprocess.STDOUT,
+    )
+    try:
+        yield DrapeBehindRouter(endpoint, tmp_path, server)
+    finally:
+        server.terminate()
+        try:
+            server.wait(30)
+        except subprocess.TimeoutExpired:
+            server.kill()
+            server.wait(10)
+        log.close()
+        r.close()
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line("markers", "serve_args(*args): extra drape serve arguments of drape_behind_router")

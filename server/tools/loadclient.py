@@ -36,6 +36,7 @@ class ClientSpec:
     encoding: str = "float32"
     tick_rate: float = 60.0
     bundle: bool = True
+    servers: int = 1  # live servers to wait for before choosing one by load (several: no server id given)
 
 
 @dataclass
@@ -103,10 +104,17 @@ def decode_cost(rx_ns: np.ndarray, delay_ns: np.ndarray) -> tuple[float, float, 
     return total / len(rx_ns) / 1e3, float(per_payload.mean()) / 1e3, total / 1e9, len(counts)
 
 
-def client_main(spec: ClientSpec, endpoint: str, server_id: str | None, shared: dict[str, Any], results: Any) -> None:
+def client_main(
+    spec: ClientSpec, endpoint: str | list[str], server_id: str | None, shared: dict[str, Any], results: Any
+) -> None:
     """The process body. ``shared``: events ``ready``, ``go``, ``stop`` and values ``admitted``,
     ``receiving`` (1 once every admitted cloth got a state), ``progress`` (states so far) and the
-    window ``lo``, ``hi`` (server ticks, -1 until the parent knows them)."""
+    window ``lo``, ``hi`` (server ticks, -1 until the parent knows them); ``server`` (bytes, when
+    present) gets the server this client placed its cloths on.
+
+    Without ``server_id`` the client waits until it sees ``spec.servers`` live servers, takes the
+    one the SDK's placement ranks first by their published load (client/placement.py) and puts
+    all its cloths there (the window is counted in that server's ticks)."""
     logging.basicConfig(level=logging.WARNING)
     from drape.client import DrapeClient
     from drape.client import protocol as P
@@ -118,6 +126,12 @@ def client_main(spec: ClientSpec, endpoint: str, server_id: str | None, shared: 
     refused: Counter[str] = Counter()
     try:
         with DrapeClient(endpoint, server_id=server_id, timeout=60.0, queue_size=4) as client:
+            t_end = time.monotonic() + 60.0
+            while server_id is None and len(client.live_servers()) < spec.servers and time.monotonic() < t_end:
+                time.sleep(0.05)
+            home = client.server_id  # the one given, or the least loaded live one
+            if "server" in shared:
+                shared["server"].value = home.encode()
             for j in range(spec.offered):
                 try:
                     h = client.submit_grid(
@@ -133,6 +147,7 @@ def client_main(spec: ClientSpec, endpoint: str, server_id: str | None, shared: 
                         substeps=spec.substeps,
                         encoding=spec.encoding,
                         bundle=spec.bundle,
+                        server=home,
                     )
                 except P.DrapeError as e:
                     refused[e.code] += 1

@@ -35,6 +35,26 @@ def achieved_rate(s0: Mapping[str, Any], s1: Mapping[str, Any]) -> float:
     return ticks / span_s
 
 
+def server_window(
+    server: str, s0: Mapping[str, Any], s1: Mapping[str, Any], window: Sequence[Mapping[str, Any]]
+) -> dict[str, Any]:
+    """One server's figures over a window (two of its stats publications, those in between):
+    cloths and vertices at its end, achieved rate, ticks, missed ticks, coalesced frames, the
+    mean tick and the window's length on its clock."""
+    ph = phase_means(window)
+    return {
+        "server": server,
+        "cloths": int(s1.get("cloths", 0)),
+        "vertices": int(s1.get("vertices", 0)),
+        "hz": round(achieved_rate(s0, s1), 2),
+        "ticks": counter_delta(s0, s1, "ticks"),
+        "missed_ticks": counter_delta(s0, s1, "missed_ticks"),
+        "skipped_frames": counter_delta(s0, s1, "skipped_frames"),
+        "tick_ms": ph.get("tick", {}).get("mean", float("nan")),
+        "seconds": (int(s1["time_ns"]) - int(s0["time_ns"])) / 1e9,
+    }
+
+
 def counter_delta(s0: Mapping[str, Any], s1: Mapping[str, Any], key: str) -> int:
     return int(s1.get(key, 0)) - int(s0.get(key, 0))
 
@@ -88,6 +108,8 @@ class Report:
     server: dict[str, Any] = field(default_factory=dict)  # phases_ms, cpu_percent, rss_*_mb
     clients_cpu_percent: float = float("nan")
     host: str = ""
+    servers: list[dict[str, Any]] = field(default_factory=list)  # several servers: each one's figures
+    spread: float = 0.0  # several servers: max / mean - 1 of their cloths (0: even)
 
     @property
     def served(self) -> bool:
@@ -164,7 +186,16 @@ def print_report(r: Report) -> None:
         f"{r.vertices_per_cloth} vertices, {r.iterations} iterations, features {r.features or 'none'}, {r.encoding}, "
         f"{'bundles + batch control' if r.bundle else 'per-cloth states and controls'}"
     )
-    print(f"  window: server ticks {r.window_ticks[0] + 1}..{r.window_ticks[1]} ({r.seconds:.2f} s on the server)")
+    if r.servers:
+        print(f"  {len(r.servers)} servers, cloths spread {100 * r.spread:.1f} % (max / mean - 1):")
+        for s in r.servers:
+            print(
+                f"    {s['server']}: {s['cloths']} cloths, {s['vertices']} vertices, {s['hz']:.2f} Hz "
+                f"({s['ticks']} ticks), missed {s['missed_ticks']}, coalesced {s['skipped_frames']}, "
+                f"tick {s['tick_ms']:.2f} ms"
+            )
+    else:
+        print(f"  window: server ticks {r.window_ticks[0] + 1}..{r.window_ticks[1]} ({r.seconds:.2f} s on the server)")
     print(
         f"  ticks: {r.tick_hz_achieved:.2f} Hz achieved of {r.tick_hz_target:g} Hz ({r.ticks} ticks); "
         f"missed {r.missed_ticks}, coalesced {r.skipped_frames}"

@@ -22,6 +22,13 @@ once more before it counts: a one-off hiccup does not end the search); ``--offer
 twice each load and reports admitted against refused submits (past the knee, a server answers
 ``overloaded``) with the admitted cloths' figures. Outputs: a summary per load, ``--json``,
 ``--markdown`` (one table row per load) and plots in ``--out``.
+
+``--servers N`` starts N ``drape serve`` processes (each its own server id and port; peers
+connected to each other, or behind one Zenoh router process with ``--router``; on a GPU machine
+they share the device) and spreads the clients over them by the servers' published load (the
+SDK's placement, PROTOCOL.md 11.3): per server its cloths, vertices, achieved rate and missed
+ticks, and the spread of cloths (max / mean - 1). ``--scale-out`` finds the knee of one server,
+then of N, and prints the ratio. The measurement itself is :mod:`.loadrun`'s.
 """
 
 from __future__ import annotations
@@ -29,260 +36,18 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import multiprocessing as mp
 import os
-import platform
-import threading
 import time
-from collections import Counter
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from .loadclient import ClientResult, ClientSpec, client_main
-from .loadreport import (
-    Report,
-    achieved_rate,
-    counter_delta,
-    decode_summary,
-    latency_summary,
-    markdown_table,
-    phase_means,
-    print_report,
-    write_plots,
-    write_summary_plot,
-)
-from .procs import ServerProcess, progress, require_extra
+from .loadreport import Report, markdown_table, print_report, write_plots, write_summary_plot
+from .loadrun import LoadSpec, StatsWatch, Target, run_fleet_load, run_load  # noqa: F401  (lt.run_load as before)
+from .procs import ServerProcess, free_port, require_extra
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class LoadSpec:
-    clients: int = 4
-    cloths: int = 64  # total cloths wanted (each client offers its share x ``offered``)
-    size: int = 32  # n x n vertices per cloth
-    seconds: float = 5.0  # the measured window, at least
-    features: tuple[str, ...] = ()
-    iterations: int = 10
-    substeps: int = 1
-    bending: bool = True
-    encoding: str = "float32"
-    tick_rate: float = 60.0
-    bundle: bool = True
-    offered: float = 1.0  # offer this many times ``cloths``
-
-    def client_specs(self) -> list[ClientSpec]:
-        """Each client's share of the offered cloths (the first ones take the remainder)."""
-        total = int(math.ceil(self.cloths * self.offered))
-        base, extra = divmod(total, self.clients)
-        return [
-            ClientSpec(
-                index=i,
-                offered=base + (i < extra),
-                size=self.size,
-                features=self.features,
-                iterations=self.iterations,
-                substeps=self.substeps,
-                bending=self.bending,
-                encoding=self.encoding,
-                tick_rate=self.tick_rate,
-                bundle=self.bundle,
-            )
-            for i in range(self.clients)
-        ]
-
-
-class StatsWatch:
-    """The server's stats publications, kept in arrival order with their local arrival time."""
-
-    def __init__(self, endpoint: str, server_id: str | None) -> None:
-        from drape.client import DrapeClient
-
-        self.client = DrapeClient(endpoint, server_id=server_id, timeout=60.0)
-        self.samples: list[tuple[float, dict[str, Any]]] = []
-        self._cond = threading.Condition()
-        self._cancel = self.client.on_stats(self._on)
-
-    def _on(self, stats: dict[str, Any]) -> None:
-        with self._cond:
-            self.samples.append((time.monotonic(), stats))
-            self._cond.notify_all()
-
-    def next_after(self, index: int, timeout: float) -> tuple[int, dict[str, Any]]:
-        """The first publication with position >= ``index`` (waiting up to ``timeout`` s)."""
-        with self._cond:
-            if not self._cond.wait_for(lambda: len(self.samples) > index, timeout):
-                raise RuntimeError(f"no stats publication from the server in {timeout:.0f} s")
-            return index, self.samples[index][1]
-
-    def count(self) -> int:
-        with self._cond:
-            return len(self.samples)
-
-    def close(self) -> None:
-        self._cancel()
-        self.client.close()
-
-
-def _wait(cond: Any, what: str, deadline: float, procs: list[Any]) -> None:
-    while not cond():
-        if time.monotonic() > deadline:
-            raise RuntimeError(f"timed out waiting for {what}")
-        dead = [p.name for p in procs if not p.is_alive()]
-        if dead:
-            raise RuntimeError(f"{', '.join(dead)} exited while waiting for {what}")
-        time.sleep(0.05)
-
-
-def run_load(
-    spec: LoadSpec,
-    endpoint: str,
-    server_id: str | None,
-    server: ServerProcess | None,
-    stats: StatsWatch,
-    quiet: bool = False,
-) -> tuple[Report, list[ClientResult], list[tuple[float, dict]]]:
-    """Run one load and measure it over a window of server ticks (see the module docstring)."""
-    ctx = mp.get_context("spawn")
-    cspecs = spec.client_specs()
-    shared = [
-        {
-            "ready": ctx.Event(),
-            "go": ctx.Event(),
-            "stop": ctx.Event(),
-            "admitted": ctx.Value("l", -1, lock=False),
-            "receiving": ctx.Value("l", 0, lock=False),
-            "progress": ctx.Value("l", 0, lock=False),
-            "lo": ctx.Value("q", -1, lock=False),
-            "hi": ctx.Value("q", -1, lock=False),
-        }
-        for _ in cspecs
-    ]
-    results = ctx.Queue()
-    procs = [
-        ctx.Process(
-            target=client_main,
-            name=f"loadtest-client-{c.index}",
-            args=(c, endpoint, server_id, shared[c.index], results),
-        )
-        for c in cspecs
-    ]
-    figures = server.figures if server else None
-    if figures:
-        figures.rss_mb.clear()
-        figures.sample_rss()
-    t_start = time.monotonic()
-    for p in procs:
-        p.start()
-    out: list[ClientResult] = []
-    try:
-        offered = sum(c.offered for c in cspecs)
-        deadline = time.monotonic() + 120 + 0.05 * offered
-        _wait(lambda: all(s["ready"].is_set() for s in shared), "the clients' submits", deadline, procs)
-        admitted = sum(int(s["admitted"].value) for s in shared)
-        log.info(
-            "%d of %d cloths admitted in %.1f s; waiting for their states",
-            admitted,
-            offered,
-            time.monotonic() - t_start,
-        )
-        for s in shared:
-            s["go"].set()
-        _wait(
-            lambda: all(s["receiving"].value for s in shared),
-            "states of every admitted cloth",
-            time.monotonic() + 60 + 0.02 * admitted,
-            procs,
-        )
-        # the window opens at the next stats publication, closes at the first one --seconds later
-        i0, s0 = stats.next_after(stats.count(), timeout=30)
-        for s in shared:
-            s["lo"].value = int(s0["tick"])
-        cpu0 = figures.cpu_seconds() if figures else math.nan
-        t0 = time.monotonic()
-        bar = progress(total=round(spec.seconds, 1), desc=f"{admitted} cloths", unit="s", quiet=quiet)
-        with bar:
-            while time.monotonic() - t0 < spec.seconds:
-                time.sleep(0.25)
-                if figures:
-                    figures.sample_rss()
-                bar.n = round(min(time.monotonic() - t0, spec.seconds), 1)
-                bar.set_postfix(states=sum(int(s["progress"].value) for s in shared), refresh=False)
-                bar.refresh()
-                if not all(p.is_alive() for p in procs):
-                    raise RuntimeError("a client process exited during the measured window")
-        i1, s1 = stats.next_after(stats.count(), timeout=30)
-        cpu1 = figures.cpu_seconds() if figures else math.nan
-        elapsed = time.monotonic() - t0
-        for s in shared:
-            s["hi"].value = int(s1["tick"])
-        time.sleep(max(1.0, 5.0 / spec.tick_rate))  # the window's last states are still on their way
-        for s in shared:
-            s["stop"].set()
-        for _ in procs:
-            kind, *rest = results.get(timeout=120)
-            if kind == "error":
-                raise RuntimeError(f"client {rest[0]} failed: {rest[1]}")
-            out.append(rest[0])
-        for p in procs:
-            p.join(30)
-        if figures:
-            figures.sample_rss()
-    finally:
-        for s in shared:
-            s["go"].set()
-            s["stop"].set()
-        for p in procs:
-            p.join(5)
-            if p.is_alive():
-                p.terminate()
-    window = stats.samples[i0 + 1 : i1 + 1]
-    seconds = (int(s1["time_ns"]) - int(s0["time_ns"])) / 1e9
-    lat = np.concatenate([r.latencies_ms for r in out]) if out else np.zeros(0)
-    refused: Counter[str] = Counter()
-    for r in out:
-        refused.update(r.refused)
-    server_info: dict[str, Any] = {"phases_ms": phase_means([st for _, st in window])}
-    if figures:
-        server_info["cpu_percent"] = round(100.0 * (cpu1 - cpu0) / elapsed, 1)
-        server_info.update(figures.rss_summary())
-    states = sum(r.received for r in out)
-    report = Report(
-        cloths=sum(r.admitted for r in out),
-        offered=sum(r.offered for r in out),
-        refused=dict(refused),
-        clients=spec.clients,
-        vertices_per_cloth=spec.size * spec.size,
-        iterations=spec.iterations,
-        features=list(spec.features),
-        encoding=spec.encoding,
-        bundle=spec.bundle,
-        window_ticks=(int(s0["tick"]), int(s1["tick"])),
-        seconds=round(seconds, 3),
-        tick_hz_target=spec.tick_rate,
-        tick_hz_achieved=round(achieved_rate(s0, s1), 2),
-        ticks=counter_delta(s0, s1, "ticks"),
-        missed_ticks=counter_delta(s0, s1, "missed_ticks"),
-        skipped_frames=counter_delta(s0, s1, "skipped_frames"),
-        latency_ms=latency_summary(lat),
-        states=states,
-        expected_states=sum(r.expected for r in out),
-        lost=sum(r.lost for r in out),
-        duplicated=sum(r.duplicated for r in out),
-        out_of_order=sum(r.out_of_order for r in out),
-        messages_per_s=round(states / seconds, 1),
-        bytes_per_s=round(sum(r.bytes for r in out) / seconds, 1),
-        send_errors=sum(r.send_errors for r in out),
-        decode_us=decode_summary(out, seconds),
-        server=server_info,
-        clients_cpu_percent=round(100.0 * sum(r.cpu_s for r in out) / elapsed, 1),
-        host=f"{platform.node()} {os.cpu_count()} cores",
-    )
-    return report, out, window
 
 
 # ------------------------------------------------------------------------------------------------
@@ -355,6 +120,26 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="skip the loads that would start after this many seconds (said in the output)",
     )
+    parser.add_argument(
+        "--servers",
+        type=int,
+        default=1,
+        help="start this many drape serve processes (each its own server id and port, peers connected to "
+        "each other); each client places its cloths on one of them by their published load",
+    )
+    parser.add_argument("--router", action="store_true", help="with --servers: behind one Zenoh router process")
+    parser.add_argument(
+        "--scale-out",
+        action="store_true",
+        help="find the knee of one server, then of --servers servers (doubling, then --bisect steps) "
+        "and print the ratio",
+    )
+    parser.add_argument(
+        "--bisect",
+        type=int,
+        default=2,
+        help="--find-knee / --scale-out: halvings between the last held load and the first not held (default 2)",
+    )
     parser.add_argument("--json", type=Path, default=None, help="write the reports here (a list, one per load)")
     parser.add_argument("--markdown", type=Path, default=None, help="write a markdown table here (a row per load)")
     parser.add_argument("--out", type=Path, default=Path("out/loadtest"), help="PNG plots go here")
@@ -387,9 +172,112 @@ def _serve_args(args: argparse.Namespace) -> list[str]:
     return cmd + list(args.server_arg)
 
 
+class Fleet:
+    """The servers a load test starts: ``n`` ``drape serve`` processes, each with its own server id
+    and loopback port, either peers connected to each other or, with ``router``, all connected to
+    one Zenoh router process; ``endpoint`` is what the clients connect to. On a GPU machine they
+    share the one device (each process its own OpenCL context)."""
+
+    def __init__(self, n: int, serve_args: list[str], router: bool = False) -> None:
+        self.router: Any = None
+        self._router_stop: Any = None
+        self.servers: list[ServerProcess] = []
+        self.targets: list[Target] = []
+        try:
+            if router:
+                ctx = mp.get_context("spawn")
+                self.router_endpoint = f"tcp/127.0.0.1:{free_port()}"
+                self._router_stop = ctx.Event()
+                self.router = ctx.Process(
+                    target=_router_main, args=(self.router_endpoint, self._router_stop), name="zenoh-router"
+                )
+                self.router.start()
+            for k in range(n):
+                connect = [self.router_endpoint] if router else [s.endpoint for s in self.servers]
+                extra = [a for c in connect for a in ("--connect", c)]
+                sid = f"loadtest-{os.getpid()}" + (f"-{k}" if n > 1 else "")
+                self.servers.append(ServerProcess([*serve_args, *extra], server_id=sid))
+            for srv in self.servers:
+                self.targets.append(Target(srv.server_id, StatsWatch(srv.endpoint, srv.server_id), srv))
+        except BaseException:
+            self.stop()
+            raise
+        self.endpoint: str | list[str] = (
+            self.router_endpoint
+            if router
+            else [s.endpoint for s in self.servers]
+            if n > 1
+            else self.servers[0].endpoint
+        )
+
+    def stop(self) -> None:
+        for t in self.targets:
+            t.stats.close()
+        for srv in self.servers:
+            srv.stop()
+        if self.router is not None:
+            self._router_stop.set()
+            self.router.join(10)
+            if self.router.is_alive():
+                self.router.terminate()
+
+
+def _router_main(endpoint: str, stop: Any) -> None:
+    """A Zenoh router listening on ``endpoint`` until ``stop`` is set (a process of its own)."""
+    import zenoh
+
+    c = zenoh.Config()
+    c.insert_json5("mode", '"router"')
+    c.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    c.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(c)
+    stop.wait()
+    session.close()
+
+
+def knee_search(
+    base: LoadSpec, run_one: Any, max_cloths: int, bisect: int, budget_s: float | None, t_begin: float
+) -> tuple[list[Report], int]:
+    """From ``base.cloths`` double the load until it is not held (a load that fails runs once more
+    before it counts), then halve the gap between the last held and the first not held load
+    ``bisect`` times. ``run_one(spec) -> Report``. Returns every report and the largest load held."""
+    reports: list[Report] = []
+    held, failed = 0, 0
+    n = base.cloths
+    last_cost = 0.0
+    steps = bisect
+    while n and n <= max_cloths:
+        if budget_s and reports and time.monotonic() - t_begin + last_cost > budget_s:
+            print(f"knee search stopped at {n} cloths to stay within --max-total-seconds {budget_s:g}")
+            break
+        t = time.monotonic()
+        r = run_one(replace(base, cloths=n))
+        if not r.held:
+            print(f"not held ({r.why_not_held()}): running this load once more")
+            r = run_one(replace(base, cloths=n))
+        last_cost = (time.monotonic() - t) / (1 if r.held else 2)
+        reports.append(r)
+        if r.held:
+            held = max(held, n)
+        else:
+            failed = n if not failed else min(failed, n)
+        if not failed:
+            n *= 2
+        elif held and steps > 0 and failed - held > 1:
+            steps -= 1
+            n = (held + failed) // 2
+        else:
+            break
+    return reports, held
+
+
 def run(args: argparse.Namespace) -> int:
     if not 1 <= args.clients <= 256:
         raise SystemExit("--clients must be 1..256")
+    if not 1 <= args.servers <= 16:
+        raise SystemExit("--servers must be 1..16")
+    if args.endpoint and (args.servers > 1 or args.scale_out):
+        raise SystemExit("--servers / --scale-out start their own servers: not with --endpoint")
     base = LoadSpec(
         clients=args.clients,
         cloths=args.clients * args.cloths,
@@ -405,65 +293,86 @@ def run(args: argparse.Namespace) -> int:
         offered=args.offered,
     )
     loads = parse_loads(args.loads, args.encoding) if args.loads else [(base.cloths, base.encoding)]
-    server = None
-    if args.endpoint:
-        endpoint, server_id = args.endpoint, args.server_id
-    else:
-        server = ServerProcess(_serve_args(args), server_id=f"loadtest-{os.getpid()}")
-        endpoint, server_id = server.endpoint, server.server_id
+    base = replace(base, cloths=loads[0][0], encoding=loads[0][1])
+    t_begin = time.monotonic()
     reports: list[Report] = []
     skipped: list[str] = []
-    t_begin = time.monotonic()
-    last_cost = 0.0
-    try:
-        stats = StatsWatch(endpoint, server_id)
+    knees: dict[int, int] = {}
+
+    def on(fleet: Fleet) -> Any:
+        def run_one(spec: LoadSpec) -> Report:
+            report, results, window = run_fleet_load(spec, fleet.endpoint, fleet.targets, args.quiet)
+            print_report(report)
+            tag = f"{report.cloths}-{report.encoding}" + (
+                f"-{len(fleet.targets)}servers" if len(fleet.targets) > 1 else ""
+            )
+            for p in write_plots(args.out, report, results, window, tag):
+                print(f"wrote {p}")
+            time.sleep(1.0)  # the previous clients' cloths go
+            return report
+
+        return run_one
+
+    if args.endpoint:
+        stats = StatsWatch(args.endpoint, args.server_id)
+        targets = [Target(args.server_id, stats)]
+    counts = [1, args.servers] if args.scale_out else [args.servers]
+    for n_servers in counts:
+        if args.endpoint:
+            fleet: Any = argparse.Namespace(endpoint=args.endpoint, targets=targets, stop=stats.close)
+        else:
+            fleet = Fleet(n_servers, _serve_args(args), args.router)
         try:
-            queue = [replace(base, cloths=n, encoding=enc) for n, enc in loads]
-            if args.find_knee:  # from the first load up, doubling
-                queue = queue[:1]
-            retried = False
-            while queue:
-                spec = queue.pop(0)
-                spent = time.monotonic() - t_begin
-                if args.max_total_seconds and reports and spent + last_cost > args.max_total_seconds:
-                    skipped = [f"{s.cloths}:{s.encoding}" for s in [spec, *queue]]
-                    print(f"skipped (would pass --max-total-seconds {args.max_total_seconds:g}): {', '.join(skipped)}")
-                    break
-                t = time.monotonic()
-                report, results, window = run_load(spec, endpoint, server_id, server, stats, args.quiet)
-                last_cost = time.monotonic() - t
-                print_report(report)
-                tag = f"{report.cloths}-{report.encoding}"
-                for p in write_plots(args.out, report, results, window, tag):
-                    print(f"wrote {p}")
-                reports.append(report)
-                if args.find_knee:
-                    if not report.held and not retried:
-                        print(f"not held ({report.why_not_held()}): running this load once more")
-                        retried = True
-                        queue.insert(0, spec)
-                    elif report.held and spec.cloths * 2 <= args.max_cloths:
-                        retried = False
-                        queue.append(replace(spec, cloths=spec.cloths * 2))
-                time.sleep(1.0)  # the previous clients' cloths go
+            run_one = on(fleet)
+            if args.find_knee or args.scale_out:
+                start = replace(base, cloths=max(knees.values(), default=0) or base.cloths)
+                got, knees[n_servers] = knee_search(
+                    start, run_one, args.max_cloths, args.bisect, args.max_total_seconds, t_begin
+                )
+                reports += got
+            else:
+                queue = [replace(base, cloths=n, encoding=enc) for n, enc in loads]
+                last_cost = 0.0
+                while queue:
+                    spec = queue.pop(0)
+                    spent = time.monotonic() - t_begin
+                    if args.max_total_seconds and reports and spent + last_cost > args.max_total_seconds:
+                        skipped = [f"{s.cloths}:{s.encoding}" for s in [spec, *queue]]
+                        print(
+                            f"skipped (would pass --max-total-seconds {args.max_total_seconds:g}): {', '.join(skipped)}"
+                        )
+                        break
+                    t = time.monotonic()
+                    reports.append(run_one(spec))
+                    last_cost = time.monotonic() - t
         finally:
-            stats.close()
-    finally:
-        if server:
-            server.stop()
-    if args.find_knee and reports:
-        held = [r for r in reports if r.held]
-        knee = max((r.cloths for r in held), default=0)
-        bad = reports[-1] if not reports[-1].held else None
+            fleet.stop()
+    for n_servers, knee in knees.items():
+        bad = [r for r in reports if not r.held and max(1, len(r.servers)) == n_servers]
         print(
-            f"knee: {knee} cloths held at {base.tick_rate:g} Hz; next load "
-            f"({bad.cloths if bad else '-'} cloths): {bad.why_not_held() if bad else 'not reached within --max-cloths'}"
+            f"knee: {knee} cloths held at {base.tick_rate:g} Hz on {n_servers} server(s)"
+            + (f"; {bad[-1].cloths} cloths: {bad[-1].why_not_held()}" if bad else "")
+        )
+    if args.scale_out:
+        one, many = knees.get(1, 0), knees.get(args.servers, 0)
+        spreads = [r.spread for r in reports if r.held and r.servers]
+        print(
+            f"scale-out: {many} cloths held on {args.servers} servers against {one} on one: "
+            + (f"{many / one:.2f}x" if one else "- (one server held none)")
+            + (
+                f"; spread of cloths over the servers at the held loads: max {100 * max(spreads):.1f} %"
+                if spreads
+                else ""
+            )
         )
     if len(reports) > 1:
         print(f"wrote {write_summary_plot(args.out / 'loadtest-summary.png', reports)}")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps([r.to_dict() for r in reports], indent=1))
+        doc: Any = [r.to_dict() for r in reports]
+        if args.scale_out:
+            doc = {"knees": {str(k): v for k, v in knees.items()}, "reports": doc}
+        args.json.write_text(json.dumps(doc, indent=1))
         print(f"wrote {args.json}")
     if args.markdown:
         args.markdown.parent.mkdir(parents=True, exist_ok=True)

@@ -118,3 +118,25 @@ def test_short_load_measures_only_its_window(tmp_path):
             assert np.asarray(im.convert("L")).std() > 5, f"{p.name} is blank"
     table = markdown_table([report])
     assert table.count("\n") == 3 and "| 5 | 6 | 1 | float32 |" in table and table.endswith(" | **no** |\n")
+
+
+def test_two_servers_share_a_load_placed_by_their_published_load():
+    """``--servers 2``: two drape serve processes, 4 clients starting one after another, each
+    placing its 2 cloths on the server the SDK ranks first by the servers' stats: 4 cloths each
+    (spread 0), each server's window counted in its own ticks, every client's states counted in
+    its server's ticks."""
+    spec = lt.LoadSpec(clients=4, cloths=8, size=8, seconds=2.0, iterations=2)
+    fleet = lt.Fleet(2, ["--tick-rate", "60", "--stats-period", "0.5", "--no-admission"])
+    try:
+        report, results, _ = lt.run_fleet_load(spec, fleet.endpoint, fleet.targets, quiet=True)
+    finally:
+        fleet.stop()
+    print(json.dumps(report.to_dict(), indent=1))
+    assert report.cloths == report.offered == 8
+    assert [s["server"] for s in report.servers] == [t.server_id for t in fleet.targets]
+    assert [s["cloths"] for s in report.servers] == [4, 4] and report.spread == 0.0
+    assert all(s["ticks"] > 0 and s["hz"] > 0 for s in report.servers)
+    assert report.ticks == min(s["ticks"] for s in report.servers)
+    assert report.missed_ticks == sum(s["missed_ticks"] for s in report.servers)
+    assert report.states == report.expected_states - report.lost and report.duplicated == 0
+    assert sum(r.admitted for r in results) == 8

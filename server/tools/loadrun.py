@@ -1,0 +1,310 @@
+"""The measurement core of ``drape loadtest``: one load over one or several servers, measured over
+a window of server ticks so that start-up never counts (see :mod:`.loadtest` for the command).
+
+K client processes (:mod:`.loadclient`) share a load of N cloths. With one server every client
+talks to it. With several (``Target`` per server, all on the clients' Zenoh network) the clients
+start one after another and each puts its cloths on the server the SDK's placement ranks first
+by the servers' published load (PROTOCOL.md 11.3): each client sees the load of those before it.
+
+The **measured window** opens, once every client receives states for all its admitted cloths, at
+the next stats publication of each server and closes at the first one ``spec.seconds`` later.
+Each client counts its states in the ticks of its own server's window. The report (a
+:class:`~.loadreport.Report`) adds every client up; with several servers, each server's cloths,
+vertices, achieved rate and missed ticks are in ``Report.servers`` and the spread of cloths over
+them (max / mean - 1) in ``Report.spread``; the achieved rate is the slowest server's.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import multiprocessing as mp
+import os
+import platform
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from drape.client.placement import spread
+
+from .loadclient import ClientResult, ClientSpec, client_main
+from .loadreport import (
+    Report,
+    achieved_rate,
+    counter_delta,
+    decode_summary,
+    latency_summary,
+    phase_means,
+    server_window,
+)
+from .procs import ServerProcess, progress
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class LoadSpec:
+    clients: int = 4
+    cloths: int = 64  # total cloths wanted (each client offers its share x ``offered``)
+    size: int = 32  # n x n vertices per cloth
+    seconds: float = 5.0  # the measured window, at least
+    features: tuple[str, ...] = ()
+    iterations: int = 10
+    substeps: int = 1
+    bending: bool = True
+    encoding: str = "float32"
+    tick_rate: float = 60.0
+    bundle: bool = True
+    offered: float = 1.0  # offer this many times ``cloths``
+    servers: int = 1  # servers the load is spread over (each client places its cloths on one by load)
+
+    def client_specs(self) -> list[ClientSpec]:
+        """Each client's share of the offered cloths (the first ones take the remainder)."""
+        total = int(math.ceil(self.cloths * self.offered))
+        base, extra = divmod(total, self.clients)
+        return [
+            ClientSpec(
+                index=i,
+                offered=base + (i < extra),
+                size=self.size,
+                features=self.features,
+                iterations=self.iterations,
+                substeps=self.substeps,
+                bending=self.bending,
+                encoding=self.encoding,
+                tick_rate=self.tick_rate,
+                bundle=self.bundle,
+                servers=self.servers,
+            )
+            for i in range(self.clients)
+        ]
+
+
+class StatsWatch:
+    """The server's stats publications, kept in arrival order with their local arrival time."""
+
+    def __init__(self, endpoint: str, server_id: str | None) -> None:
+        from drape.client import DrapeClient
+
+        self.client = DrapeClient(endpoint, server_id=server_id, timeout=60.0)
+        self.samples: list[tuple[float, dict[str, Any]]] = []
+        self._cond = threading.Condition()
+        self._cancel = self.client.on_stats(self._on)
+
+    def _on(self, stats: dict[str, Any]) -> None:
+        with self._cond:
+            self.samples.append((time.monotonic(), stats))
+            self._cond.notify_all()
+
+    def next_after(self, index: int, timeout: float) -> tuple[int, dict[str, Any]]:
+        """The first publication with position >= ``index`` (waiting up to ``timeout`` s)."""
+        with self._cond:
+            if not self._cond.wait_for(lambda: len(self.samples) > index, timeout):
+                raise RuntimeError(f"no stats publication from the server in {timeout:.0f} s")
+            return index, self.samples[index][1]
+
+    def count(self) -> int:
+        with self._cond:
+            return len(self.samples)
+
+    def close(self) -> None:
+        self._cancel()
+        self.client.close()
+
+
+def _wait(cond: Any, what: str, deadline: float, procs: list[Any]) -> None:
+    while not cond():
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"timed out waiting for {what}")
+        dead = [p.name for p in procs if not p.is_alive()]
+        if dead:
+            raise RuntimeError(f"{', '.join(dead)} exited while waiting for {what}")
+        time.sleep(0.05)
+
+
+@dataclass
+class Target:
+    """One server of a load: its id (None: the one the clients see), its stats and its process
+    (None when the load test did not start it)."""
+
+    server_id: str | None
+    stats: StatsWatch
+    proc: ServerProcess | None = None
+
+
+def run_load(
+    spec: LoadSpec,
+    endpoint: str | list[str],
+    server_id: str | None,
+    server: ServerProcess | None,
+    stats: StatsWatch,
+    quiet: bool = False,
+) -> tuple[Report, list[ClientResult], list[tuple[float, dict]]]:
+    """Run one load on one server (see the module docstring)."""
+    return run_fleet_load(spec, endpoint, [Target(server_id, stats, server)], quiet)
+
+
+def run_fleet_load(
+    spec: LoadSpec, endpoint: str | list[str], targets: list[Target], quiet: bool = False
+) -> tuple[Report, list[ClientResult], list[tuple[float, dict]]]:
+    """Run one load over ``targets`` (one or several servers); ``endpoint``: what the clients
+    connect to (the servers' endpoints, or a router)."""
+    ctx = mp.get_context("spawn")
+    several = len(targets) > 1
+    spec = replace(spec, servers=len(targets))
+    cspecs = spec.client_specs()
+    shared = [
+        {
+            "ready": ctx.Event(),
+            "go": ctx.Event(),
+            "stop": ctx.Event(),
+            "admitted": ctx.Value("l", -1, lock=False),
+            "receiving": ctx.Value("l", 0, lock=False),
+            "progress": ctx.Value("l", 0, lock=False),
+            "lo": ctx.Value("q", -1, lock=False),
+            "hi": ctx.Value("q", -1, lock=False),
+            "server": ctx.Array("c", 128, lock=False),
+        }
+        for _ in cspecs
+    ]
+    results = ctx.Queue()
+    sid = None if several else targets[0].server_id
+    procs = [
+        ctx.Process(
+            target=client_main,
+            name=f"loadtest-client-{c.index}",
+            args=(c, endpoint, sid, shared[c.index], results),
+        )
+        for c in cspecs
+    ]
+    figures = [t.proc.figures for t in targets if t.proc is not None]
+    for f in figures:
+        f.rss_mb.clear()
+        f.sample_rss()
+    t_start = time.monotonic()
+    out: list[ClientResult] = []
+    by_id = {t.server_id: k for k, t in enumerate(targets)}
+    try:
+        offered = sum(c.offered for c in cspecs)
+        deadline = time.monotonic() + 120 + 0.05 * offered
+        for p, s in zip(procs, shared, strict=True):
+            p.start()
+            if several:  # one after another: each client places by the load of those before it
+                _wait(s["ready"].is_set, f"{p.name}'s submits", deadline, procs[: procs.index(p) + 1])
+        _wait(lambda: all(s["ready"].is_set() for s in shared), "the clients' submits", deadline, procs)
+        admitted = sum(int(s["admitted"].value) for s in shared)
+        home = [by_id.get(s["server"].value.decode(), 0) if several else 0 for s in shared]
+        log.info(
+            "%d of %d cloths admitted in %.1f s; waiting for their states",
+            admitted,
+            offered,
+            time.monotonic() - t_start,
+        )
+        for s in shared:
+            s["go"].set()
+        _wait(
+            lambda: all(s["receiving"].value for s in shared),
+            "states of every admitted cloth",
+            time.monotonic() + 60 + 0.02 * admitted,
+            procs,
+        )
+        # the window opens at each server's next stats publication, closes at the first one --seconds later
+        first = [t.stats.next_after(t.stats.count(), timeout=30) for t in targets]
+        for s, k in zip(shared, home, strict=True):
+            s["lo"].value = int(first[k][1]["tick"])
+        cpu0 = [f.cpu_seconds() for f in figures]
+        t0 = time.monotonic()
+        bar = progress(total=round(spec.seconds, 1), desc=f"{admitted} cloths", unit="s", quiet=quiet)
+        with bar:
+            while time.monotonic() - t0 < spec.seconds:
+                time.sleep(0.25)
+                for f in figures:
+                    f.sample_rss()
+                bar.n = round(min(time.monotonic() - t0, spec.seconds), 1)
+                bar.set_postfix(states=sum(int(s["progress"].value) for s in shared), refresh=False)
+                bar.refresh()
+                if not all(p.is_alive() for p in procs):
+                    raise RuntimeError("a client process exited during the measured window")
+        last = [t.stats.next_after(t.stats.count(), timeout=30) for t in targets]
+        cpu1 = [f.cpu_seconds() for f in figures]
+        elapsed = time.monotonic() - t0
+        for s, k in zip(shared, home, strict=True):
+            s["hi"].value = int(last[k][1]["tick"])
+        time.sleep(max(1.0, 5.0 / spec.tick_rate))  # the window's last states are still on their way
+        for s in shared:
+            s["stop"].set()
+        for _ in procs:
+            kind, *rest = results.get(timeout=120)
+            if kind == "error":
+                raise RuntimeError(f"client {rest[0]} failed: {rest[1]}")
+            out.append(rest[0])
+        for p in procs:
+            p.join(30)
+        for f in figures:
+            f.sample_rss()
+    finally:
+        for s in shared:
+            s["go"].set()
+            s["stop"].set()
+        for p in procs:
+            p.join(5)
+            if p.is_alive():
+                p.terminate()
+    windows = [t.stats.samples[i0 + 1 : i1 + 1] for t, (i0, _), (i1, _) in zip(targets, first, last, strict=True)]
+    per_server = [
+        server_window(str(t.server_id), s0, s1, [st for _, st in w])
+        for t, (_, s0), (_, s1), w in zip(targets, first, last, windows, strict=True)
+    ]
+    s0, s1 = first[0][1], last[0][1]
+    seconds = float(np.mean([p["seconds"] for p in per_server]))
+    lat = np.concatenate([r.latencies_ms for r in out]) if out else np.zeros(0)
+    refused: Counter[str] = Counter()
+    for r in out:
+        refused.update(r.refused)
+    server_info: dict[str, Any] = {"phases_ms": phase_means([st for w in windows for _, st in w])}
+    if figures:
+        server_info["cpu_percent"] = round(100.0 * (sum(cpu1) - sum(cpu0)) / elapsed, 1)
+        rss = [f.rss_summary() for f in figures]
+        server_info.update({k: round(sum(r[k] for r in rss), 1) for k in rss[0]})  # all processes together
+    states = sum(r.received for r in out)
+    report = Report(
+        cloths=sum(r.admitted for r in out),
+        offered=sum(r.offered for r in out),
+        refused=dict(refused),
+        clients=spec.clients,
+        vertices_per_cloth=spec.size * spec.size,
+        iterations=spec.iterations,
+        features=list(spec.features),
+        encoding=spec.encoding,
+        bundle=spec.bundle,
+        window_ticks=(int(s0["tick"]), int(s1["tick"])),
+        seconds=round(seconds, 3),
+        tick_hz_target=spec.tick_rate,
+        tick_hz_achieved=round(min(p["hz"] for p in per_server), 2) if several else round(achieved_rate(s0, s1), 2),
+        ticks=min(p["ticks"] for p in per_server) if several else counter_delta(s0, s1, "ticks"),
+        missed_ticks=sum(p["missed_ticks"] for p in per_server),
+        skipped_frames=sum(p["skipped_frames"] for p in per_server),
+        latency_ms=latency_summary(lat),
+        states=states,
+        expected_states=sum(r.expected for r in out),
+        lost=sum(r.lost for r in out),
+        duplicated=sum(r.duplicated for r in out),
+        out_of_order=sum(r.out_of_order for r in out),
+        messages_per_s=round(states / seconds, 1),
+        bytes_per_s=round(sum(r.bytes for r in out) / seconds, 1),
+        send_errors=sum(r.send_errors for r in out),
+        decode_us=decode_summary(out, seconds),
+        server=server_info,
+        clients_cpu_percent=round(100.0 * sum(r.cpu_s for r in out) / elapsed, 1),
+        host=f"{platform.node()} {os.cpu_count()} cores",
+        servers=per_server if several else [],
+        spread=round(spread(p["cloths"] for p in per_server), 4) if several else 0.0,
+    )
+    return report, out, windows[0]
+
+
+__all__ = ["LoadSpec", "StatsWatch", "Target", "run_load", "run_fleet_load"]

@@ -6,12 +6,20 @@
 #   bash deploy/h100.sh tune                      # work-group sizes for the 'many' workload
 #   bash deploy/h100.sh tradeoff [ARGS]           # speed against accuracy
 #   bash deploy/h100.sh loadtest [ARGS]           # the load-test table (below); ARGS override it
+#   bash deploy/h100.sh scaleout [ARGS]           # one server's knee against SO_SERVERS servers' (below)
 #
 # The load-test table: 16 client processes, 32x32 cloths with bending, 10 iterations, bundles,
 # loads of 128 .. 4096 cloths in float32 and 4096 in quant16, one server (admission off: the raw
 # capacity), LT_SECONDS (default 20) measured seconds each so the whole table stays under
 # 9 minutes; one JSON, a markdown table, the summary plot and the largest load's plots.
 # LT_OFFERED=2048 adds a run offering twice 2048 cloths to a server with admission on.
+#
+# The scale-out figure (issue 11): SO_SERVERS (default 2) drape serve processes sharing the GPU
+# (each its own OpenCL context, server id and port, peers on loopback), SO_CLIENTS (default 8)
+# client processes placing their cloths by the servers' published load; the knee of one server,
+# then of SO_SERVERS, from SO_START (default 64) cloths, doubling, then 2 halvings; SO_SECONDS
+# (default 5) measured seconds a load; stops starting loads after 420 s (under ~8 minutes).
+# SO_ROUTER=1: the servers and clients behind one Zenoh router process instead.
 #
 # Results land in $OUT (the device tool's folder) or out/h100. Wheels come from .whl/ (see
 # docs/benchmarks.md for the pip download line that fills it).
@@ -65,6 +73,13 @@ case "$what" in
                 --markdown "$OUT/loadtest-h100-offered.md" --out /tmp/lt-offered 2>&1 \
                 | grep -v " INFO drape.server.service" | tee "$OUT/loadtest-h100-offered.txt"
         fi ;;
+    scaleout)
+        drape loadtest --scale-out --servers "${SO_SERVERS:-2}" ${SO_ROUTER:+--router} --clients "${SO_CLIENTS:-8}" \
+            --size 32 --iterations 10 --bundle --no-admission --loads "${SO_START:-64}" --seconds "${SO_SECONDS:-5}" \
+            --bisect 2 --max-total-seconds 420 --quiet --json "$OUT/scaleout-h100.json" \
+            --markdown "$OUT/scaleout-h100.md" --out /tmp/so-plots "$@" 2>&1 \
+            | grep -v " INFO drape.server.service" | tee "$OUT/scaleout-h100.txt"
+        cp /tmp/so-plots/loadtest-summary.png "$OUT/scaleout-summary.png" 2>/dev/null || true ;;
     *)
         echo "unknown: $what" >&2; exit 2 ;;
 esac

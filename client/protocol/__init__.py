@@ -21,7 +21,9 @@ Every public name of every module is re-exported here, so ``from drape.client im
 then ``P.<name>`` works for all of them. 1.1 added state bundles and batch control; 1.2 adds
 ``features_add`` / ``features_remove`` in controls, the resulting ``features`` in control replies,
 the ``overloaded`` error code and documented decoding caps; 1.3 adds ``resume`` in submissions
-(:class:`ResumeState`: continue a cloth from its last state after a failover; PROTOCOL.md 4.1, 11.1).
+(:class:`ResumeState`: continue a cloth from its last state after a failover; PROTOCOL.md 4.1, 11.1);
+1.4 adds ``moves`` in batch controls (:class:`PinMoves`, :mod:`.moves`: many cloths' pin moves as
+one columnar block; PROTOCOL.md 5.1.1).
 
 It imports only numpy, msgpack and the standard library, so a game client or a tool can use it
 without Zenoh or OpenCL installed.
@@ -35,6 +37,7 @@ from .errors import *  # noqa: F401,F403
 from .geometry import *  # noqa: F401,F403
 from .keys import *  # noqa: F401,F403
 from .messages import *  # noqa: F401,F403
+from .moves import *  # noqa: F401,F403
 from .state import *  # noqa: F401,F403
 from .validate import *  # noqa: F401,F403
 from .vocabulary import *  # noqa: F401,F403

@@ -34,6 +34,7 @@ from .messages import (
     SubmitRequest,
     feature_list,
 )
+from .moves import check_items_with_moves, moves_failed_to_wire, moves_reply_from_map, moves_to_map, read_moves
 from .validate import (
     _blob,
     _check_finite_array,
@@ -411,7 +412,10 @@ def decode_info(data: bytes | bytearray, limits: Limits = DEFAULT_LIMITS) -> Inf
 def control_batch_to_map(req: ControlBatchRequest) -> dict[str, Any]:
     m = _header(req.rid)
     m["client"] = req.client
-    m["items"] = [control_item_to_map(it) for it in req.items]
+    if req.items or req.moves is None:
+        m["items"] = [control_item_to_map(it) for it in req.items]
+    if req.moves is not None:  # 1.4
+        m["moves"] = moves_to_map(req.moves)
     return m
 
 
@@ -431,15 +435,8 @@ def control_batch_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS
     r = _Reader(m, "", _peek_rid(dict(m)), limits)
     rid = _rid(r)
     client = r.str_("client", True, pattern=ID_RE, what="1-64 characters of [A-Za-z0-9_.-]")
-    raw_items = r.raw("items", True)
-    if not isinstance(raw_items, list):
-        raise r.fail(ERR_INVALID_TYPE, f"'items' must be an array of control maps, got {_tname(raw_items)}")
-    if not raw_items:
-        raise r.fail(ERR_INVALID_VALUE, "'items' must hold at least one control")
-    if len(raw_items) > limits.max_batch_items:
-        raise r.fail(
-            ERR_TOO_LARGE, f"'items' has {len(raw_items)} controls, more than the limit of {limits.max_batch_items}"
-        )
+    moves = read_moves(r, limits)  # 1.4: validated whole, with the envelope
+    raw_items = check_items_with_moves(r, r.raw("items", False), moves is not None, limits.max_batch_items)
     items: list[ControlRequest | ProtocolError] = []
     for i, it in enumerate(raw_items):
         name = f"items[{i}]"
@@ -450,7 +447,7 @@ def control_batch_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS
             items.append(_read_control(_Reader(it, name, rid, limits), rid))
         except ProtocolError as e:
             items.append(e)
-    return DecodedControlBatch(client, items, rid)  # type: ignore[arg-type]
+    return DecodedControlBatch(client, items, rid, moves)  # type: ignore[arg-type]
 
 
 def encode_control_batch_reply(rep: ControlBatchReply) -> bytes:
@@ -467,6 +464,9 @@ def encode_control_batch_reply(rep: ControlBatchReply) -> bytes:
                 raise ValueError(f"unknown error code {res.code!r}")
             results.append({"ok": False, "error": {"code": res.code, "message": str(res.message)}})
     m.update(ok=True, tick=int(rep.tick), failed=sum(1 for x in rep.results if not x.ok), results=results)
+    if rep.moves_tick is not None:  # 1.4: the request had moves
+        m["moves_tick"] = int(rep.moves_tick)
+        m["moves_failed"] = moves_failed_to_wire(rep.moves_failed or ())
     return pack(m)
 
 
@@ -488,7 +488,8 @@ def control_batch_reply_from_map(m: Mapping[str, Any]) -> ControlBatchReply:
             er = xr.sub("error", True)
             assert er is not None
             results.append(BatchItemResult(None, er.str_("code", True) or "", er.str_("message") or ""))
-    return ControlBatchReply(tick, results, _rid(r))  # type: ignore[arg-type]
+    moves_tick, moves_failed = moves_reply_from_map(m, r)
+    return ControlBatchReply(tick, results, _rid(r), moves_tick, moves_failed)  # type: ignore[arg-type]
 
 
 # ---------------------------------------------------------------------------------------------

@@ -15,6 +15,7 @@ from .vocabulary import (
     GridSpec,
     LinkSpec,
     MeshSpec,
+    PinMoves,
     PinUpdate,
     ResumeState,
     StateOptions,
@@ -135,11 +136,13 @@ class ErrorReply:
 @dataclass(eq=False)
 class ControlBatchRequest:
     """1.1: controls of many cloths of one client in one request. Each item is a control
-    (cloth, token and any control field); the items' own ``rid`` is not sent."""
+    (cloth, token and any control field); the items' own ``rid`` is not sent. 1.4: ``moves``, the
+    pin moves of many cloths as one block (PROTOCOL.md 5.1.1); ``items`` may then be empty."""
 
     client: str
     items: list[ControlRequest] = field(default_factory=list)
     rid: int = 0
+    moves: PinMoves | None = None
 
     def __eq__(self, other: object) -> bool:
         from .codec import control_batch_to_map
@@ -155,6 +158,7 @@ class DecodedControlBatch:
     client: str
     items: list[ControlRequest | ProtocolError]
     rid: int = 0
+    moves: PinMoves | None = None  # 1.4: validated on the bytes alone (ownership is the server's)
 
 
 @dataclass
@@ -176,11 +180,16 @@ class BatchItemResult:
 
 @dataclass
 class ControlBatchReply:
-    """``tick``: the first tick whose states reflect the applied items; one result per item, in order."""
+    """``tick``: the first tick whose states reflect the applied items (and moves); one result per
+    item, in order. 1.4, when the request had ``moves``: ``moves_tick``, the first tick whose states
+    reflect the applied moves, and ``moves_failed``, one ``(position, code, message)`` per refused
+    move, by position in the block (None from a server older than 1.4 or without moves)."""
 
     tick: int
     results: list[BatchItemResult] = field(default_factory=list)
     rid: int = 0
+    moves_tick: int | None = None
+    moves_failed: list[tuple[int, str, str]] | None = None
 
     @property
     def failed(self) -> int:

@@ -216,6 +216,22 @@ def schemas() -> dict[str, dict[str, Any]]:
         description="1.3: continue the cloth from this state (positions within max_coordinate, "
         "velocities within max_acceleration m/s, both of the cloth's vertex count, finite)",
     )
+    moves = _obj(
+        {
+            "cloths": {"type": "array", "items": {"$ref": "#/$defs/id"}, "minItems": 1, "maxItems": L.max_batch_moves},
+            "tokens": {
+                "type": "array",
+                "items": {"$ref": "#/$defs/token"},
+                "minItems": 1,
+                "maxItems": L.max_batch_moves,
+            },
+            "indices": _bin("u32", L.max_pin_updates),
+            "targets": _bin("f32", 3 * L.max_pin_updates * L.max_batch_moves),
+        },
+        ("cloths", "tokens", "indices", "targets"),
+        description="1.4: pin moves of many cloths (PROTOCOL.md 5.1.1): as many tokens as cloths, 1.. distinct "
+        "indices shared by every cloth, targets n x k x 3 finite values within max_coordinate, cloth by cloth",
+    )
     out: dict[str, dict[str, Any]] = {
         "submit": _obj(
             {
@@ -238,12 +254,17 @@ def schemas() -> dict[str, dict[str, Any]]:
                 "client": {"$ref": "#/$defs/id"},
                 "items": {
                     "type": "array",
-                    "minItems": 1,
                     "maxItems": L.max_batch_items,
                     "items": _obj(_control_item(), ("cloth", "token")),
                 },
+                "moves": _nullable(moves),
             },
-            ("v", "client", "items"),
+            ("v", "client"),
+            description="items: 1..max_batch_items controls; with moves (1.4) also absent or empty",
+            anyOf=[
+                {"required": ["items"], "properties": {"items": {"minItems": 1}}},
+                {"required": ["moves"], "properties": {"moves": {"type": "object"}}},
+            ],
         ),
         "remove": _obj(
             {**_head(), "cloth": {"$ref": "#/$defs/id"}, "token": {"$ref": "#/$defs/token"}}, ("v", "cloth", "token")
@@ -282,6 +303,18 @@ def schemas() -> dict[str, dict[str, Any]]:
                             ),
                             _obj({"ok": {"const": False}, "error": {"$ref": "#/$defs/error"}}, ("ok", "error")),
                         ]
+                    },
+                },
+                "moves_tick": {"$ref": "#/$defs/tick"},
+                "moves_failed": {
+                    "type": "array",
+                    "maxItems": L.max_batch_moves,
+                    "description": "1.4: [position in the moves block, error code, message] of each refused move",
+                    "items": {
+                        "type": "array",
+                        "prefixItems": [_int(0, L.max_batch_moves - 1), {"type": "string"}, {"type": "string"}],
+                        "minItems": 3,
+                        "maxItems": 3,
                     },
                 },
             },

@@ -30,6 +30,7 @@ class Limits:
     max_triangles: int = 262144  # per mesh
     max_pin_updates: int = 4096  # pin targets in one control message (in one batch item)
     max_batch_items: int = 64  # items in one batch control (1.1)
+    max_batch_moves: int = MAX_ARRAY_LENGTH  # cloths in one batch control's moves block (1.4; fixed)
     max_colliders: int = MAX_COLLIDERS_PER_CLOTH
     max_iterations: int = 100
     max_substeps: int = 100
@@ -176,6 +177,30 @@ class PinUpdate:
             isinstance(other, PinUpdate)
             and np.array_equal(self.indices, other.indices)
             and np.array_equal(self.targets, other.targets)
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class PinMoves:
+    """1.4, batch control only: the pin moves of many cloths as one columnar block (PROTOCOL.md
+    5.1.1). ``cloths[j]`` (owned by ``tokens[j]``) has its pinned vertices ``indices`` (k,) uint32,
+    the same for every cloth, at ``targets[j]`` ((n, k, 3) float32, metres)."""
+
+    cloths: list[str]
+    tokens: list[str]
+    indices: np.ndarray  # (k,) uint32, distinct, pinned vertices of every cloth
+    targets: np.ndarray  # (n, k, 3) float32
+
+    def __len__(self) -> int:
+        return len(self.cloths)
+
+    def __eq__(self, other: object) -> bool:
+        return (
+            isinstance(other, PinMoves)
+            and list(self.cloths) == list(other.cloths)
+            and list(self.tokens) == list(other.tokens)
+            and np.array_equal(self.indices, other.indices)
+            and np.array_equal(np.asarray(self.targets).reshape(-1), np.asarray(other.targets).reshape(-1))
         )
 
 

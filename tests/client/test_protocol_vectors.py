@@ -54,7 +54,7 @@ def _reply_encoders(kind: str, m: dict) -> bytes:
 
 def _batch_request(d: P.DecodedControlBatch) -> P.ControlBatchRequest:
     assert all(isinstance(it, P.ControlRequest) for it in d.items), d.items
-    return P.ControlBatchRequest(d.client, list(d.items), d.rid)  # type: ignore[arg-type]
+    return P.ControlBatchRequest(d.client, list(d.items), d.rid, d.moves)  # type: ignore[arg-type]
 
 
 REENCODE["control_batch"] = (

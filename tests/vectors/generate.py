@@ -317,6 +317,44 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
             ),
         ),
         msg_vector(
+            "control_batch_moves",
+            "control_batch",
+            "1.4: the pins of two cloths of client game-7 moved as one block: vertices 0 and 3 of each, "
+            "the first cloth's targets then the second's; no items.",
+            P.encode_control_batch(
+                P.ControlBatchRequest(
+                    "game-7",
+                    [],
+                    rid=13,
+                    moves=P.PinMoves(
+                        [CLOTH, CLOTH2],
+                        [TOKEN, TOKEN2],
+                        np.array([0, 3], np.uint32),
+                        np.array([[[0, 1, 0], [1, 1, 0]], [[0, 1.5, 0.25], [1, 1.5, 0.25]]], np.float32),
+                    ),
+                )
+            ),
+        ),
+        msg_vector(
+            "control_batch_moves_items",
+            "control_batch",
+            "1.4: an item (a collider for the first cloth) and a block moving vertex 0 of both cloths; "
+            "the item applies first, then the block.",
+            P.encode_control_batch(
+                P.ControlBatchRequest(
+                    "game-7",
+                    [P.ControlRequest(CLOTH, TOKEN, colliders=(P.Sphere((0.5, 0.5, 0.0), 0.2),))],
+                    rid=14,
+                    moves=P.PinMoves(
+                        [CLOTH, CLOTH2],
+                        [TOKEN, TOKEN2],
+                        np.array([0], np.uint32),
+                        np.array([[[0, 1, 0]], [[0, 1.5, 0.25]]], np.float32),
+                    ),
+                )
+            ),
+        ),
+        msg_vector(
             "control_features_add_remove",
             "control",
             "1.2: switch wind on and tethers off, keeping every "
@@ -369,6 +407,15 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
                     ],
                     10,
                 )
+            ),
+        ),
+        msg_vector(
+            "reply_control_batch_moves",
+            "reply_control_batch",
+            "1.4: the reply to a block of two moves and no items: the first applied from tick 1050 on, "
+            "the second (position 1) refused.",
+            P.encode_control_batch_reply(
+                P.ControlBatchReply(1050, [], 13, 1050, [(1, "forbidden", f"the token does not own cloth '{CLOTH2}'")])
             ),
         ),
         msg_vector(
@@ -586,6 +633,44 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
         ("bundle_count_too_big", one[:8] + (2).to_bytes(4, "little") + one[12:], "bundle", "malformed"),
         ("bundle_entry_header_short", one[:32] + (8).to_bytes(2, "little") + one[34:], "bundle", "malformed"),
         ("bundle_bad_id", one[:40] + b"/" + one[41:], "bundle", "malformed"),
+    ]
+
+    moves = {
+        "cloths": [CLOTH, CLOTH2],
+        "tokens": [TOKEN, TOKEN2],
+        "indices": np.array([0, 3], "<u4").tobytes(),
+        "targets": np.zeros(12, "<f4").tobytes(),
+    }
+    nan_targets = np.zeros(12, "<f4")
+    nan_targets[7] = np.nan
+
+    def with_moves(**changes: Any) -> bytes:  # 1.4: a batch control of a moves block (no items)
+        return msgpack.packb({**batch, "v": [1, 4], "moves": {**moves, **changes}}, use_bin_type=True)
+
+    bad_cases += [
+        (
+            "batch_moves_length_mismatch",
+            with_moves(targets=np.zeros(9, "<f4").tobytes()),
+            "control_batch",
+            "invalid_value",
+        ),
+        ("batch_moves_nan_target", with_moves(targets=nan_targets.tobytes()), "control_batch", "invalid_value"),
+        ("batch_moves_bad_token", with_moves(tokens=[TOKEN, "not-a-token"]), "control_batch", "invalid_value"),
+        ("batch_moves_tokens_count", with_moves(tokens=[TOKEN]), "control_batch", "invalid_value"),
+        ("batch_moves_bad_cloth", with_moves(cloths=[CLOTH, "a/b"]), "control_batch", "invalid_value"),
+        (
+            "batch_moves_repeated_index",
+            with_moves(indices=np.array([3, 3], "<u4").tobytes()),
+            "control_batch",
+            "invalid_value",
+        ),
+        ("batch_moves_not_map", msgpack.packb({**batch, "v": [1, 4], "moves": [1]}), "control_batch", "invalid_type"),
+        (
+            "batch_moves_targets_not_bin",
+            with_moves(targets=[0.0] * 12),
+            "control_batch",
+            "invalid_type",
+        ),
     ]
     deep: Any = [0]
     for _ in range(999):

@@ -223,6 +223,7 @@ class World(ABC):
         self.steps = 0
         self._layout: Layout | None = None
         self._layout_version = 0
+        self._live = np.zeros(64, bool)  # by handle (handles are never reused): set_pin_targets_block
 
     # --- cloth lifecycle -------------------------------------------------------------------
     def add(
@@ -253,13 +254,24 @@ class World(ABC):
         except BaseException:
             del self.cloths[h]
             raise
+        if h >= len(self._live):
+            self._live = np.concatenate([self._live, np.zeros(max(h + 1, len(self._live)), bool)])
+        self._live[h] = True
         self._layout = None
         return h
 
     def remove(self, handle: int) -> None:
         cloth = self.cloths.pop(handle)
+        self._live[handle] = False
         self._remove(cloth)
         self._layout = None
+
+    def live(self, handles: np.ndarray) -> np.ndarray:
+        """Which of ``handles`` are cloths of this World now: one bool per handle, vectorised."""
+        h = np.asarray(handles, np.int64).reshape(-1)
+        ok = (h >= 0) & (h < len(self._live))
+        ok[ok] = self._live[h[ok]]
+        return ok
 
     def set_params(self, handle: int, params: ClothParams) -> None:
         params.validate()
@@ -310,6 +322,45 @@ class World(ABC):
     def _set_targets_many(self, handles: list[int], indices: list[np.ndarray], targets: list[np.ndarray]) -> None:
         for h, i, t in zip(handles, indices, targets, strict=True):
             self._set_targets(self.cloths[h], np.asarray(i, np.int64), np.asarray(t, np.float64).reshape(-1, 3))
+
+    def set_pin_targets_block(
+        self, handles: np.ndarray, indices: np.ndarray, targets: np.ndarray, validated: bool = False
+    ) -> None:
+        """Pin targets of many cloths that share one list of pinned vertices (protocol 1.4
+        ``moves``): cloth ``handles[j]`` gets ``targets[j]`` ((n, k, 3)) for its vertices
+        ``indices`` ((k,)), as ``set_pin_targets`` would, in one vectorised call (one upload
+        before the next step). A later call of the same step wins where both set a vertex.
+        ``validated``: the caller has checked that the handles are live and distinct, the
+        indices distinct, in range and pinned in every cloth, the targets finite (the service's
+        handlers and decoder do); otherwise they are checked here (ValueError, KeyError)."""
+        h = np.asarray(handles, np.int64).reshape(-1)
+        idx = np.asarray(indices, np.int64).reshape(-1)
+        tgt = np.asarray(targets, np.float32).reshape(len(h), len(idx), 3)
+        if not validated:
+            missing = h[~self.live(h)]
+            if len(missing):
+                raise KeyError(int(missing[0]))
+            if len(np.unique(h)) != len(h) or len(np.unique(idx)) != len(idx):
+                raise ValueError("handles and indices must be distinct")
+            if not np.all(np.isfinite(tgt)):
+                raise ValueError("targets must be finite")
+            checked: set[str] = set()
+            for handle in h.tolist():
+                f = self.cloths[handle].fabric
+                if f.key in checked:
+                    continue
+                if idx.size and (idx.min() < 0 or idx.max() >= f.n_vertices):
+                    raise ValueError("pin index out of range")
+                if idx.size and not f.pinned[idx].all():
+                    raise ValueError("only pinned vertices can be given targets")
+                checked.add(f.key)
+        if len(h) and len(idx):
+            self._set_targets_block(h, idx, tgt)
+
+    def _set_targets_block(self, handles: np.ndarray, idx: np.ndarray, targets: np.ndarray) -> None:
+        """Back-end hook of set_pin_targets_block (checked arguments); per cloth unless overridden."""
+        for j, h in enumerate(handles.tolist()):
+            self._set_targets(self.cloths[h], idx, targets[j].astype(np.float64))
 
     def set_colliders(self, handle: int, packed: np.ndarray) -> None:
         """Collider poses (see params.pack_colliders) for the end of the next step."""

@@ -147,6 +147,8 @@ class CLWorld(GroupLaunches, FrameReadback, World):
         self.groups: dict[tuple, Group] = {}
         self._init_frames()
         self._pending_targets: list[tuple[np.ndarray, np.ndarray]] = []
+        self._vbase_of = np.full(64, -1, np.int64)  # by handle: set_pin_targets_block's rows
+        self._seen = np.zeros(0, bool)  # _upload_targets: rows already given a later target
         self._scatter_idx = DevArray(q, np.int32, 1, 1024)
         self._scatter_val = DevArray(q, np.float32, 4, 1024)
         self._base_options = [*Features().build_options(), "-DUSE_LOCAL=0"]
@@ -195,6 +197,11 @@ class CLWorld(GroupLaunches, FrameReadback, World):
         vbase = self._alloc(self.vert, self._vertex_arrays(), n)
         rec = ClothSlot(self._table_slot(), vbase, self._fabric_slot(f))
         self.rec[cloth.handle] = rec
+        if cloth.handle >= len(self._vbase_of):
+            grown = np.full(max(cloth.handle + 1, 2 * len(self._vbase_of)), -1, np.int64)
+            grown[: len(self._vbase_of)] = self._vbase_of
+            self._vbase_of = grown
+        self._vbase_of[cloth.handle] = vbase
         x = f.rest_positions if positions is None else positions
         self._write_vertices(cloth, rec, x)
         if velocities is not None:  # protocol 1.3 resume: the velocity buffer is the state (xyz, w unused)
@@ -291,6 +298,7 @@ class CLWorld(GroupLaunches, FrameReadback, World):
         if self._pending_targets:  # targets still queued for this cloth must not land in its freed range
             self._upload_targets()
         rec = self.rec.pop(cloth.handle)
+        self._vbase_of[cloth.handle] = -1
         self._leave_group(cloth.handle, rec)
         self.vert.release(rec.vbase, cloth.fabric.n_vertices)
         if rec.lam_size:
@@ -328,11 +336,35 @@ class CLWorld(GroupLaunches, FrameReadback, World):
         rows = np.concatenate(indices).astype(np.int64) + np.repeat(vb, counts)
         self._pending_targets.append((rows, np.concatenate(targets).reshape(-1, 3)))
 
+    def _set_targets_block(self, handles: np.ndarray, idx: np.ndarray, targets: np.ndarray) -> None:
+        rows = (self._vbase_of[handles][:, None] + idx[None, :]).reshape(-1)
+        self._pending_targets.append((rows, targets.reshape(-1, 3)))
+
+    def _latest_targets(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The pending targets with, of a row given several, only the last (later calls win:
+        the device's scatter has no order). Entries newest first, one mask over the rows."""
+        pending = self._pending_targets
+        if len(pending) < 2:
+            return pending
+        if len(self._seen) < self.vert.capacity:
+            self._seen = np.zeros(self.vert.capacity, bool)
+        seen, out = self._seen, []
+        for rows, t in reversed(pending):
+            fresh = ~seen[rows]
+            seen[rows] = True
+            out.append((rows, t) if fresh.all() else (rows[fresh], np.asarray(t).reshape(-1, 3)[fresh]))
+        for rows, _ in pending:
+            seen[rows] = False
+        return out
+
     def _upload_targets(self) -> None:
-        idx = np.concatenate([i for i, _ in self._pending_targets]).astype(np.int32)
+        latest = self._latest_targets()
+        idx = np.concatenate([i for i, _ in latest]).astype(np.int32)
         val = np.zeros((len(idx), 4), np.float32)
-        val[:, :3] = np.concatenate([t for _, t in self._pending_targets])
+        val[:, :3] = np.concatenate([np.asarray(t).reshape(-1, 3) for _, t in latest])
         self._pending_targets.clear()
+        if not len(idx):
+            return
         if self._scatter_idx.capacity < len(idx):
             self._scatter_idx.resize(2 * len(idx))
             self._scatter_val.resize(2 * len(idx))

@@ -15,7 +15,12 @@ the stats' errors):
   its change holds);
   a batch control's items join the same per-cloth slots and the batch is answered once all of
   its items are applied. The lane holds at most one slot per cloth and at most
-  ``max_pending_requests`` waiting replies.
+  ``max_pending_requests`` waiting replies;
+- **moves blocks** (protocol 1.4, PROTOCOL.md 5.1.1): a batch control's ``moves``, checked by the
+  handler (server/service/moves.py), wait as one :class:`MoveBlock` each, counted with the
+  controls' waiting replies, and are all applied in the next tick after its controls, in
+  arrival order (a later block wins where two set the same vertex), with one vectorised World
+  call each. They are never merged or deferred.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ import queue
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -69,13 +75,43 @@ class Call:
 
 @dataclass(eq=False)
 class BatchControl:
-    """A batch control's reply, filled item by item (items refused on arrival already are)."""
+    """A batch control's reply, filled item by item (items refused on arrival already are) and,
+    with moves (1.4), by its block: the moves refused and the tick the others hold from."""
 
     query: zenoh.Query
     rid: int
     results: list[P.BatchItemResult | None]
-    pending: int = 0  # items still to apply
+    pending: int = 0  # items (and the moves block) still to apply
     features: bool = False  # a 1.2 request: applied results carry the cloth's feature set
+    moves_failed: list[tuple[int, str, str]] | None = None  # 1.4: the request had moves; refused ones
+    moves_tick: int | None = None  # 1.4: when its moves block was applied
+
+    def reply(self, tick: int) -> Reply:
+        """The batch's reply (encoded on the replying thread)."""
+        moves_tick = None
+        if self.moves_failed is not None:
+            moves_tick = tick if self.moves_tick is None else self.moves_tick
+            self.moves_failed.sort()
+        rep = P.ControlBatchReply(tick, self.results, self.rid, moves_tick, self.moves_failed)  # type: ignore[arg-type]
+        return Reply(self.query, partial(P.encode_control_batch_reply, rep))
+
+    def one_done(self, tick: int) -> Reply | None:
+        """An item or the moves block is settled: the reply once nothing is pending."""
+        self.pending -= 1
+        return self.reply(tick) if self.pending == 0 else None
+
+
+@dataclass(eq=False)
+class MoveBlock:
+    """A batch control's ``moves`` (1.4) after the handler's checks, for one vectorised World
+    call: distinct live handles owned by the batch client, indices pinned in each cloth."""
+
+    handles: np.ndarray  # (m,) int64
+    positions: np.ndarray  # (m,) int64: each handle's position in the request's block
+    cloths: list[str]  # the request's cloth ids (by position, for messages)
+    indices: np.ndarray  # (k,) int64
+    targets: np.ndarray  # (m, k, 3) float32
+    waiter: BatchControl
 
 
 @dataclass(eq=False)
@@ -166,6 +202,7 @@ class Intake:
         self._structural: queue.Queue = queue.Queue(max_pending)
         self._lock = threading.Lock()
         self._gens: list[dict[str, ControlSlot]] = [{}]  # this tick's slots, then later ticks' ones
+        self._blocks: list[MoveBlock] = []  # moves blocks (1.4), for the next tick, in arrival order
         self._waiting = 0
         self.coalesced = 0  # controls merged into a pending one (cumulative)
 
@@ -184,14 +221,19 @@ class Intake:
         self,
         items: Sequence[tuple[ClothRecord, P.ControlRequest, np.ndarray | None, Any, int | tuple[int, bool]]],
         rid: int = 0,
+        moves: MoveBlock | None = None,
     ) -> None:
         """Coalesce controls ``(record, request, packed colliders, waiter, tag)`` into the
         per-cloth slots, all or none (the tag: a batch's item index, or a single control's
-        (rid, with features)); raises Busy when the waiting replies would exceed the bound."""
+        (rid, with features)), and queue the request's ``moves`` block (1.4) with them; raises
+        Busy when the waiting replies would exceed the bound."""
         with self._lock:
-            if self._waiting + len(items) > self.max_pending:
+            n = len(items) + (moves is not None)
+            if self._waiting + n > self.max_pending:
                 raise P.Busy(P.ERR_BUSY, "server request queue is full, retry later", rid)
-            self._waiting += len(items)
+            self._waiting += n
+            if moves is not None:
+                self._blocks.append(moves)
             for rec, req, packed, waiter, tag in items:
                 g = len(self._gens) - 1
                 while g > 0 and rec.id not in self._gens[g]:
@@ -232,6 +274,13 @@ class Intake:
             self._waiting -= sum(len(s.waiters) for s in slots)
             return slots
 
+    def take_moves(self) -> list[MoveBlock]:
+        """The moves blocks for this tick, in arrival order (applied after its controls)."""
+        with self._lock:
+            blocks, self._blocks = self._blocks, []
+            self._waiting -= len(blocks)
+            return blocks
+
     def requeue(self, slots: list[ControlSlot]) -> None:
         """Slots taken this tick but not applied (their kernels are being built): first in line
         next tick, before anything that arrived for the same cloths meanwhile."""
@@ -245,7 +294,7 @@ class Intake:
                 self._waiting += len(s.waiters)
 
     def drain(self) -> tuple[list[Any], list[ControlSlot]]:
-        """Everything still queued (shutdown)."""
+        """Everything still queued (shutdown): moves blocks come as structural commands."""
         out = []
         while True:
             try:
@@ -257,5 +306,7 @@ class Intake:
             for gen in self._gens:
                 slots.extend(gen.values())
             self._gens = [{}]
+            out.extend(self._blocks)
+            self._blocks = []
             self._waiting = 0
         return out, slots

@@ -2,7 +2,8 @@
 check ownership and quotas against the registry, admission against the cost model, then hand
 the work on (submissions to the cook worker, everything else to the tick thread's intake). A bad
 request gets its error reply right here; nothing else notices it. A batch control is validated
-item by item: a bad item gets its own error in the reply, the others go ahead.
+item by item: a bad item gets its own error in the reply, the others go ahead; its moves block
+(1.4) move by move, without a per-move loop unless one is refused (moves.py).
 
 Identity (protocol 1.4, PROTOCOL.md 11.2): the submit, control, control_batch and remove
 queryables are declared on client-scoped keys, ``{ns}/server/{S}/client/*/{kind}``; a request there
@@ -31,6 +32,7 @@ from drape.client import protocol as P
 from .admission import ERR_OVERLOADED, Admission
 from .commands import BatchControl, Intake, Remove
 from .config import ServerConfig
+from .moves import MoveChecker, refused_counts
 from .registry import ClothRecord, Registry
 from .replies import Replies, Reply, send
 from .requests import pack
@@ -71,6 +73,7 @@ class Handlers:
     ) -> None:
         self.config, self.keys, self.registry, self.replies = config, keys, registry, replies
         self.intake, self.cook_q, self.admission = intake, cook_q, admission
+        self.moves = MoveChecker(registry)  # 1.4 moves blocks
         self.limits = config.limits()
         self._tick, self._info, self._stopping = tick, info, stopping
 
@@ -203,10 +206,15 @@ class Handlers:
                 failed[e.code] += 1
                 continue
             todo.append((rec, item, packed, waiter, i))
+        block = None
+        if batch.moves is not None:  # 1.4: ownership per move, pinned-ness per fabric (moves.py)
+            block = self.moves.check(batch.moves, batch.client, waiter)
         reg = self.registry
         with reg.lock:
             reg.errors.update(failed)
+            reg.errors.update(refused_counts(waiter.moves_failed or []))
             reg.counters["batch_items"] += len(batch.items)
+            reg.counters["batch_moves"] += len(batch.moves or ())
         if failed:
             log.debug(
                 "batch control of client %s: %d of %d items refused: %s",
@@ -215,12 +223,11 @@ class Handlers:
                 len(batch.items),
                 dict(failed),
             )
-        if not todo:  # nothing to apply: answer now
-            rep = P.ControlBatchReply(self._tick() + 1, results, batch.rid)  # type: ignore[arg-type]
-            send(Reply(query, P.encode_control_batch_reply(rep)))
+        if not todo and block is None:  # nothing to apply: answer now
+            send(waiter.reply(self._tick() + 1))
             return
-        waiter.pending = len(todo)
-        self.intake.put_controls(todo, batch.rid)
+        waiter.pending = len(todo) + (block is not None)
+        self.intake.put_controls(todo, batch.rid, block)
 
     # --- remove, info, liveliness ----------------------------------------------------------------------
     def on_remove(self, query: zenoh.Query, payload: bytes, client: str | None = None) -> None:

@@ -39,10 +39,11 @@ from ..sim.shared import vertex_normals
 from ..sim.world import PendingFrame, World
 from .adaptive import AdaptiveQuality
 from .admission import Admission
-from .commands import Add, BatchControl, Call, ControlSlot, Intake, Remove
+from .commands import Add, BatchControl, Call, ControlSlot, Intake, MoveBlock, Remove
 from .config import ServerConfig
 from .cook import FabricStore
 from .devencode import DeviceFrames, device_world
+from .moves import apply_blocks
 from .publisher import Job, Mailbox, Roster
 from .registry import ClothRecord, Registry
 from .replies import Replies, Reply, send
@@ -314,6 +315,10 @@ class Ticker:
         slots = self.intake.take_controls()
         if slots:
             self._apply_controls(slots, job)
+        blocks = self.intake.take_moves()  # 1.4: after the controls; cloths reset by them keep no move
+        if blocks:
+            assert self.world is not None
+            apply_blocks(self.world, blocks, self.tick + 1, self._reset_flags, self.registry, job.before)
 
     def _apply_structural(self, cmd: Any, job: Job) -> None:
         w = self.world
@@ -419,10 +424,9 @@ class Ticker:
                     )
                     if err is not None:
                         self.registry.error(err[0])
-                    waiter.pending -= 1
-                    if waiter.pending == 0:
-                        batch_rep = P.ControlBatchReply(tick, waiter.results, waiter.rid)  # type: ignore[arg-type]
-                        job.before.append(Reply(waiter.query, partial(P.encode_control_batch_reply, batch_rep)))
+                    batch_rep = waiter.one_done(tick)
+                    if batch_rep is not None:
+                        job.before.append(batch_rep)
                 elif err is None:
                     rid, with_features = tag
                     rep = P.ControlReply(tick, rid, feats if with_features else None)
@@ -534,8 +538,13 @@ class Ticker:
     def shutdown_commands(self) -> None:
         """Answer everything still queued once the tick thread stops."""
         structural, slots = self.intake.drain()
+        answered: set[int] = set()
         for cmd in structural:
-            if isinstance(cmd, Call):
+            if isinstance(cmd, MoveBlock):
+                if id(cmd.waiter) not in answered:
+                    answered.add(id(cmd.waiter))
+                    send(self.replies.error(cmd.waiter.query, P.ERR_BUSY, "server is shutting down", cmd.waiter.rid))
+            elif isinstance(cmd, Call):
                 cmd.error = RuntimeError("server stopped")
                 cmd.done.set()
             elif getattr(cmd, "query", None) is not None:
@@ -543,7 +552,6 @@ class Ticker:
                     self.fabrics.release(cmd.record.fabric)
                     self.registry.unreserve(cmd.record)
                 send(self.replies.error(cmd.query, P.ERR_BUSY, "server is shutting down", getattr(cmd, "rid", 0)))
-        answered: set[int] = set()
         for slot in slots:
             for waiter, tag in slot.waiters:
                 if isinstance(waiter, BatchControl):

@@ -16,6 +16,7 @@ import zenoh
 
 from . import protocol as P
 from .controls import _collider, _pin_changes, _set_changes
+from .moves import moves_of
 from .protocol import ClothState, DrapeError, Unavailable
 
 if TYPE_CHECKING:
@@ -137,6 +138,7 @@ class ClothHandle:
             self.server_id = server
             self.last_receipt = time.monotonic()
             self._fresh = True
+        moves_of(self.client).changed()  # cached ids and tokens of moves blocks (1.4) are stale
         if old_sub is not None:
             try:
                 old_sub.undeclare()
@@ -147,6 +149,7 @@ class ClothHandle:
 
     def _note_controls(self, changes: dict[str, Any]) -> None:
         """Remember the last pin targets and colliders sent (a failover sends them again)."""
+        moves_of(self.client).fold(self)  # moves blocks sent since (1.4) come before this control
         pins = changes.get("pins")
         if pins is not None:
             for i, t in zip(pins.indices.tolist(), np.asarray(pins.targets, np.float32).reshape(-1, 3), strict=True):
@@ -158,6 +161,7 @@ class ClothHandle:
 
     def _resend_controls(self) -> None:
         """After a failover: the last pin targets and colliders, again (not waited for)."""
+        moves_of(self.client).fold(self)
         changes: dict[str, Any] = {}
         if self._last_pins:
             idx = np.fromiter(self._last_pins, np.uint32, len(self._last_pins))
@@ -339,6 +343,7 @@ class ClothHandle:
             self.closed = True
             self.close_reason = reason
             self._cond.notify_all()
+        moves_of(self.client).changed()
         if self._sub is not None:
             try:
                 self._sub.undeclare()

@@ -472,13 +472,20 @@ class DrapeClient:
     ) -> list[int | DrapeError] | None:
         """Move the pins of many cloths in one message: ``indices`` the same for every cloth
         (a sequence of ints) or one sequence per cloth; ``targets[j]`` the (k, 3) targets of
-        ``handles[j]``; ``colliders[j]`` (optional) the colliders of ``handles[j]`` (None: unchanged)."""
+        ``handles[j]`` (one (n, k, 3) array is best); ``colliders[j]`` (optional) the colliders of
+        ``handles[j]`` (None: unchanged). Shared indices and no colliders, to a 1.4 server: one
+        ``moves`` block (PROTOCOL.md 5.1.1), with no Python loop over the cloths (client/moves.py).
+        ``wait=True``: each cloth's first tick; BatchError (with every outcome) if any was refused."""
         if len(targets) != len(handles):
             raise ValueError(f"{len(handles)} cloths but {len(targets)} target arrays")
         try:
             shared = np.asarray(indices).ndim == 1  # one index list for every cloth
         except ValueError:  # ragged: one list per cloth
             shared = False
+        if shared and colliders is None:
+            from .moves import moves_of
+
+            return moves_of(self).send(handles, np.asarray(indices), np.asarray(targets), wait, on_error)
         b = self.batch(wait=wait, on_error=on_error)
         for j, h in enumerate(handles):
             idx = cast("Sequence[int] | np.ndarray", indices if shared else indices[j])
@@ -537,6 +544,21 @@ class DrapeClient:
             return merged if wait else None  # type: ignore[return-value]
         server = items[0][0].server_id or None
         self._require_features_delta(r for _, r in items)
+        if len(items) > 1:  # 1.4: pins-only items sharing one index list go as one moves block
+            from .moves import moves_of
+
+            moves = moves_of(self)
+            pos, block = moves.split(items)
+            if block is not None and moves.speaks_moves(server):
+                moved = moves.send_block(block, [items[i][0] for i in pos], wait, on_error, timeout, server)
+                rest = set(pos)
+                others = self._send_controls(
+                    [it for i, it in enumerate(items) if i not in rest], wait, on_error, timeout
+                )
+                if not wait:
+                    return None
+                it_moved, it_others = iter(moved or ()), iter(others or ())
+                return [next(it_moved) if i in rest else next(it_others) for i in range(len(items))]
         limit = self._server_batch_limit()
         if not limit:  # a 1.0 server: one control per item
             log.debug("server speaks %s: batch sent as %d controls", self._server_version, len(items))

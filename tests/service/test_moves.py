@@ -1,0 +1,180 @@
+"""Protocol 1.4 ``moves`` end to end (PROTOCOL.md 5.1.1) over real Zenoh on loopback with PoCL:
+a block moves pins; refused moves (wrong token, another client's cloth) are listed in
+``moves_failed`` while the rest apply; a block and an item for the same cloth in one request (the
+block wins) or with a reset (the reset wins); an invalid block refuses the request; the SDK's
+vectorised ``move_pins_many`` and ``ControlBatch`` send blocks; a 1.3-style batch still works."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import TIMEOUT, connect, make_config
+
+from drape.client import protocol as P
+from drape.server.service import Server
+
+PINS = [0, 7]  # the two ends of the first row of an 8x8 grid
+
+
+@pytest.fixture(scope="module")
+def server():
+    s = Server(make_config(max_cloths_per_client=8)).start()
+    yield s
+    s.stop()
+    assert s.failure is None
+
+
+@pytest.fixture
+def client(server):
+    c = connect(server)
+    yield c
+    c.close(remove=True)
+
+
+def cloths(client, n: int) -> list:
+    return [client.submit_grid(8, 8, pinned=PINS, bundle=True) for _ in range(n)]
+
+
+def batch(client, moves: P.PinMoves | None, items: list[P.ControlRequest] | None = None) -> P.ControlBatchReply:
+    req = P.ControlBatchRequest(client.client_id, items or [], client._next_rid(), moves)
+    return P.control_batch_reply_from_map(client.request("control_batch", P.encode_control_batch(req)))
+
+
+def block(handles: list, targets: np.ndarray, tokens: list[str] | None = None) -> P.PinMoves:
+    return P.PinMoves(
+        [h.id for h in handles],
+        tokens or [h.token for h in handles],
+        np.array(PINS, np.uint32),
+        np.asarray(targets, np.float32).reshape(len(handles), len(PINS), 3),
+    )
+
+
+def pins_at(handle, tick: int) -> np.ndarray:
+    return handle.wait_for_tick(tick, TIMEOUT).positions[PINS]
+
+
+def test_block_moves_pins_and_refuses_per_move(client, server):
+    hs = cloths(client, 4)
+    tgt = np.random.default_rng(3).uniform(-1, 1, (4, 2, 3)).astype(np.float32)
+    tokens = [h.token for h in hs]
+    tokens[2] = "f" * 32 if tokens[2] != "f" * 32 else "e" * 32  # not its token
+    rep = batch(client, block(hs, tgt, tokens))
+    assert rep.results == [] and rep.moves_tick is not None and rep.tick >= rep.moves_tick
+    assert [(p, c) for p, c, _ in rep.moves_failed or []] == [(2, P.ERR_FORBIDDEN)]
+    for j in (0, 1, 3):
+        np.testing.assert_allclose(pins_at(hs[j], rep.moves_tick), tgt[j], atol=1e-5)
+    assert np.abs(pins_at(hs[2], rep.moves_tick) - tgt[2]).max() > 1e-3  # not moved
+    assert server.registry.counters["moves_applied"] >= 3
+    assert server.registry.errors[P.ERR_FORBIDDEN] >= 1
+
+
+def test_other_clients_cloth_and_unknown_cloth_refused(client, server):
+    other = connect(server)
+    try:
+        theirs = cloths(other, 1)[0]
+        mine = cloths(client, 1)[0]
+        tgt = np.full((3, 2, 3), 0.25, np.float32)
+        mv = P.PinMoves(
+            [mine.id, theirs.id, "0123456789abcdef"],
+            [mine.token, theirs.token, "0" * 32],
+            np.array(PINS, np.uint32),
+            tgt,
+        )
+        rep = batch(client, mv)
+        assert [(p, c) for p, c, _ in rep.moves_failed or []] == [(1, P.ERR_FORBIDDEN), (2, P.ERR_NOT_FOUND)]
+        np.testing.assert_allclose(pins_at(mine, rep.moves_tick), tgt[0], atol=1e-5)
+        assert np.abs(pins_at(theirs, rep.moves_tick) - 0.25).max() > 1e-3
+    finally:
+        other.close()
+
+
+def test_block_wins_over_item_and_reset_wins_over_block(client):
+    a, b = cloths(client, 2)
+    item_tgt = np.full((2, 3), -0.5, np.float32)
+    tgt = np.full((2, 2, 3), 0.75, np.float32)
+    items = [
+        P.ControlRequest(a.id, a.token, pins=P.PinUpdate(np.array(PINS, np.uint32), item_tgt)),
+        P.ControlRequest(b.id, b.token, reset=True),
+    ]
+    rep = batch(client, block([a, b], tgt), items)
+    assert rep.failed == 0 and rep.moves_failed == []
+    assert rep.tick == rep.moves_tick  # all of it between the same two ticks
+    np.testing.assert_allclose(pins_at(a, rep.moves_tick), tgt[0], atol=1e-5)  # the block wins
+    rest = b.rest_positions[PINS]
+    np.testing.assert_allclose(pins_at(b, rep.moves_tick), rest, atol=1e-5)  # the reset wins
+
+
+def test_invalid_block_refuses_the_request(client):
+    (a,) = cloths(client, 1)
+    item = P.ControlRequest(a.id, a.token, pins=P.PinUpdate(np.array(PINS, np.uint32), np.ones((2, 3), np.float32)))
+    m = P.control_batch_to_map(P.ControlBatchRequest(client.client_id, [item], 1, block([a], np.zeros((1, 2, 3)))))
+    m["moves"]["targets"] = m["moves"]["targets"][:-4]
+    with pytest.raises(P.DrapeError) as e:
+        client.request("control_batch", P.pack(m))
+    assert e.value.code == P.ERR_INVALID_VALUE
+    m["moves"]["indices"] = P.pack({})[:0]  # an empty index list
+    with pytest.raises(P.DrapeError):
+        client.request("control_batch", P.pack(m))
+
+
+def test_unpinned_index_refused_per_move(client):
+    (a,) = cloths(client, 1)
+    mv = P.PinMoves([a.id], [a.token], np.array([0, 9], np.uint32), np.zeros((1, 2, 3), np.float32))
+    rep = batch(client, mv)
+    assert [(p, c) for p, c, _ in rep.moves_failed or []] == [(0, P.ERR_INVALID_VALUE)]
+    mv = P.PinMoves([a.id], [a.token], np.array([64], np.uint32), np.zeros((1, 1, 3), np.float32))
+    rep = batch(client, mv)
+    assert [(p, c) for p, c, _ in rep.moves_failed or []] == [(0, P.ERR_INDEX_OUT_OF_RANGE)]
+
+
+def test_sdk_move_pins_many_and_batch(client, server):
+    hs = cloths(client, 3)
+    tgt = np.random.default_rng(5).uniform(-1, 1, (3, 2, 3)).astype(np.float32)
+    moves = server.registry.counters["batch_moves"]
+    ticks = client.move_pins_many(hs, PINS, tgt, wait=True)
+    assert ticks is not None and len(ticks) == 3 and all(isinstance(t, int) for t in ticks)
+    assert server.registry.counters["batch_moves"] == moves + 3  # one block, not three items
+    for h, t, tick in zip(hs, tgt, ticks, strict=True):
+        np.testing.assert_allclose(pins_at(h, tick), t, atol=1e-5)
+    with client.batch(wait=True) as b:  # same indices, pins only: one block; the collider item stays an item
+        b.move_pins(hs[0], PINS, tgt[1])
+        b.move_pins(hs[1], PINS, tgt[2])
+        b.move_pins(hs[2], PINS, tgt[0], colliders=[P.Sphere((0.0, -5.0, 0.0), 0.1)])
+    assert b.results is not None and len(b.results) == 3
+    assert server.registry.counters["batch_moves"] == moves + 5  # the two pins-only items as a block
+    for h, t, tick in zip(hs, (tgt[1], tgt[2], tgt[0]), b.results, strict=True):
+        np.testing.assert_allclose(pins_at(h, tick), t, atol=1e-5)  # type: ignore[arg-type]
+
+
+def test_items_only_batch_of_a_1_3_client(client):
+    (a,) = cloths(client, 1)
+    item = P.ControlRequest(a.id, a.token, pins=P.PinUpdate(np.array(PINS, np.uint32), np.ones((2, 3), np.float32)))
+    m = P.control_batch_to_map(P.ControlBatchRequest(client.client_id, [item], 9))
+    m["v"] = [1, 3]
+    rep_map = client.request("control_batch", P.pack(m))
+    assert "moves_tick" not in rep_map and "moves_failed" not in rep_map
+    rep = P.control_batch_reply_from_map(rep_map)
+    assert rep.failed == 0 and rep.moves_tick is None
+    np.testing.assert_allclose(pins_at(a, rep.tick), np.ones((2, 3)), atol=1e-5)
+
+
+def test_last_targets_recorded_for_failover(client):
+    """A failover re-sends each handle's last pin targets: the vectorised path records them as a
+    view of its last block, folded into the handle's own record in the order things were sent."""
+    from drape.client.moves import moves_of
+
+    hs = cloths(client, 2)
+    first = np.full((2, 2, 3), 0.1, np.float32)
+    client.move_pins_many(hs, PINS, first)
+    hs[0].move_pins([7], [[0.2, 0.2, 0.2]], wait=True)  # its own control after the block
+    second = np.full((2, 2, 3), 0.3, np.float32)
+    second[1, 1] = 0.4
+    client.move_pins_many(hs, PINS, second)
+    for h in hs:
+        moves_of(client).fold(h)
+    np.testing.assert_allclose(np.stack([hs[0]._last_pins[i] for i in PINS]), second[0])
+    np.testing.assert_allclose(np.stack([hs[1]._last_pins[i] for i in PINS]), second[1])
+    hs[1].move_pins([0], [[0.9, 0.9, 0.9]])
+    moves_of(client).fold(hs[1])
+    np.testing.assert_allclose(hs[1]._last_pins[0], 0.9)
+    np.testing.assert_allclose(hs[1]._last_pins[7], 0.4)

@@ -11,6 +11,7 @@ import shutil
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -118,6 +119,17 @@ class Inbox:
             return self._cond.wait_for(lambda: predicate(self), WAIT)
 
 
+def wait_until(pred: Callable[[], bool], timeout: float = WAIT, step: float = 0.1) -> bool:
+    """Poll ``pred`` until it holds (True) or ``timeout`` passes (False): for server-side outcomes
+    only a query can observe, never to wait out something that must not happen."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(step)
+    return pred()
+
+
 def user_file(d: Path, user: str, password: str) -> str:
     """A client-mode Zenoh JSON5 file with the user's name and password (what a deployment ships)."""
     p = d / f"{user}.json5"
@@ -142,7 +154,7 @@ def router_config(tmp_path: Path, endpoint: str, users_text: str = USERS) -> tup
 @pytest.fixture
 def acl_kit() -> SimpleNamespace:
     """The helpers above: USERS, PASSWORDS, EXAMPLE, REPO, WAIT, SERVER_WAIT, Inbox, session,
-    make_certs, user_file, router_config."""
+    make_certs, user_file, router_config, wait_until."""
     return SimpleNamespace(
         USERS=USERS,
         PASSWORDS=PASSWORDS,
@@ -155,6 +167,7 @@ def acl_kit() -> SimpleNamespace:
         make_certs=make_certs,
         user_file=user_file,
         router_config=router_config,
+        wait_until=wait_until,
     )
 
 

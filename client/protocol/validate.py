@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import fields
 from typing import Any
 
@@ -112,7 +112,8 @@ def _unpack_caps(limits: Limits) -> dict[str, Any]:
 
 def _check_shape(obj: Any) -> None:
     """Refuse nesting deeper than MAX_NESTING and more than MAX_ELEMENTS values, without recursion
-    (the walk stops at the first excess, so it costs at most MAX_ELEMENTS steps)."""
+    (the walk stops at the first excess, so it costs at most MAX_ELEMENTS steps). A container
+    holding no container (a 1.4 moves block's ids and tokens) is counted at once, not walked."""
     stack: list[tuple[Any, int]] = [(obj, 1)]
     seen = 0
     while stack:
@@ -123,7 +124,7 @@ def _check_shape(obj: Any) -> None:
         if isinstance(o, dict):
             if not all(isinstance(k, str) for k in o):  # msgpack's strict_map_key still lets bin keys through
                 raise ProtocolError(ERR_MALFORMED, "map keys must be strings")
-            children: Iterable[Any] = o.values()
+            children: Collection[Any] = o.values()
             seen += len(o)  # the keys (strings)
         elif isinstance(o, list):
             children = o
@@ -131,7 +132,13 @@ def _check_shape(obj: Any) -> None:
             continue
         if depth > MAX_NESTING:
             raise ProtocolError(ERR_MALFORMED, f"maps and arrays nested deeper than {MAX_NESTING} levels")
-        stack.extend((c, depth + 1) for c in children)
+        kinds = set(map(type, children))
+        if dict in kinds or list in kinds:
+            stack.extend((c, depth + 1) for c in children)
+        elif seen + len(children) > MAX_ELEMENTS:
+            raise ProtocolError(ERR_TOO_LARGE, f"message holds more than {MAX_ELEMENTS} values")
+        else:
+            seen += len(children)  # scalars only: nothing below them
 
 
 def _peek_rid(obj: dict[str, Any]) -> int:

@@ -60,6 +60,8 @@ STAT_COUNTERS = (
     "nan_removals",
     "controls_applied",
     "controls_coalesced",
+    "batch_moves",  # 1.4: moves received in batch controls' blocks
+    "moves_applied",  # 1.4: moves applied (refused ones are counted in errors by code)
 )
 
 

@@ -64,7 +64,7 @@ def test_block_moves_pins_and_refuses_per_move(client, server):
     for j in (0, 1, 3):
         np.testing.assert_allclose(pins_at(hs[j], rep.moves_tick), tgt[j], atol=1e-5)
     assert np.abs(pins_at(hs[2], rep.moves_tick) - tgt[2]).max() > 1e-3  # not moved
-    assert server.registry.counters["moves_applied"] >= 3
+    assert server.stats()["moves_applied"] >= 3
     assert server.registry.errors[P.ERR_FORBIDDEN] >= 1
 
 

@@ -299,7 +299,7 @@ class Failover:
 
         try:
             c.session.get(
-                c.keys.control(h.server_id),
+                c._key("control", h.server_id),  # the client-scoped key on a 1.4 server
                 zenoh.handlers.Callback(on_reply, lambda: None),
                 payload=payload,
                 timeout=min(c.timeout, 2.0),

@@ -6,7 +6,8 @@ in-process Server and real Zenoh sessions.
 - ``identity = "keys"`` declares only the client-scoped queryables; the server takes every
   request's client id from its key: a payload ``client`` that differs, a control, batch item or
   remove of another client's cloth (even with that cloth's token), a key naming no single client,
-  are refused ``forbidden``; ``max_cloths_per_client`` holds per key identity.
+  are refused ``forbidden``; ``max_cloths_per_client`` holds per key identity; the SDK's failover
+  probe goes to the client-scoped key.
 
 What a router adds (only the user whose id a key names may use it) is tests/tools/test_identity.py.
 """
@@ -147,3 +148,22 @@ def test_max_cloths_per_client_holds_per_key_identity(keys_server):
         assert {h.key.split("/")[2] for h in hers} == {"alice"} and {h.key.split("/")[2] for h in mine} == {"bob"}
         for h in mine + hers:
             h.remove()
+
+
+def test_failover_probes_on_the_client_scoped_key(keys_server):
+    """SDK failover against a keys-only server: a cloth reclaimed while its client was away is
+    found by the probe (an empty control, on the client's own key) and resubmitted there."""
+    with connect(keys_server, failover=True) as c:
+        events: list = []
+        c.on_failover(events.append)
+        h = c.submit_grid(4, 4, pinned=[0, 3])
+        collect(h, 2)
+        assert c._failover is not None
+        c._failover.pause()  # away: the failover thread held still, the token withdrawn
+        c._token.undeclare()
+        assert wait_until(lambda: keys_server.registry.get(h.id) is None, 10 * TIMEOUT), "not reclaimed"
+        c._token = c.session.liveliness().declare_token(c.keys.alive_client(c.client_id))
+        c._failover.resume()
+        assert wait_until(lambda: len(events) >= 1, 10 * TIMEOUT), "the reclaim was never detected"
+        assert events[0].ok and events[0].reason == "reclaimed", events
+        assert h.key == P.Keys().client_state(c.client_id, h.id) and collect(h, 1)

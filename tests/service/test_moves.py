@@ -178,3 +178,34 @@ def test_last_targets_recorded_for_failover(client):
     moves_of(client).fold(hs[1])
     np.testing.assert_allclose(hs[1]._last_pins[0], 0.9)
     np.testing.assert_allclose(hs[1]._last_pins[7], 0.4)
+
+
+def test_apply_blocks_refuses_removed_and_drops_reset_cloths(device):
+    """The tick's side without Zenoh: a cloth removed after its block was accepted is refused
+    not_found; one reset in the same tick keeps its rest pose; the request is answered once."""
+    from drape.server.service.commands import BatchControl, MoveBlock
+    from drape.server.service.moves import apply_blocks
+    from drape.server.service.registry import Registry
+    from drape.server.sim import make_world
+    from drape.server.sim.fabric import cook_grid
+    from drape.server.sim.params import ClothParams
+
+    world = make_world("workgroup", device=device)
+    fabric = cook_grid(8, 8, pinned=PINS)
+    hs = [world.add(fabric, ClothParams()) for _ in range(3)]
+    waiter = BatchControl(None, 5, [], moves_failed=[], pending=1)  # type: ignore[arg-type]
+    tgt = np.full((3, 2, 3), 0.5, np.float32)
+    b = MoveBlock(np.array(hs), np.array([0, 1, 2]), ["x", "y", "z"], np.array(PINS), tgt, waiter)
+    world.remove(hs[1])
+    world.reset(hs[2])
+    registry = Registry(make_config())
+    before: list = []
+    apply_blocks(world, [b], 42, {hs[2]}, registry, before)
+    assert [(p, c) for p, c, _ in waiter.moves_failed or []] == [(1, P.ERR_NOT_FOUND)]
+    assert waiter.moves_tick == 42 and len(before) == 1 and registry.counters["moves_applied"] == 1
+    world.step(1 / 60)
+    frame = world.fetch()
+    np.testing.assert_allclose(frame.positions[hs[0]][PINS], tgt[0], atol=1e-5)
+    np.testing.assert_allclose(frame.positions[hs[2]][PINS], fabric.rest_positions[PINS], atol=1e-5)
+    rep = P.control_batch_reply_from_map(P.decode_reply(before[0].payload()))
+    assert rep.tick == 42 and rep.moves_tick == 42 and [p for p, _, _ in rep.moves_failed or []] == [1]

@@ -68,8 +68,11 @@ class ClientMoves:
 
     # --- capability ------------------------------------------------------------------------
     def speaks_moves(self, server: str | None) -> bool:
-        """Whether ``server`` (None: the client's) speaks 1.4: asked with info once per server."""
+        """Whether ``server`` (None: the client's) speaks 1.4: the client's ``server_version`` for
+        its own server, else asked with info once per server."""
         sid = server or self.client.server_id
+        if sid == self.client.server_id:
+            return self.client.server_version >= (1, 4)
         v = self._versions.get(sid)
         if v is None:
             info = self.client.request("info", P.encode_info(P.InfoRequest(self.client._next_rid())), server=sid)

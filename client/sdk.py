@@ -549,7 +549,7 @@ class DrapeClient:
 
             moves = moves_of(self)
             pos, block = moves.split(items)
-            if block is not None and moves.speaks_moves(server):
+            if block is not None and self._server_batch_limit() and moves.speaks_moves(server):
                 moved = moves.send_block(block, [items[i][0] for i in pos], wait, on_error, timeout, server)
                 rest = set(pos)
                 others = self._send_controls(

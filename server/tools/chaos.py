@@ -11,8 +11,10 @@ measures a baseline, applies one fault or abuse, and measures
 
 and judges each against the issue's targets: good clients at 60 Hz with 0 missed ticks and nothing
 lost, 0 tracebacks, RSS back within 10 %, fuzz: 0 ``internal`` replies and a valid submit still
-served; kill: 100 % of the killed server's cloths back within 1 s; pause: 100 % back within 1 s
-of SIGCONT. Failures are reported as failures (exit status 1).
+served; kill: 100 % of the killed servers' cloths back within 1 s and 0 lost over ``--kills``
+kills of ``--kill-servers`` servers (the game clients' cloths placed by load, each killed server
+restarted ``--kill-gap`` s later); pause: 100 % back within 1 s of SIGCONT. Failures are
+reported as failures (exit status 1).
 
 Scenarios (``drape chaos --list``): fuzz, flood-ids, big-submit, big-cook, tiny-mass,
 new-features, kill, pause. Each is bounded in messages and seconds; a server passing
@@ -142,6 +144,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--grace-period", type=float, default=5.0, help="the servers' grace period (default 5)")
     parser.add_argument("--seed", type=int, default=1, help="fuzz seed (default 1)")
+    parser.add_argument("--kill-servers", type=int, default=2, help="kill: servers, 2-4 (default 2)")
+    parser.add_argument("--kills", type=int, default=1, help="kill: kills one after the other (default 1)")
+    parser.add_argument(
+        "--kill-gap", type=float, default=1.0, help="kill: seconds before a killed server restarts (default 1)"
+    )
     parser.add_argument(
         "--serve-args",
         default="",
@@ -174,6 +181,9 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         grace_period=args.grace_period,
         serve_args=tuple(shlex.split(args.serve_args)),
+        kill_servers=args.kill_servers,
+        kills=args.kills,
+        kill_gap=args.kill_gap,
     )
     report = run_scenarios(names, ctx)
     print(format_table(report))

@@ -9,11 +9,8 @@ and talks only to 127.0.0.1.
 
 from __future__ import annotations
 
-import functools
 import itertools
 import logging
-import os
-import signal
 import threading
 import time
 from collections import Counter
@@ -29,7 +26,7 @@ import zenoh
 from drape.client import protocol as P
 
 from . import chaos_fuzz
-from .chaos_harness import WAIT, ChaosServer, GoodClient, Window, reply_outcome, zenoh_session
+from .chaos_harness import ChaosServer, GoodClient, Window, reply_outcome, zenoh_session
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +52,9 @@ class Context:
     seed: int = 1
     grace_period: float = 5.0
     serve_args: tuple[str, ...] = ()  # extra `drape serve` arguments for every server
+    kill_servers: int = 2  # kill: servers (2-4) the failover clients' cloths are placed on
+    kills: int = 1  # kill: servers killed one after the other, each restarted after kill_gap s
+    kill_gap: float = 1.0
 
 
 class Stage:
@@ -359,231 +359,18 @@ def new_features(ctx: Context) -> dict[str, Any]:
     return {**m, "fails": fails}
 
 
-def _failover_client_main(
-    endpoints: list[str], server_id: str, client_id: str, cloths: int, size: int, records: Any, ready: Any, stop: Any
-) -> None:
-    """A game client process with the SDK's failover on: its states as (cloth index, tick, time),
-    each failover event, and the distance of the first state after a failover to the last before."""
-    logging.basicConfig(level=logging.WARNING)
-    from drape.client import DrapeClient
+def kill(ctx: Context) -> dict[str, Any]:
+    """kill -9 of servers under placed failover clients (--kills times, each restarted): every cloth back?"""
+    from .chaos_failover import kill as scenario  # it builds on this module (Context, judge, Stage)
 
-    try:
-        with DrapeClient(endpoints, server_id=server_id, client_id=client_id, timeout=WAIT, failover=True) as client:
-            handles: list[Any] = []
-            current: dict[int, tuple[str, np.ndarray]] = {}
-
-            def on_state(st: Any, j: int) -> None:
-                had = current.get(j)
-                if had is not None and had[0] != st.cloth:  # the first state of the cloth's new incarnation
-                    records.put(("jump", j, float(np.linalg.norm(st.positions - had[1], axis=1).max())))
-                current[j] = (st.cloth, st.positions)
-                records.put((j, int(st.tick), time.monotonic()))
-
-            def on_failover(ev: Any) -> None:
-                j = next((k for k, h in enumerate(handles) if h is ev.handle), -1)
-                records.put(
-                    (
-                        "failover",
-                        j,
-                        ev.reason,
-                        ev.ok,
-                        ev.kept,
-                        ev.new_server,
-                        ev.detected_ns / 1e9,
-                        ev.done_ns / 1e9,
-                        ev.resumed_tick,
-                    )
-                )
-
-            client.on_failover(on_failover)
-            for j in range(cloths):
-                # horizontal at rest: hanging from two corners after a second or two, far from its rest pose
-                h = client.submit_grid(
-                    size, size, 0.5, 0.5, origin=(1.0 * j, 2.0, 0.0), pinned=[0, size - 1], material={"damping": 0.1}
-                )
-                h.on_state(functools.partial(on_state, j=j))
-                handles.append(h)
-            records.put(("ready", [h.id for h in handles], client.client_id, time.monotonic()))
-            ready.set()
-            stop.wait()
-            records.put(("where", [h.server_id for h in handles], client_id, time.monotonic()))
-            client.close(remove=False)
-    except BaseException as e:  # report, never hang the parent
-        records.put(("error", repr(e), client_id, time.monotonic()))
+    return scenario(ctx)
 
 
-class FailoverClient(GoodClient):
-    """A GoodClient whose process runs the SDK with ``failover=True``, connected to several
-    servers; ``events`` and ``jumps`` as the process reported them."""
+def pause(ctx: Context) -> dict[str, Any]:
+    """SIGSTOP a failover client past lease and grace, then SIGCONT: its cloths back within 1 s?"""
+    from .chaos_failover import pause as scenario
 
-    def __init__(self, endpoints: list[str], server_id: str, name: str, cloths: int = 1, size: int = 8) -> None:
-        self.events: list[tuple[Any, ...]] = []
-        self.jumps: dict[int, list[float]] = {}
-        self._start(_failover_client_main, "failover", endpoints, server_id, name, cloths, size)
-
-    def _record(self, rec: tuple[Any, ...]) -> bool:
-        if rec[0] == "failover":
-            self.events.append(rec[1:])
-        elif rec[0] == "jump":
-            self.jumps.setdefault(rec[1], []).append(rec[2])
-        else:
-            return False
-        return True
-
-    def failover_report(self, cloths: int, t_fault: float, t_from: float) -> list[dict[str, Any]]:
-        """Per cloth: back (a state after ``t_from``), the gap from ``t_from`` (the liveliness
-        loss, or SIGCONT) to its first state there, its failover events and the distance of its
-        first state after the failover to the last before."""
-        out = []
-        with self._lock:
-            events = list(self.events)
-            jumps = {k: list(v) for k, v in self.jumps.items()}
-        for j in range(cloths):
-            first = self.first_receipt_after(j, t_from + 1e-3)
-            evs = [e for e in events if e[0] == j]
-            outage = self.outage(j, t_fault)
-            out.append(
-                {
-                    "cloth": j,
-                    "back": first is not None,
-                    "gap_s": None if first is None else round(first - t_from, 3),
-                    "outage_s": None if outage is None else round(outage, 3),
-                    "events": [
-                        {
-                            "reason": e[1],
-                            "ok": e[2],
-                            "kept": e[3],
-                            "server": e[4],
-                            "detect_to_reply_s": round(e[6] - e[5], 3),
-                            "resumed_tick": e[7],
-                        }
-                        for e in evs
-                    ],
-                    "first_state_jump_cm": [round(100 * x, 2) for x in jumps.get(j, [])],
-                }
-            )
-        return out
-
-
-def kill(ctx: Context, cloths: int = 8) -> dict[str, Any]:
-    """kill -9 of one of two servers while a failover client (the SDK, ``failover=True``, connected
-    to both) holds cloths on it and a bystander holds one on the other; then restart it (same id
-    and endpoint). Which of the victim's cloths are served again, after how long from the loss of
-    the server's liveliness, and how far their first state is from their last."""
-    args = ("--grace-period", str(ctx.grace_period), *ctx.serve_args)
-    a = ChaosServer(ctx.out, "kill-a", args, rss_limit_mb=ctx.rss_limit_mb)
-    b: ChaosServer | None = None
-    clients: list[GoodClient] = []
-    try:
-        a.wait_ready()
-        b = ChaosServer(ctx.out, "kill-b", args, connect=[a.endpoint], rss_limit_mb=ctx.rss_limit_mb)
-        b.wait_ready()
-        victim = FailoverClient([a.endpoint, b.endpoint], a.server_id, "victim", cloths)
-        bystander = GoodClient(b.endpoint, b.server_id, "bystander", 1)
-        clients = [victim, bystander]
-        for c in clients:
-            c.wait_ready()
-        time.sleep(2.0)  # the cloths hang nearly still
-        wb = Window.open(b)
-        t_kill = time.monotonic()
-        a.kill(signal.SIGKILL)
-        a.proc.wait(10)
-        time.sleep(ctx.seconds)
-        a2 = ChaosServer(
-            ctx.out, "kill-a-restarted", args, rss_limit_mb=ctx.rss_limit_mb, endpoint=a.endpoint, server_id=a.server_id
-        )
-        try:
-            a2.wait_ready()
-            time.sleep(ctx.seconds)
-        finally:
-            a2.stop()
-        m = wb.close([bystander])
-    finally:
-        for c in clients:
-            c.close()
-        for s in (a, b):
-            if s is not None:
-                s.stop()
-    # the liveliness loss: the earliest detection the client reported (the kill closes the link at once)
-    detected = [e[5] for e in victim.events if e[1] == "server_lost"]
-    t_lost = min(detected) if detected else t_kill
-    back = victim.failover_report(cloths, t_kill, t_lost)
-    where = victim.log.where
-    for x in back:
-        x["server_at_end"] = where[x["cloth"]] if x["cloth"] < len(where) else None
-    n_back = sum(x["back"] for x in back)
-    jumps = [v for x in back for v in x["first_state_jump_cm"]]
-    m.update(
-        cloths=cloths,
-        back=n_back,
-        back_pct=round(100.0 * n_back / cloths, 1),
-        per_cloth=back,
-        killed=a.server_id,
-        other=b.server_id if b else None,
-        restarted_same_id=True,
-        liveliness_lost_after_kill_s=round(t_lost - t_kill, 3) if detected else None,
-        max_gap_after_liveliness_loss_s=max((x["gap_s"] for x in back if x["gap_s"] is not None), default=None),
-        max_first_state_jump_cm=max(jumps, default=None),
-    )
-    fails = judge(m, rss=False)
-    if n_back < cloths:
-        fails.append(f"{n_back} of {cloths} cloths of the killed server came back ({m['back_pct']} %)")
-    gaps = [float(x["gap_s"]) for x in back if x["gap_s"] is not None]
-    if gaps and max(gaps) > FAILOVER_GAP_S:
-        fails.append(f"longest gap after the liveliness loss {max(gaps)} s > {FAILOVER_GAP_S} s")
-    if jumps and max(jumps) > 1.0:
-        fails.append(f"a first state after failover {max(jumps)} cm from the last before (> 1 cm)")
-    return {**m, "fails": fails}
-
-
-def pause(ctx: Context, cloths: int = 2) -> dict[str, Any]:
-    """SIGSTOP a failover client process (the SDK, ``failover=True``) for ``pause_s`` seconds, then
-    SIGCONT: are its cloths served again within 1 s, and from where they were?"""
-    with Stage(ctx, "pause") as st:
-        sleeper = FailoverClient([st.server.endpoint], st.server.server_id, "sleeper", cloths)
-        try:
-            sleeper.wait_ready()
-            time.sleep(2.0)
-            w = Window.open(st.server)
-            t_stop = time.monotonic()
-            reclaimed0 = st.server.stats.latest().get("reclaimed", 0)
-            pid = sleeper.proc.pid
-            if pid is None or pid <= 0:  # never signal a process group by accident
-                raise RuntimeError("the paused client has no process id")
-            os.kill(pid, signal.SIGSTOP)
-            time.sleep(ctx.pause_s)
-            t_cont = time.monotonic()
-            os.kill(pid, signal.SIGCONT)
-            time.sleep(max(3.0, FAILOVER_GAP_S * 3))
-            m = w.close([st.good] if st.good else [])
-            # when the server gave the sleeper's cloths up: the first stats publication counting them
-            gone = [t for t, s in list(st.server.stats.samples) if t > t_stop and s.get("reclaimed", 0) > reclaimed0]
-            m["reclaimed_after_s"] = round(gone[0] - t_stop, 1) if gone else None
-        finally:
-            sleeper.close()
-    back = sleeper.failover_report(cloths, t_stop, t_cont)
-    for x in back:
-        x["back"] = x["gap_s"] is not None and x["gap_s"] <= FAILOVER_GAP_S
-    n_back = sum(x["back"] for x in back)
-    jumps = [v for x in back for v in x["first_state_jump_cm"]]
-    m.update(
-        paused_s=ctx.pause_s,
-        cloths=cloths,
-        back=n_back,
-        back_pct=round(100.0 * n_back / cloths, 1),
-        per_cloth=back,
-        max_gap_after_sigcont_s=max((x["gap_s"] for x in back if x["gap_s"] is not None), default=None),
-        max_first_state_jump_cm=max(jumps, default=None),
-    )
-    fails = judge(m, rss=False)
-    if n_back < cloths:
-        fails.append(
-            f"{n_back} of {cloths} cloths served within {FAILOVER_GAP_S} s of SIGCONT "
-            f"(reclaimed by the server: {m.get('reclaimed', 0)})"
-        )
-    if jumps and max(jumps) > 1.0:
-        fails.append(f"a first state after failover {max(jumps)} cm from the last before (> 1 cm)")
-    return {**m, "fails": fails}
+    return scenario(ctx)
 
 
 SCENARIOS: dict[str, Callable[[Context], dict[str, Any]]] = {

@@ -268,7 +268,9 @@ class GoodClient:
     def __init__(self, endpoint: str, server_id: str, name: str, cloths: int = 1, size: int = 16) -> None:
         self._start(_good_client_main, "good", endpoint, server_id, name, cloths, size)
 
-    def _start(self, target: Any, kind: str, where: Any, server_id: str, name: str, cloths: int, size: int) -> None:
+    def _start(
+        self, target: Any, kind: str, where: Any, server_id: str | None, name: str, cloths: int, size: int
+    ) -> None:
         """Start the client process ``target(where, server_id, client_id, cloths, size, records,
         ready, stop)`` and the thread draining its records."""
         ctx = mp.get_context("spawn")

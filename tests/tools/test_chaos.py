@@ -15,7 +15,7 @@ import msgpack
 import pytest
 
 from drape.client import protocol as P
-from drape.server.tools import chaos, chaos_faults, chaos_fuzz
+from drape.server.tools import chaos, chaos_failover, chaos_faults, chaos_fuzz
 
 CI_COUNT = 600
 CI_MAX_BYTES = 1 << 20
@@ -85,6 +85,25 @@ def test_fuzz_leaves_no_traceback_no_internal_error_and_the_server_serving(tmp_p
     assert r["no_reply"] == 0
     assert r["valid_submit_after"] == "ok"
     assert sum(r["outcomes"].values()) == CI_COUNT
+
+
+def test_kills_of_either_server_lose_no_cloth(tmp_path):
+    """The kill scenario at CI size: two servers, two failover game clients whose 4 cloths the SDK
+    placed by load (both servers get some), each server killed once in turn and restarted: every
+    cloth of each killed server comes back on the other, none is lost, each within 1 cm."""
+    ctx = chaos_faults.Context(
+        out=tmp_path, grace_period=1.0, serve_args=("--no-admission",), kill_servers=2, kills=2, kill_gap=0.5
+    )
+    r = chaos_failover.kill(ctx, cloths=4)
+    print({k: v for k, v in r.items() if k != "per_kill"})
+    assert sum(r["cloths_per_server_at_start"]) == 4 and min(r["cloths_per_server_at_start"]) > 0
+    assert len({k["server"] for k in r["per_kill"]}) == 2  # each server once
+    assert all(k["back"] == k["held"] for k in r["per_kill"]), r["per_kill"]
+    assert r["per_kill"][0]["held"] == r["cloths_per_server_at_start"][0]
+    assert r["per_kill"][1]["held"] == 4  # all of them were on the second server by then
+    assert r["failovers"] == r["per_kill"][0]["held"] + 4
+    assert r["lost"] == 0 and r["tracebacks"] == 0
+    assert r["max_first_state_jump_cm"] is not None and r["max_first_state_jump_cm"] < 1.0
 
 
 def test_command_lists_scenarios_and_refuses_unknown_ones(capsys):

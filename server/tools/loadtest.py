@@ -252,10 +252,11 @@ def knee_search(
             break
         t = time.monotonic()
         r = run_one(replace(base, cloths=n))
-        if not r.held:
+        if not r.held:  # kept in the reports, then run once more: a one-off hiccup does not end the search
             print(f"not held ({r.why_not_held()}): running this load once more")
+            reports.append(r)
             r = run_one(replace(base, cloths=n))
-        last_cost = (time.monotonic() - t) / (1 if r.held else 2)
+        last_cost = time.monotonic() - t
         reports.append(r)
         if r.held:
             held = max(held, n)

@@ -1,7 +1,8 @@
 """Placement end to end (PROTOCOL.md 11.3): two real ``drape serve`` processes on loopback, each on
 its own port; one SDK client with no ``server_id`` submitting 8 cloths spreads them over both by
 their published load; a ``kill -9`` of one brings every cloth it held back on the other (failover
-places through the same rule), and later submits go to the survivor. Counted events only."""
+places through the same rule), and later submits go to the survivor; a server that refuses a
+cloth sends it to the next one. Counted events only."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import time
 import pytest
 
 from drape.client import DrapeClient
+from drape.client import protocol as P
 from drape.client.placement import spread
 from drape.server.tools.procs import ServerProcess
 
@@ -66,3 +68,24 @@ def test_cloths_spread_over_two_servers_and_come_back_after_a_kill(servers, svc)
         assert svc.wait_until(lambda: (client.placement.stats(b.server_id) or {}).get("cloths") == CLOTHS, EVENT_WAIT)
         late = client.submit_grid(4, 4, pinned=[0])
         assert late.server_id == b.server_id
+
+
+def test_a_refusing_server_sends_the_cloth_to_the_next(svc):
+    """A server at its limit answers ``limit_exceeded`` (as one past its tick budget answers
+    ``overloaded``): the SDK places the cloth on the next server in the ranking instead of
+    failing the submit; with every server refusing, the last refusal is raised."""
+    full = ServerProcess((*SERVE_ARGS, "--max-cloths", "1"), server_id=f"pl-full-{os.getpid()}")
+    room = ServerProcess((*SERVE_ARGS, "--max-cloths", "3"), server_id=f"pl-room-{os.getpid()}")
+    try:
+        with DrapeClient([full.endpoint, room.endpoint], timeout=SERVER_WAIT) as client:
+            ids = {full.server_id, room.server_id}
+            assert svc.wait_until(lambda: set(client.live_servers()) == ids, SERVER_WAIT)
+            assert svc.wait_until(lambda: all(client.placement.stats(s) for s in ids), SERVER_WAIT)
+            handles = [client.submit_grid(4, 4, pinned=[0]) for _ in range(4)]
+            where = sorted(h.server_id for h in handles)
+            assert where == sorted([full.server_id] + [room.server_id] * 3)
+            with pytest.raises(P.LimitExceeded):
+                client.submit_grid(4, 4, pinned=[0])
+    finally:
+        for s in (full, room):
+            s.stop(grace=20.0)

@@ -18,7 +18,8 @@ from psutil.
 
 ``--loads 128,256,4096:quant16`` runs several loads (total cloths, optionally with an encoding)
 on one server; ``--find-knee`` doubles the load until it is not held (a load that fails is run
-once more before it counts: a one-off hiccup does not end the search); ``--offered 2`` offers
+once more before it counts: a one-off hiccup does not end the search), then halves the gap
+between the last load held and the first not held ``--bisect`` times; ``--offered 2`` offers
 twice each load and reports admitted against refused submits (past the knee, a server answers
 ``overloaded``) with the admitted cloths' figures. Outputs: a summary per load, ``--json``,
 ``--markdown`` (one table row per load) and plots in ``--out``.
@@ -111,7 +112,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--find-knee",
         action="store_true",
-        help="from the first load, double it until it is not held (a failed load is run twice)",
+        help="from the first load, double it until it is not held (a failed load is run twice), then --bisect halvings",
     )
     parser.add_argument("--max-cloths", type=int, default=8192, help="--find-knee stops here (total cloths)")
     parser.add_argument(

@@ -6,6 +6,7 @@ durations: deadlines may slip on a busy CI box."""
 
 from __future__ import annotations
 
+import argparse
 import json
 
 import numpy as np
@@ -140,3 +141,24 @@ def test_two_servers_share_a_load_placed_by_their_published_load():
     assert report.missed_ticks == sum(s["missed_ticks"] for s in report.servers)
     assert report.states == report.expected_states - report.lost and report.duplicated == 0
     assert sum(r.admitted for r in results) == 8
+
+
+def test_scale_out_searches_one_server_then_two(tmp_path, capsys):
+    """``--scale-out``: the knee search on one server, then on two from there, and the ratio
+    printed; the JSON holds both knees and every load's report (the two-server ones per server).
+    Loads of 2 and 4 tiny cloths (``--max-cloths 4``): the structure is asserted, not the knees."""
+    parser = argparse.ArgumentParser()
+    lt.configure(parser)
+    out = tmp_path / "so.json"
+    args = parser.parse_args(
+        "--scale-out --servers 2 --clients 2 --cloths 1 --size 8 --iterations 2 --seconds 1 "
+        f"--max-cloths 4 --bisect 0 --quiet --no-admission --out {tmp_path} --json {out}".split()
+    )
+    assert lt.run(args) == 0
+    doc = json.loads(out.read_text())
+    assert set(doc["knees"]) == {"1", "2"}
+    one = [r for r in doc["reports"] if not r["servers"]]
+    two = [r for r in doc["reports"] if r["servers"]]
+    assert one and two and one[0]["cloths"] == 2
+    assert all(len(r["servers"]) == 2 and sum(s["cloths"] for s in r["servers"]) == r["cloths"] for r in two)
+    assert "scale-out: " in capsys.readouterr().out

@@ -167,3 +167,12 @@ def test_failover_probes_on_the_client_scoped_key(keys_server):
         assert wait_until(lambda: len(events) >= 1, 10 * TIMEOUT), "the reclaim was never detected"
         assert events[0].ok and events[0].reason == "reclaimed", events
         assert h.key == P.Keys().client_state(c.client_id, h.id) and collect(h, 1)
+
+
+def test_the_identity_setting_is_open_or_keys():
+    from drape.server.service.config import ServerConfig
+
+    assert ServerConfig().identity == "open"
+    assert ServerConfig.load(env={"DRAPE_IDENTITY": "keys"}).identity == "keys"
+    with pytest.raises(ValueError, match="identity must be one of"):
+        ServerConfig.load(env={"DRAPE_IDENTITY": "strict"})

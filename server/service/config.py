@@ -96,6 +96,7 @@ class ServerConfig:
     state_congestion: str = "drop"  # drop | block | auto (see PROTOCOL.md, "Congestion control")
     drop_max_bytes: int = 60000  # auto: states up to this size use DROP, larger ones BLOCK
     device_encode: bool = True  # OpenCL worlds: states encoded on the device (one launch, one readback)
+    gil_switch_ms: float = 0.5  # Python's GIL switch interval in the server process (sys.setswitchinterval)
     # --- quality -------------------------------------------------------------------------------
     adaptive_quality: bool = True  # lower cloths' presets while ticks overrun, restore them after
     quality_budget: float = 0.8  # share of a tick the tick's own work may take before that
@@ -128,6 +129,8 @@ class ServerConfig:
             raise ValueError("tick_rate must be in 0.1..10000 Hz")
         if self.state_congestion not in CONGESTION_CHOICES:
             raise ValueError(f"state_congestion must be one of {CONGESTION_CHOICES}")
+        if not (0.01 <= self.gil_switch_ms <= 100):
+            raise ValueError("gil_switch_ms must be in 0.01..100 ms")
         for name in (
             "max_cloths",
             "max_cloths_per_client",
@@ -311,6 +314,8 @@ HELP = {
     "state_congestion": "Zenoh congestion control of state publications",
     "drop_max_bytes": "auto congestion: largest state published with DROP",
     "device_encode": "encode the states on the OpenCL device, one packed frame per tick (reference: host)",
+    "gil_switch_ms": "the server process's GIL switch interval in ms (Python's default is 5: a thread "
+    "returning from a Zenoh call waits up to that long behind a busy one)",
     "adaptive_quality": "step cloths' quality presets down while ticks overrun, back up after",
     "quality_budget": "share of a tick the tick's work may take before quality is lowered",
     "admission": "refuse submissions that would push the tick over admission_budget ('overloaded')",

@@ -1,11 +1,15 @@
 """Shared fixtures of the access-control tests (test_acl.py, test_identity.py): a users file, a real
 Zenoh router with user/password authentication and the generated ACL (over TCP and TLS with a CA
 made by openssl), client-mode sessions of a user, an inbox of samples, ``drape serve`` behind the
-router. Helpers are offered as the ``acl_kit`` fixture (no test imports another test or this file).
+router. Helpers are offered as the ``acl_kit`` fixture (no test imports another test).
+
+Being a second ``conftest`` module, this one is what ``from conftest import ...`` finds in the tools
+tests: it re-exports the shared service helpers of tests/conftest.py under the same names.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import shutil
 import subprocess
@@ -22,9 +26,24 @@ import pytest
 import zenoh
 
 from drape.server.tools import acl
-from drape.server.tools.procs import free_port
 
 REPO = Path(__file__).resolve().parents[2]
+
+
+def _root_conftest() -> Any:
+    """tests/conftest.py as a module of its own name (``conftest`` names this file here)."""
+    spec = importlib.util.spec_from_file_location("drape_tests_root_conftest", REPO / "tests" / "conftest.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+_root = _root_conftest()
+# the shared service helpers (tests/conftest.py), for ``from conftest import make_config`` in tools tests
+make_config, connect, collect = _root.make_config, _root.connect, _root.collect
+free_port, endpoint, wait_until = _root.free_port, _root.endpoint, _root.wait_until
+TIMEOUT, GRACE = _root.TIMEOUT, _root.GRACE
 EXAMPLE = REPO / "deploy" / "users.example.toml"
 WAIT = 20.0  # seconds to wait for a positive event (a loaded CI machine), never asserted on
 SERVER_WAIT = 90.0  # a drape serve starting (OpenCL warm-up) on a loaded CI machine
@@ -119,7 +138,7 @@ class Inbox:
             return self._cond.wait_for(lambda: predicate(self), WAIT)
 
 
-def wait_until(pred: Callable[[], bool], timeout: float = WAIT, step: float = 0.1) -> bool:
+def wait_long(pred: Callable[[], bool], timeout: float = WAIT, step: float = 0.1) -> bool:
     """Poll ``pred`` until it holds (True) or ``timeout`` passes (False): for server-side outcomes
     only a query can observe, never to wait out something that must not happen."""
     deadline = time.monotonic() + timeout
@@ -167,7 +186,7 @@ def acl_kit() -> SimpleNamespace:
         make_certs=make_certs,
         user_file=user_file,
         router_config=router_config,
-        wait_until=wait_until,
+        wait_until=wait_long,
     )
 
 

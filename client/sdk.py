@@ -333,21 +333,21 @@ class DrapeClient:
             h._deliver(st)
 
     # --- requests -----------------------------------------------------------------------------
-    def _key(self, kind: str, server: str) -> str:
+    def _key(self, kind: str, server: str, timeout: float | None = None) -> str:
         """The key of a ``kind`` request to ``server``: this client's own key (1.4) when the server
         has them, else the server-wide key of 1.0-1.3 (always for info)."""
-        if kind in P.CLIENT_REQUESTS and self._client_scoped(server):
+        if kind in P.CLIENT_REQUESTS and self._client_scoped(server, timeout):
             return self.keys.client_request(kind, server, self.client_id)
         return str(getattr(self.keys, kind)(server))
 
-    def _client_scoped(self, server: str) -> bool:
+    def _client_scoped(self, server: str, timeout: float | None = None) -> bool:
         """Whether ``server`` speaks 1.4 (client-scoped request keys): asked with info once (a 1.3
         server has no such queryable, so trying one first would cost a timeout each time). An
-        unanswered info is not remembered: the caller's server-wide request fails or works alone."""
+        unanswered info is not remembered: ``request`` asks again while it retries."""
         scoped = self._scoped.get(server)
         if scoped is None:
             try:
-                info = self.request("info", P.encode_info(P.InfoRequest(self._next_rid())), server=server)
+                info = self.request("info", P.encode_info(P.InfoRequest(self._next_rid())), timeout, server=server)
             except DrapeError as e:
                 log.debug("info of %s: %s; using the server-wide keys", server, e)
                 return False
@@ -364,9 +364,10 @@ class DrapeClient:
         in time."""
         if self._closed:
             raise DrapeError(P.ERR_UNAVAILABLE, "client is closed")
-        key = self._key(kind, server or self.server_id)
+        srv = server or self.server_id
         timeout = self.timeout if timeout is None else timeout
         deadline = time.monotonic() + timeout
+        key = self._key(kind, srv, timeout)
         while True:
             remaining = deadline - time.monotonic()
             started = time.monotonic()
@@ -386,6 +387,8 @@ class DrapeClient:
             elapsed = time.monotonic() - started
             if time.monotonic() + 0.05 < deadline and elapsed < 0.5 * max(remaining, 0.0):
                 time.sleep(0.05)
+                if kind in P.CLIENT_REQUESTS and srv not in self._scoped:  # its info went unanswered
+                    key = self._key(kind, srv, max(deadline - time.monotonic(), 0.01))
                 continue
             raise Unavailable(P.ERR_UNAVAILABLE, f"no reply from {key} within {timeout} s")
 
@@ -404,7 +407,7 @@ class DrapeClient:
         given, gets a success reply's map (on the Zenoh thread)."""
         if self._closed:
             raise DrapeError(P.ERR_UNAVAILABLE, "client is closed")
-        key = self._key(kind, server or self.server_id)
+        key = self._key(kind, server or self.server_id, timeout)
         answered = []
 
         def on_reply(reply: zenoh.Reply) -> None:

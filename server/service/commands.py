@@ -112,6 +112,9 @@ class MoveBlock:
     indices: np.ndarray  # (k,) int64
     targets: np.ndarray  # (m, k, 3) float32
     waiter: BatchControl
+    #: earlier requests' blocks of exactly the same moves (same cloths and indices) that this one
+    #: replaced in the intake before their tick (latest wins): answered with this block's tick
+    superseded: list[BatchControl] = field(default_factory=list)
 
 
 @dataclass(eq=False)
@@ -233,7 +236,7 @@ class Intake:
                 raise P.Busy(P.ERR_BUSY, "server request queue is full, retry later", rid)
             self._waiting += n
             if moves is not None:
-                self._blocks.append(moves)
+                self._queue_block(moves)
             for rec, req, packed, waiter, tag in items:
                 g = len(self._gens) - 1
                 while g > 0 and rec.id not in self._gens[g]:
@@ -274,11 +277,25 @@ class Intake:
             self._waiting -= sum(len(s.waiters) for s in slots)
             return slots
 
+    def _queue_block(self, new: MoveBlock) -> None:
+        """Queue a moves block; one still waiting with the very same moves (the checker's cached
+        handles array of the same client, the same indices) is replaced by it: the game's next
+        pin positions supersede the last ones, so a slow tick applies one block per client, not
+        every block sent meanwhile (counted as waiting until answered)."""
+        for i in range(len(self._blocks) - 1, -1, -1):
+            old = self._blocks[i]
+            if old.handles is new.handles and np.array_equal(old.indices, new.indices):
+                new.superseded.extend(old.superseded)
+                new.superseded.append(old.waiter)
+                del self._blocks[i]
+                break
+        self._blocks.append(new)
+
     def take_moves(self) -> list[MoveBlock]:
         """The moves blocks for this tick, in arrival order (applied after its controls)."""
         with self._lock:
             blocks, self._blocks = self._blocks, []
-            self._waiting -= len(blocks)
+            self._waiting -= sum(1 + len(b.superseded) for b in blocks)
             return blocks
 
     def requeue(self, slots: list[ControlSlot]) -> None:

@@ -49,6 +49,7 @@ class Registry:
     def __init__(self, config: ServerConfig) -> None:
         self.config = config
         self.lock = threading.Lock()
+        self.generation = 0  # bumped whenever a cloth goes: caches of "these records are live" check it
         self.cloths: dict[str, ClothRecord] = {}
         self.by_client: dict[str, set[str]] = {}
         self.vertices = 0
@@ -116,6 +117,7 @@ class Registry:
                     if not mine:
                         del self.by_client[rec.client]
             rec.removed = True
+            self.generation += 1
 
     def get(self, cloth: str) -> ClothRecord | None:
         with self.lock:

@@ -541,9 +541,10 @@ class Ticker:
         answered: set[int] = set()
         for cmd in structural:
             if isinstance(cmd, MoveBlock):
-                if id(cmd.waiter) not in answered:
-                    answered.add(id(cmd.waiter))
-                    send(self.replies.error(cmd.waiter.query, P.ERR_BUSY, "server is shutting down", cmd.waiter.rid))
+                for w in (cmd.waiter, *cmd.superseded):
+                    if id(w) not in answered:
+                        answered.add(id(w))
+                        send(self.replies.error(w.query, P.ERR_BUSY, "server is shutting down", w.rid))
             elif isinstance(cmd, Call):
                 cmd.error = RuntimeError("server stopped")
                 cmd.done.set()

@@ -209,3 +209,58 @@ def test_apply_blocks_refuses_removed_and_drops_reset_cloths(device):
     np.testing.assert_allclose(frame.positions[hs[2]][PINS], fabric.rest_positions[PINS], atol=1e-5)
     rep = P.control_batch_reply_from_map(P.decode_reply(before[0].payload()))
     assert rep.tick == 42 and rep.moves_tick == 42 and [p for p, _, _ in rep.moves_failed or []] == [1]
+
+
+def test_identical_blocks_coalesce_latest_wins_and_each_request_is_answered(device):
+    """Two blocks of the same client moving the same cloths wait for one tick: the intake keeps
+    the later one only (one World call), both requests are answered with that tick, the pins end
+    at the later targets. A cloth removed in between (the registry's generation) voids the
+    checker's memo, so a block checked after it is checked afresh and never coalesced with one
+    checked before."""
+    from drape.server.service.commands import BatchControl, Intake
+    from drape.server.service.moves import MoveChecker, apply_blocks
+    from drape.server.service.registry import ClothRecord, Registry
+    from drape.server.sim import make_world
+    from drape.server.sim.fabric import cook_grid
+    from drape.server.sim.params import ClothParams
+
+    world = make_world("workgroup", device=device)
+    fabric = cook_grid(8, 8, pinned=PINS)
+    registry = Registry(make_config())
+    recs = []
+    for i in range(3):
+        rec = ClothRecord(f"c{i}", "alice", f"{i:032x}", "", 64, fabric=fabric)
+        registry.reserve(rec, 0)
+        rec.handle = world.add(fabric, ClothParams())
+        recs.append(rec)
+    checker, intake = MoveChecker(registry), Intake(max_pending=16)
+
+    def send(targets: float, rid: int) -> BatchControl:
+        mv = P.PinMoves(
+            ["c0", "c1"],
+            [recs[0].token, recs[1].token],
+            np.array(PINS, np.uint32),
+            np.full((2, 2, 3), targets, np.float32),
+        )
+        w = BatchControl(None, rid, [], pending=1)  # type: ignore[arg-type]
+        intake.put_controls([], rid, checker.check(mv, "alice", w))
+        return w
+
+    w1, w2 = send(0.25, 1), send(0.75, 2)
+    blocks = intake.take_moves()
+    assert len(blocks) == 1 and blocks[0].waiter is w2 and blocks[0].superseded == [w1]
+    before: list = []
+    apply_blocks(world, blocks, 9, set(), registry, before)
+    assert len(before) == 2 and w1.moves_tick == w2.moves_tick == 9 and not w1.moves_failed
+    assert registry.counters["move_blocks_superseded"] == 1
+    world.step(1 / 60)
+    np.testing.assert_allclose(world.fetch().positions[recs[0].handle][PINS], 0.75, atol=1e-5)
+
+    w3 = send(0.5, 3)
+    registry.unreserve(recs[2])  # another cloth goes: the memo of what alice's block owns is void
+    w4 = send(0.5, 4)
+    blocks = intake.take_moves()
+    assert [b.waiter for b in blocks] == [w3, w4] and not blocks[1].superseded
+    assert blocks[0].handles is not blocks[1].handles
+    apply_blocks(world, blocks, 10, set(), registry, before)
+    assert len(before) == 4

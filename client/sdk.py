@@ -64,10 +64,6 @@ from .session import deployment_client_id, zenoh_config  # noqa: F401  (zenoh_co
 log = logging.getLogger(__name__)
 
 MAX_ORPHAN_CLOTHS = 256  # bundle entries of cloths whose submit reply is still on its way, kept per id
-#: bundles held between Zenoh's receive thread and the SDK's decoding thread; when the decoding
-#: falls behind, the oldest are dropped (a state is superseded one tick later) instead of the
-#: receive thread waiting for Python, which would back the server's sends to this client up
-BUNDLE_RING = 4
 
 
 class DrapeClient:
@@ -126,7 +122,6 @@ class DrapeClient:
         self.send_errors = 0  # replies to send() that were errors (or refused batch items), or that never came
         self.bundle_invalid = 0  # bundle payloads that could not be parsed
         self._bundle_sub: Any = None
-        self._bundle_thread: threading.Thread | None = None
         self._bundled_submits = 0  # bundled submissions waiting for their reply
         self._orphans: dict[str, list[ClothState]] = {}  # their states that arrived before the reply
         self._server_version: tuple[int, int] | None = None
@@ -176,9 +171,6 @@ class DrapeClient:
                 obj.undeclare()
             except Exception:
                 pass
-        th = self._bundle_thread
-        if th is not None and th is not threading.current_thread():
-            th.join(timeout=2.0)  # its loop ends with the subscriber
         self.session.close()
 
     @property
@@ -302,25 +294,10 @@ class DrapeClient:
         subscription is in place when the cloth's first state is published."""
         with self._lock:
             if self._bundle_sub is None:
-                # a ring channel: Zenoh's receive thread only queues (no GIL), this client's own
-                # thread decodes and dispatches
-                sub = self.session.declare_subscriber(self.bundle_key, zenoh.handlers.RingChannel(BUNDLE_RING))
-                self._bundle_sub = sub
-                self._bundle_thread = threading.Thread(
-                    target=self._bundle_loop, args=(sub,), name=f"drape-bundles-{self.client_id}", daemon=True
-                )
-                self._bundle_thread.start()
-
-    def _bundle_loop(self, sub: Any) -> None:
-        """Decode and dispatch bundles until the subscriber is undeclared."""
-        for sample in sub:
-            try:
-                self._on_bundle(sample)
-            except Exception:  # a handle's failure must not end the stream for the others
-                log.exception("dispatching a bundle on %s failed", self.bundle_key)
+                self._bundle_sub = self.session.declare_subscriber(self.bundle_key, self._on_bundle)
 
     def _on_bundle(self, sample: zenoh.Sample) -> None:
-        """Dispatch each state of a bundle to its ClothHandle (on the bundle thread)."""
+        """Dispatch each state of a bundle to its ClothHandle (on the Zenoh thread)."""
         now = time.time_ns()
         try:
             bundle = P.parse_bundle(sample.payload.to_bytes())

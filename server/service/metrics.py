@@ -77,6 +77,13 @@ METRICS: tuple[tuple[str, str, str], ...] = (
         "counter",
         "Controls replaced by a newer one for the same cloth before a tick (when the server reports it)",
     ),
+    ("drape_batch_moves", "counter", "Moves received in batch controls' moves blocks (protocol 1.4)"),
+    ("drape_moves_applied", "counter", "Moves applied by the tick thread (protocol 1.4)"),
+    (
+        "drape_move_blocks_superseded",
+        "counter",
+        "Moves blocks replaced by an identical newer one before their tick (protocol 1.4)",
+    ),
     ("drape_quality_cloths", "gauge", "Cloths at each quality preset now"),
     ("drape_quality_degraded_cloths", "gauge", "Cloths below the preset their client asked for"),
     ("drape_quality_degraded_seconds", "counter", "Seconds with any cloth degraded"),
@@ -110,6 +117,9 @@ OPTIONAL = {
     "nan_removals": ("drape_nan_removals", "counter"),
     "controls_applied": ("drape_controls_applied", "counter"),
     "controls_coalesced": ("drape_controls_coalesced", "counter"),
+    "batch_moves": ("drape_batch_moves", "counter"),
+    "moves_applied": ("drape_moves_applied", "counter"),
+    "move_blocks_superseded": ("drape_move_blocks_superseded", "counter"),
 }
 
 _HELP = {name: help_ for name, _, help_ in METRICS}

@@ -62,6 +62,7 @@ STAT_COUNTERS = (
     "controls_coalesced",
     "batch_moves",  # 1.4: moves received in batch controls' blocks
     "moves_applied",  # 1.4: moves applied (refused ones are counted in errors by code)
+    "move_blocks_superseded",  # 1.4: moves blocks replaced by an identical newer one before their tick
 )
 
 

@@ -15,7 +15,6 @@ import shutil
 import subprocess
 import sys
 import threading
-import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -139,14 +138,9 @@ class Inbox:
 
 
 def wait_long(pred: Callable[[], bool], timeout: float = WAIT, step: float = 0.1) -> bool:
-    """Poll ``pred`` until it holds (True) or ``timeout`` passes (False): for server-side outcomes
-    only a query can observe, never to wait out something that must not happen."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(step)
-    return pred()
+    """tests/conftest.py's ``wait_until`` with a loaded machine's patience: for server-side
+    outcomes only a query can observe, never to wait out something that must not happen."""
+    return bool(_root.wait_until(pred, timeout, step))
 
 
 def user_file(d: Path, user: str, password: str) -> str:

@@ -35,7 +35,6 @@ import secrets
 import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from functools import partial
 from pathlib import Path
 from typing import Any, cast
 
@@ -59,6 +58,7 @@ from .failover import Failover, FailoverCallback, FailoverEvent  # noqa: F401  (
 from .handle import ClothHandle, StateCallback  # noqa: F401  (drape.client.sdk.ClothHandle as before)
 from .placement import PLACE_ELSEWHERE, Placement
 from .protocol import ClothState, DrapeError, Unavailable  # noqa: F401
+from .sending import send_controls
 from .session import deployment_client_id, zenoh_config  # noqa: F401  (zenoh_config: the pre-1.2 path)
 
 log = logging.getLogger(__name__)
@@ -532,94 +532,8 @@ class DrapeClient:
         on_error: ErrorCallback | None,
         timeout: float | None,
     ) -> list[int | DrapeError] | None:
-        if not items:
-            return [] if wait else None
-        servers = {h.server_id for h, _ in items}
-        if len(servers) > 1:  # after a failover a client's cloths may live on several servers
-            order: dict[str, list[int]] = {}
-            for i, (h, _) in enumerate(items):
-                order.setdefault(h.server_id, []).append(i)
-            merged: list[int | DrapeError | None] = [None] * len(items)
-            for idx in order.values():
-                part = self._send_controls([items[i] for i in idx], wait, on_error, timeout)
-                for i, r in zip(idx, part or (), strict=False):
-                    merged[i] = r
-            return merged if wait else None  # type: ignore[return-value]
-        server = items[0][0].server_id or None
-        self._require_features_delta(r for _, r in items)
-        if len(items) > 1:  # 1.4: pins-only items sharing one index list go as one moves block
-            from .moves import moves_of
-
-            moves = moves_of(self)
-            pos, block = moves.split(items)
-            if block is not None and self._server_batch_limit() and moves.speaks_moves(server):
-                moved = moves.send_block(block, [items[i][0] for i in pos], wait, on_error, timeout, server)
-                rest = set(pos)
-                others = self._send_controls(
-                    [it for i, it in enumerate(items) if i not in rest], wait, on_error, timeout
-                )
-                if not wait:
-                    return None
-                it_moved, it_others = iter(moved or ()), iter(others or ())
-                return [next(it_moved) if i in rest else next(it_others) for i in range(len(items))]
-        limit = self._server_batch_limit()
-        if not limit:  # a 1.0 server: one control per item
-            log.debug("server speaks %s: batch sent as %d controls", self._server_version, len(items))
-            out: list[int | DrapeError] = []
-            for h, req in items:
-                if wait:
-                    try:
-                        out.append(
-                            P.tick_reply_from_map(
-                                self.request("control", P.encode_control(req), timeout, server=server)
-                            )
-                        )
-                    except DrapeError as e:
-                        if isinstance(e, P.NotFound):
-                            self._cloth_not_found(h)
-                        out.append(e)
-                else:
-                    self.send(
-                        "control", P.encode_control(req), self._watch_not_found(h, on_error), timeout, server=server
-                    )
-            return out if wait else None
-        results: list[int | DrapeError] = []
-        for start in range(0, len(items), limit):
-            chunk = items[start : start + limit]
-            rid = self._next_rid()
-            payload = P.encode_control_batch(P.ControlBatchRequest(self.client_id, [r for _, r in chunk], rid))
-            if wait:
-                rep = P.control_batch_reply_from_map(self.request("control_batch", payload, timeout, server=server))
-                outcomes = _item_outcomes(chunk, rep, rid)
-                for (h, _), r in zip(chunk, outcomes, strict=True):
-                    if isinstance(r, P.NotFound):
-                        self._cloth_not_found(h)
-                results.extend(outcomes)
-            else:
-                self.send(
-                    "control_batch",
-                    payload,
-                    on_error,
-                    timeout,
-                    on_ok=partial(self._batch_replied, chunk, rid=rid, on_error=on_error),
-                    server=server,
-                )
-        return results if wait else None
-
-    def _batch_replied(
-        self,
-        chunk: list[tuple[ClothHandle, P.ControlRequest]],
-        m: dict[str, Any],
-        rid: int,
-        on_error: ErrorCallback | None,
-    ) -> None:
-        rep = P.control_batch_reply_from_map(m)
-        if rep.failed:
-            for (h, _), r in zip(chunk, _item_outcomes(chunk, rep, rid), strict=True):
-                if isinstance(r, DrapeError):
-                    if isinstance(r, P.NotFound):
-                        self._cloth_not_found(h)
-                    self._send_failed(r, on_error)
+        """Send controls of this client's cloths (client/sending.py)."""
+        return send_controls(self, items, wait, on_error, timeout)
 
     def info(self, timeout: float | None = None) -> dict[str, Any]:
         """The server's description: version, solver, device, tick rate, limits, counts."""

@@ -114,7 +114,7 @@ typedef struct DrapeClientOptions {
   const char *connect;
   // The server to use (NULL: the first one seen by liveliness).
   const char *server_id;
-  // This client's id (NULL: random).
+  // This client's id, also in its 1.4 request keys (NULL: $DRAPE_CLIENT_ID, else random).
   const char *client_id;
   // Namespace (NULL: "drape").
   const char *namespace_;

@@ -501,3 +501,133 @@ fn overloaded_submissions() {
     first.remove().unwrap();
     client.close(true);
 }
+
+/// PROTOCOL.md 11.2 (1.4): a server run with `--identity keys` declares only the client-scoped
+/// request keys. The client asks its info once, sees 1.4 and sends submit, control,
+/// control_batch and remove on `{ns}/server/{S}/client/{C}/...`; states come on the submit
+/// reply's client-scoped key, bundles on the client's bundle key. The server-wide keys answer
+/// nothing there (what a 1.3 client would get).
+#[test]
+fn identity_keys_server() {
+    use zenoh::Wait;
+    let Some(bin) = common::drape_bin() else { return };
+    let s = common::start(&bin, &["--identity", "keys"]);
+    let client = connect(&[&s], Some(&s.id), false);
+    let info = client.info().unwrap();
+    let version = drape::wire::reader::Reader::new(&info, "").str("version", true).unwrap().unwrap().to_string();
+    let (major, minor) = version.split_once('.').unwrap();
+    assert!((major.parse::<u32>().unwrap(), minor.parse::<u32>().unwrap()) >= (1, 4), "server version {version}");
+    let me = client.client_id().to_string();
+    // submit (a grid on its own state key) and states
+    let grid = Grid { cols: 8, rows: 4, width: 1.4, height: 0.6, orientation: Orientation::Vertical, origin: [0.0, 2.0, 0.0] };
+    let cloth = client.submit_grid(grid, Submit { pinned: vec![0, 7], ..opts() }).unwrap();
+    assert_eq!(cloth.state_key(), drape::wire::Keys::new("drape").client_state(&me, &cloth.id()), "the 1.4 per-cloth state key");
+    let mut pos = vec![0f32; 96];
+    let first = wait(&cloth, &mut pos);
+    let st = wait(&cloth, &mut pos);
+    assert!(st.tick > first.tick && st.vertex_count == 32);
+    // a control, waited for and not
+    let targets = [0.1f32, 2.5, 0.2, 1.5, 2.5, 0.2];
+    let tick = cloth.move_pins(&[0, 7], &targets, true).unwrap().unwrap();
+    loop {
+        let st = wait(&cloth, &mut pos);
+        if st.tick >= tick {
+            assert_eq!((&pos[0..3], &pos[21..24]), (&targets[0..3], &targets[3..6]));
+            break;
+        }
+    }
+    cloth.move_pins(&[0], &[0.0, 2.6, 0.0], false).unwrap();
+    let t0 = Instant::now();
+    while pos[0..3].iter().zip([0.0f32, 2.6, 0.0]).any(|(p, t)| (p - t).abs() > 1e-6) {
+        assert!(t0.elapsed() < Duration::from_secs(5), "the unwaited pin move is not applied: {:?}", &pos[0..3]);
+        wait(&cloth, &mut pos);
+    }
+    // a bundled cloth and a batch control (control_batch on the client's key)
+    let state = StateOptions { bundle: Some(true), ..Default::default() };
+    let bundled = client.submit_grid(Grid::new(6, 6), Submit { pinned: vec![0, 5], state: Some(state), ..opts() }).unwrap();
+    assert!(bundled.bundled());
+    let mut bpos = vec![0f32; 108];
+    wait(&bundled, &mut bpos);
+    let mut batch = client.batch();
+    batch.move_pins(&bundled, &[0], &[0.0, 1.0, 0.5]).move_pins(&cloth, &[7], &[1.5, 2.0, 0.0]);
+    let results = client.send_batch(batch, true).unwrap().unwrap();
+    assert!(results.iter().all(|r| r.is_ok()), "{results:?}");
+    // the server-wide keys answer nothing on this server (a 1.3 client's fate)
+    let cfg = {
+        let mut c = zenoh::Config::default();
+        c.insert_json5("mode", "\"peer\"").unwrap();
+        c.insert_json5("connect/endpoints", &format!("[{:?}]", s.endpoint)).unwrap();
+        c.insert_json5("listen/endpoints", "[]").unwrap();
+        c.insert_json5("scouting/multicast/enabled", "false").unwrap();
+        c
+    };
+    let raw = zenoh::open(cfg).wait().unwrap();
+    let payload = drape::wire::msg::encode_info(1);
+    let count = |key: String| raw.get(key).payload(payload.clone()).timeout(Duration::from_secs(2)).wait().unwrap().iter().count();
+    std::thread::sleep(Duration::from_millis(300)); // routes to the server's queryables
+    assert_eq!(count(format!("drape/server/{}/info", s.id)), 1, "info stays server-wide");
+    assert_eq!(count(format!("drape/server/{}/control", s.id)), 0, "no server-wide control under identity = keys");
+    raw.close().wait().unwrap();
+    // remove
+    assert!(cloth.remove().unwrap() >= tick);
+    bundled.remove().unwrap();
+    std::thread::sleep(Duration::from_millis(200));
+    while let Some(e) = client.poll_event(Duration::ZERO) {
+        assert!(!matches!(e, Event::RequestFailed { .. }), "{e:?}");
+    }
+    client.close(true);
+}
+
+/// The C ABI against an `--identity keys` server, with the client id given (as a deployment
+/// whose router binds it would): submit, a state, a control, remove.
+#[test]
+fn c_abi_identity_keys_server() {
+    use drape::ffi::*;
+    use std::ffi::CString;
+    let Some(bin) = common::drape_bin() else { return };
+    let s = common::start(&bin, &["--identity", "keys"]);
+    let connect = CString::new(s.endpoint.clone()).unwrap();
+    let server = CString::new(s.id.clone()).unwrap();
+    let me = CString::new(format!("c-abi-{}", std::process::id())).unwrap();
+    unsafe {
+        let opts = DrapeClientOptions {
+            connect: connect.as_ptr(),
+            server_id: server.as_ptr(),
+            client_id: me.as_ptr(),
+            namespace_: std::ptr::null(),
+            timeout_ms: 60_000,
+            failover: false,
+        };
+        let mut client = std::ptr::null_mut();
+        assert_eq!(drape_client_open(&opts, &mut client), DRAPE_OK);
+        let grid = DrapeGrid { cols: 4, rows: 4, width: 0.0, height: 0.0, vertical: false, origin: [0.0; 3] };
+        let pins = [0u32, 3];
+        let copts = DrapeClothOptions {
+            pinned: pins.as_ptr(),
+            pinned_count: 2,
+            encoding: 0,
+            normals: false,
+            bundle: false,
+            quality: std::ptr::null(),
+            gravity: std::ptr::null(),
+        };
+        let mut cloth = std::ptr::null_mut();
+        assert_eq!(drape_submit_grid(client, &grid, &copts, &mut cloth), DRAPE_OK);
+        let mut pos = [0f32; 48];
+        let t0 = Instant::now();
+        let mut got = DRAPE_NO_DATA;
+        while got == DRAPE_NO_DATA && t0.elapsed() < Duration::from_secs(10) {
+            std::thread::sleep(Duration::from_millis(20));
+            got = drape_cloth_read_state(cloth, pos.as_mut_ptr(), 48, std::ptr::null_mut(), 0, std::ptr::null_mut());
+        }
+        assert_eq!(got, DRAPE_OK, "no state within 10 s");
+        let mut tick = 0u64;
+        let idx = [0u32];
+        let target = [0.0f32, 1.0, 0.0];
+        assert_eq!(drape_cloth_move_pins(cloth, idx.as_ptr(), 1, target.as_ptr(), true, &mut tick), DRAPE_OK);
+        assert!(tick > 0);
+        assert_eq!(drape_cloth_remove(cloth, std::ptr::null_mut()), DRAPE_OK);
+        drape_cloth_free(cloth);
+        drape_client_close(client, true);
+    }
+}

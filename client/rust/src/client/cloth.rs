@@ -189,6 +189,12 @@ impl Cloth {
     pub fn token(&self) -> String {
         self.inner.slot.lock().unwrap().token.clone()
     }
+    /// The cloth's state key, as its submit reply gave it (`{ns}/cloth/{cloth}/state`, or 1.4's
+    /// `{ns}/client/{client}/cloth/{cloth}/state` when submitted on a client-scoped key); a
+    /// bundled cloth's states arrive in the client's bundle instead.
+    pub fn state_key(&self) -> String {
+        self.inner.slot.lock().unwrap().key.clone()
+    }
     pub fn vertex_count(&self) -> u32 {
         self.inner.n_vertices
     }

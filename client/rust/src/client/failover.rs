@@ -396,7 +396,7 @@ fn watch(inner: &Arc<Inner>) {
         let payload = Control::new(&id, &token).encode(inner.next_rid());
         let weak = Arc::downgrade(inner);
         let cw = Arc::downgrade(&c);
-        let key = inner.keys.query(&server, "control");
+        let key = inner.request_key(&server, "control", inner.timeout.min(Duration::from_secs(2)));
         let _ = inner
             .session
             .get(key.clone())

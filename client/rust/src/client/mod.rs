@@ -12,7 +12,7 @@ use crate::wire::error::{Error, ErrorCode, Result};
 use crate::wire::msg::{encode_info, Control, Grid, Mesh, Resume, Shape, Submit};
 use crate::wire::reader::{Map, Reader};
 use crate::wire::replies::{decode_reply, Applied, SubmitReply};
-use crate::wire::{grid_geometry, parse_obj, valid_id, valid_namespace, Keys, Limits, DEFAULT_ENDPOINT, DEFAULT_NAMESPACE};
+use crate::wire::{grid_geometry, parse_obj, valid_id, valid_namespace, Keys, Limits, CLIENT_REQUESTS, DEFAULT_ENDPOINT, DEFAULT_NAMESPACE};
 use std::collections::{BTreeSet, HashMap, VecDeque};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
@@ -30,7 +30,9 @@ pub struct ClientOptions {
     pub namespace: String,
     /// The server to use; None picks the first one seen by liveliness (sorted by id).
     pub server_id: Option<String>,
-    /// This client's id (its liveliness token); None: random.
+    /// This client's id (its liveliness token, and in its 1.4 request keys); None: the
+    /// deployment's ([`deployment_client_id`]: `$DRAPE_CLIENT_ID`), else random. Behind a router
+    /// that binds identities (PROTOCOL.md 11.2) it must be the id the router binds to the user.
     pub client_id: Option<String>,
     /// Timeout of waited-for requests and of server discovery.
     pub timeout: Duration,
@@ -150,7 +152,7 @@ impl Client {
     /// Open a Zenoh session, declare this client's liveliness token and start watching the
     /// servers' tokens.
     pub fn open(opts: ClientOptions) -> Result<Client> {
-        let client_id = opts.client_id.clone().unwrap_or_else(random_id);
+        let client_id = opts.client_id.clone().or_else(deployment_client_id).unwrap_or_else(random_id);
         if !valid_id(&client_id) {
             return Err(Error::new(ErrorCode::InvalidValue, format!("invalid client id {client_id:?}")));
         }
@@ -389,10 +391,16 @@ impl Inner {
     }
 
     pub(crate) fn server_info(&self, server: &str) -> Result<((u8, u8), Limits)> {
+        self.server_info_within(server, self.timeout)
+    }
+
+    /// The server's version and limits, asked with info once per server (kept until its
+    /// liveliness token vanishes; an unanswered info is not remembered).
+    pub(crate) fn server_info_within(&self, server: &str, timeout: Duration) -> Result<((u8, u8), Limits)> {
         if let Some(i) = self.servers.lock().unwrap().info.get(server) {
             return Ok(*i);
         }
-        let m = self.request(server, "info", encode_info(self.next_rid()))?;
+        let m = self.request_within(server, "info", encode_info(self.next_rid()), timeout)?;
         let r = Reader::new(&m, "");
         let version = r.str("version", false)?.unwrap_or("1.0");
         let (ma, mi) = version.split_once('.').unwrap_or((version, "0"));
@@ -413,6 +421,29 @@ impl Inner {
         Ok((v, lim))
     }
 
+    /// The key of a `kind` request to `server` (PROTOCOL.md 11.2): this client's own key
+    /// `{ns}/server/{server}/client/{client}/{kind}` when the server speaks 1.4 or later (its
+    /// `info.version`, asked once per server), else the server-wide key of 1.0-1.3 (always for
+    /// info). A 1.3 server has no client-scoped queryable and a server run with
+    /// `identity = "keys"` has no server-wide one, so the version decides.
+    pub(crate) fn request_key(&self, server: &str, kind: &str, timeout: Duration) -> String {
+        if CLIENT_REQUESTS.contains(&kind) && self.client_scoped(server, timeout) {
+            return self.keys.client_request(server, &self.client_id, kind);
+        }
+        self.keys.query(server, kind)
+    }
+
+    /// Whether `server` speaks 1.4 (client-scoped request keys); false when its info is not
+    /// answered (not remembered: asked again by the next request).
+    fn client_scoped(&self, server: &str, timeout: Duration) -> bool {
+        self.server_info_within(server, timeout).map(|(v, _)| v >= (1, 4)).unwrap_or(false)
+    }
+
+    /// Whether `server`'s info (version) is known.
+    fn info_known(&self, server: &str) -> bool {
+        self.servers.lock().unwrap().info.contains_key(server)
+    }
+
     /// A waited-for request: the success map, the server's error, or `unavailable`.
     pub(crate) fn request(&self, server: &str, kind: &str, payload: Vec<u8>) -> Result<Map> {
         self.request_within(server, kind, payload, self.timeout)
@@ -421,8 +452,8 @@ impl Inner {
     /// A waited-for request with its own timeout.
     pub(crate) fn request_within(&self, server: &str, kind: &str, payload: Vec<u8>, timeout: Duration) -> Result<Map> {
         self.check_open()?;
-        let key = self.keys.query(server, kind);
         let deadline = Instant::now() + timeout;
+        let mut key = self.request_key(server, kind, timeout);
         loop {
             let left = deadline.saturating_duration_since(Instant::now()).max(Duration::from_millis(10));
             let started = Instant::now();
@@ -433,6 +464,10 @@ impl Inner {
             // No reply at all: the queryable is not known yet (connecting) -> retry until the deadline.
             if Instant::now() + Duration::from_millis(50) < deadline && started.elapsed() < left / 2 {
                 std::thread::sleep(Duration::from_millis(50));
+                if CLIENT_REQUESTS.contains(&kind) && !self.info_known(server) {
+                    // its info went unanswered too: ask again which keys it has
+                    key = self.request_key(server, kind, deadline.saturating_duration_since(Instant::now()).max(Duration::from_millis(10)));
+                }
                 continue;
             }
             return Err(Error::new(ErrorCode::Unavailable, format!("no reply from {key} within {timeout:?}")));
@@ -446,7 +481,7 @@ impl Inner {
                        on_ok: Option<OnOk>,
                        watch: Option<(std::sync::Weak<cloth::ClothInner>, String)>) -> Result<()> {
         self.check_open()?;
-        let key = self.keys.query(server, kind);
+        let key = self.request_key(server, kind, self.timeout);
         struct Done {
             inner: std::sync::Weak<Inner>,
             answered: AtomicBool,
@@ -600,10 +635,37 @@ fn reply_result(key: &str, r: zenoh::query::Reply) -> Result<Map> {
     }
 }
 
+/// The environment variable giving this client's id (PROTOCOL.md 11.2), as the Python SDK reads it.
+pub const CLIENT_ID_ENV: &str = "DRAPE_CLIENT_ID";
+
+/// The client id the deployment gives this client, or None: `$DRAPE_CLIENT_ID` (trimmed, when not
+/// empty). [`Client::open`] uses it when [`ClientOptions::client_id`] is None. (The Python SDK
+/// also reads the first line of `<zenoh config file>.client_id`; this crate takes no Zenoh
+/// configuration file, so it has no such sidecar.)
+pub fn deployment_client_id() -> Option<String> {
+    client_id_from_env(std::env::var(CLIENT_ID_ENV).ok())
+}
+
+fn client_id_from_env(value: Option<String>) -> Option<String> {
+    value.map(|v| v.trim().to_string()).filter(|v| !v.is_empty())
+}
+
 fn random_id() -> String {
     use std::hash::{BuildHasher, Hasher};
     let mut h = std::collections::hash_map::RandomState::new().build_hasher();
     h.write_u128(std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_nanos());
     h.write_u32(std::process::id());
     format!("c{:016x}", h.finish())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::client_id_from_env;
+
+    #[test]
+    fn client_id_from_the_deployment() {
+        assert_eq!(client_id_from_env(Some(" game-7\n".into())).as_deref(), Some("game-7"));
+        assert_eq!(client_id_from_env(Some("  ".into())), None);
+        assert_eq!(client_id_from_env(None), None);
+    }
 }

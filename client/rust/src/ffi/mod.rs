@@ -80,7 +80,7 @@ pub struct DrapeClientOptions {
     pub connect: *const c_char,
     /// The server to use (NULL: the first one seen by liveliness).
     pub server_id: *const c_char,
-    /// This client's id (NULL: random).
+    /// This client's id, also in its 1.4 request keys (NULL: $DRAPE_CLIENT_ID, else random).
     pub client_id: *const c_char,
     /// Namespace (NULL: "drape").
     pub namespace_: *const c_char,

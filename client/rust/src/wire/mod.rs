@@ -18,7 +18,7 @@ pub mod validate;
 pub use bundle::{encode_bundle, parse_bundle, Bundle, BundleEntry, BUNDLE_HEADER_SIZE};
 pub use error::{Error, ErrorCode, Result};
 pub use geometry::{grid_geometry, parse_obj};
-pub use keys::{valid_id, valid_namespace, valid_token, Keys};
+pub use keys::{valid_id, valid_namespace, valid_token, Keys, CLIENT_REQUESTS};
 pub use msg::{
     Collider, Control, ControlBatch, Encoding, Grid, Links, Material, Mesh, Orientation, Pins, Resume, Shape,
     StateOptions, Submit,
@@ -27,7 +27,9 @@ pub use replies::{Applied, BatchItem, BatchReply, ErrorReply, SubmitReply};
 pub use validate::Limits;
 pub use state::{decode_state_into, encode_state, parse_state, state_size, StateHeader, STATE_HEADER_SIZE};
 
-/// The protocol version this crate speaks: `[1, 3]` (it reads every minor of major 1).
+/// The protocol version this crate speaks: `[1, 3]` (it reads every minor of major 1). Of 1.4 it
+/// also speaks the client-scoped request keys (toward a server whose `info.version` is >= 1.4, so
+/// that a server run with `identity = "keys"` serves it); not `moves` (optional for clients).
 pub const PROTOCOL_MAJOR: u8 = 1;
 pub const PROTOCOL_MINOR: u8 = 3;
 /// The default namespace and server endpoint.

@@ -218,6 +218,19 @@ const char *drape_error_name(int32_t code);
 // NULL (all defaults). On success `*out` is a client to close with `drape_client_close`.
 int32_t drape_client_open(const struct DrapeClientOptions *options, struct DrapeClient **out);
 
+// `drape_client_open` with a Zenoh configuration file and mode (e.g. behind a router that
+// authenticates users). `zenoh_config_file` (NULL: none) is a JSON5 Zenoh configuration (user
+// and password, TLS...) loaded with Zenoh's `Config::from_file`; the mode, the endpoints of
+// `options->connect`, no listen endpoints and multicast scouting off are set over it, as the
+// Python SDK does. `mode`: "peer" or "client" (NULL: "peer"; behind a router, "client"). With
+// `options->client_id` NULL the id is $DRAPE_CLIENT_ID, else the first line of the sidecar
+// `<zenoh_config_file>.client_id`, else random. A file that cannot be loaded fails with
+// DRAPE_E_INVALID_VALUE; credentials the router refuses fail with DRAPE_E_UNAVAILABLE.
+int32_t drape_client_open_with_config(const struct DrapeClientOptions *options,
+                                      const char *zenoh_config_file,
+                                      const char *mode,
+                                      struct DrapeClient **out);
+
 // Close a client (removing its cloths first if `remove`) and free it. Cloth handles of this
 // client must still be freed with `drape_cloth_free`; their calls then fail with CLOSED.
 void drape_client_close(struct DrapeClient *client, bool remove);

@@ -31,13 +31,20 @@ pub struct ClientOptions {
     /// The server to use; None picks the first one seen by liveliness (sorted by id).
     pub server_id: Option<String>,
     /// This client's id (its liveliness token, and in its 1.4 request keys); None: the
-    /// deployment's ([`deployment_client_id`]: `$DRAPE_CLIENT_ID`), else random. Behind a router
+    /// deployment's ([`deployment_client_id_for`]: `$DRAPE_CLIENT_ID`, else the
+    /// `.client_id` sidecar of `zenoh_config_file`), else random. Behind a router
     /// that binds identities (PROTOCOL.md 11.2) it must be the id the router binds to the user.
     pub client_id: Option<String>,
     /// Timeout of waited-for requests and of server discovery.
     pub timeout: Duration,
     /// Zenoh mode: "peer" (default) or "client".
     pub mode: String,
+    /// A Zenoh configuration file (JSON5: user/password authentication, TLS, ...), loaded with
+    /// zenoh's `Config::from_file`; `mode`, the connect endpoints, the listen endpoints (none, in
+    /// peer mode) and multicast scouting (off) are then set over it, as the Python SDK's
+    /// `zenoh_config_file` does. Its sidecar `<file>.client_id` gives the client id when neither
+    /// `client_id` nor `$DRAPE_CLIENT_ID` does ([`deployment_client_id_for`]).
+    pub zenoh_config_file: Option<std::path::PathBuf>,
     /// Opt-in failover (PROTOCOL.md 11.1, README.md "Failover"): a cloth lost with its server,
     /// or reclaimed while this client was away, is resubmitted with `resume` (its last received
     /// state) to the least loaded live server, under the same handle.
@@ -59,6 +66,7 @@ impl Default for ClientOptions {
             client_id: None,
             timeout: Duration::from_secs(5),
             mode: "peer".to_string(),
+            zenoh_config_file: None,
             failover: false,
             stall_timeout: Duration::from_millis(500),
             failover_give_up: Duration::from_secs(60),
@@ -152,7 +160,8 @@ impl Client {
     /// Open a Zenoh session, declare this client's liveliness token and start watching the
     /// servers' tokens.
     pub fn open(opts: ClientOptions) -> Result<Client> {
-        let client_id = opts.client_id.clone().or_else(deployment_client_id).unwrap_or_else(random_id);
+        let file = opts.zenoh_config_file.as_deref();
+        let client_id = opts.client_id.clone().or_else(|| deployment_client_id_for(file)).unwrap_or_else(random_id);
         if !valid_id(&client_id) {
             return Err(Error::new(ErrorCode::InvalidValue, format!("invalid client id {client_id:?}")));
         }
@@ -165,7 +174,11 @@ impl Client {
         if opts.mode != "peer" && opts.mode != "client" {
             return Err(Error::new(ErrorCode::InvalidValue, format!("mode must be peer or client, not {:?}", opts.mode)));
         }
-        let mut cfg = zenoh::Config::default();
+        let mut cfg = match file {
+            Some(path) => zenoh::Config::from_file(path)
+                .map_err(|e| Error::new(ErrorCode::InvalidValue, format!("zenoh config file {}: {e}", path.display())))?,
+            None => zenoh::Config::default(),
+        };
         let json = |v: &[String]| format!("[{}]", v.iter().map(|e| format!("{e:?}")).collect::<Vec<_>>().join(","));
         let set = |cfg: &mut zenoh::Config, k: &str, v: &str| cfg.insert_json5(k, v).map_err(|e| Error::new(ErrorCode::InvalidValue, format!("zenoh config {k} = {v}: {e}")));
         set(&mut cfg, "mode", &format!("{:?}", opts.mode))?;
@@ -638,16 +651,34 @@ fn reply_result(key: &str, r: zenoh::query::Reply) -> Result<Map> {
 /// The environment variable giving this client's id (PROTOCOL.md 11.2), as the Python SDK reads it.
 pub const CLIENT_ID_ENV: &str = "DRAPE_CLIENT_ID";
 
-/// The client id the deployment gives this client, or None: `$DRAPE_CLIENT_ID` (trimmed, when not
-/// empty). [`Client::open`] uses it when [`ClientOptions::client_id`] is None. (The Python SDK
-/// also reads the first line of `<zenoh config file>.client_id`; this crate takes no Zenoh
-/// configuration file, so it has no such sidecar.)
+/// The suffix of the client id's sidecar file, appended to the Zenoh configuration file's name
+/// (`zenoh-client-tls.json5.client_id`), as the Python SDK reads it.
+pub const CLIENT_ID_SIDECAR: &str = ".client_id";
+
+/// The client id the deployment gives this client without a Zenoh configuration file, or None:
+/// `$DRAPE_CLIENT_ID` (trimmed, when not empty). Same as `deployment_client_id_for(None)`.
 pub fn deployment_client_id() -> Option<String> {
-    client_id_from_env(std::env::var(CLIENT_ID_ENV).ok())
+    deployment_client_id_for(None)
+}
+
+/// The client id the deployment gives this client, or None, as the Python SDK's
+/// `deployment_client_id`: `$DRAPE_CLIENT_ID` (trimmed, when not empty), else the first word of
+/// the sidecar file `<zenoh_config_file>.client_id` when there is one (it sits next to the Zenoh
+/// file holding the user and password the router binds to that id). [`Client::open`] uses it
+/// when [`ClientOptions::client_id`] is None.
+pub fn deployment_client_id_for(zenoh_config_file: Option<&std::path::Path>) -> Option<String> {
+    client_id_from_env(std::env::var(CLIENT_ID_ENV).ok()).or_else(|| zenoh_config_file.and_then(client_id_from_sidecar))
 }
 
 fn client_id_from_env(value: Option<String>) -> Option<String> {
     value.map(|v| v.trim().to_string()).filter(|v| !v.is_empty())
+}
+
+fn client_id_from_sidecar(zenoh_config_file: &std::path::Path) -> Option<String> {
+    let mut name = zenoh_config_file.as_os_str().to_owned();
+    name.push(CLIENT_ID_SIDECAR);
+    let text = std::fs::read_to_string(std::path::PathBuf::from(name)).ok()?;
+    text.split_whitespace().next().map(str::to_string)
 }
 
 fn random_id() -> String {
@@ -660,12 +691,25 @@ fn random_id() -> String {
 
 #[cfg(test)]
 mod tests {
-    use super::client_id_from_env;
+    use super::{client_id_from_env, client_id_from_sidecar};
 
     #[test]
     fn client_id_from_the_deployment() {
         assert_eq!(client_id_from_env(Some(" game-7\n".into())).as_deref(), Some("game-7"));
         assert_eq!(client_id_from_env(Some("  ".into())), None);
         assert_eq!(client_id_from_env(None), None);
+    }
+
+    #[test]
+    fn client_id_from_the_sidecar() {
+        let dir = std::env::temp_dir().join(format!("drape-sidecar-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("zenoh-client.json5");
+        assert_eq!(client_id_from_sidecar(&file), None); // no sidecar
+        std::fs::write(dir.join("zenoh-client.json5.client_id"), "alice\nignored\n").unwrap();
+        assert_eq!(client_id_from_sidecar(&file).as_deref(), Some("alice"));
+        std::fs::write(dir.join("zenoh-client.json5.client_id"), " \n").unwrap();
+        assert_eq!(client_id_from_sidecar(&file), None);
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

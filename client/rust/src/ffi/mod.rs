@@ -214,41 +214,75 @@ pub extern "C" fn drape_error_name(code: i32) -> *const c_char {
 /// NULL (all defaults). On success `*out` is a client to close with `drape_client_close`.
 #[no_mangle]
 pub unsafe extern "C" fn drape_client_open(options: *const DrapeClientOptions, out: *mut *mut DrapeClient) -> i32 {
+    guard(|| open(options, None, None, out))
+}
+
+/// `drape_client_open` with a Zenoh configuration file and mode (e.g. behind a router that
+/// authenticates users). `zenoh_config_file` (NULL: none) is a JSON5 Zenoh configuration (user
+/// and password, TLS...) loaded with Zenoh's `Config::from_file`; the mode, the endpoints of
+/// `options->connect`, no listen endpoints and multicast scouting off are set over it, as the
+/// Python SDK does. `mode`: "peer" or "client" (NULL: "peer"; behind a router, "client"). With
+/// `options->client_id` NULL the id is $DRAPE_CLIENT_ID, else the first line of the sidecar
+/// `<zenoh_config_file>.client_id`, else random. A file that cannot be loaded fails with
+/// DRAPE_E_INVALID_VALUE; credentials the router refuses fail with DRAPE_E_UNAVAILABLE.
+#[no_mangle]
+pub unsafe extern "C" fn drape_client_open_with_config(
+    options: *const DrapeClientOptions,
+    zenoh_config_file: *const c_char,
+    mode: *const c_char,
+    out: *mut *mut DrapeClient,
+) -> i32 {
     guard(|| {
-        if out.is_null() {
-            return bad("out is NULL");
-        }
-        let mut o = ClientOptions::default();
-        if let Some(opts) = options.as_ref() {
-            let strs = (|| {
-                Ok::<_, i32>((opt_str(opts.connect, "connect")?, opt_str(opts.server_id, "server_id")?,
-                    opt_str(opts.client_id, "client_id")?, opt_str(opts.namespace_, "namespace")?))
-            })();
-            let (connect, server, client, ns) = match strs {
-                Ok(x) => x,
-                Err(code) => return code,
-            };
-            if let Some(c) = connect {
-                o.connect = c.split(',').map(|e| e.trim().to_string()).filter(|e| !e.is_empty()).collect();
-            }
-            o.server_id = server.map(str::to_string);
-            o.client_id = client.map(str::to_string);
-            if let Some(ns) = ns {
-                o.namespace = ns.to_string();
-            }
-            if opts.timeout_ms > 0 {
-                o.timeout = Duration::from_millis(opts.timeout_ms as u64);
-            }
-            o.failover = opts.failover;
-        }
-        match Client::open(o) {
-            Ok(client) => {
-                *out = Box::into_raw(Box::new(DrapeClient { client }));
-                DRAPE_OK
-            }
-            Err(e) => fail(e),
-        }
+        let (file, mode) = match (opt_str(zenoh_config_file, "zenoh_config_file"), opt_str(mode, "mode")) {
+            (Ok(f), Ok(m)) => (f, m),
+            (Err(code), _) | (_, Err(code)) => return code,
+        };
+        open(options, file.map(std::path::PathBuf::from), mode.map(str::to_string), out)
     })
+}
+
+unsafe fn open(
+    options: *const DrapeClientOptions,
+    zenoh_config_file: Option<std::path::PathBuf>,
+    mode: Option<String>,
+    out: *mut *mut DrapeClient,
+) -> i32 {
+    if out.is_null() {
+        return bad("out is NULL");
+    }
+    let mut o = ClientOptions { zenoh_config_file, ..ClientOptions::default() };
+    if let Some(mode) = mode {
+        o.mode = mode;
+    }
+    if let Some(opts) = options.as_ref() {
+        let strs = (|| {
+            Ok::<_, i32>((opt_str(opts.connect, "connect")?, opt_str(opts.server_id, "server_id")?,
+                opt_str(opts.client_id, "client_id")?, opt_str(opts.namespace_, "namespace")?))
+        })();
+        let (connect, server, client, ns) = match strs {
+            Ok(x) => x,
+            Err(code) => return code,
+        };
+        if let Some(c) = connect {
+            o.connect = c.split(',').map(|e| e.trim().to_string()).filter(|e| !e.is_empty()).collect();
+        }
+        o.server_id = server.map(str::to_string);
+        o.client_id = client.map(str::to_string);
+        if let Some(ns) = ns {
+            o.namespace = ns.to_string();
+        }
+        if opts.timeout_ms > 0 {
+            o.timeout = Duration::from_millis(opts.timeout_ms as u64);
+        }
+        o.failover = opts.failover;
+    }
+    match Client::open(o) {
+        Ok(client) => {
+            *out = Box::into_raw(Box::new(DrapeClient { client }));
+            DRAPE_OK
+        }
+        Err(e) => fail(e),
+    }
 }
 
 /// Close a client (removing its cloths first if `remove`) and free it. Cloth handles of this

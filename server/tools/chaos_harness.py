@@ -17,7 +17,6 @@ import os
 import queue
 import signal
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Sequence
@@ -30,7 +29,7 @@ import numpy as np
 import zenoh
 
 from drape.client import protocol as P
-from drape.server.tools.procs import ProcessFigures, free_port
+from drape.server.tools.procs import ProcessFigures, free_port, serve_command
 
 log = logging.getLogger(__name__)
 
@@ -79,21 +78,7 @@ class ChaosServer:
         self.log_path = out / f"{name}-{os.getpid()}-{next(_RUNS)}.log"
         self.rss_limit_mb = rss_limit_mb
         self.killed_for_rss = False
-        self.cmd = [
-            sys.executable,
-            "-m",
-            "drape.server.cli",
-            "serve",
-            "--listen",
-            self.endpoint,
-            "--server-id",
-            self.server_id,
-            "--stats-period",
-            "0.5",
-            "--device",
-            "cpu",
-            *args,
-        ]
+        self.cmd = serve_command(self.endpoint, self.server_id, "--stats-period", "0.5", "--device", "cpu", *args)
         for c in connect:
             self.cmd += ["--connect", c]
         log.info("starting %s", " ".join(self.cmd))

@@ -100,6 +100,12 @@ class ProcessFigures:
         }
 
 
+def serve_command(endpoint: str, server_id: str, *args: str) -> list[str]:
+    """The command line of a ``drape serve`` child listening on ``endpoint`` as ``server_id``
+    (``args``: more ``drape serve`` arguments), run by this interpreter."""
+    return [sys.executable, "-m", "drape.server.cli", "serve", "--listen", endpoint, "--server-id", server_id, *args]
+
+
 class ServerProcess:
     """``drape serve`` as a child process in its own session, on a free loopback port.
 
@@ -109,17 +115,7 @@ class ServerProcess:
     def __init__(self, args: Sequence[str] = (), *, server_id: str | None = None, port: int = 0) -> None:
         self.endpoint = f"tcp/127.0.0.1:{port or free_port()}"
         self.server_id = server_id or f"tools-{os.getpid()}"
-        self.cmd = [
-            sys.executable,
-            "-m",
-            "drape.server.cli",
-            "serve",
-            "--listen",
-            self.endpoint,
-            "--server-id",
-            self.server_id,
-            *args,
-        ]
+        self.cmd = serve_command(self.endpoint, self.server_id, *args)
         log.info("starting server: %s", " ".join(self.cmd))
         self.proc = subprocess.Popen(self.cmd, start_new_session=True)
         self.figures = ProcessFigures(self.proc.pid)

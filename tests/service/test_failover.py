@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import signal
 import subprocess
-import sys
 import time
 
 import numpy as np
@@ -67,31 +66,19 @@ class Serve:
     """One ``drape serve`` child process on its own port (stopped by ``stop``; ``kill`` = SIGKILL)."""
 
     def __init__(self, tmp_path, name: str, port: int | None = None, extra: tuple[str, ...] = ()) -> None:
-        from drape.server.tools.procs import free_port
+        from drape.server.tools.procs import free_port, serve_command
 
         self.port = port or free_port()
         self.endpoint = f"tcp/127.0.0.1:{self.port}"
         self.server_id = name
         self.log = open(tmp_path / f"{name}-{self.port}.log", "w")  # noqa: SIM115 (closed in stop)
         self.proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "drape.server.cli",
-                "serve",
-                "--listen",
+            serve_command(
                 self.endpoint,
-                "--server-id",
                 name,
-                "--grace-period",
-                "1",
-                "--stats-period",
-                "0.25",
-                "--no-admission",
-                "--device",
-                "cpu",
+                *("--grace-period", "1", "--stats-period", "0.25", "--no-admission", "--device", "cpu"),
                 *extra,
-            ],
+            ),
             stdout=self.log,
             stderr=subprocess.STDOUT,
         )

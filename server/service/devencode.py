@@ -22,6 +22,7 @@ import numpy as np
 from ..sim.fabric import Fabric
 from ..sim.opencl.clworld import CLWorld
 from ..sim.opencl.encode import ClothEntry, DeviceEncoder, EncodedFrame, FramePlan, Publication
+from ..sim.opencl.frames import device_span
 from ..sim.shared import vertex_normals
 from ..sim.world import Frame, Layout, PendingFrame, World
 from .publisher import Roster
@@ -65,16 +66,8 @@ class DeviceFrames:
         w = self.world
         self._plan(roster, lay)
         ev = self.encoder.encode(w.dev.queue, w.pos.buf, w.nrm.buf, tick, time_ns, flags)
-        marker = w._step_marker
         frame = Frame(w.steps, lay, np.zeros((0, 3), np.float32), None)
-
-        def device_s() -> float | None:
-            try:
-                return 1e-9 * (ev.profile.end - marker.profile.start) if marker is not None else None
-            except Exception:  # no profiling on this queue or device
-                return None
-
-        return PendingFrame(frame, ev.wait, device_s)
+        return PendingFrame(frame, ev.wait, device_span(w._step_marker, ev))
 
     def hold(self) -> EncodedFrame:
         return self.encoder.hold()

@@ -12,6 +12,7 @@ from the queue's profiling timestamps.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -27,6 +28,20 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 MF = cl.mem_flags
+
+
+def device_span(start: cl.Event | None, end: cl.Event) -> Callable[[], float | None]:
+    """The device's seconds from ``start`` (the step's first launch) to the end of ``end`` (the
+    frame's last command), read from the queue's profiling once ``end`` is done; None without
+    a start or without profiling."""
+
+    def seconds() -> float | None:
+        try:
+            return 1e-9 * (end.profile.end - start.profile.start) if start is not None else None
+        except Exception:  # no profiling on this queue or device
+            return None
+
+    return seconds
 
 
 class FrameReadback:
@@ -106,12 +121,4 @@ class FrameReadback:
         ev = cl.enqueue_copy(q, xyz, self._packed.buf, is_blocking=False)
         if nxyz is not None:
             ev = cl.enqueue_copy(q, nxyz, self._packed_nrm.buf, is_blocking=False)
-        marker = self._step_marker
-
-        def device_s() -> float | None:
-            try:
-                return 1e-9 * (ev.profile.end - marker.profile.start) if marker is not None else None
-            except Exception:  # no profiling on this queue or device
-                return None
-
-        return PendingFrame(frame, ev.wait, device_s)
+        return PendingFrame(frame, ev.wait, device_span(self._step_marker, ev))

@@ -39,7 +39,14 @@ def _root_conftest() -> Any:
 
 
 _root = _root_conftest()
-# the shared service helpers (tests/conftest.py), for ``from conftest import make_config`` in tools tests
+# Every plain helper and constant of tests/conftest.py, under the same names: once this module is
+# imported as ``conftest``, ``from conftest import ...`` finds it from any test directory (which
+# one depends on the collection order), so it must offer all of them. Fixtures stay the root's
+# (pytest finds those by itself; defining them here again would make second instances).
+for _name, _value in vars(_root).items():
+    if _name.startswith("_") or _name in globals() or type(_value).__name__ == "FixtureFunctionDefinition":
+        continue
+    globals()[_name] = _value
 make_config, connect, collect = _root.make_config, _root.connect, _root.collect
 free_port, endpoint, wait_until = _root.free_port, _root.endpoint, _root.wait_until
 TIMEOUT, GRACE = _root.TIMEOUT, _root.GRACE

@@ -223,6 +223,20 @@ def router_config(template: str | Path, section: dict[str, Any]) -> str:
     return json.dumps(json.loads(str(cfg)), indent=2) + "\n"
 
 
+def listening_router(template: str | Path, users: UsersFile, endpoint: str, dictionary_file: str | Path) -> Any:
+    """A ``zenoh.Config`` for a router from ``template`` listening on ``endpoint``, with the users'
+    password dictionary written to ``dictionary_file`` and their generated access control (what
+    the tests open to stand in for a deployment's ``zenohd``)."""
+    import zenoh
+
+    Path(dictionary_file).write_text(dictionary(users))
+    cfg = zenoh.Config.from_file(str(template))
+    cfg.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    cfg.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(dictionary_file)))
+    cfg.insert_json5("access_control", json.dumps(access_control(users)))
+    return cfg
+
+
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("users", help="users file (TOML), e.g. deploy/users.example.toml")
     parser.add_argument("--out", "-o", help="write here instead of stdout")

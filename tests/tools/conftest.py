@@ -163,11 +163,7 @@ def router_config(tmp_path: Path, endpoint: str, users_text: str = USERS) -> tup
     users_file = tmp_path / "users.toml"
     users_file.write_text(users_text)
     users = acl.load_users(users_file)
-    (tmp_path / "dict.txt").write_text(acl.dictionary(users))
-    c = zenoh.Config.from_file(str(REPO / "deploy/zenoh-router.json5"))
-    c.insert_json5("listen/endpoints", json.dumps([endpoint]))
-    c.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(tmp_path / "dict.txt")))
-    c.insert_json5("access_control", json.dumps(acl.access_control(users)))
+    c = acl.listening_router(REPO / "deploy/zenoh-router.json5", users, endpoint, tmp_path / "dict.txt")
     return c, users
 
 

@@ -24,12 +24,7 @@ REPO = Path(__file__).resolve().parents[4]
 def main() -> None:
     d, endpoint, parent = Path(sys.argv[1]), sys.argv[2], int(sys.argv[3])
     users = acl.load_users(d / "users.toml")
-    (d / "dict.txt").write_text(acl.dictionary(users))
-    c = zenoh.Config.from_file(str(REPO / "deploy/zenoh-router.json5"))
-    c.insert_json5("listen/endpoints", json.dumps([endpoint]))
-    c.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(d / "dict.txt")))
-    c.insert_json5("access_control", json.dumps(acl.access_control(users)))
-    router = zenoh.open(c)
+    router = zenoh.open(acl.listening_router(REPO / "deploy/zenoh-router.json5", users, endpoint, d / "dict.txt"))
     print("ready", flush=True)
     try:
         while True:

@@ -19,7 +19,8 @@
 # client processes placing their cloths by the servers' published load; the knee of one server,
 # then of SO_SERVERS, from SO_START (default 64) cloths, doubling, then 2 halvings; SO_SECONDS
 # (default 5) measured seconds a load; stops starting loads after 420 s (under ~8 minutes).
-# SO_ROUTER=1: the servers and clients behind one Zenoh router process instead.
+# SO_ROUTER=1: the servers and clients behind one Zenoh router process instead. SO_DEVICES: the
+# servers' devices in turn (gpu:0,gpu:1 on the 2-GPU H200 machine: one server per GPU).
 #
 # Results land in $OUT (the device tool's folder) or out/h100. Wheels come from .whl/ (see
 # docs/benchmarks.md for the pip download line that fills it).
@@ -74,7 +75,8 @@ case "$what" in
                 | grep -v " INFO drape.server.service" | tee "$OUT/loadtest-h100-offered.txt"
         fi ;;
     scaleout)
-        drape loadtest --scale-out --servers "${SO_SERVERS:-2}" ${SO_ROUTER:+--router} --clients "${SO_CLIENTS:-8}" \
+        drape loadtest --scale-out --servers "${SO_SERVERS:-2}" ${SO_ROUTER:+--router} ${SO_DEVICES:+--device "$SO_DEVICES"} \
+            --clients "${SO_CLIENTS:-8}" \
             --size 32 --iterations 10 --bundle --no-admission --loads "${SO_START:-64}" --seconds "${SO_SECONDS:-5}" \
             --bisect 2 --max-total-seconds 420 --quiet --json "$OUT/scaleout-h100.json" \
             --markdown "$OUT/scaleout-h100.md" --out /tmp/so-plots "$@" 2>&1 \

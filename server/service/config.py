@@ -298,7 +298,7 @@ HELP = {
     "(a router's ACL then binds every request to its user)",
     "tick_rate": "ticks per second; dt = 1/tick_rate",
     "solver": "World solver",
-    "device": "OpenCL device: auto, gpu, cpu or part of a name",
+    "device": "OpenCL device: auto, gpu, cpu, gpu:N / cpu:N (the N-th, from 0) or part of a name",
     "max_cloths": "cloths on this server",
     "max_cloths_per_client": "cloths of one client",
     "max_vertices_per_cloth": "vertices of one cloth",

@@ -40,6 +40,7 @@ import logging
 import multiprocessing as mp
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -107,7 +108,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "it takes every cloth (the raw capacity)",
     )
     parser.add_argument("--solver", default=None, help="solver of the started server")
-    parser.add_argument("--device", default=None, help="OpenCL device of the started server")
+    parser.add_argument(
+        "--device",
+        default=None,
+        help="OpenCL device of the started server(s); a comma list gives the k-th server the k-th entry "
+        "(in turn), e.g. gpu:0,gpu:1 for one server per GPU",
+    )
     parser.add_argument("--server-arg", action="append", default=[], help="extra argument for drape serve")
     parser.add_argument(
         "--find-knee",
@@ -168,18 +174,17 @@ def _serve_args(args: argparse.Namespace) -> list[str]:
         cmd += ["--no-admission"]
     if args.solver:
         cmd += ["--solver", args.solver]
-    if args.device:
-        cmd += ["--device", args.device]
     return cmd + list(args.server_arg)
 
 
 class Fleet:
     """The servers a load test starts: ``n`` ``drape serve`` processes, each with its own server id
     and loopback port, either peers connected to each other or, with ``router``, all connected to
-    one Zenoh router process; ``endpoint`` is what the clients connect to. On a GPU machine they
-    share the one device (each process its own OpenCL context)."""
+    one Zenoh router process; ``endpoint`` is what the clients connect to. ``devices``: the k-th
+    server's OpenCL device is ``devices[k % len(devices)]`` (none: the default device, which the
+    servers then share, each process its own OpenCL context)."""
 
-    def __init__(self, n: int, serve_args: list[str], router: bool = False) -> None:
+    def __init__(self, n: int, serve_args: list[str], router: bool = False, devices: Sequence[str] = ()) -> None:
         self.router: Any = None
         self._router_stop: Any = None
         self.servers: list[ServerProcess] = []
@@ -196,6 +201,8 @@ class Fleet:
             for k in range(n):
                 connect = [self.router_endpoint] if router else [s.endpoint for s in self.servers]
                 extra = [a for c in connect for a in ("--connect", c)]
+                if devices:
+                    extra += ["--device", devices[k % len(devices)]]
                 sid = f"loadtest-{os.getpid()}" + (f"-{k}" if n > 1 else "")
                 self.servers.append(ServerProcess([*serve_args, *extra], server_id=sid))
             for srv in self.servers:
@@ -323,7 +330,8 @@ def run(args: argparse.Namespace) -> int:
         if args.endpoint:
             fleet: Any = argparse.Namespace(endpoint=args.endpoint, targets=targets, stop=stats.close)
         else:
-            fleet = Fleet(n_servers, _serve_args(args), args.router)
+            devices = [d.strip() for d in args.device.split(",") if d.strip()] if args.device else []
+            fleet = Fleet(n_servers, _serve_args(args), args.router, devices)
         try:
             run_one = on(fleet)
             if args.find_knee or args.scale_out:

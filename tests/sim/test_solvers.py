@@ -243,6 +243,19 @@ def test_device_choice_respects_environment(monkeypatch):
         choose_device("no-such-device-name")
 
 
+def test_device_choice_by_index():
+    """gpu:N / cpu:N pick the N-th device of that type (one server per GPU); past the last is an error
+    that lists what there is."""
+    import pyopencl as cl
+
+    from drape.server.sim.opencl.device import choose_device
+
+    cpus = [d for p in cl.get_platforms() for d in p.get_devices() if d.type & cl.device_type.CPU]
+    assert choose_device("cpu:0").int_ptr == choose_device("cpu").int_ptr
+    with pytest.raises(RuntimeError, match=f"there are {len(cpus)} OpenCL CPU device"):
+        choose_device(f"cpu:{len(cpus)}")
+
+
 def test_link_options_change_links():
     f = cook_grid(4, 4, options=LinkOptions(structural=True, shear=False, bending=False))
     assert f.n_links == 2 * 4 * 3

@@ -1,7 +1,8 @@
 """OpenCL device choice and the kernel program cache.
 
 Device choice: ``DRAPE_DEVICE`` (or the ``device`` argument) is ``auto`` (a GPU when one is
-present, else a CPU device such as PoCL), ``gpu``, ``cpu``, or a substring of the platform or
+present, else a CPU device such as PoCL), ``gpu``, ``cpu``, ``gpu:N`` / ``cpu:N`` (the N-th such
+device, from 0: one server per GPU on a multi-GPU host), or a substring of the platform or
 device name. Programs are built once per build-option set and cached for the context.
 """
 
@@ -94,6 +95,15 @@ def choose_device(spec: str | None = None) -> cl.Device:
 
     if low == "auto":
         return first_usable(gpus + cpus or devs, "usable")
+    kind, sep, index = low.partition(":")
+    if sep and kind in ("gpu", "cpu") and index.isdigit():
+        of_kind = gpus if kind == "gpu" else cpus
+        if int(index) >= len(of_kind):
+            raise RuntimeError(
+                f"DRAPE_DEVICE={spec} but there are {len(of_kind)} OpenCL {kind.upper()} device(s): "
+                f"{[describe(d) for d in of_kind]}"
+            )
+        return first_usable([of_kind[int(index)]], spec)
     if low == "gpu":
         if not gpus:
             raise RuntimeError("DRAPE_DEVICE=gpu but no OpenCL GPU is present")

@@ -7,7 +7,8 @@ owning one job (and one thread's state):
 - handlers (handlers.py): the Zenoh queryable callbacks, on Zenoh's threads;
 - commands (commands.py): the bounded, per-cloth coalescing intake of the tick thread;
 - cook (cook.py): the cook thread, fabrics (the one fabric cache) and kernel builds;
-- ticker (ticker.py): the tick thread, the only one touching the World;
+- ticker (ticker.py): the tick thread, the only one touching the World, and its applier
+  (applier.py): the queued commands applied to the World at the start of a tick;
 - publisher (publisher.py): the publisher thread, encode and put;
 - admission (admission.py) and adaptive quality (adaptive.py): the tick-cost policies;
 - replies (replies.py): answering queries, error replies counted.

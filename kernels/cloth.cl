@@ -6,12 +6,14 @@
  *                  0: wg_step works on global memory, and the coloured/Jacobi kernels exist
  *   JACOBI_OMEGA   over-relaxation of the Jacobi vertex solver
  *   LINK_UNROLL    links a work-item loads before it stores any (memory-level parallelism)
+ *   PACK_LANES     W > 0 (CPU devices only, with USE_LOCAL=0): pack_step (pack.cl) exists
  *
  * Positions are float4: xyz and the inverse mass in w (0 = pinned).
  * Strategies:
  *   wg_step                         one work-group per cloth, the whole step in one launch
  *   cl_predict / cl_links / cl_finish   coloured batches merged over every cloth of a group
  *   cl_predict / jacobi_iter / cl_finish   Jacobi vertex solver, double-buffered
+ *   pack_step                       CPU: one work-item per pack of W cloths of one fabric (pack.cl)
  *   (vertex phases of those two run over vertex chunks; cl_normals is its own launch)
  */
 #include "layout.h"
@@ -39,6 +41,9 @@
 #endif
 #ifndef LINK_UNROLL
 #define LINK_UNROLL 4
+#endif
+#ifndef PACK_LANES
+#define PACK_LANES 0
 #endif
 
 #define EPS_LEN2 1e-20f
@@ -574,4 +579,8 @@ __kernel void copy_positions(const int chunk, __global const int2 *chunks, __glo
     for (int v = ck.y + get_local_id(0); v < v_end; v += get_local_size(0))
         dst[vbase + v] = src[vbase + v];
 }
+#endif
+
+#if PACK_LANES && !USE_LOCAL
+#include "pack.cl"
 #endif

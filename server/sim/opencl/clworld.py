@@ -37,7 +37,7 @@ from ..world import Cloth, World, inverse_masses
 from .buffers import DevArray, RangeAllocator, fabric_blob  # noqa: F401 (RangeAllocator re-exported)
 from .device import Device, layout
 from .frames import FrameReadback
-from .launch import GroupLaunches, _next_pow2  # noqa: F401 (_next_pow2 re-exported)
+from .launch import CPU_BUILD_OPTIONS, GroupLaunches, _next_pow2  # noqa: F401 (_next_pow2 re-exported)
 
 log = logging.getLogger(__name__)
 
@@ -83,12 +83,18 @@ class Group:
     max_vertices: int = 0
     substeps: int = 1
     local_size: int = 64
+    pack: int = 0  # CPU pack solver: lanes per pack (0: wg_step); see launch.py
+    packs_buf: cl.Buffer | None = None  # PACK_LANES cloth slots per pack, -1 = unused lane
+    n_packs: int = 0
+    max_links: int = 0
 
 
 # Measured on the H100 (docs/benchmarks.md): the local path is fastest without unrolling
 # (157 vs 146 G link-it/s at 4), the global path with 4 (1.31 vs 1.87 ms for the seed cloth).
 LINK_UNROLL_LOCAL = 1
 LINK_UNROLL_GLOBAL = 4
+# CPU pack solver's lanes (cloths per work-item), measured on the 2-core Zen 5 (docs/cpu-solver.md)
+PACK_LANES_CPU = 16
 
 
 class CLWorld(GroupLaunches, FrameReadback, World):
@@ -100,6 +106,7 @@ class CLWorld(GroupLaunches, FrameReadback, World):
         use_local: bool | None = None,
         link_group_size: int = 256,
         chunk: int | None = None,
+        pack_lanes: int | None = None,
     ) -> None:
         super().__init__()
         if strategy not in ("workgroup", "coloured", "jacobi"):
@@ -116,6 +123,13 @@ class CLWorld(GroupLaunches, FrameReadback, World):
         self.max_local_size = int(local_size or env_ls or (256 if gpu else 1))
         self.max_global_path_size = int(local_size or env_ls or (1024 if gpu else 1))
         self.use_local = use_local  # None: when the cloth fits
+        # CPU with one work-item per cloth: packs of cloths of one fabric, one work-item each,
+        # the link solve vectorised across the pack (launch.py, kernels/pack.cl). Never on a GPU.
+        env_pack = os.environ.get("DRAPE_PACK_LANES")
+        lanes = pack_lanes if pack_lanes is not None else int(env_pack) if env_pack else PACK_LANES_CPU
+        self.pack_lanes = lanes if (not gpu and self.max_local_size == 1 and strategy == "workgroup") else 0
+        if self.pack_lanes not in (0, 2, 4, 8, 16):
+            raise ValueError(f"pack_lanes must be 0, 2, 4, 8 or 16, got {self.pack_lanes}")
         self.link_group_size = link_group_size
         # vertices per work-group in the coloured/Jacobi vertex phases: big cloths spread out
         self.chunk = int(chunk or os.environ.get("DRAPE_CHUNK", "1024"))
@@ -262,16 +276,22 @@ class CLWorld(GroupLaunches, FrameReadback, World):
         cf[L["CF_CHEB_RHO"]] = p.chebyshev_rho
         self._tables_dirty = True
 
-    def _group_key(self, cloth: Cloth) -> tuple[tuple, bool]:
+    def _group_key(self, cloth: Cloth) -> tuple[tuple, bool, int]:
+        """(group key, local memory, pack lanes) of the group the cloth joins."""
         f = cloth.params.features
         if self.solver == "workgroup":
-            fits = cloth.fabric.n_vertices * 16 <= self.dev.info.local_mem - 1024
+            budget = self.dev.info.local_mem - 1024
+            fits = cloth.fabric.n_vertices * 16 <= budget
             local = fits if self.use_local is None else (self.use_local and fits)
-            return (f.key(), local), local
-        return (f.key(), cloth.params.substeps), False
+            W = self.pack_lanes
+            pack_bytes = 4 * W * (4 * cloth.fabric.n_vertices + (cloth.fabric.n_links if f.xpbd else 1))
+            if W and local and pack_bytes <= budget:
+                return (f.key(), "pack"), True, W
+            return (f.key(), local), local, 0
+        return (f.key(), cloth.params.substeps), False, 0
 
     def _regroup(self, cloth: Cloth, rec: ClothSlot) -> None:
-        key, local = self._group_key(cloth)
+        key, local, pack = self._group_key(cloth)
         if rec.group == key:
             self.groups[key].dirty = True
             return
@@ -279,7 +299,7 @@ class CLWorld(GroupLaunches, FrameReadback, World):
             self._leave_group(cloth.handle, rec)
         g = self.groups.get(key)
         if g is None:
-            g = self.groups[key] = Group(key, cloth.params.features, local)
+            g = self.groups[key] = Group(key, cloth.params.features, local, pack=pack)
         g.handles.add(cloth.handle)
         g.dirty = True
         rec.group = key
@@ -431,15 +451,17 @@ class CLWorld(GroupLaunches, FrameReadback, World):
                 self._build_group(g)
 
     def ready(self, fabric: Fabric, params: ClothParams) -> bool:
-        _, local = self._group_key(Cloth(0, fabric, params))
-        return self.dev.built(self._options_for(params.features, local))
+        _, local, pack = self._group_key(Cloth(0, fabric, params))
+        return self.dev.built(self._options_for(params.features, local, pack))
 
     def prepare(self, fabric: Fabric, params: ClothParams) -> None:
         """Build the kernels of the group such a cloth joins (Device.program is thread-safe and
         builds without blocking the other threads' use of built kernels)."""
-        _, local = self._group_key(Cloth(0, fabric, params))
-        opts = self._options_for(params.features, local)
-        if self.solver == "workgroup":
+        _, local, pack = self._group_key(Cloth(0, fabric, params))
+        opts = self._options_for(params.features, local, pack)
+        if pack:
+            names = ["pack_step"]
+        elif self.solver == "workgroup":
             names = ["wg_step"]
         else:
             names = [
@@ -453,9 +475,11 @@ class CLWorld(GroupLaunches, FrameReadback, World):
             self.dev.kernel(opts, name)
 
     def _options(self, g: Group, local: bool | None = None) -> list[str]:
-        return self._options_for(g.features, g.use_local if local is None else local)
+        return self._options_for(g.features, g.use_local if local is None else local, g.pack)
 
-    def _options_for(self, features: Features, use_local: bool) -> list[str]:
+    def _options_for(self, features: Features, use_local: bool, pack: int = 0) -> list[str]:
+        if pack:  # CPU only: the pack kernel keeps the lanes in local memory itself
+            return [*features.build_options(), "-DUSE_LOCAL=0", f"-DPACK_LANES={pack}", *CPU_BUILD_OPTIONS]
         g_features = features
         env_unroll = os.environ.get("DRAPE_LINK_UNROLL_LOCAL" if use_local else "DRAPE_LINK_UNROLL_GLOBAL")
         unroll = int(env_unroll) if env_unroll else (LINK_UNROLL_LOCAL if use_local else LINK_UNROLL_GLOBAL)
@@ -472,7 +496,7 @@ class CLWorld(GroupLaunches, FrameReadback, World):
         return opts
 
     def _kernel_limit(self, g: Group) -> int:
-        name = "wg_step" if self.solver == "workgroup" else "cl_predict"
+        name = "pack_step" if g.pack else "wg_step" if self.solver == "workgroup" else "cl_predict"
         k = self.dev.kernel(self._options(g), name)
         return int(k.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, self.dev.device))
 
@@ -485,6 +509,9 @@ class CLWorld(GroupLaunches, FrameReadback, World):
             opts = self._options(g)
             if self.solver != "workgroup":
                 self._vertex_phase_step(g, dt32, opts)
+                continue
+            if g.pack:
+                self._pack_step(g, dt32, opts)
                 continue
             # kernel arguments (Any: pyopencl's stub of Kernel.__call__ leaves out LocalMemory)
             args: list[Any] = [

@@ -23,8 +23,35 @@ if TYPE_CHECKING:
 MF = cl.mem_flags
 
 
+# Extra build options of the CPU pack kernel (never a GPU build's): measured in docs/cpu-solver.md.
+CPU_BUILD_OPTIONS: list[str] = []
+
+
 def _next_pow2(n: int) -> int:
     return 1 << max(0, int(n - 1).bit_length())
+
+
+def pack_lanes(
+    keys: list[tuple], slots: list[int], lanes: int, compute_units: int
+) -> np.ndarray:
+    """Cloth slots into packs of at most ``lanes`` cloths that share a key (fabric, iterations,
+    substeps), as an (n_packs, lanes) int32 table padded with -1. A key's cloths are spread
+    evenly over its packs, and over a multiple of ``compute_units`` packs where that does not add
+    a round: a pack costs about the same however many lanes it fills, so 20 cloths on 2 cores
+    run as 10 + 10, not 16 + 4."""
+    by_key: dict[tuple, list[int]] = {}
+    for k, s in zip(keys, slots, strict=True):
+        by_key.setdefault(k, []).append(s)
+    rows: list[list[int]] = []
+    for members in by_key.values():
+        n = len(members)
+        k = -(-n // lanes)
+        even = -(-k // compute_units) * compute_units
+        k = min(n, even)
+        for i in range(k):
+            part = members[i * n // k : (i + 1) * n // k]
+            rows.append(part + [-1] * (lanes - len(part)))
+    return np.array(rows, np.int32).reshape(-1, lanes)
 
 
 class GroupLaunches:
@@ -66,6 +93,15 @@ class GroupLaunches:
         g.max_colours = max(c.fabric.n_colours for c in cloths)
         g.max_vertices = max(c.fabric.n_vertices for c in cloths)
         g.substeps = cloths[0].params.substeps
+        if g.pack:
+            keys = [(c.fabric.key, c.params.iterations, c.params.substeps) for c in cloths]
+            table = pack_lanes(keys, [int(s) for s in g.slots], g.pack, self.dev.info.compute_units)
+            g.n_packs = len(table)
+            g.packs_buf = cl.Buffer(self.dev.ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=table)
+            g.max_links = max(c.fabric.n_links for c in cloths)
+            g.local_size = 1
+            g.dirty = False
+            return
         widest = max(
             max(c.fabric.n_vertices for c in cloths),
             max((int(np.diff(c.fabric.colour_offsets).max()) if c.fabric.n_colours else 1) for c in cloths),
@@ -174,3 +210,26 @@ class GroupLaunches:
             self.dev.kernel(opts, "copy_positions")(
                 q, gsize, (ls,), ch, g.chunks_buf, self.ci.buf, pos2.buf, self.pos.buf
             )
+
+    def _pack_step(self, g: Group, dt32, opts) -> None:
+        """CPU: one launch of pack_step, one work-item per pack, the lanes in local memory."""
+        W = g.pack
+        xpbd_words = g.max_links if g.features.xpbd else 1
+        self.dev.kernel(opts, "pack_step")(
+            self.dev.queue,
+            (g.n_packs,),
+            (1,),
+            dt32,
+            g.packs_buf,
+            self.ci.buf,
+            self.cf.buf,
+            self.fab.buf,
+            self.pos.buf,
+            self.vel.buf,
+            self.prev.buf,
+            self.target.buf,
+            self.nrm.buf,
+            self.coll.buf,
+            cl.LocalMemory(16 * W * max(1, g.max_vertices)),
+            cl.LocalMemory(4 * W * max(1, xpbd_words)),
+        )

@@ -1,0 +1,173 @@
+/* The CPU pack solver: one work-item steps a *pack* of up to PACK_LANES cloths of one fabric.
+ *
+ * Included by cloth.cl when built with -DPACK_LANES=W (CPU devices only; a GPU build never sees
+ * this file). The cloths of a pack share their links, colours, iterations and substeps, so the
+ * link solve runs once for all of them: positions sit in local memory lane-interleaved
+ * (vertex v, component k, cloth j at sx[4 v + k].s[j]) and every link is one W-wide vector
+ * computation with contiguous loads and stores, no gathers, no barriers. Per-cloth parameters
+ * (stiffness, compliance, inverse masses) are per lane. The per-vertex phases (wind, predict,
+ * tethers, colliders, velocities, normals) run lane by lane on global memory with cloth.cl's own
+ * functions, so every feature means exactly what it means in wg_step. Unused lanes hold zero
+ * positions and inverse masses: their links correct nothing.
+ *
+ * Arithmetic per lane is wg_step's in the same colour and link order (PBD: the talk's k,
+ * XPBD: the multiplier per link, reset every substep).
+ */
+#define PCAT_(a, b) a##b
+#define PCAT(a, b) PCAT_(a, b)
+#define floatP PCAT(float, PACK_LANES)
+#define intP PCAT(int, PACK_LANES)
+#define vloadP PCAT(vload, PACK_LANES)
+
+/* one float of every lane's cloth table as a vector (0 in unused lanes) */
+inline floatP lane_floats(__global const float *cf, const int *slot, int off)
+{
+    float t[PACK_LANES];
+    for (int j = 0; j < PACK_LANES; ++j)
+        t[j] = slot[j] >= 0 ? cf[slot[j] * CF_STRIDE + off] : 0.0f;
+    return vloadP(0, t);
+}
+
+__kernel void pack_step(const float dt, __global const int *packs, __global const int *ci, __global const float *cf,
+                        __global const int *fab, __global float4 *pos, __global float4 *vel, __global float4 *prev,
+                        __global const float4 *target, __global float4 *nrm, __global const float4 *coll,
+                        __local floatP *sx, __local floatP *slam)
+{
+    __global const int *lanes = packs + get_group_id(0) * PACK_LANES;
+    __global const int *I0 = ci + lanes[0] * CI_STRIDE;
+    __global const int *fb = fab + I0[CI_FAB];
+    __global const int *links = fb + I0[CI_OFF_LINKS];
+    __global const int *cols = fb + I0[CI_OFF_COLOURS];
+    const int nv = I0[CI_NVERTS], ncol = I0[CI_NCOLOURS], iters = I0[CI_ITERS], S = I0[CI_SUBSTEPS];
+    const float h = dt / (float)S;
+    int slot[PACK_LANES];
+    for (int j = 0; j < PACK_LANES; ++j)
+        slot[j] = lanes[j];
+    __local float *sxf = (__local float *)sx;
+    for (int j = 0; j < PACK_LANES; ++j)
+        if (slot[j] < 0)
+            for (int v = 0; v < nv; ++v)
+                for (int k = 0; k < 4; ++k)
+                    sxf[(4 * v + k) * PACK_LANES + j] = 0.0f;
+#if FEATURE_XPBD
+    const int nl = I0[CI_NLINKS];
+    floatP alpha[3];
+    for (int t = 0; t < 3; ++t)
+        alpha[t] = lane_floats(cf, slot, CF_COMPLIANCE + t) / (h * h);
+#else
+    floatP kst[3];
+    for (int t = 0; t < 3; ++t)
+        kst[t] = lane_floats(cf, slot, CF_STIFFNESS + t);
+#endif
+
+    for (int s = 0; s < S; ++s) {
+        /* per lane: (wind) predict on global memory, then into the lanes */
+        for (int j = 0; j < PACK_LANES; ++j) {
+            if (slot[j] < 0)
+                continue;
+            __global const int *I = ci + slot[j] * CI_STRIDE;
+            __global const float *F = cf + slot[j] * CF_STRIDE;
+            const int vbase = I[CI_VBASE];
+            __global float4 *X = pos + vbase;
+#if FEATURE_WIND
+            for (int v = 0; v < nv; ++v) {
+                float area;
+                float3 n = vertex_normal(X, fb, I, v, &area);
+                nrm[vbase + v] = (float4)(n, area);
+            }
+#endif
+            for (int v = 0; v < nv; ++v) {
+                float3 f = (float3)(0.0f);
+#if FEATURE_WIND
+                float4 na = nrm[vbase + v];
+                f = aero_dv(vel[vbase + v].xyz, na.xyz, na.w, X[v].w, h, F);
+#endif
+                float4 x = predict_vertex(X[v], f, vel, prev, target, vbase + v, F, h, S - s);
+                X[v] = x;
+                sxf[(4 * v + 0) * PACK_LANES + j] = x.x;
+                sxf[(4 * v + 1) * PACK_LANES + j] = x.y;
+                sxf[(4 * v + 2) * PACK_LANES + j] = x.z;
+                sxf[(4 * v + 3) * PACK_LANES + j] = x.w;
+            }
+        }
+#if FEATURE_XPBD
+        for (int l = 0; l < nl; ++l)
+            slam[l] = (floatP)(0.0f);
+#endif
+
+        for (int it = 0; it < iters; ++it) {
+            for (int col = 0; col < ncol; ++col) {
+                const int end = cols[col + 1];
+                for (int l = cols[col]; l < end; ++l) {
+                    const int4 R = vload4(l, links);
+                    const float rl = as_float(R.w);
+                    __local floatP *A = sx + 4 * R.x;
+                    __local floatP *B = sx + 4 * R.y;
+                    const floatP x0 = A[0], y0 = A[1], z0 = A[2], w0 = A[3];
+                    const floatP x1 = B[0], y1 = B[1], z1 = B[2], w1 = B[3];
+                    const floatP dx = x1 - x0, dy = y1 - y0, dz = z1 - z0;
+                    const floatP L = dx * dx + dy * dy + dz * dz;
+#if FEATURE_XPBD
+                    const floatP a = alpha[R.z];
+                    const floatP denom = w0 + w1 + a;
+                    const intP ok = (L > EPS_LEN2) & (denom > EPS_DENOM) & !isinf(a);
+                    const floatP len = sqrt(L);
+                    const floatP lam = slam[l];
+                    const floatP dl = select((floatP)(0.0f), (-(len - rl) - a * lam) / denom, ok);
+                    const floatP nx = select((floatP)(0.0f), dx / len, ok);
+                    const floatP ny = select((floatP)(0.0f), dy / len, ok);
+                    const floatP nz = select((floatP)(0.0f), dz / len, ok);
+                    slam[l] = lam + dl;
+                    const floatP k0 = w0 * dl, k1 = w1 * dl;
+                    A[0] = x0 + -nx * k0;
+                    A[1] = y0 + -ny * k0;
+                    A[2] = z0 + -nz * k0;
+                    B[0] = x1 + nx * k1;
+                    B[1] = y1 + ny * k1;
+                    B[2] = z1 + nz * k1;
+#else
+                    const float rl2 = rl * rl;
+                    const floatP denom = (w0 + w1) * (rl2 + L);
+                    const floatP k = select((floatP)(0.0f), kst[R.z] * (rl2 - L) / denom, denom > EPS_DENOM);
+                    const floatP k0 = k * w0, k1 = k * w1;
+                    A[0] = x0 + -dx * k0;
+                    A[1] = y0 + -dy * k0;
+                    A[2] = z0 + -dz * k0;
+                    B[0] = x1 + dx * k1;
+                    B[1] = y1 + dy * k1;
+                    B[2] = z1 + dz * k1;
+#endif
+                }
+            }
+        }
+
+        /* per lane: out of the lanes, then tethers, colliders, velocities on global memory */
+        for (int j = 0; j < PACK_LANES; ++j) {
+            if (slot[j] < 0)
+                continue;
+            __global const int *I = ci + slot[j] * CI_STRIDE;
+            __global const float *F = cf + slot[j] * CF_STRIDE;
+            const int vbase = I[CI_VBASE];
+            __global float4 *X = pos + vbase;
+            for (int v = 0; v < nv; ++v)
+                X[v].xyz = (float3)(sxf[(4 * v + 0) * PACK_LANES + j], sxf[(4 * v + 1) * PACK_LANES + j],
+                                    sxf[(4 * v + 2) * PACK_LANES + j]);
+            for (int v = 0; v < nv; ++v)
+                X[v] = finish_vertex(X[v], X, fb, I, F, vel, prev, coll, v, vbase + v, h, s, S);
+        }
+    }
+
+#if FEATURE_NORMALS
+    for (int j = 0; j < PACK_LANES; ++j) {
+        if (slot[j] < 0)
+            continue;
+        const int vbase = ci[slot[j] * CI_STRIDE + CI_VBASE];
+        __global const int *I = ci + slot[j] * CI_STRIDE;
+        for (int v = 0; v < nv; ++v) {
+            float area;
+            float3 n = vertex_normal(pos + vbase, fb, I, v, &area);
+            nrm[vbase + v] = (float4)(n, area);
+        }
+    }
+#endif
+}

@@ -97,6 +97,7 @@ class ServerConfig:
     drop_max_bytes: int = 60000  # auto: states up to this size use DROP, larger ones BLOCK
     device_encode: bool = True  # OpenCL worlds: states encoded on the device (one launch, one readback)
     gil_switch_ms: float = 0.5  # Python's GIL switch interval in the server process (sys.setswitchinterval)
+    program_idle_s: float = 10.0  # kernel programs no cloth used this long are released (0: kept for good)
     # --- quality -------------------------------------------------------------------------------
     adaptive_quality: bool = True  # lower cloths' presets while ticks overrun, restore them after
     quality_budget: float = 0.8  # share of a tick the tick's own work may take before that
@@ -131,6 +132,8 @@ class ServerConfig:
             raise ValueError(f"state_congestion must be one of {CONGESTION_CHOICES}")
         if not (0.01 <= self.gil_switch_ms <= 100):
             raise ValueError("gil_switch_ms must be in 0.01..100 ms")
+        if self.program_idle_s < 0:
+            raise ValueError("program_idle_s must be >= 0 (0: programs are kept for good)")
         for name in (
             "max_cloths",
             "max_cloths_per_client",
@@ -316,6 +319,8 @@ HELP = {
     "device_encode": "encode the states on the OpenCL device, one packed frame per tick (reference: host)",
     "gil_switch_ms": "the server process's GIL switch interval in ms (Python's default is 5: a thread "
     "returning from a Zenoh call waits up to that long behind a busy one)",
+    "program_idle_s": "seconds after which a kernel program no cloth uses is released and the heap trimmed "
+    "(built again from the driver's disk cache when needed; 0: kept for good)",
     "adaptive_quality": "step cloths' quality presets down while ticks overrun, back up after",
     "quality_budget": "share of a tick the tick's work may take before quality is lowered",
     "admission": "refuse submissions that would push the tick over admission_budget ('overloaded')",

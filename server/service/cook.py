@@ -1,7 +1,9 @@
 """The cook worker: turns accepted submissions into what the tick thread adds, off the tick
 path. For each submission: the fabric (from the one fabric cache below, cooked when new), the
 cloth parameters and colliders, and the kernels the cloth needs, built now (``World.prepare``)
-so that the first cloth with a new feature combination does not compile on the tick path.
+so that the first cloth with a new feature combination does not compile on the tick path. About
+once a second the same thread gives memory back (:class:`.memory.MemoryKeeper`: programs of
+feature combinations no cloth has used for ``program_idle_s`` released, the heap trimmed).
 
 :class:`FabricStore` is the service's only fabric cache: fabrics by a digest of the request's
 geometry, shared by every cloth of the same geometry (so the World's device arena holds each
@@ -26,6 +28,7 @@ from ..sim.params import LinkOptions
 from ..sim.world import World
 from .commands import Add, Intake, Prepare
 from .config import ServerConfig
+from .memory import PERIOD_S, MemoryKeeper
 from .registry import Registry
 from .replies import Replies, send
 from .requests import pack, params_from_submit, with_preset
@@ -118,16 +121,29 @@ class CookWorker:
         self._world, self._stopping = world, stopping
         self._asked: set = set()  # feature keys whose kernels were asked for (controls)
         self._asked_lock = threading.Lock()
+        self.memory = MemoryKeeper(config.program_idle_s, self._device)
+
+    def _device(self):
+        """The World's OpenCL Device (None for the reference solver or before the World)."""
+        return getattr(self._world(), "dev", None)
 
     def run(self) -> None:
+        dev = self._device()
+        if dev is not None:  # the server warmed up before this thread started: keep its kernels
+            dev.pin()
         while True:
-            item = self.queue.get()
+            try:
+                item = self.queue.get(timeout=PERIOD_S)
+            except queue.Empty:
+                item = False
             if item is None:
                 break
             if isinstance(item, Prepare):
                 self._prepare(item)
-                continue
-            self._one(*item)
+            elif item is not False:
+                self._one(*item)
+            if self.memory.due():
+                self._maintain()
         while True:  # drain what is left
             try:
                 item = self.queue.get_nowait()
@@ -137,6 +153,17 @@ class CookWorker:
                 rec, req, query = item
                 self.registry.unreserve(rec)
                 self.replies.send_error(query, P.ERR_BUSY, "server is shutting down", req.rid)
+
+    def _maintain(self) -> None:
+        try:
+            before = self.memory.released
+            self.memory.maintain()
+        except Exception:  # never the cook thread's end
+            log.exception("giving memory back failed")
+            return
+        if self.memory.released != before:
+            with self._asked_lock:  # a released program is built again when a control asks
+                self._asked.clear()
 
     def request_prepare(self, fabric: Fabric, params) -> bool:
         """Ask for a cloth's kernels to be built (tick thread; never blocks). False when the

@@ -3,7 +3,11 @@
 Device choice: ``DRAPE_DEVICE`` (or the ``device`` argument) is ``auto`` (a GPU when one is
 present, else a CPU device such as PoCL), ``gpu``, ``cpu``, ``gpu:N`` / ``cpu:N`` (the N-th such
 device, from 0: one server per GPU on a multi-GPU host), or a substring of the platform or
-device name. Programs are built once per build-option set and cached for the context.
+device name. Programs are built once per build-option set and cached for the context; the
+service releases the ones no cloth has used for a while (:meth:`Device.release_idle`: the PoCL
+CPU device holds about 1.5 MB of compiler state per program, returned to the OS only once the
+program is released and the heap trimmed) and builds them again when asked (from the OpenCL
+driver's own program cache on disk, about 25 ms each on PoCL).
 """
 
 from __future__ import annotations
@@ -12,6 +16,7 @@ import logging
 import os
 import re
 import threading
+import time
 from dataclasses import dataclass
 from functools import cache, lru_cache
 from importlib import resources
@@ -143,6 +148,9 @@ class Device:
         self._lock = threading.Lock()  # guards the caches, never held while a program builds
         self._building: dict[tuple[str, ...], threading.Lock] = {}
         self.builds: list[tuple[tuple[str, ...], str]] = []  # (program key, thread that built it), in order
+        self._used: dict[tuple[str, ...], float] = {}  # program key -> last program()/kernel() (monotonic)
+        self._pinned: set[tuple[str, ...]] = set()  # never released (pin())
+        self.released = 0  # programs released by release_idle, in all
         d = self.device
         self.info = DeviceInfo(
             name=describe(d),
@@ -166,6 +174,7 @@ class Device:
         with self._lock:
             prg = self._programs.get(key)
             if prg is not None:
+                self._used[key] = time.monotonic()
                 return prg
             building = self._building.setdefault(key, threading.Lock())
         with building:
@@ -178,6 +187,7 @@ class Device:
                 prg = cl.Program(self.ctx, text).build(options=opts)
                 with self._lock:
                     self._programs[key] = prg
+                    self._used[key] = time.monotonic()
                     self.builds.append((key, threading.current_thread().name))
                     self._building.pop(key, None)
             return prg
@@ -188,11 +198,50 @@ class Device:
             return (source, *sorted(options)) in self._programs
 
     def kernel(self, options: list[str], name: str) -> cl.Kernel:
-        key = ("kernel", name, *sorted(options))
+        opts = sorted(options)
+        key = ("kernel", name, *opts)
         with self._lock:
             k = self._kernels.get(key)
+            if k is not None:
+                self._used[("cloth.cl", *opts)] = time.monotonic()
         if k is None:
             k = cl.Kernel(self.program(options), name)
             with self._lock:
                 self._kernels[key] = k
         return k
+
+    def pin(self) -> int:
+        """Keep every program built so far for good (the server's warm-up: its default kernels,
+        the frame encoder's); :meth:`release_idle` releases only later ones. Returns how many."""
+        with self._lock:
+            self._pinned.update(self._programs)
+            return len(self._pinned)
+
+    def release_idle(self, idle_s: float, now: float | None = None) -> int:
+        """Release the programs (and their kernels) that are not pinned and that no
+        :meth:`program` or :meth:`kernel` call asked for in the last ``idle_s`` seconds: the tick
+        fetches the kernels of every live group each tick, so these are the feature combinations
+        no cloth uses any more. A holder of one of their kernels keeps it working (OpenCL counts
+        references). A later call builds the program again. Returns how many were released."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            idle = [
+                k
+                for k in self._programs
+                if k not in self._pinned and k not in self._building and now - self._used.get(k, now) >= idle_s
+            ]
+            for key in idle:
+                del self._programs[key]
+                self._used.pop(key, None)
+            gone = {key[1:] for key in idle if key[0] == "cloth.cl"}  # kernel() builds cloth.cl only
+            for kkey in [k for k in self._kernels if k[2:] in gone]:  # ("kernel", name, *options)
+                del self._kernels[kkey]
+            self.released += len(idle)
+        if idle:
+            log.debug("released %d idle program(s)", len(idle))
+        return len(idle)
+
+    @property
+    def program_count(self) -> int:
+        with self._lock:
+            return len(self._programs)

@@ -1,0 +1,62 @@
+"""The server gives memory back (drape.server.service.memory): once no cloth uses a feature
+combination's program for ``program_idle_s`` the cook thread releases it and trims the heap
+(counted), a cloth in use keeps its program, and a later cloth of the released combination is
+served (the program built again, by the cook thread). Asserted on counted events only."""
+
+from __future__ import annotations
+
+from conftest import collect, connect, make_config, wait_until
+
+from drape.server.service import Server
+from drape.server.service import memory as M
+from drape.server.sim.fabric import cook_grid
+from drape.server.sim.params import ClothParams, Features
+
+
+def test_programs_no_cloth_uses_are_released_and_the_heap_trimmed():
+    with Server(make_config(program_idle_s=0.2)) as srv:
+        dev = srv.call(lambda w: w.dev)
+        keeper = srv.cook.memory
+
+        def built(*features: str) -> bool:
+            params = ClothParams(features=Features.from_names(list(features)))
+            return srv.call(lambda w: w.ready(cook_grid(6, 6, pinned=[0, 5]), params))
+
+        c = connect(srv)
+        try:
+            kept = c.submit_grid(6, 6, pinned=[0, 5], features=["tethers", "wind"])
+            gone = c.submit_grid(6, 6, pinned=[0, 5], features=["xpbd"])
+            collect(kept, 3)
+            collect(gone, 3)
+            assert built("tethers", "wind") and built("xpbd")
+            gone.remove()
+            assert wait_until(lambda: not built("xpbd")), "the unused program was not released"
+            assert keeper.released >= 1 and dev.released == keeper.released
+            if M.CAN_TRIM:  # glibc: the release was followed by a trim
+                assert wait_until(lambda: keeper.trims >= 1)
+            assert built("tethers", "wind"), "a program in use was released"
+            collect(kept, 3)
+
+            at = len(dev.builds)
+            again = c.submit_grid(6, 6, pinned=[0, 5], features=["xpbd"])
+            collect(again, 3)
+            assert len(dev.builds) > at and all(t.startswith("drape-cook") for _, t in dev.builds[at:])
+        finally:
+            c.close()
+
+
+def test_program_idle_zero_keeps_every_program():
+    with Server(make_config(program_idle_s=0.0)) as srv:
+        c = connect(srv)
+        try:
+            h = c.submit_grid(6, 6, pinned=[0, 5], features=["colliders"])
+            collect(h, 3)
+            h.remove()
+            keeper = srv.cook.memory
+            after = keeper.runs
+            assert wait_until(lambda: keeper.runs >= after + 2)  # maintained since the cloth went
+            assert keeper.released == 0 and srv.call(lambda w: w.dev.released) == 0
+            params = ClothParams(features=Features.from_names(["colliders"]))
+            assert srv.call(lambda w: w.ready(cook_grid(6, 6, pinned=[0, 5]), params))  # still built
+        finally:
+            c.close()

@@ -36,6 +36,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
+from ..service.config import ServerConfig
 from .chaos_faults import SCENARIOS, Context
 
 log = logging.getLogger(__name__)
@@ -143,6 +144,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--rss-limit-mb", type=float, default=4096.0, help="kill a server whose RSS passes this (default 4096)"
     )
     parser.add_argument("--grace-period", type=float, default=5.0, help="the servers' grace period (default 5)")
+    parser.add_argument(
+        "--program-idle-s",
+        type=float,
+        default=ServerConfig.program_idle_s,
+        help="the servers' program_idle_s; fuzz measures RSS after grace period + this + 3 s "
+        f"(default {ServerConfig.program_idle_s})",
+    )
     parser.add_argument("--seed", type=int, default=1, help="fuzz seed (default 1)")
     parser.add_argument("--kill-servers", type=int, default=2, help="kill: servers, 2-4 (default 2)")
     parser.add_argument("--kills", type=int, default=1, help="kill: kills one after the other (default 1)")
@@ -180,6 +188,7 @@ def run(args: argparse.Namespace) -> int:
         rss_limit_mb=args.rss_limit_mb,
         seed=args.seed,
         grace_period=args.grace_period,
+        program_idle_s=args.program_idle_s,
         serve_args=tuple(shlex.split(args.serve_args)),
         kill_servers=args.kill_servers,
         kills=args.kills,

@@ -25,6 +25,7 @@ import zenoh
 
 from drape.client import protocol as P
 
+from ..service.config import ServerConfig
 from . import chaos_fuzz
 from .chaos_harness import ChaosServer, GoodClient, Window, reply_outcome, zenoh_session
 
@@ -51,6 +52,7 @@ class Context:
     rss_limit_mb: float = 4096.0
     seed: int = 1
     grace_period: float = 5.0
+    program_idle_s: float = ServerConfig.program_idle_s  # the servers' (fuzz: RSS measured after it)
     serve_args: tuple[str, ...] = ()  # extra `drape serve` arguments for every server
     kill_servers: int = 2  # kill: servers (2-4) the failover clients' cloths are placed on
     kills: int = 1  # kill: servers killed one after the other, each restarted after kill_gap s
@@ -70,6 +72,8 @@ class Stage:
                 str(ctx.grace_period),
                 "--max-message-bytes",
                 str(ctx.max_message_bytes),
+                "--program-idle-s",
+                str(ctx.program_idle_s),
                 *ctx.serve_args,
                 *server_args,
             ),
@@ -207,7 +211,9 @@ def fuzz(ctx: Context, count: int | None = None) -> dict[str, Any]:
         msgs = chaos_fuzz.messages(count, ctx.seed, "fuzzer", cloth, token, ctx.max_message_bytes)
         assert st.session is not None
         c = chaos_fuzz.send_all(st.session, st.keys, st.server.server_id, msgs)
-        m = w.close([st.good] if st.good else [], settle_s=ctx.grace_period + 2.0)
+        # RSS after the fuzz is gone: its cloths reclaimed (grace period), then their programs
+        # released (program_idle_s) and the heap trimmed (the server's cook thread, once a second)
+        m = w.close([st.good] if st.good else [], settle_s=ctx.grace_period + ctx.program_idle_s + 3.0)
         after = st.submit_retrying(grid_request("after-fuzz", 8))
     m.update(
         baseline=base,

@@ -7,9 +7,10 @@ area (mass share) and tether anchors. It never changes after cooking, so cloths 
 the same mesh, link options and pins share one fabric and its device buffers.
 
 Grid geometry and OBJ parsing are the wire protocol's (drape.client.protocol.geometry): one
-implementation, here kept in float64. Tether anchors (each free vertex's nearest pinned vertex)
-are found in bounded memory, and only for fabrics cooked with ``tethers=True`` or when first
-asked for (Fabric.tethers), so a cloth without tethers never pays for them.
+implementation, here kept in float64. The links and their colouring are links.py's; tether
+anchors (each free vertex's nearest pinned vertex, tethers.py) are found in bounded memory, and
+only for fabrics cooked with ``tethers=True`` or when first asked for (Fabric.tethers), so a
+cloth without tethers never pays for them.
 """
 
 from __future__ import annotations
@@ -25,14 +26,21 @@ import numpy as np
 
 from drape.client.protocol.geometry import grid_positions, parse_obj_exact
 
-from .params import LINK_BENDING, LINK_SHEAR, LINK_STRUCTURAL, LinkOptions
+from .links import (  # noqa: F401  bending_pairs, dedupe_links, mesh_edges: re-exported
+    bending_pairs,
+    dedupe_links,
+    greedy_colour,
+    grid_links,
+    mesh_edges,
+    mesh_links,
+)
+from .params import LinkOptions
+from .tethers import TETHER_GROUP, TETHER_PAIRS_PER_CHUNK, tether_anchors  # noqa: F401  re-exported
 
 log = logging.getLogger(__name__)
 
 MAX_VERTICES = 1 << 20  # per cloth; a hard sanity cap against hostile submissions
 MIN_REST_LENGTH = 0.0  # zero-length links are kept and handled by the solvers (a weld)
-TETHER_PAIRS_PER_CHUNK = 1 << 21  # (free vertex, pin) distances held at once by the tether set-up (~16 MB each array)
-TETHER_GROUP = 256  # neighbouring free vertices that share one candidate-pin search
 
 
 @dataclass(frozen=True, eq=False)
@@ -132,120 +140,6 @@ def parse_obj(text: str) -> tuple[np.ndarray, np.ndarray]:
     out-of-range references refused)."""
     v, t = parse_obj_exact(text)
     return v, t.astype(np.int32)
-
-
-# ---------------------------------------------------------------------------------------------
-# Links
-
-
-def mesh_edges(triangles: np.ndarray) -> np.ndarray:
-    """Unique undirected edges (E, 2) of a triangle list, lower index first, in first-seen order."""
-    e = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
-    return _unique_pairs(e)
-
-
-def bending_pairs(triangles: np.ndarray) -> np.ndarray:
-    """For every interior edge shared by exactly two triangles, the two opposite vertices."""
-    if len(triangles) == 0:
-        return np.zeros((0, 2), np.int32)
-    t = triangles.astype(np.int64)
-    half = np.concatenate([t[:, [0, 1, 2]], t[:, [1, 2, 0]], t[:, [2, 0, 1]]])  # (a, b, opposite)
-    lo = np.minimum(half[:, 0], half[:, 1])
-    hi = np.maximum(half[:, 0], half[:, 1])
-    key = lo * (t.max() + 1) + hi
-    order = np.argsort(key, kind="stable")
-    ks = key[order]
-    same = ks[1:] == ks[:-1]
-    # an edge with exactly two incident triangles: pair i, i+1 equal and not part of a longer run
-    run_start = np.r_[True, ~same]
-    run_len = np.diff(np.r_[np.flatnonzero(run_start), len(ks)])
-    starts = np.flatnonzero(run_start)[run_len == 2]
-    opp = np.stack([half[order[starts], 2], half[order[starts + 1], 2]], 1)
-    opp = opp[opp[:, 0] != opp[:, 1]]
-    return _unique_pairs(opp)
-
-
-def grid_links(cols: int, rows: int, options: LinkOptions) -> tuple[np.ndarray, np.ndarray]:
-    """Links of a regular grid: structural = row and column neighbours, shear = both cell
-    diagonals, bending = neighbours two apart along rows and columns."""
-    idx = np.arange(rows * cols).reshape(rows, cols)
-    parts: list[np.ndarray] = []
-    types: list[tuple[int, int]] = []  # (link type, number of links) of each part
-
-    def add(a: np.ndarray, b: np.ndarray, t: int) -> None:
-        if a.size:
-            parts.append(np.stack([a.ravel(), b.ravel()], 1))
-            types.append((t, a.size))
-
-    if options.structural:
-        add(idx[:, :-1], idx[:, 1:], LINK_STRUCTURAL)
-        add(idx[:-1, :], idx[1:, :], LINK_STRUCTURAL)
-    if options.shear:
-        add(idx[:-1, :-1], idx[1:, 1:], LINK_SHEAR)
-        add(idx[:-1, 1:], idx[1:, :-1], LINK_SHEAR)
-    if options.bending:
-        add(idx[:, :-2], idx[:, 2:], LINK_BENDING)
-        add(idx[:-2, :], idx[2:, :], LINK_BENDING)
-    if not parts:
-        return np.zeros((0, 2), np.int32), np.zeros(0, np.int8)
-    links = np.concatenate(parts).astype(np.int32)
-    ltype = np.concatenate([np.full(n, t, np.int8) for t, n in types])
-    return links, ltype
-
-
-def mesh_links(triangles: np.ndarray, options: LinkOptions) -> tuple[np.ndarray, np.ndarray]:
-    """Links of a triangle mesh: structural = edges, bending = across interior edges.
-    A general mesh has no shear diagonals; the shear option only applies to grids."""
-    parts, types = [], []
-    if options.structural:
-        e = mesh_edges(triangles)
-        parts.append(e)
-        types.append(np.full(len(e), LINK_STRUCTURAL, np.int8))
-    if options.bending:
-        b = bending_pairs(triangles)
-        parts.append(b)
-        types.append(np.full(len(b), LINK_BENDING, np.int8))
-    if not parts:
-        return np.zeros((0, 2), np.int32), np.zeros(0, np.int8)
-    return np.concatenate(parts).astype(np.int32), np.concatenate(types)
-
-
-def dedupe_links(links: np.ndarray, ltype: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Drop self-links and repeated pairs (the first occurrence, i.e. the stronger type, wins)."""
-    if len(links) == 0:
-        return links.reshape(0, 2).astype(np.int32), ltype
-    keep = links[:, 0] != links[:, 1]
-    links, ltype = links[keep], ltype[keep]
-    lo = np.minimum(links[:, 0], links[:, 1]).astype(np.int64)
-    hi = np.maximum(links[:, 0], links[:, 1]).astype(np.int64)
-    _, first = np.unique(lo * (int(hi.max(initial=0)) + 1) + hi, return_index=True)
-    first.sort()
-    return links[first].astype(np.int32), ltype[first]
-
-
-def greedy_colour(links: np.ndarray, n_vertices: int) -> np.ndarray:
-    """Greedy edge colouring: each link, in order, takes the lowest colour unused at both of its
-    vertices. No two links of one colour share a vertex."""
-    colours = np.empty(len(links), np.int32)
-    used = [0] * n_vertices  # bitmask of colours already at each vertex (python ints: unbounded)
-    for i, (a, b) in enumerate(links.tolist()):
-        m = used[a] | used[b]
-        c = (~m & (m + 1)).bit_length() - 1  # lowest clear bit
-        colours[i] = c
-        bit = 1 << c
-        used[a] |= bit
-        used[b] |= bit
-    return colours
-
-
-def _unique_pairs(pairs: np.ndarray) -> np.ndarray:
-    if len(pairs) == 0:
-        return np.zeros((0, 2), np.int32)
-    p = np.sort(pairs.astype(np.int64), axis=1)
-    key = p[:, 0] * (int(p.max()) + 1) + p[:, 1]
-    _, first = np.unique(key, return_index=True)
-    first.sort()
-    return p[first].astype(np.int32)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -388,80 +282,6 @@ def vertex_masses(fabric: Fabric, total_mass: float) -> np.ndarray:
     # vertices touching no triangle get the mean share, slivers the floor; then all are renormalised
     a = np.where(area > 0, np.maximum(area, floor), total / n)
     return total_mass * a / a.sum()
-
-
-def tether_anchors(
-    v: np.ndarray, pinned: np.ndarray, pairs_per_chunk: int = TETHER_PAIRS_PER_CHUNK
-) -> tuple[np.ndarray, np.ndarray]:
-    """Each free vertex's nearest pinned vertex (int32, -1 for pinned vertices or when none is
-    pinned; the lowest index among equally near ones) and the rest distance to it (float64).
-
-    Free vertices are taken in groups of TETHER_GROUP neighbours (Morton order); a group only
-    looks at the pins that can be nearest to one of its vertices (within d0 + 2r of the group's
-    centre, d0 the centre's nearest pin and r the group's radius), in blocks of at most
-    ``pairs_per_chunk`` (vertex, pin) pairs (see _nearest_pins). Memory is a few arrays of
-    ``pairs_per_chunk`` values plus one distance per pin, whatever the cloth's size and pin count."""
-    n = len(v)
-    anchor = np.full(n, -1, np.int32)
-    length = np.zeros(n)
-    pinned = np.asarray(pinned, bool)
-    pins = np.flatnonzero(pinned)
-    free = np.flatnonzero(~pinned)
-    if len(pins) == 0 or len(free) == 0:
-        return anchor, length
-    v = np.asarray(v, np.float64)
-    pv = np.ascontiguousarray(v[pins])
-    free = free[np.argsort(_morton(v[free]), kind="stable")]
-    for g in range(0, len(free), TETHER_GROUP):
-        idx = free[g : g + TETHER_GROUP]
-        x = v[idx]
-        centre = 0.5 * (x.min(axis=0) + x.max(axis=0))
-        radius = float(np.sqrt(((x - centre) ** 2).sum(axis=1).max()))
-        dc = np.sqrt(((pv - centre) ** 2).sum(axis=1))
-        reach = float(dc.min()) + 2.0 * radius
-        reach += 1e-9 * (reach + float(np.abs(centre).max()) + 1.0)  # far above the rounding of dc
-        sel = np.flatnonzero(dc <= reach)  # ascending: ties still go to the lowest pin index
-        rows = max(1, int(pairs_per_chunk) // len(sel))
-        for s in range(0, len(idx), rows):
-            a, d = _nearest_pins(x[s : s + rows], pv[sel])
-            anchor[idx[s : s + rows]] = pins[sel[a]]
-            length[idx[s : s + rows]] = d
-    return anchor, length
-
-
-def _nearest_pins(x: np.ndarray, pv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For each row of ``x``, the index into ``pv`` of its nearest point (lowest index on ties)
-    and the distance |x - p|. Squared distances come from one matrix product
-    (|p|^2 - 2 x.p, the same |x|^2 missing from every pin of a row); the points within that
-    formula's rounding of the nearest are then compared by their exact distance."""
-    p2 = np.einsum("ij,ij->i", pv, pv)
-    x2 = np.einsum("ij,ij->i", x, x)
-    d2 = x @ (-2.0 * pv.T)  # -2: exact
-    d2 += p2[None, :]
-    near = d2.min(axis=1)
-    tol = 64.0 * np.finfo(np.float64).eps * (x2 + float(p2.max())) + np.finfo(np.float64).tiny
-    rr, cc = np.nonzero(d2 <= (near + tol)[:, None])
-    del d2
-    exact = np.linalg.norm(x[rr] - pv[cc], axis=1)
-    order = np.lexsort((cc, exact, rr))  # by row, then distance, then pin index
-    first = order[np.r_[True, rr[order][1:] != rr[order][:-1]]]  # rr is sorted: one per row, in row order
-    return cc[first], exact[first]
-
-
-def _morton(x: np.ndarray) -> np.ndarray:
-    """Morton (Z-order) codes of points on a 1024^3 grid over their bounding box: nearby codes
-    are nearby points, so consecutive points in code order form compact groups."""
-    lo, hi = x.min(axis=0), x.max(axis=0)
-    q = ((x - lo) / np.where(hi > lo, hi - lo, 1.0) * 1023.0).astype(np.int64)
-    code = np.zeros(len(x), np.int64)
-    for axis in range(3):
-        b = q[:, axis] & 0x3FF
-        b = (b | (b << 16)) & 0x030000FF
-        b = (b | (b << 8)) & 0x0300F00F
-        b = (b | (b << 4)) & 0x030C30C3
-        b = (b | (b << 2)) & 0x09249249
-        code |= b << axis
-    return code
 
 
 def _jacobi_adjacency(links: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -39,21 +39,21 @@ Metrics of one run (every one over the 2 s, on what a client would decode):
   so that a burst of other load on the machine does not land on one configuration; ``load``: the
   fraction of real time the device spends (ms_per_frame x tick rate / 1000);
   ``ms_per_60hz``: cost of 1/60 s of simulated time, to compare tick rates.
+
+This module is the command (arguments, the plan, the timing rounds, the output); its parts:
+tradeoffrun (scenes, configurations, one run and its metrics), tradeoffsweep (which
+configurations run where), tradeofftruth (the cached ground truths) and tradeoffreport (tables,
+plots, the presets' summary).
 """
 
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import logging
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor
-from dataclasses import replace
 from pathlib import Path
-
-import numpy as np
 
 from ..sim.params import SOLVERS
 from .procs import progress, require_extra
@@ -72,229 +72,19 @@ from .tradeoffrun import (
     REF_ITERATIONS,
     REF_SUBSTEPS,
     REF_TICK_HZ,
-    SCENE_VERSION,
     SCENES,
     TIMING_FRAMES,
     TIMING_ROUNDS,
     Config,
     Scene,
     make_scene,
-    reference_config,
     simulate,
     time_config,
 )
+from .tradeoffsweep import main_sweep, side_sweep, sweep_layout
+from .tradeofftruth import ensure_truths, truth_records
 
 log = logging.getLogger(__name__)
-
-# ---------------------------------------------------------------------------------------------
-# Ground truth (cached)
-
-
-def _source_digest() -> str:
-    here = Path(__file__).resolve().parent
-    h = hashlib.sha1()
-    for name in ("reference.py", "fabric.py"):
-        p = here / name
-        if p.exists():
-            h.update(p.read_bytes())
-    return h.hexdigest()[:12]
-
-
-def truth_path(cache: Path, scene: str, size: int, duration: float, substeps: int, iterations: int) -> Path:
-    key = f"{scene}-{size}-{duration:g}s-{substeps}x{iterations}-v{SCENE_VERSION}-{_source_digest()}"
-    return cache / f"truth-{key}.npz"
-
-
-def _compute_truth(args: tuple[str, int, float, int, int, str]) -> str:
-    scene_name, size, duration, substeps, iterations, path = args
-    scene = make_scene(scene_name, size)
-    t0 = time.perf_counter()
-    res = simulate(
-        scene, reference_config(substeps, iterations), encodings=("float32",), duration=duration, keep_snapshots=True
-    )
-    stats = {
-        **res.metrics["float32"],
-        "energy_drift": res.energy_drift,
-        "energy_gain": res.energy_gain,
-        "seconds": time.perf_counter() - t0,
-        "finite": res.finite,
-    }
-    tmp = path + ".tmp.npz"
-    np.savez_compressed(tmp, snapshots=np.array(res.snapshots), stats=json.dumps(stats))
-    os.replace(tmp, path)
-    return path
-
-
-def ensure_truths(
-    wanted: list[tuple[str, int]], cache: Path, duration: float, substeps: int, iterations: int, jobs: int
-) -> dict[tuple[str, int], tuple[np.ndarray, dict]]:
-    """Ground truths of every (scene, size), computed in ``jobs`` processes where not cached."""
-    cache.mkdir(parents=True, exist_ok=True)
-    paths = {w: truth_path(cache, *w, duration, substeps, iterations) for w in wanted}
-    missing = [w for w, p in paths.items() if not p.exists()]
-    if missing:
-        log.info(
-            "computing %d ground truth(s) (float64 reference, XPBD %d substeps x %d iterations) in %d process(es): %s",
-            len(missing),
-            substeps,
-            iterations,
-            min(jobs, len(missing)),
-            ", ".join(f"{s}{n}" for s, n in missing),
-        )
-        t0 = time.perf_counter()
-        work: list[tuple[str, int, float, int, int, str]] = [
-            (s, n, duration, substeps, iterations, str(paths[(s, n)])) for s, n in missing
-        ]
-        # largest first so the pool finishes together
-        work.sort(key=lambda w: -w[1])
-        if jobs > 1 and len(work) > 1:
-            with ProcessPoolExecutor(max_workers=min(jobs, len(work))) as ex:
-                for p in ex.map(_compute_truth, work):
-                    log.info("  ground truth written: %s (%.0f s so far)", Path(p).name, time.perf_counter() - t0)
-        else:
-            for item in work:
-                log.info(
-                    "  ground truth written: %s (%.0f s so far)",
-                    Path(_compute_truth(item)).name,
-                    time.perf_counter() - t0,
-                )
-    out = {}
-    for w, path in paths.items():
-        z = np.load(path)
-        out[w] = (z["snapshots"], json.loads(str(z["stats"])))
-    return out
-
-
-# ---------------------------------------------------------------------------------------------
-# Sweeps
-
-PBD_ITERS_DEFAULT = (1, 2, 5, 10, 20, 50, 100)
-XPBD_SUBSTEPS_DEFAULT = (1, 2, 5, 10, 20)
-
-
-def main_sweep(level: str, solvers: list[str]) -> list[Config]:
-    """Every knob on the main scene. ``level``: quick, default or full."""
-    cfgs: list[Config] = []
-    gpu_solvers = [s for s in ("workgroup", "coloured", "jacobi") if s in solvers]
-    iters: tuple[int, ...]
-    subs: tuple[int, ...]
-    grid: tuple[tuple[int, int], ...]
-    teth_iters: tuple[int, ...]
-    teth_subs: tuple[int, ...]
-    ref_iters: tuple[int, ...]
-    ticks: tuple[int, ...]
-    compl: tuple[float, ...]
-    cheb_iters: tuple[int, ...]
-    rhos: tuple[float, ...]
-    if level == "quick":
-        iters = (1, 5, 10, 30)
-        subs = (1, 5, 10)
-        grid = ((5, 2),)
-        teth_iters = (2, 10)
-        teth_subs = (5,)
-        ref_iters = (10,)
-        ticks = (30, 120)
-        compl = ()
-        cheb_iters, rhos = (10,), (0.95,)
-    elif level == "full":
-        iters = (1, 2, 3, 5, 7, 10, 15, 20, 30, 50, 70, 100)
-        subs = (1, 2, 3, 4, 5, 7, 10, 15, 20)
-        grid = ((2, 2), (2, 5), (3, 3), (4, 2), (5, 2), (5, 3), (5, 5), (10, 2), (10, 3), (10, 5), (20, 2), (20, 5))
-        teth_iters = (1, 2, 3, 5, 10, 20)
-        teth_subs = (1, 2, 3, 4, 5, 7, 10, 15, 20, 30, 40, 50, 60, 70, 100)
-        ref_iters = (1, 10, 100)
-        ticks = (30, 120)
-        compl = (1e-7, 1e-5, 1e-3)
-        cheb_iters, rhos = (5, 10, 20, 50, 100), (0.9, 0.95, 0.99)
-    else:
-        iters = PBD_ITERS_DEFAULT
-        subs = XPBD_SUBSTEPS_DEFAULT
-        grid = ((2, 2), (4, 2), (5, 2), (10, 2), (5, 5))
-        teth_iters = (1, 2, 5, 10, 20)
-        teth_subs = (1, 2, 3, 5, 10, 30, 50, 100)
-        ref_iters = (10, 100)
-        ticks = (30, 120)
-        compl = (1e-6, 1e-3)
-        cheb_iters, rhos = (5, 10, 20, 50), (0.95,)
-    for s in gpu_solvers:
-        cfgs += [Config(s, i, 1, tag="pbd-iterations") for i in iters]
-        cfgs += [Config(s, 1, n, xpbd=True, tag="xpbd-substeps") for n in subs]
-    if "jacobi" in solvers:
-        cfgs += [Config("jacobi", i, 1, chebyshev_rho=rho, tag="jacobi-chebyshev") for i in cheb_iters for rho in rhos]
-        cfgs += [Config("jacobi", 1, n, xpbd=True, tethers=True, tag="xpbd-tethers") for n in (5, 10, 20)]
-    if "reference" in solvers:
-        cfgs += [Config("reference", i, 1, tag="pbd-iterations") for i in ref_iters]
-        cfgs += [Config("reference", 1, 5, xpbd=True, tag="xpbd-substeps")]
-    main = gpu_solvers[0] if gpu_solvers else "reference"
-    for n, i in grid:
-        cfgs.append(Config(main, i, n, xpbd=True, tag="xpbd-substeps-x-iterations"))
-    cfgs += [Config(main, i, 1, tethers=True, tag="pbd-tethers") for i in teth_iters]
-    cfgs += [Config(main, 1, n, xpbd=True, tethers=True, tag="xpbd-tethers") for n in teth_subs]
-    for s in gpu_solvers[1:]:
-        cfgs.append(Config(s, 10, 1, tethers=True, tag="pbd-tethers"))
-        cfgs.append(Config(s, 1, 5, xpbd=True, tethers=True, tag="xpbd-tethers"))
-    cfgs += [Config(main, 1, 10, xpbd=True, compliance=a, tag="xpbd-compliance") for a in compl]
-    for hz in ticks:
-        cfgs.append(Config(main, 10, 1, tick_hz=hz, tag="tick-rate"))
-        cfgs.append(Config(main, 1, max(1, 5 * 60 // hz), xpbd=True, tethers=True, tick_hz=hz, tag="tick-rate"))
-    if level != "quick" and main != "reference":
-        # the ground truth's own settings in float32 on the device: how far float32 alone drifts
-        cfgs.append(Config(main, REF_ITERATIONS, REF_SUBSTEPS, xpbd=True, tag="noise-floor"))
-    cfgs += preset_configs(main)
-    return _dedupe(cfgs)
-
-
-def side_sweep(level: str, solvers: list[str]) -> list[Config]:
-    """A few points on the other scenes and sizes: the baseline, Small Steps, tethers, presets."""
-    gpu_solvers = [s for s in ("workgroup", "coloured", "jacobi") if s in solvers]
-    main = gpu_solvers[0] if gpu_solvers else "reference"
-    cfgs = [Config(main, i, 1, tag="pbd-iterations") for i in (5, 10, 20)]
-    cfgs += [Config(main, 1, n, xpbd=True, tag="xpbd-substeps") for n in (5, 10)]
-    cfgs += [Config(main, 10, 1, tethers=True, tag="pbd-tethers")]
-    for s in gpu_solvers[1:]:
-        cfgs.append(Config(s, 10, 1, tag="pbd-iterations"))
-    cfgs += preset_configs(main)
-    if level == "full":
-        cfgs += [Config(main, i, 1, tag="pbd-iterations") for i in (1, 2, 50, 100)]
-        cfgs += [Config(main, 1, n, xpbd=True, tag="xpbd-substeps") for n in (1, 2, 20)]
-        cfgs += [Config(main, 1, n, xpbd=True, tethers=True, tag="xpbd-tethers") for n in (2, 5, 10)]
-    return _dedupe(cfgs)
-
-
-def sweep_layout(level: str, scenes: list[str], sizes: list[str] | None) -> list[tuple[str, int, bool]]:
-    """(scene, size, main sweep?) for every scene and size to run. Without --sizes: --quick runs
-    the main sweep on hanging 32 x 32; the default runs it on hanging 64 x 64 plus a few points
-    on every scene at 32 x 32; --full runs it on every scene at 64 x 64 plus a few points at 32
-    and 150."""
-    if sizes is not None:
-        ns = [int(v) for v in sizes]
-        return [
-            (s, n, (i == 0 and j == 0) or (level == "full" and j == 0))
-            for i, s in enumerate(scenes)
-            for j, n in enumerate(ns)
-        ]
-    if level == "quick":
-        return [(s, 32, i == 0) for i, s in enumerate(scenes)]
-    if level == "full":
-        return [(s, 64, True) for s in scenes] + [(s, n, False) for n in (32, 150) for s in scenes]
-    return [(scenes[0], 64, True)] + [(s, 32, False) for s in scenes]
-
-
-def preset_configs(solver: str) -> list[Config]:
-    try:
-        from ..sim.quality import PRESETS
-    except ImportError:
-        return []
-    return [Config.from_preset(name, solver) for name in PRESETS]
-
-
-def _dedupe(cfgs: list[Config]) -> list[Config]:
-    seen: dict[str, Config] = {}
-    for c in cfgs:
-        k = replace(c, tag="").__repr__()
-        if k not in seen or c.tag.startswith("preset:"):
-            seen[k] = c
-    return list(seen.values())
 
 
 # ---------------------------------------------------------------------------------------------
@@ -441,40 +231,7 @@ def run(args: argparse.Namespace) -> int:
             r["ms_per_60hz"] = r["ms_per_frame"] * r["tick_hz"] / 60.0
             r["load"] = r["ms_per_frame"] * r["tick_hz"] / 1000.0
 
-    for (s, n), (_, st) in truths.items():
-        records.append(
-            {
-                "scene": s,
-                "size": n,
-                "solver": "reference",
-                "iterations": args.ref_iterations,
-                "substeps": ref_substeps,
-                "xpbd": True,
-                "tethers": False,
-                "compliance": 0.0,
-                "tick_hz": REF_TICK_HZ,
-                "encoding": "float64",
-                "tag": "ground-truth",
-                "device": "numpy float64",
-                "ms_per_frame": 1e3 * st["seconds"] / (args.duration * REF_TICK_HZ),
-                "ms_p90": None,
-                "ms_per_60hz": 1e3 * st["seconds"] / (args.duration * REF_TICK_HZ),
-                "load": None,
-                "finite": st["finite"],
-                "energy_drift": st["energy_drift"],
-                "energy_gain": st["energy_gain"],
-                **{
-                    k: st.get(k, float("nan"))
-                    for k in ("max_strain", "mean_strain", "end_max_strain", "end_mean_strain", "late_max_strain")
-                },
-                "rms_dev": 0.0,
-                "max_dev": 0.0,
-                "rms_dev_early": 0.0,
-                "enc_err_max": 0.0,
-                "enc_err_rms": 0.0,
-                "code": version,
-            }
-        )
+    records += truth_records(truths, args.ref_iterations, ref_substeps, args.duration, version)
 
     print(
         f"\nDrape tradeoff ({level}, code {version}) on {records[0]['device'] if records else '?'}; "

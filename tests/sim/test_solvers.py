@@ -9,7 +9,8 @@ from conftest import random_grid_fabric, random_mesh_fabric
 from drape.server.sim import reference
 from drape.server.sim.fabric import cook_grid
 from drape.server.sim.opencl.clworld import CLWorld, RangeAllocator
-from drape.server.sim.params import ClothParams, Features, LinkOptions, Material
+from drape.server.sim.opencl.launch import pack_lanes
+from drape.server.sim.params import ClothParams, Features, LinkOptions, Material, Sphere, pack_colliders
 from drape.server.sim.world import ReferenceWorld, inverse_masses
 
 GS_SOLVERS = ["workgroup", "coloured"]
@@ -320,3 +321,119 @@ def test_frame_is_one_contiguous_array_with_ranges_and_held_frames_survive(devic
     f3 = w.fetch()
     assert f3.handles.tolist() == hs[1:] and f3.layout is not f2.layout and len(f3.xyz) == n - fabs[0].n_vertices
     w.close()
+
+
+# ---------------------------------------------------------------------------------------------
+# The CPU pack solver (kernels/pack.cl): cloths of one fabric stepped together, one lane each
+
+
+def test_pack_table_keeps_keys_apart_and_spreads_over_compute_units():
+    keys = [("a",)] * 20 + [("b",)] * 3 + [("c",)] + [("d",)] * 40
+    slots = list(range(100, 100 + len(keys)))
+    table = pack_lanes(keys, slots, 16, 2)
+    assert table.shape[1] == 16 and table.dtype == np.int32
+    used = table[table >= 0]
+    assert sorted(used.tolist()) == slots  # every cloth in exactly one lane
+    key_of = dict(zip(slots, keys, strict=True))
+    sizes: dict[tuple, list[int]] = {}
+    for row in table:
+        members = row[row >= 0]
+        assert np.all(row[len(members) :] == -1)  # lanes filled from the first, padded with -1
+        assert len({key_of[int(m)] for m in members}) == 1  # one key (fabric, iterations, substeps)
+        sizes.setdefault(key_of[int(members[0])], []).append(len(members))
+    # 20 cloths: 2 packs of 10 (one per core), not 16 + 4; 40: 4 packs of 10, not 16 + 16 + 8
+    assert sorted(sizes[("a",)]) == [10, 10] and sorted(sizes[("d",)]) == [10, 10, 10, 10]
+    assert sorted(sizes[("b",)]) == [1, 2] and sizes[("c",)] == [1]
+    assert pack_lanes([], [], 16, 2).shape == (0, 16)
+
+
+def cpu_only(device):
+    if device.info.is_gpu:
+        pytest.skip("the pack solver runs on CPU devices only")
+
+
+@pytest.mark.parametrize("lanes", [4, 16])
+@pytest.mark.parametrize("xpbd", [False, True], ids=["pbd", "xpbd"])
+def test_cpu_packs_of_cloths_with_their_own_parameters_match_reference(device, rng, lanes, xpbd):
+    """21 cloths of two fabrics, each with its own material, mass, gravity and moving pins, in
+    packs by (fabric, iterations, substeps): every lane equals the float64 reference and the
+    one-cloth-per-work-item kernel (wg_step), and full and partly filled packs alike."""
+    cpu_only(device)
+    fabs = [random_grid_fabric(rng), random_mesh_fabric(rng)]
+    packed = CLWorld("workgroup", device=device, pack_lanes=lanes)
+    serial = CLWorld("workgroup", device=device, pack_lanes=0)
+    assert serial.pack_lanes == 0 and packed.pack_lanes == lanes
+    ref = ReferenceWorld("coloured")
+    cloths = []
+    for i in range(21):
+        fab = fabs[i % 2]
+        p = random_params(rng, Features(xpbd=xpbd)).with_(iterations=[4, 7][i % 3 == 0], substeps=1 + (i % 4 == 0))
+        pos = random_state(rng, fab)
+        cloths.append((fab, packed.add(fab, p, pos), serial.add(fab, p, pos), ref.add(fab, p, pos)))
+    (g,) = packed.groups.values()
+    steps = 5
+    for step in range(steps):
+        for fab, hp, hs, hr in cloths[::3]:  # some pins move every step
+            pins = np.flatnonzero(fab.pinned)
+            t = fab.rest_positions[pins] + 0.01 * (step + 1)
+            for w, h in ((packed, hp), (serial, hs), (ref, hr)):
+                w.set_pin_targets(h, pins, t)
+        for w in (packed, serial, ref):
+            w.step(DT)
+    assert g.pack == lanes and g.n_packs >= 8  # 2 fabrics x 4 (iterations, substeps), lanes apart
+    fp, fs, fr = packed.fetch(), serial.fetch(), ref.fetch()
+    for _, hp, hs, hr in cloths:
+        a, b = fp.positions[hp], fr.positions[hr]
+        assert np.all(np.isfinite(a))
+        np.testing.assert_allclose(a, b, atol=tol(b, steps), rtol=0)
+        np.testing.assert_allclose(a, fs.positions[hs], atol=tol(b, steps), rtol=0)
+
+
+def test_cpu_packs_carry_every_feature_per_cloth(device, rng):
+    """Tethers, a collider, wind and normals differ per cloth of one pack: each lane as wg_step."""
+    cpu_only(device)
+    fab = cook_grid(9, 7, 1.0, 0.8, LinkOptions(bending=True), pinned=[0, 8], origin=(0, 1, 0))
+    feats = Features(xpbd=True, tethers=True, colliders=True, wind=True, normals=True)
+    packed = CLWorld("workgroup", device=device)
+    serial = CLWorld("workgroup", device=device, pack_lanes=0)
+    pairs = []
+    for i in range(6):
+        mat = Material(tether_limit=1.02 + 0.02 * i, friction=0.1 * i, drag=0.5 + 0.2 * i, lift=0.1 * i)
+        p = ClothParams(material=mat, features=feats, wind=(1.0 + i, 0.0, 0.5 * i), iterations=6)
+        sphere = pack_colliders([Sphere((0.5, 0.7 - 0.03 * i, 0.4), 0.25)])
+        hp, hs = packed.add(fab, p), serial.add(fab, p)
+        packed.set_colliders(hp, sphere)
+        serial.set_colliders(hs, sphere)
+        pairs.append((hp, hs))
+    assert [g.pack for g in packed.groups.values()] == [packed.pack_lanes]
+    for _ in range(10):
+        packed.step(DT)
+        serial.step(DT)
+    fp, fs = packed.fetch(), serial.fetch()
+    for hp, hs in pairs:
+        assert np.all(np.isfinite(fp.positions[hp])) and np.all(np.isfinite(fp.normals[hp]))
+        np.testing.assert_allclose(fp.positions[hp], fs.positions[hs], atol=1e-4, rtol=0)
+        np.testing.assert_allclose(fp.normals[hp], fs.normals[hs], atol=1e-3, rtol=0)
+    assert not np.allclose(fp.positions[pairs[0][0]], fp.positions[pairs[-1][0]])  # lanes differ
+
+
+def test_a_cloth_too_big_for_a_pack_takes_the_work_group_kernel(device):
+    cpu_only(device)
+    w = CLWorld("workgroup", device=device)
+    lanes = w.pack_lanes
+    assert lanes > 0  # the default on a CPU
+    n = int(np.ceil(np.sqrt(device.info.local_mem / (16 * lanes)))) + 1  # fits local memory, not a pack
+    big, small = cook_grid(n, n, pinned=[0, n - 1]), cook_grid(8, 8, pinned=[0, 7])
+    p = ClothParams(iterations=2)
+    hb, hs = w.add(big, p), w.add(small, p)
+    gb, gs = w.groups[w.rec[hb].group], w.groups[w.rec[hs].group]
+    assert gb.use_local and not gb.pack and gs.pack == lanes
+    assert CLWorld("workgroup", device=device, local_size=64).pack_lanes == 0  # a parallel work-group
+    assert CLWorld("coloured", device=device).pack_lanes == 0
+    ref = ReferenceWorld()
+    rb, rs = ref.add(big, p), ref.add(small, p)
+    for _ in range(2):
+        w.step(DT)
+        ref.step(DT)
+    np.testing.assert_allclose(w.positions(hb), ref.positions(rb), atol=1e-4)
+    np.testing.assert_allclose(w.positions(hs), ref.positions(rs), atol=1e-4)

@@ -24,7 +24,7 @@ MF = cl.mem_flags
 
 
 # Extra build options of the CPU pack kernel (never a GPU build's): measured in docs/cpu-solver.md.
-CPU_BUILD_OPTIONS: list[str] = []
+CPU_BUILD_OPTIONS: list[str] = ["-cl-denorms-are-zero"]
 
 
 def _next_pow2(n: int) -> int:

@@ -10,7 +10,8 @@ Layout (see kernels/layout.h):
 
 Cloths are grouped by the kernels they need (feature set, and substeps or local-memory fit):
 one program per build-option set, one launch (or one batch sequence) per group; the groups'
-launch set-up and the coloured and Jacobi launches are in launch.py (GroupLaunches).
+launch set-up and the coloured, Jacobi and CPU pack launches are in launch.py (GroupLaunches),
+pin targets gathered into one upload per step in targets.py (PinTargets).
 
 A frame is read back whole: one ``pack_rows`` launch gathers every cloth's positions (xyz,
 without the inverse mass) back to back in the layout's order into one device buffer, and one
@@ -32,12 +33,18 @@ import pyopencl as cl
 
 from ..fabric import Fabric
 from ..params import ClothParams, Features
-from ..shared import JACOBI_OMEGA
 from ..world import Cloth, World, inverse_masses
 from .buffers import DevArray, RangeAllocator, fabric_blob  # noqa: F401 (RangeAllocator re-exported)
 from .device import Device, layout
 from .frames import FrameReadback
-from .launch import CPU_BUILD_OPTIONS, GroupLaunches, _next_pow2  # noqa: F401 (_next_pow2 re-exported)
+from .launch import (  # noqa: F401 (re-exported: _next_pow2, the LINK_UNROLL_* defaults)
+    LINK_UNROLL_GLOBAL,
+    LINK_UNROLL_LOCAL,
+    PACK_LANES_CPU,
+    GroupLaunches,
+    _next_pow2,
+)
+from .targets import PinTargets
 
 log = logging.getLogger(__name__)
 
@@ -89,15 +96,7 @@ class Group:
     max_links: int = 0
 
 
-# Measured on the H100 (docs/benchmarks.md): the local path is fastest without unrolling
-# (157 vs 146 G link-it/s at 4), the global path with 4 (1.31 vs 1.87 ms for the seed cloth).
-LINK_UNROLL_LOCAL = 1
-LINK_UNROLL_GLOBAL = 4
-# CPU pack solver's lanes (cloths per work-item), measured on the 2-core Zen 5 (docs/cpu-solver.md)
-PACK_LANES_CPU = 16
-
-
-class CLWorld(GroupLaunches, FrameReadback, World):
+class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
     def __init__(
         self,
         strategy: str = "workgroup",
@@ -160,11 +159,7 @@ class CLWorld(GroupLaunches, FrameReadback, World):
         self._tables_dirty = True
         self.groups: dict[tuple, Group] = {}
         self._init_frames()
-        self._pending_targets: list[tuple[np.ndarray, np.ndarray]] = []
-        self._vbase_of = np.full(64, -1, np.int64)  # by handle: set_pin_targets_block's rows
-        self._seen = np.zeros(0, bool)  # _upload_targets: rows already given a later target
-        self._scatter_idx = DevArray(q, np.int32, 1, 1024)
-        self._scatter_val = DevArray(q, np.float32, 4, 1024)
+        self._init_targets()
         self._base_options = [*Features().build_options(), "-DUSE_LOCAL=0"]
 
     # --- allocation -----------------------------------------------------------------------
@@ -211,11 +206,7 @@ class CLWorld(GroupLaunches, FrameReadback, World):
         vbase = self._alloc(self.vert, self._vertex_arrays(), n)
         rec = ClothSlot(self._table_slot(), vbase, self._fabric_slot(f))
         self.rec[cloth.handle] = rec
-        if cloth.handle >= len(self._vbase_of):
-            grown = np.full(max(cloth.handle + 1, 2 * len(self._vbase_of)), -1, np.int64)
-            grown[: len(self._vbase_of)] = self._vbase_of
-            self._vbase_of = grown
-        self._vbase_of[cloth.handle] = vbase
+        self._note_vbase(cloth.handle, vbase)
         x = f.rest_positions if positions is None else positions
         self._write_vertices(cloth, rec, x)
         if velocities is not None:  # protocol 1.3 resume: the velocity buffer is the state (xyz, w unused)
@@ -318,7 +309,7 @@ class CLWorld(GroupLaunches, FrameReadback, World):
         if self._pending_targets:  # targets still queued for this cloth must not land in its freed range
             self._upload_targets()
         rec = self.rec.pop(cloth.handle)
-        self._vbase_of[cloth.handle] = -1
+        self._note_vbase(cloth.handle, -1)
         self._leave_group(cloth.handle, rec)
         self.vert.release(rec.vbase, cloth.fabric.n_vertices)
         if rec.lam_size:
@@ -343,64 +334,6 @@ class CLWorld(GroupLaunches, FrameReadback, World):
             self.pos.write(rec.vbase, x)
         self._write_tables(cloth, rec)
         self._regroup(cloth, rec)
-
-    def _set_targets(self, cloth: Cloth, idx: np.ndarray, targets: np.ndarray) -> None:
-        # gathered and scattered on the device in one launch before the next step (_flush)
-        if len(idx):
-            self._pending_targets.append((idx + self.rec[cloth.handle].vbase, targets))
-
-    def _set_targets_many(self, handles: list[int], indices: list[np.ndarray], targets: list[np.ndarray]) -> None:
-        rec = self.rec
-        vb = np.fromiter((rec[h].vbase for h in handles), np.int64, len(handles))
-        counts = np.fromiter((len(i) for i in indices), np.int64, len(indices))
-        rows = np.concatenate(indices).astype(np.int64) + np.repeat(vb, counts)
-        self._pending_targets.append((rows, np.concatenate(targets).reshape(-1, 3)))
-
-    def _set_targets_block(self, handles: np.ndarray, idx: np.ndarray, targets: np.ndarray) -> None:
-        rows = (self._vbase_of[handles][:, None] + idx[None, :]).reshape(-1)
-        self._pending_targets.append((rows, targets.reshape(-1, 3)))
-
-    def _latest_targets(self) -> list[tuple[np.ndarray, np.ndarray]]:
-        """The pending targets with, of a row given several, only the last (later calls win:
-        the device's scatter has no order). Entries newest first, one mask over the rows."""
-        pending = self._pending_targets
-        if len(pending) < 2:
-            return pending
-        if len(self._seen) < self.vert.capacity:
-            self._seen = np.zeros(self.vert.capacity, bool)
-        seen, out = self._seen, []
-        for rows, t in reversed(pending):
-            fresh = ~seen[rows]
-            seen[rows] = True
-            out.append((rows, t) if fresh.all() else (rows[fresh], np.asarray(t).reshape(-1, 3)[fresh]))
-        for rows, _ in pending:
-            seen[rows] = False
-        return out
-
-    def _upload_targets(self) -> None:
-        latest = self._latest_targets()
-        idx = np.concatenate([i for i, _ in latest]).astype(np.int32)
-        val = np.zeros((len(idx), 4), np.float32)
-        val[:, :3] = np.concatenate([np.asarray(t).reshape(-1, 3) for _, t in latest])
-        self._pending_targets.clear()
-        if not len(idx):
-            return
-        if self._scatter_idx.capacity < len(idx):
-            self._scatter_idx.resize(2 * len(idx))
-            self._scatter_val.resize(2 * len(idx))
-        self._scatter_idx.write(0, idx)
-        self._scatter_val.write(0, val)
-        k = self.dev.kernel(self._base_options, "scatter_targets")
-        n = len(idx)
-        k(
-            self.dev.queue,
-            (-(-n // 64) * 64,),
-            (64,),
-            np.int32(n),
-            self._scatter_idx.buf,
-            self._scatter_val.buf,
-            self.target.buf,
-        )
 
     def _set_colliders(self, cloth: Cloth) -> None:
         rec = self.rec[cloth.handle]
@@ -473,32 +406,6 @@ class CLWorld(GroupLaunches, FrameReadback, World):
             ]
         for name in names:
             self.dev.kernel(opts, name)
-
-    def _options(self, g: Group, local: bool | None = None) -> list[str]:
-        return self._options_for(g.features, g.use_local if local is None else local, g.pack)
-
-    def _options_for(self, features: Features, use_local: bool, pack: int = 0) -> list[str]:
-        if pack:  # CPU only: the pack kernel keeps the lanes in local memory itself
-            return [*features.build_options(), "-DUSE_LOCAL=0", f"-DPACK_LANES={pack}", *CPU_BUILD_OPTIONS]
-        g_features = features
-        env_unroll = os.environ.get("DRAPE_LINK_UNROLL_LOCAL" if use_local else "DRAPE_LINK_UNROLL_GLOBAL")
-        unroll = int(env_unroll) if env_unroll else (LINK_UNROLL_LOCAL if use_local else LINK_UNROLL_GLOBAL)
-        opts = [
-            *g_features.build_options(),
-            f"-DUSE_LOCAL={int(use_local)}",
-            f"-DJACOBI_OMEGA={JACOBI_OMEGA}f",
-            f"-DLINK_UNROLL={unroll}",
-        ]
-        regs = os.environ.get("DRAPE_NV_MAXRREG", "64")
-        if not use_local and self.dev.info.is_nvidia and regs != "0":
-            # cap registers so a global-path work-group may have 1024 work-items
-            opts.append(f"-cl-nv-maxrregcount={regs}")
-        return opts
-
-    def _kernel_limit(self, g: Group) -> int:
-        name = "pack_step" if g.pack else "wg_step" if self.solver == "workgroup" else "cl_predict"
-        k = self.dev.kernel(self._options(g), name)
-        return int(k.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, self.dev.device))
 
     def step(self, dt: float) -> None:
         self._flush()

@@ -1,20 +1,30 @@
-"""The OpenCL world's per-group kernel set-up and launches (a mixin of CLWorld).
+"""The OpenCL world's per-group build options, kernel set-up and launches (a mixin of CLWorld).
 
-A *group* is the cloths that share one kernel build (feature set, substeps, local-memory fit).
+A *group* is the cloths that share one kernel build (feature set, substeps, local-memory fit,
+CPU packs). ``_options_for`` is a group's build options (a GPU's never include the CPU pack's).
 ``_build_group`` sizes its launches (work-group size, chunks of the coloured and Jacobi solvers,
-per-colour link prefix sums) when its cloths change; the coloured and Jacobi solvers' per-substep
-vertex phases and iterations are enqueued here, the work-group solver's single launch by
-``CLWorld.step``.
+per-colour link prefix sums, the CPU packs) when its cloths change; the coloured and Jacobi
+solvers' per-substep vertex phases and iterations and the CPU pack launch are enqueued here, the
+work-group solver's single launch by ``CLWorld.step``.
+
+CPU pack solver (kernels/pack.cl): on a CPU device with one work-item per cloth (the default
+there), the work-group solver's cloths that share a fabric, iterations and substeps are stepped
+PACK_LANES_CPU at a time by one work-item, the link solve vectorised across them
+(docs/cpu-solver.md).
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+import os
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pyopencl as cl
 
+from ..shared import JACOBI_OMEGA
+
 if TYPE_CHECKING:
+    from ..params import Features
     from ..world import Cloth
     from .buffers import DevArray
     from .clworld import ClothSlot, Group
@@ -23,6 +33,12 @@ if TYPE_CHECKING:
 MF = cl.mem_flags
 
 
+# Measured on the H100 (docs/benchmarks.md): the local path is fastest without unrolling
+# (157 vs 146 G link-it/s at 4), the global path with 4 (1.31 vs 1.87 ms for the seed cloth).
+LINK_UNROLL_LOCAL = 1
+LINK_UNROLL_GLOBAL = 4
+# CPU pack solver's lanes (cloths per work-item), measured on the 2-core Zen 5 (docs/cpu-solver.md)
+PACK_LANES_CPU = 16
 # Extra build options of the CPU pack kernel (never a GPU build's): measured in docs/cpu-solver.md.
 CPU_BUILD_OPTIONS: list[str] = ["-cl-denorms-are-zero"]
 
@@ -31,17 +47,15 @@ def _next_pow2(n: int) -> int:
     return 1 << max(0, int(n - 1).bit_length())
 
 
-def pack_lanes(
-    keys: list[tuple], slots: list[int], lanes: int, compute_units: int
-) -> np.ndarray:
+def pack_lanes(keys: list[tuple], slots: list[int], lanes: int, compute_units: int) -> np.ndarray:
     """Cloth slots into packs of at most ``lanes`` cloths that share a key (fabric, iterations,
     substeps), as an (n_packs, lanes) int32 table padded with -1. A key's cloths are spread
     evenly over its packs, and over a multiple of ``compute_units`` packs where that does not add
     a round: a pack costs about the same however many lanes it fills, so 20 cloths on 2 cores
     run as 10 + 10, not 16 + 4."""
     by_key: dict[tuple, list[int]] = {}
-    for k, s in zip(keys, slots, strict=True):
-        by_key.setdefault(k, []).append(s)
+    for key, s in zip(keys, slots, strict=True):
+        by_key.setdefault(key, []).append(s)
     rows: list[list[int]] = []
     for members in by_key.values():
         n = len(members)
@@ -56,7 +70,7 @@ def pack_lanes(
 
 class GroupLaunches:
     """Needs ``dev``, ``rec``, ``cloths``, ``solver``, ``chunk``, ``link_group_size``, the size
-    caps, the device buffers and ``_kernel_limit`` from the world."""
+    caps and the device buffers from the world."""
 
     # declared for the type checker only (no values: CLWorld.__init__ and World.__init__ set them)
     dev: Device
@@ -79,9 +93,31 @@ class GroupLaunches:
     lam: DevArray
     coll: DevArray
 
-    if TYPE_CHECKING:
+    def _options(self, g: Group, local: bool | None = None) -> list[str]:
+        return self._options_for(g.features, g.use_local if local is None else local, g.pack)
 
-        def _kernel_limit(self, g: Group) -> int: ...
+    def _options_for(self, features: Features, use_local: bool, pack: int = 0) -> list[str]:
+        if pack:  # CPU only: the pack kernel keeps the lanes in local memory itself
+            return [*features.build_options(), "-DUSE_LOCAL=0", f"-DPACK_LANES={pack}", *CPU_BUILD_OPTIONS]
+        g_features = features
+        env_unroll = os.environ.get("DRAPE_LINK_UNROLL_LOCAL" if use_local else "DRAPE_LINK_UNROLL_GLOBAL")
+        unroll = int(env_unroll) if env_unroll else (LINK_UNROLL_LOCAL if use_local else LINK_UNROLL_GLOBAL)
+        opts = [
+            *g_features.build_options(),
+            f"-DUSE_LOCAL={int(use_local)}",
+            f"-DJACOBI_OMEGA={JACOBI_OMEGA}f",
+            f"-DLINK_UNROLL={unroll}",
+        ]
+        regs = os.environ.get("DRAPE_NV_MAXRREG", "64")
+        if not use_local and self.dev.info.is_nvidia and regs != "0":
+            # cap registers so a global-path work-group may have 1024 work-items
+            opts.append(f"-cl-nv-maxrregcount={regs}")
+        return opts
+
+    def _kernel_limit(self, g: Group) -> int:
+        name = "pack_step" if g.pack else "wg_step" if self.solver == "workgroup" else "cl_predict"
+        k = self.dev.kernel(self._options(g), name)
+        return int(k.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, self.dev.device))
 
     def _build_group(self, g: Group) -> None:
         handles = sorted(g.handles)
@@ -215,10 +251,8 @@ class GroupLaunches:
         """CPU: one launch of pack_step, one work-item per pack, the lanes in local memory."""
         W = g.pack
         xpbd_words = g.max_links if g.features.xpbd else 1
-        self.dev.kernel(opts, "pack_step")(
-            self.dev.queue,
-            (g.n_packs,),
-            (1,),
+        # Any: pyopencl's stub of Kernel.__call__ leaves out LocalMemory
+        args: list[Any] = [
             dt32,
             g.packs_buf,
             self.ci.buf,
@@ -232,4 +266,5 @@ class GroupLaunches:
             self.coll.buf,
             cl.LocalMemory(16 * W * max(1, g.max_vertices)),
             cl.LocalMemory(4 * W * max(1, xpbd_words)),
-        )
+        ]
+        self.dev.kernel(opts, "pack_step")(self.dev.queue, (g.n_packs,), (1,), *args)

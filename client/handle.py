@@ -70,7 +70,9 @@ class ClothHandle:
         self.invalid = 0
         self.closed = False
         self.close_reason = ""
-        self._cond = threading.Condition()
+        self._lock = threading.RLock()  # the state stream's fields
+        self._cond = threading.Condition(self._lock)  # a state arrived, or the cloth closed
+        self._waiting = 0  # threads waiting on _cond (a state wakes them only when there are any)
         self._deliver_lock = threading.RLock()  # states are delivered one at a time, in order
         self._queue: deque[ClothState] = deque(maxlen=max(1, queue_size))
         self._latest: ClothState | None = None
@@ -99,21 +101,23 @@ class ClothHandle:
             return
         self._deliver(st)
 
-    def _deliver(self, st: ClothState) -> None:
-        """Queue a state and run the callbacks (on the thread that received it)."""
+    def _deliver(self, st: ClothState, now: float | None = None) -> None:
+        """Queue a state and run the callbacks (on the thread that received it). ``now``: the
+        monotonic time of its arrival (one clock read for a whole bundle)."""
         with self._deliver_lock:
-            with self._cond:
+            with self._lock:
                 if self.closed:
                     return
                 self._prev, self._latest = (None if self._fresh else self._latest), st
                 self._fresh = False
-                self.last_receipt = time.monotonic()
+                self.last_receipt = time.monotonic() if now is None else now
                 if len(self._queue) == self._queue.maxlen:
                     self.dropped += 1
                 self._queue.append(st)
                 self.received += 1
-                self._cond.notify_all()
-                callbacks = list(self._callbacks)
+                if self._waiting:
+                    self._cond.notify_all()
+                callbacks = list(self._callbacks) if self._callbacks else ()
             for cb in callbacks:
                 try:
                     cb(st)
@@ -199,7 +203,11 @@ class ClothHandle:
                 remaining = None if deadline is None else deadline - time.monotonic()
                 if remaining is not None and remaining <= 0:
                     raise TimeoutError(f"no state for cloth {self.id} within {timeout} s")
-                self._cond.wait(remaining)
+                self._waiting += 1
+                try:
+                    self._cond.wait(remaining)
+                finally:
+                    self._waiting -= 1
             return self._queue.popleft()
 
     def states(self, timeout: float | None = None) -> Iterator[ClothState]:

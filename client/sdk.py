@@ -42,6 +42,7 @@ import numpy as np
 import zenoh
 
 from . import protocol as P
+from .bundles import MAX_ORPHAN_CLOTHS, BundleReceiver  # noqa: F401  (MAX_ORPHAN_CLOTHS: as before)
 from .controls import (  # noqa: F401  (BatchError, ControlBatch and the helpers: drape.client.sdk.* as before)
     BatchError,
     ControlBatch,
@@ -62,8 +63,6 @@ from .sending import send_controls
 from .session import deployment_client_id, zenoh_config  # noqa: F401  (zenoh_config: the pre-1.2 path)
 
 log = logging.getLogger(__name__)
-
-MAX_ORPHAN_CLOTHS = 256  # bundle entries of cloths whose submit reply is still on its way, kept per id
 
 
 class DrapeClient:
@@ -120,10 +119,9 @@ class DrapeClient:
         self._servers_cond = threading.Condition(self._lock)
         self._closed = False
         self.send_errors = 0  # replies to send() that were errors (or refused batch items), or that never came
-        self.bundle_invalid = 0  # bundle payloads that could not be parsed
         self._bundle_sub: Any = None
-        self._bundled_submits = 0  # bundled submissions waiting for their reply
-        self._orphans: dict[str, list[ClothState]] = {}  # their states that arrived before the reply
+        # this client's bundle: decoded whole, its states delivered to the handles (client/bundles.py)
+        self.bundles = BundleReceiver(self._handles, self._lock, queue_size, self.keys.bundle(self.client_id))
         self._server_version: tuple[int, int] | None = None
         self._scoped: dict[str, bool] = {}  # per server: whether it has client-scoped request keys (1.4)
         self._max_batch_items = P.DEFAULT_LIMITS.max_batch_items
@@ -294,43 +292,12 @@ class DrapeClient:
         subscription is in place when the cloth's first state is published."""
         with self._lock:
             if self._bundle_sub is None:
-                self._bundle_sub = self.session.declare_subscriber(self.bundle_key, self._on_bundle)
+                self._bundle_sub = self.session.declare_subscriber(self.bundle_key, self.bundles.on_sample)
 
-    def _on_bundle(self, sample: zenoh.Sample) -> None:
-        """Dispatch each state of a bundle to its ClothHandle (on the Zenoh thread)."""
-        now = time.time_ns()
-        try:
-            bundle = P.parse_bundle(sample.payload.to_bytes())
-        except DrapeError as e:
-            self.bundle_invalid += 1
-            log.warning("invalid bundle payload on %s: %s", self.bundle_key, e)
-            return
-        for i, entry in enumerate(bundle.entries):
-            h = self._handles.get(entry.cloth)
-            if h is None:
-                with self._lock:
-                    h = self._handles.get(entry.cloth)
-                    if h is None:
-                        # A cloth whose submit reply has not been handled yet: keep its states for it.
-                        if self._bundled_submits and (
-                            entry.cloth in self._orphans or len(self._orphans) < MAX_ORPHAN_CLOTHS
-                        ):
-                            try:
-                                q = self._orphans.setdefault(entry.cloth, [])
-                                q.append(bundle.state(i, now))
-                                del q[: -self.queue_size]
-                            except DrapeError:
-                                pass
-                        continue
-            if not h.bundled:
-                continue
-            try:
-                st = bundle.state(i, now)
-            except DrapeError as e:
-                h.invalid += 1
-                log.warning("cloth %s: invalid state in bundle: %s", h.id, e)
-                continue
-            h._deliver(st)
+    @property
+    def bundle_invalid(self) -> int:
+        """Bundle payloads that could not be parsed."""
+        return self.bundles.invalid
 
     # --- requests -----------------------------------------------------------------------------
     def _key(self, kind: str, server: str, timeout: float | None = None) -> str:
@@ -608,8 +575,7 @@ class DrapeClient:
         bundled = bool(req.state is not None and req.state.bundle)
         if bundled:
             self._ensure_bundle_subscriber()
-            with self._lock:
-                self._bundled_submits += 1
+            self.bundles.submitting()
         ticket = self.placement.placing(server, req.n_vertices)  # counted there until its next stats
         try:
             try:
@@ -633,16 +599,13 @@ class DrapeClient:
                     if old_id is not None and self._handles.get(old_id) is h:
                         del self._handles[old_id]
                     self._handles[h.id] = h
-                    early = self._orphans.pop(h.id, []) if bundled else []
+                    early = self.bundles.early_states(h.id) if bundled else []
                 for st in early:
                     h._deliver(st)
             return h
         finally:
             if bundled:
-                with self._lock:
-                    self._bundled_submits -= 1
-                    if not self._bundled_submits:
-                        self._orphans.clear()
+                self.bundles.submitted()
 
     def submit_grid(
         self,

@@ -1,15 +1,20 @@
 """State bundles "DRPB" (1.1, PROTOCOL.md section 9.1): the states of one client's bundled cloths
-at one tick in one payload."""
+at one tick in one payload. Writing (``encode_bundle`` and the helpers the server's encoders share)
+and reading: ``parse_bundle`` reads the entry table (as columns: a bundle of equal entries in a
+few numpy operations), ``Bundle.decode`` every state at once (state.decode_states)."""
 
 from __future__ import annotations
 
 import struct
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
+from typing import overload
+
+import numpy as np
 
 from .errors import ERR_MALFORMED, ERR_UNSUPPORTED_VERSION, ProtocolError
 from .keys import PROTOCOL_MAJOR, PROTOCOL_MINOR, VERSION_STRING, valid_id
-from .state import ClothState, decode_state
+from .state import ClothState, decode_state, decode_states, header_dtype
 
 BUNDLE_MAGIC = b"DRPB"
 #: The bundle header, field by field: (name, struct code, meaning); BUNDLE_HEADER and the C header
@@ -38,6 +43,8 @@ BUNDLE_ENTRY_FIELDS: tuple[tuple[str, str, str], ...] = (
 BUNDLE_ENTRY = struct.Struct("<" + "".join(code for _, code, _ in BUNDLE_ENTRY_FIELDS))
 assert BUNDLE_ENTRY.format == "<HBxI"
 BUNDLE_ENTRY_SIZE = BUNDLE_ENTRY.size  # 8, then the cloth id, then zeros up to the entry header size
+BUNDLE_ENTRY_DTYPE = header_dtype(BUNDLE_ENTRY_FIELDS)  # many entries' fixed parts at once
+assert BUNDLE_ENTRY_DTYPE.itemsize == BUNDLE_ENTRY_SIZE
 BUNDLE_ALIGN = 8  # entries and states start at multiples of 8 from the start of the bundle
 
 
@@ -96,6 +103,53 @@ class BundleEntry:
     size: int  # of the state payload
 
 
+class BundleEntries(Sequence[BundleEntry]):
+    """A bundle's entry table as columns: ``cloths`` (ids), ``offsets`` and ``sizes`` (int64 arrays)
+    of each state payload. A sequence of BundleEntry (made when read: a bundle's reader needs
+    the columns, not thousands of small objects)."""
+
+    __slots__ = ("cloths", "offsets", "sizes")
+
+    def __init__(self, cloths: list[str], offsets: np.ndarray, sizes: np.ndarray) -> None:
+        self.cloths = cloths
+        self.offsets = offsets
+        self.sizes = sizes
+
+    @classmethod
+    def of(cls, entries: Sequence[BundleEntry]) -> BundleEntries:
+        if isinstance(entries, BundleEntries):
+            return entries
+        return cls(
+            [e.cloth for e in entries],
+            np.array([e.offset for e in entries], np.int64),
+            np.array([e.size for e in entries], np.int64),
+        )
+
+    def __len__(self) -> int:
+        return len(self.cloths)
+
+    @overload
+    def __getitem__(self, i: int) -> BundleEntry: ...
+
+    @overload
+    def __getitem__(self, i: slice) -> list[BundleEntry]: ...
+
+    def __getitem__(self, i: int | slice) -> BundleEntry | list[BundleEntry]:
+        if isinstance(i, slice):
+            return [self[j] for j in range(*i.indices(len(self)))]
+        return BundleEntry(self.cloths[i], int(self.offsets[i]), int(self.sizes[i]))
+
+    def __iter__(self) -> Iterator[BundleEntry]:
+        for c, o, s in zip(self.cloths, self.offsets.tolist(), self.sizes.tolist(), strict=True):
+            yield BundleEntry(c, o, s)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Sequence) and list(self) == list(other)
+
+    def __repr__(self) -> str:
+        return f"BundleEntries({list(self)!r})"
+
+
 @dataclass(eq=False)
 class Bundle:
     """A parsed bundle: header fields and where each cloth's state payload lies in ``data``."""
@@ -103,7 +157,7 @@ class Bundle:
     tick: int
     server_time_ns: int
     flags: int
-    entries: list[BundleEntry]
+    entries: Sequence[BundleEntry]  # a BundleEntries from parse_bundle
     data: bytes | bytearray | memoryview
     minor: int = PROTOCOL_MINOR
 
@@ -115,34 +169,81 @@ class Bundle:
         """Entry ``i`` decoded with decode_state (float32 arrays are views of the bundle)."""
         return decode_state(self.payload(i), self.entries[i].cloth, receive_time_ns)
 
+    def decode(self, receive_time_ns: int = 0) -> list[ClothState | ProtocolError]:
+        """Every entry at once: entry ``i`` is what ``state(i)`` returns, equal bit for bit, or the
+        ProtocolError it would raise (an invalid state spoils only its own entry). One pass of
+        state.decode_states over the whole bundle instead of decode_state per entry."""
+        cols = BundleEntries.of(self.entries)
+        return decode_states(self.data, cols.offsets, cols.sizes, cols.cloths, receive_time_ns)
+
     def states(self, receive_time_ns: int = 0) -> list[ClothState]:
-        return [self.state(i, receive_time_ns) for i in range(len(self.entries))]
+        """Every entry's state (``decode``), raising the first invalid entry's ProtocolError."""
+        out = self.decode(receive_time_ns)
+        for st in out:
+            if isinstance(st, ProtocolError):
+                raise st
+        return out  # type: ignore[return-value]
 
 
-def parse_bundle(data: bytes | bytearray | memoryview) -> Bundle:
-    """Parse a bundle's header and entry table (the states are decoded on demand). Raises
-    ProtocolError on a bad magic, an unknown major version, a header_size below 32, an entry
-    that does not fit, an entry header size below 8 + id length, or an id that is not a valid
-    cloth id. Unknown flag bits, a longer header and trailing bytes after the last entry are
-    ignored (later minor versions may add them)."""
-    buf = data if isinstance(data, (bytes, bytearray)) else memoryview(data).cast("B")
+_known_ids: set[str] = set()  # ids valid_id accepted (a client's bundle repeats its ids every tick)
+_MAX_KNOWN_IDS = 1 << 16
+
+
+def _all_valid(ids: list[str]) -> bool:
+    """valid_id of every id, remembering the valid ones."""
+    if _known_ids.issuperset(ids):
+        return True
+    fresh = [c for c in ids if c not in _known_ids]
+    if not all(valid_id(c) for c in fresh):
+        return False
+    if len(_known_ids) + len(fresh) > _MAX_KNOWN_IDS:
+        _known_ids.clear()
+    _known_ids.update(fresh)
+    return True
+
+
+def _equal_entries(buf: bytes | bytearray | memoryview, at: int, count: int) -> BundleEntries | None:
+    """The entry table when every entry has the first one's header size and state size (a bundle
+    of equal cloths), checked and read with a few numpy operations; None when they differ or
+    anything is wrong (the entry-by-entry walk then reads the table or names the error)."""
     size = len(buf)
-    if size < BUNDLE_HEADER_SIZE:
-        raise ProtocolError(
-            ERR_MALFORMED, f"bundle of {size} bytes is shorter than the {BUNDLE_HEADER_SIZE}-byte header"
-        )
-    magic, major, minor, hsize, count, flags, tick, t_ns = BUNDLE_HEADER.unpack_from(buf, 0)
-    if magic != BUNDLE_MAGIC:
-        raise ProtocolError(ERR_MALFORMED, f"bundle magic {bytes(magic)!r} is not {BUNDLE_MAGIC!r}")
-    if major != PROTOCOL_MAJOR:
-        raise ProtocolError(
-            ERR_UNSUPPORTED_VERSION,
-            f"bundle version {major}.{minor} is not supported; this side speaks {VERSION_STRING}",
-        )
-    if hsize < BUNDLE_HEADER_SIZE:
-        raise ProtocolError(ERR_MALFORMED, f"bundle header_size {hsize} is below {BUNDLE_HEADER_SIZE}")
-    at = hsize
-    entries: list[BundleEntry] = []
+    if count == 0 or at + BUNDLE_ENTRY_SIZE > size:
+        return None
+    h0, len0, s0 = BUNDLE_ENTRY.unpack_from(buf, at)
+    if len0 == 0 or h0 < BUNDLE_ENTRY_SIZE + len0:
+        return None
+    stride = align8(h0 + s0)  # >= 16: count is bounded by the size checked next
+    if at + (count - 1) * stride + h0 + s0 > size:
+        return None
+    u8 = np.frombuffer(buf, np.uint8)
+    starts = at + stride * np.arange(count, dtype=np.int64)
+    e = u8[starts[:, None] + np.arange(BUNDLE_ENTRY_SIZE)].view(BUNDLE_ENTRY_DTYPE).reshape(count)
+    lengths = e["id_length"]
+    if (e["header_size"] != h0).any() or (e["state_size"] != s0).any() or (lengths == 0).any():
+        return None
+    if BUNDLE_ENTRY_SIZE + int(lengths.max()) > h0:
+        return None
+    width = int(lengths.max())
+    raw = u8[starts[:, None] + (BUNDLE_ENTRY_SIZE + np.arange(width))]
+    inside = np.arange(width) < lengths[:, None]
+    if (raw[inside] == 0).any():  # a NUL in an id (invalid): the walk says so
+        return None
+    raw[~inside] = 0
+    try:
+        ids = b"\0".join(raw.view(f"S{width}").reshape(count).tolist()).decode("ascii").split("\0")
+    except UnicodeDecodeError:
+        return None
+    if not _all_valid(ids):
+        return None
+    return BundleEntries(ids, starts + h0, np.full(count, s0, np.int64))
+
+
+def _walk_entries(buf: bytes | bytearray | memoryview, at: int, count: int) -> BundleEntries:
+    """The entry table, entry by entry (entries of different sizes), raising on the first bad one."""
+    size = len(buf)
+    cloths: list[str] = []
+    offsets: list[int] = []
+    sizes: list[int] = []
     for i in range(count):
         if at + BUNDLE_ENTRY_SIZE > size:
             raise ProtocolError(
@@ -161,13 +262,44 @@ def parse_bundle(data: bytes | bytearray | memoryview) -> Bundle:
             cloth = bytes(buf[at + BUNDLE_ENTRY_SIZE : at + BUNDLE_ENTRY_SIZE + id_len]).decode("ascii")
         except UnicodeDecodeError:
             cloth = ""
-        if not valid_id(cloth):
+        if cloth not in _known_ids and not _all_valid([cloth]):
             raise ProtocolError(ERR_MALFORMED, f"bundle entry {i}: invalid cloth id")
-        entries.append(BundleEntry(cloth, at + h, st_size))
+        cloths.append(cloth)
+        offsets.append(at + h)
+        sizes.append(st_size)
         at = align8(at + h + st_size)
+    return BundleEntries(cloths, np.array(offsets, np.int64), np.array(sizes, np.int64))
+
+
+def parse_bundle(data: bytes | bytearray | memoryview) -> Bundle:
+    """Parse a bundle's header and entry table (the states are decoded on demand: ``state(i)``, or
+    all at once: ``decode()``). Raises ProtocolError on a bad magic, an unknown major version, a
+    header_size below 32, an entry that does not fit, an entry header size below 8 + id length,
+    or an id that is not a valid cloth id. Unknown flag bits, a longer header and trailing bytes
+    after the last entry are ignored (later minor versions may add them)."""
+    buf = data if isinstance(data, (bytes, bytearray)) else memoryview(data).cast("B")
+    size = len(buf)
+    if size < BUNDLE_HEADER_SIZE:
+        raise ProtocolError(
+            ERR_MALFORMED, f"bundle of {size} bytes is shorter than the {BUNDLE_HEADER_SIZE}-byte header"
+        )
+    magic, major, minor, hsize, count, flags, tick, t_ns = BUNDLE_HEADER.unpack_from(buf, 0)
+    if magic != BUNDLE_MAGIC:
+        raise ProtocolError(ERR_MALFORMED, f"bundle magic {bytes(magic)!r} is not {BUNDLE_MAGIC!r}")
+    if major != PROTOCOL_MAJOR:
+        raise ProtocolError(
+            ERR_UNSUPPORTED_VERSION,
+            f"bundle version {major}.{minor} is not supported; this side speaks {VERSION_STRING}",
+        )
+    if hsize < BUNDLE_HEADER_SIZE:
+        raise ProtocolError(ERR_MALFORMED, f"bundle header_size {hsize} is below {BUNDLE_HEADER_SIZE}")
+    entries = _equal_entries(buf, hsize, count)
+    if entries is None:
+        entries = _walk_entries(buf, hsize, count)
     return Bundle(tick, t_ns, flags, entries, buf, minor)
 
 
 def decode_bundle(data: bytes | bytearray | memoryview, receive_time_ns: int = 0) -> list[ClothState]:
-    """Every state of a bundle, decoded (each ClothState's ``cloth`` is its entry's id)."""
+    """Every state of a bundle, decoded (each ClothState's ``cloth`` is its entry's id), raising
+    the first invalid state's ProtocolError (``parse_bundle(data).decode()`` keeps the others)."""
     return parse_bundle(data).states(receive_time_ns)

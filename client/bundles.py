@@ -1,0 +1,110 @@
+"""The receiving side of a client's state bundle (protocol 1.1, PROTOCOL.md 9.1): each bundle is
+parsed and decoded once, whole (:meth:`drape.client.protocol.Bundle.decode`: a few numpy operations
+per group of like states, not a decode per cloth), then its states are handed to their
+ClothHandles in one pass on the receiving thread.
+
+A handle's guarantees hold as with states on a cloth's own key: its queue, ``received`` /
+``dropped`` / ``invalid`` counts, and its callbacks in order on the receiving thread. States of a
+cloth whose submit reply has not been handled yet (the bundle can overtake the reply) are kept for
+it as orphans while a bundled submission is on its way, and delivered first when its handle is
+registered (:meth:`DrapeClient._place`).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import TYPE_CHECKING
+
+import zenoh
+
+from . import protocol as P
+from .protocol import ClothState, DrapeError
+
+if TYPE_CHECKING:
+    from .handle import ClothHandle
+
+log = logging.getLogger("drape.client.sdk")
+
+MAX_ORPHAN_CLOTHS = 256  # bundle entries of cloths whose submit reply is still on its way, kept per id
+
+
+class BundleReceiver:
+    """Delivers the states of this client's bundles to its handles.
+
+    ``handles``: the client's handles by cloth id (read here without the lock, changed only under
+    it); ``lock``: the client's lock (guards the handles, the orphans and the submission count);
+    ``queue_size``: states kept per orphan cloth; ``key``: the bundle key (for the logs)."""
+
+    def __init__(
+        self, handles: dict[str, ClothHandle], lock: threading.Lock, queue_size: int = 64, key: str = ""
+    ) -> None:
+        self._handles = handles
+        self._lock = lock
+        self.queue_size = queue_size
+        self.key = key
+        self.bundles = 0  # bundle payloads received
+        self.invalid = 0  # bundle payloads that could not be parsed
+        self._submits = 0  # bundled submissions waiting for their reply
+        self._orphans: dict[str, list[ClothState]] = {}  # their states that arrived before the reply
+
+    def on_sample(self, sample: zenoh.Sample) -> None:
+        """The bundle subscriber's callback (on the Zenoh thread)."""
+        self.receive(sample.payload.to_bytes(), time.time_ns())
+
+    def receive(self, data: bytes | bytearray | memoryview, receive_time_ns: int = 0) -> None:
+        """Decode one bundle payload and deliver each state to its handle (on the calling thread)."""
+        self.bundles += 1
+        try:
+            bundle = P.parse_bundle(data)
+        except DrapeError as e:
+            self.invalid += 1
+            log.warning("invalid bundle payload on %s: %s", self.key, e)
+            return
+        states = bundle.decode(receive_time_ns)
+        now = time.monotonic()
+        handles = self._handles
+        for cloth, st in zip(P.BundleEntries.of(bundle.entries).cloths, states, strict=True):
+            h = handles.get(cloth)
+            if h is None:
+                h = self._orphan(cloth, st)
+                if h is None:
+                    continue
+            if h.bundle_key is None:  # an unbundled cloth of that id: its states come on its own key
+                continue
+            if st.__class__ is ClothState:
+                h._deliver(st, now)  # type: ignore[arg-type]
+            else:
+                h.invalid += 1
+                log.warning("cloth %s: invalid state in bundle: %s", h.id, st)
+
+    def _orphan(self, cloth: str, st: ClothState | P.ProtocolError) -> ClothHandle | None:
+        """A cloth without a handle: its handle if it was registered meanwhile, else None, and its
+        state kept for it while a bundled submission (maybe its) waits for the reply."""
+        with self._lock:
+            h = self._handles.get(cloth)
+            if h is None and self._submits and isinstance(st, ClothState):
+                if cloth in self._orphans or len(self._orphans) < MAX_ORPHAN_CLOTHS:
+                    q = self._orphans.setdefault(cloth, [])
+                    q.append(st)
+                    del q[: -self.queue_size]
+            return h
+
+    # --- bundled submissions (DrapeClient._place) -------------------------------------------------
+    def submitting(self) -> None:
+        """A bundled submission is on its way: keep states of cloths without a handle."""
+        with self._lock:
+            self._submits += 1
+
+    def submitted(self) -> None:
+        """A bundled submission was answered (or failed); the last one forgets every orphan."""
+        with self._lock:
+            self._submits -= 1
+            if not self._submits:
+                self._orphans.clear()
+
+    def early_states(self, cloth: str) -> list[ClothState]:
+        """The states kept for ``cloth`` before its handle existed (call with the client's lock held,
+        while registering the handle)."""
+        return self._orphans.pop(cloth, [])

@@ -112,8 +112,17 @@ def _no_step(label: str) -> None:
     log.debug("%s", label)
 
 
+# Lanes of the CPU pack solver for the OpenCL worlds (None: the device's default; 0: one cloth
+# per work-item, the kernel before the pack solver). Set by ``run`` per --pack-lanes value.
+PACK_LANES: int | None = None
+
+
 def make(solver: str, device: str | None) -> World:
-    return make_world(solver) if solver == "reference" else make_world(solver, device=device)
+    if solver == "reference":
+        return make_world(solver)
+    if PACK_LANES is None:
+        return make_world(solver, device=device)
+    return make_world(solver, device=device, pack_lanes=PACK_LANES)
 
 
 def bench_seed(solvers, device, frames, max_seconds, step: Step = _no_step) -> list[Record]:
@@ -240,12 +249,18 @@ def bench_hang(solvers, device, sizes, frames, max_seconds, step: Step = _no_ste
 
 
 def _launch_shape(w: World) -> dict:
-    """Work-group size and memory path of each kernel group (OpenCL worlds)."""
+    """Work-group size and memory path of each kernel group (OpenCL worlds); a CPU pack group
+    as ``pack<lanes>x<packs>``."""
     groups = getattr(w, "groups", {})
     if not groups:
         return {}
     limit = w._kernel_limit  # type: ignore[attr-defined]  # an OpenCL world's
-    return {"wg": ",".join(f"{g.local_size}{'L' if g.use_local else 'G'}/{limit(g)}" for g in groups.values())}
+    return {
+        "wg": ",".join(
+            f"pack{g.pack}x{g.n_packs}" if g.pack else f"{g.local_size}{'L' if g.use_local else 'G'}/{limit(g)}"
+            for g in groups.values()
+        )
+    }
 
 
 def print_table(records: list[Record]) -> None:
@@ -304,6 +319,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--markdown", type=Path, default=None, help="write the table as Markdown here")
     parser.add_argument("--quick", action="store_true", help="small counts and few frames (CI smoke run)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--pack-lanes",
+        default=None,
+        help="CPU pack solver lanes for the workgroup solver, a comma list run back to back "
+        "(e.g. 0,16: 0 = one cloth per work-item, the kernel before docs/cpu-solver.md; "
+        "default: the device's own choice, 16 on a CPU; no effect on a GPU)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -326,6 +348,8 @@ def run(args: argparse.Namespace) -> int:
     feature_cloths = args.feature_cloths or (16 if args.quick else 4096 if gpu else 128)
     sizes = [int(s) for s in args.sizes.split(",")] if not args.quick else [32]
     records: list[Record] = []
+    lanes_list: list[int | None] = [int(v) for v in args.pack_lanes.split(",")] if args.pack_lanes else [None]
+    global PACK_LANES
     with progress(desc="bench", unit="case", quiet=args.quiet) as bar:
 
         def step(label: str) -> None:
@@ -333,14 +357,24 @@ def run(args: argparse.Namespace) -> int:
             bar.set_description(label, refresh=False)
             bar.update()
 
-        if "seed" in workloads:
-            records += bench_seed(solvers, args.device, frames, args.max_seconds, step)
-        if "many" in workloads:
-            records += bench_many(solvers, args.device, counts, frames, args.max_seconds, step)
-        if "hang" in workloads:
-            records += bench_hang(solvers, args.device, sizes, frames, args.max_seconds, step)
-        if "features" in workloads:
-            records += bench_features(solvers, args.device, feature_cloths, frames, args.max_seconds, step)
+        for i, lanes in enumerate(lanes_list):
+            PACK_LANES = lanes
+            # the pack lanes change the workgroup solver only: the others run once
+            run_solvers = solvers if i == 0 else [s for s in solvers if s == "workgroup"]
+            new: list[Record] = []
+            if "seed" in workloads:
+                new += bench_seed(run_solvers, args.device, frames, args.max_seconds, step)
+            if "many" in workloads:
+                new += bench_many(run_solvers, args.device, counts, frames, args.max_seconds, step)
+            if "hang" in workloads:
+                new += bench_hang(run_solvers, args.device, sizes, frames, args.max_seconds, step)
+            if "features" in workloads:
+                new += bench_features(run_solvers, args.device, feature_cloths, frames, args.max_seconds, step)
+            if lanes is not None:
+                for r in new:
+                    r.extra["pack_lanes"] = lanes
+            records += new
+        PACK_LANES = None
     print_table(records)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

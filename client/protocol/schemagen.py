@@ -1,6 +1,7 @@
 """Machine-readable descriptions for clients in other languages, generated from this package:
-a JSON Schema (draft 2020-12) for every msgpack map (requests, replies, stats) and a C header of
-the binary layouts (the DRPS state and DRPB bundle headers as packed structs, with the constants).
+a JSON Schema (draft 2020-12) for every msgpack map (requests, replies, stats; here) and a C
+header of the binary layouts (the DRPS state and DRPB bundle headers as packed structs, with the
+constants; cheader.py). This module writes both.
 
     python -m drape.client.protocol.schemagen      # rewrites client/protocol/schema/*.json and drape_wire.h
 
@@ -15,18 +16,16 @@ states it, and :mod:`.codec` enforces it.
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 from typing import Any
 
-from .bundle import BUNDLE_ALIGN, BUNDLE_ENTRY_FIELDS, BUNDLE_HEADER_FIELDS, BUNDLE_MAGIC
+from .cheader import c_header
 from .errors import ERROR_CODES
-from .keys import ID_RE, PROTOCOL_MAJOR, PROTOCOL_MINOR, TOKEN_RE, VERSION_STRING
-from .state import FLAG_NORMALS, FLAG_RESET, FLOAT16_MAX, QUANT_MAX, SNORM_MAX, STATE_HEADER_FIELDS, STATE_MAGIC
+from .keys import ID_RE, PROTOCOL_MAJOR, TOKEN_RE, VERSION_STRING
+from .stats import STATS_FIELDS
 from .vocabulary import (
     COLLIDER_TYPES,
     DEFAULT_LIMITS,
-    ENCODING_IDS,
     ENCODINGS,
     FEATURE_NAMES,
     MATERIAL_DEFAULTS,
@@ -183,6 +182,23 @@ def _head() -> dict[str, Any]:
 
 def _reply(props: dict[str, Any], required: tuple[str, ...]) -> dict[str, Any]:
     return _obj({**_head(), "ok": {"const": True}, **props}, ("v", "ok", *required))
+
+
+#: The JSON Schema of each stats field type (drape.client.protocol.stats.STAT_TYPES).
+_STAT_TYPE_SCHEMAS: dict[str, dict[str, Any]] = {
+    "integer": {"type": "integer", "minimum": 0},
+    "number": {"type": "number"},
+    "id": {"$ref": "#/$defs/id"},
+    "counts": {"type": "object", "additionalProperties": {"type": "integer"}},
+    "map": {"type": "object", "additionalProperties": {"type": "object"}},
+    "object": {"type": "object"},
+}
+
+
+def _stats() -> dict[str, Any]:
+    """The stats publication: every field of the stats table (open: fields may be added)."""
+    props = {**_head(), **{f.name: {**_STAT_TYPE_SCHEMAS[f.type], "description": f.meaning} for f in STATS_FIELDS}}
+    return _obj(props, ("v", *(f.name for f in STATS_FIELDS if f.required)))
 
 
 def schemas() -> dict[str, dict[str, Any]]:
@@ -356,40 +372,7 @@ def schemas() -> dict[str, dict[str, Any]]:
             ("server", "version", "limits"),
         ),
         "error": _obj({**_head(), "ok": {"const": False}, "error": {"$ref": "#/$defs/error"}}, ("v", "ok", "error")),
-        "stats": _obj(
-            {
-                **_head(),
-                **{
-                    k: {"type": "integer", "minimum": 0}
-                    for k in (
-                        "tick",
-                        "time_ns",
-                        "cloths",
-                        "clients",
-                        "alive_clients",
-                        "vertices",
-                        "ticks",
-                        "missed_ticks",
-                        "skipped_frames",
-                        "nan_resets",
-                        "reclaimed",
-                        "published",
-                        "unwatched",
-                        "publish_errors",
-                        "bundles",
-                        "batch_items",
-                    )
-                },
-                "server": {"$ref": "#/$defs/id"},
-                "uptime_s": {"type": "number"},
-                "tick_rate": {"type": "number"},
-                "requests": {"type": "object", "additionalProperties": {"type": "integer"}},
-                "errors": {"type": "object", "additionalProperties": {"type": "integer"}},
-                "phases": {"type": "object", "additionalProperties": {"type": "object"}},
-                "quality": {"type": "object"},
-            },
-            ("v", "server", "tick"),
-        ),
+        "stats": _stats(),
     }
     defs = _defs()
     for name, s in out.items():
@@ -398,89 +381,6 @@ def schemas() -> dict[str, dict[str, Any]]:
         s["title"] = f"Drape protocol {VERSION_STRING}: {name}"
         s["$defs"] = defs
     return {name: dict(sorted(s.items(), key=lambda kv: not kv[0].startswith("$"))) for name, s in out.items()}
-
-
-# ---------------------------------------------------------------------------------------------
-# C header
-
-_C_TYPES = {
-    "B": "uint8_t",
-    "H": "uint16_t",
-    "I": "uint32_t",
-    "Q": "uint64_t",
-    "f": "float",
-    "s": "char",
-    "x": "uint8_t",
-}
-
-
-def _c_struct(name: str, fields: tuple[tuple[str, str, str], ...]) -> list[str]:
-    lines = [f"typedef struct drape_{name} {{"]
-    for fname, code, meaning in fields:
-        m = re.fullmatch(r"(\d*)([BHIQfsx])", code)
-        assert m, code
-        count, kind = int(m.group(1) or 1), m.group(2)
-        decl = f"{_C_TYPES[kind]} {fname}" + (f"[{count}]" if count > 1 or kind == "s" else "")
-        lines.append(f"    {decl + ';':<28} /* {meaning} */")
-    lines.append(f"}} drape_{name};")
-    return lines
-
-
-def c_header() -> str:
-    """drape_wire.h: the binary layouts as packed little-endian structs, and the constants."""
-    from .bundle import BUNDLE_ENTRY, BUNDLE_HEADER
-    from .state import STATE_HEADER
-
-    defines = [
-        ("DRAPE_PROTOCOL_MAJOR", PROTOCOL_MAJOR),
-        ("DRAPE_PROTOCOL_MINOR", PROTOCOL_MINOR),
-        ("DRAPE_STATE_MAGIC", f'"{STATE_MAGIC.decode()}"'),
-        ("DRAPE_BUNDLE_MAGIC", f'"{BUNDLE_MAGIC.decode()}"'),
-        ("DRAPE_STATE_HEADER_SIZE", STATE_HEADER.size),
-        ("DRAPE_BUNDLE_HEADER_SIZE", BUNDLE_HEADER.size),
-        ("DRAPE_BUNDLE_ENTRY_SIZE", BUNDLE_ENTRY.size),
-        ("DRAPE_BUNDLE_ALIGN", BUNDLE_ALIGN),
-        *((f"DRAPE_ENCODING_{k.upper()}", v) for k, v in ENCODING_IDS.items()),
-        ("DRAPE_FLAG_NORMALS", FLAG_NORMALS),
-        ("DRAPE_FLAG_RESET", FLAG_RESET),
-        ("DRAPE_QUANT16_MAX", QUANT_MAX),
-        ("DRAPE_SNORM16_MAX", SNORM_MAX),
-        ("DRAPE_FLOAT16_MAX", f"{FLOAT16_MAX:.1f}f"),
-    ]
-    out = [
-        f"/* drape_wire.h: the binary layouts of the Drape wire protocol {VERSION_STRING} (PROTOCOL.md 9, 9.1).",
-        " * GENERATED by `python -m drape.client.protocol.schemagen` from drape.client.protocol: do not edit.",
-        " * Every field is little-endian; read a payload with memcpy into these packed structs (on a",
-        " * big-endian host, swap each field). Readers honour header_size: later minor versions may lengthen",
-        " * a header, so the vertex data of a state starts at header_size, not at sizeof(drape_state_header). */",
-        "#ifndef DRAPE_WIRE_H",
-        "#define DRAPE_WIRE_H",
-        "",
-        "#include <stdint.h>",
-        "",
-        *(f"#define {k} {v}" for k, v in defines),
-        "",
-        "#pragma pack(push, 1)",
-        "",
-        *_c_struct("state_header", STATE_HEADER_FIELDS),
-        "",
-        *_c_struct("bundle_header", BUNDLE_HEADER_FIELDS),
-        "",
-        "/* followed by id_length bytes of the cloth id, zeros up to header_size, then the state */",
-        *_c_struct("bundle_entry", BUNDLE_ENTRY_FIELDS),
-        "",
-        "#pragma pack(pop)",
-        "",
-        "#if defined(__STDC_VERSION__) && __STDC_VERSION__ >= 201112L",
-        '_Static_assert(sizeof(drape_state_header) == DRAPE_STATE_HEADER_SIZE, "state header size");',
-        '_Static_assert(sizeof(drape_bundle_header) == DRAPE_BUNDLE_HEADER_SIZE, "bundle header size");',
-        '_Static_assert(sizeof(drape_bundle_entry) == DRAPE_BUNDLE_ENTRY_SIZE, "bundle entry size");',
-        "#endif",
-        "",
-        "#endif /* DRAPE_WIRE_H */",
-        "",
-    ]
-    return "\n".join(out)
 
 
 def write(folder: Path = HERE) -> list[Path]:

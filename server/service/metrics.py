@@ -7,7 +7,9 @@ PROTOCOL.md section 10) and reads the per-phase histograms of the server's Phase
 work for metrics: a scrape costs a few short lock acquisitions and no per-cloth work of its own.
 
 ``METRICS`` lists every metric family (name without the ``_total`` a counter gets in the
-exposition, type, help); docs/operations.md shows the same list. ``exposition(server)`` renders the
+exposition, type, help); docs/operations.md shows the same list. The families of stats fields
+take their type and help from the stats table (drape.client.protocol.stats), ``STAT_METRICS``
+names them. ``exposition(server)`` renders the
 text format; ``drape.server.service.ops`` serves ``registry(...)`` on ``/metrics``, with its
 readiness probe behind ``drape_ready`` and ``drape_tick_age_seconds``.
 """
@@ -30,6 +32,7 @@ from prometheus_client.registry import Collector
 from prometheus_client.utils import floatToGoString
 
 from drape.client import protocol as P
+from drape.client.protocol.stats import stat_field
 
 from .telemetry import PHASES, PhaseTimer
 
@@ -37,90 +40,67 @@ log = logging.getLogger(__name__)
 
 PREFIX = "drape"
 
+#: stats field -> the metric family it is exported as, when the stats carry it; the family's type
+#: (counter or gauge) and help are the field's (drape.client.protocol.stats.STATS_FIELDS).
+STAT_METRICS: dict[str, str] = {
+    "cloths": "drape_cloths",
+    "clients": "drape_clients",
+    "alive_clients": "drape_alive_clients",
+    "vertices": "drape_vertices",
+    "links": "drape_links",
+    "ticks": "drape_ticks",
+    "missed_ticks": "drape_missed_ticks",
+    "skipped_frames": "drape_skipped_frames",
+    "published": "drape_published_states",
+    "published_bytes": "drape_published_bytes",
+    "unwatched": "drape_unwatched_states",
+    "publish_errors": "drape_publish_errors",
+    "bundles": "drape_bundles_published",
+    "batch_items": "drape_batch_items",
+    "overload_refusals": "drape_overload_refusals",  # always: from the error replies when not counted apart
+    "nan_resets": "drape_nan_resets",
+    "reclaimed": "drape_reclaimed_cloths",
+    "nan_removals": "drape_nan_removals",
+    "controls_applied": "drape_controls_applied",
+    "controls_coalesced": "drape_controls_coalesced",
+    "batch_moves": "drape_batch_moves",
+    "moves_applied": "drape_moves_applied",
+    "move_blocks_superseded": "drape_move_blocks_superseded",
+}
+
+
+def _from_stats(key: str, name: str, kind: str | None = None) -> tuple[str, str, str]:
+    """(name, type, help) of the family exporting stats field ``key``: the field's meaning as help."""
+    field = stat_field(key)
+    return name, kind or field.kind, field.meaning
+
+
 #: Every family this module exports: (name, type, help). Counters appear as ``<name>_total``.
 METRICS: tuple[tuple[str, str, str], ...] = (
     ("drape_server", "info", "The server: id, solver, OpenCL device, protocol version, namespace"),
-    ("drape_up_seconds", "gauge", "Seconds since the server started"),
+    _from_stats("uptime_s", "drape_up_seconds", "gauge"),
     ("drape_ready", "gauge", "1 when /readyz answers 200 (device built, Zenoh up, ticking on time), else 0"),
     ("drape_tick_age_seconds", "gauge", "Seconds since the tick counter last advanced (as the operator listener saw)"),
-    ("drape_tick_rate_hertz", "gauge", "Configured ticks per second"),
-    ("drape_tick", "gauge", "The last tick number"),
-    ("drape_ticks", "counter", "Ticks run"),
-    ("drape_missed_ticks", "counter", "Tick deadlines skipped because a tick overran"),
-    ("drape_skipped_frames", "counter", "Frames the publisher had not sent when the next was ready (coalesced)"),
+    _from_stats("tick_rate", "drape_tick_rate_hertz", "gauge"),
+    _from_stats("tick", "drape_tick", "gauge"),
+    *(_from_stats(key, name) for key, name in STAT_METRICS.items()),
     (
         "drape_tick_phase_seconds",
         "histogram",
         "Duration of each tick phase (apply, solve, readback, encode, "
         "publish; tick = apply to readback, the tick's own work)",
     ),
-    ("drape_cloths", "gauge", "Cloths on the server (accepted, including those still being cooked)"),
-    ("drape_clients", "gauge", "Clients owning cloths"),
-    ("drape_alive_clients", "gauge", "Clients whose liveliness token is present"),
-    ("drape_vertices", "gauge", "Vertices of all cloths"),
-    ("drape_links", "gauge", "Links of all cloths (when the server reports it)"),
-    ("drape_published_states", "counter", "Cloth states published (bundled ones included)"),
-    ("drape_published_bytes", "counter", "Bytes of state payloads published (when the server reports it)"),
-    ("drape_unwatched_states", "counter", "States not encoded because nobody subscribed to their key"),
-    ("drape_publish_errors", "counter", "States that failed to publish"),
-    ("drape_bundles_published", "counter", "Bundle publications (protocol 1.1)"),
-    ("drape_batch_items", "counter", "Items received in batch control requests"),
-    ("drape_requests", "counter", "Requests received, by queryable"),
-    ("drape_errors", "counter", "Error replies, by error code"),
-    ("drape_overload_refusals", "counter", "Submits refused because the server is overloaded"),
-    ("drape_nan_resets", "counter", "Cloths reset to their rest pose because they went non-finite"),
-    ("drape_reclaimed_cloths", "counter", "Cloths removed because their client's liveliness token vanished"),
-    ("drape_nan_removals", "counter", "Cloths removed because they kept going non-finite (when the server reports it)"),
-    ("drape_controls_applied", "counter", "Controls applied by the tick thread (when the server reports it)"),
-    (
-        "drape_controls_coalesced",
-        "counter",
-        "Controls replaced by a newer one for the same cloth before a tick (when the server reports it)",
-    ),
-    ("drape_batch_moves", "counter", "Moves received in batch controls' moves blocks (protocol 1.4)"),
-    ("drape_moves_applied", "counter", "Moves applied by the tick thread (protocol 1.4)"),
-    (
-        "drape_move_blocks_superseded",
-        "counter",
-        "Moves blocks replaced by an identical newer one before their tick (protocol 1.4)",
-    ),
+    _from_stats("requests", "drape_requests", "counter"),
+    _from_stats("errors", "drape_errors", "counter"),
     ("drape_quality_cloths", "gauge", "Cloths at each quality preset now"),
     ("drape_quality_degraded_cloths", "gauge", "Cloths below the preset their client asked for"),
     ("drape_quality_degraded_seconds", "counter", "Seconds with any cloth degraded"),
     ("drape_quality_changes", "counter", "Adaptive quality preset changes"),
 )
 
-#: stats() key -> counter name, for the plain cumulative counters.
-_COUNTERS = {
-    "ticks": "drape_ticks",
-    "missed_ticks": "drape_missed_ticks",
-    "skipped_frames": "drape_skipped_frames",
-    "published": "drape_published_states",
-    "unwatched": "drape_unwatched_states",
-    "publish_errors": "drape_publish_errors",
-    "bundles": "drape_bundles_published",
-    "batch_items": "drape_batch_items",
-    "nan_resets": "drape_nan_resets",
-    "reclaimed": "drape_reclaimed_cloths",
-}
-#: stats() key -> gauge name, for the current load.
-_GAUGES = {
-    "cloths": "drape_cloths",
-    "clients": "drape_clients",
-    "alive_clients": "drape_alive_clients",
-    "vertices": "drape_vertices",
-}
-#: stats() key -> (name, type) of the counters and gauges exported only when the stats carry them.
-OPTIONAL = {
-    "published_bytes": ("drape_published_bytes", "counter"),
-    "links": ("drape_links", "gauge"),
-    "nan_removals": ("drape_nan_removals", "counter"),
-    "controls_applied": ("drape_controls_applied", "counter"),
-    "controls_coalesced": ("drape_controls_coalesced", "counter"),
-    "batch_moves": ("drape_batch_moves", "counter"),
-    "moves_applied": ("drape_moves_applied", "counter"),
-    "move_blocks_superseded": ("drape_move_blocks_superseded", "counter"),
-}
+#: stats key -> (name, type) of the families exported only when the stats carry the key: every
+#: family of STAT_METRICS but drape_overload_refusals.
+OPTIONAL = {key: (name, stat_field(key).kind) for key, name in STAT_METRICS.items() if key != "overload_refusals"}
 
 _HELP = {name: help_ for name, _, help_ in METRICS}
 
@@ -201,10 +181,6 @@ def families(
     yield _gauge("drape_up_seconds", stats.get("uptime_s"))
     yield _gauge("drape_tick_rate_hertz", stats.get("tick_rate", info.get("tick_rate")))
     yield _gauge("drape_tick", stats.get("tick"))
-    for key, name in _COUNTERS.items():
-        yield _counter(name, stats.get(key))
-    for key, name in _GAUGES.items():
-        yield _gauge(name, stats.get(key))
     for key, (name, kind) in OPTIONAL.items():
         if key in stats:
             yield (_counter if kind == "counter" else _gauge)(name, stats[key])

@@ -26,6 +26,7 @@ from typing import Any, TypeVar
 import zenoh
 
 from drape.client import protocol as P
+from drape.client.protocol.stats import STAT_COUNTERS
 from drape.client.session import zenoh_config
 
 from ..sim import make_world
@@ -45,26 +46,6 @@ from .ticker import Ticker
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
-
-STAT_COUNTERS = (
-    "ticks",
-    "missed_ticks",
-    "skipped_frames",
-    "nan_resets",
-    "reclaimed",
-    "published",
-    "unwatched",
-    "publish_errors",
-    "bundles",
-    "batch_items",
-    "overload_refusals",
-    "nan_removals",
-    "controls_applied",
-    "controls_coalesced",
-    "batch_moves",  # 1.4: moves received in batch controls' blocks
-    "moves_applied",  # 1.4: moves applied (refused ones are counted in errors by code)
-    "move_blocks_superseded",  # 1.4: moves blocks replaced by an identical newer one before their tick
-)
 
 
 class Server:

@@ -79,6 +79,8 @@ from .vocabulary import (
     _empty_u32,
 )
 
+_ID_WHAT = "1-64 characters of [A-Za-z0-9_.-]"  # what keys.ID_RE accepts, for error messages
+
 
 def submit_to_map(req: SubmitRequest) -> dict[str, Any]:
     m = _header(req.rid)
@@ -161,8 +163,8 @@ def _read_resume(r: _Reader, n: int, limits: Limits) -> ResumeState | None:
         pos,
         vel,
         rr.int_("tick", 0, (1 << 64) - 1),
-        rr.str_("from_server", pattern=ID_RE, what="1-64 characters of [A-Za-z0-9_.-]"),
-        rr.str_("cloth", pattern=ID_RE, what="1-64 characters of [A-Za-z0-9_.-]"),
+        rr.str_("from_server", pattern=ID_RE, what=_ID_WHAT),
+        rr.str_("cloth", pattern=ID_RE, what=_ID_WHAT),
     )
 
 
@@ -177,7 +179,7 @@ def decode_submit(data: bytes | bytearray, limits: Limits = DEFAULT_LIMITS) -> S
 def submit_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS) -> SubmitRequest:
     r = _Reader(m, "", _peek_rid(dict(m)), limits)
     rid = _rid(r)
-    client = r.str_("client", True, pattern=ID_RE, what="1-64 characters of [A-Za-z0-9_.-]")
+    client = r.str_("client", True, pattern=ID_RE, what=_ID_WHAT)
     bound = limits.max_coordinate
     gr, mr = r.sub("grid"), r.sub("mesh")
     if (gr is None) == (mr is None):
@@ -317,7 +319,7 @@ def decode_control(
 
 
 def _owner_fields(r: _Reader) -> tuple[str, str]:
-    cloth = r.str_("cloth", True, pattern=ID_RE, what="a cloth id (1-64 characters of [A-Za-z0-9_.-])")
+    cloth = r.str_("cloth", True, pattern=ID_RE, what=f"a cloth id ({_ID_WHAT})")
     token = r.str_("token", True, pattern=TOKEN_RE, what="32 lowercase hex digits")
     return cloth, token  # type: ignore[return-value]
 
@@ -444,7 +446,7 @@ def decode_control_batch(data: bytes | bytearray, limits: Limits = DEFAULT_LIMIT
 def control_batch_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS) -> DecodedControlBatch:
     r = _Reader(m, "", _peek_rid(dict(m)), limits)
     rid = _rid(r)
-    client = r.str_("client", True, pattern=ID_RE, what="1-64 characters of [A-Za-z0-9_.-]")
+    client = r.str_("client", True, pattern=ID_RE, what=_ID_WHAT)
     moves = read_moves(r, limits)  # 1.4: validated whole, with the envelope
     raw_items = check_items_with_moves(r, r.raw("items", False), moves is not None, limits.max_batch_items)
     items: list[ControlRequest | ProtocolError] = []

@@ -359,13 +359,12 @@ def _block(buf: bytes | bytearray | memoryview, at: np.ndarray, dtype: str, n: i
     m = len(at)
     es = np.dtype(dtype).itemsize
     stride = int(at[1] - at[0]) if m > 1 else n * 3 * es
-    if stride > 0 and (m < 3 or bool((np.diff(at) == stride).all())):
+    if m == 1 or (stride > 0 and (m == 2 or bool((np.diff(at) == stride).all()))):
         return np.ndarray((m, n, 3), dtype, buf, int(at[0]), (stride, 3 * es, es))
     out = np.empty((m, n, 3), dtype)
     for j, a in enumerate(at.tolist()):
         out[j] = np.frombuffer(buf, dtype, n * 3, a).reshape(n, 3)
-    if isinstance(buf, bytes):
-        out.flags.writeable = False  # as the views decode_state gives of a read-only payload
+    out.flags.writeable = not memoryview(buf).readonly  # as the views decode_state gives
     return out
 
 
@@ -419,45 +418,61 @@ def decode_states(
         a = int(off[i])
         try:
             out[i] = decode_state(buf[a : a + int(size[i])], cloths[i], receive_time_ns)
-        except ProtocolError as e:
-            out[i] = e
+        except ProtocolError as err:
+            out[i] = err
     idx, h, enc, n, hsize, normals = whole[ok], h[ok], enc[ok], n[ok], hsize[ok], normals[ok]
     # groups of one encoding, vertex count and normals flag, each in entry order
     key = n * 8 + enc * 2 + normals
     order = np.argsort(key, kind="stable")
     cuts = np.flatnonzero(np.diff(key[order])) + 1
     for g in np.split(order, cuts) if len(order) else ():
-        e, nv, has_n, m = int(enc[g[0]]), int(n[g[0]]), bool(normals[g[0]]), len(g)
-        at = off[idx[g]] + hsize[g]
-        pos_t, nrm_t = _VALUES[e]
-        raw = _block(buf, at, pos_t, nv)
-        nraw = _block(buf, at + nv * 3 * element_size(e), nrm_t, nv) if has_n else None
-        hg = h[g]
-        if e == ENC_FLOAT32:
-            pos, nrm = raw, nraw
-        elif e == ENC_FLOAT16:
-            pos = float16_decode_many(raw)
-            nrm = None if nraw is None else float16_decode_many(nraw)
-        else:
-            pos = quant16_decode_many(raw, hg["bounds_min"], hg["bounds_max"])
-            nrm = None if nraw is None else snorm16_decode_many(nraw)
-        lo = hg["bounds_min"].astype(np.float64).T.tolist()  # as float(np.float32) gives each
-        hi = hg["bounds_max"].astype(np.float64).T.tolist()
-        states = list(
-            map(
-                ClothState,
-                hg["tick"].tolist(),
-                hg["server_time_ns"].tolist(),
-                list(pos),
-                [None] * m if nrm is None else list(nrm),
-                repeat(receive_time_ns, m),
-                repeat(ENCODING_NAMES[e], m),
-                hg["flags"].tolist(),
-                zip(zip(*lo, strict=True), zip(*hi, strict=True), strict=True),
-                [cloths[i] for i in idx[g].tolist()],
-            )
-        )
-        if m == k:
+        ids = [cloths[i] for i in idx[g].tolist()]
+        e, nv, has_n = int(enc[g[0]]), int(n[g[0]]), bool(normals[g[0]])
+        with np.errstate(all="ignore"):  # hostile bounds and values (NaN, inf) decode quietly
+            states = _decode_group(buf, off[idx[g]] + hsize[g], h[g], e, nv, has_n, ids, receive_time_ns)
+        if len(g) == k:
             return states  # type: ignore[return-value]
         out[idx[g]] = states
     return out.tolist()  # type: ignore[no-any-return]
+
+
+def _decode_group(
+    buf: bytes | bytearray | memoryview,
+    at: np.ndarray,
+    h: np.ndarray,
+    e: int,
+    n: int,
+    has_n: bool,
+    cloths: list[str],
+    receive_time_ns: int,
+) -> list[ClothState]:
+    """The states of one group (encoding ``e``, ``n`` vertices, normals or not) whose values start
+    at byte offsets ``at``; ``h`` their headers."""
+    m = len(at)
+    pos_t, nrm_t = _VALUES[e]
+    raw = _block(buf, at, pos_t, n)
+    nraw = _block(buf, at + n * 3 * element_size(e), nrm_t, n) if has_n else None
+    if e == ENC_FLOAT32:
+        pos, nrm = raw, nraw
+    elif e == ENC_FLOAT16:
+        pos = float16_decode_many(raw)
+        nrm = None if nraw is None else float16_decode_many(nraw)
+    else:
+        pos = quant16_decode_many(raw, h["bounds_min"], h["bounds_max"])
+        nrm = None if nraw is None else snorm16_decode_many(nraw)
+    lo = h["bounds_min"].astype(np.float64).T.tolist()  # per axis, each as float(np.float32) gives it
+    hi = h["bounds_max"].astype(np.float64).T.tolist()
+    return list(
+        map(
+            ClothState,
+            h["tick"].tolist(),
+            h["server_time_ns"].tolist(),
+            list(pos),
+            [None] * m if nrm is None else list(nrm),
+            repeat(receive_time_ns, m),
+            repeat(ENCODING_NAMES[e], m),
+            h["flags"].tolist(),
+            zip(zip(*lo, strict=True), zip(*hi, strict=True), strict=True),
+            cloths,
+        )
+    )

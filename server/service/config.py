@@ -56,6 +56,7 @@ LOG_LEVELS = ("debug", "info", "warning", "error", "critical")
 #: cloth submitted on a server-wide key publishes on {ns}/cloth/{cloth}/state; keys: only the
 #: client-scoped ones, so every request's client id is its key's (a router can bind it to a user).
 IDENTITY_MODES = ("open", "keys")
+BUILD_IN_CHILD = ("auto", "on", "off")  # drape.server.service.buildhelper
 
 
 def default_server_id() -> str:
@@ -98,6 +99,7 @@ class ServerConfig:
     device_encode: bool = True  # OpenCL worlds: states encoded on the device (one launch, one readback)
     gil_switch_ms: float = 0.5  # Python's GIL switch interval in the server process (sys.setswitchinterval)
     program_idle_s: float = 10.0  # kernel programs no cloth used this long are released (0: kept for good)
+    build_in_child: str = "auto"  # auto | on | off: kernels built and first run in a child process (auto: CPU)
     # --- quality -------------------------------------------------------------------------------
     adaptive_quality: bool = True  # lower cloths' presets while ticks overrun, restore them after
     quality_budget: float = 0.8  # share of a tick the tick's own work may take before that
@@ -134,6 +136,8 @@ class ServerConfig:
             raise ValueError("gil_switch_ms must be in 0.01..100 ms")
         if self.program_idle_s < 0:
             raise ValueError("program_idle_s must be >= 0 (0: programs are kept for good)")
+        if self.build_in_child not in BUILD_IN_CHILD:
+            raise ValueError(f"build_in_child must be one of {BUILD_IN_CHILD}, got {self.build_in_child!r}")
         for name in (
             "max_cloths",
             "max_cloths_per_client",
@@ -321,6 +325,9 @@ HELP = {
     "returning from a Zenoh call waits up to that long behind a busy one)",
     "program_idle_s": "seconds after which a kernel program no cloth uses is released and the heap trimmed "
     "(built again from the driver's disk cache when needed; 0: kept for good)",
+    "build_in_child": "new kernels built and first run in a short-lived child process, then loaded from the "
+    "driver's disk cache (the compiler's memory and the first launch's JIT stay out of the server); "
+    "auto: on a CPU device (PoCL)",
     "adaptive_quality": "step cloths' quality presets down while ticks overrun, back up after",
     "quality_budget": "share of a tick the tick's work may take before quality is lowered",
     "admission": "refuse submissions that would push the tick over admission_budget ('overloaded')",
@@ -355,6 +362,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                 "state_congestion": CONGESTION_CHOICES,
                 "log_format": LOG_FORMATS,
                 "log_level": LOG_LEVELS,
+                "build_in_child": BUILD_IN_CHILD,
             }.get(f.name)
             parser.add_argument(flag, dest=f.name, type=kind, default=None, choices=choices, help=help_)
 

@@ -2,6 +2,9 @@
 path. For each submission: the fabric (from the one fabric cache below, cooked when new), the
 cloth parameters and colliders, and the kernels the cloth needs, built now (``World.prepare``)
 so that the first cloth with a new feature combination does not compile on the tick path. About
+On a CPU device new kernels are first built and run by a child process
+(:class:`.buildhelper.BuildHelper`, ``build_in_child``), so that this process loads them from the
+driver's disk cache: no compiler high-water mark here, no first-launch JIT on the tick. About
 once a second the same thread gives memory back (:class:`.memory.MemoryKeeper`: programs of
 feature combinations no cloth has used for ``program_idle_s`` released, the heap trimmed).
 
@@ -26,6 +29,7 @@ from drape.client import protocol as P
 from ..sim.fabric import Fabric, cook_grid, cook_mesh
 from ..sim.params import LinkOptions
 from ..sim.world import World
+from .buildhelper import BuildHelper
 from .commands import Add, Intake, Prepare
 from .config import ServerConfig
 from .memory import PERIOD_S, MemoryKeeper
@@ -122,15 +126,40 @@ class CookWorker:
         self._asked: set = set()  # feature keys whose kernels were asked for (controls)
         self._asked_lock = threading.Lock()
         self.memory = MemoryKeeper(config.program_idle_s, self._device)
+        self.helper: BuildHelper | None = None  # set in run() when build_in_child applies
+        self._warmed: set = set()  # (features, fabric) the helper built and ran (cook thread only)
 
     def _device(self):
         """The World's OpenCL Device (None for the reference solver or before the World)."""
         return getattr(self._world(), "dev", None)
 
+    def _build(self, world: World, fabric: Fabric, params) -> None:
+        """The kernels of a cloth of ``fabric`` and ``params``: first built and run by the helper
+        process when this pair is new here, then built in this process (from the driver's cache)."""
+        # not world.ready(): PoCL compiles a kernel again for each local size at its first
+        # launch, and the local size follows the fabric, so a built program is not enough
+        key = (params.features.key(), fabric.key)
+        if self.helper is not None and key not in self._warmed:
+            if self.helper.warm(fabric, params):
+                if len(self._warmed) > 4096:
+                    self._warmed.clear()
+                self._warmed.add(key)  # in the driver's cache now: a release need not run it again
+        world.prepare(fabric, params)
+
     def run(self) -> None:
         dev = self._device()
         if dev is not None:  # the server warmed up before this thread started: keep its kernels
             dev.pin()
+            mode = self.config.build_in_child
+            if mode == "on" or (mode == "auto" and not dev.info.is_gpu):
+                self.helper = BuildHelper(self.config.solver, self.config.device)
+        try:
+            self._loop()
+        finally:
+            if self.helper is not None:
+                self.helper.close()
+
+    def _loop(self) -> None:
         while True:
             try:
                 item = self.queue.get(timeout=PERIOD_S)
@@ -187,7 +216,7 @@ class CookWorker:
         world = self._world()
         try:
             if world is not None:
-                world.prepare(item.fabric, item.params)
+                self._build(world, item.fabric, item.params)
         except Exception:
             with self._asked_lock:
                 self._asked.discard((item.params.features.key(), item.fabric.key))
@@ -221,7 +250,7 @@ class CookWorker:
             packed = pack(req.colliders, req.rid) if req.colliders else None
             world = self._world()
             if world is not None:
-                world.prepare(fabric, params)  # kernels built here, not on the tick path
+                self._build(world, fabric, params)  # kernels built here, not on the tick path
             add = Add(rec, params, packed, query, req.rid)
             rs = getattr(req, "resume", None)
             if rs is not None:  # 1.3: the tick thread adds the cloth at this state

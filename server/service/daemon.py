@@ -61,6 +61,12 @@ def serve(config: ServerConfig) -> int:
     # The whole process is the server's: its threads hand the GIL over sooner (docs/loadtest.md:
     # 0.5 ms instead of 5 took 1024 cloths on the H100 from 28.8 to 48.6 Hz).
     sys.setswitchinterval(config.gil_switch_ms / 1000.0)
+    if config.build_in_child != "off" and config.solver != "reference":
+        # the warm-up's kernels built and run in a child first: this process then loads them from
+        # the driver's disk cache instead of keeping the compiler's memory (drape.server.service.buildhelper)
+        from .buildhelper import warm_up_in_child
+
+        warm_up_in_child(config)
     server = Server(config)
     operator = None
     try:

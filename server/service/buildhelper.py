@@ -1,0 +1,186 @@
+"""Kernel builds in a child process: the compiler's memory and the first launch's JIT stay out of
+the server.
+
+On PoCL (the CPU device) a program built from source for the first time costs the process that
+builds it LLVM's high-water mark for good (measured: 150 -> 288 MB for the first build, not given
+back by releasing the program or trimming the heap), and each kernel's work-group function is
+compiled again at its first launch for each local size (300-600 ms on the tick thread per new
+feature combination). Both land in PoCL's disk cache (``~/.cache/pocl``), keyed by source, options
+and device. So the cook thread first has :class:`BuildHelper`'s child process build *and run* the
+cloth (a scratch World of its own: add, one step, fetch, remove), then builds the program itself
+from the cache: measured with a cold cache, the server's first step of 8 new combinations took
+7.4 ms at worst instead of 323 ms, and its RSS stayed where it was.
+
+The child starts on the first request (1-2 s: Python, pyopencl, the OpenCL context) and exits
+after ``IDLE_S`` without requests; its memory is its own and goes with it. A helper that fails or
+times out is reported once and the server builds in-process as before (``build_in_child``).
+:func:`warm_up_in_child` does the same for the server's warm-up before the server starts.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import threading
+import time
+from dataclasses import fields
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+IDLE_S = 30.0  # the child exits after this long without a request
+TIMEOUT_S = 120.0  # longest wait for one build and run (a cold 65k-vertex build on a busy CPU)
+START_TIMEOUT_S = 60.0
+
+
+def _fabric_fields(fabric: Any) -> dict[str, Any]:
+    """A Fabric as its init fields (it holds a lock, which does not pickle; the child's Fabric
+    computes its own tethers when asked)."""
+    return {f.name: getattr(fabric, f.name) for f in fields(fabric) if f.init and not f.name.startswith("_")}
+
+
+def _run_one(world: Any, fabric_kw: dict[str, Any], params: Any) -> None:
+    from ..sim.fabric import Fabric
+
+    fabric = Fabric(**fabric_kw)
+    world.prepare(fabric, params)
+    h = world.add(fabric, params)
+    world.step(1.0 / 60.0)
+    world.fetch()
+    world.remove(h)
+    world.fetch()
+
+
+def _child_main(conn: Any, solver: str, device: str | None, idle_s: float) -> None:
+    """The helper process: one scratch World; (fabric fields, params) in, ("ok" | error) out."""
+    from ..sim import make_world
+
+    try:
+        world = make_world(solver, device=device)
+        conn.send(("ready", None))
+    except Exception as e:
+        conn.send(("error", f"{type(e).__name__}: {e}"))
+        return
+    while conn.poll(idle_s):
+        try:
+            msg = conn.recv()
+        except EOFError:
+            return
+        if msg is None:
+            return
+        try:
+            _run_one(world, *msg)
+            conn.send(("ok", None))
+        except Exception as e:  # the server builds it in-process then, and reports it
+            conn.send(("error", f"{type(e).__name__}: {e}"))
+
+
+class BuildHelper:
+    """The cook thread's helper process (thread-safe; one request at a time)."""
+
+    def __init__(self, solver: str, device: str | None, idle_s: float = IDLE_S) -> None:
+        self.solver, self.device, self.idle_s = solver, device, idle_s
+        self.runs = 0  # cloths the child built and ran
+        self.starts = 0  # child processes started
+        self.failures = 0  # requests that fell back to an in-process build
+        self.disabled = False  # after a failure to start: the server builds in-process
+        self._lock = threading.Lock()
+        self._proc: Any = None
+        self._conn: Any = None
+
+    def warm(self, fabric: Any, params: Any) -> bool:
+        """Build and run a cloth of ``fabric`` and ``params`` in the child (blocking the caller,
+        never the tick). True when it did; False when the caller should simply build in-process."""
+        if self.disabled:
+            return False
+        with self._lock:
+            try:
+                conn = self._connection()
+                conn.send((_fabric_fields(fabric), params))
+                if not conn.poll(TIMEOUT_S):
+                    raise TimeoutError(f"no answer in {TIMEOUT_S:.0f} s")
+                status, detail = conn.recv()
+            except Exception as e:
+                self.failures += 1
+                log.warning("kernel build helper failed (%s): building in the server process", e)
+                self._stop()
+                return False
+            if status != "ok":
+                self.failures += 1
+                log.warning("kernel build helper could not run the cloth (%s): building in the server", detail)
+                return False
+            self.runs += 1
+            return True
+
+    def _connection(self) -> Any:
+        if self._proc is not None and self._proc.is_alive():
+            return self._conn
+        self._stop()
+        ctx = mp.get_context("spawn")  # never fork a process with Zenoh's and OpenCL's threads
+        parent, child = ctx.Pipe()
+        t = time.monotonic()
+        proc = ctx.Process(
+            target=_child_main, args=(child, self.solver, self.device, self.idle_s), daemon=True, name="drape-build"
+        )
+        proc.start()
+        child.close()
+        if not parent.poll(START_TIMEOUT_S):
+            proc.kill()
+            self.disabled = True
+            raise TimeoutError(f"the helper did not start in {START_TIMEOUT_S:.0f} s")
+        status, detail = parent.recv()
+        if status != "ready":
+            proc.join(5)
+            self.disabled = True
+            raise RuntimeError(detail)
+        self.starts += 1
+        log.debug("kernel build helper %d started in %.2f s", proc.pid, time.monotonic() - t)
+        self._proc, self._conn = proc, parent
+        return parent
+
+    def _stop(self) -> None:
+        if self._proc is None:
+            return
+        try:
+            self._conn.send(None)
+        except Exception:
+            pass
+        self._proc.join(2)
+        if self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join(2)
+        self._conn.close()
+        self._proc = self._conn = None
+
+    def close(self) -> None:
+        with self._lock:
+            self._stop()
+
+
+def _warm_up_main(config: Any) -> None:
+    from ..sim import make_world
+    from .server import Server
+
+    srv = Server(config, warmup=False)
+    kw = {} if config.solver == "reference" else {"device": config.device}
+    srv.ticker.world = make_world(config.solver, **kw)
+    srv.ticker.warm_up()
+
+
+def warm_up_in_child(config: Any, timeout: float = START_TIMEOUT_S) -> bool:
+    """Run the server's warm-up (its default kernels, the frame encoder's) in a child process
+    first, so the server's own warm-up builds them from the driver's cache. True when it ran."""
+    t = time.monotonic()
+    proc = mp.get_context("spawn").Process(target=_warm_up_main, args=(config,), daemon=True, name="drape-warm-up")
+    proc.start()
+    proc.join(timeout)
+    if proc.is_alive():
+        proc.kill()
+        proc.join(5)
+        log.warning("the warm-up in a child process did not finish in %.0f s", timeout)
+        return False
+    if proc.exitcode != 0:
+        log.warning("the warm-up in a child process failed (exit %s)", proc.exitcode)
+        return False
+    log.debug("warm-up in a child process took %.2f s", time.monotonic() - t)
+    return True

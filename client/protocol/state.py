@@ -322,6 +322,14 @@ def snorm16_decode_many(q: np.ndarray) -> np.ndarray:
     return out
 
 
+def _tile(a: np.ndarray, t: int) -> np.ndarray:
+    """(m, 1, 3) repeated ``t`` times along its last axis (by doubling: np.tile is slower)."""
+    out = a
+    while out.shape[-1] < 3 * t:
+        out = np.concatenate((out, out), axis=-1)
+    return out[..., : 3 * t]
+
+
 def quant16_decode_many(q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """quant16_decode of m cloths at once: ``q`` (m, n, 3) uint16 (each cloth's (n, 3) contiguous),
     ``lo`` / ``hi`` (m, 3) float32 bounds; (m, n, 3) float32, bit for bit quant16_decode of each.
@@ -338,7 +346,7 @@ def quant16_decode_many(q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.nda
     n0 = n // t * t if t else 0
     if n0:
         runs = n0 // t
-        step_t, lo_t = np.tile(step, (1, 1, t)), np.tile(lo64, (1, 1, t))
+        step_t, lo_t = _tile(step, t), _tile(lo64, t)
         chunk = max(1, _QUANT16_CHUNK // (n0 * 3))
         scratch = np.empty((min(chunk, m), runs, 3 * t), np.float64)
         for i in range(0, m, chunk):
@@ -396,22 +404,22 @@ def decode_states(
         raise ValueError(f"{k} offsets, {len(size)} sizes and {len(cloths)} cloth ids")
     if k and (int(off.min()) < 0 or int(size.min()) < 0 or int((off + size).max()) > len(buf)):
         raise ValueError("state payloads must lie inside the data")
-    out = np.empty(k, object)
     u8 = np.frombuffer(buf, np.uint8)
+    if k and int(size.min()) >= STATE_HEADER_SIZE:  # a bundle of like states: one group, checked once
+        raw = u8[off[:, None] + np.arange(STATE_HEADER_SIZE)]
+        kind = raw[:, :16].view("<u8") & _KIND_MASK
+        if bool((kind == kind[0]).all()):
+            h = raw.view(STATE_HEADER_DTYPE).reshape(k)
+            ok, enc, n, hsize, normals, need = _check(h[:1], size[:1])
+            if ok[0] and int(size.min()) >= need[0]:
+                with np.errstate(all="ignore"):  # hostile bounds and values (NaN, inf) decode quietly
+                    return _decode_group(  # type: ignore[return-value]
+                        buf, off + hsize[0], h, int(enc[0]), int(n[0]), bool(normals[0]), cloths, receive_time_ns
+                    )
+    out = np.empty(k, object)
     whole = np.flatnonzero(size >= STATE_HEADER_SIZE)
     h = u8[off[whole, None] + np.arange(STATE_HEADER_SIZE)].view(STATE_HEADER_DTYPE).reshape(-1)
-    enc = h["encoding"].astype(np.int64)
-    n = h["vertex_count"].astype(np.int64)
-    hsize = h["header_size"].astype(np.int64)
-    normals = (h["flags"] & FLAG_NORMALS).astype(bool)
-    need = hsize + n * 3 * _ELEMENT_SIZES[enc] * (1 + normals)
-    ok = (
-        (h["magic"] == STATE_MAGIC)
-        & (h["major"] == PROTOCOL_MAJOR)
-        & (hsize >= STATE_HEADER_SIZE)
-        & _KNOWN_ENCODINGS[enc]
-        & (need <= size[whole])
-    )
+    ok, enc, n, hsize, normals, _ = _check(h, size[whole])
     bad = np.ones(k, bool)
     bad[whole[ok]] = False
     for i in np.flatnonzero(bad).tolist():  # each as decode_state reports it
@@ -428,12 +436,44 @@ def decode_states(
     for g in np.split(order, cuts) if len(order) else ():
         ids = [cloths[i] for i in idx[g].tolist()]
         e, nv, has_n = int(enc[g[0]]), int(n[g[0]]), bool(normals[g[0]])
-        with np.errstate(all="ignore"):  # hostile bounds and values (NaN, inf) decode quietly
-            states = _decode_group(buf, off[idx[g]] + hsize[g], h[g], e, nv, has_n, ids, receive_time_ns)
-        if len(g) == k:
-            return states  # type: ignore[return-value]
-        out[idx[g]] = states
+        with np.errstate(all="ignore"):
+            out[idx[g]] = _decode_group(buf, off[idx[g]] + hsize[g], h[g], e, nv, has_n, ids, receive_time_ns)
     return out.tolist()  # type: ignore[no-any-return]
+
+
+def _kind_mask() -> np.ndarray:
+    """The bits of a state header's first 16 bytes that make its kind (what decode_state checks
+    and the layout of its values: magic, major, header_size, encoding, the normals flag, vertex
+    count), as two little-endian u64 masks: states whose masked words are equal decode alike."""
+    mask = np.zeros(16, np.uint8)
+    for name in ("magic", "major", "header_size", "encoding", "vertex_count"):
+        dt, at = STATE_HEADER_DTYPE.fields[name][:2]
+        mask[at : at + dt.itemsize] = 0xFF
+    at = STATE_HEADER_DTYPE.fields["flags"][1]
+    mask[at : at + 2] = np.frombuffer(struct.pack("<H", FLAG_NORMALS), np.uint8)
+    assert mask[16:].size == 0 and STATE_HEADER_DTYPE.fields["vertex_count"][1] + 4 <= 16
+    return mask.view("<u8")
+
+
+_KIND_MASK = _kind_mask()
+
+
+def _check(h: np.ndarray, size: np.ndarray) -> tuple[np.ndarray, ...]:
+    """decode_state's checks on many headers: (ok, encoding, vertex count, header size, normals,
+    bytes needed) per header."""
+    enc = h["encoding"].astype(np.int64)
+    n = h["vertex_count"].astype(np.int64)
+    hsize = h["header_size"].astype(np.int64)
+    normals = (h["flags"] & FLAG_NORMALS).astype(bool)
+    need = hsize + n * 3 * _ELEMENT_SIZES[enc] * (1 + normals)
+    ok = (
+        (h["magic"] == STATE_MAGIC)
+        & (h["major"] == PROTOCOL_MAJOR)
+        & (hsize >= STATE_HEADER_SIZE)
+        & _KNOWN_ENCODINGS[enc]
+        & (need <= size)
+    )
+    return ok, enc, n, hsize, normals, need
 
 
 def _decode_group(

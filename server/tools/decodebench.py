@@ -4,7 +4,8 @@ once, and the SDK's whole receive-to-delivery path.
 ``python -m drape.server.tools.decodebench`` builds bundles of K states (default 256) of S x S
 vertices (default 32: draped grids, each somewhere else) with the real encoder
 (``encode_state`` + ``encode_bundle``), for each encoding with and without normals, and times in
-this process, median microseconds per state over ``--repeat`` bundles after a warm-up:
+this process, median microseconds per state over ``--repeat`` bundles after a warm-up (CPU time
+of the calling thread; the wall times go to the JSON too):
 
 - ``per-state``: ``parse_bundle`` then ``Bundle.state(i)`` for every entry (decode_state each);
 - ``whole``: ``parse_bundle`` then ``Bundle.decode()`` (every entry at once);
@@ -82,17 +83,20 @@ def same_states(a: P.ClothState, b: P.ClothState) -> bool:
 def _medians_us(
     paths: Mapping[str, Callable[[], object]], after: Callable[[], object], repeat: int, warmup: int, k: int
 ) -> dict[str, float]:
-    """Median microseconds per state of each path, the paths taking turns (a burst of load on this
-    shared machine then falls on all of them alike); ``after`` runs after each call, untimed."""
-    ts: dict[str, list[float]] = {name: [] for name in paths}
+    """Median microseconds per state of each path: the calling thread's CPU time (what the path
+    costs a client's cores; waiting for a core on this shared machine is not counted) and, as
+    ``<path>_wall``, the wall time. The paths take turns, so a burst of load falls on all of them
+    alike; ``after`` runs after each call, untimed."""
+    ts: dict[str, list[float]] = {}
     for r in range(warmup + repeat):
         for name, fn in paths.items():
-            t0 = time.perf_counter()
+            w0, c0 = time.perf_counter(), time.thread_time()
             fn()
-            t1 = time.perf_counter()
+            c1, w1 = time.thread_time(), time.perf_counter()
             after()
             if r >= warmup:
-                ts[name].append(t1 - t0)
+                ts.setdefault(name, []).append(c1 - c0)
+                ts.setdefault(name + "_wall", []).append(w1 - w0)
     return {name: statistics.median(t) * 1e6 / k for name, t in ts.items()}
 
 
@@ -213,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
     k, side = args.states, args.side
     normals = {"both": (False, True), "no": (False,), "yes": (True,)}[args.normals]
     print(
-        f"{k} states of {side}x{side} vertices per bundle; median us per state over {args.repeat} bundles "
+        f"{k} states of {side}x{side} vertices per bundle; median CPU us per state over {args.repeat} bundles "
         f"(sdk: to_bytes + BundleReceiver.receive, {k} handles with a callback each)"
     )
     print(
@@ -244,7 +248,8 @@ def main(argv: list[str] | None = None) -> int:
             "states": k,
             "side": side,
             "repeat": args.repeat,
-            "unit": "microseconds per state, median over the repeats",
+            "unit": "microseconds per state, median over the repeats: CPU time of the calling thread "
+            "(*_wall: wall time)",
             "results": rows,
         }
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -417,23 +417,26 @@ def test_cpu_packs_carry_every_feature_per_cloth(device, rng):
     assert not np.allclose(fp.positions[pairs[0][0]], fp.positions[pairs[-1][0]])  # lanes differ
 
 
-def test_a_cloth_too_big_for_a_pack_takes_the_work_group_kernel(device):
+def test_bigger_cloths_take_fewer_lanes_and_the_biggest_the_work_group_kernel(device):
     cpu_only(device)
     w = CLWorld("workgroup", device=device)
     lanes = w.pack_lanes
-    assert lanes > 0  # the default on a CPU
-    n = int(np.ceil(np.sqrt(device.info.local_mem / (16 * lanes)))) + 1  # fits local memory, not a pack
-    big, small = cook_grid(n, n, pinned=[0, n - 1]), cook_grid(8, 8, pinned=[0, 7])
+    assert lanes > 2  # the default on a CPU
+    # n x n vertices: 16 bytes a vertex a lane; `mid` fits half the lanes, `big` not even 2
+    mid = int(np.ceil(np.sqrt(device.info.local_mem / (16 * lanes)))) + 1
+    big = int(np.ceil(np.sqrt(device.info.local_mem / (16 * 2)))) + 1
+    fabs = [cook_grid(n, n, pinned=[0, n - 1]) for n in (8, mid, big)]
     p = ClothParams(iterations=2)
-    hb, hs = w.add(big, p), w.add(small, p)
-    gb, gs = w.groups[w.rec[hb].group], w.groups[w.rec[hs].group]
-    assert gb.use_local and not gb.pack and gs.pack == lanes
+    hs = [w.add(f, p) for f in fabs]
+    packs = [w.groups[w.rec[h].group].pack for h in hs]
+    assert packs == [lanes, lanes // 2, 0]
+    assert w.groups[w.rec[hs[2]].group].use_local  # the biggest still fits wg_step's local memory
     assert CLWorld("workgroup", device=device, local_size=64).pack_lanes == 0  # a parallel work-group
     assert CLWorld("coloured", device=device).pack_lanes == 0
     ref = ReferenceWorld()
-    rb, rs = ref.add(big, p), ref.add(small, p)
+    rs = [ref.add(f, p) for f in fabs]
     for _ in range(2):
         w.step(DT)
         ref.step(DT)
-    np.testing.assert_allclose(w.positions(hb), ref.positions(rb), atol=1e-4)
-    np.testing.assert_allclose(w.positions(hs), ref.positions(rs), atol=1e-4)
+    for h, r in zip(hs, rs, strict=True):
+        np.testing.assert_allclose(w.positions(h), ref.positions(r), atol=1e-4)

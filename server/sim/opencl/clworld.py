@@ -274,10 +274,13 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
             budget = self.dev.info.local_mem - 1024
             fits = cloth.fabric.n_vertices * 16 <= budget
             local = fits if self.use_local is None else (self.use_local and fits)
+            # CPU packs: as many lanes as the cloth's lanes fit in local memory (at least 2)
             W = self.pack_lanes
-            pack_bytes = 4 * W * (4 * cloth.fabric.n_vertices + (cloth.fabric.n_links if f.xpbd else 1))
-            if W and local and pack_bytes <= budget:
-                return (f.key(), "pack"), True, W
+            per_lane = 4 * (4 * cloth.fabric.n_vertices + (cloth.fabric.n_links if f.xpbd else 1))
+            while W > 2 and W * per_lane > budget:
+                W //= 2
+            if W and local and W * per_lane <= budget:
+                return (f.key(), "pack", W), True, W
             return (f.key(), local), local, 0
         return (f.key(), cloth.params.substeps), False, 0
 

@@ -108,8 +108,11 @@ class ClothHandle:
             with self._lock:
                 if self.closed:
                     return
-                self._prev, self._latest = (None if self._fresh else self._latest), st
-                self._fresh = False
+                if self._fresh:
+                    self._prev, self._fresh = None, False
+                else:
+                    self._prev = self._latest
+                self._latest = st
                 self.last_receipt = time.monotonic() if now is None else now
                 if len(self._queue) == self._queue.maxlen:
                     self.dropped += 1

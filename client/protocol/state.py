@@ -75,7 +75,9 @@ SNORM_MAX = 32767
 @dataclass(eq=False)
 class ClothState:
     """One cloth's state at one tick. ``positions`` (n, 3) float32 and ``normals`` (n, 3) float32
-    or None; arrays decoded from float32 payloads are read-only views of the payload."""
+    or None; arrays decoded from float32 payloads are read-only views of the payload (read-only
+    copies where Bundle.decode found a bundle's like states unevenly spaced); Bundle.decode's
+    other arrays are rows of one array per group of like states."""
 
     tick: int
     server_time_ns: int

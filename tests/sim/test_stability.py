@@ -464,3 +464,28 @@ def test_a_cloth_far_from_the_origin(device, rng, solver, xpbd):
         new_world(solver, device), fab, params, DT, 60, strain_max=1.0, what=f"{solver} {cols}x{rows} at {offset}"
     )
     assert worst["reach"] < 1.0
+
+
+@pytest.mark.parametrize("xpbd", [False, True], ids=["pbd", "xpbd"])
+def test_a_blown_up_cloth_leaves_its_pack_mates_untouched(device, rng, xpbd):
+    """The CPU pack solver steps cloths of one fabric side by side in vector lanes: one cloth
+    reset to NaN, another with a mass ratio of 1e6 and huge gravity, share a pack with calm
+    cloths, which end bit for bit where they end alone (on a GPU: one work-group per cloth)."""
+    fab = cook_grid(int(rng.integers(4, 10)), int(rng.integers(4, 10)), 1.0, 1.0, pinned=[0, 3])
+    calm = ClothParams(features=Features(xpbd=xpbd), iterations=6)
+    wild = calm.with_(gravity=(0.0, -1e6, 0.0), material=Material(mass=1e-6))
+    together, alone = CLWorld("workgroup", device=device), CLWorld("workgroup", device=device)
+    pairs = []
+    for i in range(5):
+        if i == 1:
+            together.reset(together.add(fab, calm), np.full((fab.n_vertices, 3), np.nan))
+        if i == 3:
+            together.add(fab, wild)
+        pairs.append((together.add(fab, calm), alone.add(fab, calm)))
+    for _ in range(20):
+        together.step(DT)
+        alone.step(DT)
+    for ht, ha in pairs:
+        x = together.positions(ht)
+        assert np.all(np.isfinite(x))
+        np.testing.assert_array_equal(x, alone.positions(ha))

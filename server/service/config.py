@@ -99,6 +99,7 @@ class ServerConfig:
     device_encode: bool = True  # OpenCL worlds: states encoded on the device (one launch, one readback)
     gil_switch_ms: float = 0.5  # Python's GIL switch interval in the server process (sys.setswitchinterval)
     program_idle_s: float = 10.0  # kernel programs no cloth used this long are released (0: kept for good)
+    malloc_mmap_threshold: int = 4 << 20  # bytes: larger blocks mapped apart, returned when freed (0: glibc's)
     build_in_child: str = "auto"  # auto | on | off: kernels built and first run in a child process (auto: CPU)
     # --- quality -------------------------------------------------------------------------------
     adaptive_quality: bool = True  # lower cloths' presets while ticks overrun, restore them after
@@ -136,6 +137,8 @@ class ServerConfig:
             raise ValueError("gil_switch_ms must be in 0.01..100 ms")
         if self.program_idle_s < 0:
             raise ValueError("program_idle_s must be >= 0 (0: programs are kept for good)")
+        if self.malloc_mmap_threshold < 0:
+            raise ValueError("malloc_mmap_threshold must be >= 0 bytes (0: glibc's dynamic threshold)")
         if self.build_in_child not in BUILD_IN_CHILD:
             raise ValueError(f"build_in_child must be one of {BUILD_IN_CHILD}, got {self.build_in_child!r}")
         for name in (
@@ -325,6 +328,8 @@ HELP = {
     "returning from a Zenoh call waits up to that long behind a busy one)",
     "program_idle_s": "seconds after which a kernel program no cloth uses is released and the heap trimmed "
     "(built again from the driver's disk cache when needed; 0: kept for good)",
+    "malloc_mmap_threshold": "drape serve: heap blocks of this many bytes or more get their own mapping, "
+    "given back when freed (glibc mallopt M_MMAP_THRESHOLD; 0: glibc's dynamic threshold)",
     "build_in_child": "new kernels built and first run in a short-lived child process, then loaded from the "
     "driver's disk cache (the compiler's memory and the first launch's JIT stay out of the server); "
     "auto: on a CPU device (PoCL)",

@@ -38,12 +38,16 @@ WAIT = 60.0  # the longest any start-up or reply is waited for (a loaded 2-core 
 
 
 def zenoh_session(endpoint: str) -> zenoh.Session:
-    """A plain client-side Zenoh session connected to one loopback endpoint (no scouting)."""
+    """A plain client-side Zenoh session connected to one loopback endpoint (no scouting), with
+    Zenoh's shared memory off: the abusers stand for clients on other hosts, which cannot use it
+    (a sender on the same host puts large messages into its 16 MB shared-memory pool, and the
+    server maps that pool once per such session: +17 MB of the server's RSS, docs/reliability.md)."""
     c = zenoh.Config()
     c.insert_json5("mode", '"peer"')
     c.insert_json5("listen/endpoints", "[]")
     c.insert_json5("connect/endpoints", json.dumps([endpoint]))
     c.insert_json5("scouting/multicast/enabled", "false")
+    c.insert_json5("transport/shared_memory/enabled", "false")
     return zenoh.open(c)
 
 

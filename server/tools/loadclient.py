@@ -1,14 +1,14 @@
 """One load-test client process: it behaves like a game client with many cloths.
 
-It submits its cloths (counting refused submits by error code: a server past its knee answers
-``overloaded``; all of a client's cloths share one origin, so the server cooks their fabric once
-and shares it, as it does any identical request: 4096 cloths are admitted in seconds, not in the
-minute that a cook per cloth takes on a busy host), then, once told to go, moves every cloth's pins once per tick (with bundles one
-batch control per tick carrying one 1.4 ``moves`` block, built from one (n, 2, 3) array with no
-loop over the cloths; one control per cloth without) and records every state it
-receives: tick, latency (server timestamp -> receipt, one host so one clock) and the time from
-the payload's arrival to the state's delivery (the SDK's decode cost). The parent tells it which
-server ticks the measured window covers; only states of those ticks count.
+It submits its cloths, SUBMITS_IN_FLIGHT at a time (counting refused submits by error code: a
+server past its knee answers ``overloaded``). All of a client's cloths share one origin, so the
+server cooks their fabric once and shares it, as it does any identical request. Once told to go,
+it moves every cloth's pins once per tick (with bundles one batch control per tick carrying one
+1.4 ``moves`` block, built from one (n, 2, 3) array with no loop over the cloths; one control
+per cloth without) and records every state it receives: tick, latency (server timestamp ->
+receipt, one host so one clock) and the time from the payload's arrival to the state's delivery
+(the SDK's decode cost). The parent tells it which server ticks the measured window covers; only
+states of those ticks count.
 
 Runs in a ``spawn``-ed process: everything it needs comes through its arguments.
 """
@@ -19,10 +19,13 @@ import logging
 import math
 import time
 from collections import Counter
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+
+SUBMITS_IN_FLIGHT = 16  # a client's submits awaiting their reply at once
 
 
 @dataclass
@@ -135,29 +138,36 @@ def client_main(
             home = client.server_id  # the one given, or the least loaded live one
             if "server" in shared:
                 shared["server"].value = home.encode()
-            for j in range(spec.offered):
-                try:
-                    h = client.submit_grid(
-                        n,
-                        n,
-                        1.0,
-                        1.0,
-                        origin=(0.0, 1.0, 2.0 * spec.index),  # one origin a client: cooked once (FabricStore)
-                        pinned=pins,
-                        links={"structural": True, "shear": True, "bending": spec.bending},
-                        features=list(spec.features),
-                        iterations=spec.iterations,
-                        substeps=spec.substeps,
-                        encoding=spec.encoding,
-                        bundle=spec.bundle,
-                        server=home,
-                    )
-                except P.DrapeError as e:
-                    refused[e.code] += 1
-                    continue
-                rec = _Recorder()
-                handles.append(h)
-                recs.append(rec)
+
+            def submit_one(_j: int) -> Any:
+                return client.submit_grid(
+                    n,
+                    n,
+                    1.0,
+                    1.0,
+                    origin=(0.0, 1.0, 2.0 * spec.index),  # one origin a client: cooked once (FabricStore)
+                    pinned=pins,
+                    links={"structural": True, "shear": True, "bending": spec.bending},
+                    features=list(spec.features),
+                    iterations=spec.iterations,
+                    substeps=spec.substeps,
+                    encoding=spec.encoding,
+                    bundle=spec.bundle,
+                    server=home,
+                )
+
+            # SUBMITS_IN_FLIGHT submits at a time, as a game loading a level would: the server adds
+            # every cloth that arrived in a tick at once, rather than one cloth a client per tick
+            with ThreadPoolExecutor(SUBMITS_IN_FLIGHT, thread_name_prefix="submit") as pool:
+                futures = [pool.submit(submit_one, j) for j in range(spec.offered)]
+                for fut in futures:  # in submission order
+                    try:
+                        h = fut.result()
+                    except P.DrapeError as e:
+                        refused[e.code] += 1
+                        continue
+                    handles.append(h)
+                    recs.append(_Recorder())
             if spec.bundle and handles and not all(h.bundled for h in handles):
                 raise RuntimeError("the server does not bundle states (protocol 1.0?)")
             rest = np.stack([np.asarray(h.rest_positions[pins], np.float32) for h in handles]) if handles else None

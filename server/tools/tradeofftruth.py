@@ -20,13 +20,15 @@ from .tradeoffrun import REF_TICK_HZ, SCENE_VERSION, make_scene, reference_confi
 log = logging.getLogger(__name__)
 
 
+#: The sources a ground truth depends on (server/sim): a change to any of them invalidates the cache.
+TRUTH_SOURCES = ("reference.py", "fabric.py", "links.py", "tethers.py", "params.py")
+
+
 def _source_digest() -> str:
-    here = Path(__file__).resolve().parent
+    sim = Path(__file__).resolve().parent.parent / "sim"
     h = hashlib.sha1()
-    for name in ("reference.py", "fabric.py"):
-        p = here / name
-        if p.exists():
-            h.update(p.read_bytes())
+    for name in TRUTH_SOURCES:
+        h.update((sim / name).read_bytes())  # a missing source is an error, never an empty digest
     return h.hexdigest()[:12]
 
 

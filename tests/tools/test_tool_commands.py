@@ -99,3 +99,18 @@ def test_a_missing_extra_is_named():
     ):
         require_extra("tools", "top", ["json", "no_such_module_x"])
     require_extra("tools", "top", ["json"])  # present: nothing happens
+
+
+def test_tradeoff_truth_cache_key_follows_the_reference_sources(tmp_path):
+    """The ground-truth cache is keyed by the sources it depends on (server/sim): every one of them
+    exists, and the key is not the digest of nothing (a cache that never goes stale)."""
+    import hashlib
+    from pathlib import Path
+
+    from drape.server.tools import tradeofftruth as tt
+
+    sim = Path(tt.__file__).resolve().parent.parent / "sim"
+    assert all((sim / name).is_file() for name in tt.TRUTH_SOURCES)
+    key = tt.truth_path(tmp_path, "drape", 8, 1.0, 1, 10).name
+    assert hashlib.sha1().hexdigest()[:12] not in key
+    assert tt._source_digest() in key

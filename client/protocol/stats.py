@@ -76,6 +76,7 @@ STATS_FIELDS: tuple[StatField, ...] = (
     ),
     StatField("batch_moves", "integer", "counter", "Moves received in batch controls' moves blocks (protocol 1.4)"),
     StatField("moves_applied", "integer", "counter", "Moves applied by the tick thread (protocol 1.4)"),
+    StatField("move_blocks", "integer", "counter", "Moves blocks applied by the tick thread (protocol 1.4)"),
     StatField(
         "move_blocks_superseded",
         "integer",

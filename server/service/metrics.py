@@ -65,6 +65,7 @@ STAT_METRICS: dict[str, str] = {
     "controls_coalesced": "drape_controls_coalesced",
     "batch_moves": "drape_batch_moves",
     "moves_applied": "drape_moves_applied",
+    "move_blocks": "drape_move_blocks",
     "move_blocks_superseded": "drape_move_blocks_superseded",
 }
 

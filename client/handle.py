@@ -114,13 +114,14 @@ class ClothHandle:
                     self._prev = self._latest
                 self._latest = st
                 self.last_receipt = time.monotonic() if now is None else now
-                if len(self._queue) == self._queue.maxlen:
+                queue = self._queue
+                if len(queue) == queue.maxlen:
                     self.dropped += 1
-                self._queue.append(st)
+                queue.append(st)
                 self.received += 1
                 if self._waiting:
                     self._cond.notify_all()
-                callbacks = list(self._callbacks) if self._callbacks else ()
+                callbacks = self._callbacks and list(self._callbacks)
             for cb in callbacks:
                 try:
                     cb(st)

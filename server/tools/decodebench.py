@@ -85,7 +85,8 @@ def _medians_us(
 ) -> dict[str, float]:
     """Median microseconds per state of each path: the calling thread's CPU time (what the path
     costs a client's cores; waiting for a core on this shared machine is not counted) and, as
-    ``<path>_wall``, the wall time. The paths take turns, so a burst of load falls on all of them
+    ``<path>_wall``, the wall time (and ``<path>_min``, the fastest of the repeats: what a quiet
+    machine gives). The paths take turns, so a burst of load falls on all of them
     alike; ``after`` runs after each call, untimed."""
     ts: dict[str, list[float]] = {}
     for r in range(warmup + repeat):
@@ -97,7 +98,9 @@ def _medians_us(
             if r >= warmup:
                 ts.setdefault(name, []).append(c1 - c0)
                 ts.setdefault(name + "_wall", []).append(w1 - w0)
-    return {name: statistics.median(t) * 1e6 / k for name, t in ts.items()}
+    out = {name: statistics.median(t) * 1e6 / k for name, t in ts.items()}
+    out.update({name.replace("_us", "_min_us"): min(t) * 1e6 / k for name, t in ts.items() if "wall" not in name})
+    return out
 
 
 def _free_endpoint() -> str:

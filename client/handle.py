@@ -76,7 +76,7 @@ class ClothHandle:
         self._deliver_lock = threading.RLock()  # states are delivered one at a time, in order
         self._queue: deque[ClothState] = deque(maxlen=max(1, queue_size))
         self._latest: ClothState | None = None
-        self._callbacks: list[StateCallback] = []
+        self._callbacks: tuple[StateCallback, ...] = ()  # replaced, never changed: _deliver reads it as is
         self._sub: Any = None
         if self.bundle_key is None:
             self._sub = client.session.declare_subscriber(self.key, self._on_sample)
@@ -121,7 +121,7 @@ class ClothHandle:
                 self.received += 1
                 if self._waiting:
                     self._cond.notify_all()
-                callbacks = self._callbacks and list(self._callbacks)
+                callbacks = self._callbacks
             for cb in callbacks:
                 try:
                     cb(st)
@@ -183,12 +183,13 @@ class ClothHandle:
     def on_state(self, callback: StateCallback) -> Callable[[], None]:
         """Call ``callback(state)`` for every state (on a Zenoh thread). Returns an unsubscribe function."""
         with self._cond:
-            self._callbacks.append(callback)
+            self._callbacks = (*self._callbacks, callback)
 
         def cancel() -> None:
             with self._cond:
                 if callback in self._callbacks:
-                    self._callbacks.remove(callback)
+                    i = self._callbacks.index(callback)
+                    self._callbacks = self._callbacks[:i] + self._callbacks[i + 1 :]
 
         return cancel
 

@@ -215,16 +215,14 @@ def _equal_entries(buf: bytes | bytearray | memoryview, at: int, count: int) -> 
     stride = align8(h0 + s0)  # >= 16: count is bounded by the size checked next
     if at + (count - 1) * stride + h0 + s0 > size:
         return None
-    u8 = np.frombuffer(buf, np.uint8)
-    starts = at + stride * np.arange(count, dtype=np.int64)
-    e = u8[starts[:, None] + np.arange(BUNDLE_ENTRY_SIZE)].view(BUNDLE_ENTRY_DTYPE).reshape(count)
+    e = np.ndarray((count,), BUNDLE_ENTRY_DTYPE, buf, at, (stride,))  # every entry's fixed part, no copy
     lengths = e["id_length"]
     if (e["header_size"] != h0).any() or (e["state_size"] != s0).any() or (lengths == 0).any():
         return None
     if BUNDLE_ENTRY_SIZE + int(lengths.max()) > h0:
         return None
     width = int(lengths.max())
-    raw = u8[starts[:, None] + (BUNDLE_ENTRY_SIZE + np.arange(width))]
+    raw = np.array(np.ndarray((count, width), np.uint8, buf, at + BUNDLE_ENTRY_SIZE, (stride, 1)))
     inside = np.arange(width) < lengths[:, None]
     if (raw[inside] == 0).any():  # a NUL in an id (invalid): the walk says so
         return None
@@ -235,7 +233,7 @@ def _equal_entries(buf: bytes | bytearray | memoryview, at: int, count: int) -> 
         return None
     if not _all_valid(ids):
         return None
-    return BundleEntries(ids, starts + h0, np.full(count, s0, np.int64))
+    return BundleEntries(ids, at + h0 + stride * np.arange(count, dtype=np.int64), np.full(count, s0, np.int64))
 
 
 def _walk_entries(buf: bytes | bytearray | memoryview, at: int, count: int) -> BundleEntries:

@@ -244,16 +244,15 @@ def encode_state(
     return out
 
 
-def decode_state(data: bytes | bytearray | memoryview, cloth: str = "", receive_time_ns: int = 0) -> ClothState:
-    """Parse a state payload. Raises ProtocolError on a bad magic, an unknown major version or
-    encoding, or a payload shorter than its header says. Unknown flag bits, a longer header
-    (a later minor version) and trailing bytes are ignored."""
-    buf = memoryview(data).cast("B") if not isinstance(data, (bytes, bytearray)) else data
-    if len(buf) < STATE_HEADER_SIZE:
+def _state_header(buf: bytes | bytearray | memoryview, size: int, at: int = 0) -> tuple:
+    """The header of the ``size``-byte state payload at ``at`` of ``buf``, checked by PROTOCOL.md 9's
+    reading rules (ProtocolError if it breaks one): (header_size, encoding, flags, n, tick,
+    server time, bounds min x y z, bounds max x y z)."""
+    if size < STATE_HEADER_SIZE:
         raise ProtocolError(
-            ERR_MALFORMED, f"state payload of {len(buf)} bytes is shorter than the {STATE_HEADER_SIZE}-byte header"
+            ERR_MALFORMED, f"state payload of {size} bytes is shorter than the {STATE_HEADER_SIZE}-byte header"
         )
-    (magic, major, minor, hsize, enc, flags, n, tick, t_ns, x0, y0, z0, x1, y1, z1) = STATE_HEADER.unpack_from(buf, 0)
+    (magic, major, minor, hsize, enc, flags, n, *rest) = STATE_HEADER.unpack_from(buf, at)
     if magic != STATE_MAGIC:
         raise ProtocolError(ERR_MALFORMED, f"state payload magic {bytes(magic)!r} is not {STATE_MAGIC!r}")
     if major != PROTOCOL_MAJOR:
@@ -265,16 +264,26 @@ def decode_state(data: bytes | bytearray | memoryview, cloth: str = "", receive_
         raise ProtocolError(ERR_MALFORMED, f"state header_size {hsize} is below {STATE_HEADER_SIZE}")
     if enc not in ENCODING_NAMES:
         raise ProtocolError(ERR_INVALID_VALUE, f"unknown state encoding {enc}")
+    has_n = bool(flags & FLAG_NORMALS)
+    need = hsize + n * 3 * _elem_size(enc) * (2 if has_n else 1)
+    if size < need:
+        raise ProtocolError(
+            ERR_MALFORMED,
+            f"state payload of {size} bytes is shorter than the {need} bytes its "
+            f"header announces ({n} vertices, {ENCODING_NAMES[enc]}{', normals' if has_n else ''})",
+        )
+    return (hsize, enc, flags, n, *rest)
+
+
+def decode_state(data: bytes | bytearray | memoryview, cloth: str = "", receive_time_ns: int = 0) -> ClothState:
+    """Parse a state payload. Raises ProtocolError on a bad magic, an unknown major version or
+    encoding, or a payload shorter than its header says. Unknown flag bits, a longer header
+    (a later minor version) and trailing bytes are ignored."""
+    buf = memoryview(data).cast("B") if not isinstance(data, (bytes, bytearray)) else data
+    (hsize, enc, flags, n, tick, t_ns, x0, y0, z0, x1, y1, z1) = _state_header(buf, len(buf))
     es = _elem_size(enc)
     block = n * 3 * es
     has_n = bool(flags & FLAG_NORMALS)
-    need = hsize + block * (2 if has_n else 1)
-    if len(buf) < need:
-        raise ProtocolError(
-            ERR_MALFORMED,
-            f"state payload of {len(buf)} bytes is shorter than the {need} bytes its "
-            f"header announces ({n} vertices, {ENCODING_NAMES[enc]}{', normals' if has_n else ''})",
-        )
     lo = np.array((x0, y0, z0), np.float32)
     hi = np.array((x1, y1, z1), np.float32)
     nrm = None
@@ -408,15 +417,23 @@ def decode_states(
         raise ValueError("state payloads must lie inside the data")
     u8 = np.frombuffer(buf, np.uint8)
     if k and int(size.min()) >= STATE_HEADER_SIZE:  # a bundle of like states: one group, checked once
-        raw = u8[off[:, None] + np.arange(STATE_HEADER_SIZE)]
+        stride = int(off[1] - off[0]) if k > 1 else STATE_HEADER_SIZE
+        if stride >= STATE_HEADER_SIZE and (k < 3 or bool((np.diff(off) == stride).all())):
+            raw = np.ndarray((k, STATE_HEADER_SIZE), np.uint8, buf, int(off[0]), (stride, 1))  # no copy
+        else:
+            raw = u8[off[:, None] + np.arange(STATE_HEADER_SIZE)]
         kind = raw[:, :16].view("<u8") & _KIND_MASK
         if bool((kind == kind[0]).all()):
-            h = raw.view(STATE_HEADER_DTYPE).reshape(k)
-            ok, enc, n, hsize, normals, need = _check(h[:1], size[:1])
-            if ok[0] and int(size.min()) >= need[0]:
+            try:
+                hsize0, e, _, n0 = _state_header(buf, int(size.min()), int(off[0]))[:4]
+            except ProtocolError:
+                pass  # the entry by entry path says for which
+            else:
                 with np.errstate(all="ignore"):  # hostile bounds and values (NaN, inf) decode quietly
+                    h = raw.view(STATE_HEADER_DTYPE).reshape(k)
+                    has_n = bool(h["flags"][0] & FLAG_NORMALS)
                     return _decode_group(  # type: ignore[return-value]
-                        buf, off + hsize[0], h, int(enc[0]), int(n[0]), bool(normals[0]), cloths, receive_time_ns
+                        buf, off + hsize0, h, e, n0, has_n, cloths, receive_time_ns
                     )
     out = np.empty(k, object)
     whole = np.flatnonzero(size >= STATE_HEADER_SIZE)

@@ -11,7 +11,7 @@
  * positions and inverse masses: their links correct nothing.
  *
  * Arithmetic per lane is wg_step's in the same colour and link order (PBD: the talk's k,
- * XPBD: the multiplier per link, reset every substep).
+ * XPBD: the multiplier per link, reset every substep, after the positions in local memory).
  */
 #define PCAT_(a, b) a##b
 #define PCAT(a, b) PCAT_(a, b)
@@ -31,7 +31,7 @@ inline floatP lane_floats(__global const float *cf, const int *slot, int off)
 __kernel void pack_step(const float dt, __global const int *packs, __global const int *ci, __global const float *cf,
                         __global const int *fab, __global float4 *pos, __global float4 *vel, __global float4 *prev,
                         __global const float4 *target, __global float4 *nrm, __global const float4 *coll,
-                        __local floatP *sx, __local floatP *slam)
+                        __local floatP *sx)
 {
     __global const int *lanes = packs + get_group_id(0) * PACK_LANES;
     __global const int *I0 = ci + lanes[0] * CI_STRIDE;
@@ -51,6 +51,7 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
                     sxf[(4 * v + k) * PACK_LANES + j] = 0.0f;
 #if FEATURE_XPBD
     const int nl = I0[CI_NLINKS];
+    __local floatP *slam = sx + 4 * nv; /* the pack's multipliers follow its positions */
     floatP alpha[3];
     for (int t = 0; t < 3; ++t)
         alpha[t] = lane_floats(cf, slot, CF_COMPLIANCE + t) / (h * h);

@@ -440,3 +440,25 @@ def test_bigger_cloths_take_fewer_lanes_and_the_biggest_the_work_group_kernel(de
         ref.step(DT)
     for h, r in zip(hs, rs, strict=True):
         np.testing.assert_allclose(w.positions(h), ref.positions(r), atol=1e-4)
+
+
+def test_a_pack_group_of_unlike_cloths_fits_local_memory(device):
+    """An XPBD pack holds its positions and then its multipliers in local memory: a group of one
+    cloth with the most vertices and another with the most links launches in the memory of the
+    larger pack, not the sum of the two maxima (which here is more than the device has)."""
+    cpu_only(device)
+    budget = device.info.local_mem - 1024
+    na = int(np.sqrt(budget / 48)) - 1  # structural only: ~24 n^2 bytes a lane, 2 lanes
+    nb = int(np.sqrt(budget / 80)) - 1  # with shear and bending: ~40 n^2 bytes a lane, 2 lanes
+    fa = cook_grid(na, na, pinned=[0, na - 1], options=LinkOptions(shear=False))
+    fb = cook_grid(nb, nb, pinned=[0, nb - 1], options=LinkOptions(bending=True))
+    assert 2 * (16 * fa.n_vertices + 4 * fb.n_links) > budget
+    p = ClothParams(features=Features(xpbd=True), iterations=1)
+    w, serial = CLWorld("workgroup", device=device), CLWorld("workgroup", device=device, pack_lanes=0)
+    hs = [(w.add(f, p), serial.add(f, p)) for f in (fa, fb)]
+    assert w.rec[hs[0][0]].group == w.rec[hs[1][0]].group and w.groups[w.rec[hs[0][0]].group].pack == 2
+    for _ in range(2):
+        w.step(DT)
+        serial.step(DT)
+    for h, hs_ in hs:
+        np.testing.assert_allclose(w.positions(h), serial.positions(hs_), atol=1e-5)

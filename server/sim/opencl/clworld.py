@@ -93,7 +93,7 @@ class Group:
     pack: int = 0  # CPU pack solver: lanes per pack (0: wg_step); see launch.py
     packs_buf: cl.Buffer | None = None  # PACK_LANES cloth slots per pack, -1 = unused lane
     n_packs: int = 0
-    max_links: int = 0
+    pack_local_bytes: int = 0  # the largest pack's local memory
 
 
 class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
@@ -276,7 +276,7 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
             local = fits if self.use_local is None else (self.use_local and fits)
             # CPU packs: as many lanes as the cloth's lanes fit in local memory (at least 2)
             W = self.pack_lanes
-            per_lane = 4 * (4 * cloth.fabric.n_vertices + (cloth.fabric.n_links if f.xpbd else 1))
+            per_lane = 4 * (4 * cloth.fabric.n_vertices + (cloth.fabric.n_links if f.xpbd else 0))
             while W > 2 and W * per_lane > budget:
                 W //= 2
             if W and local and W * per_lane <= budget:

@@ -134,7 +134,11 @@ class GroupLaunches:
             table = pack_lanes(keys, [int(s) for s in g.slots], g.pack, self.dev.info.compute_units)
             g.n_packs = len(table)
             g.packs_buf = cl.Buffer(self.dev.ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=table)
-            g.max_links = max(c.fabric.n_links for c in cloths)
+            # local memory of the largest pack: positions, then (XPBD) multipliers, per lane
+            xpbd = g.features.xpbd
+            g.pack_local_bytes = (
+                4 * g.pack * max(4 * c.fabric.n_vertices + (c.fabric.n_links if xpbd else 0) for c in cloths)
+            )
             g.local_size = 1
             g.dirty = False
             return
@@ -249,8 +253,6 @@ class GroupLaunches:
 
     def _pack_step(self, g: Group, dt32, opts) -> None:
         """CPU: one launch of pack_step, one work-item per pack, the lanes in local memory."""
-        W = g.pack
-        xpbd_words = g.max_links if g.features.xpbd else 1
         # Any: pyopencl's stub of Kernel.__call__ leaves out LocalMemory
         args: list[Any] = [
             dt32,
@@ -264,7 +266,6 @@ class GroupLaunches:
             self.target.buf,
             self.nrm.buf,
             self.coll.buf,
-            cl.LocalMemory(16 * W * max(1, g.max_vertices)),
-            cl.LocalMemory(4 * W * max(1, xpbd_words)),
+            cl.LocalMemory(max(64, g.pack_local_bytes)),
         ]
         self.dev.kernel(opts, "pack_step")(self.dev.queue, (g.n_packs,), (1,), *args)

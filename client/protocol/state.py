@@ -322,8 +322,15 @@ def float16_table() -> np.ndarray:
 
 
 def float16_decode_many(h: np.ndarray) -> np.ndarray:
-    """float32 of a float16 array of any shape (its last axis contiguous): ``h.astype(np.float32)``."""
-    return np.take(float16_table(), h.view(np.uint16), mode="wrap")  # every index is in range
+    """float32 of (m, n, 3) float16 values (each (n, 3) contiguous): ``h.astype(np.float32)``, by
+    table, a few cloths at a time (numpy makes a 64-bit copy of the indices of each call: small
+    copies are reused memory, one big one is fresh pages every time)."""
+    table, u = float16_table(), h.view(np.uint16)
+    out = np.empty(h.shape, np.float32)
+    chunk = max(1, _QUANT16_CHUNK // max(1, u[0].size)) if len(u) else 1
+    for i in range(0, len(u), chunk):
+        np.take(table, u[i : i + chunk], out=out[i : i + chunk], mode="wrap")  # every index is in range
+    return out
 
 
 def snorm16_decode_many(q: np.ndarray) -> np.ndarray:

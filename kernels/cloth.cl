@@ -13,8 +13,8 @@
  *   wg_step                         one work-group per cloth, the whole step in one launch
  *   cl_predict / cl_links / cl_finish   coloured batches merged over every cloth of a group
  *   cl_predict / jacobi_iter / cl_finish   Jacobi vertex solver, double-buffered
- *   pack_step                       CPU: one work-item per pack of W cloths of one fabric (pack.cl)
  *   (vertex phases of those two run over vertex chunks; cl_normals is its own launch)
+ *   pack_step                       CPU: one work-item per pack of W cloths of one fabric (pack.cl)
  */
 #include "layout.h"
 

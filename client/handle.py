@@ -104,8 +104,11 @@ class ClothHandle:
     def _deliver(self, st: ClothState, now: float | None = None) -> None:
         """Queue a state and run the callbacks (on the thread that received it). ``now``: the
         monotonic time of its arrival (one clock read for a whole bundle)."""
-        with self._deliver_lock:
-            with self._lock:
+        # acquire/release rather than ``with``: half the cost on this path, once per state per tick
+        self._deliver_lock.acquire()
+        try:
+            self._lock.acquire()
+            try:
                 if self.closed:
                     return
                 if self._fresh:
@@ -122,11 +125,15 @@ class ClothHandle:
                 if self._waiting:
                     self._cond.notify_all()
                 callbacks = self._callbacks
+            finally:
+                self._lock.release()
             for cb in callbacks:
                 try:
                     cb(st)
                 except Exception:
                     log.exception("cloth %s: on_state callback failed", self.id)
+        finally:
+            self._deliver_lock.release()
 
     def last_states(self) -> tuple[ClothState | None, ClothState | None]:
         """The last two states received from the cloth's current server (older, newer; the older

@@ -7,13 +7,12 @@ import re
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
-from itertools import repeat
 
 import numpy as np
 
 from .errors import ERR_INVALID_VALUE, ERR_MALFORMED, ERR_UNSUPPORTED_VERSION, ProtocolError
 from .keys import PROTOCOL_MAJOR, PROTOCOL_MINOR, VERSION_STRING
-from .vocabulary import ENC_FLOAT16, ENC_FLOAT32, ENC_QUANT16, ENCODING_IDS, ENCODING_NAMES, ENCODINGS, Vec3
+from .vocabulary import ENC_FLOAT16, ENC_FLOAT32, ENCODING_IDS, ENCODING_NAMES, ENCODINGS, Vec3
 
 STATE_MAGIC = b"DRPS"
 #: The state header, field by field: (name, struct code, meaning). STATE_HEADER, the C header
@@ -244,7 +243,7 @@ def encode_state(
     return out
 
 
-def _state_header(buf: bytes | bytearray | memoryview, size: int, at: int = 0) -> tuple:
+def read_state_header(buf: bytes | bytearray | memoryview, size: int, at: int = 0) -> tuple:
     """The header of the ``size``-byte state payload at ``at`` of ``buf``, checked by PROTOCOL.md 9's
     reading rules (ProtocolError if it breaks one): (header_size, encoding, flags, n, tick,
     server time, bounds min x y z, bounds max x y z)."""
@@ -280,7 +279,7 @@ def decode_state(data: bytes | bytearray | memoryview, cloth: str = "", receive_
     encoding, or a payload shorter than its header says. Unknown flag bits, a longer header
     (a later minor version) and trailing bytes are ignored."""
     buf = memoryview(data).cast("B") if not isinstance(data, (bytes, bytearray)) else data
-    (hsize, enc, flags, n, tick, t_ns, x0, y0, z0, x1, y1, z1) = _state_header(buf, len(buf))
+    (hsize, enc, flags, n, tick, t_ns, x0, y0, z0, x1, y1, z1) = read_state_header(buf, len(buf))
     es = _elem_size(enc)
     block = n * 3 * es
     has_n = bool(flags & FLAG_NORMALS)
@@ -304,8 +303,8 @@ def decode_state(data: bytes | bytearray | memoryview, cloth: str = "", receive_
 
 
 # --- many states at once ------------------------------------------------------------------------
-# What a bundle's reader runs once per bundle instead of decode_state per entry: the same
-# arithmetic on (m, n, 3) arrays of every entry of one kind, bit for bit what decode_state gives.
+# What a bundle's reader (bundle.decode_states) runs once per group of like states instead of
+# decode_state per entry: the same arithmetic on (m, n, 3) arrays, bit for bit decode_state's.
 
 _QUANT16_CHUNK = 1 << 16  # float64 values per step of quant16_decode_many (512 KiB of scratch: fastest here)
 _TILE = 64  # vertices per contiguous inner run in quant16_decode_many
@@ -377,170 +376,3 @@ def quant16_decode_many(q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.nda
     if n0 < n:  # the last n % 64 vertices
         out[:, n0:] = (lo64 + np.asarray(q[:, n0:], np.float64) * step).astype(np.float32)
     return out
-
-
-def _block(buf: bytes | bytearray | memoryview, at: np.ndarray, dtype: str, n: int) -> np.ndarray:
-    """(m, n, 3) ``dtype`` values starting at byte offsets ``at`` of ``buf``: a view when the offsets
-    are evenly spaced and ascending (the usual bundle), else one copy per entry into one array."""
-    m = len(at)
-    es = np.dtype(dtype).itemsize
-    stride = int(at[1] - at[0]) if m > 1 else n * 3 * es
-    if m == 1 or (stride > 0 and (m == 2 or bool((np.diff(at) == stride).all()))):
-        return np.ndarray((m, n, 3), dtype, buf, int(at[0]), (stride, 3 * es, es))
-    out = np.empty((m, n, 3), dtype)
-    for j, a in enumerate(at.tolist()):
-        out[j] = np.frombuffer(buf, dtype, n * 3, a).reshape(n, 3)
-    out.flags.writeable = not memoryview(buf).readonly  # as the views decode_state gives
-    return out
-
-
-_ELEMENT_SIZES = np.array([element_size(e) for e in range(256)], np.int64)
-_KNOWN_ENCODINGS = np.zeros(256, bool)
-_KNOWN_ENCODINGS[list(ENCODING_NAMES)] = True
-_VALUES = {ENC_FLOAT32: ("<f4", "<f4"), ENC_FLOAT16: ("<f2", "<f2"), ENC_QUANT16: ("<u2", "<i2")}
-
-
-def decode_states(
-    data: bytes | bytearray | memoryview,
-    offsets: Sequence[int] | np.ndarray,
-    sizes: Sequence[int] | np.ndarray,
-    cloths: Sequence[str],
-    receive_time_ns: int = 0,
-) -> list[ClothState | ProtocolError]:
-    """The state payloads ``data[offsets[i] : offsets[i] + sizes[i]]`` (inside ``data``), each
-    decoded as ``decode_state(payload, cloths[i], receive_time_ns)`` would, or the ProtocolError it
-    would raise: the whole-frame reader of a bundle. Equal in every field and bit for bit in every
-    array; the work is a handful of numpy operations per group of states of the same encoding,
-    vertex count and normals, not per state (float32 arrays are views of ``data`` as
-    decode_state's are when the group's states are evenly spaced; the others are rows of one
-    array per group, which a state keeps alive)."""
-    buf = data if isinstance(data, (bytes, bytearray)) else memoryview(data).cast("B")
-    off = np.asarray(offsets, np.int64).reshape(-1)
-    size = np.asarray(sizes, np.int64).reshape(-1)
-    k = len(off)
-    if len(size) != k or len(cloths) != k:
-        raise ValueError(f"{k} offsets, {len(size)} sizes and {len(cloths)} cloth ids")
-    if k and (int(off.min()) < 0 or int(size.min()) < 0 or int((off + size).max()) > len(buf)):
-        raise ValueError("state payloads must lie inside the data")
-    u8 = np.frombuffer(buf, np.uint8)
-    if k and int(size.min()) >= STATE_HEADER_SIZE:  # a bundle of like states: one group, checked once
-        stride = int(off[1] - off[0]) if k > 1 else STATE_HEADER_SIZE
-        if stride >= STATE_HEADER_SIZE and (k < 3 or bool((np.diff(off) == stride).all())):
-            raw = np.ndarray((k, STATE_HEADER_SIZE), np.uint8, buf, int(off[0]), (stride, 1))  # no copy
-        else:
-            raw = u8[off[:, None] + np.arange(STATE_HEADER_SIZE)]
-        kind = raw[:, :16].view("<u8") & _KIND_MASK
-        if bool((kind == kind[0]).all()):
-            try:
-                hsize0, e, _, n0 = _state_header(buf, int(size.min()), int(off[0]))[:4]
-            except ProtocolError:
-                pass  # the entry by entry path says for which
-            else:
-                with np.errstate(all="ignore"):  # hostile bounds and values (NaN, inf) decode quietly
-                    h = raw.view(STATE_HEADER_DTYPE).reshape(k)
-                    has_n = bool(h["flags"][0] & FLAG_NORMALS)
-                    return _decode_group(  # type: ignore[return-value]
-                        buf, off + hsize0, h, e, n0, has_n, cloths, receive_time_ns
-                    )
-    out = np.empty(k, object)
-    whole = np.flatnonzero(size >= STATE_HEADER_SIZE)
-    h = u8[off[whole, None] + np.arange(STATE_HEADER_SIZE)].view(STATE_HEADER_DTYPE).reshape(-1)
-    ok, enc, n, hsize, normals, _ = _check(h, size[whole])
-    bad = np.ones(k, bool)
-    bad[whole[ok]] = False
-    for i in np.flatnonzero(bad).tolist():  # each as decode_state reports it
-        a = int(off[i])
-        try:
-            out[i] = decode_state(buf[a : a + int(size[i])], cloths[i], receive_time_ns)
-        except ProtocolError as err:
-            out[i] = err
-    idx, h, enc, n, hsize, normals = whole[ok], h[ok], enc[ok], n[ok], hsize[ok], normals[ok]
-    # groups of one encoding, vertex count and normals flag, each in entry order
-    key = n * 8 + enc * 2 + normals
-    order = np.argsort(key, kind="stable")
-    cuts = np.flatnonzero(np.diff(key[order])) + 1
-    for g in np.split(order, cuts) if len(order) else ():
-        ids = [cloths[i] for i in idx[g].tolist()]
-        e, nv, has_n = int(enc[g[0]]), int(n[g[0]]), bool(normals[g[0]])
-        with np.errstate(all="ignore"):
-            out[idx[g]] = _decode_group(buf, off[idx[g]] + hsize[g], h[g], e, nv, has_n, ids, receive_time_ns)
-    return out.tolist()  # type: ignore[no-any-return]
-
-
-def _kind_mask() -> np.ndarray:
-    """The bits of a state header's first 16 bytes that make its kind (what decode_state checks
-    and the layout of its values: magic, major, header_size, encoding, the normals flag, vertex
-    count), as two little-endian u64 masks: states whose masked words are equal decode alike."""
-    fields = STATE_HEADER_DTYPE.fields
-    assert fields is not None
-    mask = np.zeros(16, np.uint8)
-    for name in ("magic", "major", "header_size", "encoding", "vertex_count"):
-        dt, at = fields[name][:2]
-        assert at + dt.itemsize <= 16
-        mask[at : at + dt.itemsize] = 0xFF
-    at = fields["flags"][1]
-    mask[at : at + 2] = np.frombuffer(struct.pack("<H", FLAG_NORMALS), np.uint8)
-    return mask.view("<u8")
-
-
-_KIND_MASK = _kind_mask()
-
-
-def _check(h: np.ndarray, size: np.ndarray) -> tuple[np.ndarray, ...]:
-    """decode_state's checks on many headers: (ok, encoding, vertex count, header size, normals,
-    bytes needed) per header."""
-    enc = h["encoding"].astype(np.int64)
-    n = h["vertex_count"].astype(np.int64)
-    hsize = h["header_size"].astype(np.int64)
-    normals = (h["flags"] & FLAG_NORMALS).astype(bool)
-    need = hsize + n * 3 * _ELEMENT_SIZES[enc] * (1 + normals)
-    ok = (
-        (h["magic"] == STATE_MAGIC)
-        & (h["major"] == PROTOCOL_MAJOR)
-        & (hsize >= STATE_HEADER_SIZE)
-        & _KNOWN_ENCODINGS[enc]
-        & (need <= size)
-    )
-    return ok, enc, n, hsize, normals, need
-
-
-def _decode_group(
-    buf: bytes | bytearray | memoryview,
-    at: np.ndarray,
-    h: np.ndarray,
-    e: int,
-    n: int,
-    has_n: bool,
-    cloths: Sequence[str],
-    receive_time_ns: int,
-) -> list[ClothState]:
-    """The states of one group (encoding ``e``, ``n`` vertices, normals or not) whose values start
-    at byte offsets ``at``; ``h`` their headers."""
-    m = len(at)
-    pos_t, nrm_t = _VALUES[e]
-    raw = _block(buf, at, pos_t, n)
-    nraw = _block(buf, at + n * 3 * element_size(e), nrm_t, n) if has_n else None
-    if e == ENC_FLOAT32:
-        pos, nrm = raw, nraw
-    elif e == ENC_FLOAT16:
-        pos = float16_decode_many(raw)
-        nrm = None if nraw is None else float16_decode_many(nraw)
-    else:
-        pos = quant16_decode_many(raw, h["bounds_min"], h["bounds_max"])
-        nrm = None if nraw is None else snorm16_decode_many(nraw)
-    lo = h["bounds_min"].astype(np.float64).T.tolist()  # per axis, each as float(np.float32) gives it
-    hi = h["bounds_max"].astype(np.float64).T.tolist()
-    return list(
-        map(
-            ClothState,
-            h["tick"].tolist(),
-            h["server_time_ns"].tolist(),
-            list(pos),
-            [None] * m if nrm is None else list(nrm),
-            repeat(receive_time_ns, m),
-            repeat(ENCODING_NAMES[e], m),
-            h["flags"].tolist(),
-            zip(zip(*lo, strict=True), zip(*hi, strict=True), strict=True),
-            cloths,
-        )
-    )

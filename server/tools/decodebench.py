@@ -227,6 +227,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--json", type=Path, default=None, help="write the figures here (e.g. docs/results/...)")
     args = ap.parse_args(argv)
+    if args.repeat < 1 or args.states < 1 or args.side < 1 or args.warmup < 0:
+        ap.error("--states, --side and --repeat must be at least 1, --warmup at least 0")
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     rng = np.random.default_rng(args.seed)
     k, side = args.states, args.side

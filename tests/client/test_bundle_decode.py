@@ -1,4 +1,4 @@
-"""The whole-bundle reader (Bundle.decode, state.decode_states, parse_bundle's entry table) against
+"""The whole-bundle reader (Bundle.decode, decode_states, parse_bundle's entry table) against
 the per-entry reference (decode_state, PROTOCOL.md 9.1's reading rules) on fresh random bundles:
 every field equal, every array equal bit for bit, an invalid state reported for its own entry only;
 and the SDK's bundle receiver (client/bundles.py) delivering them to real ClothHandles of a real

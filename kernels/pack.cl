@@ -5,10 +5,11 @@
  * link solve runs once for all of them: positions sit in local memory lane-interleaved
  * (vertex v, component k, cloth j at sx[4 v + k].s[j]) and every link is one W-wide vector
  * computation with contiguous loads and stores, no gathers, no barriers. Per-cloth parameters
- * (stiffness, compliance, inverse masses) are per lane. The per-vertex phases (wind, predict,
- * tethers, colliders, velocities, normals) run lane by lane on global memory with cloth.cl's own
- * functions, so every feature means exactly what it means in wg_step. Unused lanes hold zero
- * positions and inverse masses: their links correct nothing.
+ * (stiffness, compliance, inverse masses) are per lane. Vertex normals and areas (wind, the
+ * normals feature) are computed across the lanes too, from the same triangles. The other
+ * per-vertex phases (aerodynamics, predict, tethers, colliders, velocities) run lane by lane on
+ * global memory with cloth.cl's own functions, so every feature means exactly what it means in
+ * wg_step. Unused lanes hold zero positions and inverse masses: their links correct nothing.
  *
  * Arithmetic per lane is wg_step's in the same colour and link order (PBD: the talk's k,
  * XPBD: the multiplier per link, reset every substep, after the positions in local memory).
@@ -28,6 +29,43 @@ inline floatP lane_floats(__global const float *cf, const int *slot, int off)
     return vloadP(0, t);
 }
 
+#if FEATURE_WIND || FEATURE_NORMALS
+/* every lane's vertex normals and areas (vertex_normal's, vectorised across the lanes: the
+ * lanes share the triangles) from the positions in sx, written to nrm lane by lane */
+inline void pack_normals(__local const floatP *sx, __global const int *fb, __global const int *I0, int nv,
+                         const int *vb, __global float4 *nrm)
+{
+    __global const int *vto = fb + I0[CI_OFF_VTRIOFF];
+    __global const int *vt = fb + I0[CI_OFF_VTRI];
+    __global const int *tris = fb + I0[CI_OFF_TRIS];
+    float t[4][PACK_LANES];
+    for (int v = 0; v < nv; ++v) {
+        floatP nx = (floatP)(0.0f), ny = (floatP)(0.0f), nz = (floatP)(0.0f), a = (floatP)(0.0f);
+        for (int k = vto[v]; k < vto[v + 1]; ++k) {
+            const int tr = vt[k];
+            __local const floatP *P0 = sx + 4 * tris[3 * tr], *P1 = sx + 4 * tris[3 * tr + 1];
+            __local const floatP *P2 = sx + 4 * tris[3 * tr + 2];
+            const floatP ax = P1[0] - P0[0], ay = P1[1] - P0[1], az = P1[2] - P0[2];
+            const floatP bx = P2[0] - P0[0], by = P2[1] - P0[1], bz = P2[2] - P0[2];
+            const floatP fx = ay * bz - az * by, fy = az * bx - ax * bz, fz = ax * by - ay * bx;
+            nx += fx;
+            ny += fy;
+            nz += fz;
+            a += 0.5f * sqrt(fx * fx + fy * fy + fz * fz) / 3.0f;
+        }
+        const floatP len = sqrt(nx * nx + ny * ny + nz * nz);
+        const intP ok = len > 1e-30f;
+        PCAT(vstore, PACK_LANES)(select((floatP)(0.0f), nx / len, ok), 0, t[0]);
+        PCAT(vstore, PACK_LANES)(select((floatP)(0.0f), ny / len, ok), 0, t[1]);
+        PCAT(vstore, PACK_LANES)(select((floatP)(0.0f), nz / len, ok), 0, t[2]);
+        PCAT(vstore, PACK_LANES)(a, 0, t[3]);
+        for (int j = 0; j < PACK_LANES; ++j)
+            if (vb[j] >= 0)
+                nrm[vb[j] + v] = (float4)(t[0][j], t[1][j], t[2][j], t[3][j]);
+    }
+}
+#endif
+
 __kernel void pack_step(const float dt, __global const int *packs, __global const int *ci, __global const float *cf,
                         __global const int *fab, __global float4 *pos, __global float4 *vel, __global float4 *prev,
                         __global const float4 *target, __global float4 *nrm, __global const float4 *coll,
@@ -43,12 +81,23 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
     int slot[PACK_LANES];
     for (int j = 0; j < PACK_LANES; ++j)
         slot[j] = lanes[j];
-    __local float *sxf = (__local float *)sx;
+    int vb[PACK_LANES]; /* each lane's first vertex, -1 for an unused lane */
     for (int j = 0; j < PACK_LANES; ++j)
-        if (slot[j] < 0)
-            for (int v = 0; v < nv; ++v)
-                for (int k = 0; k < 4; ++k)
-                    sxf[(4 * v + k) * PACK_LANES + j] = 0.0f;
+        vb[j] = slot[j] >= 0 ? ci[slot[j] * CI_STRIDE + CI_VBASE] : -1;
+    __local float *sxf = (__local float *)sx;
+    for (int j = 0; j < PACK_LANES; ++j) {
+#if !FEATURE_WIND /* predict fills the used lanes; wind's normals need them before */
+        if (vb[j] >= 0)
+            continue;
+#endif
+        for (int v = 0; v < nv; ++v) {
+            const float4 x = vb[j] >= 0 ? pos[vb[j] + v] : (float4)(0.0f); /* unused: zero, w 0 */
+            sxf[(4 * v + 0) * PACK_LANES + j] = x.x;
+            sxf[(4 * v + 1) * PACK_LANES + j] = x.y;
+            sxf[(4 * v + 2) * PACK_LANES + j] = x.z;
+            sxf[(4 * v + 3) * PACK_LANES + j] = x.w;
+        }
+    }
 #if FEATURE_XPBD
     const int nl = I0[CI_NLINKS];
     __local floatP *slam = sx + 4 * nv; /* the pack's multipliers follow its positions */
@@ -62,7 +111,10 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
 #endif
 
     for (int s = 0; s < S; ++s) {
-        /* per lane: (wind) predict on global memory, then into the lanes */
+#if FEATURE_WIND
+        pack_normals(sx, fb, I0, nv, vb, nrm); /* sx holds the positions at the substep's start */
+#endif
+        /* per lane: predict on global memory, then into the lanes */
         for (int j = 0; j < PACK_LANES; ++j) {
             if (slot[j] < 0)
                 continue;
@@ -70,13 +122,6 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
             __global const float *F = cf + slot[j] * CF_STRIDE;
             const int vbase = I[CI_VBASE];
             __global float4 *X = pos + vbase;
-#if FEATURE_WIND
-            for (int v = 0; v < nv; ++v) {
-                float area;
-                float3 n = vertex_normal(X, fb, I, v, &area);
-                nrm[vbase + v] = (float4)(n, area);
-            }
-#endif
             for (int v = 0; v < nv; ++v) {
                 float3 f = (float3)(0.0f);
 #if FEATURE_WIND
@@ -153,22 +198,19 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
             for (int v = 0; v < nv; ++v)
                 X[v].xyz = (float3)(sxf[(4 * v + 0) * PACK_LANES + j], sxf[(4 * v + 1) * PACK_LANES + j],
                                     sxf[(4 * v + 2) * PACK_LANES + j]);
-            for (int v = 0; v < nv; ++v)
-                X[v] = finish_vertex(X[v], X, fb, I, F, vel, prev, coll, v, vbase + v, h, s, S);
+            for (int v = 0; v < nv; ++v) {
+                const float4 x = finish_vertex(X[v], X, fb, I, F, vel, prev, coll, v, vbase + v, h, s, S);
+                X[v] = x;
+#if FEATURE_WIND || FEATURE_NORMALS
+                sxf[(4 * v + 0) * PACK_LANES + j] = x.x; /* the normals read the lanes */
+                sxf[(4 * v + 1) * PACK_LANES + j] = x.y;
+                sxf[(4 * v + 2) * PACK_LANES + j] = x.z;
+#endif
+            }
         }
     }
 
 #if FEATURE_NORMALS
-    for (int j = 0; j < PACK_LANES; ++j) {
-        if (slot[j] < 0)
-            continue;
-        const int vbase = ci[slot[j] * CI_STRIDE + CI_VBASE];
-        __global const int *I = ci + slot[j] * CI_STRIDE;
-        for (int v = 0; v < nv; ++v) {
-            float area;
-            float3 n = vertex_normal(pos + vbase, fb, I, v, &area);
-            nrm[vbase + v] = (float4)(n, area);
-        }
-    }
+    pack_normals(sx, fb, I0, nv, vb, nrm);
 #endif
 }

@@ -462,3 +462,29 @@ def test_a_pack_group_of_unlike_cloths_fits_local_memory(device):
         serial.step(DT)
     for h, hs_ in hs:
         np.testing.assert_allclose(w.positions(h), serial.positions(hs_), atol=1e-5)
+
+
+def test_a_gpu_build_never_gets_the_pack_kernel():
+    """Packs are chosen by device type: a device that says it is a GPU gets the work-group
+    solver's own groups and build options whatever pack_lanes asks (the H100's build is the one
+    before the pack solver: features, USE_LOCAL, JACOBI_OMEGA, LINK_UNROLL)."""
+    from dataclasses import replace
+
+    from drape.server.sim.opencl.device import Device
+    from drape.server.sim.opencl.launch import LINK_UNROLL_LOCAL
+    from drape.server.sim.shared import JACOBI_OMEGA
+
+    dev = Device(None)
+    dev.info = replace(dev.info, is_gpu=True, is_nvidia=False)
+    w = CLWorld("workgroup", device=dev, pack_lanes=16)
+    h = w.add(cook_grid(8, 8, pinned=[0, 7]), ClothParams())
+    g = w.groups[w.rec[h].group]
+    assert w.pack_lanes == 0 and g.pack == 0 and g.use_local
+    opts = w._options(g)
+    assert opts == [
+        *Features().build_options(),
+        "-DUSE_LOCAL=1",
+        f"-DJACOBI_OMEGA={JACOBI_OMEGA}f",
+        f"-DLINK_UNROLL={LINK_UNROLL_LOCAL}",
+    ]
+    assert not any("PACK" in o or "denorms" in o for o in opts)

@@ -247,8 +247,10 @@ def knee_search(
     base: LoadSpec, run_one: Any, max_cloths: int, bisect: int, budget_s: float | None, t_begin: float
 ) -> tuple[list[Report], int]:
     """From ``base.cloths`` double the load until it is not held (a load that fails runs once more
-    before it counts), then halve the gap between the last held and the first not held load
-    ``bisect`` times. ``run_one(spec) -> Report``. Returns every report and the largest load held."""
+    before it counts), or, when the first load is not held, halve it until one is; then halve the
+    gap between the last held and the first not held load ``bisect`` times.
+    ``run_one(spec) -> Report``. Returns every report and the largest load held (0: none, down to
+    one cloth a client)."""
     reports: list[Report] = []
     held, failed = 0, 0
     n = base.cloths
@@ -272,7 +274,9 @@ def knee_search(
             failed = n if not failed else min(failed, n)
         if not failed:
             n *= 2
-        elif held and steps > 0 and failed - held > 1:
+        elif not held:  # nothing held yet: search downward, one cloth a client at least
+            n = n // 2 if n // 2 >= base.clients else 0
+        elif steps > 0 and failed - held > 1:
             steps -= 1
             n = (held + failed) // 2
         else:

@@ -162,3 +162,39 @@ def test_scale_out_searches_one_server_then_two(tmp_path, capsys):
     assert one and two and one[0]["cloths"] == 2
     assert all(len(r["servers"]) == 2 and sum(s["cloths"] for s in r["servers"]) == r["cloths"] for r in two)
     assert "scale-out: " in capsys.readouterr().out
+
+
+def test_knee_search_goes_down_when_the_first_load_is_not_held():
+    """The knee search's arithmetic, with a server that holds up to 100 cloths: from 128 it halves
+    (each failure run twice) until 64 holds, then bisects between 64 and 128; from 16 it doubles.
+    ``run_one`` here stands for a whole load run: only its held / why_not_held are read."""
+    from dataclasses import dataclass
+
+    @dataclass
+    class Outcome:
+        cloths: int
+
+        @property
+        def held(self) -> bool:
+            return self.cloths <= 100
+
+        def why_not_held(self) -> str:
+            return "over 100"
+
+    runs: list[int] = []
+
+    def run_one(spec):
+        runs.append(spec.cloths)
+        return Outcome(spec.cloths)
+
+    base = lt.LoadSpec(clients=4, cloths=128)
+    _, held = lt.knee_search(base, run_one, 8192, 2, None, 0.0)
+    assert held == 96 and runs == [128, 128, 64, 96, 112, 112]
+    runs.clear()
+    _, held = lt.knee_search(lt.LoadSpec(clients=4, cloths=16), run_one, 8192, 0, None, 0.0)
+    assert held == 64 and runs == [16, 32, 64, 128, 128]
+    runs.clear()
+    _, held = lt.knee_search(
+        lt.LoadSpec(clients=4, cloths=256), lambda s: runs.append(s.cloths) or Outcome(999), 8192, 2, None, 0.0
+    )
+    assert held == 0 and runs == [256, 256, 128, 128, 64, 64, 32, 32, 16, 16, 8, 8, 4, 4]

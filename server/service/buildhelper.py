@@ -7,14 +7,19 @@ back by releasing the program or trimming the heap), and each kernel's work-grou
 compiled again at its first launch for each local size (300-600 ms on the tick thread per new
 feature combination). Both land in PoCL's disk cache (``~/.cache/pocl``), keyed by source, options
 and device. So the cook thread first has :class:`BuildHelper`'s child process build *and run* the
-cloth (a scratch World of its own: add, one step, fetch, remove), then builds the program itself
-from the cache: measured with a cold cache, the server's first step of 8 new combinations took
-7.4 ms at worst instead of 323 ms, and its RSS stayed where it was.
+cloth (a scratch World of its own: add, one step, fetch, remove) the first time a feature
+combination comes, then builds the program itself from the cache: measured with a cold cache,
+the server's first step of 8 new combinations took 7.4 ms at worst instead of 323 ms, and its RSS
+stayed where it was.
 
-The child starts on the first request (1-2 s: Python, pyopencl, the OpenCL context) and exits
-after ``IDLE_S`` without requests; its memory is its own and goes with it. A helper that fails or
-times out is reported once and the server builds in-process as before (``build_in_child``).
-:func:`warm_up_in_child` does the same for the server's warm-up before the server starts.
+``build_in_child = "start"`` (the default): :func:`warm_up_in_child` does it once, before the
+server starts, for the warm-up's kernels and one cloth of each of the 32 feature combinations
+(``drape serve`` starts 2.5-3 s later with PoCL's cache warm); the cook thread then builds from
+the cache. ``"always"``: the cook thread also has :class:`BuildHelper` build and run the first
+cloth of each feature combination it meets (for a driver whose cache the start did not fill);
+that child starts on the first request (1-2 s, which that submit waits) and exits after
+``IDLE_S`` without requests. A helper that fails or times out is reported and the server builds
+in-process as before. ``"off"``: everything is built in the server process.
 """
 
 from __future__ import annotations
@@ -158,18 +163,29 @@ class BuildHelper:
 
 
 def _warm_up_main(config: Any) -> None:
+    import itertools
+
+    from drape.client.protocol import FEATURE_NAMES
+
     from ..sim import make_world
+    from ..sim.fabric import cook_grid
+    from ..sim.params import ClothParams, Features
     from .server import Server
 
     srv = Server(config, warmup=False)
     kw = {} if config.solver == "reference" else {"device": config.device}
-    srv.ticker.world = make_world(config.solver, **kw)
+    world = srv.ticker.world = make_world(config.solver, **kw)
     srv.ticker.warm_up()
+    fabric = _fabric_fields(cook_grid(8, 8, pinned=[0, 7]))
+    for n in range(1, len(FEATURE_NAMES) + 1):
+        for combo in itertools.combinations(FEATURE_NAMES, n):
+            _run_one(world, fabric, ClothParams(features=Features.from_names(list(combo))))
 
 
 def warm_up_in_child(config: Any, timeout: float = START_TIMEOUT_S) -> bool:
-    """Run the server's warm-up (its default kernels, the frame encoder's) in a child process
-    first, so the server's own warm-up builds them from the driver's cache. True when it ran."""
+    """Run the server's warm-up (its default kernels, the frame encoder's) and one cloth of every
+    feature combination in a child process first, so that the server builds them all from the
+    driver's cache, at start and whenever a cloth asks for one later. True when it ran."""
     t = time.monotonic()
     proc = mp.get_context("spawn").Process(target=_warm_up_main, args=(config,), daemon=True, name="drape-warm-up")
     proc.start()

@@ -2,9 +2,11 @@
 path. For each submission: the fabric (from the one fabric cache below, cooked when new), the
 cloth parameters and colliders, and the kernels the cloth needs, built now (``World.prepare``)
 so that the first cloth with a new feature combination does not compile on the tick path. About
-On a CPU device new kernels are first built and run by a child process
-(:class:`.buildhelper.BuildHelper`, ``build_in_child``), so that this process loads them from the
-driver's disk cache: no compiler high-water mark here, no first-launch JIT on the tick. About
+With ``build_in_child = "always"`` the first cloth of each feature
+combination is first built and run by a child process (:class:`.buildhelper.BuildHelper`), so
+that this process loads its kernels from the driver's disk cache: no compiler high-water mark
+here, no first-launch JIT on the tick (``"start"``, the default, does that for every combination
+once before the server starts). About
 once a second the same thread gives memory back (:class:`.memory.MemoryKeeper`: programs of
 feature combinations no cloth has used for ``program_idle_s`` released, the heap trimmed).
 
@@ -27,7 +29,7 @@ import numpy as np
 from drape.client import protocol as P
 
 from ..sim.fabric import Fabric, cook_grid, cook_mesh
-from ..sim.params import LinkOptions
+from ..sim.params import ClothParams, LinkOptions
 from ..sim.world import World
 from .buildhelper import BuildHelper
 from .commands import Add, Intake, Prepare
@@ -127,7 +129,8 @@ class CookWorker:
         self._asked_lock = threading.Lock()
         self.memory = MemoryKeeper(config.program_idle_s, self._device)
         self.helper: BuildHelper | None = None  # set in run() when build_in_child applies
-        self._warmed: set = set()  # (features, fabric) the helper built and ran (cook thread only)
+        # feature combinations the helper built and ran, or the warm-up did (cook thread only)
+        self._warmed: set = {ClothParams().features.key()}
 
     def _device(self):
         """The World's OpenCL Device (None for the reference solver or before the World)."""
@@ -135,23 +138,22 @@ class CookWorker:
 
     def _build(self, world: World, fabric: Fabric, params) -> None:
         """The kernels of a cloth of ``fabric`` and ``params``: first built and run by the helper
-        process when this pair is new here, then built in this process (from the driver's cache)."""
-        # not world.ready(): PoCL compiles a kernel again for each local size at its first
-        # launch, and the local size follows the fabric, so a built program is not enough
-        key = (params.features.key(), fabric.key)
+        process when its feature combination is new here, then built in this process (from the
+        driver's cache)."""
+        # once per feature combination (at most 32), not world.ready(): a program built here is
+        # still compiled again at its first launch (PoCL), and a released one is rebuilt from the
+        # cache the helper filled; the warm-up's own combination ran in this process already
+        key = params.features.key()
         if self.helper is not None and key not in self._warmed:
             if self.helper.warm(fabric, params):
-                if len(self._warmed) > 4096:
-                    self._warmed.clear()
-                self._warmed.add(key)  # in the driver's cache now: a release need not run it again
+                self._warmed.add(key)
         world.prepare(fabric, params)
 
     def run(self) -> None:
         dev = self._device()
         if dev is not None:  # the server warmed up before this thread started: keep its kernels
             dev.pin()
-            mode = self.config.build_in_child
-            if mode == "on" or (mode == "auto" and not dev.info.is_gpu):
+            if self.config.build_in_child == "always":
                 self.helper = BuildHelper(self.config.solver, self.config.device)
         try:
             self._loop()

@@ -14,7 +14,7 @@ from drape.server.sim.params import ClothParams, Features
 
 
 def test_programs_no_cloth_uses_are_released_and_the_heap_trimmed():
-    with Server(make_config(program_idle_s=0.2)) as srv:
+    with Server(make_config(program_idle_s=0.2, build_in_child="always")) as srv:
         dev = srv.call(lambda w: w.dev)
         keeper = srv.cook.memory
 
@@ -30,7 +30,7 @@ def test_programs_no_cloth_uses_are_released_and_the_heap_trimmed():
             collect(gone, 3)
             assert built("tethers", "wind") and built("xpbd")
             helper = srv.cook.helper  # a CPU device: new kernels are built and run in a child first
-            assert helper is not None and helper.runs >= 2 and helper.failures == 0
+            assert helper is not None and helper.runs == 2 and helper.failures == 0  # one per combination
             gone.remove()
             assert wait_until(lambda: not built("xpbd")), "the unused program was not released"
             assert keeper.released >= 1 and dev.released == keeper.released

@@ -56,7 +56,7 @@ LOG_LEVELS = ("debug", "info", "warning", "error", "critical")
 #: cloth submitted on a server-wide key publishes on {ns}/cloth/{cloth}/state; keys: only the
 #: client-scoped ones, so every request's client id is its key's (a router can bind it to a user).
 IDENTITY_MODES = ("open", "keys")
-BUILD_IN_CHILD = ("start", "always", "off")  # drape.server.service.buildhelper
+BUILD_IN_CHILD = ("off", "start", "always")  # drape.server.service.buildhelper
 
 
 def default_server_id() -> str:
@@ -100,7 +100,7 @@ class ServerConfig:
     gil_switch_ms: float = 0.5  # Python's GIL switch interval in the server process (sys.setswitchinterval)
     program_idle_s: float = 10.0  # kernel programs no cloth used this long are released (0: kept for good)
     malloc_mmap_threshold: int = 4 << 20  # bytes: larger blocks mapped apart, returned when freed (0: glibc's)
-    build_in_child: str = "start"  # start | always | off: kernels built and first run in a child process
+    build_in_child: str = "off"  # off | start | always: kernels built and first run in a child process
     # --- quality -------------------------------------------------------------------------------
     adaptive_quality: bool = True  # lower cloths' presets while ticks overrun, restore them after
     quality_budget: float = 0.8  # share of a tick the tick's own work may take before that

@@ -5,8 +5,8 @@ so that the first cloth with a new feature combination does not compile on the t
 With ``build_in_child = "always"`` the first cloth of each feature
 combination is first built and run by a child process (:class:`.buildhelper.BuildHelper`), so
 that this process loads its kernels from the driver's disk cache: no compiler high-water mark
-here, no first-launch JIT on the tick (``"start"``, the default, does that for every combination
-once before the server starts). About
+here, no first-launch JIT on the tick (``"start"`` does that for every combination once before
+``drape serve`` starts serving). About
 once a second the same thread gives memory back (:class:`.memory.MemoryKeeper`: programs of
 feature combinations no cloth has used for ``program_idle_s`` released, the heap trimmed).
 

@@ -72,6 +72,7 @@ def test_fuzz_leaves_no_traceback_no_internal_error_and_the_server_serving(tmp_p
         fuzz_count=CI_COUNT,
         max_message_bytes=CI_MAX_BYTES,
         grace_period=1.0,
+        program_idle_s=1.0,  # RSS is read after grace + this + 3 s: keep the CI run short
         baseline_s=0.5,
         seed=11,
         serve_args=("--no-admission",),

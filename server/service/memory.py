@@ -44,13 +44,24 @@ def _malloc_trim() -> Callable[[int], int] | None:
 
 _TRIM = _malloc_trim()
 CAN_TRIM = _TRIM is not None
-M_MMAP_THRESHOLD = -3  # glibc mallopt parameter
+M_MMAP_THRESHOLD = -3  # glibc mallopt parameters
+M_TRIM_THRESHOLD = -1
+#: With the mmap threshold fixed, glibc also stops raising its trim threshold (it stays at 128 KiB),
+#: so a tick's freed payload copies at the top of the heap went back to the OS every tick and were
+#: faulted in afresh on the next. ``python -m drape.server.tools.putbench --copies-only`` (the
+#: publisher's 16 ``bytes(view)`` copies of 1.5 MB a tick, 4096 quant16 cloths' worth; this 2-core
+#: VM, medians of 3 rounds): glibc's own thresholds 11.2 ms a tick, the mmap threshold alone
+#: 11.8 ms, both thresholds 1.2 ms. The heap is given back on purpose instead: MemoryKeeper's
+#: malloc_trim when RSS grew or programs were released.
+TRIM_THRESHOLD = 128 << 20
 
 
 def set_mmap_threshold(nbytes: int) -> bool:
     """Allocations of ``nbytes`` or more get their own mapping, returned to the OS when freed
     (glibc ``mallopt(M_MMAP_THRESHOLD)``, which also stops glibc raising the threshold to the
-    largest block freed so far, up to 32 MB, after which such blocks stay in the heap). Measured:
+    largest block freed so far, up to 32 MB, after which such blocks stay in the heap), and the
+    top of the heap is kept up to TRIM_THRESHOLD (``M_TRIM_THRESHOLD``: fixing one fixes both,
+    and glibc's fixed 128 KiB trim made every tick's payload copies fault in afresh). Measured:
     eight 8 MiB requests left the server +22 MB for good with glibc's default, +3.5 MB with a
     fixed 1 MiB threshold, and the 2,000-message fuzz +28 MB against +10 MB (1 or 4 MiB alike).
     False where there is no such call (or ``nbytes`` is 0: glibc's default kept)."""
@@ -62,7 +73,7 @@ def set_mmap_threshold(nbytes: int) -> bool:
     except (OSError, AttributeError):
         return False
     fn.argtypes, fn.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-    return bool(fn(M_MMAP_THRESHOLD, int(nbytes)))
+    return bool(fn(M_MMAP_THRESHOLD, int(nbytes))) and bool(fn(M_TRIM_THRESHOLD, TRIM_THRESHOLD))
 
 
 def rss_mb() -> float | None:

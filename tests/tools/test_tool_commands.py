@@ -114,3 +114,32 @@ def test_tradeoff_truth_cache_key_follows_the_reference_sources(tmp_path):
     key = tt.truth_path(tmp_path, "drape", 8, 1.0, 1, 10).name
     assert hashlib.sha1().hexdigest()[:12] not in key
     assert tt._source_digest() in key
+
+
+def test_decodebench_runs_and_checks_its_paths_agree(tmp_path):
+    """A tiny decodebench: it checks the per-entry, whole-bundle and SDK paths decode the same
+    bits before timing them (a mismatch is a non-zero exit), and writes its JSON."""
+    import json
+    import subprocess
+    import sys
+
+    out = tmp_path / "d.json"
+    cmd = [sys.executable, "-m", "drape.server.tools.decodebench", "--states", "8", "--side", "5"]
+    cmd += ["--repeat", "3", "--warmup", "1", "--json", str(out)]
+    subprocess.run(cmd, check=True, capture_output=True, timeout=120)
+    assert json.loads(out.read_text())
+
+
+def test_putbench_copies_under_each_heap_setting(tmp_path):
+    """A tiny putbench --copies-only: each heap setting in its own process, a result for each."""
+    import json
+    import subprocess
+    import sys
+
+    out = tmp_path / "p.json"
+    cmd = [sys.executable, "-m", "drape.server.tools.putbench", "--copies-only", "--messages", "2", "--mb", "0.2"]
+    cmd += ["--seconds", "0.2", "--rounds", "1", "--json", str(out)]
+    subprocess.run(cmd, check=True, capture_output=True, timeout=120)
+    doc = json.loads(out.read_text())
+    assert set(doc["results"]) == {"glibc", "mmap", "drape"}
+    assert all(r[0]["ticks"] > 0 and r[0]["median_ms"] > 0 for r in doc["results"].values())

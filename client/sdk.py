@@ -21,10 +21,11 @@ before) and moves them all with one message per tick::
 ``DrapeClient(failover=True)`` keeps every cloth across the loss of its server or a reclaim
 (protocol 1.3, PROTOCOL.md 11.1): see :mod:`drape.client.failover`.
 
-This module holds the session (:class:`DrapeClient`); :mod:`.handle` the ClothHandle,
-:mod:`.controls` the batch and argument conversions, :mod:`.failover` the failover worker (all
-re-exported here). Needs numpy, msgpack and eclipse-zenoh only: nothing here imports drape.server
-or OpenCL.
+This module holds the session (:class:`DrapeClient`: servers, requests); :mod:`.submitting` its
+submissions and :mod:`.batching` its controls of many cloths (mixins), :mod:`.handle` the
+ClothHandle, :mod:`.controls` the batch and argument conversions, :mod:`.failover` the failover
+worker (all re-exported here). Needs numpy, msgpack and eclipse-zenoh only: nothing here imports
+drape.server or OpenCL.
 """
 
 from __future__ import annotations
@@ -34,14 +35,13 @@ import logging
 import secrets
 import threading
 import time
-from collections.abc import Callable, Iterable, Mapping, Sequence
-from pathlib import Path
-from typing import Any, cast
+from collections.abc import Callable, Sequence
+from typing import Any
 
-import numpy as np
 import zenoh
 
 from . import protocol as P
+from .batching import BatchingMixin
 from .bundles import MAX_ORPHAN_CLOTHS, BundleReceiver  # noqa: F401  (MAX_ORPHAN_CLOTHS: as before)
 from .controls import (  # noqa: F401  (BatchError, ControlBatch and the helpers: drape.client.sdk.* as before)
     BatchError,
@@ -57,15 +57,16 @@ from .controls import (  # noqa: F401  (BatchError, ControlBatch and the helpers
 )
 from .failover import Failover, FailoverCallback, FailoverEvent  # noqa: F401  (re-exported)
 from .handle import ClothHandle, StateCallback  # noqa: F401  (drape.client.sdk.ClothHandle as before)
-from .placement import PLACE_ELSEWHERE, Placement
+from .placement import PLACE_ELSEWHERE, Placement  # noqa: F401  (PLACE_ELSEWHERE: as before)
 from .protocol import ClothState, DrapeError, Unavailable  # noqa: F401
-from .sending import send_controls
+from .sending import send_controls  # noqa: F401  (as before)
 from .session import deployment_client_id, zenoh_config  # noqa: F401  (zenoh_config: the pre-1.2 path)
+from .submitting import SubmittingMixin, cloth_options  # noqa: F401  (cloth_options: as before)
 
 log = logging.getLogger(__name__)
 
 
-class DrapeClient:
+class DrapeClient(SubmittingMixin, BatchingMixin):
     """A Zenoh session to a Drape server, with this client's liveliness token.
 
     ``connect``: endpoints of the server (or of a router); default tcp/127.0.0.1:7447.
@@ -419,49 +420,6 @@ class DrapeClient:
         else:
             log.warning("request failed: %s", err)
 
-    # --- batch control (protocol 1.1) -------------------------------------------------------------
-    def batch(
-        self, *, wait: bool = False, on_error: ErrorCallback | None = None, timeout: float | None = None
-    ) -> ControlBatch:
-        """Collect controls of many of this client's cloths and send them as one batch control
-        request when the ``with`` block ends (or on ``send()``): the per-tick call of a game
-        loop with many cloths. ``wait=False``: the reply is not waited for; refused items are
-        counted in ``send_errors`` and handed to ``on_error``. ``wait=True``: ``results`` holds
-        each item's first tick, and BatchError is raised if any item was refused."""
-        return ControlBatch(self, wait=wait, on_error=on_error, timeout=timeout)
-
-    def move_pins_many(
-        self,
-        handles: Sequence[ClothHandle],
-        indices: Sequence[int] | np.ndarray | Sequence[Sequence[int]],
-        targets: Sequence[Any] | np.ndarray,
-        *,
-        colliders: Sequence[Sequence[Any] | None] | None = None,
-        wait: bool = False,
-        on_error: ErrorCallback | None = None,
-    ) -> list[int | DrapeError] | None:
-        """Move the pins of many cloths in one message: ``indices`` the same for every cloth
-        (a sequence of ints) or one sequence per cloth; ``targets[j]`` the (k, 3) targets of
-        ``handles[j]`` (one (n, k, 3) array is best); ``colliders[j]`` (optional) the colliders of
-        ``handles[j]`` (None: unchanged). Shared indices and no colliders, to a 1.4 server: one
-        ``moves`` block (PROTOCOL.md 5.1.1), with no Python loop over the cloths (client/moves.py).
-        ``wait=True``: each cloth's first tick; BatchError (with every outcome) if any was refused."""
-        if len(targets) != len(handles):
-            raise ValueError(f"{len(handles)} cloths but {len(targets)} target arrays")
-        try:
-            shared = np.asarray(indices).ndim == 1  # one index list for every cloth
-        except ValueError:  # ragged: one list per cloth
-            shared = False
-        if shared and colliders is None:
-            from .moves import moves_of
-
-            return moves_of(self).send(handles, np.asarray(indices), np.asarray(targets), wait, on_error)
-        b = self.batch(wait=wait, on_error=on_error)
-        for j, h in enumerate(handles):
-            idx = cast("Sequence[int] | np.ndarray", indices if shared else indices[j])
-            b.move_pins(h, idx, targets[j], colliders=None if colliders is None else colliders[j])
-        return b.send()
-
     @property
     def server_version(self) -> tuple[int, int]:
         """The protocol version the server speaks (asked once with info, then remembered)."""
@@ -471,36 +429,6 @@ class DrapeClient:
             self._max_batch_items = int(info.get("limits", {}).get("max_batch_items", 0) or 0)
             self._server_version = (int(major), int(minor or 0))
         return self._server_version
-
-    def _server_batch_limit(self) -> int:
-        """Items per batch request the server takes; 0 when it speaks 1.0 (no batch control)."""
-        if self.server_version < (1, 1):
-            return 0
-        return max(1, self._max_batch_items)
-
-    def _require_features_delta(self, reqs: Iterable[P.ControlRequest]) -> None:
-        """features_add / features_remove need a 1.2 server: an older one ignores unknown keys, so
-        the change would be silently lost. Raises ProtocolError before anything is sent."""
-        if any(r.features_add is not None or r.features_remove is not None for r in reqs) and self.server_version < (
-            1,
-            2,
-        ):
-            raise P.ProtocolError(
-                P.ERR_INVALID_VALUE,
-                "features_add / features_remove need a protocol 1.2 server; "
-                f"this one speaks {self.server_version[0]}.{self.server_version[1]}: send the "
-                "whole set with features= instead",
-            )
-
-    def _send_controls(
-        self,
-        items: list[tuple[ClothHandle, P.ControlRequest]],
-        wait: bool,
-        on_error: ErrorCallback | None,
-        timeout: float | None,
-    ) -> list[int | DrapeError] | None:
-        """Send controls of this client's cloths (client/sending.py)."""
-        return send_controls(self, items, wait, on_error, timeout)
 
     def info(self, timeout: float | None = None) -> dict[str, Any]:
         """The server's description: version, solver, device, tick rate, limits, counts."""
@@ -517,206 +445,3 @@ class DrapeClient:
 
         sub = self.session.declare_subscriber(self.keys.stats(self.server_id), on_sample)
         return sub.undeclare
-
-    # --- submissions ------------------------------------------------------------------------------
-    def submit(
-        self,
-        req: P.SubmitRequest,
-        rest_positions: np.ndarray | None = None,
-        triangles: np.ndarray | None = None,
-        timeout: float | None = None,
-        queue_size: int | None = None,
-        server: str | None = None,
-    ) -> ClothHandle:
-        """Send a SubmitRequest as is and subscribe to the new cloth's state (with
-        ``req.state.bundle``: to this client's bundle, once for all its bundled cloths; a 1.0
-        server ignores the option and the handle subscribes to the cloth's own key).
-
-        To ``server``, else the client's ``server_id`` when one was given, else the live server
-        the placement ranks first (PROTOCOL.md 11.3); a refusal another server may not give
-        (``overloaded``, ``busy``, ``limit_exceeded``, no reply) tries the next one, and the last
-        refusal is raised when every live server refused."""
-
-        def make(target: str) -> Callable[[P.SubmitReply], ClothHandle]:
-            return lambda rep: ClothHandle(
-                self, rep, rest_positions, triangles, queue_size or self.queue_size, target, req
-            )
-
-        if server is not None or self._server_given:
-            target = server or self.server_id
-            return self._place(None, req, target, timeout, make(target))
-        tried: set[str] = set()
-        last: DrapeError | None = None
-        while True:
-            choice = self.placement.choose(tried)
-            if choice is None:
-                if last is not None:  # every live server refused: the last refusal
-                    raise last
-                choice = self.server_id  # none live yet: wait for one (or raise unavailable)
-            tried.add(choice)
-            try:
-                return self._place(None, req, choice, timeout, make(choice))
-            except DrapeError as e:
-                if e.code not in PLACE_ELSEWHERE:
-                    raise
-                log.info("server %s refused a cloth (%s): trying the next", choice, e.code)
-                last = e
-
-    def _place(
-        self,
-        h: ClothHandle | None,
-        req: P.SubmitRequest,
-        server: str,
-        timeout: float | None = None,
-        make: Callable[[P.SubmitReply], ClothHandle] | None = None,
-    ) -> ClothHandle:
-        """Submit ``req`` to ``server``: a new handle (``make``), or, in a failover, the cloth of
-        the existing handle ``h`` continued under the new reply's id."""
-        bundled = bool(req.state is not None and req.state.bundle)
-        if bundled:
-            self._ensure_bundle_subscriber()
-            self.bundles.submitting()
-        ticket = self.placement.placing(server, req.n_vertices)  # counted there until its next stats
-        try:
-            try:
-                rep = P.submit_reply_from_map(self.request("submit", P.encode_submit(req), timeout, server=server))
-            except BaseException:
-                self.placement.placed(ticket, False)
-                raise
-            self.placement.placed(ticket, True)
-            if bundled and rep.bundle_key is None:
-                log.info("server %s does not bundle states (protocol 1.0): cloth %s on its own key", server, rep.cloth)
-            old_id = None
-            if h is None:
-                assert make is not None
-                h = make(rep)
-            else:
-                old_id = h.id
-            with h._deliver_lock:  # states of the bundle reach the handle only after these
-                if old_id is not None:
-                    h._rebind(rep, server)
-                with self._lock:
-                    if old_id is not None and self._handles.get(old_id) is h:
-                        del self._handles[old_id]
-                    self._handles[h.id] = h
-                    early = self.bundles.early_states(h.id) if bundled else []
-                for st in early:
-                    h._deliver(st)
-            return h
-        finally:
-            if bundled:
-                self.bundles.submitted()
-
-    def submit_grid(
-        self,
-        cols: int,
-        rows: int,
-        width: float = 1.0,
-        height: float = 1.0,
-        *,
-        orientation: str = "horizontal",
-        origin: Sequence[float] = (0.0, 0.0, 0.0),
-        **options: Any,
-    ) -> ClothHandle:
-        """A regular grid cloth; vertex (row r, column c) is r * cols + c. ``options``: see
-        ``cloth_options``."""
-        grid = P.GridSpec(
-            int(cols),
-            int(rows),
-            float(width),
-            float(height),
-            orientation,
-            tuple(float(v) for v in origin),  # type: ignore[arg-type]
-        )
-        verts, tris = P.grid_geometry(cols, rows, width, height, orientation, origin)
-        return self._submit(grid=grid, rest=verts, tris=tris, **options)
-
-    def submit_mesh(
-        self, vertices: np.ndarray | Sequence, triangles: np.ndarray | Sequence, **options: Any
-    ) -> ClothHandle:
-        """A triangle mesh cloth: vertices (n, 3) metres, triangles (m, 3) vertex indices."""
-        v = np.ascontiguousarray(np.asarray(vertices, np.float32).reshape(-1, 3))
-        t = np.asarray(triangles, np.int64).reshape(-1, 3)
-        if t.size and (t.min() < 0 or t.max() >= len(v)):
-            raise ValueError("triangle index out of range")
-        mesh = P.MeshSpec(v, t.astype(np.uint32))
-        return self._submit(mesh=mesh, rest=v, tris=mesh.triangles, **options)
-
-    def submit_obj(self, path: str | Path, **options: Any) -> ClothHandle:
-        """A cloth from a Wavefront OBJ file (faces fan-triangulated)."""
-        v, t = P.parse_obj(Path(path).read_text())
-        return self.submit_mesh(v, t, **options)
-
-    def _submit(
-        self,
-        *,
-        rest: np.ndarray,
-        tris: np.ndarray,
-        grid: P.GridSpec | None = None,
-        mesh: P.MeshSpec | None = None,
-        pinned: Iterable[int] = (),
-        links: Any = None,
-        material: Mapping[str, Any] | Any = None,
-        features: Iterable[str] = (),
-        gravity: Sequence[float] | None = None,
-        wind: Sequence[float] | None = None,
-        iterations: int | None = None,
-        substeps: int | None = None,
-        chebyshev_rho: float | None = None,
-        colliders: Sequence[Any] | None = None,
-        normals: bool = False,
-        encoding: str = "float32",
-        bundle: bool = False,
-        quality: str | None = None,
-        timeout: float | None = None,
-        queue_size: int | None = None,
-        server: str | None = None,
-    ) -> ClothHandle:
-        pins = np.asarray(list(pinned), np.int64).reshape(-1)
-        if pins.size and (pins.min() < 0 or pins.max() >= len(rest)):
-            raise ValueError("pinned index out of range")
-        req = P.SubmitRequest(
-            client=self.client_id,
-            grid=grid,
-            mesh=mesh,
-            pinned=pins.astype(np.uint32),
-            links=_links(links),
-            material=P.material_to_map(material) if material is not None else {},
-            features=tuple(features),
-            gravity=_vec3(gravity),
-            wind=_vec3(wind),
-            iterations=iterations,
-            substeps=substeps,
-            chebyshev_rho=chebyshev_rho,
-            colliders=tuple(_collider(c) for c in colliders) if colliders is not None else None,
-            state=(
-                P.StateOptions(bool(normals), encoding, True if bundle else None)
-                if (normals or encoding != "float32" or bundle)
-                else None
-            ),
-            quality=quality,
-            rid=self._next_rid(),
-        )
-        return self.submit(req, rest, tris, timeout, queue_size, server)
-
-
-# Options every submit_* method takes, for documentation and for tools wrapping the SDK.
-cloth_options = (
-    "pinned",
-    "links",
-    "material",
-    "features",
-    "gravity",
-    "wind",
-    "iterations",
-    "substeps",
-    "chebyshev_rho",
-    "colliders",
-    "normals",
-    "encoding",
-    "bundle",
-    "quality",
-    "timeout",
-    "queue_size",
-    "server",
-)

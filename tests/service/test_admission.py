@@ -108,7 +108,8 @@ def test_a_new_feature_combination_is_built_by_the_cook_thread_not_the_tick():
             assert dev.builds[before:], "a program with the tethers feature should have been built"
             at = len(dev.builds)
             tick = h.set(features_add=["wind", "xpbd"])  # a control too: its kernels built off the tick
-            assert h.wait_for_tick(tick, TIMEOUT).tick == tick and h.features == ("xpbd", "tethers", "wind")
+            # the first state at or after the control's tick (a state may be dropped on a loaded machine)
+            assert h.wait_for_tick(tick, TIMEOUT).tick >= tick and h.features == ("xpbd", "tethers", "wind")
             assert len(dev.builds) > at
         finally:
             c.close()

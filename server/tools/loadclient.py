@@ -20,7 +20,7 @@ import math
 import time
 from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -28,13 +28,12 @@ import numpy as np
 SUBMITS_IN_FLIGHT = 16  # a client's submits awaiting their reply at once
 
 
-@dataclass
-class ClientSpec:
-    """What one client process does: ``offered`` cloths of ``size`` x ``size`` vertices."""
+@dataclass(frozen=True, kw_only=True)
+class Workload:
+    """What every cloth of a load is and how its states travel: the settings a whole load
+    (loadrun.LoadSpec) and each of its client processes (ClientSpec) share."""
 
-    index: int
-    offered: int
-    size: int = 32
+    size: int = 32  # n x n vertices per cloth
     features: tuple[str, ...] = ()
     iterations: int = 10
     substeps: int = 1
@@ -42,7 +41,19 @@ class ClientSpec:
     encoding: str = "float32"
     tick_rate: float = 60.0
     bundle: bool = True
-    servers: int = 1  # live servers to wait for before choosing one by load (several: no server id given)
+    servers: int = 1  # servers the load is spread over; a client waits for them, then places by load
+
+    def workload(self) -> dict[str, Any]:
+        """These settings as keyword arguments (for a ClientSpec of this load)."""
+        return {f.name: getattr(self, f.name) for f in fields(Workload)}
+
+
+@dataclass(frozen=True, kw_only=True)
+class ClientSpec(Workload):
+    """What one client process does: ``offered`` cloths of ``size`` x ``size`` vertices."""
+
+    index: int
+    offered: int
 
 
 @dataclass

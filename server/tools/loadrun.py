@@ -31,7 +31,7 @@ import numpy as np
 
 from drape.client.placement import spread
 
-from .loadclient import ClientResult, ClientSpec, client_main
+from .loadclient import ClientResult, ClientSpec, Workload, client_main
 from .loadreport import (
     Report,
     achieved_rate,
@@ -46,42 +46,21 @@ from .procs import ServerProcess, progress
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
-class LoadSpec:
+@dataclass(frozen=True, kw_only=True)
+class LoadSpec(Workload):
+    """A load: ``cloths`` over ``clients`` processes, measured over ``seconds``, with the
+    cloth settings of Workload."""
+
     clients: int = 4
     cloths: int = 64  # total cloths wanted (each client offers its share x ``offered``)
-    size: int = 32  # n x n vertices per cloth
     seconds: float = 5.0  # the measured window, at least
-    features: tuple[str, ...] = ()
-    iterations: int = 10
-    substeps: int = 1
-    bending: bool = True
-    encoding: str = "float32"
-    tick_rate: float = 60.0
-    bundle: bool = True
     offered: float = 1.0  # offer this many times ``cloths``
-    servers: int = 1  # servers the load is spread over (each client places its cloths on one by load)
 
     def client_specs(self) -> list[ClientSpec]:
         """Each client's share of the offered cloths (the first ones take the remainder)."""
         total = int(math.ceil(self.cloths * self.offered))
         base, extra = divmod(total, self.clients)
-        return [
-            ClientSpec(
-                index=i,
-                offered=base + (i < extra),
-                size=self.size,
-                features=self.features,
-                iterations=self.iterations,
-                substeps=self.substeps,
-                bending=self.bending,
-                encoding=self.encoding,
-                tick_rate=self.tick_rate,
-                bundle=self.bundle,
-                servers=self.servers,
-            )
-            for i in range(self.clients)
-        ]
+        return [ClientSpec(index=i, offered=base + (i < extra), **self.workload()) for i in range(self.clients)]
 
 
 class StatsWatch:

@@ -31,18 +31,18 @@ TRIM_GROWTH_MB = 4.0  # trim without a release once RSS grew this much since the
 _PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
 
 
-def _malloc_trim() -> Callable[[int], int] | None:
-    """glibc's ``malloc_trim``, or None where the C library has none (musl, macOS)."""
+def _libc(name: str, argtypes: list[Any]) -> Callable[..., int] | None:
+    """The C library's function ``name`` (returning int), or None where it has none (musl, macOS)."""
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        fn = libc.malloc_trim
+        fn = getattr(ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6"), name)
     except (OSError, AttributeError):
         return None
-    fn.argtypes, fn.restype = [ctypes.c_size_t], ctypes.c_int
+    fn.argtypes, fn.restype = argtypes, ctypes.c_int
     return fn
 
 
-_TRIM = _malloc_trim()
+_TRIM = _libc("malloc_trim", [ctypes.c_size_t])
+_MALLOPT = _libc("mallopt", [ctypes.c_int, ctypes.c_int])
 CAN_TRIM = _TRIM is not None
 M_MMAP_THRESHOLD = -3  # glibc mallopt parameters
 M_TRIM_THRESHOLD = -1
@@ -67,13 +67,12 @@ def set_mmap_threshold(nbytes: int) -> bool:
     False where there is no such call (or ``nbytes`` is 0: glibc's default kept)."""
     if nbytes <= 0:
         return False
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        fn = libc.mallopt
-    except (OSError, AttributeError):
-        return False
-    fn.argtypes, fn.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-    return bool(fn(M_MMAP_THRESHOLD, int(nbytes))) and bool(fn(M_TRIM_THRESHOLD, TRIM_THRESHOLD))
+    return mallopt(M_MMAP_THRESHOLD, int(nbytes)) and mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD)
+
+
+def mallopt(param: int, value: int) -> bool:
+    """glibc ``mallopt(param, value)``; False where there is no such call or it refused."""
+    return _MALLOPT is not None and bool(_MALLOPT(param, value))
 
 
 def rss_mb() -> float | None:

@@ -17,7 +17,6 @@ no Zenoh: the allocator's share):
 from __future__ import annotations
 
 import argparse
-import ctypes
 import json
 import os
 import subprocess
@@ -47,10 +46,10 @@ def _publisher(setting: str, endpoint: str, args: argparse.Namespace) -> dict[st
     import zenoh
 
     from drape.client.session import zenoh_config
-    from drape.server.service.memory import M_MMAP_THRESHOLD, set_mmap_threshold
+    from drape.server.service.memory import M_MMAP_THRESHOLD, mallopt, set_mmap_threshold
 
     if setting == "mmap":
-        ctypes.CDLL("libc.so.6").mallopt(M_MMAP_THRESHOLD, 4 << 20)  # alone: the trim threshold pinned
+        mallopt(M_MMAP_THRESHOLD, 4 << 20)  # alone: the trim threshold pinned
     elif setting == "drape":
         set_mmap_threshold(4 << 20)
     size = int(args.mb * 1e6)

@@ -424,20 +424,7 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
                 self._pack_step(g, dt32, opts)
                 continue
             # kernel arguments (Any: pyopencl's stub of Kernel.__call__ leaves out LocalMemory)
-            args: list[Any] = [
-                dt32,
-                g.cloths_buf,
-                self.ci.buf,
-                self.cf.buf,
-                self.fab.buf,
-                self.pos.buf,
-                self.vel.buf,
-                self.prev.buf,
-                self.target.buf,
-                self.nrm.buf,
-                self.coll.buf,
-                self.lam.buf,
-            ]
+            args: list[Any] = [dt32, g.cloths_buf, *self._step_buffers(), self.lam.buf]
             if g.use_local:
                 args.append(cl.LocalMemory(16 * g.max_vertices))
             ls = g.local_size

@@ -251,21 +251,14 @@ class GroupLaunches:
                 q, gsize, (ls,), ch, g.chunks_buf, self.ci.buf, pos2.buf, self.pos.buf
             )
 
+    def _step_buffers(self) -> list[Any]:
+        """The buffers wg_step and pack_step both take after their cloth list, in their order
+        (ci, cf, fab, pos, vel, prev, target, nrm, coll)."""
+        bufs = (self.ci, self.cf, self.fab, self.pos, self.vel, self.prev, self.target, self.nrm, self.coll)
+        return [b.buf for b in bufs]
+
     def _pack_step(self, g: Group, dt32, opts) -> None:
         """CPU: one launch of pack_step, one work-item per pack, the lanes in local memory."""
         # Any: pyopencl's stub of Kernel.__call__ leaves out LocalMemory
-        args: list[Any] = [
-            dt32,
-            g.packs_buf,
-            self.ci.buf,
-            self.cf.buf,
-            self.fab.buf,
-            self.pos.buf,
-            self.vel.buf,
-            self.prev.buf,
-            self.target.buf,
-            self.nrm.buf,
-            self.coll.buf,
-            cl.LocalMemory(max(64, g.pack_local_bytes)),
-        ]
+        args: list[Any] = [dt32, g.packs_buf, *self._step_buffers(), cl.LocalMemory(max(64, g.pack_local_bytes))]
         self.dev.kernel(opts, "pack_step")(self.dev.queue, (g.n_packs,), (1,), *args)

@@ -118,6 +118,14 @@ def connect(server, **kw):
     return DrapeClient(server.config.listen[0], server_id=server.server_id, timeout=TIMEOUT, **kw)
 
 
+@pytest.fixture
+def client(server):
+    """A client of the test module's ``server`` fixture, closed (its cloths removed) afterwards."""
+    c = connect(server)
+    yield c
+    c.close()
+
+
 def collect(handle, n: int, timeout: float = TIMEOUT) -> list:
     out = []
     deadline = time.monotonic() + timeout

@@ -30,13 +30,6 @@ def server(request):
     assert s.failure is None
 
 
-@pytest.fixture
-def client(server):
-    c = connect(server)
-    yield c
-    c.close()
-
-
 def drain(handle, until_tick: int, timeout: float = TIMEOUT) -> list[P.ClothState]:
     out: list[P.ClothState] = []
     deadline = time.monotonic() + timeout

@@ -24,13 +24,6 @@ def server():
     assert s.failure is None
 
 
-@pytest.fixture
-def client(server):
-    c = connect(server)
-    yield c
-    c.close(remove=True)
-
-
 def cloths(client, n: int) -> list:
     return [client.submit_grid(8, 8, pinned=PINS, bundle=True) for _ in range(n)]
 

@@ -38,13 +38,6 @@ def server(request):
     assert s.failure is None
 
 
-@pytest.fixture
-def client(server):
-    c = connect(server)
-    yield c
-    c.close()
-
-
 # ---------------------------------------------------------------------------------------------
 
 

@@ -214,8 +214,7 @@ fn lost_server_is_reported_and_failover_resumes() {
     let grid = DrapeGrid { cols: 4, rows: 4, width: 1.0, height: 1.0, vertical: false, origin: [0.0; 3] };
     unsafe {
         assert_eq!(drape_client_open(&c_opts, &mut cclient), DRAPE_OK);
-        let o = DrapeClothOptions { pinned: pins.as_ptr(), pinned_count: 2, encoding: 0, normals: false, bundle: false,
-                                    quality: std::ptr::null(), gravity: std::ptr::null() };
+        let o = common::c_cloth_options(&pins, false);
         assert_eq!(drape_submit_grid(cclient, &grid, &o, &mut ccloth), DRAPE_OK);
         assert_eq!(drape_cloth_wait_state(ccloth, pos.as_mut_ptr(), 48, std::ptr::null_mut(), 0, 5000, std::ptr::null_mut()), DRAPE_OK);
     }
@@ -441,15 +440,7 @@ fn c_abi_feature_changes() {
         assert_eq!(drape_client_open(&opts, &mut client), DRAPE_OK);
         let grid = DrapeGrid { cols: 4, rows: 4, width: 0.0, height: 0.0, vertical: false, origin: [0.0; 3] };
         let pins = [0u32, 3];
-        let copts = DrapeClothOptions {
-            pinned: pins.as_ptr(),
-            pinned_count: 2,
-            encoding: 0,
-            normals: true,
-            bundle: false,
-            quality: std::ptr::null(),
-            gravity: std::ptr::null(),
-        };
+        let copts = common::c_cloth_options(&pins, true);
         let mut cloth = std::ptr::null_mut();
         assert_eq!(drape_submit_grid(client, &grid, &copts, &mut cloth), DRAPE_OK);
         let mut mask = 0u32;
@@ -527,15 +518,7 @@ fn identity_keys_server() {
     let st = wait(&cloth, &mut pos);
     assert!(st.tick > first.tick && st.vertex_count == 32);
     // a control, waited for and not
-    let targets = [0.1f32, 2.5, 0.2, 1.5, 2.5, 0.2];
-    let tick = cloth.move_pins(&[0, 7], &targets, true).unwrap().unwrap();
-    loop {
-        let st = wait(&cloth, &mut pos);
-        if st.tick >= tick {
-            assert_eq!((&pos[0..3], &pos[21..24]), (&targets[0..3], &targets[3..6]));
-            break;
-        }
-    }
+    let tick = common::pins_follow(&cloth, &mut pos, wait);
     cloth.move_pins(&[0], &[0.0, 2.6, 0.0], false).unwrap();
     let t0 = Instant::now();
     while pos[0..3].iter().zip([0.0f32, 2.6, 0.0]).any(|(p, t)| (p - t).abs() > 1e-6) {
@@ -602,15 +585,7 @@ fn c_abi_identity_keys_server() {
         assert_eq!(drape_client_open(&opts, &mut client), DRAPE_OK);
         let grid = DrapeGrid { cols: 4, rows: 4, width: 0.0, height: 0.0, vertical: false, origin: [0.0; 3] };
         let pins = [0u32, 3];
-        let copts = DrapeClothOptions {
-            pinned: pins.as_ptr(),
-            pinned_count: 2,
-            encoding: 0,
-            normals: false,
-            bundle: false,
-            quality: std::ptr::null(),
-            gravity: std::ptr::null(),
-        };
+        let copts = common::c_cloth_options(&pins, false);
         let mut cloth = std::ptr::null_mut();
         assert_eq!(drape_submit_grid(client, &grid, &copts, &mut cloth), DRAPE_OK);
         let mut pos = [0f32; 48];

@@ -154,15 +154,7 @@ fn authenticated_client_through_an_acl_router() {
     let st = wait(&cloth, &mut pos);
     assert!(st.tick > first.tick && st.vertex_count == 32);
     // a control, waited for, seen in the states
-    let targets = [0.1f32, 2.5, 0.2, 1.5, 2.5, 0.2];
-    let tick = cloth.move_pins(&[0, 7], &targets, true).unwrap().unwrap();
-    loop {
-        let st = wait(&cloth, &mut pos);
-        if st.tick >= tick {
-            assert_eq!((&pos[0..3], &pos[21..24]), (&targets[0..3], &targets[3..6]));
-            break;
-        }
-    }
+    let tick = common::pins_follow(&cloth, &mut pos, wait);
     // remove
     assert!(cloth.remove().unwrap() >= tick);
     std::thread::sleep(Duration::from_millis(200));
@@ -210,15 +202,7 @@ fn c_abi_authenticated_client_through_an_acl_router() {
         assert_eq!(CStr::from_ptr(id.as_ptr()).to_str().unwrap(), "alice");
         let grid = DrapeGrid { cols: 4, rows: 4, width: 0.0, height: 0.0, vertical: false, origin: [0.0; 3] };
         let pins = [0u32, 3];
-        let copts = DrapeClothOptions {
-            pinned: pins.as_ptr(),
-            pinned_count: 2,
-            encoding: 0,
-            normals: false,
-            bundle: false,
-            quality: std::ptr::null(),
-            gravity: std::ptr::null(),
-        };
+        let copts = common::c_cloth_options(&pins, false);
         // the server behind the router may still be starting: its liveliness token comes first
         let t0 = Instant::now();
         let mut cloth = std::ptr::null_mut();

@@ -77,3 +77,35 @@ impl Drop for Server {
 }
 
 pub const START_TIMEOUT: Duration = Duration::from_secs(60);
+
+/// C ABI submission options pinning `pins`: float32, no bundle, server defaults for the rest.
+pub fn c_cloth_options(pins: &[u32], normals: bool) -> drape::ffi::DrapeClothOptions {
+    drape::ffi::DrapeClothOptions {
+        pinned: pins.as_ptr(),
+        pinned_count: pins.len(),
+        encoding: 0,
+        normals,
+        bundle: false,
+        quality: std::ptr::null(),
+        gravity: std::ptr::null(),
+    }
+}
+
+/// Moves pins 0 and 7 of an 8 x 4 grid cloth, waiting for the reply, then reads states with
+/// `wait` until the one of the tick the reply named, where the pinned vertices are at their targets.
+/// Returns that tick.
+pub fn pins_follow(
+    cloth: &drape::client::Cloth,
+    pos: &mut [f32],
+    wait: impl Fn(&drape::client::Cloth, &mut [f32]) -> drape::client::StateInfo,
+) -> u64 {
+    let targets = [0.1f32, 2.5, 0.2, 1.5, 2.5, 0.2];
+    let tick = cloth.move_pins(&[0, 7], &targets, true).unwrap().unwrap();
+    loop {
+        let st = wait(cloth, pos);
+        if st.tick >= tick {
+            assert_eq!((&pos[0..3], &pos[21..24]), (&targets[0..3], &targets[3..6]));
+            return tick;
+        }
+    }
+}

@@ -124,13 +124,8 @@ def main(argv: list[str] | None = None) -> int:
             f"({med / base:.2f}x glibc)"
         )
     if args.json:
-        args.json.write_text(
-            json.dumps(
-                {"args": {k: v for k, v in vars(args).items() if k != "json"} | {"json": None}, "results": results},
-                indent=1,
-                default=str,
-            )
-        )
+        run_args = {k: v for k, v in vars(args).items() if k not in ("json", "subscriber", "setting")}
+        args.json.write_text(json.dumps({"args": run_args, "results": results}, indent=1))
         print(f"wrote {args.json}")
     return 0
 

@@ -1,13 +1,25 @@
 """Admission control: refuse a submission that would push the tick over its budget.
 
-The tick thread reports the cost of each steady tick (no cloth came or went since the frame
-before: those ticks carry one-off rebuilds) — its own host work, the device's time for the step
-and readback, and the publisher's encode and put of the frame before — with the number of
-vertices stepped; :class:`MeasuredCost` turns that into a cost per vertex (see there). A submit is refused with
-the protocol's ``overloaded`` error when the predicted cost with its vertices (and those of every
-cloth already admitted but not yet stepped) exceeds ``admission_budget`` of a tick, so the cloths
-already admitted keep their rate. Refusals are counted (``overload_refusals``). A server with no
-cloth admits (there is nothing to protect and no per-vertex cost to predict from).
+The tick thread, the device and the publisher thread run as a pipeline: the device steps tick
+N + 1 while the tick thread applies commands and the publisher encodes and puts frame N. So a
+tick's period is bounded by its slowest stage, not by the sum of the stages. The tick thread
+reports each steady tick's cost (no cloth came or went since the frame before: those ticks carry
+one-off rebuilds) as a :class:`TickCost`, one figure per stage:
+
+- ``tick``: the tick thread's own work (apply, enqueue, checks), without its wait for the device;
+- ``device``: the device's step and readback (its profiling; the tick thread's wait without it);
+- ``publisher``: the publisher's encode (or copy) and put of a frame.
+
+(Python in the tick and publisher threads shares one GIL; a put releases it. Where the GIL
+becomes the limit, the tick thread's work plus the publisher's encode would be a fourth stage;
+on the machines measured so far one of the three above limits first: docs/loadtest.md.)
+
+:class:`MeasuredCost` fits each stage as ``base + slope x vertices`` over recent steady ticks
+at several loads and predicts each stage at a new load; a submit is refused with the protocol's
+``overloaded`` error when the largest predicted stage, with the submit's vertices and those of
+every cloth already admitted but not yet stepped, exceeds ``admission_budget`` of a tick, so the
+cloths already admitted keep their rate. Refusals are counted (``overload_refusals``). A server
+with no cloth admits (there is nothing to protect and nothing to predict from).
 
 Tests and operators may replace the model (``Admission.model``) with a :class:`FixedCost`.
 """
@@ -17,8 +29,9 @@ from __future__ import annotations
 import logging
 import statistics
 import threading
-from collections import deque
+from collections import OrderedDict, deque
 from dataclasses import dataclass
+from typing import Protocol
 
 from drape.client import protocol as P
 
@@ -29,62 +42,182 @@ log = logging.getLogger(__name__)
 ERR_OVERLOADED: str = getattr(P, "ERR_OVERLOADED", "overloaded")
 _OVERLOADED_EXC: type = getattr(P, "Overloaded", P.Busy)
 
+STAGES: tuple[str, ...] = ("tick", "device", "publisher")
+
+# MeasuredCost's defaults (model constants: not server settings)
+PER_LOAD = 60  # steady ticks kept per load (one second at 60 Hz): each load's median per stage
+LOADS = 8  # distinct loads kept (the least recently observed goes first)
+MIN_SAMPLES = 5  # a load enters the fit once it has this many steady ticks
+MIN_SPREAD = 1.1  # the fit needs its largest load at least this many times its smallest
+TRUST = 0.5  # below this share of the budget, a load that cannot be fitted admits
+
+
+@dataclass(frozen=True)
+class TickCost:
+    """One steady tick: the vertices it stepped and each pipeline stage's seconds."""
+
+    vertices: int
+    tick_s: float  # the tick thread's own work, not its wait for the device
+    device_s: float  # the device's step and readback
+    publish_s: float  # the publisher's encode (or copy) and put
+
+    def stages(self) -> dict[str, float]:
+        return {"tick": self.tick_s, "device": self.device_s, "publisher": self.publish_s}
+
+
+@dataclass(frozen=True)
+class Line:
+    """``base_s + slope_s * vertices``."""
+
+    base_s: float
+    slope_s: float
+
+    def __call__(self, vertices: int) -> float:
+        return self.base_s + self.slope_s * vertices
+
+
+def separable(loads: list[int], min_spread: float = MIN_SPREAD) -> bool:
+    """Whether costs at these loads can tell a fixed cost from a per-vertex one: at least two
+    loads, the largest at least ``min_spread`` times the smallest."""
+    return len(loads) >= 2 and max(loads) >= min_spread * min(loads)
+
+
+def fit_line(points: list[tuple[int, float, int]], min_spread: float = MIN_SPREAD) -> Line:
+    """Weighted least squares of ``(vertices, seconds, weight)`` points (one per load) with a
+    non-negative base and slope. When the loads are not :func:`separable`, or the fit comes out
+    with a negative slope (noise, or a cost that does not grow), the line goes through the
+    origin and the largest load's point: every second counted per vertex, which over-predicts
+    any larger load (the conservative side)."""
+    if not points:
+        raise ValueError("fit_line needs at least one point")
+    big = max(points, key=lambda p: p[0])
+    proportional = Line(0.0, big[1] / big[0])
+    if not separable([p[0] for p in points], min_spread):
+        return proportional
+    w = sum(p[2] for p in points)
+    mv = sum(p[2] * p[0] for p in points) / w
+    mc = sum(p[2] * p[1] for p in points) / w
+    svv = sum(p[2] * (p[0] - mv) ** 2 for p in points)
+    slope = sum(p[2] * (p[0] - mv) * (p[1] - mc) for p in points) / svv
+    if slope <= 0.0:
+        return proportional
+    base = mc - slope * mv
+    if base < 0.0:  # through the origin: the least-squares slope of a line with no fixed cost
+        return Line(0.0, sum(p[2] * p[0] * p[1] for p in points) / sum(p[2] * p[0] ** 2 for p in points))
+    return Line(base, slope)
+
+
+class CostModel(Protocol):
+    def observe(self, cost: TickCost) -> None: ...
+
+    def predict(self, vertices: int, budget_s: float = float("inf")) -> dict[str, float] | None: ...
+
 
 @dataclass
 class FixedCost:
-    """A cost model that does not measure: ``base_s + per_vertex_s * vertices``."""
+    """A cost model that does not measure: one stage of ``base_s + per_vertex_s * vertices``."""
 
     per_vertex_s: float
     base_s: float = 0.0
 
-    def observe(self, tick_s: float, vertices: int) -> None:
+    def observe(self, cost: TickCost) -> None:
         pass
 
-    def predict(self, vertices: int, budget_s: float = float("inf")) -> float | None:
-        return self.base_s + self.per_vertex_s * vertices
+    def predict(self, vertices: int, budget_s: float = float("inf")) -> dict[str, float] | None:
+        return {"fixed": self.base_s + self.per_vertex_s * vertices}
 
 
 class MeasuredCost:
-    """The tick's cost per vertex stepped, as the median over the last ``window`` ticks (so
-    ticks stretched by one-offs, an add's rebuild, a burst of requests taking the GIL, a
-    descheduled thread, do not count unless they are the rule), times the vertices. It counts
-    the per-tick fixed costs as per-vertex ones, so it errs on the side of refusing once loaded;
-    ``predict`` answers None (no opinion) while the current cost is under ``trust`` of the
-    budget: a lightly loaded server admits rather than extrapolate from a few small cloths."""
+    """Each stage of the tick as ``base + slope x vertices``, fitted over the loads seen lately.
 
-    def __init__(self, window: int = 30, trust: float = 0.5) -> None:
-        self.trust = trust
-        self._samples: deque[tuple[int, float]] = deque(maxlen=window)  # (vertices, cost)
+    Steady ticks are kept by load (vertices stepped): the last ``per_load`` ticks of each of the
+    last ``loads`` loads. Each load with ``min_samples`` ticks gives one point per stage, its
+    median (so ticks stretched by one-offs, a burst of requests taking the GIL, a descheduled
+    thread, do not count unless they are the rule), weighted by its tick count; :func:`fit_line`
+    fits them. Until some load has ``min_samples`` ticks, the latest load's ticks so far stand
+    in (a burst of submits changes the load every tick, and the model must not wait for a quiet
+    moment to have an opinion).
+
+    A server that has measured only one load cannot tell its fixed costs from its per-vertex
+    ones, and counting them all per vertex (the conservative fallback) would refuse a second
+    cloth next to one small one. So while the loads are not separable and the largest stage at
+    the latest load is under ``trust`` of the budget, ``predict`` answers None (no opinion:
+    admit) **once per load measured**: the next submit is predicted conservatively until a tick
+    with a new load is measured. The old rule (admit while light) let a burst of submits arriving
+    between two measurements through unchecked (docs/loadtest.md, session 12: 494 cloths
+    admitted where 384 hold); now a burst grows the load by one trusted cloth, then by what the
+    conservative line allows, and once two loads are measured by what the fit allows."""
+
+    def __init__(
+        self,
+        per_load: int = PER_LOAD,
+        loads: int = LOADS,
+        min_samples: int = MIN_SAMPLES,
+        trust: float = TRUST,
+        min_spread: float = MIN_SPREAD,
+    ) -> None:
+        if per_load < min_samples or min_samples < 1 or loads < 1:
+            raise ValueError("MeasuredCost needs 1 <= min_samples <= per_load and loads >= 1")
+        self.per_load, self.loads, self.min_samples = per_load, loads, min_samples
+        self.trust, self.min_spread = trust, min_spread
+        self._by_load: OrderedDict[int, deque[TickCost]] = OrderedDict()  # least recently observed first
+        self._trusted_at = 0  # the latest load when predict last answered None on trust
         self._lock = threading.Lock()
 
-    def observe(self, tick_s: float, vertices: int) -> None:
-        if vertices > 0:
-            with self._lock:
-                self._samples.append((vertices, tick_s))
-
-    @property
-    def per_vertex_s(self) -> float | None:
+    def observe(self, cost: TickCost) -> None:
+        if cost.vertices <= 0:
+            return
         with self._lock:
-            if not self._samples:
-                return None
-            return statistics.median(c / v for v, c in self._samples)
+            q = self._by_load.get(cost.vertices)
+            if q is None:
+                q = self._by_load[cost.vertices] = deque(maxlen=self.per_load)
+            q.append(cost)
+            self._by_load.move_to_end(cost.vertices)
+            while len(self._by_load) > self.loads:
+                self._by_load.popitem(last=False)
 
-    @property
-    def vertices(self) -> int:
+    def points(self) -> tuple[int, dict[str, list[tuple[int, float, int]]]]:
+        """The latest load (0: none yet) and, per stage, each load's (vertices, median, ticks)
+        for the loads with ``min_samples`` ticks (none such: the latest load's ticks so far)."""
         with self._lock:
-            return self._samples[-1][0] if self._samples else 0
+            loads = [(v, list(q)) for v, q in self._by_load.items()]
+        if not loads:
+            return 0, {s: [] for s in STAGES}
+        latest = loads[-1][0]
+        enough = [(v, costs) for v, costs in loads if len(costs) >= self.min_samples] or loads[-1:]
+        out: dict[str, list[tuple[int, float, int]]] = {s: [] for s in STAGES}
+        for v, costs in enough:
+            per_stage = [c.stages() for c in costs]
+            for s in STAGES:
+                out[s].append((v, statistics.median(st[s] for st in per_stage), len(costs)))
+        return latest, out
 
-    def predict(self, vertices: int, budget_s: float = float("inf")) -> float | None:
-        per_vertex, now = self.per_vertex_s, self.vertices
-        if per_vertex is None or per_vertex * now < self.trust * budget_s:
+    def fit(self) -> tuple[int, dict[str, Line], bool] | None:
+        """The latest load, each stage's line and whether the loads were :func:`separable`
+        (None before the first steady tick)."""
+        latest, points = self.points()
+        if not points[STAGES[0]]:
             return None
-        return per_vertex * vertices
+        lines = {s: fit_line(points[s], self.min_spread) for s in STAGES}
+        return latest, lines, separable([p[0] for p in points[STAGES[0]]], self.min_spread)
+
+    def predict(self, vertices: int, budget_s: float = float("inf")) -> dict[str, float] | None:
+        got = self.fit()
+        if got is None:
+            return None
+        latest, lines, fitted = got
+        if not fitted and max(line(latest) for line in lines.values()) < self.trust * budget_s:
+            with self._lock:  # lightly loaded, fixed and per-vertex costs not told apart: admit, once a load
+                if self._trusted_at != latest:
+                    self._trusted_at = latest
+                    return None
+        return {s: line(vertices) for s, line in lines.items()}
 
 
 class Admission:
     def __init__(self, config: ServerConfig) -> None:
         self.config = config
-        self.model: MeasuredCost | FixedCost = MeasuredCost()
+        self.model: CostModel = MeasuredCost()
 
     @property
     def budget_s(self) -> float:
@@ -94,11 +227,14 @@ class Admission:
         """Raise ``overloaded`` when ``n_vertices`` more would not fit the tick budget."""
         if not self.config.admission or vertices_before <= 0:
             return
-        predicted = self.model.predict(vertices_before + n_vertices, self.budget_s)
-        if predicted is not None and predicted > self.budget_s:
+        stages = self.model.predict(vertices_before + n_vertices, self.budget_s)
+        if not stages:
+            return
+        stage, predicted = max(stages.items(), key=lambda kv: kv[1])
+        if predicted > self.budget_s:
             raise _OVERLOADED_EXC(
                 ERR_OVERLOADED,
-                f"server overloaded: a tick would take {1e3 * predicted:.1f} ms with "
+                f"server overloaded: the tick's {stage} stage would take {1e3 * predicted:.1f} ms with "
                 f"this cloth, over the budget of {1e3 * self.budget_s:.1f} ms; retry later or "
                 "elsewhere",
                 rid,

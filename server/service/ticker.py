@@ -36,7 +36,7 @@ from ..sim.params import ClothParams
 from ..sim.shared import vertex_normals
 from ..sim.world import PendingFrame, World
 from .adaptive import AdaptiveQuality
-from .admission import Admission
+from .admission import Admission, TickCost
 from .applier import Applier
 from .commands import Intake
 from .config import ServerConfig
@@ -82,6 +82,7 @@ class Ticker:
         self._nan_warned_at = 0.0
         self._nan_quiet = 0
         self._cost_layout = -1  # layout version of the last frame whose cost was measured
+        self._wait_s = 0.0  # the tick thread's wait for the device in the tick that enqueued the pending frame
         self._carry: list[Reply] = []  # remove replies of a tick that stepped nothing
 
     # --- what the Applier owns, under the names the server and the tests use ---------------------
@@ -191,11 +192,14 @@ class Ticker:
         if self._pending is None:  # nothing was stepped: carries what waited for a next frame
             job = Job(tick=self.tick, time_ns=time.time_ns(), after=self._carry)
             self._carry = []
+            self._wait_s = 0.0
             return job
         pending, job, host_s = self._pending
         self._pending = None
+        busy_s = host_s - self._wait_s  # the tick thread's own work in the tick that enqueued this frame
         t = time.monotonic()
         frame = pending.wait()
+        self._wait_s = time.monotonic() - t
         job.frame = frame.hold()
         job.time_ns = time.time_ns()  # PROTOCOL.md: the server time is when the tick was read back
         if self.device is not None and job.roster is not None:  # encoded on the device at enqueue time
@@ -214,7 +218,9 @@ class Ticker:
         # the publisher's encode and put of the frame before (Python in both threads shares the GIL)
         cost = host_s + (device_s if device_s is not None else waited) + self.publish_cost()
         if frame.layout.version == self._cost_layout:  # not a tick of cloths coming or going (rebuilds)
-            self.admission.model.observe(cost, int(frame.offsets[-1]))
+            # admission: each pipeline stage on its own (the period is bounded by the slowest)
+            stage_device = device_s if device_s is not None else self._wait_s
+            self.admission.model.observe(TickCost(int(frame.offsets[-1]), busy_s, stage_device, self.publish_cost()))
         self._cost_layout = frame.layout.version
         self.adaptive.observe(cost, job.tick, lambda: list(self.live.values()), self.world, self.applier.set_preset)
         return job

@@ -12,7 +12,15 @@ from conftest import TIMEOUT, collect, connect, make_config, wait_until
 
 from drape.client import DrapeError, NotFound
 from drape.server.service import Server
-from drape.server.service.admission import FixedCost, MeasuredCost
+from drape.server.service.admission import (
+    Admission,
+    FixedCost,
+    Line,
+    MeasuredCost,
+    TickCost,
+    fit_line,
+    separable,
+)
 
 
 def test_submits_beyond_capacity_are_overloaded_and_admitted_cloths_keep_their_rate():
@@ -117,19 +125,123 @@ def test_a_new_feature_combination_is_built_by_the_cook_thread_not_the_tick():
         assert all(thread.startswith("drape-cook") for _, thread in new), new
 
 
-def test_measured_cost_ignores_one_off_spikes_and_does_not_extrapolate_from_a_light_load():
-    m = MeasuredCost(window=30)
-    budget = 0.014
-    assert m.predict(1000, budget) is None  # nothing measured yet
-    for _ in range(30):  # one small cloth: 0.5 ms of fixed cost
-        m.observe(0.0005 + 1e-6 * 16, 16)
-    assert m.predict(16 + 1024, budget) is None  # lightly loaded: no extrapolation from 16 vertices
-    v = 8000
-    for k in range(30):  # loaded: 1 us per vertex, every third tick stretched 5x by one-offs
-        m.observe(1e-6 * v * (5.0 if k % 3 == 0 else 1.0), v)
-    assert m.per_vertex_s == pytest.approx(1e-6)
-    assert m.predict(v + 2000, budget) == pytest.approx(1e-6 * (v + 2000))  # 10 ms: admitted below
-    assert m.predict(v + 7000, budget) > budget  # 15 ms: refused
+def _ticks(m: MeasuredCost, vertices: int, n: int, tick: float, device: float, publish: float, spike_every: int = 0):
+    """Feed ``n`` steady ticks at one load; every ``spike_every``-th one stretched 5x (one-offs)."""
+    for k in range(n):
+        f = 5.0 if spike_every and k % spike_every == 0 else 1.0
+        m.observe(TickCost(vertices, f * tick, f * device, f * publish))
+
+
+def test_fit_line_recovers_base_and_slope_and_falls_back_to_the_conservative_line():
+    line = fit_line([(1000, 0.001 + 2e-6 * 1000, 10), (5000, 0.001 + 2e-6 * 5000, 3), (9000, 0.001 + 2e-6 * 9000, 7)])
+    assert line.base_s == pytest.approx(0.001) and line.slope_s == pytest.approx(2e-6)
+    # one load, or loads too close to separate: through the origin and the largest load (every second per vertex)
+    assert fit_line([(4000, 0.008, 30)]) == Line(0.0, 0.008 / 4000)
+    assert fit_line([(4000, 0.008, 30), (4100, 0.0081, 30)]) == Line(0.0, 0.0081 / 4100)
+    assert not separable([4000, 4100]) and separable([4000, 8000]) and not separable([4000])
+    # a cost that falls with the load (noise): the conservative line, never a negative slope
+    assert fit_line([(1000, 0.004, 5), (3000, 0.003, 5)]) == Line(0.0, 0.003 / 3000)
+    # a negative intercept: the least-squares line through the origin
+    through = fit_line([(1000, 0.0005, 1), (2000, 0.0025, 1)])
+    assert through.base_s == 0.0 and through.slope_s == pytest.approx((0.5 + 5.0) / (1 + 4) * 1e-6)
+    with pytest.raises(ValueError):
+        fit_line([])
+
+
+def test_measured_cost_fits_each_stage_across_loads_and_ignores_one_off_spikes():
+    m = MeasuredCost()
+    assert m.predict(1000, 0.014) is None  # nothing measured yet: no opinion
+    # device: 1 ms + 1 us a vertex; tick thread 0.5 ms + 0.1 us; publisher 0.2 ms + 0.2 us; a third of ticks 5x
+    for v in (4000, 8000, 12000):
+        _ticks(m, v, 30, 0.0005 + 1e-7 * v, 0.001 + 1e-6 * v, 0.0002 + 2e-7 * v, spike_every=3)
+    latest, lines, fitted = m.fit()
+    assert latest == 12000 and fitted
+    assert lines["device"].base_s == pytest.approx(0.001) and lines["device"].slope_s == pytest.approx(1e-6)
+    assert lines["tick"].slope_s == pytest.approx(1e-7) and lines["publisher"].base_s == pytest.approx(0.0002)
+    got = m.predict(13000, 0.014)
+    assert got == pytest.approx({"tick": 0.0018, "device": 0.014, "publisher": 0.0028})
+
+
+def test_the_slowest_stage_decides_not_the_sum_of_the_stages():
+    adm = Admission(make_config(admission_budget=0.85))
+    budget = adm.budget_s
+    m = MeasuredCost()
+    adm.model = m
+    # each stage takes 40 % of the budget at 10,000 vertices (their sum, 120 %, would refuse)
+    for v in (5000, 10000):
+        _ticks(m, v, 10, 0.4 * budget * v / 10000, 0.4 * budget * v / 10000, 0.4 * budget * v / 10000)
+    adm.check(10000, 10000, 1)  # 20,000 vertices: every stage at 80 %: admitted
+    # a device that grows faster than the rest: it alone decides, and the refusal names it
+    m = MeasuredCost()
+    adm.model = m
+    for v in (5000, 10000):
+        _ticks(m, v, 10, 0.3 * budget * v / 10000, 0.6 * budget * v / 10000, 0.3 * budget * v / 10000)
+    adm.check(10000, 6000, 2)  # 16,000 vertices: the device at 0.6 x 1.6 = 96 % of the budget
+    with pytest.raises(DrapeError) as e:
+        adm.check(10000, 7000, 3)  # 0.6 x 1.7 = 102 %
+    assert e.value.code == "overloaded" and "device stage" in e.value.message
+
+
+def test_a_lightly_loaded_server_trusts_once_per_load_so_a_burst_is_checked():
+    """One small load cannot separate fixed from per-vertex cost: the first submit past it is
+    admitted on trust, the rest of a burst arriving before the next measurement are predicted
+    conservatively (every second per vertex), and a newly measured load earns trust again."""
+    adm = Admission(make_config(admission_budget=0.85))
+    budget = adm.budget_s
+    m = MeasuredCost()
+    adm.model = m
+    _ticks(m, 16, 30, 0.0001, 0.0005, 0.00005)  # one 4x4 cloth: 0.5 ms of device, mostly fixed cost
+    adm.check(16, 1024, 1)  # a 32x32 cloth beside it: admitted on trust (proportionally it would be 32 ms)
+    with pytest.raises(DrapeError) as e:  # the next one, before any new measurement: conservative
+        adm.check(16 + 1024, 1024, 2)
+    assert e.value.code == "overloaded"
+    # a burst of 32x32 cloths on a server measured at 100 of them (device 5 ms: light, not separable)
+    m2 = MeasuredCost()
+    adm.model = m2
+    v = 100 * 1024
+    _ticks(m2, v, 30, 0.001, 0.005, 0.001)
+    admitted = 0
+    for k in range(400):
+        try:
+            adm.check(v + admitted * 1024, 1024, 10 + k)
+            admitted += 1
+        except DrapeError:
+            pass
+    # one on trust, then up to the budget by the conservative line: 100 x budget / 5 ms cloths in all
+    assert admitted == int(100 * budget / 0.005) - 100
+    assert m2.predict(v + 1024, budget) is not None  # trust is spent for this load
+    _ticks(m2, 20 * 1024, 5, 0.0002, 0.001, 0.0002)  # a newly measured load (separable now): the fit decides
+    assert m2.fit()[2]
+
+
+def test_the_tick_thread_reports_each_stage_of_steady_ticks():
+    """End to end: the model sees the vertices stepped and non-negative stage times, only for
+    ticks with no cloth coming or going, at most one a tick."""
+
+    class Recording(MeasuredCost):
+        def __init__(self) -> None:
+            super().__init__()
+            self.seen: list[TickCost] = []
+
+        def observe(self, cost: TickCost) -> None:
+            self.seen.append(cost)
+            super().observe(cost)
+
+    with Server(make_config()) as srv:
+        rec = Recording()
+        srv.admission.model = rec
+        c = connect(srv)
+        try:
+            h = c.submit_grid(8, 8, pinned=[0, 7])
+            collect(h, 10)
+            assert wait_until(lambda: len(rec.seen) >= 5)
+            seen = list(rec.seen)
+            assert len(seen) <= srv.stats()["ticks"]
+            assert all(s.vertices == 64 for s in seen)
+            assert all(s.tick_s >= 0 and s.device_s >= 0 and s.publish_s >= 0 for s in seen)
+            assert rec.fit() is not None
+        finally:
+            c.close()
 
 
 def test_a_feature_change_is_never_merged_and_replies_report_the_feature_set():

@@ -1,7 +1,7 @@
 //! The protocol test vectors of the repository (`../../tests/vectors/*.json`, PROTOCOL.md
-//! section 16) checked both ways: bytes -> meaning, and meaning -> identical bytes. The frozen
-//! 1.0, 1.1 and 1.2 vectors (`v1.0/`, `v1.1/`, `v1.2/`) must still be read as they mean, and
-//! written back they differ only in the version.
+//! section 16) checked both ways: bytes -> meaning, and meaning -> identical bytes (1.4's
+//! `moves` blocks and batch replies included). The frozen 1.0 to 1.3 vectors (`v1.0/` ...
+//! `v1.3/`) must still be read as they mean, and written back they differ only in the version.
 use drape::wire::msg::{encode_info, encode_remove};
 use drape::wire::reader::{pack, unpack_message, Reader, Value};
 use drape::wire::replies::{decode_reply, encode_tick_reply, tick_of};
@@ -46,10 +46,10 @@ fn to_json(v: &Value, key: &str) -> Json {
     }
 }
 
-/// Every vector set: its directory, the version its messages carry. This crate speaks 1.3 (the
-/// frozen `v1.3/` set; the top-level set is 1.4, whose additions the crate does not write);
-/// the 1.0, 1.1 and 1.2 sets are frozen and must be read as they mean (PROTOCOL.md section 15).
-const SETS: [(&str, u64); 4] = [("v1.3/", PROTOCOL_MINOR as u64), ("v1.2/", 2), ("v1.1/", 1), ("v1.0/", 0)];
+/// Every vector set: its directory, the version its messages carry. This crate speaks 1.4 (the
+/// top-level set); the 1.0 to 1.3 sets are frozen and must be read as they mean (PROTOCOL.md
+/// section 15).
+const SETS: [(&str, u64); 5] = [("", PROTOCOL_MINOR as u64), ("v1.3/", 3), ("v1.2/", 2), ("v1.1/", 1), ("v1.0/", 0)];
 
 fn load_set(dir_prefix: &str, name: &str) -> Vec<Json> {
     if dir().join(dir_prefix).join(name).exists() { load(&format!("{dir_prefix}{name}")) } else { Vec::new() }
@@ -73,9 +73,14 @@ fn check_message(v: &Json) {
             c.encode(rid)
         }
         "control_batch" => {
-            let (client, items) = ControlBatch::decode_items(&data, &Limits::default()).unwrap();
-            let items: Vec<Control> = items.into_iter().map(|r| r.unwrap_or_else(|e| panic!("{name}: {e}"))).collect();
-            ControlBatch { rid, client, items }.encode()
+            let d = DecodedBatch::decode(&data, &Limits::default()).unwrap_or_else(|e| panic!("{name}: {e}"));
+            assert_eq!(d.moves.is_some(), !v["value"]["moves"].is_null(), "{name}: moves");
+            let items: Vec<Control> = d.items.into_iter().map(|r| r.unwrap_or_else(|e| panic!("{name}: {e}"))).collect();
+            let batch = ControlBatch { rid, client: d.client, items };
+            if d.moves.is_none() {
+                assert_eq!(batch.encode(), data, "{name}: re-encoded without moves");
+            }
+            batch.encode_with_moves(d.moves.as_ref())
         }
         "remove" => {
             let r = Reader::new(&m, "");
@@ -97,7 +102,14 @@ fn check_message(v: &Json) {
                     Err(e) => assert_eq!(json!(e.code), w["error"]["code"], "{name}: item error"),
                 }
             }
-            rep.encode()
+            let moves = MovesReply::from_map(&decode_reply(&data).unwrap()).unwrap();
+            assert_eq!(moves.is_some(), !v["value"]["moves_tick"].is_null(), "{name}: moves_tick");
+            if let Some(mv) = &moves {
+                let failed: Vec<Json> = mv.moves_failed.iter().map(|f| json!([f.position, f.code, f.message])).collect();
+                assert_eq!(Json::Array(failed), v["value"]["moves_failed"], "{name}: moves_failed");
+                assert_eq!(json!(mv.moves_tick), v["value"]["moves_tick"], "{name}");
+            }
+            rep.encode_with_moves(moves.as_ref())
         }
         // Informational maps a client reads generically (fields may be added in any minor):
         // decoded within the caps and written back as decoded.
@@ -157,18 +169,18 @@ fn messages_both_ways() {
             }
         }
     }
-    assert!(seen >= 60, "only {seen} message vectors");
+    assert!(seen >= 80, "only {seen} message vectors");
 }
 
 /// The 1.2 messages: what a control carries and what its replies report.
 #[test]
 fn features_add_remove_and_overloaded() {
-    let v = load("v1.3/control.json").into_iter().find(|v| v["name"] == "control_features_add_remove").unwrap();
+    let v = load("control.json").into_iter().find(|v| v["name"] == "control_features_add_remove").unwrap();
     let (c, _) = Control::decode(&unhex(&v)).unwrap();
     assert_eq!(c.features_add.as_deref(), Some(&["wind".to_string()][..]));
     assert_eq!(c.features_remove.as_deref(), Some(&["tethers".to_string()][..]));
     assert!(c.features.is_none() && c.needs_1_2());
-    let misc = load("v1.3/misc.json");
+    let misc = load("misc.json");
     let by = |n: &str| unhex(misc.iter().find(|v| v["name"] == n).unwrap());
     let a = Applied::from_map(&decode_reply(&by("reply_control_features")).unwrap()).unwrap();
     assert_eq!((a.tick, a.has("wind"), a.has("xpbd")), (1050, Some(true), Some(false)));
@@ -183,7 +195,7 @@ fn features_add_remove_and_overloaded() {
 /// The 1.3 `resume` of a submission: decoded field by field, validated against the cloth.
 #[test]
 fn resume_in_submit() {
-    let subs = load("v1.3/submit.json");
+    let subs = load("submit.json");
     let by = |n: &str| unhex(subs.iter().find(|v| v["name"] == n).unwrap_or_else(|| panic!("no vector {n}")));
     let s = Submit::decode(&by("submit_resume")).unwrap();
     let r = s.resume.as_ref().expect("resume");
@@ -206,6 +218,48 @@ fn resume_in_submit() {
     assert_eq!(bad.validate(&lim).unwrap_err().code, ErrorCode::InvalidValue);
     // an earlier version's submission has none
     assert!(load_set("v1.2/", "submit.json").iter().all(|v| Submit::decode(&unhex(v)).unwrap().resume.is_none()));
+}
+
+/// The 1.4 `moves` block of a batch control and the reply's `moves_tick` / `moves_failed`,
+/// decoded field by field; the block validated as the server does.
+#[test]
+fn moves_block_and_reply() {
+    let ctl = load("control.json");
+    let by = |n: &str| unhex(ctl.iter().find(|v| v["name"] == n).unwrap_or_else(|| panic!("no vector {n}")));
+    let lim = Limits::default();
+    let d = DecodedBatch::decode(&by("control_batch_moves"), &lim).unwrap();
+    let mv = d.moves.clone().unwrap();
+    assert_eq!((d.client.as_str(), d.items.len(), d.rid), ("game-7", 0, 13));
+    assert_eq!(mv.cloths, ["5ba88a14c526242f", "0f1e2d3c4b5a6978"]);
+    assert_eq!((mv.indices.as_slice(), &mv.targets[9..12]), (&[0u32, 3][..], &[1.0f32, 1.5, 0.25][..]));
+    let both = DecodedBatch::decode(&by("control_batch_moves_items"), &lim).unwrap();
+    assert_eq!((both.items.len(), both.moves.as_ref().unwrap().indices.as_slice()), (1, &[0u32][..]));
+    // what the client checks before sending: the server's verdicts on the bytes alone
+    mv.validate(&lim).unwrap();
+    let code = |m: &Moves| m.validate(&lim).unwrap_err().code;
+    assert_eq!(code(&Moves { indices: vec![3, 3], ..mv.clone() }), ErrorCode::InvalidValue);
+    assert_eq!(code(&Moves { targets: mv.targets[..9].to_vec(), ..mv.clone() }), ErrorCode::InvalidValue);
+    assert_eq!(code(&Moves { tokens: mv.tokens[..1].to_vec(), ..mv.clone() }), ErrorCode::InvalidValue);
+    assert_eq!(code(&Moves { indices: vec![], targets: vec![], ..mv.clone() }), ErrorCode::InvalidValue);
+    let mut far = mv.clone();
+    far.targets[4] = 1e6;
+    assert_eq!(code(&far), ErrorCode::InvalidValue);
+    let many = Moves { cloths: vec!["c".into(); MAX_BATCH_MOVES + 1], tokens: vec![mv.tokens[0].clone(); MAX_BATCH_MOVES + 1],
+                       indices: vec![0], targets: vec![0.0; 3 * (MAX_BATCH_MOVES + 1)] };
+    assert_eq!(code(&many), ErrorCode::TooLarge);
+    // a batch control without moves still needs items
+    let none = ControlBatch { rid: 1, client: "c1".into(), items: vec![] };
+    assert_eq!(DecodedBatch::decode(&none.encode(), &lim).unwrap_err().code, ErrorCode::InvalidValue);
+    assert_eq!(DecodedBatch::decode(&none.encode_with_moves(Some(&mv)), &lim).unwrap().moves, Some(mv));
+    // the reply
+    let misc = load("misc.json");
+    let rep = unhex(misc.iter().find(|v| v["name"] == "reply_control_batch_moves").unwrap());
+    let m = decode_reply(&rep).unwrap();
+    let r = MovesReply::from_map(&m).unwrap().unwrap();
+    assert_eq!((r.moves_tick, r.moves_failed.len(), r.moves_failed[0].position), (1050, 1, 1));
+    assert_eq!(r.moves_failed[0].to_error(13).code, ErrorCode::Forbidden);
+    let plain = unhex(misc.iter().find(|v| v["name"] == "reply_control_batch").unwrap());
+    assert_eq!(MovesReply::from_map(&decode_reply(&plain).unwrap()).unwrap(), None, "no moves: no moves fields");
 }
 
 fn f32s(v: &Json) -> Vec<f32> {
@@ -295,9 +349,6 @@ fn invalid_payloads_are_rejected_with_their_code() {
     let lim = Limits::default();
     for v in load("invalid.json") {
         let name = v["name"].as_str().unwrap();
-        if name.starts_with("batch_moves") {
-            continue; // 1.4 `moves` blocks: this crate speaks 1.3, which has no such field
-        }
         let data = unhex(&v);
         let got: Result<()> = match v["message"].as_str().unwrap() {
             "bundle" => parse_bundle(&data).and_then(|b| (0..b.entries.len()).try_for_each(|i| parse_state(b.payload(i)).map(|_| ()))),
@@ -307,9 +358,9 @@ fn invalid_payloads_are_rejected_with_their_code() {
                 let r = Reader::new(&m, "");
                 validate::validate_owner(r.str("cloth", true)?.unwrap(), r.str("token", true)?.unwrap())
             }),
-            "control_batch" => match ControlBatch::decode_items(&data, &lim) {
+            "control_batch" => match DecodedBatch::decode(&data, &lim) {
                 Err(e) => Err(e),
-                Ok((_, items)) => {
+                Ok(DecodedBatch { items, .. }) => {
                     let codes: Vec<Json> = items.iter().map(|r| r.as_ref().err().map_or(Json::Null, |e| json!(e.code.as_str()))).collect();
                     assert_eq!(Json::Array(codes), v["item_errors"], "{name}: item errors");
                     Ok(())

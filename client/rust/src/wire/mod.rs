@@ -1,6 +1,7 @@
-//! The Drape wire protocol 1.3 (PROTOCOL.md) without any network: key expressions, msgpack
-//! requests and replies, the binary state (`DRPS`) and bundle (`DRPB`) payloads, float16 /
-//! quant16 and the geometry a client needs (grids, OBJ files). Everything here is pure and
+//! The Drape wire protocol 1.4 (PROTOCOL.md) without any network: key expressions, msgpack
+//! requests and replies (1.4's `moves` blocks included), the binary state (`DRPS`) and bundle
+//! (`DRPB`) payloads, float16 / quant16, the geometry a client needs (grids, OBJ files) and the
+//! placement rule of section 11.3. Everything here is pure and
 //! allocation-conscious: states decode straight into caller-provided `f32` slices.
 pub mod bundle;
 pub mod error;
@@ -8,8 +9,10 @@ pub mod geometry;
 pub mod half;
 pub mod keys;
 pub mod layout;
+pub mod moves;
 pub mod msg;
 mod msg_decode;
+pub mod placement;
 pub mod reader;
 pub mod replies;
 pub mod state;
@@ -19,19 +22,21 @@ pub use bundle::{encode_bundle, parse_bundle, Bundle, BundleEntry, BUNDLE_HEADER
 pub use error::{Error, ErrorCode, Result};
 pub use geometry::{grid_geometry, parse_obj};
 pub use keys::{valid_id, valid_namespace, valid_token, Keys, CLIENT_REQUESTS};
+pub use moves::{DecodedBatch, MoveFailed, Moves, MovesReply};
 pub use msg::{
     Collider, Control, ControlBatch, Encoding, Grid, Links, Material, Mesh, Orientation, Pins, Resume, Shape,
     StateOptions, Submit,
 };
 pub use replies::{Applied, BatchItem, BatchReply, ErrorReply, SubmitReply};
+pub use placement::{rank, ServerLoad, PLACE_ELSEWHERE};
 pub use validate::Limits;
 pub use state::{decode_state_into, encode_state, parse_state, state_size, StateHeader, STATE_HEADER_SIZE};
 
-/// The protocol version this crate speaks: `[1, 3]` (it reads every minor of major 1). Of 1.4 it
-/// also speaks the client-scoped request keys (toward a server whose `info.version` is >= 1.4, so
-/// that a server run with `identity = "keys"` serves it); not `moves` (optional for clients).
+/// The protocol version this crate speaks and writes: `[1, 4]` (it reads every minor of major 1).
+/// Of 1.4 it speaks the client-scoped request keys, `moves` blocks and placement by load, each
+/// toward a server whose `info.version` says it has them (older servers get the 1.3 way).
 pub const PROTOCOL_MAJOR: u8 = 1;
-pub const PROTOCOL_MINOR: u8 = 3;
+pub const PROTOCOL_MINOR: u8 = 4;
 /// The default namespace and server endpoint.
 pub const DEFAULT_NAMESPACE: &str = "drape";
 pub const DEFAULT_ENDPOINT: &str = "tcp/127.0.0.1:7447";
@@ -40,6 +45,8 @@ pub const FLAG_NORMALS: u16 = 1;
 pub const FLAG_RESET: u16 = 2;
 /// Protocol limits a client checks before sending (server defaults, PROTOCOL.md section 13).
 pub const MAX_BATCH_ITEMS: usize = 64;
+/// 1.4: the most cloths in one `moves` block (fixed: the decoding cap on an array's length).
+pub const MAX_BATCH_MOVES: usize = 1024;
 pub const MAX_PIN_UPDATES: usize = 4096;
 pub const MAX_COLLIDERS: usize = 32;
 pub const MAX_FEATURES: usize = 16;

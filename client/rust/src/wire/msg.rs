@@ -517,11 +517,9 @@ impl Control {
 }
 
 impl ControlBatch {
+    /// The batch control (1.4: see also [`ControlBatch::encode_with_moves`]).
     pub fn encode(&self) -> Vec<u8> {
-        let mut m = header(self.rid);
-        m.push((s("client"), s(&self.client)));
-        m.push((s("items"), Value::Array(self.items.iter().map(|c| Value::Map(c.item_map())).collect())));
-        pack(&Value::Map(m))
+        self.encode_with_moves(None)
     }
 
     pub fn decode(data: &[u8]) -> Result<ControlBatch> {

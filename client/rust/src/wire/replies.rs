@@ -194,6 +194,10 @@ impl BatchReply {
         Ok(BatchReply { rid, tick: r.u64("tick", true)?.unwrap(), failed: r.u64("failed", false)?.unwrap_or(0), results })
     }
     pub fn encode(&self) -> Vec<u8> {
+        pack(&Value::Map(self.to_map()))
+    }
+    /// The reply's map (`encode` packs it; 1.4's `moves` fields go after it).
+    pub(crate) fn to_map(&self) -> Map {
         let mut m = ok_header(self.rid);
         m.push((s("tick"), Value::from(self.tick)));
         m.push((s("failed"), Value::from(self.results.iter().filter(|x| x.is_err()).count() as u64)));
@@ -211,6 +215,6 @@ impl BatchReply {
             })
         });
         m.push((s("results"), Value::Array(items.collect())));
-        pack(&Value::Map(m))
+        m
     }
 }

@@ -4,7 +4,6 @@
 use super::error::{invalid, Error, ErrorCode, Result};
 use super::keys::{valid_id, valid_token};
 use super::msg::{Collider, Control, ControlBatch, Material, Resume, Shape, Submit};
-use super::reader::{unpack_message, Reader, Value};
 use super::{FEATURE_NAMES, MAX_BATCH_ITEMS, MAX_COLLIDERS, MAX_FEATURES, MAX_PIN_UPDATES, MIN_MASS, QUALITY_PRESETS};
 
 /// Per-server limits a client checks against (PROTOCOL.md section 13 defaults, or `info`'s).
@@ -289,21 +288,10 @@ impl ControlBatch {
     }
 
     /// Decode a batch control the way the server reads it: the envelope all or nothing, then
-    /// each item standing alone (decoded and validated, or its error).
+    /// each item standing alone (decoded and validated, or its error). 1.4: a `moves` block is
+    /// validated with the envelope; [`super::moves::DecodedBatch`] returns it too.
     pub fn decode_items(data: &[u8], lim: &Limits) -> Result<(String, Vec<Result<Control>>)> {
-        let m = unpack_message(data)?;
-        let r = Reader::new(&m, "");
-        let client = r.str("client", true)?.unwrap().to_string();
-        let items = r.array("items", true)?.unwrap();
-        check_envelope(&client, items.len(), lim)?;
-        let out = items.iter().enumerate().map(|(i, it)| {
-            let Value::Map(im) = it else {
-                return Err(err(ErrorCode::InvalidType, format!("'items[{i}]' must be a map")));
-            };
-            let c = Control::from_reader(&Reader::new(im, &format!("items[{i}]")))?;
-            c.validate(lim, None).map(|_| c)
-        });
-        Ok((client, out.collect()))
+        super::moves::DecodedBatch::decode(data, lim).map(|d| (d.client, d.items))
     }
 }
 

@@ -59,6 +59,37 @@ def counter_delta(s0: Mapping[str, Any], s1: Mapping[str, Any], key: str) -> int
     return int(s1.get(key, 0)) - int(s0.get(key, 0))
 
 
+def timeline(s0: Mapping[str, Any], window: Sequence[Mapping[str, Any]]) -> list[list[float]]:
+    """Per stats period of a window (``s0``, then the publications after it): seconds from the
+    window's start to the period's end on the server's clock, and the period's ticks, missed
+    ticks and coalesced frames. Tells when misses happen (all at once: a stall; spread out: a
+    load the server does not hold)."""
+    out, prev = [], s0
+    for st in window:
+        out.append(
+            [
+                round((int(st["time_ns"]) - int(s0["time_ns"])) / 1e9, 3),
+                counter_delta(prev, st, "ticks"),
+                counter_delta(prev, st, "missed_ticks"),
+                counter_delta(prev, st, "skipped_frames"),
+            ]
+        )
+        prev = st
+    return out
+
+
+def missed_summary(periods: Sequence[Sequence[float]]) -> str:
+    """``timeline``'s missed ticks in words: how many stats periods had any, the worst one."""
+    bad = [p for p in periods if p[2]]
+    if not bad:
+        return "no period with a missed tick"
+    worst = max(bad, key=lambda p: p[2])
+    return (
+        f"missed ticks in {len(bad)} of {len(periods)} stats periods "
+        f"(at most {int(worst[2])} in one, ending {worst[0]:.1f} s into the window)"
+    )
+
+
 def phase_means(window: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, float]]:
     """Mean and max milliseconds per server phase over stats publications (each carries its
     own window's count, mean and max), weighted by count."""
@@ -110,6 +141,8 @@ class Report:
     host: str = ""
     servers: list[dict[str, Any]] = field(default_factory=list)  # several servers: each one's figures
     spread: float = 0.0  # several servers: max / mean - 1 of their cloths (0: even)
+    load_average: list[float] = field(default_factory=list)  # the host's 1-minute load at the window's start, end
+    timeline: list[list[float]] = field(default_factory=list)  # per stats period: s, ticks, missed, coalesced
 
     @property
     def served(self) -> bool:
@@ -200,6 +233,8 @@ def print_report(r: Report) -> None:
         f"  ticks: {r.tick_hz_achieved:.2f} Hz achieved of {r.tick_hz_target:g} Hz ({r.ticks} ticks); "
         f"missed {r.missed_ticks}, coalesced {r.skipped_frames}"
     )
+    if r.timeline:
+        print(f"  {missed_summary(r.timeline)}")
     print(f"  latency ms: p50 {lat['p50']:.2f}  p99 {lat['p99']:.2f}  max {lat['max']:.2f}")
     print(
         f"  states: {r.states} of {r.expected_states} received, {r.lost} lost, {r.duplicated} duplicated, "
@@ -220,6 +255,12 @@ def print_report(r: Report) -> None:
         print(
             f"  server CPU {s['cpu_percent']:.0f}%, RSS {s['rss_start_mb']:.0f} -> {s['rss_end_mb']:.0f} MB "
             f"(max {s['rss_max_mb']:.0f} MB); clients CPU {r.clients_cpu_percent:.0f}%"
+        )
+    if "rss_window_start_mb" in s:
+        print(f"  server RSS over the window: {s['rss_window_start_mb']:.0f} -> {s['rss_end_mb']:.0f} MB")
+    if r.load_average:
+        print(
+            f"  host load average (1 min) at the window's start / end: {' / '.join(f'{x:.2f}' for x in r.load_average)}"
         )
     if r.cloths != r.offered:
         print(f"  admitted cloths served: {'yes' if r.served else 'NO'}")

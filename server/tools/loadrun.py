@@ -8,7 +8,9 @@ by the servers' published load (PROTOCOL.md 11.3): each client sees the load of 
 
 The **measured window** opens, once every client receives states for all its admitted cloths, at
 the next stats publication of each server and closes at the first one ``spec.seconds`` later.
-Each client counts its states in the ticks of its own server's window. The report (a
+Each client counts its states in the ticks of its own server's window; the server's RSS is
+sampled at the window's start (after admission and warm-up) as well as before the load, and the
+host's load average at both ends of the window. The report (a
 :class:`~.loadreport.Report`) adds every client up; with several servers, each server's cloths,
 vertices, achieved rate and missed ticks are in ``Report.servers`` and the spread of cloths over
 them (max / mean - 1) in ``Report.spread``; the achieved rate is the slowest server's.
@@ -40,6 +42,7 @@ from .loadreport import (
     latency_summary,
     phase_means,
     server_window,
+    timeline,
 )
 from .procs import ServerProcess, progress
 
@@ -93,6 +96,15 @@ class StatsWatch:
     def close(self) -> None:
         self._cancel()
         self.client.close()
+
+
+def _load_average() -> float | None:
+    """The host's 1-minute load average (None where the OS has none): the machine's load is
+    part of every figure on a shared host."""
+    try:
+        return round(os.getloadavg()[0], 2)
+    except OSError:
+        return None
 
 
 def _wait(cond: Any, what: str, deadline: float, procs: list[Any]) -> None:
@@ -196,6 +208,8 @@ def run_fleet_load(
         for s, k in zip(shared, home, strict=True):
             s["lo"].value = int(first[k][1]["tick"])
         cpu0 = [f.cpu_seconds() for f in figures]
+        rss0 = [f.sample_rss() for f in figures]  # the window's own start (admission and warm-up before it)
+        load0 = _load_average()
         t0 = time.monotonic()
         bar = progress(total=round(spec.seconds, 1), desc=f"{admitted} cloths", unit="s", quiet=quiet)
         with bar:
@@ -210,6 +224,7 @@ def run_fleet_load(
                     raise RuntimeError("a client process exited during the measured window")
         last = [t.stats.next_after(t.stats.count(), timeout=30) for t in targets]
         cpu1 = [f.cpu_seconds() for f in figures]
+        load1 = _load_average()
         elapsed = time.monotonic() - t0
         for s, k in zip(shared, home, strict=True):
             s["hi"].value = int(last[k][1]["tick"])
@@ -249,6 +264,7 @@ def run_fleet_load(
         server_info["cpu_percent"] = round(100.0 * (sum(cpu1) - sum(cpu0)) / elapsed, 1)
         rss = [f.rss_summary() for f in figures]
         server_info.update({k: round(sum(r[k] for r in rss), 1) for k in rss[0]})  # all processes together
+        server_info["rss_window_start_mb"] = round(sum(rss0), 1)
     states = sum(r.received for r in out)
     report = Report(
         cloths=sum(r.admitted for r in out),
@@ -282,6 +298,8 @@ def run_fleet_load(
         host=f"{platform.node()} {os.cpu_count()} cores",
         servers=per_server if several else [],
         spread=round(spread(p["cloths"] for p in per_server), 4) if several else 0.0,
+        load_average=[x for x in (load0, load1) if x is not None],
+        timeline=timeline(s0, [st for _, st in windows[0]]),
     )
     return report, out, windows[0]
 

@@ -13,8 +13,10 @@ tick rate from the two publications' tick counters and server timestamps, missed
 coalesced frames from their counters, per-phase server time from the publications in between,
 and, from the clients, the states of exactly those ticks (lost, duplicated, out of order),
 latency (server tick -> client receipt) p50/p99/max, message and byte rates and decode cost
-(arrival to delivery, per state and per bundle). The server's CPU and RSS (start, end, max) come
-from psutil.
+(arrival to delivery, per state and per bundle). The server's CPU and RSS (before the load, at
+the window's start, at its end, max) come from psutil; the report also holds the host's load
+average at the window's ends and, per stats period, its ticks, missed ticks and coalesced frames
+(when the misses happen).
 
 ``--loads 128,256,4096:quant16`` runs several loads (total cloths, optionally with an encoding)
 on one server; ``--find-knee`` doubles the load until it is not held (a load that fails is run

@@ -15,7 +15,7 @@ from PIL import Image
 
 from drape.server.tools import loadtest as lt
 from drape.server.tools.loadclient import decode_cost, window_counts
-from drape.server.tools.loadreport import achieved_rate, markdown_table, write_summary_plot
+from drape.server.tools.loadreport import achieved_rate, markdown_table, missed_summary, timeline, write_summary_plot
 from drape.server.tools.procs import ServerProcess
 
 
@@ -39,6 +39,22 @@ def test_achieved_rate_is_ticks_over_server_time_between_two_publications():
 def test_achieved_rate_refuses_what_cannot_be_a_window(s0, s1, match):
     with pytest.raises(ValueError, match=match):
         achieved_rate(s0, s1)
+
+
+def test_timeline_tells_each_stats_period_of_a_window():
+    s0 = {"ticks": 100, "missed_ticks": 5, "skipped_frames": 1, "time_ns": 10_000_000_000}
+    window = [
+        {"ticks": 130, "missed_ticks": 5, "skipped_frames": 1, "time_ns": 10_500_000_000},
+        {"ticks": 150, "missed_ticks": 15, "skipped_frames": 2, "time_ns": 11_000_000_000},
+        {"ticks": 180, "missed_ticks": 15, "skipped_frames": 2, "time_ns": 11_500_000_000},
+    ]
+    periods = timeline(s0, window)
+    assert periods == [[0.5, 30, 0, 0], [1.0, 20, 10, 1], [1.5, 30, 0, 0]]
+    assert (
+        missed_summary(periods)
+        == "missed ticks in 1 of 3 stats periods (at most 10 in one, ending 1.0 s into the window)"
+    )
+    assert missed_summary(periods[:1]) == "no period with a missed tick"
 
 
 def test_window_counts_only_the_window_ticks():
@@ -110,6 +126,14 @@ def test_short_load_measures_only_its_window(tmp_path):
     assert report.decode_us["per_state"] > 0 and report.decode_us["per_payload"] >= report.decode_us["per_state"]
     assert {"solve", "publish", "tick"} <= set(report.server["phases_ms"])
     assert report.server["rss_max_mb"] >= report.server["rss_start_mb"] > 0
+    assert report.server["rss_max_mb"] >= report.server["rss_window_start_mb"] > 0
+    # the window's stats periods add up to the window's counters; the host's load is stated
+    assert [sum(p[k] for p in report.timeline) for k in (1, 2, 3)] == [
+        report.ticks,
+        report.missed_ticks,
+        report.skipped_frames,
+    ]
+    assert report.timeline[-1][0] == pytest.approx(report.seconds, abs=1e-3) and len(report.load_average) == 2
     assert sum(r.admitted for r in results) == 5
     paths = lt.write_plots(tmp_path, report, results, window, "ci")
     paths.append(write_summary_plot(tmp_path / "summary.png", [report, report]))

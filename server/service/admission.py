@@ -49,7 +49,8 @@ PER_LOAD = 60  # steady ticks kept per load (one second at 60 Hz): each load's m
 LOADS = 8  # distinct loads kept (the least recently observed goes first)
 MIN_SAMPLES = 5  # a load enters the fit once it has this many steady ticks
 MIN_SPREAD = 1.1  # the fit needs its largest load at least this many times its smallest
-TRUST = 0.5  # below this share of the budget, a load that cannot be fitted admits
+TRUST = 0.5  # below this share of the budget, a load that cannot be fitted admits (once a load) ...
+TRUST_LIMIT = 4.0  # ... a submit that, were every second measured per vertex, would take at most this many budgets
 
 
 @dataclass(frozen=True)
@@ -142,11 +143,13 @@ class MeasuredCost:
     ones, and counting them all per vertex (the conservative fallback) would refuse a second
     cloth next to one small one. So while the loads are not separable and the largest stage at
     the latest load is under ``trust`` of the budget, ``predict`` answers None (no opinion:
-    admit) **once per load measured**: the next submit is predicted conservatively until a tick
-    with a new load is measured. The old rule (admit while light) let a burst of submits arriving
+    admit) **once per load measured**, and only for a submit that the conservative line puts
+    under ``trust_limit`` budgets: the next submit is predicted conservatively until a tick with
+    a new load is measured. The old rule (admit while light) let a burst of submits arriving
     between two measurements through unchecked (docs/loadtest.md, session 12: 494 cloths
-    admitted where 384 hold); now a burst grows the load by one trusted cloth, then by what the
-    conservative line allows, and once two loads are measured by what the fit allows."""
+    admitted where 384 hold), and any one huge cloth beside a small one (``drape chaos``'s
+    big-submit); now a burst grows the load by one trusted cloth, then by what the conservative
+    line allows, and once two loads are measured by what the fit allows."""
 
     def __init__(
         self,
@@ -155,11 +158,12 @@ class MeasuredCost:
         min_samples: int = MIN_SAMPLES,
         trust: float = TRUST,
         min_spread: float = MIN_SPREAD,
+        trust_limit: float = TRUST_LIMIT,
     ) -> None:
         if per_load < min_samples or min_samples < 1 or loads < 1:
             raise ValueError("MeasuredCost needs 1 <= min_samples <= per_load and loads >= 1")
         self.per_load, self.loads, self.min_samples = per_load, loads, min_samples
-        self.trust, self.min_spread = trust, min_spread
+        self.trust, self.min_spread, self.trust_limit = trust, min_spread, trust_limit
         self._by_load: OrderedDict[int, deque[TickCost]] = OrderedDict()  # least recently observed first
         self._trusted_at = 0  # the latest load when predict last answered None on trust
         self._lock = threading.Lock()
@@ -206,12 +210,17 @@ class MeasuredCost:
         if got is None:
             return None
         latest, lines, fitted = got
-        if not fitted and max(line(latest) for line in lines.values()) < self.trust * budget_s:
+        stages = {s: line(vertices) for s, line in lines.items()}
+        if (
+            not fitted
+            and max(line(latest) for line in lines.values()) < self.trust * budget_s
+            and max(stages.values()) <= self.trust_limit * budget_s
+        ):
             with self._lock:  # lightly loaded, fixed and per-vertex costs not told apart: admit, once a load
                 if self._trusted_at != latest:
                     self._trusted_at = latest
                     return None
-        return {s: line(vertices) for s, line in lines.items()}
+        return stages
 
 
 class Admission:

@@ -195,6 +195,13 @@ def test_a_lightly_loaded_server_trusts_once_per_load_so_a_burst_is_checked():
     with pytest.raises(DrapeError) as e:  # the next one, before any new measurement: conservative
         adm.check(16 + 1024, 1024, 2)
     assert e.value.code == "overloaded"
+    # one huge cloth beside a small one is not trusted (drape chaos's big-submit): 257 times the load
+    m1 = MeasuredCost()
+    adm.model = m1
+    _ticks(m1, 256, 30, 0.0002, 0.0015, 0.0001)
+    with pytest.raises(DrapeError):
+        adm.check(256, 256 * 256, 3)
+    adm.check(256, 1024, 4)  # a 32x32 one fits the conservative line (1.5 ms x 5 = 7.5 ms)
     # a burst of 32x32 cloths on a server measured at 100 of them (device 5 ms: light, not separable)
     m2 = MeasuredCost()
     adm.model = m2

@@ -8,8 +8,9 @@
  * (stiffness, compliance, inverse masses) are per lane. Vertex normals and areas (wind, the
  * normals feature) are computed across the lanes too, from the same triangles. The other
  * per-vertex phases (aerodynamics, predict, tethers, colliders, velocities) run lane by lane on
- * global memory with cloth.cl's own functions, so every feature means exactly what it means in
- * wg_step. Unused lanes hold zero positions and inverse masses: their links correct nothing.
+ * global memory with the functions every solver calls (integrate.cl), so every feature means
+ * exactly what it means in wg_step. Unused lanes hold zero positions and inverse masses: their
+ * links correct nothing.
  *
  * Arithmetic per lane is wg_step's in the same colour and link order (PBD: the talk's k,
  * XPBD: the multiplier per link, reset every substep, after the positions in local memory).

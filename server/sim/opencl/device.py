@@ -8,10 +8,16 @@ service releases the ones no cloth has used for a while (:meth:`Device.release_i
 CPU device holds about 1.5 MB of compiler state per program, returned to the OS only once the
 program is released and the heap trimmed) and builds them again when asked (from the OpenCL
 driver's own program cache on disk, about 25 ms each on PoCL).
+
+A program's source includes other kernel files (``#include "..."``: every build passes the
+kernel folder as ``-I``): :func:`program_text` appends a digest of every file it reaches, so the drivers'
+own program caches, which key on the text they are given (NVIDIA's reads no included file),
+build again when any of them changes.
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import re
@@ -39,6 +45,38 @@ def layout() -> dict[str, int]:
     """The ``#define NAME int`` constants of kernels/layout.h."""
     text = (kernel_dir() / "layout.h").read_text()
     return {m.group(1): int(m.group(2)) for m in re.finditer(r"^#define\s+(\w+)\s+(-?\d+)\b", text, re.M)}
+
+
+_INCLUDE = re.compile(r'^[ \t]*#[ \t]*include[ \t]+"([^"]+)"', re.M)
+
+
+def kernel_sources(source: str, root: Path | None = None) -> dict[str, bytes]:
+    """Kernel file ``source`` (in ``root``, by default :func:`kernel_dir`) and every kernel file it
+    includes, directly or not, whatever the build options, by name. An included name that is not
+    in the folder is left out (the compiler reports it); a missing ``source`` is an error."""
+    root = root or kernel_dir()
+    if not (root / source).is_file():
+        raise FileNotFoundError(f"no kernel source {source!r} in {root}")
+    files: dict[str, bytes] = {}
+    todo = [source]
+    while todo:
+        name = todo.pop()
+        if name in files or not (root / name).is_file():
+            continue
+        files[name] = (root / name).read_bytes()
+        todo.extend(_INCLUDE.findall(files[name].decode()))
+    return files
+
+
+def program_text(source: str, root: Path | None = None) -> str:
+    """The text of kernel file ``source`` as built: its own text, then a comment with a digest of
+    it and every file it includes (:func:`kernel_sources`). The comment goes last so that the
+    compiler's line numbers stay the file's own."""
+    files = kernel_sources(source, root)
+    h = hashlib.sha256()
+    for name in sorted(files):
+        h.update(f"{name}\0{len(files[name])}\0".encode() + files[name])
+    return f"{files[source].decode()}\n/* drape kernel sources {h.hexdigest()[:16]}: {', '.join(sorted(files))} */\n"
 
 
 def _all_devices() -> list[cl.Device]:
@@ -181,7 +219,7 @@ class Device:
             with self._lock:
                 prg = self._programs.get(key)
             if prg is None:
-                text = (kernel_dir() / source).read_text()
+                text = program_text(source)
                 opts = [*options, *os.environ.get("DRAPE_CL_FLAGS", "").split(), "-I", str(kernel_dir())]
                 log.debug("building %s with %s", source, " ".join(options))
                 prg = cl.Program(self.ctx, text).build(options=opts)

@@ -1,0 +1,47 @@
+/* The coloured solver's link iterations (cl_links): one launch per colour batch and iteration,
+ * over every cloth of a group at once, one work-item per link. Links of one colour share no
+ * vertex, so a batch has no conflicts; the order of the batches is the reference's colour order
+ * (Gauss-Seidel across colours). Built with USE_LOCAL=0 only. Included by cloth.cl. */
+
+/* One colour batch of every cloth in the group: global id -> (cloth, link) through the
+ * group's prefix table of link counts for this colour. */
+__kernel void cl_links(const float dt, const int colour, const int it, const int ngc,
+                       __global const int *prefix, __global const int *cloths, __global const int *ci,
+                       __global const float *cf, __global const int *fab, __global float4 *pos,
+                       __global float *lam_all)
+{
+    const int g = get_global_id(0);
+    __global const int *P = prefix + colour * (ngc + 1);
+    if (g >= P[ngc])
+        return;
+    int lo = 0, hi = ngc; /* largest j with P[j] <= g */
+    while (hi - lo > 1) {
+        int mid = (lo + hi) >> 1;
+        if (P[mid] <= g)
+            lo = mid;
+        else
+            hi = mid;
+    }
+    const int c = cloths[lo];
+    __global const int *I = ci + c * CI_STRIDE;
+    if (it >= I[CI_ITERS])
+        return;
+    __global const float *F = cf + c * CF_STRIDE;
+    __global const int *fb = fab + I[CI_FAB];
+    const int l = fb[I[CI_OFF_COLOURS] + colour] + (g - P[lo]);
+    __global const int *L = fb + I[CI_OFF_LINKS] + LINK_WORDS * l;
+    __global float4 *X = pos + I[CI_VBASE];
+    int a = L[0], b = L[1], type = L[2];
+    float rl = as_float(L[3]);
+    float4 p0 = X[a], p1 = X[b];
+    float3 d0, d1;
+#if FEATURE_XPBD
+    __global float *lam = lam_all + I[CI_LAM];
+    float h = dt / (float)I[CI_SUBSTEPS];
+    lam[l] += link_xpbd(p0, p1, rl, link_alpha(F, type, h), lam[l], &d0, &d1);
+#else
+    link_pbd(p0, p1, rl, F[CF_STIFFNESS + type], &d0, &d1);
+#endif
+    X[a] = (float4)(p0.xyz + d0, p0.w);
+    X[b] = (float4)(p1.xyz + d1, p1.w);
+}

@@ -1,0 +1,40 @@
+/* Integration of one substep, per vertex: predict_vertex (gravity, wind, semi-implicit Euler, pins
+ * moved toward their targets) before the link solve, finish_vertex (tethers, colliders, the
+ * velocity from the positions, damping) after it. Every solver calls both. Included by cloth.cl
+ * after tethers.cl and colliders.cl. */
+
+/* gravity (+ wind), integrate, move pins toward their targets */
+inline float4 predict_vertex(float4 x, float3 aero, __global float4 *vel, __global float4 *prev,
+                             __global const float4 *target, int gv, __global const float *F, float h, int remaining)
+{
+    prev[gv] = x;
+    if (x.w > 0.0f) {
+        float3 g = (float3)(F[CF_GRAVITY], F[CF_GRAVITY + 1], F[CF_GRAVITY + 2]);
+        float4 v = vel[gv];
+        float3 vv = v.xyz + g * h + aero;
+        vel[gv] = (float4)(vv, 0.0f);
+        x.xyz += vv * h;
+    } else {
+        x.xyz += (target[gv].xyz - x.xyz) / (float)remaining;
+    }
+    return x;
+}
+
+/* tethers, colliders, velocity from positions */
+inline float4 finish_vertex(float4 x, XS const float4 *X, __global const int *fb, __global const int *I,
+                            __global const float *F, __global float4 *vel, __global const float4 *prev,
+                            __global const float4 *coll, int v, int gv, float h, int s, int S)
+{
+    float4 xp = prev[gv];
+    if (x.w > 0.0f) {
+#if FEATURE_TETHERS
+        x.xyz = tether_vertex(x.xyz, X, fb, I, F, v);
+#endif
+#if FEATURE_COLLIDERS
+        x.xyz = collide_vertex(x.xyz, xp.xyz, coll, I[CI_COLL], I[CI_NCOLL], (float)s / (float)S,
+                               (float)(s + 1) / (float)S, F[CF_FRICTION]);
+#endif
+    }
+    vel[gv] = (float4)((x.xyz - xp.xyz) / h * (1.0f - F[CF_DAMP_SUB]), 0.0f);
+    return x;
+}

@@ -205,7 +205,7 @@ typedef struct DrapeStateInfo {
 extern "C" {
 #endif // __cplusplus
 
-// The library's version and the protocol version it speaks, e.g. "drape-client 0.2.0, protocol 1.3".
+// The library's version and the protocol version it speaks, e.g. "drape-client 0.3.0, protocol 1.4".
 const char *drape_version(void);
 
 // The message of this thread's last error, copied into `buf` (NUL-terminated, truncated).
@@ -282,6 +282,10 @@ uint64_t drape_cloth_handle(const struct DrapeCloth *cloth);
 
 // The server's cloth id (changes when failover resubmits it).
 int32_t drape_cloth_id(const struct DrapeCloth *cloth, char *buf, size_t len);
+
+// The server the cloth lives on (placed by load when the client names no server; changes when
+// failover resubmits it).
+int32_t drape_cloth_server(const struct DrapeCloth *cloth, char *buf, size_t len);
 
 // Copy the rest mesh: `positions` 3 floats per vertex, `triangles` 3 indices per triangle
 // (either may be NULL to skip it; lengths are element counts).
@@ -379,6 +383,25 @@ int32_t drape_batch_send(const struct DrapeClient *client,
                          int32_t *codes,
                          uint64_t *ticks,
                          size_t len);
+
+// Move pinned vertices `indices[0..index_count]` of each of the `cloth_count` cloths
+// `cloths[j]`: its vertex `indices[i]` goes to `targets[3 * (j * index_count + i) ..][0..3]`
+// (`3 * cloth_count * index_count` floats, cloth by cloth). To a protocol 1.4 server one
+// `moves` block per request (`Client::move_pins_many`); to an older one, batch items.
+// `wait`: block for the replies; cloth j's status goes to `codes[j]` and its first tick showing
+// the move to `ticks[j]` (either may be NULL, else `cloth_count` long); DRAPE_OK then means the
+// requests were answered, each cloth's outcome is in `codes`. Not waiting: failures arrive as
+// REQUEST_FAILED events. Bad input (targets NULL, repeated indices, a non-finite target, a cloth
+// not live) is refused before anything is sent.
+int32_t drape_move_pins_many(const struct DrapeClient *client,
+                             const struct DrapeCloth *const *cloths,
+                             size_t cloth_count,
+                             const uint32_t *indices,
+                             size_t index_count,
+                             const float *targets,
+                             bool wait,
+                             int32_t *codes,
+                             uint64_t *ticks);
 
 #ifdef __cplusplus
 }  // extern "C"

@@ -4,7 +4,7 @@
 //! server killed under its cloths (reported, and resumed elsewhere with the opt-in failover).
 mod common;
 
-use drape::client::{Client, ClientOptions, Cloth, Event, LossReason};
+use drape::client::{Client, Cloth, Event, LossReason};
 use drape::wire::{Collider, Control, Encoding, ErrorCode, Grid, Orientation, StateOptions, Submit};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
@@ -15,22 +15,7 @@ fn shared() -> Option<&'static common::Server> {
 }
 
 fn connect(servers: &[&common::Server], server_id: Option<&str>, failover: bool) -> Client {
-    let opts = ClientOptions {
-        connect: servers.iter().map(|s| s.endpoint.clone()).collect(),
-        server_id: server_id.map(str::to_string),
-        timeout: Duration::from_secs(10),
-        failover,
-        ..Default::default()
-    };
-    let client = Client::open(opts).expect("open");
-    let t0 = Instant::now();
-    for s in servers {
-        while !client.servers(Duration::from_millis(500)).unwrap().contains(&s.id) {
-            assert!(t0.elapsed() < common::START_TIMEOUT, "server {} not up; its log:\n{}", s.id, s.log_text());
-            std::thread::sleep(Duration::from_millis(200));
-        }
-    }
-    client
+    common::connect(servers, server_id, failover)
 }
 
 fn opts() -> Submit {
@@ -426,7 +411,7 @@ fn c_abi_feature_changes() {
     let name = |code: i32| unsafe { CStr::from_ptr(drape_error_name(code)) }.to_str().unwrap().to_string();
     assert_eq!(name(DRAPE_E_OVERLOADED), "overloaded");
     assert_eq!(name(DRAPE_E_UNKNOWN), "unknown");
-    assert!(unsafe { CStr::from_ptr(drape_version()) }.to_str().unwrap().ends_with("protocol 1.3"));
+    assert!(unsafe { CStr::from_ptr(drape_version()) }.to_str().unwrap().ends_with("protocol 1.4"));
     unsafe {
         let opts = DrapeClientOptions {
             connect: connect.as_ptr(),

@@ -106,17 +106,23 @@ impl ClothInner {
         if ctl.pins.is_none() && ctl.colliders.is_none() && !ctl.reset {
             return;
         }
-        let mut sent = self.sent.lock().unwrap();
         if let Some(p) = &ctl.pins {
-            for (i, t) in p.indices.iter().zip(p.targets.chunks_exact(3)) {
-                sent.pins.insert(*i, [t[0], t[1], t[2]]);
-            }
+            self.note_pins(&p.indices, &p.targets);
         }
+        let mut sent = self.sent.lock().unwrap();
         if let Some(c) = &ctl.colliders {
             sent.colliders = Some(c.clone());
         }
         if ctl.reset {
             sent.pins.clear();
+        }
+    }
+
+    /// Remember pin targets about to be sent (a control's or a 1.4 moves block's).
+    pub(crate) fn note_pins(&self, indices: &[u32], targets: &[f32]) {
+        let mut sent = self.sent.lock().unwrap();
+        for (i, t) in indices.iter().zip(targets.chunks_exact(3)) {
+            sent.pins.insert(*i, [t[0], t[1], t[2]]);
         }
     }
 
@@ -343,7 +349,8 @@ impl Cloth {
     }
 }
 
-/// Controls of many cloths, sent as batch controls by [`super::Client::send_batch`].
+/// Controls of many cloths, sent as batch controls by [`super::Client::send_batch`] (to a 1.4
+/// server, pins-only items of several cloths sharing one index list as one `moves` block).
 #[derive(Default, Clone)]
 pub struct Batch {
     pub(crate) items: Vec<(Arc<ClothInner>, Control)>,
@@ -395,8 +402,12 @@ pub(crate) fn send_batch(inner: &Arc<Inner>, batch: Batch, wait: bool) -> Result
             return Err(e.clone()); // nothing is sent when an item is invalid here
         }
     }
-    for (server, items) in by_server {
-        let (_, lim) = inner.server_info(&server)?;
+    for (server, mut items) in by_server {
+        let (version, lim) = inner.server_info(&server)?;
+        if version >= (1, 4) {
+            // 1.4: pins-only items sharing one index list go as one moves block
+            super::moves::take_block(inner, &server, &mut items, wait, &mut results)?;
+        }
         if lim.max_batch_items == 0 {
             for (i, c, ctl) in items {
                 // a 1.0 server: one control per item (validated again there, on the same data)

@@ -7,9 +7,11 @@
 //! Recovery, on this module's one worker thread: if the cloth's own server is live again, the
 //! cloth is probed there first and kept when it still exists; otherwise it is resubmitted, from
 //! the client's copy of its submission plus `resume` (the positions of its last received state
-//! and the velocities of its last two), to the least loaded live server by the servers' stats
-//! publications (fewest vertices, then the lowest mean tick cost; vertices placed during this
-//! round count), under the same handle. The last pin targets and colliders the game sent are
+//! and the velocities of its last two), to the live server the placement ranks first
+//! (PROTOCOL.md 11.3, `placement.rs`: by the servers' stats, this client's submissions not yet in
+//! them counted, so a burst of resubmissions spreads by load), under the same handle. A refusal
+//! another server may not give (`overloaded`, `busy`, `limit_exceeded`, no reply) tries the next
+//! server; any other error means the request itself is wrong and the cloth is lost with it. The last pin targets and colliders the game sent are
 //! sent again right after, and an [`Event::ClothResubmitted`] reports it.
 //!
 //! Per state nothing is copied or decoded for this: a cloth keeps references to its last two
@@ -20,25 +22,17 @@ use super::recv::Latest;
 use super::{Event, Inner, LossReason};
 use crate::wire::error::{Error, ErrorCode};
 use crate::wire::msg::{Control, Pins, Resume};
-use crate::wire::reader::{unpack_message, Reader};
+use crate::wire::placement::PLACE_ELSEWHERE;
 use crate::wire::decode_state_into;
 use std::collections::{HashMap, HashSet};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
-use zenoh::pubsub::Subscriber;
 use zenoh::Wait;
 
 /// The tick rate assumed when the lost server's stats and info never said (Hz).
 pub(crate) const DEFAULT_TICK_RATE: f64 = 60.0;
 /// The bound of resumed velocities (PROTOCOL.md 4.1: `max_acceleration`, m/s).
 const MAX_VELOCITY: f64 = 1e4;
-
-/// A server's load from its last stats publication.
-#[derive(Debug, Clone, Copy)]
-struct Load {
-    vertices: f64,
-    tick_ms: f64,
-}
 
 struct LostCloth {
     cloth: Arc<ClothInner>,
@@ -53,8 +47,6 @@ pub(crate) struct Failover {
     pub(crate) give_up_after: Duration,
     lost: Mutex<HashMap<u64, LostCloth>>,
     cv: Condvar,
-    loads: Mutex<HashMap<String, Load>>,
-    stats_sub: Mutex<Option<Subscriber<()>>>,
 }
 
 impl Failover {
@@ -64,8 +56,6 @@ impl Failover {
             give_up_after,
             lost: Mutex::new(HashMap::new()),
             cv: Condvar::new(),
-            loads: Mutex::new(HashMap::new()),
-            stats_sub: Mutex::new(None),
         }
     }
 
@@ -75,27 +65,16 @@ impl Failover {
     }
 
     pub(crate) fn close(&self) {
-        self.stats_sub.lock().unwrap().take();
         self.lost.lock().unwrap().clear();
         self.cv.notify_all();
     }
 }
 
-/// Subscribe to the servers' stats and start the worker thread.
+/// Start the worker thread (the servers' stats come through the placement's subscription).
 pub(crate) fn start(inner: &Arc<Inner>) -> crate::wire::Result<()> {
-    let Some(fo) = inner.fo.as_ref() else { return Ok(()) };
-    let weak = Arc::downgrade(inner);
-    let sub = inner
-        .session
-        .declare_subscriber(inner.keys.stats("*"))
-        .callback(move |s| {
-            if let Some(inner) = weak.upgrade() {
-                on_stats(&inner, s.key_expr().as_str(), &s.payload().to_bytes());
-            }
-        })
-        .wait()
-        .map_err(|e| super::zerr("stats subscriber", e))?;
-    *fo.stats_sub.lock().unwrap() = Some(sub);
+    if inner.fo.is_none() {
+        return Ok(());
+    }
     let weak = Arc::downgrade(inner);
     std::thread::Builder::new()
         .name("drape-failover".into())
@@ -120,28 +99,6 @@ pub(crate) fn start(inner: &Arc<Inner>) -> crate::wire::Result<()> {
         })
         .map_err(|e| Error::new(ErrorCode::Internal, format!("cannot start the failover thread: {e}")))?;
     Ok(())
-}
-
-/// A stats publication (PROTOCOL.md section 10): the server's load and tick rate.
-fn on_stats(inner: &Inner, key: &str, payload: &[u8]) {
-    let Ok(m) = unpack_message(payload) else { return };
-    let r = Reader::new(&m, "");
-    let from_key = key.rsplit('/').nth(1).unwrap_or_default();
-    let server = r.str("server", false).ok().flatten().unwrap_or(from_key).to_string();
-    let vertices = r.u64("vertices", false).ok().flatten().unwrap_or(0) as f64;
-    let tick_ms = r
-        .sub("phases", false)
-        .ok()
-        .flatten()
-        .and_then(|p| p.sub("tick", false).ok().flatten())
-        .and_then(|t| t.f64("mean_ms", false).ok().flatten())
-        .unwrap_or(0.0);
-    if let Some(rate) = r.f64("tick_rate", false).ok().flatten().filter(|x| *x > 0.0 && x.is_finite()) {
-        inner.servers.lock().unwrap().rates.insert(server.clone(), rate);
-    }
-    if let Some(fo) = inner.fo.as_ref() {
-        fo.loads.lock().unwrap().insert(server, Load { vertices, tick_ms });
-    }
 }
 
 /// Called on a Zenoh thread when `server`'s liveliness token vanished.
@@ -210,7 +167,6 @@ fn done(inner: &Inner, handle: u64) {
 }
 
 fn recover(inner: &Arc<Inner>, todo: Vec<(u64, Arc<ClothInner>, String, LossReason, Instant)>) {
-    let mut placed: HashMap<String, f64> = HashMap::new();
     for (handle, c, old_server, reason, since) in todo {
         let (status, old_id, token) = {
             let s = c.slot.lock().unwrap();
@@ -244,7 +200,7 @@ fn recover(inner: &Arc<Inner>, todo: Vec<(u64, Arc<ClothInner>, String, LossReas
             });
             continue;
         }
-        resubmit(inner, &c, &old_server, &old_id, reason, since, &mut placed);
+        resubmit(inner, &c, &old_server, &old_id, reason, since);
     }
 }
 
@@ -252,21 +208,6 @@ fn recover(inner: &Arc<Inner>, todo: Vec<(u64, Arc<ClothInner>, String, LossReas
 fn probe(inner: &Inner, server: &str, id: &str, token: &str) -> crate::wire::Result<()> {
     let payload = Control::new(id, token).encode(inner.next_rid());
     inner.request_within(server, "control", payload, inner.timeout.min(Duration::from_secs(2))).map(|_| ())
-}
-
-/// The least loaded live server not in `tried` (fewest vertices, `placed` included, then the
-/// lowest mean tick cost, then the id); servers without stats come last.
-fn pick(inner: &Inner, tried: &HashSet<String>, placed: &HashMap<String, f64>) -> Option<String> {
-    let live: Vec<String> = inner.servers.lock().unwrap().live.iter().filter(|s| !tried.contains(*s)).cloned().collect();
-    let loads = inner.fo.as_ref().map(|f| f.loads.lock().unwrap().clone()).unwrap_or_default();
-    let key = |s: &String| match loads.get(s) {
-        Some(l) => (l.vertices + placed.get(s).copied().unwrap_or(0.0), l.tick_ms),
-        None => (f64::INFINITY, f64::INFINITY),
-    };
-    live.into_iter().min_by(|a, b| {
-        let (ka, kb) = (key(a), key(b));
-        ka.0.total_cmp(&kb.0).then(ka.1.total_cmp(&kb.1)).then(a.cmp(b))
-    })
 }
 
 /// The `resume` of a resubmission from the cloth's last two received states (PROTOCOL.md 4.1):
@@ -302,8 +243,7 @@ pub(crate) fn resume_from(prev: Option<&Latest>, last: Option<&Latest>, n: usize
     })
 }
 
-fn resubmit(inner: &Arc<Inner>, c: &Arc<ClothInner>, old_server: &str, old_id: &str, reason: LossReason, since: Instant,
-            placed: &mut HashMap<String, f64>) {
+fn resubmit(inner: &Arc<Inner>, c: &Arc<ClothInner>, old_server: &str, old_id: &str, reason: LossReason, since: Instant) {
     let (prev, last, old_sub) = {
         let mut s = c.slot.lock().unwrap();
         (s.prev.clone(), s.latest.clone(), s.sub.take())
@@ -314,11 +254,12 @@ fn resubmit(inner: &Arc<Inner>, c: &Arc<ClothInner>, old_server: &str, old_id: &
     let resumed_tick = resume.as_ref().and_then(|r| r.tick);
     let mut tried = HashSet::new();
     let mut last_err = None;
-    while let Some(target) = pick(inner, &tried, placed) {
+    let mut wrong = false;
+    // the best live server not tried yet (PROTOCOL.md 11.3; no wait for stats: a loss is urgent)
+    while let Some(target) = inner.placement.ranked(&inner.live_servers(), &tried, false).into_iter().next() {
         tried.insert(target.clone());
         match inner.place(c, &target, resume.clone()) {
             Ok(rep) => {
-                *placed.entry(target.clone()).or_insert(0.0) += c.n_vertices as f64;
                 {
                     let mut s = inner.servers.lock().unwrap();
                     if s.current.is_none() {
@@ -339,12 +280,18 @@ fn resubmit(inner: &Arc<Inner>, c: &Arc<ClothInner>, old_server: &str, old_id: &
                 });
                 return;
             }
-            // overloaded, busy, unavailable...: the next best server
-            Err(e) => last_err = Some(e),
+            // overloaded, busy, limit_exceeded, no reply: the next best server
+            Err(e) if PLACE_ELSEWHERE.contains(&e.code) => last_err = Some(e),
+            // the request itself is wrong (PROTOCOL.md 11.3): no server will take it
+            Err(e) => {
+                last_err = Some(e);
+                wrong = true;
+                break;
+            }
         }
     }
     let give_up = inner.fo.as_ref().map_or(Duration::ZERO, |f| f.give_up_after);
-    if since.elapsed() >= give_up {
+    if wrong || since.elapsed() >= give_up {
         let error = last_err.unwrap_or_else(|| {
             Error::new(ErrorCode::Unavailable, format!("no live server to fail cloth {old_id} over to within {give_up:?}"))
         });

@@ -1,9 +1,12 @@
 //! The Zenoh client: a session with this client's liveliness token, server discovery by
 //! liveliness, requests (waited for or not), submissions, state reception (single keys and
-//! bundles) and, opt-in, the failover of PROTOCOL.md section 11.1 (protocol 1.3): lost or
-//! reclaimed cloths resumed on the least loaded live server from their last received states.
+//! bundles), placement by load (PROTOCOL.md 11.3, protocol 1.4), 1.4 `moves` blocks and, opt-in,
+//! the failover of PROTOCOL.md section 11.1 (protocol 1.3): lost or reclaimed cloths resumed on
+//! the least loaded live server from their last received states.
 mod cloth;
 mod failover;
+mod moves;
+mod placement;
 mod recv;
 
 pub use cloth::{Batch, Cloth, StateInfo};
@@ -28,7 +31,8 @@ pub struct ClientOptions {
     /// Endpoints of the server(s) or of a router.
     pub connect: Vec<String>,
     pub namespace: String,
-    /// The server to use; None picks the first one seen by liveliness (sorted by id).
+    /// The server to use for every submission; None places each new cloth on the least loaded
+    /// live server by the servers' stats (PROTOCOL.md 11.3).
     pub server_id: Option<String>,
     /// This client's id (its liveliness token, and in its 1.4 request keys); None: the
     /// deployment's ([`deployment_client_id_for`]: `$DRAPE_CLIENT_ID`, else the
@@ -121,6 +125,11 @@ pub(crate) struct Inner {
     pub(crate) timeout: Duration,
     /// The failover state (`ClientOptions::failover`).
     pub(crate) fo: Option<failover::Failover>,
+    /// The servers' loads and this client's choice of a server (PROTOCOL.md 11.3).
+    pub(crate) placement: placement::Placement,
+    /// `ClientOptions::server_id` was given: every submission goes there.
+    pub(crate) server_given: bool,
+    stats_sub: Mutex<Option<Subscriber<()>>>,
     rid: AtomicU64,
     next_handle: AtomicU64,
     pub(crate) servers: Mutex<Servers>,
@@ -189,12 +198,16 @@ impl Client {
         set(&mut cfg, "scouting/multicast/enabled", "false")?;
         let session = zenoh::open(cfg).wait().map_err(|e| zerr("cannot open the Zenoh session", e))?;
         let keys = Keys::new(&opts.namespace);
+        let placement = placement::Placement::new(&client_id, opts.timeout.min(placement::STATS_WAIT));
         let inner = Arc::new(Inner {
             session,
             keys,
             client_id,
             timeout: opts.timeout,
             fo: opts.failover.then(|| failover::Failover::new(opts.stall_timeout, opts.failover_give_up)),
+            placement,
+            server_given: opts.server_id.is_some(),
+            stats_sub: Mutex::new(None),
             rid: AtomicU64::new(1),
             next_handle: AtomicU64::new(1),
             servers: Mutex::new(Servers { current: opts.server_id.clone(), ..Default::default() }),
@@ -207,6 +220,7 @@ impl Client {
             watch: Mutex::new(None),
             token: Mutex::new(None),
         });
+        placement::subscribe(&inner)?;
         let weak = Arc::downgrade(&inner);
         let watch = inner
             .session
@@ -237,10 +251,19 @@ impl Client {
         &self.inner.client_id
     }
 
-    /// The server this client submits to (found by liveliness when not given, waiting up to
-    /// the timeout; with failover it changes when its server is lost).
+    /// The server given in the options, or else this client's default server for requests that
+    /// name none (`info`): the placement's first choice among the live ones, kept while it is
+    /// live (waiting up to the timeout for one). Submissions are placed one by one
+    /// (PROTOCOL.md 11.3): see [`Cloth::server`].
     pub fn server_id(&self) -> Result<String> {
         self.inner.server_id()
+    }
+
+    /// The last stats publication of `server` (PROTOCOL.md section 10: load, counters, phases;
+    /// informational, fields may be added in any minor version), as received on
+    /// `{ns}/server/{server}/stats`; None before the first one.
+    pub fn stats(&self, server: &str) -> Option<Map> {
+        self.inner.placement.stats(server)
     }
 
     /// Ids of the servers whose liveliness tokens are visible now (a liveliness get).
@@ -289,15 +312,15 @@ impl Client {
     }
 
     /// Submit as is (shape included) and subscribe to the cloth's state. `rest`/`triangles`
-    /// are kept on the handle for rendering.
+    /// are kept on the handle for rendering. To the server given in the options, else to the
+    /// live server the placement ranks first (PROTOCOL.md 11.3); a refusal another server may not
+    /// give (`overloaded`, `busy`, `limit_exceeded`, no reply) tries the next one, and the last
+    /// refusal is returned when every live server refused.
     pub fn submit(&self, mut submit: Submit, rest: Vec<f32>, triangles: Vec<u32>) -> Result<Cloth> {
         submit.client = self.inner.client_id.clone();
-        let server = self.server_id()?;
-        let lim = self.inner.limits(&server);
-        submit.validate(&lim)?;
         let handle = self.inner.next_handle.fetch_add(1, Ordering::Relaxed);
         let c = cloth::ClothInner::new(handle, submit, rest, triangles);
-        self.inner.place(&c, &server, None)?;
+        self.inner.submit_placed(&c)?;
         Ok(Cloth { inner: c, client: self.inner.clone() })
     }
 
@@ -336,6 +359,7 @@ impl Client {
         if let Some(fo) = self.inner.fo.as_ref() {
             fo.close();
         }
+        self.inner.stats_sub.lock().unwrap().take();
         self.inner.reg.lock().unwrap().clear();
         self.inner.bundle_sub.lock().unwrap().take();
         self.inner.watch.lock().unwrap().take();
@@ -365,19 +389,6 @@ impl Inner {
         Ok(())
     }
 
-    pub(crate) fn server_id(&self) -> Result<String> {
-        let s = self.servers.lock().unwrap();
-        if let Some(c) = &s.current {
-            return Ok(c.clone());
-        }
-        let (mut s, _) = self.servers_cv.wait_timeout_while(s, self.timeout, |s| s.live.is_empty()).unwrap();
-        let first = s.live.iter().next().cloned().ok_or_else(|| {
-            Error::new(ErrorCode::Unavailable, format!("no Drape server seen in namespace {:?} within {:?}", self.keys.namespace, self.timeout))
-        })?;
-        s.current = Some(first.clone());
-        Ok(first)
-    }
-
     fn on_server(self: &Arc<Self>, id: String, alive: bool) {
         let mut s = self.servers.lock().unwrap();
         if alive {
@@ -394,6 +405,7 @@ impl Inner {
         s.live.remove(&id);
         s.info.remove(&id);
         drop(s);
+        self.placement.server_gone(&id);
         self.push_event(Event::ServerLost { server: id.clone() });
         failover::server_lost(self, &id);
     }
@@ -551,7 +563,9 @@ impl Inner {
         let mut req = c.submit.clone();
         req.rid = self.next_rid();
         req.resume = resume;
+        let ticket = self.placement.placing(server, c.n_vertices as u64); // counted there until its next stats
         let res = self.request(server, "submit", req.encode()).and_then(|m| SubmitReply::from_map(&m));
+        self.placement.placed(ticket, res.is_ok());
         let out = res.and_then(|rep| recv::attach(self, c, server, rep.clone()).map(|_| rep));
         if bundled {
             let mut reg = self.reg.lock().unwrap();

@@ -67,7 +67,7 @@ pub struct DrapeStateInfo {
     pub bounds_max: [f32; 3],
 }
 
-unsafe fn slice<'a, T>(p: *const T, n: usize) -> Option<&'a [T]> {
+pub(crate) unsafe fn slice<'a, T>(p: *const T, n: usize) -> Option<&'a [T]> {
     if n == 0 {
         Some(&[])
     } else if p.is_null() {
@@ -185,6 +185,13 @@ pub unsafe extern "C" fn drape_cloth_handle(cloth: *const DrapeCloth) -> u64 {
 #[no_mangle]
 pub unsafe extern "C" fn drape_cloth_id(cloth: *const DrapeCloth, buf: *mut c_char, len: usize) -> i32 {
     guard(|| cloth.as_ref().map_or_else(|| bad("cloth is NULL"), |c| super::copy_out(&c.cloth.id(), buf, len)))
+}
+
+/// The server the cloth lives on (placed by load when the client names no server; changes when
+/// failover resubmits it).
+#[no_mangle]
+pub unsafe extern "C" fn drape_cloth_server(cloth: *const DrapeCloth, buf: *mut c_char, len: usize) -> i32 {
+    guard(|| cloth.as_ref().map_or_else(|| bad("cloth is NULL"), |c| super::copy_out(&c.cloth.server(), buf, len)))
 }
 
 /// Copy the rest mesh: `positions` 3 floats per vertex, `triangles` 3 indices per triangle

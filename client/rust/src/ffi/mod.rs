@@ -9,7 +9,9 @@
 //! thread (`drape_last_error`). No function panics across the boundary.
 #![allow(clippy::missing_safety_doc)]
 mod cloth;
+mod moves;
 pub use cloth::*;
+pub use moves::*;
 
 use crate::client::{Client, ClientOptions, Cloth, Event, LossReason};
 use crate::wire::error::{Error, ErrorCode};
@@ -166,10 +168,10 @@ fn fill(dst: &mut [c_char], s: &str) {
     dst[n] = 0;
 }
 
-/// The library's version and the protocol version it speaks, e.g. "drape-client 0.2.0, protocol 1.3".
+/// The library's version and the protocol version it speaks, e.g. "drape-client 0.3.0, protocol 1.4".
 #[no_mangle]
 pub extern "C" fn drape_version() -> *const c_char {
-    concat!("drape-client ", env!("CARGO_PKG_VERSION"), ", protocol 1.3\0").as_ptr() as *const c_char
+    concat!("drape-client ", env!("CARGO_PKG_VERSION"), ", protocol 1.4\0").as_ptr() as *const c_char
 }
 
 /// The message of this thread's last error, copied into `buf` (NUL-terminated, truncated).

@@ -78,6 +78,27 @@ impl Drop for Server {
 
 pub const START_TIMEOUT: Duration = Duration::from_secs(60);
 
+/// A client connected to every server of `servers` (timeout 10 s), returned once it sees each
+/// one's liveliness token (a cold server builds its kernels first: up to `START_TIMEOUT`).
+pub fn connect(servers: &[&Server], server_id: Option<&str>, failover: bool) -> drape::client::Client {
+    let opts = drape::client::ClientOptions {
+        connect: servers.iter().map(|s| s.endpoint.clone()).collect(),
+        server_id: server_id.map(str::to_string),
+        timeout: Duration::from_secs(10),
+        failover,
+        ..Default::default()
+    };
+    let client = drape::client::Client::open(opts).expect("open");
+    let t0 = std::time::Instant::now();
+    for s in servers {
+        while !client.servers(Duration::from_millis(500)).unwrap().contains(&s.id) {
+            assert!(t0.elapsed() < START_TIMEOUT, "server {} not up; its log:\n{}", s.id, s.log_text());
+            std::thread::sleep(Duration::from_millis(200));
+        }
+    }
+    client
+}
+
 /// C ABI submission options pinning `pins`: float32, no bundle, server defaults for the rest.
 pub fn c_cloth_options(pins: &[u32], normals: bool) -> drape::ffi::DrapeClothOptions {
     drape::ffi::DrapeClothOptions {

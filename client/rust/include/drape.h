@@ -112,7 +112,8 @@ typedef struct DrapeCloth DrapeCloth;
 typedef struct DrapeClientOptions {
   // Comma-separated Zenoh endpoints (default "tcp/127.0.0.1:7447").
   const char *connect;
-  // The server to use (NULL: the first one seen by liveliness).
+  // The server to use for every submission (NULL: each new cloth is placed on the least loaded
+  // live server by the servers' stats, PROTOCOL.md 11.3; `drape_cloth_server` says where).
   const char *server_id;
   // This client's id, also in its 1.4 request keys (NULL: $DRAPE_CLIENT_ID, else random).
   const char *client_id;
@@ -238,8 +239,9 @@ void drape_client_close(struct DrapeClient *client, bool remove);
 // This client's id (the id of its liveliness token).
 int32_t drape_client_id(const struct DrapeClient *client, char *buf, size_t len);
 
-// The server this client submits to (discovered by liveliness if not given; waits up to
-// the timeout).
+// The server given in the options, or else this client's default server for requests that
+// name none: the placement's first choice among the live ones, kept while it is live (waits up
+// to the timeout for one). Each new cloth is placed on its own (`drape_cloth_server`).
 int32_t drape_client_server_id(const struct DrapeClient *client, char *buf, size_t len);
 
 // Take the next event, waiting up to `timeout_ms`: DRAPE_OK (`*out` filled) or DRAPE_NO_DATA.

@@ -58,6 +58,13 @@ fn placement_spreads_and_failover_gathers() {
     let Some(bin) = common::drape_bin() else { return };
     let (a, b) = (common::start(&bin, &[]), common::start(&bin, &[]));
     let client = common::connect(&[&a, &b], None, true);
+    // Both servers' first stats publications (a placement waits 1.5 s at most for missing ones,
+    // then ranks a server without stats last: a slow start must not decide this test).
+    let t0 = Instant::now();
+    while client.stats(&a.id).is_none() || client.stats(&b.id).is_none() {
+        assert!(t0.elapsed() < common::START_TIMEOUT, "no stats from {} or {}", a.id, b.id);
+        std::thread::sleep(Duration::from_millis(100));
+    }
     let cloths: Vec<Cloth> = (0..8).map(|_| cape(&client)).collect();
     let mut per_server: HashMap<String, usize> = HashMap::new();
     for c in &cloths {
@@ -68,7 +75,6 @@ fn placement_spreads_and_failover_gathers() {
     // each submission counts where it went until that server's stats do (a stats publication
     // racing a reply may shift one cloth)
     assert!(on_a >= 3 && on_b >= 3, "8 cloths not spread by load over {} and {}: {per_server:?}", a.id, b.id);
-    assert!(client.stats(&a.id).is_some() && client.stats(&b.id).is_some(), "both servers' stats were read");
     // one moves block per server, waited for
     let all: Vec<f32> = (0..8).flat_map(|j| targets(j, 0)).collect();
     let ticks = client.move_pins_many(&cloths, &[0, 7], &all, true).unwrap().unwrap();

@@ -80,7 +80,8 @@ pub struct DrapeClient {
 pub struct DrapeClientOptions {
     /// Comma-separated Zenoh endpoints (default "tcp/127.0.0.1:7447").
     pub connect: *const c_char,
-    /// The server to use (NULL: the first one seen by liveliness).
+    /// The server to use for every submission (NULL: each new cloth is placed on the least loaded
+    /// live server by the servers' stats, PROTOCOL.md 11.3; `drape_cloth_server` says where).
     pub server_id: *const c_char,
     /// This client's id, also in its 1.4 request keys (NULL: $DRAPE_CLIENT_ID, else random).
     pub client_id: *const c_char,
@@ -306,8 +307,9 @@ pub unsafe extern "C" fn drape_client_id(client: *const DrapeClient, buf: *mut c
     })
 }
 
-/// The server this client submits to (discovered by liveliness if not given; waits up to
-/// the timeout).
+/// The server given in the options, or else this client's default server for requests that
+/// name none: the placement's first choice among the live ones, kept while it is live (waits up
+/// to the timeout for one). Each new cloth is placed on its own (`drape_cloth_server`).
 #[no_mangle]
 pub unsafe extern "C" fn drape_client_server_id(client: *const DrapeClient, buf: *mut c_char, len: usize) -> i32 {
     guard(|| match client.as_ref() {

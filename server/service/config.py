@@ -97,7 +97,7 @@ class ServerConfig:
     state_congestion: str = "drop"  # drop | block | auto (see PROTOCOL.md, "Congestion control")
     drop_max_bytes: int = 60000  # auto: states up to this size use DROP, larger ones BLOCK
     device_encode: bool = True  # OpenCL worlds: states encoded on the device (one launch, one readback)
-    publish_threads: int = 4  # device-encoded frames: publications copied and put by this many threads at once
+    publish_threads: int = 1  # device-encoded frames: publications copied and put by this many threads at once
     gil_switch_ms: float = 0.5  # Python's GIL switch interval in the server process (sys.setswitchinterval)
     program_idle_s: float = 10.0  # kernel programs no cloth used this long are released (0: kept for good)
     malloc_mmap_threshold: int = 4 << 20  # bytes: larger blocks mapped apart, returned when freed (0: glibc's)

@@ -152,7 +152,7 @@ class Publisher:
         self._buffers: dict[str, bytearray] = {}  # payload buffers reused per key
         self._encoder = FrameEncoder()
         self._roster_version: tuple[int, int] | None = None
-        self.last_cost_s = 0.0  # encode + put of the last frame (the tick's cost model adds it)
+        self.last_cost_s = 0.0  # encode + put of the last frame: admission.py's publisher stage
         self.replier: Replier | None = None  # the run thread's (replies never wait in the publisher)
         n = config.publish_threads
         self._putters = ThreadPoolExecutor(n, thread_name_prefix="drape-put") if n > 1 else None
@@ -310,16 +310,17 @@ class Publisher:
     def _publish_encoded(self, job: Job) -> None:
         """Put each publication's slice of the device-encoded frame.
 
-        Each slice is copied into the payload buffer kept for its key (a numpy copy: it runs
-        without the GIL) and the buffer is put (zenoh copies a ``bytearray`` once, with the
-        GIL, then hands it to its transport without it; its ZBytes takes no memoryview in this
-        build, and a ``bytes`` copy would be one more copy with the GIL). A put waits while its
-        link's queue drains into the subscriber, so one thread putting every publication in
-        turn adds up all the subscribers' transfers; ``publish_threads`` threads overlap them
-        (issue 10: 16 bundles of 1.5 MB took 11.7 ms of puts a tick on the H100 one by one).
-        The publications of one tick all finish before the next tick's start, so each key's
-        states stay in order. Timers: ``publish`` is the wall time of the tick's copies and
-        puts together (the publisher's own time), ``encode`` the copies' summed time."""
+        Each slice is copied into the payload buffer kept for its key and the buffer is put
+        (zenoh copies a ``bytearray`` once, with the GIL, then hands it to its transport
+        without it; its ZBytes takes no memoryview in this build). A put waits while its link's
+        queue drains into the subscriber, so ``publish_threads`` > 1 overlaps the subscribers'
+        transfers; but every put gives the GIL back and waits up to a switch interval
+        (``gil_switch_ms``) to take it again, so more threads mean more waits: measured on the
+        H100 at 4096 quant16 with Python's 5 ms interval, 4 threads ran 24.8 Hz against 56.7
+        Hz for one (docs/loadtest.md, session 12). The publications of one tick all finish
+        before the next tick's start, so each key's states stay in order. Timers: ``publish``
+        is the wall time of the tick's copies and puts together (the publisher's own time),
+        ``encode`` the copies' summed time."""
         ro, enc = job.roster, job.encoded
         assert ro is not None and enc is not None
         t0 = time.perf_counter()
@@ -376,7 +377,7 @@ def _put(w: _Put) -> None:
     """Copy ``w``'s slice into its buffer and put it (on a put thread or the publisher's)."""
     try:
         a = time.perf_counter()
-        np.copyto(np.frombuffer(w.buf, np.uint8), np.frombuffer(w.view, np.uint8))
+        w.buf[:] = w.view  # a memcpy that keeps the GIL: giving it back costs a switch interval
         w.copy_s = time.perf_counter() - a
         w.pub.put(w.buf)
     except Exception as e:

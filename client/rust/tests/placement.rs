@@ -136,8 +136,10 @@ fn moves_blocks_reach_the_states() {
     // bad input is refused before anything is sent
     let e = client.move_pins_many(&cloths, &[0, 0], &[0.0; 18], true).unwrap_err();
     assert_eq!(e.code, ErrorCode::InvalidValue, "{e}");
-    let e = client.move_pins_many(&cloths, &[0], &[0.0; 3], false).unwrap_err();
-    assert_eq!(e.code, ErrorCode::InvalidValue, "{e}");
+    for (idx, tgt) in [(&[0u32][..], vec![0.0f32; 3]), (&[][..], vec![]), (&[0][..], vec![f32::NAN; 9])] {
+        let e = client.move_pins_many(&cloths, idx, &tgt, false).unwrap_err();
+        assert_eq!(e.code, ErrorCode::InvalidValue, "{idx:?}: {e}");
+    }
     let e = client.move_pins_many(&cloths[..1], &[40], &[0.0; 3], false).unwrap_err();
     assert_eq!(e.code, ErrorCode::IndexOutOfRange, "{e}");
     // not waited for: the states show it

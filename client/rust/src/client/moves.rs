@@ -16,7 +16,8 @@ use crate::wire::error::{Error, ErrorCode, Result};
 use crate::wire::msg::{Control, ControlBatch, Material, Pins};
 use crate::wire::reader::Map;
 use crate::wire::replies::Applied;
-use crate::wire::{Moves, MovesReply, MAX_BATCH_MOVES};
+use crate::wire::moves::check_block;
+use crate::wire::{Limits, Moves, MovesReply, MAX_BATCH_MOVES};
 use std::collections::{BTreeMap, HashMap};
 use std::sync::{Arc, Weak};
 
@@ -44,10 +45,12 @@ impl Client {
         let inner = &self.inner;
         inner.check_open()?;
         let (n, k) = (cloths.len(), indices.len());
-        if targets.len() != 3 * n * k {
-            return Err(Error::new(ErrorCode::InvalidValue,
-                                  format!("{} target floats for {n} cloths x {k} pins x 3 = {}", targets.len(), 3 * n * k)));
+        if n == 0 {
+            return Ok(wait.then(Vec::new));
         }
+        // the shape and values of the moves, whatever the servers (checked again per block
+        // with each server's limits)
+        check_block(n, indices, targets, &Limits::default())?;
         let mut results: Vec<Result<Applied>> = vec![Ok(Applied::default()); n];
         let mut by_server: BTreeMap<String, Vec<Mover<'_>>> = BTreeMap::new();
         for (pos, c) in cloths.iter().enumerate() {

@@ -50,33 +50,10 @@ impl Moves {
         if let Some(j) = self.tokens.iter().position(|t| !valid_token(t)) {
             return Err(invalid(format!("'moves.tokens[{j}]' must be 32 lowercase hex digits")));
         }
-        if n == 0 {
-            return Err(invalid("'moves.cloths' must name at least one cloth"));
-        }
         if self.tokens.len() != n {
             return Err(invalid(format!("'moves.tokens' has {} entries but 'cloths' has {n}", self.tokens.len())));
         }
-        let k = self.indices.len();
-        if k == 0 {
-            return Err(invalid("'moves.indices' must hold at least one vertex index"));
-        }
-        if k > lim.max_pin_updates {
-            return Err(Error::new(ErrorCode::TooLarge, format!("'moves.indices' has {k} entries, at most {}", lim.max_pin_updates)));
-        }
-        let mut sorted = self.indices.clone();
-        sorted.sort_unstable();
-        if sorted.windows(2).any(|w| w[0] == w[1]) {
-            return Err(invalid("'moves.indices' repeats a vertex index"));
-        }
-        if self.targets.len() != n * k * 3 {
-            return Err(invalid(format!("'moves.targets' has {} values, expected {n} cloths x {k} pins x 3 = {}",
-                                       self.targets.len(), n * k * 3)));
-        }
-        if let Some(i) = self.targets.iter().position(|x| !(x.abs() <= COORD)) {
-            return Err(invalid(format!("'moves.targets' values must be finite within ±1e5: value {i} (cloth {}) is {}",
-                                       i / (3 * k), self.targets[i])));
-        }
-        Ok(())
+        check_block(n, &self.indices, &self.targets, lim)
     }
 
     /// The `moves` block of a batch control (None when absent), read and validated whole.
@@ -107,6 +84,34 @@ impl Moves {
         m.validate(lim)?;
         Ok(Some(m))
     }
+}
+
+/// The part of a block's checks that needs no ids (PROTOCOL.md 5.1.1): at least one cloth
+/// (`n`), 1..`max_pin_updates` distinct `indices`, exactly `n * k * 3` `targets`, each finite
+/// within ±1e5. [`Moves::validate`] adds the ids, the tokens and the `MAX_BATCH_MOVES` cap.
+pub fn check_block(n: usize, indices: &[u32], targets: &[f32], lim: &Limits) -> Result<()> {
+    if n == 0 {
+        return Err(invalid("'moves.cloths' must name at least one cloth"));
+    }
+    let k = indices.len();
+    if k == 0 {
+        return Err(invalid("'moves.indices' must hold at least one vertex index"));
+    }
+    if k > lim.max_pin_updates {
+        return Err(Error::new(ErrorCode::TooLarge, format!("'moves.indices' has {k} entries, at most {}", lim.max_pin_updates)));
+    }
+    let mut sorted = indices.to_vec();
+    sorted.sort_unstable();
+    if sorted.windows(2).any(|w| w[0] == w[1]) {
+        return Err(invalid("'moves.indices' repeats a vertex index"));
+    }
+    if targets.len() != n * k * 3 {
+        return Err(invalid(format!("'moves.targets' has {} values, expected {n} cloths x {k} pins x 3 = {}", targets.len(), n * k * 3)));
+    }
+    if let Some(i) = targets.iter().position(|x| !(x.abs() <= COORD)) {
+        return Err(invalid(format!("'moves.targets' values must be finite within ±1e5: value {i} (cloth {}) is {}", i / (3 * k), targets[i])));
+    }
+    Ok(())
 }
 
 /// A batch control as the server reads it: the envelope (and, 1.4, the `moves` block) all or

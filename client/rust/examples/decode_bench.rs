@@ -6,7 +6,9 @@
 use drape::wire::{decode_state_into, encode_bundle, encode_state, parse_bundle, Encoding};
 use std::hint::black_box;
 use std::path::PathBuf;
-use std::time::Instant;
+#[path = "bench/mod.rs"]
+mod bench;
+use bench::median_ns;
 
 fn grid(cols: usize, rows: usize, phase: f32) -> Vec<f32> {
     (0..rows * cols)
@@ -19,21 +21,6 @@ fn grid(cols: usize, rows: usize, phase: f32) -> Vec<f32> {
 
 fn normals(n: usize) -> Vec<f32> {
     (0..n).flat_map(|i| { let a = i as f32 * 0.01; [a.sin() * 0.6, 0.0, a.cos() * 0.8] }).collect()
-}
-
-/// Median over `rounds` of the mean time of `iters` calls, in ns.
-fn median_ns(rounds: usize, iters: usize, mut f: impl FnMut()) -> f64 {
-    let mut t: Vec<f64> = (0..rounds)
-        .map(|_| {
-            let t0 = Instant::now();
-            for _ in 0..iters {
-                f();
-            }
-            t0.elapsed().as_nanos() as f64 / iters as f64
-        })
-        .collect();
-    t.sort_by(|a, b| a.partial_cmp(b).unwrap());
-    t[rounds / 2]
 }
 
 fn main() {
@@ -90,6 +77,7 @@ fn main() {
         Ok(out) => eprintln!("python bench failed: {}", String::from_utf8_lossy(&out.stderr)),
         Err(e) => eprintln!("cannot run {python}: {e}"),
     }
+    println!("machine: {}\n", bench::machine());
     println!("| payload | vertices | bytes | Rust decode into caller buffers, ns/vertex | Python decode, ns/vertex | Python decode + copy into a caller array, ns/vertex |");
     println!("| --- | ---: | ---: | ---: | ---: | ---: |");
     for (name, verts, bytes, ns) in rows {

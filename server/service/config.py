@@ -90,7 +90,8 @@ class ServerConfig:
     max_batch_items: int = 64  # controls in one batch control request (protocol 1.1)
     max_iterations: int = 100
     max_substeps: int = 100  # the quality presets go up to 100 (exact); lower it to forbid them
-    max_pending_requests: int = 1024  # queued commands; beyond this requests get "busy"
+    max_pending_requests: int = 1024  # queued requests (and commands); beyond this requests get "busy"
+    max_pending_request_bytes: int = 64 << 20  # payload bytes of queued requests; beyond this: "busy"
     # --- service -------------------------------------------------------------------------------
     grace_period: float = 5.0  # seconds a client's cloths outlive its liveliness token
     stats_period: float = 1.0  # seconds between stats publications
@@ -99,6 +100,8 @@ class ServerConfig:
     device_encode: bool = True  # OpenCL worlds: states encoded on the device (one launch, one readback)
     publish_threads: int = 1  # device-encoded frames: publications copied and put by this many threads at once
     gil_switch_ms: float = 0.5  # Python's GIL switch interval in the server process (sys.setswitchinterval)
+    request_nice: int = 0  # the request thread's niceness above the process's (0..19; see requestq.py)
+    request_yield: bool = False  # the request thread starts requests only while the tick thread sleeps
     program_idle_s: float = 10.0  # kernel programs no cloth used this long are released (0: kept for good)
     malloc_mmap_threshold: int = 4 << 20  # bytes: larger blocks mapped apart, returned when freed (0: glibc's)
     build_in_child: str = "off"  # off | start | always: kernels built and first run in a child process
@@ -138,6 +141,8 @@ class ServerConfig:
             raise ValueError(f"state_congestion must be one of {CONGESTION_CHOICES}")
         if not (0.01 <= self.gil_switch_ms <= 100):
             raise ValueError("gil_switch_ms must be in 0.01..100 ms")
+        if not (0 <= self.request_nice <= 19):
+            raise ValueError("request_nice must be in 0..19")
         if self.program_idle_s < 0:
             raise ValueError("program_idle_s must be >= 0 (0: programs are kept for good)")
         if self.malloc_mmap_threshold < 0:
@@ -155,6 +160,7 @@ class ServerConfig:
             "max_iterations",
             "max_substeps",
             "max_pending_requests",
+            "max_pending_request_bytes",
         ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1")
@@ -322,6 +328,8 @@ HELP = {
     "max_iterations": "solver iterations a cloth may ask for",
     "max_substeps": "substeps a cloth may ask for",
     "max_pending_requests": "queued requests before new ones get 'busy'",
+    "max_pending_request_bytes": "payload bytes of the queued requests before new ones get 'busy' "
+    "(one request is always taken when none waits)",
     "grace_period": "seconds a vanished client's cloths are kept",
     "stats_period": "seconds between stats publications",
     "state_congestion": "Zenoh congestion control of state publications",
@@ -330,6 +338,8 @@ HELP = {
     "publish_threads": "threads that copy and put a device-encoded frame's publications at once (1: one)",
     "gil_switch_ms": "the server process's GIL switch interval in ms (Python's default is 5: a thread "
     "returning from a Zenoh call waits up to that long behind a busy one)",
+    "request_nice": "niceness the request thread (decoding, validation, replies) adds to the process's",
+    "request_yield": "start requests only while the tick thread sleeps between ticks (waiting one tick at most)",
     "program_idle_s": "seconds after which a kernel program no cloth uses is released and the heap trimmed "
     "(built again from the driver's disk cache when needed; 0: kept for good)",
     "malloc_mmap_threshold": "drape serve: heap blocks of this many bytes or more get their own mapping, "

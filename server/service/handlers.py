@@ -1,7 +1,9 @@
-"""The Zenoh queryable callbacks: decode and validate every request with drape.client.protocol,
-check ownership and quotas against the registry, admission against the cost model, then hand
-the work on (submissions to the cook worker, everything else to the tick thread's intake). A bad
-request gets its error reply right here; nothing else notices it. A batch control is validated
+"""The request handlers: decode and validate every request with drape.client.protocol, check
+ownership and quotas against the registry, admission against the cost model, then hand the work
+on (submissions to the cook worker, everything else to the tick thread's intake). A bad request
+gets its error reply right here; nothing else notices it. Zenoh's queryable callbacks only queue
+the queries (requestq.py: bounded, a full queue answers ``busy`` without decoding); the handlers
+run on the one request thread, in arrival order. A batch control is validated
 item by item: a bad item gets its own error in the reply, the others go ahead; its moves block
 (1.4) move by move, without a per-move loop unless one is refused (moves.py).
 
@@ -35,6 +37,7 @@ from .config import ServerConfig
 from .moves import MoveChecker, refused_counts
 from .registry import ClothRecord, Registry
 from .replies import Replies, Reply, send
+from .requestq import RequestQueue, TickGate
 from .requests import pack
 
 log = logging.getLogger(__name__)
@@ -76,10 +79,20 @@ class Handlers:
         self.moves = MoveChecker(registry)  # 1.4 moves blocks
         self.limits = config.limits()
         self._tick, self._info, self._stopping = tick, info, stopping
+        self.gate = TickGate(config.dt) if config.request_yield else None
+        self.request_queue = RequestQueue(
+            config.max_pending_requests,
+            config.max_pending_request_bytes,
+            self.refuse,
+            name=f"drape-requests-{config.server_id}",
+            nice=config.request_nice,
+            gate=self.gate,
+        )
 
     def endpoints(self) -> list[tuple[str, Callable[[zenoh.Query], None]]]:
         """(key expression, callback) of every queryable this server declares: the client-scoped
-        request keys (1.4), the server-wide ones unless ``identity = "keys"``, and info."""
+        request keys (1.4), the server-wide ones unless ``identity = "keys"``, and info. Each
+        callback queues its query for the request thread (``self.request_queue``, started by the server)."""
         sid = self.config.server_id
         callbacks: dict[str, Callable[..., None]] = {
             "submit": self.on_submit,
@@ -91,10 +104,19 @@ class Handlers:
         if self.config.identity == "open":
             out += [(getattr(self.keys, n)(sid), self._guard(n, cb)) for n, cb in callbacks.items()]
         out.append((self.keys.info(sid), self._guard("info", self.on_info)))
-        return out
+        return [(key, self.request_queue.callback(name, handler)) for key, (name, handler) in out]
 
-    def _guard(self, name: str, cb: Callable[..., None], scoped: bool = False) -> Callable[[zenoh.Query], None]:
-        """The queryable callback around ``cb(query, payload, client)``: counts, turns every
+    def refuse(self, name: str, query: zenoh.Query, reason: str) -> None:
+        """Answer a query the request queue turned away (full, or the server stopping): ``busy``,
+        counted as a request of its kind; nothing of it is decoded."""
+        with self.registry.lock:
+            self.registry.requests[name] += 1
+        self.replies.send_error(query, P.ERR_BUSY, reason, 0)
+
+    def _guard(
+        self, name: str, cb: Callable[..., None], scoped: bool = False
+    ) -> tuple[str, Callable[[zenoh.Query], None]]:
+        """(name, the handler around ``cb(query, payload, client)``): counts, turns every
         DrapeError into its error reply; ``scoped``: ``client`` is the id the query's key names."""
         reg = self.registry
 
@@ -117,11 +139,11 @@ class Handlers:
                 if e.code == ERR_OVERLOADED:
                     reg.count("overload_refusals")
                 self.replies.send_error(query, e.code, e.message, rid)
-            except Exception as e:  # never let a request kill a Zenoh thread
+            except Exception as e:  # never let a request kill the request thread
                 log.exception("internal error handling %s", name)
                 self.replies.send_error(query, P.ERR_INTERNAL, f"internal error: {type(e).__name__}", rid)
 
-        return handler
+        return name, handler
 
     # --- submit ------------------------------------------------------------------------------------
     @staticmethod

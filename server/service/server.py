@@ -4,7 +4,8 @@
 owning one job (and one thread's state):
 
 - registry (registry.py): cloths, clients, ownership, quotas, counters; lock-protected;
-- handlers (handlers.py): the Zenoh queryable callbacks, on Zenoh's threads;
+- handlers (handlers.py): the request handlers, on the request thread, fed by the bounded
+  request queue (requestq.py) that Zenoh's queryable callbacks put their queries on;
 - commands (commands.py): the bounded, per-cloth coalescing intake of the tick thread;
 - cook (cook.py): the cook thread, fabrics (the one fabric cache) and kernel builds;
 - ticker (ticker.py): the tick thread, the only one touching the World, and its applier
@@ -99,6 +100,8 @@ class Server:
             self.info,
             self._stopping.is_set,
         )
+        if self.handlers.gate is not None:  # requests start while the tick thread sleeps
+            self.ticker.on_sleep = self.handlers.gate.tick_sleeps
         self._session: zenoh.Session | None = None
         self._declared: list[Any] = []
         self._token: Any = None
@@ -139,6 +142,7 @@ class Server:
         ]
         for t in self._threads:
             t.start()
+        self.handlers.request_queue.start()
         self.publisher.stats_pub = s.declare_publisher(
             self.keys.stats(sid), congestion_control=zenoh.CongestionControl.DROP
         )
@@ -177,6 +181,7 @@ class Server:
             for d in self._declared:
                 undeclare(d)
             self._declared.clear()
+            self.handlers.request_queue.close()  # what still waits is answered busy
             self.cook.queue.put(None)
             self.ticker.stop_event.set()
             deadline = time.monotonic() + timeout

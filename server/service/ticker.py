@@ -72,6 +72,7 @@ class Ticker:
         self.applier = Applier(config, registry, replies, intake, fabrics, adaptive)  # the tick's commands
         self.applier.on_drop = self._forget
         self.publish_cost: Callable[[], float] = lambda: 0.0
+        self.on_sleep: Callable[[bool], None] = lambda sleeping: None  # around the sleep between ticks
         self.tick = 0
         self.failure: BaseException | None = None
         self.stop_event = threading.Event()
@@ -177,7 +178,9 @@ class Ticker:
                         self.registry.count("missed_ticks", missed)
                         next_t += missed * period
                 else:
+                    self.on_sleep(True)  # the request thread may start requests (requestq.TickGate)
                     self.stop_event.wait(next_t - now)
+                    self.on_sleep(False)
         except BaseException as e:  # a device failure: stop serving loudly
             log.exception("tick loop failed")
             self.failure = e

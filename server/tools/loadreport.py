@@ -108,6 +108,34 @@ def phase_means(window: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, floa
     return out
 
 
+def admission_capacity(reports: Sequence[Mapping[str, Any]], loads: Sequence[int], budget_s: float) -> int:
+    """The largest load (cloths) the server's admission model admits once it has measured the
+    ``loads`` (cloths) of these reports (load test JSON dicts, float32 32x32 or not: vertices are
+    taken from each report): each report's phase means become ten steady ticks (tick thread =
+    tick - readback, device = solve, publisher = encode + publish). Tells what the model makes of
+    a load test's figures, e.g. those of a quiet machine (docs/loadtest.md, session 12)."""
+    from drape.server.service.admission import MeasuredCost, TickCost
+
+    model = MeasuredCost()
+    vpc = 0
+    for r in reports:
+        if r["cloths"] not in loads:
+            continue
+        ph = {k: v["mean"] / 1e3 for k, v in r["server"]["phases_ms"].items()}
+        vpc = int(r["vertices_per_cloth"])
+        cost = TickCost(r["cloths"] * vpc, ph["tick"] - ph["readback"], ph["solve"], ph["encode"] + ph["publish"])
+        for _ in range(10):
+            model.observe(cost)
+    if not vpc:
+        raise ValueError(f"no report of {list(loads)} cloths")
+    n = 0
+    while True:  # the first cloth more that the model refuses (None: admitted on trust)
+        got = model.predict((n + 1) * vpc, budget_s)
+        if got is not None and max(got.values()) > budget_s:
+            return n
+        n += 1
+
+
 @dataclass
 class Report:
     cloths: int  # admitted

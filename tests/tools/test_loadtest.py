@@ -15,7 +15,14 @@ from PIL import Image
 
 from drape.server.tools import loadtest as lt
 from drape.server.tools.loadclient import decode_cost, window_counts
-from drape.server.tools.loadreport import achieved_rate, markdown_table, missed_summary, timeline, write_summary_plot
+from drape.server.tools.loadreport import (
+    achieved_rate,
+    admission_capacity,
+    markdown_table,
+    missed_summary,
+    timeline,
+    write_summary_plot,
+)
 from drape.server.tools.procs import ServerProcess
 
 
@@ -55,6 +62,26 @@ def test_timeline_tells_each_stats_period_of_a_window():
         == "missed ticks in 1 of 3 stats periods (at most 10 in one, ending 1.0 s into the window)"
     )
     assert missed_summary(periods[:1]) == "no period with a missed tick"
+
+
+def test_admission_capacity_replays_a_load_tests_figures():
+    """Reports whose device takes 2 ms + 0.1 ms a cloth (the slowest stage): with a budget of
+    10 ms the model admits 80 cloths once it has measured two loads; with one load (through the
+    origin: 4 ms at 20 cloths) it admits 50."""
+
+    def report(cloths: int) -> dict:
+        phases = {"tick": 1.0, "readback": 0.5, "solve": 2.0 + 0.1 * cloths, "encode": 0.1, "publish": 0.4}
+        return {
+            "cloths": cloths,
+            "vertices_per_cloth": 64,
+            "server": {"phases_ms": {k: {"mean": v} for k, v in phases.items()}},
+        }
+
+    reports = [report(20), report(40)]
+    assert admission_capacity(reports, [20, 40], 0.010) == 80
+    assert admission_capacity(reports, [20], 0.010) == 50
+    with pytest.raises(ValueError, match="no report"):
+        admission_capacity(reports, [30], 0.010)
 
 
 def test_window_counts_only_the_window_ticks():

@@ -221,6 +221,38 @@ def test_a_lightly_loaded_server_trusts_once_per_load_so_a_burst_is_checked():
     assert m2.fit()[2]
 
 
+class Synthetic(MeasuredCost):
+    """The measured model fed only what a test gives it (the real ticks' observations ignored)."""
+
+    def observe(self, cost: TickCost) -> None:
+        pass
+
+    def feed(self, cost: TickCost, n: int) -> None:
+        for _ in range(n):
+            super().observe(cost)
+
+
+def test_submits_past_a_light_measurement_are_trusted_once_then_predicted_end_to_end():
+    """Through a real server: one 8x8 cloth measured at 2 ms of device time (light, one load).
+    The next submit is admitted on trust; the ones after it by the conservative line (2 ms per
+    64 vertices), so 7 cloths in all fit the 14.2 ms budget and the 8th is refused."""
+    with Server(make_config(admission_budget=0.85, max_cloths_per_client=20)) as srv:
+        model = Synthetic()
+        model.feed(TickCost(64, 0.0005, 0.002, 0.0005), 30)
+        srv.admission.model = model
+        c = connect(srv)
+        try:
+            admitted = []
+            with pytest.raises(DrapeError) as e:
+                for _ in range(20):
+                    admitted.append(c.submit_grid(8, 8, pinned=[0, 7]))
+            assert len(admitted) == int(srv.admission.budget_s / 0.002) == 7
+            assert e.value.code == "overloaded" and "device stage" in e.value.message
+            assert srv.stats()["overload_refusals"] == 1
+        finally:
+            c.close()
+
+
 def test_the_tick_thread_reports_each_stage_of_steady_ticks():
     """End to end: the model sees the vertices stepped and non-negative stage times, only for
     ticks with no cloth coming or going, at most one a tick."""

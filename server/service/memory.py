@@ -10,7 +10,16 @@ and ``malloc_trim`` alone (programs kept) gave back nothing. So :class:`MemoryKe
 cook thread about once a second, releases the programs unused for ``program_idle_s``
 (``Device.release_idle``; built again from the driver's disk cache when a cloth needs one, about
 25 ms on the cook thread) and trims the heap after a release, or when RSS grew by more than
-``TRIM_GROWTH_MB`` since the last trim (fragments of large requests).
+``growth_mb`` (``TRIM_GROWTH_MB`` at first) since the last trim (fragments of large requests).
+
+A trim whose pages are back within one period was wasted, and not free: under a steady load
+(4096 cloths on the H100, RSS 600-700 MB, the payload copies of every tick) RSS grows 4 MB
+again within a second, and each ``malloc_trim`` held the arenas' locks while it gave back pages
+the next ticks faulted in again; the ticks stalled about 80 ms every 1.5-2 s (5 missed ticks
+each, docs/loadtest.md, session 12). So a wasted growth trim multiplies the growth that
+triggers the next one by ``TRIM_BACKOFF`` (up to ``TRIM_GROWTH_MAX_MB``), and a trim that
+stays given back divides it again: a loaded server stops trimming after a few tries, and one
+whose load went away trims at the first 4 MB again.
 """
 
 from __future__ import annotations
@@ -26,7 +35,10 @@ from typing import Any
 log = logging.getLogger(__name__)
 
 PERIOD_S = 1.0  # how often the cook thread runs MemoryKeeper.maintain
-TRIM_GROWTH_MB = 4.0  # trim without a release once RSS grew this much since the last trim
+TRIM_GROWTH_MB = 4.0  # trim without a release once RSS grew this much since the last trim (at first)
+TRIM_GROWTH_MAX_MB = 1024.0  # the most that wasted trims raise that growth to
+TRIM_BACKOFF = 4.0  # a wasted trim multiplies the growth that triggers the next one by this
+TRIM_WASTED_SHARE = 0.75  # a trim is wasted when this share of what it gave back is back one period on
 
 _PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
 
@@ -103,8 +115,11 @@ class MemoryKeeper:
         self.released = 0  # programs released
         self.trims = 0  # heap trims
         self.trimmed_mb = 0.0  # RSS given back by them, in all
+        self.wasted = 0  # growth trims whose pages were back one period on
+        self.growth_mb = TRIM_GROWTH_MB  # the RSS growth since the last trim that triggers one
         self._next = time.monotonic() + PERIOD_S
         self._after_trim: float | None = None  # RSS after the last trim
+        self._judge: tuple[float, float] | None = None  # RSS before and after the last growth trim
 
     def due(self, now: float | None = None) -> bool:
         return (time.monotonic() if now is None else now) >= self._next
@@ -119,12 +134,28 @@ class MemoryKeeper:
             released = dev.release_idle(self.program_idle_s, now)
             self.released += released
         before = rss_mb()
-        grew = before is not None and (self._after_trim is None or before > self._after_trim + TRIM_GROWTH_MB)
+        if self._judge is not None and before is not None:
+            self._judge_last_trim(before)
+        grew = before is not None and (self._after_trim is None or before > self._after_trim + self.growth_mb)
         if not (released or grew) or not trim_heap():
             return
         self.trims += 1
         after = rss_mb()
         self._after_trim = after
+        if not released and before is not None and after is not None and before > after:
+            self._judge = (before, after)
         if before is not None and after is not None:
             self.trimmed_mb += max(0.0, before - after)
             log.debug("released %d program(s), trimmed the heap: RSS %.1f -> %.1f MB", released, before, after)
+
+    def _judge_last_trim(self, now_mb: float) -> None:
+        """One period after a growth trim: back off when its pages came back, else recover."""
+        assert self._judge is not None
+        before, after = self._judge
+        self._judge = None
+        if now_mb - after >= TRIM_WASTED_SHARE * (before - after):
+            self.wasted += 1
+            self.growth_mb = min(TRIM_GROWTH_MAX_MB, self.growth_mb * TRIM_BACKOFF)
+            log.debug("wasted trim (%.1f -> %.1f -> %.1f MB): next at +%.0f MB", before, after, now_mb, self.growth_mb)
+        else:
+            self.growth_mb = max(TRIM_GROWTH_MB, self.growth_mb / TRIM_BACKOFF)

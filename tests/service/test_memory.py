@@ -63,3 +63,29 @@ def test_program_idle_zero_keeps_every_program():
             assert srv.call(lambda w: w.ready(cook_grid(6, 6, pinned=[0, 5]), params))  # still built
         finally:
             c.close()
+
+
+def test_wasted_heap_trims_back_off_and_recover(monkeypatch):
+    """A growth trim whose pages are back one period on (a steady load re-faulting them) raises
+    the growth that triggers the next trim, until the load's own swing no longer triggers one; a
+    trim that stays given back lowers it again. Driven with a scripted RSS: no server, no clock."""
+    rss = [100.0]  # a steady load swings between 50 MB (just trimmed) and 100 MB
+
+    def trim() -> bool:
+        rss[0] = 50.0
+        return True
+
+    monkeypatch.setattr(M, "rss_mb", lambda: rss[0])
+    monkeypatch.setattr(M, "trim_heap", trim)
+    keeper = M.MemoryKeeper(program_idle_s=0.0, device=lambda: None)
+    for t in range(10):
+        rss[0] = 100.0  # the pages the last trim gave back are in use again
+        keeper.maintain(now=float(t))
+    # two trims, both wasted: 4 -> 16 -> 64 MB, and the 50 MB swing no longer triggers one
+    assert keeper.wasted == 2 and keeper.growth_mb == M.TRIM_GROWTH_MB * M.TRIM_BACKOFF**2
+    assert keeper.trims == 2
+    rss[0] = 500.0  # a real growth still trims ...
+    keeper.maintain(now=10.0)
+    assert keeper.trims == 3
+    keeper.maintain(now=11.0)  # ... and its pages stay given back: the threshold comes down
+    assert keeper.wasted == 2 and keeper.growth_mb == M.TRIM_GROWTH_MB * M.TRIM_BACKOFF

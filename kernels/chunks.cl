@@ -9,26 +9,30 @@
  * chunk writes in the same launch: normals are their own launch, tethers read pinned anchors,
  * which these phases never move. */
 
-#define CHUNK_PROLOGUE                                                                           \
+/* A chunk kernel's first lines: its work-group's chunk ck = (cloth c, first vertex), the cloth's
+ * int table I and first vertex vbase, the end of the chunk's vertices v_end, and the work-item's
+ * place in the group. CHUNK_PROLOGUE adds the cloth's float table F, fabric fb and substeps S. */
+#define CHUNK_RANGE                                                                              \
     const int2 ck = chunks[get_group_id(0)];                                                     \
     const int c = ck.x;                                                                          \
     __global const int *I = ci + c * CI_STRIDE;                                                  \
-    __global const float *F = cf + c * CF_STRIDE;                                                \
-    __global const int *fb = fab + I[CI_FAB];                                                    \
-    const int vbase = I[CI_VBASE], S = I[CI_SUBSTEPS];                                           \
+    const int vbase = I[CI_VBASE];                                                               \
     const int v_end = min(ck.y + chunk, I[CI_NVERTS]);                                           \
     const int lid = get_local_id(0), ls = get_local_size(0);
+
+#define CHUNK_PROLOGUE                                                                           \
+    CHUNK_RANGE                                                                                  \
+    __global const float *F = cf + c * CF_STRIDE;                                                \
+    __global const int *fb = fab + I[CI_FAB];                                                    \
+    const int S = I[CI_SUBSTEPS];
 
 __kernel void cl_normals(const int chunk, __global const int2 *chunks, __global const int *ci,
                          __global const float *cf, __global const int *fab, __global const float4 *pos,
                          __global float4 *nrm)
 {
     CHUNK_PROLOGUE
-    for (int v = ck.y + lid; v < v_end; v += ls) {
-        float area;
-        float3 n = vertex_normal(pos + vbase, fb, I, v, &area);
-        nrm[vbase + v] = (float4)(n, area);
-    }
+    for (int v = ck.y + lid; v < v_end; v += ls)
+        nrm[vbase + v] = vertex_normal(pos + vbase, fb, I, v);
 }
 
 __kernel void cl_predict(const float dt, const int s, const int chunk, __global const int2 *chunks,
@@ -39,14 +43,8 @@ __kernel void cl_predict(const float dt, const int s, const int chunk, __global 
     CHUNK_PROLOGUE
     const float h = dt / (float)S;
     __global float4 *X = pos + vbase;
-    for (int v = ck.y + lid; v < v_end; v += ls) {
-        float3 f = (float3)(0.0f);
-#if FEATURE_WIND
-        float4 na = nrm[vbase + v];
-        f = aero_dv(vel[vbase + v].xyz, na.xyz, na.w, X[v].w, h, F);
-#endif
-        X[v] = predict_vertex(X[v], f, vel, prev, target, vbase + v, F, h, S - s);
-    }
+    for (int v = ck.y + lid; v < v_end; v += ls)
+        X[v] = predict_vertex(X[v], vel, prev, target, nrm, vbase + v, F, h, S - s);
 #if FEATURE_XPBD
     if (ck.y == 0) { /* the cloth's first chunk resets its multipliers */
         __global float *lam = lam_all + I[CI_LAM];

@@ -29,19 +29,7 @@ __kernel void cl_links(const float dt, const int colour, const int it, const int
     __global const float *F = cf + c * CF_STRIDE;
     __global const int *fb = fab + I[CI_FAB];
     const int l = fb[I[CI_OFF_COLOURS] + colour] + (g - P[lo]);
-    __global const int *L = fb + I[CI_OFF_LINKS] + LINK_WORDS * l;
+    const int4 R = vload4(l, fb + I[CI_OFF_LINKS]);
     __global float4 *X = pos + I[CI_VBASE];
-    int a = L[0], b = L[1], type = L[2];
-    float rl = as_float(L[3]);
-    float4 p0 = X[a], p1 = X[b];
-    float3 d0, d1;
-#if FEATURE_XPBD
-    __global float *lam = lam_all + I[CI_LAM];
-    float h = dt / (float)I[CI_SUBSTEPS];
-    lam[l] += link_xpbd(p0, p1, rl, link_alpha(F, type, h), lam[l], &d0, &d1);
-#else
-    link_pbd(p0, p1, rl, F[CF_STIFFNESS + type], &d0, &d1);
-#endif
-    X[a] = (float4)(p0.xyz + d0, p0.w);
-    X[b] = (float4)(p1.xyz + d1, p1.w);
+    solve_link(X, R, X[R.x], X[R.y], F, dt / (float)I[CI_SUBSTEPS], lam_all + I[CI_LAM], l);
 }

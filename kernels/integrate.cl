@@ -3,10 +3,16 @@
  * velocity from the positions, damping) after it. Every solver calls both. Included by cloth.cl
  * after tethers.cl and colliders.cl. */
 
-/* gravity (+ wind), integrate, move pins toward their targets */
-inline float4 predict_vertex(float4 x, float3 aero, __global float4 *vel, __global float4 *prev,
-                             __global const float4 *target, int gv, __global const float *F, float h, int remaining)
+/* gravity (+ wind, from the vertex's normal and area in nrm), integrate, move pins toward their
+ * targets; x is vertex gv's position */
+inline float4 predict_vertex(float4 x, __global float4 *vel, __global float4 *prev, __global const float4 *target,
+                             __global const float4 *nrm, int gv, __global const float *F, float h, int remaining)
 {
+    float3 aero = (float3)(0.0f);
+#if FEATURE_WIND
+    float4 na = nrm[gv];
+    aero = aero_dv(vel[gv].xyz, na.xyz, na.w, x.w, h, F);
+#endif
     prev[gv] = x;
     if (x.w > 0.0f) {
         float3 g = (float3)(F[CF_GRAVITY], F[CF_GRAVITY + 1], F[CF_GRAVITY + 2]);

@@ -2,7 +2,7 @@
  * (every vertex gathers its links' corrections from one buffer and writes the other; XPBD keeps
  * two halves of multipliers likewise), optionally Chebyshev-accelerated, and copy_positions to
  * bring an odd number of iterations back into the positions. Built with USE_LOCAL=0 only.
- * Included by cloth.cl. */
+ * Included by cloth.cl after chunks.cl (CHUNK_PROLOGUE, CHUNK_RANGE). */
 
 /* Chebyshev semi-iterative weight of Jacobi iteration `it` (Wang 2015); 1 when off. */
 inline float chebyshev_omega(float rho, int it)
@@ -86,9 +86,7 @@ __kernel void jacobi_iter(const float dt, const int it, const int chunk, __globa
 __kernel void copy_positions(const int chunk, __global const int2 *chunks, __global const int *ci,
                              __global const float4 *src, __global float4 *dst)
 {
-    const int2 ck = chunks[get_group_id(0)];
-    __global const int *I = ci + ck.x * CI_STRIDE;
-    const int vbase = I[CI_VBASE], v_end = min(ck.y + chunk, I[CI_NVERTS]);
-    for (int v = ck.y + get_local_id(0); v < v_end; v += get_local_size(0))
+    CHUNK_RANGE
+    for (int v = ck.y + lid; v < v_end; v += ls)
         dst[vbase + v] = src[vbase + v];
 }

@@ -1,8 +1,10 @@
 /* Vertex normals and areas: the area-weighted normal of a vertex's triangles and a third of their
- * area, from positions X (local or global memory, XS). The wind feature's aerodynamics (wind.cl)
- * and the normals feature's published normals read them. Included by cloth.cl. */
+ * area, from positions X (local or global memory, XS), as one float4 (normal, area): what the
+ * solvers store in the normals buffer, which the wind feature's aerodynamics (wind.cl, before each
+ * substep) and the normals feature's published normals (after the step) read. pack.cl computes
+ * the same across its lanes. Included by cloth.cl. */
 
-inline float3 vertex_normal(XS const float4 *X, __global const int *fb, __global const int *I, int v, float *area)
+inline float4 vertex_normal(XS const float4 *X, __global const int *fb, __global const int *I, int v)
 {
     __global const int *vto = fb + I[CI_OFF_VTRIOFF];
     __global const int *vt = fb + I[CI_OFF_VTRI];
@@ -17,6 +19,5 @@ inline float3 vertex_normal(XS const float4 *X, __global const int *fb, __global
         a += 0.5f * length(fn) / 3.0f;
     }
     float len = length(n);
-    *area = a;
-    return len > 1e-30f ? n / len : (float3)(0.0f);
+    return (float4)(len > 1e-30f ? n / len : (float3)(0.0f), a);
 }

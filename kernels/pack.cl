@@ -21,6 +21,38 @@
 #define intP PCAT(int, PACK_LANES)
 #define vloadP PCAT(vload, PACK_LANES)
 
+/* Lane j's vertex v in the pack's positions seen as floats (sxf): component k at
+ * sxf[(4 v + k) PACK_LANES + j], i.e. sx[4 v + k].s[j]. */
+inline void lane_put3(__local float *sxf, int v, int j, float3 x)
+{
+    sxf[(4 * v + 0) * PACK_LANES + j] = x.x;
+    sxf[(4 * v + 1) * PACK_LANES + j] = x.y;
+    sxf[(4 * v + 2) * PACK_LANES + j] = x.z;
+}
+
+inline void lane_put(__local float *sxf, int v, int j, float4 x)
+{
+    lane_put3(sxf, v, j, x.xyz);
+    sxf[(4 * v + 3) * PACK_LANES + j] = x.w;
+}
+
+inline float3 lane_get3(__local const float *sxf, int v, int j)
+{
+    return (float3)(sxf[(4 * v + 0) * PACK_LANES + j], sxf[(4 * v + 1) * PACK_LANES + j],
+                    sxf[(4 * v + 2) * PACK_LANES + j]);
+}
+
+/* The head of pack_step's loops over the lanes' cloths, as the first statement of
+ * `for (int j = 0; j < PACK_LANES; ++j) { ... }`: skips an unused lane, else declares lane j's
+ * cloth tables I and F, its first vertex vbase and its positions X (global memory). */
+#define LANE_CLOTH(j)                                                                              \
+    if (slot[j] < 0)                                                                               \
+        continue;                                                                                  \
+    __global const int *I = ci + slot[j] * CI_STRIDE;                                              \
+    __global const float *F = cf + slot[j] * CF_STRIDE;                                            \
+    const int vbase = I[CI_VBASE];                                                                 \
+    __global float4 *X = pos + vbase;
+
 /* one float of every lane's cloth table as a vector (0 in unused lanes) */
 inline floatP lane_floats(__global const float *cf, const int *slot, int off)
 {
@@ -91,13 +123,8 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
         if (vb[j] >= 0)
             continue;
 #endif
-        for (int v = 0; v < nv; ++v) {
-            const float4 x = vb[j] >= 0 ? pos[vb[j] + v] : (float4)(0.0f); /* unused: zero, w 0 */
-            sxf[(4 * v + 0) * PACK_LANES + j] = x.x;
-            sxf[(4 * v + 1) * PACK_LANES + j] = x.y;
-            sxf[(4 * v + 2) * PACK_LANES + j] = x.z;
-            sxf[(4 * v + 3) * PACK_LANES + j] = x.w;
-        }
+        for (int v = 0; v < nv; ++v)
+            lane_put(sxf, v, j, vb[j] >= 0 ? pos[vb[j] + v] : (float4)(0.0f)); /* unused: zero, w 0 */
     }
 #if FEATURE_XPBD
     const int nl = I0[CI_NLINKS];
@@ -117,24 +144,11 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
 #endif
         /* per lane: predict on global memory, then into the lanes */
         for (int j = 0; j < PACK_LANES; ++j) {
-            if (slot[j] < 0)
-                continue;
-            __global const int *I = ci + slot[j] * CI_STRIDE;
-            __global const float *F = cf + slot[j] * CF_STRIDE;
-            const int vbase = I[CI_VBASE];
-            __global float4 *X = pos + vbase;
+            LANE_CLOTH(j)
             for (int v = 0; v < nv; ++v) {
-                float3 f = (float3)(0.0f);
-#if FEATURE_WIND
-                float4 na = nrm[vbase + v];
-                f = aero_dv(vel[vbase + v].xyz, na.xyz, na.w, X[v].w, h, F);
-#endif
-                float4 x = predict_vertex(X[v], f, vel, prev, target, vbase + v, F, h, S - s);
+                const float4 x = predict_vertex(X[v], vel, prev, target, nrm, vbase + v, F, h, S - s);
                 X[v] = x;
-                sxf[(4 * v + 0) * PACK_LANES + j] = x.x;
-                sxf[(4 * v + 1) * PACK_LANES + j] = x.y;
-                sxf[(4 * v + 2) * PACK_LANES + j] = x.z;
-                sxf[(4 * v + 3) * PACK_LANES + j] = x.w;
+                lane_put(sxf, v, j, x);
             }
         }
 #if FEATURE_XPBD
@@ -161,51 +175,38 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
                     const floatP len = sqrt(L);
                     const floatP lam = slam[l];
                     const floatP dl = select((floatP)(0.0f), (-(len - rl) - a * lam) / denom, ok);
-                    const floatP nx = select((floatP)(0.0f), dx / len, ok);
-                    const floatP ny = select((floatP)(0.0f), dy / len, ok);
-                    const floatP nz = select((floatP)(0.0f), dz / len, ok);
+                    const floatP ux = select((floatP)(0.0f), dx / len, ok); /* along the unit direction */
+                    const floatP uy = select((floatP)(0.0f), dy / len, ok);
+                    const floatP uz = select((floatP)(0.0f), dz / len, ok);
                     slam[l] = lam + dl;
                     const floatP k0 = w0 * dl, k1 = w1 * dl;
-                    A[0] = x0 + -nx * k0;
-                    A[1] = y0 + -ny * k0;
-                    A[2] = z0 + -nz * k0;
-                    B[0] = x1 + nx * k1;
-                    B[1] = y1 + ny * k1;
-                    B[2] = z1 + nz * k1;
 #else
                     const float rl2 = rl * rl;
                     const floatP denom = (w0 + w1) * (rl2 + L);
                     const floatP k = select((floatP)(0.0f), kst[R.z] * (rl2 - L) / denom, denom > EPS_DENOM);
+                    const floatP ux = dx, uy = dy, uz = dz; /* along the link itself */
                     const floatP k0 = k * w0, k1 = k * w1;
-                    A[0] = x0 + -dx * k0;
-                    A[1] = y0 + -dy * k0;
-                    A[2] = z0 + -dz * k0;
-                    B[0] = x1 + dx * k1;
-                    B[1] = y1 + dy * k1;
-                    B[2] = z1 + dz * k1;
 #endif
+                    A[0] = x0 + -ux * k0;
+                    A[1] = y0 + -uy * k0;
+                    A[2] = z0 + -uz * k0;
+                    B[0] = x1 + ux * k1;
+                    B[1] = y1 + uy * k1;
+                    B[2] = z1 + uz * k1;
                 }
             }
         }
 
         /* per lane: out of the lanes, then tethers, colliders, velocities on global memory */
         for (int j = 0; j < PACK_LANES; ++j) {
-            if (slot[j] < 0)
-                continue;
-            __global const int *I = ci + slot[j] * CI_STRIDE;
-            __global const float *F = cf + slot[j] * CF_STRIDE;
-            const int vbase = I[CI_VBASE];
-            __global float4 *X = pos + vbase;
+            LANE_CLOTH(j)
             for (int v = 0; v < nv; ++v)
-                X[v].xyz = (float3)(sxf[(4 * v + 0) * PACK_LANES + j], sxf[(4 * v + 1) * PACK_LANES + j],
-                                    sxf[(4 * v + 2) * PACK_LANES + j]);
+                X[v].xyz = lane_get3(sxf, v, j);
             for (int v = 0; v < nv; ++v) {
                 const float4 x = finish_vertex(X[v], X, fb, I, F, vel, prev, coll, v, vbase + v, h, s, S);
                 X[v] = x;
 #if FEATURE_WIND || FEATURE_NORMALS
-                sxf[(4 * v + 0) * PACK_LANES + j] = x.x; /* the normals read the lanes */
-                sxf[(4 * v + 1) * PACK_LANES + j] = x.y;
-                sxf[(4 * v + 2) * PACK_LANES + j] = x.z;
+                lane_put3(sxf, v, j, x.xyz); /* the normals read the lanes */
 #endif
             }
         }

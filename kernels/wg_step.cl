@@ -1,11 +1,9 @@
 /* The work-group solver (wg_step): one work-group per cloth, every substep, iteration and colour
  * batch in one launch, the cloth's positions in local memory (USE_LOCAL=1, when it fits) or
  * global memory. Links of one colour share no vertex, so the group's work-items solve them in
- * parallel between barriers. The GPU's default solver, and the CPU's with one work-item per cloth
+ * parallel between barriers, which sit only where control flow is uniform across the group. The
+ * GPU's default solver, and the CPU's with one work-item per cloth
  * where the pack solver (pack.cl) is off. Included by cloth.cl. */
-
-/* Work-group solver: one work-group per cloth, every substep, iteration and colour batch in
- * one launch. Barriers sit only where control flow is uniform across the group. */
 
 __kernel void wg_step(const float dt, __global const int *cloths, __global const int *ci, __global const float *cf,
                       __global const int *fab, __global float4 *pos, __global float4 *vel, __global float4 *prev,
@@ -26,8 +24,8 @@ __kernel void wg_step(const float dt, __global const int *cloths, __global const
     const int iters = I[CI_ITERS], S = I[CI_SUBSTEPS];
     const int lid = get_local_id(0), ls = get_local_size(0);
     const float h = dt / (float)S;
+    __global float *lam = lam_all + I[CI_LAM]; /* XPBD's multipliers (PBD reads none) */
 #if FEATURE_XPBD
-    __global float *lam = lam_all + I[CI_LAM];
     const int nl = I[CI_NLINKS];
 #endif
 #if USE_LOCAL
@@ -41,21 +39,12 @@ __kernel void wg_step(const float dt, __global const int *cloths, __global const
 
     for (int s = 0; s < S; ++s) {
 #if FEATURE_WIND
-        for (int v = lid; v < nv; v += ls) {
-            float area;
-            float3 n = vertex_normal(X, fb, I, v, &area);
-            nrm[vbase + v] = (float4)(n, area);
-        }
+        for (int v = lid; v < nv; v += ls)
+            nrm[vbase + v] = vertex_normal(X, fb, I, v);
         barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
 #endif
-        for (int v = lid; v < nv; v += ls) {
-            float3 f = (float3)(0.0f);
-#if FEATURE_WIND
-            float4 na = nrm[vbase + v];
-            f = aero_dv(vel[vbase + v].xyz, na.xyz, na.w, X[v].w, h, F);
-#endif
-            X[v] = predict_vertex(X[v], f, vel, prev, target, vbase + v, F, h, S - s);
-        }
+        for (int v = lid; v < nv; v += ls)
+            X[v] = predict_vertex(X[v], vel, prev, target, nrm, vbase + v, F, h, S - s);
 #if FEATURE_XPBD
         for (int l = lid; l < nl; l += ls)
             lam[l] = 0.0f;
@@ -77,31 +66,12 @@ __kernel void wg_step(const float dt, __global const int *cloths, __global const
                         P0[u] = X[R[u].x];
                         P1[u] = X[R[u].y];
                     }
-                    for (int u = 0; u < LINK_UNROLL; ++u) {
-                        float3 d0, d1;
-#if FEATURE_XPBD
-                        int lu = l + u * ls;
-                        float dl = link_xpbd(P0[u], P1[u], as_float(R[u].w), link_alpha(F, R[u].z, h), lam[lu], &d0, &d1);
-                        lam[lu] += dl;
-#else
-                        link_pbd(P0[u], P1[u], as_float(R[u].w), F[CF_STIFFNESS + R[u].z], &d0, &d1);
-#endif
-                        X[R[u].x] = (float4)(P0[u].xyz + d0, P0[u].w);
-                        X[R[u].y] = (float4)(P1[u].xyz + d1, P1[u].w);
-                    }
+                    for (int u = 0; u < LINK_UNROLL; ++u)
+                        solve_link(X, R[u], P0[u], P1[u], F, h, lam, l + u * ls);
                 }
                 for (; l < end; l += ls) {
                     int4 R = vload4(l, links);
-                    float4 p0 = X[R.x], p1 = X[R.y];
-                    float3 d0, d1;
-#if FEATURE_XPBD
-                    float dl = link_xpbd(p0, p1, as_float(R.w), link_alpha(F, R.z, h), lam[l], &d0, &d1);
-                    lam[l] += dl;
-#else
-                    link_pbd(p0, p1, as_float(R.w), F[CF_STIFFNESS + R.z], &d0, &d1);
-#endif
-                    X[R.x] = (float4)(p0.xyz + d0, p0.w);
-                    X[R.y] = (float4)(p1.xyz + d1, p1.w);
+                    solve_link(X, R, X[R.x], X[R.y], F, h, lam, l);
                 }
                 barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
             }
@@ -113,11 +83,8 @@ __kernel void wg_step(const float dt, __global const int *cloths, __global const
     }
 
 #if FEATURE_NORMALS
-    for (int v = lid; v < nv; v += ls) {
-        float area;
-        float3 n = vertex_normal(X, fb, I, v, &area);
-        nrm[vbase + v] = (float4)(n, area);
-    }
+    for (int v = lid; v < nv; v += ls)
+        nrm[vbase + v] = vertex_normal(X, fb, I, v);
 #endif
 #if USE_LOCAL
     for (int v = lid; v < nv; v += ls)

@@ -166,6 +166,8 @@ class MeasuredCost:
         self.trust, self.min_spread, self.trust_limit = trust, min_spread, trust_limit
         self._by_load: OrderedDict[int, deque[TickCost]] = OrderedDict()  # least recently observed first
         self._trusted_at = 0  # the latest load when predict last answered None on trust
+        self._observed = 0  # steady ticks observed so far (the fit is cached until the next one)
+        self._fit: tuple[int, tuple[int, dict[str, Line], bool] | None] = (-1, None)
         self._lock = threading.Lock()
 
     def observe(self, cost: TickCost) -> None:
@@ -176,6 +178,7 @@ class MeasuredCost:
             if q is None:
                 q = self._by_load[cost.vertices] = deque(maxlen=self.per_load)
             q.append(cost)
+            self._observed += 1
             self._by_load.move_to_end(cost.vertices)
             while len(self._by_load) > self.loads:
                 self._by_load.popitem(last=False)
@@ -198,12 +201,20 @@ class MeasuredCost:
 
     def fit(self) -> tuple[int, dict[str, Line], bool] | None:
         """The latest load, each stage's line and whether the loads were :func:`separable`
-        (None before the first steady tick)."""
+        (None before the first steady tick). Computed once per steady tick observed: a burst of
+        submits between two ticks reuses it."""
+        with self._lock:
+            observed = self._observed
+            if self._fit[0] == observed:
+                return self._fit[1]
         latest, points = self.points()
-        if not points[STAGES[0]]:
-            return None
-        lines = {s: fit_line(points[s], self.min_spread) for s in STAGES}
-        return latest, lines, separable([p[0] for p in points[STAGES[0]]], self.min_spread)
+        got = None
+        if points[STAGES[0]]:
+            lines = {s: fit_line(points[s], self.min_spread) for s in STAGES}
+            got = latest, lines, separable([p[0] for p in points[STAGES[0]]], self.min_spread)
+        with self._lock:
+            self._fit = (observed, got)
+        return got
 
     def predict(self, vertices: int, budget_s: float = float("inf")) -> dict[str, float] | None:
         got = self.fit()

@@ -20,12 +20,22 @@ each, docs/loadtest.md, session 12). So a wasted growth trim multiplies the grow
 triggers the next one by ``TRIM_BACKOFF`` (up to ``TRIM_GROWTH_MAX_MB``), and a trim that
 stays given back divides it again: a loaded server stops trimming after a few tries, and one
 whose load went away trims at the first 4 MB again.
+
+Python's cyclic garbage collector is kept off the tick the same way. Its full collections scan
+every tracked object while holding the GIL: under 4096 cloths on the H100 one ran every ~2 s
+and took 15-22 ms (up to 82 ms), a missed tick each time (docs/loadtest.md, session 12). What
+is alive when the cloths' layout changes lives long (the modules, the records, the rosters), so
+:func:`freeze_long_lived` moves it out of the collector's scans (``gc.freeze``; it is still
+freed by reference counting) and the collections that remain scan only what came since;
+:class:`MemoryKeeper` collects everything once every ``FULL_COLLECT_PERIOD_S`` (cyclic garbage
+among the frozen objects is found then, at one pause per period).
 """
 
 from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import gc
 import logging
 import os
 import time
@@ -40,7 +50,28 @@ TRIM_GROWTH_MAX_MB = 1024.0  # the most that wasted trims raise that growth to
 TRIM_BACKOFF = 4.0  # a wasted trim multiplies the growth that triggers the next one by this
 TRIM_WASTED_SHARE = 0.75  # a trim is wasted when this share of what it gave back is back one period on
 
+FULL_COLLECT_PERIOD_S = 600.0  # the frozen objects are unfrozen and everything collected this often
+freezes = 0  # freeze_long_lived() calls in this process
+
 _PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
+
+
+def freeze_long_lived() -> int:
+    """Move every object the collector tracks now to its permanent generation, out of future
+    scans (``gc.freeze``: O(1), a list splice); returns how many are frozen in all."""
+    global freezes
+    gc.freeze()
+    freezes += 1
+    return gc.get_freeze_count()
+
+
+def collect_all() -> int:
+    """Unfreeze, collect every generation, freeze again; returns the objects collected."""
+    gc.unfreeze()
+    try:
+        return gc.collect()
+    finally:
+        gc.freeze()
 
 
 def _libc(name: str, argtypes: list[Any]) -> Callable[..., int] | None:
@@ -117,7 +148,9 @@ class MemoryKeeper:
         self.trimmed_mb = 0.0  # RSS given back by them, in all
         self.wasted = 0  # growth trims whose pages were back one period on
         self.growth_mb = TRIM_GROWTH_MB  # the RSS growth since the last trim that triggers one
+        self.full_collections = 0  # collect_all() calls
         self._next = time.monotonic() + PERIOD_S
+        self._next_full = time.monotonic() + FULL_COLLECT_PERIOD_S
         self._after_trim: float | None = None  # RSS after the last trim
         self._judge: tuple[float, float] | None = None  # RSS before and after the last growth trim
 
@@ -128,6 +161,10 @@ class MemoryKeeper:
         now = time.monotonic() if now is None else now
         self._next = now + PERIOD_S
         self.runs += 1
+        if now >= self._next_full:
+            self._next_full = now + FULL_COLLECT_PERIOD_S
+            self.full_collections += 1
+            log.debug("full garbage collection: %d objects collected", collect_all())
         released = 0
         dev = self._device()
         if dev is not None and self.program_idle_s > 0:

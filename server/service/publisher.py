@@ -35,6 +35,7 @@ from ..sim.world import Frame
 if TYPE_CHECKING:
     from ..sim.opencl.encode import EncodedFrame
 from .config import ServerConfig
+from .memory import freeze_long_lived
 from .registry import Registry
 from .replies import Replier, Reply, send, undeclare
 from .statecodec import FrameEncoder
@@ -224,6 +225,7 @@ class Publisher:
                 undeclare(have[0])
         if job.roster is not None and job.roster.version != self._roster_version:
             self._roster_version = job.roster.version
+            freeze_long_lived()  # the new layout's records and rosters: out of the collector's scans
             live = {k for k, _ in job.roster.bundles}
             for bkey in [k for k in self._bundle_pubs if k not in live]:  # the client has no bundled cloth left
                 undeclare(self._bundle_pubs.pop(bkey)[0])

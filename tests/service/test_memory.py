@@ -5,6 +5,8 @@ served (the program built again, by the cook thread). Asserted on counted events
 
 from __future__ import annotations
 
+import gc
+
 from conftest import collect, connect, make_config, wait_until
 
 from drape.server.service import Server
@@ -89,3 +91,26 @@ def test_wasted_heap_trims_back_off_and_recover(monkeypatch):
     assert keeper.trims == 3
     keeper.maintain(now=11.0)  # ... and its pages stay given back: the threshold comes down
     assert keeper.wasted == 2 and keeper.growth_mb == M.TRIM_GROWTH_MB * M.TRIM_BACKOFF
+
+
+def test_a_new_layout_is_frozen_and_frozen_cycles_are_collected_by_the_full_collection():
+    """The publisher freezes what is alive when the cloths' layout changes (out of the
+    collector's scans); a cycle frozen that way is found only by collect_all()."""
+
+    class Node:
+        pass
+
+    with Server(make_config()) as srv:
+        c = connect(srv)
+        try:
+            before = M.freezes
+            collect(c.submit_grid(4, 4, pinned=[0]), 2)
+            assert M.freezes > before
+        finally:
+            c.close()
+    a, b = Node(), Node()
+    a.other, b.other = b, a  # a reference cycle: only the collector frees it
+    M.freeze_long_lived()
+    del a, b
+    gc.collect()  # the frozen cycle is not scanned
+    assert M.collect_all() >= 2

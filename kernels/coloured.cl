@@ -31,5 +31,6 @@ __kernel void cl_links(const float dt, const int colour, const int it, const int
     const int l = fb[I[CI_OFF_COLOURS] + colour] + (g - P[lo]);
     const int4 R = vload4(l, fb + I[CI_OFF_LINKS]);
     __global float4 *X = pos + I[CI_VBASE];
-    solve_link(X, R, X[R.x], X[R.y], F, dt / (float)I[CI_SUBSTEPS], lam_all + I[CI_LAM], l);
+    float4 p0 = X[R.x], p1 = X[R.y];
+    solve_link(X, R, p0, p1, F, dt / (float)I[CI_SUBSTEPS], lam_all + I[CI_LAM], l);
 }

@@ -34,7 +34,7 @@ inline float4 finish_vertex(float4 x, XS const float4 *X, __global const int *fb
     float4 xp = prev[gv];
     if (x.w > 0.0f) {
 #if FEATURE_TETHERS
-        x.xyz = tether_vertex(x.xyz, X, fb, I, F, v);
+        x = tether_vertex(x, X, fb, I, F, v);
 #endif
 #if FEATURE_COLLIDERS
         x.xyz = collide_vertex(x.xyz, xp.xyz, coll, I[CI_COLL], I[CI_NCOLL], (float)s / (float)S,

@@ -3,7 +3,7 @@
  * that anchor; further out it is pulled back onto the sphere around it. Built with
  * FEATURE_TETHERS only; finish_vertex (integrate.cl) applies it. Included by cloth.cl. */
 
-inline float3 tether_vertex(float3 x, XS const float4 *X, __global const int *fb, __global const int *I,
+inline float4 tether_vertex(float4 x, XS const float4 *X, __global const int *fb, __global const int *I,
                             __global const float *F, int v)
 {
     __global const int *anc = fb + I[CI_OFF_ANCHOR];
@@ -11,10 +11,10 @@ inline float3 tether_vertex(float3 x, XS const float4 *X, __global const int *fb
     if (a >= 0) {
         float lim = as_float(anc[ANCHOR_WORDS * v + 1]) * F[CF_TETHER_LIMIT];
         float3 xa = X[a].xyz;
-        float3 d = x - xa;
+        float3 d = x.xyz - xa;
         float dist = length(d);
         if (dist > lim)
-            x = xa + d * (lim / dist);
+            x.xyz = xa + d * (lim / dist);
     }
     return x;
 }

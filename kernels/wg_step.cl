@@ -71,7 +71,8 @@ __kernel void wg_step(const float dt, __global const int *cloths, __global const
                 }
                 for (; l < end; l += ls) {
                     int4 R = vload4(l, links);
-                    solve_link(X, R, X[R.x], X[R.y], F, h, lam, l);
+                    float4 p0 = X[R.x], p1 = X[R.y];
+                    solve_link(X, R, p0, p1, F, h, lam, l);
                 }
                 barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
             }

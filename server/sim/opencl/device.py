@@ -9,15 +9,13 @@ CPU device holds about 1.5 MB of compiler state per program, returned to the OS 
 program is released and the heap trimmed) and builds them again when asked (from the OpenCL
 driver's own program cache on disk, about 25 ms each on PoCL).
 
-A program's source includes other kernel files (``#include "..."``: every build passes the
-kernel folder as ``-I``): :func:`program_text` appends a digest of every file it reaches, so the drivers'
-own program caches, which key on the text they are given (NVIDIA's reads no included file),
-build again when any of them changes.
+A program's source includes other kernel files (``#include "..."``); :func:`program_text` puts
+them together into the one text the driver compiles, so the build needs no include path and a
+driver's program cache keyed on that text rebuilds whenever any of the files changes.
 """
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import os
 import re
@@ -47,36 +45,47 @@ def layout() -> dict[str, int]:
     return {m.group(1): int(m.group(2)) for m in re.finditer(r"^#define\s+(\w+)\s+(-?\d+)\b", text, re.M)}
 
 
-_INCLUDE = re.compile(r'^[ \t]*#[ \t]*include[ \t]+"([^"]+)"', re.M)
+_INCLUDE = re.compile(r'^[ \t]*#[ \t]*include[ \t]+"([^"]+)"')
 
 
-def kernel_sources(source: str, root: Path | None = None) -> dict[str, bytes]:
-    """Kernel file ``source`` (in ``root``, by default :func:`kernel_dir`) and every kernel file it
-    includes, directly or not, whatever the build options, by name. An included name that is not
-    in the folder is left out (the compiler reports it); a missing ``source`` is an error."""
-    root = root or kernel_dir()
-    if not (root / source).is_file():
-        raise FileNotFoundError(f"no kernel source {source!r} in {root}")
-    files: dict[str, bytes] = {}
-    todo = [source]
-    while todo:
-        name = todo.pop()
-        if name in files or not (root / name).is_file():
-            continue
-        files[name] = (root / name).read_bytes()
-        todo.extend(_INCLUDE.findall(files[name].decode()))
-    return files
+def _expand(name: str, root: Path, stack: tuple[str, ...], seen: dict[str, str]) -> str:
+    """Kernel file ``name`` with each ``#include "file"`` line replaced by that file, expanded in
+    turn, between ``#line`` directives naming the file and line the compiler is in."""
+    if name in stack:
+        raise ValueError(f"kernel files include each other: {' -> '.join((*stack, name))}")
+    path = root / name
+    if not path.is_file():
+        where = f" (included by {stack[-1]})" if stack else ""
+        raise FileNotFoundError(f"no kernel file {name!r} in {root}{where}")
+    seen[name] = text = path.read_text()
+    out = [f'#line 1 "{name}"']
+    for i, line in enumerate(text.splitlines(), 1):
+        m = _INCLUDE.match(line)
+        if m:
+            out.append(_expand(m.group(1), root, (*stack, name), seen))
+            out.append(f'#line {i + 1} "{name}"')
+        else:
+            out.append(line)
+    return "\n".join(out)
 
 
 def program_text(source: str, root: Path | None = None) -> str:
-    """The text of kernel file ``source`` as built: its own text, then a comment with a digest of
-    it and every file it includes (:func:`kernel_sources`). The comment goes last so that the
-    compiler's line numbers stay the file's own."""
-    files = kernel_sources(source, root)
-    h = hashlib.sha256()
-    for name in sorted(files):
-        h.update(f"{name}\0{len(files[name])}\0".encode() + files[name])
-    return f"{files[source].decode()}\n/* drape kernel sources {h.hexdigest()[:16]}: {', '.join(sorted(files))} */\n"
+    """The whole text of the program in kernel file ``source`` (in ``root``, by default
+    :func:`kernel_dir`): every quoted include, whatever the build options, replaced by the file's
+    text (``#line`` keeps the compiler's messages naming the file and line they are about). The
+    compiler then reads no file: nothing in the working directory can stand in for a kernel file
+    (a compiler looks for a quoted include there first), and a driver's program cache keyed on
+    the text it is given (NVIDIA's, PoCL's) builds again whenever any of the files changes.
+    An included file that is missing, or files that include each other, are errors."""
+    return _expand(source, root or kernel_dir(), (), {}) + "\n"
+
+
+def kernel_sources(source: str, root: Path | None = None) -> dict[str, str]:
+    """Kernel file ``source`` and every file it includes, directly or not, by name: the files
+    :func:`program_text` puts together."""
+    seen: dict[str, str] = {}
+    _expand(source, root or kernel_dir(), (), seen)
+    return seen
 
 
 def _all_devices() -> list[cl.Device]:
@@ -220,7 +229,7 @@ class Device:
                 prg = self._programs.get(key)
             if prg is None:
                 text = program_text(source)
-                opts = [*options, *os.environ.get("DRAPE_CL_FLAGS", "").split(), "-I", str(kernel_dir())]
+                opts = [*options, *os.environ.get("DRAPE_CL_FLAGS", "").split()]
                 log.debug("building %s with %s", source, " ".join(options))
                 prg = cl.Program(self.ctx, text).build(options=opts)
                 with self._lock:

@@ -98,7 +98,6 @@ class ServerConfig:
     state_congestion: str = "drop"  # drop | block | auto (see PROTOCOL.md, "Congestion control")
     drop_max_bytes: int = 60000  # auto: states up to this size use DROP, larger ones BLOCK
     device_encode: bool = True  # OpenCL worlds: states encoded on the device (one launch, one readback)
-    publish_threads: int = 1  # device-encoded frames: publications copied and put by this many threads at once
     gil_switch_ms: float = 0.5  # Python's GIL switch interval in the server process (sys.setswitchinterval)
     request_nice: int = 0  # the request thread's niceness above the process's (0..19; see requestq.py)
     request_yield: bool = False  # the request thread starts requests only while the tick thread sleeps
@@ -135,8 +134,6 @@ class ServerConfig:
             raise ValueError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
         if not (0.1 <= self.tick_rate <= 10000):
             raise ValueError("tick_rate must be in 0.1..10000 Hz")
-        if not (1 <= self.publish_threads <= 64):
-            raise ValueError("publish_threads must be in 1..64")
         if self.state_congestion not in CONGESTION_CHOICES:
             raise ValueError(f"state_congestion must be one of {CONGESTION_CHOICES}")
         if not (0.01 <= self.gil_switch_ms <= 100):
@@ -335,7 +332,6 @@ HELP = {
     "state_congestion": "Zenoh congestion control of state publications",
     "drop_max_bytes": "auto congestion: largest state published with DROP",
     "device_encode": "encode the states on the OpenCL device, one packed frame per tick (reference: host)",
-    "publish_threads": "threads that copy and put a device-encoded frame's publications at once (1: one)",
     "gil_switch_ms": "the server process's GIL switch interval in ms (Python's default is 5: a thread "
     "returning from a Zenoh call waits up to that long behind a busy one)",
     "request_nice": "niceness the request thread (decoding, validation, replies) adds to the process's",

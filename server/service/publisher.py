@@ -8,8 +8,8 @@ Per tick it works per *publication* (a state or a bundle), never per live cloth:
 :class:`Roster` (ids, keys, encodings, normals, singles and bundle groups as arrays in the
 frame's order) is built by the tick thread only when cloths come, go or change how they are
 published. A device-encoded frame (``Job.encoded``, config ``device_encode``) is already bytes:
-each publication's slice is copied into a payload buffer kept per key and put, by
-``publish_threads`` threads at once (see :meth:`Publisher._publish_encoded`). States or bundles
+each publication's slice is put with one ``bytes`` copy (zenoh's ZBytes takes no memoryview;
+copying each slice is cheaper than one copy of the whole frame sliced again). States or bundles
 whose key has no subscriber are not encoded or copied (counted
 ``unwatched``). A frame the publisher had not taken when the next one was ready is dropped and
 its replies carried over (counted ``skipped_frames`` by the tick thread): the tick thread never
@@ -21,7 +21,6 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -153,10 +152,8 @@ class Publisher:
         self._buffers: dict[str, bytearray] = {}  # payload buffers reused per key
         self._encoder = FrameEncoder()
         self._roster_version: tuple[int, int] | None = None
-        self.last_cost_s = 0.0  # encode + put of the last frame: admission.py's publisher stage
+        self.last_cost_s = 0.0  # encode + put of the last frame (the tick's cost model adds it)
         self.replier: Replier | None = None  # the run thread's (replies never wait in the publisher)
-        n = config.publish_threads
-        self._putters = ThreadPoolExecutor(n, thread_name_prefix="drape-put") if n > 1 else None
 
     def run(self) -> None:
         self.replier = Replier(f"{threading.current_thread().name}-replies")
@@ -176,8 +173,6 @@ class Publisher:
             self.replier.close()
 
     def close(self) -> None:
-        if self._putters is not None:
-            self._putters.shutdown(wait=True)
         for pub, _ in list(self._pubs.values()) + list(self._bundle_pubs.values()):
             undeclare(pub)
         self._pubs.clear()
@@ -310,24 +305,16 @@ class Publisher:
         self.registry.count_many(published=published, unwatched=unwatched, publish_errors=errors, bundles=n_bundles)
 
     def _publish_encoded(self, job: Job) -> None:
-        """Put each publication's slice of the device-encoded frame.
-
-        Each slice is copied into the payload buffer kept for its key and the buffer is put
-        (zenoh copies a ``bytearray`` once, with the GIL, then hands it to its transport
-        without it; its ZBytes takes no memoryview in this build). A put waits while its link's
-        queue drains into the subscriber, so ``publish_threads`` > 1 overlaps the subscribers'
-        transfers; but every put gives the GIL back and waits up to a switch interval
-        (``gil_switch_ms``) to take it again, so more threads mean more waits: measured on the
-        H100 at 4096 quant16 with Python's 5 ms interval, 4 threads ran 24.8 Hz against 56.7
-        Hz for one (docs/loadtest.md, session 12). The publications of one tick all finish
-        before the next tick's start, so each key's states stay in order. Timers: ``publish``
-        is the wall time of the tick's copies and puts together (the publisher's own time),
-        ``encode`` the copies' summed time."""
+        """Put each publication's slice of the device-encoded frame (one ``bytes`` copy each:
+        zenoh's ZBytes takes no memoryview; the cheapest correct way, see issue 10's figures).
+        Measured against it on the H100 (docs/loadtest.md, session 12): copying into a
+        ``bytearray`` kept per key doubled the copy and put phases (3.5 -> 6.1 and 9.8 -> 17.4
+        ms a tick at 2048 float32), and putting from 4 threads ran 24.8 Hz instead of 56.7 at
+        4096 quant16 (every put gives the GIL back and waits to take it again)."""
         ro, enc = job.roster, job.encoded
         assert ro is not None and enc is not None
-        t0 = time.perf_counter()
-        unwatched = errors = published = n_bundles = 0
-        work: list[_Put] = []
+        copy_t = pub_t = 0.0
+        published = unwatched = errors = n_bundles = 0
         for (ident, key, idx, bundle), view in zip(ro.publications(), enc.views, strict=True):
             try:
                 pub = self._publisher(self._bundle_pubs if bundle else self._pubs, ident, key, len(view))
@@ -335,52 +322,18 @@ class Publisher:
                 if not pub.matching_status.matching:  # type: ignore[attr-defined]
                     unwatched += len(idx)
                     continue
-                work.append(_Put(ident, pub, self._buffer(key, len(view)), view, len(idx), bundle))
+                a = time.perf_counter()
+                payload = bytes(view)
+                b = time.perf_counter()
+                pub.put(payload)
+                copy_t += b - a
+                pub_t += time.perf_counter() - b
+                published += len(idx)
+                n_bundles += bundle
             except Exception as e:
                 errors += len(idx)
                 log.warning("publishing %s at tick %d failed: %s", ident, job.tick, e)
-        if self._putters is not None and len(work) > 1:
-            list(self._putters.map(_put, work))
-        else:
-            for w in work:
-                _put(w)
-        copy_t = 0.0
-        for w in work:
-            copy_t += w.copy_s
-            if w.error is None:
-                published += w.cloths
-                n_bundles += w.bundle
-            else:
-                errors += w.cloths
-                log.warning("publishing %s at tick %d failed: %s", w.ident, job.tick, w.error)
-        wall = time.perf_counter() - t0
         self.timers["encode"].add(copy_t)
-        self.timers["publish"].add(wall)
-        self.last_cost_s = wall
+        self.timers["publish"].add(pub_t)
+        self.last_cost_s = copy_t + pub_t
         self.registry.count_many(published=published, unwatched=unwatched, publish_errors=errors, bundles=n_bundles)
-
-
-@dataclass(eq=False)
-class _Put:
-    """One publication of a device-encoded frame: its slice, the buffer it is copied into, and
-    what came of it."""
-
-    ident: str
-    pub: zenoh.Publisher
-    buf: bytearray
-    view: memoryview
-    cloths: int
-    bundle: bool
-    copy_s: float = 0.0
-    error: Exception | None = None
-
-
-def _put(w: _Put) -> None:
-    """Copy ``w``'s slice into its buffer and put it (on a put thread or the publisher's)."""
-    try:
-        a = time.perf_counter()
-        w.buf[:] = w.view  # a memcpy that keeps the GIL: giving it back costs a switch interval
-        w.copy_s = time.perf_counter() - a
-        w.pub.put(w.buf)
-    except Exception as e:
-        w.error = e

@@ -29,7 +29,8 @@ __kernel void cl_links(const float dt, const int colour, const int it, const int
     __global const float *F = cf + c * CF_STRIDE;
     __global const int *fb = fab + I[CI_FAB];
     const int l = fb[I[CI_OFF_COLOURS] + colour] + (g - P[lo]);
-    const int4 R = vload4(l, fb + I[CI_OFF_LINKS]);
+    __global const int *L = fb + I[CI_OFF_LINKS] + LINK_WORDS * l;
+    const int4 R = (int4)(L[0], L[1], L[2], L[3]);
     __global float4 *X = pos + I[CI_VBASE];
     float4 p0 = X[R.x], p1 = X[R.y];
     solve_link(X, R, p0, p1, F, dt / (float)I[CI_SUBSTEPS], lam_all + I[CI_LAM], l);

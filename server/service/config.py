@@ -99,8 +99,7 @@ class ServerConfig:
     drop_max_bytes: int = 60000  # auto: states up to this size use DROP, larger ones BLOCK
     device_encode: bool = True  # OpenCL worlds: states encoded on the device (one launch, one readback)
     gil_switch_ms: float = 0.5  # Python's GIL switch interval in the server process (sys.setswitchinterval)
-    request_nice: int = 0  # the request thread's niceness above the process's (0..19; see requestq.py)
-    request_yield: bool = False  # the request thread starts requests only while the tick thread sleeps
+    request_yield: bool = True  # the request thread starts requests only while the tick thread sleeps
     program_idle_s: float = 10.0  # kernel programs no cloth used this long are released (0: kept for good)
     malloc_mmap_threshold: int = 4 << 20  # bytes: larger blocks mapped apart, returned when freed (0: glibc's)
     build_in_child: str = "off"  # off | start | always: kernels built and first run in a child process
@@ -138,8 +137,6 @@ class ServerConfig:
             raise ValueError(f"state_congestion must be one of {CONGESTION_CHOICES}")
         if not (0.01 <= self.gil_switch_ms <= 100):
             raise ValueError("gil_switch_ms must be in 0.01..100 ms")
-        if not (0 <= self.request_nice <= 19):
-            raise ValueError("request_nice must be in 0..19")
         if self.program_idle_s < 0:
             raise ValueError("program_idle_s must be >= 0 (0: programs are kept for good)")
         if self.malloc_mmap_threshold < 0:
@@ -334,8 +331,8 @@ HELP = {
     "device_encode": "encode the states on the OpenCL device, one packed frame per tick (reference: host)",
     "gil_switch_ms": "the server process's GIL switch interval in ms (Python's default is 5: a thread "
     "returning from a Zenoh call waits up to that long behind a busy one)",
-    "request_nice": "niceness the request thread (decoding, validation, replies) adds to the process's",
-    "request_yield": "start requests only while the tick thread sleeps between ticks (waiting one tick at most)",
+    "request_yield": "the request thread (decoding, validation, replies) starts a request only while the tick "
+    "thread sleeps between ticks, waiting one tick at most (docs/reliability.md: fewer missed ticks under a flood)",
     "program_idle_s": "seconds after which a kernel program no cloth uses is released and the heap trimmed "
     "(built again from the driver's disk cache when needed; 0: kept for good)",
     "malloc_mmap_threshold": "drape serve: heap blocks of this many bytes or more get their own mapping, "

@@ -85,7 +85,6 @@ class Handlers:
             config.max_pending_request_bytes,
             self.refuse,
             name=f"drape-requests-{config.server_id}",
-            nice=config.request_nice,
             gate=self.gate,
         )
 

@@ -35,6 +35,7 @@ import numpy as np
 import zenoh
 
 from . import protocol as P
+from .placement import PLACE_ELSEWHERE
 from .protocol import DrapeError
 
 if TYPE_CHECKING:
@@ -213,6 +214,7 @@ class Failover:
                 FailoverEvent(h, reason, h.id, old_server, error=err, detected_ns=t0, done_ns=time.monotonic_ns())
             )
             return
+        fatal = False
         while True:
             # the least loaded live server (placement counts what this round already placed)
             target = self.placement.choose(tried, wait=False)
@@ -225,10 +227,13 @@ class Failover:
             req = dataclasses.replace(h.request, rid=c._next_rid(), resume=resume)
             try:
                 c._place(h, req, target)
-            except DrapeError as e:  # overloaded, busy, unavailable...: the next best server
+            except DrapeError as e:
                 last_err = e
                 log.warning("resubmitting cloth %s to server %s failed: %s", old_id, target, e)
-                continue
+                if e.code in PLACE_ELSEWHERE:  # overloaded, busy, limit_exceeded, no reply: the next server
+                    continue
+                fatal = True  # the request itself is refused (PROTOCOL.md 11.3): reported at once
+                break
             h.failovers += 1
             self._done(h)
             h.lost = False
@@ -248,7 +253,7 @@ class Failover:
                 )
             )
             return
-        if time.monotonic_ns() - t0 > self.give_up_after * 1e9:
+        if fatal or time.monotonic_ns() - t0 > self.give_up_after * 1e9:
             err = last_err or P.Unavailable(
                 P.ERR_UNAVAILABLE, f"no live server to fail cloth {h.id} over to within {self.give_up_after} s"
             )

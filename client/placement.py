@@ -1,4 +1,4 @@
-"""Placement (PROTOCOL.md 11.2): which live Drape server a new cloth goes to, chosen by load.
+"""Placement (PROTOCOL.md 11.3): which live Drape server a new cloth goes to, chosen by load.
 
 A :class:`DrapeClient` created without ``server_id`` places every submission on its own, and its
 failover (:mod:`.failover`) places every resubmission the same way: both ask the one

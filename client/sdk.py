@@ -98,6 +98,7 @@ class DrapeClient(SubmittingMixin, BatchingMixin):
         queue_size: int = 64,
         failover: bool = False,
         stall_timeout: float = 0.5,
+        failover_give_up: float = 60.0,
     ) -> None:
         if connect is None:
             connect = [P.DEFAULT_ENDPOINT]
@@ -138,7 +139,9 @@ class DrapeClient(SubmittingMixin, BatchingMixin):
         self._server_watch = lv.declare_subscriber(self.keys.all_servers_alive, self._on_server, history=True)
         self._token = lv.declare_token(self.keys.alive_client(self.client_id))
         # failover=True: cloths survive the loss of their server (client/failover.py, PROTOCOL.md 11.1)
-        self._failover = Failover(self, stall_timeout=stall_timeout) if failover else None
+        self._failover = (
+            Failover(self, stall_timeout=stall_timeout, give_up_after=failover_give_up) if failover else None
+        )
         log.debug("drape client %s connected to %s", self.client_id, list(connect))
 
     # --- session ------------------------------------------------------------------------------

@@ -137,3 +137,11 @@ def test_spread_is_max_over_mean_minus_one(counts, want):
 def test_rank_alone():
     loads = [load_from_stats("x", {"vertices": 10}), load_from_stats("y", {"vertices": 10}, pending=1)]
     assert rank(loads, "c") == ["x", "y"]
+
+
+def test_the_tiebreak_is_the_documented_hash():
+    """PROTOCOL.md 11.3 gives the tie-break's hash and one value of it, so every SDK ranks alike."""
+    from drape.client.placement import tiebreak
+
+    assert tiebreak("alice", "s1") == 14233298460419450548
+    assert tiebreak("alice", "s2") != tiebreak("alice", "s1")

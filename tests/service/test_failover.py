@@ -274,3 +274,28 @@ def test_a_server_restarted_under_the_same_id_gets_the_cloths_back(tmp_path):
         srv.stop()
         if again is not None:
             again.stop()
+
+
+def test_a_resubmission_refused_for_itself_is_reported_at_once(tmp_path):
+    """PROTOCOL.md 11.3: only overloaded, busy, limit_exceeded or no reply send a cloth on to the
+    next server; any other refusal (here the survivor's vertex limit, too_large) ends its failover
+    at once with that error, instead of retrying until give_up_after (set far beyond the wait)."""
+    a = Serve(tmp_path, "fo-big")
+    b = Serve(tmp_path, "fo-small", extra=("--max-vertices-per-cloth", "16"))
+    try:
+        events = []
+        c = _client([a, b], "fo-big", failover_give_up=3600.0)
+        try:
+            c.on_failover(events.append)
+            h = c.submit_grid(6, 6, pinned=[0, 5])  # 36 vertices: fo-small refuses it
+            _settle([h], 5)
+            a.kill()
+            assert _wait(lambda: events, EVENT_WAIT), "the failover never ended"
+            (ev,) = events
+            assert ev.error is not None and ev.error.code == P.ERR_TOO_LARGE, ev
+            assert h.closed
+        finally:
+            c.close()
+    finally:
+        a.stop()
+        b.stop()

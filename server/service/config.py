@@ -21,6 +21,7 @@ A TOML file holds the fields at its top level (or inside a ``[server]`` table)::
     metrics_listen = "127.0.0.1:9464"  # operator HTTP: /metrics /healthz /readyz (default: off)
     log_format = "text"                # text | json (one object per line)
     log_level = "info"                 # debug | info | warning | error
+    workers = 1                        # drape serve: server processes sharing the device
 
 Every field is also an environment variable ``DRAPE_<FIELD>`` (``DRAPE_TICK_RATE=30``; lists are
 comma-separated: ``DRAPE_LISTEN=tcp/0.0.0.0:7447,tcp/[::]:7447``) and a flag ``--field-name``.
@@ -57,6 +58,7 @@ LOG_LEVELS = ("debug", "info", "warning", "error", "critical")
 #: client-scoped ones, so every request's client id is its key's (a router can bind it to a user).
 IDENTITY_MODES = ("open", "keys")
 BUILD_IN_CHILD = ("off", "start", "always")  # drape.server.service.buildhelper
+MAX_WORKERS = 64  # drape serve --workers (drape.server.service.workers)
 
 
 def default_server_id() -> str:
@@ -115,6 +117,7 @@ class ServerConfig:
     metrics_listen: str | None = None  # host:port of /metrics /healthz /readyz; None = off (127.0.0.1:9464)
     log_format: str = "text"  # text | json (drape.server.service.logs)
     log_level: str = "info"  # debug | info | warning | error | critical
+    workers: int = 1  # drape serve: server processes on this device, <server_id>-<k> (drape.server.service.workers)
 
     def __post_init__(self) -> None:
         if not self.server_id:
@@ -172,6 +175,8 @@ class ServerConfig:
             raise ValueError(f"log_level must be one of {LOG_LEVELS}, got {self.log_level!r}")
         if self.metrics_listen is not None:
             parse_listen(self.metrics_listen)
+        if not 1 <= self.workers <= MAX_WORKERS:
+            raise ValueError(f"workers must be in 1..{MAX_WORKERS}, got {self.workers}")
         if self.grace_period < 0 or self.stats_period <= 0:
             raise ValueError("grace_period must be >= 0 and stats_period > 0")
         return self
@@ -349,6 +354,9 @@ HELP = {
     "metrics_listen": "HOST:PORT of the operator HTTP listener (/metrics /healthz /readyz), e.g. 127.0.0.1:9464",
     "log_format": "log lines as text or json (one object per line)",
     "log_level": "lowest level logged",
+    "workers": "drape serve: run this many server processes on the device under one supervisor, worker k as "
+    "<server_id>-<k> listening on each listen port + k, connected to the others; a comma list in device gives "
+    "worker k entry k mod its length (README: several workers)",
 }
 
 

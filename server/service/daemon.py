@@ -4,6 +4,10 @@ Configuration: defaults < TOML file (``--config`` or $DRAPE_CONFIG) < DRAPE_* en
 variables < flags; see drape.server.service.daemon.config. On a signal the server stops publishing, answers
 what is still queued with ``busy``, undeclares everything and closes its Zenoh session; the
 exit status is 0 after a clean stop, 1 when the tick loop failed, 2 for a bad configuration.
+
+``--workers N`` (``workers`` in the TOML file, DRAPE_WORKERS) with N > 1: this process becomes a
+supervisor of N such servers sharing the device, each its own server id and port
+(drape.server.service.workers); 1 (the default) serves in this process.
 """
 
 from __future__ import annotations
@@ -37,6 +41,10 @@ def run(args: argparse.Namespace) -> int:
         for k, v in dataclasses.asdict(config).items():
             print(f"{k} = {v!r}")
         return 0
+    if config.workers > 1:
+        from .workers import supervise
+
+        return supervise(config)
     return serve(config)
 
 

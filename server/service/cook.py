@@ -127,7 +127,7 @@ class CookWorker:
         self._world, self._stopping = world, stopping
         self._asked: set = set()  # feature keys whose kernels were asked for (controls)
         self._asked_lock = threading.Lock()
-        self.memory = MemoryKeeper(config.program_idle_s, self._device)
+        self.memory = MemoryKeeper(config.program_idle_s, self._device, lambda: self.registry.vertices)
         self.helper: BuildHelper | None = None  # set in run() when build_in_child applies
         # feature combinations the helper built and ran, or the warm-up did (cook thread only)
         self._warmed: set = {ClothParams().features.key()}

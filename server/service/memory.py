@@ -18,15 +18,19 @@ again within a second, and each ``malloc_trim`` held the arenas' locks while it 
 the next ticks faulted in again; the ticks stalled about 80 ms every 1.5-2 s (5 missed ticks
 each, docs/loadtest.md, session 12). So a wasted growth trim multiplies the growth that
 triggers the next one by ``TRIM_BACKOFF`` (up to ``TRIM_GROWTH_MAX_MB``), and a trim that
-stays given back divides it again: a loaded server stops trimming after a few tries, and one
-whose load went away trims at the first 4 MB again.
+stays given back divides it again: a loaded server stops trimming after a few tries. When the
+load goes away (the server's vertices fall by ``LOAD_DROP`` or more since the threshold was
+last raised) the threshold is back at ``TRIM_GROWTH_MB``, so the memory of a load that left is
+given back at the next run.
 
 Python's cyclic garbage collector is kept off the tick the same way. Its full collections scan
 every tracked object while holding the GIL: under 4096 cloths on the H100 one ran every ~2 s
 and took 15-22 ms (up to 82 ms), a missed tick each time (docs/loadtest.md, session 12). What
 is alive when the cloths' layout changes lives long (the modules, the records, the rosters), so
-:func:`freeze_long_lived` moves it out of the collector's scans (``gc.freeze``; it is still
-freed by reference counting) and the collections that remain scan only what came since;
+:func:`freeze_long_lived` collects the young generations (cyclic garbage of the last moments,
+a fuzz's exceptions) and moves the rest out of the collector's scans (``gc.freeze``; it is
+still freed by reference counting), at most once every ``FREEZE_MIN_INTERVAL_S``, and the
+collections that remain scan only what came since;
 :class:`MemoryKeeper` collects everything once every ``FULL_COLLECT_PERIOD_S`` (cyclic garbage
 among the frozen objects is found then, at one pause per period).
 """
@@ -49,6 +53,8 @@ TRIM_GROWTH_MB = 4.0  # trim without a release once RSS grew this much since the
 TRIM_GROWTH_MAX_MB = 1024.0  # the most that wasted trims raise that growth to
 TRIM_BACKOFF = 4.0  # a wasted trim multiplies the growth that triggers the next one by this
 TRIM_WASTED_SHARE = 0.75  # a trim is wasted when this share of what it gave back is back one period on
+LOAD_DROP = 0.25  # the load fell by this share since the threshold was raised: back to TRIM_GROWTH_MB
+FREEZE_MIN_INTERVAL_S = 5.0  # freeze_long_lived() freezes at most this often (layouts churn under a flood)
 
 FULL_COLLECT_PERIOD_S = 600.0  # the frozen objects are unfrozen and everything collected this often
 freezes = 0  # freeze_long_lived() calls in this process
@@ -56,13 +62,22 @@ freezes = 0  # freeze_long_lived() calls in this process
 _PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
 
 
-def freeze_long_lived() -> int:
-    """Move every object the collector tracks now to its permanent generation, out of future
-    scans (``gc.freeze``: O(1), a list splice); returns how many are frozen in all."""
-    global freezes
+_last_freeze = -FREEZE_MIN_INTERVAL_S
+
+
+def freeze_long_lived(now: float | None = None) -> bool:
+    """Collect the young generations, then move every object the collector tracks to its
+    permanent generation, out of future scans (``gc.freeze``: a list splice); at most once every
+    ``FREEZE_MIN_INTERVAL_S`` (False when skipped)."""
+    global freezes, _last_freeze
+    now = time.monotonic() if now is None else now
+    if now - _last_freeze < FREEZE_MIN_INTERVAL_S:
+        return False
+    _last_freeze = now
+    gc.collect(1)
     gc.freeze()
     freezes += 1
-    return gc.get_freeze_count()
+    return True
 
 
 def collect_all() -> int:
@@ -139,9 +154,11 @@ def trim_heap() -> bool:
 class MemoryKeeper:
     """What the cook thread does about memory: ``maintain()`` whenever :meth:`due` (counted)."""
 
-    def __init__(self, program_idle_s: float, device: Callable[[], Any]) -> None:
+    def __init__(self, program_idle_s: float, device: Callable[[], Any], load: Callable[[], int] = lambda: 0) -> None:
         self.program_idle_s = program_idle_s  # 0: programs are kept for good
         self._device = device  # the World's Device, or None (the reference solver has none)
+        self._load = load  # the server's live vertices
+        self._raised_at_load = 0  # the load when the trim threshold was last raised
         self.runs = 0  # maintain() calls
         self.released = 0  # programs released
         self.trims = 0  # heap trims
@@ -173,6 +190,9 @@ class MemoryKeeper:
         before = rss_mb()
         if self._judge is not None and before is not None:
             self._judge_last_trim(before)
+        raised = self._raised_at_load
+        if self.growth_mb > TRIM_GROWTH_MB and raised > 0 and self._load() <= (1.0 - LOAD_DROP) * raised:
+            self.growth_mb = TRIM_GROWTH_MB  # the load that made trims wasted is gone
         grew = before is not None and (self._after_trim is None or before > self._after_trim + self.growth_mb)
         if not (released or grew) or not trim_heap():
             return
@@ -193,6 +213,7 @@ class MemoryKeeper:
         if now_mb - after >= TRIM_WASTED_SHARE * (before - after):
             self.wasted += 1
             self.growth_mb = min(TRIM_GROWTH_MAX_MB, self.growth_mb * TRIM_BACKOFF)
+            self._raised_at_load = self._load()
             log.debug("wasted trim (%.1f -> %.1f -> %.1f MB): next at +%.0f MB", before, after, now_mb, self.growth_mb)
         else:
             self.growth_mb = max(TRIM_GROWTH_MB, self.growth_mb / TRIM_BACKOFF)

@@ -93,7 +93,31 @@ def test_wasted_heap_trims_back_off_and_recover(monkeypatch):
     assert keeper.wasted == 2 and keeper.growth_mb == M.TRIM_GROWTH_MB * M.TRIM_BACKOFF
 
 
-def test_a_new_layout_is_frozen_and_frozen_cycles_are_collected_by_the_full_collection():
+def test_the_trim_threshold_returns_when_the_load_goes_away(monkeypatch):
+    """Trims backed off under a load trim at the first TRIM_GROWTH_MB again once the server's
+    vertices fell by LOAD_DROP: the memory of a load that left is given back."""
+    rss, load = [100.0], [4_000_000]
+
+    def trim() -> bool:
+        rss[0] = 50.0
+        return True
+
+    monkeypatch.setattr(M, "rss_mb", lambda: rss[0])
+    monkeypatch.setattr(M, "trim_heap", trim)
+    keeper = M.MemoryKeeper(program_idle_s=0.0, device=lambda: None, load=lambda: load[0])
+    for t in range(5):
+        rss[0] = 100.0
+        keeper.maintain(now=float(t))
+    assert keeper.growth_mb > M.TRIM_GROWTH_MB and keeper.trims == 2
+    rss[0] = 60.0  # 10 MB over the last trim: under the raised threshold
+    keeper.maintain(now=5.0)
+    assert keeper.trims == 2
+    load[0] = 1_000_000  # most cloths left
+    keeper.maintain(now=6.0)
+    assert keeper.growth_mb == M.TRIM_GROWTH_MB and keeper.trims == 3
+
+
+def test_a_new_layout_is_frozen_and_frozen_cycles_are_collected_by_the_full_collection(monkeypatch):
     """The publisher freezes what is alive when the cloths' layout changes (out of the
     collector's scans); a cycle frozen that way is found only by collect_all()."""
 
@@ -103,6 +127,7 @@ def test_a_new_layout_is_frozen_and_frozen_cycles_are_collected_by_the_full_coll
     with Server(make_config()) as srv:
         c = connect(srv)
         try:
+            monkeypatch.setattr(M, "_last_freeze", -1e9)  # no freeze in this process lately
             before = M.freezes
             collect(c.submit_grid(4, 4, pinned=[0]), 2)
             assert M.freezes > before
@@ -110,7 +135,9 @@ def test_a_new_layout_is_frozen_and_frozen_cycles_are_collected_by_the_full_coll
             c.close()
     a, b = Node(), Node()
     a.other, b.other = b, a  # a reference cycle: only the collector frees it
-    M.freeze_long_lived()
+    monkeypatch.setattr(M, "_last_freeze", -1e9)
+    assert M.freeze_long_lived()
+    assert not M.freeze_long_lived()  # at most once every FREEZE_MIN_INTERVAL_S
     del a, b
     gc.collect()  # the frozen cycle is not scanned
     assert M.collect_all() >= 2

@@ -1,37 +1,23 @@
-"""``drape serve --workers N``: N ``drape serve`` processes sharing one device, run as one daemon.
+"""``drape serve --workers N``: N ``drape serve`` processes sharing one device, run as one daemon
+(one GIL each: docs/loadtest.md, issue 10; README "Several server processes on one device").
 
-One Python process cannot publish thousands of cloths at 60 Hz (its GIL is shared by the tick
-thread, the publisher and the request thread); N processes on the same device, each its own
-server id, can (docs/loadtest.md, issue 10). With ``workers > 1`` the ``drape serve`` process
-becomes this supervisor: it resolves the configuration once (defaults < TOML < DRAPE_* < flags)
-and starts N children ``drape serve`` with that configuration as flags (their environment is the
-supervisor's without DRAPE_CONFIG and the DRAPE_<FIELD> variables, so every worker, restarted
-ones included, runs exactly the supervisor's settings), except, for worker k (0..N-1):
+The supervisor resolves the configuration once and starts each worker with it as flags (its
+environment without DRAPE_CONFIG and DRAPE_<FIELD>, so restarted workers run the same settings),
+except for worker k (0..N-1): server id ``<server_id>-<k>``; every ``listen`` endpoint's port + k
+(a port of 0, a port past 65535, or two workers on one port are refused before any starts: a
+restarted worker must come back on its endpoint and the others must know it); ``connect`` the
+configured endpoints plus the other workers' first endpoint (a wildcard host as loopback; in
+``client`` mode only the configured router); ``device`` entry ``k mod len`` of a comma list;
+``metrics_listen`` port + k (0 stays 0).
 
-- ``server_id`` ``<server_id>-<k>``;
-- ``listen``: every configured endpoint with its port + k (``tcp/0.0.0.0:7447`` -> 7447, 7448...).
-  Every endpoint needs an explicit port other than 0 (a worker must come back on the same
-  endpoint after a restart, and the others must know it), the last port must be <= 65535, and
-  no two workers' endpoints may meet: anything else is refused before a worker starts;
-- ``connect``: the configured endpoints (a router, other hosts) plus the other workers' first
-  listen endpoint (a wildcard host as loopback), so their stats, liveliness and placement see
-  each other. In ``client`` mode a session listens on nothing: the workers connect to the
-  configured ``connect`` only (the router), which must then name one;
-- ``device``: a comma list gives worker k entry ``k mod len`` (``gpu:0,gpu:1``: one per GPU);
-- ``metrics_listen``: its port + k (0 stays 0: each picks a free one).
-
-Supervision: SIGINT/SIGTERM stop every worker with SIGTERM (each its own clean stop); the
-supervisor exits 0 when all stopped with status 0, else 1 (SIGKILL after STOP_GRACE_S). A worker
-that exits on its own is restarted under the same id and endpoints after a back-off (0.5 s
-doubling to 30 s; reset once a worker ran RESTART_WINDOW_S), logged with its exit status; more
-than MAX_RESTARTS restarts within RESTART_WINDOW_S, or a worker's status 2 (bad configuration),
-and the supervisor stops the others and exits 1. Workers die with the supervisor (Linux
-PR_SET_PDEATHSIG). In text format each worker's log lines are prefixed ``[<server id>]``; JSON
-lines carry ``server_id`` already and pass through unchanged.
-
-systemd: the workers' notifications (drape.server.service.ops) go to the supervisor's own
-socket; it says READY=1 once every worker did, and WATCHDOG=1 while every ready worker's pings
-are fresh (a wedged worker stops the service's pings, as a wedged single server does).
+Supervision: SIGINT/SIGTERM stop every worker with SIGTERM (exit 0 when all stopped with 0, else
+1; SIGKILL after STOP_GRACE_S). A worker that exits on its own is restarted under the same id and
+endpoints after a back-off (BACKOFF_S doubling to BACKOFF_MAX_S), logged with its status; more than
+MAX_RESTARTS within RESTART_WINDOW_S, or a status 2 (bad configuration), and the supervisor stops
+the others and exits 1. Workers die with the supervisor (Linux PR_SET_PDEATHSIG). Text log lines
+of a worker are prefixed ``[<server id>]`` (JSON lines carry ``server_id``). systemd: the workers
+notify the supervisor's own socket; it says READY=1 once all are ready, then WATCHDOG=1 while
+every ready worker pings (drape.server.service.ops: only while its ticks advance).
 """
 
 from __future__ import annotations
@@ -89,11 +75,16 @@ class WorkerSpec:
     reach: str | None  # the endpoint the other workers connect to (None in client mode)
 
 
-def shift_port(endpoint: str, k: int) -> str:
-    """``endpoint`` with its port + k; ValueError when it has no usable port."""
+def _match(endpoint: str) -> re.Match[str]:
     m = _ENDPOINT_RE.match(endpoint.strip())
     if m is None:
         raise ValueError(f"workers > 1: listen endpoint {endpoint!r} has no PROTOCOL/HOST:PORT form")
+    return m
+
+
+def shift_port(endpoint: str, k: int) -> str:
+    """``endpoint`` with its port + k; ValueError when it has no usable port."""
+    m = _match(endpoint)
     port = int(m["port"])
     if port == 0:
         raise ValueError(
@@ -107,16 +98,13 @@ def shift_port(endpoint: str, k: int) -> str:
 
 def reachable(endpoint: str) -> str:
     """``endpoint`` as another process on this host connects to it (a wildcard host as loopback)."""
-    m = _ENDPOINT_RE.match(endpoint.strip())
-    assert m is not None  # checked by shift_port
-    host = _WILDCARD.get(m["host"], m["host"])
-    return f"{m['proto']}/{host}:{m['port']}{m['rest'] or ''}"
+    m = _match(endpoint)
+    return f"{m['proto']}/{_WILDCARD.get(m['host'], m['host'])}:{m['port']}{m['rest'] or ''}"
 
 
 def _port_key(endpoint: str) -> tuple[str, int]:
     """(transport, port) of an endpoint: udp for udp and quic, tcp for the rest (tls, ws...)."""
-    m = _ENDPOINT_RE.match(endpoint.strip())
-    assert m is not None  # checked by shift_port
+    m = _match(endpoint)
     return ("udp" if m["proto"] in ("udp", "quic") else "tcp"), int(m["port"])
 
 
@@ -327,7 +315,9 @@ class Supervisor:
                             self._start(w, child_env)
                     if watchdog is not None and now >= next_ping:
                         next_ping = now + watchdog
-                        if all(now - w.last_ping <= 2 * watchdog for w in self.workers if w.ready):
+                        # after READY=1 (systemd's start timeout covers the start), while no ready worker is wedged
+                        fresh = all(now - w.last_ping <= 2 * watchdog for w in self.workers if w.ready)
+                        if self._all_ready_said and fresh:
                             sd_notify("WATCHDOG=1", self.env)
                 sd_notify("STOPPING=1", self.env)
                 clean = self._stop_all(sock)
@@ -430,8 +420,7 @@ class Supervisor:
             )
 
     def _drain(self, w: Worker, timeout: float = 2.0) -> None:
-        """The last log lines of an exited worker: its pipe until end of file (or ``timeout``,
-        should a process it started still hold the pipe)."""
+        """An exited worker's last log lines: its pipe until end of file (or ``timeout``)."""
         pipe = w.proc.stderr if w.proc is not None else None
         deadline = time.monotonic() + timeout
         while pipe is not None and not pipe.closed:

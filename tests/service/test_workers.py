@@ -66,7 +66,8 @@ class Supervised:
         self.log_path = tmp_path / "supervisor.log"
         self.log = open(self.log_path, "w")  # noqa: SIM115 (closed in stop)
         cmd = [*SERVE, "--workers", "2", "--listen", self.endpoints[0], "--server-id", sid, *SERVE_ARGS]
-        env = {**os.environ, "NOTIFY_SOCKET": str(tmp_path / "notify")}
+        # systemd's variables: READY=1 and watchdog pings (every WATCHDOG_USEC / 2) come to our socket
+        env = {**os.environ, "NOTIFY_SOCKET": str(tmp_path / "notify"), "WATCHDOG_USEC": "2000000"}
         self.proc = subprocess.Popen(cmd, stdout=self.log, stderr=subprocess.STDOUT, env=env)
 
     def text(self) -> str:
@@ -107,6 +108,8 @@ def test_two_workers_share_the_clients_survive_a_kill_and_stop_cleanly(supervise
     # the supervisor says READY=1 (systemd's protocol) once both workers did
     s.notify.settimeout(SERVER_WAIT)
     assert "READY=1" in s.notify.recv(4096).decode().splitlines(), s.text()
+    # and pings the watchdog while both workers' ticks advance (they ping it, it forwards)
+    assert "WATCHDOG=1" in s.notify.recv(4096).decode().splitlines(), s.text()
     with DrapeClient(s.endpoints, timeout=SERVER_WAIT, failover=True) as client:
         ids = set(s.ids)
         assert svc.wait_until(lambda: set(client.live_servers()) == ids, SERVER_WAIT), s.text()

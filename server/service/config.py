@@ -85,6 +85,8 @@ class ServerConfig:
     # --- limits --------------------------------------------------------------------------------
     max_cloths: int = 1024
     max_cloths_per_client: int = 64
+    new_clients_per_s: float = 10.0  # client ids the server has no cloth of, admitted per second (a token bucket)
+    new_clients_burst: int = 64  # ... and at once; beyond: "overloaded" (ids are free without identity = "keys")
     max_vertices_per_cloth: int = 65536
     max_total_vertices: int = 1 << 21
     max_message_bytes: int = 8 << 20
@@ -140,6 +142,8 @@ class ServerConfig:
             raise ValueError(f"state_congestion must be one of {CONGESTION_CHOICES}")
         if not (0.01 <= self.gil_switch_ms <= 100):
             raise ValueError("gil_switch_ms must be in 0.01..100 ms")
+        if not (self.new_clients_per_s > 0 and self.new_clients_burst >= 1):
+            raise ValueError("new_clients_per_s must be > 0 and new_clients_burst >= 1")
         if self.program_idle_s < 0:
             raise ValueError("program_idle_s must be >= 0 (0: programs are kept for good)")
         if self.malloc_mmap_threshold < 0:
@@ -319,6 +323,8 @@ HELP = {
     "device": "OpenCL device: auto, gpu, cpu, gpu:N / cpu:N (the N-th, from 0) or part of a name",
     "max_cloths": "cloths on this server",
     "max_cloths_per_client": "cloths of one client",
+    "new_clients_per_s": "client ids without a cloth here admitted per second (beyond the burst: 'overloaded')",
+    "new_clients_burst": "client ids without a cloth here admitted at once",
     "max_vertices_per_cloth": "vertices of one cloth",
     "max_total_vertices": "vertices of all cloths together",
     "max_message_bytes": "size of one request",

@@ -55,6 +55,8 @@ class Registry:
         self.vertices = 0
         self.alive: set[str] = set()
         self.gone_since: dict[str, float] = {}
+        self._new_tokens = float(config.new_clients_burst)  # the new-client token bucket
+        self._new_at = time.monotonic()
         self.requests: Counter[str] = Counter()
         self.errors: Counter[str] = Counter()
         self.counters: Counter[str] = Counter()
@@ -89,6 +91,13 @@ class Registry:
             mine = self.by_client.get(rec.client, set())
             if len(self.cloths) >= cfg.max_cloths:
                 raise P.LimitExceeded(P.ERR_LIMIT_EXCEEDED, f"server is full: {cfg.max_cloths} cloths", rid)
+            if not mine and not self._take_new_client_token():
+                raise P.Overloaded(
+                    P.ERR_OVERLOADED,
+                    f"too many new clients at once (more than {cfg.new_clients_per_s:g} a second after "
+                    f"{cfg.new_clients_burst}): retry later",
+                    rid,
+                )
             if len(mine) >= cfg.max_cloths_per_client:
                 raise P.LimitExceeded(
                     P.ERR_LIMIT_EXCEEDED,
@@ -106,6 +115,21 @@ class Registry:
             self.vertices += rec.n_vertices
             if rec.client not in self.alive:
                 self.gone_since.setdefault(rec.client, time.monotonic())
+
+    def _take_new_client_token(self) -> bool:
+        """A token of the new-client bucket (under the lock): client ids are free to mint unless
+        the router binds them to logins (identity = "keys"), so ids the server has no cloth of get
+        ``new_clients_per_s`` a second after ``new_clients_burst`` at once, and one flood of ids
+        cannot fill the server's cloths (PROTOCOL.md, "overloaded")."""
+        now = time.monotonic()
+        cfg = self.config
+        refill = (now - self._new_at) * cfg.new_clients_per_s
+        self._new_tokens = min(float(cfg.new_clients_burst), self._new_tokens + refill)
+        self._new_at = now
+        if self._new_tokens < 1.0:
+            return False
+        self._new_tokens -= 1.0
+        return True
 
     def unreserve(self, rec: ClothRecord) -> None:
         with self.lock:

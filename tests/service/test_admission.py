@@ -312,3 +312,25 @@ def test_a_feature_change_is_never_merged_and_replies_report_the_feature_set():
             assert tick > 0 and h.features == ("tethers", "wind")
         finally:
             c.close()
+
+
+def test_new_client_ids_are_admitted_at_a_bounded_rate():
+    """Client ids are free to mint (identity = "open"), so ids the server has no cloth of take
+    a token of a bucket (new_clients_burst at once, new_clients_per_s after): beyond it a submit
+    is refused 'overloaded' (retry later), while clients that already have cloths go on."""
+    from drape.client import protocol as P
+    from drape.server.service.config import ServerConfig
+    from drape.server.service.registry import ClothRecord, Registry
+
+    reg = Registry(ServerConfig(new_clients_burst=2, new_clients_per_s=1e-6))
+
+    def submit(client: str, n: int) -> None:
+        reg.reserve(ClothRecord(f"{client}-{n}", client, "t", f"k/{client}/{n}", 16), rid=n)
+
+    submit("alice", 1)
+    submit("bob", 1)
+    with pytest.raises(P.DrapeError) as e:
+        submit("mallory-1", 1)
+    assert e.value.code == P.ERR_OVERLOADED
+    submit("alice", 2)  # a client with cloths here is not new
+    assert sorted(reg.by_client) == ["alice", "bob"] and len(reg.cloths) == 3

@@ -17,7 +17,7 @@ import subprocess
 import sys
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import IO, Any
 
 log = logging.getLogger(__name__)
 
@@ -109,15 +109,23 @@ def serve_command(endpoint: str, server_id: str, *args: str) -> list[str]:
 class ServerProcess:
     """``drape serve`` as a child process in its own session, on a free loopback port.
 
-    ``args`` are extra ``drape serve`` arguments. Stop it with :meth:`stop` (SIGTERM to its process
-    group, SIGKILL after ``grace`` seconds); usable as a context manager."""
+    ``args`` are extra ``drape serve`` arguments; ``output``: a file its stdout and stderr go to
+    (default: ours). Stop it with :meth:`stop` (SIGTERM to its process group, SIGKILL after
+    ``grace`` seconds); usable as a context manager."""
 
-    def __init__(self, args: Sequence[str] = (), *, server_id: str | None = None, port: int = 0) -> None:
+    def __init__(
+        self, args: Sequence[str] = (), *, server_id: str | None = None, port: int = 0, output: IO[Any] | None = None
+    ) -> None:
         self.endpoint = f"tcp/127.0.0.1:{port or free_port()}"
         self.server_id = server_id or f"tools-{os.getpid()}"
         self.cmd = serve_command(self.endpoint, self.server_id, *args)
         log.info("starting server: %s", " ".join(self.cmd))
-        self.proc = subprocess.Popen(self.cmd, start_new_session=True)
+        self.proc = subprocess.Popen(
+            self.cmd,
+            start_new_session=True,
+            stdout=output,
+            stderr=None if output is None else subprocess.STDOUT,
+        )
         self.figures = ProcessFigures(self.proc.pid)
 
     @property

@@ -7,21 +7,21 @@ Counted events only."""
 
 from __future__ import annotations
 
+import contextlib
 import os
-import re
 import signal
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
+import psutil
 import pytest
 
 from drape.client import DrapeClient
 from drape.server.service.config import ServerConfig
 from drape.server.service.workers import Supervisor, plan, worker_command
-from drape.server.tools.procs import free_port
+from drape.server.tools.procs import ServerProcess, free_port
 
 SERVER_WAIT = 90.0  # two drape serve starting (OpenCL warm-up) on a loaded CI machine
 EVENT_WAIT = 30.0
@@ -44,59 +44,45 @@ def _port_pair() -> int:
     raise RuntimeError("no two adjacent free ports")
 
 
-def _wait(pred, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.05)
-    return pred()
-
-
 class Supervised:
-    """``drape serve --workers 2`` as a child process, its log in a file, READY=1 on our socket."""
+    """``drape serve --workers 2`` (procs.ServerProcess: its own session, SIGTERM to stop), with
+    systemd's variables pointing at our socket; its output (the workers' too) in a file."""
 
-    def __init__(self, tmp_path: Path, sid: str) -> None:
-        self.port = _port_pair()
-        self.sid = sid
+    def __init__(self, tmp_path: Path, monkeypatch, sid: str) -> None:
+        port = _port_pair()
         self.ids = [f"{sid}-0", f"{sid}-1"]
-        self.endpoints = [f"tcp/127.0.0.1:{self.port}", f"tcp/127.0.0.1:{self.port + 1}"]
+        self.endpoints = [f"tcp/127.0.0.1:{port}", f"tcp/127.0.0.1:{port + 1}"]
         self.notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
         self.notify.bind(str(tmp_path / "notify"))
+        # READY=1 and watchdog pings (every WATCHDOG_USEC / 2) come to our socket
+        monkeypatch.setenv("NOTIFY_SOCKET", str(tmp_path / "notify"))
+        monkeypatch.setenv("WATCHDOG_USEC", "2000000")
         self.log_path = tmp_path / "supervisor.log"
         self.log = open(self.log_path, "w")  # noqa: SIM115 (closed in stop)
-        cmd = [*SERVE, "--workers", "2", "--listen", self.endpoints[0], "--server-id", sid, *SERVE_ARGS]
-        # systemd's variables: READY=1 and watchdog pings (every WATCHDOG_USEC / 2) come to our socket
-        env = {**os.environ, "NOTIFY_SOCKET": str(tmp_path / "notify"), "WATCHDOG_USEC": "2000000"}
-        self.proc = subprocess.Popen(cmd, stdout=self.log, stderr=subprocess.STDOUT, env=env)
+        self.server = ServerProcess(["--workers", "2", *SERVE_ARGS], server_id=sid, port=port, output=self.log)
 
     def text(self) -> str:
         return self.log_path.read_text(errors="replace")
 
-    def worker_pid(self, sid: str, start: int = 1) -> int | None:
-        """The pid of ``sid``'s ``start``-th process, from the supervisor's log."""
-        pids = re.findall(rf"worker {re.escape(sid)} started \(pid (\d+)\)", self.text())
-        return int(pids[start - 1]) if len(pids) >= start else None
-
-    def ready(self, sid: str, start: int) -> bool:
-        return f"worker {sid} ready (start {start})" in self.text()
+    def worker_pid(self, sid: str) -> int | None:
+        """The pid of worker ``sid`` now (a child of the supervisor with that server id)."""
+        for child in psutil.Process(self.server.proc.pid).children():
+            with contextlib.suppress(psutil.NoSuchProcess):
+                cmd = child.cmdline()
+                if child.status() != psutil.STATUS_ZOMBIE and cmd[cmd.index("--server-id") + 1] == sid:
+                    return int(child.pid)
+        return None
 
     def stop(self) -> int | None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(60)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(10)
-        self.log.close()
+        rc = self.server.stop(grace=60.0)
         self.notify.close()
-        return self.proc.returncode
+        self.log.close()
+        return rc
 
 
 @pytest.fixture
-def supervised(tmp_path):
-    s = Supervised(tmp_path, f"wk-{os.getpid()}")
+def supervised(tmp_path, monkeypatch):
+    s = Supervised(tmp_path, monkeypatch, f"wk-{os.getpid()}")
     try:
         yield s
     finally:
@@ -134,10 +120,9 @@ def test_two_workers_share_the_clients_survive_a_kill_and_stop_cleanly(supervise
         assert all(e.ok for e in client.failover_events)
         for h in handles:  # every cloth keeps getting states
             assert h.next_state(EVENT_WAIT) is not None
-        assert _wait(lambda: s.ready(victim, 2), SERVER_WAIT), s.text()
-        text = s.text()
-        assert f"worker {victim} exited with signal SIGKILL" in text
-        new_pid = s.worker_pid(victim, 2)
+        assert svc.wait_until(lambda: f"worker {victim} ready (start 2)" in s.text(), SERVER_WAIT), s.text()
+        assert f"worker {victim} exited with signal SIGKILL" in s.text()
+        new_pid = s.worker_pid(victim)
         assert new_pid is not None and new_pid != pid
         # same id, same endpoint: its liveliness comes back and a new cloth lands on it (it is empty)
         assert svc.wait_until(lambda: victim in client.live_servers(), EVENT_WAIT)
@@ -147,14 +132,12 @@ def test_two_workers_share_the_clients_survive_a_kill_and_stop_cleanly(supervise
         with DrapeClient(s.endpoints[0], server_id=victim, timeout=EVENT_WAIT) as direct:  # its own endpoint
             assert direct.submit_grid(4, 4, pinned=[0]).next_state(EVENT_WAIT) is not None
         # the workers' log lines carry their id
-        assert f"[{other}] " in text and f"[{victim}] " in text
-        workers = [s.worker_pid(victim, 2), s.worker_pid(other)]
+        assert f"[{other}] " in s.text() and f"[{victim}] " in s.text()
+        workers = [new_pid, s.worker_pid(other)]
 
     assert s.stop() == 0, s.text()
     for p in workers:
-        assert p is not None
-        with pytest.raises(ProcessLookupError):
-            os.kill(p, 0)
+        assert p is not None and not psutil.pid_exists(p)
     assert f"worker {victim} stopped" in s.text() and f"worker {other} stopped" in s.text()
 
 

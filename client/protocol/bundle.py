@@ -13,14 +13,15 @@ from typing import overload
 
 import numpy as np
 
-from .errors import ERR_MALFORMED, ERR_UNSUPPORTED_VERSION, ProtocolError
-from .keys import PROTOCOL_MAJOR, PROTOCOL_MINOR, VERSION_STRING, valid_id
+from .errors import ERR_MALFORMED, ProtocolError
+from .keys import PROTOCOL_MAJOR, PROTOCOL_MINOR, valid_id
 from .state import (
     FLAG_NORMALS,
     STATE_HEADER_DTYPE,
     STATE_HEADER_SIZE,
     STATE_MAGIC,
     ClothState,
+    check_preamble,
     decode_state,
     element_size,
     float16_decode_many,
@@ -297,15 +298,7 @@ def parse_bundle(data: bytes | bytearray | memoryview) -> Bundle:
             ERR_MALFORMED, f"bundle of {size} bytes is shorter than the {BUNDLE_HEADER_SIZE}-byte header"
         )
     magic, major, minor, hsize, count, flags, tick, t_ns = BUNDLE_HEADER.unpack_from(buf, 0)
-    if magic != BUNDLE_MAGIC:
-        raise ProtocolError(ERR_MALFORMED, f"bundle magic {bytes(magic)!r} is not {BUNDLE_MAGIC!r}")
-    if major != PROTOCOL_MAJOR:
-        raise ProtocolError(
-            ERR_UNSUPPORTED_VERSION,
-            f"bundle version {major}.{minor} is not supported; this side speaks {VERSION_STRING}",
-        )
-    if hsize < BUNDLE_HEADER_SIZE:
-        raise ProtocolError(ERR_MALFORMED, f"bundle header_size {hsize} is below {BUNDLE_HEADER_SIZE}")
+    check_preamble("bundle", magic, BUNDLE_MAGIC, major, minor, hsize, BUNDLE_HEADER_SIZE)
     entries = _equal_entries(buf, hsize, count)
     if entries is None:
         entries = _walk_entries(buf, hsize, count)

@@ -243,6 +243,20 @@ def encode_state(
     return out
 
 
+def check_preamble(what: str, magic: bytes, want: bytes, major: int, minor: int, hsize: int, least: int) -> None:
+    """PROTOCOL.md 9's reading rules every binary payload shares (``what``: "state", "bundle"):
+    its magic, its major version, and a header_size of at least the header this side knows."""
+    if magic != want:
+        raise ProtocolError(ERR_MALFORMED, f"{what} magic {bytes(magic)!r} is not {want!r}")
+    if major != PROTOCOL_MAJOR:
+        raise ProtocolError(
+            ERR_UNSUPPORTED_VERSION,
+            f"{what} version {major}.{minor} is not supported; this side speaks {VERSION_STRING}",
+        )
+    if hsize < least:
+        raise ProtocolError(ERR_MALFORMED, f"{what} header_size {hsize} is below {least}")
+
+
 def read_state_header(buf: bytes | bytearray | memoryview, size: int, at: int = 0) -> tuple:
     """The header of the ``size``-byte state payload at ``at`` of ``buf``, checked by PROTOCOL.md 9's
     reading rules (ProtocolError if it breaks one): (header_size, encoding, flags, n, tick,
@@ -252,15 +266,7 @@ def read_state_header(buf: bytes | bytearray | memoryview, size: int, at: int = 
             ERR_MALFORMED, f"state payload of {size} bytes is shorter than the {STATE_HEADER_SIZE}-byte header"
         )
     (magic, major, minor, hsize, enc, flags, n, *rest) = STATE_HEADER.unpack_from(buf, at)
-    if magic != STATE_MAGIC:
-        raise ProtocolError(ERR_MALFORMED, f"state payload magic {bytes(magic)!r} is not {STATE_MAGIC!r}")
-    if major != PROTOCOL_MAJOR:
-        raise ProtocolError(
-            ERR_UNSUPPORTED_VERSION,
-            f"state version {major}.{minor} is not supported; this side speaks {VERSION_STRING}",
-        )
-    if hsize < STATE_HEADER_SIZE:
-        raise ProtocolError(ERR_MALFORMED, f"state header_size {hsize} is below {STATE_HEADER_SIZE}")
+    check_preamble("state", magic, STATE_MAGIC, major, minor, hsize, STATE_HEADER_SIZE)
     if enc not in ENCODING_NAMES:
         raise ProtocolError(ERR_INVALID_VALUE, f"unknown state encoding {enc}")
     has_n = bool(flags & FLAG_NORMALS)

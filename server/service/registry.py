@@ -85,19 +85,12 @@ class Registry:
 
     # --- cloths ------------------------------------------------------------------------------
     def reserve(self, rec: ClothRecord, rid: int) -> None:
-        """Take room for a submitted cloth, or raise LimitExceeded."""
+        """Take room for a submitted cloth, or raise LimitExceeded (or Overloaded: a new client over the bucket)."""
         cfg = self.config
         with self.lock:
             mine = self.by_client.get(rec.client, set())
             if len(self.cloths) >= cfg.max_cloths:
                 raise P.LimitExceeded(P.ERR_LIMIT_EXCEEDED, f"server is full: {cfg.max_cloths} cloths", rid)
-            if not mine and not self._take_new_client_token():
-                raise P.Overloaded(
-                    P.ERR_OVERLOADED,
-                    f"too many new clients at once (more than {cfg.new_clients_per_s:g} a second after "
-                    f"{cfg.new_clients_burst}): retry later",
-                    rid,
-                )
             if len(mine) >= cfg.max_cloths_per_client:
                 raise P.LimitExceeded(
                     P.ERR_LIMIT_EXCEEDED,
@@ -110,6 +103,13 @@ class Registry:
                     f"server vertex budget exhausted: {self.vertices} + {rec.n_vertices} > {cfg.max_total_vertices}",
                     rid,
                 )
+            if not mine and not self._take_new_client_token():
+                raise P.Overloaded(
+                    P.ERR_OVERLOADED,
+                    f"too many new clients at once (more than {cfg.new_clients_per_s:g} a second after "
+                    f"{cfg.new_clients_burst}): retry later",
+                    rid,
+                )
             self.cloths[rec.id] = rec
             self.by_client.setdefault(rec.client, set()).add(rec.id)
             self.vertices += rec.n_vertices
@@ -117,7 +117,8 @@ class Registry:
                 self.gone_since.setdefault(rec.client, time.monotonic())
 
     def _take_new_client_token(self) -> bool:
-        """A token of the new-client bucket (under the lock): client ids are free to mint unless
+        """A token of the new-client bucket (under the lock; taken last, once every other limit
+        passed, so a refused submit spends none): client ids are free to mint unless
         the router binds them to logins (identity = "keys"), so ids the server has no cloth of get
         ``new_clients_per_s`` a second after ``new_clients_burst`` at once, and one flood of ids
         cannot fill the server's cloths (PROTOCOL.md, "overloaded")."""

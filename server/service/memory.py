@@ -65,12 +65,12 @@ _PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
 _last_freeze = -FREEZE_MIN_INTERVAL_S
 
 
-def freeze_long_lived(now: float | None = None) -> bool:
+def freeze_long_lived() -> bool:
     """Collect the young generations, then move every object the collector tracks to its
     permanent generation, out of future scans (``gc.freeze``: a list splice); at most once every
     ``FREEZE_MIN_INTERVAL_S`` (False when skipped)."""
     global freezes, _last_freeze
-    now = time.monotonic() if now is None else now
+    now = time.monotonic()
     if now - _last_freeze < FREEZE_MIN_INTERVAL_S:
         return False
     _last_freeze = now

@@ -20,7 +20,8 @@ import pytest
 
 from drape.client import DrapeClient
 from drape.server.service.config import ServerConfig
-from drape.server.service.workers import Supervisor, plan, worker_command
+from drape.server.service.workerplan import plan, worker_command
+from drape.server.service.workers import Supervisor
 from drape.server.tools.procs import ServerProcess, free_port
 
 SERVER_WAIT = 90.0  # two drape serve starting (OpenCL warm-up) on a loaded CI machine

@@ -26,6 +26,8 @@ from typing import Any
 import numpy as np
 
 SUBMITS_IN_FLIGHT = 16  # a client's submits awaiting their reply at once
+TURN_STATS_WAIT_S = 10.0  # at most this long for stats that count the clients placed before
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -121,10 +123,29 @@ def decode_cost(rx_ns: np.ndarray, delay_ns: np.ndarray) -> tuple[float, float, 
     return total / len(rx_ns) / 1e3, float(per_payload.mean()) / 1e3, total / 1e9, len(counts)
 
 
+def _wait_turn(client: Any, shared: dict[str, Any], placing: bool) -> None:
+    """Wait for this client's turn to place its cloths (``shared["turn"]``, set by the parent once
+    the clients before it are admitted), then, when it places by load, until the servers' stats
+    it sees count at least ``shared["expect"]`` vertices (what those clients were admitted), so
+    that it ranks the servers by their load with them (stats come every stats period)."""
+    while not shared["turn"].wait(0.1):
+        if shared["stop"].is_set():
+            return
+    if not placing:
+        return
+    want, t_end = int(shared["expect"].value), time.monotonic() + TURN_STATS_WAIT_S
+    while sum(s.vertices for s in client.placement.loads(client.live_servers())) < want:
+        if time.monotonic() > t_end:
+            log.warning("placing by stats that count fewer vertices than the %d admitted so far", want)
+            return
+        time.sleep(0.02)
+
+
 def client_main(
     spec: ClientSpec, endpoint: str | list[str], server_id: str | None, shared: dict[str, Any], results: Any
 ) -> None:
-    """The process body. ``shared``: events ``ready``, ``go``, ``stop`` and values ``admitted``,
+    """The process body. ``shared``: events ``turn``, ``ready``, ``go``, ``stop`` and values
+    ``expect`` (see :func:`_wait_turn`), ``admitted``,
     ``receiving`` (1 once every admitted cloth got a state), ``progress`` (states so far) and the
     window ``lo``, ``hi`` (server ticks, -1 until the parent knows them); ``server`` (bytes, when
     present) gets the server this client placed its cloths on.
@@ -146,6 +167,7 @@ def client_main(
             t_end = time.monotonic() + 60.0
             while server_id is None and len(client.live_servers()) < spec.servers and time.monotonic() < t_end:
                 time.sleep(0.05)
+            _wait_turn(client, shared, server_id is None)
             home = client.server_id  # the one given, or the least loaded live one
             if "server" in shared:
                 shared["server"].value = home.encode()

@@ -3,8 +3,9 @@ a window of server ticks so that start-up never counts (see :mod:`.loadtest` for
 
 K client processes (:mod:`.loadclient`) share a load of N cloths. With one server every client
 talks to it. With several (``Target`` per server, all on the clients' Zenoh network) the clients
-start one after another and each puts its cloths on the server the SDK's placement ranks first
-by the servers' published load (PROTOCOL.md 11.3): each client sees the load of those before it.
+start together but place their cloths one after another: each puts its cloths on the server the
+SDK's placement ranks first by the servers' published load (PROTOCOL.md 11.3), once the stats it
+sees count the cloths of the clients before it.
 
 The **measured window** opens, once every client receives states for all its admitted cloths, at
 the next stats publication of each server and closes at the first one ``spec.seconds`` later.
@@ -150,6 +151,8 @@ def run_fleet_load(
     cspecs = spec.client_specs()
     shared = [
         {
+            "turn": ctx.Event(),
+            "expect": ctx.Value("q", 0, lock=False),
             "ready": ctx.Event(),
             "go": ctx.Event(),
             "stop": ctx.Event(),
@@ -182,10 +185,15 @@ def run_fleet_load(
     try:
         offered = sum(c.offered for c in cspecs)
         deadline = time.monotonic() + 120 + 0.05 * offered
-        for p, s in zip(procs, shared, strict=True):
+        for p in procs:  # all start at once (imports, a Zenoh session, the servers seen) ...
             p.start()
-            if several:  # one after another: each client places by the load of those before it
-                _wait(s["ready"].is_set, f"{p.name}'s submits", deadline, procs[: procs.index(p) + 1])
+        placed = 0
+        for p, s in zip(procs, shared, strict=True):
+            s["expect"].value = placed * spec.size * spec.size
+            s["turn"].set()
+            if several:  # ... and place one after another: each by the load of those before it
+                _wait(s["ready"].is_set, f"{p.name}'s submits", deadline, procs)
+                placed += int(s["admitted"].value)
         _wait(lambda: all(s["ready"].is_set() for s in shared), "the clients' submits", deadline, procs)
         admitted = sum(int(s["admitted"].value) for s in shared)
         home = [by_id.get(s["server"].value.decode(), 0) if several else 0 for s in shared]

@@ -21,7 +21,7 @@ import threading
 from types import FrameType
 
 from .config import ServerConfig, add_arguments, from_args
-from .memory import set_mmap_threshold
+from .memory import configure_heap
 
 log = logging.getLogger(__name__)
 
@@ -70,8 +70,9 @@ def serve(config: ServerConfig) -> int:
     # The whole process is the server's: its threads hand the GIL over sooner (docs/loadtest.md:
     # 0.5 ms instead of 5 took 1024 cloths on the H100 from 28.8 to 48.6 Hz).
     sys.setswitchinterval(config.gil_switch_ms / 1000.0)
-    # large requests' buffers mapped apart and unmapped when freed (drape.server.service.memory)
-    set_mmap_threshold(config.malloc_mmap_threshold)
+    # large requests' buffers mapped apart and unmapped when freed, one malloc arena whose free
+    # pages the memory upkeep gives back (drape.server.service.memory)
+    configure_heap(config.malloc_mmap_threshold)
     if config.build_in_child != "off" and config.solver != "reference":
         # the warm-up's kernels built and run in a child first: this process then loads them from
         # the driver's disk cache instead of keeping the compiler's memory (drape.server.service.buildhelper)

@@ -31,7 +31,9 @@ connected to each other, or behind one Zenoh router process with ``--router``; o
 they share the device) and spreads the clients over them by the servers' published load (the
 SDK's placement, PROTOCOL.md 11.3): per server its cloths, vertices, achieved rate and missed
 ticks, and the spread of cloths (max / mean - 1). ``--scale-out`` finds the knee of one server,
-then of N, and prints the ratio. The measurement itself is :mod:`.loadrun`'s.
+then of N, and prints the ratio. ``--endpoint E --server-id A,B`` measures servers already
+running the same way (say ``drape serve --workers 2``'s ``<id>-0,<id>-1``). The measurement
+itself is :mod:`.loadrun`'s.
 """
 
 from __future__ import annotations
@@ -101,7 +103,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--no-bundle: one state and one control per cloth per tick",
     )
     parser.add_argument("--endpoint", default=None, help="target a running server instead of starting one")
-    parser.add_argument("--server-id", default=None, help="with --endpoint: which server (default: the one seen)")
+    parser.add_argument(
+        "--server-id",
+        default=None,
+        help="with --endpoint: which server (default: the one seen); a comma list: these running servers "
+        "(e.g. drape serve --workers N's <id>-0,<id>-1), the clients placing by load as with --servers",
+    )
     parser.add_argument(
         "--admission",
         action=argparse.BooleanOptionalAction,
@@ -329,12 +336,17 @@ def run(args: argparse.Namespace) -> int:
         return run_one
 
     if args.endpoint:
-        stats = StatsWatch(args.endpoint, args.server_id)
-        targets = [Target(args.server_id, stats)]
+        ids = [i.strip() for i in args.server_id.split(",") if i.strip()] if args.server_id else [None]
+        targets = [Target(sid, StatsWatch(args.endpoint, sid)) for sid in ids]
+
+        def stop_watching() -> None:
+            for t in targets:
+                t.stats.close()
+
     counts = [1, args.servers] if args.scale_out else [args.servers]
     for n_servers in counts:
         if args.endpoint:
-            fleet: Any = argparse.Namespace(endpoint=args.endpoint, targets=targets, stop=stats.close)
+            fleet: Any = argparse.Namespace(endpoint=args.endpoint, targets=targets, stop=stop_watching)
         else:
             devices = [d.strip() for d in args.device.split(",") if d.strip()] if args.device else []
             fleet = Fleet(n_servers, _serve_args(args), args.router, devices)

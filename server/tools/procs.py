@@ -38,11 +38,25 @@ def require_extra(extra: str, command: str, modules: Sequence[str] | None = None
         )
 
 
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that nothing listens on right now."""
+def free_port(span: int = 1) -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on right now; ``span`` > 1: the next
+    ``span - 1`` ports are free too (``drape serve --workers N`` listens on port + k)."""
+    for _ in range(50):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = int(s.getsockname()[1])
+        if port + span - 1 <= 65535 and all(_bindable(port + k) for k in range(1, span)):
+            return port
+    raise RuntimeError(f"no {span} adjacent free ports on 127.0.0.1")
+
+
+def _bindable(port: int) -> bool:
     with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+        return True
 
 
 def progress(

@@ -31,26 +31,12 @@ SERVE = (sys.executable, "-m", "drape.server.cli", "serve")
 SERVE_ARGS = ("--device", "cpu", "--grace-period", "1", "--stats-period", "0.25", "--no-admission")
 
 
-def _port_pair() -> int:
-    """A loopback port p with p + 1 free too (the two workers' ports)."""
-    for _ in range(50):
-        p = free_port()
-        if p < 65535:
-            with socket.socket() as s:
-                try:
-                    s.bind(("127.0.0.1", p + 1))
-                except OSError:
-                    continue
-            return p
-    raise RuntimeError("no two adjacent free ports")
-
-
 class Supervised:
     """``drape serve --workers 2`` (procs.ServerProcess: its own session, SIGTERM to stop), with
     systemd's variables pointing at our socket; its output (the workers' too) in a file."""
 
     def __init__(self, tmp_path: Path, monkeypatch, sid: str) -> None:
-        port = _port_pair()
+        port = free_port(2)
         self.ids = [f"{sid}-0", f"{sid}-1"]
         self.endpoints = [f"tcp/127.0.0.1:{port}", f"tcp/127.0.0.1:{port + 1}"]
         self.notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
@@ -189,7 +175,7 @@ def test_drape_workers_environment_variable_is_a_setting():
 
 
 def _supervisor(commands: list[list[str]], **kw) -> Supervisor:
-    config = ServerConfig(workers=len(commands), server_id="sv", listen=[f"tcp/127.0.0.1:{_port_pair()}"])
+    config = ServerConfig(workers=len(commands), server_id="sv", listen=[f"tcp/127.0.0.1:{free_port(2)}"])
     return Supervisor(config.validate(), plan(config), commands=commands, **kw)
 
 

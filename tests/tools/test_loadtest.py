@@ -173,8 +173,9 @@ def test_short_load_measures_only_its_window(tmp_path):
 
 
 def test_two_servers_share_a_load_placed_by_their_published_load():
-    """``--servers 2``: two drape serve processes, 4 clients starting one after another, each
-    placing its 2 cloths on the server the SDK ranks first by the servers' stats: 4 cloths each
+    """``--servers 2``: two drape serve processes, 4 clients starting together and placing one
+    after another, each its 2 cloths on the server the SDK ranks first by the servers' stats
+    (counting the cloths of the clients before it): 4 cloths each
     (spread 0), each server's window counted in its own ticks, every client's states counted in
     its server's ticks."""
     spec = lt.LoadSpec(clients=4, cloths=8, size=8, seconds=2.0, iterations=2)
@@ -192,6 +193,27 @@ def test_two_servers_share_a_load_placed_by_their_published_load():
     assert report.missed_ticks == sum(s["missed_ticks"] for s in report.servers)
     assert report.states == report.expected_states - report.lost and report.duplicated == 0
     assert sum(r.admitted for r in results) == 8
+
+
+def test_endpoint_with_several_server_ids_measures_running_workers(tmp_path):
+    """``--endpoint E --server-id W-0,W-1`` against one running ``drape serve --workers 2``: the
+    clients place by load over both workers, and the report has each worker's window."""
+    from drape.server.tools.procs import free_port
+
+    parser = argparse.ArgumentParser()
+    lt.configure(parser)
+    out = tmp_path / "w.json"
+    with ServerProcess(["--workers", "2", "--no-admission", "--stats-period", "0.5"], port=free_port(2)) as sup:
+        ids = f"{sup.server_id}-0,{sup.server_id}-1"
+        args = parser.parse_args(
+            f"--endpoint {sup.endpoint} --server-id {ids} --clients 2 --cloths 2 --size 8 --iterations 2 "
+            f"--seconds 1 --quiet --out {tmp_path} --json {out}".split()
+        )
+        assert lt.run(args) == 0
+    (report,) = json.loads(out.read_text())
+    assert [s["server"] for s in report["servers"]] == ids.split(",")
+    assert [s["cloths"] for s in report["servers"]] == [2, 2] and report["cloths"] == report["offered"] == 4
+    assert all(s["ticks"] > 0 for s in report["servers"])
 
 
 def test_scale_out_searches_one_server_then_two(tmp_path, capsys):

@@ -7,6 +7,7 @@
 #   bash deploy/h100.sh tradeoff [ARGS]           # speed against accuracy
 #   bash deploy/h100.sh loadtest [ARGS]           # the load-test table (below); ARGS override it
 #   bash deploy/h100.sh scaleout [ARGS]           # one server's knee against SO_SERVERS servers' (below)
+#   bash deploy/h100.sh serve [ARGS]              # drape serve itself (e.g. --workers 2 --device gpu:0,gpu:1)
 #
 # The load-test table: 16 client processes, 32x32 cloths with bending, 10 iterations, bundles,
 # loads of 128 .. 4096 cloths in float32 and 4096 in quant16, one server (admission off: the raw
@@ -82,6 +83,8 @@ case "$what" in
             --markdown "$OUT/scaleout-h100.md" --out /tmp/so-plots "$@" 2>&1 \
             | grep -v " INFO drape.server.service" | tee "$OUT/scaleout-h100.txt"
         cp /tmp/so-plots/loadtest-summary.png "$OUT/scaleout-summary.png" 2>/dev/null || true ;;
+    serve)
+        exec python3 -m drape.server.cli serve "$@" ;;
     *)
         echo "unknown: $what" >&2; exit 2 ;;
 esac

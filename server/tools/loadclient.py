@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
@@ -142,7 +143,12 @@ def _wait_turn(client: Any, shared: dict[str, Any], placing: bool) -> None:
 
 
 def client_main(
-    spec: ClientSpec, endpoint: str | list[str], server_id: str | None, shared: dict[str, Any], results: Any
+    spec: ClientSpec,
+    endpoint: str | list[str],
+    server_id: str | None,
+    shared: dict[str, Any],
+    results: Any,
+    cpus: frozenset[int] | None = None,
 ) -> None:
     """The process body. ``shared``: events ``turn``, ``ready``, ``go``, ``stop`` and values
     ``expect`` (see :func:`_wait_turn`), ``admitted``,
@@ -154,6 +160,8 @@ def client_main(
     one the SDK's placement ranks first by their published load (client/placement.py) and puts
     all its cloths there (the window is counted in that server's ticks)."""
     logging.basicConfig(level=logging.WARNING)
+    if cpus:  # before Zenoh starts its threads: they inherit it
+        os.sched_setaffinity(0, cpus)
     from drape.client import DrapeClient
     from drape.client import protocol as P
 

@@ -170,6 +170,7 @@ class Report:
     servers: list[dict[str, Any]] = field(default_factory=list)  # several servers: each one's figures
     spread: float = 0.0  # several servers: max / mean - 1 of their cloths (0: even)
     load_average: list[float] = field(default_factory=list)  # the host's 1-minute load at the window's start, end
+    affinity: dict[str, str] = field(default_factory=dict)  # CPUs the clients / each server were kept on, if any
     timeline: list[list[float]] = field(default_factory=list)  # per stats period: s, ticks, missed, coalesced
 
     @property
@@ -290,6 +291,8 @@ def print_report(r: Report) -> None:
         print(
             f"  host load average (1 min) at the window's start / end: {' / '.join(f'{x:.2f}' for x in r.load_average)}"
         )
+    if r.affinity:
+        print(f"  kept on CPUs: {'; '.join(f'{k} {v}' for k, v in r.affinity.items())}")
     if r.cloths != r.offered:
         print(f"  admitted cloths served: {'yes' if r.served else 'NO'}")
     print(f"  held: {'yes' if r.held else 'NO (' + r.why_not_held() + ')'}")

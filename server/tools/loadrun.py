@@ -45,7 +45,7 @@ from .loadreport import (
     server_window,
     timeline,
 )
-from .procs import ServerProcess, progress
+from .procs import ServerProcess, format_cpus, progress
 
 log = logging.getLogger(__name__)
 
@@ -141,10 +141,15 @@ def run_load(
 
 
 def run_fleet_load(
-    spec: LoadSpec, endpoint: str | list[str], targets: list[Target], quiet: bool = False
+    spec: LoadSpec,
+    endpoint: str | list[str],
+    targets: list[Target],
+    quiet: bool = False,
+    client_cpus: frozenset[int] | None = None,
 ) -> tuple[Report, list[ClientResult], list[tuple[float, dict]]]:
     """Run one load over ``targets`` (one or several servers); ``endpoint``: what the clients
-    connect to (the servers' endpoints, or a router)."""
+    connect to (the servers' endpoints, or a router); ``client_cpus``: the CPUs the client
+    processes run on (None: any)."""
     ctx = mp.get_context("spawn")
     several = len(targets) > 1
     spec = replace(spec, servers=len(targets))
@@ -171,7 +176,7 @@ def run_fleet_load(
         ctx.Process(
             target=client_main,
             name=f"loadtest-client-{c.index}",
-            args=(c, endpoint, sid, shared[c.index], results),
+            args=(c, endpoint, sid, shared[c.index], results, client_cpus),
         )
         for c in cspecs
     ]
@@ -304,6 +309,11 @@ def run_fleet_load(
         server=server_info,
         clients_cpu_percent=round(100.0 * sum(r.cpu_s for r in out) / elapsed, 1),
         host=f"{platform.node()} {os.cpu_count()} cores",
+        affinity={
+            k: format_cpus(v)
+            for k, v in [("clients", client_cpus), *[(str(t.server_id), t.proc and t.proc.cpus) for t in targets]]
+            if v
+        },
         servers=per_server if several else [],
         spread=round(spread(p["cloths"] for p in per_server), 4) if several else 0.0,
         load_average=[x for x in (load0, load1) if x is not None],

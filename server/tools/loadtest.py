@@ -51,7 +51,7 @@ from typing import Any
 
 from .loadreport import Report, markdown_table, print_report, write_plots, write_summary_plot
 from .loadrun import LoadSpec, StatsWatch, Target, run_fleet_load, run_load  # noqa: F401  (lt.run_load as before)
-from .procs import ServerProcess, free_port, require_extra
+from .procs import ServerProcess, free_port, parse_cpus, require_extra
 
 log = logging.getLogger(__name__)
 
@@ -125,6 +125,18 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--server-arg", action="append", default=[], help="extra argument for drape serve")
     parser.add_argument(
+        "--server-cpus",
+        default=None,
+        help="CPUs the started server(s) run on, as taskset writes them (0-3,16-19); a ';' list gives the "
+        "k-th server the k-th entry (in turn)",
+    )
+    parser.add_argument(
+        "--client-cpus",
+        default=None,
+        help="CPUs the client processes run on (0-15): the load clients stand for game clients on other "
+        "machines, so they can be kept off the servers' cores",
+    )
+    parser.add_argument(
         "--find-knee",
         action="store_true",
         help="from the first load, double it until it is not held (a failed load is run twice), then --bisect halvings",
@@ -193,7 +205,14 @@ class Fleet:
     server's OpenCL device is ``devices[k % len(devices)]`` (none: the default device, which the
     servers then share, each process its own OpenCL context)."""
 
-    def __init__(self, n: int, serve_args: list[str], router: bool = False, devices: Sequence[str] = ()) -> None:
+    def __init__(
+        self,
+        n: int,
+        serve_args: list[str],
+        router: bool = False,
+        devices: Sequence[str] = (),
+        cpus: Sequence[frozenset[int]] = (),
+    ) -> None:
         self.router: Any = None
         self._router_stop: Any = None
         self.servers: list[ServerProcess] = []
@@ -213,7 +232,8 @@ class Fleet:
                 if devices:
                     extra += ["--device", devices[k % len(devices)]]
                 sid = f"loadtest-{os.getpid()}" + (f"-{k}" if n > 1 else "")
-                self.servers.append(ServerProcess([*serve_args, *extra], server_id=sid))
+                pin = cpus[k % len(cpus)] if cpus else None
+                self.servers.append(ServerProcess([*serve_args, *extra], server_id=sid, cpus=pin))
             for srv in self.servers:
                 self.targets.append(Target(srv.server_id, StatsWatch(srv.endpoint, srv.server_id), srv))
         except BaseException:
@@ -300,6 +320,11 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit("--servers must be 1..16")
     if args.endpoint and (args.servers > 1 or args.scale_out):
         raise SystemExit("--servers / --scale-out start their own servers: not with --endpoint")
+    try:
+        server_cpus = [parse_cpus(c) for c in args.server_cpus.split(";")] if args.server_cpus else []
+        client_cpus = parse_cpus(args.client_cpus) if args.client_cpus else None
+    except ValueError as e:
+        raise SystemExit(f"--server-cpus / --client-cpus: {e}") from None
     base = LoadSpec(
         clients=args.clients,
         cloths=args.clients * args.cloths,
@@ -323,7 +348,7 @@ def run(args: argparse.Namespace) -> int:
 
     def on(fleet: Fleet) -> Any:
         def run_one(spec: LoadSpec) -> Report:
-            report, results, window = run_fleet_load(spec, fleet.endpoint, fleet.targets, args.quiet)
+            report, results, window = run_fleet_load(spec, fleet.endpoint, fleet.targets, args.quiet, client_cpus)
             print_report(report)
             tag = f"{report.cloths}-{report.encoding}" + (
                 f"-{len(fleet.targets)}servers" if len(fleet.targets) > 1 else ""
@@ -349,7 +374,7 @@ def run(args: argparse.Namespace) -> int:
             fleet: Any = argparse.Namespace(endpoint=args.endpoint, targets=targets, stop=stop_watching)
         else:
             devices = [d.strip() for d in args.device.split(",") if d.strip()] if args.device else []
-            fleet = Fleet(n_servers, _serve_args(args), args.router, devices)
+            fleet = Fleet(n_servers, _serve_args(args), args.router, devices, server_cpus)
         try:
             run_one = on(fleet)
             if args.find_knee or args.scale_out:

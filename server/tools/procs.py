@@ -114,6 +114,33 @@ class ProcessFigures:
         }
 
 
+def parse_cpus(text: str) -> frozenset[int]:
+    """A CPU list as taskset and /sys write it ("0-3,16-19") as a set of CPU numbers; ValueError
+    when it is empty or malformed."""
+    cpus: set[int] = set()
+    for part in (p.strip() for p in text.split(",")):
+        lo, sep, hi = part.partition("-")
+        try:
+            a, b = int(lo), int(hi) if sep else int(lo)
+        except ValueError:
+            raise ValueError(f"CPU list {text!r}: {part!r} is not N or N-M") from None
+        if a < 0 or b < a:
+            raise ValueError(f"CPU list {text!r}: {part!r} is not an increasing range of CPU numbers")
+        cpus.update(range(a, b + 1))
+    return frozenset(cpus)
+
+
+def format_cpus(cpus: Iterable[int]) -> str:
+    """A CPU set as a compact list ("0-3,16-19"), the inverse of :func:`parse_cpus`."""
+    out: list[str] = []
+    for c in sorted(cpus):
+        if out and out[-1].split("-")[-1] == str(c - 1):
+            out[-1] = f"{out[-1].split('-')[0]}-{c}"
+        else:
+            out.append(str(c))
+    return ",".join(out)
+
+
 def serve_command(endpoint: str, server_id: str, *args: str) -> list[str]:
     """The command line of a ``drape serve`` child listening on ``endpoint`` as ``server_id``
     (``args``: more ``drape serve`` arguments), run by this interpreter."""
@@ -124,21 +151,31 @@ class ServerProcess:
     """``drape serve`` as a child process in its own session, on a free loopback port.
 
     ``args`` are extra ``drape serve`` arguments; ``output``: a file its stdout and stderr go to
-    (default: ours). Stop it with :meth:`stop` (SIGTERM to its process group, SIGKILL after
-    ``grace`` seconds); usable as a context manager."""
+    (default: ours); ``cpus``: the CPUs it (every thread of it) may run on (None: any). Stop it
+    with :meth:`stop` (SIGTERM to its process group, SIGKILL after ``grace`` seconds); usable as
+    a context manager."""
 
     def __init__(
-        self, args: Sequence[str] = (), *, server_id: str | None = None, port: int = 0, output: IO[Any] | None = None
+        self,
+        args: Sequence[str] = (),
+        *,
+        server_id: str | None = None,
+        port: int = 0,
+        output: IO[Any] | None = None,
+        cpus: frozenset[int] | None = None,
     ) -> None:
         self.endpoint = f"tcp/127.0.0.1:{port or free_port()}"
         self.server_id = server_id or f"tools-{os.getpid()}"
+        self.cpus = cpus
         self.cmd = serve_command(self.endpoint, self.server_id, *args)
-        log.info("starting server: %s", " ".join(self.cmd))
+        log.info("starting server%s: %s", f" on CPUs {format_cpus(cpus)}" if cpus else "", " ".join(self.cmd))
         self.proc = subprocess.Popen(
             self.cmd,
             start_new_session=True,
             stdout=output,
             stderr=None if output is None else subprocess.STDOUT,
+            # set before exec, so that every thread the server starts inherits it
+            preexec_fn=(lambda: os.sched_setaffinity(0, cpus)) if cpus else None,
         )
         self.figures = ProcessFigures(self.proc.pid)
 

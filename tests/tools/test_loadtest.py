@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 
 import numpy as np
 import pytest
@@ -271,3 +272,31 @@ def test_knee_search_goes_down_when_the_first_load_is_not_held():
         lt.LoadSpec(clients=4, cloths=256), lambda s: runs.append(s.cloths) or Outcome(999), 8192, 2, None, 0.0
     )
     assert held == 0 and runs == [256, 256, 128, 128, 64, 64, 32, 32, 16, 16, 8, 8, 4, 4]
+
+
+def test_cpu_lists_parse_and_pin_a_server_and_its_threads():
+    """``--server-cpus`` / ``--client-cpus`` lists as taskset writes them, and a server started on
+    one CPU: the affinity is set before exec, so every thread it starts (Zenoh's, the tick
+    thread, the publisher) has it."""
+    import psutil
+
+    from drape.server.tools.procs import format_cpus, parse_cpus
+
+    assert (
+        parse_cpus("0-3,16-19") == {0, 1, 2, 3, 16, 17, 18, 19}
+        and format_cpus({0, 1, 2, 3, 16, 17, 18, 19}) == "0-3,16-19"
+    )
+    assert format_cpus(parse_cpus("5,0,2,3")) == "0,2-3,5"
+    for bad in ("", "a", "3-1", "1,,2", "-1"):
+        with pytest.raises(ValueError, match="CPU list"):
+            parse_cpus(bad)
+    cpu = min(os.sched_getaffinity(0))  # one this machine lets us use
+    with ServerProcess(["--stats-period", "0.5"], cpus=frozenset({cpu})) as srv:
+        from drape.client import DrapeClient
+
+        with DrapeClient(srv.endpoint, server_id=srv.server_id, timeout=60.0) as client:
+            assert client.info()["server"] == srv.server_id  # up: its threads are running
+        proc = psutil.Process(srv.proc.pid)
+        threads = [t.id for t in proc.threads()]
+        assert len(threads) > 3
+        assert all(os.sched_getaffinity(t) == {cpu} for t in threads)

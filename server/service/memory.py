@@ -36,8 +36,8 @@ among the frozen objects is found then, at one pause per period).
 
 ``drape serve`` fixes glibc's thresholds and puts every thread on one malloc arena
 (:func:`configure_heap`): a thread's own arena keeps its freed top for good under the fixed trim
-threshold, out of ``malloc_trim``'s reach, and after a fuzz of large messages that was most of
-the RSS not given back.
+threshold, out of ``malloc_trim``'s reach: after a fuzz of large messages, Zenoh's receiving
+threads' arenas held most of the RSS that was not given back.
 """
 
 from __future__ import annotations
@@ -155,9 +155,10 @@ def one_arena() -> bool:
     64 MB heap of its own) is never given back when freed (glibc trims a thread arena's top only
     when it exceeds the trim threshold), and ``malloc_trim`` gives back the free chunks of every
     arena but the top only of the main one. Measured (``drape chaos fuzz``, 20,000 messages, 8 MiB
-    limit; glibc's malloc_info by arena): two threads' arenas that take large messages apart
-    (Zenoh's fragments, the payload copies) grew by about 9 MB each and kept it as free top for
-    good (1.3-1.6 MB each with a 1 MiB limit), RSS +7 to +11 %; with one arena +2.3 %. A thread
+    limit; glibc's malloc_info, and gdb for each thread's arena): the arenas of Zenoh's receiving
+    threads ``rx-0`` and ``rx-1``, which put large messages together from their fragments, grew
+    by about 9 MB each and kept it as free top for good (1.3-1.6 MB each with a 1 MiB limit), RSS
+    +7 to +11 %; with one arena +2.3 % (100,000 messages: +7.8 to +10.0 %, and +2.8 %). A thread
     allocating 16 MiB in 64 KiB blocks and freeing them keeps them after ``malloc_trim(0)``, and
     gives them back with one arena (tests/service/test_memory.py). The cost: one lock for every
     thread's allocations beyond its thread cache (the Python threads share the GIL anyway; not

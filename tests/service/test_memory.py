@@ -194,3 +194,19 @@ def test_one_arena_lets_the_trim_give_back_what_a_thread_freed():
     assert arenas == 2 and kept >= 12.0  # what the server kept before: 16 MiB, 13-16 MB resident
     kept, arenas = _thread_heap("configure_heap")
     assert arenas == 1 and kept < 4.0
+
+
+def test_one_arena_leaves_an_operators_arena_setting(monkeypatch):
+    """MALLOC_ARENA_MAX or GLIBC_TUNABLES' arena_max in the environment (glibc applied it at
+    start-up) is kept: one_arena calls no mallopt; without either it asks for one arena."""
+    calls: list[tuple[int, int]] = []
+    monkeypatch.setattr(M, "mallopt", lambda p, v: calls.append((p, v)) or True)
+    monkeypatch.delenv("GLIBC_TUNABLES", raising=False)
+    monkeypatch.setenv("MALLOC_ARENA_MAX", "8")
+    assert not M.one_arena()
+    monkeypatch.delenv("MALLOC_ARENA_MAX")
+    monkeypatch.setenv("GLIBC_TUNABLES", "glibc.malloc.arena_max=4")
+    assert not M.one_arena()
+    assert calls == []
+    monkeypatch.delenv("GLIBC_TUNABLES")
+    assert M.one_arena() and calls == [(M.M_ARENA_MAX, 1)]

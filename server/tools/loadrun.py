@@ -197,8 +197,10 @@ def run_fleet_load(
             s["expect"].value = placed * spec.size * spec.size
             s["turn"].set()
             if several:  # ... and place one after another: each by the load of those before it
+                t_turn = time.monotonic()
                 _wait(s["ready"].is_set, f"{p.name}'s submits", deadline, procs)
                 placed += int(s["admitted"].value)
+                log.debug("%s placed %d cloths in %.2f s", p.name, int(s["admitted"].value), time.monotonic() - t_turn)
         _wait(lambda: all(s["ready"].is_set() for s in shared), "the clients' submits", deadline, procs)
         admitted = sum(int(s["admitted"].value) for s in shared)
         home = [by_id.get(s["server"].value.decode(), 0) if several else 0 for s in shared]

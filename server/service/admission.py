@@ -108,6 +108,15 @@ def fit_line(points: list[tuple[int, float, int]], min_spread: float = MIN_SPREA
     return Line(base, slope)
 
 
+def describe(costs: list[TickCost]) -> str:
+    """Each stage's median / 90th percentile / max over ``costs``, in ms (for the logs)."""
+    out = []
+    for s in STAGES:
+        xs = sorted(c.stages()[s] for c in costs)
+        out.append(f"{s} {1e3 * statistics.median(xs):.2f}/{1e3 * xs[int(0.9 * (len(xs) - 1))]:.2f}/{1e3 * xs[-1]:.2f}")
+    return ", ".join(out) + " ms (median/p90/max)"
+
+
 class CostModel(Protocol):
     def observe(self, cost: TickCost) -> None: ...
 
@@ -169,6 +178,7 @@ class MeasuredCost:
         self._observed = 0  # steady ticks observed so far (the fit is cached until the next one)
         self._fit: tuple[int, tuple[int, dict[str, Line], bool] | None] = (-1, None)
         self._lock = threading.Lock()
+        self._logged: dict[int, TickCost] = {}  # each load's oldest tick when its window was last logged
 
     def observe(self, cost: TickCost) -> None:
         if cost.vertices <= 0:
@@ -182,6 +192,12 @@ class MeasuredCost:
             self._by_load.move_to_end(cost.vertices)
             while len(self._by_load) > self.loads:
                 self._by_load.popitem(last=False)
+            full = len(q) == self.per_load and q[0] is not self._logged.get(cost.vertices)
+            if full:
+                self._logged[cost.vertices] = q[0]
+                costs = list(q)
+        if full and log.isEnabledFor(logging.DEBUG):  # once a window of ticks a load: what was measured
+            log.debug("admission: %d vertices, %d steady ticks: %s", cost.vertices, len(costs), describe(costs))
 
     def points(self) -> tuple[int, dict[str, list[tuple[int, float, int]]]]:
         """The latest load (0: none yet) and, per stage, each load's (vertices, median, ticks)
@@ -251,6 +267,11 @@ class Admission:
         if not stages:
             return
         stage, predicted = max(stages.items(), key=lambda kv: kv[1])
+        total = vertices_before + n_vertices
+        if log.isEnabledFor(logging.DEBUG):
+            shown = ", ".join(f"{s} {1e3 * v:.2f}" for s, v in stages.items())
+            verdict = "refused" if predicted > self.budget_s else "admitted"
+            log.debug("admission: %s %d vertices: predicted %s ms", verdict, total, shown)
         if predicted > self.budget_s:
             raise _OVERLOADED_EXC(
                 ERR_OVERLOADED,

@@ -19,6 +19,7 @@ from drape.server.service.admission import (
     MeasuredCost,
     TickCost,
     fit_line,
+    quantile,
     separable,
 )
 
@@ -151,15 +152,69 @@ def test_fit_line_recovers_base_and_slope_and_falls_back_to_the_conservative_lin
 def test_measured_cost_fits_each_stage_across_loads_and_ignores_one_off_spikes():
     m = MeasuredCost()
     assert m.predict(1000, 0.014) is None  # nothing measured yet: no opinion
-    # device: 1 ms + 1 us a vertex; tick thread 0.5 ms + 0.1 us; publisher 0.2 ms + 0.2 us; a third of ticks 5x
+    # device: 1 ms + 1 us a vertex; tick thread 0.5 ms + 0.1 us; publisher 0.2 ms + 0.2 us; 2 ticks of 30 5x
     for v in (4000, 8000, 12000):
-        _ticks(m, v, 30, 0.0005 + 1e-7 * v, 0.001 + 1e-6 * v, 0.0002 + 2e-7 * v, spike_every=3)
-    latest, lines, fitted = m.fit()
+        _ticks(m, v, 30, 0.0005 + 1e-7 * v, 0.001 + 1e-6 * v, 0.0002 + 2e-7 * v, spike_every=20)
+    latest, lines, fitted, _ = m.fit()
     assert latest == 12000 and fitted
     assert lines["device"].base_s == pytest.approx(0.001) and lines["device"].slope_s == pytest.approx(1e-6)
     assert lines["tick"].slope_s == pytest.approx(1e-7) and lines["publisher"].base_s == pytest.approx(0.0002)
+    # inside the loads measured: the lines
+    assert m.predict(8000, 0.014) == pytest.approx({"tick": 0.0013, "device": 0.009, "publisher": 0.0018})
+    # past the largest load: each stage at least in proportion to it (the fixed costs counted per vertex too)
     got = m.predict(13000, 0.014)
-    assert got == pytest.approx({"tick": 0.0018, "device": 0.014, "publisher": 0.0028})
+    assert got == pytest.approx({"tick": 0.0017 * 13 / 12, "device": 0.013 * 13 / 12, "publisher": 0.0026 * 13 / 12})
+
+
+def test_each_load_counts_its_90th_percentile_tick_not_its_median():
+    """One tick in ten stretched (a one-off) does not move a load's point; one in five does, by
+    what the stretched ticks took: a pipeline misses ticks when its slow ticks are the rule."""
+    assert quantile([1.0, 2.0, 3.0, 4.0]) == 4.0 and quantile([0.003] * 9 + [0.03]) == 0.003
+    assert quantile([5.0, 1.0, 3.0], 0.5) == 3.0 and quantile(list(range(100))) == 89
+    with pytest.raises(ValueError):
+        quantile([])
+    one_in_ten, one_in_five = MeasuredCost(), MeasuredCost()
+    for m, every in ((one_in_ten, 10), (one_in_five, 5)):
+        for v in (100_000, 200_000):  # device 0.05 us a vertex; every `every`-th tick 2x
+            _ticks_stretched(m, v, 60, 5e-8 * v, every)
+    assert one_in_ten.predict(250_000)["device"] == pytest.approx(0.0125)
+    assert one_in_five.predict(250_000)["device"] == pytest.approx(0.025)
+    # by the median both would admit 270,000 vertices (13.5 ms) under a 14 ms budget; the slow ticks refuse it
+    adm = Admission(make_config(admission_budget=0.84))
+    adm.model = one_in_five
+    with pytest.raises(DrapeError) as e:
+        adm.check(200_000, 70_000, 1)
+    assert e.value.code == "overloaded" and "device stage" in e.value.message
+    adm.model = one_in_ten
+    adm.check(200_000, 70_000, 2)
+
+
+def test_a_burst_is_not_admitted_past_the_largest_load_on_a_line_fitted_to_smaller_ones():
+    """A device whose time grows in proportion near its knee (a CPU sharing its cores), measured
+    at three loads: the weighted line through them takes a fixed cost from the small ones and
+    would admit 283 cloths; the proportional line through the largest load stops the burst at
+    259, where that load's time scaled to the budget is, and inside the loads measured the line
+    still decides."""
+    adm = Admission(make_config(admission_budget=0.85))
+    budget = adm.budget_s
+    m = MeasuredCost()
+    adm.model = m
+    vpc = 1024
+    for cloths, device_ms in ((32, 2.6), (64, 3.6), (128, 7.0)):  # 28 us a cloth at 128, a base at small loads
+        _ticks(m, cloths * vpc, 60, 0.0005, device_ms / 1e3, 0.0005)
+    line = m.fit().lines["device"]
+    assert line.base_s > 0.0 and line(256 * vpc) < budget  # the fitted line alone: 256 cloths fit
+    admitted = 128
+    for k in range(400):  # a burst of one-cloth submits before any new measurement
+        try:
+            adm.check(admitted * vpc, vpc, 10 + k)
+            admitted += 1
+        except DrapeError as e:
+            assert e.code == "overloaded"
+    assert admitted == int(128 * budget / 0.007)  # 259: where 7 ms at 128 cloths scales to the budget
+    assert admitted < int((budget - line.base_s) / line.slope_s / vpc)  # the line's own answer: more
+    # below the largest load measured, the floor never refuses what the fitted line admits
+    assert m.predict(100 * vpc)["device"] == pytest.approx(line(100 * vpc))
 
 
 def test_the_slowest_stage_decides_not_the_sum_of_the_stages():
@@ -219,6 +274,12 @@ def test_a_lightly_loaded_server_trusts_once_per_load_so_a_burst_is_checked():
     assert m2.predict(v + 1024, budget) is not None  # trust is spent for this load
     _ticks(m2, 20 * 1024, 5, 0.0002, 0.001, 0.0002)  # a newly measured load (separable now): the fit decides
     assert m2.fit()[2]
+
+
+def _ticks_stretched(m: MeasuredCost, vertices: int, n: int, device: float, every: int) -> None:
+    """``n`` steady ticks at one load, every ``every``-th one's device time doubled."""
+    for k in range(n):
+        m.observe(TickCost(vertices, 0.0001, device * (2.0 if k % every == every - 1 else 1.0), 0.0001))
 
 
 class Synthetic(MeasuredCost):

@@ -276,6 +276,29 @@ def test_a_lightly_loaded_server_trusts_once_per_load_so_a_burst_is_checked():
     assert m2.fit()[2]
 
 
+def test_a_burst_stands_on_the_median_of_its_last_ticks_not_on_the_latest_one():
+    """While submits arrive every tick no load gets five ticks: the last five ticks, each scaled
+    to the latest load (those of loads under half of it left out), stand in by their median, so
+    one cheap tick does not open the door; and once a load has five ticks, the burst's single
+    ticks give way to it."""
+    m = MeasuredCost()
+    vpc = 1024
+    # a burst on this CPU (session 13): device ms at each load, one tick each; the latest tick cheap
+    for cloths, device_ms in ((40, 9.0), (250, 12.0), (270, 13.5), (290, 13.0), (300, 14.1), (310, 7.0)):
+        m.observe(TickCost(cloths * vpc, 0.001, device_ms / 1e3, 0.001))
+    latest, points = m.points()
+    assert latest == 310 * vpc and len(points["device"]) == 1
+    near = sorted(ms * 310 / c for c, ms in ((250, 12.0), (270, 13.5), (290, 13.0), (300, 14.1), (310, 7.0)))
+    assert points["device"][0] == (310 * vpc, pytest.approx(near[2] / 1e3), 5)  # the 40-cloth tick is not scaled
+    adm = Admission(make_config(admission_budget=0.85))
+    adm.model = m
+    with pytest.raises(DrapeError):  # the latest tick alone (7 ms at 310) would admit over 600 cloths
+        adm.check(310 * vpc, 10 * vpc, 1)
+    # a load with five ticks: the points are the loads' own again
+    _ticks(m, 320 * vpc, 5, 0.001, 0.012, 0.001)
+    assert m.points()[1]["device"] == [(320 * vpc, 0.012, 5)]
+
+
 def _ticks_stretched(m: MeasuredCost, vertices: int, n: int, device: float, every: int) -> None:
     """``n`` steady ticks at one load, every ``every``-th one's device time doubled."""
     for k in range(n):

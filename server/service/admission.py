@@ -21,7 +21,7 @@ every cloth already admitted but not yet stepped, exceeds ``admission_budget`` o
 cloths already admitted keep their rate. Refusals are counted (``overload_refusals``). A server
 with no cloth admits (there is nothing to protect and nothing to predict from).
 
-Three rules keep the prediction on the side that holds (docs/loadtest.md, session 13 CPU: the
+Four rules keep the prediction on the side that holds (docs/loadtest.md, session 13 CPU: the
 median model admitted 305 ``fast`` cloths where 256 hold, and they missed 65 ticks):
 
 - **Each load's point is the 90th percentile of its ticks** (``QUANTILE``), not the median. A
@@ -43,6 +43,11 @@ median model admitted 305 ``fast`` cloths where 256 hold, and they missed 65 tic
   or two ticks: a cheap one (6.9 ms where the ticks around it took 12-16) admitted 24 cloths in
   one go. Now the median of the last ``MIN_SAMPLES`` ticks, each scaled to the latest load,
   stands in (:meth:`MeasuredCost.stand_in`).
+- **Nothing measured, little admitted.** Before the first steady tick the model has no opinion;
+  it used to admit everything then, and a burst arriving while the first cloths' kernels built
+  was admitted whole (session 13, four logged runs: 12 to 204 cloths). Now a server with
+  nothing measured admits up to ``UNMEASURED_VERTICES`` (64 cloths of 32 x 32), and refuses
+  (``overloaded``: retry later) past it until a steady tick is measured.
 
 The budget (``admission_budget`` x dt, server/service/config.py) keeps its meaning: the share of
 a tick the slowest stage may take; what changed is which tick it is measured on.
@@ -78,6 +83,8 @@ LOADS = 8  # distinct loads kept (the least recently observed goes first)
 MIN_SAMPLES = 5  # a load enters the fit once it has this many steady ticks; before any has, the last
 # this many ticks (of loads down to 1 / STAND_IN_SPAN of the latest) stand in, each scaled to the latest load
 STAND_IN_SPAN = 2.0
+UNMEASURED_VERTICES = 65_536  # before the first steady tick, a server admits up to this many vertices (64 32x32)
+UNMEASURED = "unmeasured"  # the "stage" of a prediction refused because nothing was measured yet
 MIN_SPREAD = 1.1  # the fit needs its largest load at least this many times its smallest
 TRUST = 0.5  # below this share of the budget, a load that cannot be fitted admits (once a load) ...
 TRUST_LIMIT = 4.0  # ... a submit that, were every second measured per vertex, would take at most this many budgets
@@ -220,11 +227,13 @@ class MeasuredCost:
         min_spread: float = MIN_SPREAD,
         trust_limit: float = TRUST_LIMIT,
         q: float = QUANTILE,
+        unmeasured: int = UNMEASURED_VERTICES,
     ) -> None:
         if per_load < min_samples or min_samples < 1 or loads < 1 or not 0.0 < q <= 1.0:
             raise ValueError("MeasuredCost needs 1 <= min_samples <= per_load, loads >= 1 and 0 < q <= 1")
         self.per_load, self.loads, self.min_samples = per_load, loads, min_samples
         self.trust, self.min_spread, self.trust_limit, self.q = trust, min_spread, trust_limit, q
+        self.unmeasured = unmeasured
         self._by_load: OrderedDict[int, deque[TickCost]] = OrderedDict()  # least recently observed first
         self._trusted_at = 0  # the latest load when predict last answered None on trust
         self._observed = 0  # steady ticks observed so far (the fit is cached until the next one)
@@ -313,8 +322,8 @@ class MeasuredCost:
 
     def predict(self, vertices: int, budget_s: float = float("inf")) -> dict[str, float] | None:
         got = self.fit()
-        if got is None:
-            return None
+        if got is None:  # no steady tick yet: no opinion up to a first load, then wait for one
+            return None if vertices <= self.unmeasured else {UNMEASURED: math.inf}
         latest, lines, fitted, floors = got
         stages = {s: max(line(vertices), floors[s](vertices)) for s, line in lines.items()}
         if (
@@ -344,9 +353,18 @@ class Admission:
             return
         stages = self.model.predict(vertices_before + n_vertices, self.budget_s)
         if not stages:
+            log.debug("admission: admitted %d vertices without a prediction", vertices_before + n_vertices)
             return
         stage, predicted = max(stages.items(), key=lambda kv: kv[1])
         total = vertices_before + n_vertices
+        if stage == UNMEASURED:
+            log.debug("admission: refused %d vertices: no steady tick measured yet", total)
+            raise _OVERLOADED_EXC(
+                ERR_OVERLOADED,
+                f"server overloaded: {vertices_before} vertices admitted and no tick of them measured yet; "
+                "retry later or elsewhere",
+                rid,
+            )
         if log.isEnabledFor(logging.DEBUG):
             shown = ", ".join(f"{s} {1e3 * v:.2f}" for s, v in stages.items())
             verdict = "refused" if predicted > self.budget_s else "admitted"

@@ -13,6 +13,7 @@ from conftest import TIMEOUT, collect, connect, make_config, wait_until
 from drape.client import DrapeError, NotFound
 from drape.server.service import Server
 from drape.server.service.admission import (
+    UNMEASURED_VERTICES,
     Admission,
     FixedCost,
     Line,
@@ -297,6 +298,21 @@ def test_a_burst_stands_on_the_median_of_its_last_ticks_not_on_the_latest_one():
     # a load with five ticks: the points are the loads' own again
     _ticks(m, 320 * vpc, 5, 0.001, 0.012, 0.001)
     assert m.points()[1]["device"] == [(320 * vpc, 0.012, 5)]
+
+
+def test_nothing_measured_yet_admits_a_first_load_then_waits_for_a_measurement():
+    """Before the first steady tick there is no opinion, but only up to 64 32x32 cloths: a burst
+    arriving while the first kernels build is not admitted whole (retry later)."""
+    m = MeasuredCost()
+    assert m.predict(UNMEASURED_VERTICES) is None
+    adm = Admission(make_config(admission_budget=0.85))
+    adm.model = m
+    adm.check(1024, UNMEASURED_VERTICES - 1024, 1)
+    with pytest.raises(DrapeError) as e:
+        adm.check(UNMEASURED_VERTICES, 1024, 2)
+    assert e.value.code == "overloaded" and "measured" in e.value.message
+    _ticks(m, UNMEASURED_VERTICES, 5, 0.001, 0.004, 0.001)  # a measured load: predicted from it
+    adm.check(UNMEASURED_VERTICES, 1024, 3)
 
 
 def _ticks_stretched(m: MeasuredCost, vertices: int, n: int, device: float, every: int) -> None:

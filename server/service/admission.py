@@ -21,8 +21,10 @@ every cloth already admitted but not yet stepped, exceeds ``admission_budget`` o
 cloths already admitted keep their rate. Refusals are counted (``overload_refusals``). A server
 with no cloth admits (there is nothing to protect and nothing to predict from).
 
-Four rules keep the prediction on the side that holds (docs/loadtest.md, session 13 CPU: the
-median model admitted 305 ``fast`` cloths where 256 hold, and they missed 65 ticks):
+Four rules keep the prediction on the side that holds. Offered twice what this 2-core CPU holds
+(docs/loadtest.md, session 13; docs/results/loadtest-cpu-s13-admission-*.json), the model before
+them admitted 198-768 ``fast`` cloths where about 256 hold, and 5 runs of 10 missed 41-700 ticks;
+with them, 177-272 in 5 runs, at most 4 missed ticks, p99 at most 31 ms:
 
 - **Each load's point is the 90th percentile of its ticks** (``QUANTILE``), not the median. A
   pipeline keeps its rate only while nearly every tick fits, and on a CPU device the spread is
@@ -45,7 +47,8 @@ median model admitted 305 ``fast`` cloths where 256 hold, and they missed 65 tic
   stands in (:meth:`MeasuredCost.stand_in`).
 - **Nothing measured, little admitted.** Before the first steady tick the model has no opinion;
   it used to admit everything then, and a burst arriving while the first cloths' kernels built
-  was admitted whole (session 13, four logged runs: 12 to 204 cloths). Now a server with
+  was admitted whole (session 13, four logged runs: 12 to 204 cloths; one unlogged run of the
+  old model admitted all 768 offered and ran at 25.9 Hz). Now a server with
   nothing measured admits up to ``UNMEASURED_VERTICES`` (64 cloths of 32 x 32), and refuses
   (``overloaded``: retry later) past it until a steady tick is measured.
 
@@ -202,9 +205,10 @@ class MeasuredCost:
     a descheduled thread, does not count; one in five does), weighted by its tick count;
     :func:`fit_line` fits them. Until some load has ``min_samples`` ticks, the last ticks of any
     nearby load stand in (:meth:`stand_in`: a burst of submits changes the load every tick, and
-    the model must not wait for a quiet moment to have an opinion). ``predict`` takes each stage's line or, where it is
-    larger, the proportional line through the largest load's point (the module docstring says
-    why).
+    the model must not wait for a quiet moment to have an opinion). ``predict`` takes each
+    stage's line or, where it is larger, the proportional line through the largest load's point
+    (the module docstring says why); before the first steady tick it has no opinion (None) up to
+    ``unmeasured`` vertices and refuses past them (the stage ``UNMEASURED``, infinite).
 
     A server that has measured only one load cannot tell its fixed costs from its per-vertex
     ones, and counting them all per vertex (the conservative fallback) would refuse a second

@@ -49,8 +49,10 @@ with them, 177-272 in 5 runs, at most 4 missed ticks, p99 at most 31 ms:
   it used to admit everything then, and a burst arriving while the first cloths' kernels built
   was admitted whole (session 13, four logged runs: 12 to 204 cloths; one unlogged run of the
   old model admitted all 768 offered and ran at 25.9 Hz). Now a server with
-  nothing measured admits up to ``UNMEASURED_VERTICES`` (64 cloths of 32 x 32), and refuses
-  (``overloaded``: retry later) past it until a steady tick is measured.
+  nothing measured admits up to ``admission_unmeasured_vertices`` (server/service/config.py;
+  default 65,536, 64 cloths of 32 x 32: what a CPU device surely holds), and
+  refuses (``overloaded``: retry later) past it until a steady tick is measured. A GPU holds
+  thousands: its operator raises the setting so that a level's first burst is not refused.
 
 The budget (``admission_budget`` x dt, server/service/config.py) keeps its meaning: the share of
 a tick the slowest stage may take; what changed is which tick it is measured on.
@@ -86,7 +88,7 @@ LOADS = 8  # distinct loads kept (the least recently observed goes first)
 MIN_SAMPLES = 5  # a load enters the fit once it has this many steady ticks; before any has, the last
 # this many ticks (of loads down to 1 / STAND_IN_SPAN of the latest) stand in, each scaled to the latest load
 STAND_IN_SPAN = 2.0
-UNMEASURED_VERTICES = 65_536  # before the first steady tick, a server admits up to this many vertices (64 32x32)
+UNMEASURED_VERTICES = ServerConfig.admission_unmeasured_vertices  # admitted before the first steady tick (the default)
 UNMEASURED = "unmeasured"  # the "stage" of a prediction refused because nothing was measured yet
 MIN_SPREAD = 1.1  # the fit needs its largest load at least this many times its smallest
 TRUST = 0.5  # below this share of the budget, a load that cannot be fitted admits (once a load) ...
@@ -345,7 +347,7 @@ class MeasuredCost:
 class Admission:
     def __init__(self, config: ServerConfig) -> None:
         self.config = config
-        self.model: CostModel = MeasuredCost()
+        self.model: CostModel = MeasuredCost(unmeasured=config.admission_unmeasured_vertices)
 
     @property
     def budget_s(self) -> float:

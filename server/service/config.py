@@ -113,6 +113,7 @@ class ServerConfig:
     # --- admission and misbehaving cloths -------------------------------------------------------
     admission: bool = True  # refuse submits ("overloaded") that would push ticks over admission_budget
     admission_budget: float = 0.85  # share of a tick the predicted tick cost may take
+    admission_unmeasured_vertices: int = 65_536  # admitted before the first steady tick (64 32x32 cloths)
     nan_max_resets: int = 5  # a cloth reset this many times for non-finite state within nan_window...
     nan_window: float = 10.0  # ...seconds is removed
     # --- operations ----------------------------------------------------------------------------
@@ -171,6 +172,8 @@ class ServerConfig:
             raise ValueError("quality_budget must be in 0.05..10 (a share of one tick)")
         if not (0.0 < self.admission_budget <= 100.0):
             raise ValueError("admission_budget must be in (0, 100] (a share of one tick)")
+        if self.admission_unmeasured_vertices < 0:
+            raise ValueError("admission_unmeasured_vertices must be >= 0")
         if self.nan_max_resets < 1 or self.nan_window <= 0:
             raise ValueError("nan_max_resets must be >= 1 and nan_window > 0")
         if self.log_format not in LOG_FORMATS:
@@ -355,6 +358,8 @@ HELP = {
     "quality_budget": "share of a tick the tick's work may take before quality is lowered",
     "admission": "refuse submissions that would push the tick over admission_budget ('overloaded')",
     "admission_budget": "share of a tick the predicted tick cost may take when admitting a cloth",
+    "admission_unmeasured_vertices": "vertices admitted before the first steady tick is measured (then "
+    "'overloaded' until one is); raise it on a GPU so that a level's first burst is not refused",
     "nan_max_resets": "non-finite resets of one cloth within nan_window before it is removed",
     "nan_window": "seconds over which nan_max_resets counts",
     "metrics_listen": "HOST:PORT of the operator HTTP listener (/metrics /healthz /readyz), e.g. 127.0.0.1:9464",

@@ -315,6 +315,19 @@ def test_nothing_measured_yet_admits_a_first_load_then_waits_for_a_measurement()
     adm.check(UNMEASURED_VERTICES, 1024, 3)
 
 
+def test_a_gpu_operator_raises_what_is_admitted_before_the_first_measurement():
+    """``admission_unmeasured_vertices`` reaches the model: a server configured for a GPU admits
+    a level's first burst of 2048 cloths before any tick is measured, and refuses past it."""
+    vpc = 1024
+    adm = Admission(make_config(admission_budget=0.85, admission_unmeasured_vertices=2048 * vpc))
+    adm.check(vpc, 2047 * vpc, 1)
+    with pytest.raises(DrapeError) as e:
+        adm.check(2048 * vpc, vpc, 2)
+    assert e.value.code == "overloaded"
+    with pytest.raises(ValueError, match="admission_unmeasured_vertices"):
+        make_config(admission_unmeasured_vertices=-1)
+
+
 def _ticks_stretched(m: MeasuredCost, vertices: int, n: int, device: float, every: int) -> None:
     """``n`` steady ticks at one load, every ``every``-th one's device time doubled."""
     for k in range(n):

@@ -67,8 +67,9 @@ def test_timeline_tells_each_stats_period_of_a_window():
 
 def test_admission_capacity_replays_a_load_tests_figures():
     """Reports whose device takes 2 ms + 0.1 ms a cloth (the slowest stage): with a budget of
-    10 ms the model admits 80 cloths once it has measured two loads; with one load (through the
-    origin: 4 ms at 20 cloths) it admits 50."""
+    10 ms the model admits 66 cloths once it has measured two loads (the fitted line would allow
+    80, but no stage is predicted below the proportional line through the larger load: 6 ms at
+    40 cloths is 10 ms at 66.7); with one load (through the origin: 4 ms at 20 cloths) it admits 50."""
 
     def report(cloths: int) -> dict:
         phases = {"tick": 1.0, "readback": 0.5, "solve": 2.0 + 0.1 * cloths, "encode": 0.1, "publish": 0.4}
@@ -79,7 +80,7 @@ def test_admission_capacity_replays_a_load_tests_figures():
         }
 
     reports = [report(20), report(40)]
-    assert admission_capacity(reports, [20, 40], 0.010) == 80
+    assert admission_capacity(reports, [20, 40], 0.010) == 66
     assert admission_capacity(reports, [20], 0.010) == 50
     with pytest.raises(ValueError, match="no report"):
         admission_capacity(reports, [30], 0.010)

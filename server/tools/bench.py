@@ -31,7 +31,7 @@ from ..sim import make_world
 from ..sim.fabric import Fabric, cook_grid
 from ..sim.params import Capsule, ClothParams, Features, LinkOptions, Material, Plane, Sphere, pack_colliders
 from ..sim.world import World
-from .procs import progress, require_extra
+from .procs import csv_list, progress, require_extra
 
 log = logging.getLogger(__name__)
 
@@ -329,7 +329,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    solvers = [s.strip() for s in args.solvers.split(",") if s.strip()]
+    solvers = csv_list(args.solvers)
     known = ["seed", "many", "hang", "features"]
     workloads = args.workloads or known
     unknown = set(workloads) - set(known)

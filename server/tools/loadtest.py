@@ -51,7 +51,7 @@ from typing import Any
 
 from .loadreport import Report, markdown_table, print_report, write_plots, write_summary_plot
 from .loadrun import LoadSpec, StatsWatch, Target, run_fleet_load, run_load  # noqa: F401  (lt.run_load as before)
-from .procs import ServerProcess, free_port, parse_cpus, require_extra
+from .procs import ServerProcess, csv_list, free_port, parse_cpus, require_extra
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +63,7 @@ log = logging.getLogger(__name__)
 def parse_loads(text: str, default_encoding: str) -> list[tuple[int, str]]:
     """``"128,256,4096:quant16"`` -> [(128, default), (256, default), (4096, "quant16")]."""
     loads = []
-    for item in (t.strip() for t in text.split(",") if t.strip()):
+    for item in csv_list(text):
         n, _, enc = item.partition(":")
         if not n.isdigit() or int(n) < 1:
             raise argparse.ArgumentTypeError(f"a load is a positive number of cloths, got {item!r}")
@@ -361,7 +361,7 @@ def run(args: argparse.Namespace) -> int:
         return run_one
 
     if args.endpoint:
-        ids = [i.strip() for i in args.server_id.split(",") if i.strip()] if args.server_id else [None]
+        ids: list[str | None] = [*csv_list(args.server_id)] or [None]
         targets = [Target(sid, StatsWatch(args.endpoint, sid)) for sid in ids]
 
         def stop_watching() -> None:
@@ -373,7 +373,7 @@ def run(args: argparse.Namespace) -> int:
         if args.endpoint:
             fleet: Any = argparse.Namespace(endpoint=args.endpoint, targets=targets, stop=stop_watching)
         else:
-            devices = [d.strip() for d in args.device.split(",") if d.strip()] if args.device else []
+            devices = csv_list(args.device)
             fleet = Fleet(n_servers, _serve_args(args), args.router, devices, server_cpus)
         try:
             run_one = on(fleet)

@@ -114,6 +114,11 @@ class ProcessFigures:
         }
 
 
+def csv_list(text: str | None) -> list[str]:
+    """A command line's comma list ("a, b,,c") as its non-empty items, stripped ([] for None)."""
+    return [t.strip() for t in (text or "").split(",") if t.strip()]
+
+
 def parse_cpus(text: str) -> frozenset[int]:
     """A CPU list as taskset and /sys write it ("0-3,16-19") as a set of CPU numbers; ValueError
     when it is empty or malformed."""

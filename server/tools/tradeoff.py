@@ -56,7 +56,7 @@ import time
 from pathlib import Path
 
 from ..sim.params import SOLVERS
-from .procs import progress, require_extra
+from .procs import csv_list, progress, require_extra
 from .tradeoffreport import (
     _jsonable,
     _pct,
@@ -89,10 +89,6 @@ log = logging.getLogger(__name__)
 
 # ---------------------------------------------------------------------------------------------
 # CLI
-
-
-def _csv(text: str) -> list[str]:
-    return [t.strip() for t in text.split(",") if t.strip()]
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -143,11 +139,11 @@ def run(args: argparse.Namespace) -> int:
     from ..sim.opencl.device import Device
 
     level = "quick" if args.quick else "full" if args.full else "default"
-    scenes = _csv(args.scenes) if args.scenes else (["hanging"] if level == "quick" else list(SCENES))
+    scenes = csv_list(args.scenes) if args.scenes else (["hanging"] if level == "quick" else list(SCENES))
     for s in scenes:
         if s not in SCENES:
             raise SystemExit(f"unknown scene {s!r}; choose from {SCENES}")
-    solvers = _csv(args.solvers)
+    solvers = csv_list(args.solvers)
     for s in solvers:
         if s not in SOLVERS:
             raise SystemExit(f"unknown solver {s!r}; choose from {SOLVERS}")
@@ -157,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
 
     plan: list[tuple[str, int, Config]] = []
-    for scene_name, size, main in sweep_layout(level, scenes, _csv(args.sizes) if args.sizes else None):
+    for scene_name, size, main in sweep_layout(level, scenes, csv_list(args.sizes) if args.sizes else None):
         cfgs = main_sweep(level, solvers) if main else side_sweep(level, solvers)
         plan += [(scene_name, size, c) for c in cfgs]
     wanted = list(dict.fromkeys((s, n) for s, n, _ in plan))

@@ -159,12 +159,13 @@ def fit_line(points: list[tuple[int, float, int]], min_spread: float = MIN_SPREA
 
 
 def describe(costs: list[TickCost]) -> str:
-    """Each stage's median / 90th percentile / max over ``costs``, in ms (for the logs)."""
+    """Each stage's median / ``QUANTILE`` (what the model takes, :func:`quantile`) / max over
+    ``costs``, in ms (for the logs)."""
     out = []
     for s in STAGES:
-        xs = sorted(c.stages()[s] for c in costs)
-        out.append(f"{s} {1e3 * statistics.median(xs):.2f}/{1e3 * xs[int(0.9 * (len(xs) - 1))]:.2f}/{1e3 * xs[-1]:.2f}")
-    return ", ".join(out) + " ms (median/p90/max)"
+        xs = [c.stages()[s] for c in costs]
+        out.append(f"{s} {1e3 * statistics.median(xs):.2f}/{1e3 * quantile(xs):.2f}/{1e3 * max(xs):.2f}")
+    return ", ".join(out) + f" ms (median/q{QUANTILE:g}/max)"
 
 
 class Fit(NamedTuple):
@@ -357,12 +358,12 @@ class Admission:
         """Raise ``overloaded`` when ``n_vertices`` more would not fit the tick budget."""
         if not self.config.admission or vertices_before <= 0:
             return
-        stages = self.model.predict(vertices_before + n_vertices, self.budget_s)
+        total = vertices_before + n_vertices
+        stages = self.model.predict(total, self.budget_s)
         if not stages:
-            log.debug("admission: admitted %d vertices without a prediction", vertices_before + n_vertices)
+            log.debug("admission: admitted %d vertices without a prediction", total)
             return
         stage, predicted = max(stages.items(), key=lambda kv: kv[1])
-        total = vertices_before + n_vertices
         if stage == UNMEASURED:
             log.debug("admission: refused %d vertices: no steady tick measured yet", total)
             raise _OVERLOADED_EXC(

@@ -161,9 +161,11 @@ def one_arena() -> bool:
     +7 to +11 %; with one arena +2.3 % (100,000 messages: +7.8 to +10.0 %, and +2.8 %). A thread
     allocating 16 MiB in 64 KiB blocks and freeing them keeps them after ``malloc_trim(0)``, and
     gives them back with one arena (tests/service/test_memory.py). The cost: one lock for every
-    thread's allocations beyond its thread cache (the Python threads share the GIL anyway; not
-    yet measured on a many-core GPU host). Must run before the threads allocate: glibc fixes its
-    arena limit once a ninth arena is asked for, and a thread keeps the arena it has. False
+    thread's allocations beyond its thread cache (the Python threads share the GIL anyway; on an
+    H200 host, one server at 3584 quant16 cloths published in 10.4 / 11.0 ms a tick against
+    10.1 / 6.7 with glibc's arenas: not settled, docs/loadtest.md session 13). Must run before
+    the threads allocate: glibc fixes its arena limit once a ninth arena is asked for, and a
+    thread keeps the arena it has. False
     where there is no such call or the environment chose."""
     if "MALLOC_ARENA_MAX" in os.environ or "arena_max" in os.environ.get("GLIBC_TUNABLES", ""):
         return False

@@ -70,6 +70,7 @@ class ClothHandle:
         self.invalid = 0
         self.closed = False
         self.close_reason = ""
+        self.removing = False  # this client asked the server to remove it (controls sent before may find it gone)
         self._lock = threading.RLock()  # the state stream's fields
         self._cond = threading.Condition(self._lock)  # a state arrived, or the cloth closed
         self._waiting = 0  # threads waiting on _cond (a state wakes them only when there are any)
@@ -322,7 +323,11 @@ class ClothHandle:
         self._note_controls(changes)
         if not wait:
             self.client.send(
-                "control", P.encode_control(req), self.client._watch_not_found(self, None), server=self.server_id
+                "control",
+                P.encode_control(req),
+                self.client._watch_not_found(self, None),
+                server=self.server_id,
+                handle=self,
             )
             return None
         try:
@@ -339,6 +344,11 @@ class ClothHandle:
         gone). Idempotent."""
         if self.closed:
             return None
+        # Set before the request: a control sent without waiting just before it may be applied
+        # in the same tick as the removal and answered ``not_found`` before the removal's reply
+        # comes (the server removes before it applies the tick's controls); that answer is the
+        # expected outcome of this removal, not a failure (see DrapeClient._send_failed).
+        self.removing = True
         try:
             rep = self.client.request(
                 "remove",
@@ -349,8 +359,16 @@ class ClothHandle:
             last: int | None = P.tick_reply_from_map(rep)
         except (P.NotFound, Unavailable):
             last = None
+        except BaseException:
+            self.removing = False  # refused (forbidden, busy...): the cloth lives on
+            raise
         self._close("removed")
         return last
+
+    def _removal_outcome(self, err: DrapeError) -> bool:
+        """Whether ``err``, the answer to a request about this cloth, is only the outcome of this
+        client's own removal of it (``not_found`` once the removal was asked for)."""
+        return self.removing and isinstance(err, P.NotFound)
 
     def _check_open(self) -> None:
         if self.closed:

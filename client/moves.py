@@ -230,8 +230,8 @@ class ClientMoves:
     def _replied(self, handles: list[ClothHandle], m: dict[str, Any], rid: int, on_error: ErrorCallback | None) -> None:
         rep = P.control_batch_reply_from_map(m)
         if rep.moves_failed:
-            for _, err in self._errors(handles, rep, rid):
-                self.client._send_failed(err, on_error)
+            for p, err in self._errors(handles, rep, rid):
+                self.client._send_failed(err, on_error, handles[p])
 
     # --- ControlBatch ---------------------------------------------------------------------------
     @staticmethod

@@ -254,8 +254,9 @@ class DrapeClient(SubmittingMixin, BatchingMixin):
             return list(self._handles.values())
 
     def _cloth_not_found(self, h: ClothHandle) -> None:
-        """A control of ``h`` was answered not_found: reclaimed (or its server restarted)."""
-        if self._failover is not None and not h.closed:
+        """A control of ``h`` was answered not_found: reclaimed (or its server restarted), unless
+        this client is removing it."""
+        if self._failover is not None and not h.closed and not h.removing:
             self._failover.cloth_lost(h, "reclaimed")
 
     def _watch_not_found(self, h: ClothHandle, on_error: ErrorCallback | None) -> ErrorCallback | None:
@@ -371,11 +372,14 @@ class DrapeClient(SubmittingMixin, BatchingMixin):
         timeout: float | None = None,
         on_ok: Callable[[dict[str, Any]], None] | None = None,
         server: str | None = None,
+        handle: ClothHandle | None = None,
     ) -> None:
         """Send a request without waiting for its reply (what a game does with per-tick pin
         updates): the reply is read on a Zenoh thread; an error reply or no reply at all is
         counted in ``send_errors`` and handed to ``on_error`` (default: logged). ``on_ok``, if
-        given, gets a success reply's map (on the Zenoh thread)."""
+        given, gets a success reply's map (on the Zenoh thread). ``handle``: the cloth the
+        request is about; its ``not_found`` once this client is removing it is no failure
+        (``_send_failed``)."""
         if self._closed:
             raise DrapeError(P.ERR_UNAVAILABLE, "client is closed")
         key = self._key(kind, server or self.server_id, timeout)
@@ -388,7 +392,7 @@ class DrapeClient(SubmittingMixin, BatchingMixin):
                     try:
                         on_ok(P.decode_reply(reply.ok.payload.to_bytes()))
                     except DrapeError as e:
-                        self._send_failed(e, on_error)
+                        self._send_failed(e, on_error, handle)
                     except Exception:
                         log.exception("%s: reply handler failed", key)
                 return
@@ -402,11 +406,11 @@ class DrapeClient(SubmittingMixin, BatchingMixin):
                 err = e
             except P.ProtocolError:
                 err = Unavailable(P.ERR_UNAVAILABLE, f"{key}: {data[:80].decode(errors='replace')}")
-            self._send_failed(err, on_error)
+            self._send_failed(err, on_error, handle)
 
         def on_done() -> None:
             if not answered:
-                self._send_failed(Unavailable(P.ERR_UNAVAILABLE, f"no reply from {key}"), on_error)
+                self._send_failed(Unavailable(P.ERR_UNAVAILABLE, f"no reply from {key}"), on_error, handle)
 
         self.session.get(
             key,
@@ -415,7 +419,15 @@ class DrapeClient(SubmittingMixin, BatchingMixin):
             timeout=self.timeout if timeout is None else timeout,
         )
 
-    def _send_failed(self, err: DrapeError, on_error: Callable[[DrapeError], None] | None) -> None:
+    def _send_failed(
+        self, err: DrapeError, on_error: Callable[[DrapeError], None] | None, handle: ClothHandle | None = None
+    ) -> None:
+        """An unwaited request failed: counted and handed to ``on_error`` (default: a warning),
+        except a ``not_found`` of a cloth (``handle``) this client is removing: a control sent
+        just before the removal and applied after it (logged at debug level, not counted)."""
+        if handle is not None and handle._removal_outcome(err):
+            log.debug("cloth %s was being removed: %s", handle.id, err)
+            return
         with self._lock:
             self.send_errors += 1
         if on_error is not None:

@@ -74,7 +74,12 @@ def send_controls(
                     out.append(e)
             else:
                 client.send(
-                    "control", P.encode_control(req), client._watch_not_found(h, on_error), timeout, server=server
+                    "control",
+                    P.encode_control(req),
+                    client._watch_not_found(h, on_error),
+                    timeout,
+                    server=server,
+                    handle=h,
                 )
         return out if wait else None
     results: list[int | DrapeError] = []
@@ -114,4 +119,4 @@ def _batch_replied(
             if isinstance(r, DrapeError):
                 if isinstance(r, P.NotFound):
                     client._cloth_not_found(h)
-                client._send_failed(r, on_error)
+                client._send_failed(r, on_error, h)

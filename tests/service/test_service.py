@@ -7,6 +7,7 @@ disturbs another's cloths); tests needing their own configuration start and stop
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import subprocess
@@ -102,6 +103,26 @@ def test_controls_without_waiting_for_the_reply(server, client):
         client.send("control", P.encode_control(P.ControlRequest(h.id, "0" * 32, rid=1)), on_error=errors.append)
         assert wait_until(lambda: errors)
         assert isinstance(errors[0], Forbidden) and client.send_errors == 1
+
+
+def test_the_readmes_clean_exit_logs_no_warning(server, caplog):
+    """The README's client snippet (issue 20): controls sent without waiting every state, then
+    both ``with`` blocks left. The server removes a cloth before it applies that tick's controls,
+    so the last control is answered ``not_found`` before the removal's reply: the outcome of this
+    client's own removal, which is neither logged as a failure nor counted in ``send_errors``."""
+    caplog.set_level(logging.DEBUG, logger="drape.client")
+    with connect(server) as client:
+        with client.submit_grid(32, 32, pinned=[0, 31], features=["tethers"]) as cape:
+            for i, state in enumerate(cape.states(timeout=TIMEOUT)):
+                assert state.positions.shape == (1024, 3)
+                cape.move_pins([0, 31], [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], wait=False)
+                if i == 5:
+                    for _ in range(3):  # a few more right before the removal: one lands in its tick
+                        cape.move_pins([0, 31], [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], wait=False)
+                    break
+        assert cape.closed and cape.close_reason == "removed"
+        assert client.send_errors == 0
+    assert [f"{r.name}: {r.getMessage()}" for r in caplog.records if r.levelno >= logging.WARNING] == []
 
 
 def test_plane_collider_and_reset(server, client):

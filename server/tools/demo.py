@@ -20,6 +20,7 @@ import json
 import logging
 import math
 import multiprocessing as mp
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,12 +28,13 @@ from typing import Any
 
 import numpy as np
 
-from .procs import ServerProcess, require_extra
+from .procs import ServerExited, ServerProcess, require_extra
 
 log = logging.getLogger(__name__)
 
 TICK_HZ = 60.0
 BOUNDS = ((-0.4, 0.0, -1.3), (4.6, 2.4, 1.3))
+KINDS = ("flag", "curtain", "cape")
 COLOURS = {"flag": (200, 60, 50), "curtain": (70, 110, 200), "cape": (120, 60, 160)}
 
 
@@ -249,6 +251,54 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default=None, help="OpenCL device for the server")
 
 
+class ClientFailed(RuntimeError):
+    """A demo client process failed or did not get going (its server alive)."""
+
+
+def _run_clients(server: ServerProcess, args: argparse.Namespace, out: Path) -> None:
+    """The three client processes against ``server``: started, waited on until each has its
+    cloth accepted, told to go together, joined. The server is polled all along: when it exits,
+    :class:`ServerExited` says so at once (with its last log lines) rather than a client's
+    timeout blaming the client."""
+    ctx = mp.get_context("spawn")
+    procs = []
+    go = ctx.Event()
+    try:
+        for kind in KINDS:
+            ready = ctx.Event()
+            p = ctx.Process(
+                target=run_client,
+                args=(kind, server.endpoint, args.seconds, args.fps, str(out), ready, go),
+                name=f"demo-{kind}",
+            )
+            p.start()
+            procs.append((p, ready))
+        deadline = time.monotonic() + 60
+        for p, ready in procs:
+            while not ready.wait(0.2):
+                server.check("the demo clients' cloths were accepted")
+                if not p.is_alive():
+                    raise ClientFailed(f"{p.name} failed before its cloth was accepted (exit code {p.exitcode})")
+                if time.monotonic() > deadline:
+                    raise ClientFailed(f"{p.name} did not get its cloth accepted in 60 s")
+        go.set()
+        log.info("clients running for %.1f s", args.seconds)
+        deadline = time.monotonic() + args.seconds + 60
+        for p, _ in procs:
+            while p.is_alive() and time.monotonic() < deadline:
+                p.join(0.2)
+                if p.is_alive():
+                    server.check(f"the demo clients finished their {args.seconds:g} s")
+            if p.exitcode != 0:
+                server.check(f"the demo clients finished their {args.seconds:g} s")
+                raise ClientFailed(f"{p.name} failed (exit code {p.exitcode})")
+    finally:
+        for p, _ in procs:
+            if p.is_alive():
+                p.terminate()
+                p.join(5)
+
+
 def run(args: argparse.Namespace) -> int:
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
@@ -260,40 +310,14 @@ def run(args: argparse.Namespace) -> int:
     if args.device:
         serve_args += ["--device", args.device]
     server = ServerProcess(serve_args, server_id="demo", port=args.port)
-    endpoint = server.endpoint
-    ctx = mp.get_context("spawn")
-    kinds = ["flag", "curtain", "cape"]
-    procs = []
-    go = ctx.Event()
     try:
-        for kind in kinds:
-            ready = ctx.Event()
-            p = ctx.Process(
-                target=run_client,
-                args=(kind, endpoint, args.seconds, args.fps, str(out), ready, go),
-                name=f"demo-{kind}",
-            )
-            p.start()
-            procs.append((p, ready))
-        deadline = time.monotonic() + 60
-        for p, ready in procs:
-            while not ready.wait(0.2):
-                if not p.is_alive():
-                    raise RuntimeError(f"{p.name} failed before its cloth was accepted (exit code {p.exitcode})")
-                if time.monotonic() > deadline:
-                    raise RuntimeError(f"{p.name} did not get its cloth accepted in 60 s")
-        go.set()
-        log.info("clients running for %.1f s", args.seconds)
-        for p, _ in procs:
-            p.join(args.seconds + 60)
-            if p.exitcode != 0:
-                raise RuntimeError(f"{p.name} failed (exit code {p.exitcode})")
+        _run_clients(server, args, out)
+    except (ServerExited, ClientFailed) as e:
+        print(f"drape demo: {e}", file=sys.stderr)
+        return 1
     finally:
-        for p, _ in procs:
-            if p.is_alive():
-                p.terminate()
         server.stop(grace=15)
-    recs = [load_recording(out, k) for k in kinds]
+    recs = [load_recording(out, k) for k in KINDS]
     for r in recs:
         print(f"{r.kind:8s} received {r.received} states over Zenoh, {r.missing} missing, {r.duplicates} duplicated")
         if len(r.positions) and not np.isfinite(r.positions).all():

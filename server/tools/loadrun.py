@@ -24,9 +24,11 @@ import math
 import multiprocessing as mp
 import os
 import platform
+import queue
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -83,11 +85,20 @@ class StatsWatch:
             self.samples.append((time.monotonic(), stats))
             self._cond.notify_all()
 
-    def next_after(self, index: int, timeout: float) -> tuple[int, dict[str, Any]]:
-        """The first publication with position >= ``index`` (waiting up to ``timeout`` s)."""
+    def next_after(
+        self, index: int, timeout: float, check: Callable[[], None] | None = None
+    ) -> tuple[int, dict[str, Any]]:
+        """The first publication with position >= ``index`` (waiting up to ``timeout`` s);
+        ``check()`` is called every 0.2 s while it waits (to raise when the server is gone)."""
+        deadline = time.monotonic() + timeout
         with self._cond:
-            if not self._cond.wait_for(lambda: len(self.samples) > index, timeout):
-                raise RuntimeError(f"no stats publication from the server in {timeout:.0f} s")
+            while len(self.samples) <= index:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise RuntimeError(f"no stats publication from the server in {timeout:.0f} s")
+                self._cond.wait(min(left, 0.2))
+                if check is not None and len(self.samples) <= index:
+                    check()
             return index, self.samples[index][1]
 
     def count(self) -> int:
@@ -108,10 +119,13 @@ def _load_average() -> float | None:
         return None
 
 
-def _wait(cond: Any, what: str, deadline: float, procs: list[Any]) -> None:
+def _wait(cond: Any, what: str, deadline: float, procs: list[Any], targets: Sequence[Target] = ()) -> None:
+    """Until ``cond()``; raises when the deadline passes, when a started server exited
+    (:class:`~.procs.ServerExited`, first: a client dies of its server) or when a client did."""
     while not cond():
         if time.monotonic() > deadline:
             raise RuntimeError(f"timed out waiting for {what}")
+        _check_servers(targets, what)
         dead = [p.name for p in procs if not p.is_alive()]
         if dead:
             raise RuntimeError(f"{', '.join(dead)} exited while waiting for {what}")
@@ -126,6 +140,24 @@ class Target:
     server_id: str | None
     stats: StatsWatch
     proc: ServerProcess | None = None
+
+
+def _check_servers(targets: Sequence[Target], before: str) -> None:
+    """Raise :class:`~.procs.ServerExited` when a server the load test started has exited."""
+    for t in targets:
+        if t.proc is not None:
+            t.proc.check(before)
+
+
+def _result(results: Any, targets: Sequence[Target], deadline: float) -> Any:
+    """The next client result from the ``results`` queue, checking the servers while it waits."""
+    while True:
+        try:
+            return results.get(timeout=0.2)
+        except queue.Empty:
+            if time.monotonic() > deadline:
+                raise RuntimeError("timed out waiting for the clients' results") from None
+            _check_servers(targets, "the clients reported their results")
 
 
 def run_load(
@@ -186,6 +218,7 @@ def run_fleet_load(
         f.sample_rss()
     t_start = time.monotonic()
     out: list[ClientResult] = []
+    finished = False
     by_id = {t.server_id: k for k, t in enumerate(targets)}
     try:
         offered = sum(c.offered for c in cspecs)
@@ -198,10 +231,16 @@ def run_fleet_load(
             s["turn"].set()
             if several:  # ... and place one after another: each by the load of those before it
                 t_turn = time.monotonic()
-                _wait(s["ready"].is_set, f"{p.name}'s submits", deadline, procs)
+                _wait(s["ready"].is_set, f"{p.name}'s submits were answered", deadline, procs, targets)
                 placed += int(s["admitted"].value)
                 log.debug("%s placed %d cloths in %.2f s", p.name, int(s["admitted"].value), time.monotonic() - t_turn)
-        _wait(lambda: all(s["ready"].is_set() for s in shared), "the clients' submits", deadline, procs)
+        _wait(
+            lambda: all(s["ready"].is_set() for s in shared),
+            "the clients' submits were answered",
+            deadline,
+            procs,
+            targets,
+        )
         admitted = sum(int(s["admitted"].value) for s in shared)
         home = [by_id.get(s["server"].value.decode(), 0) if several else 0 for s in shared]
         log.info(
@@ -214,12 +253,16 @@ def run_fleet_load(
             s["go"].set()
         _wait(
             lambda: all(s["receiving"].value for s in shared),
-            "states of every admitted cloth",
+            "every admitted cloth received a state",
             time.monotonic() + 60 + 0.02 * admitted,
             procs,
+            targets,
         )
         # the window opens at each server's next stats publication, closes at the first one --seconds later
-        first = [t.stats.next_after(t.stats.count(), timeout=30) for t in targets]
+        first = [
+            t.stats.next_after(t.stats.count(), 30, lambda: _check_servers(targets, "the measured window opened"))
+            for t in targets
+        ]
         for s, k in zip(shared, home, strict=True):
             s["lo"].value = int(first[k][1]["tick"])
         cpu0 = [f.cpu_seconds() for f in figures]
@@ -235,9 +278,13 @@ def run_fleet_load(
                 bar.n = round(min(time.monotonic() - t0, spec.seconds), 1)
                 bar.set_postfix(states=sum(int(s["progress"].value) for s in shared), refresh=False)
                 bar.refresh()
+                _check_servers(targets, "the measured window closed")
                 if not all(p.is_alive() for p in procs):
                     raise RuntimeError("a client process exited during the measured window")
-        last = [t.stats.next_after(t.stats.count(), timeout=30) for t in targets]
+        last = [
+            t.stats.next_after(t.stats.count(), 30, lambda: _check_servers(targets, "the measured window closed"))
+            for t in targets
+        ]
         cpu1 = [f.cpu_seconds() for f in figures]
         load1 = _load_average()
         elapsed = time.monotonic() - t0
@@ -247,7 +294,7 @@ def run_fleet_load(
         for s in shared:
             s["stop"].set()
         for _ in procs:
-            kind, *rest = results.get(timeout=120)
+            kind, *rest = _result(results, targets, time.monotonic() + 120)
             if kind == "error":
                 raise RuntimeError(f"client {rest[0]} failed: {rest[1]}")
             out.append(rest[0])
@@ -255,14 +302,20 @@ def run_fleet_load(
             p.join(30)
         for f in figures:
             f.sample_rss()
+        finished = True
     finally:
         for s in shared:
             s["go"].set()
             s["stop"].set()
+        # all together (a client stuck in a submit is not waited on for each); failed: no waiting
+        t_end = time.monotonic() + (5.0 if finished else 0.5)
         for p in procs:
-            p.join(5)
+            if p.is_alive():
+                p.join(max(0.0, t_end - time.monotonic()))
+        for p in procs:
             if p.is_alive():
                 p.terminate()
+                p.join(5)
     windows = [t.stats.samples[i0 + 1 : i1 + 1] for t, (i0, _), (i1, _) in zip(targets, first, last, strict=True)]
     per_server = [
         server_window(str(t.server_id), s0, s1, [st for _, st in w])

@@ -43,6 +43,7 @@ import json
 import logging
 import multiprocessing as mp
 import os
+import sys
 import time
 from collections.abc import Sequence
 from dataclasses import replace
@@ -71,8 +72,24 @@ def parse_loads(text: str, default_encoding: str) -> list[tuple[int, str]]:
     return loads
 
 
+EXIT_CODES = """\
+exit status:
+  0  every load was held (with --offered > 1: the admitted cloths of every load were served;
+     with --find-knee / --scale-out: some load was held, the loads past the knee are expected not to be)
+  1  a load was not held (its summary says "held: NO (why)"); with --find-knee / --scale-out: no load held
+  2  bad arguments (or the tools extra is not installed)
+  3  the run failed: a server it started exited (its exit status and last log lines are printed), a
+     client process failed, or a wait timed out"""
+
+
 def configure(parser: argparse.ArgumentParser) -> None:
-    require_extra("tools", "loadtest")
+    try:
+        require_extra("tools", "loadtest")
+    except SystemExit as e:
+        print(e, file=sys.stderr)
+        raise SystemExit(2) from None
+    parser.epilog = EXIT_CODES
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
     parser.add_argument("--clients", type=int, default=4, help="client processes (16-64 for thousands of cloths)")
     parser.add_argument("--cloths", type=int, default=16, help="cloths per client (without --loads)")
     parser.add_argument(
@@ -313,7 +330,30 @@ def knee_search(
     return reports, held
 
 
+def exit_status(reports: Sequence[Report], offered: float, search: bool) -> int:
+    """0 when every load passed, else 1 (see EXIT_CODES): a load passes when it was held, or,
+    offered more than it (``offered`` > 1, refusals expected), when its admitted cloths were served;
+    a knee search (``search``) passes when some load did (the loads past the knee fail by design)."""
+    passed = [r.served if offered > 1 else r.held for r in reports]
+    if search:
+        return 0 if any(passed) else 1
+    return 0 if reports and all(passed) else 1
+
+
 def run(args: argparse.Namespace) -> int:
+    try:
+        return _run(args)
+    except (SystemExit, argparse.ArgumentTypeError) as e:
+        if isinstance(e, SystemExit) and not isinstance(e.code, str):
+            raise
+        print(f"drape loadtest: {e}", file=sys.stderr)
+        return 2
+    except RuntimeError as e:  # ServerExited among them: the server's exit status and last log lines
+        print(f"drape loadtest: {e}", file=sys.stderr)
+        return 3
+
+
+def _run(args: argparse.Namespace) -> int:
     if not 1 <= args.clients <= 256:
         raise SystemExit("--clients must be 1..256")
     if not 1 <= args.servers <= 16:
@@ -432,4 +472,8 @@ def run(args: argparse.Namespace) -> int:
         note = f"\nSkipped to stay within --max-total-seconds: {', '.join(skipped)}\n" if skipped else ""
         args.markdown.write_text(markdown_table(reports) + note)
         print(f"wrote {args.markdown}")
-    return 0
+    status = exit_status(reports, args.offered, args.find_knee or args.scale_out)
+    if status:
+        failed = [f"{r.cloths} cloths ({r.why_not_held()})" for r in reports if not r.held]
+        print(f"exit status 1: not held: {'; '.join(failed) or 'no load ran'}")
+    return status

@@ -15,9 +15,13 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
+from collections import deque
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import IO, Any
+
+from .. import pip_hint
 
 log = logging.getLogger(__name__)
 
@@ -33,8 +37,7 @@ def require_extra(extra: str, command: str, modules: Sequence[str] | None = None
     missing = [m for m in (EXTRA_MODULES[extra] if modules is None else modules) if importlib.util.find_spec(m) is None]
     if missing:
         raise SystemExit(
-            f"drape {command} needs the '{extra}' extra ({', '.join(missing)} not installed): "
-            f"pip install 'drape[{extra}]'"
+            f"drape {command} needs the '{extra}' extra ({', '.join(missing)} not installed): {pip_hint(extra)}"
         )
 
 
@@ -152,13 +155,23 @@ def serve_command(endpoint: str, server_id: str, *args: str) -> list[str]:
     return [sys.executable, "-m", "drape.server.cli", "serve", "--listen", endpoint, "--server-id", server_id, *args]
 
 
+class ServerExited(RuntimeError):
+    """The ``drape serve`` child a tool started exited while the tool waited on it; the message
+    says with which exit status, before what, and ends with the server's last log lines."""
+
+
 class ServerProcess:
     """``drape serve`` as a child process in its own session, on a free loopback port.
 
     ``args`` are extra ``drape serve`` arguments; ``output``: a file its stdout and stderr go to
-    (default: ours); ``cpus``: the CPUs it (every thread of it) may run on (None: any). Stop it
+    (default: a pipe that a thread copies to our stderr, line by line, keeping the last
+    ``TAIL_LINES``); ``cpus``: the CPUs it (every thread of it) may run on (None: any). Stop it
     with :meth:`stop` (SIGTERM to its process group, SIGKILL after ``grace`` seconds); usable as
-    a context manager."""
+    a context manager. A tool that waits on the server calls :meth:`check` while it waits: a dead
+    server raises :class:`ServerExited` with its exit status and last log lines, at once, rather
+    than the tool timing out and blaming its clients."""
+
+    TAIL_LINES = 200
 
     def __init__(
         self,
@@ -173,16 +186,69 @@ class ServerProcess:
         self.server_id = server_id or f"tools-{os.getpid()}"
         self.cpus = cpus
         self.cmd = serve_command(self.endpoint, self.server_id, *args)
+        self._output = output
+        self._tail: deque[str] = deque(maxlen=self.TAIL_LINES)
         log.info("starting server%s: %s", f" on CPUs {format_cpus(cpus)}" if cpus else "", " ".join(self.cmd))
         self.proc = subprocess.Popen(
             self.cmd,
             start_new_session=True,
-            stdout=output,
-            stderr=None if output is None else subprocess.STDOUT,
+            stdout=subprocess.PIPE if output is None else output,
+            stderr=subprocess.STDOUT,
             # set before exec, so that every thread the server starts inherits it
             preexec_fn=(lambda: os.sched_setaffinity(0, cpus)) if cpus else None,
         )
+        self._pump: threading.Thread | None = None
+        if output is None:
+            self._pump = threading.Thread(target=self._copy_output, daemon=True, name=f"log-{self.server_id}")
+            self._pump.start()
         self.figures = ProcessFigures(self.proc.pid)
+
+    def _copy_output(self) -> None:
+        """Copy the server's output to our stderr, keeping its last lines (until its pipe closes)."""
+        assert self.proc.stdout is not None
+        with self.proc.stdout as pipe:
+            for raw in pipe:
+                line = raw.decode("utf-8", "replace")
+                self._tail.append(line.rstrip("\n"))
+                try:
+                    sys.stderr.write(line)
+                    sys.stderr.flush()
+                except (OSError, ValueError):  # our stderr closed: keep draining the pipe
+                    pass
+
+    def last_lines(self, n: int = 20) -> list[str]:
+        """The server's last ``n`` lines of output (stdout and stderr together)."""
+        if self._pump is not None:
+            if self.proc.poll() is not None:
+                self._pump.join(2.0)  # the pipe's last lines, once the process is gone
+            return list(self._tail)[-n:]
+        name = getattr(self._output, "name", None)
+        if not isinstance(name, str):
+            return []
+        try:
+            if self._output is not None:
+                self._output.flush()
+            with open(name, "rb") as fh:
+                fh.seek(max(0, os.fstat(fh.fileno()).st_size - 64 * 1024))
+                return fh.read().decode("utf-8", "replace").splitlines()[-n:]
+        except (OSError, ValueError):
+            return []
+
+    def exit_message(self, before: str, n: int = 20) -> str:
+        """ "server S exited with code N before ``before``", then its last ``n`` log lines."""
+        rc = self.proc.poll()
+        text = f"server {self.server_id} exited with code {rc} before {before}"
+        lines = self.last_lines(n)
+        if lines:
+            text += f"; its last {len(lines)} log lines:\n" + "\n".join(f"  | {line}" for line in lines)
+        else:
+            text += " (it wrote no output)"
+        return text
+
+    def check(self, before: str) -> None:
+        """Raise :class:`ServerExited` (see :meth:`exit_message`) when the server has exited."""
+        if self.proc.poll() is not None:
+            raise ServerExited(self.exit_message(before))
 
     @property
     def returncode(self) -> int | None:
@@ -200,6 +266,8 @@ class ServerProcess:
                 log.warning("server %s did not stop in %.0f s: killing it", self.server_id, grace)
                 os.killpg(self.proc.pid, signal.SIGKILL)
                 self.proc.wait(10)
+        if self._pump is not None:
+            self._pump.join(5.0)
         return self.proc.returncode
 
     def __enter__(self) -> ServerProcess:

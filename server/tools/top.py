@@ -9,12 +9,15 @@ the same server (the server's own clock), so they are exact over its stats perio
 
 ``drape top --once`` finds the servers by their liveliness tokens, waits (``--wait``) for two
 publications of each, prints one frame as plain text and exits: for scripts and tests.
+The live view ends on ``q`` (or ``Q``) when stdin is a terminal, and on Ctrl-C.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import os
+import select
 import sys
 import threading
 import time
@@ -329,18 +332,78 @@ def _once(session: zenoh.Session, keys: P.Keys, board: StatsBoard, args: argpars
     return 0
 
 
-def _live(board: StatsBoard, source: str, refresh: float) -> int:
+QUIT_KEYS = frozenset("qQ")
+
+
+def quits(typed: str) -> bool:
+    """Whether keys typed in the live view ask it to quit (``q`` or ``Q``, like htop)."""
+    return any(c in QUIT_KEYS for c in typed)
+
+
+class KeyReader:
+    """Keys typed on a terminal, read without blocking: while open, the terminal on ``fd`` is in
+    cbreak mode (each key is readable at once, no echo; Ctrl-C still interrupts) and is restored
+    as it was on close, whatever ends the view. On a non-terminal ``fd`` (stdin a pipe or a file)
+    it reads nothing and :meth:`wait` only sleeps."""
+
+    def __init__(self, fd: int) -> None:
+        self.fd = fd
+        self._saved: list[Any] | None = None
+
+    def __enter__(self) -> KeyReader:
+        if os.isatty(self.fd):
+            import termios
+            import tty
+
+            self._saved = termios.tcgetattr(self.fd)
+            tty.setcbreak(self.fd, termios.TCSANOW)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._saved is not None:
+            import termios
+
+            termios.tcsetattr(self.fd, termios.TCSADRAIN, self._saved)
+            self._saved = None
+
+    def wait(self, timeout: float) -> str:
+        """The keys typed within ``timeout`` seconds (returns as soon as there are some)."""
+        if self._saved is None:
+            time.sleep(timeout)
+            return ""
+        ready, _, _ = select.select([self.fd], [], [], timeout)
+        if not ready:
+            return ""
+        try:
+            data = os.read(self.fd, 64)
+        except OSError:
+            return ""
+        return data.decode("utf-8", "replace")
+
+
+def _live(board: StatsBoard, source: str, refresh: float, keys_fd: int | None = None) -> int:
+    """Redraw every ``refresh`` s until ``q`` (on a terminal's stdin) or Ctrl-C."""
     console = Console()
+    fd = sys.stdin.fileno() if keys_fd is None and sys.stdin is not None and sys.stdin.isatty() else keys_fd
+    if fd is not None:
+        source += "  (q quits)"
     try:
-        with Live(
-            render(board.views(), source, width=console.width),
-            console=console,
-            refresh_per_second=max(1.0, 1.0 / refresh),
-            screen=False,
-            transient=False,
-        ) as live:
+        with (
+            KeyReader(fd if fd is not None else -1) as keys,
+            Live(
+                render(board.views(), source, width=console.width),
+                console=console,
+                refresh_per_second=max(1.0, 1.0 / refresh),
+                screen=False,
+                transient=False,
+            ) as live,
+        ):
+            deadline = time.monotonic() + refresh
             while True:
-                time.sleep(refresh)
-                live.update(render(board.views(), source, width=console.width))
+                if quits(keys.wait(max(0.0, deadline - time.monotonic()))):
+                    return 0
+                if time.monotonic() >= deadline:
+                    live.update(render(board.views(), source, width=console.width))
+                    deadline = time.monotonic() + refresh
     except KeyboardInterrupt:
         return 0

@@ -1,6 +1,7 @@
 /* The vertex phases of the coloured and Jacobi solvers, one launch each per substep: cl_normals
  * (wind: before each substep; the normals feature: after the step), cl_predict (gravity, wind,
- * pins; resets the XPBD multipliers) and cl_finish (tethers, colliders, velocities); the link
+ * pins; resets the XPBD multipliers) and cl_finish (tethers, after the links in these solvers;
+ * colliders, velocities); the link
  * iterations between them are coloured.cl's or jacobi.cl's. Built with USE_LOCAL=0 only.
  * Included by cloth.cl.
  *
@@ -63,5 +64,5 @@ __kernel void cl_finish(const float dt, const int s, const int chunk, __global c
     const float h = dt / (float)S;
     __global float4 *X = pos + vbase;
     for (int v = ck.y + lid; v < v_end; v += ls)
-        X[v] = finish_vertex(X[v], X, fb, I, F, vel, prev, coll, v, vbase + v, h, s, S);
+        X[v] = finish_vertex(X[v], X, fb, I, F, vel, prev, coll, v, vbase + v, h, s, S, 1);
 }

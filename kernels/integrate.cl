@@ -1,5 +1,5 @@
 /* Integration of one substep, per vertex: predict_vertex (gravity, wind, semi-implicit Euler, pins
- * moved toward their targets) before the link solve, finish_vertex (tethers, colliders, the
+ * moved toward their targets) before the link solve, finish_vertex ([tethers], colliders, the
  * velocity from the positions, damping) after it. Every solver calls both. Included by cloth.cl
  * after tethers.cl and colliders.cl. */
 
@@ -26,15 +26,17 @@ inline float4 predict_vertex(float4 x, __global float4 *vel, __global float4 *pr
     return x;
 }
 
-/* tethers, colliders, velocity from positions */
+/* tethers (where the solver applies them after the links: tethers = 1), colliders, velocity from
+ * positions */
 inline float4 finish_vertex(float4 x, XS const float4 *X, __global const int *fb, __global const int *I,
                             __global const float *F, __global float4 *vel, __global const float4 *prev,
-                            __global const float4 *coll, int v, int gv, float h, int s, int S)
+                            __global const float4 *coll, int v, int gv, float h, int s, int S, int tethers)
 {
     float4 xp = prev[gv];
     if (x.w > 0.0f) {
 #if FEATURE_TETHERS
-        x = tether_vertex(x, X, fb, I, F, v);
+        if (tethers)
+            x = tether_vertex(x, X, fb, I, F, v);
 #endif
 #if FEATURE_COLLIDERS
         x.xyz = collide_vertex(x.xyz, xp.xyz, coll, I[CI_COLL], I[CI_NCOLL], (float)s / (float)S,

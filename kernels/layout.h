@@ -26,6 +26,8 @@
 #define CI_OFF_VTRIOFF 17
 #define CI_OFF_VTRI 18
 #define CI_OFF_TRIS 19
+#define CI_OFF_LRLINKS 20  /* long-range links: LINK_WORDS records (type unused), by colour */
+#define CI_OFF_LRCOLOURS 21 /* their colours: the count C, then C + 1 offsets */
 
 /* float table: CF_STRIDE floats per cloth */
 #define CF_STRIDE 24
@@ -43,7 +45,8 @@
 
 /* fabric blob records */
 #define LINK_WORDS 4      /* i0, i1, type, rest length (float bits) */
-#define ANCHOR_WORDS 2    /* anchor vertex or -1, tether length (float bits) */
+#define TETHER_SLOTS 4    /* tethers per vertex: one per pin island, nearest first */
+#define ANCHOR_WORDS 8    /* TETHER_SLOTS x (anchor vertex or -1, tether length (float bits)) */
 #define COLLIDER_WORDS 4  /* float4s per collider: previous pose (2 rows), current pose (2 rows) */
 
 #define COLLIDER_SPHERE 0

@@ -56,3 +56,13 @@ inline void solve_link(XS float4 *X, int4 R, float4 p0, float4 p1, __global cons
     X[R.x] = (float4)(p0.xyz + d0, p0.w);
     X[R.y] = (float4)(p1.xyz + d1, p1.w);
 }
+
+/* solve_link for XPBD where every multiplier is 0 when read (compliance 0, or one iteration per
+ * substep): link_xpbd's arithmetic with lam = 0, nothing kept. */
+inline void solve_link_lamless(XS float4 *X, int4 R, float4 p0, float4 p1, __global const float *F, float h)
+{
+    float3 d0, d1;
+    link_xpbd(p0, p1, as_float(R.w), link_alpha(F, R.z, h), 0.0f, &d0, &d1);
+    X[R.x] = (float4)(p0.xyz + d0, p0.w);
+    X[R.y] = (float4)(p1.xyz + d1, p1.w);
+}

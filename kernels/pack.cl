@@ -6,14 +6,22 @@
  * (vertex v, component k, cloth j at sx[4 v + k].s[j]) and every link is one W-wide vector
  * computation with contiguous loads and stores, no gathers, no barriers. Per-cloth parameters
  * (stiffness, compliance, inverse masses) are per lane. Vertex normals and areas (wind, the
- * normals feature) are computed across the lanes too, from the same triangles. The other
- * per-vertex phases (aerodynamics, predict, tethers, colliders, velocities) run lane by lane on
- * global memory with the functions every solver calls (integrate.cl), so every feature means
- * exactly what it means in wg_step. Unused lanes hold zero positions and inverse masses: their
- * links correct nothing.
+ * normals feature) are computed across the lanes too, from the same triangles. Unused lanes hold
+ * zero positions and inverse masses: their links correct nothing.
  *
- * Arithmetic per lane is wg_step's in the same colour and link order (PBD: the talk's k,
- * XPBD: the multiplier per link, reset every substep, after the positions in local memory).
+ * Per-substep vertex phases. Vectorised (pack_vec): XPBD cloths without wind or colliders whose
+ * multipliers are all 0 when read (compliance 0, or one iteration per substep: the common
+ * presets) keep their velocities in the lanes too, in the local memory the multipliers would
+ * take (3 floats per vertex, a fabric has at least as many link floats), and predict, tethers,
+ * long-range links and velocities run across the lanes; positions and velocities go back to
+ * global memory once per step. Otherwise the phases run lane by lane on global memory with the
+ * functions every solver calls (integrate.cl), so every feature means exactly what it means in
+ * wg_step.
+ *
+ * Arithmetic per lane is wg_step's in the same order: tethers after the prediction, then per
+ * iteration the long-range links and the links by colour (PBD: the talk's k; XPBD: the multiplier
+ * per link, reset every substep, after the positions in local memory; with every multiplier 0
+ * when read, link_xpbd's arithmetic without them).
  */
 #define PCAT_(a, b) a##b
 #define PCAT(a, b) PCAT_(a, b)
@@ -118,45 +126,197 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
     for (int j = 0; j < PACK_LANES; ++j)
         vb[j] = slot[j] >= 0 ? ci[slot[j] * CI_STRIDE + CI_VBASE] : -1;
     __local float *sxf = (__local float *)sx;
-    for (int j = 0; j < PACK_LANES; ++j) {
-#if !FEATURE_WIND /* predict fills the used lanes; wind's normals need them before */
-        if (vb[j] >= 0)
-            continue;
-#endif
-        for (int v = 0; v < nv; ++v)
-            lane_put(sxf, v, j, vb[j] >= 0 ? pos[vb[j] + v] : (float4)(0.0f)); /* unused: zero, w 0 */
-    }
 #if FEATURE_XPBD
     const int nl = I0[CI_NLINKS];
     __local floatP *slam = sx + 4 * nv; /* the pack's multipliers follow its positions */
     floatP alpha[3];
     for (int t = 0; t < 3; ++t)
         alpha[t] = lane_floats(cf, slot, CF_COMPLIANCE + t) / (h * h);
+    /* every multiplier 0 when read: compliance 0 in every lane, or one iteration */
+    const int lamless = iters == 1 || !any((alpha[0] != 0.0f) | (alpha[1] != 0.0f) | (alpha[2] != 0.0f));
+#if !FEATURE_WIND && !FEATURE_COLLIDERS
+    const int vec = lamless && nl >= 3 * nv; /* velocities in the multipliers' place */
+#else
+    const int vec = 0;
+#endif
 #else
     floatP kst[3];
     for (int t = 0; t < 3; ++t)
         kst[t] = lane_floats(cf, slot, CF_STIFFNESS + t);
+    const int vec = 0;
 #endif
+#if FEATURE_TETHERS
+    __global const int *lrl = fb + I0[CI_OFF_LRLINKS];
+    __global const int *lrc = fb + I0[CI_OFF_LRCOLOURS];
+    __global const int *anc = fb + I0[CI_OFF_ANCHOR];
+    const floatP tlim = lane_floats(cf, slot, CF_TETHER_LIMIT);
+#endif
+    for (int j = 0; j < PACK_LANES; ++j) {
+        if (vb[j] >= 0 && !vec) {
+#if !FEATURE_WIND /* predict fills the used lanes; wind's normals need them before */
+            continue;
+#endif
+        }
+        for (int v = 0; v < nv; ++v)
+            lane_put(sxf, v, j, vb[j] >= 0 ? pos[vb[j] + v] : (float4)(0.0f)); /* unused: zero, w 0 */
+    }
+    /* vec: the velocities, lane-interleaved like the positions (sv[3 v + k].s[j]); between the
+     * prediction and the velocity update they hold the substep's start positions instead */
+    __local floatP *sv = sx + 4 * nv;
+    __local float *svf = (__local float *)sv;
+    floatP gx = (floatP)(0.0f), gy = (floatP)(0.0f), gz = (floatP)(0.0f), keep = (floatP)(0.0f);
+    if (vec) {
+        for (int j = 0; j < PACK_LANES; ++j)
+            for (int v = 0; v < nv; ++v) {
+                const float4 u = vb[j] >= 0 ? vel[vb[j] + v] : (float4)(0.0f);
+                svf[(3 * v + 0) * PACK_LANES + j] = u.x;
+                svf[(3 * v + 1) * PACK_LANES + j] = u.y;
+                svf[(3 * v + 2) * PACK_LANES + j] = u.z;
+            }
+        gx = lane_floats(cf, slot, CF_GRAVITY) * h;
+        gy = lane_floats(cf, slot, CF_GRAVITY + 1) * h;
+        gz = lane_floats(cf, slot, CF_GRAVITY + 2) * h;
+        keep = ((floatP)(1.0f) - lane_floats(cf, slot, CF_DAMP_SUB)) / h;
+    }
 
     for (int s = 0; s < S; ++s) {
-#if FEATURE_WIND
-        pack_normals(sx, fb, I0, nv, vb, nrm); /* sx holds the positions at the substep's start */
-#endif
-        /* per lane: predict on global memory, then into the lanes */
-        for (int j = 0; j < PACK_LANES; ++j) {
-            LANE_CLOTH(j)
+        if (vec) {
+            /* predict across the lanes: free vertices fall, pinned ones (inverse mass 0 in a used
+             * lane) move toward their targets */
+            const float frac = 1.0f / (float)(S - s);
             for (int v = 0; v < nv; ++v) {
-                const float4 x = predict_vertex(X[v], vel, prev, target, nrm, vbase + v, F, h, S - s);
-                X[v] = x;
-                lane_put(sxf, v, j, x);
+                __local floatP *P = sx + 4 * v;
+                __local floatP *V = sv + 3 * v;
+                const floatP x = P[0], y = P[1], z = P[2], w = P[3];
+                const floatP vx = V[0] + gx, vy = V[1] + gy, vz = V[2] + gz;
+                V[0] = x;
+                V[1] = y;
+                V[2] = z;
+                floatP nx = x + vx * h, ny = y + vy * h, nz = z + vz * h;
+                const intP pin = w == 0.0f;
+                if (any(pin)) {
+                    float t[3][PACK_LANES];
+                    for (int j = 0; j < PACK_LANES; ++j) {
+                        const float4 tg = vb[j] >= 0 ? target[vb[j] + v] : (float4)(0.0f);
+                        t[0][j] = tg.x;
+                        t[1][j] = tg.y;
+                        t[2][j] = tg.z;
+                    }
+                    nx = select(nx, x + (vloadP(0, t[0]) - x) * frac, pin);
+                    ny = select(ny, y + (vloadP(0, t[1]) - y) * frac, pin);
+                    nz = select(nz, z + (vloadP(0, t[2]) - z) * frac, pin);
+                }
+                P[0] = nx;
+                P[1] = ny;
+                P[2] = nz;
             }
-        }
-#if FEATURE_XPBD
-        for (int l = 0; l < nl; ++l)
-            slam[l] = (floatP)(0.0f);
+#if FEATURE_TETHERS
+            /* tethers across the lanes (the lanes share the anchors; a lane's pinned vertex has
+             * none) */
+            for (int v = 0; v < nv; ++v) {
+                __global const int *A = anc + ANCHOR_WORDS * v;
+                __local floatP *P = sx + 4 * v;
+                for (int t = 0; t < TETHER_SLOTS; ++t) {
+                    const int a = A[2 * t];
+                    if (a < 0)
+                        break;
+                    const floatP lim = as_float(A[2 * t + 1]) * tlim;
+                    __local const floatP *Q = sx + 4 * a;
+                    const floatP ax = Q[0], ay = Q[1], az = Q[2];
+                    const floatP dx = P[0] - ax, dy = P[1] - ay, dz = P[2] - az;
+                    const floatP dist = sqrt(dx * dx + dy * dy + dz * dz);
+                    const intP over = (dist > lim) & (P[3] > 0.0f);
+                    if (any(over)) {
+                        const floatP f = select((floatP)(1.0f), lim / dist, over);
+                        P[0] = ax + dx * f;
+                        P[1] = ay + dy * f;
+                        P[2] = az + dz * f;
+                    }
+                }
+            }
 #endif
+        } else {
+#if FEATURE_WIND
+            pack_normals(sx, fb, I0, nv, vb, nrm); /* sx holds the positions at the substep's start */
+#endif
+            /* per lane: predict on global memory, then into the lanes */
+            for (int j = 0; j < PACK_LANES; ++j) {
+                LANE_CLOTH(j)
+                for (int v = 0; v < nv; ++v)
+                    X[v] = predict_vertex(X[v], vel, prev, target, nrm, vbase + v, F, h, S - s);
+                for (int v = 0; v < nv; ++v) {
+                    float4 x = X[v];
+#if FEATURE_TETHERS
+                    if (x.w > 0.0f)
+                        x = tether_vertex(x, X, fb, I, F, v);
+                    X[v] = x;
+#endif
+                    lane_put(sxf, v, j, x);
+                }
+            }
+#if FEATURE_XPBD
+            if (!lamless)
+                for (int l = 0; l < nl; ++l)
+                    slam[l] = (floatP)(0.0f);
+#endif
+        }
 
         for (int it = 0; it < iters; ++it) {
+#if FEATURE_TETHERS
+            /* long-range links, coarsest first: unilateral and hard (tethers.cl) */
+            for (int l = lrc[1]; l < lrc[1 + lrc[0]]; ++l) {
+                const int4 R = vload4(l, lrl);
+                __local floatP *A = sx + 4 * R.x;
+                __local floatP *B = sx + 4 * R.y;
+                const floatP x0 = A[0], y0 = A[1], z0 = A[2], w0 = A[3];
+                const floatP x1 = B[0], y1 = B[1], z1 = B[2], w1 = B[3];
+                const floatP dx = x1 - x0, dy = y1 - y0, dz = z1 - z0;
+                const floatP L = dx * dx + dy * dy + dz * dz;
+                const floatP rl = as_float(R.w) * tlim;
+                const floatP w = w0 + w1;
+                const intP ok = (L > rl * rl) & (L > EPS_LEN2) & (w > EPS_DENOM);
+                if (any(ok)) {
+                    const floatP k = select((floatP)(0.0f), (rl * rsqrt(L) - 1.0f) / w, ok);
+                    const floatP k0 = k * w0, k1 = k * w1;
+                    A[0] = x0 - dx * k0;
+                    A[1] = y0 - dy * k0;
+                    A[2] = z0 - dz * k0;
+                    B[0] = x1 + dx * k1;
+                    B[1] = y1 + dy * k1;
+                    B[2] = z1 + dz * k1;
+                }
+            }
+#endif
+#if FEATURE_XPBD
+            if (lamless) {
+                /* link_xpbd with every multiplier 0: k = -C / (im0 + im1 + a~) / len along d */
+                for (int col = 0; col < ncol; ++col) {
+                    const int end = cols[col + 1];
+                    for (int l = cols[col]; l < end; ++l) {
+                        const int4 R = vload4(l, links);
+                        const float rl = as_float(R.w);
+                        __local floatP *A = sx + 4 * R.x;
+                        __local floatP *B = sx + 4 * R.y;
+                        const floatP x0 = A[0], y0 = A[1], z0 = A[2], w0 = A[3];
+                        const floatP x1 = B[0], y1 = B[1], z1 = B[2], w1 = B[3];
+                        const floatP dx = x1 - x0, dy = y1 - y0, dz = z1 - z0;
+                        const floatP L = dx * dx + dy * dy + dz * dz;
+                        const floatP a = alpha[R.z];
+                        const floatP denom = w0 + w1 + a;
+                        const intP ok = (L > EPS_LEN2) & (denom > EPS_DENOM) & !isinf(a);
+                        const floatP k = select((floatP)(0.0f), (rl * rsqrt(L) - 1.0f) / denom, ok);
+                        const floatP k0 = k * w0, k1 = k * w1;
+                        A[0] = x0 - dx * k0;
+                        A[1] = y0 - dy * k0;
+                        A[2] = z0 - dz * k0;
+                        B[0] = x1 + dx * k1;
+                        B[1] = y1 + dy * k1;
+                        B[2] = z1 + dz * k1;
+                    }
+                }
+                continue;
+            }
+#endif
             for (int col = 0; col < ncol; ++col) {
                 const int end = cols[col + 1];
                 for (int l = cols[col]; l < end; ++l) {
@@ -197,13 +357,32 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
             }
         }
 
-        /* per lane: out of the lanes, then tethers, colliders, velocities on global memory */
+        if (vec) {
+            if (s == S - 1) /* the step's last start positions, for whoever reads prev */
+                for (int j = 0; j < PACK_LANES; ++j)
+                    if (vb[j] >= 0)
+                        for (int v = 0; v < nv; ++v)
+                            prev[vb[j] + v] = (float4)(svf[(3 * v + 0) * PACK_LANES + j],
+                                                       svf[(3 * v + 1) * PACK_LANES + j],
+                                                       svf[(3 * v + 2) * PACK_LANES + j],
+                                                       sxf[(4 * v + 3) * PACK_LANES + j]);
+            /* velocities across the lanes: (x - start) / h, damped */
+            for (int v = 0; v < nv; ++v) {
+                __local floatP *P = sx + 4 * v;
+                __local floatP *V = sv + 3 * v;
+                V[0] = (P[0] - V[0]) * keep;
+                V[1] = (P[1] - V[1]) * keep;
+                V[2] = (P[2] - V[2]) * keep;
+            }
+            continue;
+        }
+        /* per lane: out of the lanes, then colliders, velocities on global memory */
         for (int j = 0; j < PACK_LANES; ++j) {
             LANE_CLOTH(j)
             for (int v = 0; v < nv; ++v)
                 X[v].xyz = lane_get3(sxf, v, j);
             for (int v = 0; v < nv; ++v) {
-                const float4 x = finish_vertex(X[v], X, fb, I, F, vel, prev, coll, v, vbase + v, h, s, S);
+                const float4 x = finish_vertex(X[v], X, fb, I, F, vel, prev, coll, v, vbase + v, h, s, S, 0);
                 X[v] = x;
 #if FEATURE_WIND || FEATURE_NORMALS
                 lane_put3(sxf, v, j, x.xyz); /* the normals read the lanes */
@@ -211,6 +390,14 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
             }
         }
     }
+    if (vec) /* positions and velocities back to global memory, once per step */
+        for (int j = 0; j < PACK_LANES; ++j)
+            if (vb[j] >= 0)
+                for (int v = 0; v < nv; ++v) {
+                    pos[vb[j] + v] = (float4)(lane_get3(sxf, v, j), sxf[(4 * v + 3) * PACK_LANES + j]);
+                    vel[vb[j] + v] = (float4)(svf[(3 * v + 0) * PACK_LANES + j], svf[(3 * v + 1) * PACK_LANES + j],
+                                              svf[(3 * v + 2) * PACK_LANES + j], 0.0f);
+                }
 
 #if FEATURE_NORMALS
     pack_normals(sx, fb, I0, nv, vb, nrm);

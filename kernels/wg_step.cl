@@ -3,7 +3,20 @@
  * global memory. Links of one colour share no vertex, so the group's work-items solve them in
  * parallel between barriers, which sit only where control flow is uniform across the group. The
  * GPU's default solver, and the CPU's with one work-item per cloth
- * where the pack solver (pack.cl) is off. Included by cloth.cl. */
+ * where the pack solver (pack.cl) is off. With tethers: the tethers after each substep's
+ * prediction and the long-range links before the links of each iteration (tethers.cl). XPBD at
+ * compliance 0 or with one iteration keeps no multipliers (every one is 0 when read). Included by
+ * cloth.cl. */
+
+#if FEATURE_XPBD
+#define SOLVE(X, R, p0, p1, l)                                                                     \
+    if (lamless)                                                                                   \
+        solve_link_lamless(X, R, p0, p1, F, h);                                                    \
+    else                                                                                           \
+        solve_link(X, R, p0, p1, F, h, lam, l)
+#else
+#define SOLVE(X, R, p0, p1, l) solve_link(X, R, p0, p1, F, h, lam, l)
+#endif
 
 __kernel void wg_step(const float dt, __global const int *cloths, __global const int *ci, __global const float *cf,
                       __global const int *fab, __global float4 *pos, __global float4 *vel, __global float4 *prev,
@@ -27,6 +40,15 @@ __kernel void wg_step(const float dt, __global const int *cloths, __global const
     __global float *lam = lam_all + I[CI_LAM]; /* XPBD's multipliers (PBD reads none) */
 #if FEATURE_XPBD
     const int nl = I[CI_NLINKS];
+    /* compliance 0 or one iteration: every multiplier is 0 when read, so none is kept (half the
+     * link's memory traffic; the same arithmetic) */
+    const int lamless = iters == 1 || (F[CF_COMPLIANCE] == 0.0f && F[CF_COMPLIANCE + 1] == 0.0f &&
+                                       F[CF_COMPLIANCE + 2] == 0.0f);
+#endif
+#if FEATURE_TETHERS
+    __global const int *lrl = fb + I[CI_OFF_LRLINKS];
+    __global const int *lrc = fb + I[CI_OFF_LRCOLOURS];
+    const float tlimit = F[CF_TETHER_LIMIT];
 #endif
 #if USE_LOCAL
     XS float4 *X = lx;
@@ -46,12 +68,28 @@ __kernel void wg_step(const float dt, __global const int *cloths, __global const
         for (int v = lid; v < nv; v += ls)
             X[v] = predict_vertex(X[v], vel, prev, target, nrm, vbase + v, F, h, S - s);
 #if FEATURE_XPBD
-        for (int l = lid; l < nl; l += ls)
-            lam[l] = 0.0f;
+        if (!lamless)
+            for (int l = lid; l < nl; l += ls)
+                lam[l] = 0.0f;
 #endif
         barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
+#if FEATURE_TETHERS /* before the links (NvCloth's order); anchors are pinned: no tether moves them */
+        for (int v = lid; v < nv; v += ls)
+            if (X[v].w > 0.0f)
+                X[v] = tether_vertex(X[v], X, fb, I, F, v);
+        barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
+#endif
 
         for (int it = 0; it < iters; ++it) {
+#if FEATURE_TETHERS /* the long-range links first, coarsest first */
+            for (int col = 0; col < lrc[0]; ++col) {
+                for (int l = lrc[1 + col] + lid; l < lrc[2 + col]; l += ls) {
+                    const int4 R = vload4(l, lrl);
+                    solve_long_range(X, R, X[R.x], X[R.y], tlimit);
+                }
+                barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
+            }
+#endif
             for (int col = 0; col < ncol; ++col) {
                 const int end = cols[col + 1];
                 int l = cols[col] + lid;
@@ -67,19 +105,19 @@ __kernel void wg_step(const float dt, __global const int *cloths, __global const
                         P1[u] = X[R[u].y];
                     }
                     for (int u = 0; u < LINK_UNROLL; ++u)
-                        solve_link(X, R[u], P0[u], P1[u], F, h, lam, l + u * ls);
+                        SOLVE(X, R[u], P0[u], P1[u], l + u * ls);
                 }
                 for (; l < end; l += ls) {
                     int4 R = vload4(l, links);
                     float4 p0 = X[R.x], p1 = X[R.y];
-                    solve_link(X, R, p0, p1, F, h, lam, l);
+                    SOLVE(X, R, p0, p1, l);
                 }
                 barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
             }
         }
 
         for (int v = lid; v < nv; v += ls)
-            X[v] = finish_vertex(X[v], X, fb, I, F, vel, prev, coll, v, vbase + v, h, s, S);
+            X[v] = finish_vertex(X[v], X, fb, I, F, vel, prev, coll, v, vbase + v, h, s, S, 0);
         barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
     }
 

@@ -7,10 +7,12 @@ area (mass share) and tether anchors. It never changes after cooking, so cloths 
 the same mesh, link options and pins share one fabric and its device buffers.
 
 Grid geometry and OBJ parsing are the wire protocol's (drape.client.protocol.geometry): one
-implementation, here kept in float64. The links and their colouring are links.py's; tether
-anchors (each free vertex's nearest pinned vertex, tethers.py) are found in bounded memory, and
-only for fabrics cooked with ``tethers=True`` or when first asked for (Fabric.tethers), so a
-cloth without tethers never pays for them.
+implementation, here kept in float64. The links and their colouring are links.py's; the
+long-range attachments (tethers.py: each free vertex's tethers to up to TETHER_SLOTS pin islands
+with geodesic rest lengths, and the unilateral long-range links of a coarse hierarchy of the
+cloth, coloured like the links) are cooked only for fabrics cooked with ``tethers=True`` or when
+first asked for (Fabric.tethers, Fabric.long_range), so a cloth without tethers never pays for
+them.
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ from .links import (  # noqa: F401  bending_pairs, dedupe_links, mesh_edges: re-
     mesh_links,
 )
 from .params import LinkOptions
-from .tethers import TETHER_GROUP, TETHER_PAIRS_PER_CHUNK, tether_anchors  # noqa: F401  re-exported
+from .tethers import TETHER_SLOTS, grid_long_range, mesh_long_range, tether_anchors  # noqa: F401  re-exported
 
 log = logging.getLogger(__name__)
 
@@ -59,21 +61,45 @@ class Fabric:
     jacobi_adj: np.ndarray  # (2L, 2) int32: (other vertex, link index) for each incidence
     vtri_offsets: np.ndarray  # (n+1,) int32: CSR of incident triangles per vertex
     vtri: np.ndarray  # (3m,) int32
-    # tether anchors, computed once on demand (see tethers()); a list so the frozen fabric can fill it
+    grid_shape: tuple[int, int] | None = None  # (cols, rows) of a cooked grid, None for a mesh
+    # tether anchors and long-range links, computed once on demand (see tethers(), long_range());
+    # lists so the frozen fabric can fill them
     _tethers: list = field(default_factory=list, repr=False)
+    _long_range: list = field(default_factory=list, repr=False)
     _tether_lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     def tethers(self) -> tuple[np.ndarray, np.ndarray]:
-        """(anchor, length): each free vertex's nearest pinned vertex (int32, -1 for pinned
-        vertices or when nothing is pinned) and its rest distance to it (float64). Computed on
-        the first call (thread-safe), in bounded memory."""
+        """(anchor, length), each (n, TETHER_SLOTS): every free vertex's tethers, one to each of
+        up to TETHER_SLOTS pin islands, nearest first: the island's pin nearest along the cloth
+        (int32, -1 in unused slots and for pinned vertices) and the geodesic rest distance to it
+        (float64). Computed on the first call (thread-safe)."""
         with self._tether_lock:
             if not self._tethers:
-                anchor, length = tether_anchors(self.rest_positions, self.pinned)
+                anchor, length = tether_anchors(self.rest_positions, self.pinned, self.links, self.rest_length)
                 anchor.setflags(write=False)
                 length.setflags(write=False)
                 self._tethers.extend((anchor, length))
             return self._tethers[0], self._tethers[1]
+
+    def long_range(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(links (M, 2) int32, rest length (M,) float64, colour offsets (C+1,) int32): the
+        unilateral long-range links (tethers.py), sorted by colour (no two of a colour share a
+        vertex). Computed on the first call (thread-safe)."""
+        with self._tether_lock:
+            if not self._long_range:
+                if self.grid_shape is not None:
+                    lk, rest = grid_long_range(*self.grid_shape, self.rest_positions)
+                else:
+                    lk, rest = mesh_long_range(self.rest_positions, self.links, self.rest_length)
+                colours = greedy_colour(lk, self.n_vertices)
+                order = np.argsort(colours, kind="stable")
+                lk, rest, colours = lk[order], rest[order], colours[order]
+                n_col = int(colours.max()) + 1 if len(colours) else 0
+                offsets = np.searchsorted(colours, np.arange(n_col + 1)).astype(np.int32)
+                for a in (lk, rest, offsets):
+                    a.setflags(write=False)
+                self._long_range.extend((lk, rest, offsets))
+            return self._long_range[0], self._long_range[1], self._long_range[2]
 
     @property
     def tethers_ready(self) -> bool:
@@ -81,11 +107,11 @@ class Fabric:
         return bool(self._tethers)
 
     @property
-    def tether_anchor(self) -> np.ndarray:  # (n,) int32: nearest pinned vertex, -1 for pinned or none
+    def tether_anchor(self) -> np.ndarray:  # (n, TETHER_SLOTS) int32: a pin of each island, -1 unused
         return self.tethers()[0]
 
     @property
-    def tether_length(self) -> np.ndarray:  # (n,) float64: rest distance to that anchor
+    def tether_length(self) -> np.ndarray:  # (n, TETHER_SLOTS) float64: geodesic rest distance to it
         return self.tethers()[1]
 
     @property
@@ -153,6 +179,7 @@ def cook(
     link_type: np.ndarray,
     pinned: Iterable[int] = (),
     tethers: bool = True,
+    grid_shape: tuple[int, int] | None = None,
 ) -> Fabric:
     """Cook a fabric from a rest pose, triangles and candidate links (any order, duplicates
     and self-links removed). Raises ValueError on malformed input. ``tethers``: compute the tether
@@ -193,7 +220,7 @@ def cook(
     j_order, j_off, j_adj = _jacobi_adjacency(lk, n)
     vt_off, vt = _vertex_triangles(t32, n)
 
-    key = _fabric_key(v, t32, lk, lt, pin_mask)
+    key = _fabric_key(v, t32, lk, lt, pin_mask, np.asarray(grid_shape or (0, 0), np.int64))
     fab = Fabric(
         key=key,
         rest_positions=v,
@@ -209,11 +236,13 @@ def cook(
         jacobi_adj=j_adj,
         vtri_offsets=vt_off,
         vtri=vt,
+        grid_shape=grid_shape,
     )
     for arr in (v, t32, pin_mask, lk, lt, rest, colour_offsets, area, j_order, j_off, j_adj, vt_off, vt):
         arr.setflags(write=False)
     if tethers:
         fab.tethers()
+        fab.long_range()
     log.debug("cooked fabric %s: %d vertices, %d links, %d colours", key[:8], n, len(lk), n_col)
     return fab
 
@@ -231,7 +260,7 @@ def cook_grid(
 ) -> Fabric:
     verts, tris = grid_mesh(cols, rows, width, height, orientation, origin)
     links, ltype = grid_links(cols, rows, options)
-    return cook(verts, tris, links, ltype, pinned, tethers)
+    return cook(verts, tris, links, ltype, pinned, tethers, grid_shape=(cols, rows))
 
 
 def cook_mesh(

@@ -5,10 +5,12 @@ substeps, XPBD and tether switches. Presets never touch the material: an XPBD pr
 material's own compliance (0, the default, is an inextensible cloth, what PBD with stiffness 1
 aims at); a material authored for PBD with stiffness below 1 should give a compliance too.
 
-The figures behind each preset (``drape tradeoff``, docs/accuracy.md) are for the hanging
-cloth, 64 x 64, 60 Hz, the work-group solver on PoCL (2 CPU cores); ``cost`` is the measured
-cost relative to the plain 10-iteration PBD solve in the same process, which a server can use
-to estimate what a change of preset frees or costs.
+The strains behind each preset (``drape tradeoff``, docs/accuracy.md) are for the hanging
+cloth, 64 x 64, 60 Hz. ``cost`` is each preset's cost as it runs, in multiples of the plain
+10-iteration PBD solve: measured in full packs (CPU) or a full device (GPU), interleaved against
+PBD-10 in one process, by ``drape tradeoff --costs``, which writes ``COSTS_FILE``; this module
+reads it (``costs(kind)``; ``Preset.cost`` is the CPU figure), never a number typed in. A server
+uses them to estimate what a change of preset frees or costs (QualityGovernor).
 
 Adaptive quality, for a server under load (the tick loop owns the policy; this is the API):
 
@@ -23,10 +25,31 @@ kernel group; switching XPBD on or off or changing substeps regroups it (see clw
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 from .params import ClothParams
+
+COSTS_FILE = Path(__file__).with_name("preset_costs.json")  # written by `drape tradeoff --costs`
+
+
+def costs(kind: str = "cpu", path: Path | None = None) -> dict[str, float]:
+    """Each measured configuration's cost (median ratio to PBD-10 over interleaved rounds) on a
+    device of ``kind`` ("cpu" or "gpu"), from the cost file; {} where none was measured."""
+    p = COSTS_FILE if path is None else Path(path)
+    try:
+        data = json.loads(p.read_text())
+    except (OSError, ValueError):
+        return {}
+    entry = data.get(kind) or {}
+    return {name: float(c["cost"]) for name, c in entry.get("configs", {}).items()}
+
+
+def _unmeasured_cost(iterations: int, substeps: int) -> float:
+    """A stand-in where the cost file has no figure: link sweeps per frame over PBD-10's."""
+    return iterations * substeps / 10.0
 
 
 @dataclass(frozen=True)
@@ -36,7 +59,7 @@ class Preset:
     substeps: int
     xpbd: bool
     tethers: bool
-    cost: float  # measured ms per frame / the 10-iteration PBD solve's (hanging 64 x 64, 60 Hz)
+    cost: float  # measured cost / the 10-iteration PBD solve's (hanging 64 x 64, 60 Hz; COSTS_FILE, CPU)
     max_strain: float  # measured on the same scene: largest structural strain over 2 s
     mean_strain: float  # mean structural strain, averaged over 2 s
     note: str = ""
@@ -45,47 +68,24 @@ class Preset:
         return apply_preset(base, self.name)
 
 
-# Cheapest first. Figures: docs/accuracy.md (drape tradeoff, PoCL on 2 Xeon cores).
+# Cheapest first. Strains: docs/accuracy.md (drape tradeoff: the device's float32 run of the
+# hanging 64 x 64 over 2 s); costs: COSTS_FILE (drape tradeoff --costs).
+_COSTS = costs("cpu")
+FAST_SUBSTEPS = 8
+
+
+def _preset(name: str, iterations: int, substeps: int, max_strain: float, mean_strain: float, note: str) -> Preset:
+    cost = _COSTS.get(name, _unmeasured_cost(iterations, substeps))
+    return Preset(name, iterations, substeps, True, True, cost, max_strain, mean_strain, note)
+
+
 PRESETS: dict[str, Preset] = {
     p.name: p
     for p in (
-        Preset(
-            "fast",
-            1,
-            5,
-            True,
-            True,
-            cost=0.97,
-            max_strain=1.70,
-            mean_strain=0.051,
-            note="Small Steps and tethers for less than the plain 10-iteration solve (which "
-            "stretches 44x at its worst, 26% on average)",
-        ),
-        Preset(
-            "balanced", 1, 20, True, True, cost=3.3, max_strain=0.36, mean_strain=0.0071, note="mean strain under 1%"
-        ),
-        Preset(
-            "accurate",
-            1,
-            80,
-            True,
-            True,
-            cost=12.6,
-            max_strain=0.067,
-            mean_strain=0.0011,
-            note="max strain under 10% through the whole fall and swing, mean 0.1%",
-        ),
-        Preset(
-            "exact",
-            2,
-            100,
-            True,
-            True,
-            cost=27.0,
-            max_strain=0.055,
-            mean_strain=0.0005,
-            note="reference-like: mean 0.05%, max under 1% once swinging (0.8% at t = 2 s)",
-        ),
+        _preset("fast", 1, FAST_SUBSTEPS, 0.0, 0.0, "no more than the plain 10-iteration solve"),
+        _preset("balanced", 1, 20, 0.0, 0.0, "max strain under 10%, mean 0.3%"),
+        _preset("accurate", 1, 80, 0.0, 0.0, "max strain a few %, mean 0.1%"),
+        _preset("exact", 2, 100, 0.0, 0.0, "reference-like"),
     )
 }
 ORDER: tuple[str, ...] = tuple(PRESETS)
@@ -152,12 +152,19 @@ class QualityGovernor:
     Call ``update(frame_ms)`` once per tick with the measured device time of the tick; it returns
     the preset to use next. Over ``budget_ms`` for ``patience`` ticks in a row: one step down.
     Under ``headroom`` x budget for ``patience * 4`` ticks in a row (and the next preset up is
-    predicted to fit, from the presets' measured relative costs): one step back up toward
-    ``wanted``."""
+    predicted to fit, from the presets' costs measured on a device of ``kind``, "cpu" or "gpu",
+    in COSTS_FILE): one step back up toward ``wanted``."""
 
     def __init__(
-        self, wanted: str = DEFAULT, budget_ms: float = 16.0, patience: int = 3, headroom: float = 0.6
+        self,
+        wanted: str = DEFAULT,
+        budget_ms: float = 16.0,
+        patience: int = 3,
+        headroom: float = 0.6,
+        kind: str = "cpu",
     ) -> None:
+        measured = costs(kind)
+        self.cost = {n: measured.get(n, p.cost) for n, p in PRESETS.items()}
         self.wanted = preset(wanted).name
         self.current = self.wanted
         self.budget_ms = float(budget_ms)
@@ -176,7 +183,7 @@ class QualityGovernor:
         else:
             self._over = 0
             up = restore(self.current, self.wanted)
-            predicted = frame_ms * PRESETS[up].cost / PRESETS[self.current].cost
+            predicted = frame_ms * self.cost[up] / self.cost[self.current]
             if up != self.current and frame_ms < self.headroom * self.budget_ms and predicted < self.budget_ms:
                 self._under += 1
                 if self._under >= 4 * self.patience:

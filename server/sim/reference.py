@@ -9,17 +9,23 @@ One step of one cloth, in this order (the OpenCL kernels in kernels/cloth.cl do 
                      (dv_aero: drag and lift over the substep, at most the relative wind speed)
         pinned:      x += (target - x) / (substeps - s)        (reaches the target on the last)
         [xpbd]       lambda = 0
+        [tethers]    free vertex no further than tether_length * limit from each of its anchors
+                     (one per pin island, tethers.py), before the links as NvCloth does
         iterations:  every link, colour by colour (Gauss-Seidel in colour order), with the
                      talk's PBD equation   k = kst (rl^2 - L) / ((im0 + im1) (rl^2 + L))
                      or XPBD               dl = (-C - a~ l) / (im0 + im1 + a~),  a~ = compliance / h^2
-        [tethers]    free vertex no further than tether_length * limit from its anchor
+                     [tethers] first the long-range links, colour by colour: unilateral and hard,
+                     a link no longer than rest * limit (k = (rest * limit / len - 1) / (im0 + im1)
+                     where that is negative)
         [colliders]  push out of spheres, capsules, planes (interpolated over substeps), friction
         all:         v = (x - x_prev) / h * (1 - damping)
 
 ``mode="serial"`` visits links one at a time in fabric order exactly like the talk's CPU loop;
 ``mode="coloured"`` does each colour as one numpy operation (links of a colour share no vertex,
-so it is the same computation); ``mode="jacobi"`` mirrors the OpenCL vertex solver (corrections
-from the previous iterate, averaged per vertex and over-relaxed by ``JACOBI_OMEGA``).
+so it is the same computation; ``mode="batches"`` is the same colour batches with the device's
+coloured solver's tethers: after the links, no long-range links); ``mode="jacobi"`` mirrors the OpenCL vertex solver (corrections
+from the previous iterate, averaged per vertex and over-relaxed by ``JACOBI_OMEGA``; like the
+device's Jacobi and coloured solvers, tethers after the links and no long-range links).
 """
 
 from __future__ import annotations
@@ -76,8 +82,11 @@ def link_compliance(fabric: Fabric, params: ClothParams) -> np.ndarray:
 
 def step(state: ClothState, fabric: Fabric, params: ClothParams, dt: float, mode: str = "coloured") -> None:
     """Advance one cloth by dt in place."""
-    if mode not in ("serial", "coloured", "jacobi"):
+    if mode not in ("serial", "coloured", "batches", "jacobi"):
         raise ValueError(f"unknown reference mode {mode!r}")
+    # where the tethers go: before the links (work-group and pack solvers: serial, coloured) or,
+    # with no long-range links, after them (the device's coloured batches and Jacobi)
+    early = mode in ("serial", "coloured")
     f = params.features
     m = params.material
     x, v, invm = state.x, state.v, state.invm
@@ -106,11 +115,17 @@ def step(state: ClothState, fabric: Fabric, params: ClothParams, dt: float, mode
         x[pinned] += (state.target[pinned] - x[pinned]) / (S - s)
         lam[:] = 0.0
         alpha = comp / (h * h)
+        if f.tethers and early:
+            apply_tethers(x, fabric, m.tether_limit)
         x_before = x.copy()  # x^(k-1) for Chebyshev
         for it in range(params.iterations):
             if mode == "serial":
+                if f.tethers:
+                    _long_range(x, invm, fabric, m.tether_limit, serial=True)
                 _links_serial(x, invm, fabric, kst, alpha, lam, f.xpbd)
-            elif mode == "coloured":
+            elif mode in ("coloured", "batches"):
+                if f.tethers and early:
+                    _long_range(x, invm, fabric, m.tether_limit)
                 for c in range(fabric.n_colours):
                     sl = slice(int(fabric.colour_offsets[c]), int(fabric.colour_offsets[c + 1]))
                     _links_vectorised(x, invm, fabric, sl, kst, alpha, lam, f.xpbd)
@@ -121,7 +136,7 @@ def step(state: ClothState, fabric: Fabric, params: ClothParams, dt: float, mode
                 if omega != 1.0:
                     x[free] = omega * (x[free] - x_before[free]) + x_before[free]
                 x_before = x_k
-        if f.tethers:
+        if f.tethers and not early:
             apply_tethers(x, fabric, m.tether_limit)
         if f.colliders and len(state.colliders):
             t0, t1 = s / S, (s + 1) / S
@@ -229,22 +244,50 @@ def _links_jacobi(x, invm, fabric, kst, alpha, lam, xpbd):
     x += acc * scale[:, None]
 
 
+def _long_range(x, invm, fabric, limit, serial=False):
+    """The long-range links (Fabric.long_range), colour by colour (or one at a time): unilateral
+    and hard, each no longer than its rest length times ``limit``."""
+    lk, rest, offsets = fabric.long_range()
+    ranges = (
+        [(i, i + 1) for i in range(len(lk))]
+        if serial
+        else [(int(offsets[c]), int(offsets[c + 1])) for c in range(len(offsets) - 1)]
+    )
+    rl_all = rest.astype(x.dtype) * limit
+    for lo, hi in ranges:
+        a, b = lk[lo:hi, 0], lk[lo:hi, 1]
+        im0, im1 = invm[a], invm[b]
+        d = x[b] - x[a]
+        L = np.einsum("ij,ij->i", d, d)
+        w = im0 + im1
+        ok = (L > EPS_LEN2) & (w > EPS_DENOM)
+        k = np.where(ok, (rl_all[lo:hi] / np.sqrt(np.where(ok, L, 1.0)) - 1.0) / np.where(ok, w, 1.0), 0.0)
+        k = np.minimum(k, 0.0)  # unilateral: only pulls the ends together
+        x[a] -= d * (k * im0)[:, None]
+        x[b] += d * (k * im1)[:, None]
+
+
 # ---------------------------------------------------------------------------------------------
 # Features
 
 
 def apply_tethers(x: np.ndarray, fabric: Fabric, limit: float) -> None:
+    """Each free vertex no further than its tether length times ``limit`` from each of its
+    anchors, slot by slot (a vertex's tethers in order; anchors are pinned, so vertices do not
+    interact)."""
     anchor = fabric.tether_anchor
-    idx = np.flatnonzero(anchor >= 0)
-    if len(idx) == 0:
-        return
-    d = x[idx] - x[anchor[idx]]
-    dist = np.linalg.norm(d, axis=1)
-    lim = fabric.tether_length[idx] * limit
-    over = dist > lim
-    if np.any(over):
-        i = idx[over]
-        x[i] = x[anchor[i]] + d[over] * (lim[over] / dist[over])[:, None]
+    for s in range(anchor.shape[1]):
+        idx = np.flatnonzero(anchor[:, s] >= 0)
+        if len(idx) == 0:
+            continue
+        a = anchor[idx, s]
+        d = x[idx] - x[a]
+        dist = np.linalg.norm(d, axis=1)
+        lim = fabric.tether_length[idx, s] * limit
+        over = dist > lim
+        if np.any(over):
+            i = idx[over]
+            x[i] = x[a[over]] + d[over] * (lim[over] / dist[over])[:, None]
 
 
 def _lerp_colliders(c0: np.ndarray, c1: np.ndarray, t: float) -> np.ndarray:

@@ -55,6 +55,8 @@ import os
 import time
 from pathlib import Path
 
+import numpy as np
+
 from ..sim.params import SOLVERS
 from .procs import csv_list, progress, require_extra
 from .tradeoffreport import (
@@ -132,10 +134,27 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="processes for the ground truths (computed before any timing)",
     )
     parser.add_argument("--device", default=None, help="OpenCL device: auto, gpu, cpu or a name substring")
+    parser.add_argument(
+        "--costs",
+        action="store_true",
+        help="instead of the sweep: measure every preset's cost against PBD-10 in full packs, "
+        "interleaved rounds in one process, and write it to the presets' cost file "
+        "(drape.server.sim.quality.COSTS_FILE), which the quality governor reads",
+    )
+    parser.add_argument("--cost-rounds", type=int, default=7, help="--costs: interleaved rounds")
+    parser.add_argument("--cost-cloths", type=int, default=None, help="--costs: cloths per world (default: full packs)")
+    parser.add_argument(
+        "--cost-substeps",
+        default="",
+        help="--costs: also these XPBD 1-iteration + tethers substep counts (comma list: the front)",
+    )
+    parser.add_argument("--cost-file", default=None, help="--costs: write here (default: the presets' cost file)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.costs:
+        return run_costs(args)
     from ..sim.opencl.device import Device
 
     level = "quick" if args.quick else "full" if args.full else "default"
@@ -260,4 +279,23 @@ def run(args: argparse.Namespace) -> int:
             if p:
                 print(f"plot: {p}")
     log.info("tradeoff done in %.0f s", time.perf_counter() - t_start)
+    return 0
+
+
+def run_costs(args: argparse.Namespace) -> int:
+    """``--costs``: the presets' costs as they run (tradeoffcost), written where quality.py reads."""
+    from .tradeoffcost import measure_costs, write_costs
+
+    extra = [Config("workgroup", 1, int(n), True, True, tag="front") for n in csv_list(args.cost_substeps)]
+    res = measure_costs(
+        device=args.device,
+        rounds=args.cost_rounds,
+        cloths=args.cost_cloths,
+        extra=extra,
+        progress=lambda r, n: print(f"round {r}/{n}", flush=True),
+    )
+    for name, c in res["configs"].items():
+        print(f"{name:<40} {c['cost']:6.3f}x  ({c['min']:.3f} .. {c['max']:.3f})  {np.median(c['ms']):8.3f} ms")
+    path = write_costs(res, args.cost_file)
+    print(f"{res['kind']}: {res['device']}, {res['cloths']} cloths, {res['rounds']} rounds -> {path}")
     return 0

@@ -1,23 +1,23 @@
 """Fabric cooking: link sets, colouring independence, degenerate input, sharing, OBJ parsing (the
-protocol's), tether anchors (exact, bounded in memory, not computed for cloths without tethers)."""
+protocol's), tethers to every pin island with geodesic rest lengths and long-range links (not
+computed for cloths without tethers)."""
 
 from __future__ import annotations
-
-import tracemalloc
 
 import numpy as np
 import pytest
 from conftest import random_grid_fabric, random_mesh_fabric
 
 from drape.server.sim.fabric import (
+    TETHER_SLOTS,
     bending_pairs,
     cook,
     cook_grid,
     cook_mesh,
     greedy_colour,
+    grid_mesh,
     mesh_edges,
     parse_obj,
-    tether_anchors,
     vertex_masses,
 )
 from drape.server.sim.params import LINK_BENDING, LINK_SHEAR, LINK_STRUCTURAL, LinkOptions
@@ -125,57 +125,99 @@ def test_obj_loader_refuses_references_outside_the_vertices(face, line):
         parse_obj(f"v 0 0 0\nv 1 0 0\nv 0 1 0\n{face}\n")
 
 
-def _nearest_pin_float64(v: np.ndarray, pinned: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The definition, in float64: every (free vertex, pin) distance at once, first minimum."""
-    anchor, length = np.full(len(v), -1, np.int32), np.zeros(len(v))
-    pins, free = np.flatnonzero(pinned), np.flatnonzero(~pinned)
-    if len(pins) and len(free):
-        d = np.linalg.norm(v[free, None, :] - v[pins][None, :, :], axis=2)
-        j = np.argmin(d, axis=1)
-        anchor[free], length[free] = pins[j], d[np.arange(len(free)), j]
-    return anchor, length
+def test_tethers_on_a_flat_grid_are_straight_lines_to_the_nearest_pin_of_every_island():
+    """Hanging 16 x 16, two corner pins: every free vertex has one tether to each corner (two
+    islands), nearest first, rest length the straight distance (any-angle paths over a flat
+    convex grid), to float rounding."""
+    n = 16
+    f = cook_grid(n, n, pinned=[0, n - 1])
+    a, ln = f.tether_anchor, f.tether_length
+    assert a.shape == (n * n, TETHER_SLOTS)
+    assert (a[[0, n - 1]] == -1).all()
+    free = np.flatnonzero(~f.pinned)
+    assert set(map(tuple, np.sort(a[free, :2], axis=1).tolist())) == {(0, n - 1)}
+    assert (a[free, 2:] == -1).all()
+    v = f.rest_positions
+    straight = np.linalg.norm(v[free, None, :] - v[a[free, :2]], axis=2)
+    np.testing.assert_allclose(ln[free, :2], straight, rtol=1e-9)
+    assert (ln[free, 0] <= ln[free, 1]).all()  # nearest island first
 
 
-@pytest.mark.parametrize("chunk", [1, 7, 1 << 21])
-def test_tether_anchors_are_the_nearest_pin_in_any_chunking(rng, chunk):
-    for _ in range(10):
-        f = random_grid_fabric(rng, n_pins=int(rng.integers(0, 10)))  # grids have at least 9 vertices
-        v = np.asarray(f.rest_positions) + rng.normal(0, 1e-3, f.rest_positions.shape) * rng.integers(0, 2)
-        v += rng.uniform(-1e3, 1e3, 3)  # far from the origin: the fast formula's rounding is largest
-        anchor, length = tether_anchors(v, f.pinned, chunk)
-        want_a, want_l = _nearest_pin_float64(v, f.pinned)
-        np.testing.assert_array_equal(anchor, want_a)  # ties: the lowest pin index, as the definition
-        np.testing.assert_array_equal(length, want_l)
+def test_a_pinned_edge_is_one_island_and_its_tether_goes_to_the_nearest_pin():
+    n = 8
+    f = cook_grid(n, n, width=1, height=1, pinned=range(n))  # the first row: one island
+    free = np.flatnonzero(~f.pinned)
+    assert (f.tether_anchor[free, 1:] == -1).all()
+    cols = free % n
+    np.testing.assert_array_equal(f.tether_anchor[free, 0], cols)  # straight up the column
+    np.testing.assert_allclose(f.tether_length[free, 0], (free // n) / (n - 1), rtol=1e-9)
+
+
+def test_tether_lengths_follow_the_cloth_around_a_gap():
+    """A U-shaped mesh (a grid with a slot cut from its top edge down the middle): the tether
+    from across the slot runs around its end, far longer than the straight line, never shorter
+    than the graph allows."""
+    n = 9
+    v, t = grid_mesh(n, n, 1.0, 1.0)
+    c = n // 2
+    # the slot: every triangle touching column c in rows 0..5
+    slot = (t % n == c) & (t // n <= 5)
+    f = cook_mesh(v, t[~slot.any(axis=1)], pinned=[0])  # the top-left corner
+    right = 2  # a vertex of the top row right of the slot
+    vtx = c + right
+    assert f.tether_anchor[vtx, 0] == 0
+    straight = np.linalg.norm(v[vtx] - v[0])
+    around = 2 * 5 / (n - 1)  # down the slot and back up at least
+    assert f.tether_length[vtx, 0] > straight + 0.8 * around
+
+
+def test_tethers_hold_up_to_four_islands_the_nearest_first():
+    n = 10
+    pins = [0, 9, 90, 99, 44]  # four corners and one in the middle: five islands
+    f = cook_grid(n, n, pinned=pins)
+    a = f.tether_anchor
+    free = np.flatnonzero(~f.pinned)
+    assert (a[free] >= 0).all()  # every slot used
+    assert a[1, 0] == 0 and 99 not in a[1]  # next to a corner: the far corner is the 5th island, left out
+    assert (np.diff(f.tether_length[free], axis=1) >= 0).all()
+
+
+def test_long_range_links_of_a_grid_are_a_coarse_hierarchy():
+    """64 x 64: strides 2..32, +16 % links (the issue's count), coarsest first, each no two of a
+    colour sharing a vertex, rest lengths the straight distance."""
+    n = 64
+    f = cook_grid(n, n, pinned=[0, n - 1])
+    lk, rest, off = f.long_range()
+    assert len(lk) == sum(2 * (n // s) * (n // s - 1) for s in (2, 4, 8, 16, 32)) == 2604
+    assert 0.15 < len(lk) / f.n_links < 0.17
+    v = f.rest_positions
+    np.testing.assert_allclose(rest, np.linalg.norm(v[lk[:, 1]] - v[lk[:, 0]], axis=1))
+    for c in range(len(off) - 1):
+        e = lk[off[c] : off[c + 1]].ravel()
+        assert len(np.unique(e)) == len(e)
+    assert rest[0] == pytest.approx(32 / 63)  # the coarsest colour first
+
+
+def test_long_range_links_of_a_mesh_are_no_shorter_than_the_cloth_between_their_ends(rng):
+    f = random_mesh_fabric(rng)
+    lk, rest, off = f.long_range()
+    assert len(lk) > 0 and off[-1] == len(lk)
+    v = f.rest_positions
+    assert (rest >= np.linalg.norm(v[lk[:, 1]] - v[lk[:, 0]], axis=1) - 1e-12).all()
+    for c in range(len(off) - 1):
+        e = lk[off[c] : off[c + 1]].ravel()
+        assert len(np.unique(e)) == len(e)
 
 
 def test_tethers_are_not_set_up_for_a_cloth_without_tethers():
     """256 x 256 with every other vertex pinned (32 768 pins): cooking without tethers does not
-    look for anchors at all (it took 65 s and 9.6 GB when it did); asking later computes them."""
+    look for anchors at all; asking later computes them."""
     f = cook_grid(256, 256, pinned=np.arange(0, 256 * 256, 2), tethers=False)
     assert not f.tethers_ready
     small = cook_grid(4, 4, pinned=[0], tethers=False)
     assert not small.tethers_ready
-    assert small.tether_anchor[15] == 0 and small.tethers_ready  # computed on first use
+    assert small.tether_anchor[15, 0] == 0 and small.tethers_ready  # computed on first use
     assert cook_grid(4, 4, pinned=[0]).tethers_ready  # the default computes them while cooking
-
-
-def test_tether_set_up_memory_is_bounded_by_its_chunk():
-    """2 048 free vertices x 2 048 pins: all pairs at once would hold 4 M distances (32 MB per
-    array, 100 MB for the difference vectors); in chunks of 64 K pairs the set-up's peak stays
-    near a few chunks, counted by tracemalloc (numpy reports its buffers to it)."""
-    v = np.random.default_rng(0).uniform(-1, 1, (4096, 3))
-    pinned = np.zeros(4096, bool)
-    pinned[::2] = True
-    chunk = 1 << 16
-    tracemalloc.start()
-    try:
-        tracemalloc.reset_peak()
-        anchor, _ = tether_anchors(v, pinned, chunk)
-        _, peak = tracemalloc.get_traced_memory()
-    finally:
-        tracemalloc.stop()
-    assert peak < 16 * chunk * 8, peak  # 8 MB: a handful of chunk-sized float64 arrays
-    assert (anchor[~pinned] >= 0).all() and (anchor[pinned] == -1).all()
 
 
 def test_tiny_cloths_cook():
@@ -188,9 +230,10 @@ def test_tiny_cloths_cook():
 
 def test_tethers_point_at_the_nearest_pin():
     f = cook_grid(5, 5, width=1, height=1, pinned=[0, 4])
-    assert f.tether_anchor[0] == -1 and f.tether_anchor[4] == -1
-    assert f.tether_anchor[1] == 0 and f.tether_anchor[3] == 4
-    assert np.isclose(f.tether_length[24], 1.0)  # (4,4) to pin (0,4) is 1 m
+    assert f.tether_anchor[0, 0] == -1 and f.tether_anchor[4, 0] == -1
+    assert f.tether_anchor[1, 0] == 0 and f.tether_anchor[3, 0] == 4
+    assert f.tether_anchor[1, 1] == 4 and f.tether_anchor[3, 1] == 0  # and to the other island
+    assert np.isclose(f.tether_length[24, 0], 1.0)  # (4,4) to pin (0,4) is 1 m
 
 
 def test_mass_follows_area_and_pins():

@@ -119,7 +119,7 @@ def compare_with_reference(device, rng, solver, features, local_size, always_ens
     colliders' interpolation over substeps, 7 to 10 of 10 seeds fail (the others never touch a
     collider)."""
     fab, params, colliders = feature_scene(rng, features)
-    mode = "jacobi" if solver == "jacobi" else "coloured"
+    mode = {"jacobi": "jacobi", "coloured": "batches"}.get(solver, "coloured")
     h, fw = run_scene(CLWorld(solver, device=device, local_size=local_size, chunk=48), fab, params, colliders)
     r, fr = run_scene(ReferenceWorld(mode), fab, params, colliders)
     b = fr.positions[r].astype(np.float64)
@@ -192,10 +192,19 @@ def test_tethers_bound_the_stretch(device, solver):
             w.step(DT)
         x = w.positions(h)
         results[tethers] = max_structural_strain(x, fab)
-        if tethers:
-            free = fab.tether_anchor >= 0
-            d = np.linalg.norm(x[free] - x[fab.tether_anchor[free]], axis=1)
-            assert np.all(d <= fab.tether_length[free] * 1.02 * (1 + 1e-5) + 1e-6)
+        if tethers:  # a tether to each pin island: both corners
+            a, ln = fab.tether_anchor, fab.tether_length
+            free = a >= 0
+            vtx = np.nonzero(free)[0]
+            ratio = np.linalg.norm(x[vtx] - x[a[free]], axis=1) / (ln[free] * 1.02)
+            # one pass over a vertex's tethers, nearest first: the last (the other corner) holds
+            # exactly where tethers come last (coloured, Jacobi), the first within a few %;
+            # wg_step applies them before the links (NvCloth's order), which stretch a little
+            if solver != "workgroup":
+                far = a[:, 1] >= 0
+                d1 = np.linalg.norm(x[far] - x[a[far, 1]], axis=1)
+                assert np.all(d1 <= ln[far, 1] * 1.02 * (1 + 1e-5) + 1e-6), (d1 / (ln[far, 1] * 1.02)).max()
+            assert ratio.max() <= 1.1, ratio.max()
     # measured at 2 iterations: max strain 3.8 without tethers, 0.78 with them
     assert results[True] < 0.3 * results[False], results
 

@@ -97,9 +97,15 @@ def fabric_blob(f: Fabric) -> tuple[np.ndarray, dict[str, int]]:
     links[:, :2] = f.links
     links[:, 2] = f.link_type
     links[:, 3] = f.rest_length.astype(np.float32).view(np.int32)
-    anchor = np.zeros((f.n_vertices, L["ANCHOR_WORDS"]), np.int32)
-    anchor[:, 0] = f.tether_anchor
-    anchor[:, 1] = f.tether_length.astype(np.float32).view(np.int32)
+    slots = L["TETHER_SLOTS"]
+    assert L["ANCHOR_WORDS"] == 2 * slots == 2 * f.tether_anchor.shape[1], "layout.h's TETHER_SLOTS: tethers.py's"
+    anchor = np.zeros((f.n_vertices, slots, 2), np.int32)
+    anchor[:, :, 0] = f.tether_anchor
+    anchor[:, :, 1] = f.tether_length.astype(np.float32).view(np.int32)
+    lr_links, lr_rest, lr_offsets = f.long_range()
+    lr = np.zeros((len(lr_links), L["LINK_WORDS"]), np.int32)
+    lr[:, :2] = lr_links
+    lr[:, 3] = lr_rest.astype(np.float32).view(np.int32)
     parts = {
         "CI_OFF_LINKS": links.ravel(),
         "CI_OFF_COLOURS": f.colour_offsets.astype(np.int32),
@@ -110,6 +116,8 @@ def fabric_blob(f: Fabric) -> tuple[np.ndarray, dict[str, int]]:
         "CI_OFF_VTRIOFF": f.vtri_offsets.astype(np.int32),
         "CI_OFF_VTRI": f.vtri.astype(np.int32),
         "CI_OFF_TRIS": f.triangles.astype(np.int32).ravel(),
+        "CI_OFF_LRLINKS": lr.ravel(),
+        "CI_OFF_LRCOLOURS": np.concatenate([[len(lr_offsets) - 1], lr_offsets]).astype(np.int32),
     }
     offsets, pos = {}, 0
     for name, arr in parts.items():

@@ -40,7 +40,6 @@ from .frames import FrameReadback
 from .launch import (  # noqa: F401 (re-exported: _next_pow2, the LINK_UNROLL_* defaults)
     LINK_UNROLL_GLOBAL,
     LINK_UNROLL_LOCAL,
-    PACK_LANES_CPU,
     GroupLaunches,
     _next_pow2,
 )
@@ -124,8 +123,8 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
         self.use_local = use_local  # None: when the cloth fits
         # CPU with one work-item per cloth: packs of cloths of one fabric, one work-item each,
         # the link solve vectorised across the pack (launch.py, kernels/pack.cl). Never on a GPU.
-        env_pack = os.environ.get("DRAPE_PACK_LANES")
-        lanes = pack_lanes if pack_lanes is not None else int(env_pack) if env_pack else PACK_LANES_CPU
+        # The width: the argument, else DRAPE_PACK_LANES, else what the device check found runs.
+        lanes = pack_lanes if pack_lanes is not None else self.dev.info.pack_lanes
         self.pack_lanes = lanes if (not gpu and self.max_local_size == 1 and strategy == "workgroup") else 0
         if self.pack_lanes not in (0, 2, 4, 8, 16):
             raise ValueError(f"pack_lanes must be 0, 2, 4, 8 or 16, got {self.pack_lanes}")

@@ -22,20 +22,17 @@ import re
 import threading
 import time
 from dataclasses import dataclass
-from functools import cache, lru_cache
-from importlib import resources
+from functools import lru_cache
 from pathlib import Path
 
 import pyopencl as cl
 
+from .devicecheck import INSTALL_HINT, PACK_LANES_CPU, Verdict, clear_pocl_cache, private_pocl_cache, prove
+from .platforms import all_devices, describe, kernel_dir
+
 log = logging.getLogger(__name__)
 
-KERNEL_PACKAGE = "drape.kernels"
-
-
-@lru_cache(maxsize=1)
-def kernel_dir() -> Path:
-    return Path(str(resources.files(KERNEL_PACKAGE)))
+private_pocl_cache()  # before OpenCL lists its platforms: PoCL reads POCL_CACHE_DIR then
 
 
 @lru_cache(maxsize=1)
@@ -88,49 +85,20 @@ def kernel_sources(source: str, root: Path | None = None) -> dict[str, str]:
     return seen
 
 
-def _all_devices() -> list[cl.Device]:
-    devs: list[cl.Device] = []
-    for p in cl.get_platforms():
-        try:
-            devs.extend(p.get_devices())
-        except cl.Error:  # a platform without devices
-            continue
-    return devs
-
-
-def describe(dev: cl.Device) -> str:
-    return f"{dev.platform.name.strip()} / {dev.name.strip()}"
-
-
-_PROBE = "__kernel void drape_probe(__global float *a) { a[get_global_id(0)] += 1.0f; }"
-
-#: What to do when no OpenCL CPU device can compile: the PoCL inside the pyopencl wheel carries
-#: LLVM 14, which does not know CPUs newer than it (AMD Zen 5 reports "generic" and fails).
-NO_USABLE_CPU_HINT = (
-    "install a newer PoCL, e.g. Debian's pocl-opencl-icd (deploy/setup.sh does it), "
-    "or choose another device with DRAPE_DEVICE"
-)
-
-
-@cache
-def _builds(dev: cl.Device) -> bool:
-    """Whether ``dev`` compiles a trivial kernel: an OpenCL platform can list a device whose
-    compiler does not know the host CPU (old PoCL on a new CPU)."""
-    try:
-        cl.Program(cl.Context([dev]), _PROBE).build()
-        return True
-    except Exception as e:  # pyopencl raises RuntimeError or cl.Error subclasses
-        log.warning(
-            "OpenCL device %s cannot build kernels (%s); skipping it",
-            describe(dev),
-            str(e).strip().splitlines()[-1][:200],
-        )
-        return False
+def _usable(dev: cl.Device) -> bool:
+    """Whether ``dev`` builds and runs every kernel Drape runs there (devicecheck.prove: in a
+    child process, cached per device, driver and kernel sources)."""
+    v = prove(dev)
+    if not v.ok:
+        log.warning("OpenCL device %s cannot run Drape's kernels; skipping it: %s", describe(dev), v.summary())
+    return v.ok
 
 
 def choose_device(spec: str | None = None) -> cl.Device:
+    """The device ``spec`` (default ``DRAPE_DEVICE``, else ``auto``) names, among those that pass
+    the device check (devicecheck.py); an error naming each candidate's failed kernel if none does."""
     spec = (spec or os.environ.get("DRAPE_DEVICE") or "auto").strip()
-    devs = _all_devices()
+    devs = all_devices()
     if not devs:
         raise RuntimeError("no OpenCL device found (install pocl-binary-distribution for a CPU device)")
     gpus = [d for d in devs if d.type & cl.device_type.GPU]
@@ -138,12 +106,15 @@ def choose_device(spec: str | None = None) -> cl.Device:
     low = spec.lower()
 
     def first_usable(cands: list[cl.Device], what: str) -> cl.Device:
+        """The first GPU that passes the check, else the CPU device that runs the widest packs."""
         for d in cands:
-            if _builds(d):
+            if d.type & cl.device_type.GPU and _usable(d):
                 return d
-        raise RuntimeError(
-            f"no {what} OpenCL device can build kernels (tried {[describe(d) for d in cands]}); " + NO_USABLE_CPU_HINT
-        )
+        usable = [d for d in cands if not d.type & cl.device_type.GPU and _usable(d)]
+        if usable:
+            return max(usable, key=lambda d: prove(d).lanes)  # the first of the widest
+        failures = "; ".join(prove(d).summary() for d in cands)
+        raise RuntimeError(f"no {what} OpenCL device can run Drape's kernels ({failures}); {INSTALL_HINT}")
 
     if low == "auto":
         return first_usable(gpus + cpus or devs, "usable")
@@ -178,13 +149,17 @@ class DeviceInfo:
     max_work_group: int
     compute_units: int
     is_nvidia: bool
+    pack_lanes: int  # CPU pack width that runs here (the device check's verdict); 0 on a GPU
 
 
 class Device:
-    """A context, a queue and a cache of built programs."""
+    """A context, a queue and a cache of built programs. ``spec`` chooses among the devices that
+    pass the device check (:func:`choose_device`); ``device`` takes that OpenCL device as it is
+    (the check's own child process, which is what proves it)."""
 
-    def __init__(self, spec: str | None = None) -> None:
-        self.device = choose_device(spec)
+    def __init__(self, spec: str | None = None, *, device: cl.Device | None = None) -> None:
+        self.device = choose_device(spec) if device is None else device
+        self.verdict: Verdict | None = prove(self.device) if device is None else None
         self.ctx = cl.Context([self.device])
         try:  # event timestamps give the device time of a tick (the service's cost model)
             self.queue = cl.CommandQueue(self.ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
@@ -206,6 +181,7 @@ class Device:
             max_work_group=int(d.max_work_group_size),
             compute_units=int(d.max_compute_units),
             is_nvidia="nvidia" in d.platform.name.lower(),
+            pack_lanes=self._pack_lanes(),
         )
         log.info(
             "OpenCL device: %s (local mem %d B, max work-group %d)",
@@ -213,6 +189,15 @@ class Device:
             self.info.local_mem,
             self.info.max_work_group,
         )
+
+    def _pack_lanes(self) -> int:
+        """The CPU pack width: ``DRAPE_PACK_LANES``, else the one the device check found runs."""
+        if self.device.type & cl.device_type.GPU:
+            return 0
+        env = os.environ.get("DRAPE_PACK_LANES")
+        if env:
+            return int(env)
+        return self.verdict.lanes if self.verdict is not None else PACK_LANES_CPU
 
     def program(self, options: list[str], source: str = "cloth.cl") -> cl.Program:
         """The program of ``source`` built with ``options``, built once. Thread-safe: a build
@@ -231,13 +216,23 @@ class Device:
                 text = program_text(source)
                 opts = [*options, *os.environ.get("DRAPE_CL_FLAGS", "").split()]
                 log.debug("building %s with %s", source, " ".join(options))
-                prg = cl.Program(self.ctx, text).build(options=opts)
+                prg = self._build(text, opts)
                 with self._lock:
                     self._programs[key] = prg
                     self._used[key] = time.monotonic()
                     self.builds.append((key, threading.current_thread().name))
                     self._building.pop(key, None)
             return prg
+
+    def _build(self, text: str, opts: list[str]) -> cl.Program:
+        """Build, and once more after clearing Drape's PoCL kernel cache if that fails there (an
+        entry a crashed build left behind)."""
+        try:
+            return cl.Program(self.ctx, text).build(options=opts)
+        except (cl.Error, RuntimeError):
+            if not clear_pocl_cache(self.device):
+                raise
+            return cl.Program(self.ctx, text).build(options=opts)
 
     def built(self, options: list[str], source: str = "cloth.cl") -> bool:
         """Whether the program of ``source`` with ``options`` is built already."""
@@ -252,7 +247,14 @@ class Device:
             if k is not None:
                 self._used[("cloth.cl", *opts)] = time.monotonic()
         if k is None:
-            k = cl.Kernel(self.program(options), name)
+            try:
+                k = cl.Kernel(self.program(options), name)
+            except cl.Error as e:  # a program whose cached binary lost its kernels (a crashed build)
+                if "INVALID_KERNEL_NAME" not in str(e) or not clear_pocl_cache(self.device):
+                    raise
+                with self._lock:
+                    self._programs.pop(("cloth.cl", *opts), None)
+                k = cl.Kernel(self.program(options), name)
             with self._lock:
                 self._kernels[key] = k
         return k

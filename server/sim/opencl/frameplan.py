@@ -16,7 +16,7 @@ import numpy as np
 
 from drape.client import protocol as P
 
-from .device import kernel_dir
+from .platforms import kernel_dir
 
 SOURCE = "encode.cl"
 

@@ -9,8 +9,8 @@ work-group solver's single launch by ``CLWorld.step``.
 
 CPU pack solver (kernels/pack.cl): on a CPU device with one work-item per cloth (the default
 there), the work-group solver's cloths that share a fabric, iterations and substeps are stepped
-PACK_LANES_CPU at a time by one work-item, the link solve vectorised across them
-(docs/cpu-solver.md).
+``Device.info.pack_lanes`` at a time (16 where the device check found the compiler builds them)
+by one work-item, the link solve vectorised across them (docs/cpu-solver.md).
 """
 
 from __future__ import annotations
@@ -37,8 +37,6 @@ MF = cl.mem_flags
 # (157 vs 146 G link-it/s at 4), the global path with 4 (1.31 vs 1.87 ms for the seed cloth).
 LINK_UNROLL_LOCAL = 1
 LINK_UNROLL_GLOBAL = 4
-# CPU pack solver's lanes (cloths per work-item), measured on the 2-core Zen 5 (docs/cpu-solver.md)
-PACK_LANES_CPU = 16
 # Extra build options of the CPU pack kernel (never a GPU build's): measured in docs/cpu-solver.md.
 CPU_BUILD_OPTIONS: list[str] = ["-cl-denorms-are-zero"]
 

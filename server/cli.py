@@ -17,6 +17,7 @@ import importlib
 import os
 import sys
 
+from drape.server import pip_hint, version
 from drape.server.service import logs
 
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
@@ -42,6 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="drape", description="Cloth of many game clients on one OpenCL device, over Zenoh."
     )
+    parser.add_argument("--version", action=_Version, nargs=0, help="print Drape's and its wire protocol's versions")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging (-vv for debug)")
     parser.add_argument(
         "--log-format",
@@ -79,11 +81,23 @@ def main(argv: list[str] | None = None) -> int:
     except ModuleNotFoundError as e:
         if e.name and e.name.split(".")[0] in ("pyopencl", "pocl_binary_distribution"):
             print(
-                f"drape {pre.command} needs the 'server' extra ({e.name} is missing): pip install 'drape[server]'",
+                f"drape {pre.command} needs the 'server' extra ({e.name} is missing): {pip_hint('server')}",
                 file=sys.stderr,
             )
             return 2
         raise
+
+
+class _Version(argparse.Action):
+    """``drape --version``: the distribution's version and the wire protocol's (imported only then:
+    the protocol package brings numpy and msgpack)."""
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:  # type: ignore[no-untyped-def]
+        from drape.client.protocol.keys import PROTOCOL_VERSION
+
+        major, minor = PROTOCOL_VERSION
+        print(f"drape {version()} (protocol {major}.{minor})")
+        parser.exit()
 
 
 def _log_settings(pre: argparse.Namespace, args: argparse.Namespace) -> tuple[str, str, str | None]:

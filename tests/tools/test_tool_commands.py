@@ -95,10 +95,26 @@ def test_a_missing_extra_is_named():
     with pytest.raises(
         SystemExit,
         match=r"drape top needs the 'tools' extra \(no_such_module_x not installed\): "
-        r"pip install 'drape\[tools\]'",
+        r"pip install 'drape-cloth\[tools\]'",
     ):
         require_extra("tools", "top", ["json", "no_such_module_x"])
     require_extra("tools", "top", ["json"])  # present: nothing happens
+
+
+def test_version_names_the_distribution_and_the_protocol(capsys):
+    """``drape --version``: the installed drape-cloth's version and the wire protocol's; exit 0."""
+    from importlib import metadata
+
+    from drape.client.protocol.keys import PROTOCOL_VERSION
+    from drape.server import DISTRIBUTION
+    from drape.server.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0
+    assert capsys.readouterr().out.strip() == (
+        f"drape {metadata.version(DISTRIBUTION)} (protocol {PROTOCOL_VERSION[0]}.{PROTOCOL_VERSION[1]})"
+    )
 
 
 def test_tradeoff_truth_cache_key_follows_the_reference_sources(tmp_path):

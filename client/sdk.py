@@ -126,6 +126,7 @@ class DrapeClient(SubmittingMixin, BatchingMixin):
         self.bundles = BundleReceiver(self._handles, self._lock, queue_size, self.keys.bundle(self.client_id))
         self._server_version: tuple[int, int] | None = None
         self._scoped: dict[str, bool] = {}  # per server: whether it has client-scoped request keys (1.4)
+        self._vertex_limits: dict[str, int] = {}  # per server: its max_vertices_per_cloth (from that info)
         self._max_batch_items = P.DEFAULT_LIMITS.max_batch_items
         self._failover: Failover | None = None
         self.session: zenoh.Session = zenoh.open(
@@ -324,8 +325,21 @@ class DrapeClient(SubmittingMixin, BatchingMixin):
                 log.debug("info of %s: %s; using the server-wide keys", server, e)
                 return False
             major, _, minor = str(info.get("version", "1.0")).partition(".")
+            limit = (info.get("limits") or {}).get("max_vertices_per_cloth")
+            if isinstance(limit, int) and limit > 0:
+                self._vertex_limits[server] = limit
             scoped = self._scoped[server] = (int(major), int(minor or 0)) >= (1, 4)
         return scoped
+
+    def _check_size(self, req: P.SubmitRequest, server: str, timeout: float | None = None) -> None:
+        """Refuse a cloth larger than ``server`` takes (its ``max_vertices_per_cloth``, from the
+        info asked once per server) before sending it: ``too_large``, the server's own words."""
+        self._client_scoped(server, timeout)  # the info, asked once (and needed for the key anyway)
+        limit = self._vertex_limits.get(server)
+        n = req.n_vertices
+        if limit is not None and n > limit:
+            grid = (req.grid.cols, req.grid.rows) if req.grid is not None else None
+            raise P.ProtocolError(P.ERR_TOO_LARGE, P.too_many_vertices(n, limit, grid), req.rid)
 
     def request(
         self, kind: str, payload: bytes | bytearray, timeout: float | None = None, server: str | None = None

@@ -64,7 +64,8 @@ class SubmittingMixin:
     ) -> ClothHandle:
         """Send a SubmitRequest as is and subscribe to the new cloth's state (with
         ``req.state.bundle``: to this client's bundle, once for all its bundled cloths; a 1.0
-        server ignores the option and the handle subscribes to the cloth's own key).
+        server ignores the option and the handle subscribes to the cloth's own key). A grid's
+        ``rest_positions`` and ``triangles`` default to its geometry, built once it is accepted.
 
         To ``server``, else the client's ``server_id`` when one was given, else the live server
         the placement ranks first (PROTOCOL.md 11.3); a refusal another server may not give
@@ -72,9 +73,14 @@ class SubmittingMixin:
         refusal is raised when every live server refused."""
 
         def make(target: str) -> Callable[[P.SubmitReply], ClothHandle]:
-            return lambda rep: ClothHandle(
-                self, rep, rest_positions, triangles, queue_size or self.queue_size, target, req
-            )
+            def handle(rep: P.SubmitReply) -> ClothHandle:
+                rest, tris = rest_positions, triangles
+                if rest is None and req.grid is not None:  # built once the server took the cloth
+                    g = req.grid
+                    rest, tris = P.grid_geometry(g.cols, g.rows, g.width, g.height, g.orientation, g.origin)
+                return ClothHandle(self, rep, rest, tris, queue_size or self.queue_size, target, req)
+
+            return handle
 
         if server is not None or self._server_given:
             target = server or self.server_id
@@ -110,6 +116,7 @@ class SubmittingMixin:
         if bundled:
             self._ensure_bundle_subscriber()
             self.bundles.submitting()
+        self._check_size(req, server, timeout)  # a cloth the server would refuse is not sent
         ticket = self.placement.placing(server, req.n_vertices)  # counted there until its next stats
         try:
             try:
@@ -153,17 +160,20 @@ class SubmittingMixin:
         **options: Any,
     ) -> ClothHandle:
         """A regular grid cloth; vertex (row r, column c) is r * cols + c. ``options``: see
-        ``cloth_options``."""
+        ``cloth_options``. Its geometry (the handle's ``rest_positions`` and ``triangles``) is
+        built once the server accepted it: a grid too large is refused before anything is built."""
+        cols, rows = int(cols), int(rows)
+        # the geometry's own checks (columns, rows, orientation, origin) on a grid of at most 1x1
+        P.grid_positions(min(cols, 1), min(rows, 1), width, height, orientation, origin)
         grid = P.GridSpec(
-            int(cols),
-            int(rows),
+            cols,
+            rows,
             float(width),
             float(height),
             orientation,
             tuple(float(v) for v in origin),  # type: ignore[arg-type]
         )
-        verts, tris = P.grid_geometry(cols, rows, width, height, orientation, origin)
-        return self._submit(grid=grid, rest=verts, tris=tris, **options)
+        return self._submit(grid=grid, **options)
 
     def submit_mesh(  # type: ignore[misc]
         self: DrapeClient, vertices: np.ndarray | Sequence, triangles: np.ndarray | Sequence, **options: Any
@@ -184,8 +194,8 @@ class SubmittingMixin:
     def _submit(  # type: ignore[misc]
         self: DrapeClient,
         *,
-        rest: np.ndarray,
-        tris: np.ndarray,
+        rest: np.ndarray | None = None,
+        tris: np.ndarray | None = None,
         grid: P.GridSpec | None = None,
         mesh: P.MeshSpec | None = None,
         pinned: Iterable[int] = (),
@@ -207,8 +217,11 @@ class SubmittingMixin:
         server: str | None = None,
     ) -> ClothHandle:
         pins = np.asarray(list(pinned), np.int64).reshape(-1)
-        if pins.size and (pins.min() < 0 or pins.max() >= len(rest)):
-            raise ValueError("pinned index out of range")
+        n = grid.cols * grid.rows if grid is not None else len(mesh.vertices) if mesh is not None else 0
+        bad = pins[(pins < 0) | (pins >= n)]
+        if bad.size:
+            shape = (grid.cols, grid.rows) if grid is not None else None
+            raise ValueError(P.pinned_out_of_range(int(bad[0]), n, shape))
         req = P.SubmitRequest(
             client=self.client_id,
             grid=grid,

@@ -64,6 +64,8 @@ from .validate import (
     collider_to_map,
     material_to_map,
     pack,
+    pinned_out_of_range,
+    too_many_vertices,
     unpack_message,
 )
 from .vocabulary import (
@@ -191,12 +193,8 @@ def submit_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS) -> Su
         cols = gr.int_("cols", 1, limits.max_vertices, True, over=ERR_TOO_LARGE)
         rows = gr.int_("rows", 1, limits.max_vertices, True, over=ERR_TOO_LARGE)
         assert cols is not None and rows is not None
-        if cols * rows > limits.max_vertices:
-            raise r.fail(
-                ERR_TOO_LARGE,
-                f"grid of {cols}x{rows} = {cols * rows} vertices exceeds the limit of "
-                f"{limits.max_vertices} vertices per cloth",
-            )
+        if cols * rows > limits.max_vertices:  # before anything is built for it
+            raise r.fail(ERR_TOO_LARGE, too_many_vertices(cols * rows, limits.max_vertices, (cols, rows)))
         width = gr.num("width", 0.0, bound, lo_inclusive=False)
         height = gr.num("height", 0.0, bound, lo_inclusive=False)
         grid = GridSpec(
@@ -230,9 +228,9 @@ def submit_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS) -> Su
     if pinned is None:
         pinned = _empty_u32()
     if pinned.size and int(pinned.max()) >= n:
-        raise r.fail(
-            ERR_INDEX_OUT_OF_RANGE, f"'pinned' refers to vertex {int(pinned.max())} but the cloth has {n} vertices"
-        )
+        first = int(pinned[pinned >= n][0])
+        shape = (grid.cols, grid.rows) if grid is not None else None
+        raise r.fail(ERR_INDEX_OUT_OF_RANGE, pinned_out_of_range(first, n, shape))
     lr = r.sub("links")
     links = None
     if lr is not None:

@@ -484,3 +484,25 @@ def _state_map(s: StateOptions) -> dict[str, Any]:
     if s.bundle is not None:
         m["bundle"] = bool(s.bundle)
     return m
+
+
+# ---------------------------------------------------------------------------------------------
+# Messages the SDK's own checks and the server's decoder share (one wording for both)
+
+
+def cloth_shape(n_vertices: int, grid: tuple[int, int] | None = None) -> str:
+    """``a 32x32 grid`` (``grid``: (cols, rows)) or ``a mesh of 500 vertices``."""
+    return f"a {grid[0]}x{grid[1]} grid" if grid is not None else f"a mesh of {n_vertices} vertices"
+
+
+def pinned_out_of_range(index: int, n_vertices: int, grid: tuple[int, int] | None = None) -> str:
+    """Why a pinned vertex index is refused: ``pinned index 1030 out of range 0..1023 for a
+    32x32 grid``."""
+    return f"pinned index {index} out of range 0..{n_vertices - 1} for {cloth_shape(n_vertices, grid)}"
+
+
+def too_many_vertices(n_vertices: int, limit: int, grid: tuple[int, int] | None = None) -> str:
+    """Why a cloth is refused as too large: ``grid of 4000x4000 = 16000000 vertices exceeds the
+    limit of 65536 vertices per cloth``."""
+    what = f"grid of {grid[0]}x{grid[1]} = {n_vertices}" if grid is not None else f"mesh of {n_vertices}"
+    return f"{what} vertices exceeds the limit of {limit} vertices per cloth"

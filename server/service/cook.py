@@ -53,6 +53,7 @@ class FabricStore:
         self._spare: OrderedDict[str, Fabric] = OrderedDict()
         self._digest: dict[int, str] = {}  # id(fabric) -> digest
         self.retain = retain
+        self.cooked = 0  # fabrics cooked (not found live or spare)
 
     @staticmethod
     def digest(req: P.SubmitRequest, links: LinkOptions, pinned: np.ndarray) -> str:
@@ -73,6 +74,8 @@ class FabricStore:
             fab = self._spare.pop(key, None)
         if fab is None:
             fab = cook()  # outside the lock: cooking a big mesh takes a while
+            with self._lock:
+                self.cooked += 1
         with self._lock:
             have = self._live.get(key)
             if have is not None:  # cooked twice at once: keep the first

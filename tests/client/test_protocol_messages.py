@@ -287,7 +287,7 @@ def test_error_messages_name_the_problem():
         raw(sub(grid={"cols": 3, "rows": 3, "width": float("nan")})): "grid.width",
         raw(sub(material={"stiffness": [1, 1, 2]})): "material.stiffness[2]",
         raw(sub(colliders=[{"type": "sphere", "center": [0, 0, 0], "radius": -1}])): "colliders[0].radius",
-        raw(sub(pinned=np.array([9], "<u4").tobytes())): "vertex 9",
+        raw(sub(pinned=np.array([9], "<u4").tobytes())): "pinned index 9 out of range 0..8 for a 3x3 grid",
         raw(sub(v=[3, 1])): "3.1",
     }
     for payload, needle in cases.items():

@@ -1,0 +1,68 @@
+"""What a newcomer meets (issue 20), end to end on a real server: refusals that say what was
+wrong and come before anything is built for them, and a first cloth the server is already warm for.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import TIMEOUT, collect, connect, make_config
+
+from drape.client import ProtocolError
+from drape.client import protocol as P
+from drape.server.service import Server
+
+
+@pytest.fixture(scope="module")
+def server():
+    s = Server(make_config()).start()
+    yield s
+    s.stop()
+    assert s.failure is None
+
+
+def test_an_out_of_range_pin_names_the_index_and_the_range(server):
+    with connect(server) as client:
+        # the SDK's own check, before anything is sent
+        with pytest.raises(ValueError, match=r"^pinned index 1030 out of range 0\.\.1023 for a 32x32 grid$"):
+            client.submit_grid(32, 32, pinned=[0, 1030])
+        with pytest.raises(ValueError, match=r"^pinned index -1 out of range 0\.\.1023 for a 32x32 grid$"):
+            client.submit_grid(32, 32, pinned=[0, -1])
+        tri = ([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]])
+        with pytest.raises(ValueError, match=r"^pinned index 7 out of range 0\.\.2 for a mesh of 3 vertices$"):
+            client.submit_mesh(*tri, pinned=[7])
+        # the server's reply to a request the SDK did not check: the same words
+        grid = P.GridSpec(32, 32, 1.0, 1.0, "horizontal", (0.0, 0.0, 0.0))
+        req = P.SubmitRequest(client=client.client_id, grid=grid, pinned=np.array([0, 1030, 2000], np.uint32))
+        with pytest.raises(ProtocolError) as e:
+            client.request("submit", P.encode_submit(req))
+        assert e.value.code == P.ERR_INDEX_OUT_OF_RANGE
+        assert e.value.message == "pinned index 1030 out of range 0..1023 for a 32x32 grid"
+
+
+def test_a_grid_too_large_is_refused_before_anything_is_built(server):
+    """A 4000x4000 grid took 22 s to be refused: the SDK built its 16M-vertex rest pose first.
+    Now the SDK refuses it by the server's advertised limit before sending (and before building
+    anything), and the server, asked directly, refuses it in its decoder: nothing is cooked."""
+    reg, fabrics = server.registry, server.cook.fabrics
+    with connect(server) as client:
+        with client.submit_grid(4, 4) as h:  # one cloth cooked: the counter counts
+            collect(h, 1)
+        cooked, submits = fabrics.cooked, reg.requests["submit"]
+        assert cooked == 1
+        with pytest.raises(ProtocolError) as e:
+            client.submit_grid(4000, 4000, pinned=[0, 3999])
+        assert e.value.code == P.ERR_TOO_LARGE
+        assert e.value.message == "grid of 4000x4000 = 16000000 vertices exceeds the limit of 4096 vertices per cloth"
+        assert reg.requests["submit"] == submits  # the SDK never sent it
+        grid = P.GridSpec(4000, 4000, 1.0, 1.0, "horizontal", (0.0, 0.0, 0.0))
+        with pytest.raises(ProtocolError) as e:
+            client.request("submit", P.encode_submit(P.SubmitRequest(client=client.client_id, grid=grid)))
+        assert e.value.code == P.ERR_TOO_LARGE
+        assert e.value.message == "grid of 4000x4000 = 16000000 vertices exceeds the limit of 4096 vertices per cloth"
+        assert reg.requests["submit"] == submits + 1 and reg.errors[P.ERR_TOO_LARGE] >= 1
+        assert fabrics.cooked == cooked  # refused before the cook
+        with client.submit_grid(64, 64) as big:  # the limit itself is fine, and its rest pose is there
+            assert big.n_vertices == 4096 and big.rest_positions.shape == (4096, 3)
+            assert big.triangles.shape == (2 * 63 * 63, 3)
+            assert collect(big, 1, TIMEOUT)[0].positions.shape == (4096, 3)

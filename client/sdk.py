@@ -60,7 +60,7 @@ from .handle import ClothHandle, StateCallback  # noqa: F401  (drape.client.sdk.
 from .placement import PLACE_ELSEWHERE, Placement  # noqa: F401  (PLACE_ELSEWHERE: as before)
 from .protocol import ClothState, DrapeError, Unavailable  # noqa: F401
 from .sending import send_controls  # noqa: F401  (as before)
-from .session import deployment_client_id, zenoh_config  # noqa: F401  (zenoh_config: the pre-1.2 path)
+from .session import deployment_client_id, open_session, zenoh_config  # noqa: F401  (zenoh_config: the pre-1.2 path)
 from .submitting import SubmittingMixin, cloth_options  # noqa: F401  (cloth_options: as before)
 
 log = logging.getLogger(__name__)
@@ -129,8 +129,10 @@ class DrapeClient(SubmittingMixin, BatchingMixin):
         self._vertex_limits: dict[str, int] = {}  # per server: its max_vertices_per_cloth (from that info)
         self._max_batch_items = P.DEFAULT_LIMITS.max_batch_items
         self._failover: Failover | None = None
-        self.session: zenoh.Session = zenoh.open(
-            zenoh_config(mode, listen, list(connect), multicast_scouting, zenoh_config_file)
+        # the endpoints are checked before Zenoh sees them; Zenoh's refusal without its Rust paths
+        self.session: zenoh.Session = open_session(
+            zenoh_config(mode, listen, list(connect), multicast_scouting, zenoh_config_file),
+            f"{mode}, connect {list(connect)}" + (f", listen {list(listen)}" if listen else ""),
         )
         # where new cloths go: the servers' loads from their stats (client/placement.py)
         self.placement = Placement(self.client_id, self.live_servers, stats_wait=min(timeout, 1.5))

@@ -28,7 +28,7 @@ import zenoh
 
 from drape.client import protocol as P
 from drape.client.protocol.stats import STAT_COUNTERS
-from drape.client.session import zenoh_config
+from drape.client.session import open_session, zenoh_config
 
 from ..sim import make_world
 from ..sim.world import World
@@ -131,7 +131,7 @@ class Server:
             # batches, drop after 1 ms) lost states of a briefly descheduled server on a busy 2-core
             # box. Sixteen batches (Zenoh's maximum) ride that out.
             zc.insert_json5("transport/link/tx/queue/size/data", "16")
-        self._session = s = zenoh.open(zc)
+        self._session = s = open_session(zc, f"{cfg.mode}, listen {cfg.listen}, connect {cfg.connect}")
         self.publisher.session = s
         sid = cfg.server_id
         self._started_at = time.monotonic()

@@ -113,3 +113,56 @@ def test_sdk_features_delta_is_validated_before_anything_is_sent():
             features_add=["wind"],
             features_remove=["wind"],
         )
+
+
+@pytest.mark.parametrize(
+    "endpoint,says",
+    [
+        ("127.0.0.1:7447", "endpoint '127.0.0.1:7447' has no protocol; write tcp/127.0.0.1:7447"),
+        ("localhost:7447", "endpoint 'localhost:7447' has no protocol; write tcp/localhost:7447"),
+        ("tcp/", "endpoint 'tcp/' has no address; write e.g. tcp/127.0.0.1:7447"),
+        ("tcp/127.0.0.1", "endpoint 'tcp/127.0.0.1' has no port; write e.g. tcp/127.0.0.1:7447"),
+        ("tcp/127.0.0.1:99999", "endpoint 'tcp/127.0.0.1:99999': port 99999 is out of range 0..65535"),
+    ],
+)
+def test_an_endpoint_zenoh_would_refuse_is_a_clear_value_error_before_any_session(endpoint, says):
+    """Issue 20: ``DrapeClient("127.0.0.1:7447")`` printed Zenoh's Rust source paths."""
+    from drape.client import DrapeClient
+    from drape.client.session import zenoh_config
+
+    with pytest.raises(ValueError) as e:
+        DrapeClient(endpoint)
+    assert str(e.value) == says
+    with pytest.raises(ValueError) as e:
+        DrapeClient(listen=[endpoint])
+    assert str(e.value) == says
+    with pytest.raises(ValueError) as e:  # the server's configuration is built by the same function
+        zenoh_config("peer", listen=[endpoint])
+    assert str(e.value) == says
+
+
+@pytest.mark.parametrize(
+    "endpoint", ["tcp/127.0.0.1:7447", "tcp/[::1]:0", "tls/host.example:7447#iface=lo", "unixsock-stream//tmp/z.sock"]
+)
+def test_endpoints_of_every_form_pass_the_check(endpoint):
+    from drape.client.session import check_endpoint
+
+    assert check_endpoint(endpoint) == endpoint
+
+
+def test_zenohs_own_refusal_to_open_is_shown_without_its_rust_paths():
+    """A session Zenoh cannot open (here: the listen port is taken) raises ConnectionError with
+    Zenoh's message and the endpoints, not the Rust source locations Zenoh appends."""
+    from drape.client import DrapeClient
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        ep = f"tcp/127.0.0.1:{taken.getsockname()[1]}"
+        with pytest.raises(ConnectionError) as e:
+            DrapeClient(f"tcp/127.0.0.1:{free_port()}", listen=[ep])
+    msg = str(e.value)
+    assert msg.startswith("cannot open a Zenoh session (peer, connect [") and ep in msg
+    assert "Address already in use" in msg
+    assert ".rs:" not in msg and ".cargo" not in msg
+    assert e.value.__cause__ is None and e.value.__suppress_context__

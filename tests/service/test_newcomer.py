@@ -66,3 +66,23 @@ def test_a_grid_too_large_is_refused_before_anything_is_built(server):
             assert big.n_vertices == 4096 and big.rest_positions.shape == (4096, 3)
             assert big.triangles.shape == (2 * 63 * 63, 3)
             assert collect(big, 1, TIMEOUT)[0].positions.shape == (4096, 3)
+
+
+def test_the_first_cloths_of_the_default_features_build_nothing():
+    """The server builds and runs the default feature set's kernels before it serves: for a small
+    cloth and for the largest it admits (on the CPU 65,536 vertices take the global-memory
+    kernels, which the first such submit built on the way in: 2.2 s). Counted on the Device's
+    builds, not timed."""
+    s = Server(make_config(max_vertices_per_cloth=65536, max_total_vertices=70000)).start()
+    try:
+        dev = s.ticker.world.dev
+        built = len(dev.builds)
+        assert built >= 1  # at start-up, before the server was up
+        with connect(s) as client:
+            for cols, rows in ((32, 32), (256, 256)):
+                with client.submit_grid(cols, rows, pinned=[0, cols - 1]) as h:
+                    assert collect(h, 2)[-1].positions.shape == (cols * rows, 3)
+        assert dev.builds[built:] == []
+    finally:
+        s.stop()
+    assert s.failure is None

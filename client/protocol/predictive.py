@@ -1,0 +1,220 @@
+"""The predictive state encoding (for protocol 1.5; docs/codec.md): each vertex predicted from the
+last two states the decoder holds, the residual quantised with a step the client chose, made
+smaller by its neighbour's, and bit-packed in blocks of 32 values.
+
+Everything is integer arithmetic on a grid of the step, so that an encoder on a GPU, this numpy
+reference and a decoder in any language agree to the bit and no error accumulates (closed loop):
+
+- ``q = clamp(rint(x * inv_step), -Q_LIMIT, Q_LIMIT)`` per coordinate, with ``x`` and
+  ``inv_step = float32(1 / step)`` float32 and the product rounded to float32 (IEEE; an OpenCL
+  ``*`` is exact in that sense), ``rint`` ties to even. The decoder rebuilds ``q`` exactly, and
+  shows ``x' = float32(float64(q) * float64(step))``: ``|x - x'| <= step / 2`` (plus float32
+  rounding, a few ulps of ``x``), at every state, forever.
+- The prediction of order 0 (intra, a keyframe) is 0, of order 1 the previous state ``q1``, of
+  order 2 the linear extrapolation ``2 q1 - q2`` (int32; ``Q_LIMIT`` keeps every sum in range).
+- The residual ``r = q - p``, per axis, minus the previous vertex's (vertex order: rows of a grid
+  follow each other): ``d[i] = r[i] - r[i - 1]``, ``d[0] = r[0]``; zig-zagged to unsigned
+  ``z = (d << 1) ^ (d >> 31)``.
+- The symbols are laid out axis by axis (all x, then y, then z), in blocks of 32 (the last block
+  of an axis padded with zeros). A block's width ``w`` is the bit length of its largest symbol
+  (0..32); the block takes ``w`` little-endian u32 words, symbol ``j`` at bits ``j*w .. j*w+w-1``
+  of the block's bit string (bit ``k`` of the string is bit ``k % 32`` of word ``k / 32``).
+- The packed data: ``3 * ceil(n / 32)`` width bytes, zero-padded to a multiple of 4, then every
+  block's words in order. Its length is ``4 * ceil(3 * nb / 4) + 4 * sum(w)`` bytes.
+
+``encode_residuals`` / ``decode_residuals`` are this file's two halves; ``PredictiveStream``
+keeps an encoder's history of one stream, ``StreamDecoder`` a decoder's (the states it rebuilt).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Values per block.
+BLOCK = 32
+#: Grid values are clamped to +-Q_LIMIT steps (134 km at 1 mm): then 2 q1 - q2, q - p and the
+#: neighbour difference all fit int32.
+Q_LIMIT = (1 << 27) - 1
+#: Predictor orders.
+ORDER_INTRA, ORDER_PREVIOUS, ORDER_LINEAR = 0, 1, 2
+#: The default step, metres (max error 0.5 mm).
+DEFAULT_STEP = 0.001
+#: The steps a client may choose, metres.
+STEP_RANGE = (1e-5, 0.1)
+
+
+def inverse_step(step: float) -> np.float32:
+    """``float32(1 / step)``, computed in float64 and rounded once."""
+    return np.float32(1.0 / float(np.float32(step)))
+
+
+def quantise(positions: np.ndarray, step: float) -> np.ndarray:
+    """(n, 3) float32 positions on the step's grid: int32 ``clamp(rint(x * inv_step))``."""
+    x = np.asarray(positions, np.float32)
+    q = np.rint(x * inverse_step(step))  # float32 product, rounded once; rint ties to even
+    np.clip(q, -(1 << 27), 1 << 27, out=q)  # exact in float32; then the int range
+    return np.clip(q.astype(np.int32), -Q_LIMIT, Q_LIMIT)
+
+
+def dequantise(q: np.ndarray, step: float) -> np.ndarray:
+    """Positions of grid values: ``float32(float64(q) * float64(step))``."""
+    return (np.asarray(q, np.float64) * float(np.float32(step))).astype(np.float32)
+
+
+def prediction(order: int, q1: np.ndarray | None, q2: np.ndarray | None, shape: tuple[int, ...]) -> np.ndarray:
+    """The prediction of ``order`` from the last two states ``q1`` (newest) and ``q2``."""
+    if order not in (ORDER_INTRA, ORDER_PREVIOUS, ORDER_LINEAR):
+        raise ValueError(f"unknown predictor order {order}")
+    if order == ORDER_INTRA:
+        return np.zeros(shape, np.int32)
+    if q1 is None:
+        raise ValueError(f"order {order} needs the previous state")
+    if order == ORDER_PREVIOUS:
+        return q1
+    if q2 is None:
+        raise ValueError("order 2 needs the last two states")
+    return 2 * q1 - q2
+
+
+def symbols(q: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """(3, n) uint32 zig-zagged neighbour differences of the residual ``q - p`` ((n, 3) int32)."""
+    r = np.ascontiguousarray((q - p).T)  # (3, n) int32
+    d = r.copy()
+    d[:, 1:] -= r[:, :-1]
+    return ((d << 1) ^ (d >> 31)).view(np.uint32)
+
+
+def unsymbols(z: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`symbols`: (n, 3) int32 grid values from the symbols and prediction."""
+    z = np.asarray(z, np.uint32)
+    d = (z >> 1).view(np.int32) ^ -(z & 1).view(np.int32)
+    r = np.cumsum(d, axis=1, dtype=np.int32)
+    return (r.T + p).astype(np.int32)
+
+
+def _widths(blocks: np.ndarray) -> np.ndarray:
+    """Bit length of each block's largest value, (m,) uint8."""
+    top = blocks.max(axis=1) if blocks.size else np.zeros(0, np.uint32)
+    w = np.zeros(len(top), np.uint8)
+    v = top.astype(np.uint64)
+    for b in (16, 8, 4, 2, 1):  # binary search of the bit length
+        hi = v >= (1 << b)
+        w[hi] += b
+        v[hi] >>= b
+    w[v > 0] += 1
+    return w
+
+
+def packed_size(n: int, widths: np.ndarray) -> int:
+    nb = -(-n // BLOCK)
+    return 4 * (-(-3 * nb // 4)) + 4 * int(np.asarray(widths, np.int64).sum())
+
+
+def encode_residuals(z: np.ndarray) -> bytes:
+    """The packed data of (3, n) uint32 symbols."""
+    n = z.shape[1]
+    nb = -(-n // BLOCK)
+    blocks = np.zeros((3, nb * BLOCK), np.uint32)
+    blocks[:, :n] = z
+    blocks = blocks.reshape(3 * nb, BLOCK)
+    widths = _widths(blocks)
+    head = 4 * (-(-3 * nb // 4))
+    word_off = np.zeros(len(widths) + 1, np.int64)
+    np.cumsum(widths, out=word_off[1:])
+    words = np.zeros(int(word_off[-1]) + 2, np.uint64)  # + 2: a value may reach past the last word
+    if len(blocks):
+        w = widths.astype(np.uint64)[:, None]
+        j = np.arange(BLOCK, dtype=np.uint64)[None, :]
+        bit = (word_off[:-1].astype(np.uint64)[:, None] << np.uint64(5)) + j * w  # each value's first bit
+        vals = blocks.astype(np.uint64)
+        word, shift = bit >> np.uint64(5), bit & np.uint64(31)
+        spread = vals << shift  # up to 63 bits: the low word and the next
+        np.add.at(words, word.ravel(), spread.ravel() & np.uint64(0xFFFFFFFF))  # disjoint bits: + is |
+        np.add.at(words, word.ravel() + 1, spread.ravel() >> np.uint64(32))
+    out = bytearray(head + 4 * int(word_off[-1]))
+    out[: len(widths)] = widths.tobytes()
+    out[head:] = words[:-2].astype("<u4").tobytes()
+    return bytes(out)
+
+
+def decode_residuals(data: bytes | bytearray | memoryview, n: int, at: int = 0) -> tuple[np.ndarray, int]:
+    """(3, n) uint32 symbols of the packed data at ``at`` of ``data``, and its length in bytes.
+    ValueError if the data is shorter than its widths say or a width is over 32."""
+    nb = -(-n // BLOCK)
+    head = 4 * (-(-3 * nb // 4))
+    buf = memoryview(data).cast("B")
+    if len(buf) < at + head:
+        raise ValueError(f"predictive data of {len(buf) - at} bytes is shorter than its {head} width bytes")
+    widths = np.frombuffer(buf, np.uint8, 3 * nb, at)
+    if widths.size and widths.max() > 32:
+        raise ValueError(f"a block width of {int(widths.max())} bits (at most 32)")
+    total = int(widths.sum(dtype=np.int64))
+    size = head + 4 * total
+    if len(buf) < at + size:
+        raise ValueError(f"predictive data of {len(buf) - at} bytes is shorter than the {size} its widths say")
+    words = np.zeros(total + 2, np.uint64)  # zero-width blocks at the end point one past the last word
+    words[:total] = np.frombuffer(buf, "<u4", total, at + head)
+    word_off = np.zeros(3 * nb, np.int64)
+    np.cumsum(widths[:-1], out=word_off[1:])
+    w = widths.astype(np.uint64)[:, None]
+    bit = (word_off.astype(np.uint64)[:, None] << np.uint64(5)) + np.arange(BLOCK, dtype=np.uint64)[None, :] * w
+    word, shift = bit >> np.uint64(5), bit & np.uint64(31)
+    window = words[word] | (words[word + 1] << np.uint64(32))
+    mask = (np.uint64(1) << w) - np.uint64(1)
+    z = ((window >> shift) & mask).astype(np.uint32).reshape(3, nb * BLOCK)[:, :n]
+    return z, size
+
+
+@dataclass
+class History:
+    """The last two states of a stream, as the decoder rebuilt them: grid values and ticks."""
+
+    q1: np.ndarray | None = None
+    tick1: int = 0
+    q2: np.ndarray | None = None
+    tick2: int = 0
+
+    def order(self) -> int:
+        """The highest order these states allow."""
+        return ORDER_LINEAR if self.q2 is not None else ORDER_PREVIOUS if self.q1 is not None else ORDER_INTRA
+
+    def push(self, q: np.ndarray, tick: int) -> None:
+        self.q2, self.tick2 = self.q1, self.tick1
+        self.q1, self.tick1 = q, tick
+
+    def clear(self) -> None:
+        self.q1 = self.q2 = None
+        self.tick1 = self.tick2 = 0
+
+
+def encode_step(
+    positions: np.ndarray, step: float, history: History, tick: int, keyframe: bool = False
+) -> tuple[bytes, int, int, int]:
+    """Encode one state of a stream and advance its history: (packed data, order, ref tick,
+    ref2 tick). ``keyframe``: intra-coded whatever the history holds; a keyframe starts the
+    stream's history afresh (the next state is of order 1, from the keyframe alone)."""
+    q = quantise(np.asarray(positions, np.float32).reshape(-1, 3), step)
+    if keyframe:
+        history.clear()
+    order = history.order()
+    p = prediction(order, history.q1, history.q2, q.shape)
+    refs = (history.tick1 if order >= 1 else 0, history.tick2 if order >= 2 else 0)
+    data = encode_residuals(symbols(q, p))
+    history.push(q, tick)
+    return data, order, refs[0], refs[1]
+
+
+def decode_step(
+    data: bytes | bytearray | memoryview, n: int, step: float, order: int, history: History, tick: int, at: int = 0
+) -> tuple[np.ndarray, int]:
+    """Decode one state against ``history`` (the caller checked its ticks; an intra state
+    starts it afresh) and advance it: ((n, 3) float32 positions, bytes read)."""
+    z, size = decode_residuals(data, n, at)
+    if order == ORDER_INTRA:
+        history.clear()
+    p = prediction(order, history.q1, history.q2, (n, 3))
+    q = unsymbols(z, p)
+    history.push(q, tick)
+    return dequantise(q, step), size

@@ -85,11 +85,15 @@ def kernel_sources(source: str, root: Path | None = None) -> dict[str, str]:
     return seen
 
 
+_warned: set[str] = set()  # devices whose failed check this process has logged
+
+
 def _usable(dev: cl.Device) -> bool:
     """Whether ``dev`` builds and runs every kernel Drape runs there (devicecheck.prove: in a
     child process, cached per device, driver and kernel sources)."""
     v = prove(dev)
-    if not v.ok:
+    if not v.ok and v.device not in _warned:
+        _warned.add(v.device)
         log.warning("OpenCL device %s cannot run Drape's kernels; skipping it: %s", describe(dev), v.summary())
     return v.ok
 

@@ -4,6 +4,8 @@ wrong and come before anything is built for them, and a first cloth the server i
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 from conftest import TIMEOUT, collect, connect, make_config
@@ -19,6 +21,25 @@ def server():
     yield s
     s.stop()
     assert s.failure is None
+
+
+def test_leaving_after_unwaited_batches_and_moves_logs_nothing(server, caplog):
+    """The README's many-cloth forms (bundles, ``client.batch(wait=False)``, ``move_pins_many``)
+    right before the client's exit removes the cloths: an item or move of a cloth this client is
+    removing, answered ``not_found``, is the removal's outcome, not a failure to log or count."""
+    caplog.set_level(logging.DEBUG, logger="drape.client")
+    with connect(server) as client:
+        capes = [client.submit_grid(8, 8, pinned=[0, 7], bundle=True) for _ in range(3)]
+        collect(capes[-1], 2)
+        targets = np.zeros((len(capes), 2, 3), np.float32)
+        for _ in range(3):
+            with client.batch(wait=False) as b:
+                for c in capes:
+                    b.move_pins(c, [0, 7], targets[0])
+            client.move_pins_many(capes, [0, 7], targets, wait=False)
+    assert all(c.closed and c.close_reason == "removed" for c in capes)
+    assert client.send_errors == 0
+    assert [f"{r.name}: {r.getMessage()}" for r in caplog.records if r.levelno >= logging.WARNING] == []
 
 
 def test_an_out_of_range_pin_names_the_index_and_the_range(server):

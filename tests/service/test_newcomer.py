@@ -67,10 +67,11 @@ def test_a_grid_too_large_is_refused_before_anything_is_built(server):
     anything), and the server, asked directly, refuses it in its decoder: nothing is cooked."""
     reg, fabrics = server.registry, server.cook.fabrics
     with connect(server) as client:
-        with client.submit_grid(4, 4) as h:  # one cloth cooked: the counter counts
+        before = fabrics.cooked
+        with client.submit_grid(5, 3) as h:  # a geometry new to this server: cooked, and counted
             collect(h, 1)
         cooked, submits = fabrics.cooked, reg.requests["submit"]
-        assert cooked == 1
+        assert cooked == before + 1
         with pytest.raises(ProtocolError) as e:
             client.submit_grid(4000, 4000, pinned=[0, 3999])
         assert e.value.code == P.ERR_TOO_LARGE

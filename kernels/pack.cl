@@ -61,6 +61,20 @@ inline float3 lane_get3(__local const float *sxf, int v, int j)
     const int vbase = I[CI_VBASE];                                                                 \
     __global float4 *X = pos + vbase;
 
+/* 1 / sqrt(L) and 1 / d to about an ulp: the hardware estimates (native_*) refined by one
+ * Newton step each, for the link loops (rsqrt and / cost two and one divisions' time each) */
+inline floatP pack_rsqrt(floatP L)
+{
+    const floatP r = native_rsqrt(L);
+    return r * (1.5f - 0.5f * L * r * r);
+}
+
+inline floatP pack_recip(floatP d)
+{
+    const floatP r = native_recip(d);
+    return r * (2.0f - d * r);
+}
+
 /* one float of every lane's cloth table as a vector (0 in unused lanes) */
 inline floatP lane_floats(__global const float *cf, const int *slot, int off)
 {
@@ -133,7 +147,8 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
     for (int t = 0; t < 3; ++t)
         alpha[t] = lane_floats(cf, slot, CF_COMPLIANCE + t) / (h * h);
     /* every multiplier 0 when read: compliance 0 in every lane, or one iteration */
-    const int lamless = iters == 1 || !any((alpha[0] != 0.0f) | (alpha[1] != 0.0f) | (alpha[2] != 0.0f));
+    const int zero = !any((alpha[0] != 0.0f) | (alpha[1] != 0.0f) | (alpha[2] != 0.0f));
+    const int lamless = iters == 1 || zero;
 #if !FEATURE_WIND && !FEATURE_COLLIDERS
     const int vec = lamless && nl >= 3 * nv; /* velocities in the multipliers' place */
 #else
@@ -224,10 +239,10 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
                     __local const floatP *Q = sx + 4 * a;
                     const floatP ax = Q[0], ay = Q[1], az = Q[2];
                     const floatP dx = P[0] - ax, dy = P[1] - ay, dz = P[2] - az;
-                    const floatP dist = sqrt(dx * dx + dy * dy + dz * dz);
-                    const intP over = (dist > lim) & (P[3] > 0.0f);
+                    const floatP L = dx * dx + dy * dy + dz * dz;
+                    const intP over = (L > lim * lim) & (P[3] > 0.0f); /* no root unless one is out */
                     if (any(over)) {
-                        const floatP f = select((floatP)(1.0f), lim / dist, over);
+                        const floatP f = select((floatP)(1.0f), lim / sqrt(L), over);
                         P[0] = ax + dx * f;
                         P[1] = ay + dy * f;
                         P[2] = az + dz * f;
@@ -276,7 +291,7 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
                 const floatP w = w0 + w1;
                 const intP ok = (L > rl * rl) & (L > EPS_LEN2) & (w > EPS_DENOM);
                 if (any(ok)) {
-                    const floatP k = select((floatP)(0.0f), (rl * rsqrt(L) - 1.0f) / w, ok);
+                    const floatP k = select((floatP)(0.0f), (rl * pack_rsqrt(L) - 1.0f) * pack_recip(w), ok);
                     const floatP k0 = k * w0, k1 = k * w1;
                     A[0] = x0 - dx * k0;
                     A[1] = y0 - dy * k0;
@@ -288,6 +303,33 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
             }
 #endif
 #if FEATURE_XPBD
+            if (lamless && zero) {
+                /* compliance 0 in every lane: k = (rl / len - 1) / (im0 + im1), PBD's cost */
+                for (int col = 0; col < ncol; ++col) {
+                    const int end = cols[col + 1];
+                    for (int l = cols[col]; l < end; ++l) {
+                        const int4 R = vload4(l, links);
+                        const float rl = as_float(R.w);
+                        __local floatP *A = sx + 4 * R.x;
+                        __local floatP *B = sx + 4 * R.y;
+                        const floatP x0 = A[0], y0 = A[1], z0 = A[2], w0 = A[3];
+                        const floatP x1 = B[0], y1 = B[1], z1 = B[2], w1 = B[3];
+                        const floatP dx = x1 - x0, dy = y1 - y0, dz = z1 - z0;
+                        const floatP L = dx * dx + dy * dy + dz * dz;
+                        const floatP denom = w0 + w1;
+                        const intP ok = (L > EPS_LEN2) & (denom > EPS_DENOM);
+                        const floatP k = select((floatP)(0.0f), (rl * pack_rsqrt(L) - 1.0f) * pack_recip(denom), ok);
+                        const floatP k0 = k * w0, k1 = k * w1;
+                        A[0] = x0 - dx * k0;
+                        A[1] = y0 - dy * k0;
+                        A[2] = z0 - dz * k0;
+                        B[0] = x1 + dx * k1;
+                        B[1] = y1 + dy * k1;
+                        B[2] = z1 + dz * k1;
+                    }
+                }
+                continue;
+            }
             if (lamless) {
                 /* link_xpbd with every multiplier 0: k = -C / (im0 + im1 + a~) / len along d */
                 for (int col = 0; col < ncol; ++col) {
@@ -304,7 +346,7 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
                         const floatP a = alpha[R.z];
                         const floatP denom = w0 + w1 + a;
                         const intP ok = (L > EPS_LEN2) & (denom > EPS_DENOM) & !isinf(a);
-                        const floatP k = select((floatP)(0.0f), (rl * rsqrt(L) - 1.0f) / denom, ok);
+                        const floatP k = select((floatP)(0.0f), (rl * pack_rsqrt(L) - 1.0f) * pack_recip(denom), ok);
                         const floatP k0 = k * w0, k1 = k * w1;
                         A[0] = x0 - dx * k0;
                         A[1] = y0 - dy * k0;

@@ -23,9 +23,10 @@ One step of one cloth, in this order (the OpenCL kernels in kernels/cloth.cl do 
 ``mode="serial"`` visits links one at a time in fabric order exactly like the talk's CPU loop;
 ``mode="coloured"`` does each colour as one numpy operation (links of a colour share no vertex,
 so it is the same computation; ``mode="batches"`` is the same colour batches with the device's
-coloured solver's tethers: after the links, no long-range links); ``mode="jacobi"`` mirrors the OpenCL vertex solver (corrections
-from the previous iterate, averaged per vertex and over-relaxed by ``JACOBI_OMEGA``; like the
-device's Jacobi and coloured solvers, tethers after the links and no long-range links).
+coloured solver's tethers: after the links, no long-range links); ``mode="jacobi"`` mirrors the
+OpenCL vertex solver (corrections from the previous iterate, averaged per vertex and
+over-relaxed by ``JACOBI_OMEGA``; like the device's Jacobi and coloured solvers, tethers after
+the links and no long-range links).
 """
 
 from __future__ import annotations

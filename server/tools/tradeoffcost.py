@@ -3,9 +3,9 @@
 Full packs of the hanging 64 x 64 cloth (on a CPU device: the pack solver's lanes times the
 device's compute units, so every core steps a full pack; on a GPU: ``--cost-cloths``, default
 256), one world per configuration, all in one process, timed in interleaved rounds: each round
-times every configuration for ``frames`` frames (median ms of step + blocking fetch), in an
-order that rotates from round to round, and divides each by the PBD-10 world's median of the
-same round. A neighbour's load that lands on one round lands on both sides of its ratios; the
+steps every configuration one frame in turn, ``frames`` times (the order rotating from round to
+round), takes each one's median ms of step + blocking fetch and divides it by the PBD-10
+world's median of the same round. A neighbour's load that lands on one round lands on both sides of its ratios; the
 median over rounds is the cost, the min and max its spread.
 
 The result is written to the presets' cost file (``drape.server.sim.quality.COSTS_FILE``,
@@ -98,15 +98,16 @@ def measure_costs(
         ms: dict[str, list[float]] = {k: [] for k in names}
         for r in range(rounds):
             order = names[r % len(names) :] + names[: r % len(names)]
-            for name in order:
-                w, dt = worlds[name], 1.0 / configs[name].tick_hz
-                times = []
-                for _ in range(frames):
+            times: dict[str, list[float]] = {k: [] for k in names}
+            for _ in range(frames):  # frame by frame, every configuration in turn
+                for name in order:
+                    w, dt = worlds[name], 1.0 / configs[name].tick_hz
                     t0 = time.perf_counter()
                     w.step(dt)
                     w.fetch()
-                    times.append(time.perf_counter() - t0)
-                ms[name].append(1e3 * statistics.median(times))
+                    times[name].append(time.perf_counter() - t0)
+            for name in names:
+                ms[name].append(1e3 * statistics.median(times[name]))
             if progress is not None:
                 progress(r + 1, rounds)
         dev_name = getattr(probe, "device_name", "?")

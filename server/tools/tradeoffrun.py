@@ -16,13 +16,13 @@ import numpy as np
 
 from drape.client import protocol as P
 
-from ..sim.fabric import Fabric, cook_grid, vertex_masses
-from ..sim.params import LINK_STRUCTURAL, Capsule, ClothParams, Features, Material, pack_colliders
+from ..sim.fabric import Fabric, cook_grid, cook_mesh, grid_mesh, vertex_masses
+from ..sim.params import LINK_STRUCTURAL, Capsule, ClothParams, Features, LinkOptions, Material, Sphere, pack_colliders
 
 log = logging.getLogger(__name__)
 
-SCENES = ("hanging", "flag", "cape")
-ENCODINGS = P.ENCODINGS
+SCENES = ("hanging", "flag", "cape", "curtain")
+ENCODINGS = P.STATELESS_ENCODINGS  # each state alone (predictive: docs/codec.md, codecbench)
 DURATION = 2.0  # simulated seconds per run
 COMPARE_HZ = 10  # deviation instants: t = 0.1, 0.2, ... (divides every tick rate used)
 EARLY_S = 0.5  # rms_dev_early covers t <= EARLY_S
@@ -87,7 +87,33 @@ def make_scene(name: str, n: int) -> Scene:
         motion = _CapeMotion(local)
         pos0 = _CapeMotion.transform(fab.rest_positions, 0.0)
         return Scene(name, n, fab, params, positions=pos0, pins=pins, motion=motion)
+    if name == "curtain":
+        # a 1 m x 1 m mesh (not a grid: its tethers and long-range links are a mesh's), pleated
+        # along x (depth 4.5 cm, 6 columns a pleat), hung from its top row; a ball swings through
+        v, t = grid_mesh(n, n, 1.0, 1.0, "vertical", (0.0, 1.5, 0.0))
+        col = np.arange(len(v)) % n
+        v[:, 2] = CURTAIN_PLEAT * np.sin(2 * math.pi * col / 6)
+        fab = cook_mesh(v, t, LinkOptions(bending=True), pinned=np.arange(n))
+        params = ClothParams(material=Material(mass=1.0, friction=0.3), features=Features(colliders=True))
+        return Scene(name, n, fab, params, pins=np.arange(n), motion=_CurtainBall(fab.rest_positions[:n].copy()))
     raise ValueError(f"unknown scene {name!r}; choose from {SCENES}")
+
+
+CURTAIN_PLEAT = 0.045
+CURTAIN_BALL = ((0.5, 2.3, -0.5), 1.6, 0.2, math.radians(40.0))  # pivot, rope, radius, swing
+
+
+class _CurtainBall:
+    """The curtain's pins stay on their rod; a ball on a rope swings across its front (in z)."""
+
+    def __init__(self, pins: np.ndarray) -> None:
+        self.pins = pins
+
+    def __call__(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        (px, py, pz), rope, r, swing = CURTAIN_BALL
+        a = swing * math.cos(2.0 * math.pi * t / 2.0)  # from the front, through the curtain and back
+        c = (px, py - rope * math.cos(a), pz + rope * math.sin(a))
+        return self.pins, pack_colliders([Sphere(c, r)])
 
 
 class _CapeMotion:

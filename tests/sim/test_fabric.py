@@ -182,20 +182,23 @@ def test_tethers_hold_up_to_four_islands_the_nearest_first():
     assert (np.diff(f.tether_length[free], axis=1) >= 0).all()
 
 
-def test_long_range_links_of_a_grid_are_a_coarse_hierarchy():
-    """64 x 64: strides 2..32, +16 % links (the issue's count), coarsest first, each no two of a
-    colour sharing a vertex, rest lengths the straight distance."""
+def test_long_range_links_of_a_grid_reach_5_and_10_along_rows_and_columns():
+    """64 x 64: every vertex to the vertices 5 and 10 away along its row and its column, rest
+    length the straight distance; no two links of a colour share a vertex, and within a colour
+    they run forward (by first vertex)."""
     n = 64
     f = cook_grid(n, n, pinned=[0, n - 1])
     lk, rest, off = f.long_range()
-    assert len(lk) == sum(2 * (n // s) * (n // s - 1) for s in (2, 4, 8, 16, 32)) == 2604
-    assert 0.15 < len(lk) / f.n_links < 0.17
+    assert len(lk) == sum(2 * n * (n - s) for s in (5, 10)) == 14464
+    lo, hi = lk.min(axis=1), lk.max(axis=1)
+    dr, dc = hi // n - lo // n, hi % n - lo % n
+    assert set(zip(dr.tolist(), dc.tolist(), strict=True)) == {(0, 5), (5, 0), (0, 10), (10, 0)}
     v = f.rest_positions
-    np.testing.assert_allclose(rest, np.linalg.norm(v[lk[:, 1]] - v[lk[:, 0]], axis=1))
+    np.testing.assert_allclose(rest, np.linalg.norm(v[hi] - v[lo], axis=1), rtol=1e-12)
     for c in range(len(off) - 1):
-        e = lk[off[c] : off[c + 1]].ravel()
-        assert len(np.unique(e)) == len(e)
-    assert rest[0] == pytest.approx(32 / 63)  # the coarsest colour first
+        e = lk[off[c] : off[c + 1]]
+        assert len(np.unique(e.ravel())) == e.size
+        assert (np.diff(e.min(axis=1)) > 0).all()
 
 
 def test_long_range_links_of_a_mesh_are_no_shorter_than_the_cloth_between_their_ends(rng):

@@ -66,6 +66,9 @@
 // Not an error: no new state / no event.
 #define DRAPE_NO_DATA 100
 
+// The longest id (client, server, cloth) plus its NUL: a buffer of this many bytes holds any id.
+#define DRAPE_ID_MAX 72
+
 // Feature bits (protocol 1.2 feature changes, `drape_cloth_features`): one bit per feature,
 // in the protocol's order.
 #define DRAPE_FEATURE_XPBD 1
@@ -92,11 +95,59 @@
 
 #define DRAPE_EVENT_REQUEST_FAILED 5
 
+// A control sent with `drape_cloth_control_async` was applied: `request`, `handle`, `cloth`,
+// `tick` (first tick showing it) and `features` (the resulting mask, or DRAPE_FEATURES_UNKNOWN).
+#define DRAPE_EVENT_REQUEST_DONE 6
+
+// A cloth submitted with `drape_submit_*_async` is live: `handle`, `cloth`, `server`.
+#define DRAPE_EVENT_SUBMITTED 7
+
+// A cloth submitted with `drape_submit_*_async` was refused (every retry included) or not
+// answered: `handle`, `code`, `message`; the handle is lost (free it).
+#define DRAPE_EVENT_SUBMIT_FAILED 8
+
 // Why a cloth failed over (`DrapeEvent.reason` of DRAPE_EVENT_CLOTH_RESUBMITTED; 0 otherwise):
 // its server's liveliness vanished, or its server no longer had it (reclaimed, restarted).
 #define DRAPE_REASON_SERVER_LOST 1
 
 #define DRAPE_REASON_RECLAIMED 2
+
+// Cloth statuses (`drape_cloth_status`).
+#define DRAPE_CLOTH_PENDING 0
+
+#define DRAPE_CLOTH_LIVE 1
+
+#define DRAPE_CLOTH_RESUBMITTING 2
+
+#define DRAPE_CLOTH_LOST 3
+
+#define DRAPE_CLOTH_REMOVED 4
+
+// Collider kinds (`DrapeCollider.kind`).
+#define DRAPE_COLLIDER_SPHERE 0
+
+#define DRAPE_COLLIDER_CAPSULE 1
+
+#define DRAPE_COLLIDER_PLANE 2
+
+// Material field bits (`DrapeMaterial.fields`): only the fields named there are sent.
+#define DRAPE_MATERIAL_MASS 1
+
+#define DRAPE_MATERIAL_STIFFNESS 2
+
+#define DRAPE_MATERIAL_COMPLIANCE 4
+
+#define DRAPE_MATERIAL_DAMPING 8
+
+#define DRAPE_MATERIAL_FRICTION 16
+
+#define DRAPE_MATERIAL_DRAG 32
+
+#define DRAPE_MATERIAL_LIFT 64
+
+#define DRAPE_MATERIAL_AIR_DENSITY 128
+
+#define DRAPE_MATERIAL_TETHER_LIMIT 256
 
 // Controls of many cloths sent as one batch control (opaque; not synchronized).
 typedef struct DrapeBatch DrapeBatch;
@@ -126,6 +177,11 @@ typedef struct DrapeClientOptions {
   // last received state (positions and velocities), its last pins and colliders sent again,
   // under the same handle (DRAPE_EVENT_CLOTH_RESUBMITTED).
   bool failover;
+  // false (the default): `drape_client_open` waits up to the timeout for a server's
+  // liveliness token (`server_id`'s, else any) and fails with DRAPE_E_UNAVAILABLE when none
+  // appears. true: return at once (servers are announced by DRAPE_EVENT_SERVER_FOUND; a
+  // request before one appears waits up to the timeout).
+  bool lazy;
 } DrapeClientOptions;
 
 // An event (see `drape_client_poll_event`); strings are NUL-terminated, empty when unused.
@@ -153,6 +209,13 @@ typedef struct DrapeEvent {
   // CLOTH_RESUBMITTED: its own server still held it; nothing was resubmitted
   // (`cloth` == `old_cloth`).
   bool kept;
+  // REQUEST_DONE and REQUEST_FAILED of an asynchronous control: the number
+  // `drape_cloth_control_async` returned (else 0).
+  uint64_t request;
+  // REQUEST_DONE: the first tick showing the control (else 0).
+  uint64_t tick;
+  // REQUEST_DONE: the cloth's feature mask after it (DRAPE_FEATURES_UNKNOWN when not reported).
+  uint32_t features;
 } DrapeEvent;
 
 // A regular grid (PROTOCOL.md section 4): vertex (r, c) is r * cols + c.
@@ -167,6 +230,35 @@ typedef struct DrapeGrid {
   // Position of vertex 0.
   double origin[3];
 } DrapeGrid;
+
+// Material (PROTOCOL.md section 4): the fields whose DRAPE_MATERIAL_* bit is in `fields` are
+// sent (at submit: the others take the server's defaults; in a control: the others are kept).
+typedef struct DrapeMaterial {
+  uint32_t fields;
+  // Total mass in kg.
+  double mass;
+  // Structural, shear, bending.
+  double stiffness[3];
+  double compliance[3];
+  double damping;
+  double friction;
+  double drag;
+  double lift;
+  double air_density;
+  double tether_limit;
+} DrapeMaterial;
+
+// A collider (PROTOCOL.md section 4): a sphere (`a` its centre, `radius`), a capsule (`a`, `b`
+// the ends of its axis, `radius`) or a plane (`a` its normal, `offset`: the half space
+// `normal . x >= offset` is outside). Fields a kind does not use are ignored.
+typedef struct DrapeCollider {
+  // DRAPE_COLLIDER_*.
+  int32_t kind;
+  double a[3];
+  double b[3];
+  double radius;
+  double offset;
+} DrapeCollider;
 
 // Submission options; zero-initialise for the defaults.
 typedef struct DrapeClothOptions {
@@ -183,6 +275,24 @@ typedef struct DrapeClothOptions {
   const char *quality;
   // Gravity in m/s² or NULL for the server default.
   const double *gravity;
+  // Wind velocity in m/s (3 doubles) or NULL for none (PROTOCOL.md 4; needs the wind feature).
+  const double *wind;
+  // Material fields (those named in `material->fields`) or NULL for the server's defaults.
+  const struct DrapeMaterial *material;
+  // Colliders (may be NULL when `collider_count` is 0).
+  const struct DrapeCollider *colliders;
+  size_t collider_count;
+  // The feature set (DRAPE_FEATURE_* mask) or 0 for the server's default set.
+  uint32_t features;
+  // Solver iterations and substeps per tick (0: the server's default).
+  uint32_t iterations;
+  uint32_t substeps;
+  // States kept unread for this cloth (0 or 1: only the newest; N: reads take the oldest of
+  // up to N first, so a loop reading once per frame misses none while it keeps up).
+  uint32_t queue_size;
+  // `drape_submit_*_async`: how long a refusal that may pass (overloaded, busy,
+  // limit_exceeded) or no reply is retried in the background, in ms (0: not retried).
+  uint32_t retry_ms;
 } DrapeClothOptions;
 
 // A state read by `drape_cloth_read_state` / `drape_cloth_wait_state`.
@@ -201,6 +311,127 @@ typedef struct DrapeStateInfo {
   float bounds_min[3];
   float bounds_max[3];
 } DrapeStateInfo;
+
+// What became of a cloth's states (`drape_cloth_counters`). Every tick from the first state
+// received (per placement) to the newest is counted once:
+// `read + replaced + missed + unread == ticks`, and `received == read + replaced + unread`.
+typedef struct DrapeStateCounters {
+  // States received (in tick order).
+  uint64_t received;
+  // States decoded by a read.
+  uint64_t read;
+  // States received but dropped unread (a newer one replaced them: queue full, or
+  // `drape_cloth_read_latest` skipped them).
+  uint64_t replaced;
+  // Ticks of which no state arrived (gaps in the tick numbers).
+  uint64_t missed;
+  // States waiting to be read now.
+  uint64_t unread;
+  // Ticks spanned from the first state received (per placement) to the newest.
+  uint64_t ticks;
+  // Payloads that were not valid states.
+  uint64_t invalid;
+  // States older than one already received, ignored.
+  uint64_t stale;
+  // The tick of the newest state received (0: none yet).
+  uint64_t last_tick;
+} DrapeStateCounters;
+
+// A control (PROTOCOL.md section 5): zero-initialise it and set what changes. Pointers NULL
+// and numbers 0 leave the setting as it is.
+typedef struct DrapeControl {
+  // Gravity (3 doubles, m/s²) or NULL.
+  const double *gravity;
+  // Wind velocity (3 doubles, m/s) or NULL.
+  const double *wind;
+  // Material fields to change or NULL.
+  const struct DrapeMaterial *material;
+  // The new collider list (replacing the old one) when `set_colliders`; `collider_count` 0
+  // with `set_colliders` removes every collider.
+  const struct DrapeCollider *colliders;
+  size_t collider_count;
+  bool set_colliders;
+  // Features switched on and off (DRAPE_FEATURE_* masks, protocol 1.2; a bit in both is
+  // INVALID_VALUE).
+  uint32_t features_add;
+  uint32_t features_remove;
+  // Solver iterations and substeps per tick (0: unchanged).
+  uint32_t iterations;
+  uint32_t substeps;
+  // Quality preset ("fast", "balanced", "accurate", "exact") or NULL.
+  const char *quality;
+  // When `set_state`: the state encoding (0 float32, 1 float16, 2 quant16) and normals.
+  bool set_state;
+  int32_t encoding;
+  bool normals;
+  // Back to the rest pose with zero velocity.
+  bool reset;
+  // Pinned vertices `pin_indices[i]` move to `pin_targets[3i..3i+3]` (`pin_count` 0: none).
+  const uint32_t *pin_indices;
+  size_t pin_count;
+  const float *pin_targets;
+} DrapeControl;
+
+// A server's `info` reply (PROTOCOL.md section 7); numbers it did not report are 0.
+typedef struct DrapeServerInfo {
+  char server[72];
+  // Protocol version the server speaks, e.g. 1 and 4.
+  uint32_t version_major;
+  uint32_t version_minor;
+  // Ticks per second.
+  double tick_rate;
+  uint64_t tick;
+  uint64_t cloths;
+  uint64_t clients;
+  uint64_t vertices;
+  char solver[32];
+  char device[128];
+  uint64_t max_cloths;
+  uint64_t max_cloths_per_client;
+  uint64_t max_vertices_per_cloth;
+  uint64_t max_total_vertices;
+  uint64_t max_message_bytes;
+  uint64_t max_pin_updates;
+  uint64_t max_batch_items;
+  uint64_t max_colliders;
+  uint64_t max_iterations;
+  uint64_t max_substeps;
+  double grace_period_s;
+  double stats_period_s;
+} DrapeServerInfo;
+
+// A server's last stats publication (PROTOCOL.md section 10); fields it did not report are 0.
+typedef struct DrapeServerStats {
+  char server[72];
+  uint64_t tick;
+  // Server wall clock (Unix ns) of the publication.
+  uint64_t time_ns;
+  double uptime_s;
+  double tick_rate;
+  uint64_t cloths;
+  uint64_t clients;
+  uint64_t alive_clients;
+  uint64_t vertices;
+  // Ticks run; tick deadlines skipped because a tick overran (cumulative).
+  uint64_t ticks;
+  uint64_t missed_ticks;
+  // Frames the publisher coalesced (cumulative).
+  uint64_t skipped_frames;
+  uint64_t published;
+  uint64_t unwatched;
+  uint64_t publish_errors;
+  uint64_t overload_refusals;
+  uint64_t nan_resets;
+  uint64_t reclaimed;
+  uint64_t controls_applied;
+  uint64_t controls_coalesced;
+  uint64_t bundles;
+  // The `tick` phase over the last stats period.
+  double tick_mean_ms;
+  double tick_max_ms;
+  // Cloths below the quality preset their client asked for (adaptive quality).
+  uint64_t quality_degraded;
+} DrapeServerStats;
 
 #ifdef __cplusplus
 extern "C" {
@@ -249,13 +480,26 @@ int32_t drape_client_poll_event(const struct DrapeClient *client,
                                 uint32_t timeout_ms,
                                 struct DrapeEvent *out);
 
-// Submit a grid cloth; `*out` receives its handle.
+// Submit a grid cloth and wait for the server's reply; `*out` receives its handle. Blocks up
+// to the timeout (and longer when servers refuse and the next is tried): from a game loop use
+// `drape_submit_grid_async`.
 int32_t drape_submit_grid(const struct DrapeClient *client,
                           const struct DrapeGrid *grid,
                           const struct DrapeClothOptions *options,
                           struct DrapeCloth **out);
 
+// Submit a grid cloth without waiting: `*out` is its handle at once (DRAPE_CLOTH_PENDING:
+// reads return DRAPE_NO_DATA, controls DRAPE_E_UNAVAILABLE), then DRAPE_EVENT_SUBMITTED (live)
+// or DRAPE_EVENT_SUBMIT_FAILED (after `options->retry_ms` of retries). Invalid options fail
+// here; the server's limits are checked in the background. `drape_cloth_remove` before the
+// reply cancels it.
+int32_t drape_submit_grid_async(const struct DrapeClient *client,
+                                const struct DrapeGrid *grid,
+                                const struct DrapeClothOptions *options,
+                                struct DrapeCloth **out);
+
 // Submit a triangle mesh: `vertices` 3 floats per vertex, `triangles` 3 indices per triangle.
+// Blocks as `drape_submit_grid`.
 int32_t drape_submit_mesh(const struct DrapeClient *client,
                           const float *vertices,
                           size_t vertex_count,
@@ -264,7 +508,17 @@ int32_t drape_submit_mesh(const struct DrapeClient *client,
                           const struct DrapeClothOptions *options,
                           struct DrapeCloth **out);
 
-// Submit a cloth from a Wavefront OBJ file (faces fan-triangulated).
+// `drape_submit_mesh` without waiting, as `drape_submit_grid_async`.
+int32_t drape_submit_mesh_async(const struct DrapeClient *client,
+                                const float *vertices,
+                                size_t vertex_count,
+                                const uint32_t *triangles,
+                                size_t triangle_count,
+                                const struct DrapeClothOptions *options,
+                                struct DrapeCloth **out);
+
+// Submit a cloth from a Wavefront OBJ file (faces fan-triangulated). Blocks as
+// `drape_submit_grid`.
 int32_t drape_submit_obj(const struct DrapeClient *client,
                          const char *path,
                          const struct DrapeClothOptions *options,
@@ -297,9 +551,12 @@ int32_t drape_cloth_rest_mesh(const struct DrapeCloth *cloth,
                               uint32_t *triangles,
                               size_t triangles_len);
 
-// Decode the newest state not read yet into `positions` (3 floats per vertex; `normals` may
-// be NULL): DRAPE_OK, DRAPE_NO_DATA (nothing new), or an error (SERVER_LOST, CLOSED...).
-// `info` may be NULL. Never blocks; no allocation per vertex.
+// Decode the next state not read yet into `positions` (`normals` may be NULL): the oldest
+// unread one of a cloth submitted with a `queue_size` above 1, else the newest. Lengths count
+// FLOATS, not vertices or bytes: 3 per vertex (`3 * drape_cloth_vertex_count`); a shorter
+// buffer is DRAPE_E_INVALID_VALUE. Returns DRAPE_OK, DRAPE_NO_DATA (nothing new), or an error
+// (SERVER_LOST, CLOSED...). `info` may be NULL. Never blocks; no allocation. Read until
+// DRAPE_NO_DATA to take every queued state; `drape_cloth_counters` accounts for all of them.
 int32_t drape_cloth_read_state(const struct DrapeCloth *cloth,
                                float *positions,
                                size_t positions_len,
@@ -307,7 +564,8 @@ int32_t drape_cloth_read_state(const struct DrapeCloth *cloth,
                                size_t normals_len,
                                struct DrapeStateInfo *info);
 
-// Like `drape_cloth_read_state`, waiting up to `timeout_ms` for a new state.
+// Like `drape_cloth_read_state`, waiting up to `timeout_ms` for a new state (blocks: not for
+// a game thread).
 int32_t drape_cloth_wait_state(const struct DrapeCloth *cloth,
                                float *positions,
                                size_t positions_len,
@@ -315,6 +573,23 @@ int32_t drape_cloth_wait_state(const struct DrapeCloth *cloth,
                                size_t normals_len,
                                uint32_t timeout_ms,
                                struct DrapeStateInfo *info);
+
+// Decode the newest state received, read before or not (lengths in floats, as
+// `drape_cloth_read_state`): DRAPE_OK, or DRAPE_NO_DATA before the first state. Unread states
+// older than it are dropped (counted as `replaced`). Never blocks.
+int32_t drape_cloth_read_latest(const struct DrapeCloth *cloth,
+                                float *positions,
+                                size_t positions_len,
+                                float *normals,
+                                size_t normals_len,
+                                struct DrapeStateInfo *info);
+
+// Fill `*out` with the cloth's state counters. Never blocks.
+int32_t drape_cloth_counters(const struct DrapeCloth *cloth, struct DrapeStateCounters *out);
+
+// The cloth's status: DRAPE_CLOTH_PENDING (an asynchronous submission not answered yet),
+// _LIVE, _RESUBMITTING (failover), _LOST, _REMOVED; DRAPE_E_INVALID_VALUE for NULL.
+int32_t drape_cloth_status(const struct DrapeCloth *cloth);
 
 // Move pinned vertices `indices[i]` to `targets[3i..3i+3]`. `wait`: block for the reply and
 // store the first tick showing it in `*tick` (may be NULL); otherwise return at once (a
@@ -385,6 +660,45 @@ int32_t drape_batch_send(const struct DrapeClient *client,
                          int32_t *codes,
                          uint64_t *ticks,
                          size_t len);
+
+// Send a control and wait for the reply (blocks up to the timeout: for a game thread use
+// `drape_cloth_control_async`). `*tick` (may be NULL) gets the first tick showing it and
+// `*features` (may be NULL) the cloth's resulting feature mask (DRAPE_FEATURES_UNKNOWN when
+// the server did not report it). Feature changes need a 1.2 server (INVALID_VALUE otherwise).
+int32_t drape_cloth_control(const struct DrapeCloth *cloth,
+                            const struct DrapeControl *control,
+                            uint64_t *tick,
+                            uint32_t *features);
+
+// Send a control without waiting: returns at once with `*request` (may be NULL) a number
+// naming it; its outcome comes as an event carrying that number: DRAPE_EVENT_REQUEST_DONE
+// (`tick`, `features`) or DRAPE_EVENT_REQUEST_FAILED (`code`, `message`, `cloth`). Never waits
+// on the network. Bad input, or a cloth not live (pending: DRAPE_E_UNAVAILABLE), fails here.
+int32_t drape_cloth_control_async(const struct DrapeCloth *cloth,
+                                  const struct DrapeControl *control,
+                                  uint64_t *request);
+
+// Add a control of `cloth` to the batch (any fields, as `drape_cloth_control`).
+int32_t drape_batch_control(struct DrapeBatch *batch,
+                            const struct DrapeCloth *cloth,
+                            const struct DrapeControl *control);
+
+// Ask `server` (NULL: this client's default server) for its info: version, tick rate, load,
+// limits. Waits for the reply (up to the timeout): call it at load time, not every frame.
+int32_t drape_client_server_info(const struct DrapeClient *client,
+                                 const char *server,
+                                 struct DrapeServerInfo *out);
+
+// The last stats publication of `server` (NULL: this client's default server, else the first
+// live one), as received on `{ns}/server/{server}/stats` every stats period: DRAPE_OK, or
+// DRAPE_NO_DATA when none has arrived yet. Never blocks.
+int32_t drape_client_server_stats(const struct DrapeClient *client,
+                                  const char *server,
+                                  struct DrapeServerStats *out);
+
+// The name of the server this client uses by default (as `drape_client_server_id`) if one is
+// known already, without waiting: DRAPE_OK, or DRAPE_NO_DATA before any server was seen.
+int32_t drape_client_known_server(const struct DrapeClient *client, char *buf, size_t len);
 
 // Move pinned vertices `indices[0..index_count]` of each of the `cloth_count` cloths
 // `cloths[j]`: its vertex `indices[i]` goes to `targets[3 * (j * index_count + i) ..][0..3]`

@@ -104,7 +104,7 @@ fn mesh_obj_encodings_and_errors() {
     while t0.elapsed() < Duration::from_secs(5) && !matches!(ev, Some(Event::RequestFailed { .. })) {
         ev = client.poll_event(Duration::from_millis(100));
     }
-    assert!(matches!(&ev, Some(Event::RequestFailed { handle: Some(h), error }) if *h == cloth.handle() && error.code == ErrorCode::InvalidValue), "{ev:?}");
+    assert!(matches!(&ev, Some(Event::RequestFailed { handle: Some(h), error, .. }) if *h == cloth.handle() && error.code == ErrorCode::InvalidValue), "{ev:?}");
     let tick = cloth.control(Control { colliders: Some(vec![Collider::Plane { normal: [0.0, 1.0, 0.0], offset: 0.5 }]), reset: true, ..Default::default() }, true);
     assert!(tick.unwrap().is_some());
     let info = client.info().unwrap();
@@ -193,7 +193,7 @@ fn lost_server_is_reported_and_failover_resumes() {
     use drape::ffi::*;
     let (c_connect, c_server) = (std::ffi::CString::new(format!("{},{}", a.endpoint, b.endpoint)).unwrap(), std::ffi::CString::new(a.id.clone()).unwrap());
     let c_opts = DrapeClientOptions { connect: c_connect.as_ptr(), server_id: c_server.as_ptr(), client_id: std::ptr::null(),
-                                      namespace_: std::ptr::null(), timeout_ms: 10_000, failover: true };
+                                      namespace_: std::ptr::null(), timeout_ms: 10_000, failover: true, lazy: false };
     let (mut cclient, mut ccloth) = (std::ptr::null_mut(), std::ptr::null_mut());
     let pins = [0u32, 3];
     let grid = DrapeGrid { cols: 4, rows: 4, width: 1.0, height: 1.0, vertical: false, origin: [0.0; 3] };
@@ -420,6 +420,7 @@ fn c_abi_feature_changes() {
             namespace_: std::ptr::null(),
             timeout_ms: 60_000,
             failover: false,
+            lazy: false,
         };
         let mut client = std::ptr::null_mut();
         assert_eq!(drape_client_open(&opts, &mut client), DRAPE_OK);
@@ -565,6 +566,7 @@ fn c_abi_identity_keys_server() {
             namespace_: std::ptr::null(),
             timeout_ms: 60_000,
             failover: false,
+            lazy: false,
         };
         let mut client = std::ptr::null_mut();
         assert_eq!(drape_client_open(&opts, &mut client), DRAPE_OK);

@@ -194,6 +194,7 @@ fn c_abi_authenticated_client_through_an_acl_router() {
             namespace_: std::ptr::null(),
             timeout_ms: 30_000,
             failover: false,
+            lazy: false,
         };
         let mut client = std::ptr::null_mut();
         assert_eq!(drape_client_open_with_config(&opts, file.as_ptr(), mode.as_ptr(), &mut client), DRAPE_OK);

@@ -6,7 +6,7 @@ use crate::wire::error::{Error, ErrorCode, Result};
 use crate::wire::msg::{ControlBatch, Pins, Submit};
 use crate::wire::replies::{tick_of, Applied, BatchReply};
 use crate::wire::{decode_state_into, Collider, Control, Encoding};
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::sync::{Arc, Condvar, Mutex, Weak};
 use std::time::{Duration, Instant};
 use zenoh::pubsub::Subscriber;
@@ -37,10 +37,12 @@ pub(crate) struct Slot {
     /// (failover's stall detection).
     pub(crate) last_receipt: Instant,
     pub(crate) last_probe: Instant,
-    pub(crate) fresh: bool,
-    pub(crate) received: u64,
-    pub(crate) dropped: u64,
-    pub(crate) invalid: u64,
+    /// States received and not read yet, oldest first (at most `ClothInner::queue_size`; the
+    /// newest of them is `latest`). References to the received payloads, nothing copied.
+    pub(crate) unread: VecDeque<Latest>,
+    pub(crate) counters: Counters,
+    /// The tick of the newest state received from the current placement (0: none yet).
+    pub(crate) last_tick: u64,
     /// 1.2: the feature set the newest control reply reported, with that reply's tick.
     pub(crate) features: Option<(u64, Vec<String>)>,
 }
@@ -53,8 +55,38 @@ pub(crate) struct Sent {
     pub(crate) colliders: Option<Vec<Collider>>,
 }
 
+/// What became of the states of a cloth (cumulative over its placements). Every tick from the
+/// first state received on a placement to the last is accounted for exactly once:
+/// `read + replaced + missed + unread == ticks` (`received == read + replaced + unread`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Counters {
+    /// States received (in tick order; stale and invalid ones not counted).
+    pub received: u64,
+    /// States decoded by a read (`read_state`, `wait_state`, `latest_state`).
+    pub read: u64,
+    /// States received but dropped unread: a newer one replaced them (queue full, or a
+    /// `latest_state` read skipped them).
+    pub replaced: u64,
+    /// Ticks of which no state arrived (gaps in the tick numbers between received states).
+    pub missed: u64,
+    /// States received and waiting to be read now.
+    pub unread: u64,
+    /// Ticks spanned: from the first state received on each placement to the newest.
+    pub ticks: u64,
+    /// Payloads that were not valid states.
+    pub invalid: u64,
+    /// States older than one already received (out of order), ignored.
+    pub stale: u64,
+    /// Tick of the newest state received (current placement), 0 before any.
+    pub last_tick: u64,
+}
+
 pub(crate) struct ClothInner {
     pub(crate) handle: u64,
+    /// States kept unread (1: only the newest, the default).
+    pub(crate) queue_size: usize,
+    /// An asynchronous submission was cancelled (removed before its reply).
+    pub(crate) cancelled: std::sync::atomic::AtomicBool,
     /// The client's copy of the submission (resubmitted as is on failover).
     pub(crate) submit: Submit,
     pub(crate) rest: Vec<f32>,
@@ -66,7 +98,7 @@ pub(crate) struct ClothInner {
 }
 
 impl ClothInner {
-    pub(crate) fn new(handle: u64, submit: Submit, rest: Vec<f32>, triangles: Vec<u32>) -> Arc<ClothInner> {
+    pub(crate) fn new(handle: u64, submit: Submit, rest: Vec<f32>, triangles: Vec<u32>, queue_size: usize) -> Arc<ClothInner> {
         let n_vertices = submit.vertex_count() as u32;
         let slot = Slot {
             status: Status::Pending,
@@ -81,14 +113,15 @@ impl ClothInner {
             prev: None,
             last_receipt: Instant::now(),
             last_probe: Instant::now(),
-            fresh: false,
-            received: 0,
-            dropped: 0,
-            invalid: 0,
+            unread: VecDeque::new(),
+            counters: Counters::default(),
+            last_tick: 0,
             features: None,
         };
         Arc::new(ClothInner {
             handle,
+            queue_size: queue_size.max(1),
+            cancelled: std::sync::atomic::AtomicBool::new(false),
             submit,
             rest,
             triangles,
@@ -148,6 +181,38 @@ impl ClothInner {
             Status::Pending => Err(Error::new(ErrorCode::Unavailable, "the cloth is not submitted yet")),
         }
     }
+}
+
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Read {
+    Next,
+    Latest,
+}
+
+fn decode(l: &Latest, positions: &mut [f32], normals: Option<&mut [f32]>) -> Result<StateInfo> {
+    let h = l.buf.with(|d| decode_state_into(&d[l.off..l.off + l.len], positions, normals))?;
+    Ok(StateInfo {
+        tick: h.tick,
+        server_time_ns: h.server_time_ns,
+        receive_time_ns: l.receive_time_ns,
+        vertex_count: h.vertex_count,
+        flags: h.flags,
+        encoding: h.encoding,
+        has_normals: h.has_normals(),
+        reset: h.is_reset(),
+        bounds_min: h.bounds_min,
+        bounds_max: h.bounds_max,
+    })
+}
+
+/// [`Cloth::status`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ClothStatus {
+    Pending,
+    Live,
+    Resubmitting,
+    Lost,
+    Removed,
 }
 
 /// What a read state was: every header field plus the local receive time.
@@ -222,58 +287,94 @@ impl Cloth {
     /// States received, states replaced before they were read, invalid payloads.
     pub fn counters(&self) -> (u64, u64, u64) {
         let s = self.inner.slot.lock().unwrap();
-        (s.received, s.dropped, s.invalid)
+        (s.counters.received, s.counters.replaced, s.counters.invalid)
     }
 
-    /// Decode the newest state not read yet into `positions` (and `normals` if given and the
-    /// state has them): `Ok(None)` when nothing new arrived. Buffers need `3 * vertex_count`
-    /// floats. Errors: `server_lost` (without failover), `closed` (removed).
+    /// Every counter of the cloth's states ([`Counters`]: received, read, replaced, missed...).
+    pub fn state_counters(&self) -> Counters {
+        let s = self.inner.slot.lock().unwrap();
+        Counters { unread: s.unread.len() as u64, last_tick: s.last_tick, ..s.counters }
+    }
+
+    /// States kept unread per cloth (the `queue_size` it was submitted with; 1: the newest only).
+    pub fn queue_size(&self) -> usize {
+        self.inner.queue_size
+    }
+
+    /// Where the cloth stands: pending (an asynchronous submission not answered yet), live,
+    /// resubmitting (failover), lost, removed.
+    pub fn status(&self) -> ClothStatus {
+        match self.inner.slot.lock().unwrap().status {
+            Status::Pending => ClothStatus::Pending,
+            Status::Live => ClothStatus::Live,
+            Status::Resubmitting => ClothStatus::Resubmitting,
+            Status::Lost(_) => ClothStatus::Lost,
+            Status::Removed => ClothStatus::Removed,
+        }
+    }
+
+    /// Decode the next state not read yet into `positions` (and `normals` if given and the
+    /// state has them): the oldest unread one (with `queue_size` 1, the newest); `Ok(None)`
+    /// when nothing new arrived. Buffers need `3 * vertex_count` floats. Errors: `server_lost`
+    /// (without failover), `closed` (removed).
     pub fn read_state(&self, positions: &mut [f32], normals: Option<&mut [f32]>) -> Result<Option<StateInfo>> {
-        self.read(positions, normals, Duration::ZERO, true)
+        self.read(positions, normals, Duration::ZERO, Read::Next)
     }
 
     /// Like [`Cloth::read_state`], waiting up to `timeout` for a new state.
     pub fn wait_state(&self, positions: &mut [f32], normals: Option<&mut [f32]>, timeout: Duration) -> Result<Option<StateInfo>> {
-        self.read(positions, normals, timeout, true)
+        self.read(positions, normals, timeout, Read::Next)
     }
 
-    /// The newest state even if it was read before (`Ok(None)` before the first one).
+    /// The newest state even if it was read before (`Ok(None)` before the first one). Unread
+    /// states older than it are dropped (counted as `replaced`).
     pub fn latest_state(&self, positions: &mut [f32], normals: Option<&mut [f32]>) -> Result<Option<StateInfo>> {
-        self.read(positions, normals, Duration::ZERO, false)
+        self.read(positions, normals, Duration::ZERO, Read::Latest)
     }
 
-    fn read(&self, positions: &mut [f32], normals: Option<&mut [f32]>, timeout: Duration, only_fresh: bool) -> Result<Option<StateInfo>> {
+    fn read(&self, positions: &mut [f32], normals: Option<&mut [f32]>, timeout: Duration, how: Read) -> Result<Option<StateInfo>> {
         self.client.check_open()?;
         let c = &self.inner;
+        let need = 3 * c.n_vertices as usize;
+        if positions.len() < need || normals.as_ref().is_some_and(|n| n.len() < need) {
+            return Err(Error::new(ErrorCode::InvalidValue, format!(
+                "buffers of {} and {} floats: {need} floats (3 per vertex) needed",
+                positions.len(), normals.as_ref().map_or(0, |n| n.len()))));
+        }
         let s = c.slot.lock().unwrap();
-        let waiting = |s: &mut Slot| only_fresh && !s.fresh && matches!(s.status, Status::Live | Status::Resubmitting);
-        let (mut s, _) = c.cv.wait_timeout_while(s, timeout, waiting).unwrap();
+        let next = how == Read::Next;
+        let waiting = |s: &mut Slot| next && s.unread.is_empty() && matches!(s.status, Status::Live | Status::Resubmitting);
+        let (mut s, _) = if timeout.is_zero() { (s, ()) } else {
+            let (g, _) = c.cv.wait_timeout_while(s, timeout, waiting).unwrap();
+            (g, ())
+        };
         match &s.status {
             Status::Lost(e) => return Err(e.clone()),
             Status::Removed => return Err(Error::new(ErrorCode::Closed, "the cloth was removed")),
             _ => {}
         }
-        if only_fresh && !s.fresh {
-            return Ok(None);
-        }
-        s.fresh = false;
-        let Some(l) = s.latest.clone() else { return Ok(None) };
+        let l = if next {
+            match s.unread.pop_front() {
+                Some(l) => l,
+                None => return Ok(None),
+            }
+        } else {
+            let skipped = s.unread.len().saturating_sub(1) as u64;
+            let fresh = !s.unread.is_empty();
+            s.unread.clear();
+            s.counters.replaced += skipped;
+            let Some(l) = s.latest.clone() else { return Ok(None) };
+            if !fresh {
+                // read before: decoded again, not counted again
+                drop(s);
+                return decode(&l, positions, normals).map(Some);
+            }
+            l
+        };
+        s.counters.read += 1;
         drop(s);
-        let h = l.buf.with(|d| decode_state_into(&d[l.off..l.off + l.len], positions, normals))?;
-        Ok(Some(StateInfo {
-            tick: h.tick,
-            server_time_ns: h.server_time_ns,
-            receive_time_ns: l.receive_time_ns,
-            vertex_count: h.vertex_count,
-            flags: h.flags,
-            encoding: h.encoding,
-            has_normals: h.has_normals(),
-            reset: h.is_reset(),
-            bounds_min: h.bounds_min,
-            bounds_max: h.bounds_max,
-        }))
+        decode(&l, positions, normals).map(Some)
     }
-
     /// Move pinned vertices `indices` to `targets` (3 floats each). `wait`: return the tick
     /// it applies from; otherwise return at once (failures become events).
     pub fn move_pins(&self, indices: &[u32], targets: &[f32], wait: bool) -> Result<Option<u64>> {
@@ -285,6 +386,13 @@ impl Cloth {
     /// from; otherwise return at once (failures become events).
     pub fn control(&self, ctl: Control, wait: bool) -> Result<Option<u64>> {
         Ok(self.client.control(&self.inner, ctl, wait)?.map(|a| a.tick))
+    }
+
+    /// Any control, not waited for, whose outcome comes as an event carrying the number
+    /// returned here: [`super::Event::RequestDone`] (tick, features) or
+    /// [`super::Event::RequestFailed`]. Never waits on the network.
+    pub fn control_async(&self, ctl: Control) -> Result<u64> {
+        self.client.control_async(&self.inner, ctl)
     }
 
     /// Any control, waited for: the tick it applies from and, from a 1.2 server, the cloth's
@@ -330,6 +438,15 @@ impl Cloth {
                 }
             }
             Err(e) if e.code == ErrorCode::ServerLost => 0,
+            // an asynchronous submission not answered yet: cancelled (removed if placed meanwhile)
+            Err(_) if c.slot.lock().unwrap().status == Status::Pending => {
+                c.cancelled.store(true, std::sync::atomic::Ordering::SeqCst);
+                0
+            }
+            // its asynchronous submission failed: never placed, nothing to remove
+            Err(_) if c.slot.lock().unwrap().id.is_empty() => 0,
+            // placed by an asynchronous submission meanwhile
+            Err(_) if c.slot.lock().unwrap().status == Status::Live => return self.remove(),
             // being failed over: forgotten (the failover worker drops it)
             Err(_) if c.slot.lock().unwrap().status == Status::Resubmitting => 0,
             Err(e) => return Err(e),
@@ -453,12 +570,12 @@ pub(crate) fn send_batch(inner: &Arc<Inner>, batch: Batch, wait: bool) -> Result
                                     if let (ErrorCode::NotFound, Some(c)) = (error.code, c.upgrade()) {
                                         super::failover::cloth_not_found(inner, &c, id);
                                     }
-                                    inner.push_event(Event::RequestFailed { handle: Some(*h), error })
+                                    inner.push_event(Event::RequestFailed { handle: Some(*h), cloth: id.clone(), request: 0, error })
                                 }
                             }
                         }
                     }
-                    Err(error) => inner.push_event(Event::RequestFailed { handle: None, error }),
+                    Err(error) => inner.push_event(Event::RequestFailed { handle: None, cloth: String::new(), request: 0, error }),
                 };
                 inner.send(&server, "control_batch", req.encode(), None, Some(Box::new(on_ok)), None)?;
             }

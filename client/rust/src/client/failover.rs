@@ -321,7 +321,8 @@ fn resend_controls(inner: &Arc<Inner>, c: &Arc<ClothInner>) {
         return;
     }
     if let Err(error) = inner.control(c, ctl, false) {
-        inner.push_event(Event::RequestFailed { handle: Some(c.handle), error });
+        let cloth = c.slot.lock().unwrap().id.clone();
+        inner.push_event(Event::RequestFailed { handle: Some(c.handle), cloth, request: 0, error });
     }
 }
 

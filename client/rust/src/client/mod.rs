@@ -9,7 +9,7 @@ mod moves;
 mod placement;
 mod recv;
 
-pub use cloth::{Batch, Cloth, StateInfo};
+pub use cloth::{Batch, Cloth, ClothStatus, Counters, StateInfo};
 
 use crate::wire::error::{Error, ErrorCode, Result};
 use crate::wire::msg::{encode_info, Control, Grid, Mesh, Resume, Shape, Submit};
@@ -59,6 +59,11 @@ pub struct ClientOptions {
     /// Failover: how long a lost cloth waits for a live server before it is given up
     /// (`Event::ClothLost`). Default 60 s.
     pub failover_give_up: Duration,
+    /// [`Client::open`] waits up to `timeout` for a server's liveliness token (the given
+    /// `server_id`'s, else any) and fails with `unavailable` when none appears, instead of
+    /// returning a client whose first request then waits the whole timeout. Default false in
+    /// Rust; the C ABI sets it unless `DrapeClientOptions.lazy`.
+    pub require_server: bool,
 }
 
 impl Default for ClientOptions {
@@ -74,6 +79,7 @@ impl Default for ClientOptions {
             failover: false,
             stall_timeout: Duration::from_millis(500),
             failover_give_up: Duration::from_secs(60),
+            require_server: false,
         }
     }
 }
@@ -102,7 +108,17 @@ pub enum Event {
         kept: bool,
     },
     /// A request sent without waiting failed (an error reply, a refused batch item, no reply).
-    RequestFailed { handle: Option<u64>, error: Error },
+    /// `cloth`: the id of the cloth it was about (empty when none, e.g. a whole batch);
+    /// `request`: the number [`Cloth::control_async`] returned (0 for other requests).
+    RequestFailed { handle: Option<u64>, cloth: String, request: u64, error: Error },
+    /// A control sent with [`Cloth::control_async`] was applied: from `tick` on, with the
+    /// cloth's resulting feature set when a 1.2 server reported it.
+    RequestDone { request: u64, handle: u64, cloth: String, tick: u64, features: Option<Vec<String>> },
+    /// A cloth submitted with [`Client::submit_async`] is live on `server` as `cloth`.
+    Submitted { handle: u64, cloth: String, server: String },
+    /// A cloth submitted with [`Client::submit_async`] was refused (by every live server,
+    /// retries included) or not answered: the handle is lost (`error`).
+    SubmitFailed { handle: u64, error: Error },
 }
 
 /// What a request sent without waiting does with its success map (on a Zenoh thread).
@@ -162,7 +178,31 @@ pub struct Client {
 }
 
 fn zerr(what: &str, e: impl std::fmt::Display) -> Error {
-    Error::new(ErrorCode::Unavailable, format!("{what}: {e}"))
+    Error::new(ErrorCode::Unavailable, scrub(&format!("{what}: {e}")))
+}
+
+/// `msg` without the source locations Zenoh's errors carry (`at /home/.../src/x.rs:12.`, the
+/// build machine's paths, meaningless to a game and a leak of its layout).
+pub fn scrub(msg: &str) -> String {
+    let words: Vec<&str> = msg.split(' ').collect();
+    let is_loc = |w: &str| {
+        let w = w.trim_matches(|c: char| matches!(c, '(' | ')' | '[' | ']' | ',' | '.' | ';' | '"' | '\''));
+        w.contains('/') && (w.contains(".rs:") || w.ends_with(".rs"))
+    };
+    let mut out: Vec<&str> = Vec::with_capacity(words.len());
+    for (i, w) in words.iter().enumerate() {
+        if is_loc(w) {
+            if out.last() == Some(&"at") {
+                out.pop();
+            }
+            continue;
+        }
+        if *w == "at" && words.get(i + 1).is_some_and(|n| is_loc(n)) {
+            continue;
+        }
+        out.push(w);
+    }
+    out.join(" ").trim_end().to_string()
 }
 
 impl Client {
@@ -244,7 +284,31 @@ impl Client {
             .map_err(|e| zerr("liveliness token", e))?;
         *inner.token.lock().unwrap() = Some(token);
         failover::start(&inner)?;
-        Ok(Client { inner })
+        let client = Client { inner };
+        if opts.require_server {
+            let want = opts.server_id.clone();
+            let seen = {
+                let s = client.inner.servers.lock().unwrap();
+                let (s, _) = client.inner.servers_cv
+                    .wait_timeout_while(s, opts.timeout, |s| match &want {
+                        Some(w) => !s.live.contains(w),
+                        None => s.live.is_empty(),
+                    })
+                    .unwrap();
+                match &want {
+                    Some(w) => s.live.contains(w),
+                    None => !s.live.is_empty(),
+                }
+            };
+            if !seen {
+                client.close(false);
+                let who = want.map_or("no Drape server".to_string(), |w| format!("server {w:?} not"));
+                return Err(Error::new(ErrorCode::Unavailable, format!(
+                    "{who} seen (liveliness {}) through {} within {:?}: is `drape serve` running there?",
+                    client.inner.keys.all_servers_alive(), opts.connect.join(","), opts.timeout)));
+            }
+        }
+        Ok(client)
     }
 
     pub fn client_id(&self) -> &str {
@@ -287,6 +351,18 @@ impl Client {
         q.pop_front()
     }
 
+    /// `server`'s `info` map (asks it: waits up to the timeout).
+    pub fn info_of(&self, server: &str) -> Result<Map> {
+        self.inner.request(server, "info", encode_info(self.inner.next_rid()))
+    }
+
+    /// A server this client knows without asking anyone: the given or current default server,
+    /// else the first live one; None before any server was seen. Never blocks.
+    pub fn known_server(&self) -> Option<String> {
+        let s = self.inner.servers.lock().unwrap();
+        s.current.clone().or_else(|| s.live.iter().next().cloned())
+    }
+
     /// The server's `info` map (version, limits, counts...).
     pub fn info(&self) -> Result<Map> {
         let server = self.server_id()?;
@@ -316,11 +392,38 @@ impl Client {
     /// live server the placement ranks first (PROTOCOL.md 11.3); a refusal another server may not
     /// give (`overloaded`, `busy`, `limit_exceeded`, no reply) tries the next one, and the last
     /// refusal is returned when every live server refused.
-    pub fn submit(&self, mut submit: Submit, rest: Vec<f32>, triangles: Vec<u32>) -> Result<Cloth> {
+    pub fn submit(&self, submit: Submit, rest: Vec<f32>, triangles: Vec<u32>) -> Result<Cloth> {
+        self.submit_queued(submit, rest, triangles, 1)
+    }
+
+    /// [`Client::submit`] keeping up to `queue_size` states unread per cloth (reads take the
+    /// oldest first; 1: only the newest, as `submit`).
+    pub fn submit_queued(&self, mut submit: Submit, rest: Vec<f32>, triangles: Vec<u32>, queue_size: usize) -> Result<Cloth> {
         submit.client = self.inner.client_id.clone();
         let handle = self.inner.next_handle.fetch_add(1, Ordering::Relaxed);
-        let c = cloth::ClothInner::new(handle, submit, rest, triangles);
+        let c = cloth::ClothInner::new(handle, submit, rest, triangles, queue_size);
         self.inner.submit_placed(&c)?;
+        Ok(Cloth { inner: c, client: self.inner.clone() })
+    }
+
+    /// Submit without waiting: the handle comes back at once, [`ClothStatus::Pending`] until
+    /// the reply (reads return nothing, controls fail with `unavailable`); then an
+    /// [`Event::Submitted`] (live) or [`Event::SubmitFailed`] (the handle is lost). Placement
+    /// as [`Client::submit`], on a thread of its own; a refusal that may pass
+    /// ([`ErrorCode::is_retryable`]: `overloaded`, `busy`, `limit_exceeded`) or no reply is
+    /// retried for up to `retry_for` (backing off from 50 ms to 1 s). Removing the handle
+    /// before the reply cancels it (a cloth placed meanwhile is removed from its server).
+    pub fn submit_async(&self, mut submit: Submit, rest: Vec<f32>, triangles: Vec<u32>, queue_size: usize,
+                        retry_for: Duration) -> Result<Cloth> {
+        self.inner.check_open()?;
+        submit.client = self.inner.client_id.clone();
+        let handle = self.inner.next_handle.fetch_add(1, Ordering::Relaxed);
+        let c = cloth::ClothInner::new(handle, submit, rest, triangles, queue_size);
+        let (inner, c2) = (self.inner.clone(), c.clone());
+        std::thread::Builder::new()
+            .name("drape-submit".into())
+            .spawn(move || inner.submit_in_background(c2, retry_for))
+            .map_err(|e| Error::new(ErrorCode::Internal, format!("cannot start a submit thread: {e}")))?;
         Ok(Cloth { inner: c, client: self.inner.clone() })
     }
 
@@ -380,6 +483,45 @@ impl Inner {
         }
         q.push_back(e);
         self.events_cv.notify_all();
+    }
+
+    /// [`Client::submit_async`]'s thread.
+    fn submit_in_background(self: Arc<Self>, c: Arc<cloth::ClothInner>, retry_for: Duration) {
+        let deadline = Instant::now() + retry_for;
+        let mut delay = Duration::from_millis(50);
+        let cancelled = |c: &cloth::ClothInner| c.cancelled.load(Ordering::SeqCst);
+        loop {
+            match self.submit_placed(&c) {
+                Ok(()) => {
+                    let cloth = Cloth { inner: c.clone(), client: self.clone() };
+                    if cancelled(&c) {
+                        let _ = cloth.remove();
+                        return;
+                    }
+                    let (id, server) = (cloth.id(), cloth.server());
+                    self.push_event(Event::Submitted { handle: c.handle, cloth: id, server });
+                    return;
+                }
+                Err(e) if (e.code.is_retryable() || e.code == ErrorCode::Unavailable)
+                    && Instant::now() + delay < deadline && !cancelled(&c) && self.check_open().is_ok() => {
+                    std::thread::sleep(delay);
+                    delay = (delay * 2).min(Duration::from_secs(1));
+                }
+                Err(error) => {
+                    {
+                        let mut s = c.slot.lock().unwrap();
+                        if s.status == cloth::Status::Pending {
+                            s.status = cloth::Status::Lost(error.clone());
+                        }
+                    }
+                    c.cv.notify_all();
+                    if !cancelled(&c) {
+                        self.push_event(Event::SubmitFailed { handle: c.handle, error });
+                    }
+                    return;
+                }
+            }
+        }
     }
 
     pub(crate) fn check_open(&self) -> Result<()> {
@@ -505,6 +647,15 @@ impl Inner {
     pub(crate) fn send(self: &Arc<Self>, server: &str, kind: &str, payload: Vec<u8>, handle: Option<u64>,
                        on_ok: Option<OnOk>,
                        watch: Option<(std::sync::Weak<cloth::ClothInner>, String)>) -> Result<()> {
+        self.send_request(server, kind, payload, handle, on_ok, watch, 0)
+    }
+
+    /// [`Inner::send`] with the request number of an asynchronous control (0: none), carried
+    /// by its failure event.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn send_request(self: &Arc<Self>, server: &str, kind: &str, payload: Vec<u8>, handle: Option<u64>,
+                       on_ok: Option<OnOk>,
+                       watch: Option<(std::sync::Weak<cloth::ClothInner>, String)>, request: u64) -> Result<()> {
         self.check_open()?;
         let key = self.request_key(server, kind, self.timeout);
         struct Done {
@@ -512,18 +663,21 @@ impl Inner {
             answered: AtomicBool,
             key: String,
             handle: Option<u64>,
+            cloth: String,
+            request: u64,
         }
         impl Drop for Done {
             fn drop(&mut self) {
                 if !self.answered.load(Ordering::SeqCst) {
                     if let Some(i) = self.inner.upgrade() {
                         let error = Error::new(ErrorCode::Unavailable, format!("no reply from {}", self.key));
-                        i.push_event(Event::RequestFailed { handle: self.handle, error });
+                        i.push_event(Event::RequestFailed { handle: self.handle, cloth: self.cloth.clone(), request: self.request, error });
                     }
                 }
             }
         }
-        let done = Done { inner: Arc::downgrade(self), answered: AtomicBool::new(false), key: key.clone(), handle };
+        let cloth = watch.as_ref().map(|w| w.1.clone()).unwrap_or_default();
+        let done = Done { inner: Arc::downgrade(self), answered: AtomicBool::new(false), key: key.clone(), handle, cloth, request };
         self.session
             .get(&key)
             .payload(payload)
@@ -543,7 +697,7 @@ impl Inner {
                                 failover::cloth_not_found(&inner, &c, id);
                             }
                         }
-                        inner.push_event(Event::RequestFailed { handle: done.handle, error })
+                        inner.push_event(Event::RequestFailed { handle: done.handle, cloth: done.cloth.clone(), request: done.request, error })
                     }
                 }
             })
@@ -644,6 +798,50 @@ impl Inner {
         let watch = Some((Arc::downgrade(c), ctl.cloth.clone()));
         self.send(&server, "control", payload, Some(c.handle), Some(Box::new(on_ok)), watch)?;
         Ok(None)
+    }
+}
+
+impl Inner {
+    /// A control sent without waiting whose outcome is an event: [`Event::RequestDone`] or
+    /// [`Event::RequestFailed`], both with `request` (returned here). Never waits on the network:
+    /// when the cloth's server's info (limits, keys) is not known yet, the control is validated
+    /// and sent from a thread of its own.
+    pub(crate) fn control_async(self: &Arc<Self>, c: &Arc<cloth::ClothInner>, mut ctl: Control) -> Result<u64> {
+        let (server, id, token, n) = c.owner()?;
+        ctl.cloth = id;
+        ctl.token = token;
+        let request = self.next_rid();
+        if self.info_known(&server) {
+            self.send_control(c, ctl, request, &server, n)?;
+        } else {
+            let (inner, c) = (self.clone(), c.clone());
+            std::thread::spawn(move || {
+                let cloth = ctl.cloth.clone();
+                if let Err(error) = inner.send_control(&c, ctl, request, &server, n) {
+                    inner.push_event(Event::RequestFailed { handle: Some(c.handle), cloth, request, error });
+                }
+            });
+        }
+        Ok(request)
+    }
+
+    fn send_control(self: &Arc<Self>, c: &Arc<cloth::ClothInner>, ctl: Control, request: u64, server: &str, n: u32) -> Result<()> {
+        ctl.validate(&self.limits(server), Some(n))?;
+        self.check_version(server, &ctl)?;
+        let payload = ctl.encode(request);
+        c.note_sent(&ctl);
+        let (weak, handle, id) = (Arc::downgrade(c), c.handle, ctl.cloth.clone());
+        let on_ok = move |inner: &Arc<Inner>, m: Map| match Applied::from_map(&m) {
+            Ok(a) => {
+                if let Some(c) = weak.upgrade() {
+                    c.note_applied(&a);
+                }
+                inner.push_event(Event::RequestDone { request, handle, cloth: id.clone(), tick: a.tick, features: a.features });
+            }
+            Err(error) => inner.push_event(Event::RequestFailed { handle: Some(handle), cloth: id.clone(), request, error }),
+        };
+        let watch = Some((Arc::downgrade(c), ctl.cloth.clone()));
+        self.send_request(server, "control", payload, Some(handle), Some(Box::new(on_ok)), watch, request)
     }
 }
 

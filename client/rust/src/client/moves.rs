@@ -200,10 +200,10 @@ fn send_blocks(inner: &Arc<Inner>, server: &str, movers: &[Mover<'_>], indices: 
                     if let (ErrorCode::NotFound, Some(c)) = (error.code, c.upgrade()) {
                         failover::cloth_not_found(inner, &c, id);
                     }
-                    inner.push_event(Event::RequestFailed { handle: Some(*h), error });
+                    inner.push_event(Event::RequestFailed { handle: Some(*h), cloth: id.clone(), request: 0, error });
                 }
             }
-            Err(error) => inner.push_event(Event::RequestFailed { handle: None, error }),
+            Err(error) => inner.push_event(Event::RequestFailed { handle: None, cloth: String::new(), request: 0, error }),
         };
         inner.send(server, "control_batch", payload, None, Some(Box::new(on_ok)), None)?;
     }

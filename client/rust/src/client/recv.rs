@@ -68,24 +68,36 @@ pub(crate) fn now_ns() -> u64 {
     std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64)
 }
 
-/// Keep `l` as the cloth's newest state (checking its header first).
+/// Keep `l` as the cloth's newest state (checking its header first) and count it: a state
+/// older than the newest is ignored (stale), a gap in tick numbers is counted as missed, and an
+/// unread state pushed out of a full queue as replaced.
 pub(crate) fn deliver(c: &ClothInner, l: Latest) {
-    let ok = l.buf.with(|d| parse_state(&d[l.off..l.off + l.len]).is_ok());
+    let tick = l.buf.with(|d| parse_state(&d[l.off..l.off + l.len]).map(|h| h.tick));
     let mut s = c.slot.lock().unwrap();
-    if !ok {
-        s.invalid += 1;
+    let Ok(tick) = tick else {
+        s.counters.invalid += 1;
         return;
-    }
+    };
     if s.status != Status::Live {
         return;
     }
-    if s.fresh {
-        s.dropped += 1; // the previous one was never read
+    if s.last_tick != 0 && tick <= s.last_tick {
+        s.counters.stale += 1;
+        return;
     }
+    s.counters.ticks += if s.last_tick == 0 { 1 } else { tick - s.last_tick };
+    if s.last_tick != 0 {
+        s.counters.missed += tick - s.last_tick - 1;
+    }
+    s.last_tick = tick;
+    if s.unread.len() >= c.queue_size {
+        s.unread.pop_front();
+        s.counters.replaced += 1; // never read
+    }
+    s.unread.push_back(l.clone());
     s.prev = s.latest.replace(l); // the last two states: references, nothing copied
     s.last_receipt = std::time::Instant::now();
-    s.fresh = true;
-    s.received += 1;
+    s.counters.received += 1;
     drop(s);
     c.cv.notify_all();
 }
@@ -123,7 +135,9 @@ pub(crate) fn attach(inner: &Arc<Inner>, c: &Arc<ClothInner>, server: &str, rep:
         s.latest = None;
         s.prev = None; // velocities never span two placements (tick numbers differ)
         s.last_receipt = std::time::Instant::now();
-        s.fresh = false;
+        s.counters.replaced += s.unread.len() as u64; // of the old placement, never read
+        s.unread.clear();
+        s.last_tick = 0; // tick numbers are the new server's
         s.features = None; // a new placement: nothing reported by its server yet
         s.sub = sub;
         old

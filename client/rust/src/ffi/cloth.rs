@@ -1,5 +1,6 @@
 //! C ABI of submissions, cloths (state reads into caller buffers, controls, removal) and
 //! batch controls. See `mod.rs` for the conventions and thread safety.
+use super::control::{DrapeCollider, DrapeMaterial};
 use super::{bad, fail, guard, new_cloth, opt_str, DrapeClient, DRAPE_NO_DATA, DRAPE_OK};
 use crate::client::{Batch, Cloth, StateInfo};
 use crate::wire::{Control, Encoding, Grid, Orientation, Shape, StateOptions, Submit, FEATURE_NAMES};
@@ -14,7 +15,7 @@ pub struct DrapeCloth {
 
 /// Controls of many cloths sent as one batch control (opaque; not synchronized).
 pub struct DrapeBatch {
-    batch: Batch,
+    pub(crate) batch: Batch,
 }
 
 /// A regular grid (PROTOCOL.md section 4): vertex (r, c) is r * cols + c.
@@ -47,6 +48,47 @@ pub struct DrapeClothOptions {
     pub quality: *const c_char,
     /// Gravity in m/s² or NULL for the server default.
     pub gravity: *const f64,
+    /// Wind velocity in m/s (3 doubles) or NULL for none (PROTOCOL.md 4; needs the wind feature).
+    pub wind: *const f64,
+    /// Material fields (those named in `material->fields`) or NULL for the server's defaults.
+    pub material: *const DrapeMaterial,
+    /// Colliders (may be NULL when `collider_count` is 0).
+    pub colliders: *const DrapeCollider,
+    pub collider_count: usize,
+    /// The feature set (DRAPE_FEATURE_* mask) or 0 for the server's default set.
+    pub features: u32,
+    /// Solver iterations and substeps per tick (0: the server's default).
+    pub iterations: u32,
+    pub substeps: u32,
+    /// States kept unread for this cloth (0 or 1: only the newest; N: reads take the oldest of
+    /// up to N first, so a loop reading once per frame misses none while it keeps up).
+    pub queue_size: u32,
+    /// `drape_submit_*_async`: how long a refusal that may pass (overloaded, busy,
+    /// limit_exceeded) or no reply is retried in the background, in ms (0: not retried).
+    pub retry_ms: u32,
+}
+
+impl Default for DrapeClothOptions {
+    fn default() -> Self {
+        DrapeClothOptions {
+            pinned: std::ptr::null(),
+            pinned_count: 0,
+            encoding: 0,
+            normals: false,
+            bundle: false,
+            quality: std::ptr::null(),
+            gravity: std::ptr::null(),
+            wind: std::ptr::null(),
+            material: std::ptr::null(),
+            colliders: std::ptr::null(),
+            collider_count: 0,
+            features: 0,
+            iterations: 0,
+            substeps: 0,
+            queue_size: 0,
+            retry_ms: 0,
+        }
+    }
 }
 
 /// A state read by `drape_cloth_read_state` / `drape_cloth_wait_state`.
@@ -77,9 +119,14 @@ pub(crate) unsafe fn slice<'a, T>(p: *const T, n: usize) -> Option<&'a [T]> {
     }
 }
 
-unsafe fn submit_of(opts: *const DrapeClothOptions) -> Result<Submit, i32> {
-    let mut s = Submit::new("", Shape::Grid(Grid::new(1, 1)));
-    let Some(o) = opts.as_ref() else { return Ok(s) };
+/// The submission options of `opts`, its queue size and its retry time.
+unsafe fn submit_of(opts: *const DrapeClothOptions) -> Result<(Submit, usize, Duration), i32> {
+    let s = Submit::new("", Shape::Grid(Grid::new(1, 1)));
+    let Some(o) = opts.as_ref() else { return Ok((s, 1, Duration::ZERO)) };
+    Ok((submit_fields(o, s)?, o.queue_size.max(1) as usize, Duration::from_millis(o.retry_ms as u64)))
+}
+
+unsafe fn submit_fields(o: &DrapeClothOptions, mut s: Submit) -> Result<Submit, i32> {
     s.pinned = slice(o.pinned, o.pinned_count).ok_or_else(|| bad("pinned is NULL"))?.to_vec();
     let encoding = Encoding::from_id(u8::try_from(o.encoding).unwrap_or(255)).ok_or_else(|| bad("encoding must be 0, 1 or 2"))?;
     if encoding != Encoding::Float32 || o.normals || o.bundle {
@@ -89,34 +136,60 @@ unsafe fn submit_of(opts: *const DrapeClothOptions) -> Result<Submit, i32> {
     if !o.gravity.is_null() {
         s.gravity = Some([*o.gravity, *o.gravity.add(1), *o.gravity.add(2)]);
     }
+    s.wind = super::control::vec3(o.wind);
+    s.material = super::control::material_of(o.material)?;
+    if o.collider_count > 0 || !o.colliders.is_null() {
+        s.colliders = Some(super::control::colliders_of(o.colliders, o.collider_count)?);
+    }
+    s.features = names_of(o.features)?.unwrap_or_default();
+    s.iterations = (o.iterations > 0).then_some(o.iterations);
+    s.substeps = (o.substeps > 0).then_some(o.substeps);
     Ok(s)
 }
 
-/// Submit a grid cloth; `*out` receives its handle.
-#[no_mangle]
-pub unsafe extern "C" fn drape_submit_grid(client: *const DrapeClient, grid: *const DrapeGrid,
-                                           options: *const DrapeClothOptions, out: *mut *mut DrapeCloth) -> i32 {
+unsafe fn grid_of(g: &DrapeGrid) -> Grid {
+    let or1 = |x: f64| if x == 0.0 { 1.0 } else { x };
+    let orientation = if g.vertical { Orientation::Vertical } else { Orientation::Horizontal };
+    Grid { cols: g.cols, rows: g.rows, width: or1(g.width), height: or1(g.height), orientation, origin: g.origin }
+}
+
+/// Submit `sub` with its shape's rest geometry, waiting or not.
+fn submit_any(c: &DrapeClient, sub: (Submit, usize, Duration), shape: Shape, asynchronous: bool, out: *mut *mut DrapeCloth) -> i32 {
+    let (sub, queue, retry) = sub;
+    let geometry = match &shape {
+        Shape::Grid(g) => crate::wire::grid_geometry(g.cols, g.rows, g.width, g.height, g.orientation, g.origin),
+        Shape::Mesh(m) => Ok((m.vertices.clone(), m.triangles.clone())),
+    };
+    let (rest, tris) = match geometry {
+        Ok(x) => x,
+        Err(e) => return fail(e),
+    };
+    let sub = Submit { shape, ..sub };
+    let r = if asynchronous {
+        c.client.submit_async(sub, rest, tris, queue, retry)
+    } else {
+        c.client.submit_queued(sub, rest, tris, queue)
+    };
+    new_cloth(r, out)
+}
+
+unsafe fn submit_grid(client: *const DrapeClient, grid: *const DrapeGrid, options: *const DrapeClothOptions,
+                      out: *mut *mut DrapeCloth, asynchronous: bool) -> i32 {
     guard(|| {
         let (Some(c), Some(g)) = (client.as_ref(), grid.as_ref()) else { return bad("client or grid is NULL") };
         if out.is_null() {
             return bad("out is NULL");
         }
-        let sub = match submit_of(options) {
-            Ok(s) => s,
-            Err(code) => return code,
-        };
-        let or1 = |x: f64| if x == 0.0 { 1.0 } else { x };
-        let orientation = if g.vertical { Orientation::Vertical } else { Orientation::Horizontal };
-        let grid = Grid { cols: g.cols, rows: g.rows, width: or1(g.width), height: or1(g.height), orientation, origin: g.origin };
-        new_cloth(c.client.submit_grid(grid, sub), out)
+        match submit_of(options) {
+            Ok(sub) => submit_any(c, sub, Shape::Grid(grid_of(g)), asynchronous, out),
+            Err(code) => code,
+        }
     })
 }
 
-/// Submit a triangle mesh: `vertices` 3 floats per vertex, `triangles` 3 indices per triangle.
-#[no_mangle]
-pub unsafe extern "C" fn drape_submit_mesh(client: *const DrapeClient, vertices: *const f32, vertex_count: usize,
-                                           triangles: *const u32, triangle_count: usize,
-                                           options: *const DrapeClothOptions, out: *mut *mut DrapeCloth) -> i32 {
+unsafe fn submit_mesh(client: *const DrapeClient, vertices: *const f32, vertex_count: usize, triangles: *const u32,
+                      triangle_count: usize, options: *const DrapeClothOptions, out: *mut *mut DrapeCloth,
+                      asynchronous: bool) -> i32 {
     guard(|| {
         let Some(c) = client.as_ref() else { return bad("client is NULL") };
         let (Some(v), Some(t)) = (slice(vertices, 3 * vertex_count), slice(triangles, 3 * triangle_count)) else {
@@ -126,13 +199,54 @@ pub unsafe extern "C" fn drape_submit_mesh(client: *const DrapeClient, vertices:
             return bad("out is NULL");
         }
         match submit_of(options) {
-            Ok(sub) => new_cloth(c.client.submit_mesh(v.to_vec(), t.to_vec(), sub), out),
+            Ok(sub) => {
+                let mesh = crate::wire::Mesh { vertices: v.to_vec(), triangles: t.to_vec() };
+                submit_any(c, sub, Shape::Mesh(mesh), asynchronous, out)
+            }
             Err(code) => code,
         }
     })
 }
 
-/// Submit a cloth from a Wavefront OBJ file (faces fan-triangulated).
+/// Submit a grid cloth and wait for the server's reply; `*out` receives its handle. Blocks up
+/// to the timeout (and longer when servers refuse and the next is tried): from a game loop use
+/// `drape_submit_grid_async`.
+#[no_mangle]
+pub unsafe extern "C" fn drape_submit_grid(client: *const DrapeClient, grid: *const DrapeGrid,
+                                           options: *const DrapeClothOptions, out: *mut *mut DrapeCloth) -> i32 {
+    submit_grid(client, grid, options, out, false)
+}
+
+/// Submit a grid cloth without waiting: `*out` is its handle at once (DRAPE_CLOTH_PENDING:
+/// reads return DRAPE_NO_DATA, controls DRAPE_E_UNAVAILABLE), then DRAPE_EVENT_SUBMITTED (live)
+/// or DRAPE_EVENT_SUBMIT_FAILED (after `options->retry_ms` of retries). Invalid options fail
+/// here; the server's limits are checked in the background. `drape_cloth_remove` before the
+/// reply cancels it.
+#[no_mangle]
+pub unsafe extern "C" fn drape_submit_grid_async(client: *const DrapeClient, grid: *const DrapeGrid,
+                                                 options: *const DrapeClothOptions, out: *mut *mut DrapeCloth) -> i32 {
+    submit_grid(client, grid, options, out, true)
+}
+
+/// Submit a triangle mesh: `vertices` 3 floats per vertex, `triangles` 3 indices per triangle.
+/// Blocks as `drape_submit_grid`.
+#[no_mangle]
+pub unsafe extern "C" fn drape_submit_mesh(client: *const DrapeClient, vertices: *const f32, vertex_count: usize,
+                                           triangles: *const u32, triangle_count: usize,
+                                           options: *const DrapeClothOptions, out: *mut *mut DrapeCloth) -> i32 {
+    submit_mesh(client, vertices, vertex_count, triangles, triangle_count, options, out, false)
+}
+
+/// `drape_submit_mesh` without waiting, as `drape_submit_grid_async`.
+#[no_mangle]
+pub unsafe extern "C" fn drape_submit_mesh_async(client: *const DrapeClient, vertices: *const f32, vertex_count: usize,
+                                                 triangles: *const u32, triangle_count: usize,
+                                                 options: *const DrapeClothOptions, out: *mut *mut DrapeCloth) -> i32 {
+    submit_mesh(client, vertices, vertex_count, triangles, triangle_count, options, out, true)
+}
+
+/// Submit a cloth from a Wavefront OBJ file (faces fan-triangulated). Blocks as
+/// `drape_submit_grid`.
 #[no_mangle]
 pub unsafe extern "C" fn drape_submit_obj(client: *const DrapeClient, path: *const c_char,
                                           options: *const DrapeClothOptions, out: *mut *mut DrapeCloth) -> i32 {
@@ -147,8 +261,12 @@ pub unsafe extern "C" fn drape_submit_obj(client: *const DrapeClient, path: *con
             Ok(t) => t,
             Err(e) => return bad(&format!("cannot read {path}: {e}")),
         };
+        let (v, t) = match crate::wire::parse_obj(&text) {
+            Ok(x) => x,
+            Err(e) => return fail(e),
+        };
         match submit_of(options) {
-            Ok(sub) if !out.is_null() => new_cloth(c.client.submit_obj(&text, sub), out),
+            Ok(sub) if !out.is_null() => submit_any(c, sub, Shape::Mesh(crate::wire::Mesh { vertices: v, triangles: t }), false, out),
             Ok(_) => bad("out is NULL"),
             Err(code) => code,
         }
@@ -215,8 +333,15 @@ pub unsafe extern "C" fn drape_cloth_rest_mesh(cloth: *const DrapeCloth, positio
     })
 }
 
+#[derive(Clone, Copy)]
+enum How {
+    Next,
+    Wait(Duration),
+    Latest,
+}
+
 unsafe fn read(cloth: *const DrapeCloth, positions: *mut f32, positions_len: usize, normals: *mut f32, normals_len: usize,
-               info: *mut DrapeStateInfo, timeout: Option<Duration>) -> i32 {
+               info: *mut DrapeStateInfo, how: How) -> i32 {
     guard(|| {
         let Some(c) = cloth.as_ref() else { return bad("cloth is NULL") };
         if positions.is_null() {
@@ -224,9 +349,10 @@ unsafe fn read(cloth: *const DrapeCloth, positions: *mut f32, positions_len: usi
         }
         let pos = std::slice::from_raw_parts_mut(positions, positions_len);
         let nrm = if normals.is_null() { None } else { Some(std::slice::from_raw_parts_mut(normals, normals_len)) };
-        let r = match timeout {
-            Some(t) => c.cloth.wait_state(pos, nrm, t),
-            None => c.cloth.read_state(pos, nrm),
+        let r = match how {
+            How::Wait(t) => c.cloth.wait_state(pos, nrm, t),
+            How::Next => c.cloth.read_state(pos, nrm),
+            How::Latest => c.cloth.latest_state(pos, nrm),
         };
         match r {
             Ok(Some(st)) => {
@@ -256,21 +382,106 @@ fn info_of(s: &StateInfo) -> DrapeStateInfo {
     }
 }
 
-/// Decode the newest state not read yet into `positions` (3 floats per vertex; `normals` may
-/// be NULL): DRAPE_OK, DRAPE_NO_DATA (nothing new), or an error (SERVER_LOST, CLOSED...).
-/// `info` may be NULL. Never blocks; no allocation per vertex.
+/// Decode the next state not read yet into `positions` (`normals` may be NULL): the oldest
+/// unread one of a cloth submitted with a `queue_size` above 1, else the newest. Lengths count
+/// FLOATS, not vertices or bytes: 3 per vertex (`3 * drape_cloth_vertex_count`); a shorter
+/// buffer is DRAPE_E_INVALID_VALUE. Returns DRAPE_OK, DRAPE_NO_DATA (nothing new), or an error
+/// (SERVER_LOST, CLOSED...). `info` may be NULL. Never blocks; no allocation. Read until
+/// DRAPE_NO_DATA to take every queued state; `drape_cloth_counters` accounts for all of them.
 #[no_mangle]
 pub unsafe extern "C" fn drape_cloth_read_state(cloth: *const DrapeCloth, positions: *mut f32, positions_len: usize,
                                                 normals: *mut f32, normals_len: usize, info: *mut DrapeStateInfo) -> i32 {
-    read(cloth, positions, positions_len, normals, normals_len, info, None)
+    read(cloth, positions, positions_len, normals, normals_len, info, How::Next)
 }
 
-/// Like `drape_cloth_read_state`, waiting up to `timeout_ms` for a new state.
+/// Like `drape_cloth_read_state`, waiting up to `timeout_ms` for a new state (blocks: not for
+/// a game thread).
 #[no_mangle]
 pub unsafe extern "C" fn drape_cloth_wait_state(cloth: *const DrapeCloth, positions: *mut f32, positions_len: usize,
                                                 normals: *mut f32, normals_len: usize, timeout_ms: u32,
                                                 info: *mut DrapeStateInfo) -> i32 {
-    read(cloth, positions, positions_len, normals, normals_len, info, Some(Duration::from_millis(timeout_ms as u64)))
+    read(cloth, positions, positions_len, normals, normals_len, info, How::Wait(Duration::from_millis(timeout_ms as u64)))
+}
+
+/// Decode the newest state received, read before or not (lengths in floats, as
+/// `drape_cloth_read_state`): DRAPE_OK, or DRAPE_NO_DATA before the first state. Unread states
+/// older than it are dropped (counted as `replaced`). Never blocks.
+#[no_mangle]
+pub unsafe extern "C" fn drape_cloth_read_latest(cloth: *const DrapeCloth, positions: *mut f32, positions_len: usize,
+                                                 normals: *mut f32, normals_len: usize, info: *mut DrapeStateInfo) -> i32 {
+    read(cloth, positions, positions_len, normals, normals_len, info, How::Latest)
+}
+
+/// What became of a cloth's states (`drape_cloth_counters`). Every tick from the first state
+/// received (per placement) to the newest is counted once:
+/// `read + replaced + missed + unread == ticks`, and `received == read + replaced + unread`.
+#[repr(C)]
+#[derive(Default)]
+pub struct DrapeStateCounters {
+    /// States received (in tick order).
+    pub received: u64,
+    /// States decoded by a read.
+    pub read: u64,
+    /// States received but dropped unread (a newer one replaced them: queue full, or
+    /// `drape_cloth_read_latest` skipped them).
+    pub replaced: u64,
+    /// Ticks of which no state arrived (gaps in the tick numbers).
+    pub missed: u64,
+    /// States waiting to be read now.
+    pub unread: u64,
+    /// Ticks spanned from the first state received (per placement) to the newest.
+    pub ticks: u64,
+    /// Payloads that were not valid states.
+    pub invalid: u64,
+    /// States older than one already received, ignored.
+    pub stale: u64,
+    /// The tick of the newest state received (0: none yet).
+    pub last_tick: u64,
+}
+
+/// Fill `*out` with the cloth's state counters. Never blocks.
+#[no_mangle]
+pub unsafe extern "C" fn drape_cloth_counters(cloth: *const DrapeCloth, out: *mut DrapeStateCounters) -> i32 {
+    guard(|| {
+        let (Some(c), Some(o)) = (cloth.as_ref(), out.as_mut()) else { return bad("cloth or out is NULL") };
+        let k = c.cloth.state_counters();
+        *o = DrapeStateCounters {
+            received: k.received,
+            read: k.read,
+            replaced: k.replaced,
+            missed: k.missed,
+            unread: k.unread,
+            ticks: k.ticks,
+            invalid: k.invalid,
+            stale: k.stale,
+            last_tick: k.last_tick,
+        };
+        DRAPE_OK
+    })
+}
+
+/// Cloth statuses (`drape_cloth_status`).
+pub const DRAPE_CLOTH_PENDING: i32 = 0;
+pub const DRAPE_CLOTH_LIVE: i32 = 1;
+pub const DRAPE_CLOTH_RESUBMITTING: i32 = 2;
+pub const DRAPE_CLOTH_LOST: i32 = 3;
+pub const DRAPE_CLOTH_REMOVED: i32 = 4;
+
+/// The cloth's status: DRAPE_CLOTH_PENDING (an asynchronous submission not answered yet),
+/// _LIVE, _RESUBMITTING (failover), _LOST, _REMOVED; DRAPE_E_INVALID_VALUE for NULL.
+#[no_mangle]
+pub unsafe extern "C" fn drape_cloth_status(cloth: *const DrapeCloth) -> i32 {
+    use crate::client::ClothStatus as S;
+    match cloth.as_ref() {
+        Some(c) => match c.cloth.status() {
+            S::Pending => DRAPE_CLOTH_PENDING,
+            S::Live => DRAPE_CLOTH_LIVE,
+            S::Resubmitting => DRAPE_CLOTH_RESUBMITTING,
+            S::Lost => DRAPE_CLOTH_LOST,
+            S::Removed => DRAPE_CLOTH_REMOVED,
+        },
+        None => bad("cloth is NULL"),
+    }
 }
 
 unsafe fn control(cloth: *const DrapeCloth, ctl: Control, wait: bool, tick: *mut u64) -> i32 {
@@ -312,7 +523,7 @@ pub unsafe extern "C" fn drape_cloth_set_gravity(cloth: *const DrapeCloth, gravi
 }
 
 /// Feature names of a mask of DRAPE_FEATURE_* bits (None: unknown bits, or empty mask).
-fn names_of(mask: u32) -> Result<Option<Vec<String>>, i32> {
+pub(crate) fn names_of(mask: u32) -> Result<Option<Vec<String>>, i32> {
     if mask >> FEATURE_NAMES.len() != 0 {
         return Err(bad(&format!("unknown feature bits 0x{mask:x} (DRAPE_FEATURE_* are 0x1..0x10)")));
     }
@@ -321,7 +532,7 @@ fn names_of(mask: u32) -> Result<Option<Vec<String>>, i32> {
 }
 
 /// The DRAPE_FEATURE_* mask of a feature list (names this version does not know are left out).
-fn mask_of(names: &[String]) -> u32 {
+pub(crate) fn mask_of(names: &[String]) -> u32 {
     names.iter().filter_map(|n| FEATURE_NAMES.iter().position(|f| f == n)).fold(0, |m, i| m | 1 << i)
 }
 

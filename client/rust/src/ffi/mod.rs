@@ -9,8 +9,12 @@
 //! thread (`drape_last_error`). No function panics across the boundary.
 #![allow(clippy::missing_safety_doc)]
 mod cloth;
+mod control;
+mod info;
 mod moves;
 pub use cloth::*;
+pub use control::*;
+pub use info::*;
 pub use moves::*;
 
 use crate::client::{Client, ClientOptions, Cloth, Event, LossReason};
@@ -48,6 +52,9 @@ pub const DRAPE_E_OVERLOADED: i32 = 17;
 /// Not an error: no new state / no event.
 pub const DRAPE_NO_DATA: i32 = 100;
 
+/// The longest id (client, server, cloth) plus its NUL: a buffer of this many bytes holds any id.
+pub const DRAPE_ID_MAX: usize = 72;
+
 /// Feature bits (protocol 1.2 feature changes, `drape_cloth_features`): one bit per feature,
 /// in the protocol's order.
 pub const DRAPE_FEATURE_XPBD: u32 = 1;
@@ -64,6 +71,14 @@ pub const DRAPE_EVENT_SERVER_LOST: i32 = 2;
 pub const DRAPE_EVENT_CLOTH_LOST: i32 = 3;
 pub const DRAPE_EVENT_CLOTH_RESUBMITTED: i32 = 4;
 pub const DRAPE_EVENT_REQUEST_FAILED: i32 = 5;
+/// A control sent with `drape_cloth_control_async` was applied: `request`, `handle`, `cloth`,
+/// `tick` (first tick showing it) and `features` (the resulting mask, or DRAPE_FEATURES_UNKNOWN).
+pub const DRAPE_EVENT_REQUEST_DONE: i32 = 6;
+/// A cloth submitted with `drape_submit_*_async` is live: `handle`, `cloth`, `server`.
+pub const DRAPE_EVENT_SUBMITTED: i32 = 7;
+/// A cloth submitted with `drape_submit_*_async` was refused (every retry included) or not
+/// answered: `handle`, `code`, `message`; the handle is lost (free it).
+pub const DRAPE_EVENT_SUBMIT_FAILED: i32 = 8;
 
 /// Why a cloth failed over (`DrapeEvent.reason` of DRAPE_EVENT_CLOTH_RESUBMITTED; 0 otherwise):
 /// its server's liveliness vanished, or its server no longer had it (reclaimed, restarted).
@@ -94,6 +109,11 @@ pub struct DrapeClientOptions {
     /// last received state (positions and velocities), its last pins and colliders sent again,
     /// under the same handle (DRAPE_EVENT_CLOTH_RESUBMITTED).
     pub failover: bool,
+    /// false (the default): `drape_client_open` waits up to the timeout for a server's
+    /// liveliness token (`server_id`'s, else any) and fails with DRAPE_E_UNAVAILABLE when none
+    /// appears. true: return at once (servers are announced by DRAPE_EVENT_SERVER_FOUND; a
+    /// request before one appears waits up to the timeout).
+    pub lazy: bool,
 }
 
 /// An event (see `drape_client_poll_event`); strings are NUL-terminated, empty when unused.
@@ -122,6 +142,13 @@ pub struct DrapeEvent {
     /// CLOTH_RESUBMITTED: its own server still held it; nothing was resubmitted
     /// (`cloth` == `old_cloth`).
     pub kept: bool,
+    /// REQUEST_DONE and REQUEST_FAILED of an asynchronous control: the number
+    /// `drape_cloth_control_async` returned (else 0).
+    pub request: u64,
+    /// REQUEST_DONE: the first tick showing the control (else 0).
+    pub tick: u64,
+    /// REQUEST_DONE: the cloth's feature mask after it (DRAPE_FEATURES_UNKNOWN when not reported).
+    pub features: u32,
 }
 
 thread_local! {
@@ -129,7 +156,7 @@ thread_local! {
 }
 
 pub(crate) fn fail(e: Error) -> i32 {
-    LAST_ERROR.with(|l| *l.borrow_mut() = e.to_string());
+    LAST_ERROR.with(|l| *l.borrow_mut() = crate::client::scrub(&e.to_string()));
     e.code as i32
 }
 
@@ -151,7 +178,7 @@ pub(crate) unsafe fn opt_str<'a>(p: *const c_char, what: &str) -> Result<Option<
 }
 
 /// Copy `s` into `buf` (NUL-terminated, truncated to `len - 1` bytes).
-pub(crate) unsafe fn copy_out(s: &str, buf: *mut c_char, len: usize) -> i32 {
+pub(crate) unsafe fn copy_truncated(s: &str, buf: *mut c_char, len: usize) -> i32 {
     if buf.is_null() || len == 0 {
         return bad("null or empty output buffer");
     }
@@ -161,7 +188,17 @@ pub(crate) unsafe fn copy_out(s: &str, buf: *mut c_char, len: usize) -> i32 {
     DRAPE_OK
 }
 
-fn fill(dst: &mut [c_char], s: &str) {
+/// Copy the id `s` into `buf` (NUL-terminated); a buffer too small for all of it is
+/// DRAPE_E_INVALID_VALUE with an empty string in `buf` (an id cut short would name another).
+pub(crate) unsafe fn copy_out(s: &str, buf: *mut c_char, len: usize) -> i32 {
+    if !buf.is_null() && len > 0 && s.len() >= len {
+        *buf = 0;
+        return bad(&format!("buffer of {len} bytes too small for {} bytes and the NUL (DRAPE_ID_MAX is enough)", s.len()));
+    }
+    copy_truncated(s, buf, len)
+}
+
+pub(crate) fn fill(dst: &mut [c_char], s: &str) {
     let n = s.len().min(dst.len() - 1);
     for (d, b) in dst.iter_mut().zip(s.bytes().take(n)) {
         *d = b as c_char;
@@ -178,7 +215,7 @@ pub extern "C" fn drape_version() -> *const c_char {
 /// The message of this thread's last error, copied into `buf` (NUL-terminated, truncated).
 #[no_mangle]
 pub unsafe extern "C" fn drape_last_error(buf: *mut c_char, len: usize) -> i32 {
-    LAST_ERROR.with(|l| copy_out(&l.borrow(), buf, len))
+    LAST_ERROR.with(|l| copy_truncated(&l.borrow(), buf, len))
 }
 
 /// The protocol name of a code ("invalid_value"...), "ok", "no_data" or "?" (static string).
@@ -278,6 +315,9 @@ unsafe fn open(
             o.timeout = Duration::from_millis(opts.timeout_ms as u64);
         }
         o.failover = opts.failover;
+        o.require_server = !opts.lazy;
+    } else {
+        o.require_server = true;
     }
     match Client::open(o) {
         Ok(client) => {
@@ -327,19 +367,37 @@ pub unsafe extern "C" fn drape_client_poll_event(client: *const DrapeClient, tim
     guard(|| {
         let (Some(c), Some(out)) = (client.as_ref(), out.as_mut()) else { return bad("client or out is NULL") };
         let Some(ev) = c.client.poll_event(Duration::from_millis(timeout_ms as u64)) else { return DRAPE_NO_DATA };
+        let none = String::new();
         let (kind, code, handle, server, cloth, old, msg) = match &ev {
-            Event::ServerFound { server } => (DRAPE_EVENT_SERVER_FOUND, 0, 0, server.as_str(), "", "", String::new()),
-            Event::ServerLost { server } => (DRAPE_EVENT_SERVER_LOST, 0, 0, server.as_str(), "", "", String::new()),
+            Event::ServerFound { server } => (DRAPE_EVENT_SERVER_FOUND, 0, 0, server.as_str(), "", "", none),
+            Event::ServerLost { server } => (DRAPE_EVENT_SERVER_LOST, 0, 0, server.as_str(), "", "", none),
             Event::ClothLost { handle, cloth, server, error } => {
                 (DRAPE_EVENT_CLOTH_LOST, error.code as i32, *handle, server.as_str(), cloth.as_str(), "", error.to_string())
             }
             Event::ClothResubmitted { handle, old_cloth, cloth, server, .. } => {
-                (DRAPE_EVENT_CLOTH_RESUBMITTED, 0, *handle, server.as_str(), cloth.as_str(), old_cloth.as_str(), String::new())
+                (DRAPE_EVENT_CLOTH_RESUBMITTED, 0, *handle, server.as_str(), cloth.as_str(), old_cloth.as_str(), none)
             }
-            Event::RequestFailed { handle, error } => {
-                (DRAPE_EVENT_REQUEST_FAILED, error.code as i32, handle.unwrap_or(0), "", "", "", error.to_string())
+            Event::RequestFailed { handle, cloth, error, .. } => {
+                (DRAPE_EVENT_REQUEST_FAILED, error.code as i32, handle.unwrap_or(0), "", cloth.as_str(), "", error.to_string())
+            }
+            Event::RequestDone { handle, cloth, .. } => (DRAPE_EVENT_REQUEST_DONE, 0, *handle, "", cloth.as_str(), "", none),
+            Event::Submitted { handle, cloth, server } => {
+                (DRAPE_EVENT_SUBMITTED, 0, *handle, server.as_str(), cloth.as_str(), "", none)
+            }
+            Event::SubmitFailed { handle, error } => {
+                (DRAPE_EVENT_SUBMIT_FAILED, error.code as i32, *handle, "", "", "", error.to_string())
             }
         };
+        let (request, tick, features) = match &ev {
+            Event::RequestDone { request, tick, features, .. } => {
+                (*request, *tick, features.as_deref().map_or(DRAPE_FEATURES_UNKNOWN, cloth::mask_of))
+            }
+            Event::RequestFailed { request, .. } => (*request, 0, 0),
+            _ => (0, 0, 0),
+        };
+        out.request = request;
+        out.tick = tick;
+        out.features = features;
         let (old_server, resumed_tick, reason, kept) = match &ev {
             Event::ClothResubmitted { old_server, resumed_tick, reason, kept, .. } => {
                 let r = match reason {
@@ -361,7 +419,7 @@ pub unsafe extern "C" fn drape_client_poll_event(client: *const DrapeClient, tim
         fill(&mut out.server, server);
         fill(&mut out.cloth, cloth);
         fill(&mut out.old_cloth, old);
-        fill(&mut out.message, &msg);
+        fill(&mut out.message, &crate::client::scrub(&msg));
         DRAPE_OK
     })
 }

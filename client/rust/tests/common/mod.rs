@@ -109,6 +109,7 @@ pub fn c_cloth_options(pins: &[u32], normals: bool) -> drape::ffi::DrapeClothOpt
         bundle: false,
         quality: std::ptr::null(),
         gravity: std::ptr::null(),
+        ..Default::default()
     }
 }
 

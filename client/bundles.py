@@ -64,6 +64,11 @@ class BundleReceiver:
             return
         states = bundle.decode(receive_time_ns)
         now = time.monotonic()
+        predictive = None  # 1.5: entries whose state is predictive, by cloth id
+        for i, entry in enumerate(bundle.entries):
+            if entry.size > 8 and bundle.data[entry.offset + 8] == P.ENC_PREDICTIVE:
+                predictive = predictive or {}
+                predictive[entry.cloth] = i
         handles = self._handles
         for cloth, st in zip(P.BundleEntries.of(bundle.entries).cloths, states, strict=True):
             h = handles.get(cloth)
@@ -75,6 +80,15 @@ class BundleReceiver:
                 continue
             if st.__class__ is ClothState:
                 h._deliver(st, now)  # type: ignore[arg-type]
+            elif predictive is not None and cloth in predictive:  # 1.5: decoded through its stream
+                try:
+                    got = h._decode(bundle.payload(predictive[cloth]), receive_time_ns)
+                except DrapeError as e:
+                    h.invalid += 1
+                    log.warning("cloth %s: invalid state in bundle: %s", h.id, e)
+                    continue
+                if got is not None:
+                    h._deliver(got, now)
             else:
                 h.invalid += 1
                 log.warning("cloth %s: invalid state in bundle: %s", h.id, st)

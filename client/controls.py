@@ -97,6 +97,7 @@ class ControlBatch:
         quality: str | None = None,
         features_add: Iterable[str] | None = None,
         features_remove: Iterable[str] | None = None,
+        step: float | None = None,
     ) -> ControlBatch:
         """As ClothHandle.set, for one item of the batch (``features_add`` / ``features_remove``: 1.2)."""
         return self.add(
@@ -115,6 +116,7 @@ class ControlBatch:
                 quality,
                 features_add,
                 features_remove,
+                step,
             ),
         )
 
@@ -186,8 +188,10 @@ def _set_changes(
     quality: str | None = None,
     features_add: Iterable[str] | None = None,
     features_remove: Iterable[str] | None = None,
+    step: float | None = None,
 ) -> dict[str, Any]:
-    state = P.StateOptions(normals, encoding) if (normals is not None or encoding is not None) else None
+    changed = normals is not None or encoding is not None or step is not None
+    state = P.StateOptions(normals, encoding, None, step) if changed else None
     add = _feature_names(features_add)
     remove = _feature_names(features_remove)
     if add and remove and set(add) & set(remove):

@@ -27,6 +27,10 @@ log = logging.getLogger("drape.client.sdk")
 StateCallback = Callable[[ClothState], None]
 
 
+def _ignore_reply(_reply: zenoh.Reply) -> None:
+    """A keyframe query's answer: the keyframe itself comes as the stream's next state."""
+
+
 class ClothHandle:
     """One submitted cloth: its state stream and its controls. A context manager that removes
     the cloth on exit.
@@ -68,6 +72,12 @@ class ClothHandle:
         self.received = 0
         self.dropped = 0
         self.invalid = 0
+        # 1.5, predictive states: decoded against this stream's last two (protocol.StateStream);
+        # a state predicted from one this client lacks is shown extrapolated and counted here
+        self.stream = P.StateStream(self.id)
+        self.gaps = 0
+        self.keyframe_queries = 0
+        self._keyframe_asked = 0.0  # monotonic time of the last keyframe query
         self.closed = False
         self.close_reason = ""
         self.removing = False  # this client asked the server to remove it (controls sent before may find it gone)
@@ -95,12 +105,42 @@ class ClothHandle:
     def _on_sample(self, sample: zenoh.Sample) -> None:
         now = time.time_ns()
         try:
-            st = P.decode_state(sample.payload.to_bytes(), self.id, now)
+            st = self._decode(sample.payload.to_bytes(), now)
         except DrapeError as e:
             self.invalid += 1
             log.warning("cloth %s: invalid state payload: %s", self.id, e)
             return
-        self._deliver(st)
+        if st is not None:
+            self._deliver(st)
+
+    def _decode(self, data: bytes | memoryview, receive_time_ns: int) -> ClothState | None:
+        """The state of a payload, through the cloth's stream (1.5: a predictive state needs the
+        last two). One predicted from a state this client lacks (lost, or before it subscribed)
+        gives the last state extrapolated instead, counts a gap and asks for a keyframe (None
+        before any state)."""
+        st = self.stream.decode(data, receive_time_ns)
+        if st is not None:
+            return st
+        self.gaps += 1
+        self.ask_keyframe()
+        tick = P.read_state_header(data, len(data))[4]
+        return self.stream.extrapolate(tick, receive_time_ns=receive_time_ns)
+
+    def ask_keyframe(self, min_interval_s: float = 0.1) -> bool:
+        """1.5: ask the server for a keyframe of this cloth's stream (a query on the key its
+        states come on, not waited for); at most one every ``min_interval_s``. Whether asked."""
+        now = time.monotonic()
+        if now - self._keyframe_asked < min_interval_s:
+            return False
+        self._keyframe_asked = now
+        self.keyframe_queries += 1
+        key = self.bundle_key or self.key
+        try:
+            self.client.session.get(key, _ignore_reply, timeout=1.0)
+        except Exception as e:  # the session closing
+            log.debug("keyframe query on %s failed: %s", key, e)
+            return False
+        return True
 
     def _deliver(self, st: ClothState, now: float | None = None) -> None:
         """Queue a state and run the callbacks (on the thread that received it). ``now``: the
@@ -154,6 +194,7 @@ class ClothHandle:
             self.server_id = server
             self.last_receipt = time.monotonic()
             self._fresh = True
+            self.stream = P.StateStream(reply.cloth)  # the new server's stream starts with a keyframe
         moves_of(self.client).changed()  # cached ids and tokens of moves blocks (1.4) are stale
         if old_sub is not None:
             try:
@@ -282,6 +323,7 @@ class ClothHandle:
         quality: str | None = None,
         features_add: Iterable[str] | None = None,
         features_remove: Iterable[str] | None = None,
+        step: float | None = None,
     ) -> int | None:
         """Change any of the cloth's settings from the next tick on; fields left None stay as
         they are (``material`` may name only the fields to change; ``quality``: a preset of
@@ -290,7 +332,8 @@ class ClothHandle:
         ``features`` replaces the whole feature set (dropping, say, ``normals`` the submission
         turned on); ``features_add`` / ``features_remove`` (protocol 1.2) switch only the names
         given. A 1.2 server reports the resulting set, kept in :attr:`features` after a waited
-        control."""
+        control. ``encoding="predictive"`` and ``step`` (metres; protocol 1.5) switch to the
+        predictive encoding or change its grid: the next state is a keyframe."""
         return self._control(
             wait,
             **_set_changes(
@@ -307,6 +350,7 @@ class ClothHandle:
                 quality,
                 features_add,
                 features_remove,
+                step,
             ),
         )
 

@@ -40,6 +40,7 @@ cloth_options = (
     "colliders",
     "normals",
     "encoding",
+    "step",
     "bundle",
     "quality",
     "timeout",
@@ -210,6 +211,7 @@ class SubmittingMixin:
         colliders: Sequence[Any] | None = None,
         normals: bool = False,
         encoding: str = "float32",
+        step: float | None = None,
         bundle: bool = False,
         quality: str | None = None,
         timeout: float | None = None,
@@ -237,8 +239,8 @@ class SubmittingMixin:
             chebyshev_rho=chebyshev_rho,
             colliders=tuple(_collider(c) for c in colliders) if colliders is not None else None,
             state=(
-                P.StateOptions(bool(normals), encoding, True if bundle else None)
-                if (normals or encoding != "float32" or bundle)
+                P.StateOptions(bool(normals), encoding, True if bundle else None, step)
+                if (normals or encoding != "float32" or bundle or step is not None)
                 else None
             ),
             quality=quality,

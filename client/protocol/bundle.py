@@ -30,7 +30,7 @@ from .state import (
     read_state_header,
     snorm16_decode_many,
 )
-from .vocabulary import ENC_FLOAT16, ENC_FLOAT32, ENC_QUANT16, ENCODING_NAMES
+from .vocabulary import ENC_FLOAT16, ENC_FLOAT32, ENC_PREDICTIVE, ENC_QUANT16, ENCODING_NAMES
 
 BUNDLE_MAGIC = b"DRPB"
 #: The bundle header, field by field: (name, struct code, meaning); BUNDLE_HEADER and the C header
@@ -330,8 +330,8 @@ def _block(buf: bytes | bytearray | memoryview, at: np.ndarray, dtype: str, n: i
 
 
 _ELEMENT_SIZES = np.array([element_size(e) for e in range(256)], np.int64)
-_KNOWN_ENCODINGS = np.zeros(256, bool)
-_KNOWN_ENCODINGS[list(ENCODING_NAMES)] = True
+_KNOWN_ENCODINGS = np.zeros(256, bool)  # decoded here by groups (a predictive state needs its stream)
+_KNOWN_ENCODINGS[[e for e in ENCODING_NAMES if e != ENC_PREDICTIVE]] = True
 _VALUES = {ENC_FLOAT32: ("<f4", "<f4"), ENC_FLOAT16: ("<f2", "<f2"), ENC_QUANT16: ("<u2", "<i2")}
 
 
@@ -369,8 +369,8 @@ def decode_states(
             try:
                 hsize0, e, _, n0 = read_state_header(buf, int(size.min()), int(off[0]))[:4]
             except ProtocolError:
-                pass  # the entry by entry path says for which
-            else:
+                e = ENC_PREDICTIVE  # the entry by entry path says for which
+            if e != ENC_PREDICTIVE:  # predictive states: each its stream's, entry by entry below
                 with np.errstate(all="ignore"):  # hostile bounds and values (NaN, inf) decode quietly
                     h = raw.view(STATE_HEADER_DTYPE).reshape(k)
                     has_n = bool(h["flags"][0] & FLAG_NORMALS)

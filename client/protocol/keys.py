@@ -6,7 +6,7 @@ import re
 from dataclasses import dataclass
 
 PROTOCOL_MAJOR = 1
-PROTOCOL_MINOR = 4
+PROTOCOL_MINOR = 5
 PROTOCOL_VERSION: tuple[int, int] = (PROTOCOL_MAJOR, PROTOCOL_MINOR)
 VERSION_STRING = f"{PROTOCOL_MAJOR}.{PROTOCOL_MINOR}"
 #: The minor versions this side has vectors for (every minor of the major is accepted on the wire).

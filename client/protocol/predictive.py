@@ -107,7 +107,8 @@ def _widths(blocks: np.ndarray) -> np.ndarray:
     return w
 
 
-def packed_size(n: int, widths: np.ndarray) -> int:
+def packed_size(n: int, widths: np.ndarray | list[int]) -> int:
+    """Bytes of the packed data of n vertices whose blocks have these widths."""
     nb = -(-n // BLOCK)
     return 4 * (-(-3 * nb // 4)) + 4 * int(np.asarray(widths, np.int64).sum())
 

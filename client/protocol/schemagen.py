@@ -33,6 +33,8 @@ from .vocabulary import (
     MAX_MAP_KEYS,
     ORIENTATIONS,
     QUALITY_PRESETS,
+    STEP_MAX,
+    STEP_MIN,
     LinkSpec,
 )
 
@@ -131,6 +133,7 @@ def _defs() -> dict[str, Any]:
                 "normals": _nullable({"type": "boolean"}),
                 "encoding": _nullable({"enum": list(ENCODINGS)}),
                 "bundle": _nullable({"type": "boolean"}),
+                "step": _nullable({"type": "number", "minimum": STEP_MIN, "maximum": STEP_MAX}),
             }
         ),
         "quality": {"enum": list(QUALITY_PRESETS)},

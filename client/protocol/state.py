@@ -12,7 +12,8 @@ import numpy as np
 
 from .errors import ERR_INVALID_VALUE, ERR_MALFORMED, ERR_UNSUPPORTED_VERSION, ProtocolError
 from .keys import PROTOCOL_MAJOR, PROTOCOL_MINOR, VERSION_STRING
-from .vocabulary import ENC_FLOAT16, ENC_FLOAT32, ENCODING_IDS, ENCODING_NAMES, ENCODINGS, Vec3
+from .predictive import History, encode_step
+from .vocabulary import ENC_FLOAT16, ENC_FLOAT32, ENC_PREDICTIVE, ENCODING_IDS, ENCODING_NAMES, ENCODINGS, Vec3
 
 STATE_MAGIC = b"DRPS"
 #: The state header, field by field: (name, struct code, meaning). STATE_HEADER, the C header
@@ -22,7 +23,7 @@ STATE_HEADER_FIELDS: tuple[tuple[str, str, str], ...] = (
     ("major", "B", "protocol major version (1)"),
     ("minor", "B", "protocol minor version of the writer; readers accept any"),
     ("header_size", "H", "byte offset of the vertex data (64 up to 1.2)"),
-    ("encoding", "B", "0 float32, 1 float16, 2 quant16"),
+    ("encoding", "B", "0 float32, 1 float16, 2 quant16, 3 predictive (1.5)"),
     ("reserved0", "x", "0"),
     ("flags", "H", "bit 0: normals follow the positions; bit 1: reset state"),
     ("vertex_count", "I", "n, the number of vertices"),
@@ -62,6 +63,23 @@ def header_dtype(fields: Sequence[tuple[str, str, str]]) -> np.dtype:
 STATE_HEADER_DTYPE = header_dtype(STATE_HEADER_FIELDS)
 assert STATE_HEADER_DTYPE.itemsize == STATE_HEADER_SIZE
 
+#: 1.5: what a predictive state's header adds after the first 64 bytes (PROTOCOL.md 9.2); its
+#: header_size is 96 and the packed positions (client/protocol/predictive.py) follow.
+PREDICTIVE_HEADER_FIELDS: tuple[tuple[str, str, str], ...] = (
+    ("step", "f", "grid step in metres: a decoded position is within step / 2 of the simulated one"),
+    ("order", "B", "predictor order: 0 intra-coded (a keyframe), 1 the previous state, 2 the last two"),
+    ("reserved2", "x", "0"),
+    ("stride", "H", "ticks between this stream's states (1: every tick)"),
+    ("ref_tick", "Q", "tick of the stream's previous state (order 1 and 2), else 0"),
+    ("ref2_tick", "Q", "tick of the state before that (order 2), else 0"),
+    ("data_size", "I", "bytes of the packed positions, a multiple of 4"),
+    ("reserved3", "4x", "0"),
+)
+PREDICTIVE_HEADER = struct.Struct("<" + "".join(code for _, code, _ in PREDICTIVE_HEADER_FIELDS))
+assert PREDICTIVE_HEADER.format == "<fBxHQQI4x"
+PREDICTIVE_HEADER_SIZE = STATE_HEADER_SIZE + PREDICTIVE_HEADER.size  # 96
+assert PREDICTIVE_HEADER_SIZE == 96
+
 FLAG_NORMALS = 1 << 0  # normals follow the positions
 FLAG_RESET = 1 << 1  # this state is a reset (rest pose after a non-finite step, or a reset control)
 KNOWN_FLAGS = FLAG_NORMALS | FLAG_RESET
@@ -87,6 +105,9 @@ class ClothState:
     flags: int = 0
     bounds: tuple[Vec3, Vec3] = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
     cloth: str = ""
+    #: 1.5: not received but extrapolated from the last two states decoded (a predictive state
+    #: that could not be decoded: its reference was lost; see StateStream)
+    extrapolated: bool = False
 
     @property
     def n_vertices(self) -> int:
@@ -103,7 +124,8 @@ class ClothState:
 
 
 def element_size(encoding: int) -> int:
-    """Bytes per coordinate of an encoding id: 4 for float32, 2 for float16 and quant16."""
+    """Bytes per coordinate of an encoding id: 4 for float32, 2 for float16 and quant16 (and for
+    the normals of a predictive state, snorm16 as quant16's)."""
     return 4 if encoding == ENC_FLOAT32 else 2
 
 
@@ -111,9 +133,15 @@ _elem_size = element_size
 
 
 def state_size(n_vertices: int, encoding: str | int = "float32", normals: bool = False) -> int:
-    """Bytes of an encoded state (``encoding`` a name of ENCODINGS or its id)."""
-    e = element_size(ENCODING_IDS[encoding] if isinstance(encoding, str) else int(encoding))
-    return STATE_HEADER_SIZE + n_vertices * 3 * e * (2 if normals else 1)
+    """Bytes of an encoded state (``encoding`` a name of ENCODINGS or its id); of a predictive
+    state (whose size varies with its motion) the most it can take."""
+    enc = ENCODING_IDS[encoding] if isinstance(encoding, str) else int(encoding)
+    if enc == ENC_PREDICTIVE:
+        from .predictive import packed_size
+
+        nb = -(-n_vertices // 32)
+        return PREDICTIVE_HEADER_SIZE + packed_size(n_vertices, [32] * 3 * nb) + n_vertices * 6 * normals
+    return STATE_HEADER_SIZE + n_vertices * 3 * element_size(enc) * (2 if normals else 1)
 
 
 def pack_state_header(
@@ -126,15 +154,16 @@ def pack_state_header(
     server_time_ns: int,
     lo: Sequence[float],
     hi: Sequence[float],
+    header_size: int = STATE_HEADER_SIZE,
 ) -> None:
-    """Write a state header (this side's version, header_size 64) at ``at``."""
+    """Write a state header (this side's version; header_size 64, a predictive state's 96) at ``at``."""
     STATE_HEADER.pack_into(
         out,
         at,
         STATE_MAGIC,
         PROTOCOL_MAJOR,
         PROTOCOL_MINOR,
-        STATE_HEADER_SIZE,
+        header_size,
         encoding,
         flags,
         n,
@@ -216,6 +245,8 @@ def encode_state(
     enc = ENCODING_IDS.get(encoding)
     if enc is None:
         raise ValueError(f"unknown encoding {encoding!r}; choose from {ENCODINGS}")
+    if enc == ENC_PREDICTIVE:
+        raise ValueError("a predictive state is coded against its stream's history: encode_predictive_state")
     pos = np.asarray(positions, np.float32).reshape(-1, 3)
     n = len(pos)
     if normals is not None:
@@ -270,7 +301,15 @@ def read_state_header(buf: bytes | bytearray | memoryview, size: int, at: int = 
     if enc not in ENCODING_NAMES:
         raise ProtocolError(ERR_INVALID_VALUE, f"unknown state encoding {enc}")
     has_n = bool(flags & FLAG_NORMALS)
-    need = hsize + n * 3 * _elem_size(enc) * (2 if has_n else 1)
+    if enc == ENC_PREDICTIVE:
+        if hsize < PREDICTIVE_HEADER_SIZE or size < PREDICTIVE_HEADER_SIZE:
+            raise ProtocolError(
+                ERR_MALFORMED, f"predictive state of {size} bytes, header_size {hsize}: below {PREDICTIVE_HEADER_SIZE}"
+            )
+        data_size = PREDICTIVE_HEADER.unpack_from(buf, at + STATE_HEADER_SIZE)[-1]
+        need = hsize + data_size + n * 6 * has_n
+    else:
+        need = hsize + n * 3 * _elem_size(enc) * (2 if has_n else 1)
     if size < need:
         raise ProtocolError(
             ERR_MALFORMED,
@@ -286,6 +325,10 @@ def decode_state(data: bytes | bytearray | memoryview, cloth: str = "", receive_
     (a later minor version) and trailing bytes are ignored."""
     buf = memoryview(data).cast("B") if not isinstance(data, (bytes, bytearray)) else data
     (hsize, enc, flags, n, tick, t_ns, x0, y0, z0, x1, y1, z1) = read_state_header(buf, len(buf))
+    if enc == ENC_PREDICTIVE:
+        raise ProtocolError(
+            ERR_INVALID_VALUE, "a predictive state decodes against its stream's last states: use a StateStream"
+        )
     es = _elem_size(enc)
     block = n * 3 * es
     has_n = bool(flags & FLAG_NORMALS)
@@ -382,3 +425,58 @@ def quant16_decode_many(q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.nda
     if n0 < n:  # the last n % 64 vertices
         out[:, n0:] = (lo64 + np.asarray(q[:, n0:], np.float64) * step).astype(np.float32)
     return out
+
+
+# --- predictive states (1.5) ---------------------------------------------------------------------
+
+
+def encode_predictive_state(
+    tick: int,
+    server_time_ns: int,
+    positions: np.ndarray,
+    step: float,
+    history: History,
+    keyframe: bool = False,
+    normals: np.ndarray | None = None,
+    flags: int = 0,
+    stride: int = 1,
+) -> bytearray:
+    """A predictive state (PROTOCOL.md 9.2) of one stream, coded against ``history`` (the last
+    two states its decoders rebuilt, advanced here); ``keyframe``: intra-coded."""
+    pos = np.asarray(positions, np.float32).reshape(-1, 3)
+    n = len(pos)
+    data, order, ref1, ref2 = encode_step(pos, step, history, tick, keyframe)
+    flags = flags | FLAG_NORMALS if normals is not None else flags & ~FLAG_NORMALS
+    lo = pos.min(axis=0) if n else np.zeros(3, np.float32)
+    hi = pos.max(axis=0) if n else np.zeros(3, np.float32)
+    out = bytearray(PREDICTIVE_HEADER_SIZE + len(data) + (n * 6 if normals is not None else 0))
+    pack_state_header(out, 0, ENC_PREDICTIVE, flags, n, tick, server_time_ns, lo.tolist(), hi.tolist())
+    STATE_HEADER.pack_into(
+        out, 0, *STATE_HEADER.unpack_from(out)[:3], PREDICTIVE_HEADER_SIZE, *STATE_HEADER.unpack_from(out)[4:]
+    )
+    PREDICTIVE_HEADER.pack_into(out, STATE_HEADER_SIZE, float(np.float32(step)), order, stride, ref1, ref2, len(data))
+    out[PREDICTIVE_HEADER_SIZE : PREDICTIVE_HEADER_SIZE + len(data)] = data
+    if normals is not None:
+        encode_normals_into(out, PREDICTIVE_HEADER_SIZE + len(data), normals, ENC_PREDICTIVE)
+    return out
+
+
+@dataclass
+class PredictiveHeader:
+    """The fields a predictive state adds (PREDICTIVE_HEADER_FIELDS)."""
+
+    step: float
+    order: int
+    stride: int
+    ref_tick: int
+    ref2_tick: int
+    data_size: int
+
+
+def read_predictive_header(buf: bytes | bytearray | memoryview, at: int = 0) -> PredictiveHeader:
+    step, order, stride, ref1, ref2, size = PREDICTIVE_HEADER.unpack_from(buf, at + STATE_HEADER_SIZE)
+    if order > 2:
+        raise ProtocolError(ERR_INVALID_VALUE, f"unknown predictor order {order}")
+    if not (np.isfinite(step) and step > 0):
+        raise ProtocolError(ERR_INVALID_VALUE, f"predictive step {step} is not a positive number")
+    return PredictiveHeader(step, order, stride, ref1, ref2, size)

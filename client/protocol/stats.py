@@ -75,6 +75,8 @@ STATS_FIELDS: tuple[StatField, ...] = (
         "Controls replaced by a newer one for the same cloth before a tick",
     ),
     StatField("batch_moves", "integer", "counter", "Moves received in batch controls' moves blocks (protocol 1.4)"),
+    StatField("keyframes", "integer", "counter", "Intra-coded predictive states written (protocol 1.5)"),
+    StatField("keyframe_queries", "integer", "counter", "Keyframe queries answered (protocol 1.5)"),
     StatField("moves_applied", "integer", "counter", "Moves applied by the tick thread (protocol 1.4)"),
     StatField("move_blocks", "integer", "counter", "Moves blocks applied by the tick thread (protocol 1.4)"),
     StatField(

@@ -33,6 +33,8 @@ from .vocabulary import (
     MAX_MAP_KEYS,
     MAX_NESTING,
     MAX_STRING_BYTES,
+    STEP_MAX,
+    STEP_MIN,
     Capsule,
     Collider,
     Limits,
@@ -411,7 +413,8 @@ def _read_state_options(r: _Reader, key: str = "state", submit: bool = True) -> 
         raise r.fail(
             ERR_INVALID_VALUE, f"'{sub.name('bundle')}' can only be chosen at submission, not changed by a control"
         )
-    return StateOptions(sub.bool_("normals"), sub.str_("encoding", choices=ENCODINGS), bundle)
+    step = sub.num("step", STEP_MIN, STEP_MAX)  # 1.5, the predictive encoding's grid (metres)
+    return StateOptions(sub.bool_("normals"), sub.str_("encoding", choices=ENCODINGS), bundle, step)
 
 
 def _read_rho(r: _Reader) -> float | None:
@@ -483,6 +486,8 @@ def _state_map(s: StateOptions) -> dict[str, Any]:
         m["encoding"] = s.encoding
     if s.bundle is not None:
         m["bundle"] = bool(s.bundle)
+    if s.step is not None:
+        m["step"] = _f(s.step)
     return m
 
 

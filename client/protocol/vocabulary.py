@@ -150,9 +150,13 @@ class LinkSpec:
     bending: bool = False
 
 
-ENCODINGS = ("float32", "float16", "quant16")
-ENC_FLOAT32, ENC_FLOAT16, ENC_QUANT16 = 0, 1, 2
-ENCODING_IDS = {"float32": ENC_FLOAT32, "float16": ENC_FLOAT16, "quant16": ENC_QUANT16}
+ENCODINGS = ("float32", "float16", "quant16", "predictive")
+ENC_FLOAT32, ENC_FLOAT16, ENC_QUANT16, ENC_PREDICTIVE = 0, 1, 2, 3
+ENCODING_IDS = {"float32": ENC_FLOAT32, "float16": ENC_FLOAT16, "quant16": ENC_QUANT16, "predictive": ENC_PREDICTIVE}
+#: Encodings whose every state stands alone (a predictive state needs the stream's last two: 1.5).
+STATELESS_ENCODINGS = ("float32", "float16", "quant16")
+#: predictive (1.5): the grid step in metres a client may choose (``state.step``), and the default.
+STEP_MIN, STEP_MAX, STEP_DEFAULT = 1e-5, 0.1, 0.001
 ENCODING_NAMES = {v: k for k, v in ENCODING_IDS.items()}
 
 
@@ -160,11 +164,14 @@ ENCODING_NAMES = {v: k for k, v in ENCODING_IDS.items()}
 class StateOptions:
     """How a cloth's state is published. None = unchanged (control) or the default (submit:
     no normals, float32, own key). ``bundle`` (1.1, submission only): publish the state inside
-    the client's bundle on Keys.bundle(client) instead of on the cloth's own key."""
+    the client's bundle on Keys.bundle(client) instead of on the cloth's own key. ``step`` (1.5):
+    the predictive encoding's grid step in metres (default STEP_DEFAULT; the largest error of a
+    decoded position is half of it)."""
 
     normals: bool | None = None
     encoding: str | None = None
     bundle: bool | None = None
+    step: float | None = None  # 1.5, predictive: grid step in metres (STEP_MIN..STEP_MAX)
 
 
 @dataclass(frozen=True, eq=False)

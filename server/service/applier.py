@@ -258,6 +258,9 @@ class Applier:
         if req.state is not None and req.state.encoding is not None and req.state.encoding != rec.encoding:
             rec.encoding = req.state.encoding
             self.pub_changes += 1
+        if req.state is not None and req.state.step is not None and req.state.step != rec.step:
+            rec.step = req.state.step  # a predictive stream's next state is a keyframe on the new grid
+            self.pub_changes += 1
         return None
 
     def _features(self, rec: ClothRecord) -> tuple[str, ...] | None:

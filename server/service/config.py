@@ -102,6 +102,7 @@ class ServerConfig:
     state_congestion: str = "drop"  # drop | block | auto (see PROTOCOL.md, "Congestion control")
     drop_max_bytes: int = 60000  # auto: states up to this size use DROP, larger ones BLOCK
     device_encode: bool = True  # OpenCL worlds: states encoded on the device (one launch, one readback)
+    keyframe_interval: int = 60  # predictive states (1.5): an intra-coded state every this many ticks
     gil_switch_ms: float = 0.5  # Python's GIL switch interval in the server process (sys.setswitchinterval)
     request_yield: bool = True  # the request thread starts requests only while the tick thread sleeps
     program_idle_s: float = 10.0  # kernel programs no cloth used this long are released (0: kept for good)
@@ -143,6 +144,8 @@ class ServerConfig:
             raise ValueError(f"state_congestion must be one of {CONGESTION_CHOICES}")
         if not (0.01 <= self.gil_switch_ms <= 100):
             raise ValueError("gil_switch_ms must be in 0.01..100 ms")
+        if not (1 <= self.keyframe_interval <= 1_000_000):
+            raise ValueError("keyframe_interval must be in 1..1000000 ticks")
         if not (self.new_clients_per_s > 0 and self.new_clients_burst >= 1):
             raise ValueError("new_clients_per_s must be > 0 and new_clients_burst >= 1")
         if self.program_idle_s < 0:
@@ -343,6 +346,8 @@ HELP = {
     "state_congestion": "Zenoh congestion control of state publications",
     "drop_max_bytes": "auto congestion: largest state published with DROP",
     "device_encode": "encode the states on the OpenCL device, one packed frame per tick (reference: host)",
+    "keyframe_interval": "predictive states (protocol 1.5): ticks between intra-coded states of a stream, "
+    "besides those asked for (a late joiner's, a client's that lost one)",
     "gil_switch_ms": "the server process's GIL switch interval in ms (Python's default is 5: a thread "
     "returning from a Zenoh call waits up to that long behind a busy one)",
     "request_yield": "the request thread (decoding, validation, replies) starts a request only while the tick "

@@ -163,6 +163,7 @@ class Handlers:
             key="",
             n_vertices=req.n_vertices,
             encoding=(req.state.encoding if req.state and req.state.encoding else "float32"),
+            step=(req.state.step if req.state and req.state.step else P.STEP_DEFAULT),
         )
         # a cloth submitted on a client-scoped key (1.4) publishes on the client-scoped state key
         rec.key = self.keys.state(rec.id) if client is None else self.keys.client_state(client, rec.id)

@@ -67,6 +67,8 @@ STAT_METRICS: dict[str, str] = {
     "moves_applied": "drape_moves_applied",
     "move_blocks": "drape_move_blocks",
     "move_blocks_superseded": "drape_move_blocks_superseded",
+    "keyframes": "drape_keyframes",
+    "keyframe_queries": "drape_keyframe_queries",
 }
 
 

@@ -54,7 +54,14 @@ class Roster:
     normals: np.ndarray  # (k,) bool
     singles: np.ndarray  # frame indices published on their own key
     bundles: list[tuple[str, np.ndarray]]  # (bundle key, frame indices)
+    steps: list[float] = field(default_factory=list)  # 1.5, predictive cloths' grid steps (metres)
     _pubs: list[tuple[str, str, list[int], bool]] | None = None
+
+    @property
+    def predictive(self) -> bool:
+        """Whether a cloth of this roster is published with the predictive encoding (1.5):
+        its frames are encoded on the host (the device encoder does not code them yet)."""
+        return P.ENC_PREDICTIVE in self.encodings
 
     def publications(self) -> list[tuple[str, str, list[int], bool]]:
         """(publisher ident: cloth id or bundle key, key, frame indices, bundle) per payload:
@@ -74,6 +81,7 @@ class Job:
     roster: Roster | None = None
     flags: np.ndarray | None = None  # (k,) per cloth state flags (FLAG_RESET)
     encoded: EncodedFrame | None = None  # device-encoded payloads (device_encode), held until published
+    on_device: bool = False  # the frame was encoded on the device (else the publisher encodes it)
     before: list[Reply] = field(default_factory=list)
     removed: list[str] = field(default_factory=list)
     after: list[Reply] = field(default_factory=list)
@@ -150,10 +158,11 @@ class Publisher:
         self._pubs: dict[str, tuple[zenoh.Publisher, bool]] = {}  # per cloth id
         self._bundle_pubs: dict[str, tuple[zenoh.Publisher, bool]] = {}  # per bundle key
         self._buffers: dict[str, bytearray] = {}  # payload buffers reused per key
-        self._encoder = FrameEncoder()
+        self._encoder = FrameEncoder(config.keyframe_interval)
         self._roster_version: tuple[int, int] | None = None
         self.last_cost_s = 0.0  # encode + put of the last frame (the tick's cost model adds it)
         self.replier: Replier | None = None  # the run thread's (replies never wait in the publisher)
+        self.last_tick = 0  # the last tick published (keyframe queries are told the next one)
 
     def run(self) -> None:
         self.replier = Replier(f"{threading.current_thread().name}-replies")
@@ -205,8 +214,15 @@ class Publisher:
             buf = self._buffers[key] = bytearray(size)
         return buf
 
+    def request_keyframes(self, cloths: list[str]) -> int:
+        """1.5, any thread (a keyframe query): the next state of these cloths' predictive streams
+        is intra-coded. Returns the tick it will be at the earliest."""
+        self._encoder.streams.request(cloths)
+        return self.last_tick + 1
+
     def publish(self, job: Job) -> None:
         reply = self.replier.put if self.replier is not None else send
+        self.last_tick = max(self.last_tick, job.tick)
         for r in job.before:
             reply(r)
         if job.encoded is not None and job.roster is not None and job.roster.ids:
@@ -220,6 +236,7 @@ class Publisher:
                 undeclare(have[0])
         if job.roster is not None and job.roster.version != self._roster_version:
             self._roster_version = job.roster.version
+            self._encoder.streams.keep_only(set(job.roster.ids))
             freeze_long_lived()  # the new layout's records and rosters: out of the collector's scans
             live = {k for k, _ in job.roster.bundles}
             for bkey in [k for k in self._bundle_pubs if k not in live]:  # the client has no bundled cloth left
@@ -270,6 +287,19 @@ class Publisher:
                 log.warning("publishing bundle %s at tick %d failed: %s", bkey, job.tick, e)
         selected = [i for i, _, _ in singles] + [i for _, idx, _, _ in bundles for i in idx]
         enc.prepare(selected, ro.encodings)
+        if ro.predictive:  # 1.5: each predictive cloth coded against its stream; sizes now exact
+            keyframes = enc.streams.keyframes
+            enc.prepare_predictive(selected, ro.ids, ro.encodings, ro.steps, flags)
+            self.registry.count("keyframes", enc.streams.keyframes - keyframes)
+            watched = set(selected)
+            enc.streams.forget(
+                [ro.ids[i] for i, e in enumerate(ro.encodings) if e == P.ENC_PREDICTIVE and i not in watched]
+            )
+            singles = [(i, pub, enc.state_size(i, ro.encodings[i], bool(ro.normals[i]))) for i, pub, _ in singles]
+            bundles = [
+                (bkey, idx, pub, enc.bundle_size([(ro.ids[i], i, ro.encodings[i], bool(ro.normals[i])) for i in idx]))
+                for bkey, idx, pub, _ in bundles
+            ]
         enc_t, pub_t = time.perf_counter() - t0, 0.0
         published = n_bundles = 0
         for i, pub, size in singles:

@@ -37,6 +37,7 @@ class ClothRecord:
     key: str
     n_vertices: int
     encoding: str = "float32"
+    step: float = P.STEP_DEFAULT  # 1.5, predictive: the grid step in metres
     fabric: Fabric | None = None
     handle: int | None = None
     removed: bool = False

@@ -41,6 +41,7 @@ from .commands import Call, Intake
 from .config import ServerConfig
 from .cook import CookWorker
 from .handlers import Handlers
+from .keyframes import KeyframeQueries
 from .publisher import Publisher, Roster
 from .registry import Registry
 from .replies import Replies, undeclare
@@ -73,6 +74,7 @@ class Server:
         self.admission = Admission(self.config)
         self.quality = AdaptiveQuality(self.config)
         self.publisher = Publisher(self.config, self.keys, self.registry, self._timers)
+        self.keyframes = KeyframeQueries(self.keys, self.registry, self.publisher)  # 1.5
         self.ticker = Ticker(
             self.config,
             self.registry,
@@ -153,7 +155,7 @@ class Server:
         self._declared.append(
             lv.declare_subscriber(self.keys.all_clients_alive, self.handlers.on_client_liveliness, history=True)
         )
-        for key, cb in self.handlers.endpoints():
+        for key, cb in self.handlers.endpoints() + self.keyframes.endpoints():
             self._declared.append(s.declare_queryable(key, cb))
         self._token = lv.declare_token(self.keys.alive_server(sid))
         log.info(

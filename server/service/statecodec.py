@@ -10,6 +10,11 @@ float32 array (``positions``, with ``offsets[i]:offsets[i + 1]`` the vertices of
   an output buffer that the caller reuses from tick to tick (Zenoh copies a ``bytearray`` when
   it is put, so a buffer may be rewritten as soon as ``put`` returns).
 
+Predictive states (protocol 1.5) are coded per stream against the last two states its decoders
+rebuilt (:class:`PredictiveStreams`): a keyframe when a stream starts, every
+``keyframe_interval`` ticks, after a reset, a new step or a tick the stream was not encoded
+(nobody watched it), and when a subscriber asks (:meth:`PredictiveStreams.request`).
+
 The bytes are exactly those of :func:`drape.client.protocol.encode_state` and
 :func:`drape.client.protocol.encode_bundle` (tests/test_bundles.py checks that for every encoding):
 every layout number, size and the float16 / quant16 / snorm16 arithmetic come from the protocol
@@ -18,6 +23,7 @@ package (``drape.client.protocol.state`` and ``.bundle``); only the batching ove
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -33,6 +39,72 @@ def state_bytes(n: int, encoding: int, normals: bool) -> int:
 
 
 @dataclass(eq=False)
+class _Stream:
+    """One predictive stream: the decoders' last two states, its step and its last keyframe."""
+
+    history: P.History = field(default_factory=P.History)
+    step: float = 0.0
+    key_tick: int = -(1 << 62)
+    tick: int = -1  # the last tick encoded
+
+
+class PredictiveStreams:
+    """Every predictive cloth's stream (by cloth id), kept from frame to frame by the publisher.
+    ``request`` may be called from any thread (a keyframe query); the rest from the publisher's."""
+
+    #: A requested keyframe waits until this many ticks have passed since the stream's last one
+    #: (requests from many subscribers, or a hostile one asking every tick, cost one keyframe).
+    MIN_REQUESTED_GAP = 6
+
+    def __init__(self, keyframe_interval: int = 60) -> None:
+        self.keyframe_interval = keyframe_interval
+        self.streams: dict[str, _Stream] = {}
+        self._requested: set[str] = set()
+        self._lock = threading.Lock()
+        self.keyframes = 0  # intra-coded states written
+        self.requested_keyframes = 0  # of which asked for
+
+    def request(self, cloths: list[str]) -> None:
+        """The next state of each of these cloths' streams is a keyframe."""
+        with self._lock:
+            self._requested.update(cloths)
+
+    def take_requests(self) -> set[str]:
+        with self._lock:
+            out, self._requested = self._requested, set()
+        return out
+
+    def encode(
+        self, cloth: str, tick: int, positions: np.ndarray, step: float, reset: bool, requested: bool
+    ) -> tuple[bytes, int, int, int]:
+        """(packed data, order, ref tick, ref2 tick) of the stream's state at ``tick``."""
+        s = self.streams.get(cloth)
+        if s is None:
+            s = self.streams[cloth] = _Stream()
+        if requested and tick - s.key_tick < self.MIN_REQUESTED_GAP:
+            self.request([cloth])  # kept for a later tick
+            requested = False
+        keyframe = requested or reset or step != s.step or tick - s.key_tick >= self.keyframe_interval
+        if keyframe:
+            s.key_tick, s.step = tick, step
+            self.keyframes += 1
+            self.requested_keyframes += requested
+        s.tick = tick
+        return P.encode_step(positions, step, s.history, tick, keyframe)
+
+    def keep_only(self, cloths: set[str]) -> None:
+        """Forget the streams of cloths that are gone."""
+        for c in [c for c in self.streams if c not in cloths]:
+            del self.streams[c]
+
+    def forget(self, cloths: list[str]) -> None:
+        """These streams were not encoded this tick (nobody watched): whoever subscribes next
+        starts from a keyframe."""
+        for c in cloths:
+            self.streams.pop(c, None)
+
+
+@dataclass(eq=False)
 class _Group:
     """The encoded vertex blocks of the cloths of one encoding, back to back."""
 
@@ -44,7 +116,9 @@ class FrameEncoder:
     """Encode the states of one frame (call :meth:`begin`, then :meth:`prepare` with the cloths
     that will be written, then :meth:`write_state` / :meth:`write_bundle` for each)."""
 
-    def __init__(self) -> None:
+    def __init__(self, keyframe_interval: int = 60) -> None:
+        self.streams = PredictiveStreams(keyframe_interval)
+        self._coded: dict[int, tuple[bytes, int, int, int, float]] = {}  # predictive: frame index -> data
         self.tick = 0
         self.time_ns = 0
         self._positions = np.zeros((0, 3), np.float32)
@@ -65,6 +139,7 @@ class FrameEncoder:
         self._counts = np.diff(self._offsets).tolist()
         self._lo, self._hi = [], []
         self._groups = {}
+        self._coded = {}
 
     def prepare(self, cloths: list[int], encodings: list[int]) -> None:
         """Compute bounds and vertex blocks for ``cloths`` (indices into the frame), whose
@@ -82,6 +157,8 @@ class FrameEncoder:
         for i in cloths:
             by_enc.setdefault(encodings[i], []).append(i)
         for enc, idx in by_enc.items():
+            if enc == P.ENC_PREDICTIVE:  # coded per stream: prepare_predictive
+                continue
             idx = sorted(set(idx))
             if len(idx) == k:  # every cloth: the frame as is
                 src, local = pos, off
@@ -109,7 +186,33 @@ class FrameEncoder:
             # numpy's stubs give ndarray __buffer__ only for Python >= 3.12 (we check as 3.11)
             self._groups[enc] = _Group(memoryview(np.ascontiguousarray(block)).cast("B"), starts_b)  # type: ignore[arg-type]
 
+    def prepare_predictive(
+        self, cloths: list[int], ids: list[str], encodings: list[int], steps: list[float], flags: list[int]
+    ) -> None:
+        """Code the predictive states of ``cloths`` (after :meth:`prepare`: the bounds): each
+        against its stream (one per cloth id). Sizes are then exact (:meth:`state_size`)."""
+        requested = self.streams.take_requests()
+        pos, off = self._positions, self._offsets
+        for i in cloths:
+            if encodings[i] != P.ENC_PREDICTIVE or i in self._coded:
+                continue
+            cid = ids[i]
+            data, order, r1, r2 = self.streams.encode(
+                cid,
+                self.tick,
+                pos[off[i] : off[i + 1]],
+                steps[i],
+                bool(flags[i] & P.FLAG_RESET),
+                cid in requested,
+            )
+            self._coded[i] = (data, order, r1, r2, float(np.float32(steps[i])))
+
     def state_size(self, i: int, encoding: int, normals: bool) -> int:
+        if encoding == P.ENC_PREDICTIVE:
+            coded = self._coded.get(i)
+            if coded is None:  # before prepare_predictive: the most it can take
+                return state_bytes(self._counts[i], encoding, normals)
+            return P.PREDICTIVE_HEADER_SIZE + len(coded[0]) + self._counts[i] * 6 * normals
         return state_bytes(self._counts[i], encoding, normals)
 
     def write_state(
@@ -117,8 +220,19 @@ class FrameEncoder:
     ) -> int:
         """Write cloth ``i``'s state payload into ``out`` at ``at``; returns where it ends."""
         n = self._counts[i]
-        block = n * 3 * P.element_size(encoding)
         flags = (flags | P.FLAG_NORMALS) if normals is not None else (flags & ~P.FLAG_NORMALS)
+        if encoding == P.ENC_PREDICTIVE:
+            data, order, r1, r2, step = self._coded[i]
+            hs = P.PREDICTIVE_HEADER_SIZE
+            P.pack_state_header(out, at, encoding, flags, n, self.tick, self.time_ns, self._lo[i], self._hi[i], hs)
+            P.PREDICTIVE_HEADER.pack_into(out, at + P.STATE_HEADER_SIZE, step, order, 1, r1, r2, len(data))
+            end = at + hs + len(data)
+            out[at + hs : end] = data
+            if normals is not None:
+                P.encode_normals_into(out, end, normals, encoding)
+                end += n * 6
+            return end
+        block = n * 3 * P.element_size(encoding)
         P.pack_state_header(out, at, encoding, flags, n, self.tick, self.time_ns, self._lo[i], self._hi[i])
         g = self._groups[encoding]
         s = g.start[i]

@@ -205,7 +205,7 @@ class Ticker:
         self._wait_s = time.monotonic() - t
         job.frame = frame.hold()
         job.time_ns = time.time_ns()  # PROTOCOL.md: the server time is when the tick was read back
-        if self.device is not None and job.roster is not None:  # encoded on the device at enqueue time
+        if job.on_device and self.device is not None and job.roster is not None:  # encoded at enqueue time
             job.encoded = self.device.hold()
             job.encoded.set_time(job.time_ns)
             bad = self.device.nonfinite()
@@ -238,20 +238,21 @@ class Ticker:
             self._carry = after  # no next frame: sent in the next tick's own publisher pass
             return
         w.step(self.config.dt)
-        dev = device_world(w, self.config.device_encode)
+        lay = w.layout()  # the frame's own layout (fetch_async uses it)
+        roster = self._roster_for(lay)
+        # predictive states (1.5) are coded by the publisher's host encoder: that frame is read back
+        dev = device_world(w, self.config.device_encode and not roster.predictive)
         if dev is None:
             pending = w.fetch_async()
         elif self.device is None or self.device.world is not dev:
             self.device = DeviceFrames(dev)
-        lay = w.layout()  # the frame's own layout (fetch_async just used it)
-        roster = self._roster_for(lay)
         flags = np.zeros(len(lay.handles), np.int64)
         reset_flags = self.applier.reset_flags
         if reset_flags:
             idx = [lay.index[h] for h in reset_flags if h in lay.index]
             flags[idx] = P.FLAG_RESET
             reset_flags.clear()
-        job = Job(tick=self.tick, roster=roster, flags=flags, after=after)
+        job = Job(tick=self.tick, roster=roster, flags=flags, after=after, on_device=dev is not None)
         if dev is not None:
             assert self.device is not None  # the server time is stamped after the readback (set_time)
             pending = self.device.encode(roster, lay, self.tick, 0, flags)
@@ -274,6 +275,7 @@ class Ticker:
             lay.normals.copy(),
             np.array(singles, np.int64),
             [(k, np.array(v, np.int64)) for k, v in bundles.items()],
+            [r.step for r in recs],
         )
         return self._roster
 

@@ -220,7 +220,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m drape.server.tools.decodebench", description=__doc__.splitlines()[0])
     ap.add_argument("--states", type=int, default=256, help="states per bundle (default 256)")
     ap.add_argument("--side", type=int, default=32, help="grid side: side x side vertices per state (default 32)")
-    ap.add_argument("--encoding", nargs="+", default=list(P.ENCODINGS), choices=P.ENCODINGS)
+    ap.add_argument("--encoding", nargs="+", default=list(P.STATELESS_ENCODINGS), choices=P.STATELESS_ENCODINGS)
     ap.add_argument("--normals", choices=["both", "no", "yes"], default="both", help="states with normals")
     ap.add_argument("--repeat", type=int, default=30, help="timed bundles per path (median)")
     ap.add_argument("--warmup", type=int, default=3)

@@ -83,7 +83,7 @@ def check_bundle(data: bytes | bytearray, t: int = 5) -> list[P.ClothState | P.P
 # Bit for bit what decode_state gives
 
 
-@pytest.mark.parametrize("encoding", P.ENCODINGS)
+@pytest.mark.parametrize("encoding", P.STATELESS_ENCODINGS)
 @pytest.mark.parametrize("normals", [False, True])
 def test_a_bundle_of_equal_states_decodes_bit_for_bit(rng, encoding, normals):
     n = int(rng.choice([16, 64, 100, 1024]))
@@ -104,7 +104,7 @@ def test_mixed_random_bundles_decode_bit_for_bit(rng):
         states = []
         for _ in range(k):
             n = int(rng.choice(SIZES))
-            enc = str(rng.choice(P.ENCODINGS))
+            enc = str(rng.choice(P.STATELESS_ENCODINGS))
             states.append((random_id(rng), random_state(rng, n, enc, bool(rng.random() < 0.5), rng.random() < 0.2)))
         data = P.encode_bundle(7, 10**18 + 7, states)
         got = check_bundle(bytes(data), t=int(rng.integers(0, 2**63)))
@@ -132,7 +132,7 @@ def test_states_with_a_longer_header_or_trailing_bytes_decode_as_decode_state_do
     same kind: the values start at other offsets, so the group is not evenly spaced."""
     states = []
     for i in range(9):
-        st = random_state(rng, 50, str(rng.choice(P.ENCODINGS)), bool(i % 2))
+        st = random_state(rng, 50, str(rng.choice(P.STATELESS_ENCODINGS)), bool(i % 2))
         if i % 3 == 0:
             st = bytearray(st[:64] + rng.integers(0, 256, 16, np.uint8).tobytes() + st[64:] + b"later")
             st[5] = 99
@@ -142,7 +142,7 @@ def test_states_with_a_longer_header_or_trailing_bytes_decode_as_decode_state_do
 
 
 def test_an_invalid_state_spoils_only_its_own_entry(rng):
-    good = [random_state(rng, 30, enc, nrm) for enc in P.ENCODINGS for nrm in (False, True)]
+    good = [random_state(rng, 30, enc, nrm) for enc in P.STATELESS_ENCODINGS for nrm in (False, True)]
     base = good[0]
     bad = {
         "short": base[:40],
@@ -171,14 +171,14 @@ def test_corrupted_bundles_decode_entry_by_entry_as_decode_state_does(rng):
     bundle is refused as parse_bundle refuses it, or every entry is what state(i) gives."""
     for _ in range(15):
         like = rng.random() < 0.5
-        enc = str(rng.choice(P.ENCODINGS))
+        enc = str(rng.choice(P.STATELESS_ENCODINGS))
         states = [
             (
                 f"c{i}",
                 random_state(
                     rng,
                     16 if like else int(rng.choice(SIZES[:6])),
-                    enc if like else str(rng.choice(P.ENCODINGS)),
+                    enc if like else str(rng.choice(P.STATELESS_ENCODINGS)),
                     like or bool(rng.random() < 0.5),
                 ),
             )
@@ -198,7 +198,9 @@ def test_corrupted_bundles_decode_entry_by_entry_as_decode_state_does(rng):
 
 def test_decode_states_takes_payloads_anywhere_in_a_buffer(rng):
     """decode_states on payloads laid out by hand: unaligned, out of order, the same one twice."""
-    payloads = [bytes(random_state(rng, 20, str(rng.choice(P.ENCODINGS)), bool(rng.random() < 0.5))) for _ in range(6)]
+    payloads = [
+        bytes(random_state(rng, 20, str(rng.choice(P.STATELESS_ENCODINGS)), bool(rng.random() < 0.5))) for _ in range(6)
+    ]
     buf = bytearray(b"\x01\x02\x03")
     offsets = []
     for p in payloads:
@@ -313,7 +315,9 @@ def test_the_receiver_delivers_each_state_to_its_handle_with_its_guarantees(rng,
         h.on_state(lambda st, h=h: calls.append((h.id, st.tick, threading.get_ident())))
     sent = []
     for tick in range(1, 7):
-        states = [(c, random_state(rng, 12, str(rng.choice(P.ENCODINGS)), tick % 2 == 0, tick=tick)) for c in ids]
+        states = [
+            (c, random_state(rng, 12, str(rng.choice(P.STATELESS_ENCODINGS)), tick % 2 == 0, tick=tick)) for c in ids
+        ]
         states.append(("plain", random_state(rng, 4, "float32", False, tick=tick)))
         if tick == 4:  # an invalid state: counted for its cloth, the others delivered
             states[1] = (ids[1], b"DRPX" + bytes(states[1][1][4:]))

@@ -218,7 +218,7 @@ def test_accepted_vectors():
         assert all(k not in known for k in vec["ignored"])
 
 
-FROZEN = {"1.0": VECTORS / "v1.0", "1.1": VECTORS / "v1.1", "1.2": VECTORS / "v1.2", "1.3": VECTORS / "v1.3"}
+FROZEN = {v: VECTORS / f"v{v}" for v in ("1.0", "1.1", "1.2", "1.3", "1.4")}
 
 
 def _as_current(wire: dict) -> dict:
@@ -310,7 +310,7 @@ def test_committed_vectors_are_current():
 def test_the_document_s_hex_examples_are_the_vectors():
     """Every hex dump in PROTOCOL.md is byte for byte one of the committed vectors."""
     text = (Path(__file__).resolve().parents[2] / "PROTOCOL.md").read_text()
-    known = {v["hex"] for g in ("misc", "state", "bundle") for v in load(g)}
+    known = {v["hex"] for g in ("misc", "state", "bundle", "predictive") for v in load(g)}
     dumps = []
     for block in text.split("```")[1::2]:
         data = []
@@ -321,7 +321,7 @@ def test_the_document_s_hex_examples_are_the_vectors():
                 data.append(tok)
         if len(data) >= 16:
             dumps.append("".join(data))
-    assert len(dumps) == 3, "the remove message, a state and a bundle"
+    assert len(dumps) == 4, "the remove message, a state, a bundle and a predictive state"
     for d in dumps:
         assert d in known, d[:64]
 

@@ -118,6 +118,68 @@ def state_value(st: P.ClothState, data: bytes | memoryview) -> dict[str, Any]:
     }
 
 
+def predictive_vectors() -> list[dict[str, Any]]:
+    """1.5: one stream of predictive states (PROTOCOL.md 9.2), in order: a keyframe, a state of
+    order 1, two of order 2 (the last with normals), then a keyframe again; and a submit asking
+    for the encoding with its step. Each state's ``value`` is what a decoder that received the
+    stream's states before it rebuilds; ``input`` the float32 positions the encoder was given."""
+    step = 0.002
+    frames = [
+        [[0.0, 2.0, 0.0], [1.0, 1.5, -0.25], [0.5, 1.0, 0.75]],
+        [[0.01, 2.0, 0.0], [1.012, 1.49, -0.25], [0.5, 0.993, 0.76]],
+        [[0.021, 2.001, 0.0], [1.023, 1.481, -0.249], [0.499, 0.985, 0.771]],
+        [[0.03, 2.002, 0.001], [1.035, 1.47, -0.25], [0.498, 0.978, 0.78]],
+        [[0.04, 2.0, 0.002], [1.046, 1.46, -0.251], [0.497, 0.97, 0.79]],
+    ]
+    nrm = [[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, -1.0, 0.0]]
+    enc, dec = P.History(), P.StateStream("c")
+    out: list[dict[str, Any]] = []
+    notes = ["a keyframe (order 0)", "order 1", "order 2", "order 2, with normals", "a keyframe again"]
+    for i, (pos, note) in enumerate(zip(frames, notes, strict=True)):
+        tick, t_ns = 100 + i, 1_700_000_000_000_000_000 + i * 16_666_667
+        normals = np.asarray(nrm, np.float32) if i == 3 else None
+        x = np.asarray(pos, np.float32)
+        data = bytes(P.encode_predictive_state(tick, t_ns, x, step, enc, keyframe=i in (0, 4), normals=normals))
+        st = dec.decode(data)
+        assert st is not None
+        ph = P.read_predictive_header(data)
+        out.append(
+            {
+                "name": f"predictive_{i}",
+                "message": "state",
+                "description": f"State {i} of one predictive stream of three vertices, step 2 mm: {note}.",
+                "hex": data.hex(),
+                "input": {
+                    "positions": x.tolist(),
+                    "normals": None if normals is None else normals.tolist(),
+                    "keyframe": i in (0, 4),
+                    "step": step,
+                },
+                "value": {
+                    **state_value(st, data),
+                    "step": ph.step,
+                    "order": ph.order,
+                    "stride": ph.stride,
+                    "ref_tick": ph.ref_tick,
+                    "ref2_tick": ph.ref2_tick,
+                    "data_size": ph.data_size,
+                },
+            }
+        )
+    sub = P.SubmitRequest(
+        client="c1", grid=P.GridSpec(2, 2), state=P.StateOptions(encoding="predictive", step=0.002), rid=1
+    )
+    out.append(
+        msg_vector(
+            "submit_predictive",
+            "submit",
+            "1.5: a 2x2 grid published with the predictive encoding, step 2 mm.",
+            P.encode_submit(sub),
+        )
+    )
+    return out
+
+
 def bundle_vector(
     name: str, description: str, tick: int, t_ns: int, cloths: list[tuple[str, Any, Any, str, int]]
 ) -> dict[str, Any]:
@@ -876,6 +938,7 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
         "bundle": bundles,
         "invalid": invalid,
         "accepted": [future, future_bundle],
+        "predictive": predictive_vectors(),
     }
 
 

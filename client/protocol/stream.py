@@ -1,0 +1,102 @@
+"""One cloth's stream of states as a client receives them (PROTOCOL.md 9.2, 1.5): states of the
+stateless encodings decode alone; a predictive state decodes against the last two states this
+stream rebuilt, when they are the ones it names (``ref_tick``, ``ref2_tick``). A state predicted
+from one the stream lacks (a lost state, a late joiner) cannot be decoded: it is counted, the
+stream says it needs a keyframe, and :meth:`StateStream.extrapolate` gives the last state
+carried forward at its velocity instead: never garbage."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from .errors import ERR_MALFORMED, ProtocolError
+from .predictive import ORDER_INTRA, ORDER_LINEAR, History, decode_step
+from .state import (
+    FLAG_NORMALS,
+    SNORM_MAX,
+    ClothState,
+    decode_state,
+    read_predictive_header,
+    read_state_header,
+)
+from .vocabulary import ENC_PREDICTIVE, ENCODING_NAMES
+
+
+@dataclass
+class StateStream:
+    """Decodes one cloth's states in the order they arrive; counts what it could not show."""
+
+    cloth: str = ""
+    history: History = field(default_factory=History)
+    step: float = 0.0  # the predictive states' step (a new step needs a keyframe)
+    decoded: int = 0  # states decoded
+    undecodable: int = 0  # predictive states whose reference this stream lacked
+    keyframes: int = 0  # intra-coded states decoded
+    needs_keyframe: bool = False  # since the last undecodable state, until a keyframe
+    last: ClothState | None = None  # the last two states decoded (extrapolate's velocity)
+    before_last: ClothState | None = None
+
+    def decode(self, data: bytes | bytearray | memoryview, receive_time_ns: int = 0) -> ClothState | None:
+        """The state of ``data`` (the stream moves on), or None when it is predicted from a state
+        this stream does not hold (``needs_keyframe`` is then set). ProtocolError as
+        :func:`decode_state` raises it."""
+        buf = data if isinstance(data, (bytes, bytearray)) else memoryview(data).cast("B")
+        hsize, enc, flags, n, tick, t_ns, *b = read_state_header(buf, len(buf))
+        if enc != ENC_PREDICTIVE:
+            return self._keep(decode_state(buf, self.cloth, receive_time_ns))
+        ph = read_predictive_header(buf)
+        h = self.history
+        have = ph.order == ORDER_INTRA or (
+            ph.step == self.step
+            and h.q1 is not None
+            and h.tick1 == ph.ref_tick
+            and (ph.order < ORDER_LINEAR or (h.q2 is not None and h.tick2 == ph.ref2_tick))
+        )
+        if not have:
+            self.undecodable += 1
+            self.needs_keyframe = True
+            return None
+        try:
+            positions, size = decode_step(buf, n, ph.step, ph.order, h, tick, at=hsize)
+        except ValueError as e:
+            h.clear()  # a malformed state spoils the stream until the next keyframe
+            self.needs_keyframe = True
+            raise ProtocolError(ERR_MALFORMED, f"predictive state of cloth {self.cloth!r}: {e}") from None
+        normals = None
+        if flags & FLAG_NORMALS:
+            q = np.frombuffer(buf, "<i2", n * 3, hsize + size).reshape(n, 3)
+            normals = (q / SNORM_MAX).astype(np.float32)
+        if ph.order == ORDER_INTRA:
+            self.keyframes += 1
+            self.needs_keyframe = False
+        self.step = ph.step
+        bounds = ((b[0], b[1], b[2]), (b[3], b[4], b[5]))
+        st = ClothState(tick, t_ns, positions, normals, receive_time_ns, ENCODING_NAMES[enc], flags, bounds, self.cloth)
+        return self._keep(st)
+
+    def _keep(self, st: ClothState) -> ClothState:
+        self.decoded += 1
+        self.before_last, self.last = self.last, st
+        return st
+
+    def extrapolate(self, tick: int, server_time_ns: int = 0, receive_time_ns: int = 0) -> ClothState | None:
+        """The last state decoded carried to ``tick`` at the velocity of the last two (the last
+        state itself when there is one only; None before any): what to show for a state that
+        could not be decoded. Marked ``extrapolated``."""
+        last, prev = self.last, self.before_last
+        if last is None:
+            return None
+        pos = last.positions
+        if prev is not None and last.tick > prev.tick and tick > last.tick:
+            rate = (tick - last.tick) / (last.tick - prev.tick)
+            pos = (last.positions + (last.positions - prev.positions) * np.float32(rate)).astype(np.float32)
+        return replace(
+            last,
+            tick=tick,
+            server_time_ns=server_time_ns or last.server_time_ns,
+            positions=pos,
+            receive_time_ns=receive_time_ns,
+            extrapolated=True,
+        )

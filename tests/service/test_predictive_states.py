@@ -1,0 +1,132 @@
+"""Predictive states end to end (protocol 1.5): a real server on loopback publishes them, the SDK
+decodes them within half a step of the float32 states of the same motion, in bundles too; a
+subscriber that joins late or loses states asks for a keyframe and resyncs; controls switch the
+encoding and the step; the server's keyframes are counted."""
+
+from __future__ import annotations
+
+import threading
+
+import msgpack
+import numpy as np
+import pytest
+import zenoh
+from conftest import collect, connect, make_config, wait_until
+
+from drape.client import protocol as P
+from drape.server.service.server import Server
+
+STEP = 0.002
+
+
+@pytest.fixture(scope="module")
+def server():
+    with Server(make_config(keyframe_interval=30)) as srv:
+        yield srv
+
+
+def _pair(c, **kw):
+    """The same cloth twice: float32 and predictive (one motion: the solver is deterministic)."""
+    opts = dict(pinned=[0, 11], features=["tethers"], **kw)
+    f32 = c.submit_grid(12, 12, **opts)
+    pred = c.submit_grid(12, 12, encoding="predictive", step=STEP, **opts)
+    return f32, pred
+
+
+def _by_age(handle, states) -> dict[int, np.ndarray]:
+    """Positions by ticks since the cloth was added (the two were added in different ticks)."""
+    return {s.tick - handle.first_tick: s.positions for s in states if not s.extrapolated}
+
+
+def _within_half_a_step(f32, pred, n: int = 90) -> int:
+    a = _by_age(f32, collect(f32, n))
+    b = _by_age(pred, collect(pred, n))
+    common = sorted(set(a) & set(b))
+    assert len(common) > n // 2
+    for t in common:
+        err = np.abs(a[t] - b[t]).max()
+        assert err <= STEP / 2 + 1e-5, (t, err)
+    return len(common)
+
+
+def test_predictive_states_stay_within_half_a_step_of_float32(server):
+    c = connect(server)
+    try:
+        f32, pred = _pair(c)  # horizontal at rest, pinned at two corners: it falls and swings
+        assert _within_half_a_step(f32, pred) > 45
+        assert pred.stream.keyframes >= 2  # the first state, then one every 30 ticks
+        assert pred.gaps == 0 and pred.stream.undecodable == 0
+        sizes = pred.stream.last
+        assert sizes is not None and sizes.encoding == "predictive"
+    finally:
+        c.close()
+
+
+def test_bundled_predictive_states(server):
+    c = connect(server)
+    try:
+        f32, pred = _pair(c, bundle=True)
+        assert pred.bundled
+        assert _within_half_a_step(f32, pred) > 45
+        assert pred.gaps == 0
+    finally:
+        c.close()
+
+
+def test_a_late_joiner_asks_for_a_keyframe_and_resyncs(server):
+    """A second subscriber of the same key: its first states are predicted from states it never
+    received (unless it joined on a keyframe); a keyframe query makes the next state intra-coded
+    for everyone, and from then on it decodes every state."""
+    c = connect(server)
+    try:
+        pred = c.submit_grid(12, 12, pinned=[0, 11], encoding="predictive", step=STEP)
+        collect(pred, 5)
+        stream = P.StateStream(pred.id)
+        got: list[P.ClothState | None] = []
+        lock = threading.Lock()
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            with lock:
+                got.append(stream.decode(sample.payload.to_bytes()))
+
+        before = server.registry.counters["keyframe_queries"]
+        ep = server.config.listen[0]
+        conf = f'{{mode: "peer", connect: {{endpoints: ["{ep}"]}}, scouting: {{multicast: {{enabled: false}}}}}}'
+        session = zenoh.open(zenoh.Config.from_json5(conf))
+        try:
+            sub = session.declare_subscriber(pred.key, on_sample)
+            assert wait_until(lambda: len(got) >= 3)
+            replies = list(session.get(pred.key, timeout=2.0))
+            assert len(replies) == 1
+            answer = msgpack.unpackb(replies[0].ok.payload.to_bytes())
+            assert answer["v"] == list(P.PROTOCOL_VERSION) and answer["cloths"] == 1 and answer["tick"] > 0
+            n0 = len(got)
+            assert wait_until(lambda: len(got) >= n0 + 10)
+            with lock:
+                after = got[n0 + 2 :]
+            assert all(s is not None for s in after)  # resynced: every state decodes
+            assert stream.keyframes >= 1
+            sub.undeclare()
+        finally:
+            session.close()
+        assert server.registry.counters["keyframe_queries"] == before + 1
+    finally:
+        c.close()
+
+
+def test_controls_switch_the_encoding_and_the_step(server):
+    c = connect(server)
+    try:
+        h = c.submit_grid(8, 8, pinned=[0, 7])
+        collect(h, 3)
+        h.set(encoding="predictive", step=0.004)
+        assert wait_until(lambda: (s := h.latest()) is not None and s.encoding == "predictive")
+        assert wait_until(lambda: h.stream.step == pytest.approx(0.004))
+        tick = h.set(step=0.001)
+        assert tick is not None
+        assert wait_until(lambda: h.stream.step == pytest.approx(0.001))
+        states = [s for s in collect(h, 40) if s.tick > tick]
+        assert states and all(s.encoding == "predictive" and not s.extrapolated for s in states)
+        assert h.gaps == 0 and h.stream.undecodable == 0
+    finally:
+        c.close()

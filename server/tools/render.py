@@ -1,17 +1,26 @@
-"""Shaded 3-D pictures of cloths for ``drape demo``, drawn with Pillow: an orthographic camera,
-triangles and collider balls sorted back to front (painter's algorithm) and lit by one
-directional light with ambient, a floor grid, a title; frames written as PNG and as an animated
-GIF with one palette shared by all frames.
+"""Shaded 3-D pictures of cloths for ``drape demo``: a small numpy rasteriser with a depth buffer,
+per-pixel normals and shadows, with Pillow for the text and the files.
 
-The geometry (camera, depth order, shading) is numpy; Pillow draws the polygons, pastes the lit
-ball sprites and encodes the files. Pillow is imported inside the functions (the ``tools``
-extra).
+Every primitive becomes triangles with per-vertex normals and colours: cloths (their normals
+averaged over the triangles around each vertex, so shading is smooth across the grid; two-sided,
+with a colour for each side), and collider balls and capsules (closed meshes). One pass finds
+each pixel's nearest triangle (a depth buffer: a ball pushed into a cloth meets it along the true
+intersection, never a painter's-algorithm edge) and its barycentric coordinates; normals,
+colours and world positions are interpolated there and lit per pixel: a key light (with shadows
+from a shadow map, soft by percentage-closer filtering), a fill light, sky and ground ambient,
+specular highlights and light through thin cloth, in linear colour. The floor is the plane at
+the bottom of the bounds, traced per pixel (tiles, shadows, faded into the background). The
+camera is orthographic (fitting a box: ``front``, ``side``, ``top``, ``iso``) or perspective
+(:meth:`Camera.look_at`). Frames are drawn ``supersample`` times larger and scaled down (smooth
+edges). Frames are written as PNG and as an animated GIF with one palette for all frames.
+Pillow is imported inside the functions (the ``tools`` extra).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -38,21 +47,74 @@ VIEWS: dict[str, np.ndarray] = {
     "top": np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]),
     "iso": _rot_x(math.radians(25)) @ _rot_y(math.radians(-35)),  # yaw 35 deg, pitch 25 deg down
 }
-LIGHT = np.array([-0.35, 0.55, 0.76]) / np.linalg.norm([-0.35, 0.55, 0.76])  # in view space
-AMBIENT = 0.3
 COLLIDER: Colour = (165, 160, 150)
-FLOOR: Colour = (238, 238, 234)
-FLOOR_GRID: Colour = (205, 205, 200)
-FLOOR_EDGE: Colour = (150, 150, 145)
+
+
+@dataclass(frozen=True)
+class Lighting:
+    """The lights, in world space (directions point toward the light), and the surroundings."""
+
+    key: tuple[float, float, float] = (-0.45, 0.8, 0.55)  # the sun: casts the shadows
+    key_colour: tuple[float, float, float] = (1.0, 0.96, 0.9)
+    key_strength: float = 1.8
+    fill: tuple[float, float, float] = (0.6, 0.25, 0.5)
+    fill_colour: tuple[float, float, float] = (0.55, 0.65, 0.85)
+    fill_strength: float = 0.35
+    sky: tuple[float, float, float] = (0.32, 0.36, 0.45)  # ambient from above
+    ground: tuple[float, float, float] = (0.16, 0.14, 0.12)  # ambient from below
+    translucency: float = 0.35  # of the key light through a thin cloth lit from behind
+    background_top: Colour = (206, 214, 226)
+    background_bottom: Colour = (244, 242, 236)
+    floor: Colour = (226, 222, 212)
+    floor_alt: Colour = (214, 209, 198)  # the other tiles
+    floor_tile: float = 0.5  # metres
+    shadow: float = 0.72  # how much of the key light a shadow takes
+    exposure: float = 1.0
+
+    def key_dir(self) -> np.ndarray:
+        return _unit(np.asarray(self.key, np.float64))
+
+
+DEFAULT_LIGHTING = Lighting()
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return v / np.where(n > 0, n, 1.0)
+
+
+def _linear(c: Any) -> np.ndarray:
+    """sRGB 0-255 colours (..., 3) to linear 0-1."""
+    return (np.asarray(c, np.float64)[..., :3] / 255.0) ** 2.2
+
+
+@lru_cache(maxsize=1)
+def _srgb_table() -> np.ndarray:
+    """Linear 0..2 in 4096 steps to sRGB uint8, highlights above 0.8 rolled off, not clipped."""
+    x = np.linspace(0.0, 2.0, 4096)
+    x = np.where(x > 0.8, 0.8 + 0.2 * np.tanh((x - 0.8) / 0.2), x)
+    return np.clip(255.0 * x ** (1 / 2.2) + 0.5, 0, 255).astype(np.uint8)
+
+
+def _srgb(x: np.ndarray) -> np.ndarray:
+    """Linear colours to sRGB 0-255 uint8 (by table)."""
+    i = np.clip(x * (4095 / 2.0), 0, 4095).astype(np.int32)
+    return _srgb_table()[i]
 
 
 class Camera:
-    """Orthographic projection fitting the world box ``bounds`` into the pixel rectangle ``rect``."""
+    """Orthographic projection fitting the world box ``bounds`` into the pixel rectangle ``rect``
+    (``view``: one of VIEWS), or a perspective camera from :meth:`look_at`.
 
-    def __init__(self, view: str, bounds: np.ndarray, rect: tuple[float, float, float, float]) -> None:
+    :meth:`project` gives pixel coordinates and a depth (larger is farther); :meth:`rays` the
+    ray through pixel centres; :meth:`to_eye` the unit vector from world points to the eye."""
+
+    def __init__(self, view: str, bounds: Any, rect: tuple[float, float, float, float]) -> None:
         if view not in VIEWS:
             raise ValueError(f"view must be one of {sorted(VIEWS)}, got {view!r}")
         self.R = VIEWS[view]
+        self.perspective = False
+        self.eye = np.zeros(3)
         lo, hi = np.asarray(bounds, np.float64).reshape(2, 3)
         corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
         v = corners @ self.R.T
@@ -64,14 +126,56 @@ class Camera:
         self.uc, self.vc = (umin + umax) / 2, (vmin + vmax) / 2
         self.cx, self.cy = (x0 + x1) / 2, (y0 + y1) / 2
 
-    def view(self, p: Any) -> np.ndarray:
-        return np.asarray(p, np.float64) @ self.R.T
+    @classmethod
+    def look_at(cls, eye: Sequence[float], target: Sequence[float], fov_deg: float, size: tuple[int, int]) -> Camera:
+        """A perspective camera at ``eye`` looking at ``target`` (y up), ``fov_deg`` vertical
+        field of view, for an image of ``size`` (w, h) pixels."""
+        cam = cls.__new__(cls)
+        e, t = np.asarray(eye, np.float64), np.asarray(target, np.float64)
+        back = _unit(e - t)
+        right = _unit(np.cross([0.0, 1.0, 0.0], back))
+        up = np.cross(back, right)
+        cam.R = np.array([right, up, back])
+        cam.perspective = True
+        cam.eye = e
+        cam.scale = (size[1] / 2) / math.tan(math.radians(fov_deg) / 2)  # pixels per unit at depth 1
+        cam.uc = cam.vc = 0.0
+        cam.cx, cam.cy = size[0] / 2, size[1] / 2
+        return cam
 
-    def screen(self, v: np.ndarray) -> np.ndarray:
-        """View coordinates (..., 3) to pixels (..., 2)."""
-        return np.stack(
-            [self.cx + (v[..., 0] - self.uc) * self.scale, self.cy - (v[..., 1] - self.vc) * self.scale], axis=-1
-        )
+    def scaled(self, k: float) -> Camera:
+        """The same camera for an image ``k`` times larger."""
+        cam = Camera.__new__(Camera)
+        cam.__dict__.update(self.__dict__)
+        cam.scale, cam.cx, cam.cy = self.scale * k, self.cx * k, self.cy * k
+        return cam
+
+    def view(self, p: Any) -> np.ndarray:
+        return (np.asarray(p, np.float64) - self.eye) @ self.R.T
+
+    def project(self, p: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """World points (..., 3) to pixel x, y and depth (larger is farther)."""
+        v = self.view(p)
+        if self.perspective:
+            d = -v[..., 2]
+            inv = 1.0 / np.where(d > 1e-6, d, np.nan)
+            return self.cx + v[..., 0] * inv * self.scale, self.cy - v[..., 1] * inv * self.scale, d
+        return self.cx + (v[..., 0] - self.uc) * self.scale, self.cy - (v[..., 1] - self.vc) * self.scale, -v[..., 2]
+
+    def rays(self, px: np.ndarray, py: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Origins and unit directions (k, 3) of the rays through pixel positions ``px``, ``py``."""
+        u = (px - self.cx) / self.scale
+        v = -(py - self.cy) / self.scale
+        if self.perspective:
+            d = _unit(np.stack([u, v, -np.ones_like(u)], -1)) @ self.R
+            return np.broadcast_to(self.eye, d.shape), d
+        o = np.stack([u + self.uc, v + self.vc, np.zeros_like(u)], -1) @ self.R
+        return o, np.broadcast_to(-self.R[2], o.shape)
+
+    def to_eye(self, p: np.ndarray) -> np.ndarray:
+        if self.perspective:
+            return _unit(self.eye - p)
+        return np.broadcast_to(self.R[2], p.shape)
 
 
 def fit_bounds(points: Sequence[np.ndarray], margin: float = 0.05) -> np.ndarray:
@@ -89,28 +193,378 @@ def _rgb(c: Sequence[int]) -> Colour:
     return int(c[0]), int(c[1]), int(c[2])
 
 
-def shade(colour: Sequence[int], intensity: np.ndarray) -> np.ndarray:
-    """``colour`` scaled by each intensity in [0, 1], as uint8 (n, 3)."""
-    base = np.asarray(colour, np.float64)[:3]
-    return np.clip(base[None, :] * np.asarray(intensity, np.float64)[:, None], 0, 255).astype(np.uint8)
+# ------------------------------------------------------------------------------------------------
+# Geometry: everything as triangles with per-vertex normals and colours
 
 
-@lru_cache(maxsize=256)
-def _ball_sprite(r_px: int, colour: Colour) -> Any:
-    """A lit ball of radius ``r_px`` pixels as an RGBA image (per-pixel Lambert with ambient,
-    anti-aliased rim)."""
-    from PIL import Image
+@dataclass
+class Mesh:
+    """Triangles to draw: positions, unit normals, linear colours of the front and back sides
+    (n, 3) each, triangles (m, 3); ``two_sided``: a thin sheet (the side facing the viewer is lit,
+    light passes through); ``specular`` / ``shininess``: Blinn-Phong highlight."""
 
-    n = 2 * r_px + 3
-    yy, xx = np.mgrid[0:n, 0:n].astype(np.float64)
-    nx = (xx - (n - 1) / 2) / r_px
-    ny = -(yy - (n - 1) / 2) / r_px
-    d = np.sqrt(nx**2 + ny**2)
-    nz = np.sqrt(np.clip(1 - d**2, 0, 1))
-    lam = np.clip(nx * LIGHT[0] + ny * LIGHT[1] + nz * LIGHT[2], 0, 1)
-    rgb = shade(colour, (AMBIENT + (1 - AMBIENT) * lam).ravel()).reshape(n, n, 3)
-    alpha = (np.clip((1.0 - d) * r_px + 0.5, 0, 1) * 255).astype(np.uint8)
-    return Image.fromarray(np.dstack([rgb, alpha]), "RGBA")
+    positions: np.ndarray
+    normals: np.ndarray
+    front: np.ndarray
+    back: np.ndarray
+    triangles: np.ndarray
+    two_sided: bool = False
+    specular: float = 0.0
+    shininess: float = 20.0
+    shadows: bool = True  # casts shadows
+    sheen: float = 0.0  # brightening at grazing angles (velvet, satin)
+    uv: np.ndarray | None = None  # (n, 2) texture coordinates, with ``texture``
+    texture: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None  # uv (k, 2) -> front, back
+
+
+def vertex_normals(p: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Per-vertex unit normals: the area-weighted sum of the normals of the triangles around each."""
+    face = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
+    n = np.zeros_like(p)
+    for k in range(3):
+        np.add.at(n, t[:, k], face)
+    return _unit(n)
+
+
+def cloth_mesh(pos: Any, tris: Any, colour: Any, back: Any = None) -> Mesh:
+    """A two-sided cloth; ``colour`` / ``back``: one sRGB colour or one per vertex (n, 3).
+    Triangles with a non-finite corner are dropped."""
+    p = np.asarray(pos, np.float64).reshape(-1, 3)
+    t = np.asarray(tris, np.int64).reshape(-1, 3)
+    if len(t) and (t.min() < 0 or t.max() >= len(p)):
+        raise ValueError(f"triangle indices out of range for {len(p)} positions")
+    t = t[np.isfinite(p[t]).all(axis=(1, 2))] if len(t) else t
+    p = np.where(np.isfinite(p), p, 0.0)
+    front = np.broadcast_to(_linear(colour), p.shape).copy()
+    backc = front * 0.8 if back is None else np.broadcast_to(_linear(back), p.shape).copy()
+    return Mesh(p, vertex_normals(p, t) if len(t) else np.zeros_like(p), front, backc, t, True, 0.04, 10.0)
+
+
+@lru_cache(maxsize=8)
+def _unit_rings(lat: int, lon: int) -> tuple[np.ndarray, np.ndarray]:
+    """Ring angles of a UV sphere: ``lat + 1`` latitudes from -90 to 90 degrees, ``lon`` longitudes."""
+    return np.linspace(-math.pi / 2, math.pi / 2, lat + 1), np.linspace(0, 2 * math.pi, lon, endpoint=False)
+
+
+def _ring_triangles(rings: int, lon: int) -> np.ndarray:
+    """Triangles joining ``rings`` consecutive rings of ``lon`` vertices each."""
+    i, j = np.meshgrid(np.arange(rings - 1), np.arange(lon), indexing="ij")
+    a = i * lon + j
+    b = i * lon + (j + 1) % lon
+    c = a + lon
+    d = b + lon
+    return np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
+
+
+def capsule_mesh(
+    p0: Any, p1: Any, radius: float, colour: Any, specular: float = 0.35, shininess: float = 40.0, segments: int = 24
+) -> Mesh:
+    """A capsule (a sphere when ``p0`` == ``p1``): smooth normals, ``segments`` around."""
+    a, b = np.asarray(p0, np.float64), np.asarray(p1, np.float64)
+    axis = b - a
+    ln = float(np.linalg.norm(axis))
+    w = axis / ln if ln > 1e-9 else np.array([0.0, 1.0, 0.0])
+    e1 = _unit(np.cross(w, [1.0, 0, 0] if abs(w[0]) < 0.9 else [0, 0, 1.0]))
+    e2 = np.cross(w, e1)
+    lats, lons = _unit_rings(max(4, segments // 2), segments)
+    around = np.cos(lons)[:, None] * e1 + np.sin(lons)[:, None] * e2  # (lon, 3)
+    dirs, centres = [], []
+    for phi in lats:
+        ring = math.cos(phi) * around + math.sin(phi) * w
+        end = b if phi > 0 else a
+        dirs.append(ring)
+        centres.append(np.broadcast_to(end, ring.shape))
+        if abs(phi) < 1e-9 and ln > 1e-9:  # the cylinder between the ends, in short pieces
+            for f in np.linspace(0.0, 1.0, int(np.clip(math.ceil(ln / (3 * radius)), 1, 48)) + 1)[1:]:
+                dirs.append(ring)
+                centres.append(np.broadcast_to(a + f * axis, ring.shape))
+    n = np.concatenate(dirs)
+    p = np.concatenate(centres) + radius * n
+    t = _ring_triangles(len(dirs), len(lons))
+    c = np.broadcast_to(_linear(colour), p.shape).copy()
+    return Mesh(p, n, c, c, t, False, specular, shininess)
+
+
+def sphere_mesh(centre: Any, radius: float, colour: Any, specular: float = 0.35, shininess: float = 40.0) -> Mesh:
+    return capsule_mesh(centre, centre, radius, colour, specular, shininess)
+
+
+# ------------------------------------------------------------------------------------------------
+# Rasterising
+
+
+def rasterise(
+    sx: np.ndarray, sy: np.ndarray, depth: np.ndarray, w: int, h: int, chunk: int = 4_000_000
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The nearest triangle at each pixel centre of a ``w`` x ``h`` image.
+
+    ``sx``, ``sy``, ``depth``: (m, 3) each, the corners' pixel coordinates and depths (larger is
+    farther). Returns the depth buffer (h * w, inf where empty), the triangle index (-1 where
+    empty) and the barycentric weights of corners 1 and 2 there."""
+    zbuf = np.full(h * w, np.inf)
+    tri = np.full(h * w, -1, np.int64)
+    b1 = np.zeros(h * w)
+    b2 = np.zeros(h * w)
+    if not len(sx):
+        return zbuf, tri, b1, b2
+    x0, x1, x2 = sx.T
+    y0, y1, y2 = sy.T
+    area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+    ok = np.isfinite(area) & (np.abs(area) > 1e-9) & np.isfinite(depth).all(axis=1)
+    with np.errstate(invalid="ignore"):
+        xmin = np.ceil(np.nan_to_num(sx.min(1)) - 0.5).clip(0, w).astype(np.int64)
+        xmax = np.floor(np.nan_to_num(sx.max(1)) - 0.5).clip(-1, w - 1).astype(np.int64)
+        ymin = np.ceil(np.nan_to_num(sy.min(1)) - 0.5).clip(0, h).astype(np.int64)
+        ymax = np.floor(np.nan_to_num(sy.max(1)) - 0.5).clip(-1, h - 1).astype(np.int64)
+    bw, bh = xmax - xmin + 1, ymax - ymin + 1
+    cnt = np.where(ok & (bw > 0) & (bh > 0), bw * bh, 0)
+    idx = np.nonzero(cnt)[0]
+    if not len(idx):
+        return zbuf, tri, b1, b2
+    # chunks of triangles of at most ``chunk`` candidate pixels (one huge triangle is one chunk)
+    csum = np.cumsum(cnt[idx])
+    bounds = np.searchsorted(csum, np.arange(chunk, int(csum[-1]) + chunk, chunk), side="right")
+    cands = []
+    start = 0
+    for stop in [*bounds.tolist(), len(idx)]:
+        if stop <= start:
+            continue
+        sel = idx[start:stop]
+        start = stop
+        c = cnt[sel]
+        t = np.repeat(sel, c)
+        off = np.arange(int(c.sum())) - np.repeat(np.cumsum(c) - c, c)
+        px = xmin[t] + off % bw[t]
+        py = ymin[t] + off // bw[t]
+        X, Y = px + 0.5 - x0[t], py + 0.5 - y0[t]
+        ar = area[t]
+        w1 = (X * (y2 - y0)[t] - (x2 - x0)[t] * Y) / ar
+        w2 = ((x1 - x0)[t] * Y - X * (y1 - y0)[t]) / ar
+        inside = (w1 >= -1e-6) & (w2 >= -1e-6) & (w1 + w2 <= 1 + 1e-6)
+        t, px, py, w1, w2 = t[inside], px[inside], py[inside], w1[inside], w2[inside]
+        d = depth[t]
+        z = d[:, 0] + w1 * (d[:, 1] - d[:, 0]) + w2 * (d[:, 2] - d[:, 0])
+        pix = py * w + px
+        np.minimum.at(zbuf, pix, z)
+        cands.append((pix, z, t, w1, w2))
+    for pix, z, t, w1, w2 in cands:
+        win = z <= zbuf[pix]
+        p = pix[win]
+        tri[p], b1[p], b2[p] = t[win], w1[win], w2[win]
+    return zbuf, tri, b1, b2
+
+
+class ShadowMap:
+    """Depth from the key light (an orthographic view along it) over ``meshes``; :meth:`lit`
+    tells how lit world points are (0 shadowed .. 1 lit), filtered over neighbouring texels."""
+
+    def __init__(self, meshes: Sequence[Mesh], light: np.ndarray, res: int = 400) -> None:
+        self.res = res
+        back = _unit(light)
+        right = _unit(np.cross([0.0, 1.0, 0.0] if abs(back[1]) < 0.99 else [1.0, 0, 0], back))
+        self.R = np.array([right, np.cross(back, right), back])
+        cast = [m for m in meshes if m.shadows and len(m.triangles)]
+        self.empty = not cast
+        if self.empty:
+            return
+        p = np.concatenate([m.positions for m in cast])
+        off = np.cumsum([0] + [len(m.positions) for m in cast])[:-1]
+        t = np.concatenate([m.triangles + o for m, o in zip(cast, off, strict=True)])
+        v = p @ self.R.T
+        lo, hi = v[:, :2].min(0), v[:, :2].max(0)
+        pad = 0.02 * float((hi - lo).max()) + 1e-6
+        self.lo = lo - pad
+        self.texel = float((hi - lo).max() + 2 * pad) / res
+        self.w, self.h = (np.ceil((hi - lo + 2 * pad) / self.texel).astype(int) + 1).tolist()
+        sx, sy = self._uv(v)
+        zbuf, _, _, _ = rasterise(sx[t], sy[t], -v[:, 2][t], self.w, self.h)
+        self.z = zbuf.reshape(self.h, self.w)
+        self.zp = np.pad(self.z, 2, constant_values=np.inf).ravel()  # lookups need no bounds checks
+
+    def _uv(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return (v[..., 0] - self.lo[0]) / self.texel, (v[..., 1] - self.lo[1]) / self.texel
+
+    def lit(self, p: np.ndarray, bias: float) -> np.ndarray:
+        out = np.ones(len(p))
+        if self.empty or not len(p):
+            return out
+        v = p @ self.R.T
+        u, w = self._uv(v)
+        near = np.nonzero((u > -1) & (u < self.w + 1) & (w > -1) & (w < self.h + 1))[0]
+        # percentage-closer filtering: the four nearest texels' tests, weighted bilinearly
+        u, w, d = u[near] + 1.5, w[near] + 1.5, -v[near, 2] - bias
+        iu, iv = np.floor(u), np.floor(w)
+        fu, fv = u - iu, w - iv
+        stride = self.w + 4
+        i = (iv.astype(np.int64) * stride + iu.astype(np.int64)).clip(0, self.zp.size - stride - 2)
+        z = self.zp
+        top = (1 - fu) * (d <= z[i]) + fu * (d <= z[i + 1])
+        bottom = (1 - fu) * (d <= z[i + stride]) + fu * (d <= z[i + stride + 1])
+        out[near] = (1 - fv) * top + fv * bottom
+        return out
+
+
+# ------------------------------------------------------------------------------------------------
+# The scene
+
+
+def _background(h: int, w: int, light: Lighting) -> np.ndarray:
+    top, bottom = _linear(light.background_top), _linear(light.background_bottom)
+    f = np.linspace(0.0, 1.0, h)[:, None, None]
+    return np.broadcast_to(top * (1 - f) + bottom * f, (h, w, 3)).astype(np.float32, order="C")
+
+
+@dataclass
+class _FloorLayer:
+    """What does not change from frame to frame: the background with the lit floor (linear),
+    and per floor pixel its index, world point and the colour a full shadow takes away."""
+
+    image: np.ndarray
+    pix: np.ndarray
+    points: np.ndarray
+    shadow: np.ndarray
+
+
+_FLOORS: dict[Any, _FloorLayer] = {}
+
+
+def _floor_layer(
+    cam: Camera, bounds: np.ndarray, h: int, w: int, light: Lighting, floor: bool, fade: bool, background: bool
+) -> _FloorLayer:
+    """The floor (the plane at the bottom of ``bounds``, over its x-z extent, its edge faded into
+    the background with ``fade``) over the background, lit by the key light without shadows;
+    cached by camera, bounds, size and lighting (animation frames share it)."""
+    key = (
+        cam.R.tobytes(),
+        cam.eye.tobytes(),
+        (cam.scale, cam.cx, cam.cy, cam.uc, cam.vc, cam.perspective),
+        bounds.tobytes(),
+        h,
+        w,
+        light,
+        floor,
+        fade,
+        background,
+    )
+    if key in _FLOORS:
+        return _FLOORS[key]
+    img = _background(h, w, light) if background else np.ones((h, w, 3), np.float32)
+    pix = np.zeros(0, np.int64)
+    p = np.zeros((0, 3))
+    delta = np.zeros((0, 3))
+    if floor:
+        pix = np.arange(h * w)
+        o, d = cam.rays(pix % w + 0.5, pix // w + 0.5)
+        y0 = float(bounds[0][1])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = (y0 - o[:, 1]) / d[:, 1]
+        hit = np.isfinite(s) & (s > 0)
+        pix, s, o, d = pix[hit], s[hit], o[hit], d[hit]
+        p = o + s[:, None] * d
+        lo, hi = bounds[0], bounds[1]
+        if fade:
+            c = (lo + hi) / 2
+            ext = np.array([hi[0] - lo[0], hi[2] - lo[2]]) / 2
+            r = np.hypot((p[:, 0] - c[0]) / ext[0], (p[:, 2] - c[2]) / ext[1])
+            alpha = np.clip((1.35 - r) / 0.55, 0, 1) ** 1.5
+        else:
+            inside = (p[:, 0] >= lo[0]) & (p[:, 0] <= hi[0]) & (p[:, 2] >= lo[2]) & (p[:, 2] <= hi[2])
+            alpha = inside.astype(np.float64)
+        keep = alpha > 0
+        pix, p, alpha = pix[keep], p[keep], alpha[keep, None]
+        tile = light.floor_tile
+        odd = ((np.floor(p[:, 0] / tile) + np.floor(p[:, 2] / tile)) % 2).astype(bool)
+        base = np.where(odd[:, None], _linear(light.floor_alt), _linear(light.floor))
+        sun = light.key_strength * max(light.key_dir()[1], 0.0) * 0.42 * np.asarray(light.key_colour)
+        col = base * (np.asarray(light.sky) + sun)
+        flat = img.reshape(-1, 3)
+        flat[pix] = flat[pix] * (1 - alpha) + col * alpha
+        delta = alpha * base * sun * light.shadow
+    layer = _FloorLayer(img, pix, p, delta)
+    if len(_FLOORS) > 4:
+        _FLOORS.clear()
+    _FLOORS[key] = layer
+    return layer
+
+
+def _shade_meshes(
+    img: np.ndarray,
+    meshes: Sequence[Mesh],
+    cam: Camera,
+    light: Lighting,
+    shadow: ShadowMap | None,
+) -> np.ndarray:
+    """Draw ``meshes`` into ``img`` (linear, h x w x 3); returns where something was drawn."""
+    h, w = img.shape[:2]
+    drawn = [m for m in meshes if len(m.triangles)]
+    if not drawn:
+        return np.zeros((h, w), bool)
+    off = np.cumsum([0] + [len(m.positions) for m in drawn])[:-1]
+    P = np.concatenate([m.positions for m in drawn])
+    N = np.concatenate([m.normals for m in drawn])
+    F = np.concatenate([m.front for m in drawn])
+    B = np.concatenate([m.back for m in drawn])
+    T = np.concatenate([m.triangles + o for m, o in zip(drawn, off, strict=True)])
+    per_tri = np.repeat(np.arange(len(drawn)), [len(m.triangles) for m in drawn])
+    two = np.array([m.two_sided for m in drawn])[per_tri]
+    spec = np.array([m.specular for m in drawn])[per_tri]
+    shin = np.array([m.shininess for m in drawn])[per_tri]
+    sheen = np.array([m.sheen for m in drawn])[per_tri]
+    sx, sy, depth = cam.project(P)
+    zbuf, tri, b1, b2 = rasterise(sx[T], sy[T], depth[T], w, h)
+    pix = np.nonzero(tri >= 0)[0]
+    if not len(pix):
+        return np.zeros((h, w), bool)
+    t = tri[pix]
+    c = T[t]
+    w1, w2 = b1[pix][:, None], b2[pix][:, None]
+    w0 = 1 - w1 - w2
+
+    def interp(a: np.ndarray) -> np.ndarray:
+        return w0 * a[c[:, 0]] + w1 * a[c[:, 1]] + w2 * a[c[:, 2]]
+
+    p = interp(P)
+    n = _unit(interp(N))
+    v = cam.to_eye(p)
+    facing = (n * v).sum(1)
+    flip = two[t] & (facing < 0)
+    n = np.where(flip[:, None], -n, n)
+    front, back = interp(F), interp(B)
+    mesh_of = per_tri[t]
+    for i, m in enumerate(drawn):  # textures: colours per pixel from interpolated uv
+        if m.texture is None or m.uv is None or len(m.uv) != len(m.positions):
+            continue
+        sel = mesh_of == i
+        uv = np.zeros((len(P), 2))
+        uv[off[i] : off[i] + len(m.positions)] = m.uv
+        front[sel], back[sel] = m.texture(_interp_sel(uv, c[sel], w0[sel], w1[sel], w2[sel]))
+    base = np.where(flip[:, None], back, front)
+    key = light.key_dir()
+    ndl = n @ key
+    lit = shadow.lit(p, 0.03) if shadow is not None else np.ones(len(p))
+    sun = 1 - light.shadow * (1 - lit)
+    diffuse = np.maximum(ndl, 0) + np.where(two[t], light.translucency * np.maximum(-ndl, 0), 0.0)
+    fill = np.maximum(n @ _unit(np.asarray(light.fill, np.float64)), 0)
+    up = 0.5 + 0.5 * n[:, 1]
+    amb = up[:, None] * np.asarray(light.sky) + (1 - up[:, None]) * np.asarray(light.ground)
+    hv = _unit(key + v)
+    s = spec[t] * np.maximum((n * hv).sum(1), 0) ** shin[t] * (ndl > 0) * lit
+    kc = np.asarray(light.key_colour)
+    col = base * (
+        amb
+        + (light.key_strength * diffuse * sun)[:, None] * kc
+        + (light.fill_strength * fill)[:, None] * np.asarray(light.fill_colour)
+    )
+    col += (light.key_strength * s)[:, None] * kc
+    col *= 1 + (sheen[t] * (1 - np.abs(facing)) ** 2)[:, None]
+    img.reshape(-1, 3)[pix] = col * light.exposure
+    mask = np.zeros(h * w, bool)
+    mask[pix] = True
+    return mask.reshape(h, w)
+
+
+def _interp_sel(a: np.ndarray, c: np.ndarray, w0: np.ndarray, w1: np.ndarray, w2: np.ndarray) -> np.ndarray:
+    return w0 * a[c[:, 0]] + w1 * a[c[:, 1]] + w2 * a[c[:, 2]]
 
 
 def _font(px: int) -> Any:
@@ -122,24 +576,55 @@ def _font(px: int) -> Any:
         return ImageFont.load_default()
 
 
-def _draw_floor(draw: Any, cam: Camera, bounds: np.ndarray, y: float, width: int) -> None:
-    lo, hi = bounds
-    corners = np.array([[lo[0], y, lo[2]], [hi[0], y, lo[2]], [hi[0], y, hi[2]], [lo[0], y, hi[2]]])
-    sc = cam.screen(cam.view(corners))
-    draw.polygon([tuple(p) for p in sc.tolist()], fill=FLOOR)
-    ext = float(max(hi[0] - lo[0], hi[2] - lo[2]))
-    step = 10 ** math.floor(math.log10(ext / 8)) if ext > 0 else 1.0
-    step *= next(m for m in (1, 2, 5, 10) if ext / (step * m) <= 8)
-    segs = [[[x, y, lo[2]], [x, y, hi[2]]] for x in np.arange(math.ceil(lo[0] / step) * step, hi[0] + 1e-9, step)]
-    segs += [[[lo[0], y, z], [hi[0], y, z]] for z in np.arange(math.ceil(lo[2] / step) * step, hi[2] + 1e-9, step)]
-    for a, b in cam.screen(cam.view(np.array(segs))).tolist() if segs else []:
-        draw.line([tuple(a), tuple(b)], fill=FLOOR_GRID, width=width)
-    draw.line([tuple(p) for p in sc.tolist()] + [tuple(sc[0].tolist())], fill=FLOOR_EDGE, width=width)
+def draw_scene(
+    size: tuple[int, int],
+    meshes: Sequence[Mesh],
+    cam: Camera,
+    *,
+    bounds: Any,
+    floor: bool = True,
+    fade_floor: bool = False,
+    shadows: bool = True,
+    lighting: Lighting = DEFAULT_LIGHTING,
+    background: bool = True,
+    supersample: float = 2.0,
+    title: str | None = None,
+    caption: str | None = None,
+) -> np.ndarray:
+    """``meshes`` seen by ``cam`` (made for an image of ``size``), the floor at the bottom of
+    ``bounds``; a uint8 (h, w, 3) image, drawn ``supersample`` times larger (1.5, 2...) and scaled
+    down. ``title`` is written at the top centre, ``caption`` at the bottom left."""
+    from PIL import Image, ImageDraw
+
+    w, h = int(size[0]), int(size[1])
+    wk, hk = max(w, round(w * supersample)), max(h, round(h * supersample))
+    camk = cam.scaled(wk / w)
+    b = np.asarray(bounds, np.float64).reshape(2, 3)
+    layer = _floor_layer(camk, b, hk, wk, lighting, floor, fade_floor, background)
+    img = layer.image.copy()
+    smap = ShadowMap(meshes, lighting.key_dir()) if shadows else None
+    drawn = _shade_meshes(img, meshes, camk, lighting, smap).ravel()
+    if smap is not None and len(layer.pix):
+        seen = np.nonzero(~drawn[layer.pix])[0]
+        lit = smap.lit(layer.points[seen], 0.01)
+        dark = seen[lit < 1]
+        img.reshape(-1, 3)[layer.pix[dark]] -= layer.shadow[dark] * (1 - lit[lit < 1, None])
+    out = Image.fromarray(_srgb(img), "RGB")
+    if (wk, hk) != (w, h):
+        out = out.resize((w, h), Image.Resampling.LANCZOS)
+    d = ImageDraw.Draw(out)
+    if title:
+        px = max(12, round(min(w, h) / 25))
+        d.text((w / 2, 6), title, fill=(30, 34, 42), font=_font(px), anchor="mt")
+    if caption:
+        px = max(10, round(min(w, h) / 34))
+        d.text((8, h - 6), caption, fill=(70, 74, 82), font=_font(px), anchor="lb")
+    return np.asarray(out, np.uint8).copy()
 
 
 def render_scene(
     size: tuple[int, int],
-    cloths: Sequence[tuple[Any, Any, Sequence[int]]],
+    cloths: Sequence[tuple[Any, ...]],
     *,
     view: str = "iso",
     bounds: Any = None,
@@ -148,88 +633,44 @@ def render_scene(
     capsules: Sequence[Sequence[Any]] = (),
     floor: bool = True,
     supersample: int = 2,
+    shadows: bool = False,
 ) -> np.ndarray:
-    """Render cloths ``(positions (n, 3), triangles (m, 3), colour)`` with colliders.
+    """Render cloths ``(positions (n, 3), triangles (m, 3), colour[, back colour])`` with
+    colliders, seen orthographically from ``view``.
 
-    ``spheres`` are ``(centre, radius[, colour])`` and ``capsules`` ``(p0, p1, radius[, colour])``
-    (drawn as balls along the axis); they are depth-sorted with the cloth triangles. ``bounds``
-    ``((xmin, ymin, zmin), (xmax, ymax, zmax))`` fixes the camera (steady animation frames); None
-    fits the scene. The floor is the plane at the bottom of the bounds. ``supersample`` renders
-    larger and scales down (smooth edges). Triangles with non-finite corners are skipped.
-    Returns a uint8 (height, width, 3) array."""
-    from PIL import Image, ImageDraw
-
+    ``spheres`` are ``(centre, radius[, colour])`` and ``capsules`` ``(p0, p1, radius[, colour])``.
+    ``bounds`` ``((xmin, ymin, zmin), (xmax, ymax, zmax))`` fixes the camera (steady animation
+    frames); None fits the scene. The floor is the plane at the bottom of the bounds.
+    Triangles with non-finite corners are skipped. Returns a uint8 (height, width, 3) array."""
     w, h = int(size[0]), int(size[1])
     if w < 1 or h < 1:
         raise ValueError(f"image size must be at least 1x1, got {w}x{h}")
-    k = max(1, int(supersample))
-    cl = []
-    for pos, tris, colour in cloths:
-        p = np.asarray(pos, np.float64).reshape(-1, 3)
-        t = np.asarray(tris, np.int64).reshape(-1, 3)
-        if len(t) and (t.min() < 0 or t.max() >= len(p)):
-            raise ValueError(f"triangle indices out of range for {len(p)} positions")
-        cl.append((p, t, _rgb(colour)))
+    if view not in VIEWS:
+        raise ValueError(f"view must be one of {sorted(VIEWS)}, got {view!r}")
+    meshes = [cloth_mesh(c[0], c[1], c[2], c[3] if len(c) > 3 else None) for c in cloths]
     if bounds is None:
-        pts = [p for p, _, _ in cl] + [np.array([np.subtract(s[0], s[1]), np.add(s[0], s[1])]) for s in spheres]
+        pts = [m.positions for m in meshes]
+        pts += [np.array([np.subtract(s[0], s[1]), np.add(s[0], s[1])]) for s in spheres]
         pts += [np.array([np.subtract(c[0], c[2]), np.add(c[1], c[2])]) for c in capsules]
         b = fit_bounds(pts)
     else:
         b = np.asarray(bounds, np.float64).reshape(2, 3)
-    title_px = max(12, round(min(w, h) / 25)) if title else 0
-    top = (title_px + 12) if title else 0
+    meshes += [sphere_mesh(s[0], float(s[1]), _rgb(s[2]) if len(s) > 2 else COLLIDER) for s in spheres]
+    meshes += [capsule_mesh(c[0], c[1], float(c[2]), _rgb(c[3]) if len(c) > 3 else COLLIDER) for c in capsules]
+    top = (max(12, round(min(w, h) / 25)) + 12) if title else 0
     pad = 6
-    cam = Camera(view, b, (pad * k, (top + pad) * k, (w - 1 - pad) * k, (h - 1 - pad) * k))
-    img = Image.new("RGB", (w * k, h * k), (255, 255, 255))
-    draw = ImageDraw.Draw(img)
-    if floor:
-        _draw_floor(draw, cam, b, float(b[0][1]), k)
-
-    # every primitive gets a depth (view z: larger is nearer); draw far to near
-    scr, col, dep = [], [], []
-    for p, t, colour in cl:
-        if not len(t):
-            continue
-        v = cam.view(p)[t]
-        v = v[np.isfinite(v).all(axis=(1, 2))]
-        nrm = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
-        ln = np.linalg.norm(nrm, axis=1)
-        lam = np.abs(nrm @ LIGHT) / np.where(ln > 0, ln, 1)  # two-sided cloth
-        scr.append(cam.screen(v))
-        col.append(shade(colour, AMBIENT + (1 - AMBIENT) * lam))
-        dep.append(v[:, :, 2].mean(axis=1))
-    balls: list[tuple[np.ndarray, float, Colour]] = []
-    for s in spheres:
-        balls.append((cam.view(s[0]), float(s[1]), _rgb(s[2]) if len(s) > 2 else COLLIDER))
-    for c in capsules:
-        a, bb, r = cam.view(c[0]), cam.view(c[1]), float(c[2])
-        colour = _rgb(c[3]) if len(c) > 3 else COLLIDER
-        n = int(min(400, max(2, math.ceil(np.linalg.norm((bb - a)[:2]) * cam.scale / max(0.15 * r * cam.scale, 0.5)))))
-        balls += [(a + f * (bb - a), r, colour) for f in np.linspace(0, 1, n)]
-    ts = np.concatenate(scr) if scr else np.zeros((0, 3, 2))
-    tc = np.concatenate(col) if col else np.zeros((0, 3), np.uint8)
-    td = np.concatenate(dep) if dep else np.zeros(0)
-    bd = np.array([bl[0][2] for bl in balls]) if balls else np.zeros(0)
-    order = np.argsort(np.concatenate([td, bd]), kind="stable")
-    tri_pts, tri_col = ts.tolist(), tc.tolist()
-    nt = len(td)
-    for i in order.tolist():
-        if i < nt:
-            poly = [tuple(q) for q in tri_pts[i]]
-            c = tuple(tri_col[i])
-            draw.polygon(poly, fill=c, outline=c)  # the outline closes hairline seams
-        else:
-            centre, r, colour = balls[i - nt]
-            sx, sy = cam.screen(centre).tolist()
-            rp = max(1, round(r * cam.scale))
-            sprite = _ball_sprite(rp, colour)
-            img.paste(sprite, (round(sx) - rp - 1, round(sy) - rp - 1), sprite)
-    if k > 1:
-        img = img.resize((w, h), Image.Resampling.LANCZOS)
-    if title:
-        d = ImageDraw.Draw(img)
-        d.text((w / 2, 6), title, fill=(20, 20, 20), font=_font(title_px), anchor="mt")
-    return np.asarray(img, np.uint8).copy()
+    cam = Camera(view, b, (pad, top + pad, w - 1 - pad, h - 1 - pad))
+    return draw_scene(
+        (w, h),
+        meshes,
+        cam,
+        bounds=b,
+        floor=floor,
+        shadows=shadows,
+        background=False,
+        supersample=supersample,
+        title=title,
+    )
 
 
 def write_png(path: str | Path, rgb: np.ndarray) -> Path:

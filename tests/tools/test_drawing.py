@@ -117,3 +117,60 @@ def test_png_is_lossless_and_gif_keeps_every_frame(tmp_path):
     assert np.abs(last - frames[5]).mean() < 6
     with pytest.raises(ValueError, match="at least one frame"):
         render.write_gif(tmp_path / "none.gif", [])
+
+
+def test_a_ball_through_a_cloth_meets_it_along_their_intersection():
+    """A depth buffer, not a painter's order: a ball whose centre is 0.1 behind a cloth of 0.2
+    radius shows the disc of its front cap only (radius sqrt(0.2^2 - 0.1^2): 75 % of its area),
+    cut by a circle, not drawn whole or hidden whole."""
+    v, t = _grid(24, 18)
+    v[:, 0] -= 0.5
+    v[:, 1] += 0.4  # the cloth spans x -0.5..0.5, y -0.4..0.4, at z = 0
+    bounds = ((-0.6, -0.5, -0.5), (0.6, 0.5, 0.5))
+    size = (240, 200)
+
+    def ball_pixels(z: float, cloth: bool) -> int:
+        img = render.render_scene(
+            size,
+            [(v, t, (40, 60, 200))] if cloth else [],
+            view="front",
+            bounds=bounds,
+            floor=False,
+            spheres=[((0.0, 0.0, z), 0.2, (200, 200, 40))],
+        )
+        rgb = img.astype(int)
+        return int(((rgb[..., 0] > 60) & (rgb[..., 0] - rgb[..., 2] > 60)).sum())  # yellow, lit or not
+
+    whole = ball_pixels(-0.1, cloth=False)
+    assert whole > 1000
+    assert ball_pixels(-0.1, cloth=True) / whole == pytest.approx(0.75, abs=0.06)
+    assert ball_pixels(0.25, cloth=True) / whole == pytest.approx(1.0, abs=0.02)  # all in front
+    assert ball_pixels(-0.25, cloth=True) == 0  # all behind
+
+
+def test_smooth_shading_has_no_steps_at_the_triangle_edges():
+    """A cloth bent into a quarter cylinder about the vertical axis, 7 columns (15 degrees a
+    column), seen from the front: per-vertex normals interpolated per pixel change the shade a
+    little from pixel to pixel. The same triangles each with vertices of their own (one normal a
+    triangle: flat shading) step at every column."""
+    cols, rows = 7, 9
+    v, t = _grid(cols, rows)
+    a = np.radians(-45 + 90 * (np.arange(len(v)) % cols) / (cols - 1))
+    v[:, 0], v[:, 2] = np.sin(a), np.cos(a) - 1
+    bounds = ((-0.8, -1.0, -1), (0.8, 0.1, 0.1))
+
+    def steps(pos: np.ndarray, tris: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        img = render.render_scene((400, 300), [(pos, tris, (180, 180, 180))], view="front", bounds=bounds, floor=False)
+        grey = img.astype(int).mean(axis=2)
+        row = grey[150]
+        inside = np.nonzero(row < 240)[0]  # the cloth on this row (the background is near white)
+        assert len(inside) > 150 and row[inside].max() - row[inside].min() > 20  # lit unevenly, as it should be
+        column = grey[40:260, 200]  # down the middle
+        down = column[np.nonzero(column < 240)[0][3:-3]]
+        return np.abs(np.diff(row[inside[0] + 3 : inside[-1] - 3])), np.abs(np.diff(down))
+
+    across, down = steps(v, t)
+    assert across.max() <= 3, f"a step of {across.max()} grey levels between neighbouring pixels"
+    assert down.max() <= 1  # the same normal all the way down: no diagonal stripes
+    flat_across, _ = steps(v[t].reshape(-1, 3), np.arange(3 * len(t)).reshape(-1, 3))
+    assert flat_across.max() >= 8, "the flat-shaded control does step"

@@ -8,6 +8,7 @@
 #   bash deploy/h100.sh loadtest [ARGS]           # the load-test table (below); ARGS override it
 #   bash deploy/h100.sh scaleout [ARGS]           # one server's knee against SO_SERVERS servers' (below)
 #   bash deploy/h100.sh serve [ARGS]              # drape serve itself (e.g. --workers 2 --device gpu:0,gpu:1)
+#   bash deploy/h100.sh devices                   # the device check on the GPU and on the wheel's CPU PoCL
 #
 # The load-test table: 16 client processes, 32x32 cloths with bending, 10 iterations, bundles,
 # loads of 128 .. 4096 cloths in float32 and 4096 in quant16, one server (admission off: the raw
@@ -85,6 +86,14 @@ case "$what" in
         cp /tmp/so-plots/loadtest-summary.png "$OUT/scaleout-summary.png" 2>/dev/null || true ;;
     serve)
         exec python3 -m drape.server.cli serve "$@" ;;
+    devices)
+        # the device check (server/sim/opencl/devicecheck.py) afresh on every device: NVIDIA's and
+        # the CPU PoCL inside the pyopencl wheel (LLVM 14) on this host's CPU
+        lscpu | grep -E "^(Model name|CPU\(s\)):"
+        echo "AVX-512: $(grep -c -m1 avx512f /proc/cpuinfo || true)"
+        pocl=$(find /tmp/site -name "libpocl*.so*" | head -1)
+        if [[ -n "$pocl" ]]; then echo "$pocl" > /tmp/icd/pocl.icd; else echo "no PoCL in the wheels"; fi
+        DRAPE_DEVICE=auto drape devices --check 2>&1 | tee "$OUT/devices-h100.txt" ;;
     *)
         echo "unknown: $what" >&2; exit 2 ;;
 esac

@@ -18,6 +18,7 @@ from . import protocol as P
 from .controls import _collider, _pin_changes, _set_changes
 from .moves import moves_of
 from .protocol import ClothState, DrapeError, Unavailable
+from .smoothing import ServerClock, sample
 
 if TYPE_CHECKING:
     from .sdk import DrapeClient
@@ -75,6 +76,7 @@ class ClothHandle:
         # 1.5, predictive states: decoded against this stream's last two (protocol.StateStream);
         # a state predicted from one this client lacks is shown extrapolated and counted here
         self.stream = P.StateStream(self.id)
+        self.clock = ServerClock()  # render times (client clock) as server times (smoothing.sample)
         self.gaps = 0
         self.keyframe_queries = 0
         self._keyframe_asked = 0.0  # monotonic time of the last keyframe query
@@ -157,6 +159,7 @@ class ClothHandle:
                 else:
                     self._prev = self._latest
                 self._latest = st
+                self.clock.observe(st)
                 self.last_receipt = time.monotonic() if now is None else now
                 queue = self._queue
                 if len(queue) == queue.maxlen:
@@ -175,6 +178,23 @@ class ClothHandle:
                     log.exception("cloth %s: on_state callback failed", self.id)
         finally:
             self._deliver_lock.release()
+
+    def sample(
+        self, now_ns: int | None = None, delay: float | None = None, extrapolate: bool = False
+    ) -> np.ndarray | None:
+        """The positions to draw at render time ``now_ns`` (``time.time_ns()`` by default): the
+        last two states interpolated ``delay`` seconds (default: one tick) behind the newest, so
+        that a renderer faster than the server moves the cloth every frame, at the cost of that
+        delay; ``extrapolate``: carried past the newest state instead (no delay, overshoots where
+        the motion turns). None before the first state (client/smoothing.py)."""
+        prev, last = self.last_states()
+        if last is None:
+            return None
+        server_ns = self.clock.to_server(time.time_ns() if now_ns is None else now_ns)
+        if server_ns is None:
+            return last.positions
+        delay_ns = None if delay is None else int(delay * 1e9)
+        return sample(prev, last, server_ns, delay_ns, extrapolate)
 
     def last_states(self) -> tuple[ClothState | None, ClothState | None]:
         """The last two states received from the cloth's current server (older, newer; the older

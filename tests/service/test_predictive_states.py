@@ -14,6 +14,7 @@ import zenoh
 from conftest import collect, connect, make_config, wait_until
 
 from drape.client import protocol as P
+from drape.client.smoothing import sample
 from drape.server.service.server import Server
 
 STEP = 0.002
@@ -128,5 +129,26 @@ def test_controls_switch_the_encoding_and_the_step(server):
         states = [s for s in collect(h, 40) if s.tick > tick]
         assert states and all(s.encoding == "predictive" and not s.extrapolated for s in states)
         assert h.gaps == 0 and h.stream.undecodable == 0
+    finally:
+        c.close()
+
+
+def test_a_handle_samples_positions_between_its_states(server):
+    """ClothHandle.sample: a render-time sample of a live cloth, between its last two states."""
+    c = connect(server)
+    try:
+        h = c.submit_grid(6, 6, pinned=[0, 5], encoding="predictive", step=STEP)
+        assert h.sample() is None or h.sample().shape == (36, 3)
+        collect(h, 6)
+        prev, last = h.last_states()
+        assert prev is not None and last is not None
+        got = h.sample()
+        assert got is not None and got.shape == (36, 3) and np.isfinite(got).all()
+        lo = np.minimum(prev.positions, last.positions) - 1e-6
+        hi = np.maximum(prev.positions, last.positions) + 1e-6
+        # interpolated: within the two states (the captured ones: more may arrive meanwhile)
+        mid = sample(prev, last, h.clock.to_server(last.receive_time_ns))
+        assert mid is not None and ((mid >= lo) & (mid <= hi)).all()
+        assert h.sample(extrapolate=True).shape == (36, 3)
     finally:
         c.close()

@@ -906,6 +906,16 @@ mod tests {
     use super::{client_id_from_env, client_id_from_sidecar};
 
     #[test]
+    fn source_locations_are_scrubbed() {
+        let m = "cannot open the Zenoh session: Can not create a new TCP listener bound to tcp/x:1: invalid port \
+                 at /root/.cargo/registry/src/index.crates.io-1949cf8c6b5b557f/zenoh-link-tcp-1.10.2/src/unicast.rs:360.";
+        let s = super::scrub(m);
+        assert!(!s.contains(".rs") && !s.contains("/root") && !s.ends_with(" at"), "{s}");
+        assert!(s.starts_with("cannot open the Zenoh session: Can not create a new TCP listener bound to tcp/x:1: invalid port"), "{s}");
+        assert_eq!(super::scrub("no reply from drape/server/a/info within 5s"), "no reply from drape/server/a/info within 5s");
+    }
+
+    #[test]
     fn client_id_from_the_deployment() {
         assert_eq!(client_id_from_env(Some(" game-7\n".into())).as_deref(), Some("game-7"));
         assert_eq!(client_id_from_env(Some("  ".into())), None);

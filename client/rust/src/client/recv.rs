@@ -180,3 +180,66 @@ pub(crate) fn on_bundle(inner: &Inner, payload: ZBytes) {
         deliver(&c, l);
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::client::cloth::{ClothInner, Status};
+    use crate::wire::{encode_state, Encoding, Grid, Shape, Submit};
+
+    fn cloth(queue: usize) -> Arc<ClothInner> {
+        let c = ClothInner::new(1, Submit::new("c", Shape::Grid(Grid::new(2, 2))), vec![0.0; 12], vec![0, 1, 2], queue);
+        c.slot.lock().unwrap().status = Status::Live;
+        c
+    }
+
+    fn state(tick: u64) -> Latest {
+        let data = encode_state(tick, 0, &[0.0; 12], None, Encoding::Float32, 0).unwrap();
+        let len = data.len();
+        Latest { buf: Buf::V(Arc::new(data)), off: 0, len, receive_time_ns: 0 }
+    }
+
+    fn counters(c: &Arc<ClothInner>) -> crate::client::Counters {
+        let s = c.slot.lock().unwrap();
+        crate::client::Counters { unread: s.unread.len() as u64, last_tick: s.last_tick, ..s.counters }
+    }
+
+    fn take(c: &Arc<ClothInner>) -> Option<u64> {
+        let mut s = c.slot.lock().unwrap();
+        let l = s.unread.pop_front()?;
+        s.counters.read += 1;
+        Some(l.buf.with(|d| crate::wire::parse_state(d).unwrap().tick))
+    }
+
+    #[test]
+    fn every_tick_is_counted_once() {
+        // ticks 10, 11, 14 (12 and 13 never arrive), 12 late (stale), 15, 16 into a queue of 2
+        let c = cloth(2);
+        for t in [10, 11, 14, 12, 15, 16] {
+            deliver(&c, state(t));
+        }
+        let k = counters(&c);
+        assert_eq!((k.received, k.missed, k.stale, k.replaced, k.unread, k.ticks), (5, 2, 1, 3, 2, 7), "{k:?}");
+        assert_eq!(take(&c), Some(15)); // oldest of the queue first
+        assert_eq!(take(&c), Some(16));
+        assert_eq!(take(&c), None);
+        let k = counters(&c);
+        assert_eq!(k.read + k.replaced + k.missed + k.unread, k.ticks, "{k:?}");
+        assert_eq!(k.received, k.read + k.replaced + k.unread);
+        // an invalid payload is counted apart and changes nothing else
+        deliver(&c, Latest { buf: Buf::V(Arc::new(vec![1, 2, 3])), off: 0, len: 3, receive_time_ns: 0 });
+        assert_eq!(counters(&c).invalid, 1);
+        assert_eq!(counters(&c).ticks, 7);
+    }
+
+    #[test]
+    fn a_queue_of_one_keeps_the_newest() {
+        let c = cloth(1);
+        for t in 1..=5 {
+            deliver(&c, state(t));
+        }
+        let k = counters(&c);
+        assert_eq!((k.received, k.replaced, k.unread, k.ticks, k.missed), (5, 4, 1, 5, 0));
+        assert_eq!(take(&c), Some(5));
+    }
+}

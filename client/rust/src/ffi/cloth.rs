@@ -416,7 +416,7 @@ pub unsafe extern "C" fn drape_cloth_read_latest(cloth: *const DrapeCloth, posit
 /// received (per placement) to the newest is counted once:
 /// `read + replaced + missed + unread == ticks`, and `received == read + replaced + unread`.
 #[repr(C)]
-#[derive(Default)]
+#[derive(Default, Debug, Clone, Copy)]
 pub struct DrapeStateCounters {
     /// States received (in tick order).
     pub received: u64,

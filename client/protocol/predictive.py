@@ -50,10 +50,15 @@ def inverse_step(step: float) -> np.float32:
     return np.float32(1.0 / float(np.float32(step)))
 
 
-def quantise(positions: np.ndarray, step: float) -> np.ndarray:
-    """(n, 3) float32 positions on the step's grid: int32 ``clamp(rint(x * inv_step))``."""
+def quantise(positions: np.ndarray, step: float | np.ndarray) -> np.ndarray:
+    """(n, 3) float32 positions on the step's grid: int32 ``clamp(rint(x * inv_step))``. ``step``
+    may be one per row ((n, 1): many cloths' vertices at once)."""
     x = np.asarray(positions, np.float32)
-    q = np.rint(x * inverse_step(step))  # float32 product, rounded once; rint ties to even
+    if isinstance(step, np.ndarray):  # float32(1 / step) per row, each rounded once
+        inv: np.float32 | np.ndarray = (1.0 / step.astype(np.float32).astype(np.float64)).astype(np.float32)
+    else:
+        inv = inverse_step(step)
+    q = np.rint(x * inv)  # float32 product, rounded once; rint ties to even
     np.clip(q, -(1 << 27), 1 << 27, out=q)  # exact in float32; then the int range
     return np.clip(q.astype(np.int32), -Q_LIMIT, Q_LIMIT)
 
@@ -95,16 +100,10 @@ def unsymbols(z: np.ndarray, p: np.ndarray) -> np.ndarray:
 
 
 def _widths(blocks: np.ndarray) -> np.ndarray:
-    """Bit length of each block's largest value, (m,) uint8."""
+    """Bit length of each block's largest value, (m,) uint8: frexp's exponent (exact: a uint32
+    is a float64 exactly; 0 gives 0)."""
     top = blocks.max(axis=1) if blocks.size else np.zeros(0, np.uint32)
-    w = np.zeros(len(top), np.uint8)
-    v = top.astype(np.uint64)
-    for b in (16, 8, 4, 2, 1):  # binary search of the bit length
-        hi = v >= (1 << b)
-        w[hi] += b
-        v[hi] >>= b
-    w[v > 0] += 1
-    return w
+    return np.frexp(top.astype(np.float64))[1].astype(np.uint8)
 
 
 def packed_size(n: int, widths: np.ndarray | list[int]) -> int:
@@ -114,30 +113,88 @@ def packed_size(n: int, widths: np.ndarray | list[int]) -> int:
 
 
 def encode_residuals(z: np.ndarray) -> bytes:
-    """The packed data of (3, n) uint32 symbols."""
-    n = z.shape[1]
-    nb = -(-n // BLOCK)
-    blocks = np.zeros((3, nb * BLOCK), np.uint32)
-    blocks[:, :n] = z
-    blocks = blocks.reshape(3 * nb, BLOCK)
-    widths = _widths(blocks)
+    """The packed data of (3, n) uint32 symbols (one cloth: :func:`pack_frame`)."""
+    out, _ = pack_frame(np.ascontiguousarray(np.asarray(z, np.uint32).T), np.array([z.shape[1]], np.int64))
+    return out.tobytes()
+
+
+def frame_symbols(q: np.ndarray, p: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """:func:`symbols` of many cloths at once, back to back: ``q`` and ``p`` (N, 3) int32, cloth
+    ``i`` in ``counts[i]`` consecutive rows; (N, 3) uint32 (each cloth's first vertex is not
+    differenced with the cloth before it)."""
+    r = q - p
+    d = r.copy()
+    d[1:] -= r[:-1]
+    starts = np.zeros(len(counts), np.int64)
+    np.cumsum(counts[:-1], out=starts[1:])
+    starts = starts[np.asarray(counts) > 0]
+    d[starts] = r[starts]
+    return ((d << 1) ^ (d >> 31)).view(np.uint32)
+
+
+def _frame_blocks(counts: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Where each cloth's blocks are: (blocks per axis nb, first block B, width-byte head size,
+    for every vertex row and axis (N, 3) its block, each row's place in its block). Kept for the
+    last few cloth layouts (a server's frames repeat one until cloths come or go)."""
+    counts = np.asarray(counts, np.int64)
+    key = counts.tobytes()
+    hit = _LAYOUTS.get(key)
+    if hit is None:
+        hit = _LAYOUTS[key] = _frame_blocks_of(counts)
+        while len(_LAYOUTS) > 8:
+            del _LAYOUTS[next(iter(_LAYOUTS))]
+    return hit
+
+
+_LAYOUTS: dict[bytes, tuple[np.ndarray, ...]] = {}
+
+
+def _frame_blocks_of(counts: np.ndarray) -> tuple[np.ndarray, ...]:
+    nb = -(-counts // BLOCK)
+    first = np.zeros(len(counts) + 1, np.int64)
+    np.cumsum(3 * nb, out=first[1:])
     head = 4 * (-(-3 * nb // 4))
-    word_off = np.zeros(len(widths) + 1, np.int64)
-    np.cumsum(widths, out=word_off[1:])
-    words = np.zeros(int(word_off[-1]) + 2, np.uint64)  # + 2: a value may reach past the last word
-    if len(blocks):
-        w = widths.astype(np.uint64)[:, None]
-        j = np.arange(BLOCK, dtype=np.uint64)[None, :]
-        bit = (word_off[:-1].astype(np.uint64)[:, None] << np.uint64(5)) + j * w  # each value's first bit
-        vals = blocks.astype(np.uint64)
-        word, shift = bit >> np.uint64(5), bit & np.uint64(31)
-        spread = vals << shift  # up to 63 bits: the low word and the next
-        np.add.at(words, word.ravel(), spread.ravel() & np.uint64(0xFFFFFFFF))  # disjoint bits: + is |
-        np.add.at(words, word.ravel() + 1, spread.ravel() >> np.uint64(32))
-    out = bytearray(head + 4 * int(word_off[-1]))
-    out[: len(widths)] = widths.tobytes()
-    out[head:] = words[:-2].astype("<u4").tobytes()
-    return bytes(out)
+    cloth = np.repeat(np.arange(len(counts)), counts)
+    starts = np.zeros(len(counts), np.int64)
+    np.cumsum(counts[:-1], out=starts[1:])
+    local = np.arange(int(counts.sum())) - starts[cloth]
+    block = (first[cloth] + local // BLOCK)[:, None] + nb[cloth][:, None] * np.arange(3)[None, :]
+    return nb, first, head, block, (local % BLOCK)[:, None]
+
+
+def pack_frame(z: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The packed data of many cloths at once: ``z`` (N, 3) uint32 symbols back to back (cloth
+    ``i`` in ``counts[i]`` rows); (bytes as uint8, offsets (k + 1,)): cloth ``i``'s packed data
+    is ``out[offsets[i]:offsets[i + 1]]``, byte for byte :func:`encode_residuals`' (every size a
+    multiple of 4). Whole arrays throughout, as a GPU would: no loop over cloths."""
+    counts = np.asarray(counts, np.int64)
+    nb, first, head, block, j = _frame_blocks(counts)
+    blocks = np.zeros((int(first[-1]), BLOCK), np.uint32)
+    blocks[block, j] = z
+    widths = _widths(blocks)
+    wsum = np.zeros(len(widths) + 1, np.int64)
+    np.cumsum(widths, out=wsum[1:])
+    words = wsum[first[1:]] - wsum[first[:-1]]  # per cloth
+    sizes = head + 4 * words
+    offsets = np.zeros(len(counts) + 1, np.int64)
+    np.cumsum(sizes, out=offsets[1:])
+    total = int(offsets[-1])
+    n_words = total // 4 + 2  # + 2: a value of a block at the end may reach one word further
+    out = np.zeros(4 * n_words, np.uint8)
+    if len(widths):
+        bcloth = np.repeat(np.arange(len(counts)), 3 * nb)  # each block's cloth
+        out[offsets[bcloth] + np.arange(len(widths)) - first[bcloth]] = widths
+        # each block's first word in the whole output; each value's first bit
+        wbase = (offsets[bcloth] + head[bcloth]) // 4 + wsum[:-1] - wsum[first[bcloth]]
+        w = widths.astype(np.int64)[:, None]
+        bit = (wbase[:, None] << 5) + np.arange(BLOCK)[None, :] * w
+        word, shift = (bit >> 5).ravel(), (bit & 31).ravel()
+        spread = blocks.astype(np.uint64).ravel() << shift.astype(np.uint64)
+        # the bits of different values never overlap: a sum is an or (exact in float64: < 2^53)
+        lo = np.bincount(word, (spread & np.uint64(0xFFFFFFFF)).astype(np.float64), n_words)
+        hi = np.bincount(word + 1, (spread >> np.uint64(32)).astype(np.float64), n_words)
+        out.view("<u4")[:] |= (lo + hi).astype(np.uint64).astype(np.uint32)  # the width bytes' words get 0
+    return out[:total], offsets
 
 
 def decode_residuals(data: bytes | bytearray | memoryview, n: int, at: int = 0) -> tuple[np.ndarray, int]:

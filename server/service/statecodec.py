@@ -74,10 +74,9 @@ class PredictiveStreams:
             out, self._requested = self._requested, set()
         return out
 
-    def encode(
-        self, cloth: str, tick: int, positions: np.ndarray, step: float, reset: bool, requested: bool
-    ) -> tuple[bytes, int, int, int]:
-        """(packed data, order, ref tick, ref2 tick) of the stream's state at ``tick``."""
+    def start(self, cloth: str, tick: int, step: float, reset: bool, requested: bool) -> tuple[_Stream, int]:
+        """The stream of ``cloth`` about to code its state at ``tick``, and that state's order
+        (0: a keyframe, when due; the stream's history then starts afresh)."""
         s = self.streams.get(cloth)
         if s is None:
             s = self.streams[cloth] = _Stream()
@@ -87,10 +86,11 @@ class PredictiveStreams:
         keyframe = requested or reset or step != s.step or tick - s.key_tick >= self.keyframe_interval
         if keyframe:
             s.key_tick, s.step = tick, step
+            s.history.clear()
             self.keyframes += 1
             self.requested_keyframes += requested
         s.tick = tick
-        return P.encode_step(positions, step, s.history, tick, keyframe)
+        return s, s.history.order()
 
     def keep_only(self, cloths: set[str]) -> None:
         """Forget the streams of cloths that are gone."""
@@ -189,23 +189,36 @@ class FrameEncoder:
     def prepare_predictive(
         self, cloths: list[int], ids: list[str], encodings: list[int], steps: list[float], flags: list[int]
     ) -> None:
-        """Code the predictive states of ``cloths`` (after :meth:`prepare`: the bounds): each
-        against its stream (one per cloth id). Sizes are then exact (:meth:`state_size`)."""
+        """Code the predictive states of ``cloths`` (after :meth:`prepare`: the bounds), each
+        against its stream (one per cloth id), all in one pass over the frame
+        (protocol.predictive's frame functions). Sizes are then exact (:meth:`state_size`)."""
+        idx = [i for i in dict.fromkeys(cloths) if encodings[i] == P.ENC_PREDICTIVE and i not in self._coded]
+        if not idx:
+            return
         requested = self.streams.take_requests()
         pos, off = self._positions, self._offsets
-        for i in cloths:
-            if encodings[i] != P.ENC_PREDICTIVE or i in self._coded:
-                continue
+        counts = np.array([self._counts[i] for i in idx], np.int64)
+        step32 = np.array([steps[i] for i in idx], np.float32)
+        x = (
+            np.concatenate([pos[off[i] : off[i + 1]] for i in idx])
+            if len(idx) > 1
+            else pos[off[idx[0]] : off[idx[0] + 1]]
+        )
+        q = P.quantise(x, np.repeat(step32, counts)[:, None])
+        parts, meta = [], []
+        for i, n in zip(idx, counts.tolist(), strict=True):
             cid = ids[i]
-            data, order, r1, r2 = self.streams.encode(
-                cid,
-                self.tick,
-                pos[off[i] : off[i + 1]],
-                steps[i],
-                bool(flags[i] & P.FLAG_RESET),
-                cid in requested,
-            )
-            self._coded[i] = (data, order, r1, r2, float(np.float32(steps[i])))
+            s, order = self.streams.start(cid, self.tick, steps[i], bool(flags[i] & P.FLAG_RESET), cid in requested)
+            h = s.history
+            parts.append(P.prediction(order, h.q1, h.q2, (n, 3)))
+            meta.append((s, order, h.tick1 if order >= 1 else 0, h.tick2 if order >= 2 else 0))
+        p = np.concatenate(parts) if len(parts) > 1 else parts[0]
+        data, offsets = P.pack_frame(P.frame_symbols(q, p, counts), counts)
+        rows = np.zeros(len(idx) + 1, np.int64)
+        np.cumsum(counts, out=rows[1:])
+        for j, (i, (s, order, r1, r2)) in enumerate(zip(idx, meta, strict=True)):
+            s.history.push(q[rows[j] : rows[j + 1]], self.tick)
+            self._coded[i] = (data[offsets[j] : offsets[j + 1]].tobytes(), order, r1, r2, float(step32[j]))
 
     def state_size(self, i: int, encoding: int, normals: bool) -> int:
         if encoding == P.ENC_PREDICTIVE:

@@ -152,3 +152,37 @@ def test_a_handle_samples_positions_between_its_states(server):
         assert h.sample(extrapolate=True).shape == (36, 3)
     finally:
         c.close()
+
+
+def test_the_frame_encoder_writes_the_reference_bytes(rng):
+    """statecodec.FrameEncoder codes a whole frame's predictive cloths at once: byte for byte what
+    protocol.encode_predictive_state writes for each stream alone, keyframes included."""
+    from drape.server.service.statecodec import FrameEncoder
+
+    counts = [int(c) for c in rng.integers(1, 300, 5)]
+    steps = [float(s) for s in rng.choice([0.0005, 0.001, 0.004], len(counts))]
+    ids = [f"c{i}" for i in range(len(counts))]
+    enc = FrameEncoder(keyframe_interval=4)
+    refs = [P.History() for _ in counts]
+    key_tick = [-(10**9)] * len(counts)
+    off = np.concatenate([[0], np.cumsum(counts)])
+    x = rng.uniform(-2, 2, (int(off[-1]), 3)).astype(np.float32)
+    for tick in range(1, 11):
+        x = (x + rng.normal(0, 0.003, x.shape)).astype(np.float32)
+        flags = [P.FLAG_RESET if tick == 6 and i == 1 else 0 for i in range(len(counts))]
+        enc.begin(tick, 77, x, off)
+        every = list(range(len(counts)))
+        encodings = [P.ENC_PREDICTIVE] * len(counts)
+        enc.prepare(every, encodings)
+        enc.prepare_predictive(every, ids, encodings, steps, flags)
+        for i in every:
+            size = enc.state_size(i, P.ENC_PREDICTIVE, False)
+            got = bytearray(size)
+            assert enc.write_state(got, 0, i, P.ENC_PREDICTIVE, flags[i], None) == size
+            key = tick - key_tick[i] >= 4 or flags[i]
+            key_tick[i] = tick if key else key_tick[i]
+            want = P.encode_predictive_state(
+                tick, 77, x[off[i] : off[i + 1]], steps[i], refs[i], keyframe=bool(key), flags=flags[i]
+            )
+            assert bytes(got) == bytes(want), (tick, i)
+    assert enc.streams.keyframes >= 3 * len(counts)

@@ -39,7 +39,7 @@ KINDS = ("flag", "curtain", "cape")
 #: The floor's extent (x-z) under the three, for the renderer's floor and shadows.
 BOUNDS = ((-1.2, 0.0, -2.2), (6.6, 3.0, 2.6))
 #: The camera: a little above eye height, in front of the stage, looking at its middle.
-EYE, TARGET, FOV = (2.75, 2.2, 8.6), (2.75, 1.1, -0.1), 31.0
+EYE, TARGET, FOV = (2.85, 2.2, 8.6), (2.85, 1.1, -0.1), 31.0
 
 # the banner: its hoist along the pole at x = 0
 FLAG_COLS, FLAG_ROWS, FLAG_W, FLAG_H, FLAG_TOP = 26, 16, 1.5, 0.92, 2.55
@@ -52,7 +52,7 @@ PIVOT, ROPE, BALL_R, SWING = (2.7, 3.35, -0.8), 2.1, 0.24, math.radians(32.0)
 # the cape and its wearer: shoulder height, the cape's ring around the neck and its flare
 CAPE_COLS, CAPE_ROWS, CAPE_LEN = 22, 26, 1.15
 SHOULDER_Y, NECK_R, HEM_R, CAPE_ARC = 1.47, 0.19, 0.34, math.radians(100.0)
-WALK_CENTRE, WALK_R, WALK_W = (4.85, 0.0, 0.2), 0.85, 1.75  # metres, metres, rad/s
+WALK_CENTRE, WALK_R, WALK_W = (4.75, 0.0, 0.2), 0.85, 1.5  # metres, metres, rad/s
 
 
 @dataclass
@@ -138,7 +138,7 @@ SKIN = (214, 176, 146)
 
 def walker_parts(t: float) -> tuple[list[list[Any]], list[dict[str, Any]]]:
     """The wearer's body at time t: capsules to draw [(p0, p1, radius, colour)] and the cape's
-    colliders (torso and legs)."""
+    colliders (torso, legs and head)."""
     pos, frame, phase = walker_pose(t)
 
     def at(x: float, y: float, z: float) -> np.ndarray:
@@ -160,7 +160,9 @@ def walker_parts(t: float) -> tuple[list[list[Any]], list[dict[str, Any]]]:
         hand = at(0.23 * side, 0.78, 0.0) + frame @ np.array([0.0, 0.0, 0.45 * math.sin(s)])
         parts.append([shoulder, hand, 0.055, MANNEQUIN])
     parts.append([at(0, 1.42, 0), at(0, 1.52, 0), 0.06, SKIN])  # neck
-    parts.append([at(0, 1.66, 0), at(0, 1.66, 0), 0.115, SKIN])  # head
+    head = at(0, 1.66, 0)
+    parts.append([head, head, 0.115, SKIN])
+    colliders.append({"type": "sphere", "center": tuple(head), "radius": 0.14})
     return [[np.asarray(p[0]).tolist(), np.asarray(p[1]).tolist(), p[2], p[3]] for p in parts], colliders
 
 
@@ -217,13 +219,13 @@ def run_client(kind: str, endpoint: str, seconds: float, fps: float, out: str, r
                 features=["colliders", "tethers", "wind"],
                 links={"bending": True},
                 material={
-                    "mass": 0.35,
-                    "stiffness": (1.0, 0.8, 0.08),
+                    "mass": 0.6,
+                    "stiffness": (1.0, 0.8, 0.15),
                     "friction": 0.3,
                     "tether_limit": 1.05,
-                    "damping": 0.005,
-                    "drag": 2.0,
-                    "lift": 0.4,
+                    "damping": 0.01,
+                    "drag": 1.0,
+                    "lift": 0.0,
                 },
                 wind=(0.0, 0.0, 0.0),
                 iterations=10,
@@ -246,7 +248,7 @@ def run_client(kind: str, endpoint: str, seconds: float, fps: float, out: str, r
             drawn: list[list[Any]] = []
             if kind == "flag" and state.tick % 15 == 0:
                 gust = 5.5 + 3.0 * math.sin(0.9 * t) + 1.5 * math.sin(2.3 * t)
-                cloth.set(wind=(gust, 0.0, 2.0 + 1.5 * math.sin(0.5 * t)), wait=False)
+                cloth.set(wind=(gust, 0.0, 0.5 + 1.0 * math.sin(0.5 * t)), wait=False)
             elif kind == "curtain":
                 pivot, c = ball_pose(t)
                 cloth.set_colliders([{"type": "sphere", "center": tuple(c), "radius": BALL_R + 0.02}], wait=False)
@@ -386,6 +388,7 @@ def render_frame(recs: list[Recording], index: dict[str, dict[int, int]], tick: 
         bounds=BOUNDS,
         fade_floor=True,
         supersample=SUPERSAMPLE,
+        shadow_region=True,
         caption=f"Drape: three game clients' cloths over Zenoh   tick {tick}",
     )
 
@@ -421,7 +424,7 @@ def render(recs: list[Recording], out: Path, size: tuple[int, int], fps: float) 
     frames = [np.asarray(Image.open(p).convert("RGB")) for p in paths]
     gif = out / "drape-demo.gif"
     if frames:
-        write_gif(gif, frames, fps=fps)
+        write_gif(gif, frames, fps=fps, colours=256)  # smooth shading: 128 colours band
     return paths, gif
 
 

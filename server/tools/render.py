@@ -256,6 +256,25 @@ def _ring_triangles(rings: int, lon: int) -> np.ndarray:
     return np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
 
 
+@lru_cache(maxsize=64)
+def _capsule_template(segments: int, pieces: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A unit capsule in its own frame (e1, e2, axis): vertex directions (n, 3), each vertex's
+    place along the axis (0 at p0, 1 at p1) and the triangles; ``pieces`` cylinder sections
+    (0: a sphere)."""
+    lats, lons = _unit_rings(max(4, segments // 2), segments)
+    around = np.stack([np.cos(lons), np.sin(lons), np.zeros_like(lons)], 1)
+    dirs, along = [], []
+    for phi in lats:
+        ring = math.cos(phi) * around + [0.0, 0.0, math.sin(phi)]
+        dirs.append(ring)
+        along.append(np.full(len(lons), 1.0 if phi > 0 else 0.0))
+        if abs(phi) < 1e-9 and pieces:  # the cylinder between the ends, in short pieces
+            for f in np.linspace(0.0, 1.0, pieces + 1)[1:]:
+                dirs.append(ring)
+                along.append(np.full(len(lons), f))
+    return np.concatenate(dirs), np.concatenate(along), _ring_triangles(len(dirs), len(lons))
+
+
 def capsule_mesh(
     p0: Any, p1: Any, radius: float, colour: Any, specular: float = 0.35, shininess: float = 40.0, segments: int = 24
 ) -> Mesh:
@@ -266,21 +285,10 @@ def capsule_mesh(
     w = axis / ln if ln > 1e-9 else np.array([0.0, 1.0, 0.0])
     e1 = _unit(np.cross(w, [1.0, 0, 0] if abs(w[0]) < 0.9 else [0, 0, 1.0]))
     e2 = np.cross(w, e1)
-    lats, lons = _unit_rings(max(4, segments // 2), segments)
-    around = np.cos(lons)[:, None] * e1 + np.sin(lons)[:, None] * e2  # (lon, 3)
-    dirs, centres = [], []
-    for phi in lats:
-        ring = math.cos(phi) * around + math.sin(phi) * w
-        end = b if phi > 0 else a
-        dirs.append(ring)
-        centres.append(np.broadcast_to(end, ring.shape))
-        if abs(phi) < 1e-9 and ln > 1e-9:  # the cylinder between the ends, in short pieces
-            for f in np.linspace(0.0, 1.0, int(np.clip(math.ceil(ln / (3 * radius)), 1, 48)) + 1)[1:]:
-                dirs.append(ring)
-                centres.append(np.broadcast_to(a + f * axis, ring.shape))
-    n = np.concatenate(dirs)
-    p = np.concatenate(centres) + radius * n
-    t = _ring_triangles(len(dirs), len(lons))
+    pieces = int(np.clip(math.ceil(ln / (3 * radius)), 1, 48)) if ln > 1e-9 else 0
+    local, along, t = _capsule_template(segments, pieces)
+    n = local @ np.array([e1, e2, w])
+    p = a + along[:, None] * axis + radius * n
     c = np.broadcast_to(_linear(colour), p.shape).copy()
     return Mesh(p, n, c, c, t, False, specular, shininess)
 
@@ -354,54 +362,85 @@ def rasterise(
     return zbuf, tri, b1, b2
 
 
+@dataclass
+class _Taps:
+    """World points prepared for shadow lookups in one shadow map frame: which points fall in
+    it, their texel index in the padded map, bilinear weights and depths."""
+
+    near: np.ndarray
+    index: np.ndarray
+    fu: np.ndarray
+    fv: np.ndarray
+    depth: np.ndarray
+
+
 class ShadowMap:
     """Depth from the key light (an orthographic view along it) over ``meshes``; :meth:`lit`
-    tells how lit world points are (0 shadowed .. 1 lit), filtered over neighbouring texels."""
+    tells how lit world points are (0 shadowed .. 1 lit), filtered over neighbouring texels.
+    ``region`` (a world box): the map covers it, always the same texels (points prepared once
+    with :meth:`taps` serve every frame); None: it covers the meshes."""
 
-    def __init__(self, meshes: Sequence[Mesh], light: np.ndarray, res: int = 400) -> None:
-        self.res = res
-        back = _unit(light)
+    def __init__(self, meshes: Sequence[Mesh], light: np.ndarray, res: int = 400, region: Any = None) -> None:
+        back = _unit(np.asarray(light, np.float64))
         right = _unit(np.cross([0.0, 1.0, 0.0] if abs(back[1]) < 0.99 else [1.0, 0, 0], back))
         self.R = np.array([right, np.cross(back, right), back])
         cast = [m for m in meshes if m.shadows and len(m.triangles)]
         self.empty = not cast
-        if self.empty:
-            return
-        p = np.concatenate([m.positions for m in cast])
-        off = np.cumsum([0] + [len(m.positions) for m in cast])[:-1]
-        t = np.concatenate([m.triangles + o for m, o in zip(cast, off, strict=True)])
+        if cast:
+            p = np.concatenate([m.positions for m in cast])
+            off = np.cumsum([0] + [len(m.positions) for m in cast])[:-1]
+            t = np.concatenate([m.triangles + o for m, o in zip(cast, off, strict=True)])
+        else:
+            p, t = np.zeros((1, 3)), np.zeros((0, 3), np.int64)
         v = p @ self.R.T
-        lo, hi = v[:, :2].min(0), v[:, :2].max(0)
+        if region is not None:
+            lo3, hi3 = np.asarray(region, np.float64).reshape(2, 3)
+            box = np.array([[x, y, z] for x in (lo3[0], hi3[0]) for y in (lo3[1], hi3[1]) for z in (lo3[2], hi3[2])])
+            lo, hi = (box @ self.R.T)[:, :2].min(0), (box @ self.R.T)[:, :2].max(0)
+        else:
+            lo, hi = v[:, :2].min(0), v[:, :2].max(0)
         pad = 0.02 * float((hi - lo).max()) + 1e-6
         self.lo = lo - pad
         self.texel = float((hi - lo).max() + 2 * pad) / res
         self.w, self.h = (np.ceil((hi - lo + 2 * pad) / self.texel).astype(int) + 1).tolist()
+        self.key = (self.R.tobytes(), self.lo.tobytes(), self.texel, self.w, self.h)
         sx, sy = self._uv(v)
         zbuf, _, _, _ = rasterise(sx[t], sy[t], -v[:, 2][t], self.w, self.h)
         self.z = zbuf.reshape(self.h, self.w)
-        self.zp = np.pad(self.z, 2, constant_values=np.inf).ravel()  # lookups need no bounds checks
+        self.zp = np.pad(self.z, 2, constant_values=np.inf).ravel().astype(np.float32)  # no bounds checks
 
     def _uv(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return (v[..., 0] - self.lo[0]) / self.texel, (v[..., 1] - self.lo[1]) / self.texel
 
-    def lit(self, p: np.ndarray, bias: float) -> np.ndarray:
-        out = np.ones(len(p))
-        if self.empty or not len(p):
-            return out
+    def taps(self, p: np.ndarray, bias: float) -> _Taps:
+        """Points ``p`` (k, 3) prepared for :meth:`lookup` (the same map frame: ``key``)."""
         v = p @ self.R.T
         u, w = self._uv(v)
         near = np.nonzero((u > -1) & (u < self.w + 1) & (w > -1) & (w < self.h + 1))[0]
-        # percentage-closer filtering: the four nearest texels' tests, weighted bilinearly
-        u, w, d = u[near] + 1.5, w[near] + 1.5, -v[near, 2] - bias
+        u, w = u[near] + 1.5, w[near] + 1.5
         iu, iv = np.floor(u), np.floor(w)
-        fu, fv = u - iu, w - iv
         stride = self.w + 4
         i = (iv.astype(np.int64) * stride + iu.astype(np.int64)).clip(0, self.zp.size - stride - 2)
-        z = self.zp
-        top = (1 - fu) * (d <= z[i]) + fu * (d <= z[i + 1])
-        bottom = (1 - fu) * (d <= z[i + stride]) + fu * (d <= z[i + stride + 1])
-        out[near] = (1 - fv) * top + fv * bottom
+        f32 = np.float32
+        return _Taps(near, i, (u - iu).astype(f32), (w - iv).astype(f32), (-v[near, 2] - bias).astype(f32))
+
+    def lookup(self, taps: _Taps, n: int) -> np.ndarray:
+        """How lit the ``n`` prepared points are: percentage-closer filtering, the four nearest
+        texels' depth tests weighted bilinearly."""
+        out = np.ones(n, np.float32)
+        if self.empty or not len(taps.near):
+            return out
+        z, i, d, fu = self.zp, taps.index, taps.depth, taps.fu
+        stride = self.w + 4
+        top = (d <= z[i]) + fu * ((d <= z[i + 1]).astype(np.float32) - (d <= z[i]))
+        bottom = (d <= z[i + stride]) + fu * ((d <= z[i + stride + 1]).astype(np.float32) - (d <= z[i + stride]))
+        out[taps.near] = top + taps.fv * (bottom - top)
         return out
+
+    def lit(self, p: np.ndarray, bias: float) -> np.ndarray:
+        if self.empty or not len(p):
+            return np.ones(len(p), np.float32)
+        return self.lookup(self.taps(p, bias), len(p))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -423,6 +462,8 @@ class _FloorLayer:
     pix: np.ndarray
     points: np.ndarray
     shadow: np.ndarray
+    taps: _Taps | None = None  # the points prepared for shadow lookups in a fixed map frame
+    taps_key: Any = None
 
 
 _FLOORS: dict[Any, _FloorLayer] = {}
@@ -501,9 +542,9 @@ def _shade_meshes(
         return np.zeros((h, w), bool)
     off = np.cumsum([0] + [len(m.positions) for m in drawn])[:-1]
     P = np.concatenate([m.positions for m in drawn])
-    N = np.concatenate([m.normals for m in drawn])
-    F = np.concatenate([m.front for m in drawn])
-    B = np.concatenate([m.back for m in drawn])
+    N = np.concatenate([m.normals for m in drawn]).astype(np.float32)
+    F = np.concatenate([m.front for m in drawn]).astype(np.float32)
+    B = np.concatenate([m.back for m in drawn]).astype(np.float32)
     T = np.concatenate([m.triangles + o for m, o in zip(drawn, off, strict=True)])
     per_tri = np.repeat(np.arange(len(drawn)), [len(m.triangles) for m in drawn])
     two = np.array([m.two_sided for m in drawn])[per_tri]
@@ -517,7 +558,7 @@ def _shade_meshes(
         return np.zeros((h, w), bool)
     t = tri[pix]
     c = T[t]
-    w1, w2 = b1[pix][:, None], b2[pix][:, None]
+    w1, w2 = b1[pix, None].astype(np.float32), b2[pix, None].astype(np.float32)
     w0 = 1 - w1 - w2
 
     def interp(a: np.ndarray) -> np.ndarray:
@@ -585,6 +626,7 @@ def draw_scene(
     floor: bool = True,
     fade_floor: bool = False,
     shadows: bool = True,
+    shadow_region: bool = False,
     lighting: Lighting = DEFAULT_LIGHTING,
     background: bool = True,
     supersample: float = 2.0,
@@ -593,7 +635,9 @@ def draw_scene(
 ) -> np.ndarray:
     """``meshes`` seen by ``cam`` (made for an image of ``size``), the floor at the bottom of
     ``bounds``; a uint8 (h, w, 3) image, drawn ``supersample`` times larger (1.5, 2...) and scaled
-    down. ``title`` is written at the top centre, ``caption`` at the bottom left."""
+    down. ``shadow_region``: the shadow map covers ``bounds`` (the same texels every frame, the
+    floor's lookups prepared once: animation frames) rather than the meshes. ``title`` is written
+    at the top centre, ``caption`` at the bottom left."""
     from PIL import Image, ImageDraw
 
     w, h = int(size[0]), int(size[1])
@@ -602,13 +646,14 @@ def draw_scene(
     b = np.asarray(bounds, np.float64).reshape(2, 3)
     layer = _floor_layer(camk, b, hk, wk, lighting, floor, fade_floor, background)
     img = layer.image.copy()
-    smap = ShadowMap(meshes, lighting.key_dir()) if shadows else None
+    smap = ShadowMap(meshes, lighting.key_dir(), region=b if shadow_region else None) if shadows else None
     drawn = _shade_meshes(img, meshes, camk, lighting, smap).ravel()
     if smap is not None and len(layer.pix):
-        seen = np.nonzero(~drawn[layer.pix])[0]
-        lit = smap.lit(layer.points[seen], 0.01)
-        dark = seen[lit < 1]
-        img.reshape(-1, 3)[layer.pix[dark]] -= layer.shadow[dark] * (1 - lit[lit < 1, None])
+        if layer.taps is None or layer.taps_key != smap.key:  # the floor's points, once per map frame
+            layer.taps, layer.taps_key = smap.taps(layer.points, 0.01), smap.key
+        lit = smap.lookup(layer.taps, len(layer.pix))
+        dark = np.nonzero((lit < 1) & ~drawn[layer.pix])[0]
+        img.reshape(-1, 3)[layer.pix[dark]] -= layer.shadow[dark] * (1 - lit[dark, None])
     out = Image.fromarray(_srgb(img), "RGB")
     if (wk, hk) != (w, h):
         out = out.resize((w, h), Image.Resampling.LANCZOS)

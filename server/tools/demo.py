@@ -517,7 +517,9 @@ def run(args: argparse.Namespace) -> int:
             raise RuntimeError(f"{r.kind}: non-finite positions received")
     w, h = (int(v) for v in args.size.lower().split("x"))
     log.info("rendering %d frames", min(len(r.ticks) for r in recs))
+    t0 = time.monotonic()
     paths, gif = render(recs, out, (w, h), args.fps)
+    log.info("rendered %d frames in %.1f s", len(paths), time.monotonic() - t0)
     if not paths:
         raise RuntimeError("no frames: the clients received no common ticks")
     print(f"wrote {len(paths)} PNG frames: {paths[0]} .. {paths[-1]}")

@@ -389,7 +389,7 @@ def render_frame(recs: list[Recording], index: dict[str, dict[int, int]], tick: 
         fade_floor=True,
         supersample=SUPERSAMPLE,
         shadow_region=True,
-        caption=f"Drape: three game clients' cloths over Zenoh   tick {tick}",
+        caption=(f"Drape: three game clients' cloths over Zenoh   tick {tick}" if size[0] >= 480 else f"tick {tick}"),
     )
 
 

@@ -237,7 +237,13 @@ class ServerProcess:
     def exit_message(self, before: str, n: int = 20) -> str:
         """ "server S exited with code N before ``before``", then its last ``n`` log lines."""
         rc = self.proc.poll()
-        text = f"server {self.server_id} exited with code {rc} before {before}"
+        code = str(rc)
+        if rc is not None and rc < 0:
+            try:
+                code += f" ({signal.Signals(-rc).name})"
+            except ValueError:
+                pass
+        text = f"server {self.server_id} exited with code {code} before {before}"
         lines = self.last_lines(n)
         if lines:
             text += f"; its last {len(lines)} log lines:\n" + "\n".join(f"  | {line}" for line in lines)

@@ -74,7 +74,7 @@ def test_a_server_killed_while_waited_on_is_reported_with_its_signal():
     finally:
         srv.stop()
     text = str(e.value)
-    assert text.startswith(f"server nc-{os.getpid()} exited with code -9 before the window closed; its last ")
+    assert text.startswith(f"server nc-{os.getpid()} exited with code -9 (SIGKILL) before the window closed; its last ")
     assert f"drape server nc-{os.getpid()} up: " in text
 
 

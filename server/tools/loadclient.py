@@ -265,6 +265,9 @@ def client_main(
             ]
     except BaseException as e:  # report, don't hang the parent
         results.put(("error", spec.index, repr(e)))
+        if isinstance(e, P.DrapeError):  # the server's answer (or its absence): one line, no traceback
+            log.error("load client %d: %s", spec.index, e)
+            raise SystemExit(1) from None
         raise
     received = lost = dup = ooo = 0
     lat, rx, dl = [], [], []

@@ -749,5 +749,6 @@ def write_gif(
     pal = [im.quantize(palette=palette, dither=mode) for im in imgs]
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    pal[0].save(p, save_all=True, append_images=pal[1:], duration=round(1000 / fps), loop=0, optimize=False, disposal=1)
+    delay = 10 * max(2, round(100 / fps))  # GIF delays are whole centiseconds (67 ms would be stored as 60)
+    pal[0].save(p, save_all=True, append_images=pal[1:], duration=delay, loop=0, optimize=False, disposal=1)
     return p

@@ -4,10 +4,14 @@
 #   bash client/rust/ci.sh
 # Checks the tools, builds the crate (also without the Zenoh client), runs `cargo test`
 # (protocol vectors of every version, hostile input, drape_wire.h layouts, the C header, live
-# tests against real `drape serve` processes), then builds the C example against the static
-# library and runs it against a `drape serve` started here. Exits non-zero on any failure. The
-# server binary is $DRAPE_BIN (default: <repo>/.venv/bin/drape); CI=true (the default here)
-# makes a missing server a test failure, never a skip. Cargo runs with -j 2 and --locked.
+# tests against real `drape serve` processes), packages the library `cargo test` built (the dev
+# profile: no second build) with package.sh, builds the C examples with CMake from that archive
+# (find_package(drape)), runs them against a `drape serve` started here (cape.c; engine.c, 16
+# capes for 5 s, every state accounted for), then the C# binding's tests under Mono against the
+# same server and the archive's libdrape.so (client/csharp/ci.sh; it installs Mono from Debian
+# when missing). Exits non-zero on any failure. The server binary is $DRAPE_BIN (default:
+# <repo>/.venv/bin/drape); CI=true (the default here) makes a missing server a test failure,
+# never a skip. Cargo runs with -j 2 and --locked. DRAPE_SKIP_CSHARP=1 skips the C# step.
 set -euo pipefail
 crate="$(cd "$(dirname "$0")" && pwd)"
 repo="$(cd "$crate/../.." && pwd)"
@@ -21,7 +25,7 @@ step() { echo "== [$((SECONDS - start)) s] $*"; }
 die() { echo "ci.sh: FAILED: $*" >&2; exit 1; }
 
 step "tools"
-for tool in cargo rustc "${CC:-cc}" python3; do
+for tool in cargo rustc "${CC:-cc}" python3 cmake; do
     command -v "$tool" >/dev/null || die "$tool is not installed"
 done
 [[ -x "$DRAPE_BIN" ]] || die "the drape server $DRAPE_BIN is missing (run \`bash deploy/setup.sh test\` first, or set DRAPE_BIN)"
@@ -44,13 +48,18 @@ fi
 summary="$(awk '/^test result:/ {p += $4; f += $6} END {printf "%d passed, %d failed", p, f}' "$results")"
 rm -f "$results"
 
-step "C example"
-examples/c/build.sh
+step "package the dev build (package.sh) and build the C examples from the archive with CMake"
+work="$(mktemp -d)"
+./package.sh --profile dev --out "$work" | tail -2
+tar -C "$work" -xzf "$work"/drape-*.tar.gz
+prefix="$(echo "$work"/drape-*/)"
+cmake -S examples/c -B "$work/build" -DCMAKE_PREFIX_PATH="$prefix" -DCMAKE_BUILD_TYPE=Release >/dev/null
+cmake --build "$work/build" -j 2 >/dev/null
 port="$(python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')"
 log="$(mktemp)"
 "$DRAPE_BIN" serve --listen "tcp/127.0.0.1:$port" --server-id "ci-c-$port" >"$log" 2>&1 &
 server=$!
-trap 'kill "$server" 2>/dev/null || true; rm -f "$log"' EXIT
+trap 'kill "$server" 2>/dev/null || true; rm -rf "$log" "$work"' EXIT
 # Up when its liveliness token is seen (up to 120 s: a cold device builds its kernels first).
 "$(dirname "$DRAPE_BIN")/python" - "$port" "$server" <<'EOF' || { cat "$log" >&2; die "drape serve did not come up"; }
 import os, sys, time, zenoh
@@ -69,10 +78,23 @@ with zenoh.open(c) as s:
         time.sleep(0.2)
 sys.exit(1)
 EOF
-if ! timeout 120 examples/c/build/cape "tcp/127.0.0.1:$port" 60; then
+step "C examples (CMake, from the archive)"
+if ! timeout 120 "$work/build/cape" "tcp/127.0.0.1:$port" 60; then
     echo "ci.sh: the C example failed; server log:" >&2
     cat "$log" >&2
     failed+=("C example")
+fi
+if ! timeout 180 "$work/build/engine" "tcp/127.0.0.1:$port" 5 16 8; then
+    echo "ci.sh: the C engine loop failed; server log:" >&2
+    tail -40 "$log" >&2
+    failed+=("C engine loop")
+fi
+if [[ "${DRAPE_SKIP_CSHARP:-}" != 1 ]]; then
+    step "C# binding (client/csharp/ci.sh)"
+    if ! DRAPE_ENDPOINT="tcp/127.0.0.1:$port" DRAPE_LIB_DIR="$prefix/lib" bash "$repo/client/csharp/ci.sh"; then
+        tail -40 "$log" >&2
+        failed+=("C# tests")
+    fi
 fi
 if (( ${#failed[@]} )); then
     die "$(printf '%s; ' "${failed[@]}")after $((SECONDS - start)) s"

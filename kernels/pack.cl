@@ -19,7 +19,7 @@
  * wg_step.
  *
  * Arithmetic per lane is wg_step's in the same order: tethers after the prediction, then per
- * iteration the long-range links and the links by colour (PBD: the talk's k; XPBD: the multiplier
+ * iteration the long-range links and the links by colour, then the tethers again (PBD: the talk's k; XPBD: the multiplier
  * per link, reset every substep, after the positions in local memory; with every multiplier 0
  * when read, link_xpbd's arithmetic without them).
  */
@@ -117,6 +117,33 @@ inline void pack_normals(__local const floatP *sx, __global const int *fb, __glo
         for (int j = 0; j < PACK_LANES; ++j)
             if (vb[j] >= 0)
                 nrm[vb[j] + v] = (float4)(t[0][j], t[1][j], t[2][j], t[3][j]);
+    }
+}
+#endif
+
+#if FEATURE_TETHERS
+/* every free vertex's tethers across the lanes (the lanes share the anchors; a lane's pinned
+ * vertex has none), slot by slot: no further than its length times the lane's limit from each */
+inline void pack_tethers(__local floatP *sx, __global const int *anc, const floatP tlim, int nv)
+{
+    for (int v = 0; v < nv; ++v) {
+        __global const int *A = anc + ANCHOR_WORDS * v;
+        __local floatP *P = sx + 4 * v;
+        for (int t = 0; t < TETHER_SLOTS; ++t) {
+            const int a = A[2 * t];
+            if (a < 0)
+                break;
+            const floatP lim = as_float(A[2 * t + 1]) * tlim;
+            __local const floatP *Q = sx + 4 * a;
+            const floatP ax = Q[0], ay = Q[1], az = Q[2];
+            const floatP dx = P[0] - ax, dy = P[1] - ay, dz = P[2] - az;
+            const floatP L = dx * dx + dy * dy + dz * dz;
+            const intP over = (L > lim * lim) & (P[3] > 0.0f);
+            const floatP f = select((floatP)(1.0f), lim * pack_rsqrt(L), over);
+            P[0] = ax + dx * f;
+            P[1] = ay + dy * f;
+            P[2] = az + dz * f;
+        }
     }
 }
 #endif
@@ -226,29 +253,7 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
                 P[2] = nz;
             }
 #if FEATURE_TETHERS
-            /* tethers across the lanes (the lanes share the anchors; a lane's pinned vertex has
-             * none) */
-            for (int v = 0; v < nv; ++v) {
-                __global const int *A = anc + ANCHOR_WORDS * v;
-                __local floatP *P = sx + 4 * v;
-                for (int t = 0; t < TETHER_SLOTS; ++t) {
-                    const int a = A[2 * t];
-                    if (a < 0)
-                        break;
-                    const floatP lim = as_float(A[2 * t + 1]) * tlim;
-                    __local const floatP *Q = sx + 4 * a;
-                    const floatP ax = Q[0], ay = Q[1], az = Q[2];
-                    const floatP dx = P[0] - ax, dy = P[1] - ay, dz = P[2] - az;
-                    const floatP L = dx * dx + dy * dy + dz * dz;
-                    const intP over = (L > lim * lim) & (P[3] > 0.0f); /* no root unless one is out */
-                    if (any(over)) {
-                        const floatP f = select((floatP)(1.0f), lim / sqrt(L), over);
-                        P[0] = ax + dx * f;
-                        P[1] = ay + dy * f;
-                        P[2] = az + dz * f;
-                    }
-                }
-            }
+            pack_tethers(sx, anc, tlim, nv);
 #endif
         } else {
 #if FEATURE_WIND
@@ -290,16 +295,14 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
                 const floatP rl = as_float(R.w) * tlim;
                 const floatP w = w0 + w1;
                 const intP ok = (L > rl * rl) & (L > EPS_LEN2) & (w > EPS_DENOM);
-                if (any(ok)) {
-                    const floatP k = select((floatP)(0.0f), (rl * pack_rsqrt(L) - 1.0f) * pack_recip(w), ok);
-                    const floatP k0 = k * w0, k1 = k * w1;
-                    A[0] = x0 - dx * k0;
-                    A[1] = y0 - dy * k0;
-                    A[2] = z0 - dz * k0;
-                    B[0] = x1 + dx * k1;
-                    B[1] = y1 + dy * k1;
-                    B[2] = z1 + dz * k1;
-                }
+                const floatP k = select((floatP)(0.0f), (rl * pack_rsqrt(L) - 1.0f) * pack_recip(w), ok);
+                const floatP k0 = k * w0, k1 = k * w1;
+                A[0] = x0 - dx * k0;
+                A[1] = y0 - dy * k0;
+                A[2] = z0 - dz * k0;
+                B[0] = x1 + dx * k1;
+                B[1] = y1 + dy * k1;
+                B[2] = z1 + dz * k1;
             }
 #endif
 #if FEATURE_XPBD
@@ -400,6 +403,9 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
         }
 
         if (vec) {
+#if FEATURE_TETHERS
+            pack_tethers(sx, anc, tlim, nv); /* and after the links */
+#endif
             if (s == S - 1) /* the step's last start positions, for whoever reads prev */
                 for (int j = 0; j < PACK_LANES; ++j)
                     if (vb[j] >= 0)
@@ -424,7 +430,7 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
             for (int v = 0; v < nv; ++v)
                 X[v].xyz = lane_get3(sxf, v, j);
             for (int v = 0; v < nv; ++v) {
-                const float4 x = finish_vertex(X[v], X, fb, I, F, vel, prev, coll, v, vbase + v, h, s, S, 0);
+                const float4 x = finish_vertex(X[v], X, fb, I, F, vel, prev, coll, v, vbase + v, h, s, S, 1);
                 X[v] = x;
 #if FEATURE_WIND || FEATURE_NORMALS
                 lane_put3(sxf, v, j, x.xyz); /* the normals read the lanes */

@@ -5,8 +5,8 @@
  * first, -1 ends the list); it may be at most each tether's length (the geodesic rest distance to
  * the anchor, stored with the fabric) times the cloth's limit from that anchor, and further out
  * it is pulled back onto the sphere around it, slot by slot. The work-group solver and the CPU
- * pack solver apply them after predicting the substep, before the links (NvCloth's order); the
- * coloured and Jacobi solvers after the links (finish_vertex).
+ * pack solver apply them after predicting the substep, before the links (NvCloth's order), and
+ * again after the links (finish_vertex); the coloured and Jacobi solvers after the links only.
  *
  * Long-range links: unilateral, hard links of a coarse hierarchy of the cloth (rest length times
  * the tether limit, never pushing apart), by colour, before the links of every iteration in the

@@ -4,7 +4,8 @@
  * parallel between barriers, which sit only where control flow is uniform across the group. The
  * GPU's default solver, and the CPU's with one work-item per cloth
  * where the pack solver (pack.cl) is off. With tethers: the tethers after each substep's
- * prediction and the long-range links before the links of each iteration (tethers.cl). XPBD at
+ * prediction and again after the links, and the long-range links before the links of each
+ * iteration (tethers.cl). XPBD at
  * compliance 0 or with one iteration keeps no multipliers (every one is 0 when read). Included by
  * cloth.cl. */
 
@@ -117,7 +118,7 @@ __kernel void wg_step(const float dt, __global const int *cloths, __global const
         }
 
         for (int v = lid; v < nv; v += ls)
-            X[v] = finish_vertex(X[v], X, fb, I, F, vel, prev, coll, v, vbase + v, h, s, S, 0);
+            X[v] = finish_vertex(X[v], X, fb, I, F, vel, prev, coll, v, vbase + v, h, s, S, 1);
         barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
     }
 

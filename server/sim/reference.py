@@ -10,13 +10,16 @@ One step of one cloth, in this order (the OpenCL kernels in kernels/cloth.cl do 
         pinned:      x += (target - x) / (substeps - s)        (reaches the target on the last)
         [xpbd]       lambda = 0
         [tethers]    free vertex no further than tether_length * limit from each of its anchors
-                     (one per pin island, tethers.py), before the links as NvCloth does
+                     (one per pin island, tethers.py), before the links as NvCloth does (serial,
+                     coloured: the work-group and pack solvers)
         iterations:  every link, colour by colour (Gauss-Seidel in colour order), with the
                      talk's PBD equation   k = kst (rl^2 - L) / ((im0 + im1) (rl^2 + L))
                      or XPBD               dl = (-C - a~ l) / (im0 + im1 + a~),  a~ = compliance / h^2
                      [tethers] first the long-range links, colour by colour: unilateral and hard,
                      a link no longer than rest * limit (k = (rest * limit / len - 1) / (im0 + im1)
                      where that is negative)
+        [tethers]    the tethers again (every mode: the device's coloured and Jacobi solvers
+                     apply them here only)
         [colliders]  push out of spheres, capsules, planes (interpolated over substeps), friction
         all:         v = (x - x_prev) / h * (1 - damping)
 
@@ -85,8 +88,8 @@ def step(state: ClothState, fabric: Fabric, params: ClothParams, dt: float, mode
     """Advance one cloth by dt in place."""
     if mode not in ("serial", "coloured", "batches", "jacobi"):
         raise ValueError(f"unknown reference mode {mode!r}")
-    # where the tethers go: before the links (work-group and pack solvers: serial, coloured) or,
-    # with no long-range links, after them (the device's coloured batches and Jacobi)
+    # the tethers go before and after the links with the long-range links between (work-group and
+    # pack solvers: serial, coloured), or only after the links (device's coloured batches, Jacobi)
     early = mode in ("serial", "coloured")
     f = params.features
     m = params.material
@@ -137,7 +140,7 @@ def step(state: ClothState, fabric: Fabric, params: ClothParams, dt: float, mode
                 if omega != 1.0:
                     x[free] = omega * (x[free] - x_before[free]) + x_before[free]
                 x_before = x_k
-        if f.tethers and not early:
+        if f.tethers:  # after the links: in every mode (serial, coloured: again)
             apply_tethers(x, fabric, m.tether_limit)
         if f.colliders and len(state.colliders):
             t0, t1 = s / S, (s + 1) / S

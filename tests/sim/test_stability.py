@@ -43,6 +43,7 @@ from drape.server.sim.params import (
     Sphere,
     pack_colliders,
 )
+from drape.server.sim.quality import PRESETS
 from drape.server.sim.world import ReferenceWorld
 
 SOLVERS = ["workgroup", "coloured", "jacobi", "reference"]
@@ -411,6 +412,62 @@ def test_every_feature_at_once_under_load(device, rng, solver):
         substeps=int(rng.integers(1, 5)),
     )
     check_run(new_world(solver, device), fab, params, DT, 60, colliders=colliders, what=f"{solver} every feature")
+
+
+# The quality presets' substep counts (the old presets' 5, 20, 80, 100 and whatever they are now):
+# 1 or 2 iterations at each, with tethers and long-range links (which only the work-group, pack
+# and serial/coloured reference solvers apply), every feature, stiff (compliance 0, the presets'
+# material: the multiplier-free path) and compliant.
+PRESET_SUBSTEPS = sorted({5, 20, 80, 100} | {p.substeps for p in PRESETS.values()})
+
+
+@pytest.mark.parametrize("solver", SOLVERS)
+@pytest.mark.parametrize("substeps", PRESET_SUBSTEPS)
+@pytest.mark.parametrize("compliance", [0.0, 1e-4], ids=["stiff", "compliant"])
+def test_preset_substeps_with_every_feature(device, rng, solver, substeps, compliance):
+    fab = random_grid(rng, 3, 12, pins=int(rng.integers(1, 5)))
+    lo, hi = fab.rest_positions.min(0), fab.rest_positions.max(0)
+    c = (lo + hi) / 2
+    # clear of the cloth at the start (a collider inside it pushes it apart at once, which no
+    # bound here allows for): the cloth falls onto the sphere and the floor
+    below = [c[0], lo[1] - 0.45, c[2]]
+    colliders = pack_colliders([Sphere(tuple(below), 0.3), Plane((0.0, 1.0, 0.0), float(lo[1] - 1.0))])
+    params = ClothParams(
+        features=Features(xpbd=True, tethers=True, colliders=True, wind=True, normals=True),
+        material=Material(drag=1.0, lift=0.5, friction=0.5, compliance=(compliance, compliance, 1e-3)),
+        gravity=(0.0, -30.0, 0.0),
+        wind=(15.0, 0.0, 5.0),
+        iterations=int(rng.integers(1, 3)),
+        substeps=substeps,
+    )
+    check_run(
+        new_world(solver, device),
+        fab,
+        params,
+        DT,
+        20 if substeps >= 80 else 40,
+        colliders=colliders,
+        strain_max=STIFF_STRAIN,
+        what=f"{solver} {substeps} substeps, compliance {compliance:g}",
+    )
+
+
+@pytest.mark.parametrize("solver", SOLVERS)
+@pytest.mark.parametrize("substeps", PRESET_SUBSTEPS)
+def test_preset_substeps_hanging_with_tethers_at_dt_one_tenth(device, rng, solver, substeps):
+    """The presets' solver (XPBD, 1 iteration, tethers, compliance 0) at a 10 Hz tick: a step's
+    fall is a link's length; strain must not grow."""
+    fab = random_grid(rng, 4, 12, pins=2)
+    params = ClothParams(features=Features(xpbd=True, tethers=True), iterations=1, substeps=substeps)
+    check_run(
+        new_world(solver, device),
+        fab,
+        params,
+        0.1,
+        10 if substeps >= 80 else 30,
+        strain_growth=True,
+        what=f"{solver} {substeps} substeps at dt 0.1",
+    )
 
 
 # ---------------------------------------------------------------------------------------------

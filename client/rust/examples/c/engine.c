@@ -152,18 +152,24 @@ int main(int argc, char **argv) {
         DrapeEvent ev;
         while (TIMED("drape_client_poll_event", drape_client_poll_event(client, 0, &ev)) == DRAPE_OK) {
             events++;
+#ifndef DRAPE_LEGACY
             if (ev.kind == DRAPE_EVENT_SUBMITTED) {
                 for (int i = 0; i < ncapes; i++)
                     if (drape_cloth_handle(capes[i]) == ev.handle) live[i] = 1;
                 submitted++;
+                continue;
             } else if (ev.kind == DRAPE_EVENT_REQUEST_DONE && ev.request == feature_request) {
                 feature_done = 1;
                 printf("frame %ld: normals on for %s from tick %llu, features 0x%x\n", frames, ev.cloth,
                        (unsigned long long)ev.tick, ev.features);
-            } else if (ev.kind != DRAPE_EVENT_SERVER_FOUND) {
-                printf("event %d (%s) cloth %s: %s\n", ev.kind, drape_error_name(ev.code), ev.cloth, ev.message);
-                if (ev.kind == DRAPE_EVENT_SUBMIT_FAILED) return 1;
+                continue;
+            } else if (ev.kind == DRAPE_EVENT_SUBMIT_FAILED) {
+                printf("submit failed (%s): %s\n", drape_error_name(ev.code), ev.message);
+                return 1;
             }
+#endif
+            if (ev.kind != DRAPE_EVENT_SERVER_FOUND)
+                printf("event %d (%s) cloth %s: %s\n", ev.kind, drape_error_name(ev.code), ev.cloth, ev.message);
         }
         /* pins of every live cape along a circle, one call, not waited for */
         double a = frames * (2 * 3.14159265358979 / 120.0);

@@ -230,7 +230,12 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
                 __local floatP *P = sx + 4 * v;
                 __local floatP *V = sv + 3 * v;
                 const floatP x = P[0], y = P[1], z = P[2], w = P[3];
-                const floatP vx = V[0] + gx, vy = V[1] + gy, vz = V[2] + gz;
+                /* V: the velocity at the step's start, else the last substep's start positions
+                 * (its velocity, (x - start) / h damped, computed here in the same pass) */
+                const floatP ux = s ? (x - V[0]) * keep : V[0];
+                const floatP uy = s ? (y - V[1]) * keep : V[1];
+                const floatP uz = s ? (z - V[2]) * keep : V[2];
+                const floatP vx = ux + gx, vy = uy + gy, vz = uz + gz;
                 V[0] = x;
                 V[1] = y;
                 V[2] = z;
@@ -406,7 +411,7 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
 #if FEATURE_TETHERS
             pack_tethers(sx, anc, tlim, nv); /* and after the links */
 #endif
-            if (s == S - 1) /* the step's last start positions, for whoever reads prev */
+            if (s == S - 1) { /* the step's last start positions, for whoever reads prev */
                 for (int j = 0; j < PACK_LANES; ++j)
                     if (vb[j] >= 0)
                         for (int v = 0; v < nv; ++v)
@@ -414,13 +419,15 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
                                                        svf[(3 * v + 1) * PACK_LANES + j],
                                                        svf[(3 * v + 2) * PACK_LANES + j],
                                                        sxf[(4 * v + 3) * PACK_LANES + j]);
-            /* velocities across the lanes: (x - start) / h, damped */
-            for (int v = 0; v < nv; ++v) {
-                __local floatP *P = sx + 4 * v;
-                __local floatP *V = sv + 3 * v;
-                V[0] = (P[0] - V[0]) * keep;
-                V[1] = (P[1] - V[1]) * keep;
-                V[2] = (P[2] - V[2]) * keep;
+                /* the step's velocities across the lanes: (x - start) / h, damped (the other
+                 * substeps' are the next prediction's) */
+                for (int v = 0; v < nv; ++v) {
+                    __local floatP *P = sx + 4 * v;
+                    __local floatP *V = sv + 3 * v;
+                    V[0] = (P[0] - V[0]) * keep;
+                    V[1] = (P[1] - V[1]) * keep;
+                    V[2] = (P[2] - V[2]) * keep;
+                }
             }
             continue;
         }

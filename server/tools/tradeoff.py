@@ -149,6 +149,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="--costs: also these XPBD 1-iteration + tethers substep counts (comma list: the front)",
     )
     parser.add_argument("--cost-file", default=None, help="--costs: write here (default: the presets' cost file)")
+    parser.add_argument(
+        "--cost-front",
+        default=None,
+        help="--costs: also simulate every configuration once (hanging 64 x 64, 2 s, float32 on "
+        "the device) and plot stretch against cost to this PNG",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -293,9 +299,15 @@ def run_costs(args: argparse.Namespace) -> int:
         cloths=args.cost_cloths,
         extra=extra,
         progress=lambda r, n: print(f"round {r}/{n}", flush=True),
+        accuracy=bool(args.cost_front),
     )
     for name, c in res["configs"].items():
-        print(f"{name:<40} {c['cost']:6.3f}x  ({c['min']:.3f} .. {c['max']:.3f})  {np.median(c['ms']):8.3f} ms")
+        acc = f"  max {100 * c['max_strain']:6.2f} %  mean {100 * c['mean_strain']:6.3f} %" if "max_strain" in c else ""
+        print(f"{name:<40} {c['cost']:6.3f}x  ({c['min']:.3f} .. {c['max']:.3f})  {np.median(c['ms']):8.3f} ms{acc}")
     path = write_costs(res, args.cost_file)
+    if args.cost_front:
+        from .tradeoffcost import plot_front
+
+        print(f"front: {plot_front(res, Path(args.cost_front))}")
     print(f"{res['kind']}: {res['device']}, {res['cloths']} cloths, {res['rounds']} rounds -> {path}")
     return 0

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from ..sim.params import ClothParams, Material
-from .tradeoffrun import Config, make_scene
+from .tradeoffrun import Config, make_scene, simulate
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +58,7 @@ def measure_costs(
     extra: list[Config] | None = None,
     size: int = COST_SIZE,
     progress=None,
+    accuracy: bool = False,
 ) -> dict[str, Any]:
     """Interleaved rounds of every configuration against PBD-10 (module docstring)."""
     from ..sim import make_world
@@ -111,6 +112,15 @@ def measure_costs(
             if progress is not None:
                 progress(r + 1, rounds)
         dev_name = getattr(probe, "device_name", "?")
+        strains: dict[str, dict[str, float]] = {}
+        if accuracy:  # one cloth of each configuration over 2 s on this device (float32)
+            for name, cfg in configs.items():
+                m = simulate(scene, cfg, device=dev, encodings=("float32",))
+                strains[name] = {
+                    "max_strain": m.metrics["float32"]["max_strain"],
+                    "mean_strain": m.metrics["float32"]["mean_strain"],
+                    "finite": m.finite,
+                }
         lanes_used = {k: worlds[k].groups[next(iter(worlds[k].groups))].pack for k in names}
     finally:
         for w in worlds.values():
@@ -132,11 +142,14 @@ def measure_costs(
         ratio = np.array(ms[name]) / base
         out["configs"][name] = {
             "describe": configs[name].describe(),
+            "iterations": configs[name].iterations,
+            "substeps": configs[name].substeps,
             "ms": [round(x, 4) for x in ms[name]],
             "ratios": [round(x, 4) for x in ratio.tolist()],
             "cost": round(float(np.median(ratio)), 3),
             "min": round(float(ratio.min()), 3),
             "max": round(float(ratio.max()), 3),
+            **strains.get(name, {}),
         }
     return out
 
@@ -154,4 +167,72 @@ def write_costs(result: dict[str, Any], path: Path | None = None) -> Path:
     data = json.loads(path.read_text()) if path.exists() else {}
     data[result["kind"]] = result
     path.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
+    return path
+
+
+# targets of issue 24 on the hanging 64 x 64: (name, cost at most, max stretch, mean stretch)
+TARGETS = (("fast", 1.0, 0.50, 0.015), ("balanced", 3.0, 0.10, 0.003))
+
+
+def plot_front(result: dict[str, Any], path: Path, title: str = "") -> Path:
+    """Two panels, max and mean structural stretch against cost in multiples of PBD-10 (median of
+    the interleaved rounds, bars from their min to max), log-log: the measured configurations as
+    labelled front points, the presets as distinct markers on top, the issue's targets as lines
+    (each up to its cost bound)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cfgs = result["configs"]
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
+    markers = {"fast": "o", "balanced": "s", "accurate": "D", "exact": "^", "pbd10": "X"}
+    for ax, key, label in zip(
+        axes, ("max_strain", "mean_strain"), ("max structural stretch", "mean structural stretch"), strict=True
+    ):
+        front = [(n, c) for n, c in cfgs.items() if n not in markers and key in c]
+        front.sort(key=lambda nc: nc[1]["cost"])
+        if front:
+            x = [c["cost"] for _, c in front]
+            y = [100 * c[key] for _, c in front]
+            err = [[c["cost"] - c["min"] for _, c in front], [c["max"] - c["cost"] for _, c in front]]
+            ax.errorbar(x, y, xerr=err, fmt="-", color="0.55", marker=".", ms=6, lw=1, capsize=2, zorder=2)
+            for (n, _c), xi, yi in zip(front, x, y, strict=True):
+                short = n.replace("workgroup xpbd ", "").replace(" +tethers 60Hz", "").replace("it x ", "x")
+                short = short.replace("ss", "")
+                ax.annotate(short, (xi, yi), textcoords="offset points", xytext=(4, 4), fontsize=7, color="0.3")
+        for n, mk in markers.items():
+            c = cfgs.get(n)
+            if c is None or key not in c:
+                continue
+            err = [[c["cost"] - c["min"]], [c["max"] - c["cost"]]]
+            ax.errorbar(
+                [c["cost"]],
+                [100 * c[key]],
+                xerr=err,
+                fmt=mk,
+                ms=9,
+                capsize=3,
+                zorder=5,
+                label=f"{n} ({c['describe'].replace('workgroup ', '').replace(' 60Hz', '')})",
+            )
+        for (n, cmax, mx, mean), col in zip(TARGETS, ("tab:red", "tab:purple"), strict=True):
+            t = 100 * (mx if key == "max_strain" else mean)
+            ax.plot([0.5, cmax], [t, t], ls="--", color=col, lw=1)
+            ax.axvline(cmax, ls=":", color=col, lw=0.8)
+            ax.annotate(f"{n} target", (cmax, t), textcoords="offset points", xytext=(-60, 4), fontsize=7, color=col)
+        ax.set_xscale("log")
+        ax.set_xlim(left=0.5)
+        ax.set_yscale("log")
+        ax.set_xlabel("cost, x PBD-10 (median of interleaved rounds; bars: min..max)")
+        ax.set_ylabel(f"{label}, % (hanging 64 x 64, 2 s)")
+        ax.grid(True, which="both", alpha=0.25)
+    axes[0].legend(fontsize=7, loc="upper right")
+    fig.suptitle(
+        title or f"{result['kind'].upper()}: {result['device']}, {result['cloths']} cloths per world", fontsize=10
+    )
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
     return path

@@ -36,7 +36,7 @@ import numpy as np
 
 from drape.client.placement import spread
 
-from .loadclient import ClientResult, ClientSpec, Workload, client_main
+from .loadclient import OVERLOADED_RETRIES, ClientResult, ClientSpec, Workload, client_main
 from .loadreport import (
     Report,
     achieved_rate,
@@ -66,7 +66,11 @@ class LoadSpec(Workload):
         """Each client's share of the offered cloths (the first ones take the remainder)."""
         total = int(math.ceil(self.cloths * self.offered))
         base, extra = divmod(total, self.clients)
-        return [ClientSpec(index=i, offered=base + (i < extra), **self.workload()) for i in range(self.clients)]
+        retries = OVERLOADED_RETRIES if self.offered <= 1.0 else 0
+        return [
+            ClientSpec(index=i, offered=base + (i < extra), retries=retries, **self.workload())
+            for i in range(self.clients)
+        ]
 
 
 class StatsWatch:
@@ -188,6 +192,7 @@ def run_fleet_load(
     cspecs = spec.client_specs()
     shared = [
         {
+            "connected": ctx.Event(),
             "turn": ctx.Event(),
             "expect": ctx.Value("q", 0, lock=False),
             "ready": ctx.Event(),
@@ -225,6 +230,15 @@ def run_fleet_load(
         deadline = time.monotonic() + 120 + 0.05 * offered
         for p in procs:  # all start at once (imports, a Zenoh session, the servers seen) ...
             p.start()
+        # ... and submit only once every one is up: a client starting beside the first submits
+        # competes for the CPU with the server's first ticks, which admission measures
+        _wait(
+            lambda: all(s["connected"].is_set() for s in shared),
+            "the clients connected",
+            deadline,
+            procs,
+            targets,
+        )
         placed = 0
         for p, s in zip(procs, shared, strict=True):
             s["expect"].value = placed * spec.size * spec.size

@@ -80,9 +80,9 @@ class Preset:
 # file's record was measured with the same iterations and substeps; docs/accuracy.md has the
 # other scenes.
 _SETTINGS = (
-    ("fast", 1, 2, "no more than the plain 10-iteration solve; hanging 64 x 64 within 50 % / 1.5 %"),
-    ("balanced", 1, 8, "within 3x the plain solve; hanging 64 x 64 within 10 % / 0.3 %"),
-    ("accurate", 1, 100, "every scene within the old accurate preset's strains or better"),
+    ("fast", 1, 2, "at most the plain 10-iteration solve's cost; hanging 64 x 64 within 50 % / 1.5 %"),
+    ("balanced", 1, 8, "at most 3x the plain solve; hanging 64 x 64 within 10 % / 0.3 %"),
+    ("accurate", 1, 80, "the old accurate's substeps: every scene within its strains"),
     ("exact", 2, 100, "reference-like"),
 )
 

@@ -144,9 +144,22 @@ int main(int argc, char **argv) {
     uint64_t feature_request = 0;
     int feature_done = 0;
     double frame_dt = 1.0 / 60.0;
-    double t_start = now_s(), cpu_start = cpu_s();
-    double next_frame = t_start;
-    while (now_s() - t_start < seconds) {
+    /* The measured SECONDS start once every cape is live (submissions refused while the server
+     * admits others are retried in the background: up to 90 s of frames before that). */
+    double t_begin = now_s(), t_start = t_begin, cpu_start = cpu_s();
+    int measuring = 0;
+#ifdef DRAPE_LEGACY
+    measuring = 1;
+#endif
+    double next_frame = t_begin;
+    while (measuring ? now_s() - t_start < seconds : now_s() - t_begin < 90) {
+        if (!measuring && submitted == ncapes) {
+            measuring = 1;
+            t_start = now_s();
+            cpu_start = cpu_s();
+            calls = blocked_calls = 0;
+            slowest = 0;
+        }
         frames++;
         /* events: asynchronous submissions and controls complete here */
         DrapeEvent ev;
@@ -204,7 +217,7 @@ int main(int argc, char **argv) {
         }
 #ifndef DRAPE_LEGACY
         /* one second in: switch normals on for cape 0 without waiting (it blocked 800 ms waited) */
-        if (feature_request == 0 && live[0] && now_s() - t_start > 1.0) {
+        if (feature_request == 0 && measuring && now_s() - t_start > 1.0) {
             DrapeControl ctl = {0};
             ctl.features_add = DRAPE_FEATURE_NORMALS;
             rc = TIMED("drape_cloth_control_async", drape_cloth_control_async(capes[0], &ctl, &feature_request));
@@ -233,10 +246,11 @@ int main(int argc, char **argv) {
                    (unsigned long long)k.unread, (unsigned long long)k.ticks);
             ok = 0;
         }
-        if (k.read == 0) ok = 0;
+        if (k.read == 0) printf("engine: no state read of cape %d\n", i), ok = 0;
         rec += k.received, read += k.read, repl += k.replaced, miss += k.missed, unread += k.unread, ticks += k.ticks;
     }
-    if (submitted != ncapes || !feature_done) ok = 0;
+    if (submitted != ncapes) printf("engine: only %ld of %d capes went live\n", submitted, ncapes), ok = 0;
+    if (!feature_done) printf("engine: the asynchronous feature change did not complete\n"), ok = 0;
     printf("engine: %d capes, %.1f s, %ld frames, %.1f Hz server; states: received %llu read %llu replaced %llu "
            "missed %llu unread %llu ticks %llu (read+replaced+missed+unread %s ticks); cpu %.2f s = %.1f %% of one core; "
            "%ld game-thread calls, %ld blocked%s%s, slowest %.3f ms (%s); %ld events\n",

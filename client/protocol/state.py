@@ -206,10 +206,16 @@ def quant16_values(x: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 
 def quant16_decode(q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Positions from quant16 values: min + q * (max - min) / 65535 in float64, then float32."""
+    """Positions from quant16 values: min + q * (max - min) / 65535 in float64, then float32. An
+    axis whose bounds are not finite (a hostile or broken writer's) decodes to the canonical NaN:
+    which of two NaNs an operation keeps is the hardware's and numpy's loop's choice."""
     lo64 = np.asarray(lo, np.float32).astype(np.float64)
     hi64 = np.asarray(hi, np.float32).astype(np.float64)
-    return (lo64 + np.asarray(q, np.float64) * ((hi64 - lo64) / QUANT_MAX)).astype(np.float32)
+    out = (lo64 + np.asarray(q, np.float64) * ((hi64 - lo64) / QUANT_MAX)).astype(np.float32)
+    bad = ~(np.isfinite(lo64) & np.isfinite(hi64))
+    if bad.any():
+        out[..., bad] = np.float32(np.nan)
+    return out
 
 
 def snorm16_values(normals: np.ndarray) -> np.ndarray:
@@ -420,10 +426,13 @@ def quant16_decode_many(q: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.nda
             tmp = scratch[: j - i]
             np.copyto(tmp, q[i:j, :n0].reshape(j - i, runs, 3 * t))
             np.multiply(tmp, step_t[i:j], out=tmp)
-            np.add(tmp, lo_t[i:j], out=tmp)
+            np.add(lo_t[i:j], tmp, out=tmp)  # lo first, as quant16_decode: a NaN bound's bits win alike
             np.copyto(out[i:j, :n0].reshape(j - i, runs, 3 * t), tmp, casting="same_kind")
     if n0 < n:  # the last n % 64 vertices
         out[:, n0:] = (lo64 + np.asarray(q[:, n0:], np.float64) * step).astype(np.float32)
+    bad = ~(np.isfinite(lo64) & np.isfinite(hi64)).reshape(m, 3)  # as quant16_decode: the canonical NaN
+    if bad.any():
+        out.transpose(0, 2, 1)[bad] = np.float32(np.nan)
     return out
 
 

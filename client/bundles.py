@@ -64,11 +64,8 @@ class BundleReceiver:
             return
         states = bundle.decode(receive_time_ns)
         now = time.monotonic()
-        predictive = None  # 1.5: entries whose state is predictive, by cloth id
-        for i, entry in enumerate(bundle.entries):
-            if entry.size > 8 and bundle.data[entry.offset + 8] == P.ENC_PREDICTIVE:
-                predictive = predictive or {}
-                predictive[entry.cloth] = i
+        predictive = self._predictive(bundle, receive_time_ns)  # 1.5: decoded together, by cloth id
+        bundle_index = {e.cloth: i for i, e in enumerate(bundle.entries)} if predictive else {}
         handles = self._handles
         for cloth, st in zip(P.BundleEntries.of(bundle.entries).cloths, states, strict=True):
             h = handles.get(cloth)
@@ -80,18 +77,44 @@ class BundleReceiver:
                 continue
             if st.__class__ is ClothState:
                 h._deliver(st, now)  # type: ignore[arg-type]
-            elif predictive is not None and cloth in predictive:  # 1.5: decoded through its stream
-                try:
-                    got = h._decode(bundle.payload(predictive[cloth]), receive_time_ns)
-                except DrapeError as e:
+            elif predictive is not None and cloth in predictive:  # 1.5: through its stream
+                got = predictive[cloth]
+                if isinstance(got, DrapeError):
                     h.invalid += 1
-                    log.warning("cloth %s: invalid state in bundle: %s", h.id, e)
+                    log.warning("cloth %s: invalid state in bundle: %s", h.id, got)
                     continue
+                if got is None:  # predicted from a state this client lacks
+                    got = h._missing(bundle.payload(bundle_index[cloth]), receive_time_ns)
                 if got is not None:
                     h._deliver(got, now)
             else:
                 h.invalid += 1
                 log.warning("cloth %s: invalid state in bundle: %s", h.id, st)
+
+    def _predictive(self, bundle: P.Bundle, receive_time_ns: int) -> dict[str, ClothState | DrapeError | None] | None:
+        """1.5: the bundle's predictive states of this client's handles, decoded all at once
+        through their streams (protocol.decode_predictive_many); None when there are none."""
+        entries = [
+            (i, e) for i, e in enumerate(bundle.entries) if e.size > 8 and bundle.data[e.offset + 8] == P.ENC_PREDICTIVE
+        ]
+        if not entries:
+            return None
+        handles = self._handles
+        mine = [(i, e, handles[e.cloth]) for i, e in entries if e.cloth in handles]
+        out: dict[str, ClothState | DrapeError | None] = {}
+        try:
+            got = P.decode_predictive_many(
+                bundle.data, [e.offset for _, e, _ in mine], [h.stream for _, _, h in mine], receive_time_ns
+            )
+            for (_, e, _), st in zip(mine, got, strict=True):
+                out[e.cloth] = st
+        except DrapeError:  # a bad one among them: each alone, so that only it is lost
+            for _, e, h in mine:
+                try:
+                    out[e.cloth] = h.stream.decode(bundle.data[e.offset : e.offset + e.size], receive_time_ns)
+                except DrapeError as err:
+                    out[e.cloth] = err
+        return out
 
     def _orphan(self, cloth: str, st: ClothState | P.ProtocolError) -> ClothHandle | None:
         """A cloth without a handle: its handle if it was registered meanwhile, else None, and its

@@ -123,6 +123,11 @@ class ClothHandle:
         st = self.stream.decode(data, receive_time_ns)
         if st is not None:
             return st
+        return self._missing(data, receive_time_ns)
+
+    def _missing(self, data: bytes | memoryview, receive_time_ns: int) -> ClothState | None:
+        """A state this stream could not decode: counted, a keyframe asked for, the last state
+        extrapolated to its tick instead (None before any)."""
         self.gaps += 1
         self.ask_keyframe()
         tick = P.read_state_header(data, len(data))[4]

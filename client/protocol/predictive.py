@@ -200,29 +200,59 @@ def pack_frame(z: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarra
 def decode_residuals(data: bytes | bytearray | memoryview, n: int, at: int = 0) -> tuple[np.ndarray, int]:
     """(3, n) uint32 symbols of the packed data at ``at`` of ``data``, and its length in bytes.
     ValueError if the data is shorter than its widths say or a width is over 32."""
-    nb = -(-n // BLOCK)
-    head = 4 * (-(-3 * nb // 4))
+    z, sizes = unpack_frame(data, np.array([at], np.int64), np.array([n], np.int64))
+    return np.ascontiguousarray(z.T), int(sizes[0])
+
+
+def unpack_frame(
+    data: bytes | bytearray | memoryview, starts: np.ndarray, counts: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The inverse of :func:`pack_frame` for packed data anywhere in ``data``: cloth ``i``'s at
+    byte ``starts[i]`` (a multiple of 4), of ``counts[i]`` vertices. ((N, 3) uint32 symbols back
+    to back, each cloth's packed size). ValueError if a cloth's data runs past the end or a width
+    is over 32. Whole arrays: the states of a bundle decode together."""
     buf = memoryview(data).cast("B")
-    if len(buf) < at + head:
-        raise ValueError(f"predictive data of {len(buf) - at} bytes is shorter than its {head} width bytes")
-    widths = np.frombuffer(buf, np.uint8, 3 * nb, at)
+    starts = np.asarray(starts, np.int64)
+    counts = np.asarray(counts, np.int64)
+    if (starts % 4).any():
+        raise ValueError("predictive data must start at a multiple of 4 bytes")
+    nb, first, head, block, j = _frame_blocks(counts)
+    if len(buf) < int((starts + head).max(initial=0)):
+        raise ValueError("predictive data is shorter than its width bytes")
+    raw = np.frombuffer(buf, np.uint8)
+    bcloth = np.repeat(np.arange(len(counts)), 3 * nb)
+    widths = raw[starts[bcloth] + np.arange(int(first[-1])) - first[bcloth]]
     if widths.size and widths.max() > 32:
         raise ValueError(f"a block width of {int(widths.max())} bits (at most 32)")
-    total = int(widths.sum(dtype=np.int64))
-    size = head + 4 * total
-    if len(buf) < at + size:
-        raise ValueError(f"predictive data of {len(buf) - at} bytes is shorter than the {size} its widths say")
-    words = np.zeros(total + 2, np.uint64)  # zero-width blocks at the end point one past the last word
-    words[:total] = np.frombuffer(buf, "<u4", total, at + head)
-    word_off = np.zeros(3 * nb, np.int64)
-    np.cumsum(widths[:-1], out=word_off[1:])
-    w = widths.astype(np.uint64)[:, None]
-    bit = (word_off.astype(np.uint64)[:, None] << np.uint64(5)) + np.arange(BLOCK, dtype=np.uint64)[None, :] * w
-    word, shift = bit >> np.uint64(5), bit & np.uint64(31)
+    wsum = np.zeros(len(widths) + 1, np.int64)
+    np.cumsum(widths, out=wsum[1:])
+    sizes = head + 4 * (wsum[first[1:]] - wsum[first[:-1]])
+    if len(buf) < int((starts + sizes).max(initial=0)):
+        raise ValueError("predictive data is shorter than its widths say")
+    n_words = len(buf) // 4
+    words = np.zeros(n_words + 2, np.uint64)  # a value of a block at the end may read one word further
+    words[:n_words] = np.frombuffer(buf, "<u4", n_words)
+    wbase = (starts[bcloth] + head[bcloth]) // 4 + wsum[:-1] - wsum[first[bcloth]]
+    w = widths.astype(np.int64)
+    bit = (wbase[block] << 5) + j * w[block]  # (N, 3): each value's first bit
+    word = bit >> 5
     window = words[word] | (words[word + 1] << np.uint64(32))
-    mask = (np.uint64(1) << w) - np.uint64(1)
-    z = ((window >> shift) & mask).astype(np.uint32).reshape(3, nb * BLOCK)[:, :n]
-    return z, size
+    mask = (np.uint64(1) << w[block].astype(np.uint64)) - np.uint64(1)
+    z = ((window >> (bit & 31).astype(np.uint64)) & mask).astype(np.uint32)
+    return z, sizes
+
+
+def frame_unsymbols(z: np.ndarray, p: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`frame_symbols`: (N, 3) int32 grid values of many cloths."""
+    d = (z >> 1).view(np.int32) ^ -(z & 1).view(np.int32)
+    r = np.cumsum(d, axis=0, dtype=np.int32)
+    starts = np.zeros(len(counts), np.int64)
+    np.cumsum(np.asarray(counts[:-1], np.int64), out=starts[1:])
+    keep = np.asarray(counts) > 0
+    before = np.zeros((len(counts), 3), np.int32)  # the running sum up to each cloth's start
+    before[1:] = r[starts[1:] - 1] if len(counts) > 1 else before[1:]
+    r -= np.repeat(before[keep], np.asarray(counts)[keep], axis=0)
+    return r + p
 
 
 @dataclass

@@ -11,12 +11,13 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .errors import ERR_MALFORMED, ProtocolError
-from .predictive import ORDER_INTRA, ORDER_LINEAR, History, decode_step
+from .errors import ERR_INVALID_VALUE, ERR_MALFORMED, ProtocolError
+from .predictive import ORDER_INTRA, ORDER_LINEAR, History, decode_step, frame_unsymbols, prediction, unpack_frame
 from .state import (
     FLAG_NORMALS,
     SNORM_MAX,
     ClothState,
+    PredictiveHeader,
     decode_state,
     read_predictive_header,
     read_state_header,
@@ -100,3 +101,69 @@ class StateStream:
             receive_time_ns=receive_time_ns,
             extrapolated=True,
         )
+
+
+def decode_predictive_many(
+    data: bytes | bytearray | memoryview,
+    offsets: list[int],
+    streams: list[StateStream],
+    receive_time_ns: int = 0,
+) -> list[ClothState | None]:
+    """Many predictive states at once (a bundle's): the state at ``offsets[i]`` of ``data``
+    (a multiple of 4) decoded by ``streams[i]`` exactly as :meth:`StateStream.decode` would, but
+    with one :func:`~.predictive.unpack_frame` over all of them. None for a state whose stream
+    lacks its reference (counted, as decode counts it); ProtocolError when a header is invalid."""
+    buf = data if isinstance(data, (bytes, bytearray)) else memoryview(data).cast("B")
+    out: list[ClothState | None] = [None] * len(offsets)
+    go: list[tuple[int, int, int, int, int, int, tuple, PredictiveHeader]] = []
+    for k, (at, st) in enumerate(zip(offsets, streams, strict=True)):
+        hsize, enc, flags, n, tick, t_ns, *b = read_state_header(buf, len(buf) - at, at)
+        if enc != ENC_PREDICTIVE:
+            raise ProtocolError(ERR_INVALID_VALUE, f"state {k} is not predictive")
+        ph = read_predictive_header(buf, at)
+        h = st.history
+        have = ph.order == ORDER_INTRA or (
+            ph.step == st.step
+            and h.q1 is not None
+            and h.tick1 == ph.ref_tick
+            and (ph.order < ORDER_LINEAR or (h.q2 is not None and h.tick2 == ph.ref2_tick))
+        )
+        if not have:
+            st.undecodable += 1
+            st.needs_keyframe = True
+            continue
+        go.append((k, at + hsize, n, flags, tick, t_ns, tuple(b), ph))
+    if not go:
+        return out
+    counts = np.array([g[2] for g in go], np.int64)
+    try:
+        z, sizes = unpack_frame(buf, np.array([g[1] for g in go], np.int64), counts)
+    except ValueError as e:
+        for g in go:
+            streams[g[0]].history.clear()
+            streams[g[0]].needs_keyframe = True
+        raise ProtocolError(ERR_MALFORMED, f"predictive states: {e}") from None
+    parts = [prediction(g[7].order, streams[g[0]].history.q1, streams[g[0]].history.q2, (g[2], 3)) for g in go]
+    q = frame_unsymbols(z, np.concatenate(parts) if len(parts) > 1 else parts[0], counts)
+    steps = np.repeat(np.array([g[7].step for g in go], np.float32).astype(np.float64), counts)[:, None]
+    x = (q * steps).astype(np.float32)
+    rows = 0
+    for (k, data_at, n, flags, tick, t_ns, bb, ph), size in zip(go, sizes.tolist(), strict=True):
+        st = streams[k]
+        qi = q[rows : rows + n]
+        if ph.order == ORDER_INTRA:
+            st.history.clear()
+            st.keyframes += 1
+            st.needs_keyframe = False
+        st.history.push(qi, tick)
+        st.step = ph.step
+        normals = None
+        if flags & FLAG_NORMALS:
+            normals = (np.frombuffer(buf, "<i2", n * 3, data_at + size).reshape(n, 3) / SNORM_MAX).astype(np.float32)
+        bounds = ((bb[0], bb[1], bb[2]), (bb[3], bb[4], bb[5]))
+        state = ClothState(
+            tick, t_ns, x[rows : rows + n], normals, receive_time_ns, "predictive", flags, bounds, st.cloth
+        )
+        out[k] = st._keep(state)
+        rows += n
+    return out

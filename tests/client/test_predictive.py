@@ -109,3 +109,41 @@ def test_malformed_data_is_refused():
         P.prediction(P.ORDER_PREVIOUS, None, None, (1, 3))
     with pytest.raises(ValueError, match="unknown predictor order"):
         P.prediction(7, None, None, (1, 3))
+
+
+def test_many_states_decode_at_once_as_each_alone(rng):
+    """protocol.decode_predictive_many (a bundle's predictive states in one pass) gives what each
+    stream's decode gives, state for state, lacking references included."""
+    from drape.client import protocol as Q
+
+    counts = [int(c) for c in rng.integers(1, 200, 6)]
+    encs = [P.History() for _ in counts]
+    alone = [Q.StateStream(f"c{i}") for i in range(len(counts))]
+    together = [Q.StateStream(f"c{i}") for i in range(len(counts))]
+    x = [rng.uniform(-1, 1, (n, 3)).astype(np.float32) for n in counts]
+    for tick in range(1, 8):
+        payloads = []
+        for i, n in enumerate(counts):
+            x[i] = (x[i] + rng.normal(0, 0.002, (n, 3))).astype(np.float32)
+            nrm = x[i] / np.linalg.norm(x[i], axis=1, keepdims=True) if i % 2 else None
+            payloads.append(bytes(Q.encode_predictive_state(tick, 9, x[i], 0.001, encs[i], tick == 1, nrm)))
+        if tick == 4:  # one stream lost its states: both paths must skip its next ones alike
+            alone[2].history.clear()
+            together[2].history.clear()
+        buf = bytearray()
+        offsets = []
+        for p in payloads:
+            offsets.append(len(buf))
+            buf += p + bytes(-len(p) % 8)
+        got = Q.decode_predictive_many(bytes(buf), offsets, together)
+        for i, p in enumerate(payloads):
+            want = alone[i].decode(p)
+            assert (got[i] is None) == (want is None), (tick, i)
+            if want is not None:
+                assert got[i].positions.tobytes() == want.positions.tobytes()
+                assert (got[i].normals is None) == (want.normals is None)
+                if want.normals is not None:
+                    assert got[i].normals.tobytes() == want.normals.tobytes()
+                assert (got[i].tick, got[i].flags, got[i].bounds) == (want.tick, want.flags, want.bounds)
+    assert [s.undecodable for s in together] == [s.undecodable for s in alone]
+    assert together[2].undecodable > 0

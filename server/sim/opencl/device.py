@@ -92,9 +92,9 @@ def _usable(dev: cl.Device) -> bool:
     """Whether ``dev`` builds and runs every kernel Drape runs there (devicecheck.prove: in a
     child process, cached per device, driver and kernel sources)."""
     v = prove(dev)
-    if not v.ok and v.device not in _warned:
+    if not v.ok and v.device not in _warned:  # a warning only when no device is left (choose_device raises)
         _warned.add(v.device)
-        log.warning("OpenCL device %s cannot run Drape's kernels; skipping it: %s", describe(dev), v.summary())
+        log.info("OpenCL device %s cannot run Drape's kernels; skipping it: %s", describe(dev), v.summary())
     return v.ok
 
 

@@ -143,14 +143,20 @@ def test_tethers_on_a_flat_grid_are_straight_lines_to_the_nearest_pin_of_every_i
     assert (ln[free, 0] <= ln[free, 1]).all()  # nearest island first
 
 
-def test_a_pinned_edge_is_one_island_and_its_tether_goes_to_the_nearest_pin():
+def test_a_pinned_edge_is_one_island_split_into_runs_one_tether_to_each():
+    """The first row of 8 x 8 pinned: one island, with 3 slots spare split into 4 runs of 2
+    neighbouring pins; every free vertex has a tether to the nearest pin of each run, the first
+    straight up its column."""
     n = 8
-    f = cook_grid(n, n, width=1, height=1, pinned=range(n))  # the first row: one island
+    f = cook_grid(n, n, width=1, height=1, pinned=range(n))
     free = np.flatnonzero(~f.pinned)
-    assert (f.tether_anchor[free, 1:] == -1).all()
-    cols = free % n
-    np.testing.assert_array_equal(f.tether_anchor[free, 0], cols)  # straight up the column
-    np.testing.assert_allclose(f.tether_length[free, 0], (free // n) / (n - 1), rtol=1e-9)
+    a, ln = f.tether_anchor[free], f.tether_length[free]
+    assert (a >= 0).all()
+    assert {tuple(sorted(r)) for r in (a // 2).tolist()} == {(0, 1, 2, 3)}  # one pin of each run
+    np.testing.assert_array_equal(a[:, 0], free % n)  # the nearest: straight up the column
+    np.testing.assert_allclose(ln[:, 0], (free // n) / (n - 1), rtol=1e-9)
+    v = f.rest_positions
+    np.testing.assert_allclose(ln, np.linalg.norm(v[free][:, None] - v[a], axis=2), rtol=1e-9)  # flat: straight
 
 
 def test_tether_lengths_follow_the_cloth_around_a_gap():

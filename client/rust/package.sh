@@ -1,9 +1,13 @@
 #!/usr/bin/env bash
 # Build the drape C library once and package it for C/C++ projects:
-#   client/rust/package.sh [--profile release|dev|NAME] [--out DIR]
-# runs `cargo build --locked -j ${JOBS:-2} --lib --profile P` (a no-op when that build is
-# current: CI packages the dev build its `cargo test` made) and writes
-#   DIR/drape-<version>-<target>[-<profile>].tar.gz   (DIR default: target/package)
+#   client/rust/package.sh [--profile dist|dev|NAME] [--out DIR]
+# builds the library once: with the default profile `dist` (release + thin LTO, Cargo.toml)
+# `cargo rustc --locked -j ${JOBS:-2} --lib --profile dist --crate-type cdylib --crate-type
+# staticlib` (LTO keeps only the code the C ABI reaches); with another profile `cargo build
+# --locked -j ${JOBS:-2} --lib --profile P` (a no-op when current: CI packages the dev build its
+# `cargo test` made). FEATURES (default: the crate's, TLS included) are passed as --features
+# after --no-default-features when set, e.g. FEATURES=client. Then it writes
+#   DIR/drape-<version>-<target>[-<profile>].tar.gz   (DIR default: target/archive)
 # holding drape-<version>/{include/drape.h, lib/libdrape.so, lib/libdrape.a,
 # lib/pkgconfig/drape.pc, lib/cmake/drape/drapeConfig.cmake + drapeConfigVersion.cmake,
 # share/doc/drape/README.md}. Relocatable: extract anywhere, then
@@ -13,12 +17,12 @@
 # (--static for the static library). Prints the archive's path and size last.
 set -euo pipefail
 crate="$(cd "$(dirname "$0")" && pwd)"
-profile=release
-out="${CARGO_TARGET_DIR:-$crate/target}/package"
+profile=dist
+out="${CARGO_TARGET_DIR:-$crate/target}/archive"
 while (($#)); do
     case "$1" in
         --profile) profile="$2"; shift 2 ;;
-        --release) profile=release; shift ;;
+        --release) profile=dist; shift ;;
         --out) out="$2"; shift 2 ;;
         -h|--help) sed -n '2,15p' "$0"; exit 0 ;;
         *) echo "package.sh: unknown argument $1" >&2; exit 2 ;;
@@ -28,11 +32,18 @@ version="$(sed -n 's/^version = "\(.*\)"/\1/p' "$crate/Cargo.toml" | head -1)"
 target_triple="$(rustc -vV | sed -n 's/^host: //p')"
 dir_of_profile() { case "$1" in dev|test) echo debug ;; bench) echo release ;; *) echo "$1" ;; esac; }
 built="${CARGO_TARGET_DIR:-$crate/target}/$(dir_of_profile "$profile")"
+features=()
+[[ -n "${FEATURES:-}" ]] && features=(--no-default-features --features "$FEATURES")
 
-cargo build --locked -j "${JOBS:-2}" --lib --profile "$profile" --manifest-path "$crate/Cargo.toml"
+if [[ "$profile" == dist ]]; then
+    cargo rustc --locked -j "${JOBS:-2}" --lib --profile dist "${features[@]}" --crate-type cdylib --crate-type staticlib \
+        --manifest-path "$crate/Cargo.toml"
+else
+    cargo build --locked -j "${JOBS:-2}" --lib --profile "$profile" "${features[@]}" --manifest-path "$crate/Cargo.toml"
+fi
 
 name="drape-$version"
-suffix=""; [[ "$profile" != release ]] && suffix="-$profile"
+suffix=""; [[ "$profile" != dist ]] && suffix="-$profile"
 stage="$(mktemp -d)"
 trap 'rm -rf "$stage"' EXIT
 root="$stage/$name"

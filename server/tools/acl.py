@@ -140,8 +140,10 @@ def server_rules(keys: Keys, user: User) -> list[dict[str, Any]]:
     sid, p = user.id, f"u-{user.name}"
     queryables = server_queryables(keys, sid)
     publications = [keys.client_state("*", "*"), keys.bundle("*"), keys.stats(sid)]
+    keyframes = [keys.client_state("*", "*"), keys.bundle("*")]  # 1.5: keyframe queries on what it publishes
     return [
         *_rules(f"{p}-serve", ["declare_queryable", "reply"], "ingress", queryables),
+        *_rules(f"{p}-keyframes", ["declare_queryable", "reply"], "ingress", keyframes),
         *_rules(f"{p}-publish", ["put"], "ingress", publications),
         *_rules(f"{p}-token", ["liveliness_token"], "ingress", [keys.alive_server(sid)]),
         *_rules(
@@ -149,8 +151,10 @@ def server_rules(keys: Keys, user: User) -> list[dict[str, Any]]:
         ),
         # to the server: the queries, the subscriptions that make its publications matched (a client's
         # {ns}/client/C/** too, or the server would never send it anything), client tokens
-        *_rules(f"{p}-queries", ["query"], "egress", queryables),
-        *_rules(f"{p}-matched", ["declare_subscriber"], "egress", [keys.client_all("*"), keys.stats(sid)]),
+        *_rules(f"{p}-queries", ["query"], "egress", queryables + keyframes),
+        # (stats: the placement's {ns}/server/*/stats too: a subscription to the exact key only
+        # would never reach the server, whose stats then went to nobody behind the router)
+        *_rules(f"{p}-matched", ["declare_subscriber"], "egress", [keys.client_all("*"), keys.stats("*")]),
         # (the answers to a liveliness query travel as liveliness_query messages)
         *_rules(f"{p}-clients", ["liveliness_token", "liveliness_query"], "egress", [keys.all_clients_alive]),
     ]
@@ -165,8 +169,9 @@ def client_rules(keys: Keys, user: User, cloth_states: str = "deny", stats: bool
     readable = [keys.client_all(cid)]
     if stats:
         readable.append(keys.stats("*"))
+    own = [keys.client_all(cid)]  # 1.5: keyframe queries on its own bundle and cloth state keys
     return [
-        *_rules(f"{p}-request", ["query"], "ingress", requests),
+        *_rules(f"{p}-request", ["query"], "ingress", requests + own),
         *_rules(f"{p}-subscribe", ["declare_subscriber"], "ingress", readable),
         *_rules(f"{p}-token", ["liveliness_token"], "ingress", [keys.alive_client(cid)]),
         *_rules(
@@ -174,8 +179,8 @@ def client_rules(keys: Keys, user: User, cloth_states: str = "deny", stats: bool
         ),
         # to the client: replies on its own keys; the servers' queryables (declared for any client:
         # knowing one exists is harmless, only servers may declare them); what it may read; servers' tokens
-        *_rules(f"{p}-replies", ["reply"], "egress", requests),
-        *_rules(f"{p}-queryables", ["declare_queryable"], "egress", server_queryables(keys, "*")),
+        *_rules(f"{p}-replies", ["reply"], "egress", requests + own),
+        *_rules(f"{p}-queryables", ["declare_queryable"], "egress", server_queryables(keys, "*") + own),
         *_rules(f"{p}-receive", ["put"], "egress", readable),
         *_rules(f"{p}-servers", ["liveliness_token", "liveliness_query"], "egress", [keys.all_servers_alive]),
     ]

@@ -63,9 +63,10 @@ def test_client_rules_bind_keys_to_the_client_id(acl_kit):
     assert rules["u-alice-subscribe-declare_subscriber"]["key_exprs"] == sorted(
         [keys.client_all("alice"), keys.stats("*")]
     )
-    # 1.4: only alice's own request keys (and info), never the server-wide ones of 1.0-1.3
+    # 1.4: only alice's own request keys (and info), never the server-wide ones of 1.0-1.3; 1.5:
+    # keyframe queries on her own bundle and cloth state keys
     assert rules["u-alice-request-query"]["key_exprs"] == sorted(
-        [keys.client_request(k, "*", "alice") for k in P.CLIENT_REQUESTS] + [keys.info("*")]
+        [keys.client_request(k, "*", "alice") for k in P.CLIENT_REQUESTS] + [keys.info("*"), keys.client_all("alice")]
     )
     every_key = {k for r in section["rules"] for k in r["key_exprs"]}
     server_wide = {getattr(keys, k)(sid) for k in P.CLIENT_REQUESTS for sid in ("*", "eu-1")} | {keys.state("*")}
@@ -357,3 +358,50 @@ def test_drape_serve_and_the_sdk_work_through_the_acl_router(drape_behind_router
     finally:
         for cl in reversed(clients):
             cl.close()
+
+
+def test_stats_reach_a_wildcard_subscriber_through_the_acl_router(drape_behind_router, acl_kit):
+    """Placement reads every server's stats on ``{ns}/server/*/stats``: behind the generated ACL
+    router that wildcard subscription must reach the server (its declaration goes to the server
+    so that the server sends its stats), not only the exact key."""
+    from drape.client import DrapeClient
+
+    d = drape_behind_router
+    with DrapeClient(
+        d.endpoint,
+        mode="client",
+        client_id="alice",
+        timeout=acl_kit.SERVER_WAIT,
+        zenoh_config_file=d.client_file("alice"),
+    ) as alice:
+        inbox = acl_kit.Inbox()
+        alice.session.declare_subscriber(Keys("drape").stats("*"), inbox)
+        assert inbox.wait_for(lambda i: len(i.payloads) >= 2), "no stats on the wildcard key"
+        assert set(inbox.keys) == {Keys("drape").stats("eu-1")}
+        assert acl_kit.wait_until(lambda: alice.placement.loads(["eu-1"])[0].known)  # placement sees its load
+
+
+def test_keyframe_queries_cross_the_acl_router_for_their_owner_only(drape_behind_router, acl_kit):
+    """1.5: alice asks for a keyframe of her predictive cloth on its state key and the server
+    answers through the router; bob's query on her key is denied (no answer)."""
+    import msgpack
+
+    from drape.client import DrapeClient
+
+    d = drape_behind_router
+    with DrapeClient(
+        d.endpoint,
+        mode="client",
+        client_id="alice",
+        timeout=acl_kit.SERVER_WAIT,
+        zenoh_config_file=d.client_file("alice"),
+    ) as alice:
+        cloth = alice.submit_grid(6, 6, pinned=[0, 5], encoding="predictive", step=0.002)
+        cloth.next_state(timeout=acl_kit.WAIT)
+        answers = [r.ok.payload.to_bytes() for r in alice.session.get(cloth.key, timeout=acl_kit.WAIT) if r.ok]
+        assert len(answers) == 1 and msgpack.unpackb(answers[0])["cloths"] == 1
+        bob = acl_kit.session(d.endpoint, "bob", acl_kit.PASSWORDS["bob"], None)
+        try:
+            assert [r for r in bob.get(cloth.key, timeout=2.0) if r.ok] == []
+        finally:
+            bob.close()

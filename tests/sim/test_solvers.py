@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from conftest import random_grid_fabric, random_mesh_fabric
 
 from drape.server.sim import reference
-from drape.server.sim.fabric import cook_grid
+from drape.server.sim.fabric import cook_grid, cook_mesh, grid_mesh
 from drape.server.sim.opencl.clworld import CLWorld, RangeAllocator
 from drape.server.sim.opencl.launch import pack_lanes
 from drape.server.sim.params import ClothParams, Features, LinkOptions, Material, Sphere, pack_colliders
@@ -488,3 +490,67 @@ def test_a_gpu_build_never_gets_the_pack_kernel():
         f"-DLINK_UNROLL={LINK_UNROLL_LOCAL}",
     ]
     assert not any("PACK" in o or "denorms" in o for o in opts)
+
+
+@pytest.mark.parametrize(
+    "solver", ["workgroup-parallel-local", "workgroup-parallel-global", "pack", "workgroup-serial"]
+)
+@pytest.mark.parametrize("compliance", [0.0, 1e-6], ids=["stiff", "compliant"])
+@pytest.mark.parametrize("iterations", [1, 3])
+def test_long_range_attachments_match_reference(device, rng, solver, compliance, iterations):
+    """Tethers to every pin island (before and after the links) and the long-range links (by
+    colour, before the links of each iteration) in wg_step with 64 work-items (its colour
+    barriers: the GPU's path), on one work-item, and in the CPU pack solver (its vector phases
+    where no multiplier is kept: compliance 0 or one iteration), against the float64 reference;
+    random grids and meshes with 3 pins (islands)."""
+    kw = {
+        "workgroup-parallel-local": dict(local_size=64, use_local=True),
+        "workgroup-parallel-global": dict(local_size=64, use_local=False),
+        "workgroup-serial": dict(pack_lanes=0),
+        "pack": {},
+    }[solver]
+    if solver in ("pack", "workgroup-serial"):
+        cpu_only(device)
+    for mesh in (False, True):
+        cols, rows = (int(x) for x in rng.integers(7, 15, 2))
+        pins = rng.choice(cols * rows, 3, replace=False)
+        if mesh:  # a jittered grid as a triangle mesh: its long-range links walk its edges
+            v, t = grid_mesh(cols, rows, 1.0, 1.0)
+            fab = cook_mesh(v + rng.normal(0, 0.01, v.shape), t, pinned=pins)
+        else:
+            fab = cook_grid(cols, rows, 1.0, 1.0, pinned=pins)
+        assert len(fab.long_range()[0]) > 0
+        params = random_params(rng, Features(xpbd=True, tethers=True)).with_(iterations=iterations)
+        params = params.with_(
+            material=replace(params.material, compliance=(compliance,) * 3, tether_limit=float(rng.uniform(1.0, 1.1)))
+        )
+        pos = random_state(rng, fab, 0.1)
+        steps = 5
+        world = CLWorld("workgroup", device=device, **kw)
+        a, b = run_pair(world, ReferenceWorld("coloured"), fab, params, pos, steps)
+        if solver == "pack":
+            assert [g.pack for g in world.groups.values()] == [world.pack_lanes]
+        assert np.all(np.isfinite(a))
+        # the unilateral limits switch on and off at a threshold, where float32 rounding alone
+        # may tip a vertex over: the float32 reference shows how far that carries this run
+        # (as test_features: the float32 reference from the start and from 7 copies of it moved
+        # by at most one float32 ulp a coordinate, the device within twice the farthest)
+        sens = 0.0
+        p32 = np.asarray(pos, np.float32)
+        for k in range(8):
+            start = p32 if k == 0 else np.nextafter(p32, rng.choice([-np.inf, np.inf], p32.shape).astype(np.float32))
+            r32 = run_pair(ReferenceWorld("coloured", np.float32), ReferenceWorld(), fab, params, start, steps)[0]
+            sens = max(sens, float(np.abs(r32 - b).max()))
+        err = float(np.abs(a - b).max())
+        print(f"{solver} mesh={mesh}: device {err:.3g} m, float32 reference {sens:.3g} m from float64")
+        assert err <= tol(b, steps) + 2 * sens, (err, sens)
+        # and the attachments matter here: without them the same run ends elsewhere
+        c = run_pair(
+            ReferenceWorld("coloured"),
+            ReferenceWorld("coloured"),
+            fab,
+            params.with_(features=Features(xpbd=True)),
+            pos,
+            steps,
+        )[0]
+        assert np.abs(c - b).max() > 10 * tol(b, steps)

@@ -43,7 +43,7 @@ from dataclasses import MISSING, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
-from drape.client.protocol import DEFAULT_ENDPOINT, DEFAULT_NAMESPACE, ID_RE, NAMESPACE_RE, Limits
+from drape.client.protocol import DEFAULT_ENDPOINT, DEFAULT_NAMESPACE, FEATURE_NAMES, ID_RE, NAMESPACE_RE, Limits
 
 from ..sim.params import MAX_COLLIDERS_PER_CLOTH, SOLVERS
 
@@ -108,6 +108,7 @@ class ServerConfig:
     program_idle_s: float = 10.0  # kernel programs no cloth used this long are released (0: kept for good)
     malloc_mmap_threshold: int = 4 << 20  # bytes: larger blocks mapped apart, returned when freed (0: glibc's)
     build_in_child: str = "off"  # off | start | always: kernels built and first run in a child process
+    warm_features: str = "tethers"  # feature sets built and run at start-up besides the default ("a+b,c")
     # --- quality -------------------------------------------------------------------------------
     adaptive_quality: bool = True  # lower cloths' presets while ticks overrun, restore them after
     quality_budget: float = 0.8  # share of a tick the tick's own work may take before that
@@ -126,6 +127,14 @@ class ServerConfig:
     def __post_init__(self) -> None:
         if not self.server_id:
             self.server_id = default_server_id()
+
+    def warm_feature_sets(self) -> list[tuple[str, ...]]:
+        """``warm_features`` as feature name tuples."""
+        return [
+            tuple(n.strip() for n in part.split("+") if n.strip())
+            for part in self.warm_features.split(",")
+            if part.strip()
+        ]
 
     def validate(self) -> ServerConfig:
         if self.mode not in ZENOH_MODES:
@@ -152,6 +161,10 @@ class ServerConfig:
             raise ValueError("program_idle_s must be >= 0 (0: programs are kept for good)")
         if self.malloc_mmap_threshold < 0:
             raise ValueError("malloc_mmap_threshold must be >= 0 bytes (0: glibc's dynamic threshold)")
+        for names in self.warm_feature_sets():
+            bad = [n for n in names if n not in FEATURE_NAMES]
+            if bad:
+                raise ValueError(f"warm_features: unknown feature(s) {bad}; known: {list(FEATURE_NAMES)}")
         if self.build_in_child not in BUILD_IN_CHILD:
             raise ValueError(f"build_in_child must be one of {BUILD_IN_CHILD}, got {self.build_in_child!r}")
         for name in (
@@ -356,6 +369,9 @@ HELP = {
     "(built again from the driver's disk cache when needed; 0: kept for good)",
     "malloc_mmap_threshold": "drape serve: heap blocks of this many bytes or more get their own mapping, "
     "given back when freed (glibc mallopt M_MMAP_THRESHOLD; 0: glibc's dynamic threshold)",
+    "warm_features": "feature sets whose kernels are built and run at start-up besides the default set, so that "
+    "a first cloth of one neither waits for a build nor stalls the ticks: comma-separated, each set's names "
+    "joined by + (e.g. tethers,xpbd+tethers+colliders); empty: none",
     "build_in_child": "drape serve: kernels built and first run in a short-lived child process, then loaded "
     "from the driver's disk cache (the compiler's memory and first-launch JIT stay out of the server); "
     "start: every feature combination before serving; always: also each new combination a cloth brings",

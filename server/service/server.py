@@ -33,7 +33,7 @@ from drape.client.session import open_session, zenoh_config
 
 from ..sim import make_world
 from ..sim.fabric import cook_grid
-from ..sim.params import ClothParams
+from ..sim.params import ClothParams, Features, Sphere, pack_colliders
 from ..sim.world import World
 from .adaptive import AdaptiveQuality
 from .admission import Admission
@@ -198,6 +198,19 @@ class Server:
             frames.hold().release()
             w.remove(h)
             w.fetch()
+        for names in self.config.warm_feature_sets():  # the feature sets a deployment declares
+            t0 = time.perf_counter()
+            features = Features.from_names(names)
+            grid = cook_grid(32, 32, pinned=[0, 31])
+            h = w.add(grid, ClothParams(features=features))
+            w.set_pin_targets(h, np.array([0]), np.zeros((1, 3)))
+            if features.colliders:
+                w.set_colliders(h, pack_colliders([Sphere((0.5, -0.5, 0.5), 0.2)]))
+            w.step(self.config.dt)
+            w.fetch()
+            w.remove(h)
+            w.fetch()
+            log.debug("warm-up of features %s took %.3f s", "+".join(names), time.perf_counter() - t0)
         largest = cook_grid(1, self.config.max_vertices_per_cloth, pinned=[0])
         if w.ready(largest, params):
             return

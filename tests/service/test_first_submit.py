@@ -108,3 +108,22 @@ def test_the_first_cloths_of_the_default_features_build_nothing():
     finally:
         s.stop()
     assert s.failure is None
+
+
+def test_the_feature_sets_a_deployment_declares_are_warm_at_start():
+    """``warm_features`` (default "tethers", the README's first cloth): their kernels are built
+    and run before the server serves, so that such a first cloth builds nothing (counted)."""
+    s = Server(make_config(warm_features="tethers,xpbd+colliders")).start()
+    try:
+        dev = s.ticker.world.dev
+        built = len(dev.builds)
+        with connect(s) as client:
+            for features in (["tethers"], ["xpbd", "colliders"]):
+                with client.submit_grid(32, 32, pinned=[0, 31], features=features, timeout=30.0) as h:
+                    collect(h, 2, 30.0)
+        assert dev.builds[built:] == []
+    finally:
+        s.stop()
+    assert s.failure is None
+    with pytest.raises(ValueError, match="unknown feature"):
+        make_config(warm_features="tethers+hologram")

@@ -70,6 +70,8 @@ fn rust_constants() -> BTreeMap<&'static str, String> {
         ("DRAPE_ENCODING_FLOAT32", num(Encoding::Float32 as u8 as f64)),
         ("DRAPE_ENCODING_FLOAT16", num(Encoding::Float16 as u8 as f64)),
         ("DRAPE_ENCODING_QUANT16", num(Encoding::Quant16 as u8 as f64)),
+        // 1.5: the predictive encoding, which this crate does not decode yet (PROTOCOL.md 9.2)
+        ("DRAPE_ENCODING_PREDICTIVE", num(3.0)),
         ("DRAPE_FLAG_NORMALS", num(FLAG_NORMALS as f64)),
         ("DRAPE_FLAG_RESET", num(FLAG_RESET as f64)),
         ("DRAPE_QUANT16_MAX", num(half::QUANT_MAX)),

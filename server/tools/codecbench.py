@@ -20,6 +20,7 @@ import argparse
 import json
 import logging
 import math
+import os
 import time
 from pathlib import Path
 
@@ -172,12 +173,41 @@ def code_motion(x: np.ndarray, step: float, keyframe_interval: int = KEYFRAME_IN
     }
 
 
+def decode_speed(x: np.ndarray, step: float, cloths: int = 64, rounds: int = 15) -> dict:
+    """Client decode cost of a bundle of ``cloths`` predictive states (the cape motion, each cloth
+    at another phase), through protocol.decode_predictive_many as the SDK's bundle receiver runs
+    it: median ns per vertex over ``rounds`` bundles, after a warm-up."""
+    from drape.client import protocol as Q
+
+    n = x.shape[1]
+    enc = [P.History() for _ in range(cloths)]
+    dec = [Q.StateStream(f"c{i}") for i in range(cloths)]
+    times = []
+    for t in range(rounds + 3):
+        states = [
+            (f"c{i}", Q.encode_predictive_state(t, 0, x[(t + 7 * i) % len(x)], step, enc[i], t == 0))
+            for i in range(cloths)
+        ]
+        data = bytes(Q.encode_bundle(t, 0, states))
+        b = Q.parse_bundle(data)
+        offsets = [e.offset for e in b.entries]
+        t0 = time.perf_counter()
+        got = Q.decode_predictive_many(data, offsets, dec)
+        dt = time.perf_counter() - t0
+        assert all(g is not None for g in got)
+        if t >= 3:
+            times.append(dt)
+    med = float(np.median(times))
+    return {"cloths": cloths, "vertices": n, "step_mm": step * 1e3, "ns_per_vertex": med / (cloths * n) * 1e9}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--record", action="store_true", help="simulate the motions anew (OpenCL world)")
     ap.add_argument("--device", default=None, help="OpenCL device for --record (env DRAPE_DEVICE)")
     ap.add_argument("--steps", default="0.25,0.5,1,2,4", help="steps in millimetres, comma separated")
     ap.add_argument("--out", default="docs/results", help="folder for codec-bits.json and codec-bits.png")
+    ap.add_argument("--decode", action="store_true", help="also time the client's decode of a 64-cloth bundle")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.record or not all((MOTIONS_DIR / f"{m}.npz").exists() for m in MOTIONS):
@@ -210,7 +240,15 @@ def main(argv: list[str] | None = None) -> int:
         )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    report = {"keyframe_interval": KEYFRAME_INTERVAL, "motions": rows, "mean": summary}
+    report: dict = {"keyframe_interval": KEYFRAME_INTERVAL, "motions": rows, "mean": summary}
+    if args.decode:
+        d = decode_speed(load("cape_run"), 0.002)
+        la = os.getloadavg()[0]
+        print(
+            f"decode of a {d['cloths']}-cloth bundle of {d['vertices']} vertices: "
+            f"{d['ns_per_vertex']:.1f} ns per vertex (median; load average {la:.1f} on {os.cpu_count()} cores)"
+        )
+        report["decode"] = {**d, "load_average": la}
     (out / "codec-bits.json").write_text(json.dumps(report, indent=1) + "\n")
     _plot(rows, summary, out / "codec-bits.png")
     return 0

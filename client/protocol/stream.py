@@ -12,7 +12,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from .errors import ERR_INVALID_VALUE, ERR_MALFORMED, ProtocolError
-from .predictive import ORDER_INTRA, ORDER_LINEAR, History, decode_step, frame_unsymbols, prediction, unpack_frame
+from .predictive import ORDER_INTRA, ORDER_LINEAR, History, frame_unsymbols, prediction, unpack_frame
 from .state import (
     FLAG_NORMALS,
     SNORM_MAX,
@@ -22,7 +22,7 @@ from .state import (
     read_predictive_header,
     read_state_header,
 )
-from .vocabulary import ENC_PREDICTIVE, ENCODING_NAMES
+from .vocabulary import ENC_PREDICTIVE
 
 
 @dataclass
@@ -47,7 +47,11 @@ class StateStream:
         hsize, enc, flags, n, tick, t_ns, *b = read_state_header(buf, len(buf))
         if enc != ENC_PREDICTIVE:
             return self._keep(decode_state(buf, self.cloth, receive_time_ns))
-        ph = read_predictive_header(buf)
+        return decode_predictive_many(buf, [0], [self], receive_time_ns)[0]  # one code path for one or many
+
+    def holds_references(self, ph: PredictiveHeader) -> bool:
+        """Whether this stream holds the states a predictive state of header ``ph`` is predicted
+        from (a keyframe needs none); else it counts the state as undecodable."""
         h = self.history
         have = ph.order == ORDER_INTRA or (
             ph.step == self.step
@@ -58,24 +62,7 @@ class StateStream:
         if not have:
             self.undecodable += 1
             self.needs_keyframe = True
-            return None
-        try:
-            positions, size = decode_step(buf, n, ph.step, ph.order, h, tick, at=hsize)
-        except ValueError as e:
-            h.clear()  # a malformed state spoils the stream until the next keyframe
-            self.needs_keyframe = True
-            raise ProtocolError(ERR_MALFORMED, f"predictive state of cloth {self.cloth!r}: {e}") from None
-        normals = None
-        if flags & FLAG_NORMALS:
-            q = np.frombuffer(buf, "<i2", n * 3, hsize + size).reshape(n, 3)
-            normals = (q / SNORM_MAX).astype(np.float32)
-        if ph.order == ORDER_INTRA:
-            self.keyframes += 1
-            self.needs_keyframe = False
-        self.step = ph.step
-        bounds = ((b[0], b[1], b[2]), (b[3], b[4], b[5]))
-        st = ClothState(tick, t_ns, positions, normals, receive_time_ns, ENCODING_NAMES[enc], flags, bounds, self.cloth)
-        return self._keep(st)
+        return have
 
     def _keep(self, st: ClothState) -> ClothState:
         self.decoded += 1
@@ -121,16 +108,7 @@ def decode_predictive_many(
         if enc != ENC_PREDICTIVE:
             raise ProtocolError(ERR_INVALID_VALUE, f"state {k} is not predictive")
         ph = read_predictive_header(buf, at)
-        h = st.history
-        have = ph.order == ORDER_INTRA or (
-            ph.step == st.step
-            and h.q1 is not None
-            and h.tick1 == ph.ref_tick
-            and (ph.order < ORDER_LINEAR or (h.q2 is not None and h.tick2 == ph.ref2_tick))
-        )
-        if not have:
-            st.undecodable += 1
-            st.needs_keyframe = True
+        if not st.holds_references(ph):
             continue
         go.append((k, at + hsize, n, flags, tick, t_ns, tuple(b), ph))
     if not go:

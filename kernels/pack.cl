@@ -9,19 +9,19 @@
  * normals feature) are computed across the lanes too, from the same triangles. Unused lanes hold
  * zero positions and inverse masses: their links correct nothing.
  *
- * Per-substep vertex phases. Vectorised (pack_vec): XPBD cloths without wind or colliders whose
- * multipliers are all 0 when read (compliance 0, or one iteration per substep: the common
- * presets) keep their velocities in the lanes too, in the local memory the multipliers would
- * take (3 floats per vertex, a fabric has at least as many link floats), and predict, tethers,
- * long-range links and velocities run across the lanes; positions and velocities go back to
- * global memory once per step. Otherwise the phases run lane by lane on global memory with the
- * functions every solver calls (integrate.cl), so every feature means exactly what it means in
- * wg_step.
+ * Per-substep vertex phases. Vectorised (`vec`): XPBD cloths without wind or colliders whose
+ * multipliers are all 0 when read (compliance 0, or one iteration per substep: the presets) keep
+ * their velocities in the lanes too, in the local memory the multipliers would take (3 floats a
+ * vertex, where the fabric has at least 3 links a vertex, as a grid with shear links has), and
+ * prediction, tethers, long-range links and velocities run across the lanes; positions and
+ * velocities go back to global memory once per step. Otherwise the phases run lane by lane on
+ * global memory with the functions every solver calls (integrate.cl), so every feature means
+ * exactly what it means in wg_step.
  *
  * Arithmetic per lane is wg_step's in the same order: tethers after the prediction, then per
- * iteration the long-range links and the links by colour, then the tethers again (PBD: the talk's k; XPBD: the multiplier
- * per link, reset every substep, after the positions in local memory; with every multiplier 0
- * when read, link_xpbd's arithmetic without them).
+ * iteration the long-range links and the links by colour, then the tethers again (PBD: the
+ * talk's k; XPBD: the multiplier per link, reset every substep, after the positions in local
+ * memory; with every multiplier 0 when read, link_xpbd's arithmetic without them).
  */
 #define PCAT_(a, b) a##b
 #define PCAT(a, b) PCAT_(a, b)

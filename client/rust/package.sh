@@ -50,6 +50,8 @@ root="$stage/$name"
 mkdir -p "$root/include" "$root/lib/pkgconfig" "$root/lib/cmake/drape" "$root/share/doc/drape"
 cp "$crate/include/drape.h" "$root/include/"
 cp "$built/libdrape.a" "$built/libdrape.so" "$root/lib/"
+# the static library carries the debug info of Rust's std (about 7 MB): not for shipping
+[[ "$profile" == dist ]] && strip --strip-debug "$root/lib/libdrape.a"
 cp "$crate/README.md" "$root/share/doc/drape/README.md"
 # the system libraries Rust's std needs when linking the static library (Linux, glibc)
 private_libs="-lgcc_s -lutil -lrt -lpthread -lm -ldl -lc"

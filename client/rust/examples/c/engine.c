@@ -253,11 +253,11 @@ int main(int argc, char **argv) {
     if (!feature_done) printf("engine: the asynchronous feature change did not complete\n"), ok = 0;
     printf("engine: %d capes, %.1f s, %ld frames, %.1f Hz server; states: received %llu read %llu replaced %llu "
            "missed %llu unread %llu ticks %llu (read+replaced+missed+unread %s ticks); cpu %.2f s = %.1f %% of one core; "
-           "%ld game-thread calls, %ld blocked%s%s, slowest %.3f ms (%s); %ld events\n",
+           "%ld game-thread calls, %ld blocked%s%s%s, slowest %.3f ms (%s); %ld events\n",
            ncapes, wall, frames, tick_rate, (unsigned long long)rec, (unsigned long long)read, (unsigned long long)repl,
            (unsigned long long)miss, (unsigned long long)unread, (unsigned long long)ticks,
            read + repl + miss + unread == ticks ? "==" : "!=", cpu, 100 * cpu / wall, calls, blocked_calls,
-           blocked_calls ? " last: " : "", blocked_what, slowest * 1e3, slowest_what, events);
+           blocked_calls ? " (last: " : "", blocked_calls ? blocked_what : "", blocked_calls ? ")" : "", slowest * 1e3, slowest_what, events);
 #else
     printf("engine (legacy): %d capes, %.1f s, %ld frames; states read %ld; cpu %.2f s = %.1f %% of one core\n", ncapes, wall,
            frames, states, cpu, 100 * cpu / wall);

@@ -103,6 +103,7 @@ class ServerConfig:
     drop_max_bytes: int = 60000  # auto: states up to this size use DROP, larger ones BLOCK
     device_encode: bool = True  # OpenCL worlds: states encoded on the device (one launch, one readback)
     keyframe_interval: int = 60  # predictive states (1.5): an intra-coded state every this many ticks
+    pipeline: bool = True  # the device steps tick N + 1 while tick N is published (false: one tick less latency)
     gil_switch_ms: float = 0.5  # Python's GIL switch interval in the server process (sys.setswitchinterval)
     request_yield: bool = True  # the request thread starts requests only while the tick thread sleeps
     program_idle_s: float = 10.0  # kernel programs no cloth used this long are released (0: kept for good)
@@ -359,6 +360,9 @@ HELP = {
     "state_congestion": "Zenoh congestion control of state publications",
     "drop_max_bytes": "auto congestion: largest state published with DROP",
     "device_encode": "encode the states on the OpenCL device, one packed frame per tick (reference: host)",
+    "pipeline": "the device steps tick N + 1 while the publisher sends tick N: a tick's period is its slowest "
+    "stage; false: each tick is read back and published in the tick that stepped it, one tick less input "
+    "latency, the stages adding up (docs/latency.md)",
     "keyframe_interval": "predictive states (protocol 1.5): ticks between intra-coded states of a stream, "
     "besides those asked for (a late joiner's, a client's that lost one)",
     "gil_switch_ms": "the server process's GIL switch interval in ms (Python's default is 5: a thread "

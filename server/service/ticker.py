@@ -159,9 +159,12 @@ class Ticker:
                 self._start_next(job)
                 t1 = time.monotonic()
                 self.timers["apply"].add(tb - ta)
-                self.timers["tick"].add(t1 - t0)
                 if self._pending is not None:
                     self._pending = (self._pending[0], self._pending[1], t1 - t0)
+                    if not cfg.pipeline:  # this tick's own frame, read back and published now
+                        job = self._merged(job, self._finish_previous())
+                        t1 = time.monotonic()
+                self.timers["tick"].add(t1 - t0)
                 self.registry.count("ticks")
                 if t1 >= next_stats:
                     job.stats = self.make_stats()
@@ -189,6 +192,15 @@ class Ticker:
                 send(r)  # removes whose next frame will not be published
             self._pending = None  # its frame was never held
             self.shutdown_commands()
+
+    @staticmethod
+    def _merged(first: Job, frame: Job) -> Job:
+        """``pipeline = false``: the replies of the commands just applied (``first``, a job with
+        no frame) sent with the frame stepped after them, before its states."""
+        frame.before = first.before + frame.before
+        frame.removed = first.removed + frame.removed
+        frame.after = first.after + frame.after
+        return frame
 
     def _finish_previous(self) -> Job:
         """The job of the tick stepped last time: its frame read back, checked, flagged."""
@@ -223,7 +235,10 @@ class Ticker:
         if frame.layout.version == self._cost_layout:  # not a tick of cloths coming or going (rebuilds)
             # admission: each pipeline stage on its own (the period is bounded by the slowest)
             stage_device = device_s if device_s is not None else self._wait_s
-            self.admission.model.observe(TickCost(int(frame.offsets[-1]), busy_s, stage_device, self.publish_cost()))
+            # without the pipeline the tick thread waits for the device within the tick: one stage
+            stage_tick = busy_s if self.config.pipeline else busy_s + stage_device
+            cost_now = TickCost(int(frame.offsets[-1]), stage_tick, stage_device, self.publish_cost())
+            self.admission.model.observe(cost_now)
         self._cost_layout = frame.layout.version
         self.adaptive.observe(cost, job.tick, lambda: list(self.live.values()), self.world, self.applier.set_preset)
         return job

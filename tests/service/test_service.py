@@ -30,10 +30,16 @@ from drape.server.sim.fabric import cook_grid
 from drape.server.sim.params import ClothParams, LinkOptions, Plane
 
 
-@pytest.fixture(scope="module", params=[True, False], ids=["device-encode", "host-encode"])
+@pytest.fixture(
+    scope="module",
+    params=[(True, True), (False, True), (True, False)],
+    ids=["device-encode", "host-encode", "no-pipeline"],
+)
 def server(request):
-    """One server per publication path: states encoded on the OpenCL device, or by the host."""
-    s = Server(make_config(device_encode=request.param)).start()
+    """One server per publication path: states encoded on the OpenCL device, or by the host; and
+    without the pipeline (each tick published in the tick that stepped it)."""
+    device_encode, pipeline = request.param
+    s = Server(make_config(device_encode=device_encode, pipeline=pipeline)).start()
     yield s
     s.stop()
     assert s.failure is None

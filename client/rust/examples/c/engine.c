@@ -159,6 +159,7 @@ int main(int argc, char **argv) {
             cpu_start = cpu_s();
             calls = blocked_calls = 0;
             slowest = 0;
+            frames = 1;
         }
         frames++;
         /* events: asynchronous submissions and controls complete here */

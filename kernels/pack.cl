@@ -194,7 +194,7 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
     const floatP tlim = lane_floats(cf, slot, CF_TETHER_LIMIT);
 #endif
     for (int j = 0; j < PACK_LANES; ++j) {
-        if (vb[j] >= 0 && !vec) {
+        if ((vb[j] >= 0) & (vec == 0)) { /* & : vec is a constant 0 in some builds (no -Wconstant-logical-operand) */
 #if !FEATURE_WIND /* predict fills the used lanes; wind's normals need them before */
             continue;
 #endif

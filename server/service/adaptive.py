@@ -40,6 +40,17 @@ class AdaptiveQuality:
         self.degraded_s = 0.0
         self._last_check = time.monotonic()
 
+    def use_device(self, is_gpu: bool) -> None:
+        """The presets' costs of the world's kind of device (quality.COSTS_FILE keeps the CPU's
+        and the GPU's): called once the World exists, before the first tick."""
+        self.governor = quality.QualityGovernor(
+            quality.ORDER[-1],
+            1e3 * self.config.quality_budget * self.config.dt,
+            QUALITY_PATIENCE,
+            QUALITY_HEADROOM,
+            kind="gpu" if is_gpu else "cpu",
+        )
+
     def preset_for(self, wanted: str) -> str:
         """What a cloth asking for ``wanted`` runs now."""
         cap = self.governor.current

@@ -128,6 +128,8 @@ class Server:
         kw = {} if cfg.solver == "reference" else {"device": cfg.device}
         self.ticker.world = make_world(cfg.solver, **kw)
         self.device_name = getattr(self.ticker.world, "device_name", cfg.solver)
+        dev = getattr(self.ticker.world, "dev", None)
+        self.quality.use_device(bool(dev is not None and dev.info.is_gpu))
         if self.warmup:
             self.warm_up()
         zc = zenoh_config(cfg.mode, cfg.listen, cfg.connect, cfg.multicast_scouting, cfg.zenoh_config)

@@ -4,7 +4,8 @@
 #   bash client/csharp/ci.sh
 # Installs Mono from Debian when mcs or mono is missing (apt-get update once, then
 # apt-get install mono-devel; no NuGet), compiles Runtime/Core (the engine-independent core of the
-# Unity package) into Drape.dll and tests/Tests.cs against it with mcs, compiles tests/layout.c
+# Unity package) into Drape.dll and tests/Tests.cs against it with mcs, type-checks
+# Runtime/DrapeCloth.cs against stubs of the Unity API it uses (tests/unity-stubs), compiles tests/layout.c
 # against drape.h, and runs the tests under Mono against a real `drape serve`: $DRAPE_ENDPOINT
 # when set (a server already up), else one started here from $DRAPE_BIN (default
 # <repo>/.venv/bin/drape). The library: $DRAPE_LIB_DIR (default client/rust/target/debug; built
@@ -42,6 +43,10 @@ ${CC:-cc} -std=c11 -Wall -I "$crate/include" "$here/tests/layout.c" -o "$build/l
 mcs -nologo -unsafe -langversion:experimental -target:library -warnaserror -out:"$build/Drape.dll" \
     "$here"/unity/com.drape.client/Runtime/Core/*.cs
 mcs -nologo -unsafe -langversion:experimental -r:"$build/Drape.dll" -out:"$build/Tests.exe" "$here/tests/Tests.cs"
+# the Unity component against stubs of the Unity API it uses (a type check only: not Unity)
+mcs -nologo -unsafe -langversion:experimental -target:library -out:"$build/UnityStubs.dll" "$here/tests/unity-stubs/UnityStubs.cs"
+mcs -nologo -unsafe -langversion:experimental -target:library -warnaserror -define:UNITY_5_3_OR_NEWER \
+    -r:"$build/UnityStubs.dll" -r:"$build/Drape.dll" -out:"$build/DrapeUnity.dll" "$here/unity/com.drape.client/Runtime/DrapeCloth.cs"
 cp "$libdir/libdrape.so" "$build/"
 
 free_port() { python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])'; }

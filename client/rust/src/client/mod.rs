@@ -121,6 +121,26 @@ pub enum Event {
     SubmitFailed { handle: u64, error: Error },
 }
 
+/// A request handed to the sender thread.
+type SendJob = Box<dyn FnOnce() + Send>;
+
+/// How many requests were handed to the sender thread, and how many it has given to Zenoh: a
+/// waited request first waits for the earlier unwaited ones to be sent, so that requests leave
+/// in the order they were made.
+#[derive(Default)]
+struct Sends {
+    queued: AtomicU64,
+    sent: Mutex<u64>,
+    cv: Condvar,
+}
+
+impl Sends {
+    fn wait_for(&self, n: u64) {
+        let g = self.sent.lock().unwrap();
+        drop(self.cv.wait_while(g, |sent| *sent < n).unwrap());
+    }
+}
+
 /// What a request sent without waiting does with its success map (on a Zenoh thread).
 pub(crate) type OnOk = Box<dyn Fn(&Arc<Inner>, Map) + Send + Sync>;
 
@@ -155,6 +175,10 @@ pub(crate) struct Inner {
     events_cv: Condvar,
     pub(crate) closed: AtomicBool,
     bundle_sub: Mutex<Option<Subscriber<()>>>,
+    /// Requests not waited for are handed to this client's sender thread, which gives them to
+    /// Zenoh: the caller (a game thread) never waits on Zenoh's locks or transmission queue.
+    sender: std::sync::mpsc::Sender<SendJob>,
+    sends: Arc<Sends>,
     watch: Mutex<Option<Subscriber<()>>>,
     token: Mutex<Option<LivelinessToken>>,
 }
@@ -239,6 +263,20 @@ impl Client {
         let session = zenoh::open(cfg).wait().map_err(|e| zerr("cannot open the Zenoh session", e))?;
         let keys = Keys::new(&opts.namespace);
         let placement = placement::Placement::new(&client_id, opts.timeout.min(placement::STATS_WAIT));
+        let (sender, jobs) = std::sync::mpsc::channel::<SendJob>();
+        let sends = Arc::new(Sends::default());
+        let counted = sends.clone();
+        std::thread::Builder::new()
+            .name("drape-send".into())
+            .spawn(move || {
+                for job in jobs {
+                    // a job that panicked (a bug) must not stop the thread: waited requests count on it
+                    let _ = std::panic::catch_unwind(std::panic::AssertUnwindSafe(job));
+                    *counted.sent.lock().unwrap() += 1;
+                    counted.cv.notify_all();
+                }
+            })
+            .map_err(|e| Error::new(ErrorCode::Internal, format!("cannot start the sender thread: {e}")))?;
         let inner = Arc::new(Inner {
             session,
             keys,
@@ -257,6 +295,8 @@ impl Client {
             events_cv: Condvar::new(),
             closed: AtomicBool::new(false),
             bundle_sub: Mutex::new(None),
+            sender,
+            sends,
             watch: Mutex::new(None),
             token: Mutex::new(None),
         });
@@ -619,6 +659,7 @@ impl Inner {
     /// A waited-for request with its own timeout.
     pub(crate) fn request_within(&self, server: &str, kind: &str, payload: Vec<u8>, timeout: Duration) -> Result<Map> {
         self.check_open()?;
+        self.sends.wait_for(self.sends.queued.load(Ordering::SeqCst)); // earlier unwaited requests leave first
         let deadline = Instant::now() + timeout;
         let mut key = self.request_key(server, kind, timeout);
         loop {
@@ -678,31 +719,39 @@ impl Inner {
         }
         let cloth = watch.as_ref().map(|w| w.1.clone()).unwrap_or_default();
         let done = Done { inner: Arc::downgrade(self), answered: AtomicBool::new(false), key: key.clone(), handle, cloth, request };
-        self.session
-            .get(&key)
-            .payload(payload)
-            .timeout(self.timeout)
-            .callback(move |r| {
-                done.answered.store(true, Ordering::SeqCst);
-                let Some(inner) = done.inner.upgrade() else { return };
-                match reply_result(&done.key, r) {
-                    Ok(m) => {
-                        if let Some(f) = &on_ok {
-                            f(&inner, m)
-                        }
-                    }
-                    Err(error) => {
-                        if let (ErrorCode::NotFound, Some((c, id))) = (error.code, &watch) {
-                            if let Some(c) = c.upgrade() {
-                                failover::cloth_not_found(&inner, &c, id);
+        let (session, timeout) = (self.session.clone(), self.timeout);
+        let job = move || {
+            // an error here drops the callback unanswered: its Done reports the request failed
+            let _ = session
+                .get(&key)
+                .payload(payload)
+                .timeout(timeout)
+                .callback(move |r| {
+                    done.answered.store(true, Ordering::SeqCst);
+                    let Some(inner) = done.inner.upgrade() else { return };
+                    match reply_result(&done.key, r) {
+                        Ok(m) => {
+                            if let Some(f) = &on_ok {
+                                f(&inner, m)
                             }
                         }
-                        inner.push_event(Event::RequestFailed { handle: done.handle, cloth: done.cloth.clone(), request: done.request, error })
+                        Err(error) => {
+                            if let (ErrorCode::NotFound, Some((c, id))) = (error.code, &watch) {
+                                if let Some(c) = c.upgrade() {
+                                    failover::cloth_not_found(&inner, &c, id);
+                                }
+                            }
+                            inner.push_event(Event::RequestFailed { handle: done.handle, cloth: done.cloth.clone(), request: done.request, error })
+                        }
                     }
-                }
-            })
-            .wait()
-            .map_err(|e| zerr(&key, e))
+                })
+                .wait();
+        };
+        self.sends.queued.fetch_add(1, Ordering::SeqCst);
+        self.sender.send(Box::new(job)).map_err(|_| {
+            self.sends.queued.fetch_sub(1, Ordering::SeqCst);
+            Error::new(ErrorCode::Closed, "the client is closed")
+        })
     }
 
     /// Submit `c`'s stored request to `server` and start receiving its states.

@@ -107,8 +107,9 @@ def test_a_cloth_that_keeps_going_non_finite_is_removed_with_a_reason():
 
 
 def test_a_new_feature_combination_is_built_by_the_cook_thread_not_the_tick():
-    """At submit and by control: the tick thread never compiles."""
-    with Server(make_config()) as srv:
+    """At submit and by control: the tick thread never compiles (nothing warmed at start-up but
+    the default feature set: warm_features empty)."""
+    with Server(make_config(warm_features="")) as srv:
         dev = srv.call(lambda w: w.dev)
         before = len(dev.builds)
         c = connect(srv)

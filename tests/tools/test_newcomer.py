@@ -8,6 +8,7 @@ messages are asserted; durations only against generous bounds far below the old 
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -50,7 +51,8 @@ def test_loadtest_says_its_server_exited_with_its_last_log_lines(tmp_path):
     )
     assert r.returncode == 3, r.stderr
     assert "drape loadtest: server loadtest-" in r.stderr
-    assert "exited with code 1 before the clients' submits were answered" in r.stderr
+    # the first wait it fails in: the clients connecting (they submit once all are), or their submits
+    assert re.search(r"exited with code 1 before the clients( connected|' submits were answered)", r.stderr)
     assert "no OpenCL device matches 'no-such-device'" in r.stderr.split("its last", 1)[1]
     assert "no stats publication" not in r.stderr and "Traceback" not in r.stderr
     assert time.monotonic() - t0 < FAIL_BOUND_S * 2  # two interpreters start; the old wait was 60 s and more

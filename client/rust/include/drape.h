@@ -555,8 +555,10 @@ int32_t drape_cloth_rest_mesh(const struct DrapeCloth *cloth,
 // unread one of a cloth submitted with a `queue_size` above 1, else the newest. Lengths count
 // FLOATS, not vertices or bytes: 3 per vertex (`3 * drape_cloth_vertex_count`); a shorter
 // buffer is DRAPE_E_INVALID_VALUE. Returns DRAPE_OK, DRAPE_NO_DATA (nothing new), or an error
-// (SERVER_LOST, CLOSED...). `info` may be NULL. Never blocks; no allocation. Read until
-// DRAPE_NO_DATA to take every queued state; `drape_cloth_counters` accounts for all of them.
+// (SERVER_LOST, CLOSED...). `info` may be NULL. Never blocks (not even on a lock: while a
+// Zenoh thread is storing a state for this cloth at that instant it returns DRAPE_NO_DATA and
+// the states stay queued for the next read); no allocation. Read until DRAPE_NO_DATA to take
+// every queued state; `drape_cloth_counters` accounts for all of them.
 int32_t drape_cloth_read_state(const struct DrapeCloth *cloth,
                                float *positions,
                                size_t positions_len,

@@ -183,6 +183,18 @@ impl ClothInner {
     }
 }
 
+/// The lock if it is free within a short spin, else None (never parks the thread).
+fn lock_briefly<T>(m: &Mutex<T>) -> Option<std::sync::MutexGuard<'_, T>> {
+    for _ in 0..200 {
+        match m.try_lock() {
+            Ok(g) => return Some(g),
+            Err(std::sync::TryLockError::Poisoned(p)) => return Some(p.into_inner()),
+            Err(std::sync::TryLockError::WouldBlock) => std::hint::spin_loop(),
+        }
+    }
+    None
+}
+
 #[derive(Clone, Copy, PartialEq, Eq)]
 enum Read {
     Next,
@@ -341,12 +353,18 @@ impl Cloth {
                 "buffers of {} and {} floats: {need} floats (3 per vertex) needed",
                 positions.len(), normals.as_ref().map_or(0, |n| n.len()))));
         }
-        let s = c.slot.lock().unwrap();
         let next = how == Read::Next;
         let waiting = |s: &mut Slot| next && s.unread.is_empty() && matches!(s.status, Status::Live | Status::Resubmitting);
-        let (mut s, _) = if timeout.is_zero() { (s, ()) } else {
-            let (g, _) = c.cv.wait_timeout_while(s, timeout, waiting).unwrap();
-            (g, ())
+        let mut s = if timeout.is_zero() {
+            // never waits: a Zenoh thread delivering a state holds the slot for a microsecond,
+            // but if it is preempted meanwhile a game thread would wait for it; then nothing
+            // is read now and the state stays queued for the next read
+            match lock_briefly(&c.slot) {
+                Some(g) => g,
+                None => return Ok(None),
+            }
+        } else {
+            c.cv.wait_timeout_while(c.slot.lock().unwrap(), timeout, waiting).unwrap().0
         };
         match &s.status {
             Status::Lost(e) => return Err(e.clone()),

@@ -386,8 +386,10 @@ fn info_of(s: &StateInfo) -> DrapeStateInfo {
 /// unread one of a cloth submitted with a `queue_size` above 1, else the newest. Lengths count
 /// FLOATS, not vertices or bytes: 3 per vertex (`3 * drape_cloth_vertex_count`); a shorter
 /// buffer is DRAPE_E_INVALID_VALUE. Returns DRAPE_OK, DRAPE_NO_DATA (nothing new), or an error
-/// (SERVER_LOST, CLOSED...). `info` may be NULL. Never blocks; no allocation. Read until
-/// DRAPE_NO_DATA to take every queued state; `drape_cloth_counters` accounts for all of them.
+/// (SERVER_LOST, CLOSED...). `info` may be NULL. Never blocks (not even on a lock: while a
+/// Zenoh thread is storing a state for this cloth at that instant it returns DRAPE_NO_DATA and
+/// the states stay queued for the next read); no allocation. Read until DRAPE_NO_DATA to take
+/// every queued state; `drape_cloth_counters` accounts for all of them.
 #[no_mangle]
 pub unsafe extern "C" fn drape_cloth_read_state(cloth: *const DrapeCloth, positions: *mut f32, positions_len: usize,
                                                 normals: *mut f32, normals_len: usize, info: *mut DrapeStateInfo) -> i32 {

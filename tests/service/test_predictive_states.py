@@ -164,7 +164,7 @@ def test_the_frame_encoder_writes_the_reference_bytes(rng):
     ids = [f"c{i}" for i in range(len(counts))]
     enc = FrameEncoder(keyframe_interval=4)
     refs = [P.History() for _ in counts]
-    key_tick = [-(10**9)] * len(counts)
+    keyframes: list[list[int]] = [[] for _ in counts]
     off = np.concatenate([[0], np.cumsum(counts)])
     x = rng.uniform(-2, 2, (int(off[-1]), 3)).astype(np.float32)
     for tick in range(1, 11):
@@ -179,10 +179,16 @@ def test_the_frame_encoder_writes_the_reference_bytes(rng):
             size = enc.state_size(i, P.ENC_PREDICTIVE, False)
             got = bytearray(size)
             assert enc.write_state(got, 0, i, P.ENC_PREDICTIVE, flags[i], None) == size
-            key = tick - key_tick[i] >= 4 or flags[i]
-            key_tick[i] = tick if key else key_tick[i]
+            key = P.read_predictive_header(bytes(got)).order == 0
+            if key:
+                keyframes[i].append(tick)
             want = P.encode_predictive_state(
                 tick, 77, x[off[i] : off[i + 1]], steps[i], refs[i], keyframe=bool(key), flags=flags[i]
             )
             assert bytes(got) == bytes(want), (tick, i)
     assert enc.streams.keyframes >= 3 * len(counts)
+    assert all(k[0] == 1 for k in keyframes)  # a stream starts with one, and after a reset: 6
+    assert 6 in keyframes[1]
+    for k in keyframes:  # then one every 4 ticks at most apart, at the stream's own phase
+        assert all(b - a <= 4 for a, b in zip(k, k[1:], strict=False))
+    assert len({tuple(k[1:3]) for k in keyframes}) > 1  # not all in the same ticks

@@ -173,6 +173,20 @@ def code_motion(x: np.ndarray, step: float, keyframe_interval: int = KEYFRAME_IN
     }
 
 
+def write_stream(x: np.ndarray, step: float, path: Path) -> None:
+    """One stream's predictive states as a server publishes them (a keyframe a second), each
+    prefixed by its length (u32, little-endian)."""
+    import struct
+
+    from drape.client import protocol as Q
+
+    h = P.History()
+    with open(path, "wb") as f:
+        for t, pos in enumerate(x):
+            st = bytes(Q.encode_predictive_state(t + 1, 0, pos, step, h, t % KEYFRAME_INTERVAL == 0))
+            f.write(struct.pack("<I", len(st)) + st)
+
+
 def decode_speed(x: np.ndarray, step: float, cloths: int = 64, rounds: int = 15) -> dict:
     """Client decode cost of a bundle of ``cloths`` predictive states (the cape motion, each cloth
     at another phase), through protocol.decode_predictive_many as the SDK's bundle receiver runs
@@ -208,8 +222,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", default="0.25,0.5,1,2,4", help="steps in millimetres, comma separated")
     ap.add_argument("--out", default="docs/results", help="folder for codec-bits.json and codec-bits.png")
     ap.add_argument("--decode", action="store_true", help="also time the client's decode of a 64-cloth bundle")
+    ap.add_argument(
+        "--stream",
+        default=None,
+        help="write the cape motion's predictive states (step 2 mm) to FILE, each "
+        "prefixed by its u32 length (client/rust/examples/predictive_bench.rs reads it), and stop",
+    )
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if args.stream:
+        write_stream(load("cape_run"), 0.002, Path(args.stream))
+        return 0
     if args.record or not all((MOTIONS_DIR / f"{m}.npz").exists() for m in MOTIONS):
         record(args.device)
     steps = [float(s) / 1e3 for s in args.steps.split(",")]

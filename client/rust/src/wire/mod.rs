@@ -25,18 +25,14 @@ pub use geometry::{grid_geometry, parse_obj};
 pub use keys::{valid_id, valid_namespace, valid_token, Keys, CLIENT_REQUESTS};
 pub use moves::{DecodedBatch, MoveFailed, Moves, MovesReply};
 pub use msg::{
-    Collider, Control, ControlBatch, Encoding, Grid, Links, Material, Mesh, Orientation, Pins,
-    Resume, Shape, StateOptions, Submit,
-};
-pub use placement::{rank, ServerLoad, PLACE_ELSEWHERE};
-pub use predictive::{
-    is_predictive, parse_predictive, PredictiveHeader, Stream as PredictiveStream,
+    Collider, Control, ControlBatch, Encoding, Grid, Links, Material, Mesh, Orientation, Pins, Resume, Shape,
+    StateOptions, Submit,
 };
 pub use replies::{Applied, BatchItem, BatchReply, ErrorReply, SubmitReply};
-pub use state::{
-    decode_state_into, encode_state, parse_state, state_size, StateHeader, STATE_HEADER_SIZE,
-};
+pub use placement::{rank, ServerLoad, PLACE_ELSEWHERE};
+pub use predictive::{is_predictive, parse_predictive, PredictiveHeader, Stream as PredictiveStream};
 pub use validate::Limits;
+pub use state::{decode_state_into, encode_state, parse_state, state_size, StateHeader, STATE_HEADER_SIZE};
 
 /// The protocol version this crate speaks and writes: `[1, 4]` (it reads every minor of major 1).
 /// Of 1.4 it speaks the client-scoped request keys, `moves` blocks and placement by load, each

@@ -405,6 +405,8 @@ def test_bad_plans_are_refused():
         FramePlan.build([a, b], [Publication("x", (2,))])
     with pytest.raises(ValueError, match="unknown encoding"):
         FramePlan.build([ClothEntry("a", 0, 4, 7)], [Publication("x", (0,))])
+    with pytest.raises(ValueError, match="does not write predictive"):  # 1.5: coded on the host, per stream
+        FramePlan.build([ClothEntry("a", 0, 4, P.ENC_PREDICTIVE)], [Publication("x", (0,))])
     with pytest.raises(ValueError, match="invalid cloth id"):
         FramePlan.build([ClothEntry("bad id", 0, 4)], [Publication("x", (0,), True)])
     with pytest.raises(ValueError, match="vertex range"):

@@ -17,7 +17,7 @@ from dataclasses import fields
 import numpy as np
 import pyopencl as cl
 
-from drape.client.protocol.vocabulary import ENCODING_IDS
+from drape.client.protocol.vocabulary import ENCODING_IDS, STATELESS_ENCODINGS
 
 from ..fabric import cook_grid
 from ..params import Capsule, ClothParams, Features, LinkOptions, Sphere, pack_colliders
@@ -73,12 +73,13 @@ def _exercise(dev: cl.Device, lanes: int) -> None:
 
     _stage("encode_frame (kernels/encode.cl)")
     world = CLWorld("workgroup", device=d, pack_lanes=lanes if not gpu else 0)
-    hs = [world.add(fabric, ClothParams(features=Features(normals=True))) for _ in ENCODING_IDS]
+    encodings = [ENCODING_IDS[e] for e in STATELESS_ENCODINGS]  # what the device encoder writes
+    hs = [world.add(fabric, ClothParams(features=Features(normals=True))) for _ in encodings]
     world.step(1 / 60)
     world.sync()
     cloths = [
         ClothEntry(f"c{i}", world.rec[h].vbase, fabric.n_vertices, enc, True)
-        for i, (h, enc) in enumerate(zip(hs, ENCODING_IDS.values(), strict=True))
+        for i, (h, enc) in enumerate(zip(hs, encodings, strict=True))
     ]
     pubs = [Publication("s", (0,)), Publication("b", tuple(range(1, len(cloths))), True)]
     enc = DeviceEncoder(d)

@@ -87,6 +87,10 @@ class FramePlan:
         for i, c in enumerate(cloths):
             if c.encoding not in P.ENCODING_NAMES:
                 raise ValueError(f"cloth {i} ({c.cloth!r}): unknown encoding {c.encoding}")
+            if P.ENCODING_NAMES[c.encoding] not in P.STATELESS_ENCODINGS:  # coded per stream: the host's
+                raise ValueError(
+                    f"cloth {i} ({c.cloth!r}): the device encoder does not write {P.ENCODING_NAMES[c.encoding]} states"
+                )
             if c.vbase < 0 or c.n < 0 or c.vbase + c.n >= 2**32:
                 raise ValueError(f"cloth {i} ({c.cloth!r}): bad vertex range {c.vbase}+{c.n}")
         owner = np.full(k, -1, np.int64)

@@ -88,19 +88,24 @@ def kernel_sources(source: str, root: Path | None = None) -> dict[str, str]:
 _warned: set[str] = set()  # devices whose failed check this process has logged
 
 
-def _usable(dev: cl.Device) -> bool:
-    """Whether ``dev`` builds and runs every kernel Drape runs there (devicecheck.prove: in a
-    child process, cached per device, driver and kernel sources)."""
+def _proven(dev: cl.Device) -> Verdict:
+    """``dev``'s verdict (devicecheck.prove: a child process's, cached per device, driver and
+    kernel sources); a failure logged once per process."""
     v = prove(dev)
-    if not v.ok and v.device not in _warned:  # a warning only when no device is left (choose_device raises)
+    if not v.ok and v.device not in _warned:  # a warning only when no device is left (_choose raises)
         _warned.add(v.device)
         log.info("OpenCL device %s cannot run Drape's kernels; skipping it: %s", describe(dev), v.summary())
-    return v.ok
+    return v
 
 
 def choose_device(spec: str | None = None) -> cl.Device:
     """The device ``spec`` (default ``DRAPE_DEVICE``, else ``auto``) names, among those that pass
     the device check (devicecheck.py); an error naming each candidate's failed kernel if none does."""
+    return _choose(spec)[0]
+
+
+def _choose(spec: str | None = None) -> tuple[cl.Device, Verdict]:
+    """:func:`choose_device`, with the chosen device's verdict (each candidate proved once)."""
     spec = (spec or os.environ.get("DRAPE_DEVICE") or "auto").strip()
     devs = all_devices()
     if not devs:
@@ -109,15 +114,19 @@ def choose_device(spec: str | None = None) -> cl.Device:
     cpus = [d for d in devs if d.type & cl.device_type.CPU]
     low = spec.lower()
 
-    def first_usable(cands: list[cl.Device], what: str) -> cl.Device:
+    def first_usable(cands: list[cl.Device], what: str) -> tuple[cl.Device, Verdict]:
         """The first GPU that passes the check, else the CPU device that runs the widest packs."""
+        proven: list[tuple[cl.Device, Verdict]] = []
         for d in cands:
-            if d.type & cl.device_type.GPU and _usable(d):
-                return d
-        usable = [d for d in cands if not d.type & cl.device_type.GPU and _usable(d)]
+            if d.type & cl.device_type.GPU:
+                proven.append((d, _proven(d)))
+                if proven[-1][1].ok:
+                    return proven[-1]
+        proven += [(d, _proven(d)) for d in cands if not d.type & cl.device_type.GPU]
+        usable = [(d, v) for d, v in proven if v.ok]
         if usable:
-            return max(usable, key=lambda d: prove(d).lanes)  # the first of the widest
-        failures = "; ".join(prove(d).summary() for d in cands)
+            return max(usable, key=lambda dv: dv[1].lanes)  # the first of the widest
+        failures = "; ".join(v.summary() for _, v in proven)
         raise RuntimeError(f"no {what} OpenCL device can run Drape's kernels ({failures}); {INSTALL_HINT}")
 
     if low == "auto":
@@ -162,8 +171,10 @@ class Device:
     (the check's own child process, which is what proves it)."""
 
     def __init__(self, spec: str | None = None, *, device: cl.Device | None = None) -> None:
-        self.device = choose_device(spec) if device is None else device
-        self.verdict: Verdict | None = prove(self.device) if device is None else None
+        self.verdict: Verdict | None = None  # None: taken as it is (the check's own child)
+        if device is None:
+            device, self.verdict = _choose(spec)
+        self.device = device
         self.ctx = cl.Context([self.device])
         try:  # event timestamps give the device time of a tick (the service's cost model)
             self.queue = cl.CommandQueue(self.ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)

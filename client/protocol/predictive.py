@@ -84,19 +84,15 @@ def prediction(order: int, q1: np.ndarray | None, q2: np.ndarray | None, shape: 
 
 
 def symbols(q: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """(3, n) uint32 zig-zagged neighbour differences of the residual ``q - p`` ((n, 3) int32)."""
-    r = np.ascontiguousarray((q - p).T)  # (3, n) int32
-    d = r.copy()
-    d[:, 1:] -= r[:, :-1]
-    return ((d << 1) ^ (d >> 31)).view(np.uint32)
+    """(3, n) uint32 zig-zagged neighbour differences of the residual ``q - p`` ((n, 3) int32):
+    one cloth's :func:`frame_symbols`, axis by axis."""
+    return np.ascontiguousarray(frame_symbols(q, p, np.array([len(q)], np.int64)).T)
 
 
 def unsymbols(z: np.ndarray, p: np.ndarray) -> np.ndarray:
     """The inverse of :func:`symbols`: (n, 3) int32 grid values from the symbols and prediction."""
     z = np.asarray(z, np.uint32)
-    d = (z >> 1).view(np.int32) ^ -(z & 1).view(np.int32)
-    r = np.cumsum(d, axis=1, dtype=np.int32)
-    return (r.T + p).astype(np.int32)
+    return frame_unsymbols(np.ascontiguousarray(z.T), p, np.array([z.shape[1]], np.int64))
 
 
 def _widths(blocks: np.ndarray) -> np.ndarray:

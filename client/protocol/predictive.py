@@ -63,9 +63,11 @@ def quantise(positions: np.ndarray, step: float | np.ndarray) -> np.ndarray:
     return np.clip(q.astype(np.int32), -Q_LIMIT, Q_LIMIT)
 
 
-def dequantise(q: np.ndarray, step: float) -> np.ndarray:
-    """Positions of grid values: ``float32(float64(q) * float64(step))``."""
-    return (np.asarray(q, np.float64) * float(np.float32(step))).astype(np.float32)
+def dequantise(q: np.ndarray, step: float | np.ndarray) -> np.ndarray:
+    """Positions of grid values: ``float32(float64(q) * float64(step))``, ``step`` float32 (one
+    per row: many cloths at once)."""
+    s = np.asarray(step, np.float32).astype(np.float64)
+    return (np.asarray(q, np.float64) * s).astype(np.float32)
 
 
 def prediction(order: int, q1: np.ndarray | None, q2: np.ndarray | None, shape: tuple[int, ...]) -> np.ndarray:

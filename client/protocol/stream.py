@@ -12,15 +12,15 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from .errors import ERR_INVALID_VALUE, ERR_MALFORMED, ProtocolError
-from .predictive import ORDER_INTRA, ORDER_LINEAR, History, frame_unsymbols, prediction, unpack_frame
+from .predictive import ORDER_INTRA, ORDER_LINEAR, History, dequantise, frame_unsymbols, prediction, unpack_frame
 from .state import (
     FLAG_NORMALS,
-    SNORM_MAX,
     ClothState,
     PredictiveHeader,
     decode_state,
     read_predictive_header,
     read_state_header,
+    snorm16_decode_many,
 )
 from .vocabulary import ENC_PREDICTIVE
 
@@ -123,8 +123,7 @@ def decode_predictive_many(
         raise ProtocolError(ERR_MALFORMED, f"predictive states: {e}") from None
     parts = [prediction(g[7].order, streams[g[0]].history.q1, streams[g[0]].history.q2, (g[2], 3)) for g in go]
     q = frame_unsymbols(z, np.concatenate(parts) if len(parts) > 1 else parts[0], counts)
-    steps = np.repeat(np.array([g[7].step for g in go], np.float32).astype(np.float64), counts)[:, None]
-    x = (q * steps).astype(np.float32)
+    x = dequantise(q, np.repeat(np.array([g[7].step for g in go], np.float32), counts)[:, None])
     rows = 0
     for (k, data_at, n, flags, tick, t_ns, bb, ph), size in zip(go, sizes.tolist(), strict=True):
         st = streams[k]
@@ -137,7 +136,7 @@ def decode_predictive_many(
         st.step = ph.step
         normals = None
         if flags & FLAG_NORMALS:
-            normals = (np.frombuffer(buf, "<i2", n * 3, data_at + size).reshape(n, 3) / SNORM_MAX).astype(np.float32)
+            normals = snorm16_decode_many(np.frombuffer(buf, "<i2", n * 3, data_at + size).reshape(n, 3))
         bounds = ((bb[0], bb[1], bb[2]), (bb[3], bb[4], bb[5]))
         state = ClothState(
             tick, t_ns, x[rows : rows + n], normals, receive_time_ns, "predictive", flags, bounds, st.cloth

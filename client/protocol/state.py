@@ -235,6 +235,13 @@ def encode_normals_into(out: bytearray | memoryview, at: int, normals: np.ndarra
         np.frombuffer(out, "<i2", n * 3, at).reshape(n, 3)[:] = snorm16_values(nrm)
 
 
+def bounds_of(pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The header's bounds of (n, 3) float32 positions: per axis min and max (zeros for none)."""
+    if not len(pos):
+        return np.zeros(3, np.float32), np.zeros(3, np.float32)
+    return pos.min(axis=0), pos.max(axis=0)
+
+
 def encode_state(
     tick: int,
     server_time_ns: int,
@@ -260,11 +267,7 @@ def encode_state(
         nrm = np.asarray(normals, np.float32).reshape(n, 3)
     else:
         flags &= ~FLAG_NORMALS
-    if n:
-        lo = pos.min(axis=0)
-        hi = pos.max(axis=0)
-    else:
-        lo = hi = np.zeros(3, np.float32)
+    lo, hi = bounds_of(pos)
     es = _elem_size(enc)
     block = n * 3 * es
     out = bytearray(STATE_HEADER_SIZE + block * (2 if normals is not None else 1))
@@ -456,8 +459,7 @@ def encode_predictive_state(
     n = len(pos)
     data, order, ref1, ref2 = encode_step(pos, step, history, tick, keyframe)
     flags = flags | FLAG_NORMALS if normals is not None else flags & ~FLAG_NORMALS
-    lo = pos.min(axis=0) if n else np.zeros(3, np.float32)
-    hi = pos.max(axis=0) if n else np.zeros(3, np.float32)
+    lo, hi = bounds_of(pos)
     out = bytearray(PREDICTIVE_HEADER_SIZE + len(data) + (n * 6 if normals is not None else 0))
     pack_state_header(out, 0, ENC_PREDICTIVE, flags, n, tick, server_time_ns, lo.tolist(), hi.tolist())
     STATE_HEADER.pack_into(

@@ -187,14 +187,15 @@ def client_main(
                 shared["server"].value = home.encode()
 
             def submit_one(_j: int) -> Any:
-                for attempt in range(spec.retries + 1):
+                tries = 0
+                while True:
                     try:
                         return submit_grid()
                     except P.Overloaded:
-                        if attempt == spec.retries or shared["stop"].is_set():
+                        if tries == spec.retries or shared["stop"].is_set():
                             raise
+                        tries += 1
                         time.sleep(RETRY_AFTER_S)
-                raise AssertionError("unreachable")
 
             def submit_grid() -> Any:
                 return client.submit_grid(

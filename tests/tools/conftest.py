@@ -233,6 +233,14 @@ class DrapeBehindRouter:
     def session(self, user: str) -> zenoh.Session:
         return session(self.endpoint, user, PASSWORDS[user], None)
 
+    def sdk(self, user: str, timeout: float = SERVER_WAIT) -> Any:
+        """The SDK as client ``user``, in client mode through the router, with its user file."""
+        from drape.client import DrapeClient
+
+        return DrapeClient(
+            self.endpoint, mode="client", client_id=user, timeout=timeout, zenoh_config_file=self.client_file(user)
+        )
+
 
 @pytest.fixture
 def drape_behind_router(tmp_path, request) -> Iterator[DrapeBehindRouter]:

@@ -364,16 +364,7 @@ def test_stats_reach_a_wildcard_subscriber_through_the_acl_router(drape_behind_r
     """Placement reads every server's stats on ``{ns}/server/*/stats``: behind the generated ACL
     router that wildcard subscription must reach the server (its declaration goes to the server
     so that the server sends its stats), not only the exact key."""
-    from drape.client import DrapeClient
-
-    d = drape_behind_router
-    with DrapeClient(
-        d.endpoint,
-        mode="client",
-        client_id="alice",
-        timeout=acl_kit.SERVER_WAIT,
-        zenoh_config_file=d.client_file("alice"),
-    ) as alice:
+    with drape_behind_router.sdk("alice") as alice:
         inbox = acl_kit.Inbox()
         alice.session.declare_subscriber(Keys("drape").stats("*"), inbox)
         assert inbox.wait_for(lambda i: len(i.payloads) >= 2), "no stats on the wildcard key"
@@ -386,21 +377,13 @@ def test_keyframe_queries_cross_the_acl_router_for_their_owner_only(drape_behind
     answers through the router; bob's query on her key is denied (no answer)."""
     import msgpack
 
-    from drape.client import DrapeClient
-
     d = drape_behind_router
-    with DrapeClient(
-        d.endpoint,
-        mode="client",
-        client_id="alice",
-        timeout=acl_kit.SERVER_WAIT,
-        zenoh_config_file=d.client_file("alice"),
-    ) as alice:
+    with d.sdk("alice") as alice:
         cloth = alice.submit_grid(6, 6, pinned=[0, 5], encoding="predictive", step=0.002)
         cloth.next_state(timeout=acl_kit.WAIT)
         answers = [r.ok.payload.to_bytes() for r in alice.session.get(cloth.key, timeout=acl_kit.WAIT) if r.ok]
         assert len(answers) == 1 and msgpack.unpackb(answers[0])["cloths"] == 1
-        bob = acl_kit.session(d.endpoint, "bob", acl_kit.PASSWORDS["bob"], None)
+        bob = d.session("bob")
         try:
             assert [r for r in bob.get(cloth.key, timeout=2.0) if r.ok] == []
         finally:

@@ -46,7 +46,6 @@ class _Stream:
     history: P.History = field(default_factory=P.History)
     step: float = 0.0
     key_tick: int = -(1 << 62)
-    tick: int = -1  # the last tick encoded
 
 
 class PredictiveStreams:
@@ -62,8 +61,7 @@ class PredictiveStreams:
         self.streams: dict[str, _Stream] = {}
         self._requested: set[str] = set()
         self._lock = threading.Lock()
-        self.keyframes = 0  # intra-coded states written
-        self.requested_keyframes = 0  # of which asked for
+        self.keyframes = 0  # intra-coded states written (the stats' keyframes)
 
     def request(self, cloths: list[str]) -> None:
         """The next state of each of these cloths' streams is a keyframe."""
@@ -90,11 +88,9 @@ class PredictiveStreams:
             s.key_tick, s.step = tick, step
             s.history.clear()
             self.keyframes += 1
-            self.requested_keyframes += requested
         if new:  # its periodic keyframes at a phase of its own: cloths added together do not all
             # send theirs in one tick (16 capes' keyframes at once queued 110 ms on a 20 Mbit/s link)
             s.key_tick = tick - zlib.crc32(cloth.encode()) % self.keyframe_interval
-        s.tick = tick
         return s, s.history.order()
 
     def keep_only(self, cloths: set[str]) -> None:

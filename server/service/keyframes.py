@@ -30,7 +30,6 @@ log = logging.getLogger(__name__)
 class KeyframeQueries:
     def __init__(self, keys: P.Keys, registry: Registry, publisher: Publisher) -> None:
         self.keys, self.registry, self.publisher = keys, registry, publisher
-        self.answered = 0  # queries that covered at least one predictive cloth
 
     def endpoints(self) -> list[tuple[str, Callable[[zenoh.Query], None]]]:
         """(key expression, callback) of the keyframe queryables: every state and bundle key."""
@@ -55,7 +54,6 @@ class KeyframeQueries:
             if not cloths:
                 return  # not this server's, or nothing predictive there: another server may answer
             tick = self.publisher.request_keyframes(cloths)
-            self.answered += 1
             self.registry.count("keyframe_queries")
             query.reply(key, msgpack.packb({"v": list(P.PROTOCOL_VERSION), "tick": tick, "cloths": len(cloths)}))
         except Exception:

@@ -30,9 +30,8 @@ _RANK = {name: i for i, name in enumerate(quality.ORDER)}
 class AdaptiveQuality:
     def __init__(self, config: ServerConfig) -> None:
         self.config = config
-        self.governor = quality.QualityGovernor(
-            quality.ORDER[-1], 1e3 * config.quality_budget * config.dt, QUALITY_PATIENCE, QUALITY_HEADROOM
-        )
+        self.governor: quality.QualityGovernor
+        self.use_device(is_gpu=False)  # the CPU's costs until the server knows its World's device
         self.measure: Callable[[float], float] = lambda seconds: seconds
         self.events = 0
         self.last: dict[str, Any] | None = None
@@ -41,8 +40,9 @@ class AdaptiveQuality:
         self._last_check = time.monotonic()
 
     def use_device(self, is_gpu: bool) -> None:
-        """The presets' costs of the world's kind of device (quality.COSTS_FILE keeps the CPU's
-        and the GPU's): called once the World exists, before the first tick."""
+        """A governor with the presets' costs of the world's kind of device (quality.COSTS_FILE
+        keeps the CPU's and the GPU's): the server calls it once the World exists, before the
+        first tick."""
         self.governor = quality.QualityGovernor(
             quality.ORDER[-1],
             1e3 * self.config.quality_budget * self.config.dt,

@@ -17,6 +17,7 @@ import threading
 import time
 from typing import TYPE_CHECKING
 
+import numpy as np
 import zenoh
 
 from . import protocol as P
@@ -62,12 +63,23 @@ class BundleReceiver:
             self.invalid += 1
             log.warning("invalid bundle payload on %s: %s", self.key, e)
             return
-        states = bundle.decode(receive_time_ns)
+        cols = P.BundleEntries.of(bundle.entries)
+        # 1.5: predictive states are each their stream's (decoded together below); the others
+        # whole-bundle as before
+        raw = np.frombuffer(bundle.data, np.uint8)
+        pred = (cols.sizes > 8) & (raw[np.minimum(cols.offsets + 8, len(raw) - 1)] == P.ENC_PREDICTIVE)
+        states: list[ClothState | P.ProtocolError | None] = [None] * len(cols)
+        if not pred.all():
+            plain = np.flatnonzero(~pred)
+            decoded = P.decode_states(
+                bundle.data, cols.offsets[plain], cols.sizes[plain], [cols.cloths[i] for i in plain], receive_time_ns
+            )
+            for i, one in zip(plain.tolist(), decoded, strict=True):
+                states[i] = one
         now = time.monotonic()
-        predictive = self._predictive(bundle, receive_time_ns)  # 1.5: decoded together, by cloth id
-        bundle_index = {e.cloth: i for i, e in enumerate(bundle.entries)} if predictive else {}
         handles = self._handles
-        for cloth, st in zip(P.BundleEntries.of(bundle.entries).cloths, states, strict=True):
+        predicted = self._predictive(bundle, cols, np.flatnonzero(pred).tolist(), receive_time_ns)
+        for i, (cloth, st) in enumerate(zip(cols.cloths, states, strict=True)):
             h = handles.get(cloth)
             if h is None:
                 h = self._orphan(cloth, st)
@@ -75,48 +87,46 @@ class BundleReceiver:
                     continue
             if h.bundle_key is None:  # an unbundled cloth of that id: its states come on its own key
                 continue
-            if st.__class__ is ClothState:
-                h._deliver(st, now)  # type: ignore[arg-type]
-            elif predictive is not None and cloth in predictive:  # 1.5: through its stream
-                got = predictive[cloth]
+            if pred[i]:
+                got = predicted.get(i)
                 if isinstance(got, DrapeError):
                     h.invalid += 1
                     log.warning("cloth %s: invalid state in bundle: %s", h.id, got)
                     continue
-                if got is None:  # predicted from a state this client lacks
-                    got = h._missing(bundle.payload(bundle_index[cloth]), receive_time_ns)
+                if got is None:  # predicted from a state this client lacks (or a handle just registered)
+                    got = h._missing(bundle.payload(i), receive_time_ns)
                 if got is not None:
                     h._deliver(got, now)
+            elif st.__class__ is ClothState:
+                h._deliver(st, now)  # type: ignore[arg-type]
             else:
                 h.invalid += 1
                 log.warning("cloth %s: invalid state in bundle: %s", h.id, st)
 
-    def _predictive(self, bundle: P.Bundle, receive_time_ns: int) -> dict[str, ClothState | DrapeError | None] | None:
-        """1.5: the bundle's predictive states of this client's handles, decoded all at once
-        through their streams (protocol.decode_predictive_many); None when there are none."""
-        entries = [
-            (i, e) for i, e in enumerate(bundle.entries) if e.size > 8 and bundle.data[e.offset + 8] == P.ENC_PREDICTIVE
-        ]
-        if not entries:
-            return None
+    def _predictive(
+        self, bundle: P.Bundle, cols: P.BundleEntries, entries: list[int], receive_time_ns: int
+    ) -> dict[int, ClothState | DrapeError | None]:
+        """1.5: the bundle's predictive ``entries`` of this client's handles, decoded all at once
+        through their streams (protocol.decode_predictive_many), by entry index."""
         handles = self._handles
-        mine = [(i, e, handles[e.cloth]) for i, e in entries if e.cloth in handles]
-        out: dict[str, ClothState | DrapeError | None] = {}
+        mine = [(i, handles[cols.cloths[i]]) for i in entries if cols.cloths[i] in handles]
+        out: dict[int, ClothState | DrapeError | None] = {}
+        if not mine:
+            return out
         try:
             got = P.decode_predictive_many(
-                bundle.data, [e.offset for _, e, _ in mine], [h.stream for _, _, h in mine], receive_time_ns
+                bundle.data, [int(cols.offsets[i]) for i, _ in mine], [h.stream for _, h in mine], receive_time_ns
             )
-            for (_, e, _), st in zip(mine, got, strict=True):
-                out[e.cloth] = st
+            out.update((i, st) for (i, _), st in zip(mine, got, strict=True))
         except DrapeError:  # a bad one among them: each alone, so that only it is lost
-            for _, e, h in mine:
+            for i, h in mine:
                 try:
-                    out[e.cloth] = h.stream.decode(bundle.data[e.offset : e.offset + e.size], receive_time_ns)
+                    out[i] = h.stream.decode(bundle.payload(i), receive_time_ns)
                 except DrapeError as err:
-                    out[e.cloth] = err
+                    out[i] = err
         return out
 
-    def _orphan(self, cloth: str, st: ClothState | P.ProtocolError) -> ClothHandle | None:
+    def _orphan(self, cloth: str, st: ClothState | P.ProtocolError | None) -> ClothHandle | None:
         """A cloth without a handle: its handle if it was registered meanwhile, else None, and its
         state kept for it while a bundled submission (maybe its) waits for the reply."""
         with self._lock:

@@ -32,7 +32,7 @@ from drape.client.protocol.stats import STAT_COUNTERS
 from drape.client.session import open_session, zenoh_config
 
 from ..sim import make_world
-from ..sim.fabric import cook_grid
+from ..sim.fabric import Fabric, cook_grid
 from ..sim.params import ClothParams, Features, Sphere, pack_colliders
 from ..sim.world import World
 from .adaptive import AdaptiveQuality
@@ -202,28 +202,26 @@ class Server:
             w.fetch()
         for names in self.config.warm_feature_sets():  # the feature sets a deployment declares
             t0 = time.perf_counter()
-            features = Features.from_names(names)
-            grid = cook_grid(32, 32, pinned=[0, 31])
-            h = w.add(grid, ClothParams(features=features))
-            w.set_pin_targets(h, np.array([0]), np.zeros((1, 3)))
-            if features.colliders:
-                w.set_colliders(h, pack_colliders([Sphere((0.5, -0.5, 0.5), 0.2)]))
-            w.step(self.config.dt)
-            w.fetch()
-            w.remove(h)
-            w.fetch()
+            self._step_once(w, cook_grid(32, 32, pinned=[0, 31]), ClothParams(features=Features.from_names(names)))
             log.debug("warm-up of features %s took %.3f s", "+".join(names), time.perf_counter() - t0)
         largest = cook_grid(1, self.config.max_vertices_per_cloth, pinned=[0])
         if w.ready(largest, params):
             return
         w.prepare(largest, params)
-        h = w.add(largest, params)
+        self._step_once(w, largest, params)
+        log.debug("warm-up of a %d-vertex cloth took %.3f s", largest.n_vertices, time.perf_counter() - t)
+
+    def _step_once(self, w: World, fabric: Fabric, params: ClothParams) -> None:
+        """Add a cloth, move its first pin, give it a collider when its features ask for them,
+        step it once, read the frame back and remove it: every kernel it needs built and run."""
+        h = w.add(fabric, params)
         w.set_pin_targets(h, np.array([0]), np.zeros((1, 3)))
+        if params.features.colliders:
+            w.set_colliders(h, pack_colliders([Sphere((0.5, -0.5, 0.5), 0.2)]))
         w.step(self.config.dt)
         w.fetch()
         w.remove(h)
         w.fetch()
-        log.debug("warm-up of a %d-vertex cloth took %.3f s", largest.n_vertices, time.perf_counter() - t)
 
     def stop(self, timeout: float = 10.0) -> None:
         """Stop serving: no new requests, last tick finishes, publishing stops, everything is

@@ -36,16 +36,16 @@ from ..sim.fabric import Fabric, cook_grid
 from ..sim.params import ClothParams, Features, Sphere, pack_colliders
 from ..sim.world import World
 from .adaptive import AdaptiveQuality
-from .admission import Admission
 from .commands import Call, Intake
 from .config import ServerConfig
-from .cook import CookWorker
-from .handlers import Handlers
+from .cook.worker import CookWorker
 from .keyframes import KeyframeQueries
+from .process.telemetry import PHASES, PhaseTimer
 from .publisher import Publisher, Roster
 from .registry import Registry
 from .replies import Replies, undeclare
-from .telemetry import PHASES, PhaseTimer
+from .requests.admission import Admission
+from .requests.handlers import Handlers
 from .ticker import Ticker
 
 log = logging.getLogger(__name__)

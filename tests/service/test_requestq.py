@@ -19,7 +19,7 @@ from conftest import TIMEOUT, connect, make_config, wait_until
 
 from drape.client import protocol as P
 from drape.server.service import Server
-from drape.server.service.requestq import TickGate
+from drape.server.service.requests.requestq import TickGate
 
 GARBAGE = b"\xc1" * 600  # 0xc1 is never valid msgpack: decoding it answers "malformed"
 

@@ -7,7 +7,7 @@ combination is first built and run by a child process (:class:`.buildhelper.Buil
 that this process loads its kernels from the driver's disk cache: no compiler high-water mark
 here, no first-launch JIT on the tick (``"start"`` does that for every combination once before
 ``drape serve`` starts serving). About
-once a second the same thread gives memory back (:class:`.memory.MemoryKeeper`: programs of
+once a second the same thread gives memory back (:class:`..process.memory.MemoryKeeper`: programs of
 feature combinations no cloth has used for ``program_idle_s`` released, the heap trimmed).
 
 :class:`FabricStore` is the service's only fabric cache: fabrics by a digest of the request's
@@ -28,16 +28,16 @@ import numpy as np
 
 from drape.client import protocol as P
 
-from ..sim.fabric import Fabric, cook_grid, cook_mesh
-from ..sim.params import ClothParams, LinkOptions
-from ..sim.world import World
+from ...sim.fabric import Fabric, cook_grid, cook_mesh
+from ...sim.params import ClothParams, LinkOptions
+from ...sim.world import World
+from ..commands import Add, Intake, Prepare
+from ..config import ServerConfig
+from ..process.memory import PERIOD_S, MemoryKeeper
+from ..registry import Registry
+from ..replies import Replies, send
+from ..worldparams import pack, params_from_submit, with_preset
 from .buildhelper import BuildHelper
-from .commands import Add, Intake, Prepare
-from .config import ServerConfig
-from .memory import PERIOD_S, MemoryKeeper
-from .registry import Registry
-from .replies import Replies, send
-from .requests import pack, params_from_submit, with_preset
 
 log = logging.getLogger(__name__)
 

@@ -31,14 +31,14 @@ import zenoh
 
 from drape.client import protocol as P
 
+from ..commands import BatchControl, Intake, Remove
+from ..config import ServerConfig
+from ..registry import ClothRecord, Registry
+from ..replies import Replies, Reply, send
+from ..worldparams import pack
 from .admission import ERR_OVERLOADED, Admission
-from .commands import BatchControl, Intake, Remove
-from .config import ServerConfig
 from .moves import MoveChecker, refused_counts
-from .registry import ClothRecord, Registry
-from .replies import Replies, Reply, send
 from .requestq import RequestQueue, TickGate
-from .requests import pack
 
 log = logging.getLogger(__name__)
 

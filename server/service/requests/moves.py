@@ -27,10 +27,10 @@ import numpy as np
 
 from drape.client import protocol as P
 
-from ..sim.world import World
-from .commands import BatchControl, MoveBlock
-from .registry import ClothRecord, Registry
-from .replies import Reply
+from ...sim.world import World
+from ..commands import BatchControl, MoveBlock
+from ..registry import ClothRecord, Registry
+from ..replies import Reply
 
 log = logging.getLogger(__name__)
 

@@ -24,7 +24,6 @@ from collections.abc import Callable, Mapping
 from dataclasses import replace
 from typing import Any, TypeVar
 
-import numpy as np
 import zenoh
 
 from drape.client import protocol as P
@@ -32,16 +31,15 @@ from drape.client.protocol.stats import STAT_COUNTERS
 from drape.client.session import open_session, zenoh_config
 
 from ..sim import make_world
-from ..sim.fabric import Fabric, cook_grid
-from ..sim.params import ClothParams, Features, Sphere, pack_colliders
 from ..sim.world import World
 from .adaptive import AdaptiveQuality
 from .commands import Call, Intake
 from .config import ServerConfig
+from .cook.warmup import warm_up
 from .cook.worker import CookWorker
 from .keyframes import KeyframeQueries
 from .process.telemetry import PHASES, PhaseTimer
-from .publisher import Publisher, Roster
+from .publisher import Publisher
 from .registry import Registry
 from .replies import Replies, undeclare
 from .requests.admission import Admission
@@ -126,12 +124,12 @@ class Server:
     def _start(self) -> None:
         cfg = self.config
         kw = {} if cfg.solver == "reference" else {"device": cfg.device}
-        self.ticker.world = make_world(cfg.solver, **kw)
-        self.device_name = getattr(self.ticker.world, "device_name", cfg.solver)
-        dev = getattr(self.ticker.world, "dev", None)
+        self.ticker.world = world = make_world(cfg.solver, **kw)
+        self.device_name = getattr(world, "device_name", cfg.solver)
+        dev = getattr(world, "dev", None)
         self.quality.use_device(bool(dev is not None and dev.info.is_gpu))
-        if self.warmup:
-            self.warm_up()
+        if self.warmup:  # before serving: the first cloths build nothing (cook/warmup.py)
+            warm_up(world, cfg)
         zc = zenoh_config(cfg.mode, cfg.listen, cfg.connect, cfg.multicast_scouting, cfg.zenoh_config)
         if cfg.zenoh_config is None:
             # States go out in bursts under DROP congestion control; Zenoh's default data queue (2
@@ -172,56 +170,6 @@ class Server:
             cfg.namespace,
             cfg.identity,
         )
-
-    def warm_up(self) -> None:
-        """Build and run, before the server serves, the kernels a cloth of the default feature
-        set can need, so that the first such submission neither waits for a build nor stalls a
-        tick (PoCL compiles a kernel again at its first launch):
-
-        - the tick thread's warm-up: a small cloth's kernels, the frame encoder's programs;
-        - with ``device_encode``, one frame encoded (the encoder's first launch cost 8-21 ticks
-          on the tick thread with a cold PoCL cache);
-        - the largest cloth this server admits (a strip of ``max_vertices_per_cloth`` vertices)
-          when its kernels are others: too large for local memory, it takes the global-memory
-          ones (a 256x256 cloth's first submit took 2.2 s on the CPU, 0.7 s once warmed)."""
-        self.ticker.warm_up()
-        w = self.ticker.world
-        assert w is not None
-        params = ClothParams()
-        t = time.perf_counter()
-        frames = self.ticker.device  # states encoded on the device: launch the encoder once
-        if frames is not None:
-            h = w.add(cook_grid(2, 2, pinned=[0]), params)
-            w.step(self.config.dt)
-            lay = w.layout()
-            f32 = [P.ENCODING_IDS["float32"]]
-            roster = Roster((-1, -1), ["warm-up"], ["warm-up"], f32, lay.normals.copy(), np.array([0]), [])
-            frames.encode(roster, lay, 0, 0, np.zeros(1, np.int64)).wait()
-            frames.hold().release()
-            w.remove(h)
-            w.fetch()
-        for names in self.config.warm_feature_sets():  # the feature sets a deployment declares
-            t0 = time.perf_counter()
-            self._step_once(w, cook_grid(32, 32, pinned=[0, 31]), ClothParams(features=Features.from_names(names)))
-            log.debug("warm-up of features %s took %.3f s", "+".join(names), time.perf_counter() - t0)
-        largest = cook_grid(1, self.config.max_vertices_per_cloth, pinned=[0])
-        if w.ready(largest, params):
-            return
-        w.prepare(largest, params)
-        self._step_once(w, largest, params)
-        log.debug("warm-up of a %d-vertex cloth took %.3f s", largest.n_vertices, time.perf_counter() - t)
-
-    def _step_once(self, w: World, fabric: Fabric, params: ClothParams) -> None:
-        """Add a cloth, move its first pin, give it a collider when its features ask for them,
-        step it once, read the frame back and remove it: every kernel it needs built and run."""
-        h = w.add(fabric, params)
-        w.set_pin_targets(h, np.array([0]), np.zeros((1, 3)))
-        if params.features.colliders:
-            w.set_colliders(h, pack_colliders([Sphere((0.5, -0.5, 0.5), 0.2)]))
-        w.step(self.config.dt)
-        w.fetch()
-        w.remove(h)
-        w.fetch()
 
     def stop(self, timeout: float = 10.0) -> None:
         """Stop serving: no new requests, last tick finishes, publishing stops, everything is

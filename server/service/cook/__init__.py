@@ -3,4 +3,4 @@ tick path (``worker``: fabrics, cloth parameters, kernels built before the cloth
 service's one fabric cache) and kernel builds in a child process (``buildhelper``), which warms
 a scratch World with the server's own warm-up (``warmup``), never a Server."""
 
-__all__ = ["buildhelper", "worker"]
+__all__ = ["buildhelper", "warmup", "worker"]

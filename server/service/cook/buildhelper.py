@@ -172,12 +172,11 @@ def _warm_up_main(config: Any) -> None:
     from ...sim import make_world
     from ...sim.fabric import cook_grid
     from ...sim.params import ClothParams, Features
-    from ..server import Server
+    from .warmup import warm_up
 
-    srv = Server(config, warmup=False)
     kw = {} if config.solver == "reference" else {"device": config.device}
-    world = srv.ticker.world = make_world(config.solver, **kw)
-    srv.warm_up()  # the server's own warm-up: what it then builds from the cache
+    world = make_world(config.solver, **kw)
+    warm_up(world, config)  # the server's own warm-up: what it then builds from the cache
     fabric = _fabric_fields(cook_grid(8, 8, pinned=[0, 7]))
     for n in range(1, len(FEATURE_NAMES) + 1):
         for combo in itertools.combinations(FEATURE_NAMES, n):

@@ -34,7 +34,7 @@ from ..service.registry import ClothRecord, Registry
 from ..service.replies import Replies
 from ..service.requests.admission import Admission
 from ..service.requests.handlers import Handlers
-from ..service.requests.moves import apply_blocks
+from ..service.tick.moves import apply_blocks
 from ..sim import make_world
 from ..sim.fabric import cook_grid
 from ..sim.params import ClothParams

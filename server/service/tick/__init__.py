@@ -2,4 +2,4 @@
 request and cook threads applied at the start of a tick (``applier``), among them the 1.4 moves
 blocks (``moves``)."""
 
-__all__ = ["applier"]
+__all__ = ["applier", "moves"]

@@ -30,8 +30,8 @@ from ..cook.worker import FabricStore
 from ..publisher import Job
 from ..registry import ClothRecord, Registry
 from ..replies import Replies, Reply, send
-from ..requests.moves import apply_blocks
 from ..worldparams import changes_params, params_after_control, pins_only, with_preset
+from .moves import apply_blocks
 
 log = logging.getLogger(__name__)
 

@@ -38,7 +38,7 @@ from ..sim.world import PendingFrame, World
 from .adaptive import AdaptiveQuality
 from .commands import Intake
 from .config import ServerConfig
-from .cook.worker import FabricStore
+from .cook.fabrics import FabricStore
 from .devencode import DeviceFrames, device_world
 from .process.telemetry import PhaseTimer
 from .publisher import Job, Mailbox, Roster

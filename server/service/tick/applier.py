@@ -26,7 +26,7 @@ from ...sim.world import World
 from ..adaptive import AdaptiveQuality
 from ..commands import Add, BatchControl, Call, ControlSlot, Intake, MoveBlock, Remove
 from ..config import ServerConfig
-from ..cook.worker import FabricStore
+from ..cook.fabrics import FabricStore
 from ..publisher import Job
 from ..registry import ClothRecord, Registry
 from ..replies import Replies, Reply, send

@@ -1,18 +1,22 @@
 """The Drape server: composition and lifecycle of the service's parts around one World.
 
-``Server(config).start()`` ... ``.stop()``, or ``with Server(config) as s: ...``. Parts, each
-owning one job (and one thread's state):
+``Server(config).start()`` ... ``.stop()``, or ``with Server(config) as s: ...``. ``__init__``
+builds every part once, each after the parts it takes (the World itself is made at ``start``).
+Parts, each owning one job (and one thread's state); the folders are the threads:
 
-- registry (registry.py): cloths, clients, ownership, quotas, counters; lock-protected;
-- handlers (handlers.py): the request handlers, on the request thread, fed by the bounded
-  request queue (requestq.py) that Zenoh's queryable callbacks put their queries on;
-- commands (commands.py): the bounded, per-cloth coalescing intake of the tick thread;
-- cook (cook.py): the cook thread, fabrics (the one fabric cache) and kernel builds;
-- ticker (ticker.py): the tick thread, the only one touching the World, and its applier
-  (applier.py): the queued commands applied to the World at the start of a tick;
-- publisher (publisher.py): the publisher thread, encode and put;
-- admission (admission.py) and adaptive quality (adaptive.py): the tick-cost policies;
-- replies (replies.py): answering queries, error replies counted.
+- shared, at the top: registry (registry.py: cloths, clients, ownership, quotas, counters;
+  lock-protected), commands (commands.py: the bounded, per-cloth coalescing intake of the tick
+  thread), replies (replies.py: answering queries, error replies counted), worldparams
+  (worldparams.py: requests into what the World takes), config (config.py);
+- the request thread (requests/): the handlers, fed by the bounded request queue that Zenoh's
+  queryable callbacks put their queries on (requestq.py, with the gate that keeps requests off
+  the tick), moves blocks checked on arrival, admission (the cost model submits are refused by);
+- the cook thread (cook/): fabrics (the one fabric cache) and kernel builds, the warm-up of a
+  World, kernel builds in a child process;
+- the tick thread (ticker.py; tick/: the queued commands and moves blocks applied to the World
+  at the start of a tick), the only one touching the World, with adaptive quality (adaptive.py);
+- the publisher thread (publisher.py): encode and put, with the replies before and after;
+- the process (process/): ``drape serve``, its workers, metrics, health, logs, memory, timers.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from ..sim.world import World
 from .adaptive import AdaptiveQuality
 from .commands import Call, Intake
 from .config import ServerConfig
+from .cook.fabrics import FabricStore
 from .cook.warmup import warm_up
 from .cook.worker import CookWorker
 from .keyframes import KeyframeQueries
@@ -44,6 +49,7 @@ from .registry import Registry
 from .replies import Replies, undeclare
 from .requests.admission import Admission
 from .requests.handlers import Handlers
+from .requests.requestq import TickGate
 from .ticker import Ticker
 
 log = logging.getLogger(__name__)
@@ -56,8 +62,8 @@ class Server:
     (``Server(tick_rate=30, listen=["tcp/127.0.0.1:7500"])``)."""
 
     def __init__(self, config: ServerConfig | None = None, *, warmup: bool = True, **overrides: Any) -> None:
-        cfg = config or ServerConfig()
-        self.config: ServerConfig = (replace(cfg, **overrides) if overrides else cfg).validate()
+        base = config or ServerConfig()
+        self.config: ServerConfig = (replace(base, **overrides) if overrides else base).validate()
         self.keys = P.Keys(self.config.namespace)
         self.limits = self.config.limits()
         self.warmup = warmup
@@ -66,45 +72,51 @@ class Server:
         self._stopping = threading.Event()
         self._stopped = threading.Event()
         self._started_at = 0.0
-        self.registry = Registry(self.config)
+        # the parts, each built once after those it takes (the World comes at start())
+        cfg = self.config
+        self.registry = Registry(cfg)
         self.replies = Replies(self.registry)
-        self.intake = Intake(self.config.max_pending_requests)
-        self.admission = Admission(self.config)
-        self.quality = AdaptiveQuality(self.config)
-        self.publisher = Publisher(self.config, self.keys, self.registry, self._timers)
+        self.intake = Intake(cfg.max_pending_requests)
+        self.admission = Admission(cfg)
+        self.quality = AdaptiveQuality(cfg)
+        self.fabrics = FabricStore()
+        self.gate = TickGate(cfg.dt) if cfg.request_yield else None  # requests while the tick thread sleeps
+        self.publisher = Publisher(cfg, self.keys, self.registry, self._timers)
         self.keyframes = KeyframeQueries(self.keys, self.registry, self.publisher)  # 1.5
-        self.ticker = Ticker(
-            self.config,
+        self.ticker = ticker = Ticker(
+            cfg,
             self.registry,
             self.replies,
             self.intake,
             self.publisher.mailbox,
-            None,  # type: ignore[arg-type]
+            self.fabrics,
             self.admission,
             self.quality,
             self._timers,
             self._stats_bytes,
         )
         self.cook = CookWorker(
-            self.config, self.registry, self.replies, self.intake, lambda: self.ticker.world, self._stopping.is_set
+            cfg, self.registry, self.replies, self.intake, self.fabrics, lambda: ticker.world, self._stopping.is_set
         )
-        self.ticker.fabrics = self.cook.fabrics
-        self.ticker.publish_cost = lambda: self.publisher.last_cost_s
-        self.ticker.request_prepare = self.cook.request_prepare
         self.handlers = Handlers(
-            self.config,
+            cfg,
             self.keys,
             self.registry,
             self.replies,
             self.intake,
             self.cook.queue,
             self.admission,
-            lambda: self.ticker.tick,
+            self.gate,
+            lambda: ticker.tick,
             self.info,
             self._stopping.is_set,
         )
-        if self.handlers.gate is not None:  # requests start while the tick thread sleeps
-            self.ticker.on_sleep = self.handlers.gate.tick_sleeps
+        # PATCHED AFTER CONSTRUCTION until Ticker's constructor takes them (the sim engineer's
+        # class): the publisher's last cost, the cook thread's kernel builds, the request gate
+        ticker.publish_cost = lambda: self.publisher.last_cost_s
+        ticker.request_prepare = self.cook.request_prepare
+        if self.gate is not None:
+            ticker.on_sleep = self.gate.tick_sleeps
         self._session: zenoh.Session | None = None
         self._declared: list[Any] = []
         self._token: Any = None

@@ -65,6 +65,7 @@ def _setup(cloths: int, clients: int, device: str | None) -> tuple[Any, Handlers
         Intake(cfg.max_pending_requests),
         queue.Queue(),
         Admission(cfg),
+        None,  # no request thread here: the handlers are called directly
         lambda: 0,
         dict,
         lambda: False,

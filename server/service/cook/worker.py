@@ -46,12 +46,13 @@ class CookWorker:
         registry: Registry,
         replies: Replies,
         intake: Intake,
+        fabrics: FabricStore,
         world: Callable[[], World | None],
         stopping: Callable[[], bool],
     ) -> None:
         self.config, self.registry, self.replies, self.intake = config, registry, replies, intake
         self.queue: queue.Queue = queue.Queue(config.max_pending_requests)
-        self.fabrics = FabricStore()
+        self.fabrics = fabrics
         self._world, self._stopping = world, stopping
         self._asked: set = set()  # feature keys whose kernels were asked for (controls)
         self._asked_lock = threading.Lock()

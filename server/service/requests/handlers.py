@@ -70,6 +70,7 @@ class Handlers:
         intake: Intake,
         cook_q: queue.Queue,
         admission: Admission,
+        gate: TickGate | None,
         tick: Callable[[], int],
         info: Callable[[], dict],
         stopping: Callable[[], bool],
@@ -79,7 +80,7 @@ class Handlers:
         self.moves = MoveChecker(registry)  # 1.4 moves blocks
         self.limits = config.limits()
         self._tick, self._info, self._stopping = tick, info, stopping
-        self.gate = TickGate(config.dt) if config.request_yield else None
+        self.gate = gate  # requests start while the tick thread sleeps (None: whenever they come)
         self.request_queue = RequestQueue(
             config.max_pending_requests,
             config.max_pending_request_bytes,

@@ -1,4 +1,4 @@
-"""The bounded request queue (server/service/requestq.py) in a real Server over real Zenoh.
+"""The bounded request queue (server/service/requests/requestq.py) in a real Server over real Zenoh.
 
 The request thread is held deterministically: the test wraps the server's ``on_info`` handler
 before start so that the first info request waits on an event. Everything is counted: which

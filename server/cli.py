@@ -4,7 +4,7 @@ Each module named in SUBCOMMANDS provides ``configure(parser)`` and ``run(args) 
 imported only when its subcommand runs, so ``drape bench`` never imports Zenoh and
 ``drape loadtest`` never builds kernels it does not need.
 
-Logging is configured here for every subcommand (drape.server.service.logs): ``--log-format
+Logging is configured here for every subcommand (drape.server.service.process.logs): ``--log-format
 text|json`` and ``--log-level`` before the subcommand name, or ``DRAPE_LOG_FORMAT`` /
 ``DRAPE_LOG_LEVEL``; ``drape serve`` also takes them after its name and from its TOML file
 (``log_format``, ``log_level``), like every other setting of the server.
@@ -18,11 +18,11 @@ import os
 import sys
 
 from drape.server import pip_hint, version
-from drape.server.service import logs
+from drape.server.service.process import logs
 
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("drape.server.tools.demo", "run a server and demo clients on loopback, write PNG frames and a GIF"),
-    "serve": ("drape.server.service.daemon", "run the cloth server daemon"),
+    "serve": ("drape.server.service.process.daemon", "run the cloth server daemon"),
     "top": ("drape.server.tools.top", "live view of the servers on a Zenoh network, from their stats"),
     "bench": ("drape.server.tools.bench", "solver benchmarks (the talk's table and beyond)"),
     "tradeoff": ("drape.server.tools.tradeoff", "measure speed against accuracy, write table, JSON and plot"),

@@ -1,4 +1,7 @@
-"""The Zenoh service around one World: configuration, the server and its parts (server.py).
+"""The Zenoh service around one World: the server and its parts (server.py composes them), one
+folder per thread: ``requests/`` (the request thread), ``cook/`` (the cook thread), the tick and
+publisher threads' parts, ``process/`` (the daemon, its workers and the operator's side); the
+pieces several threads share at the top (config, registry, commands, replies, worldparams).
 
 ``Server`` is imported lazily, so that ``drape.server.service.config`` (and the daemon's
 argument parsing) needs neither Zenoh's session nor OpenCL."""

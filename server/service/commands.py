@@ -17,7 +17,7 @@ the stats' errors):
   its items are applied. The lane holds at most one slot per cloth and at most
   ``max_pending_requests`` waiting replies;
 - **moves blocks** (protocol 1.4, PROTOCOL.md 5.1.1): a batch control's ``moves``, checked by the
-  handler (server/service/moves.py), wait as one :class:`MoveBlock` each, counted with the
+  handler (server/service/requests/moves.py), wait as one :class:`MoveBlock` each, counted with the
   controls' waiting replies, and are all applied in the next tick after its controls, in
   arrival order (a later block wins where two set the same vertex), with one vectorised World
   call each. They are never merged or deferred.

@@ -34,11 +34,11 @@ from ..sim.world import Frame
 if TYPE_CHECKING:
     from ..sim.opencl.encode import EncodedFrame
 from .config import ServerConfig
-from .memory import freeze_long_lived
+from .process.memory import freeze_long_lived
+from .process.telemetry import PhaseTimer
 from .registry import Registry
 from .replies import Replier, Reply, send, undeclare
 from .statecodec import FrameEncoder
-from .telemetry import PhaseTimer
 
 log = logging.getLogger(__name__)
 

@@ -1,18 +1,22 @@
 """The Drape server: composition and lifecycle of the service's parts around one World.
 
-``Server(config).start()`` ... ``.stop()``, or ``with Server(config) as s: ...``. Parts, each
-owning one job (and one thread's state):
+``Server(config).start()`` ... ``.stop()``, or ``with Server(config) as s: ...``. ``__init__``
+builds every part once, each after the parts it takes (the World itself is made at ``start``).
+Parts, each owning one job (and one thread's state); the folders are the threads:
 
-- registry (registry.py): cloths, clients, ownership, quotas, counters; lock-protected;
-- handlers (handlers.py): the request handlers, on the request thread, fed by the bounded
-  request queue (requestq.py) that Zenoh's queryable callbacks put their queries on;
-- commands (commands.py): the bounded, per-cloth coalescing intake of the tick thread;
-- cook (cook.py): the cook thread, fabrics (the one fabric cache) and kernel builds;
-- ticker (ticker.py): the tick thread, the only one touching the World, and its applier
-  (applier.py): the queued commands applied to the World at the start of a tick;
-- publisher (publisher.py): the publisher thread, encode and put;
-- admission (admission.py) and adaptive quality (adaptive.py): the tick-cost policies;
-- replies (replies.py): answering queries, error replies counted.
+- shared, at the top: registry (registry.py: cloths, clients, ownership, quotas, counters;
+  lock-protected), commands (commands.py: the bounded, per-cloth coalescing intake of the tick
+  thread), replies (replies.py: answering queries, error replies counted), worldparams
+  (worldparams.py: requests into what the World takes), config (config.py);
+- the request thread (requests/): the handlers, fed by the bounded request queue that Zenoh's
+  queryable callbacks put their queries on (requestq.py, with the gate that keeps requests off
+  the tick), moves blocks checked on arrival, admission (the cost model submits are refused by);
+- the cook thread (cook/): fabrics (the one fabric cache) and kernel builds, the warm-up of a
+  World, kernel builds in a child process;
+- the tick thread (ticker.py; tick/: the queued commands and moves blocks applied to the World
+  at the start of a tick), the only one touching the World, with adaptive quality (adaptive.py);
+- the publisher thread (publisher.py): encode and put, with the replies before and after;
+- the process (process/): ``drape serve``, its workers, metrics, health, logs, memory, timers.
 """
 
 from __future__ import annotations
@@ -24,7 +28,6 @@ from collections.abc import Callable, Mapping
 from dataclasses import replace
 from typing import Any, TypeVar
 
-import numpy as np
 import zenoh
 
 from drape.client import protocol as P
@@ -32,20 +35,21 @@ from drape.client.protocol.stats import STAT_COUNTERS
 from drape.client.session import open_session, zenoh_config
 
 from ..sim import make_world
-from ..sim.fabric import Fabric, cook_grid
-from ..sim.params import ClothParams, Features, Sphere, pack_colliders
 from ..sim.world import World
 from .adaptive import AdaptiveQuality
-from .admission import Admission
 from .commands import Call, Intake
 from .config import ServerConfig
-from .cook import CookWorker
-from .handlers import Handlers
+from .cook.fabrics import FabricStore
+from .cook.warmup import warm_up
+from .cook.worker import CookWorker
 from .keyframes import KeyframeQueries
-from .publisher import Publisher, Roster
+from .process.telemetry import PHASES, PhaseTimer
+from .publisher import Publisher
 from .registry import Registry
 from .replies import Replies, undeclare
-from .telemetry import PHASES, PhaseTimer
+from .requests.admission import Admission
+from .requests.handlers import Handlers
+from .requests.requestq import TickGate
 from .ticker import Ticker
 
 log = logging.getLogger(__name__)
@@ -58,8 +62,8 @@ class Server:
     (``Server(tick_rate=30, listen=["tcp/127.0.0.1:7500"])``)."""
 
     def __init__(self, config: ServerConfig | None = None, *, warmup: bool = True, **overrides: Any) -> None:
-        cfg = config or ServerConfig()
-        self.config: ServerConfig = (replace(cfg, **overrides) if overrides else cfg).validate()
+        base = config or ServerConfig()
+        self.config: ServerConfig = (replace(base, **overrides) if overrides else base).validate()
         self.keys = P.Keys(self.config.namespace)
         self.limits = self.config.limits()
         self.warmup = warmup
@@ -68,45 +72,51 @@ class Server:
         self._stopping = threading.Event()
         self._stopped = threading.Event()
         self._started_at = 0.0
-        self.registry = Registry(self.config)
+        # the parts, each built once after those it takes (the World comes at start())
+        cfg = self.config
+        self.registry = Registry(cfg)
         self.replies = Replies(self.registry)
-        self.intake = Intake(self.config.max_pending_requests)
-        self.admission = Admission(self.config)
-        self.quality = AdaptiveQuality(self.config)
-        self.publisher = Publisher(self.config, self.keys, self.registry, self._timers)
+        self.intake = Intake(cfg.max_pending_requests)
+        self.admission = Admission(cfg)
+        self.quality = AdaptiveQuality(cfg)
+        self.fabrics = FabricStore()
+        self.gate = TickGate(cfg.dt) if cfg.request_yield else None  # requests while the tick thread sleeps
+        self.publisher = Publisher(cfg, self.keys, self.registry, self._timers)
         self.keyframes = KeyframeQueries(self.keys, self.registry, self.publisher)  # 1.5
-        self.ticker = Ticker(
-            self.config,
+        self.ticker = ticker = Ticker(
+            cfg,
             self.registry,
             self.replies,
             self.intake,
             self.publisher.mailbox,
-            None,  # type: ignore[arg-type]
+            self.fabrics,
             self.admission,
             self.quality,
             self._timers,
             self._stats_bytes,
         )
         self.cook = CookWorker(
-            self.config, self.registry, self.replies, self.intake, lambda: self.ticker.world, self._stopping.is_set
+            cfg, self.registry, self.replies, self.intake, self.fabrics, lambda: ticker.world, self._stopping.is_set
         )
-        self.ticker.fabrics = self.cook.fabrics
-        self.ticker.publish_cost = lambda: self.publisher.last_cost_s
-        self.ticker.request_prepare = self.cook.request_prepare
         self.handlers = Handlers(
-            self.config,
+            cfg,
             self.keys,
             self.registry,
             self.replies,
             self.intake,
             self.cook.queue,
             self.admission,
-            lambda: self.ticker.tick,
+            self.gate,
+            lambda: ticker.tick,
             self.info,
             self._stopping.is_set,
         )
-        if self.handlers.gate is not None:  # requests start while the tick thread sleeps
-            self.ticker.on_sleep = self.handlers.gate.tick_sleeps
+        # PATCHED AFTER CONSTRUCTION until Ticker's constructor takes them (the sim engineer's
+        # class): the publisher's last cost, the cook thread's kernel builds, the request gate
+        ticker.publish_cost = lambda: self.publisher.last_cost_s
+        ticker.request_prepare = self.cook.request_prepare
+        if self.gate is not None:
+            ticker.on_sleep = self.gate.tick_sleeps
         self._session: zenoh.Session | None = None
         self._declared: list[Any] = []
         self._token: Any = None
@@ -126,12 +136,12 @@ class Server:
     def _start(self) -> None:
         cfg = self.config
         kw = {} if cfg.solver == "reference" else {"device": cfg.device}
-        self.ticker.world = make_world(cfg.solver, **kw)
-        self.device_name = getattr(self.ticker.world, "device_name", cfg.solver)
-        dev = getattr(self.ticker.world, "dev", None)
+        self.ticker.world = world = make_world(cfg.solver, **kw)
+        self.device_name = getattr(world, "device_name", cfg.solver)
+        dev = getattr(world, "dev", None)
         self.quality.use_device(bool(dev is not None and dev.info.is_gpu))
-        if self.warmup:
-            self.warm_up()
+        if self.warmup:  # before serving: the first cloths build nothing (cook/warmup.py)
+            warm_up(world, cfg)
         zc = zenoh_config(cfg.mode, cfg.listen, cfg.connect, cfg.multicast_scouting, cfg.zenoh_config)
         if cfg.zenoh_config is None:
             # States go out in bursts under DROP congestion control; Zenoh's default data queue (2
@@ -172,56 +182,6 @@ class Server:
             cfg.namespace,
             cfg.identity,
         )
-
-    def warm_up(self) -> None:
-        """Build and run, before the server serves, the kernels a cloth of the default feature
-        set can need, so that the first such submission neither waits for a build nor stalls a
-        tick (PoCL compiles a kernel again at its first launch):
-
-        - the tick thread's warm-up: a small cloth's kernels, the frame encoder's programs;
-        - with ``device_encode``, one frame encoded (the encoder's first launch cost 8-21 ticks
-          on the tick thread with a cold PoCL cache);
-        - the largest cloth this server admits (a strip of ``max_vertices_per_cloth`` vertices)
-          when its kernels are others: too large for local memory, it takes the global-memory
-          ones (a 256x256 cloth's first submit took 2.2 s on the CPU, 0.7 s once warmed)."""
-        self.ticker.warm_up()
-        w = self.ticker.world
-        assert w is not None
-        params = ClothParams()
-        t = time.perf_counter()
-        frames = self.ticker.device  # states encoded on the device: launch the encoder once
-        if frames is not None:
-            h = w.add(cook_grid(2, 2, pinned=[0]), params)
-            w.step(self.config.dt)
-            lay = w.layout()
-            f32 = [P.ENCODING_IDS["float32"]]
-            roster = Roster((-1, -1), ["warm-up"], ["warm-up"], f32, lay.normals.copy(), np.array([0]), [])
-            frames.encode(roster, lay, 0, 0, np.zeros(1, np.int64)).wait()
-            frames.hold().release()
-            w.remove(h)
-            w.fetch()
-        for names in self.config.warm_feature_sets():  # the feature sets a deployment declares
-            t0 = time.perf_counter()
-            self._step_once(w, cook_grid(32, 32, pinned=[0, 31]), ClothParams(features=Features.from_names(names)))
-            log.debug("warm-up of features %s took %.3f s", "+".join(names), time.perf_counter() - t0)
-        largest = cook_grid(1, self.config.max_vertices_per_cloth, pinned=[0])
-        if w.ready(largest, params):
-            return
-        w.prepare(largest, params)
-        self._step_once(w, largest, params)
-        log.debug("warm-up of a %d-vertex cloth took %.3f s", largest.n_vertices, time.perf_counter() - t)
-
-    def _step_once(self, w: World, fabric: Fabric, params: ClothParams) -> None:
-        """Add a cloth, move its first pin, give it a collider when its features ask for them,
-        step it once, read the frame back and remove it: every kernel it needs built and run."""
-        h = w.add(fabric, params)
-        w.set_pin_targets(h, np.array([0]), np.zeros((1, 3)))
-        if params.features.colliders:
-            w.set_colliders(h, pack_colliders([Sphere((0.5, -0.5, 0.5), 0.2)]))
-        w.step(self.config.dt)
-        w.fetch()
-        w.remove(h)
-        w.fetch()
 
     def stop(self, timeout: float = 10.0) -> None:
         """Stop serving: no new requests, last tick finishes, publishing stops, everything is

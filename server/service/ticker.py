@@ -36,16 +36,16 @@ from ..sim.params import ClothParams
 from ..sim.shared import vertex_normals
 from ..sim.world import PendingFrame, World
 from .adaptive import AdaptiveQuality
-from .admission import Admission, TickCost
-from .applier import Applier
 from .commands import Intake
 from .config import ServerConfig
-from .cook import FabricStore
+from .cook.fabrics import FabricStore
 from .devencode import DeviceFrames, device_world
+from .process.telemetry import PhaseTimer
 from .publisher import Job, Mailbox, Roster
 from .registry import ClothRecord, Registry
 from .replies import Replies, Reply, send
-from .telemetry import PhaseTimer
+from .requests.admission import Admission, TickCost
+from .tick.applier import Applier
 
 log = logging.getLogger(__name__)
 

@@ -28,13 +28,13 @@ import numpy as np
 
 from drape.client import protocol as P
 
-from ..service.admission import Admission
 from ..service.commands import BatchControl, Intake
 from ..service.config import ServerConfig
-from ..service.handlers import Handlers
-from ..service.moves import apply_blocks
 from ..service.registry import ClothRecord, Registry
 from ..service.replies import Replies
+from ..service.requests.admission import Admission
+from ..service.requests.handlers import Handlers
+from ..service.tick.moves import apply_blocks
 from ..sim import make_world
 from ..sim.fabric import cook_grid
 from ..sim.params import ClothParams
@@ -65,6 +65,7 @@ def _setup(cloths: int, clients: int, device: str | None) -> tuple[Any, Handlers
         Intake(cfg.max_pending_requests),
         queue.Queue(),
         Admission(cfg),
+        None,  # no request thread here: the handlers are called directly
         lambda: 0,
         dict,
         lambda: False,

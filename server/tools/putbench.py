@@ -3,7 +3,7 @@
 The publisher copies each publication out of the pinned frame (``bytes(view)``) and puts it; at
 4096 quant16 cloths that is 16 bundles of about 1.5 MB a tick. Whether those copies reuse heap
 pages or fault in fresh ones every tick is decided by glibc's mmap and trim thresholds, which
-``drape serve`` sets (``malloc_mmap_threshold``, drape.server.service.memory). This benchmark puts
+``drape serve`` sets (``malloc_mmap_threshold``, drape.server.service.process.memory). This benchmark puts
 ``--messages`` payloads of ``--mb`` MB per tick at ``--rate`` Hz over real Zenoh on loopback to a
 subscriber process, once per setting, each in a fresh process (mallopt cannot be undone), and
 prints the median and mean put time per tick (``--copies-only``: the ``bytes(view)`` copies alone,
@@ -46,7 +46,7 @@ def _publisher(setting: str, endpoint: str, args: argparse.Namespace) -> dict[st
     import zenoh
 
     from drape.client.session import zenoh_config
-    from drape.server.service.memory import M_MMAP_THRESHOLD, mallopt, set_mmap_threshold
+    from drape.server.service.process.memory import M_MMAP_THRESHOLD, mallopt, set_mmap_threshold
 
     if setting == "mmap":
         mallopt(M_MMAP_THRESHOLD, 4 << 20)  # alone: the trim threshold pinned

@@ -34,8 +34,8 @@ from rich.text import Text
 from drape.client import protocol as P
 from drape.client.session import zenoh_config
 
-from ..service.metrics import overload_refusals
-from ..service.telemetry import PHASES
+from ..service.process.metrics import overload_refusals
+from ..service.process.telemetry import PHASES
 
 log = logging.getLogger(__name__)
 

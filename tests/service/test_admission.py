@@ -12,7 +12,7 @@ from conftest import TIMEOUT, collect, connect, make_config, wait_until
 
 from drape.client import DrapeError, NotFound
 from drape.server.service import Server
-from drape.server.service.admission import (
+from drape.server.service.requests.admission import (
     UNMEASURED_VERTICES,
     Admission,
     FixedCost,

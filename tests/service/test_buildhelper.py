@@ -1,4 +1,4 @@
-"""The kernel build helper (drape.server.service.buildhelper): a child process builds and runs a
+"""The kernel build helper (drape.server.service.cook.buildhelper): a child process builds and runs a
 cloth's kernels, exits when idle and is started again when needed; a helper that cannot start
 makes the server build in-process (counted), never a failure of the cloth. Counted events only."""
 
@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from conftest import wait_until
 
-from drape.server.service.buildhelper import BuildHelper
+from drape.server.service.cook.buildhelper import BuildHelper
 from drape.server.sim.fabric import cook_grid
 from drape.server.sim.params import ClothParams, Features
 

@@ -19,8 +19,8 @@ from conftest import free_port  # shared helpers
 
 from drape.client import DrapeClient
 from drape.server import cli
-from drape.server.service import logs
 from drape.server.service.config import add_arguments
+from drape.server.service.process import logs
 
 TIMEOUT = 20.0
 STABLE = ("time", "level", "logger", "message")

@@ -1,4 +1,4 @@
-"""The server gives memory back (drape.server.service.memory): once no cloth uses a feature
+"""The server gives memory back (drape.server.service.process.memory): once no cloth uses a feature
 combination's program for ``program_idle_s`` the cook thread releases it and trims the heap
 (counted), a cloth in use keeps its program, and a later cloth of the released combination is
 served (the program built again, by the cook thread). Asserted on counted events only."""
@@ -17,7 +17,7 @@ import pytest
 from conftest import collect, connect, make_config, wait_until
 
 from drape.server.service import Server
-from drape.server.service import memory as M
+from drape.server.service.process import memory as M
 from drape.server.sim.fabric import cook_grid
 from drape.server.sim.params import ClothParams, Features
 
@@ -156,7 +156,7 @@ def test_a_new_layout_is_frozen_and_frozen_cycles_are_collected_by_the_full_coll
 _THREAD_HEAP = textwrap.dedent(
     """
     import ctypes, sys, threading
-    from drape.server.service import memory as M
+    from drape.server.service.process import memory as M
     if sys.argv[1] == "configure_heap":
         assert M.configure_heap(4 << 20)
     else:

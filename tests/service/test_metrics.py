@@ -22,10 +22,10 @@ from prometheus_client.parser import text_string_to_metric_families
 from drape.client import DrapeClient, LimitExceeded
 from drape.client import protocol as P
 from drape.server.service import Server
-from drape.server.service import ops as OPS
 from drape.server.service.config import ServerConfig, add_arguments, from_args
-from drape.server.service.metrics import METRICS, OPTIONAL, families, overload_refusals
-from drape.server.service.telemetry import PHASES, PhaseTimer
+from drape.server.service.process import ops as OPS
+from drape.server.service.process.metrics import METRICS, OPTIONAL, families, overload_refusals
+from drape.server.service.process.telemetry import PHASES, PhaseTimer
 
 TIMEOUT = 10.0
 
@@ -364,7 +364,7 @@ def test_overload_refusals_counted_when_admission_refuses(served):
     admission = getattr(server, "admission", None)
     if admission is None:
         pytest.skip("this Server has no admission control yet")
-    from drape.server.service.admission import FixedCost
+    from drape.server.service.requests.admission import FixedCost
 
     before = scrape(ops)
     saved = admission.model
@@ -402,7 +402,7 @@ def test_drape_serve_notifies_systemd_and_serves_metrics(tmp_path):
     import subprocess
     import sys
 
-    from drape.server.service import daemon
+    from drape.server.service.process import daemon
 
     if not hasattr(daemon, "start_ops"):
         pytest.skip("drape serve does not start the operator endpoints yet (daemon.start_ops)")

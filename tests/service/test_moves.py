@@ -177,8 +177,8 @@ def test_apply_blocks_refuses_removed_and_drops_reset_cloths(device):
     """The tick's side without Zenoh: a cloth removed after its block was accepted is refused
     not_found; one reset in the same tick keeps its rest pose; the request is answered once."""
     from drape.server.service.commands import BatchControl, MoveBlock
-    from drape.server.service.moves import apply_blocks
     from drape.server.service.registry import Registry
+    from drape.server.service.tick.moves import apply_blocks
     from drape.server.sim import make_world
     from drape.server.sim.fabric import cook_grid
     from drape.server.sim.params import ClothParams
@@ -211,8 +211,9 @@ def test_identical_blocks_coalesce_latest_wins_and_each_request_is_answered(devi
     checker's memo, so a block checked after it is checked afresh and never coalesced with one
     checked before."""
     from drape.server.service.commands import BatchControl, Intake
-    from drape.server.service.moves import MoveChecker, apply_blocks
     from drape.server.service.registry import ClothRecord, Registry
+    from drape.server.service.requests.moves import MoveChecker
+    from drape.server.service.tick.moves import apply_blocks
     from drape.server.sim import make_world
     from drape.server.sim.fabric import cook_grid
     from drape.server.sim.params import ClothParams

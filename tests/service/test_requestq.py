@@ -1,4 +1,4 @@
-"""The bounded request queue (server/service/requestq.py) in a real Server over real Zenoh.
+"""The bounded request queue (server/service/requests/requestq.py) in a real Server over real Zenoh.
 
 The request thread is held deterministically: the test wraps the server's ``on_info`` handler
 before start so that the first info request waits on an event. Everything is counted: which
@@ -19,7 +19,7 @@ from conftest import TIMEOUT, connect, make_config, wait_until
 
 from drape.client import protocol as P
 from drape.server.service import Server
-from drape.server.service.requestq import TickGate
+from drape.server.service.requests.requestq import TickGate
 
 GARBAGE = b"\xc1" * 600  # 0xc1 is never valid msgpack: decoding it answers "malformed"
 

@@ -15,7 +15,7 @@ from drape.client.protocol import schemagen
 from drape.client.protocol.stats import STAT_COUNTERS, STAT_KINDS, STAT_TYPES, STATS_FIELDS, stat_field
 from drape.server.service import Server
 from drape.server.service import server as server_module
-from drape.server.service.metrics import METRICS, OPTIONAL, STAT_METRICS, families
+from drape.server.service.process.metrics import METRICS, OPTIONAL, STAT_METRICS, families
 
 SERVICE = Path(server_module.__file__).resolve().parent
 #: counted by the service but published nowhere (PROTOCOL.md section 10 has no such field): a
@@ -57,7 +57,7 @@ def _counted_names() -> set[str]:
     """Every counter name the service's code counts: ``count("x")``, ``count_many(x=...)`` and
     ``counters["x"]`` with literal names, in every module of drape.server.service."""
     names: set[str] = set()
-    for path in sorted(SERVICE.glob("*.py")):
+    for path in sorted(SERVICE.rglob("*.py")):
         for node in ast.walk(ast.parse(path.read_text(), str(path))):
             if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
                 if node.func.attr == "count" and node.args and isinstance(node.args[0], ast.Constant):

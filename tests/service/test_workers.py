@@ -1,4 +1,4 @@
-"""``drape serve --workers N`` (drape.server.service.workers): a real supervisor process with two
+"""``drape serve --workers N`` (drape.server.service.process.workers): a real supervisor process with two
 real workers on loopback (PoCL's CPU OpenCL) serving one SDK client that places its cloths on
 both; a ``kill -9`` of a worker is restarted under the same id and endpoint while the client's
 failover keeps every cloth; SIGTERM stops all with status 0. The plan's refusals, and the
@@ -20,8 +20,8 @@ import pytest
 
 from drape.client import DrapeClient
 from drape.server.service.config import ServerConfig
-from drape.server.service.workerplan import plan, worker_command
-from drape.server.service.workers import Supervisor
+from drape.server.service.process.workerplan import plan, worker_command
+from drape.server.service.process.workers import Supervisor
 from drape.server.tools.procs import ServerProcess, free_port
 
 SERVER_WAIT = 90.0  # two drape serve starting (OpenCL warm-up) on a loaded CI machine

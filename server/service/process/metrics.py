@@ -3,14 +3,14 @@
 ``DrapeCollector(server)`` is a custom ``prometheus_client`` collector: each scrape calls
 ``server.stats()`` and ``server.info()`` (the same counters the Zenoh stats publication carries,
 PROTOCOL.md section 10) and reads the per-phase histograms of the server's PhaseTimers
-(drape.server.service.telemetry). Nothing is counted twice and the tick loop does no extra
+(drape.server.service.process.telemetry). Nothing is counted twice and the tick loop does no extra
 work for metrics: a scrape costs a few short lock acquisitions and no per-cloth work of its own.
 
 ``METRICS`` lists every metric family (name without the ``_total`` a counter gets in the
 exposition, type, help); docs/operations.md shows the same list. The families of stats fields
 take their type and help from the stats table (drape.client.protocol.stats), ``STAT_METRICS``
 names them. ``exposition(server)`` renders the
-text format; ``drape.server.service.ops`` serves ``registry(...)`` on ``/metrics``, with its
+text format; ``drape.server.service.process.ops`` serves ``registry(...)`` on ``/metrics``, with its
 readiness probe behind ``drape_ready`` and ``drape_tick_age_seconds``.
 """
 
@@ -229,7 +229,7 @@ def _counter(name: str, value: Any) -> CounterMetricFamily:
 
 class ReadinessCollector(Collector):
     """``drape_ready`` and ``drape_tick_age_seconds`` from a readiness probe
-    ``() -> (ready, seconds since the tick counter advanced)`` (drape.server.service.ops)."""
+    ``() -> (ready, seconds since the tick counter advanced)`` (drape.server.service.process.ops)."""
 
     def __init__(self, probe: Callable[[], tuple[bool, float]]) -> None:
         self.probe = probe

@@ -1,115 +1,40 @@
 """The cook worker: turns accepted submissions into what the tick thread adds, off the tick
-path. For each submission: the fabric (from the one fabric cache below, cooked when new), the
-cloth parameters and colliders, and the kernels the cloth needs, built now (``World.prepare``)
-so that the first cloth with a new feature combination does not compile on the tick path. About
-With ``build_in_child = "always"`` the first cloth of each feature
-combination is first built and run by a child process (:class:`.buildhelper.BuildHelper`), so
-that this process loads its kernels from the driver's disk cache: no compiler high-water mark
-here, no first-launch JIT on the tick (``"start"`` does that for every combination once before
-``drape serve`` starts serving). About
-once a second the same thread gives memory back (:class:`.memory.MemoryKeeper`: programs of
-feature combinations no cloth has used for ``program_idle_s`` released, the heap trimmed).
-
-:class:`FabricStore` is the service's only fabric cache: fabrics by a digest of the request's
-geometry, shared by every cloth of the same geometry (so the World's device arena holds each
-once), reference counted, and the last ``RETAIN`` unused ones kept for resubmissions.
+path. For each submission: the fabric (from the one fabric cache, :class:`.fabrics.FabricStore`,
+cooked when new), the cloth parameters and colliders, and the kernels the cloth needs, built now
+(``World.prepare``) so that the first cloth with a new feature combination does not compile on
+the tick path. With ``build_in_child = "always"`` the first cloth of each feature combination is
+first built and run by a child process (:class:`.buildhelper.BuildHelper`), so that this process
+loads its kernels from the driver's disk cache: no compiler high-water mark here, no first-launch
+JIT on the tick (``"start"`` does that for every combination once before ``drape serve`` starts
+serving). About once a second the same thread gives memory back
+(:class:`..process.memory.MemoryKeeper`: programs of feature combinations no cloth has used for
+``program_idle_s`` released, the heap trimmed).
 """
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import queue
 import threading
-from collections import OrderedDict
 from collections.abc import Callable
 
 import numpy as np
 
 from drape.client import protocol as P
 
-from ..sim.fabric import Fabric, cook_grid, cook_mesh
-from ..sim.params import ClothParams, LinkOptions
-from ..sim.world import World
+from ...sim.fabric import Fabric
+from ...sim.params import ClothParams, LinkOptions
+from ...sim.world import World
+from ..commands import Add, Intake, Prepare
+from ..config import ServerConfig
+from ..process.memory import PERIOD_S, MemoryKeeper
+from ..registry import Registry
+from ..replies import Replies, send
+from ..worldparams import pack, params_from_submit, with_preset
 from .buildhelper import BuildHelper
-from .commands import Add, Intake, Prepare
-from .config import ServerConfig
-from .memory import PERIOD_S, MemoryKeeper
-from .registry import Registry
-from .replies import Replies, send
-from .requests import pack, params_from_submit, with_preset
+from .fabrics import FabricStore, cook_fabric
 
 log = logging.getLogger(__name__)
-
-RETAIN = 64  # unused fabrics kept for resubmission
-
-
-class FabricStore:
-    """Cooked fabrics by request digest, reference counted (thread-safe)."""
-
-    def __init__(self, retain: int = RETAIN) -> None:
-        self._lock = threading.Lock()
-        self._live: dict[str, tuple[Fabric, int]] = {}
-        self._spare: OrderedDict[str, Fabric] = OrderedDict()
-        self._digest: dict[int, str] = {}  # id(fabric) -> digest
-        self.retain = retain
-        self.cooked = 0  # fabrics cooked (not found live or spare)
-
-    @staticmethod
-    def digest(req: P.SubmitRequest, links: LinkOptions, pinned: np.ndarray) -> str:
-        h = hashlib.sha1()
-        h.update(repr((req.grid, links)).encode())
-        h.update(pinned.tobytes())
-        if req.mesh is not None:
-            h.update(req.mesh.vertices.tobytes())
-            h.update(req.mesh.triangles.tobytes())
-        return h.hexdigest()
-
-    def acquire(self, key: str, cook: Callable[[], Fabric]) -> Fabric:
-        with self._lock:
-            have = self._live.get(key)
-            if have is not None:
-                self._live[key] = (have[0], have[1] + 1)
-                return have[0]
-            fab = self._spare.pop(key, None)
-        if fab is None:
-            fab = cook()  # outside the lock: cooking a big mesh takes a while
-            with self._lock:
-                self.cooked += 1
-        with self._lock:
-            have = self._live.get(key)
-            if have is not None:  # cooked twice at once: keep the first
-                self._live[key] = (have[0], have[1] + 1)
-                return have[0]
-            self._live[key] = (fab, 1)
-            self._digest[id(fab)] = key
-            return fab
-
-    def release(self, fabric: Fabric) -> None:
-        with self._lock:
-            key = self._digest.get(id(fabric))
-            have = self._live.get(key) if key is not None else None
-            if have is None:
-                return
-            if have[1] > 1:
-                self._live[key] = (have[0], have[1] - 1)  # type: ignore[index]
-                return
-            del self._live[key]  # type: ignore[arg-type]
-            del self._digest[id(fabric)]
-            self._spare[key] = fabric  # type: ignore[index]
-            while len(self._spare) > self.retain:
-                self._spare.popitem(last=False)
-
-    def __len__(self) -> int:
-        return len(self._live)
-
-
-def cook_fabric(req: P.SubmitRequest, links: LinkOptions, pinned: np.ndarray) -> Fabric:
-    if req.grid is not None:
-        g = req.grid
-        return cook_grid(g.cols, g.rows, g.width, g.height, links, pinned.tolist(), g.orientation, g.origin)
-    assert req.mesh is not None
-    return cook_mesh(req.mesh.vertices.astype(np.float64), req.mesh.triangles.astype(np.int64), links, pinned.tolist())
 
 
 class CookWorker:
@@ -121,12 +46,13 @@ class CookWorker:
         registry: Registry,
         replies: Replies,
         intake: Intake,
+        fabrics: FabricStore,
         world: Callable[[], World | None],
         stopping: Callable[[], bool],
     ) -> None:
         self.config, self.registry, self.replies, self.intake = config, registry, replies, intake
         self.queue: queue.Queue = queue.Queue(config.max_pending_requests)
-        self.fabrics = FabricStore()
+        self.fabrics = fabrics
         self._world, self._stopping = world, stopping
         self._asked: set = set()  # feature keys whose kernels were asked for (controls)
         self._asked_lock = threading.Lock()

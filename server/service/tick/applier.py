@@ -21,17 +21,17 @@ import numpy as np
 
 from drape.client import protocol as P
 
-from ..sim import quality
-from ..sim.world import World
-from .adaptive import AdaptiveQuality
-from .commands import Add, BatchControl, Call, ControlSlot, Intake, MoveBlock, Remove
-from .config import ServerConfig
-from .cook import FabricStore
+from ...sim import quality
+from ...sim.world import World
+from ..adaptive import AdaptiveQuality
+from ..commands import Add, BatchControl, Call, ControlSlot, Intake, MoveBlock, Remove
+from ..config import ServerConfig
+from ..cook.fabrics import FabricStore
+from ..publisher import Job
+from ..registry import ClothRecord, Registry
+from ..replies import Replies, Reply, send
+from ..worldparams import changes_params, params_after_control, pins_only, with_preset
 from .moves import apply_blocks
-from .publisher import Job
-from .registry import ClothRecord, Registry
-from .replies import Replies, Reply, send
-from .requests import changes_params, params_after_control, pins_only, with_preset
 
 log = logging.getLogger(__name__)
 

@@ -5,7 +5,7 @@
 ``server.stop()``. It starts two small daemon threads and never touches the tick loop:
 
 - the **listener** (``config.metrics_listen``, ``HOST:PORT``; none when it is None) answers
-  ``/metrics`` from drape.server.service.metrics at scrape time, ``/healthz`` with 200 while the
+  ``/metrics`` from drape.server.service.process.metrics at scrape time, ``/healthz`` with 200 while the
   process serves HTTP at all, and ``/readyz`` with 200 only when the device is built, the Zenoh
   session is up and the tick counter advanced within ``2 tick periods + slack``, else 503 and
   the reason;
@@ -29,7 +29,7 @@ from typing import Any
 
 from prometheus_client.exposition import choose_encoder
 
-from .config import ServerConfig, parse_listen
+from ..config import ServerConfig, parse_listen
 from .metrics import registry
 
 log = logging.getLogger(__name__)

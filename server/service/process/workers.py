@@ -3,7 +3,7 @@
 
 The supervisor resolves the configuration once and starts each worker with it as flags (its
 environment without DRAPE_CONFIG and DRAPE_<FIELD>, so restarted workers run the same settings);
-what differs per worker (id, ports, connections, device) is drape.server.service.workerplan's.
+what differs per worker (id, ports, connections, device) is drape.server.service.process.workerplan's.
 
 Supervision: SIGINT/SIGTERM stop every worker with SIGTERM (exit 0 when all stopped with 0, else
 1; SIGKILL after STOP_GRACE_S). A worker that exits on its own is restarted under the same id and
@@ -12,7 +12,7 @@ MAX_RESTARTS within RESTART_WINDOW_S, or a status 2 (bad configuration), and the
 the others and exits 1. Workers die with the supervisor (Linux PR_SET_PDEATHSIG). Text log lines
 of a worker are prefixed ``[<server id>]`` (JSON lines carry ``server_id``). systemd: the workers
 notify the supervisor's own socket; it says READY=1 once all are ready, then WATCHDOG=1 while
-every ready worker pings (drape.server.service.ops: only while its ticks advance).
+every ready worker pings (drape.server.service.process.ops: only while its ticks advance).
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from pathlib import Path
 from types import FrameType
 from typing import IO
 
-from .config import ServerConfig
+from ..config import ServerConfig
 from .ops import sd_notify, watchdog_interval
 from .workerplan import WorkerSpec, plan, worker_command
 

@@ -31,14 +31,14 @@ import zenoh
 
 from drape.client import protocol as P
 
+from ..commands import BatchControl, Intake, Remove
+from ..config import ServerConfig
+from ..registry import ClothRecord, Registry
+from ..replies import Replies, Reply, send
+from ..worldparams import pack
 from .admission import ERR_OVERLOADED, Admission
-from .commands import BatchControl, Intake, Remove
-from .config import ServerConfig
 from .moves import MoveChecker, refused_counts
-from .registry import ClothRecord, Registry
-from .replies import Replies, Reply, send
 from .requestq import RequestQueue, TickGate
-from .requests import pack
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +70,7 @@ class Handlers:
         intake: Intake,
         cook_q: queue.Queue,
         admission: Admission,
+        gate: TickGate | None,
         tick: Callable[[], int],
         info: Callable[[], dict],
         stopping: Callable[[], bool],
@@ -79,7 +80,7 @@ class Handlers:
         self.moves = MoveChecker(registry)  # 1.4 moves blocks
         self.limits = config.limits()
         self._tick, self._info, self._stopping = tick, info, stopping
-        self.gate = TickGate(config.dt) if config.request_yield else None
+        self.gate = gate  # requests start while the tick thread sleeps (None: whenever they come)
         self.request_queue = RequestQueue(
             config.max_pending_requests,
             config.max_pending_request_bytes,

@@ -1,4 +1,4 @@
-"""What each worker of ``drape serve --workers N`` runs (drape.server.service.workers supervises
+"""What each worker of ``drape serve --workers N`` runs (drape.server.service.process.workers supervises
 them): worker k's server id ``<server_id>-<k>``, every ``listen`` endpoint's port + k (port 0, a
 port past 65535 or two workers on one port are refused: a restarted worker must come back on
 its endpoint and the others must know it), ``connect`` the configured endpoints plus the other
@@ -13,7 +13,7 @@ import re
 import sys
 from dataclasses import dataclass, fields
 
-from .config import ServerConfig, _field_kind, parse_listen
+from ..config import ServerConfig, _field_kind, parse_listen
 
 log = logging.getLogger(__name__)
 

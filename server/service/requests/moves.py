@@ -1,17 +1,13 @@
-"""Protocol 1.4 ``moves`` (PROTOCOL.md 5.1.1): a batch control's columnar block of pin moves,
-checked on arrival and applied by the tick thread, with Python work per message, not per move.
+"""Protocol 1.4 ``moves`` (PROTOCOL.md 5.1.1) on arrival: a batch control's columnar block of pin
+moves checked by the request thread, with Python work per message, not per move (the tick
+thread applies the accepted blocks: drape.server.service.tick.moves).
 
-On arrival (:class:`MoveChecker`, a Zenoh callback): ownership of every move with set and map
+:class:`MoveChecker`, run by the batch control's handler: ownership of every move with set and map
 operations that run in C (the client's cloth set covers the block's ids, one constant-time
 comparison of the joined tokens, every cloth in the World); pinned-ness of the shared indices
 once per fabric (a bounded cache keyed by fabric and index bytes). Only when one of those fails
 does a per-move loop find and name the refused moves (``not_found``, ``forbidden``,
 ``index_out_of_range``, ``invalid_value``); a cloth listed twice keeps its last position.
-
-In the tick (:func:`apply_blocks`): after the tick's controls, each block is one vectorised
-``World.set_pin_targets_block``; moves of cloths removed meanwhile are refused ``not_found``, moves
-of cloths reset in the same tick are dropped (the reset wins, as over pins given with it), and
-the request is answered once its block (and its items) are settled.
 """
 
 from __future__ import annotations
@@ -27,10 +23,8 @@ import numpy as np
 
 from drape.client import protocol as P
 
-from ..sim.world import World
-from .commands import BatchControl, MoveBlock
-from .registry import ClothRecord, Registry
-from .replies import Reply
+from ..commands import BatchControl, MoveBlock
+from ..registry import ClothRecord, Registry
 
 log = logging.getLogger(__name__)
 
@@ -176,49 +170,3 @@ def refused_counts(failed: list[tuple[int, str, str]]) -> dict[str, int]:
     for _, code, _ in failed:
         out[code] = out.get(code, 0) + 1
     return out
-
-
-def apply_blocks(
-    world: World, blocks: list[MoveBlock], tick: int, resets: set[int], registry: Registry, before: list[Reply]
-) -> None:
-    """Apply this tick's moves blocks in arrival order (after the tick's controls); replies of
-    the requests now settled go to ``before``."""
-    reset_arr = np.fromiter(resets, np.int64, len(resets)) if resets else None
-    applied = superseded = 0
-    errors: dict[str, int] = {}
-    for b in blocks:
-        w = b.waiter
-        assert w.moves_failed is not None
-        try:
-            live = world.live(b.handles)
-            keep = live if reset_arr is None else live & ~np.isin(b.handles, reset_arr)
-            if not live.all():
-                for p in b.positions[~live].tolist():
-                    w.moves_failed.append((p, P.ERR_NOT_FOUND, f"no cloth {b.cloths[p]!r}: removed"))
-                errors[P.ERR_NOT_FOUND] = errors.get(P.ERR_NOT_FOUND, 0) + int((~live).sum())
-            if keep.all():
-                world.set_pin_targets_block(b.handles, b.indices, b.targets, validated=True)
-            elif keep.any():
-                world.set_pin_targets_block(b.handles[keep], b.indices, b.targets[keep], validated=True)
-            applied += int(keep.sum())
-        except Exception as e:  # one block's failure must not leave the others unanswered
-            log.exception("applying a moves block failed")
-            done = {p for p, _, _ in w.moves_failed}
-            for p in b.positions.tolist():
-                if p not in done:
-                    w.moves_failed.append((p, P.ERR_INTERNAL, f"internal error: {type(e).__name__}"))
-        w.moves_tick = tick
-        rep = w.one_done(tick)
-        if rep is not None:
-            before.append(rep)
-        for old in b.superseded:  # the same moves, replaced before their tick by this block's
-            assert old.moves_failed is not None
-            old.moves_failed.extend(w.moves_failed)
-            old.moves_tick = tick
-            rep = old.one_done(tick)
-            if rep is not None:
-                before.append(rep)
-        superseded += len(b.superseded)
-    registry.count_many(moves_applied=applied, move_blocks=len(blocks), move_blocks_superseded=superseded)
-    for code, k in errors.items():
-        registry.error(code, k)

@@ -1,13 +1,13 @@
 """``drape serve``: run the cloth server until SIGINT or SIGTERM.
 
 Configuration: defaults < TOML file (``--config`` or $DRAPE_CONFIG) < DRAPE_* environment
-variables < flags; see drape.server.service.daemon.config. On a signal the server stops publishing, answers
+variables < flags; see drape.server.service.config. On a signal the server stops publishing, answers
 what is still queued with ``busy``, undeclares everything and closes its Zenoh session; the
 exit status is 0 after a clean stop, 1 when the tick loop failed, 2 for a bad configuration.
 
 ``--workers N`` (``workers`` in the TOML file, DRAPE_WORKERS) with N > 1: this process becomes a
 supervisor of N such servers sharing the device, each its own server id and port
-(drape.server.service.workers); 1 (the default) serves in this process.
+(drape.server.service.process.workers); 1 (the default) serves in this process.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import sys
 import threading
 from types import FrameType
 
-from .config import ServerConfig, add_arguments, from_args
+from ..config import ServerConfig, add_arguments, from_args
 from .memory import configure_heap
 
 log = logging.getLogger(__name__)
@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
 
 def start_ops(server, config: ServerConfig):
     """The operator endpoints (/metrics, /healthz, /readyz) and systemd notifications of a
-    started server (drape.server.service.ops); stop them before the server."""
+    started server (drape.server.service.process.ops); stop them before the server."""
     from . import ops
 
     return ops.start(server, config)
@@ -58,7 +58,7 @@ def start_ops(server, config: ServerConfig):
 
 def serve(config: ServerConfig) -> int:
     """Run a server in this process until SIGINT/SIGTERM (main thread only)."""
-    from .server import Server  # Zenoh and OpenCL only when actually serving
+    from ..server import Server  # Zenoh and OpenCL only when actually serving
 
     stop = threading.Event()
 
@@ -71,12 +71,12 @@ def serve(config: ServerConfig) -> int:
     # 0.5 ms instead of 5 took 1024 cloths on the H100 from 28.8 to 48.6 Hz).
     sys.setswitchinterval(config.gil_switch_ms / 1000.0)
     # large requests' buffers mapped apart and unmapped when freed, one malloc arena whose free
-    # pages the memory upkeep gives back (drape.server.service.memory)
+    # pages the memory upkeep gives back (drape.server.service.process.memory)
     configure_heap(config.malloc_mmap_threshold)
     if config.build_in_child != "off" and config.solver != "reference":
         # the warm-up's kernels built and run in a child first: this process then loads them from
-        # the driver's disk cache instead of keeping the compiler's memory (drape.server.service.buildhelper)
-        from .buildhelper import warm_up_in_child
+        # the driver's disk cache instead of keeping the compiler's memory (drape.server.service.cook.buildhelper)
+        from ..cook.buildhelper import warm_up_in_child
 
         warm_up_in_child(config)
     server = Server(config)

@@ -72,7 +72,7 @@ from typing import NamedTuple, Protocol
 
 from drape.client import protocol as P
 
-from .config import ServerConfig
+from ..config import ServerConfig
 
 log = logging.getLogger(__name__)
 

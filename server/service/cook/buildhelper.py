@@ -47,7 +47,7 @@ def _fabric_fields(fabric: Any) -> dict[str, Any]:
 
 
 def _run_one(world: Any, fabric_kw: dict[str, Any], params: Any) -> None:
-    from ..sim.fabric import Fabric
+    from ...sim.fabric import Fabric
 
     fabric = Fabric(**fabric_kw)
     world.prepare(fabric, params)
@@ -60,7 +60,7 @@ def _run_one(world: Any, fabric_kw: dict[str, Any], params: Any) -> None:
 
 def _child_main(conn: Any, solver: str, device: str | None, idle_s: float) -> None:
     """The helper process: one scratch World; (fabric fields, params) in, ("ok" | error) out."""
-    from ..sim import make_world
+    from ...sim import make_world
 
     try:
         world = make_world(solver, device=device)
@@ -169,15 +169,14 @@ def _warm_up_main(config: Any) -> None:
 
     from drape.client.protocol import FEATURE_NAMES
 
-    from ..sim import make_world
-    from ..sim.fabric import cook_grid
-    from ..sim.params import ClothParams, Features
-    from .server import Server
+    from ...sim import make_world
+    from ...sim.fabric import cook_grid
+    from ...sim.params import ClothParams, Features
+    from .warmup import warm_up
 
-    srv = Server(config, warmup=False)
     kw = {} if config.solver == "reference" else {"device": config.device}
-    world = srv.ticker.world = make_world(config.solver, **kw)
-    srv.warm_up()  # the server's own warm-up: what it then builds from the cache
+    world = make_world(config.solver, **kw)
+    warm_up(world, config)  # the server's own warm-up: what it then builds from the cache
     fabric = _fabric_fields(cook_grid(8, 8, pinned=[0, 7]))
     for n in range(1, len(FEATURE_NAMES) + 1):
         for combo in itertools.combinations(FEATURE_NAMES, n):

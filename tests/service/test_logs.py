@@ -22,6 +22,8 @@ from drape.server import cli
 from drape.server.service import logs
 from drape.server.service.config import add_arguments
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 TIMEOUT = 20.0
 STABLE = ("time", "level", "logger", "message")
 

@@ -27,6 +27,8 @@ from drape.server.service.config import ServerConfig, add_arguments, from_args
 from drape.server.service.metrics import METRICS, OPTIONAL, families, overload_refusals
 from drape.server.service.telemetry import PHASES, PhaseTimer
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 TIMEOUT = 10.0
 
 

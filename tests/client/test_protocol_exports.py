@@ -31,7 +31,7 @@ def _names_used() -> dict[str, str]:
     used: dict[str, str] = {}
     for folder in FOLDERS:
         for path in (ROOT / folder).rglob("*.py"):
-            if "rust" in path.parts or "csharp" in path.parts:
+            if "target" in path.parts:  # cargo's build output
                 continue
             tree = ast.parse(path.read_text())
             aliases: set[str] = set()

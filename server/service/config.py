@@ -101,7 +101,9 @@ class Setting:
     def check(self, value: Any) -> None:
         """ValueError when ``value`` is outside the range or the choices."""
         if value is None:
-            return
+            if self.optional:
+                return
+            raise ValueError(f"{self.name} must be given (none is not a value of it)")
         if self.choices:
             v = value.lower() if self.ignore_case and isinstance(value, str) else value
             if v not in self.choices:

@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--log-level",
         type=str.lower,
-        choices=("debug", "info", "warning", "error", "critical"),
+        choices=logs.LOG_LEVELS,
         default=None,
         help="lowest level logged (default: $DRAPE_LOG_LEVEL or info)",
     )

@@ -1,12 +1,22 @@
 """Shared fixtures: fresh random inputs every run (the seed is printed so a failure can be replayed),
 one OpenCL device per test session (PoCL's CPU device on CI), random fabrics, and the service
-tests' helpers (a server configuration on its own port, connect, collect, wait_until)."""
+tests' helpers (a server configuration on its own port, connect, collect, wait_until).
+
+Markers (pyproject.toml): a test that opens OpenCL is marked ``opencl`` (its module's
+``pytestmark``, or here when it uses the ``device`` fixture), one that opens Zenoh ``zenoh``; every
+other test is marked ``unit`` here, and ``pytest -m unit`` runs those alone. A unit test that opens
+OpenCL (lists its platforms, makes a context) or Zenoh (opens a session), itself or in a Python
+child process (tests/unitguard/sitecustomize.py), fails at once, naming the marker its module
+lacks: the markers stay true without anyone remembering them."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import socket
 import time
+from collections.abc import Iterator
+from pathlib import Path
 from types import SimpleNamespace
 from typing import TYPE_CHECKING
 
@@ -21,6 +31,73 @@ if TYPE_CHECKING:
 
 # Imported lazily by the helpers below: the client SDK and the service config (no OpenCL, no Zenoh
 # session at import time).
+
+
+# ---------------------------------------------------------------------------------------------
+# Markers: unit tests need neither OpenCL nor Zenoh, and cannot open them
+
+#: marker -> what a test so marked opens
+NEEDS = {"opencl": "OpenCL", "zenoh": "Zenoh"}
+#: fixtures that open OpenCL or Zenoh -> the markers of a test that uses one
+FIXTURE_MARKS = {"device": ("opencl",)}
+UNIT_GUARD = Path(__file__).resolve().parent / "unitguard"
+
+
+@pytest.hookimpl(tryfirst=True)  # before ``-m`` selects by the markers
+def pytest_collection_modifyitems(config, items) -> None:
+    for item in items:
+        for fixture, marks in FIXTURE_MARKS.items():
+            if fixture in item.fixturenames:
+                for mark in marks:
+                    item.add_marker(mark)
+        if not any(item.get_closest_marker(mark) for mark in NEEDS):
+            item.add_marker("unit")
+
+
+def _refuse(what: str, mark: str, name: str):
+    def refuse(*args, **kwargs):
+        pytest.fail(f"a unit test opened {what} ({name}): mark its module pytestmark = pytest.mark.{mark}")
+
+    return refuse
+
+
+@contextlib.contextmanager
+def _unit_guard(item) -> Iterator[None]:
+    """Around a unit test's setup, call and teardown: opening OpenCL or Zenoh fails the test."""
+    if item.get_closest_marker("unit") is None:
+        yield
+        return
+    with pytest.MonkeyPatch.context() as mp:
+        # its Python children load tests/unitguard/sitecustomize.py, which refuses the same calls
+        mp.setenv("PYTHONPATH", os.pathsep.join(filter(None, [str(UNIT_GUARD), os.environ.get("PYTHONPATH")])))
+        with contextlib.suppress(ImportError):
+            import zenoh
+
+            mp.setattr(zenoh, "open", _refuse("Zenoh", "zenoh", "zenoh.open"))
+        with contextlib.suppress(ImportError):
+            import pyopencl
+
+            for name in ("get_platforms", "Context", "create_some_context"):
+                mp.setattr(pyopencl, name, _refuse("OpenCL", "opencl", f"pyopencl.{name}"))
+        yield
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_setup(item):
+    with _unit_guard(item):
+        yield
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_call(item):
+    with _unit_guard(item):
+        yield
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_teardown(item):
+    with _unit_guard(item):
+        yield
 
 
 @pytest.fixture

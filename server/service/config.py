@@ -1,31 +1,13 @@
-"""Server configuration: one dataclass, filled from defaults < a TOML file < DRAPE_* environment
-variables < command-line flags.
+"""Server configuration: every setting declared once, as a field of :class:`ServerConfig` with its
+type, default, range or choices and help (:func:`setting`); :data:`SETTINGS` is that table (plus the
+environment-only knobs, :data:`ENV_ONLY`), and everything else is made or checked from it: the
+validation, the ``DRAPE_<NAME>`` environment variables, ``drape serve``'s ``--name`` flags and their
+``--help``, and deploy/drape.toml and the README's settings section (written by
+``python -m drape.server.service.settingsdoc``; tests/service/test_settings.py fails when they drift).
 
-A TOML file holds the fields at its top level (or inside a ``[server]`` table)::
-
-    mode = "peer"                      # peer | client | router
-    listen = ["tcp/0.0.0.0:7447"]
-    connect = []
-    namespace = "drape"
-    server_id = "eu-1"
-    identity = "open"                  # open | keys (PROTOCOL.md 11.2)
-    tick_rate = 60.0
-    solver = "workgroup"               # workgroup | coloured | jacobi | reference
-    device = "auto"                    # see drape devices
-    max_cloths = 1024
-    max_cloths_per_client = 64
-    max_vertices_per_cloth = 65536
-    max_total_vertices = 2097152
-    grace_period = 5.0                 # seconds a vanished client's cloths are kept
-    stats_period = 1.0
-    metrics_listen = "127.0.0.1:9464"  # operator HTTP: /metrics /healthz /readyz (default: off)
-    log_format = "text"                # text | json (one object per line)
-    log_level = "info"                 # debug | info | warning | error
-    workers = 1                        # drape serve: server processes sharing the device
-
-Every field is also an environment variable ``DRAPE_<FIELD>`` (``DRAPE_TICK_RATE=30``; lists are
-comma-separated: ``DRAPE_LISTEN=tcp/0.0.0.0:7447,tcp/[::]:7447``) and a flag ``--field-name``.
-``DRAPE_CONFIG`` or ``--config`` names the TOML file.
+A configuration is filled from defaults < a TOML file (its top level or a ``[server]`` table;
+``--config`` or ``DRAPE_CONFIG`` names it) < ``DRAPE_*`` environment variables (lists
+comma-separated: ``DRAPE_LISTEN=tcp/0.0.0.0:7447,tcp/[::]:7447``) < command-line flags.
 """
 
 from __future__ import annotations
@@ -38,27 +20,28 @@ import socket
 import tomllib
 import types
 import typing
-from collections.abc import Mapping
-from dataclasses import MISSING, dataclass, field, fields, replace
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import MISSING, Field, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
 from drape.client.protocol import DEFAULT_ENDPOINT, DEFAULT_NAMESPACE, FEATURE_NAMES, ID_RE, NAMESPACE_RE, Limits
 
 from ..sim.params import MAX_COLLIDERS_PER_CLOTH, SOLVERS
+from .logs import LOG_FORMATS, LOG_LEVELS
 
 log = logging.getLogger(__name__)
 
 ZENOH_MODES = ("peer", "client", "router")
 CONGESTION_CHOICES = ("auto", "drop", "block")
-LOG_FORMATS = ("text", "json")
-LOG_LEVELS = ("debug", "info", "warning", "error", "critical")
 #: open: the 1.0-1.3 server-wide request queryables as well as the client-scoped ones (1.4), and a
 #: cloth submitted on a server-wide key publishes on {ns}/cloth/{cloth}/state; keys: only the
 #: client-scoped ones, so every request's client id is its key's (a router can bind it to a user).
 IDENTITY_MODES = ("open", "keys")
 BUILD_IN_CHILD = ("off", "start", "always")  # drape.server.service.buildhelper
 MAX_WORKERS = 64  # drape serve --workers (drape.server.service.workers)
+#: The environment variable of a setting: its name in capitals after this.
+ENV_PREFIX = "DRAPE_"
 
 
 def default_server_id() -> str:
@@ -67,63 +50,360 @@ def default_server_id() -> str:
     return f"{host}-{os.getpid()}"
 
 
+@dataclass(frozen=True)
+class Setting:
+    """One row of the settings table. ``scope`` "server": a field of ServerConfig, a key of the TOML
+    file, ``DRAPE_<NAME>`` and ``--<name-with-dashes>``; "env": an environment variable only, read
+    where ``read_in`` says (documented here so that every knob is listed in one place)."""
+
+    name: str
+    kind: type  # str, int, float, bool or list (of strings)
+    default: Any
+    help: str
+    group: str
+    optional: bool = False  # None (TOML: left out; environment: "" or "none") allowed
+    choices: tuple[str, ...] = ()
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False  # the value must be > low (not >=)
+    ignore_case: bool = False  # the choices are matched case-insensitively
+    sample: Any = None  # the value deploy/drape.toml shows, when not the default
+    commented: bool = False  # deploy/drape.toml shows it commented out
+    metavar: str | None = None
+    scope: str = "server"
+    read_in: str = ""  # env-only knobs: the file that reads the variable
+
+    @property
+    def env(self) -> str:
+        return ENV_PREFIX + self.name.upper()
+
+    @property
+    def flag(self) -> str | None:
+        return "--" + self.name.replace("_", "-") if self.scope == "server" else None
+
+    @property
+    def shown(self) -> Any:
+        """The value the TOML sample shows."""
+        return self.default if self.sample is None else self.sample
+
+    def limits_text(self) -> str:
+        """The range or the choices, as the help and the documents write them ("" if neither)."""
+        if self.choices:
+            return " | ".join(self.choices)
+        lo = None if self.low is None else _number(self.low)
+        hi = None if self.high is None else _number(self.high)
+        if lo is not None and hi is not None:
+            return f"> {lo}, <= {hi}" if self.low_open else f"{lo}..{hi}"
+        if lo is not None:
+            return f"> {lo}" if self.low_open else f">= {lo}"
+        return "" if hi is None else f"<= {hi}"
+
+    def check(self, value: Any) -> None:
+        """ValueError when ``value`` is outside the range or the choices."""
+        if value is None:
+            if self.optional:
+                return
+            raise ValueError(f"{self.name} must be given (none is not a value of it)")
+        if self.choices:
+            v = value.lower() if self.ignore_case and isinstance(value, str) else value
+            if v not in self.choices:
+                raise ValueError(f"{self.name} must be one of {self.choices}, got {value!r}")
+            return
+        below = self.low is not None and (value <= self.low if self.low_open else value < self.low)
+        if below or (self.high is not None and value > self.high):
+            raise ValueError(f"{self.name} must be {self._range_words()}, got {value!r}")
+
+    def _range_words(self) -> str:
+        text = self.limits_text()
+        return f"in {text}" if ".." in text else text
+
+
+def _number(x: float) -> str:
+    return str(int(x)) if float(x).is_integer() else str(x)
+
+
+def setting(
+    default: Any = None,
+    help: str = "",
+    *,
+    group: str,
+    factory: Callable[[], Any] | None = None,
+    choices: Sequence[str] = (),
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+    ignore_case: bool = False,
+    sample: Any = None,
+    commented: bool = False,
+    metavar: str | None = None,
+) -> Any:
+    """A ServerConfig field declared with everything its row in :data:`SETTINGS` holds besides the
+    name and type (taken from the field)."""
+    meta = dict(
+        help=help,
+        group=group,
+        choices=tuple(choices),
+        low=low,
+        high=high,
+        low_open=low_open,
+        ignore_case=ignore_case,
+        sample=sample,
+        commented=commented,
+        metavar=metavar,
+    )
+    if factory is not None:
+        return field(default_factory=factory, metadata={"setting": meta})
+    return field(default=default, metadata={"setting": meta})
+
+
+ZENOH, SIM, LIMITS, SERVICE, QUALITY, ADMISSION, OPS = (
+    "Zenoh",
+    "simulation",
+    "limits",
+    "service",
+    "quality",
+    "admission and misbehaving cloths",
+    "operations (docs/operations.md)",
+)
+
+
 @dataclass
 class ServerConfig:
+    """Every setting of ``drape serve``, one field each (declared with :func:`setting`)."""
+
     # --- Zenoh -------------------------------------------------------------------------------
-    mode: str = "peer"
-    listen: list[str] = field(default_factory=lambda: [DEFAULT_ENDPOINT])
-    connect: list[str] = field(default_factory=list)
-    multicast_scouting: bool = False  # off: peers find each other through explicit endpoints
-    zenoh_config: str | None = None  # a Zenoh JSON5 file (TLS, auth, ACL); the fields above override it
-    namespace: str = DEFAULT_NAMESPACE
-    server_id: str = ""  # "" = host name and process id
-    identity: str = "open"  # open | keys: where a request's client id comes from (IDENTITY_MODES)
+    mode: str = setting(
+        "peer", "Zenoh mode: peer, client (connect to a router) or router", group=ZENOH, choices=ZENOH_MODES
+    )
+    listen: list[str] = setting(
+        help="Zenoh endpoints to listen on (the default: loopback only)",
+        group=ZENOH,
+        factory=lambda: [DEFAULT_ENDPOINT],
+        sample=["tcp/0.0.0.0:7447"],
+        metavar="ENDPOINT",
+    )
+    connect: list[str] = setting(
+        help="Zenoh endpoints to connect to (routers or other peers)", group=ZENOH, factory=list, metavar="ENDPOINT"
+    )
+    multicast_scouting: bool = setting(
+        False, "find peers by UDP multicast (off: clients connect to the listen endpoints explicitly)", group=ZENOH
+    )
+    zenoh_config: str | None = setting(
+        None,
+        "a Zenoh JSON5 configuration file (TLS endpoints, user/password authentication, access control); the "
+        "settings above override it. deploy/zenoh-peer.json5 is a sample (deploy/zenoh-client.json5 the same "
+        "for a client-mode session)",
+        group=ZENOH,
+        sample="/etc/drape/zenoh-peer.json5",
+        commented=True,
+    )
+    namespace: str = setting(DEFAULT_NAMESPACE, "first key-expression chunk(s) of every key", group=ZENOH)
+    server_id: str = setting(
+        "",
+        "this server's id in its keys (empty: <hostname>-<pid>); clients can also find it by liveliness",
+        group=ZENOH,
+        sample="drape-1",
+    )
+    identity: str = setting(
+        "open",
+        "open: also serve 1.0-1.3 clients on the server-wide keys (the client id in the payload is believed); "
+        "keys: client-scoped request keys only (protocol 1.4 clients), the client id is the key's, which a "
+        "router's access control binds to its user (drape acl, docs/reliability.md 3-4, PROTOCOL.md 11.2)",
+        group=ZENOH,
+        choices=IDENTITY_MODES,
+    )
     # --- simulation ----------------------------------------------------------------------------
-    tick_rate: float = 60.0  # Hz; dt = 1 / tick_rate
-    solver: str = "workgroup"
-    device: str | None = None  # None = DRAPE_DEVICE or auto
+    tick_rate: float = setting(60.0, "ticks per second (Hz); dt = 1 / tick_rate", group=SIM, low=0.1, high=10000)
+    solver: str = setting("workgroup", "World solver (README: Solvers)", group=SIM, choices=SOLVERS)
+    device: str | None = setting(
+        None,
+        "OpenCL device: auto, gpu, cpu, gpu:N / cpu:N (the N-th, from 0) or part of a name (drape devices lists "
+        "them; none: auto); with workers > 1 a comma list gives worker k entry k mod its length",
+        group=SIM,
+        sample="gpu",
+        commented=True,
+    )
     # --- limits --------------------------------------------------------------------------------
-    max_cloths: int = 1024
-    max_cloths_per_client: int = 64
-    new_clients_per_s: float = 10.0  # client ids the server has no cloth of, admitted per second (a token bucket)
-    new_clients_burst: int = 64  # ... and at once; beyond: "overloaded" (ids are free without identity = "keys")
-    max_vertices_per_cloth: int = 65536
-    max_total_vertices: int = 1 << 21
-    max_message_bytes: int = 8 << 20
-    max_pin_updates: int = 4096
-    max_batch_items: int = 64  # controls in one batch control request (protocol 1.1)
-    max_iterations: int = 100
-    max_substeps: int = 100  # the quality presets go up to 100 (exact); lower it to forbid them
-    max_pending_requests: int = 1024  # queued requests (and commands); beyond this requests get "busy"
-    max_pending_request_bytes: int = 64 << 20  # payload bytes of queued requests; beyond this: "busy"
+    max_cloths: int = setting(1024, "cloths on this server", group=LIMITS, low=1)
+    max_cloths_per_client: int = setting(64, "cloths of one client", group=LIMITS, low=1)
+    new_clients_per_s: float = setting(
+        10.0,
+        "client ids without a cloth here admitted per second (a token bucket); beyond the burst: 'overloaded' "
+        "(retry later), so that minting ids cannot fill the server (ids are free without identity = keys)",
+        group=LIMITS,
+        low=0,
+        low_open=True,
+    )
+    new_clients_burst: int = setting(64, "client ids without a cloth here admitted at once", group=LIMITS, low=1)
+    max_vertices_per_cloth: int = setting(65536, "vertices of one cloth", group=LIMITS, low=1)
+    max_total_vertices: int = setting(1 << 21, "vertices of all cloths together", group=LIMITS, low=1)
+    max_message_bytes: int = setting(8 << 20, "size of one request in bytes", group=LIMITS, low=1)
+    max_pin_updates: int = setting(4096, "pin targets in one control request (or one batch item)", group=LIMITS, low=1)
+    max_batch_items: int = setting(
+        64, "cloths controlled by one batch control request (protocol 1.1)", group=LIMITS, low=1
+    )
+    max_iterations: int = setting(
+        100, "solver iterations a cloth may ask for (the solver's own bound: 1000)", group=LIMITS, low=1, high=1000
+    )
+    max_substeps: int = setting(
+        100,
+        "substeps a cloth may ask for (the quality presets go up to 100, exact: lower it to forbid them)",
+        group=LIMITS,
+        low=1,
+        high=100,
+    )
+    max_pending_requests: int = setting(
+        1024,
+        "requests waiting for the request thread (and commands for a tick) before new ones get 'busy'",
+        group=LIMITS,
+        low=1,
+    )
+    max_pending_request_bytes: int = setting(
+        64 << 20,
+        "payload bytes of the queued requests before new ones get 'busy' (one request is always taken when none waits)",
+        group=LIMITS,
+        low=1,
+    )
     # --- service -------------------------------------------------------------------------------
-    grace_period: float = 5.0  # seconds a client's cloths outlive its liveliness token
-    stats_period: float = 1.0  # seconds between stats publications
-    state_congestion: str = "drop"  # drop | block | auto (see PROTOCOL.md, "Congestion control")
-    drop_max_bytes: int = 60000  # auto: states up to this size use DROP, larger ones BLOCK
-    device_encode: bool = True  # OpenCL worlds: states encoded on the device (one launch, one readback)
-    keyframe_interval: int = 60  # predictive states (1.5): an intra-coded state every this many ticks
-    pipeline: bool = True  # the device steps tick N + 1 while tick N is published (false: one tick less latency)
-    gil_switch_ms: float = 0.5  # Python's GIL switch interval in the server process (sys.setswitchinterval)
-    request_yield: bool = True  # the request thread starts requests only while the tick thread sleeps
-    program_idle_s: float = 10.0  # kernel programs no cloth used this long are released (0: kept for good)
-    malloc_mmap_threshold: int = 4 << 20  # bytes: larger blocks mapped apart, returned when freed (0: glibc's)
-    build_in_child: str = "off"  # off | start | always: kernels built and first run in a child process
-    warm_features: str = "tethers"  # feature sets built and run at start-up besides the default ("a+b,c")
+    grace_period: float = setting(
+        5.0, "seconds a vanished client's cloths are kept (after its liveliness token)", group=SERVICE, low=0
+    )
+    stats_period: float = setting(
+        1.0, "seconds between stats publications ({namespace}/server/<id>/stats)", group=SERVICE, low=0, low_open=True
+    )
+    state_congestion: str = setting(
+        "drop",
+        "Zenoh congestion control of state publications; auto: by size, drop_max_bytes (PROTOCOL.md, "
+        "'Congestion control')",
+        group=SERVICE,
+        choices=CONGESTION_CHOICES,
+    )
+    drop_max_bytes: int = setting(
+        60000, "auto congestion: the largest state published with DROP (larger ones: BLOCK)", group=SERVICE
+    )
+    device_encode: bool = setting(
+        True,
+        "OpenCL solvers: the device writes every state as it goes on the wire into one packed frame, read back "
+        "once per tick; false: the host encodes (the reference solver always does)",
+        group=SERVICE,
+    )
+    keyframe_interval: int = setting(
+        60,
+        "predictive states (protocol 1.5): ticks between intra-coded states of a stream, besides those asked "
+        "for (a late joiner's, a client's that lost one)",
+        group=SERVICE,
+        low=1,
+        high=1_000_000,
+    )
+    pipeline: bool = setting(
+        True,
+        "the device steps tick N + 1 while the publisher sends tick N: a tick's period is its slowest stage; "
+        "false: each tick is read back and published in the tick that stepped it, one tick less input latency, "
+        "the stages adding up (docs/latency.md)",
+        group=SERVICE,
+    )
+    gil_switch_ms: float = setting(
+        0.5,
+        "the server process's GIL switch interval in ms, sys.setswitchinterval (Python's default is 5: a thread "
+        "returning from a Zenoh call waits up to that long behind a busy one)",
+        group=SERVICE,
+        low=0.01,
+        high=100,
+    )
+    request_yield: bool = setting(
+        True,
+        "the request thread (decoding, validation, replies) starts a request only while the tick thread sleeps "
+        "between ticks, waiting one tick at most (docs/reliability.md: fewer missed ticks under a flood)",
+        group=SERVICE,
+    )
+    program_idle_s: float = setting(
+        10.0,
+        "seconds after which a kernel program no cloth uses is released and the heap trimmed (built again from "
+        "the driver's disk cache when needed; 0: kept for good)",
+        group=SERVICE,
+        low=0,
+    )
+    malloc_mmap_threshold: int = setting(
+        4 << 20,
+        "drape serve: heap blocks of this many bytes or more get their own mapping, given back when freed "
+        "(glibc mallopt M_MMAP_THRESHOLD); the heap's top is kept (trimmed on purpose by the memory upkeep) and "
+        "every thread allocates from one malloc arena (MALLOC_ARENA_MAX in the environment overrides); 0: "
+        "glibc's own thresholds and arenas",
+        group=SERVICE,
+        low=0,
+    )
+    build_in_child: str = setting(
+        "off",
+        "drape serve: kernels built and first run in a short-lived child process, then loaded from the driver's "
+        "disk cache (the compiler's memory and first-launch JIT stay out of the server); start: every feature "
+        "combination before serving (recommended on a CPU device; +2 s start-up with PoCL's cache filled); "
+        "always: also each new combination a cloth brings",
+        group=SERVICE,
+        choices=BUILD_IN_CHILD,
+    )
+    warm_features: str = setting(
+        "tethers",
+        "feature sets whose kernels are built and run at start-up besides the default set, so that a first cloth "
+        "of one neither waits for a build nor stalls the ticks: comma-separated, each set's names joined by + "
+        "(e.g. tethers,xpbd+tethers+colliders); empty: none",
+        group=SERVICE,
+    )
     # --- quality -------------------------------------------------------------------------------
-    adaptive_quality: bool = True  # lower cloths' presets while ticks overrun, restore them after
-    quality_budget: float = 0.8  # share of a tick the tick's own work may take before that
+    adaptive_quality: bool = setting(
+        True, "step cloths' quality presets down while ticks overrun, back up after", group=QUALITY
+    )
+    quality_budget: float = setting(
+        0.8, "share of a tick the tick's own work may take before quality is lowered", group=QUALITY, low=0.05, high=10
+    )
     # --- admission and misbehaving cloths -------------------------------------------------------
-    admission: bool = True  # refuse submits ("overloaded") that would push ticks over admission_budget
-    admission_budget: float = 0.85  # share of a tick the predicted tick cost may take
-    admission_unmeasured_vertices: int = 65_536  # admitted before the first steady tick (64 32x32 cloths)
-    nan_max_resets: int = 5  # a cloth reset this many times for non-finite state within nan_window...
-    nan_window: float = 10.0  # ...seconds is removed
+    admission: bool = setting(
+        True,
+        "refuse submissions ('overloaded') that would push the predicted tick cost over admission_budget",
+        group=ADMISSION,
+    )
+    admission_budget: float = setting(
+        0.85,
+        "share of a tick the predicted tick cost may take when admitting a cloth",
+        group=ADMISSION,
+        low=0,
+        high=100,
+        low_open=True,
+    )
+    admission_unmeasured_vertices: int = setting(
+        65_536,
+        "vertices admitted before the first steady tick is measured, then 'overloaded' until one is (64 32x32 "
+        "cloths: a CPU's; on a GPU raise it, e.g. 2097152 for 2048 cloths, or a level's first burst at start-up "
+        "is refused past 64 cloths)",
+        group=ADMISSION,
+        low=0,
+    )
+    nan_max_resets: int = setting(
+        5, "resets of one cloth for non-finite state within nan_window before it is removed", group=ADMISSION, low=1
+    )
+    nan_window: float = setting(10.0, "seconds over which nan_max_resets counts", group=ADMISSION, low=0, low_open=True)
     # --- operations ----------------------------------------------------------------------------
-    metrics_listen: str | None = None  # host:port of /metrics /healthz /readyz; None = off (127.0.0.1:9464)
-    log_format: str = "text"  # text | json (drape.server.service.logs)
-    log_level: str = "info"  # debug | info | warning | error | critical
-    workers: int = 1  # drape serve: server processes on this device, <server_id>-<k> (drape.server.service.workers)
+    metrics_listen: str | None = setting(
+        None,
+        "HOST:PORT of the operator HTTP listener, /metrics /healthz /readyz (none: off); deploy/prometheus.yml "
+        "scrapes it, deploy/alerts.yml alerts on it, deploy/grafana-dashboard.json shows it",
+        group=OPS,
+        sample="127.0.0.1:9464",
+    )
+    log_format: str = setting(
+        "text", "log lines as text or json (one object per line)", group=OPS, choices=LOG_FORMATS, sample="json"
+    )
+    log_level: str = setting("info", "lowest level logged", group=OPS, choices=LOG_LEVELS, ignore_case=True)
+    workers: int = setting(
+        1,
+        "drape serve: run this many server processes on the device under one supervisor, worker k as "
+        "<server_id>-<k> listening on each listen port + k (metrics_listen's too), connected to the others "
+        "(README: several server processes on one device)",
+        group=OPS,
+        low=1,
+        high=MAX_WORKERS,
+        sample=2,
+        commented=True,
+    )
 
     def __post_init__(self) -> None:
         if not self.server_id:
@@ -138,71 +418,19 @@ class ServerConfig:
         ]
 
     def validate(self) -> ServerConfig:
-        if self.mode not in ZENOH_MODES:
-            raise ValueError(f"mode must be one of {ZENOH_MODES}, got {self.mode!r}")
+        """ValueError naming the first setting out of its range or choices (SETTINGS), or invalid."""
+        for row in CONFIG_SETTINGS:
+            row.check(getattr(self, row.name))
         if not NAMESPACE_RE.match(self.namespace):
             raise ValueError(f"invalid namespace {self.namespace!r}")
         if not ID_RE.match(self.server_id):
             raise ValueError(f"invalid server_id {self.server_id!r}: 1-64 characters of [A-Za-z0-9_.-]")
-        if self.identity not in IDENTITY_MODES:
-            raise ValueError(f"identity must be one of {IDENTITY_MODES}, got {self.identity!r}")
-        if self.solver not in SOLVERS:
-            raise ValueError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
-        if not (0.1 <= self.tick_rate <= 10000):
-            raise ValueError("tick_rate must be in 0.1..10000 Hz")
-        if self.state_congestion not in CONGESTION_CHOICES:
-            raise ValueError(f"state_congestion must be one of {CONGESTION_CHOICES}")
-        if not (0.01 <= self.gil_switch_ms <= 100):
-            raise ValueError("gil_switch_ms must be in 0.01..100 ms")
-        if not (1 <= self.keyframe_interval <= 1_000_000):
-            raise ValueError("keyframe_interval must be in 1..1000000 ticks")
-        if not (self.new_clients_per_s > 0 and self.new_clients_burst >= 1):
-            raise ValueError("new_clients_per_s must be > 0 and new_clients_burst >= 1")
-        if self.program_idle_s < 0:
-            raise ValueError("program_idle_s must be >= 0 (0: programs are kept for good)")
-        if self.malloc_mmap_threshold < 0:
-            raise ValueError("malloc_mmap_threshold must be >= 0 bytes (0: glibc's dynamic threshold)")
         for names in self.warm_feature_sets():
             bad = [n for n in names if n not in FEATURE_NAMES]
             if bad:
                 raise ValueError(f"warm_features: unknown feature(s) {bad}; known: {list(FEATURE_NAMES)}")
-        if self.build_in_child not in BUILD_IN_CHILD:
-            raise ValueError(f"build_in_child must be one of {BUILD_IN_CHILD}, got {self.build_in_child!r}")
-        for name in (
-            "max_cloths",
-            "max_cloths_per_client",
-            "max_vertices_per_cloth",
-            "max_total_vertices",
-            "max_message_bytes",
-            "max_pin_updates",
-            "max_batch_items",
-            "max_iterations",
-            "max_substeps",
-            "max_pending_requests",
-            "max_pending_request_bytes",
-        ):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1")
-        if self.max_iterations > 1000 or self.max_substeps > 100:
-            raise ValueError("max_iterations <= 1000 and max_substeps <= 100 (the solver's own bounds)")
-        if not (0.05 <= self.quality_budget <= 10.0):
-            raise ValueError("quality_budget must be in 0.05..10 (a share of one tick)")
-        if not (0.0 < self.admission_budget <= 100.0):
-            raise ValueError("admission_budget must be in (0, 100] (a share of one tick)")
-        if self.admission_unmeasured_vertices < 0:
-            raise ValueError("admission_unmeasured_vertices must be >= 0")
-        if self.nan_max_resets < 1 or self.nan_window <= 0:
-            raise ValueError("nan_max_resets must be >= 1 and nan_window > 0")
-        if self.log_format not in LOG_FORMATS:
-            raise ValueError(f"log_format must be one of {LOG_FORMATS}, got {self.log_format!r}")
-        if self.log_level.lower() not in LOG_LEVELS:
-            raise ValueError(f"log_level must be one of {LOG_LEVELS}, got {self.log_level!r}")
         if self.metrics_listen is not None:
             parse_listen(self.metrics_listen)
-        if not 1 <= self.workers <= MAX_WORKERS:
-            raise ValueError(f"workers must be in 1..{MAX_WORKERS}, got {self.workers}")
-        if self.grace_period < 0 or self.stats_period <= 0:
-            raise ValueError("grace_period must be >= 0 and stats_period > 0")
         return self
 
     @property
@@ -247,6 +475,142 @@ class ServerConfig:
         return replace(self, **changes).validate()
 
 
+def _row(f: Field[Any], hint: Any) -> Setting:
+    """The settings-table row of a ServerConfig field: its name and type, and what setting() noted."""
+    optional = False
+    if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        optional = len(args) < len(typing.get_args(hint))
+        hint = args[0]
+    kind = list if typing.get_origin(hint) is list else hint
+    default = f.default_factory() if f.default_factory is not MISSING else f.default
+    return Setting(name=f.name, kind=kind, default=default, optional=optional, **f.metadata["setting"])
+
+
+ENV = "environment only"
+#: Knobs read from the environment only (tuning, caches, tests, the game client): no TOML key, no
+#: flag; listed here so that every DRAPE_* variable is documented in one place.
+ENV_ONLY: tuple[Setting, ...] = (
+    Setting(
+        "pack_lanes",
+        int,
+        None,
+        "CPU devices: the pack solver's width, 0, 2, 4, 8 or 16 (0: one cloth per work-item; default: the "
+        "widest the device check found runs; docs/cpu-solver.md)",
+        ENV,
+        scope="env",
+        read_in="server/sim/opencl/device.py",
+    ),
+    Setting(
+        "wg_size",
+        int,
+        None,
+        "work-items per cloth of the OpenCL solvers (default: 256 on a GPU, 1024 on its global-memory path; 1 "
+        "on a CPU)",
+        ENV,
+        scope="env",
+        read_in="server/sim/opencl/clworld.py",
+    ),
+    Setting(
+        "chunk",
+        int,
+        1024,
+        "vertices per work-group in the coloured and Jacobi solvers' vertex phases",
+        ENV,
+        scope="env",
+        read_in="server/sim/opencl/clworld.py",
+    ),
+    Setting(
+        "link_unroll_local",
+        int,
+        None,
+        "unroll factor of the link loop on the local-memory path (default: LINK_UNROLL_LOCAL, launch.py)",
+        ENV,
+        scope="env",
+        read_in="server/sim/opencl/launch.py",
+    ),
+    Setting(
+        "link_unroll_global",
+        int,
+        None,
+        "unroll factor of the link loop on the global-memory path (default: LINK_UNROLL_GLOBAL, launch.py)",
+        ENV,
+        scope="env",
+        read_in="server/sim/opencl/launch.py",
+    ),
+    Setting(
+        "nv_maxrreg",
+        int,
+        64,
+        "NVIDIA: the register cap of global-path kernels, -cl-nv-maxrregcount (0: none)",
+        ENV,
+        scope="env",
+        read_in="server/sim/opencl/launch.py",
+    ),
+    Setting(
+        "cl_flags",
+        str,
+        "",
+        "extra OpenCL build options, space-separated (e.g. -cl-fast-relaxed-math)",
+        ENV,
+        scope="env",
+        read_in="server/sim/opencl/device.py",
+    ),
+    Setting(
+        "cache_dir",
+        str,
+        None,
+        "the folder of the device check's verdicts and Drape's PoCL cache (default: $XDG_CACHE_HOME/drape or "
+        "~/.cache/drape)",
+        ENV,
+        scope="env",
+        read_in="server/sim/opencl/devicecheck.py",
+    ),
+    Setting(
+        "config",
+        str,
+        None,
+        "drape serve: the TOML configuration file (the flag --config beats it)",
+        ENV,
+        scope="env",
+        read_in="server/service/config.py",
+    ),
+    Setting(
+        "client_id",
+        str,
+        None,
+        "the game client's id (Python SDK, Rust/C client) when none is given in code",
+        ENV,
+        scope="env",
+        read_in="client/session.py",
+    ),
+    Setting(
+        "device_check_fault",
+        str,
+        None,
+        "tests: abort:STAGE or fail:STAGE makes the device check's child abort or raise at that stage",
+        ENV,
+        scope="env",
+        read_in="server/sim/opencl/devicecheck.py",
+    ),
+    Setting(
+        "test_seed",
+        int,
+        None,
+        "tests: the seed of the random test inputs (printed by every test that uses them)",
+        ENV,
+        scope="env",
+        read_in="tests/conftest.py",
+    ),
+)
+_HINTS = typing.get_type_hints(ServerConfig)
+#: The settings of ServerConfig, in its field order.
+CONFIG_SETTINGS: tuple[Setting, ...] = tuple(_row(f, _HINTS[f.name]) for f in fields(ServerConfig))
+#: The settings table: every setting and every environment-only knob, one row each.
+SETTINGS: tuple[Setting, ...] = CONFIG_SETTINGS + ENV_ONLY
+SETTING: dict[str, Setting] = {row.name: row for row in SETTINGS}
+
+
 def parse_listen(value: str) -> tuple[str, int]:
     """``HOST:PORT`` (``[::1]:9464``, ``:9464`` = every interface) as (host, port)."""
     host, sep, port = value.strip().rpartition(":")
@@ -255,17 +619,10 @@ def parse_listen(value: str) -> tuple[str, int]:
     return host.strip("[]") or "0.0.0.0", int(port)
 
 
-def _field_kind(f) -> tuple[type, bool]:
-    """(base type, optional) of a dataclass field from its annotation."""
-    hint = typing.get_type_hints(ServerConfig)[f.name]
-    optional = False
-    if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union:
-        args = [a for a in typing.get_args(hint) if a is not type(None)]
-        optional = len(args) < len(typing.get_args(hint))
-        hint = args[0]
-    if typing.get_origin(hint) is list:
-        return list, optional
-    return hint, optional
+def _field_kind(f: Field[Any]) -> tuple[type, bool]:
+    """(base type, optional) of a ServerConfig field (its row's kind and optional)."""
+    row = SETTING[f.name]
+    return row.kind, row.optional
 
 
 def _convert(name: str, value: Any, kind: type, optional: bool, source: str) -> Any:
@@ -308,121 +665,41 @@ def _from_toml(path: Path) -> dict[str, Any]:
     if "server" in data and isinstance(data["server"], dict):
         data = {**{k: v for k, v in data.items() if k != "server"}, **data["server"]}
     out: dict[str, Any] = {}
-    by_name = {f.name: f for f in fields(ServerConfig)}
     for k, v in data.items():
-        if k not in by_name:
+        row = SETTING.get(k)
+        if row is None or row.scope != "server":
             raise ValueError(f"{path}: unknown configuration key {k!r}")
-        kind, optional = _field_kind(by_name[k])
-        out[k] = _convert(k, v, kind, optional, str(path))
+        out[k] = _convert(k, v, row.kind, row.optional, str(path))
     log.debug("configuration from %s: %s", path, out)
     return out
 
 
 def _from_env(env: Mapping[str, str]) -> dict[str, Any]:
     out: dict[str, Any] = {}
-    for f in fields(ServerConfig):
-        var = f"DRAPE_{f.name.upper()}"
-        if var in env:
-            kind, optional = _field_kind(f)
-            out[f.name] = _convert(f.name, env[var], kind, optional, var)
+    for row in CONFIG_SETTINGS:
+        if row.env in env:
+            out[row.name] = _convert(row.name, env[row.env], row.kind, row.optional, row.env)
     return out
 
 
-HELP = {
-    "mode": "Zenoh mode",
-    "listen": "Zenoh endpoint to listen on",
-    "connect": "Zenoh endpoint to connect to (a router or other peers)",
-    "multicast_scouting": "find peers by UDP multicast",
-    "zenoh_config": "Zenoh JSON5 configuration file (TLS, authentication, access control)",
-    "namespace": "first key-expression chunk(s) of every key",
-    "server_id": "this server's id in its keys (default: host-pid)",
-    "identity": "open: also serve 1.0-1.3 clients on the server-wide keys; keys: client-scoped keys only "
-    "(a router's ACL then binds every request to its user)",
-    "tick_rate": "ticks per second; dt = 1/tick_rate",
-    "solver": "World solver",
-    "device": "OpenCL device: auto, gpu, cpu, gpu:N / cpu:N (the N-th, from 0) or part of a name",
-    "max_cloths": "cloths on this server",
-    "max_cloths_per_client": "cloths of one client",
-    "new_clients_per_s": "client ids without a cloth here admitted per second (beyond the burst: 'overloaded')",
-    "new_clients_burst": "client ids without a cloth here admitted at once",
-    "max_vertices_per_cloth": "vertices of one cloth",
-    "max_total_vertices": "vertices of all cloths together",
-    "max_message_bytes": "size of one request",
-    "max_pin_updates": "pin targets in one control request (or one batch item)",
-    "max_batch_items": "cloths controlled by one batch control request",
-    "max_iterations": "solver iterations a cloth may ask for",
-    "max_substeps": "substeps a cloth may ask for",
-    "max_pending_requests": "queued requests before new ones get 'busy'",
-    "max_pending_request_bytes": "payload bytes of the queued requests before new ones get 'busy' "
-    "(one request is always taken when none waits)",
-    "grace_period": "seconds a vanished client's cloths are kept",
-    "stats_period": "seconds between stats publications",
-    "state_congestion": "Zenoh congestion control of state publications",
-    "drop_max_bytes": "auto congestion: largest state published with DROP",
-    "device_encode": "encode the states on the OpenCL device, one packed frame per tick (reference: host)",
-    "pipeline": "the device steps tick N + 1 while the publisher sends tick N: a tick's period is its slowest "
-    "stage; false: each tick is read back and published in the tick that stepped it, one tick less input "
-    "latency, the stages adding up (docs/latency.md)",
-    "keyframe_interval": "predictive states (protocol 1.5): ticks between intra-coded states of a stream, "
-    "besides those asked for (a late joiner's, a client's that lost one)",
-    "gil_switch_ms": "the server process's GIL switch interval in ms (Python's default is 5: a thread "
-    "returning from a Zenoh call waits up to that long behind a busy one)",
-    "request_yield": "the request thread (decoding, validation, replies) starts a request only while the tick "
-    "thread sleeps between ticks, waiting one tick at most (docs/reliability.md: fewer missed ticks under a flood)",
-    "program_idle_s": "seconds after which a kernel program no cloth uses is released and the heap trimmed "
-    "(built again from the driver's disk cache when needed; 0: kept for good)",
-    "malloc_mmap_threshold": "drape serve: heap blocks of this many bytes or more get their own mapping, "
-    "given back when freed (glibc mallopt M_MMAP_THRESHOLD; 0: glibc's dynamic threshold)",
-    "warm_features": "feature sets whose kernels are built and run at start-up besides the default set, so that "
-    "a first cloth of one neither waits for a build nor stalls the ticks: comma-separated, each set's names "
-    "joined by + (e.g. tethers,xpbd+tethers+colliders); empty: none",
-    "build_in_child": "drape serve: kernels built and first run in a short-lived child process, then loaded "
-    "from the driver's disk cache (the compiler's memory and first-launch JIT stay out of the server); "
-    "start: every feature combination before serving; always: also each new combination a cloth brings",
-    "adaptive_quality": "step cloths' quality presets down while ticks overrun, back up after",
-    "quality_budget": "share of a tick the tick's work may take before quality is lowered",
-    "admission": "refuse submissions that would push the tick over admission_budget ('overloaded')",
-    "admission_budget": "share of a tick the predicted tick cost may take when admitting a cloth",
-    "admission_unmeasured_vertices": "vertices admitted before the first steady tick is measured (then "
-    "'overloaded' until one is); raise it on a GPU so that a level's first burst is not refused",
-    "nan_max_resets": "non-finite resets of one cloth within nan_window before it is removed",
-    "nan_window": "seconds over which nan_max_resets counts",
-    "metrics_listen": "HOST:PORT of the operator HTTP listener (/metrics /healthz /readyz), e.g. 127.0.0.1:9464",
-    "log_format": "log lines as text or json (one object per line)",
-    "log_level": "lowest level logged",
-    "workers": "drape serve: run this many server processes on the device under one supervisor, worker k as "
-    "<server_id>-<k> listening on each listen port + k, connected to the others; a comma list in device gives "
-    "worker k entry k mod its length (README: several workers)",
-}
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--config`` plus one flag per ServerConfig field (all default to None = not given)."""
+    """``--config`` plus one flag per setting (all default to None = not given)."""
     parser.add_argument("--config", metavar="FILE", help="TOML configuration file (default: $DRAPE_CONFIG)")
-    for f in fields(ServerConfig):
-        kind, _ = _field_kind(f)
-        flag = "--" + f.name.replace("_", "-")
-        default = f.default_factory() if f.default_factory is not MISSING else f.default  # type: ignore[misc]
-        help_ = f"{HELP.get(f.name, '')} (default: {default!r}; env DRAPE_{f.name.upper()})"
-        if kind is bool:
-            parser.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=None, help=help_)
-        elif kind is list:
-            parser.add_argument(
-                flag, dest=f.name, action="append", metavar="ENDPOINT", default=None, help=f"{help_}; repeatable"
-            )
+    for row in CONFIG_SETTINGS:
+        flag = "--" + row.name.replace("_", "-")
+        limits = f"; {row.limits_text()}" if row.low is not None or row.high is not None else ""
+        help_ = f"{row.help} (default: {row.default!r}{limits}; env {row.env})"
+        if row.kind is bool:
+            action = argparse.BooleanOptionalAction
+            parser.add_argument(flag, dest=row.name, action=action, default=None, help=help_)
+        elif row.kind is list:
+            help_ += "; repeatable"
+            parser.add_argument(flag, dest=row.name, action="append", metavar=row.metavar, default=None, help=help_)
         else:
-            choices = {
-                "mode": ZENOH_MODES,
-                "identity": IDENTITY_MODES,
-                "solver": SOLVERS,
-                "state_congestion": CONGESTION_CHOICES,
-                "log_format": LOG_FORMATS,
-                "log_level": LOG_LEVELS,
-                "build_in_child": BUILD_IN_CHILD,
-            }.get(f.name)
-            parser.add_argument(flag, dest=f.name, type=kind, default=None, choices=choices, help=help_)
+            choices = row.choices or None
+            parser.add_argument(flag, dest=row.name, type=row.kind, default=None, choices=choices, help=help_)
 
 
 def from_args(args: argparse.Namespace, env: Mapping[str, str] | None = None) -> ServerConfig:
-    overrides = {f.name: getattr(args, f.name, None) for f in fields(ServerConfig)}
+    overrides = {row.name: getattr(args, row.name, None) for row in CONFIG_SETTINGS}
     return ServerConfig.load(getattr(args, "config", None), env, overrides)

@@ -12,6 +12,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from .world import World
 
+__all__ = ["make_world"]
+
 
 def make_world(solver: str = "workgroup", device: Any = None, **kw: Any) -> World:
     from .params import SOLVERS

@@ -17,6 +17,8 @@ from drape.client import DrapeClient
 from drape.client import protocol as P
 from drape.client.handle import ClothHandle
 
+pytestmark = pytest.mark.zenoh  # not unit (tests/conftest.py)
+
 ID_CHARS = np.frombuffer(b"abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_.-", np.uint8)
 SIZES = (0, 1, 3, 16, 63, 64, 65, 100, 1024)
 

@@ -13,6 +13,8 @@ import zenoh
 
 from drape.client import protocol as P
 
+pytestmark = pytest.mark.zenoh  # not unit (tests/conftest.py)
+
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 SAMPLES = {"peer": DEPLOY / "zenoh-peer.json5", "client": DEPLOY / "zenoh-client.json5"}
 

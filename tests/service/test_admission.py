@@ -24,6 +24,8 @@ from drape.server.service.requests.admission import (
     separable,
 )
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 
 def test_submits_beyond_capacity_are_overloaded_and_admitted_cloths_keep_their_rate():
     with Server(make_config(admission_budget=0.85)) as srv:

@@ -4,11 +4,14 @@ makes the server build in-process (counted), never a failure of the cloth. Count
 
 from __future__ import annotations
 
+import pytest
 from conftest import wait_until
 
 from drape.server.service.cook.buildhelper import BuildHelper
 from drape.server.sim.fabric import cook_grid
 from drape.server.sim.params import ClothParams, Features
+
+pytestmark = pytest.mark.opencl  # not unit (tests/conftest.py)
 
 
 def test_the_helper_builds_and_runs_a_cloth_exits_when_idle_and_starts_again():

@@ -18,6 +18,8 @@ from drape.client import protocol as P
 from drape.server.service import Server
 from drape.server.service.statecodec import FrameEncoder
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 MAX_ITEMS = 8
 
 

@@ -18,6 +18,8 @@ from drape.server.sim import make_world
 from drape.server.sim.fabric import cook_grid
 from drape.server.sim.params import ClothParams
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 DT = 1.0 / 60.0
 
 

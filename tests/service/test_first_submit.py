@@ -14,6 +14,8 @@ from drape.client import ProtocolError
 from drape.client import protocol as P
 from drape.server.service import Server
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 
 @pytest.fixture(scope="module")
 def server():

@@ -24,6 +24,8 @@ from drape.client import DrapeClient, Forbidden, LimitExceeded
 from drape.client import protocol as P
 from drape.server.service import Server
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 
 def as_13(payload: bytes) -> bytes:
     """The same request as a 1.3 client writes it (``v = [1, 3]``)."""

@@ -22,6 +22,8 @@ from drape.server import cli
 from drape.server.service.config import add_arguments
 from drape.server.service.process import logs
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 TIMEOUT = 20.0
 STABLE = ("time", "level", "logger", "message")
 

@@ -21,6 +21,8 @@ from drape.server.service.process import memory as M
 from drape.server.sim.fabric import cook_grid
 from drape.server.sim.params import ClothParams, Features
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 
 def test_programs_no_cloth_uses_are_released_and_the_heap_trimmed():
     with Server(make_config(program_idle_s=0.2, build_in_child="always")) as srv:

@@ -27,6 +27,8 @@ from drape.server.service.process import ops as OPS
 from drape.server.service.process.metrics import METRICS, OPTIONAL, families, overload_refusals
 from drape.server.service.process.telemetry import PHASES, PhaseTimer
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 TIMEOUT = 10.0
 
 

@@ -13,6 +13,8 @@ from conftest import TIMEOUT, connect, make_config
 from drape.client import protocol as P
 from drape.server.service import Server
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 PINS = [0, 7]  # the two ends of the first row of an 8x8 grid
 
 

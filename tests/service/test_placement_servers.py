@@ -17,6 +17,8 @@ from drape.client import protocol as P
 from drape.client.placement import spread
 from drape.server.tools.procs import ServerProcess
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 SERVER_WAIT = 90.0  # a drape serve starting (OpenCL warm-up) on a loaded CI machine
 EVENT_WAIT = 30.0
 CLOTHS = 8

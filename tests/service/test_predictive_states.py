@@ -17,6 +17,8 @@ from drape.client import protocol as P
 from drape.client.smoothing import sample
 from drape.server.service.server import Server
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 STEP = 0.002
 
 

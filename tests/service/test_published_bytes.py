@@ -19,6 +19,8 @@ from conftest import TIMEOUT, connect, make_config, wait_until
 from drape.client import protocol as P
 from drape.server.service import Server
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 ENCODINGS = ("float32", "float16", "quant16")
 
 

@@ -12,6 +12,8 @@ from drape.client import protocol as P
 from drape.server.service import Server
 from drape.server.sim import quality
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 TIMEOUT = 10.0
 
 

@@ -21,6 +21,8 @@ from drape.client import protocol as P
 from drape.server.service import Server
 from drape.server.service.requests.requestq import TickGate
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 GARBAGE = b"\xc1" * 600  # 0xc1 is never valid msgpack: decoding it answers "malformed"
 
 

@@ -29,6 +29,8 @@ from drape.server.sim import make_world
 from drape.server.sim.fabric import cook_grid
 from drape.server.sim.params import ClothParams, LinkOptions, Plane
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 
 @pytest.fixture(
     scope="module",

@@ -24,6 +24,8 @@ from drape.server.service.process.workerplan import plan, worker_command
 from drape.server.service.process.workers import Supervisor
 from drape.server.tools.procs import ServerProcess, free_port
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 SERVER_WAIT = 90.0  # two drape serve starting (OpenCL warm-up) on a loaded CI machine
 EVENT_WAIT = 30.0
 CLOTHS = 8

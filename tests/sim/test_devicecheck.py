@@ -13,6 +13,8 @@ from drape.server.sim.opencl import devicecheck as dc
 from drape.server.sim.opencl.device import Device, choose_device
 from drape.server.sim.opencl.platforms import all_devices, describe
 
+pytestmark = pytest.mark.opencl  # not unit (tests/conftest.py)
+
 
 @pytest.fixture
 def own_cache(tmp_path, monkeypatch):

@@ -8,9 +8,12 @@ import time
 
 import numpy as np
 import pyopencl as cl
+import pytest
 
 from drape.server.sim.opencl.device import Device
 from drape.server.sim.params import Features
+
+pytestmark = pytest.mark.opencl  # not unit (tests/conftest.py)
 
 
 def _options(tag: int) -> list[str]:

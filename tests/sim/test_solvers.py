@@ -15,6 +15,8 @@ from drape.server.sim.opencl.launch import pack_lanes
 from drape.server.sim.params import ClothParams, Features, LinkOptions, Material, Sphere, pack_colliders
 from drape.server.sim.world import ReferenceWorld, inverse_masses
 
+pytestmark = pytest.mark.opencl  # not unit (tests/conftest.py)
+
 GS_SOLVERS = ["workgroup", "coloured"]
 DT = 1 / 60
 

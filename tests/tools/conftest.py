@@ -44,7 +44,7 @@ _root = _root_conftest()
 # one depends on the collection order), so it must offer all of them. Fixtures stay the root's
 # (pytest finds those by itself; defining them here again would make second instances).
 for _name, _value in vars(_root).items():
-    if _name.startswith("_") or _name in globals() or type(_value).__name__ == "FixtureFunctionDefinition":
+    if _name.startswith(("_", "pytest_")) or _name in globals() or type(_value).__name__ == "FixtureFunctionDefinition":
         continue
     globals()[_name] = _value
 make_config, connect, collect = _root.make_config, _root.connect, _root.collect

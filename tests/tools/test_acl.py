@@ -21,6 +21,8 @@ from drape.client.protocol import Keys
 from drape.server.tools import acl
 from drape.server.tools.procs import free_port
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 
 def test_example_users_file_generates_a_section_zenoh_loads(tmp_path, acl_kit):
     users = acl.load_users(acl_kit.EXAMPLE)

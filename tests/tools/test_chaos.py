@@ -17,6 +17,8 @@ import pytest
 from drape.client import protocol as P
 from drape.server.tools import chaos, chaos_failover, chaos_faults, chaos_fuzz
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 CI_COUNT = 600
 CI_MAX_BYTES = 1 << 20
 

@@ -16,6 +16,8 @@ import zenoh
 from drape.client import DrapeClient, Forbidden, LimitExceeded
 from drape.client import protocol as P
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 KEYS = P.Keys("drape")
 PINS = [0, 7]
 

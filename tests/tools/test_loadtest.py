@@ -26,6 +26,8 @@ from drape.server.tools.loadreport import (
 )
 from drape.server.tools.procs import ServerProcess
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 
 def test_achieved_rate_is_ticks_over_server_time_between_two_publications():
     s0 = {"ticks": 1000, "time_ns": 5_000_000_000, "tick": 1000}

@@ -23,6 +23,8 @@ from drape.server.tools import loadtest as lt
 from drape.server.tools import top
 from drape.server.tools.procs import ServerExited, ServerProcess, free_port
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 #: A run that fails must fail well before the waits it used to sit out (30-67 s in issue 20).
 FAIL_BOUND_S = 25.0
 

@@ -14,6 +14,8 @@ from PIL import Image
 
 from drape.server.tools.procs import free_port, require_extra
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 
 def drape(*args: str, timeout: float = 240) -> subprocess.CompletedProcess[str]:
     r = subprocess.run(

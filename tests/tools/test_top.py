@@ -17,6 +17,8 @@ from drape.server.cli import main
 from drape.server.service import Server
 from drape.server.tools.top import COLUMNS, PRIORITY, StatsBoard, fit_columns, print_frame, render, row_cells
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 TIMEOUT = 10.0
 
 

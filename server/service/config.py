@@ -28,7 +28,7 @@ from typing import Any
 from drape.client.protocol import DEFAULT_ENDPOINT, DEFAULT_NAMESPACE, FEATURE_NAMES, ID_RE, NAMESPACE_RE, Limits
 
 from ..sim.params import MAX_COLLIDERS_PER_CLOTH, SOLVERS
-from .logs import LOG_FORMATS, LOG_LEVELS
+from .process.logs import LOG_FORMATS, LOG_LEVELS
 
 log = logging.getLogger(__name__)
 
@@ -38,8 +38,8 @@ CONGESTION_CHOICES = ("auto", "drop", "block")
 #: cloth submitted on a server-wide key publishes on {ns}/cloth/{cloth}/state; keys: only the
 #: client-scoped ones, so every request's client id is its key's (a router can bind it to a user).
 IDENTITY_MODES = ("open", "keys")
-BUILD_IN_CHILD = ("off", "start", "always")  # drape.server.service.buildhelper
-MAX_WORKERS = 64  # drape serve --workers (drape.server.service.workers)
+BUILD_IN_CHILD = ("off", "start", "always")  # drape.server.service.cook.buildhelper
+MAX_WORKERS = 64  # drape serve --workers (drape.server.service.process.workers)
 #: The environment variable of a setting: its name in capitals after this.
 ENV_PREFIX = "DRAPE_"
 

@@ -5,7 +5,8 @@ defaults and ranges from here."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import functools
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -189,11 +190,40 @@ for _s in COLLIDER_SHAPES:
 
 
 def collider_shape(c: object) -> ColliderShape:
-    """The shape of collider ``c`` (TypeError for anything that is not one)."""
-    try:
-        return _SHAPE_OF_CLASS[type(c)]
-    except KeyError:
-        raise TypeError(f"not a collider: {c!r}") from None
+    """The shape of collider ``c``: by its class, else (an object of another library) the first
+    shape whose every field it has. TypeError for anything else."""
+    shape = _SHAPE_OF_CLASS.get(type(c))
+    if shape is not None:
+        return shape
+    for shape in COLLIDER_SHAPES:
+        if isinstance(c, shape.cls) or all(hasattr(c, f.name) for f in shape.fields):
+            return shape
+    raise TypeError(f"not a collider: {c!r}")
+
+
+def as_collider(c: Any) -> Collider:
+    """``c`` as a protocol collider: one already, a wire map (``{"type": "sphere", ...}``) or an
+    object with a shape's fields (TypeError or ValueError for anything else)."""
+    if type(c) in _SHAPE_OF_CLASS:
+        return c  # type: ignore[no-any-return]
+    if isinstance(c, Mapping):
+        kind = c.get("type")
+        if kind not in COLLIDER_IDS:
+            raise TypeError(f"not a collider: {c!r}")
+        shape = COLLIDER_SHAPES[COLLIDER_IDS[kind]]
+        get = c.__getitem__
+    else:
+        shape = collider_shape(c)
+        get = functools.partial(getattr, c)
+    values = []
+    for f in shape.fields:
+        v = get(f.name)
+        if f.vec3:
+            v = tuple(float(x) for x in v)
+            if len(v) != 3:
+                raise ValueError(f"collider {shape.name}.{f.name}: expected 3 numbers, got {len(v)}")
+        values.append(v if f.vec3 else float(v))
+    return shape.cls(*values)  # type: ignore[no-any-return]
 
 
 def collider_shape_named(name: str) -> ColliderShape:

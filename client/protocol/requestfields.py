@@ -2,7 +2,7 @@
 (PROTOCOL.md sections 4 and 5): name, kind (how the codec writes and reads it and the JSON Schema
 describes it), range, where it acts on the server, how two pending controls' values merge when
 coalesced, and whether an empty value changes nothing. The codec, validation, schema generation,
-the server's request handling (``pins_only``, ``changes_params``, parameters) and its coalescing
+the server's request handling (:func:`pins_only`, ``changes_params``, parameters) and its coalescing
 (``merge_controls``) iterate over :data:`CONTROL_FIELDS`; the request dataclasses
 (messages.ControlRequest, SubmitRequest) declare the same names, checked at import.
 
@@ -115,3 +115,15 @@ def field_given(value: object, f: RequestField) -> bool:
 def fields_given(req: object, acts: frozenset[str] | set[str] | None = None) -> list[RequestField]:
     """The fields of control ``req`` that ask for a change (only those acting in ``acts``)."""
     return [f for f in CONTROL_FIELDS if (acts is None or f.acts in acts) and field_given(getattr(req, f.name), f)]
+
+
+_PINS = tuple(f for f in CONTROL_FIELDS if f.acts == "pins")
+_NOT_PINS = tuple(f for f in CONTROL_FIELDS if f.acts != "pins")
+
+
+def pins_only(req: object) -> bool:
+    """Whether control ``req`` carries pin targets and nothing else (the per-tick game-loop
+    control: the server's fast path, and what a 1.4 moves block can carry)."""
+    return all(field_given(getattr(req, f.name), f) for f in _PINS) and not any(
+        field_given(getattr(req, f.name), f) for f in _NOT_PINS
+    )

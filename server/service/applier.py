@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from drape.client import protocol as P
+from drape.client.protocol.requestfields import pins_only
 
 from ..sim import quality
 from ..sim.world import World
@@ -31,7 +32,7 @@ from .moves import apply_blocks
 from .publisher import Job
 from .registry import ClothRecord, Registry
 from .replies import Replies, Reply, send
-from .requests import changes_params, params_after_control, pins_only, with_preset
+from .requests import changes_params, params_after_control, with_preset
 
 log = logging.getLogger(__name__)
 

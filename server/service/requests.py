@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 
 from drape.client import protocol as P
-from drape.client.protocol.requestfields import CONTROL_FIELDS, field_given, fields_given
+from drape.client.protocol.requestfields import CONTROL_FIELDS, fields_given
 
 from ..sim import quality
 from ..sim.params import ClothParams, Features, Material, pack_colliders
@@ -41,17 +41,6 @@ def changes_params(req: P.ControlRequest, p: ClothParams) -> bool:
         fields_given(req, _PARAM_ACTS)
         or (req.colliders and not p.features.colliders)
         or (req.state is not None and req.state.normals is not None and req.state.normals != p.features.normals)
-    )
-
-
-_PINS = [f for f in CONTROL_FIELDS if f.acts == "pins"]
-_NOT_PINS = [f for f in CONTROL_FIELDS if f.acts != "pins"]
-
-
-def pins_only(req: P.ControlRequest) -> bool:
-    """Whether a control carries pin targets and nothing else (requestfields: acts "pins")."""
-    return all(field_given(getattr(req, f.name), f) for f in _PINS) and not any(
-        field_given(getattr(req, f.name), f) for f in _NOT_PINS
     )
 
 

@@ -94,11 +94,13 @@ def test_every_collider_shape_round_trips_and_is_described():
         P.collider_to_map(object())
 
 
-def test_the_device_collider_ids_are_the_tables():
-    text = (ROOT / "kernels" / "layout.h").read_text()
-    defined = {m[1].lower(): int(m[2]) for m in re.finditer(r"#define COLLIDER_([A-Z0-9_]+) (\d+)", text)}
-    defined.pop("words")  # float4s per slot, not a shape
-    assert defined == P.COLLIDER_IDS
+def test_the_kernels_collider_ids_are_the_tables():
+    """Each shape's id is defined once in the kernels, in colliders.cl beside its code."""
+    ids = re.compile(r"#define COLLIDER_(?!WORDS)([A-Z0-9_]+) (\d+)")
+    text = (ROOT / "kernels" / "colliders.cl").read_text()
+    assert {m[1].lower(): int(m[2]) for m in ids.finditer(text)} == P.COLLIDER_IDS
+    for other in (ROOT / "kernels").glob("*.[ch]*"):
+        assert other.name == "colliders.cl" or not ids.search(other.read_text()), other.name
 
 
 def test_pack_colliders_writes_each_shapes_rows_and_id():

@@ -238,12 +238,20 @@ def _read_fields(
     left out: the request's defaults apply)."""
     out: dict[str, Any] = {}
     m = r.m
-    for f in table:
+    for f, read in _READ_PLANS.get(id(table)) or _read_plan(table):
         if f.name in m:
-            v = _READERS[f.kind](r, f, submit, n_vertices)
+            v = read(r, f, submit, n_vertices)
             if v is not None:
                 out[f.name] = v
     return out
+
+
+_READ_PLANS: dict[int, tuple[tuple[RequestField, Callable[..., Any]], ...]] = {}  # by id(table)
+
+
+def _read_plan(table: tuple[RequestField, ...]) -> tuple[tuple[RequestField, Callable[..., Any]], ...]:
+    plan = _READ_PLANS[id(table)] = tuple((f, _READERS[f.kind]) for f in table)
+    return plan
 
 
 # ---------------------------------------------------------------------------------------------

@@ -31,30 +31,32 @@ WRITERS: dict[str, Callable[[Any], Any]] = {
     "flag": lambda _: True,
 }
 
-_DEFAULTS: dict[type, dict[str, Any]] = {}
+#: (class, id of the table) -> its plan: (name, writer, whether a falsy value is unset) per field.
+_PLANS: dict[tuple[type, int], tuple[tuple[str, Callable[[Any], Any], bool], ...]] = {}
 
 
-def _defaults(cls: type) -> dict[str, Any]:
-    d = _DEFAULTS.get(cls)
-    if d is None:
-        d = _DEFAULTS[cls] = {}
-        for f in fields(cls):
-            if f.default is not MISSING:
-                d[f.name] = f.default
-            elif callable(f.default_factory):
-                d[f.name] = f.default_factory()
-    return d
+def _plan(cls: type, table: tuple[RequestField, ...]) -> tuple[tuple[str, Callable[[Any], Any], bool], ...]:
+    """How ``cls``'s fields of ``table`` are written: a field is unset when None or, where the
+    dataclass default is not None (an empty map or list, false), when empty."""
+    defaults: dict[str, Any] = {}
+    for f in fields(cls):
+        if f.default is not MISSING:
+            defaults[f.name] = f.default
+        elif callable(f.default_factory):
+            defaults[f.name] = f.default_factory()
+    plan = tuple((f.name, WRITERS[f.kind], defaults.get(f.name) is not None) for f in table)
+    _PLANS[(cls, id(table))] = plan
+    return plan
 
 
 def _write_fields(m: dict[str, Any], req: Any, table: tuple[RequestField, ...]) -> None:
-    """Write ``req``'s fields of ``table`` that differ from "absent": not None and, where the
-    dataclass default is not None (an empty map or list, false), not empty."""
-    defaults = _defaults(type(req))
-    for f in table:
-        v = getattr(req, f.name)
-        if v is None or (defaults.get(f.name) is not None and not v):
+    """Write ``req``'s fields of ``table`` that are set (see _plan), in the table's order."""
+    plan = _PLANS.get((type(req), id(table))) or _plan(type(req), table)
+    for name, write, falsy_unset in plan:
+        v = getattr(req, name)
+        if v is None or (falsy_unset and not v):
             continue
-        m[f.name] = WRITERS[f.kind](v)
+        m[name] = write(v)
 
 
 def submit_to_map(req: SubmitRequest) -> dict[str, Any]:

@@ -37,7 +37,7 @@ import numpy as np
 import zenoh
 
 from drape.client import protocol as P
-from drape.client.protocol.requestfields import CONTROL_FIELDS, fields_given
+from drape.client.protocol.requestfields import CONTROL_FIELDS, any_given
 
 from ..sim.world import World
 from .registry import ClothRecord
@@ -139,8 +139,11 @@ class Prepare:
     params: Any
 
 
+_gives_features = any_given(f for f in CONTROL_FIELDS if f.acts in ("features", "quality"))
+
+
 def _touches_features(r: P.ControlRequest) -> bool:
-    return bool(fields_given(r, {"features", "quality"}) or (r.state is not None and r.state.normals is not None))
+    return _gives_features(r) or (r.state is not None and r.state.normals is not None)
 
 
 def mergeable(a: P.ControlRequest, b: P.ControlRequest) -> bool:

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 
 from drape.client import protocol as P
-from drape.client.protocol.requestfields import CONTROL_FIELDS, fields_given
+from drape.client.protocol.requestfields import CONTROL_FIELDS, any_given
 
 from ..sim import quality
 from ..sim.params import ClothParams, Features, Material, pack_colliders
@@ -28,8 +28,8 @@ def features_after(req: P.ControlRequest, p: ClothParams) -> set[str]:
     return set(P.resolve_features(frozenset(p.features.names()), req))
 
 
-#: Where a field acts (requestfields.FIELD_ACTS) when it always changes the cloth's parameters.
-_PARAM_ACTS = frozenset({"param", "material", "features", "quality"})
+#: Whether a control gives a field that always changes the cloth's parameters (by where it acts).
+_gives_params = any_given(f for f in CONTROL_FIELDS if f.acts in ("param", "material", "features", "quality"))
 #: The fields copied onto the ClothParams field of the same name.
 _PARAM_FIELDS = tuple(f.name for f in CONTROL_FIELDS if f.acts == "param")
 
@@ -38,7 +38,7 @@ def changes_params(req: P.ControlRequest, p: ClothParams) -> bool:
     """Whether a control changes the cloth's parameters (the common per-tick control, pins and
     colliders of a cloth whose colliders feature is on, changes none)."""
     return bool(
-        fields_given(req, _PARAM_ACTS)
+        _gives_params(req)
         or (req.colliders and not p.features.colliders)
         or (req.state is not None and req.state.normals is not None and req.state.normals != p.features.normals)
     )

@@ -96,7 +96,6 @@ CONTROL_FIELDS: tuple[RequestField, ...] = (
 CONTROL_WIRE_ORDER: tuple[RequestField, ...] = tuple(sorted(CONTROL_FIELDS, key=lambda f: f.wire))
 #: The fields a submission shares with a control, in its wire order.
 SUBMIT_FIELDS: tuple[RequestField, ...] = tuple(f for f in CONTROL_FIELDS if f.submit)
-FIELDS_BY_NAME = {f.name: f for f in CONTROL_FIELDS}
 
 assert [f.wire for f in CONTROL_WIRE_ORDER] == list(range(len(CONTROL_FIELDS))), "wire positions 0..n-1"
 for _f in CONTROL_FIELDS:

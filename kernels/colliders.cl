@@ -1,6 +1,11 @@
 /* Colliders: spheres, capsules and planes moving linearly over the step (each slot holds the
  * previous and the current pose), pushing a vertex out and applying friction against the
- * collider's own motion. Built with FEATURE_COLLIDERS only. Included by cloth.cl. */
+ * collider's own motion. Built with FEATURE_COLLIDERS only. Included by cloth.cl.
+ * The type ids are the protocol's (drape.client.protocol.COLLIDER_SHAPES: its row order; checked by
+ * tests/client/test_protocol_tables.py). */
+#define COLLIDER_SPHERE 0
+#define COLLIDER_CAPSULE 1
+#define COLLIDER_PLANE 2
 
 inline float3 friction(float3 x, float3 xp, float3 n, float pen, float3 cdisp, float mu)
 {

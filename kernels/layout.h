@@ -49,8 +49,6 @@
 #define ANCHOR_WORDS 8    /* TETHER_SLOTS x (anchor vertex or -1, tether length (float bits)) */
 #define COLLIDER_WORDS 4  /* float4s per collider: previous pose (2 rows), current pose (2 rows) */
 
-#define COLLIDER_SPHERE 0
-#define COLLIDER_CAPSULE 1
-#define COLLIDER_PLANE 2
+/* Collider type ids (row 1's w of a slot): defined in colliders.cl, each beside its shape's code */
 
 #endif

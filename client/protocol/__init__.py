@@ -8,7 +8,10 @@ both, one module per job:
 - :mod:`.errors`: error codes and their exception classes;
 - :mod:`.vocabulary`: features, quality presets, encodings, colliders, material fields with their
   ranges and defaults, link options, limits (the server takes its names and defaults from here);
+- :mod:`.requestfields`: the control and submit fields, each declared once (kind, where it acts,
+  how it merges, range): the codec, validation, schema and the server iterate over it;
 - :mod:`.messages`: every request and reply as a dataclass, and :func:`resolve_features`;
+- :mod:`.wiremaps`: requests written as msgpack maps, field by field from the tables;
 - :mod:`.validate`: msgpack framing with hostile-input caps and the typed field readers;
 - :mod:`.codec`: ``encode_*`` / ``decode_*`` of every msgpack message;
 - :mod:`.state` and :mod:`.bundle`: the binary ``DRPS`` state and ``DRPB`` bundle layouts with the
@@ -196,6 +199,12 @@ from .replies import (
     submit_reply_from_map,
     tick_reply_from_map,
 )
+from .requestfields import (
+    CONTROL_FIELDS,
+    SUBMIT_FIELDS,
+    RequestField,
+    pins_only,
+)
 from .state import (
     FLAG_NORMALS,
     FLAG_RESET,
@@ -250,6 +259,8 @@ from .validate import (
     unpack_message,
 )
 from .vocabulary import (
+    COLLIDER_IDS,
+    COLLIDER_SHAPES,
     COLLIDER_TYPES,
     DEFAULT_CHEBYSHEV_RHO,
     DEFAULT_GRAVITY,
@@ -284,6 +295,7 @@ from .vocabulary import (
     STEP_MIN,
     Capsule,
     Collider,
+    ColliderShape,
     GridSpec,
     Limits,
     LinkSpec,
@@ -292,9 +304,13 @@ from .vocabulary import (
     PinUpdate,
     Plane,
     ResumeState,
+    ShapeField,
     Sphere,
     StateOptions,
     Vec3,
+    as_collider,
+    collider_shape,
+    collider_shape_named,
 )
 
 __all__ = [
@@ -315,10 +331,14 @@ __all__ = [
     "BundleEntry",
     "Busy",
     "CLIENT_REQUESTS",
+    "COLLIDER_IDS",
+    "COLLIDER_SHAPES",
     "COLLIDER_TYPES",
+    "CONTROL_FIELDS",
     "Capsule",
     "ClothState",
     "Collider",
+    "ColliderShape",
     "ControlBatchReply",
     "ControlBatchRequest",
     "ControlReply",
@@ -409,6 +429,7 @@ __all__ = [
     "Q_LIMIT",
     "RemoveReply",
     "RemoveRequest",
+    "RequestField",
     "ResumeState",
     "SNORM_MAX",
     "STATELESS_ENCODINGS",
@@ -421,6 +442,8 @@ __all__ = [
     "STEP_MAX",
     "STEP_MIN",
     "STEP_RANGE",
+    "SUBMIT_FIELDS",
+    "ShapeField",
     "Sphere",
     "StateOptions",
     "StateStream",
@@ -431,12 +454,15 @@ __all__ = [
     "VERSION_STRING",
     "Vec3",
     "align8",
+    "as_collider",
     "bounds_of",
     "bundle_entry_header_size",
     "bundle_size",
     "check_items_with_moves",
     "check_preamble",
     "cloth_shape",
+    "collider_shape",
+    "collider_shape_named",
     "collider_to_map",
     "control_batch_from_map",
     "control_batch_reply_from_map",
@@ -505,6 +531,7 @@ __all__ = [
     "parse_obj",
     "parse_obj_exact",
     "pinned_out_of_range",
+    "pins_only",
     "prediction",
     "quant16_decode",
     "quant16_decode_many",

@@ -1,11 +1,13 @@
 """Encoders and validating decoders of every request: submit (with 1.3 resume), control, batch
-control (1.1, with 1.4 moves), remove, info (PROTOCOL.md sections 4-8). The replies' (submit,
-control, batch, remove, ok, errors, stats) are in replies.py and re-exported here, so
-``codec`` names the codec of every msgpack message."""
+control (1.1, with 1.4 moves), remove, info (PROTOCOL.md sections 4-8). The fields a control and a
+submission share are read by iterating over the field table (requestfields.CONTROL_FIELDS), one
+reader per kind. The requests' maps (wiremaps.py) and the replies' codec (submit, control,
+batch, remove, ok, errors, stats; replies.py) are re-exported here, so ``codec`` names the codec
+of every msgpack message."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -27,7 +29,7 @@ from .messages import (
     RemoveRequest,
     SubmitRequest,
 )
-from .moves import check_items_with_moves, moves_to_map, read_moves
+from .moves import check_items_with_moves, read_moves
 from .replies import (  # noqa: F401  re-exported: codec names every message's codec
     control_batch_reply_from_map,
     control_reply_from_map,
@@ -45,10 +47,9 @@ from .replies import (  # noqa: F401  re-exported: codec names every message's c
     submit_reply_from_map,
     tick_reply_from_map,
 )
+from .requestfields import CONTROL_WIRE_ORDER, SUBMIT_FIELDS, RequestField
 from .validate import (
-    _blob,
     _check_finite_array,
-    _f,
     _header,
     _peek_rid,
     _read_colliders,
@@ -58,11 +59,7 @@ from .validate import (
     _read_state_options,
     _Reader,
     _rid,
-    _state_map,
     _tname,
-    _v3,
-    collider_to_map,
-    material_to_map,
     pack,
     pinned_out_of_range,
     too_many_vertices,
@@ -80,70 +77,15 @@ from .vocabulary import (
     ResumeState,
     _empty_u32,
 )
+from .wiremaps import (  # noqa: F401  re-exported: codec names every message's codec
+    control_batch_to_map,
+    control_item_to_map,
+    control_to_map,
+    resume_to_map,
+    submit_to_map,
+)
 
 _ID_WHAT = "1-64 characters of [A-Za-z0-9_.-]"  # what keys.ID_RE accepts, for error messages
-
-
-def submit_to_map(req: SubmitRequest) -> dict[str, Any]:
-    m = _header(req.rid)
-    m["client"] = req.client
-    if req.grid is not None:
-        g = req.grid
-        m["grid"] = {
-            "cols": int(g.cols),
-            "rows": int(g.rows),
-            "width": _f(g.width),
-            "height": _f(g.height),
-            "orientation": g.orientation,
-            "origin": _v3(g.origin),
-        }
-    if req.mesh is not None:
-        m["mesh"] = {"vertices": _blob(req.mesh.vertices, "f4"), "triangles": _blob(req.mesh.triangles, "u4")}
-    if len(req.pinned):
-        m["pinned"] = _blob(req.pinned, "u4")
-    if req.links is not None:
-        m["links"] = {
-            "structural": bool(req.links.structural),
-            "shear": bool(req.links.shear),
-            "bending": bool(req.links.bending),
-        }
-    if req.material:
-        m["material"] = material_to_map(req.material)
-    if req.features:
-        m["features"] = list(req.features)
-    if req.gravity is not None:
-        m["gravity"] = _v3(req.gravity)
-    if req.wind is not None:
-        m["wind"] = _v3(req.wind)
-    if req.iterations is not None:
-        m["iterations"] = int(req.iterations)
-    if req.substeps is not None:
-        m["substeps"] = int(req.substeps)
-    if req.chebyshev_rho is not None:
-        m["chebyshev_rho"] = _f(req.chebyshev_rho)
-    if req.colliders is not None:
-        m["colliders"] = [collider_to_map(c) for c in req.colliders]
-    if req.state is not None:
-        m["state"] = _state_map(req.state)
-    if req.quality is not None:
-        m["quality"] = str(req.quality)
-    if req.resume is not None:
-        m["resume"] = resume_to_map(req.resume)
-    return m
-
-
-def resume_to_map(rs: ResumeState) -> dict[str, Any]:
-    """1.3: the ``resume`` map of a submission (PROTOCOL.md section 4.1)."""
-    m: dict[str, Any] = {"positions": _blob(rs.positions, "f4")}
-    if rs.velocities is not None:
-        m["velocities"] = _blob(rs.velocities, "f4")
-    if rs.tick is not None:
-        m["tick"] = int(rs.tick)
-    if rs.from_server is not None:
-        m["from_server"] = str(rs.from_server)
-    if rs.cloth is not None:
-        m["cloth"] = str(rs.cloth)
-    return m
 
 
 def _read_resume(r: _Reader, n: int, limits: Limits) -> ResumeState | None:
@@ -237,72 +179,83 @@ def submit_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS) -> Su
         d = LinkSpec()
         s, sh, b = lr.bool_("structural"), lr.bool_("shear"), lr.bool_("bending")
         links = LinkSpec(d.structural if s is None else s, d.shear if sh is None else sh, d.bending if b is None else b)
-    acc = limits.max_acceleration
+    shared = _read_fields(r, SUBMIT_FIELDS, True)
     return SubmitRequest(
         client=client,  # type: ignore[arg-type]
         grid=grid,
         mesh=mesh,
         pinned=pinned,
         links=links,
-        material=_read_material(r),
-        features=_read_features(r) or (),
-        gravity=r.vec3("gravity", acc),
-        wind=r.vec3("wind", acc),
-        iterations=r.int_("iterations", 0, limits.max_iterations),
-        substeps=r.int_("substeps", 1, limits.max_substeps),
-        chebyshev_rho=_read_rho(r),
-        colliders=_read_colliders(r),
-        state=_read_state_options(r),
-        quality=r.str_("quality", choices=QUALITY_PRESETS),
         rid=rid,
         resume=_read_resume(r, n, limits),
+        **shared,
     )
 
 
 # ---------------------------------------------------------------------------------------------
+# The fields a control and a submission share (requestfields.CONTROL_FIELDS)
+
+
+def _read_pins(r: _Reader, key: str, n_vertices: int | None) -> PinUpdate | None:
+    """A control's ``pins``: as many targets as indices; with ``n_vertices``, indices in range."""
+    limits = r.limits
+    pr = r.sub(key)
+    if pr is None:
+        return None
+    idx = pr.blob("indices", "u4", 1, limits.max_pin_updates, True)
+    tgt = pr.blob("targets", "f4", 3, limits.max_pin_updates, True)
+    assert idx is not None and tgt is not None
+    if len(idx) != len(tgt):
+        raise r.fail(ERR_INVALID_VALUE, f"'{r.name(key)}' has {len(idx)} indices but {len(tgt)} targets")
+    if n_vertices is not None and idx.size and int(idx.max()) >= n_vertices:
+        raise r.fail(
+            ERR_INDEX_OUT_OF_RANGE,
+            f"'{pr.name('indices')}' refers to vertex {int(idx.max())} but the cloth has {n_vertices} vertices",
+        )
+    _check_finite_array(r, pr.name("targets"), tgt, limits.max_coordinate)
+    return PinUpdate(idx, tgt)
+
+
+#: kind -> reader(reader, field, submission?, vertex count or None): the value, None if absent.
+_READERS: dict[str, Callable[[_Reader, RequestField, bool, int | None], Any]] = {
+    "pins": lambda r, f, sub, n: _read_pins(r, f.name, n),
+    "colliders": lambda r, f, sub, n: _read_colliders(r, f.name),
+    "vec3": lambda r, f, sub, n: r.vec3(f.name, getattr(r.limits, f.limit)),
+    "material": lambda r, f, sub, n: _read_material(r, f.name),
+    "features": lambda r, f, sub, n: _read_features(r, f.name),
+    "int": lambda r, f, sub, n: r.int_(f.name, f.lo, getattr(r.limits, f.limit)),
+    "fraction": lambda r, f, sub, n: _read_rho(r, f.name),
+    "state": lambda r, f, sub, n: _read_state_options(r, f.name, submit=sub),
+    "quality": lambda r, f, sub, n: r.str_(f.name, choices=QUALITY_PRESETS),
+    "flag": lambda r, f, sub, n: r.bool_(f.name),
+}
+
+
+def _read_fields(
+    r: _Reader, table: tuple[RequestField, ...], submit: bool, n_vertices: int | None = None
+) -> dict[str, Any]:
+    """The fields of ``table`` present in ``r``'s map, validated, by name (absent and nil ones
+    left out: the request's defaults apply)."""
+    out: dict[str, Any] = {}
+    m = r.m
+    for f, read in _READ_PLANS.get(id(table)) or _read_plan(table):
+        if f.name in m:
+            v = read(r, f, submit, n_vertices)
+            if v is not None:
+                out[f.name] = v
+    return out
+
+
+_READ_PLANS: dict[int, tuple[tuple[RequestField, Callable[..., Any]], ...]] = {}  # by id(table)
+
+
+def _read_plan(table: tuple[RequestField, ...]) -> tuple[tuple[RequestField, Callable[..., Any]], ...]:
+    plan = _READ_PLANS[id(table)] = tuple((f, _READERS[f.kind]) for f in table)
+    return plan
+
+
+# ---------------------------------------------------------------------------------------------
 # Control, remove, info
-
-
-def control_to_map(req: ControlRequest) -> dict[str, Any]:
-    m = _header(req.rid)
-    m.update(control_item_to_map(req))
-    return m
-
-
-def control_item_to_map(req: ControlRequest) -> dict[str, Any]:
-    """A control's fields without ``v`` and ``rid``: one item of a batch control."""
-    m: dict[str, Any] = {}
-    m["cloth"] = req.cloth
-    m["token"] = req.token
-    if req.pins is not None:
-        m["pins"] = {"indices": _blob(req.pins.indices, "u4"), "targets": _blob(req.pins.targets, "f4")}
-    if req.colliders is not None:
-        m["colliders"] = [collider_to_map(c) for c in req.colliders]
-    if req.gravity is not None:
-        m["gravity"] = _v3(req.gravity)
-    if req.wind is not None:
-        m["wind"] = _v3(req.wind)
-    if req.material:
-        m["material"] = material_to_map(req.material)
-    if req.features is not None:
-        m["features"] = list(req.features)
-    if req.features_add is not None:
-        m["features_add"] = list(req.features_add)
-    if req.features_remove is not None:
-        m["features_remove"] = list(req.features_remove)
-    if req.iterations is not None:
-        m["iterations"] = int(req.iterations)
-    if req.substeps is not None:
-        m["substeps"] = int(req.substeps)
-    if req.chebyshev_rho is not None:
-        m["chebyshev_rho"] = _f(req.chebyshev_rho)
-    if req.state is not None:
-        m["state"] = _state_map(req.state)
-    if req.quality is not None:
-        m["quality"] = str(req.quality)
-    if req.reset:
-        m["reset"] = True
-    return m
 
 
 def encode_control(req: ControlRequest) -> bytes:
@@ -332,53 +285,15 @@ def control_from_map(
 def _read_control(r: _Reader, rid: int, n_vertices: int | None = None) -> ControlRequest:
     """The fields of a control (a whole message, or one batch item whose reader path names it).
     Only the fields present are read (a per-tick control carries two or three of them)."""
-    limits = r.limits
-    m = r.m
     cloth, token = _owner_fields(r)
-    pins = None
-    pr = r.sub("pins") if "pins" in m else None
-    if pr is not None:
-        idx = pr.blob("indices", "u4", 1, limits.max_pin_updates, True)
-        tgt = pr.blob("targets", "f4", 3, limits.max_pin_updates, True)
-        assert idx is not None and tgt is not None
-        if len(idx) != len(tgt):
-            raise r.fail(ERR_INVALID_VALUE, f"'{r.name('pins')}' has {len(idx)} indices but {len(tgt)} targets")
-        if n_vertices is not None and idx.size and int(idx.max()) >= n_vertices:
-            raise r.fail(
-                ERR_INDEX_OUT_OF_RANGE,
-                f"'{pr.name('indices')}' refers to vertex {int(idx.max())} but the cloth has {n_vertices} vertices",
-            )
-        _check_finite_array(r, pr.name("targets"), tgt, limits.max_coordinate)
-        pins = PinUpdate(idx, tgt)
-    acc = limits.max_acceleration
-    reset = r.bool_("reset") if "reset" in m else None
-    add = _read_features(r, "features_add") if "features_add" in m else None
-    remove = _read_features(r, "features_remove") if "features_remove" in m else None
-    both = set(add or ()) & set(remove or ())
+    given = _read_fields(r, CONTROL_WIRE_ORDER, False, n_vertices)
+    both = set(given.get("features_add", ())) & set(given.get("features_remove", ()))
     if both:
         raise r.fail(
             ERR_INVALID_VALUE,
             f"feature(s) {sorted(both)} in both '{r.name('features_add')}' and '{r.name('features_remove')}'",
         )
-    return ControlRequest(
-        cloth=cloth,
-        token=token,
-        pins=pins,
-        colliders=_read_colliders(r) if "colliders" in m else None,
-        gravity=r.vec3("gravity", acc) if "gravity" in m else None,
-        wind=r.vec3("wind", acc) if "wind" in m else None,
-        material=_read_material(r) if "material" in m else {},
-        features=_read_features(r) if "features" in m else None,
-        iterations=r.int_("iterations", 0, limits.max_iterations) if "iterations" in m else None,
-        substeps=r.int_("substeps", 1, limits.max_substeps) if "substeps" in m else None,
-        chebyshev_rho=_read_rho(r) if "chebyshev_rho" in m else None,
-        state=_read_state_options(r, submit=False) if "state" in m else None,
-        reset=bool(reset),
-        quality=r.str_("quality", choices=QUALITY_PRESETS) if "quality" in m else None,
-        rid=rid,
-        features_add=add,
-        features_remove=remove,
-    )
+    return ControlRequest(cloth=cloth, token=token, rid=rid, **given)
 
 
 def remove_to_map(req: RemoveRequest) -> dict[str, Any]:
@@ -417,16 +332,6 @@ def decode_info(data: bytes | bytearray, limits: Limits = DEFAULT_LIMITS) -> Inf
 
 # ---------------------------------------------------------------------------------------------
 # Batch control (1.1)
-
-
-def control_batch_to_map(req: ControlBatchRequest) -> dict[str, Any]:
-    m = _header(req.rid)
-    m["client"] = req.client
-    if req.items or req.moves is None:
-        m["items"] = [control_item_to_map(it) for it in req.items]
-    if req.moves is not None:  # 1.4
-        m["moves"] = moves_to_map(req.moves)
-    return m
 
 
 def encode_control_batch(req: ControlBatchRequest) -> bytes:

@@ -1,14 +1,16 @@
 """Every request and reply as a dataclass (PROTOCOL.md sections 4-8), and the feature-set rule
-of a control (:func:`resolve_features`)."""
+of a control (:func:`resolve_features`). A request equals another when their wire maps
+(wiremaps.py) are equal."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
 
 from .errors import DrapeError, ProtocolError, error_for
+from .requestfields import CONTROL_FIELDS, SUBMIT_FIELDS
 from .vocabulary import (
     FEATURE_NAMES,
     Collider,
@@ -22,6 +24,7 @@ from .vocabulary import (
     Vec3,
     _empty_u32,
 )
+from .wiremaps import control_batch_to_map, control_to_map, submit_to_map
 
 
 @dataclass(eq=False)
@@ -54,8 +57,6 @@ class SubmitRequest:
         return len(self.mesh.vertices)
 
     def __eq__(self, other: object) -> bool:
-        from .codec import submit_to_map
-
         return isinstance(other, SubmitRequest) and submit_to_map(self) == submit_to_map(other)
 
 
@@ -82,9 +83,16 @@ class ControlRequest:
     features_remove: tuple[str, ...] | None = None  # 1.2: switched off, the others kept
 
     def __eq__(self, other: object) -> bool:
-        from .codec import control_to_map
-
         return isinstance(other, ControlRequest) and control_to_map(self) == control_to_map(other)
+
+
+# The requests declare the field table's names (requestfields.CONTROL_FIELDS) as typed attributes.
+assert {f.name for f in fields(ControlRequest)} == {"cloth", "token", "rid", *(f.name for f in CONTROL_FIELDS)}, (
+    "ControlRequest must declare requestfields.CONTROL_FIELDS"
+)
+assert {f.name for f in SUBMIT_FIELDS} <= {f.name for f in fields(SubmitRequest)}, (
+    "SubmitRequest must declare requestfields.SUBMIT_FIELDS"
+)
 
 
 @dataclass
@@ -145,8 +153,6 @@ class ControlBatchRequest:
     moves: PinMoves | None = None
 
     def __eq__(self, other: object) -> bool:
-        from .codec import control_batch_to_map
-
         return isinstance(other, ControlBatchRequest) and control_batch_to_map(self) == control_batch_to_map(other)
 
 

@@ -16,15 +16,17 @@ states it, and :mod:`.codec` enforces it.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from .cheader import c_header
 from .errors import ERROR_CODES
 from .keys import ID_RE, PROTOCOL_MAJOR, TOKEN_RE, VERSION_STRING
+from .requestfields import CONTROL_FIELDS, SUBMIT_FIELDS, RequestField
 from .stats import STATS_FIELDS
 from .vocabulary import (
-    COLLIDER_TYPES,
+    COLLIDER_SHAPES,
     DEFAULT_LIMITS,
     ENCODINGS,
     FEATURE_NAMES,
@@ -103,11 +105,9 @@ def _defs() -> dict[str, Any]:
         material[name] = {**_nullable(s), "default": MATERIAL_DEFAULTS[name]}
     bound = L.max_coordinate
     colliders = {
-        "sphere": {"center": _vec3(bound), "radius": _num(0.0, bound)},
-        "capsule": {"p0": _vec3(bound), "p1": _vec3(bound), "radius": _num(0.0, bound)},
-        "plane": {"normal": _vec3(bound), "offset": _num(-bound, bound)},
+        shape.name: {f.name: _vec3(bound) if f.vec3 else _num(-bound if f.signed else 0.0, bound) for f in shape.fields}
+        for shape in COLLIDER_SHAPES
     }
-    assert tuple(colliders) == COLLIDER_TYPES
     return {
         "version": {
             "type": "array",
@@ -151,31 +151,31 @@ def _defs() -> dict[str, Any]:
     }
 
 
+#: kind -> the JSON Schema of a field of that kind (requestfields.FIELD_KINDS), nullable.
+_KIND_SCHEMAS: dict[str, Callable[[RequestField], dict[str, Any]]] = {
+    "pins": lambda f: {"$ref": "#/$defs/pins"},
+    "colliders": lambda f: {"$ref": "#/$defs/colliders"},
+    "vec3": lambda f: _vec3(getattr(L, f.limit)),
+    "material": lambda f: {"$ref": "#/$defs/material"},
+    "features": lambda f: {"$ref": "#/$defs/features"},
+    "int": lambda f: _int(f.lo, getattr(L, f.limit)),
+    "fraction": lambda f: {"type": "number", "minimum": 0, "exclusiveMaximum": 1},
+    "state": lambda f: {"$ref": "#/$defs/state"},
+    "quality": lambda f: {"$ref": "#/$defs/quality"},
+    "flag": lambda f: {"type": "boolean"},
+}
+
+
 def _solver_fields() -> dict[str, Any]:
-    acc = L.max_acceleration
-    return {
-        "material": _nullable({"$ref": "#/$defs/material"}),
-        "features": _nullable({"$ref": "#/$defs/features"}),
-        "gravity": _nullable(_vec3(acc)),
-        "wind": _nullable(_vec3(acc)),
-        "iterations": _nullable(_int(0, L.max_iterations)),
-        "substeps": _nullable(_int(1, L.max_substeps)),
-        "chebyshev_rho": _nullable({"type": "number", "minimum": 0, "exclusiveMaximum": 1}),
-        "colliders": _nullable({"$ref": "#/$defs/colliders"}),
-        "state": _nullable({"$ref": "#/$defs/state"}),
-        "quality": _nullable({"$ref": "#/$defs/quality"}),
-    }
+    """The fields a submission shares with a control."""
+    return {f.name: _nullable(_KIND_SCHEMAS[f.kind](f)) for f in SUBMIT_FIELDS}
 
 
 def _control_item() -> dict[str, Any]:
     return {
         "cloth": {"$ref": "#/$defs/id"},
         "token": {"$ref": "#/$defs/token"},
-        "pins": _nullable({"$ref": "#/$defs/pins"}),
-        **_solver_fields(),
-        "features_add": _nullable({"$ref": "#/$defs/features"}),
-        "features_remove": _nullable({"$ref": "#/$defs/features"}),
-        "reset": _nullable({"type": "boolean"}),
+        **{f.name: _nullable(_KIND_SCHEMAS[f.kind](f)) for f in CONTROL_FIELDS},
     }
 
 

@@ -35,13 +35,12 @@ from .vocabulary import (
     MAX_STRING_BYTES,
     STEP_MAX,
     STEP_MIN,
-    Capsule,
     Collider,
     Limits,
-    Plane,
-    Sphere,
     StateOptions,
     Vec3,
+    collider_shape,
+    collider_shape_named,
 )
 
 
@@ -384,23 +383,18 @@ def _read_colliders(r: _Reader, key: str = "colliders") -> tuple[Collider, ...] 
         if not isinstance(c, dict):
             raise r.fail(ERR_INVALID_TYPE, f"'{name}' must be a map, got {_tname(c)}")
         cr = _Reader(c, name, r.rid, r.limits)
-        kind = cr.str_("type", True, COLLIDER_TYPES)
-        if kind == "sphere":
-            out.append(Sphere(cr.vec3("center", bound, True), cr.num("radius", 0.0, bound, True)))  # type: ignore[arg-type]
-        elif kind == "capsule":
-            out.append(
-                Capsule(
-                    cr.vec3("p0", bound, True),  # type: ignore[arg-type]
-                    cr.vec3("p1", bound, True),  # type: ignore[arg-type]
-                    cr.num("radius", 0.0, bound, True),  # type: ignore[arg-type]
-                )
-            )
-        else:
-            n = cr.vec3("normal", bound, True)
-            assert n is not None
-            if not any(n):
-                raise r.fail(ERR_INVALID_VALUE, f"'{name}.normal' must be non-zero")
-            out.append(Plane(n, cr.num("offset", -bound, bound, True)))  # type: ignore[arg-type]
+        shape = collider_shape_named(cr.str_("type", True, COLLIDER_TYPES))  # type: ignore[arg-type]
+        values: list[Any] = []
+        for f in shape.fields:
+            if f.vec3:
+                v = cr.vec3(f.name, bound, True)
+                assert v is not None
+                if f.nonzero and not any(v):
+                    raise r.fail(ERR_INVALID_VALUE, f"'{cr.name(f.name)}' must be non-zero")
+                values.append(v)
+            else:
+                values.append(cr.num(f.name, -bound if f.signed else 0.0, bound, True))
+        out.append(shape.cls(*values))
     return tuple(out)
 
 
@@ -417,10 +411,11 @@ def _read_state_options(r: _Reader, key: str = "state", submit: bool = True) -> 
     return StateOptions(sub.bool_("normals"), sub.str_("encoding", choices=ENCODINGS), bundle, step)
 
 
-def _read_rho(r: _Reader) -> float | None:
-    rho = r.num("chebyshev_rho", 0.0, 1.0)
+def _read_rho(r: _Reader, key: str = "chebyshev_rho") -> float | None:
+    """A number in [0, 1) (the ``fraction`` kind of requestfields)."""
+    rho = r.num(key, 0.0, 1.0)
     if rho is not None and rho >= 1.0:
-        raise r.fail(ERR_INVALID_VALUE, f"'{r.name('chebyshev_rho')}' must be in [0, 1), got {rho}")
+        raise r.fail(ERR_INVALID_VALUE, f"'{r.name(key)}' must be in [0, 1), got {rho}")
     return rho
 
 
@@ -448,16 +443,15 @@ def _blob(arr: np.ndarray | Sequence, dtype: str) -> bytes:
 
 
 def collider_to_map(c: Any) -> dict[str, Any]:
-    """A collider (this module's or drape.server.sim.params', or a dict) as its wire map."""
+    """A collider (a COLLIDER_SHAPES dataclass, or a dict) as its wire map."""
     if isinstance(c, Mapping):
         return dict(c)
-    if hasattr(c, "center"):
-        return {"type": "sphere", "center": _v3(c.center), "radius": _f(c.radius)}
-    if hasattr(c, "p0"):
-        return {"type": "capsule", "p0": _v3(c.p0), "p1": _v3(c.p1), "radius": _f(c.radius)}
-    if hasattr(c, "normal"):
-        return {"type": "plane", "normal": _v3(c.normal), "offset": _f(c.offset)}
-    raise TypeError(f"not a collider: {c!r}")
+    shape = collider_shape(c)
+    m: dict[str, Any] = {"type": shape.name}
+    for f in shape.fields:
+        v = getattr(c, f.name)
+        m[f.name] = _v3(v) if f.vec3 else _f(v)
+    return m
 
 
 def material_to_map(material: Any) -> dict[str, Any]:

@@ -5,7 +5,10 @@ defaults and ranges from here."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import functools
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, fields
+from typing import Any
 
 import numpy as np
 
@@ -55,8 +58,6 @@ QUALITY_PRESETS = ("fast", "balanced", "accurate", "exact")
 ORIENTATIONS = ("horizontal", "vertical")
 #: Link types, in the order of their ids on the server (0 structural, 1 shear, 2 bending).
 LINK_TYPE_NAMES = ("structural", "shear", "bending")
-#: Collider types, in the order of their ids on the server (0 sphere, 1 capsule, 2 plane).
-COLLIDER_TYPES = ("sphere", "capsule", "plane")
 #: 1.2: the least total mass (kg). Smaller masses make per-vertex masses or inverse masses that
 #: float32 cannot hold (subnormal, or infinite), which turns the cloth non-finite every tick.
 MIN_MASS = 1.0e-9
@@ -116,6 +117,118 @@ class Plane:
 
 
 Collider = Sphere | Capsule | Plane
+
+#: A device collider slot's two float4 rows without the type: row 0 (x0, y0, z0, w0), row 1 xyz
+#: (the packer writes the shape's id in row 1's w). The layout is kernels/layout.h's.
+ColliderRows = tuple[tuple[float, float, float, float], tuple[float, float, float]]
+
+
+@dataclass(frozen=True)
+class ShapeField:
+    """One wire field of a collider shape: a vec3 (each component within +-max_coordinate) or a
+    number (within 0..max_coordinate, or +-max_coordinate when ``signed``); ``nonzero``: a vec3
+    that must not be all zeros."""
+
+    name: str
+    vec3: bool = False
+    signed: bool = False
+    nonzero: bool = False
+
+
+@dataclass(frozen=True)
+class ColliderShape:
+    """A collider shape: its wire ``type`` name, dataclass, wire fields (in wire order, the
+    dataclass's fields) and its packing into a device collider slot (``rows``; ValueError when
+    the collider cannot be packed). Its type id on the device is its position in COLLIDER_SHAPES."""
+
+    name: str
+    cls: type
+    fields: tuple[ShapeField, ...]
+    rows: Callable[[Any], ColliderRows]
+
+
+def _plane_rows(c: Plane) -> ColliderRows:
+    """Row 0 = the unit normal and the offset (the normal normalised in float64)."""
+    n = np.asarray(c.normal, np.float64)
+    norm = float(np.linalg.norm(n))
+    if not norm > 0.0:
+        raise ValueError("plane normal must be non-zero")
+    x, y, z = (float(v) for v in n / norm)
+    return (x, y, z, c.offset), (0.0, 0.0, 0.0)
+
+
+#: Every collider shape, each declared once (PROTOCOL.md section 4, "Colliders"): the codec,
+#: validation, JSON Schema and the server's packing (drape.server.sim.params.pack_colliders)
+#: iterate over it. Row 0 of a slot holds (point, radius) and row 1 (point, type id): a sphere
+#: repeats its centre; a plane keeps its unit normal and offset in row 0.
+COLLIDER_SHAPES: tuple[ColliderShape, ...] = (
+    ColliderShape(
+        "sphere",
+        Sphere,
+        (ShapeField("center", vec3=True), ShapeField("radius")),
+        lambda c: ((*c.center, c.radius), c.center),
+    ),
+    ColliderShape(
+        "capsule",
+        Capsule,
+        (ShapeField("p0", vec3=True), ShapeField("p1", vec3=True), ShapeField("radius")),
+        lambda c: ((*c.p0, c.radius), c.p1),
+    ),
+    ColliderShape(
+        "plane",
+        Plane,
+        (ShapeField("normal", vec3=True, nonzero=True), ShapeField("offset", signed=True)),
+        _plane_rows,
+    ),
+)
+#: Collider type names, in the order of their ids on the device (0 sphere, 1 capsule, 2 plane).
+COLLIDER_TYPES = tuple(s.name for s in COLLIDER_SHAPES)
+COLLIDER_IDS = {s.name: i for i, s in enumerate(COLLIDER_SHAPES)}
+_SHAPE_OF_CLASS = {s.cls: s for s in COLLIDER_SHAPES}
+for _s in COLLIDER_SHAPES:
+    assert tuple(f.name for f in _s.fields) == tuple(f.name for f in fields(_s.cls)), _s.name
+
+
+def collider_shape(c: object) -> ColliderShape:
+    """The shape of collider ``c``: by its class, else (an object of another library) the first
+    shape whose every field it has. TypeError for anything else."""
+    shape = _SHAPE_OF_CLASS.get(type(c))
+    if shape is not None:
+        return shape
+    for shape in COLLIDER_SHAPES:
+        if isinstance(c, shape.cls) or all(hasattr(c, f.name) for f in shape.fields):
+            return shape
+    raise TypeError(f"not a collider: {c!r}")
+
+
+def as_collider(c: Any) -> Collider:
+    """``c`` as a protocol collider: one already, a wire map (``{"type": "sphere", ...}``) or an
+    object with a shape's fields (TypeError or ValueError for anything else)."""
+    if type(c) in _SHAPE_OF_CLASS:
+        return c  # type: ignore[no-any-return]
+    if isinstance(c, Mapping):
+        kind = c.get("type")
+        if kind not in COLLIDER_IDS:
+            raise TypeError(f"not a collider: {c!r}")
+        shape = COLLIDER_SHAPES[COLLIDER_IDS[kind]]
+        get = c.__getitem__
+    else:
+        shape = collider_shape(c)
+        get = functools.partial(getattr, c)
+    values = []
+    for f in shape.fields:
+        v = get(f.name)
+        if f.vec3:
+            v = tuple(float(x) for x in v)
+            if len(v) != 3:
+                raise ValueError(f"collider {shape.name}.{f.name}: expected 3 numbers, got {len(v)}")
+        values.append(v if f.vec3 else float(v))
+    return shape.cls(*values)  # type: ignore[no-any-return]
+
+
+def collider_shape_named(name: str) -> ColliderShape:
+    """The shape whose wire ``type`` is ``name`` (KeyError if none)."""
+    return COLLIDER_SHAPES[COLLIDER_IDS[name]]
 
 
 @dataclass(frozen=True)

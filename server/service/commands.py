@@ -37,6 +37,7 @@ import numpy as np
 import zenoh
 
 from drape.client import protocol as P
+from drape.client.protocol.requestfields import CONTROL_FIELDS, any_given
 
 from ..sim.world import World
 from .registry import ClothRecord
@@ -138,14 +139,11 @@ class Prepare:
     params: Any
 
 
+_gives_features = any_given(f for f in CONTROL_FIELDS if f.acts in ("features", "quality"))
+
+
 def _touches_features(r: P.ControlRequest) -> bool:
-    return bool(
-        r.features is not None
-        or getattr(r, "features_add", None)
-        or getattr(r, "features_remove", None)
-        or (r.state is not None and r.state.normals is not None)
-        or r.quality is not None
-    )
+    return _gives_features(r) or (r.state is not None and r.state.normals is not None)
 
 
 def mergeable(a: P.ControlRequest, b: P.ControlRequest) -> bool:
@@ -157,43 +155,57 @@ def mergeable(a: P.ControlRequest, b: P.ControlRequest) -> bool:
     return not (a.colliders and b.colliders is not None and not b.colliders)  # [] keeps the feature a set
 
 
-def merge_controls(a: P.ControlRequest, b: P.ControlRequest) -> P.ControlRequest:
-    """``a`` then ``b`` as one control: b's fields win where given."""
-    pins = a.pins
-    if b.pins is not None and len(b.pins.indices):
-        if pins is None or not len(pins.indices):
-            pins = b.pins
-        else:
-            idx = np.concatenate([pins.indices, b.pins.indices])
-            tgt = np.concatenate([np.asarray(pins.targets).reshape(-1, 3), np.asarray(b.pins.targets).reshape(-1, 3)])
-            rev = idx[::-1]
-            _, first = np.unique(rev, return_index=True)  # last occurrence of each index wins
-            keep = np.sort(len(idx) - 1 - first)
-            pins = replace(b.pins, indices=idx[keep], targets=tgt[keep])
-    changes: dict[str, Any] = {
-        "pins": pins,
-        "material": {**a.material, **b.material},
-        "reset": a.reset or b.reset,
-        "rid": b.rid,
+def _merge_pins(pa: P.PinUpdate | None, pb: P.PinUpdate | None) -> P.PinUpdate | None:
+    if pb is None or not len(pb.indices):
+        return pa
+    if pa is None or not len(pa.indices):
+        return pb
+    idx = np.concatenate([pa.indices, pb.indices])
+    tgt = np.concatenate([np.asarray(pa.targets).reshape(-1, 3), np.asarray(pb.targets).reshape(-1, 3)])
+    rev = idx[::-1]
+    _, first = np.unique(rev, return_index=True)  # last occurrence of each index wins
+    keep = np.sort(len(idx) - 1 - first)
+    return replace(pb, indices=idx[keep], targets=tgt[keep])
+
+
+def _merge_state(sa: P.StateOptions | None, sb: P.StateOptions | None) -> P.StateOptions | None:
+    if sa is None and sb is None:
+        return None
+    sa, sb = sa or P.StateOptions(), sb or P.StateOptions()
+    return replace(sa, **{k: v for k, v in vars(sb).items() if v is not None})
+
+
+def _merge_features(a: P.ControlRequest, b: P.ControlRequest) -> dict[str, Any]:
+    """``features``, ``features_add`` and ``features_remove`` of ``a`` then ``b``."""
+    if b.features is not None:
+        return {"features": b.features, "features_add": b.features_add, "features_remove": b.features_remove}
+    add_a, rem_a = set(a.features_add or ()), set(a.features_remove or ())
+    add_b, rem_b = set(b.features_add or ()), set(b.features_remove or ())
+    add, rem = (add_a - rem_b) | add_b, (rem_a - add_b) | rem_b
+    return {
+        "features": a.features,
+        "features_add": tuple(sorted(add)) or None,
+        "features_remove": tuple(sorted(rem)) or None,
     }
-    for name in ("colliders", "gravity", "wind", "iterations", "substeps", "chebyshev_rho", "quality"):
-        v = getattr(b, name)
-        changes[name] = v if v is not None else getattr(a, name)
-    if a.state is not None or b.state is not None:
-        sa, sb = a.state or P.StateOptions(), b.state or P.StateOptions()
-        changes["state"] = replace(sa, **{k: v for k, v in vars(sb).items() if v is not None})
-    if hasattr(b, "features_add"):
-        add_a, rem_a = set(a.features_add or ()), set(a.features_remove or ())
-        add_b, rem_b = set(b.features_add or ()), set(b.features_remove or ())
-        if b.features is not None:
-            changes.update(features=b.features, features_add=b.features_add, features_remove=b.features_remove)
-        else:
-            add, rem = (add_a - rem_b) | add_b, (rem_a - add_b) | rem_b
-            changes.update(
-                features=a.features, features_add=tuple(sorted(add)) or None, features_remove=tuple(sorted(rem)) or None
-            )
-    else:
-        changes["features"] = b.features if b.features is not None else a.features
+
+
+#: requestfields.FIELD_MERGES -> a's and b's values of a field as one ("features": _merge_features).
+_MERGES: dict[str, Callable[[Any, Any], Any]] = {
+    "pins": _merge_pins,
+    "latest": lambda va, vb: vb if vb is not None else va,
+    "update": lambda va, vb: {**va, **vb},
+    "either": lambda va, vb: va or vb,
+    "keywise": _merge_state,
+}
+assert {f.merge for f in CONTROL_FIELDS} <= {*_MERGES, "features"}, "a control field merges by an unknown rule"
+
+
+def merge_controls(a: P.ControlRequest, b: P.ControlRequest) -> P.ControlRequest:
+    """``a`` then ``b`` as one control: each field merged by its rule (requestfields.CONTROL_FIELDS)."""
+    changes: dict[str, Any] = {"rid": b.rid, **_merge_features(a, b)}
+    for f in CONTROL_FIELDS:
+        if f.merge != "features":
+            changes[f.name] = _MERGES[f.merge](getattr(a, f.name), getattr(b, f.name))
     return replace(b, **changes)
 
 

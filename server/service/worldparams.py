@@ -8,24 +8,18 @@ from dataclasses import replace
 import numpy as np
 
 from drape.client import protocol as P
+from drape.client.protocol.requestfields import CONTROL_FIELDS, any_given
 
 from ..sim import quality
-from ..sim.params import Capsule, ClothParams, Features, Material, Plane, Sphere, pack_colliders
+from ..sim.params import ClothParams, Features, Material, pack_colliders
 from .config import ServerConfig
 
 
 def pack(colliders: tuple[P.Collider, ...] | None, rid: int) -> np.ndarray:
-    out: list[Sphere | Capsule | Plane] = []
-    for c in colliders or ():
-        if isinstance(c, P.Sphere):
-            out.append(Sphere(c.center, c.radius))
-        elif isinstance(c, P.Capsule):
-            out.append(Capsule(c.p0, c.p1, c.radius))
-        else:
-            out.append(Plane(c.normal, c.offset))
+    """A request's colliders as device slots (ProtocolError invalid_value when one cannot be packed)."""
     try:
-        return pack_colliders(out)
-    except ValueError as e:
+        return pack_colliders(colliders or ())
+    except (TypeError, ValueError) as e:
         raise P.ProtocolError(P.ERR_INVALID_VALUE, f"colliders: {e}", rid) from None
 
 
@@ -34,43 +28,19 @@ def features_after(req: P.ControlRequest, p: ClothParams) -> set[str]:
     return set(P.resolve_features(frozenset(p.features.names()), req))
 
 
+#: Whether a control gives a field that always changes the cloth's parameters (by where it acts).
+_gives_params = any_given(f for f in CONTROL_FIELDS if f.acts in ("param", "material", "features", "quality"))
+#: The fields copied onto the ClothParams field of the same name.
+_PARAM_FIELDS = tuple(f.name for f in CONTROL_FIELDS if f.acts == "param")
+
+
 def changes_params(req: P.ControlRequest, p: ClothParams) -> bool:
     """Whether a control changes the cloth's parameters (the common per-tick control, pins and
     colliders of a cloth whose colliders feature is on, changes none)."""
     return bool(
-        req.material
-        or req.features is not None
-        or req.gravity is not None
-        or req.wind is not None
-        or req.iterations is not None
-        or req.substeps is not None
-        or req.chebyshev_rho is not None
-        or req.quality is not None
-        or getattr(req, "features_add", None)
-        or getattr(req, "features_remove", None)
+        _gives_params(req)
         or (req.colliders and not p.features.colliders)
         or (req.state is not None and req.state.normals is not None and req.state.normals != p.features.normals)
-    )
-
-
-def pins_only(req: P.ControlRequest) -> bool:
-    """Whether a control carries pin targets and nothing else."""
-    return bool(
-        req.pins is not None
-        and len(req.pins.indices)
-        and req.colliders is None
-        and req.gravity is None
-        and req.wind is None
-        and not req.material
-        and req.features is None
-        and req.iterations is None
-        and req.substeps is None
-        and req.chebyshev_rho is None
-        and req.state is None
-        and not req.reset
-        and req.quality is None
-        and not getattr(req, "features_add", None)
-        and not getattr(req, "features_remove", None)
     )
 
 
@@ -78,15 +48,8 @@ def params_with(
     base: ClothParams, req: P.SubmitRequest | P.ControlRequest, material: Material, features: set[str]
 ) -> ClothParams:
     """``base`` with the solver fields a submit or control request gives (absent ones kept)."""
-    return base.with_(
-        material=material,
-        features=Features.from_names(sorted(features)),
-        gravity=req.gravity if req.gravity is not None else base.gravity,
-        wind=req.wind if req.wind is not None else base.wind,
-        iterations=req.iterations if req.iterations is not None else base.iterations,
-        substeps=req.substeps if req.substeps is not None else base.substeps,
-        chebyshev_rho=req.chebyshev_rho if req.chebyshev_rho is not None else base.chebyshev_rho,
-    )
+    given = {k: v for k in _PARAM_FIELDS if (v := getattr(req, k)) is not None}
+    return base.with_(material=material, features=Features.from_names(sorted(features)), **given)
 
 
 def params_from_submit(req: P.SubmitRequest) -> ClothParams:

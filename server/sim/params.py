@@ -16,7 +16,7 @@ from typing import Literal, cast
 import numpy as np
 
 from drape.client.protocol.vocabulary import (
-    COLLIDER_TYPES,
+    COLLIDER_IDS,
     DEFAULT_CHEBYSHEV_RHO,
     DEFAULT_GRAVITY,
     DEFAULT_ITERATIONS,
@@ -30,6 +30,7 @@ from drape.client.protocol.vocabulary import (
     Capsule,
     Plane,
     Sphere,
+    collider_shape,
 )
 
 LINK_STRUCTURAL, LINK_SHEAR, LINK_BENDING = (LINK_TYPE_NAMES.index(n) for n in ("structural", "shear", "bending"))
@@ -113,31 +114,21 @@ assert tuple(f.name for f in fields(Material)) == tuple(MATERIAL_FIELDS), (
 )
 
 # Colliders are the protocol's dataclasses (Sphere, Capsule, Plane: the half space n.x >= offset is
-# outside, n normalised on packing); their type ids on the device follow protocol.COLLIDER_TYPES.
+# outside, n normalised on packing); their type ids on the device are protocol.COLLIDER_IDS.
 Collider = Sphere | Capsule | Plane
-COLLIDER_SPHERE, COLLIDER_CAPSULE, COLLIDER_PLANE = (COLLIDER_TYPES.index(n) for n in ("sphere", "capsule", "plane"))
+COLLIDER_SPHERE, COLLIDER_CAPSULE, COLLIDER_PLANE = (COLLIDER_IDS[n] for n in ("sphere", "capsule", "plane"))
 
 
 def pack_colliders(colliders: list[Collider] | tuple[Collider, ...]) -> np.ndarray:
-    """Colliders as (n, 2, 4) float32: row 0 = (x0, y0, z0, radius), row 1 = (x1, y1, z1, type).
-    A sphere repeats its centre; a plane stores its unit normal in row 0 xyz, offset in w."""
+    """Colliders as (n, 2, 4) float32 device slots (kernels/layout.h): each shape's two rows
+    (protocol.COLLIDER_SHAPES: row 0 = (x0, y0, z0, w), row 1 = (x1, y1, z1)) with its type id
+    in row 1's w. ValueError for one that cannot be packed, TypeError for a non-collider."""
     out = np.zeros((len(colliders), 2, 4), np.float32)
     for i, c in enumerate(colliders):
-        if isinstance(c, Sphere):
-            out[i, 0] = (*c.center, c.radius)
-            out[i, 1] = (*c.center, COLLIDER_SPHERE)
-        elif isinstance(c, Capsule):
-            out[i, 0] = (*c.p0, c.radius)
-            out[i, 1] = (*c.p1, COLLIDER_CAPSULE)
-        elif isinstance(c, Plane):
-            n = np.asarray(c.normal, np.float64)
-            norm = float(np.linalg.norm(n))
-            if not norm > 0.0:
-                raise ValueError("plane normal must be non-zero")
-            out[i, 0] = (*(n / norm), c.offset)
-            out[i, 1] = (0.0, 0.0, 0.0, COLLIDER_PLANE)
-        else:
-            raise TypeError(f"not a collider: {c!r}")
+        shape = collider_shape(c)
+        row0, row1 = shape.rows(c)
+        out[i, 0] = row0
+        out[i, 1] = (*row1, COLLIDER_IDS[shape.name])
     if not np.all(np.isfinite(out)):
         raise ValueError("collider values must be finite")
     return out

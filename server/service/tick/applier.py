@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from drape.client import protocol as P
+from drape.client.protocol.requestfields import pins_only
 
 from ...sim import quality
 from ...sim.world import World
@@ -30,7 +31,7 @@ from ..cook.fabrics import FabricStore
 from ..publisher import Job
 from ..registry import ClothRecord, Registry
 from ..replies import Replies, Reply, send
-from ..worldparams import changes_params, params_after_control, pins_only, with_preset
+from ..worldparams import changes_params, params_after_control, with_preset
 from .moves import apply_blocks
 
 log = logging.getLogger(__name__)

@@ -29,7 +29,7 @@ def cloths(client, n: int) -> list:
 
 
 def batch(client, moves: P.PinMoves | None, items: list[P.ControlRequest] | None = None) -> P.ControlBatchReply:
-    req = P.ControlBatchRequest(client.client_id, items or [], client._next_rid(), moves)
+    req = P.ControlBatchRequest(client.client_id, items or [], client.connection.next_rid(), moves)
     return P.control_batch_reply_from_map(client.request("control_batch", P.encode_control_batch(req)))
 
 
@@ -154,8 +154,6 @@ def test_items_only_batch_of_a_1_3_client(client):
 def test_last_targets_recorded_for_failover(client):
     """A failover re-sends each handle's last pin targets: the vectorised path records them as a
     view of its last block, folded into the handle's own record in the order things were sent."""
-    from drape.client.moves import moves_of
-
     hs = cloths(client, 2)
     first = np.full((2, 2, 3), 0.1, np.float32)
     client.move_pins_many(hs, PINS, first)
@@ -164,11 +162,11 @@ def test_last_targets_recorded_for_failover(client):
     second[1, 1] = 0.4
     client.move_pins_many(hs, PINS, second)
     for h in hs:
-        moves_of(client).fold(h)
+        client.moves.fold(h)
     np.testing.assert_allclose(np.stack([hs[0]._last_pins[i] for i in PINS]), second[0])
     np.testing.assert_allclose(np.stack([hs[1]._last_pins[i] for i in PINS]), second[1])
     hs[1].move_pins([0], [[0.9, 0.9, 0.9]])
-    moves_of(client).fold(hs[1])
+    client.moves.fold(hs[1])
     np.testing.assert_allclose(hs[1]._last_pins[0], 0.9)
     np.testing.assert_allclose(hs[1]._last_pins[7], 0.4)
 

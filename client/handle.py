@@ -96,7 +96,7 @@ class ClothHandle:
         self._lock = threading.RLock()  # the state stream's fields
         self._cond = threading.Condition(self._lock)  # a state arrived, or the cloth closed
         self._waiting = 0  # threads waiting on _cond (a state wakes them only when there are any)
-        self._deliver_lock = threading.RLock()  # states are delivered one at a time, in order
+        self.deliver_lock = threading.RLock()  # states are delivered one at a time, in order
         self._queue: deque[ClothState] = deque(maxlen=max(1, queue_size))
         self._latest: ClothState | None = None
         self._callbacks: tuple[StateCallback, ...] = ()  # replaced, never changed: deliver reads it as is
@@ -163,7 +163,7 @@ class ClothHandle:
         """Queue a state and run the callbacks (on the thread that received it). ``now``: the
         monotonic time of its arrival (one clock read for a whole bundle)."""
         # acquire/release rather than ``with``: half the cost on this path, once per state per tick
-        self._deliver_lock.acquire()
+        self.deliver_lock.acquire()
         try:
             self._lock.acquire()
             try:
@@ -192,7 +192,7 @@ class ClothHandle:
                 except Exception:
                     log.exception("cloth %s: on_state callback failed", self.id)
         finally:
-            self._deliver_lock.release()
+            self.deliver_lock.release()
 
     def sample(
         self, now_ns: int | None = None, delay: float | None = None, extrapolate: bool = False
@@ -238,6 +238,10 @@ class ClothHandle:
                 pass
         if self.bundle_key is None:
             self._sub = self.client.session.declare_subscriber(self.key, self._on_sample)
+
+    def record_pins(self, indices: list[int], targets: np.ndarray) -> None:
+        """Pins ``indices`` were last sent to ``targets`` ((k, 3)): what a failover sends again."""
+        self._last_pins.update(zip(indices, targets, strict=True))
 
     def note_controls(self, changes: dict[str, Any]) -> None:
         """Remember the last pin targets and colliders sent (a failover sends them again)."""

@@ -6,7 +6,7 @@ I/O: the sending path (:mod:`.sending`) sends what this builds.
   :class:`MoveGroup`, rebuilt only when a handle of the client is rebound by a failover or
   closed), so a tick costs O(1) Python per request: no loop over cloths. :meth:`MoveBook.record`
   keeps each handle's last targets as the group's last block (one copy of the targets), folded
-  into the handle's own record (``Moved._last_pins``) only when the handle needs it
+  into the handle's own record (``ClothHandle.record_pins``) only when the handle needs it
   (:meth:`MoveBook.fold`): before its own next control, or to re-send after a failover.
 - :meth:`MoveBook.split` finds a batch's pins-only items that share one index list, to send
   them as a block instead of one item each.
@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import itertools
 import threading
+import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
 from operator import attrgetter
@@ -41,9 +42,8 @@ class Moved(Protocol):
     def server_id(self) -> str: ...
     @property
     def client(self) -> object: ...  # its owner (a DrapeClient)
-    @property
-    def _last_pins(self) -> dict[int, np.ndarray]: ...  # pinned vertex -> the last target sent
     def check_open(self) -> None: ...
+    def record_pins(self, indices: list[int], targets: np.ndarray) -> None: ...  # the last targets sent
 
 
 @dataclass(eq=False)
@@ -65,8 +65,7 @@ class MoveGroup:
 
 class MoveBook:
     """One client's moves blocks: the handle groups and the last targets sent (module docstring).
-    ``owner``: the client whose handles it takes. ``_pins_seq``, set on each handle folded, is the
-    sequence number of its last fold."""
+    ``owner``: the client whose handles it takes."""
 
     def __init__(self, owner: object) -> None:
         self.owner = owner
@@ -74,6 +73,7 @@ class MoveBook:
         self._groups: dict[tuple[Moved, ...], MoveGroup] = {}
         self._epoch = 0
         self._seq = itertools.count(1)
+        self._folded: weakref.WeakKeyDictionary[Moved, int] = weakref.WeakKeyDictionary()  # its last fold's seq
 
     # --- handles -------------------------------------------------------------------------------
     def changed(self) -> None:
@@ -123,19 +123,19 @@ class MoveBook:
             self.fold(h, g)
 
     def fold(self, handle: Moved, only: MoveGroup | None = None) -> None:
-        """Bring ``handle._last_pins`` up to date with the blocks sent since its last fold (in
-        the order they were sent): called before the handle records a control of its own and
+        """Hand ``handle`` (``record_pins``) the targets of the blocks sent since its last fold, in
+        the order they were sent: called before the handle records a control of its own and
         before a failover re-sends its last targets."""
         with self._lock:
             groups = [only] if only is not None else list(self._groups.values())
-            since = getattr(handle, "_pins_seq", 0)
+            since = self._folded.get(handle, 0)
             rows = []
             for g in groups:
                 if g.last is not None and g.last[0] > since and (j := g.row(handle)) is not None:
                     rows.append((g.last[0], g.last[1], g.last[2][j]))
-            handle._pins_seq = next(self._seq)  # type: ignore[attr-defined]
+            self._folded[handle] = next(self._seq)
         for _, idx, tgt in sorted(rows, key=lambda r: r[0]):
-            handle._last_pins.update(zip(idx.tolist(), tgt, strict=True))
+            handle.record_pins(idx.tolist(), tgt)
 
     # --- batches --------------------------------------------------------------------------------
     @staticmethod

@@ -239,7 +239,7 @@ class Submitter:
                 h = make(rep)
             else:
                 old_id = h.id
-            with h._deliver_lock:  # states of the bundle reach the handle only after these
+            with h.deliver_lock:  # states of the bundle reach the handle only after these
                 if old_id is not None:
                     h.rebind(rep, server)
                 with self.cloths.lock:

@@ -406,7 +406,7 @@ class ClothHandle:
         req = P.ControlRequest(self.id, self.token, rid=sender.session.next_rid(), **changes)
         sender.server_info(self.server_id or None, (req,))  # refused before it is recorded
         self.note_controls(changes)
-        rep = sender.control(self, req, wait)
+        rep = sender.control(self, req, wait, checked=True)
         if rep is None:
             return None
         if rep.features is not None:  # 1.2 servers report the feature set after the change

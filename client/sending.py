@@ -81,11 +81,13 @@ class ControlSender:
 
     # --- one cloth --------------------------------------------------------------------------------
     def control(
-        self, h: Target, req: P.ControlRequest, wait: bool, timeout: float | None = None
+        self, h: Target, req: P.ControlRequest, wait: bool, timeout: float | None = None, checked: bool = False
     ) -> P.ControlReply | None:
         """``req`` to ``h``'s server; ``wait``: its reply (raising its DrapeError), else None (an
-        error goes to the log and ``send_errors``)."""
-        self.server_info(h.server_id or None, (req,))
+        error goes to the log and ``send_errors``). ``checked``: the caller checked that the server
+        takes it (``server_info``)."""
+        if not checked:
+            self.server_info(h.server_id or None, (req,))
         if not wait:
             self.session.send(
                 "control",

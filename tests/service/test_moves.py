@@ -171,6 +171,30 @@ def test_last_targets_recorded_for_failover(client):
     np.testing.assert_allclose(hs[1]._last_pins[7], 0.4)
 
 
+def test_controls_take_the_wire_form_of_their_cloths_own_server(server):
+    """A client whose default server is another one (here one that does not exist) sends its
+    cloths' controls in the wire forms of the server they live on (moves block, batch, features
+    delta: 1.4 and 1.2), asking that server's info only: never the default server's."""
+    from drape.client import DrapeClient
+
+    c = DrapeClient(server.config.listen[0], server_id="ghost", timeout=TIMEOUT)
+    try:
+        hs = [c.submit_grid(8, 8, pinned=PINS, server=server.server_id) for _ in range(2)]
+        ticks = c.move_pins_many(hs, PINS, np.zeros((2, 2, 3), np.float32), wait=True)  # one moves block
+        assert ticks is not None and all(isinstance(t, int) for t in ticks)
+        with c.batch(wait=True) as b:
+            b.set(hs[0], gravity=(0.0, -1.0, 0.0))
+            b.move_pins(hs[1], [0], [[0.0, 0.1, 0.0]])
+        assert b.results is not None and all(isinstance(t, int) for t in b.results)
+        assert isinstance(hs[0].set(features_add=["normals"]), int)
+        assert c.connection.known_info("ghost") is None
+        assert c.connection.info_of(server.server_id).version >= (1, 4)
+        for h in hs:
+            h.remove()
+    finally:
+        c.close(remove=False)
+
+
 def test_apply_blocks_refuses_removed_and_drops_reset_cloths(device):
     """The tick's side without Zenoh: a cloth removed after its block was accepted is refused
     not_found; one reset in the same tick keeps its rest pose; the request is answered once."""

@@ -1,7 +1,8 @@
 """Drape client SDK: submit cloths to a Drape server over Zenoh and receive their state.
 
 ``drape.client.protocol`` (the wire protocol) needs numpy and msgpack only; the SDK classes
-(DrapeClient, ClothHandle, in ``drape.client.sdk``) and the Zenoh configuration shared with the
+(DrapeClient in ``drape.client.sdk``, the facade over the SDK's layers; ClothHandle, ControlBatch,
+BatchError in the modules of their layers) and the Zenoh configuration shared with the
 server (``zenoh_config``, in ``drape.client.session``) add Zenoh and are imported on first use, so
 a tool that only encodes or decodes messages does not need Zenoh installed. Nothing here imports
 drape.server or OpenCL.
@@ -30,22 +31,29 @@ from .protocol import (
 )
 
 if TYPE_CHECKING:
-    from .sdk import BatchError, ClothHandle, ControlBatch, DrapeClient
+    from .batching import ControlBatch
+    from .controls import BatchError
+    from .handle import ClothHandle
+    from .sdk import DrapeClient
     from .session import zenoh_config
 
-_SDK = ("BatchError", "ClothHandle", "ControlBatch", "DrapeClient")
+# the names imported on first use (they need Zenoh), and the module of each
+_LAZY = {
+    "BatchError": "controls",
+    "ClothHandle": "handle",
+    "ControlBatch": "batching",
+    "DrapeClient": "sdk",
+    "zenoh_config": "session",
+}
 
 
 def __getattr__(name: str) -> Any:
-    if name in _SDK:
-        from . import sdk
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'drape.client' has no attribute {name!r}")
+    from importlib import import_module
 
-        return getattr(sdk, name)
-    if name == "zenoh_config":
-        from .session import zenoh_config
-
-        return zenoh_config
-    raise AttributeError(f"module 'drape.client' has no attribute {name!r}")
+    return getattr(import_module(f".{module}", __name__), name)
 
 
 __all__ = [

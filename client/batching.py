@@ -1,100 +1,133 @@
-"""DrapeClient's controls of many cloths at once (a mixin of :class:`drape.client.sdk.DrapeClient`):
-``batch()`` (protocol 1.1 batch control, :class:`.controls.ControlBatch`) and ``move_pins_many``
-(one 1.4 ``moves`` block when it can, :mod:`.moves`), the path both take to the servers
-(``_send_controls``, :mod:`.sending`) and what a server's version allows of them (its batch size,
-features deltas).
-"""
+"""A batch of many of one client's cloths' controls (:class:`ControlBatch`, protocol 1.1,
+``DrapeClient.batch()``): collected with the ClothHandle methods' arguments, sent once through the
+client's sending path (:class:`~.sending.ControlSender`, which picks the wire form by the cloths'
+servers' versions)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
-from typing import TYPE_CHECKING, Any, cast
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
 from . import protocol as P
-from .controls import ControlBatch, ErrorCallback
+from .connection import ErrorCallback
+from .controls import BatchError, collider, pin_changes, set_changes
+from .handle import ClothHandle
 from .protocol import DrapeError
-from .sending import send_controls
-
-if TYPE_CHECKING:
-    from .handle import ClothHandle
-    from .sdk import DrapeClient
+from .sending import ControlSender
 
 
-class BatchingMixin:
-    """DrapeClient's methods for controls of many cloths (its session, servers and requests are in
-    sdk.py). Their ``self`` is the DrapeClient they are mixed into: mypy wants a mixin's self type
-    to be a supertype of the mixin, hence each ``type: ignore[misc]``."""
+class ControlBatch:
+    """Controls of many of one client's cloths, sent as one batch control request (protocol
+    1.1; to a 1.0 server as one control each). Use as a context manager (sent when the block
+    ends without an exception) or call ``send()``. Every method takes the ClothHandle first
+    and the same arguments as the ClothHandle method of the same name."""
 
-    def batch(  # type: ignore[misc]
-        self: DrapeClient, *, wait: bool = False, on_error: ErrorCallback | None = None, timeout: float | None = None
-    ) -> ControlBatch:
-        """Collect controls of many of this client's cloths and send them as one batch control
-        request when the ``with`` block ends (or on ``send()``): the per-tick call of a game
-        loop with many cloths. ``wait=False``: the reply is not waited for; refused items are
-        counted in ``send_errors`` and handed to ``on_error``. ``wait=True``: ``results`` holds
-        each item's first tick, and BatchError is raised if any item was refused."""
-        return ControlBatch(self, wait=wait, on_error=on_error, timeout=timeout)
-
-    def move_pins_many(  # type: ignore[misc]
-        self: DrapeClient,
-        handles: Sequence[ClothHandle],
-        indices: Sequence[int] | np.ndarray | Sequence[Sequence[int]],
-        targets: Sequence[Any] | np.ndarray,
+    def __init__(
+        self,
+        sender: ControlSender,
+        owner: object,
         *,
-        colliders: Sequence[Sequence[Any] | None] | None = None,
         wait: bool = False,
         on_error: ErrorCallback | None = None,
-    ) -> list[int | DrapeError] | None:
-        """Move the pins of many cloths in one message: ``indices`` the same for every cloth
-        (a sequence of ints) or one sequence per cloth; ``targets[j]`` the (k, 3) targets of
-        ``handles[j]`` (one (n, k, 3) array is best); ``colliders[j]`` (optional) the colliders of
-        ``handles[j]`` (None: unchanged). Shared indices and no colliders, to a 1.4 server: one
-        ``moves`` block (PROTOCOL.md 5.1.1), with no Python loop over the cloths (client/moves.py).
-        ``wait=True``: each cloth's first tick; BatchError (with every outcome) if any was refused."""
-        if len(targets) != len(handles):
-            raise ValueError(f"{len(handles)} cloths but {len(targets)} target arrays")
-        try:
-            shared = np.asarray(indices).ndim == 1  # one index list for every cloth
-        except ValueError:  # ragged: one list per cloth
-            shared = False
-        if shared and colliders is None:
-            from .moves import moves_of
+        timeout: float | None = None,
+    ) -> None:
+        self.sender = sender
+        self.owner = owner  # the client whose cloths it takes
+        self.wait = wait
+        self.on_error = on_error
+        self.timeout = timeout
+        self.items: list[tuple[ClothHandle, P.ControlRequest]] = []
+        self.results: list[int | DrapeError] | None = None
+        self.sent = False
 
-            return moves_of(self).send(handles, np.asarray(indices), np.asarray(targets), wait, on_error)
-        b = self.batch(wait=wait, on_error=on_error)
-        for j, h in enumerate(handles):
-            idx = cast("Sequence[int] | np.ndarray", indices if shared else indices[j])
-            b.move_pins(h, idx, targets[j], colliders=None if colliders is None else colliders[j])
-        return b.send()
+    def __len__(self) -> int:
+        return len(self.items)
 
-    def _server_batch_limit(self: DrapeClient) -> int:  # type: ignore[misc]
-        """Items per batch request the server takes; 0 when it speaks 1.0 (no batch control)."""
-        if self.server_version < (1, 1):
-            return 0
-        return max(1, self._max_batch_items)
+    def add(self, handle: ClothHandle, **changes: Any) -> ControlBatch:
+        """Any ControlRequest fields for ``handle``."""
+        if handle.client is not self.owner:
+            raise ValueError(f"cloth {handle.id} belongs to another DrapeClient")
+        handle.check_open()
+        handle.note_controls(changes)
+        self.items.append((handle, P.ControlRequest(handle.id, handle.token, **changes)))
+        return self
 
-    def _require_features_delta(self: DrapeClient, reqs: Iterable[P.ControlRequest]) -> None:  # type: ignore[misc]
-        """features_add / features_remove need a 1.2 server: an older one ignores unknown keys, so
-        the change would be silently lost. Raises ProtocolError before anything is sent."""
-        if any(r.features_add is not None or r.features_remove is not None for r in reqs) and self.server_version < (
-            1,
-            2,
-        ):
-            raise P.ProtocolError(
-                P.ERR_INVALID_VALUE,
-                "features_add / features_remove need a protocol 1.2 server; "
-                f"this one speaks {self.server_version[0]}.{self.server_version[1]}: send the "
-                "whole set with features= instead",
-            )
+    def move_pins(
+        self,
+        handle: ClothHandle,
+        indices: Sequence[int] | np.ndarray,
+        targets: Sequence[Sequence[float]] | np.ndarray,
+        *,
+        colliders: Sequence[Any] | None = None,
+    ) -> ControlBatch:
+        return self.add(handle, **pin_changes(indices, targets, colliders))
 
-    def _send_controls(  # type: ignore[misc]
-        self: DrapeClient,
-        items: list[tuple[ClothHandle, P.ControlRequest]],
-        wait: bool,
-        on_error: ErrorCallback | None,
-        timeout: float | None,
-    ) -> list[int | DrapeError] | None:
-        """Send controls of this client's cloths (client/sending.py)."""
-        return send_controls(self, items, wait, on_error, timeout)
+    def set_colliders(self, handle: ClothHandle, colliders: Sequence[Any]) -> ControlBatch:
+        return self.add(handle, colliders=tuple(collider(c) for c in colliders))
+
+    def set(
+        self,
+        handle: ClothHandle,
+        *,
+        gravity: Sequence[float] | None = None,
+        wind: Sequence[float] | None = None,
+        material: Mapping[str, Any] | Any = None,
+        features: Iterable[str] | None = None,
+        iterations: int | None = None,
+        substeps: int | None = None,
+        chebyshev_rho: float | None = None,
+        normals: bool | None = None,
+        encoding: str | None = None,
+        reset: bool = False,
+        quality: str | None = None,
+        features_add: Iterable[str] | None = None,
+        features_remove: Iterable[str] | None = None,
+        step: float | None = None,
+    ) -> ControlBatch:
+        """As ClothHandle.set, for one item of the batch (``features_add`` / ``features_remove``: 1.2)."""
+        return self.add(
+            handle,
+            **set_changes(
+                gravity,
+                wind,
+                material,
+                features,
+                iterations,
+                substeps,
+                chebyshev_rho,
+                normals,
+                encoding,
+                reset,
+                quality,
+                features_add,
+                features_remove,
+                step,
+            ),
+        )
+
+    def reset(self, handle: ClothHandle) -> ControlBatch:
+        return self.add(handle, reset=True)
+
+    def send(self) -> list[int | DrapeError] | None:
+        """Send the collected items (once). ``wait=True``: returns each item's first tick, raising
+        BatchError (with every item's outcome) if any was refused; otherwise None."""
+        if self.sent:
+            raise RuntimeError("this batch was already sent")
+        self.sent = True
+        results = self.sender.controls(self.items, self.wait, self.on_error, self.timeout)
+        self.results = results
+        if results is not None and any(isinstance(r, DrapeError) for r in results):
+            raise BatchError(results)
+        return results
+
+    def __enter__(self) -> ControlBatch:
+        return self
+
+    def __exit__(self, exc_type: Any, *exc: object) -> None:
+        if exc_type is None and not self.sent:
+            self.send()
+
+
+__all__ = ["ControlBatch"]

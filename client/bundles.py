@@ -7,7 +7,7 @@ A handle's guarantees hold as with states on a cloth's own key: its queue, ``rec
 ``dropped`` / ``invalid`` counts, and its callbacks in order on the receiving thread. States of a
 cloth whose submit reply has not been handled yet (the bundle can overtake the reply) are kept for
 it as orphans while a bundled submission is on its way, and delivered first when its handle is
-registered (:meth:`DrapeClient._place`).
+registered (:meth:`drape.client.submitting.Submitter.place`).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import zenoh
@@ -49,6 +49,21 @@ class BundleReceiver:
         self.invalid = 0  # bundle payloads that could not be parsed
         self._submits = 0  # bundled submissions waiting for their reply
         self._orphans: dict[str, list[ClothState]] = {}  # their states that arrived before the reply
+        self._sub: Any = None
+
+    def subscribe(self, session: zenoh.Session) -> None:
+        """Subscribe to the bundle key once, before the first bundled submission, so the
+        subscription is in place when the cloth's first state is published."""
+        with self._lock:
+            if self._sub is None:
+                self._sub = session.declare_subscriber(self.key, self.on_sample)
+
+    def close(self) -> None:
+        if self._sub is not None:
+            try:
+                self._sub.undeclare()
+            except Exception:
+                pass
 
     def on_sample(self, sample: zenoh.Sample) -> None:
         """The bundle subscriber's callback (on the Zenoh thread)."""
@@ -94,11 +109,11 @@ class BundleReceiver:
                     log.warning("cloth %s: invalid state in bundle: %s", h.id, got)
                     continue
                 if got is None:  # predicted from a state this client lacks (or a handle just registered)
-                    got = h._missing(bundle.payload(i), receive_time_ns)
+                    got = h.missing(bundle.payload(i), receive_time_ns)
                 if got is not None:
-                    h._deliver(got, now)
+                    h.deliver(got, now)
             elif st.__class__ is ClothState:
-                h._deliver(st, now)  # type: ignore[arg-type]
+                h.deliver(st, now)  # type: ignore[arg-type]
             else:
                 h.invalid += 1
                 log.warning("cloth %s: invalid state in bundle: %s", h.id, st)
@@ -138,7 +153,7 @@ class BundleReceiver:
                     del q[: -self.queue_size]
             return h
 
-    # --- bundled submissions (DrapeClient._place) -------------------------------------------------
+    # --- bundled submissions (Submitter.place) -------------------------------------------------
     def submitting(self) -> None:
         """A bundled submission is on its way: keep states of cloths without a handle."""
         with self._lock:
@@ -155,3 +170,6 @@ class BundleReceiver:
         """The states kept for ``cloth`` before its handle existed (call with the client's lock held,
         while registering the handle)."""
         return self._orphans.pop(cloth, [])
+
+
+__all__ = ["MAX_ORPHAN_CLOTHS", "BundleReceiver"]

@@ -1,23 +1,18 @@
-"""Controls of the Python SDK that do not need a session: the batch of many cloths' controls
-(:class:`ControlBatch`, protocol 1.1), its error (:class:`BatchError`), and the conversions of
-the SDK's friendly arguments (pins, settings, colliders, links, vectors) into protocol values."""
+"""Pure control building of the Python SDK (no I/O, no session): the conversions of the SDK's
+friendly arguments (pins, settings, colliders, links, vectors) into protocol values, what a
+"pins only" control is (the one a 1.4 ``moves`` block carries), a batch reply folded into one
+outcome per item, and the error of a refused batch (:class:`BatchError`)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import fields, is_dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from . import protocol as P
 from .protocol import DrapeError
-
-if TYPE_CHECKING:
-    from .handle import ClothHandle
-    from .sdk import DrapeClient
-
-ErrorCallback = Callable[[DrapeError], None]
 
 
 class BatchError(DrapeError):
@@ -33,131 +28,34 @@ class BatchError(DrapeError):
         self.results = results
 
 
-class ControlBatch:
-    """Controls of many of one client's cloths, sent as one batch control request (protocol
-    1.1; to a 1.0 server as one control each). Use as a context manager (sent when the block
-    ends without an exception) or call ``send()``. Every method takes the ClothHandle first
-    and the same arguments as the ClothHandle method of the same name."""
-
-    def __init__(
-        self,
-        client: DrapeClient,
-        *,
-        wait: bool = False,
-        on_error: ErrorCallback | None = None,
-        timeout: float | None = None,
-    ) -> None:
-        self.client = client
-        self.wait = wait
-        self.on_error = on_error
-        self.timeout = timeout
-        self.items: list[tuple[ClothHandle, P.ControlRequest]] = []
-        self.results: list[int | DrapeError] | None = None
-        self.sent = False
-
-    def __len__(self) -> int:
-        return len(self.items)
-
-    def add(self, handle: ClothHandle, **changes: Any) -> ControlBatch:
-        """Any ControlRequest fields for ``handle``."""
-        if handle.client is not self.client:
-            raise ValueError(f"cloth {handle.id} belongs to another DrapeClient")
-        handle._check_open()
-        handle._note_controls(changes)
-        self.items.append((handle, P.ControlRequest(handle.id, handle.token, **changes)))
-        return self
-
-    def move_pins(
-        self,
-        handle: ClothHandle,
-        indices: Sequence[int] | np.ndarray,
-        targets: Sequence[Sequence[float]] | np.ndarray,
-        *,
-        colliders: Sequence[Any] | None = None,
-    ) -> ControlBatch:
-        return self.add(handle, **_pin_changes(indices, targets, colliders))
-
-    def set_colliders(self, handle: ClothHandle, colliders: Sequence[Any]) -> ControlBatch:
-        return self.add(handle, colliders=tuple(_collider(c) for c in colliders))
-
-    def set(
-        self,
-        handle: ClothHandle,
-        *,
-        gravity: Sequence[float] | None = None,
-        wind: Sequence[float] | None = None,
-        material: Mapping[str, Any] | Any = None,
-        features: Iterable[str] | None = None,
-        iterations: int | None = None,
-        substeps: int | None = None,
-        chebyshev_rho: float | None = None,
-        normals: bool | None = None,
-        encoding: str | None = None,
-        reset: bool = False,
-        quality: str | None = None,
-        features_add: Iterable[str] | None = None,
-        features_remove: Iterable[str] | None = None,
-        step: float | None = None,
-    ) -> ControlBatch:
-        """As ClothHandle.set, for one item of the batch (``features_add`` / ``features_remove``: 1.2)."""
-        return self.add(
-            handle,
-            **_set_changes(
-                gravity,
-                wind,
-                material,
-                features,
-                iterations,
-                substeps,
-                chebyshev_rho,
-                normals,
-                encoding,
-                reset,
-                quality,
-                features_add,
-                features_remove,
-                step,
-            ),
-        )
-
-    def reset(self, handle: ClothHandle) -> ControlBatch:
-        return self.add(handle, reset=True)
-
-    def send(self) -> list[int | DrapeError] | None:
-        """Send the collected items (once). ``wait=True``: returns each item's first tick, raising
-        BatchError (with every item's outcome) if any was refused; otherwise None."""
-        if self.sent:
-            raise RuntimeError("this batch was already sent")
-        self.sent = True
-        results = self.client._send_controls(self.items, self.wait, self.on_error, self.timeout)
-        self.results = results
-        if results is not None and any(isinstance(r, DrapeError) for r in results):
-            raise BatchError(results)
-        return results
-
-    def __enter__(self) -> ControlBatch:
-        return self
-
-    def __exit__(self, exc_type: Any, *exc: object) -> None:
-        if exc_type is None and not self.sent:
-            self.send()
-
-
-def _item_outcomes(
-    chunk: list[tuple[ClothHandle, P.ControlRequest]], rep: P.ControlBatchReply, rid: int
-) -> list[int | DrapeError]:
-    if len(rep.results) != len(chunk):
-        raise DrapeError(P.ERR_INTERNAL, f"batch reply has {len(rep.results)} results for {len(chunk)} items", rid)
+def item_outcomes(cloths: Sequence[str], rep: P.ControlBatchReply, rid: int) -> list[int | DrapeError]:
+    """A batch reply to items of ``cloths`` (their ids, in order) as one outcome per item: the tick
+    it applies from, or its DrapeError."""
+    if len(rep.results) != len(cloths):
+        raise DrapeError(P.ERR_INTERNAL, f"batch reply has {len(rep.results)} results for {len(cloths)} items", rid)
     out: list[int | DrapeError] = []
-    for (h, _), r in zip(chunk, rep.results, strict=True):
+    for cloth, r in zip(cloths, rep.results, strict=True):
         if r.ok:
             out.append(rep.tick if r.tick is None else r.tick)
         else:
-            out.append(P.error_for(r.code, f"cloth {h.id}: {r.message}", rid))
+            out.append(P.error_for(r.code, f"cloth {cloth}: {r.message}", rid))
     return out
 
 
-def _pin_changes(
+def pins_only(r: P.ControlRequest) -> bool:
+    """A control with pin targets (distinct indices) and nothing else: what a moves block carries
+    (the fields' table says which are pins: :func:`drape.client.protocol.requestfields.pins_only`)."""
+    if not P.pins_only(r) or r.pins is None or not len(r.pins.indices):
+        return False
+    return len(np.unique(r.pins.indices)) == len(r.pins.indices)
+
+
+def features_delta(reqs: Iterable[P.ControlRequest]) -> bool:
+    """Whether any of ``reqs`` switches single features (features_add / features_remove: 1.2)."""
+    return any(r.features_add is not None or r.features_remove is not None for r in reqs)
+
+
+def pin_changes(
     indices: Sequence[int] | np.ndarray,
     targets: Sequence[Sequence[float]] | np.ndarray,
     colliders: Sequence[Any] | None,
@@ -170,11 +68,11 @@ def _pin_changes(
         raise ValueError("pin indices must be >= 0")
     out: dict[str, Any] = {"pins": P.PinUpdate(idx.astype(np.uint32), tgt)}
     if colliders is not None:
-        out["colliders"] = tuple(_collider(c) for c in colliders)
+        out["colliders"] = tuple(collider(c) for c in colliders)
     return out
 
 
-def _set_changes(
+def set_changes(
     gravity: Sequence[float] | None,
     wind: Sequence[float] | None,
     material: Any,
@@ -192,15 +90,15 @@ def _set_changes(
 ) -> dict[str, Any]:
     changed = normals is not None or encoding is not None or step is not None
     state = P.StateOptions(normals, encoding, None, step) if changed else None
-    add = _feature_names(features_add)
-    remove = _feature_names(features_remove)
+    add = feature_names(features_add)
+    remove = feature_names(features_remove)
     if add and remove and set(add) & set(remove):
         raise ValueError(f"feature(s) {sorted(set(add) & set(remove))} both added and removed")
     return dict(
         features_add=add,
         features_remove=remove,
-        gravity=_vec3(gravity),
-        wind=_vec3(wind),
+        gravity=vec3(gravity),
+        wind=vec3(wind),
         material=P.material_to_map(material) if material is not None else {},
         features=tuple(features) if features is not None else None,
         iterations=iterations,
@@ -212,7 +110,7 @@ def _set_changes(
     )
 
 
-def _feature_names(names: Iterable[str] | None) -> tuple[str, ...] | None:
+def feature_names(names: Iterable[str] | None) -> tuple[str, ...] | None:
     if names is None:
         return None
     out = (names,) if isinstance(names, str) else tuple(names)
@@ -222,7 +120,7 @@ def _feature_names(names: Iterable[str] | None) -> tuple[str, ...] | None:
     return out
 
 
-def _vec3(v: Sequence[float] | None) -> P.Vec3 | None:
+def vec3(v: Sequence[float] | None) -> P.Vec3 | None:
     if v is None:
         return None
     t = tuple(float(x) for x in v)
@@ -231,7 +129,7 @@ def _vec3(v: Sequence[float] | None) -> P.Vec3 | None:
     return t  # type: ignore[return-value]
 
 
-def _links(links: Any) -> P.LinkSpec | None:
+def links_of(links: Any) -> P.LinkSpec | None:
     if links is None or isinstance(links, P.LinkSpec):
         return links
     if isinstance(links, Mapping):
@@ -241,15 +139,21 @@ def _links(links: Any) -> P.LinkSpec | None:
     raise TypeError(f"links must be a LinkSpec, a mapping or a dataclass, got {type(links).__name__}")
 
 
-def _collider(c: Any) -> P.Collider:
-    if isinstance(c, (P.Sphere, P.Capsule, P.Plane)):
-        return c
-    m = P.collider_to_map(c)
-    kind = m.get("type")
-    if kind == "sphere":
-        return P.Sphere(_vec3(m["center"]), float(m["radius"]))  # type: ignore[arg-type]
-    if kind == "capsule":
-        return P.Capsule(_vec3(m["p0"]), _vec3(m["p1"]), float(m["radius"]))  # type: ignore[arg-type]
-    if kind == "plane":
-        return P.Plane(_vec3(m["normal"]), float(m["offset"]))  # type: ignore[arg-type]
-    raise TypeError(f"not a collider: {c!r}")
+def collider(c: Any) -> P.Collider:
+    """``c`` as a protocol collider (one already, a wire map or an object with a shape's fields):
+    the shapes' table decides (:func:`drape.client.protocol.as_collider`)."""
+    return P.as_collider(c)
+
+
+__all__ = [
+    "BatchError",
+    "collider",
+    "feature_names",
+    "features_delta",
+    "item_outcomes",
+    "links_of",
+    "pin_changes",
+    "pins_only",
+    "set_changes",
+    "vec3",
+]

@@ -1,7 +1,7 @@
 """Failover of the Python SDK (PROTOCOL.md section 11.1): a DrapeClient created with
 ``failover=True`` keeps every cloth it submitted alive across the loss of its server.
 
-Detection, on Zenoh threads: the server's liveliness token disappears (``DrapeClient._on_server``
+Detection, on Zenoh threads: the server's liveliness token disappears (the client's server watch
 calls :meth:`Failover.server_lost`), or a cloth's states stall and a probe (an empty control)
 is answered ``not_found`` (the server reclaimed it while this client was paused or cut off), or
 a control of the game is answered ``not_found``.
@@ -29,18 +29,17 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import zenoh
 
 from . import protocol as P
-from .placement import PLACE_ELSEWHERE
+from .connection import Session
+from .handle import ClothHandle
+from .placement import PLACE_ELSEWHERE, Placement
 from .protocol import DrapeError
-
-if TYPE_CHECKING:
-    from .handle import ClothHandle
-    from .sdk import DrapeClient
+from .registry import Cloths
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +72,8 @@ class FailoverEvent:
 
 
 FailoverCallback = Callable[[FailoverEvent], None]
+#: (the lost handle, its resubmission, the server to submit it to) -> the handle, continued
+Place = Callable[[ClothHandle, P.SubmitRequest, str], ClothHandle]
 
 
 def resume_from(states: tuple[Any, Any], from_server: str, cloth: str, tick_rate: float) -> P.ResumeState | None:
@@ -92,10 +93,22 @@ def resume_from(states: tuple[Any, Any], from_server: str, cloth: str, tick_rate
 
 
 class Failover:
-    """The failover worker of one DrapeClient (see the module docstring)."""
+    """The failover worker of one DrapeClient (see the module docstring): over its ``session``,
+    its open ``cloths``, its ``placement``, and ``place``, its submitter's resubmission."""
 
-    def __init__(self, client: DrapeClient, *, stall_timeout: float = 0.5, give_up_after: float = 60.0) -> None:
-        self.client = client
+    def __init__(
+        self,
+        session: Session,
+        cloths: Cloths,
+        placement: Placement,
+        place: Place,
+        *,
+        stall_timeout: float = 0.5,
+        give_up_after: float = 60.0,
+    ) -> None:
+        self.session = session
+        self.cloths = cloths
+        self.place = place
         self.stall_timeout = stall_timeout  # no state for this long: probe the cloth
         self.give_up_after = give_up_after  # no live server for this long: close the handle
         self.events: list[FailoverEvent] = []
@@ -104,15 +117,15 @@ class Failover:
         self._lost: dict[int, tuple[ClothHandle, str, str, int]] = {}  # id(handle) -> (handle, server, reason, t)
         self._closed = False
         self._paused = False
-        self.placement = client.placement  # the servers' loads (client/placement.py)
-        self.placement.attach(client.session, client.keys)
+        self.placement = placement  # the servers' loads (client/placement.py)
+        self.placement.attach(session.zenoh, session.keys)
         self._thread = threading.Thread(target=self._run, name="drape-failover", daemon=True)
         self._thread.start()
 
     # --- inputs (Zenoh threads) -------------------------------------------------------------
     def server_lost(self, server: str) -> None:
         """The liveliness token of ``server`` vanished: every cloth on it is lost."""
-        for h in self.client._handles_on(server):
+        for h in self.cloths.on(server):
             self.cloth_lost(h, "server_lost")
 
     def cloth_lost(self, h: ClothHandle, reason: str) -> None:
@@ -181,7 +194,7 @@ class Failover:
             if h.closed:
                 self._done(h)
                 continue
-            live = set(self.client.live_servers())
+            live = set(self.session.live_servers())
             if old_server in live and self._still_there(h):  # back, and the cloth with it
                 h.lost = False
                 self._done(h)
@@ -203,13 +216,12 @@ class Failover:
             self._resubmit(h, old_server, reason, t0)
 
     def _resubmit(self, h: ClothHandle, old_server: str, reason: str, t0: int) -> None:
-        c = self.client
         tried: set[str] = set()
         last_err: DrapeError | None = None
         if h.request is None:  # a handle made outside DrapeClient.submit: nothing to resubmit
             self._done(h)
             err = DrapeError(P.ERR_NOT_FOUND, f"cloth {h.id} lost and its submission is unknown")
-            h._close(str(err))
+            h.mark_closed(str(err))
             self._emit(
                 FailoverEvent(h, reason, h.id, old_server, error=err, detected_ns=t0, done_ns=time.monotonic_ns())
             )
@@ -224,9 +236,9 @@ class Failover:
             st = self.placement.stats(old_server) or {}
             resume = resume_from(h.last_states(), old_server, h.id, float(st.get("tick_rate") or DEFAULT_TICK_RATE))
             old_id = h.id
-            req = dataclasses.replace(h.request, rid=c._next_rid(), resume=resume)
+            req = dataclasses.replace(h.request, rid=self.session.next_rid(), resume=resume)
             try:
-                c._place(h, req, target)
+                self.place(h, req, target)
             except DrapeError as e:
                 last_err = e
                 log.warning("resubmitting cloth %s to server %s failed: %s", old_id, target, e)
@@ -237,7 +249,7 @@ class Failover:
             h.failovers += 1
             self._done(h)
             h.lost = False
-            h._resend_controls()
+            h.resend_controls()
             self._emit(
                 FailoverEvent(
                     h,
@@ -258,7 +270,7 @@ class Failover:
                 P.ERR_UNAVAILABLE, f"no live server to fail cloth {h.id} over to within {self.give_up_after} s"
             )
             self._done(h)
-            h._close(f"failover failed: {err}")
+            h.mark_closed(f"failover failed: {err}")
             self._emit(
                 FailoverEvent(h, reason, h.id, old_server, error=err, detected_ns=t0, done_ns=time.monotonic_ns())
             )
@@ -267,9 +279,9 @@ class Failover:
     def _still_there(self, h: ClothHandle) -> bool:
         """Probe with an empty control: True when the server still holds the cloth."""
         try:
-            probe = P.ControlRequest(h.id, h.token, rid=self.client._next_rid())
-            self.client.request(
-                "control", P.encode_control(probe), timeout=min(self.client.timeout, 2.0), server=h.server_id
+            probe = P.ControlRequest(h.id, h.token, rid=self.session.next_rid())
+            self.session.request(
+                "control", P.encode_control(probe), timeout=min(self.session.timeout, 2.0), server=h.server_id
             )
             return True
         except P.NotFound:
@@ -280,16 +292,16 @@ class Failover:
     def _watch(self) -> None:
         """Cloths whose states stalled: probed (without waiting); ``not_found`` means reclaimed."""
         now = time.monotonic()
-        for h in self.client._open_handles():
+        for h in self.cloths.all():
             if h.lost or now - h.last_receipt < self.stall_timeout or now - h.last_probe < self.stall_timeout:
                 continue
             h.last_probe = now
             self._probe_async(h)
 
     def _probe_async(self, h: ClothHandle) -> None:
-        c = self.client
+        c = self.session
         cloth = h.id
-        payload = P.encode_control(P.ControlRequest(cloth, h.token, rid=c._next_rid()))
+        payload = P.encode_control(P.ControlRequest(cloth, h.token, rid=c.next_rid()))
 
         def on_reply(reply: zenoh.Reply) -> None:
             if reply.err is None:
@@ -303,8 +315,8 @@ class Failover:
                 pass
 
         try:
-            c.session.get(
-                c._key("control", h.server_id),  # the client-scoped key on a 1.4 server
+            c.zenoh.get(
+                c.key("control", h.server_id),  # the client-scoped key on a 1.4 server
                 zenoh.handlers.Callback(on_reply, lambda: None),
                 payload=payload,
                 timeout=min(c.timeout, 2.0),
@@ -338,4 +350,4 @@ class Failover:
                 log.exception("on_failover callback failed")
 
 
-__all__ = ["FailoverEvent", "FailoverCallback", "Failover", "resume_from"]
+__all__ = ["DEFAULT_TICK_RATE", "Failover", "FailoverCallback", "FailoverEvent", "Place", "resume_from"]

@@ -1,6 +1,9 @@
 """One submitted cloth of the Python SDK (:class:`ClothHandle`): its state stream (queue,
 callbacks, iterators), its controls, and what a failover needs of it (its submission, its last
-two states, the last pin targets and colliders sent; ``_rebind`` moves it to its new incarnation)."""
+two states, the last pin targets and colliders sent; ``rebind`` moves it to its new incarnation).
+
+A handle works over the parts its owner (the DrapeClient, :class:`HandleOwner`) gives it: the
+Zenoh session its states come on, and the sending path its controls take."""
 
 from __future__ import annotations
 
@@ -9,23 +12,30 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 import zenoh
 
 from . import protocol as P
-from .controls import _collider, _pin_changes, _set_changes
-from .moves import moves_of
+from .controls import collider, pin_changes, set_changes
 from .protocol import ClothState, DrapeError, Unavailable
+from .sending import ControlSender
 from .smoothing import ServerClock, sample
-
-if TYPE_CHECKING:
-    from .sdk import DrapeClient
 
 log = logging.getLogger("drape.client.sdk")
 
 StateCallback = Callable[[ClothState], None]
+
+
+class HandleOwner(Protocol):
+    """What a handle needs of the client that owns it (a DrapeClient)."""
+
+    @property
+    def session(self) -> zenoh.Session: ...  # its states and keyframe queries
+    @property
+    def sender(self) -> ControlSender: ...  # its controls, its requests, its moves record
+    def forget(self, handle: ClothHandle) -> None: ...  # it closed
 
 
 def _ignore_reply(_reply: zenoh.Reply) -> None:
@@ -42,7 +52,7 @@ class ClothHandle:
 
     def __init__(
         self,
-        client: DrapeClient,
+        client: HandleOwner,
         reply: P.SubmitReply,
         rest_positions: np.ndarray | None = None,
         triangles: np.ndarray | None = None,
@@ -86,10 +96,10 @@ class ClothHandle:
         self._lock = threading.RLock()  # the state stream's fields
         self._cond = threading.Condition(self._lock)  # a state arrived, or the cloth closed
         self._waiting = 0  # threads waiting on _cond (a state wakes them only when there are any)
-        self._deliver_lock = threading.RLock()  # states are delivered one at a time, in order
+        self.deliver_lock = threading.RLock()  # states are delivered one at a time, in order
         self._queue: deque[ClothState] = deque(maxlen=max(1, queue_size))
         self._latest: ClothState | None = None
-        self._callbacks: tuple[StateCallback, ...] = ()  # replaced, never changed: _deliver reads it as is
+        self._callbacks: tuple[StateCallback, ...] = ()  # replaced, never changed: deliver reads it as is
         self._sub: Any = None
         if self.bundle_key is None:
             self._sub = client.session.declare_subscriber(self.key, self._on_sample)
@@ -113,7 +123,7 @@ class ClothHandle:
             log.warning("cloth %s: invalid state payload: %s", self.id, e)
             return
         if st is not None:
-            self._deliver(st)
+            self.deliver(st)
 
     def _decode(self, data: bytes | memoryview, receive_time_ns: int) -> ClothState | None:
         """The state of a payload, through the cloth's stream (1.5: a predictive state needs the
@@ -123,9 +133,9 @@ class ClothHandle:
         st = self.stream.decode(data, receive_time_ns)
         if st is not None:
             return st
-        return self._missing(data, receive_time_ns)
+        return self.missing(data, receive_time_ns)
 
-    def _missing(self, data: bytes | memoryview, receive_time_ns: int) -> ClothState | None:
+    def missing(self, data: bytes | memoryview, receive_time_ns: int) -> ClothState | None:
         """A state this stream could not decode: counted, a keyframe asked for, the last state
         extrapolated to its tick instead (None before any)."""
         self.gaps += 1
@@ -149,11 +159,11 @@ class ClothHandle:
             return False
         return True
 
-    def _deliver(self, st: ClothState, now: float | None = None) -> None:
+    def deliver(self, st: ClothState, now: float | None = None) -> None:
         """Queue a state and run the callbacks (on the thread that received it). ``now``: the
         monotonic time of its arrival (one clock read for a whole bundle)."""
         # acquire/release rather than ``with``: half the cost on this path, once per state per tick
-        self._deliver_lock.acquire()
+        self.deliver_lock.acquire()
         try:
             self._lock.acquire()
             try:
@@ -182,7 +192,7 @@ class ClothHandle:
                 except Exception:
                     log.exception("cloth %s: on_state callback failed", self.id)
         finally:
-            self._deliver_lock.release()
+            self.deliver_lock.release()
 
     def sample(
         self, now_ns: int | None = None, delay: float | None = None, extrapolate: bool = False
@@ -207,7 +217,7 @@ class ClothHandle:
         with self._cond:
             return (None if self._fresh else self._prev), self._latest
 
-    def _rebind(self, reply: P.SubmitReply, server: str) -> None:
+    def rebind(self, reply: P.SubmitReply, server: str) -> None:
         """Failover: the cloth lives on as ``reply.cloth`` on ``server``; states keep flowing to
         this handle (its queue, callbacks and iterators)."""
         old_sub = None
@@ -220,7 +230,7 @@ class ClothHandle:
             self.last_receipt = time.monotonic()
             self._fresh = True
             self.stream = P.StateStream(reply.cloth)  # the new server's stream starts with a keyframe
-        moves_of(self.client).changed()  # cached ids and tokens of moves blocks (1.4) are stale
+        self.client.sender.book.changed()  # cached ids and tokens of moves blocks (1.4) are stale
         if old_sub is not None:
             try:
                 old_sub.undeclare()
@@ -229,9 +239,13 @@ class ClothHandle:
         if self.bundle_key is None:
             self._sub = self.client.session.declare_subscriber(self.key, self._on_sample)
 
-    def _note_controls(self, changes: dict[str, Any]) -> None:
+    def record_pins(self, indices: list[int], targets: np.ndarray) -> None:
+        """Pins ``indices`` were last sent to ``targets`` ((k, 3)): what a failover sends again."""
+        self._last_pins.update(zip(indices, targets, strict=True))
+
+    def note_controls(self, changes: dict[str, Any]) -> None:
         """Remember the last pin targets and colliders sent (a failover sends them again)."""
-        moves_of(self.client).fold(self)  # moves blocks sent since (1.4) come before this control
+        self.client.sender.book.fold(self)  # moves blocks sent since (1.4) come before this control
         pins = changes.get("pins")
         if pins is not None:
             for i, t in zip(pins.indices.tolist(), np.asarray(pins.targets, np.float32).reshape(-1, 3), strict=True):
@@ -241,9 +255,9 @@ class ClothHandle:
         if changes.get("reset"):
             self._last_pins.clear()
 
-    def _resend_controls(self) -> None:
+    def resend_controls(self) -> None:
         """After a failover: the last pin targets and colliders, again (not waited for)."""
-        moves_of(self.client).fold(self)
+        self.client.sender.book.fold(self)
         changes: dict[str, Any] = {}
         if self._last_pins:
             idx = np.fromiter(self._last_pins, np.uint32, len(self._last_pins))
@@ -251,8 +265,9 @@ class ClothHandle:
         if self._last_colliders is not None:
             changes["colliders"] = self._last_colliders
         if changes:
-            req = P.ControlRequest(self.id, self.token, rid=self.client._next_rid(), **changes)
-            self.client.send("control", P.encode_control(req), server=self.server_id)
+            link = self.client.sender.session
+            req = P.ControlRequest(self.id, self.token, rid=link.next_rid(), **changes)
+            link.send("control", P.encode_control(req), server=self.server_id)
 
     def on_state(self, callback: StateCallback) -> Callable[[], None]:
         """Call ``callback(state)`` for every state (on a Zenoh thread). Returns an unsubscribe function."""
@@ -324,12 +339,12 @@ class ClothHandle:
         """Move pinned vertices ``indices`` to ``targets`` ((k, 3) metres) by the end of the next
         tick (and, if given, the colliders with them, in the same message). ``wait=False`` does
         not wait for the reply (see DrapeClient.send): the per-tick call of a game loop."""
-        return self._control(wait, **_pin_changes(indices, targets, colliders))
+        return self._control(wait, **pin_changes(indices, targets, colliders))
 
     def set_colliders(self, colliders: Sequence[Any], *, wait: bool = True) -> int | None:
         """Replace the cloth's colliders (Sphere, Capsule, Plane of this package or of
         drape.server.sim.params); [] removes them. Colliders move to their new pose over the next tick."""
-        return self._control(wait, colliders=tuple(_collider(c) for c in colliders))
+        return self._control(wait, colliders=tuple(collider(c) for c in colliders))
 
     def set(
         self,
@@ -361,7 +376,7 @@ class ClothHandle:
         predictive encoding or change its grid: the next state is a keyframe."""
         return self._control(
             wait,
-            **_set_changes(
+            **set_changes(
                 gravity,
                 wind,
                 material,
@@ -386,24 +401,14 @@ class ClothHandle:
         return tick
 
     def _control(self, wait: bool, **changes: Any) -> int | None:
-        self._check_open()
-        req = P.ControlRequest(self.id, self.token, rid=self.client._next_rid(), **changes)
-        self.client._require_features_delta((req,))
-        self._note_controls(changes)
-        if not wait:
-            self.client.send(
-                "control",
-                P.encode_control(req),
-                self.client._watch_not_found(self, None),
-                server=self.server_id,
-                handle=self,
-            )
+        self.check_open()
+        sender = self.client.sender
+        req = P.ControlRequest(self.id, self.token, rid=sender.session.next_rid(), **changes)
+        sender.server_info(self.server_id or None, (req,))  # refused before it is recorded
+        self.note_controls(changes)
+        rep = sender.control(self, req, wait, checked=True)
+        if rep is None:
             return None
-        try:
-            rep = P.control_reply_from_map(self.client.request("control", P.encode_control(req), server=self.server_id))
-        except P.NotFound:
-            self.client._cloth_not_found(self)
-            raise
         if rep.features is not None:  # 1.2 servers report the feature set after the change
             self.features = rep.features
         return rep.tick
@@ -416,12 +421,13 @@ class ClothHandle:
         # Set before the request: a control sent without waiting just before it may be applied
         # in the same tick as the removal and answered ``not_found`` before the removal's reply
         # comes (the server removes before it applies the tick's controls); that answer is the
-        # expected outcome of this removal, not a failure (see DrapeClient._send_failed).
+        # expected outcome of this removal, not a failure (see Session.failed).
         self.removing = True
         try:
-            rep = self.client.request(
+            link = self.client.sender.session
+            rep = link.request(
                 "remove",
-                P.encode_remove(P.RemoveRequest(self.id, self.token, self.client._next_rid())),
+                P.encode_remove(P.RemoveRequest(self.id, self.token, link.next_rid())),
                 timeout=timeout,
                 server=self.server_id,
             )
@@ -431,32 +437,34 @@ class ClothHandle:
         except BaseException:
             self.removing = False  # refused (forbidden, busy...): the cloth lives on
             raise
-        self._close("removed")
+        self.mark_closed("removed")
         return last
 
-    def _removal_outcome(self, err: DrapeError) -> bool:
+    def removal_outcome(self, err: DrapeError) -> bool:
         """Whether ``err``, the answer to a request about this cloth, is only the outcome of this
         client's own removal of it (``not_found`` once the removal was asked for)."""
         return self.removing and isinstance(err, P.NotFound)
 
-    def _check_open(self) -> None:
+    def check_open(self) -> None:
+        """Raises DrapeError (not_found) once the handle is closed."""
         if self.closed:
             raise DrapeError(P.ERR_NOT_FOUND, f"cloth {self.id} is closed: {self.close_reason}")
 
-    def _close(self, reason: str) -> None:
+    def mark_closed(self, reason: str) -> None:
+        """Closed for ``reason`` (removed, its server gone, a failover failed): iterators end."""
         with self._cond:
             if self.closed:
                 return
             self.closed = True
             self.close_reason = reason
             self._cond.notify_all()
-        moves_of(self.client).changed()
+        self.client.sender.book.changed()
         if self._sub is not None:
             try:
                 self._sub.undeclare()
             except Exception:
                 pass
-        self.client._forget(self)
+        self.client.forget(self)
 
     def __enter__(self) -> ClothHandle:
         return self
@@ -466,3 +474,6 @@ class ClothHandle:
             self.remove()
         except DrapeError as e:
             log.warning("removing cloth %s failed: %s", self.id, e)
+
+
+__all__ = ["ClothHandle", "HandleOwner", "StateCallback"]

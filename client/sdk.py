@@ -21,52 +21,45 @@ before) and moves them all with one message per tick::
 ``DrapeClient(failover=True)`` keeps every cloth across the loss of its server or a reclaim
 (protocol 1.3, PROTOCOL.md 11.1): see :mod:`drape.client.failover`.
 
-This module holds the session (:class:`DrapeClient`: servers, requests); :mod:`.submitting` its
-submissions and :mod:`.batching` its controls of many cloths (mixins), :mod:`.handle` the
-ClothHandle, :mod:`.controls` the batch and argument conversions, :mod:`.failover` the failover
-worker (all re-exported here). Needs numpy, msgpack and eclipse-zenoh only: nothing here imports
-drape.server or OpenCL.
+This module is the facade: :class:`DrapeClient` composes the SDK's layers, each given the parts
+below it (no mixins): :mod:`.connection` the Session (Zenoh session, servers seen, one per-server
+info cache, requests), :mod:`.controls` pure control building, :mod:`.moves` the record of moves
+blocks, :mod:`.sending` the one sending path of controls, :mod:`.handle` the ClothHandle,
+:mod:`.registry` the open cloths, :mod:`.bundles` the bundle receiver, :mod:`.batching` the
+ControlBatch, :mod:`.placement` and :mod:`.submitting` where and how cloths are submitted,
+:mod:`.failover` the failover worker. Needs numpy, msgpack and eclipse-zenoh only: nothing here
+imports drape.server or OpenCL.
 """
 
 from __future__ import annotations
 
-import itertools
 import logging
-import secrets
-import threading
-import time
 from collections.abc import Callable, Sequence
-from typing import Any
+from pathlib import Path
+from typing import Any, cast
 
+import numpy as np
 import zenoh
 
 from . import protocol as P
-from .batching import BatchingMixin
-from .bundles import MAX_ORPHAN_CLOTHS, BundleReceiver  # noqa: F401  (MAX_ORPHAN_CLOTHS: as before)
-from .controls import (  # noqa: F401  (BatchError, ControlBatch and the helpers: drape.client.sdk.* as before)
-    BatchError,
-    ControlBatch,
-    ErrorCallback,
-    _collider,
-    _feature_names,
-    _item_outcomes,
-    _links,
-    _pin_changes,
-    _set_changes,
-    _vec3,
-)
-from .failover import Failover, FailoverCallback, FailoverEvent  # noqa: F401  (re-exported)
-from .handle import ClothHandle, StateCallback  # noqa: F401  (drape.client.sdk.ClothHandle as before)
-from .placement import PLACE_ELSEWHERE, Placement  # noqa: F401  (PLACE_ELSEWHERE: as before)
-from .protocol import ClothState, DrapeError, Unavailable  # noqa: F401
-from .sending import send_controls  # noqa: F401  (as before)
-from .session import deployment_client_id, open_session, zenoh_config  # noqa: F401  (zenoh_config: the pre-1.2 path)
-from .submitting import SubmittingMixin, cloth_options  # noqa: F401  (cloth_options: as before)
+from .batching import ControlBatch
+from .bundles import MAX_ORPHAN_CLOTHS, BundleReceiver
+from .connection import ErrorCallback, Session
+from .controls import BatchError
+from .failover import Failover, FailoverCallback, FailoverEvent
+from .handle import ClothHandle, StateCallback
+from .moves import MoveBook
+from .placement import PLACE_ELSEWHERE, Placement
+from .protocol import ClothState, DrapeError, Unavailable
+from .registry import Cloths
+from .sending import ControlSender, Target
+from .session import zenoh_config
+from .submitting import Submitter, cloth_options, grid_spec, mesh_spec, submit_request
 
 log = logging.getLogger(__name__)
 
 
-class DrapeClient(SubmittingMixin, BatchingMixin):
+class DrapeClient:
     """A Zenoh session to a Drape server, with this client's liveliness token.
 
     ``connect``: endpoints of the server (or of a router); default tcp/127.0.0.1:7447.
@@ -81,7 +74,12 @@ class DrapeClient(SubmittingMixin, BatchingMixin):
     Requests to a server speaking 1.4 go to this client's own keys
     (``{ns}/server/{server}/client/{client}/{kind}``, PROTOCOL.md 11.2), to an older one to the
     server-wide keys: the version is asked once per server with ``info`` (server-wide in every
-    version) before its first other request."""
+    version) before its first other request; every choice of a wire form follows the version of
+    the server the request goes to.
+
+    Its parts, built once here in dependency order: ``connection`` (the Session), ``placement``,
+    ``cloths`` (the open cloths), ``bundles``, ``sender`` (the sending path of controls),
+    ``submitter`` and, with ``failover=True``, the failover worker."""
 
     def __init__(
         self,
@@ -104,47 +102,46 @@ class DrapeClient(SubmittingMixin, BatchingMixin):
             connect = [P.DEFAULT_ENDPOINT]
         elif isinstance(connect, str):
             connect = [connect]
-        self.keys = P.Keys(namespace)
-        self.client_id = client_id or deployment_client_id(zenoh_config_file) or f"c{secrets.token_hex(8)}"
-        if not P.valid_id(self.client_id):
-            raise ValueError(f"invalid client id {self.client_id!r}")
-        if server_id is not None and not P.valid_id(server_id):
-            raise ValueError(f"invalid server id {server_id!r}")
-        self.timeout = timeout
         self.queue_size = queue_size
-        self._server_id = server_id
-        self._server_given = server_id is not None  # else: submissions are placed by load
-        self._rid = itertools.count(1)
-        self._lock = threading.Lock()
-        self._handles: dict[str, ClothHandle] = {}
-        self._servers: set[str] = set()
-        self._servers_cond = threading.Condition(self._lock)
         self._closed = False
-        self.send_errors = 0  # replies to send() that were errors (or refused batch items), or that never came
-        self._bundle_sub: Any = None
-        # this client's bundle: decoded whole, its states delivered to the handles (client/bundles.py)
-        self.bundles = BundleReceiver(self._handles, self._lock, queue_size, self.keys.bundle(self.client_id))
-        self._server_version: tuple[int, int] | None = None
-        self._scoped: dict[str, bool] = {}  # per server: whether it has client-scoped request keys (1.4)
-        self._vertex_limits: dict[str, int] = {}  # per server: its max_vertices_per_cloth (from that info)
-        self._max_batch_items = P.DEFAULT_LIMITS.max_batch_items
         self._failover: Failover | None = None
-        # the endpoints are checked before Zenoh sees them; Zenoh's refusal without its Rust paths
-        self.session: zenoh.Session = open_session(
-            zenoh_config(mode, listen, list(connect), multicast_scouting, zenoh_config_file),
-            f"{mode}, connect {list(connect)}" + (f", listen {list(listen)}" if listen else ""),
+        # the default server is the placement's first choice among the live ones
+        self.connection = Session(
+            connect,
+            listen=listen,
+            mode=mode,
+            namespace=namespace,
+            server_id=server_id,
+            client_id=client_id,
+            timeout=timeout,
+            multicast_scouting=multicast_scouting,
+            zenoh_config_file=zenoh_config_file,
+            choose=lambda: self.placement.choose(),
         )
+        self.keys = self.connection.keys
+        self.client_id = self.connection.client_id
+        self.timeout = timeout
+        self.session: zenoh.Session = self.connection.zenoh
         # where new cloths go: the servers' loads from their stats (client/placement.py)
-        self.placement = Placement(self.client_id, self.live_servers, stats_wait=min(timeout, 1.5))
+        self.placement = Placement(self.client_id, self.connection.live_servers, stats_wait=min(timeout, 1.5))
         if server_id is None or failover:
             self.placement.attach(self.session, self.keys)
-        lv = self.session.liveliness()
-        self._server_watch = lv.declare_subscriber(self.keys.all_servers_alive, self._on_server, history=True)
-        self._token = lv.declare_token(self.keys.alive_client(self.client_id))
+        self.cloths = Cloths()
+        # this client's bundle: decoded whole, its states delivered to the handles (client/bundles.py)
+        self.bundles = BundleReceiver(self.cloths.by_id, self.cloths.lock, queue_size, self.keys.bundle(self.client_id))
+        self.sender = ControlSender(self.connection, MoveBook(self), self._cloth_not_found)
+        self.submitter = Submitter(self, self.connection, self.placement, self.cloths, self.bundles, queue_size)
         # failover=True: cloths survive the loss of their server (client/failover.py, PROTOCOL.md 11.1)
-        self._failover = (
-            Failover(self, stall_timeout=stall_timeout, give_up_after=failover_give_up) if failover else None
-        )
+        if failover:
+            self._failover = Failover(
+                self.connection,
+                self.cloths,
+                self.placement,
+                self.submitter.place,
+                stall_timeout=stall_timeout,
+                give_up_after=failover_give_up,
+            )
+        self.connection.watch(self._on_server)
         log.debug("drape client %s connected to %s", self.client_id, list(connect))
 
     # --- session ------------------------------------------------------------------------------
@@ -160,7 +157,7 @@ class DrapeClient(SubmittingMixin, BatchingMixin):
         if self._closed:
             return
         if remove:
-            for h in list(self._handles.values()):
+            for h in self.cloths.all():
                 try:
                     h.remove(timeout=min(self.timeout, 2.0))
                 except DrapeError as e:
@@ -169,30 +166,22 @@ class DrapeClient(SubmittingMixin, BatchingMixin):
         if self._failover is not None:
             self._failover.close()
         self.placement.close()
-        for obj in (self._bundle_sub, self._token, self._server_watch):
-            if obj is None:
-                continue
-            try:
-                obj.undeclare()
-            except Exception:
-                pass
-        self.session.close()
+        self.bundles.close()
+        self.connection.close()
 
     @property
     def closed(self) -> bool:
         return self._closed
 
-    def _on_server(self, sample: zenoh.Sample) -> None:
-        sid = self.keys.last_chunk(str(sample.key_expr))
+    @property
+    def moves(self) -> MoveBook:
+        """The record of the moves blocks sent (1.4): what a failover re-sends of them."""
+        return self.sender.book
+
+    def _on_server(self, sid: str, alive: bool) -> None:
         gone: list[ClothHandle] = []
-        with self._servers_cond:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self._servers.add(sid)
-                self._servers_cond.notify_all()
-            else:
-                self._servers.discard(sid)
-                gone = [h for h in self._handles.values() if h.server_id == sid]
-        if sample.kind != zenoh.SampleKind.PUT:
+        if not alive:
+            gone = self.cloths.on(sid)
             self.placement.server_gone(sid)
         if self._failover is not None:
             if gone:
@@ -201,35 +190,22 @@ class DrapeClient(SubmittingMixin, BatchingMixin):
                 self._failover.wake()
             return
         for h in gone:
-            h._close(f"server {sid} went away")
+            h.mark_closed(f"server {sid} went away")
 
     @property
     def server_id(self) -> str:
         """The server given, or else this client's default server for requests that name none
         (info, stats): the placement's first choice among the live ones, kept while it is live
         (waiting up to ``timeout`` for one to appear). Submissions are placed one by one."""
-        if self._server_given:
-            assert self._server_id is not None
-            return self._server_id
-        with self._servers_cond:
-            if self._server_id in self._servers:
-                return self._server_id
-            self._servers_cond.wait_for(lambda: bool(self._servers), self.timeout)
-            if not self._servers:
-                raise Unavailable(
-                    P.ERR_UNAVAILABLE,
-                    f"no Drape server seen in namespace {self.keys.namespace!r} within {self.timeout} s",
-                )
-        chosen = self.placement.choose()
-        if chosen is None:  # gone again meanwhile
-            return self.server_id
-        self._server_id = chosen
-        return chosen
+        return self.connection.server_id
 
     def live_servers(self) -> list[str]:
         """Ids of the servers whose liveliness tokens this client currently sees (its watch)."""
-        with self._lock:
-            return sorted(self._servers)
+        return self.connection.live_servers()
+
+    def servers(self, timeout: float = 1.0) -> list[str]:
+        """Ids of the servers whose liveliness tokens are visible now."""
+        return self.connection.servers(timeout)
 
     @property
     def failover(self) -> bool:
@@ -248,46 +224,15 @@ class DrapeClient(SubmittingMixin, BatchingMixin):
         """Every failover so far, in order (empty without failover)."""
         return list(self._failover.events) if self._failover is not None else []
 
-    def _handles_on(self, server: str) -> list[ClothHandle]:
-        with self._lock:
-            return [h for h in self._handles.values() if h.server_id == server]
-
-    def _open_handles(self) -> list[ClothHandle]:
-        with self._lock:
-            return list(self._handles.values())
-
-    def _cloth_not_found(self, h: ClothHandle) -> None:
+    def _cloth_not_found(self, h: Target) -> None:
         """A control of ``h`` was answered not_found: reclaimed (or its server restarted), unless
         this client is removing it."""
-        if self._failover is not None and not h.closed and not h.removing:
+        if self._failover is not None and isinstance(h, ClothHandle) and not h.closed and not h.removing:
             self._failover.cloth_lost(h, "reclaimed")
 
-    def _watch_not_found(self, h: ClothHandle, on_error: ErrorCallback | None) -> ErrorCallback | None:
-        if self._failover is None:
-            return on_error
-
-        def cb(err: DrapeError) -> None:
-            if isinstance(err, P.NotFound):
-                self._cloth_not_found(h)
-            if on_error is not None:
-                on_error(err)
-            else:
-                log.warning("request failed: %s", err)
-
-        return cb
-
-    def servers(self, timeout: float = 1.0) -> list[str]:
-        """Ids of the servers whose liveliness tokens are visible now."""
-        replies = self.session.liveliness().get(self.keys.all_servers_alive, timeout=timeout)
-        return sorted({self.keys.last_chunk(str(r.ok.key_expr)) for r in replies if r.ok is not None})
-
-    def _next_rid(self) -> int:
-        return next(self._rid)
-
-    def _forget(self, handle: ClothHandle) -> None:
-        with self._lock:
-            if self._handles.get(handle.id) is handle:
-                del self._handles[handle.id]
+    def forget(self, handle: ClothHandle) -> None:
+        """``handle`` closed: no longer one of this client's open cloths."""
+        self.cloths.forget(handle)
 
     # --- bundles (protocol 1.1) -------------------------------------------------------------------
     @property
@@ -295,53 +240,16 @@ class DrapeClient(SubmittingMixin, BatchingMixin):
         """Where the server publishes this client's bundle: {ns}/client/{client id}/states."""
         return self.keys.bundle(self.client_id)
 
-    def _ensure_bundle_subscriber(self) -> None:
-        """Subscribe to this client's bundle once, before the first bundled submission, so the
-        subscription is in place when the cloth's first state is published."""
-        with self._lock:
-            if self._bundle_sub is None:
-                self._bundle_sub = self.session.declare_subscriber(self.bundle_key, self.bundles.on_sample)
-
     @property
     def bundle_invalid(self) -> int:
         """Bundle payloads that could not be parsed."""
         return self.bundles.invalid
 
     # --- requests -----------------------------------------------------------------------------
-    def _key(self, kind: str, server: str, timeout: float | None = None) -> str:
-        """The key of a ``kind`` request to ``server``: this client's own key (1.4) when the server
-        has them, else the server-wide key of 1.0-1.3 (always for info)."""
-        if kind in P.CLIENT_REQUESTS and self._client_scoped(server, timeout):
-            return self.keys.client_request(kind, server, self.client_id)
-        return str(getattr(self.keys, kind)(server))
-
-    def _client_scoped(self, server: str, timeout: float | None = None) -> bool:
-        """Whether ``server`` speaks 1.4 (client-scoped request keys): asked with info once (a 1.3
-        server has no such queryable, so trying one first would cost a timeout each time). An
-        unanswered info is not remembered: ``request`` asks again while it retries."""
-        scoped = self._scoped.get(server)
-        if scoped is None:
-            try:
-                info = self.request("info", P.encode_info(P.InfoRequest(self._next_rid())), timeout, server=server)
-            except DrapeError as e:
-                log.debug("info of %s: %s; using the server-wide keys", server, e)
-                return False
-            major, _, minor = str(info.get("version", "1.0")).partition(".")
-            limit = (info.get("limits") or {}).get("max_vertices_per_cloth")
-            if isinstance(limit, int) and limit > 0:
-                self._vertex_limits[server] = limit
-            scoped = self._scoped[server] = (int(major), int(minor or 0)) >= (1, 4)
-        return scoped
-
-    def _check_size(self, req: P.SubmitRequest, server: str, timeout: float | None = None) -> None:
-        """Refuse a cloth larger than ``server`` takes (its ``max_vertices_per_cloth``, from the
-        info asked once per server) before sending it: ``too_large``, the server's own words."""
-        self._client_scoped(server, timeout)  # the info, asked once (and needed for the key anyway)
-        limit = self._vertex_limits.get(server)
-        n = req.n_vertices
-        if limit is not None and n > limit:
-            grid = (req.grid.cols, req.grid.rows) if req.grid is not None else None
-            raise P.ProtocolError(P.ERR_TOO_LARGE, P.too_many_vertices(n, limit, grid), req.rid)
+    @property
+    def send_errors(self) -> int:
+        """Replies to send() that were errors (or refused batch items), or that never came."""
+        return self.connection.send_errors
 
     def request(
         self, kind: str, payload: bytes | bytearray, timeout: float | None = None, server: str | None = None
@@ -352,33 +260,7 @@ class DrapeClient(SubmittingMixin, BatchingMixin):
         in time."""
         if self._closed:
             raise DrapeError(P.ERR_UNAVAILABLE, "client is closed")
-        srv = server or self.server_id
-        timeout = self.timeout if timeout is None else timeout
-        deadline = time.monotonic() + timeout
-        key = self._key(kind, srv, timeout)
-        while True:
-            remaining = deadline - time.monotonic()
-            started = time.monotonic()
-            replies = list(self.session.get(key, payload=bytes(payload), timeout=max(remaining, 0.01)))
-            for r in replies:
-                if r.ok is not None:
-                    return P.decode_reply(r.ok.payload.to_bytes())
-                assert r.err is not None  # a reply is either ok or an error
-                data = r.err.payload.to_bytes()
-                try:
-                    P.unpack_message(data)
-                except P.ProtocolError:  # not ours: Zenoh's own error, e.g. "Timeout"
-                    raise Unavailable(P.ERR_UNAVAILABLE, f"{key}: {data[:80].decode(errors='replace')}") from None
-                P.decode_reply(data)  # raises the server's error
-                raise Unavailable(P.ERR_UNAVAILABLE, f"{key}: error reply without an error")
-            # No reply at all: no queryable matched yet (connecting) -> retry; a timeout -> give up.
-            elapsed = time.monotonic() - started
-            if time.monotonic() + 0.05 < deadline and elapsed < 0.5 * max(remaining, 0.0):
-                time.sleep(0.05)
-                if kind in P.CLIENT_REQUESTS and srv not in self._scoped:  # its info went unanswered
-                    key = self._key(kind, srv, max(deadline - time.monotonic(), 0.01))
-                continue
-            raise Unavailable(P.ERR_UNAVAILABLE, f"no reply from {key} within {timeout} s")
+        return self.connection.request(kind, payload, timeout, server)
 
     def send(
         self,
@@ -394,76 +276,21 @@ class DrapeClient(SubmittingMixin, BatchingMixin):
         updates): the reply is read on a Zenoh thread; an error reply or no reply at all is
         counted in ``send_errors`` and handed to ``on_error`` (default: logged). ``on_ok``, if
         given, gets a success reply's map (on the Zenoh thread). ``handle``: the cloth the
-        request is about; its ``not_found`` once this client is removing it is no failure
-        (``_send_failed``)."""
+        request is about; its ``not_found`` once this client is removing it is no failure."""
         if self._closed:
             raise DrapeError(P.ERR_UNAVAILABLE, "client is closed")
-        key = self._key(kind, server or self.server_id, timeout)
-        answered = []
-
-        def on_reply(reply: zenoh.Reply) -> None:
-            answered.append(True)
-            if reply.ok is not None:
-                if on_ok is not None:
-                    try:
-                        on_ok(P.decode_reply(reply.ok.payload.to_bytes()))
-                    except DrapeError as e:
-                        self._send_failed(e, on_error, handle)
-                    except Exception:
-                        log.exception("%s: reply handler failed", key)
-                return
-            assert reply.err is not None  # a reply is either ok or an error
-            data = reply.err.payload.to_bytes()
-            err: DrapeError
-            try:
-                P.decode_reply(data)
-                err = Unavailable(P.ERR_UNAVAILABLE, f"{key}: error reply without an error")
-            except DrapeError as e:
-                err = e
-            except P.ProtocolError:
-                err = Unavailable(P.ERR_UNAVAILABLE, f"{key}: {data[:80].decode(errors='replace')}")
-            self._send_failed(err, on_error, handle)
-
-        def on_done() -> None:
-            if not answered:
-                self._send_failed(Unavailable(P.ERR_UNAVAILABLE, f"no reply from {key}"), on_error, handle)
-
-        self.session.get(
-            key,
-            zenoh.handlers.Callback(on_reply, on_done),
-            payload=bytes(payload),
-            timeout=self.timeout if timeout is None else timeout,
-        )
-
-    def _send_failed(
-        self, err: DrapeError, on_error: Callable[[DrapeError], None] | None, handle: ClothHandle | None = None
-    ) -> None:
-        """An unwaited request failed: counted and handed to ``on_error`` (default: a warning),
-        except a ``not_found`` of a cloth (``handle``) this client is removing: a control sent
-        just before the removal and applied after it (logged at debug level, not counted)."""
-        if handle is not None and handle._removal_outcome(err):
-            log.debug("cloth %s was being removed: %s", handle.id, err)
-            return
-        with self._lock:
-            self.send_errors += 1
-        if on_error is not None:
-            on_error(err)
-        else:
-            log.warning("request failed: %s", err)
+        excused = handle.removal_outcome if handle is not None else None
+        self.connection.send(kind, payload, on_error, timeout, on_ok, server, excused)
 
     @property
     def server_version(self) -> tuple[int, int]:
-        """The protocol version the server speaks (asked once with info, then remembered)."""
-        if self._server_version is None:
-            info = self.info()
-            major, _, minor = str(info.get("version", "1.0")).partition(".")
-            self._max_batch_items = int(info.get("limits", {}).get("max_batch_items", 0) or 0)
-            self._server_version = (int(major), int(minor or 0))
-        return self._server_version
+        """The protocol version this client's default server speaks (asked once with info, then
+        remembered, as for every server)."""
+        return self.connection.info_of().version
 
     def info(self, timeout: float | None = None) -> dict[str, Any]:
         """The server's description: version, solver, device, tick rate, limits, counts."""
-        return self.request("info", P.encode_info(P.InfoRequest(self._next_rid())), timeout)
+        return self.connection.info(None, timeout)
 
     def on_stats(self, callback: Callable[[dict[str, Any]], None]) -> Callable[[], None]:
         """Call ``callback(stats)`` for every stats publication. Returns an unsubscribe function."""
@@ -476,3 +303,127 @@ class DrapeClient(SubmittingMixin, BatchingMixin):
 
         sub = self.session.declare_subscriber(self.keys.stats(self.server_id), on_sample)
         return sub.undeclare
+
+    # --- controls of many cloths ------------------------------------------------------------------
+    def batch(
+        self, *, wait: bool = False, on_error: ErrorCallback | None = None, timeout: float | None = None
+    ) -> ControlBatch:
+        """Collect controls of many of this client's cloths and send them as one batch control
+        request when the ``with`` block ends (or on ``send()``): the per-tick call of a game
+        loop with many cloths. ``wait=False``: the reply is not waited for; refused items are
+        counted in ``send_errors`` and handed to ``on_error``. ``wait=True``: ``results`` holds
+        each item's first tick, and BatchError is raised if any item was refused."""
+        return ControlBatch(self.sender, self, wait=wait, on_error=on_error, timeout=timeout)
+
+    def move_pins_many(
+        self,
+        handles: Sequence[ClothHandle],
+        indices: Sequence[int] | np.ndarray | Sequence[Sequence[int]],
+        targets: Sequence[Any] | np.ndarray,
+        *,
+        colliders: Sequence[Sequence[Any] | None] | None = None,
+        wait: bool = False,
+        on_error: ErrorCallback | None = None,
+    ) -> list[int | DrapeError] | None:
+        """Move the pins of many cloths in one message: ``indices`` the same for every cloth
+        (a sequence of ints) or one sequence per cloth; ``targets[j]`` the (k, 3) targets of
+        ``handles[j]`` (one (n, k, 3) array is best); ``colliders[j]`` (optional) the colliders of
+        ``handles[j]`` (None: unchanged). Shared indices and no colliders, to a 1.4 server: one
+        ``moves`` block (PROTOCOL.md 5.1.1), with no Python loop over the cloths (client/sending.py).
+        ``wait=True``: each cloth's first tick; BatchError (with every outcome) if any was refused."""
+        if len(targets) != len(handles):
+            raise ValueError(f"{len(handles)} cloths but {len(targets)} target arrays")
+        try:
+            shared = np.asarray(indices).ndim == 1  # one index list for every cloth
+        except ValueError:  # ragged: one list per cloth
+            shared = False
+        if shared and colliders is None:
+            return self.sender.moves(handles, np.asarray(indices), np.asarray(targets), wait, on_error)
+        b = self.batch(wait=wait, on_error=on_error)
+        for j, h in enumerate(handles):
+            idx = cast("Sequence[int] | np.ndarray", indices if shared else indices[j])
+            b.move_pins(h, idx, targets[j], colliders=None if colliders is None else colliders[j])
+        return b.send()
+
+    # --- submissions ------------------------------------------------------------------------------
+    def submit(
+        self,
+        req: P.SubmitRequest,
+        rest_positions: np.ndarray | None = None,
+        triangles: np.ndarray | None = None,
+        timeout: float | None = None,
+        queue_size: int | None = None,
+        server: str | None = None,
+    ) -> ClothHandle:
+        """Send a SubmitRequest as is and subscribe to the new cloth's state (with
+        ``req.state.bundle``: to this client's bundle, once for all its bundled cloths; a 1.0
+        server ignores the option and the handle subscribes to the cloth's own key). A grid's
+        ``rest_positions`` and ``triangles`` default to its geometry, built once it is accepted.
+
+        To ``server``, else the client's ``server_id`` when one was given, else the live server
+        the placement ranks first (PROTOCOL.md 11.3); a refusal another server may not give
+        (``overloaded``, ``busy``, ``limit_exceeded``, no reply) tries the next one, and the last
+        refusal is raised when every live server refused."""
+        return self.submitter.submit(req, rest_positions, triangles, timeout, queue_size, server)
+
+    def submit_grid(
+        self,
+        cols: int,
+        rows: int,
+        width: float = 1.0,
+        height: float = 1.0,
+        *,
+        orientation: str = "horizontal",
+        origin: Sequence[float] = (0.0, 0.0, 0.0),
+        **options: Any,
+    ) -> ClothHandle:
+        """A regular grid cloth; vertex (row r, column c) is r * cols + c. ``options``: see
+        ``cloth_options``. Its geometry (the handle's ``rest_positions`` and ``triangles``) is
+        built once the server accepted it: a grid too large is refused before anything is built."""
+        return self._submit(grid=grid_spec(cols, rows, width, height, orientation, origin), **options)
+
+    def submit_mesh(
+        self, vertices: np.ndarray | Sequence, triangles: np.ndarray | Sequence, **options: Any
+    ) -> ClothHandle:
+        """A triangle mesh cloth: vertices (n, 3) metres, triangles (m, 3) vertex indices."""
+        mesh = mesh_spec(vertices, triangles)
+        return self._submit(mesh=mesh, rest=mesh.vertices, tris=mesh.triangles, **options)
+
+    def submit_obj(self, path: str | Path, **options: Any) -> ClothHandle:
+        """A cloth from a Wavefront OBJ file (faces fan-triangulated)."""
+        v, t = P.parse_obj(Path(path).read_text())
+        return self.submit_mesh(v, t, **options)
+
+    def _submit(
+        self,
+        *,
+        rest: np.ndarray | None = None,
+        tris: np.ndarray | None = None,
+        timeout: float | None = None,
+        queue_size: int | None = None,
+        server: str | None = None,
+        **options: Any,
+    ) -> ClothHandle:
+        req = submit_request(self.client_id, self.connection.next_rid(), **options)
+        return self.submit(req, rest, tris, timeout, queue_size, server)
+
+
+__all__ = [
+    "MAX_ORPHAN_CLOTHS",
+    "PLACE_ELSEWHERE",
+    "BatchError",
+    "ClothHandle",
+    "ClothState",
+    "ControlBatch",
+    "DrapeClient",
+    "DrapeError",
+    "ErrorCallback",
+    "Failover",
+    "FailoverCallback",
+    "FailoverEvent",
+    "Placement",
+    "StateCallback",
+    "Unavailable",
+    "cloth_options",
+    "zenoh_config",
+]

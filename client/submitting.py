@@ -1,28 +1,27 @@
-"""DrapeClient's submissions (a mixin of :class:`drape.client.sdk.DrapeClient`): a cloth built
-from a grid, a triangle mesh or an OBJ file (``submit_grid``, ``submit_mesh``, ``submit_obj``,
-their options ``cloth_options``), a SubmitRequest sent as is (``submit``) to the server the
-placement ranks first (PROTOCOL.md 11.3, the next one on a refusal another server may not give),
-and the new handle registered with the client (``_place``, also the failover's resubmission)
-before any state of its bundle reaches it.
+"""Submissions of the Python SDK: the SubmitRequest of a grid or a triangle mesh and the SDK's
+friendly options (:func:`submit_request`, its options ``cloth_options``; pure), and the
+:class:`Submitter`, which sends one (``submit``) to the server the placement ranks first
+(PROTOCOL.md 11.3, the next one on a refusal another server may not give) and registers the new
+handle with the client (``place``, also the failover's resubmission) before any state of its
+bundle reaches it.
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from . import protocol as P
-from .controls import _collider, _links, _vec3
-from .handle import ClothHandle
-from .placement import PLACE_ELSEWHERE
+from .bundles import BundleReceiver
+from .connection import Session
+from .controls import collider, links_of, vec3
+from .handle import ClothHandle, HandleOwner
+from .placement import PLACE_ELSEWHERE, Placement
 from .protocol import DrapeError
-
-if TYPE_CHECKING:
-    from .sdk import DrapeClient
+from .registry import Cloths
 
 log = logging.getLogger("drape.client.sdk")
 
@@ -49,13 +48,113 @@ cloth_options = (
 )
 
 
-class SubmittingMixin:
-    """DrapeClient's submission methods (its session, servers and requests are in sdk.py). Their
-    ``self`` is the DrapeClient they are mixed into: mypy wants a mixin's self type to be a
-    supertype of the mixin, hence each ``type: ignore[misc]``."""
+def grid_spec(
+    cols: int,
+    rows: int,
+    width: float = 1.0,
+    height: float = 1.0,
+    orientation: str = "horizontal",
+    origin: Sequence[float] = (0.0, 0.0, 0.0),
+) -> P.GridSpec:
+    """A regular grid's spec, checked (columns, rows, orientation, origin) without building it."""
+    cols, rows = int(cols), int(rows)
+    # the geometry's own checks (columns, rows, orientation, origin) on a grid of at most 1x1
+    P.grid_positions(min(cols, 1), min(rows, 1), width, height, orientation, origin)
+    return P.GridSpec(
+        cols,
+        rows,
+        float(width),
+        float(height),
+        orientation,
+        tuple(float(v) for v in origin),  # type: ignore[arg-type]
+    )
 
-    def submit(  # type: ignore[misc]
-        self: DrapeClient,
+
+def mesh_spec(vertices: np.ndarray | Sequence, triangles: np.ndarray | Sequence) -> P.MeshSpec:
+    """A triangle mesh's spec: vertices (n, 3) metres, triangles (m, 3) vertex indices, checked."""
+    v = np.ascontiguousarray(np.asarray(vertices, np.float32).reshape(-1, 3))
+    t = np.asarray(triangles, np.int64).reshape(-1, 3)
+    if t.size and (t.min() < 0 or t.max() >= len(v)):
+        raise ValueError("triangle index out of range")
+    return P.MeshSpec(v, t.astype(np.uint32))
+
+
+def submit_request(
+    client: str,
+    rid: int,
+    *,
+    grid: P.GridSpec | None = None,
+    mesh: P.MeshSpec | None = None,
+    pinned: Iterable[int] = (),
+    links: Any = None,
+    material: Mapping[str, Any] | Any = None,
+    features: Iterable[str] = (),
+    gravity: Sequence[float] | None = None,
+    wind: Sequence[float] | None = None,
+    iterations: int | None = None,
+    substeps: int | None = None,
+    chebyshev_rho: float | None = None,
+    colliders: Sequence[Any] | None = None,
+    normals: bool = False,
+    encoding: str = "float32",
+    step: float | None = None,
+    bundle: bool = False,
+    quality: str | None = None,
+) -> P.SubmitRequest:
+    """The SubmitRequest of ``client`` for a grid or a mesh with the SDK's options (``cloth_options``
+    but timeout, queue_size and server, which are the sending's)."""
+    pins = np.asarray(list(pinned), np.int64).reshape(-1)
+    n = grid.cols * grid.rows if grid is not None else len(mesh.vertices) if mesh is not None else 0
+    bad = pins[(pins < 0) | (pins >= n)]
+    if bad.size:
+        shape = (grid.cols, grid.rows) if grid is not None else None
+        raise ValueError(P.pinned_out_of_range(int(bad[0]), n, shape))
+    return P.SubmitRequest(
+        client=client,
+        grid=grid,
+        mesh=mesh,
+        pinned=pins.astype(np.uint32),
+        links=links_of(links),
+        material=P.material_to_map(material) if material is not None else {},
+        features=tuple(features),
+        gravity=vec3(gravity),
+        wind=vec3(wind),
+        iterations=iterations,
+        substeps=substeps,
+        chebyshev_rho=chebyshev_rho,
+        colliders=tuple(collider(c) for c in colliders) if colliders is not None else None,
+        state=(
+            P.StateOptions(bool(normals), encoding, True if bundle else None, step)
+            if (normals or encoding != "float32" or bundle or step is not None)
+            else None
+        ),
+        quality=quality,
+        rid=rid,
+    )
+
+
+class Submitter:
+    """Sends one client's submissions and registers their handles (module docstring). ``owner``:
+    the client the new handles belong to; ``queue_size``: their default state queue length."""
+
+    def __init__(
+        self,
+        owner: HandleOwner,
+        session: Session,
+        placement: Placement,
+        cloths: Cloths,
+        bundles: BundleReceiver,
+        queue_size: int = 64,
+    ) -> None:
+        self.owner = owner
+        self.session = session
+        self.placement = placement
+        self.cloths = cloths
+        self.bundles = bundles
+        self.queue_size = queue_size
+
+    def submit(
+        self,
         req: P.SubmitRequest,
         rest_positions: np.ndarray | None = None,
         triangles: np.ndarray | None = None,
@@ -63,15 +162,9 @@ class SubmittingMixin:
         queue_size: int | None = None,
         server: str | None = None,
     ) -> ClothHandle:
-        """Send a SubmitRequest as is and subscribe to the new cloth's state (with
-        ``req.state.bundle``: to this client's bundle, once for all its bundled cloths; a 1.0
-        server ignores the option and the handle subscribes to the cloth's own key). A grid's
-        ``rest_positions`` and ``triangles`` default to its geometry, built once it is accepted.
-
-        To ``server``, else the client's ``server_id`` when one was given, else the live server
-        the placement ranks first (PROTOCOL.md 11.3); a refusal another server may not give
-        (``overloaded``, ``busy``, ``limit_exceeded``, no reply) tries the next one, and the last
-        refusal is raised when every live server refused."""
+        """``req`` as is, to ``server``, else the session's given server, else the live server the
+        placement ranks first, a refusal another server may not give trying the next one (see
+        DrapeClient.submit); its handle."""
 
         def make(target: str) -> Callable[[P.SubmitReply], ClothHandle]:
             def handle(rep: P.SubmitReply) -> ClothHandle:
@@ -79,13 +172,13 @@ class SubmittingMixin:
                 if rest is None and req.grid is not None:  # built once the server took the cloth
                     g = req.grid
                     rest, tris = P.grid_geometry(g.cols, g.rows, g.width, g.height, g.orientation, g.origin)
-                return ClothHandle(self, rep, rest, tris, queue_size or self.queue_size, target, req)
+                return ClothHandle(self.owner, rep, rest, tris, queue_size or self.queue_size, target, req)
 
             return handle
 
-        if server is not None or self._server_given:
-            target = server or self.server_id
-            return self._place(None, req, target, timeout, make(target))
+        if server is not None or self.session.server_given:
+            target = server or self.session.server_id
+            return self.place(None, req, target, timeout, make(target))
         tried: set[str] = set()
         last: DrapeError | None = None
         while True:
@@ -93,18 +186,30 @@ class SubmittingMixin:
             if choice is None:
                 if last is not None:  # every live server refused: the last refusal
                     raise last
-                choice = self.server_id  # none live yet: wait for one (or raise unavailable)
+                choice = self.session.server_id  # none live yet: wait for one (or raise unavailable)
             tried.add(choice)
             try:
-                return self._place(None, req, choice, timeout, make(choice))
+                return self.place(None, req, choice, timeout, make(choice))
             except DrapeError as e:
                 if e.code not in PLACE_ELSEWHERE:
                     raise
                 log.info("server %s refused a cloth (%s): trying the next", choice, e.code)
                 last = e
 
-    def _place(  # type: ignore[misc]
-        self: DrapeClient,
+    def _check_size(self, req: P.SubmitRequest, server: str, timeout: float | None = None) -> None:
+        """Refuse a cloth larger than ``server`` takes (its ``max_vertices_per_cloth``, from the
+        info asked once per server) before sending it: ``too_large``, the server's own words."""
+        try:
+            limit = self.session.info_of(server, timeout).max_vertices
+        except DrapeError:  # unanswered: the request itself will tell
+            return
+        n = req.n_vertices
+        if limit is not None and n > limit:
+            grid = (req.grid.cols, req.grid.rows) if req.grid is not None else None
+            raise P.ProtocolError(P.ERR_TOO_LARGE, P.too_many_vertices(n, limit, grid), req.rid)
+
+    def place(
+        self,
         h: ClothHandle | None,
         req: P.SubmitRequest,
         server: str,
@@ -115,13 +220,13 @@ class SubmittingMixin:
         the existing handle ``h`` continued under the new reply's id."""
         bundled = bool(req.state is not None and req.state.bundle)
         if bundled:
-            self._ensure_bundle_subscriber()
+            self.bundles.subscribe(self.session.zenoh)
             self.bundles.submitting()
         self._check_size(req, server, timeout)  # a cloth the server would refuse is not sent
         ticket = self.placement.placing(server, req.n_vertices)  # counted there until its next stats
         try:
             try:
-                rep = P.submit_reply_from_map(self.request("submit", P.encode_submit(req), timeout, server=server))
+                rep = P.submit_reply_from_map(self.session.request("submit", P.encode_submit(req), timeout, server))
             except BaseException:
                 self.placement.placed(ticket, False)
                 raise
@@ -134,116 +239,18 @@ class SubmittingMixin:
                 h = make(rep)
             else:
                 old_id = h.id
-            with h._deliver_lock:  # states of the bundle reach the handle only after these
+            with h.deliver_lock:  # states of the bundle reach the handle only after these
                 if old_id is not None:
-                    h._rebind(rep, server)
-                with self._lock:
-                    if old_id is not None and self._handles.get(old_id) is h:
-                        del self._handles[old_id]
-                    self._handles[h.id] = h
+                    h.rebind(rep, server)
+                with self.cloths.lock:
+                    self.cloths.add(h, old_id)
                     early = self.bundles.early_states(h.id) if bundled else []
                 for st in early:
-                    h._deliver(st)
+                    h.deliver(st)
             return h
         finally:
             if bundled:
                 self.bundles.submitted()
 
-    def submit_grid(  # type: ignore[misc]
-        self: DrapeClient,
-        cols: int,
-        rows: int,
-        width: float = 1.0,
-        height: float = 1.0,
-        *,
-        orientation: str = "horizontal",
-        origin: Sequence[float] = (0.0, 0.0, 0.0),
-        **options: Any,
-    ) -> ClothHandle:
-        """A regular grid cloth; vertex (row r, column c) is r * cols + c. ``options``: see
-        ``cloth_options``. Its geometry (the handle's ``rest_positions`` and ``triangles``) is
-        built once the server accepted it: a grid too large is refused before anything is built."""
-        cols, rows = int(cols), int(rows)
-        # the geometry's own checks (columns, rows, orientation, origin) on a grid of at most 1x1
-        P.grid_positions(min(cols, 1), min(rows, 1), width, height, orientation, origin)
-        grid = P.GridSpec(
-            cols,
-            rows,
-            float(width),
-            float(height),
-            orientation,
-            tuple(float(v) for v in origin),  # type: ignore[arg-type]
-        )
-        return self._submit(grid=grid, **options)
 
-    def submit_mesh(  # type: ignore[misc]
-        self: DrapeClient, vertices: np.ndarray | Sequence, triangles: np.ndarray | Sequence, **options: Any
-    ) -> ClothHandle:
-        """A triangle mesh cloth: vertices (n, 3) metres, triangles (m, 3) vertex indices."""
-        v = np.ascontiguousarray(np.asarray(vertices, np.float32).reshape(-1, 3))
-        t = np.asarray(triangles, np.int64).reshape(-1, 3)
-        if t.size and (t.min() < 0 or t.max() >= len(v)):
-            raise ValueError("triangle index out of range")
-        mesh = P.MeshSpec(v, t.astype(np.uint32))
-        return self._submit(mesh=mesh, rest=v, tris=mesh.triangles, **options)
-
-    def submit_obj(self: DrapeClient, path: str | Path, **options: Any) -> ClothHandle:  # type: ignore[misc]
-        """A cloth from a Wavefront OBJ file (faces fan-triangulated)."""
-        v, t = P.parse_obj(Path(path).read_text())
-        return self.submit_mesh(v, t, **options)
-
-    def _submit(  # type: ignore[misc]
-        self: DrapeClient,
-        *,
-        rest: np.ndarray | None = None,
-        tris: np.ndarray | None = None,
-        grid: P.GridSpec | None = None,
-        mesh: P.MeshSpec | None = None,
-        pinned: Iterable[int] = (),
-        links: Any = None,
-        material: Mapping[str, Any] | Any = None,
-        features: Iterable[str] = (),
-        gravity: Sequence[float] | None = None,
-        wind: Sequence[float] | None = None,
-        iterations: int | None = None,
-        substeps: int | None = None,
-        chebyshev_rho: float | None = None,
-        colliders: Sequence[Any] | None = None,
-        normals: bool = False,
-        encoding: str = "float32",
-        step: float | None = None,
-        bundle: bool = False,
-        quality: str | None = None,
-        timeout: float | None = None,
-        queue_size: int | None = None,
-        server: str | None = None,
-    ) -> ClothHandle:
-        pins = np.asarray(list(pinned), np.int64).reshape(-1)
-        n = grid.cols * grid.rows if grid is not None else len(mesh.vertices) if mesh is not None else 0
-        bad = pins[(pins < 0) | (pins >= n)]
-        if bad.size:
-            shape = (grid.cols, grid.rows) if grid is not None else None
-            raise ValueError(P.pinned_out_of_range(int(bad[0]), n, shape))
-        req = P.SubmitRequest(
-            client=self.client_id,
-            grid=grid,
-            mesh=mesh,
-            pinned=pins.astype(np.uint32),
-            links=_links(links),
-            material=P.material_to_map(material) if material is not None else {},
-            features=tuple(features),
-            gravity=_vec3(gravity),
-            wind=_vec3(wind),
-            iterations=iterations,
-            substeps=substeps,
-            chebyshev_rho=chebyshev_rho,
-            colliders=tuple(_collider(c) for c in colliders) if colliders is not None else None,
-            state=(
-                P.StateOptions(bool(normals), encoding, True if bundle else None, step)
-                if (normals or encoding != "float32" or bundle or step is not None)
-                else None
-            ),
-            quality=quality,
-            rid=self._next_rid(),
-        )
-        return self.submit(req, rest, tris, timeout, queue_size, server)
+__all__ = ["Submitter", "cloth_options", "grid_spec", "mesh_spec", "submit_request"]

@@ -7,15 +7,18 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import MISSING, fields
-from typing import TYPE_CHECKING, Any
+from typing import Any, TypeAlias
 
 from .moves import moves_to_map
 from .requestfields import CONTROL_WIRE_ORDER, SUBMIT_FIELDS, RequestField
 from .validate import _blob, _f, _header, _state_map, _v3, collider_to_map, material_to_map
 from .vocabulary import ResumeState
 
-if TYPE_CHECKING:  # annotations only: messages imports this module for its equality
-    from .messages import ControlBatchRequest, ControlRequest, SubmitRequest
+# The requests (messages.py) are annotated by name only: messages imports this module for its
+# equality, and a module below it may not import it back (not even for annotations).
+SubmitRequest: TypeAlias = Any
+ControlRequest: TypeAlias = Any
+ControlBatchRequest: TypeAlias = Any
 
 #: kind -> the wire value of a given field of that kind (requestfields.FIELD_KINDS).
 WRITERS: dict[str, Callable[[Any], Any]] = {

@@ -12,7 +12,7 @@ of the calling thread; the wall times go to the JSON too):
   last two results alive, as the SDK's handles keep their last two states (a result dropped at
   once lets glibc hand its pages back and take page faults for the next: not a client's case);
 - ``sdk old``: the SDK's dispatch as it was before the whole-bundle decode (``Bundle.state(i)``
-  then ``ClothHandle._deliver`` per entry);
+  then ``ClothHandle.deliver`` per entry);
 - ``sdk``: what the SDK does with a bundle sample: ``ZBytes.to_bytes()`` then
   :meth:`drape.client.bundles.BundleReceiver.receive` (decode once, deliver to every handle).
 
@@ -130,8 +130,8 @@ def open_client(k: int) -> tuple[DrapeClient, list[ClothHandle], list[list[int]]
         h = ClothHandle(client, rep, queue_size=4, server_id="bench")
         ticks: list[int] = []
         h.on_state(ticks_of(ticks))
-        with client._lock:
-            client._handles[h.id] = h
+        with client.cloths.lock:
+            client.cloths.add(h)
         handles.append(h)
         seen.append(ticks)
     return client, handles, seen
@@ -176,7 +176,7 @@ def run(
         now = time.time_ns()
         bb = P.parse_bundle(zb.to_bytes())
         for i, e in enumerate(bb.entries):
-            by_id[e.cloth]._deliver(bb.state(i, now))
+            by_id[e.cloth].deliver(bb.state(i, now))
 
     def sdk() -> None:
         client.bundles.receive(zb.to_bytes(), time.time_ns())

@@ -297,14 +297,14 @@ def client():
 
 
 def bundled_handle(client: DrapeClient, cloth: str, register: bool = True, bundled: bool = True) -> ClothHandle:
-    """A handle as a bundled submission makes it (registered as DrapeClient._place does)."""
+    """A handle as a bundled submission makes it (registered as Submitter.place does)."""
     rep = P.SubmitReply(cloth, "0" * 32, f"drape/cloth/{cloth}/state", 4, 1, bundle_key=client.bundle_key)
     if not bundled:
         rep.bundle_key = None
     h = ClothHandle(client, rep, queue_size=client.queue_size, server_id="s")
     if register:
-        with client._lock:
-            client._handles[h.id] = h
+        with client.cloths.lock:
+            client.cloths.add(h)
     return h
 
 
@@ -353,11 +353,11 @@ def test_states_of_a_cloth_whose_reply_is_on_its_way_are_kept_for_it(rng, client
     rx.submitting()
     for tick in range(2, 8):
         rx.receive(bundle(tick))
-    with client._lock:  # what DrapeClient._place does once the reply is in
-        client._handles[early.id] = early
+    with client.cloths.lock:  # what Submitter.place does once the reply is in
+        client.cloths.add(early)
         kept = rx.early_states(early.id)
     for st in kept:
-        early._deliver(st)
+        early.deliver(st)
     rx.submitted()
     rx.receive(bundle(8))
     got = [early.next_state(0).tick for _ in range(3)]
@@ -372,7 +372,7 @@ def test_bundles_over_zenoh_reach_the_handles(rng, client):
     from drape.client.session import zenoh_config
 
     handles = [bundled_handle(client, f"z{i}") for i in range(3)]
-    client._ensure_bundle_subscriber()
+    client.bundles.subscribe(client.session)
     states = {h.id: random_state(rng, 8, "quant16", True, tick=1) for h in handles}
     data = bytes(P.encode_bundle(1, 1, list(states.items())))
     server = zenoh.open(zenoh_config("peer", connect=[client.endpoint]))

@@ -77,7 +77,7 @@ def test_a_peer_built_from_the_sample_reaches_a_listening_peer():
 
 
 def test_sdk_features_delta_is_validated_before_anything_is_sent():
-    from drape.client.sdk import _set_changes
+    from drape.client.controls import set_changes as _set_changes
 
     ch = _set_changes(
         None,

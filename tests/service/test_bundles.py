@@ -4,6 +4,7 @@ the reference encoders of drape.client.protocol, byte for byte."""
 
 from __future__ import annotations
 
+import dataclasses
 import struct
 import threading
 import time
@@ -303,14 +304,15 @@ def test_batch_control_applies_good_items_and_refuses_bad_ones_each_alone(server
         s = mine[0].wait_for_tick(max(ticks), TIMEOUT)
         np.testing.assert_allclose(s.positions[0], [0, 0.9, 0], atol=1e-6)  # the last item for it wins
         # a 1.0 server has no batch control: the SDK falls back to one control per item
-        client._server_version = (1, 0)
+        sid = mine[0].server_id  # what its info says, as a 1.0 server's
+        client.connection.set_info(sid, dataclasses.replace(client.connection.info_of(sid), version=(1, 0)))
         try:
             before = server.stats()["requests"].get("control", 0)
             out = client.move_pins_many(mine, [[0], [3], [0]], [tgt, tgt, tgt], wait=True)
             assert all(isinstance(t, int) for t in out)
             assert server.stats()["requests"]["control"] - before == 3
         finally:
-            client._server_version = None
+            client.connection.set_info(sid, None)
         for h in mine:
             h.remove()
         theirs.remove()

@@ -221,14 +221,15 @@ def test_reclaimed_cloths_come_back_when_the_client_returns(tmp_path):
             _settle(handles, 60)
             # away: the failover thread stops (as the whole process would) and the token goes
             client._failover.pause()
-            client._token.undeclare()
+            client.connection.token.undeclare()
             assert _wait(lambda: any(s.get("reclaimed", 0) >= len(handles) for s in stats), EVENT_WAIT), (
                 "the server should reclaim the absent client's cloths"
             )
             last = {id(h): h.latest() for h in handles}  # the last states before the reclaim
             for h in handles:
                 h.clear()
-            client._token = client.session.liveliness().declare_token(client.keys.alive_client(client.client_id))
+            alive = client.keys.alive_client(client.client_id)
+            client.connection.token = client.session.liveliness().declare_token(alive)
             t_back = time.monotonic()
             client._failover.resume()
             assert _wait(lambda: len(events) >= len(handles), EVENT_WAIT), f"{len(events)} failover events"

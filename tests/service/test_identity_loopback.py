@@ -83,7 +83,7 @@ def test_open_mode_serves_a_1_3_client_on_the_old_keys_and_a_1_4_client_on_its_o
         assert isinstance(c, dict) and c["ok"]
         # 1.4: the SDK found the version and uses its own keys; its state key names it
         h = new.submit_grid(4, 4, pinned=[0, 3])
-        assert new._key("submit", sid) == keys.client_request("submit", sid, new.client_id)
+        assert new.connection.key("submit", sid) == keys.client_request("submit", sid, new.client_id)
         assert h.key == keys.client_state(new.client_id, h.id)
         assert len(collect(h, 3)) == 3
         h.move_pins([0, 3], [[0, 0, 0], [1, 0, 0]], wait=True)
@@ -162,9 +162,9 @@ def test_failover_probes_on_the_client_scoped_key(keys_server):
         collect(h, 2)
         assert c._failover is not None
         c._failover.pause()  # away: the failover thread held still, the token withdrawn
-        c._token.undeclare()
+        c.connection.token.undeclare()
         assert wait_until(lambda: keys_server.registry.get(h.id) is None, 10 * TIMEOUT), "not reclaimed"
-        c._token = c.session.liveliness().declare_token(c.keys.alive_client(c.client_id))
+        c.connection.token = c.session.liveliness().declare_token(c.keys.alive_client(c.client_id))
         c._failover.resume()
         assert wait_until(lambda: len(events) >= 1, 10 * TIMEOUT), "the reclaim was never detected"
         assert events[0].ok and events[0].reason == "reclaimed", events

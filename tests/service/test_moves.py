@@ -31,7 +31,7 @@ def cloths(client, n: int) -> list:
 
 
 def batch(client, moves: P.PinMoves | None, items: list[P.ControlRequest] | None = None) -> P.ControlBatchReply:
-    req = P.ControlBatchRequest(client.client_id, items or [], client._next_rid(), moves)
+    req = P.ControlBatchRequest(client.client_id, items or [], client.connection.next_rid(), moves)
     return P.control_batch_reply_from_map(client.request("control_batch", P.encode_control_batch(req)))
 
 
@@ -156,8 +156,6 @@ def test_items_only_batch_of_a_1_3_client(client):
 def test_last_targets_recorded_for_failover(client):
     """A failover re-sends each handle's last pin targets: the vectorised path records them as a
     view of its last block, folded into the handle's own record in the order things were sent."""
-    from drape.client.moves import moves_of
-
     hs = cloths(client, 2)
     first = np.full((2, 2, 3), 0.1, np.float32)
     client.move_pins_many(hs, PINS, first)
@@ -166,13 +164,37 @@ def test_last_targets_recorded_for_failover(client):
     second[1, 1] = 0.4
     client.move_pins_many(hs, PINS, second)
     for h in hs:
-        moves_of(client).fold(h)
+        client.moves.fold(h)
     np.testing.assert_allclose(np.stack([hs[0]._last_pins[i] for i in PINS]), second[0])
     np.testing.assert_allclose(np.stack([hs[1]._last_pins[i] for i in PINS]), second[1])
     hs[1].move_pins([0], [[0.9, 0.9, 0.9]])
-    moves_of(client).fold(hs[1])
+    client.moves.fold(hs[1])
     np.testing.assert_allclose(hs[1]._last_pins[0], 0.9)
     np.testing.assert_allclose(hs[1]._last_pins[7], 0.4)
+
+
+def test_controls_take_the_wire_form_of_their_cloths_own_server(server):
+    """A client whose default server is another one (here one that does not exist) sends its
+    cloths' controls in the wire forms of the server they live on (moves block, batch, features
+    delta: 1.4 and 1.2), asking that server's info only: never the default server's."""
+    from drape.client import DrapeClient
+
+    c = DrapeClient(server.config.listen[0], server_id="ghost", timeout=TIMEOUT)
+    try:
+        hs = [c.submit_grid(8, 8, pinned=PINS, server=server.server_id) for _ in range(2)]
+        ticks = c.move_pins_many(hs, PINS, np.zeros((2, 2, 3), np.float32), wait=True)  # one moves block
+        assert ticks is not None and all(isinstance(t, int) for t in ticks)
+        with c.batch(wait=True) as b:
+            b.set(hs[0], gravity=(0.0, -1.0, 0.0))
+            b.move_pins(hs[1], [0], [[0.0, 0.1, 0.0]])
+        assert b.results is not None and all(isinstance(t, int) for t in b.results)
+        assert isinstance(hs[0].set(features_add=["normals"]), int)
+        assert c.connection.known_info("ghost") is None
+        assert c.connection.info_of(server.server_id).version >= (1, 4)
+        for h in hs:
+            h.remove()
+    finally:
+        c.close(remove=False)
 
 
 def test_apply_blocks_refuses_removed_and_drops_reset_cloths(device):

@@ -5,14 +5,14 @@ servers' versions)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, Sequence
-from typing import Any
+from collections.abc import Sequence
+from typing import Any, Unpack
 
 import numpy as np
 
 from . import protocol as P
 from .connection import ErrorCallback
-from .controls import BatchError, collider, pin_changes, set_changes
+from .controls import BatchError, SetOptions, collider, pin_changes, set_changes
 from .handle import ClothHandle
 from .protocol import DrapeError
 from .sending import ControlSender
@@ -67,45 +67,9 @@ class ControlBatch:
     def set_colliders(self, handle: ClothHandle, colliders: Sequence[Any]) -> ControlBatch:
         return self.add(handle, colliders=tuple(collider(c) for c in colliders))
 
-    def set(
-        self,
-        handle: ClothHandle,
-        *,
-        gravity: Sequence[float] | None = None,
-        wind: Sequence[float] | None = None,
-        material: Mapping[str, Any] | Any = None,
-        features: Iterable[str] | None = None,
-        iterations: int | None = None,
-        substeps: int | None = None,
-        chebyshev_rho: float | None = None,
-        normals: bool | None = None,
-        encoding: str | None = None,
-        reset: bool = False,
-        quality: str | None = None,
-        features_add: Iterable[str] | None = None,
-        features_remove: Iterable[str] | None = None,
-        step: float | None = None,
-    ) -> ControlBatch:
+    def set(self, handle: ClothHandle, **options: Unpack[SetOptions]) -> ControlBatch:
         """As ClothHandle.set, for one item of the batch (``features_add`` / ``features_remove``: 1.2)."""
-        return self.add(
-            handle,
-            **set_changes(
-                gravity,
-                wind,
-                material,
-                features,
-                iterations,
-                substeps,
-                chebyshev_rho,
-                normals,
-                encoding,
-                reset,
-                quality,
-                features_add,
-                features_remove,
-                step,
-            ),
-        )
+        return self.add(handle, **set_changes(**options))
 
     def reset(self, handle: ClothHandle) -> ControlBatch:
         return self.add(handle, reset=True)

@@ -5,9 +5,9 @@ outcome per item, and the error of a refused batch (:class:`BatchError`)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import fields, is_dataclass
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 
@@ -72,42 +72,65 @@ def pin_changes(
     return out
 
 
-def set_changes(
-    gravity: Sequence[float] | None,
-    wind: Sequence[float] | None,
-    material: Any,
-    features: Iterable[str] | None,
-    iterations: int | None,
-    substeps: int | None,
-    chebyshev_rho: float | None,
-    normals: bool | None,
-    encoding: str | None,
-    reset: bool,
-    quality: str | None = None,
-    features_add: Iterable[str] | None = None,
-    features_remove: Iterable[str] | None = None,
-    step: float | None = None,
-) -> dict[str, Any]:
-    changed = normals is not None or encoding is not None or step is not None
-    state = P.StateOptions(normals, encoding, None, step) if changed else None
-    add = feature_names(features_add)
-    remove = feature_names(features_remove)
+class SetOptions(TypedDict, total=False):
+    """The keyword arguments of :meth:`ClothHandle.set <drape.client.handle.ClothHandle.set>` and
+    :meth:`ControlBatch.set <drape.client.batching.ControlBatch.set>`: every control field of
+    ``protocol.CONTROL_FIELDS`` but pins and colliders (their own methods), with the state's
+    options (``protocol.StateOptions`` but ``bundle``) flat. None (or absent) = unchanged.
+    tests/client/test_sdk_session.py checks it against the table."""
+
+    gravity: Sequence[float] | None
+    wind: Sequence[float] | None
+    material: Mapping[str, Any] | Any
+    features: Iterable[str] | None
+    iterations: int | None
+    substeps: int | None
+    chebyshev_rho: float | None
+    quality: str | None
+    features_add: Iterable[str] | None
+    features_remove: Iterable[str] | None
+    reset: bool
+    normals: bool | None
+    encoding: str | None
+    step: float | None
+
+
+def _material(m: Any) -> dict[str, Any]:
+    return P.material_to_map(m) if m is not None else {}
+
+
+def _same(v: Any) -> Any:
+    return v
+
+
+#: How a ``set`` argument of each field kind becomes its protocol value (kinds: requestfields.FIELD_KINDS).
+CONVERT_KIND: dict[str, Callable[[Any], Any]] = {
+    "vec3": lambda v: vec3(v),
+    "material": _material,
+    "features": lambda v: feature_names(v),
+    "int": _same,
+    "fraction": _same,
+    "quality": _same,
+    "flag": bool,
+}
+#: The control fields ``set`` takes as they are (pins, colliders and state have their own shapes).
+SET_FIELDS = tuple(f for f in P.CONTROL_FIELDS if f.kind in CONVERT_KIND)
+#: The state options ``set`` takes flat (a submission's ``bundle`` cannot change).
+STATE_OPTIONS = tuple(f.name for f in fields(P.StateOptions) if f.name != "bundle")
+
+
+def set_changes(**options: Any) -> dict[str, Any]:
+    """``set``'s keyword arguments (:class:`SetOptions`) as the fields of a ControlRequest."""
+    unknown = options.keys() - SetOptions.__annotations__.keys()
+    if unknown:
+        raise TypeError(f"set() got unexpected keyword argument(s) {sorted(unknown)}")
+    out = {f.name: CONVERT_KIND[f.kind](options.get(f.name)) for f in SET_FIELDS}
+    state = {k: options.get(k) for k in STATE_OPTIONS}
+    out["state"] = P.StateOptions(**state) if any(v is not None for v in state.values()) else None
+    add, remove = out["features_add"], out["features_remove"]
     if add and remove and set(add) & set(remove):
         raise ValueError(f"feature(s) {sorted(set(add) & set(remove))} both added and removed")
-    return dict(
-        features_add=add,
-        features_remove=remove,
-        gravity=vec3(gravity),
-        wind=vec3(wind),
-        material=P.material_to_map(material) if material is not None else {},
-        features=tuple(features) if features is not None else None,
-        iterations=iterations,
-        substeps=substeps,
-        chebyshev_rho=chebyshev_rho,
-        state=state,
-        reset=reset,
-        quality=quality,
-    )
+    return out
 
 
 def feature_names(names: Iterable[str] | None) -> tuple[str, ...] | None:
@@ -148,6 +171,10 @@ def collider(c: Any) -> P.Collider:
 __all__ = [
     "BatchError",
     "collider",
+    "CONVERT_KIND",
+    "SET_FIELDS",
+    "STATE_OPTIONS",
+    "SetOptions",
     "feature_names",
     "features_delta",
     "item_outcomes",

@@ -11,14 +11,14 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from typing import Any, Protocol
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any, Protocol, Unpack
 
 import numpy as np
 import zenoh
 
 from . import protocol as P
-from .controls import collider, pin_changes, set_changes
+from .controls import SetOptions, collider, pin_changes, set_changes
 from .protocol import ClothState, DrapeError, Unavailable
 from .sending import ControlSender
 from .smoothing import ServerClock, sample
@@ -346,25 +346,7 @@ class ClothHandle:
         drape.server.sim.params); [] removes them. Colliders move to their new pose over the next tick."""
         return self._control(wait, colliders=tuple(collider(c) for c in colliders))
 
-    def set(
-        self,
-        *,
-        gravity: Sequence[float] | None = None,
-        wind: Sequence[float] | None = None,
-        material: Mapping[str, Any] | Any = None,
-        features: Iterable[str] | None = None,
-        iterations: int | None = None,
-        substeps: int | None = None,
-        chebyshev_rho: float | None = None,
-        normals: bool | None = None,
-        encoding: str | None = None,
-        reset: bool = False,
-        wait: bool = True,
-        quality: str | None = None,
-        features_add: Iterable[str] | None = None,
-        features_remove: Iterable[str] | None = None,
-        step: float | None = None,
-    ) -> int | None:
+    def set(self, *, wait: bool = True, **options: Unpack[SetOptions]) -> int | None:
         """Change any of the cloth's settings from the next tick on; fields left None stay as
         they are (``material`` may name only the fields to change; ``quality``: a preset of
         protocol.QUALITY_PRESETS, which sets iterations, substeps, XPBD and tethers).
@@ -373,26 +355,14 @@ class ClothHandle:
         turned on); ``features_add`` / ``features_remove`` (protocol 1.2) switch only the names
         given. A 1.2 server reports the resulting set, kept in :attr:`features` after a waited
         control. ``encoding="predictive"`` and ``step`` (metres; protocol 1.5) switch to the
-        predictive encoding or change its grid: the next state is a keyframe."""
-        return self._control(
-            wait,
-            **set_changes(
-                gravity,
-                wind,
-                material,
-                features,
-                iterations,
-                substeps,
-                chebyshev_rho,
-                normals,
-                encoding,
-                reset,
-                quality,
-                features_add,
-                features_remove,
-                step,
-            ),
-        )
+        predictive encoding or change its grid: the next state is a keyframe.
+
+        The options (:class:`~drape.client.controls.SetOptions`, one per control field of
+        ``protocol.CONTROL_FIELDS`` but pins and colliders): ``gravity``, ``wind`` (3 numbers),
+        ``material``, ``features``, ``iterations``, ``substeps``, ``chebyshev_rho``, ``quality``,
+        ``features_add``, ``features_remove``, ``reset``, and the state's ``normals``,
+        ``encoding`` and ``step``; an unknown name is a TypeError."""
+        return self._control(wait, **set_changes(**options))
 
     def reset(self) -> int:
         """Back to the rest pose with zero velocity."""

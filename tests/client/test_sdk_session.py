@@ -77,44 +77,40 @@ def test_a_peer_built_from_the_sample_reaches_a_listening_peer():
 
 
 def test_sdk_features_delta_is_validated_before_anything_is_sent():
-    from drape.client.controls import set_changes as _set_changes
+    from drape.client.controls import set_changes
 
-    ch = _set_changes(
-        None,
-        None,
-        None,
-        None,
-        None,
-        None,
-        None,
-        None,
-        None,
-        False,
-        None,
-        features_add=["wind"],
-        features_remove="tethers",
-    )
+    ch = set_changes(features_add=["wind"], features_remove="tethers")
     req = P.ControlRequest("abc", "0" * 32, **ch)
     assert req.features_add == ("wind",) and req.features_remove == ("tethers",) and req.features is None
     assert P.decode_control(P.encode_control(req)) == req
     with pytest.raises(ValueError, match="hologram"):
-        _set_changes(None, None, None, None, None, None, None, None, None, False, None, features_add=["hologram"])
+        set_changes(features_add=["hologram"])
     with pytest.raises(ValueError, match="both"):
-        _set_changes(
-            None,
-            None,
-            None,
-            None,
-            None,
-            None,
-            None,
-            None,
-            None,
-            False,
-            None,
-            features_add=["wind"],
-            features_remove=["wind"],
-        )
+        set_changes(features_add=["wind"], features_remove=["wind"])
+    with pytest.raises(TypeError, match="gravty"):
+        set_changes(gravty=(0, -9.81, 0))
+
+
+def test_set_takes_every_control_field_of_the_table():
+    """A new control field (protocol.CONTROL_FIELDS) reaches ClothHandle.set / ControlBatch.set
+    or this fails: SetOptions is the SDK's one list of set()'s arguments."""
+    from dataclasses import fields
+
+    from drape.client.controls import SET_FIELDS, STATE_OPTIONS, SetOptions, set_changes
+
+    own_methods = {"pins", "colliders", "state"}  # move_pins, set_colliders; state's options are flat
+    table = {f.name for f in P.CONTROL_FIELDS} - own_methods
+    assert {f.name for f in SET_FIELDS} == table
+    assert set(SetOptions.__annotations__) == table | set(STATE_OPTIONS)
+    assert set(STATE_OPTIONS) == {f.name for f in fields(P.StateOptions)} - {"bundle"}
+    ch = set_changes(
+        gravity=(0, -1, 0), material={"damping": 0.1}, iterations=4, reset=True, encoding="quant16", step=0.002
+    )
+    req = P.ControlRequest("abc", "0" * 32, **ch)
+    assert req.gravity == (0.0, -1.0, 0.0) and req.iterations == 4 and req.reset
+    assert req.state == P.StateOptions(None, "quant16", None, 0.002)
+    assert P.decode_control(P.encode_control(req)) == req
+    assert set_changes()["state"] is None and set_changes()["material"] == {}
 
 
 @pytest.mark.parametrize(

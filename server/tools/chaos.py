@@ -32,12 +32,26 @@ import shlex
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 from ..service.config import ServerConfig
-from .chaos_faults import SCENARIOS, Context
+from . import chaos_failover, chaos_faults
+from .chaos_faults import Context
+
+#: Every scenario, by the name the command takes, in the order ``drape chaos`` runs them.
+SCENARIOS: dict[str, Callable[[Context], dict[str, Any]]] = {
+    "fuzz": chaos_faults.fuzz,
+    "flood-ids": chaos_faults.flood_ids,
+    "big-submit": chaos_faults.big_submit,
+    "big-cook": chaos_faults.big_cook,
+    "tiny-mass": chaos_faults.tiny_mass,
+    "new-features": chaos_faults.new_features,
+    "kill": chaos_failover.kill,
+    "pause": chaos_failover.pause,
+}
 
 log = logging.getLogger(__name__)
 

@@ -3,8 +3,9 @@ baseline, applies one fault or abuse, measures again and returns the figures and
 against the targets of issue 11 (see :mod:`drape.server.tools.chaos`).
 
 Scenarios: ``fuzz`` (in :mod:`.chaos_fuzz`), ``flood-ids``, ``big-submit``, ``big-cook``,
-``tiny-mass``, ``new-features``, ``kill``, ``pause``. Every one is bounded in messages and seconds
-and talks only to 127.0.0.1.
+``tiny-mass``, ``new-features`` (``kill`` and ``pause``: :mod:`.chaos_failover`, which builds on
+this module's Context, Stage and judge; the command's table of all: :mod:`.chaos`). Every one is
+bounded in messages and seconds and talks only to 127.0.0.1.
 """
 
 from __future__ import annotations
@@ -14,7 +15,6 @@ import logging
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -363,29 +363,3 @@ def new_features(ctx: Context) -> dict[str, Any]:
     if m.get("good_worst_gap_ms", 0) > 2000.0 / TICK_HZ:
         fails.append(f"worst gap between good states {m['good_worst_gap_ms']} ms > 2 ticks")
     return {**m, "fails": fails}
-
-
-def kill(ctx: Context) -> dict[str, Any]:
-    """kill -9 of servers under placed failover clients (--kills times, each restarted): every cloth back?"""
-    from .chaos_failover import kill as scenario  # it builds on this module (Context, judge, Stage)
-
-    return scenario(ctx)
-
-
-def pause(ctx: Context) -> dict[str, Any]:
-    """SIGSTOP a failover client past lease and grace, then SIGCONT: its cloths back within 1 s?"""
-    from .chaos_failover import pause as scenario
-
-    return scenario(ctx)
-
-
-SCENARIOS: dict[str, Callable[[Context], dict[str, Any]]] = {
-    "fuzz": fuzz,
-    "flood-ids": flood_ids,
-    "big-submit": big_submit,
-    "big-cook": big_cook,
-    "tiny-mass": tiny_mass,
-    "new-features": new_features,
-    "kill": kill,
-    "pause": pause,
-}

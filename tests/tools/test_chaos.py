@@ -114,7 +114,7 @@ def test_command_lists_scenarios_and_refuses_unknown_ones(capsys):
     chaos.configure(parser)
     assert chaos.run(parser.parse_args(["--list"])) == 0
     listed = capsys.readouterr().out
-    assert all(name in listed for name in chaos_faults.SCENARIOS)
+    assert all(name in listed for name in chaos.SCENARIOS)
     assert chaos.run(parser.parse_args(["no-such-scenario"])) == 2
 
 

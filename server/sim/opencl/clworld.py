@@ -264,17 +264,20 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
         cf[L["CF_RHO"]] = m.air_density
         cf[L["CF_TETHER_LIMIT"]] = m.tether_limit
         cf[L["CF_CHEB_RHO"]] = p.chebyshev_rho
+        cf[L["CF_THICKNESS"]] = m.thickness
+        cf[L["CF_CONTACT_STIFFNESS"]] = m.contact_stiffness
         self._tables_dirty = True
 
     def _group_key(self, cloth: Cloth) -> tuple[tuple, bool, int]:
         """(group key, local memory, pack lanes) of the group the cloth joins."""
         f = cloth.params.features
         if self.solver == "workgroup":
-            budget = self.dev.info.local_mem - 1024
+            # self-collision: its hash buckets in local memory too, and no CPU packs (wg_step only)
+            budget = self.dev.info.local_mem - 1024 - (4 * L["SC_CELLS"] if f.self_collision else 0)
             fits = cloth.fabric.n_vertices * 16 <= budget
             local = fits if self.use_local is None else (self.use_local and fits)
             # CPU packs: as many lanes as the cloth's lanes fit in local memory (at least 2)
-            W = self.pack_lanes
+            W = 0 if f.self_collision else self.pack_lanes
             per_lane = 4 * (4 * cloth.fabric.n_vertices + (cloth.fabric.n_links if f.xpbd else 0))
             while W > 2 and W * per_lane > budget:
                 W //= 2

@@ -21,10 +21,14 @@ from .params import COLLIDER_CAPSULE, COLLIDER_PLANE, SELF_COLLISION_PASSES
 _CHUNK = 256  # rows of the pairwise distances computed at once
 
 
-def contact_pairs(x: np.ndarray, rest: np.ndarray, thickness: float) -> tuple[np.ndarray, np.ndarray]:
-    """Every ordered pair (i, j), i != j, closer than ``thickness`` in ``x`` and further than it in
-    ``rest``: the contacts self-collision resolves and the metric counts."""
+def contact_pairs(
+    x: np.ndarray, rest: np.ndarray, thickness: float, apart_at_rest: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Every ordered pair (i, j), i != j, closer than ``thickness`` in ``x`` and further than
+    ``apart_at_rest`` (default: ``thickness``) in ``rest``: the contacts self-collision resolves
+    and the metric counts."""
     th2 = thickness * thickness
+    rest2 = th2 if apart_at_rest is None else apart_at_rest * apart_at_rest
     out_i, out_j = [], []
     for lo in range(0, len(x), _CHUNK):
         hi = min(lo + _CHUNK, len(x))
@@ -34,7 +38,7 @@ def contact_pairs(x: np.ndarray, rest: np.ndarray, thickness: float) -> tuple[np
             continue
         i, j = np.nonzero(near)
         rd = rest[lo + i] - rest[j]
-        far = (np.einsum("ij,ij->i", rd, rd) > th2) & (lo + i != j)
+        far = (np.einsum("ij,ij->i", rd, rd) > rest2) & (lo + i != j)
         out_i.append(lo + i[far])
         out_j.append(j[far])
     if not out_i:
@@ -104,7 +108,7 @@ def penetration(
     rest = np.asarray(rest, np.float64)
     pairs, deepest_pair = 0, 0.0
     if thickness > tolerance:
-        i, j = contact_pairs(x, rest, thickness - tolerance)
+        i, j = contact_pairs(x, rest, thickness - tolerance, thickness)
         keep = i < j
         pairs = int(keep.sum())
         if pairs:

@@ -52,8 +52,6 @@
 #define ANCHOR_WORDS 8    /* TETHER_SLOTS x (anchor vertex or -1, tether length (float bits)) */
 #define COLLIDER_WORDS 4  /* float4s per collider: previous pose (2 rows), current pose (2 rows) */
 
-#define SC_CELLS 2048     /* self-collision: hash buckets of the work-group's grid (power of 2) */
-
 #define COLLIDER_SPHERE 0
 #define COLLIDER_CAPSULE 1
 #define COLLIDER_PLANE 2

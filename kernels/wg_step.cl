@@ -6,7 +6,7 @@
  * where the pack solver (pack.cl) is off. With tethers: the tethers after each substep's
  * prediction and again after the links, and the long-range links before the links of each
  * iteration (tethers.cl). With self-collision: its passes after each substep's links
- * (selfcollide.cl), its hash buckets in local memory on both paths. XPBD at
+ * (selfcollide.cl). XPBD at
  * compliance 0 or with one iteration keeps no multipliers (every one is 0 when read). Included by
  * cloth.cl. */
 
@@ -53,7 +53,6 @@ __kernel void wg_step(const float dt, __global const int *cloths, __global const
     const float tlimit = F[CF_TETHER_LIMIT];
 #endif
 #if FEATURE_SELF_COLLISION
-    __local int sc_heads[SC_CELLS];
     __global const int *rest = fb + I[CI_OFF_REST];
 #endif
 #if USE_LOCAL
@@ -122,7 +121,8 @@ __kernel void wg_step(const float dt, __global const int *cloths, __global const
             }
         }
 #if FEATURE_SELF_COLLISION
-        self_collide(X, vel + vbase, sc_heads, rest, nv, F[CF_THICKNESS], F[CF_CONTACT_STIFFNESS], lid, ls);
+        self_collide(X, vel + vbase, (__global int *)(nrm + vbase), rest, nv, F[CF_THICKNESS],
+                     F[CF_CONTACT_STIFFNESS], lid, ls);
 #endif
 
         for (int v = lid; v < nv; v += ls)

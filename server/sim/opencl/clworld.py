@@ -272,12 +272,11 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
         """(group key, local memory, pack lanes) of the group the cloth joins."""
         f = cloth.params.features
         if self.solver == "workgroup":
-            # self-collision: its hash buckets in local memory too, and no CPU packs (wg_step only)
-            budget = self.dev.info.local_mem - 1024 - (4 * L["SC_CELLS"] if f.self_collision else 0)
+            budget = self.dev.info.local_mem - 1024
             fits = cloth.fabric.n_vertices * 16 <= budget
             local = fits if self.use_local is None else (self.use_local and fits)
             # CPU packs: as many lanes as the cloth's lanes fit in local memory (at least 2)
-            W = 0 if f.self_collision else self.pack_lanes
+            W = 0 if f.self_collision else self.pack_lanes  # self-collision: wg_step's only
             per_lane = 4 * (4 * cloth.fabric.n_vertices + (cloth.fabric.n_links if f.xpbd else 0))
             while W > 2 and W * per_lane > budget:
                 W //= 2

@@ -1,7 +1,8 @@
 /* Self-collision (FEATURE_SELF_COLLISION, protocol 1.6): every vertex keeps the material's
  * thickness th from the cloth's other vertices that are further apart than th at rest (closer
- * ones are the cloth's own neighbourhood and never collide; NvCloth's rule). Called by wg_step
- * once per substep after the link iterations, by every work-item of the cloth's work-group.
+ * ones are the cloth's own neighbourhood and never collide; NvCloth's rule). Called once per
+ * substep after the link iterations by every work-item of the cloth's work-group: wg_step's, or
+ * cl_self_collide's (below: the coloured and Jacobi solvers, one work-group per cloth).
  *
  * Each of SELF_COLLISION_PASSES passes rebuilds a spatial hash of the cloth and projects every
  * contact as a position constraint, Jacobi style (the same sums as
@@ -90,3 +91,19 @@ inline void self_collide(XS float4 *X, __global float4 *S, __global int *heads, 
         barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
     }
 }
+
+#if !USE_LOCAL
+/* The coloured and Jacobi solvers' self-collision: one work-group per cloth of the group (its
+ * cloth list), launched between their link iterations and cl_finish, on global memory. */
+__kernel void cl_self_collide(__global const int *cloths, __global const int *ci, __global const float *cf,
+                              __global const int *fab, __global float4 *pos, __global float4 *vel,
+                              __global float4 *nrm)
+{
+    const int c = cloths[get_group_id(0)];
+    __global const int *I = ci + c * CI_STRIDE;
+    __global const float *F = cf + c * CF_STRIDE;
+    const int vbase = I[CI_VBASE];
+    self_collide(pos + vbase, vel + vbase, (__global int *)(nrm + vbase), fab + I[CI_FAB] + I[CI_OFF_REST],
+                 I[CI_NVERTS], F[CF_THICKNESS], F[CF_CONTACT_STIFFNESS], get_local_id(0), get_local_size(0));
+}
+#endif

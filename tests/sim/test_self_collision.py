@@ -75,31 +75,44 @@ def test_features_off_build_todays_options(device):
     assert not any("SELF_COLLISION" in o for o in w._options(bare))
 
 
-@pytest.mark.parametrize(("local_size", "use_local"), [(None, None), (32, True), (32, False)])
-def test_workgroup_matches_reference(device, local_size, use_local):
-    """The device's self-collision against the float64 reference's, through the halves' contact
-    (local and global memory, one and many work-items): within 3e-4 m plus twice the float32
-    reference's own distance from the float64 one (contact amplifies rounding)."""
+@pytest.mark.parametrize(
+    ("solver", "local_size", "use_local"),
+    [
+        ("workgroup", None, None),
+        ("workgroup", 32, True),
+        ("workgroup", 32, False),
+        ("coloured", None, None),
+        ("jacobi", None, None),
+        ("coloured", 32, None),
+    ],
+)
+def test_opencl_matches_reference(device, solver, local_size, use_local):
+    """The device's self-collision against the float64 reference's (the mode that mirrors the
+    solver), through the halves' contact (work-group solver: local and global memory; one and
+    many work-items): within 3e-4 m plus twice the float32 reference's own distance from the
+    float64 one (contact amplifies rounding)."""
     fab, params = folding_cloth(), fold_params(True)
     ticks = 30
-    dev = run(CLWorld("workgroup", device=device, local_size=local_size, use_local=use_local), fab, params, ticks)
-    ref = run(ReferenceWorld(), fab, params, ticks)
-    f32 = run(ReferenceWorld(dtype=np.float32), fab, params, ticks)
+    mode = {"jacobi": "jacobi", "coloured": "batches"}.get(solver, "coloured")
+    world = CLWorld(solver, device=device, local_size=local_size, use_local=use_local)
+    dev = run(world, fab, params, ticks)
+    ref = run(ReferenceWorld(mode), fab, params, ticks)
+    f32 = run(ReferenceWorld(mode, dtype=np.float32), fab, params, ticks)
     for t in range(ticks):
         spread = float(np.abs(f32[t] - ref[t]).max())
         assert np.abs(dev[t] - ref[t]).max() <= 3e-4 + 2 * spread, t
     # and the contact happened: without the feature the states part by more than the thickness
-    off = run(ReferenceWorld(), fab, fold_params(False), ticks)
+    off = run(ReferenceWorld(mode), fab, fold_params(False), ticks)
     assert max(float(np.abs(a - b).max()) for a, b in zip(off, ref, strict=True)) > THICKNESS
 
 
-@pytest.mark.parametrize("solver", ["reference", "workgroup"])
+@pytest.mark.parametrize("solver", ["reference", "workgroup", "coloured", "jacobi"])
 def test_folded_cloth_leaves_no_penetration(device, solver):
     """The cloth folded onto itself: the metric is 0 at the end of every tick with self-collision
     and > 0 (the halves pass through each other) without."""
     fab = folding_cloth()
     for on in (False, True):
-        world = ReferenceWorld() if solver == "reference" else CLWorld("workgroup", device=device)
+        world = ReferenceWorld() if solver == "reference" else CLWorld(solver, device=device)
         counts = [penetration(x, fab.rest_positions, THICKNESS).pairs for x in run(world, fab, fold_params(on), 45)]
         if on:
             assert counts == [0] * len(counts)

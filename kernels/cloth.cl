@@ -75,7 +75,7 @@
 #endif
 #include "integrate.cl" /* predict and finish a vertex's substep */
 #if FEATURE_SELF_COLLISION
-#include "selfcollide.cl" /* vertices of one cloth kept apart: a spatial hash in local memory */
+#include "selfcollide.cl" /* vertices of one cloth kept apart: a spatial hash per work-group */
 #endif
 
 /* The solvers (kernels) */

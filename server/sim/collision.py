@@ -123,7 +123,8 @@ def penetration(
 
 
 def _depth_inside(x: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """How far each point is inside one packed collider (<= 0 outside)."""
+    """How far each point is inside one packed collider (<= 0 outside). Written apart from the
+    solvers' push-out (reference.collide, colliders.cl) on purpose: the metric checks them."""
     kind = int(round(float(c[1, 3])))
     if kind == COLLIDER_PLANE:
         n = c[0, :3] / max(float(np.linalg.norm(c[0, :3])), 1e-30)

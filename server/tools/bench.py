@@ -212,8 +212,8 @@ def bench_features(solvers, device, count, frames, max_seconds, step: Step = _no
 
 
 def bench_self(device, frames, max_seconds, step: Step = _no_step) -> list[Record]:
-    """Self-collision's cost: each cloth with and without it, on the work-group solver (on a CPU
-    without the feature: the pack solver where the device has one, as a server would run it)."""
+    """Self-collision's cost: each cloth with and without it, on the work-group solver (on a CPU:
+    the pack solver, as a server runs it; ``--pack-lanes 0``: wg_step)."""
     n = 32
     cloths = {
         "seed": cook_grid(

@@ -76,25 +76,27 @@ def test_features_off_build_todays_options(device):
 
 
 @pytest.mark.parametrize(
-    ("solver", "local_size", "use_local"),
+    ("solver", "options"),
     [
-        ("workgroup", None, None),
-        ("workgroup", 32, True),
-        ("workgroup", 32, False),
-        ("coloured", None, None),
-        ("jacobi", None, None),
-        ("coloured", 32, None),
+        ("workgroup", {}),  # on a CPU: the pack solver (16 lanes, one used)
+        ("workgroup", {"pack_lanes": 0}),  # wg_step, one work-item
+        ("workgroup", {"local_size": 32, "use_local": True}),
+        ("workgroup", {"local_size": 32, "use_local": False}),
+        ("coloured", {}),
+        ("coloured", {"local_size": 32}),
+        ("jacobi", {}),
     ],
+    ids=lambda v: v if isinstance(v, str) else ",".join(f"{k}={x}" for k, x in v.items()) or "default",
 )
-def test_opencl_matches_reference(device, solver, local_size, use_local):
+def test_opencl_matches_reference(device, solver, options):
     """The device's self-collision against the float64 reference's (the mode that mirrors the
-    solver), through the halves' contact (work-group solver: local and global memory; one and
-    many work-items): within 3e-4 m plus twice the float32 reference's own distance from the
-    float64 one (contact amplifies rounding)."""
+    solver), through the halves' contact (work-group solver: the CPU's packs, local and global
+    memory; one and many work-items): within 3e-4 m plus twice the float32 reference's own
+    distance from the float64 one (contact amplifies rounding)."""
     fab, params = folding_cloth(), fold_params(True)
     ticks = 30
     mode = {"jacobi": "jacobi", "coloured": "batches"}.get(solver, "coloured")
-    world = CLWorld(solver, device=device, local_size=local_size, use_local=use_local)
+    world = CLWorld(solver, device=device, **options)
     dev = run(world, fab, params, ticks)
     ref = run(ReferenceWorld(mode), fab, params, ticks)
     f32 = run(ReferenceWorld(mode, dtype=np.float32), fab, params, ticks)

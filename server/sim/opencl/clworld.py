@@ -276,7 +276,7 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
             fits = cloth.fabric.n_vertices * 16 <= budget
             local = fits if self.use_local is None else (self.use_local and fits)
             # CPU packs: as many lanes as the cloth's lanes fit in local memory (at least 2)
-            W = 0 if f.self_collision else self.pack_lanes  # self-collision: wg_step's only
+            W = self.pack_lanes
             per_lane = 4 * (4 * cloth.fabric.n_vertices + (cloth.fabric.n_links if f.xpbd else 0))
             while W > 2 and W * per_lane > budget:
                 W //= 2

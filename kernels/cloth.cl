@@ -4,6 +4,7 @@
  *
  * Build options (all -D):
  *   FEATURE_XPBD, FEATURE_TETHERS, FEATURE_COLLIDERS, FEATURE_WIND, FEATURE_NORMALS  (0/1)
+ *   FEATURE_SELF_COLLISION (0/1, given only when 1), SELF_COLLISION_PASSES (passes per substep)
  *   USE_LOCAL      1: wg_step keeps the cloth's positions in local memory (cloth must fit)
  *                  0: wg_step works on global memory, and the coloured/Jacobi kernels exist
  *   JACOBI_OMEGA   over-relaxation of the Jacobi vertex solver
@@ -34,6 +35,9 @@
 #endif
 #ifndef FEATURE_NORMALS
 #define FEATURE_NORMALS 0
+#endif
+#ifndef FEATURE_SELF_COLLISION
+#define FEATURE_SELF_COLLISION 0
 #endif
 #ifndef USE_LOCAL
 #define USE_LOCAL 0
@@ -70,6 +74,9 @@
 #include "colliders.cl" /* spheres, capsules, planes, friction */
 #endif
 #include "integrate.cl" /* predict and finish a vertex's substep */
+#if FEATURE_SELF_COLLISION
+#include "selfcollide.cl" /* vertices of one cloth kept apart: a spatial hash per work-group */
+#endif
 
 /* The solvers (kernels) */
 #include "wg_step.cl"   /* work-group solver: one work-group per cloth, one launch */

@@ -28,6 +28,7 @@
 #define CI_OFF_TRIS 19
 #define CI_OFF_LRLINKS 20  /* long-range links: LINK_WORDS records (type unused), by colour */
 #define CI_OFF_LRCOLOURS 21 /* their colours: the count C, then C + 1 offsets */
+#define CI_OFF_REST 22     /* rest positions: 3 floats (bits) per vertex (self-collision) */
 
 /* float table: CF_STRIDE floats per cloth */
 #define CF_STRIDE 24
@@ -42,6 +43,8 @@
 #define CF_RHO 16
 #define CF_TETHER_LIMIT 17
 #define CF_CHEB_RHO 18     /* Chebyshev spectral-radius estimate for Jacobi, 0 = off */
+#define CF_THICKNESS 19    /* self-collision: distance kept between non-neighbours, 0 = off */
+#define CF_CONTACT_STIFFNESS 20 /* self-collision: share of a contact's depth corrected per pass */
 
 /* fabric blob records */
 #define LINK_WORDS 4      /* i0, i1, type, rest length (float bits) */

@@ -18,6 +18,9 @@
  * global memory with the functions every solver calls (integrate.cl), so every feature means
  * exactly what it means in wg_step.
  *
+ * Self-collision runs lane by lane on global memory after the links (selfcollide.cl), as in
+ * wg_step; with it the vectorised phases are off.
+ *
  * Arithmetic per lane is wg_step's in the same order: tethers after the prediction, then per
  * iteration the long-range links and the links by colour, then the tethers again (PBD: the
  * talk's k; XPBD: the multiplier per link, reset every substep, after the positions in local
@@ -176,7 +179,7 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
     /* every multiplier 0 when read: compliance 0 in every lane, or one iteration */
     const int zero = !any((alpha[0] != 0.0f) | (alpha[1] != 0.0f) | (alpha[2] != 0.0f));
     const int lamless = iters == 1 || zero;
-#if !FEATURE_WIND && !FEATURE_COLLIDERS
+#if !FEATURE_WIND && !FEATURE_COLLIDERS && !FEATURE_SELF_COLLISION
     const int vec = lamless && nl >= 3 * nv; /* velocities in the multipliers' place */
 #else
     const int vec = 0;
@@ -431,11 +434,15 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
             }
             continue;
         }
-        /* per lane: out of the lanes, then colliders, velocities on global memory */
+        /* per lane: out of the lanes, then [self-collision,] colliders, velocities on global memory */
         for (int j = 0; j < PACK_LANES; ++j) {
             LANE_CLOTH(j)
             for (int v = 0; v < nv; ++v)
                 X[v].xyz = lane_get3(sxf, v, j);
+#if FEATURE_SELF_COLLISION /* one work-item: its barriers are trivially uniform */
+            self_collide(X, vel + vbase, (__global int *)(nrm + vbase), fb + I[CI_OFF_REST], nv, F[CF_THICKNESS],
+                         F[CF_CONTACT_STIFFNESS], 0, 1);
+#endif
             for (int v = 0; v < nv; ++v) {
                 const float4 x = finish_vertex(X[v], X, fb, I, F, vel, prev, coll, v, vbase + v, h, s, S, 1);
                 X[v] = x;

@@ -5,7 +5,8 @@
  * GPU's default solver, and the CPU's with one work-item per cloth
  * where the pack solver (pack.cl) is off. With tethers: the tethers after each substep's
  * prediction and again after the links, and the long-range links before the links of each
- * iteration (tethers.cl). XPBD at
+ * iteration (tethers.cl). With self-collision: its passes after each substep's links
+ * (selfcollide.cl). XPBD at
  * compliance 0 or with one iteration keeps no multipliers (every one is 0 when read). Included by
  * cloth.cl. */
 
@@ -50,6 +51,9 @@ __kernel void wg_step(const float dt, __global const int *cloths, __global const
     __global const int *lrl = fb + I[CI_OFF_LRLINKS];
     __global const int *lrc = fb + I[CI_OFF_LRCOLOURS];
     const float tlimit = F[CF_TETHER_LIMIT];
+#endif
+#if FEATURE_SELF_COLLISION
+    __global const int *rest = fb + I[CI_OFF_REST];
 #endif
 #if USE_LOCAL
     XS float4 *X = lx;
@@ -116,6 +120,10 @@ __kernel void wg_step(const float dt, __global const int *cloths, __global const
                 barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
             }
         }
+#if FEATURE_SELF_COLLISION
+        self_collide(X, vel + vbase, (__global int *)(nrm + vbase), rest, nv, F[CF_THICKNESS],
+                     F[CF_CONTACT_STIFFNESS], lid, ls);
+#endif
 
         for (int v = lid; v < nv; v += ls)
             X[v] = finish_vertex(X[v], X, fb, I, F, vel, prev, coll, v, vbase + v, h, s, S, 1);

@@ -6,11 +6,11 @@ import re
 from dataclasses import dataclass
 
 PROTOCOL_MAJOR = 1
-PROTOCOL_MINOR = 5
+PROTOCOL_MINOR = 6
 PROTOCOL_VERSION: tuple[int, int] = (PROTOCOL_MAJOR, PROTOCOL_MINOR)
 VERSION_STRING = f"{PROTOCOL_MAJOR}.{PROTOCOL_MINOR}"
 #: The minor versions this side has vectors for (every minor of the major is accepted on the wire).
-KNOWN_MINORS = (0, 1, 2, 3, 4)
+KNOWN_MINORS = (0, 1, 2, 3, 4, 5)
 
 DEFAULT_NAMESPACE = "drape"
 DEFAULT_PORT = 7447

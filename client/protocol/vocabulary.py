@@ -49,7 +49,7 @@ DEFAULT_LIMITS = Limits()
 # Cloth description vocabulary (drape.server.sim.params builds its dataclasses from these)
 
 #: Feature names, in the order of the server's feature flags (params.Features fields).
-FEATURE_NAMES = ("xpbd", "tethers", "colliders", "wind", "normals")
+FEATURE_NAMES = ("xpbd", "tethers", "colliders", "wind", "normals", "self_collision")
 #: What a quality preset switches (1.1): iterations, substeps and these features.
 PRESET_FEATURES = ("xpbd", "tethers")
 # Quality presets (1.1), cheapest first: named solver settings the server defines (iterations,
@@ -73,6 +73,8 @@ MATERIAL_FIELDS: dict[str, tuple[int, float, bool, float | None]] = {
     "lift": (1, 0.0, True, None),
     "air_density": (1, 0.0, True, None),
     "tether_limit": (1, 1.0, True, None),
+    "thickness": (1, 0.0, True, 1.0),  # 1.6, self_collision: metres kept between non-neighbours
+    "contact_stiffness": (1, 0.0, True, 1.0),  # 1.6, self_collision: share of a contact corrected
 }
 #: The server's defaults (params.Material, ClothParams) for fields a submission leaves out.
 MATERIAL_DEFAULTS: dict[str, float | tuple[float, float, float]] = {
@@ -85,6 +87,8 @@ MATERIAL_DEFAULTS: dict[str, float | tuple[float, float, float]] = {
     "lift": 0.0,
     "air_density": 1.2,
     "tether_limit": 1.0,
+    "thickness": 0.01,
+    "contact_stiffness": 1.0,
 }
 DEFAULT_GRAVITY = (0.0, -9.81, 0.0)
 DEFAULT_WIND = (0.0, 0.0, 0.0)

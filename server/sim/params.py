@@ -55,6 +55,13 @@ class LinkOptions:
         return tuple(t for t, on in enumerate((self.structural, self.shear, self.bending)) if on)
 
 
+#: Self-collision's passes per substep (the kernels' -DSELF_COLLISION_PASSES, the reference's).
+SELF_COLLISION_PASSES = 2
+
+#: The features whose build option is spelled out even when off (those of protocol 1.5's kernels).
+ALWAYS_SPELLED = ("xpbd", "tethers", "colliders", "wind", "normals")
+
+
 @dataclass(frozen=True)
 class Features:
     """What a cloth asks the solver to simulate. Each one off costs nothing (kernels are
@@ -65,12 +72,25 @@ class Features:
     colliders: bool = False  # spheres, capsules, planes with friction
     wind: bool = False  # drag and lift from per-vertex normals and areas (Bullet's model)
     normals: bool = False  # per-vertex normals in the published state
+    # 1.6: vertices keep the material's thickness from the cloth's other vertices that are further
+    # apart than it at rest (kernels/selfcollide.cl, collision.py)
+    self_collision: bool = False
 
     def key(self) -> tuple[bool, ...]:
         return tuple(getattr(self, f.name) for f in fields(self))
 
     def build_options(self) -> list[str]:
-        return [f"-DFEATURE_{f.name.upper()}={int(getattr(self, f.name))}" for f in fields(self)]
+        """-DFEATURE_X=0/1 for the features of 1.5's kernels, and for a later one only when it is
+        on (cloth.cl defaults it to 0): a cloth without the new features builds today's kernel
+        with today's options (the same program, the same cache entry)."""
+        opts = [
+            f"-DFEATURE_{f.name.upper()}={int(getattr(self, f.name))}"
+            for f in fields(self)
+            if f.name in ALWAYS_SPELLED or getattr(self, f.name)
+        ]
+        if self.self_collision:
+            opts.append(f"-DSELF_COLLISION_PASSES={SELF_COLLISION_PASSES}")
+        return opts
 
     @property
     def needs_normals(self) -> bool:
@@ -107,6 +127,10 @@ class Material:
     air_density: float = _FLOAT_DEFAULTS["air_density"]  # rho, kg/m^3
     # a vertex may be this many times its rest distance from its anchor
     tether_limit: float = _FLOAT_DEFAULTS["tether_limit"]
+    # self_collision (1.6): the distance kept between vertices further apart than it at rest, in
+    # metres, and the share of a contact's depth each pass corrects, in [0, 1]
+    thickness: float = _FLOAT_DEFAULTS["thickness"]
+    contact_stiffness: float = _FLOAT_DEFAULTS["contact_stiffness"]
 
 
 assert tuple(f.name for f in fields(Material)) == tuple(MATERIAL_FIELDS), (

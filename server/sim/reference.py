@@ -18,6 +18,8 @@ One step of one cloth, in this order (the OpenCL kernels in kernels/cloth.cl do 
                      [tethers] first the long-range links, colour by colour: unilateral and hard,
                      a link no longer than rest * limit (k = (rest * limit / len - 1) / (im0 + im1)
                      where that is negative)
+        [self_collision]  vertices further apart than the thickness at rest pushed apart to it,
+                     SELF_COLLISION_PASSES Jacobi passes (collision.py; the work-group solver's)
         [tethers]    the tethers again (every mode: the device's coloured and Jacobi solvers
                      apply them here only)
         [colliders]  push out of spheres, capsules, planes (interpolated over substeps), friction
@@ -38,6 +40,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .collision import self_collide
 from .fabric import Fabric, vertex_masses
 from .params import (
     COLLIDER_CAPSULE,
@@ -140,6 +143,8 @@ def step(state: ClothState, fabric: Fabric, params: ClothParams, dt: float, mode
                 if omega != 1.0:
                     x[free] = omega * (x[free] - x_before[free]) + x_before[free]
                 x_before = x_k
+        if f.self_collision:
+            self_collide(x, invm, fabric.rest_positions, m.thickness, m.contact_stiffness)
         if f.tethers:  # after the links: in every mode (serial, coloured: again)
             apply_tethers(x, fabric, m.tether_limit)
         if f.colliders and len(state.colliders):

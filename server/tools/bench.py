@@ -8,6 +8,9 @@ Workloads
   10 iterations: ms per step and max/mean structural stretch (length / rest) after 2 s.
 - ``features``: the ``many`` cloths with each scene feature alone, all of them, and a half/half
   mix of bare and windy cloths (two kernels in one tick): the cost of each feature.
+- ``self``: self-collision's cost on the work-group solver (docs/collision.md): the seed cloth
+  hanging (no contact: the spatial hash's cost alone) and a 32x32 cloth hung by its middle row,
+  whose halves swing into each other (contacts), each with and without the feature.
 
 A frame is one ``World.step`` plus waiting for the device (``World.sync``): median of the timed
 frames after warm-up. Records go to ``--json PATH``; the table is printed.
@@ -172,6 +175,7 @@ FEATURE_CASES: list[tuple[str, Features]] = [
     ("wind", Features(wind=True)),
     ("normals", Features(normals=True)),
     ("all", Features(xpbd=True, tethers=True, colliders=True, wind=True, normals=True)),
+    ("self_collision", Features(self_collision=True)),
     ("half-wind", Features()),  # half the cloths bare, half with wind: two kernels per tick
 ]
 
@@ -204,6 +208,32 @@ def bench_features(solvers, device, count, frames, max_seconds, step: Step = _no
     base = {r.solver: r.ms_per_frame for r in out if r.extra["features"] == "none"}
     for r in out:
         r.extra["vs_none"] = round(r.ms_per_frame / base[r.solver], 3) if base.get(r.solver) else None
+    return out
+
+
+def bench_self(device, frames, max_seconds, step: Step = _no_step) -> list[Record]:
+    """Self-collision's cost: each cloth with and without it, on the work-group solver (on a CPU:
+    the pack solver, as a server runs it; ``--pack-lanes 0``: wg_step)."""
+    n = 32
+    cloths = {
+        "seed": cook_grid(
+            150, 150, 1.0, 1.0, LinkOptions(structural=True, shear=True), pinned=[0, 149], origin=(0, 1, 0)
+        ),
+        "fold": cook_grid(n, n, 1.0, 1.0, LinkOptions(bending=True), pinned=[(n // 2) * n + c for c in range(n)]),
+    }
+    out = []
+    for name, fab in cloths.items():
+        for label, feats in (("none", Features()), ("self_collision", Features(self_collision=True))):
+            step(f"self: {name} {label}")
+            w = make("workgroup", device)
+            p = ClothParams(iterations=10, features=feats)
+            w.add(fab, p)
+            t = time_frames(w, warmup=2, frames=frames, max_seconds=max_seconds)
+            out.append(_record("self", "workgroup", w, [(fab, p)], t, {"cloth": name, "features": label}))
+            w.close()
+    base = {r.extra["cloth"]: r.ms_per_frame for r in out if r.extra["features"] == "none"}
+    for r in out:
+        r.extra["vs_none"] = round(r.ms_per_frame / base[r.extra["cloth"]], 3)
     return out
 
 
@@ -300,7 +330,9 @@ def markdown_table(records: list[Record]) -> str:
 def configure(parser: argparse.ArgumentParser) -> None:
     require_extra("server", "bench")
     require_extra("tools", "bench")
-    parser.add_argument("workloads", nargs="*", metavar="WORKLOAD", help="seed, many, hang, features (default: all)")
+    parser.add_argument(
+        "workloads", nargs="*", metavar="WORKLOAD", help="seed, many, hang, features, self (default: all)"
+    )
     parser.add_argument(
         "--feature-cloths",
         type=int,
@@ -330,7 +362,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     solvers = csv_list(args.solvers)
-    known = ["seed", "many", "hang", "features"]
+    known = ["seed", "many", "hang", "features", "self"]
     workloads = args.workloads or known
     unknown = set(workloads) - set(known)
     if unknown:
@@ -370,6 +402,8 @@ def run(args: argparse.Namespace) -> int:
                 new += bench_hang(run_solvers, args.device, sizes, frames, args.max_seconds, step)
             if "features" in workloads:
                 new += bench_features(run_solvers, args.device, feature_cloths, frames, args.max_seconds, step)
+            if "self" in workloads and "workgroup" in run_solvers:
+                new += bench_self(args.device, frames, args.max_seconds, step)
             if lanes is not None:
                 for r in new:
                     r.extra["pack_lanes"] = lanes

@@ -546,3 +546,47 @@ def test_a_blown_up_cloth_leaves_its_pack_mates_untouched(device, rng, xpbd):
         x = together.positions(ht)
         assert np.all(np.isfinite(x))
         np.testing.assert_array_equal(x, alone.positions(ha))
+
+
+# ---------------------------------------------------------------------------------------------
+# Self-collision (protocol 1.6; the work-group solver and the reference: the others ignore it)
+
+
+@pytest.mark.parametrize("solver", ["workgroup", "reference"])
+@pytest.mark.parametrize("how", ["all-at-one-point", "random-pairs", "thickness-1m", "every-feature"])
+def test_self_collision_extremes(device, rng, solver, how):
+    """A crumpled start (every vertex at one point: each pair parts along its rest direction; or
+    random pairs coincident), the largest thickness (1 m: nearly every pair of a cloth of 0.5 to
+    1.5 m is in contact from the start) and every feature at once under load."""
+    fab = random_grid(rng, 3, 8)
+    x = fab.rest_positions.copy()
+    if how == "all-at-one-point":
+        x[:] = x[int(rng.integers(len(x)))]
+    elif how == "random-pairs":
+        for a, b in rng.integers(0, len(x), (len(x) // 2, 2)):
+            x[b] = x[a]
+    x[fab.pinned] = fab.rest_positions[fab.pinned]
+    every = how == "every-feature"
+    features = Features(
+        self_collision=True, xpbd=bool(rng.random() < 0.5), tethers=every, colliders=every, wind=every, normals=every
+    )
+    material = Material(
+        thickness=1.0 if how == "thickness-1m" else float(rng.uniform(0.005, 0.05)),
+        contact_stiffness=float(rng.uniform(0.2, 1.0)),
+        drag=1.0,
+        lift=0.5,
+        friction=1.0,
+    )
+    params = ClothParams(
+        features=features,
+        material=material,
+        gravity=(0.0, -100.0, 0.0) if every else (0.0, -9.81, 0.0),
+        wind=(20.0, 0.0, 5.0) if every else (0.0, 0.0, 0.0),
+        iterations=int(rng.integers(1, 12)),
+        substeps=int(rng.integers(1, 4)),
+    )
+    lo = fab.rest_positions.min(0)
+    colliders = pack_colliders([Plane((0.0, 1.0, 0.0), float(lo[1] - 0.5))]) if every else None
+    check_run(
+        new_world(solver, device), fab, params, DT, 60, positions=x, colliders=colliders, what=f"{solver} self ({how})"
+    )

@@ -309,6 +309,22 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
             ),
         ),
         msg_vector(
+            "submit_self_collision",
+            "submit",
+            "1.6: an 8x8 cape pinned at two corners that keeps 5 mm between its non-neighbouring vertices "
+            "(the self_collision feature with the material's thickness and contact_stiffness).",
+            P.encode_submit(
+                P.SubmitRequest(
+                    client="c1",
+                    grid=P.GridSpec(8, 8, 0.5, 0.5),
+                    pinned=np.array([0, 7], np.uint32),
+                    material={"thickness": 0.005, "contact_stiffness": 0.5},
+                    features=("self_collision",),
+                    rid=10,
+                )
+            ),
+        ),
+        msg_vector(
             "submit_resume_positions",
             "submit",
             "1.3: the least resume: positions only (velocities zero).",

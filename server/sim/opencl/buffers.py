@@ -118,6 +118,7 @@ def fabric_blob(f: Fabric) -> tuple[np.ndarray, dict[str, int]]:
         "CI_OFF_TRIS": f.triangles.astype(np.int32).ravel(),
         "CI_OFF_LRLINKS": lr.ravel(),
         "CI_OFF_LRCOLOURS": np.concatenate([[len(lr_offsets) - 1], lr_offsets]).astype(np.int32),
+        "CI_OFF_REST": f.rest_positions.astype(np.float32).view(np.int32).ravel(),
     }
     offsets, pos = {}, 0
     for name, arr in parts.items():

@@ -264,6 +264,8 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
         cf[L["CF_RHO"]] = m.air_density
         cf[L["CF_TETHER_LIMIT"]] = m.tether_limit
         cf[L["CF_CHEB_RHO"]] = p.chebyshev_rho
+        cf[L["CF_THICKNESS"]] = m.thickness
+        cf[L["CF_CONTACT_STIFFNESS"]] = m.contact_stiffness
         self._tables_dirty = True
 
     def _group_key(self, cloth: Cloth) -> tuple[tuple, bool, int]:

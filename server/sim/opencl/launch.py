@@ -198,6 +198,10 @@ class GroupLaunches:
                 self._coloured_iterations(g, dt32, opts)
             else:
                 self._jacobi_iterations(g, dt32, opts, gsize, ls)
+            if g.features.self_collision:  # one work-group per cloth (kernels/selfcollide.cl)
+                bufs = (self.ci, self.cf, self.fab, self.pos, self.vel, self.nrm)
+                collide = self.dev.kernel(opts, "cl_self_collide")
+                collide(q, (len(g.handles) * ls,), (ls,), g.cloths_buf, *(b.buf for b in bufs))
             finish(q, gsize, (ls,), dt32, si, *vertex_args, self.coll.buf)
         if g.features.normals:
             normals(q, gsize, (ls,), *normal_args)

@@ -81,6 +81,10 @@
 
 #define DRAPE_FEATURE_NORMALS 16
 
+// Protocol 1.6: self-collision (the material's thickness and contact stiffness: server defaults
+// 0.01 m and 1 from C, whose DrapeMaterial does not carry them yet).
+#define DRAPE_FEATURE_SELF_COLLISION 32
+
 // A feature mask the server did not report (a reply without `features`).
 #define DRAPE_FEATURES_UNKNOWN 4294967295
 

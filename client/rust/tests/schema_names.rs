@@ -67,6 +67,8 @@ fn every_material() -> Material {
         lift: Some(0.4),
         air_density: Some(1.2),
         tether_limit: Some(1.5),
+        thickness: Some(0.01),
+        contact_stiffness: Some(0.5),
     }
 }
 

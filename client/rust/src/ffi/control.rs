@@ -120,6 +120,9 @@ pub(crate) unsafe fn material_of(m: *const DrapeMaterial) -> Result<Material, i3
         lift: on(DRAPE_MATERIAL_LIFT).then_some(m.lift),
         air_density: on(DRAPE_MATERIAL_AIR_DENSITY).then_some(m.air_density),
         tether_limit: on(DRAPE_MATERIAL_TETHER_LIMIT).then_some(m.tether_limit),
+        // 1.6 self-collision fields: not in the C struct yet (its layout is the ABI)
+        thickness: None,
+        contact_stiffness: None,
     })
 }
 

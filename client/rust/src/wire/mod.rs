@@ -53,7 +53,7 @@ pub const MAX_PIN_UPDATES: usize = 4096;
 pub const MAX_COLLIDERS: usize = 32;
 pub const MAX_FEATURES: usize = 16;
 /// The features, in the protocol's canonical order (the order of a reply's `features`).
-pub const FEATURE_NAMES: [&str; 5] = ["xpbd", "tethers", "colliders", "wind", "normals"];
+pub const FEATURE_NAMES: [&str; 6] = ["xpbd", "tethers", "colliders", "wind", "normals", "self_collision"];
 pub const QUALITY_PRESETS: [&str; 4] = ["fast", "balanced", "accurate", "exact"];
 /// 1.2: the least total `material.mass` (kg); smaller masses make float32 per-vertex masses
 /// subnormal or infinite (PROTOCOL.md section 4).

@@ -100,6 +100,10 @@ pub struct Material {
     pub lift: Option<f64>,
     pub air_density: Option<f64>,
     pub tether_limit: Option<f64>,
+    /// 1.6, self_collision: metres kept between non-neighbouring vertices of the cloth.
+    pub thickness: Option<f64>,
+    /// 1.6, self_collision: the share of a contact corrected per pass (0..1).
+    pub contact_stiffness: Option<f64>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -275,6 +279,8 @@ fn material_map(m: &Material) -> Map {
     }
     push(&mut out, "air_density", m.air_density);
     push(&mut out, "tether_limit", m.tether_limit);
+    push(&mut out, "thickness", m.thickness);
+    push(&mut out, "contact_stiffness", m.contact_stiffness);
     out
 }
 

@@ -36,6 +36,8 @@ pub(crate) fn read_material(r: &Reader<'_>) -> Result<Material> {
         lift: m.f64("lift", false)?,
         air_density: m.f64("air_density", false)?,
         tether_limit: m.f64("tether_limit", false)?,
+        thickness: m.f64("thickness", false)?,
+        contact_stiffness: m.f64("contact_stiffness", false)?,
     })
 }
 

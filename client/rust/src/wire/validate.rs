@@ -63,7 +63,8 @@ fn material(m: &Material) -> Result<()> {
         }
     }
     let scalars = [("damping", m.damping, 0.0, 1.0), ("friction", m.friction, 0.0, UPPER), ("drag", m.drag, 0.0, UPPER),
-        ("lift", m.lift, 0.0, UPPER), ("air_density", m.air_density, 0.0, UPPER), ("tether_limit", m.tether_limit, 1.0, UPPER)];
+        ("lift", m.lift, 0.0, UPPER), ("air_density", m.air_density, 0.0, UPPER), ("tether_limit", m.tether_limit, 1.0, UPPER),
+        ("thickness", m.thickness, 0.0, 1.0), ("contact_stiffness", m.contact_stiffness, 0.0, 1.0)];
     for (name, v, lo, hi) in scalars {
         if let Some(x) = v {
             finite(&format!("material.{name}"), x, lo, hi)?;

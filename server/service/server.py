@@ -34,6 +34,7 @@ from drape.client.session import open_session, zenoh_config
 from ..sim import make_world
 from ..sim.fabric import Fabric, cook_grid
 from ..sim.params import ClothParams, Features, Sphere, pack_colliders
+from ..sim.roster import Roster
 from ..sim.world import World
 from .adaptive import AdaptiveQuality
 from .admission import Admission
@@ -42,7 +43,7 @@ from .config import ServerConfig
 from .cook import CookWorker
 from .handlers import Handlers
 from .keyframes import KeyframeQueries
-from .publisher import Publisher, Roster
+from .publisher import Publisher
 from .registry import Registry
 from .replies import Replies, undeclare
 from .telemetry import PHASES, PhaseTimer
@@ -125,7 +126,7 @@ class Server:
 
     def _start(self) -> None:
         cfg = self.config
-        kw = {} if cfg.solver == "reference" else {"device": cfg.device}
+        kw = {} if cfg.solver == "reference" else {"device": cfg.device, "device_encode": cfg.device_encode}
         self.ticker.world = make_world(cfg.solver, **kw)
         self.device_name = getattr(self.ticker.world, "device_name", cfg.solver)
         dev = getattr(self.ticker.world, "dev", None)
@@ -189,15 +190,13 @@ class Server:
         assert w is not None
         params = ClothParams()
         t = time.perf_counter()
-        frames = self.ticker.device  # states encoded on the device: launch the encoder once
-        if frames is not None:
+        if self.config.device_encode:  # states encoded on the device: launch the encoder once
             h = w.add(cook_grid(2, 2, pinned=[0]), params)
             w.step(self.config.dt)
             lay = w.layout()
             f32 = [P.ENCODING_IDS["float32"]]
             roster = Roster((-1, -1), ["warm-up"], ["warm-up"], f32, lay.normals.copy(), np.array([0]), [])
-            frames.encode(roster, lay, 0, 0, np.zeros(1, np.int64)).wait()
-            frames.hold().release()
+            w.fetch_async(roster, 0).wait().release()
             w.remove(h)
             w.fetch()
         for names in self.config.warm_feature_sets():  # the feature sets a deployment declares

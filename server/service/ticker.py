@@ -8,14 +8,13 @@ vanished clients' cloths (both applier.py), enqueues step N and its readback wit
 and hands frame N - 1 to the publisher. So the device steps tick N while the host publishes
 tick N - 1.
 
-With ``device_encode`` on an OpenCL world, one launch right behind the step encodes every
-publication's bytes into one packed buffer, read back once into pinned memory (devencode.py);
-its bounds tell the non-finite cloths, reset and encoded again. The reference World keeps the
-host path (the publisher's FrameEncoder).
+One frame path: the World's ``fetch_async(roster, tick)`` gives the tick's wire-ready payloads
+(drape.server.sim.wire; encoded on the device or on the host, the World's choice), the
+non-finite cloths among them, and puts the cloths the World reset back at rest in them.
 
-Per tick the Python work is O(commands + changed cloths + non-finite cloths): the frame is one
-contiguous array, its publication roster (drape.server.service.publisher.Roster) is rebuilt
-only when the World's layout or a cloth's publication changes, and flags are one array.
+Per tick the Python work is O(commands + changed cloths + non-finite cloths): its publication
+roster (drape.server.sim.roster.Roster) is rebuilt only when the World's layout or a cloth's
+publication changes, and flags are one array.
 """
 
 from __future__ import annotations
@@ -33,16 +32,16 @@ from drape.client import protocol as P
 
 from ..sim.fabric import cook_grid
 from ..sim.params import ClothParams
-from ..sim.shared import vertex_normals
-from ..sim.world import PendingFrame, World
+from ..sim.roster import Roster
+from ..sim.wire import PendingWire
+from ..sim.world import World
 from .adaptive import AdaptiveQuality
 from .admission import Admission, TickCost
 from .applier import Applier
 from .commands import Intake
 from .config import ServerConfig
 from .cook import FabricStore
-from .devencode import DeviceFrames, device_world
-from .publisher import Job, Mailbox, Roster
+from .publisher import Job, Mailbox
 from .registry import ClothRecord, Registry
 from .replies import Replies, Reply, send
 from .telemetry import PhaseTimer
@@ -76,8 +75,7 @@ class Ticker:
         self.tick = 0
         self.failure: BaseException | None = None
         self.stop_event = threading.Event()
-        self._pending: tuple[PendingFrame, Job, float] | None = None  # the frame in flight, its job, host s
-        self.device: DeviceFrames | None = None  # device-encoded frames (config device_encode, OpenCL worlds)
+        self._pending: tuple[PendingWire, Job, float] | None = None  # the frame in flight, its job, host s
         self._roster: Roster | None = None
         self._nan_times: dict[str, deque[float]] = {}
         self._nan_warned_at = 0.0
@@ -85,6 +83,7 @@ class Ticker:
         self._cost_layout = -1  # layout version of the last frame whose cost was measured
         self._wait_s = 0.0  # the tick thread's wait for the device in the tick that enqueued the pending frame
         self._carry: list[Reply] = []  # remove replies of a tick that stepped nothing
+        self._reset_next = np.zeros(0, np.int64)  # frame indices of the frame in flight carrying the reset flag
 
     # --- what the Applier owns, under the names the server and the tests use ---------------------
     @property
@@ -136,10 +135,7 @@ class Ticker:
         w.fetch()
         w.remove(h)
         w.fetch()
-        dev = device_world(w, self.config.device_encode)
-        if dev is not None:  # the frame encoder's kernels too: the tick thread never compiles
-            self.device = DeviceFrames(dev)
-            self.device.encoder.build_all()
+        w.warm_wire()  # the frame encoder's kernels too: the tick thread never compiles
         log.debug("warm-up took %.3f s", time.perf_counter() - t)
 
     # --- the loop --------------------------------------------------------------------------------
@@ -205,7 +201,7 @@ class Ticker:
     def _finish_previous(self) -> Job:
         """The job of the tick stepped last time: its frame read back, checked, flagged."""
         if self._pending is None:  # nothing was stepped: carries what waited for a next frame
-            job = Job(tick=self.tick, time_ns=time.time_ns(), after=self._carry)
+            job = Job(tick=self.tick, after=self._carry)
             self._carry = []
             self._wait_s = 0.0
             return job
@@ -213,18 +209,17 @@ class Ticker:
         self._pending = None
         busy_s = host_s - self._wait_s  # the tick thread's own work in the tick that enqueued this frame
         t = time.monotonic()
-        frame = pending.wait()
+        wire = pending.wait()
         self._wait_s = time.monotonic() - t
-        job.frame = frame.hold()
-        job.time_ns = time.time_ns()  # PROTOCOL.md: the server time is when the tick was read back
-        if job.on_device and self.device is not None and job.roster is not None:  # encoded at enqueue time
-            job.encoded = self.device.hold()
-            job.encoded.set_time(job.time_ns)
-            bad = self.device.nonfinite()
-        else:
-            bad = frame.nonfinite()
+        job.wire = wire.hold()
+        wire.set_time(time.time_ns())  # PROTOCOL.md: the server time is when the tick was read back
+        if len(self._reset_next):
+            wire.add_flags(self._reset_next, P.FLAG_RESET)
+            self._reset_next = np.zeros(0, np.int64)
+        bad = wire.nonfinite()
         if len(bad):
             self._non_finite(job, bad)
+        frame = wire.frame
         waited = time.monotonic() - t
         device_s = pending.device_s
         self.timers["readback"].add(waited)
@@ -253,25 +248,14 @@ class Ticker:
             self._carry = after  # no next frame: sent in the next tick's own publisher pass
             return
         w.step(self.config.dt)
-        lay = w.layout()  # the frame's own layout (fetch_async uses it)
+        lay = w.layout()
         roster = self._roster_for(lay)
-        # predictive states (1.5) are coded by the publisher's host encoder: that frame is read back
-        dev = device_world(w, self.config.device_encode and not roster.predictive)
-        if dev is None:
-            pending = w.fetch_async()
-        elif self.device is None or self.device.world is not dev:
-            self.device = DeviceFrames(dev)
-        flags = np.zeros(len(lay.handles), np.int64)
         reset_flags = self.applier.reset_flags
-        if reset_flags:
-            idx = [lay.index[h] for h in reset_flags if h in lay.index]
-            flags[idx] = P.FLAG_RESET
+        if reset_flags:  # the cloths the applier reset: flagged in the frame once it is back
+            self._reset_next = np.array([lay.index[h] for h in reset_flags if h in lay.index], np.int64)
             reset_flags.clear()
-        job = Job(tick=self.tick, roster=roster, flags=flags, after=after, on_device=dev is not None)
-        if dev is not None:
-            assert self.device is not None  # the server time is stamped after the readback (set_time)
-            pending = self.device.encode(roster, lay, self.tick, 0, flags)
-        self._pending = (pending, job, 0.0)
+        job = Job(tick=self.tick, after=after)
+        self._pending = (w.fetch_async(roster, self.tick), job, 0.0)
 
     def _roster_for(self, lay) -> Roster:
         version = (lay.version, self.applier.pub_changes)
@@ -300,23 +284,16 @@ class Ticker:
         self._nan_times.pop(rec.id, None)
 
     def _non_finite(self, job: Job, bad: np.ndarray) -> None:
-        w = self.world
-        assert w is not None and job.frame is not None and job.flags is not None
-        frame, now = job.frame, time.monotonic()
-        off = frame.offsets
-        on_device = job.encoded is not None
-        reset: list[tuple[int, Any]] = []  # on the device: (handle, fabric) of reset cloths with normals
+        w, wire = self.world, job.wire
+        assert w is not None and wire is not None
+        frame, now = wire.frame, time.monotonic()
+        at_rest: list[tuple[int, Any]] = []  # (frame index, fabric): at rest with the reset flag in the frame
         for i in bad.tolist():
             h = int(frame.handles[i])
             rec = self.live.get(h)
             if rec is None or rec.fabric is None:
                 continue
-            sl = slice(int(off[i]), int(off[i + 1]))
-            if not on_device:
-                frame.xyz[sl] = rec.fabric.rest_positions
-                if frame.nxyz is not None and frame.layout.normals[i]:
-                    frame.nxyz[sl] = vertex_normals(rec.fabric.rest_positions, rec.fabric)[0]
-            job.flags[i] |= P.FLAG_RESET
+            at_rest.append((i, rec.fabric))
             times = self._nan_times.setdefault(rec.id, deque())
             times.append(now)
             while times and now - times[0] > self.config.nan_window:
@@ -338,8 +315,6 @@ class Ticker:
                 self.applier.drop(rec, job)
                 continue
             w.reset(h)
-            if frame.layout.normals[i]:
-                reset.append((h, rec.fabric))
             self.registry.count("nan_resets")
             if now - self._nan_warned_at >= NAN_WARN_EVERY_S:
                 more = f" ({self._nan_quiet} more since the last warning)" if self._nan_quiet else ""
@@ -353,6 +328,4 @@ class Ticker:
                 self._nan_warned_at, self._nan_quiet = now, 0
             else:
                 self._nan_quiet += 1
-        if on_device and self.device is not None and job.encoded is not None:
-            # the frame again, the reset cloths at rest with the reset flag (as the host path publishes)
-            job.encoded = self.device.reencode(job.encoded, job.tick, job.time_ns, job.flags, reset)
+        wire.reset(at_rest)

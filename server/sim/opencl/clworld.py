@@ -16,9 +16,10 @@ pin targets gathered into one upload per step in targets.py (PinTargets).
 A frame is read back whole: one ``pack_rows`` launch gathers every cloth's positions (xyz,
 without the inverse mass) back to back in the layout's order into one device buffer, and one
 non-blocking copy brings it into a host buffer mapped from ``ALLOC_HOST_PTR`` memory (pinned
-where the driver does that), reused from tick to tick. ``fetch_async`` returns at once; its
-``wait`` waits on that copy's event only (frames.py). The service's device-encoded frames
-read the float4 ``pos`` and ``nrm`` buffers directly instead (encode.py).
+where the driver does that), reused from tick to tick. ``frame_async`` returns at once; its
+``wait`` waits on that copy's event only (frames.py). Built with ``device_encode``, a tick's
+``fetch_async(roster, tick)`` is encoded on the device instead, straight from the float4 ``pos``
+and ``nrm`` buffers (devencode.py), unless its roster has predictive states (host-encoded).
 """
 
 from __future__ import annotations
@@ -33,8 +34,11 @@ import pyopencl as cl
 
 from ..fabric import Fabric
 from ..params import ClothParams, Features
+from ..roster import Roster
+from ..wire import PendingWire
 from ..world import Cloth, World, inverse_masses
 from .buffers import DevArray, RangeAllocator, fabric_blob  # noqa: F401 (RangeAllocator re-exported)
+from .devencode import DeviceFrames
 from .device import Device, layout
 from .frames import FrameReadback
 from .launch import (  # noqa: F401 (re-exported: _next_pow2, the LINK_UNROLL_* defaults)
@@ -105,6 +109,7 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
         link_group_size: int = 256,
         chunk: int | None = None,
         pack_lanes: int | None = None,
+        device_encode: bool = False,
     ) -> None:
         super().__init__()
         if strategy not in ("workgroup", "coloured", "jacobi"):
@@ -160,6 +165,17 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
         self._init_frames()
         self._init_targets()
         self._base_options = [*Features().build_options(), "-DUSE_LOCAL=0"]
+        self.device_frames = DeviceFrames(self) if device_encode else None  # the ticks' bytes on the device
+
+    # --- a tick's output ---------------------------------------------------------------------
+    def fetch_async(self, roster: Roster, tick: int) -> PendingWire:
+        if self.device_frames is not None and not roster.predictive:
+            return self.device_frames.encode(roster, tick)
+        return super().fetch_async(roster, tick)
+
+    def warm_wire(self) -> None:
+        if self.device_frames is not None:  # the frame encoder's programs: the tick thread never compiles
+            self.device_frames.build_all()
 
     # --- allocation -----------------------------------------------------------------------
     def _alloc(self, alloc: RangeAllocator, arrays: list[DevArray], n: int) -> int:
@@ -412,7 +428,7 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
     def step(self, dt: float) -> None:
         self._flush()
         q = self.dev.queue
-        self._step_marker = cl.enqueue_marker(q)  # device time of the step: frames.py
+        self.step_marker = cl.enqueue_marker(q)  # device time of the step: frames.py
         dt32 = np.float32(dt)
         for g in self.groups.values():
             opts = self._options(g)
@@ -448,3 +464,5 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
 
     def close(self) -> None:
         self.dev.queue.finish()
+        if self.device_frames is not None:
+            self.device_frames.close()

@@ -1,48 +1,58 @@
-"""The tick path's device-encoded frames (config ``device_encode``, OpenCL worlds only).
+"""An OpenCL World's device-encoded ticks (``CLWorld(device_encode=True)``; the service's config
+``device_encode``).
 
 Per tick, right after the step and on the same queue (no host round trip), one launch of
-drape.server.sim.opencl.encode's ``encode_frame`` writes every publication's bytes (states and
-bundles exactly as drape.client.protocol encodes them) into one packed device buffer, and one
-copy brings it into pinned host memory. The :class:`~drape.server.sim.opencl.encode.FramePlan`
-is rebuilt only when the publication roster changes (cloths come or go, change encoding,
-normals or bundling: ``Roster.version``). The publisher then puts each publication's slice.
+encode.py's ``encode_frame`` writes every publication's bytes (states and bundles exactly as
+drape.client.protocol encodes them) into one packed device buffer, straight from the world's
+float4 position and normal buffers, and one copy brings it into pinned host memory. The
+:class:`~drape.server.sim.opencl.encode.FramePlan` is rebuilt only when the roster changes
+(cloths come or go, change encoding, normals or bundling: ``Roster.version``). The World's
+``fetch_async(roster, tick)`` gives a :class:`DeviceWire` whose payloads are slices of that
+memory.
 
 Non-finite cloths show as non-finite bounds in their headers (``DeviceEncoder.nonfinite``);
-the tick thread resets them in the World and :meth:`DeviceFrames.reencode` writes the frame
-again with their rest pose and the reset flag: the same bytes the host path publishes.
+once the World has reset them, :meth:`DeviceWire.reset` writes their rest normals and encodes
+the frame again with the reset flag: the same bytes the host path publishes.
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterator
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..sim.fabric import Fabric
-from ..sim.opencl.clworld import CLWorld
-from ..sim.opencl.encode import ClothEntry, DeviceEncoder, EncodedFrame, FramePlan, Publication
-from ..sim.opencl.frames import device_span
-from ..sim.shared import vertex_normals
-from ..sim.world import Frame, Layout, PendingFrame, World
-from .publisher import Roster
+from drape.client import protocol as P
+
+from ..fabric import Fabric
+from ..frame import Frame, Layout, PendingFrame
+from ..roster import Roster
+from ..shared import vertex_normals
+from ..statecodec import PredictiveStreams
+from ..wire import Payload, PendingWire, Wire
+from .encode import ClothEntry, DeviceEncoder, EncodedFrame, FramePlan, Publication
+from .frames import device_span
+
+if TYPE_CHECKING:
+    from .clworld import CLWorld
 
 log = logging.getLogger(__name__)
 
 
-def device_world(world: World | None, enabled: bool) -> CLWorld | None:
-    """The world when its frames are to be encoded on the device."""
-    return world if enabled and isinstance(world, CLWorld) else None
-
-
 class DeviceFrames:
-    """One OpenCL world's encoder on the tick path."""
+    """One OpenCL world's frame encoder (a part the world owns)."""
 
     def __init__(self, world: CLWorld) -> None:
         self.world = world
         self.encoder = DeviceEncoder(world.dev, stride=4)
         self._plan_version: tuple[int, int] | None = None
         self.plans = 0  # plans built (the tests count them)
+
+    def build_all(self) -> None:
+        """Every program a plan may pick, built now (the tick thread never compiles)."""
+        self.encoder.build_all()
 
     def _plan(self, roster: Roster, lay: Layout) -> None:
         if self._plan_version == roster.version and self.encoder.plan is not None:
@@ -60,21 +70,15 @@ class DeviceFrames:
         self._plan_version = roster.version
         self.plans += 1
 
-    def encode(self, roster: Roster, lay: Layout, tick: int, time_ns: int, flags: np.ndarray) -> PendingFrame:
-        """Enqueue this tick's frame right behind the step; ``wait()`` gives a Frame of the
-        layout without host rows (the bytes are in :meth:`hold`)."""
+    def encode(self, roster: Roster, tick: int) -> PendingWire:
+        """Enqueue this tick's frame right behind the step (its server time is set once read back)."""
         w = self.world
+        lay = w.layout()
         self._plan(roster, lay)
-        ev = self.encoder.encode(w.dev.queue, w.pos.buf, w.nrm.buf, tick, time_ns, flags)
+        ev = self.encoder.encode(w.dev.queue, w.pos.buf, w.nrm.buf, tick, 0, None)
         frame = Frame(w.steps, lay, np.zeros((0, 3), np.float32), None)
-        return PendingFrame(frame, ev.wait, device_span(w._step_marker, ev))
-
-    def hold(self) -> EncodedFrame:
-        return self.encoder.hold()
-
-    def nonfinite(self) -> np.ndarray:
-        """Frame indices of the cloths whose last encoded positions were not finite."""
-        return self.encoder.nonfinite()
+        pending = PendingFrame(frame, ev.wait, device_span(w.step_marker, ev))
+        return PendingWire(pending, lambda f: DeviceWire(f, roster, tick, self))
 
     def reencode(
         self, old: EncodedFrame, tick: int, time_ns: int, flags: np.ndarray, reset: list[tuple[int, Fabric]]
@@ -95,3 +99,52 @@ class DeviceFrames:
 
     def close(self) -> None:
         self.encoder.close()
+
+
+class DeviceWire(Wire):
+    """A tick's payloads as encoded on the device: slices of pinned host memory, held until released."""
+
+    def __init__(self, frame: Frame, roster: Roster, tick: int, frames: DeviceFrames) -> None:
+        super().__init__(frame, roster, tick)
+        self._frames = frames
+        self.encoded = frames.encoder.hold()
+        self._bad = frames.encoder.nonfinite()
+
+    def set_time(self, time_ns: int) -> None:
+        super().set_time(time_ns)
+        self.encoded.set_time(self.time_ns)
+
+    def add_flags(self, cloths: np.ndarray, flag: int) -> None:
+        super().add_flags(cloths, flag)
+        self.encoded.add_flags(np.asarray(cloths).tolist(), flag)
+
+    def nonfinite(self) -> np.ndarray:
+        return self._bad
+
+    def reset(self, cloths: list[tuple[int, Fabric]]) -> None:
+        live, lay = self._frames.world.rec, self.frame.layout
+        normals: list[tuple[int, Fabric]] = []
+        for i, fabric in cloths:
+            self.flags[i] |= P.FLAG_RESET
+            h = int(lay.handles[i])
+            if h in live and lay.normals[i]:
+                normals.append((h, fabric))
+        # the frame again, the reset cloths at rest with the reset flag (as the host path publishes)
+        self.encoded = self._frames.reencode(self.encoded, self.tick, self.time_ns, self.flags, normals)
+        self._bad = np.zeros(0, np.int64)
+
+    def sizes(self) -> list[int]:
+        return [len(v) for v in self.encoded.views]
+
+    def payloads(self, watched: list[int], streams: PredictiveStreams) -> Iterator[tuple[int, Payload]]:
+        """One ``bytes`` copy each (zenoh's ZBytes takes no memoryview; the cheapest correct
+        way, see issue 10's figures). Measured against it on the H100 (docs/loadtest.md, session
+        12): copying into a ``bytearray`` kept per key doubled the copy and put phases (3.5 ->
+        6.1 and 9.8 -> 17.4 ms a tick at 2048 float32)."""
+        views = self.encoded.views
+        for j in watched:
+            yield j, bytes(views[j])
+
+    def release(self) -> None:
+        self.encoded.release()
+        super().release()

@@ -4,7 +4,7 @@ One ``pack_rows`` launch gathers every cloth's positions (xyz, without the inver
 back in the layout's order into one device buffer (normals likewise when a cloth carries them),
 and one non-blocking copy brings it into a host buffer mapped from ``ALLOC_HOST_PTR`` memory
 (pinned where the driver does that), reused from tick to tick (world.FramePool). The gather map
-(frame row -> vertex) is uploaded only when the layout changes. ``fetch_async`` returns at once;
+(frame row -> vertex) is uploaded only when the layout changes. ``frame_async`` returns at once;
 its ``wait`` waits on that copy's event only; ``device_s`` is the step-to-readback device time
 from the queue's profiling timestamps.
 """
@@ -67,7 +67,7 @@ class FrameReadback:
         self._pack_src = DevArray(q, np.int32, 1, 1024)  # frame row -> vertex of the buffers
         self._packed = DevArray(q, np.float32, 3, 1024)
         self._packed_nrm = DevArray(q, np.float32, 3, 1024)
-        self._step_marker: cl.Event | None = None
+        self.step_marker: cl.Event | None = None
 
     def _host_array(self, rows: int) -> np.ndarray:
         """A (rows, 3) float32 host array in ALLOC_HOST_PTR memory, mapped once for good."""
@@ -105,7 +105,7 @@ class FrameReadback:
         k = self.dev.kernel(self._base_options, "pack_rows")
         k(self.dev.queue, (-(-n // 64) * 64,), (64,), np.int32(n), self._pack_src.buf, src.buf, out.buf)
 
-    def fetch_async(self) -> PendingFrame:
+    def frame_async(self) -> PendingFrame:
         lay = self.layout()
         n = lay.n_rows
         want_nrm = bool(lay.normals.any())
@@ -121,4 +121,4 @@ class FrameReadback:
         ev = cl.enqueue_copy(q, xyz, self._packed.buf, is_blocking=False)
         if nxyz is not None:
             ev = cl.enqueue_copy(q, nxyz, self._packed_nrm.buf, is_blocking=False)
-        return PendingFrame(frame, ev.wait, device_span(self._step_marker, ev))
+        return PendingFrame(frame, ev.wait, device_span(self.step_marker, ev))

@@ -23,15 +23,15 @@ from drape.client import protocol as P
 
 from ..sim import quality
 from ..sim.world import World
-from .adaptive import AdaptiveQuality
 from .commands import Add, BatchControl, Call, ControlSlot, Intake, MoveBlock, Remove
 from .config import ServerConfig
 from .cook import FabricStore
 from .moves import apply_blocks
-from .publisher import Job
+from .publish.publisher import Job
 from .registry import ClothRecord, Registry
 from .replies import Replies, Reply, send
 from .requests import changes_params, params_after_control, pins_only, with_preset
+from .tick.adaptive import AdaptiveQuality
 
 log = logging.getLogger(__name__)
 

@@ -176,7 +176,8 @@ def _warm_up_main(config: Any) -> None:
 
     srv = Server(config, warmup=False)
     kw = {} if config.solver == "reference" else {"device": config.device}
-    world = srv.ticker.world = make_world(config.solver, **kw)
+    world = make_world(config.solver, **kw)
+    srv.ticker.attach(world)
     srv.warm_up()  # the server's own warm-up: what it then builds from the cache
     fabric = _fabric_fields(cook_grid(8, 8, pinned=[0, 7]))
     for n in range(1, len(FEATURE_NAMES) + 1):

@@ -8,10 +8,10 @@ owning one job (and one thread's state):
   request queue (requestq.py) that Zenoh's queryable callbacks put their queries on;
 - commands (commands.py): the bounded, per-cloth coalescing intake of the tick thread;
 - cook (cook.py): the cook thread, fabrics (the one fabric cache) and kernel builds;
-- ticker (ticker.py): the tick thread, the only one touching the World, and its applier
+- ticker (tick/ticker.py): the tick thread, the only one touching the World, and its applier
   (applier.py): the queued commands applied to the World at the start of a tick;
-- publisher (publisher.py): the publisher thread, encode and put;
-- admission (admission.py) and adaptive quality (adaptive.py): the tick-cost policies;
+- publisher (publish/publisher.py): the publisher thread, the replies and the World's bytes put;
+- admission (admission.py) and adaptive quality (tick/adaptive.py): the tick-cost policies;
 - replies (replies.py): answering queries, error replies counted.
 """
 
@@ -36,18 +36,18 @@ from ..sim.fabric import Fabric, cook_grid
 from ..sim.params import ClothParams, Features, Sphere, pack_colliders
 from ..sim.roster import Roster
 from ..sim.world import World
-from .adaptive import AdaptiveQuality
 from .admission import Admission
 from .commands import Call, Intake
 from .config import ServerConfig
 from .cook import CookWorker
 from .handlers import Handlers
-from .keyframes import KeyframeQueries
-from .publisher import Publisher
+from .publish.keyframes import KeyframeQueries
+from .publish.publisher import Publisher
 from .registry import Registry
 from .replies import Replies, undeclare
 from .telemetry import PHASES, PhaseTimer
-from .ticker import Ticker
+from .tick.adaptive import AdaptiveQuality
+from .tick.ticker import Ticker
 
 log = logging.getLogger(__name__)
 
@@ -76,24 +76,9 @@ class Server:
         self.quality = AdaptiveQuality(self.config)
         self.publisher = Publisher(self.config, self.keys, self.registry, self._timers)
         self.keyframes = KeyframeQueries(self.keys, self.registry, self.publisher)  # 1.5
-        self.ticker = Ticker(
-            self.config,
-            self.registry,
-            self.replies,
-            self.intake,
-            self.publisher.mailbox,
-            None,  # type: ignore[arg-type]
-            self.admission,
-            self.quality,
-            self._timers,
-            self._stats_bytes,
-        )
         self.cook = CookWorker(
             self.config, self.registry, self.replies, self.intake, lambda: self.ticker.world, self._stopping.is_set
         )
-        self.ticker.fabrics = self.cook.fabrics
-        self.ticker.publish_cost = lambda: self.publisher.last_cost_s
-        self.ticker.request_prepare = self.cook.request_prepare
         self.handlers = Handlers(
             self.config,
             self.keys,
@@ -106,8 +91,22 @@ class Server:
             self.info,
             self._stopping.is_set,
         )
-        if self.handlers.gate is not None:  # requests start while the tick thread sleeps
-            self.ticker.on_sleep = self.handlers.gate.tick_sleeps
+        gate = self.handlers.gate  # requests start while the tick thread sleeps
+        self.ticker = Ticker(
+            self.config,
+            self.registry,
+            self.replies,
+            self.intake,
+            self.publisher.mailbox,
+            self.cook.fabrics,
+            self.admission,
+            self.quality,
+            self._timers,
+            self._stats_bytes,
+            lambda: self.publisher.last_cost_s,
+            self.cook.request_prepare,
+            gate.tick_sleeps if gate is not None else None,
+        )
         self._session: zenoh.Session | None = None
         self._declared: list[Any] = []
         self._token: Any = None
@@ -127,7 +126,7 @@ class Server:
     def _start(self) -> None:
         cfg = self.config
         kw = {} if cfg.solver == "reference" else {"device": cfg.device, "device_encode": cfg.device_encode}
-        self.ticker.world = make_world(cfg.solver, **kw)
+        self.ticker.attach(make_world(cfg.solver, **kw))
         self.device_name = getattr(self.ticker.world, "device_name", cfg.solver)
         dev = getattr(self.ticker.world, "dev", None)
         self.quality.use_device(bool(dev is not None and dev.info.is_gpu))
@@ -244,7 +243,7 @@ class Server:
             others = [t for t in self._threads if not t.name.startswith("drape-publish")]
             for t in others:
                 t.join(max(0.0, deadline - time.monotonic()))
-            self.ticker.shutdown_commands()  # anything the cook thread queued after the tick thread ended
+            self.ticker.applier.shutdown_commands()  # anything the cook thread queued after the tick thread ended
             self.publisher.mailbox.close()
             for t in self._threads:
                 if t.name.startswith("drape-publish"):

@@ -24,13 +24,13 @@ import zenoh
 
 from drape.client import protocol as P
 
-from ..sim.statecodec import PredictiveStreams
-from ..sim.wire import Wire
-from .config import ServerConfig
-from .memory import freeze_long_lived
-from .registry import Registry
-from .replies import Replier, Reply, send, undeclare
-from .telemetry import PhaseTimer
+from ...sim.statecodec import PredictiveStreams
+from ...sim.wire import Wire
+from ..config import ServerConfig
+from ..memory import freeze_long_lived
+from ..registry import Registry
+from ..replies import Replier, Reply, send, undeclare
+from ..telemetry import PhaseTimer
 
 log = logging.getLogger(__name__)
 

@@ -30,21 +30,21 @@ import numpy as np
 
 from drape.client import protocol as P
 
-from ..sim.fabric import cook_grid
-from ..sim.params import ClothParams
-from ..sim.roster import Roster
-from ..sim.wire import PendingWire
-from ..sim.world import World
+from ...sim.fabric import cook_grid
+from ...sim.params import ClothParams
+from ...sim.roster import Roster
+from ...sim.wire import PendingWire
+from ...sim.world import World
+from ..admission import Admission, TickCost
+from ..applier import Applier
+from ..commands import Intake
+from ..config import ServerConfig
+from ..cook import FabricStore
+from ..publish.publisher import Job, Mailbox
+from ..registry import ClothRecord, Registry
+from ..replies import Replies, Reply, send
+from ..telemetry import PhaseTimer
 from .adaptive import AdaptiveQuality
-from .admission import Admission, TickCost
-from .applier import Applier
-from .commands import Intake
-from .config import ServerConfig
-from .cook import FabricStore
-from .publisher import Job, Mailbox
-from .registry import ClothRecord, Registry
-from .replies import Replies, Reply, send
-from .telemetry import PhaseTimer
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +52,12 @@ NAN_WARN_EVERY_S = 1.0  # at most one non-finite warning per second (the rest ar
 
 
 class Ticker:
+    """The tick thread's loop over the World given by :meth:`attach` (made when the server
+    starts, after its parts). Its parts come in the constructor: ``publish_cost`` (the
+    publisher's encode and put of its last frame), ``request_prepare`` (the cook thread's
+    kernel builds, asked for by a submission whose kernels are not built) and ``on_sleep``
+    (called with True before the sleep between ticks and False after it: the request gate)."""
+
     def __init__(
         self,
         config: ServerConfig,
@@ -64,14 +70,18 @@ class Ticker:
         adaptive: AdaptiveQuality,
         timers: dict[str, PhaseTimer],
         make_stats: Callable[[], bytes],
+        publish_cost: Callable[[], float],
+        request_prepare: Callable[[Any, Any], bool],
+        on_sleep: Callable[[bool], None] | None = None,
     ) -> None:
         self.config, self.registry, self.replies, self.intake, self.mailbox = config, registry, replies, intake, mailbox
         self.admission, self.adaptive, self.timers = admission, adaptive, timers
-        self.make_stats = make_stats
+        self.make_stats, self.publish_cost = make_stats, publish_cost
+        self.on_sleep: Callable[[bool], None] = on_sleep or (lambda sleeping: None)
         self.applier = Applier(config, registry, replies, intake, fabrics, adaptive)  # the tick's commands
+        self.applier.request_prepare = request_prepare
         self.applier.on_drop = self._forget
-        self.publish_cost: Callable[[], float] = lambda: 0.0
-        self.on_sleep: Callable[[bool], None] = lambda sleeping: None  # around the sleep between ticks
+        self.world: World | None = None
         self.tick = 0
         self.failure: BaseException | None = None
         self.stop_event = threading.Event()
@@ -85,43 +95,9 @@ class Ticker:
         self._carry: list[Reply] = []  # remove replies of a tick that stepped nothing
         self._reset_next = np.zeros(0, np.int64)  # frame indices of the frame in flight carrying the reset flag
 
-    # --- what the Applier owns, under the names the server and the tests use ---------------------
-    @property
-    def world(self) -> World | None:
-        return self.applier.world
-
-    @world.setter
-    def world(self, world: World | None) -> None:
-        self.applier.world = world
-
-    @property
-    def live(self) -> dict[int, ClothRecord]:
-        """The cloths in the World, by handle."""
-        return self.applier.live
-
-    @property
-    def fabrics(self) -> FabricStore:
-        return self.applier.fabrics
-
-    @fabrics.setter
-    def fabrics(self, fabrics: FabricStore) -> None:
-        self.applier.fabrics = fabrics
-
-    @property
-    def request_prepare(self) -> Callable[[Any, Any], bool]:
-        return self.applier.request_prepare
-
-    @request_prepare.setter
-    def request_prepare(self, fn: Callable[[Any, Any], bool]) -> None:
-        self.applier.request_prepare = fn
-
-    @property
-    def applied_controls(self) -> int:
-        return self.applier.applied_controls
-
-    def shutdown_commands(self) -> None:
-        """Answer everything still queued once the tick thread stops."""
-        self.applier.shutdown_commands()
+    def attach(self, world: World) -> None:
+        """The World this ticker drives (and its applier applies commands to), once, before ``run``."""
+        self.world = self.applier.world = world
 
     # --- set-up ----------------------------------------------------------------------------------
     def warm_up(self) -> None:
@@ -187,7 +163,7 @@ class Ticker:
             for r in (self._pending[1].after if self._pending is not None else []) + self._carry:
                 send(r)  # removes whose next frame will not be published
             self._pending = None  # its frame was never held
-            self.shutdown_commands()
+            self.applier.shutdown_commands()
 
     @staticmethod
     def _merged(first: Job, frame: Job) -> Job:
@@ -235,7 +211,9 @@ class Ticker:
             cost_now = TickCost(int(frame.offsets[-1]), stage_tick, stage_device, self.publish_cost())
             self.admission.model.observe(cost_now)
         self._cost_layout = frame.layout.version
-        self.adaptive.observe(cost, job.tick, lambda: list(self.live.values()), self.world, self.applier.set_preset)
+        self.adaptive.observe(
+            cost, job.tick, lambda: list(self.applier.live.values()), self.world, self.applier.set_preset
+        )
         return job
 
     def _start_next(self, job: Job) -> None:
@@ -244,7 +222,7 @@ class Ticker:
         assert w is not None
         self.tick += 1
         after, self.applier.after_next = self.applier.after_next, []
-        if not self.live:
+        if not self.applier.live:
             self._carry = after  # no next frame: sent in the next tick's own publisher pass
             return
         w.step(self.config.dt)
@@ -261,7 +239,7 @@ class Ticker:
         version = (lay.version, self.applier.pub_changes)
         if self._roster is not None and self._roster.version == version:
             return self._roster
-        recs = [self.live[h] for h in lay.handles.tolist()]
+        recs = [self.applier.live[h] for h in lay.handles.tolist()]
         bundles: dict[str, list[int]] = {}
         singles: list[int] = []
         for i, r in enumerate(recs):
@@ -290,7 +268,7 @@ class Ticker:
         at_rest: list[tuple[int, Any]] = []  # (frame index, fabric): at rest with the reset flag in the frame
         for i in bad.tolist():
             h = int(frame.handles[i])
-            rec = self.live.get(h)
+            rec = self.applier.live.get(h)
             if rec is None or rec.fabric is None:
                 continue
             at_rest.append((i, rec.fabric))

@@ -1,0 +1,6 @@
+"""The tick thread's part, the only thread that touches the World: the tick loop with its one
+frame path (``ticker``: commands applied, the step enqueued, the World's wire-ready frame of the
+tick before handed to the publisher) and the adaptive quality it feeds each tick's cost
+(``adaptive``)."""
+
+__all__ = ["adaptive", "ticker"]

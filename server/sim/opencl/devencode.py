@@ -20,7 +20,6 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Iterator
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -32,21 +31,22 @@ from ..roster import Roster
 from ..shared import vertex_normals
 from ..statecodec import PredictiveStreams
 from ..wire import Payload, PendingWire, Wire
+from .buffers import ClothSlot, DeviceMemory
+from .device import Device
 from .encode import ClothEntry, DeviceEncoder, EncodedFrame, FramePlan, Publication
-from .frames import device_span
-
-if TYPE_CHECKING:
-    from .clworld import CLWorld
+from .frames import FrameReadback, device_span
 
 log = logging.getLogger(__name__)
 
 
 class DeviceFrames:
-    """One OpenCL world's frame encoder (a part the world owns)."""
+    """One OpenCL world's frame encoder (a part the world owns): reads ``mem.pos`` and
+    ``mem.nrm`` at each cloth's ``rec`` vertex base; a step's device time from ``readback``'s
+    step marker."""
 
-    def __init__(self, world: CLWorld) -> None:
-        self.world = world
-        self.encoder = DeviceEncoder(world.dev, stride=4)
+    def __init__(self, dev: Device, mem: DeviceMemory, rec: dict[int, ClothSlot], readback: FrameReadback) -> None:
+        self.dev, self.mem, self.rec, self.readback = dev, mem, rec, readback
+        self.encoder = DeviceEncoder(dev, stride=4)
         self._plan_version: tuple[int, int] | None = None
         self.plans = 0  # plans built (the tests count them)
 
@@ -57,10 +57,10 @@ class DeviceFrames:
     def _plan(self, roster: Roster, lay: Layout) -> None:
         if self._plan_version == roster.version and self.encoder.plan is not None:
             return
-        w = self.world
         counts = np.diff(lay.offsets).tolist()
+        rec = self.rec
         cloths = [
-            ClothEntry(cid, w.rec[h].vbase, n, enc, bool(nr))
+            ClothEntry(cid, rec[h].vbase, n, enc, bool(nr))
             for cid, h, n, enc, nr in zip(
                 roster.ids, lay.handles.tolist(), counts, roster.encodings, roster.normals.tolist(), strict=True
             )
@@ -70,14 +70,14 @@ class DeviceFrames:
         self._plan_version = roster.version
         self.plans += 1
 
-    def encode(self, roster: Roster, tick: int) -> PendingWire:
-        """Enqueue this tick's frame right behind the step (its server time is set once read back)."""
-        w = self.world
-        lay = w.layout()
+    def encode(self, roster: Roster, tick: int, lay: Layout, step: int) -> PendingWire:
+        """Enqueue tick ``tick``'s frame (step ``step`` of the world, in ``lay``) right behind
+        the step (its server time is set once read back)."""
         self._plan(roster, lay)
-        ev = self.encoder.encode(w.dev.queue, w.pos.buf, w.nrm.buf, tick, 0, None)
-        frame = Frame(w.steps, lay, np.zeros((0, 3), np.float32), None)
-        pending = PendingFrame(frame, ev.wait, device_span(w.step_marker, ev))
+        mem = self.mem
+        ev = self.encoder.encode(self.dev.queue, mem.pos.buf, mem.nrm.buf, tick, 0, None)
+        frame = Frame(step, lay, np.zeros((0, 3), np.float32), None)
+        pending = PendingFrame(frame, ev.wait, device_span(self.readback.step_marker, ev))
         return PendingWire(pending, lambda f: DeviceWire(f, roster, tick, self))
 
     def reencode(
@@ -85,15 +85,15 @@ class DeviceFrames:
     ) -> EncodedFrame:
         """The frame encoded again after the World reset some cloths (``reset``: (handle,
         fabric) of those carrying normals, whose rest normals are written first)."""
-        w = self.world
+        mem = self.mem
         for h, fabric in reset:
             n = fabric.n_vertices
             nrm = np.zeros((n, 4), np.float32)
             nrm[:, :3] = vertex_normals(fabric.rest_positions, fabric)[0]
-            w.nrm.write(w.rec[h].vbase, nrm)
+            mem.nrm.write(self.rec[h].vbase, nrm)
         old.release()
         t = time.perf_counter()
-        self.encoder.encode(w.dev.queue, w.pos.buf, w.nrm.buf, tick, time_ns, flags).wait()
+        self.encoder.encode(self.dev.queue, mem.pos.buf, mem.nrm.buf, tick, time_ns, flags).wait()
         log.debug("frame of tick %d encoded again after resets in %.3f ms", tick, 1e3 * (time.perf_counter() - t))
         return self.encoder.hold()
 
@@ -122,7 +122,7 @@ class DeviceWire(Wire):
         return self._bad
 
     def reset(self, cloths: list[tuple[int, Fabric]]) -> None:
-        live, lay = self._frames.world.rec, self.frame.layout
+        live, lay = self._frames.rec, self.frame.layout
         normals: list[tuple[int, Fabric]] = []
         for i, fabric in cloths:
             self.flags[i] |= P.FLAG_RESET

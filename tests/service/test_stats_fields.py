@@ -57,7 +57,7 @@ def _counted_names() -> set[str]:
     """Every counter name the service's code counts: ``count("x")``, ``count_many(x=...)`` and
     ``counters["x"]`` with literal names, in every module of drape.server.service."""
     names: set[str] = set()
-    for path in sorted(SERVICE.glob("*.py")):
+    for path in sorted(SERVICE.rglob("*.py")):
         for node in ast.walk(ast.parse(path.read_text(), str(path))):
             if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
                 if node.func.attr == "count" and node.args and isinstance(node.args[0], ast.Constant):

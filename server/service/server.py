@@ -139,7 +139,7 @@ class Server:
             # box. Sixteen batches (Zenoh's maximum) ride that out.
             zc.insert_json5("transport/link/tx/queue/size/data", "16")
         self._session = s = open_session(zc, f"{cfg.mode}, listen {cfg.listen}, connect {cfg.connect}")
-        self.publisher.session = s
+        self.publisher.attach(s)
         sid = cfg.server_id
         self._started_at = time.monotonic()
         self._threads = [
@@ -150,9 +150,6 @@ class Server:
         for t in self._threads:
             t.start()
         self.handlers.request_queue.start()
-        self.publisher.stats_pub = s.declare_publisher(
-            self.keys.stats(sid), congestion_control=zenoh.CongestionControl.DROP
-        )
         lv = s.liveliness()
         self._declared.append(
             lv.declare_subscriber(self.keys.all_clients_alive, self.handlers.on_client_liveliness, history=True)

@@ -107,6 +107,14 @@ class Publisher:
         self.replier: Replier | None = None  # the run thread's (replies never wait in the publisher)
         self.last_tick = 0  # the last tick published (keyframe queries are told the next one)
 
+    def attach(self, session: zenoh.Session) -> None:
+        """The Zenoh session it puts on (opened when the server starts, before the threads) and
+        its stats publisher there."""
+        self.session = session
+        self.stats_pub = session.declare_publisher(
+            self.keys.stats(self.config.server_id), congestion_control=zenoh.CongestionControl.DROP
+        )
+
     def run(self) -> None:
         self.replier = Replier(f"{threading.current_thread().name}-replies")
         try:

@@ -78,9 +78,8 @@ class Ticker:
         self.admission, self.adaptive, self.timers = admission, adaptive, timers
         self.make_stats, self.publish_cost = make_stats, publish_cost
         self.on_sleep: Callable[[bool], None] = on_sleep or (lambda sleeping: None)
-        self.applier = Applier(config, registry, replies, intake, fabrics, adaptive)  # the tick's commands
-        self.applier.request_prepare = request_prepare
-        self.applier.on_drop = self._forget
+        # the tick's commands
+        self.applier = Applier(config, registry, replies, intake, fabrics, adaptive, request_prepare, self._forget)
         self.world: World | None = None
         self.tick = 0
         self.failure: BaseException | None = None

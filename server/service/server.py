@@ -13,9 +13,11 @@ Parts, each owning one job (and one thread's state); the folders are the threads
   the tick), moves blocks checked on arrival, admission (the cost model submits are refused by);
 - the cook thread (cook/): fabrics (the one fabric cache) and kernel builds, the warm-up of a
   World, kernel builds in a child process;
-- the tick thread (ticker.py; tick/: the queued commands and moves blocks applied to the World
-  at the start of a tick), the only one touching the World, with adaptive quality (adaptive.py);
-- the publisher thread (publisher.py): encode and put, with the replies before and after;
+- the tick thread (tick/: the ticker with its one frame path, the queued commands and moves
+  blocks applied to the World at the start of a tick, adaptive quality), the only one touching
+  the World;
+- the publisher thread (publish/: the publisher puts the World's wire-ready bytes, with the
+  replies before and after; keyframe queries);
 - the process (process/): ``drape serve``, its workers, metrics, health, logs, memory, timers.
 """
 
@@ -36,21 +38,21 @@ from drape.client.session import open_session, zenoh_config
 
 from ..sim import make_world
 from ..sim.world import World
-from .adaptive import AdaptiveQuality
 from .commands import Call, Intake
 from .config import ServerConfig
 from .cook.fabrics import FabricStore
 from .cook.warmup import warm_up
 from .cook.worker import CookWorker
-from .keyframes import KeyframeQueries
 from .process.telemetry import PHASES, PhaseTimer
-from .publisher import Publisher
+from .publish.keyframes import KeyframeQueries
+from .publish.publisher import Publisher
 from .registry import Registry
 from .replies import Replies, undeclare
 from .requests.admission import Admission
 from .requests.handlers import Handlers
 from .requests.requestq import TickGate
-from .ticker import Ticker
+from .tick.adaptive import AdaptiveQuality
+from .tick.ticker import Ticker
 
 log = logging.getLogger(__name__)
 
@@ -83,20 +85,14 @@ class Server:
         self.gate = TickGate(cfg.dt) if cfg.request_yield else None  # requests while the tick thread sleeps
         self.publisher = Publisher(cfg, self.keys, self.registry, self._timers)
         self.keyframes = KeyframeQueries(self.keys, self.registry, self.publisher)  # 1.5
-        self.ticker = ticker = Ticker(
+        self.cook = CookWorker(
             cfg,
             self.registry,
             self.replies,
             self.intake,
-            self.publisher.mailbox,
             self.fabrics,
-            self.admission,
-            self.quality,
-            self._timers,
-            self._stats_bytes,
-        )
-        self.cook = CookWorker(
-            cfg, self.registry, self.replies, self.intake, self.fabrics, lambda: ticker.world, self._stopping.is_set
+            lambda: self.ticker.world,
+            self._stopping.is_set,
         )
         self.handlers = Handlers(
             cfg,
@@ -107,16 +103,25 @@ class Server:
             self.cook.queue,
             self.admission,
             self.gate,
-            lambda: ticker.tick,
+            lambda: self.ticker.tick,
             self.info,
             self._stopping.is_set,
         )
-        # PATCHED AFTER CONSTRUCTION until Ticker's constructor takes them (the sim engineer's
-        # class): the publisher's last cost, the cook thread's kernel builds, the request gate
-        ticker.publish_cost = lambda: self.publisher.last_cost_s
-        ticker.request_prepare = self.cook.request_prepare
-        if self.gate is not None:
-            ticker.on_sleep = self.gate.tick_sleeps
+        self.ticker = Ticker(
+            cfg,
+            self.registry,
+            self.replies,
+            self.intake,
+            self.publisher.mailbox,
+            self.fabrics,
+            self.admission,
+            self.quality,
+            self._timers,
+            self._stats_bytes,
+            lambda: self.publisher.last_cost_s,
+            self.cook.request_prepare,
+            self.gate.tick_sleeps if self.gate is not None else None,
+        )
         self._session: zenoh.Session | None = None
         self._declared: list[Any] = []
         self._token: Any = None
@@ -135,8 +140,9 @@ class Server:
 
     def _start(self) -> None:
         cfg = self.config
-        kw = {} if cfg.solver == "reference" else {"device": cfg.device}
-        self.ticker.world = world = make_world(cfg.solver, **kw)
+        kw = {} if cfg.solver == "reference" else {"device": cfg.device, "device_encode": cfg.device_encode}
+        world = make_world(cfg.solver, **kw)
+        self.ticker.attach(world)
         self.device_name = getattr(world, "device_name", cfg.solver)
         dev = getattr(world, "dev", None)
         self.quality.use_device(bool(dev is not None and dev.info.is_gpu))
@@ -149,7 +155,7 @@ class Server:
             # box. Sixteen batches (Zenoh's maximum) ride that out.
             zc.insert_json5("transport/link/tx/queue/size/data", "16")
         self._session = s = open_session(zc, f"{cfg.mode}, listen {cfg.listen}, connect {cfg.connect}")
-        self.publisher.session = s
+        self.publisher.attach(s)
         sid = cfg.server_id
         self._started_at = time.monotonic()
         self._threads = [
@@ -160,9 +166,6 @@ class Server:
         for t in self._threads:
             t.start()
         self.handlers.request_queue.start()
-        self.publisher.stats_pub = s.declare_publisher(
-            self.keys.stats(sid), congestion_control=zenoh.CongestionControl.DROP
-        )
         lv = s.liveliness()
         self._declared.append(
             lv.declare_subscriber(self.keys.all_clients_alive, self.handlers.on_client_liveliness, history=True)
@@ -205,7 +208,7 @@ class Server:
             others = [t for t in self._threads if not t.name.startswith("drape-publish")]
             for t in others:
                 t.join(max(0.0, deadline - time.monotonic()))
-            self.ticker.shutdown_commands()  # anything the cook thread queued after the tick thread ended
+            self.ticker.applier.shutdown_commands()  # anything the cook thread queued after the tick thread ended
             self.publisher.mailbox.close()
             for t in self._threads:
                 if t.name.startswith("drape-publish"):

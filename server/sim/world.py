@@ -6,7 +6,10 @@ coloured or Jacobi solver). Both keep the same bookkeeping: cloths are added and
 steps without touching the others, each with its own parameters, pin targets and colliders.
 The World is the one owner of every cloth's parameters (``world.cloths[h].params``).
 
-A step's result is a :class:`Frame`: every cloth's positions back to back in ONE contiguous
+A tick's output is ``fetch_async(roster, tick)``: a pending :class:`~.wire.Wire` of wire-ready
+bytes, one payload per publication of the :class:`~.roster.Roster` (host-encoded here by
+statecodec.py; an OpenCL World may encode them on the device). Underneath, a step's result is a
+:class:`Frame` (``frame_async`` / ``fetch``): every cloth's positions back to back in ONE contiguous
 (N, 3) float32 host array (cloth ``i`` of the frame in rows ``offsets[i]:offsets[i + 1]``, in
 the order of ``handles``), read back in one copy into a host buffer the World reuses (frame.py).
 Frames are valid until their buffer is reused: the World keeps at least the last two fetched
@@ -26,6 +29,8 @@ from . import reference
 from .fabric import Fabric, vertex_masses
 from .frame import Frame, FramePool, HostBuffer, Layout, PendingFrame  # noqa: F401  re-exported
 from .params import MAX_COLLIDERS_PER_CLOTH, ClothParams
+from .roster import Roster
+from .wire import HostWire, KeyBuffers, PendingWire
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +53,7 @@ class World(ABC):
         self._layout: Layout | None = None
         self._layout_version = 0
         self._live = np.zeros(64, bool)  # by handle (handles are never reused): set_pin_targets_block
+        self._key_buffers = KeyBuffers()  # the host-encoded payloads' buffers (wire.HostWire)
 
     # --- cloth lifecycle -------------------------------------------------------------------
     def add(
@@ -227,13 +233,22 @@ class World(ABC):
     def step(self, dt: float) -> None:
         """Advance every cloth by dt (may return before the device has finished)."""
 
+    def fetch_async(self, roster: Roster, tick: int) -> PendingWire:
+        """The output of the last step as tick ``tick``: ``.wait()`` gives the Wire of every
+        publication of ``roster`` (a roster of this World's current layout, frame order)."""
+        buffers = self._key_buffers
+        return PendingWire(self.frame_async(), lambda frame: HostWire(frame, roster, tick, buffers))
+
+    def warm_wire(self) -> None:  # noqa: B027 (optional hook)
+        """Build whatever ``fetch_async`` will need (kernels) now: the tick thread never compiles."""
+
     @abstractmethod
-    def fetch_async(self) -> PendingFrame:
+    def frame_async(self) -> PendingFrame:
         """Start reading back the state after the last step; ``.wait()`` gives the Frame."""
 
     def fetch(self) -> Frame:
         """Wait for the last step and return the frame of every cloth's state."""
-        return self.fetch_async().wait()
+        return self.frame_async().wait()
 
     def positions(self, handle: int) -> np.ndarray:
         return self.fetch().positions[handle].copy()
@@ -326,7 +341,7 @@ class ReferenceWorld(World):
             st.colliders_prev = st.colliders  # a collider not moved again stays where it is
         self.steps += 1
 
-    def fetch_async(self) -> PendingFrame:
+    def frame_async(self) -> PendingFrame:
         lay = self.layout()
         n = lay.n_rows
         want_nrm = bool(lay.normals.any())

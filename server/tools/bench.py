@@ -284,7 +284,7 @@ def _launch_shape(w: World) -> dict:
     groups = getattr(w, "groups", {})
     if not groups:
         return {}
-    limit = w._kernel_limit  # type: ignore[attr-defined]  # an OpenCL world's
+    limit = w.launches.kernel_limit  # type: ignore[attr-defined]  # an OpenCL world's
     return {
         "wg": ",".join(
             f"pack{g.pack}x{g.n_packs}" if g.pack else f"{g.local_size}{'L' if g.use_local else 'G'}/{limit(g)}"

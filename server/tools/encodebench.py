@@ -4,7 +4,7 @@
 one float4 device buffer (as the world holds them) and, for each encoding, times per frame:
 
 - host: read the float4 positions back (one copy), gather every cloth's xyz back to back (what
-  the tick loop hands the publisher), then :class:`drape.server.service.statecodec.FrameEncoder`
+  the tick loop hands the publisher), then :class:`drape.server.sim.statecodec.FrameEncoder`
   writes every publication into its own reused ``bytearray``;
 - device: :class:`drape.server.sim.opencl.encode.DeviceEncoder`: one launch and one copy of the
   packed frame into pinned host memory, then the publications' views.
@@ -25,9 +25,9 @@ import pyopencl as cl
 
 from drape.client import protocol as P
 
-from ..service.statecodec import FrameEncoder
 from ..sim.opencl.device import Device
 from ..sim.opencl.encode import ClothEntry, DeviceEncoder, FramePlan, Publication
+from ..sim.statecodec import FrameEncoder
 
 log = logging.getLogger(__name__)
 

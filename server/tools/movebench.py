@@ -139,7 +139,7 @@ def main(argv: list[str] | None = None) -> None:
         for name, run in runs.items():
             t = time.perf_counter()
             run()
-            world._upload_targets()  # the single upload before the step (CLWorld._flush)
+            world.targets.upload()  # the single upload before the step (CLWorld._flush)
             world.sync()
             if r >= 2:  # two warm-up ticks
                 times[name].append(time.perf_counter() - t)

@@ -17,7 +17,7 @@ from conftest import TIMEOUT, connect, make_config, wait_until
 from drape.client import BatchError, Forbidden
 from drape.client import protocol as P
 from drape.server.service import Server
-from drape.server.service.statecodec import FrameEncoder
+from drape.server.sim.statecodec import FrameEncoder
 
 pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
 

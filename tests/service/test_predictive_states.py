@@ -157,9 +157,9 @@ def test_a_handle_samples_positions_between_its_states(server):
 
 
 def test_the_frame_encoder_writes_the_reference_bytes(rng):
-    """statecodec.FrameEncoder codes a whole frame's predictive cloths at once: byte for byte what
+    """sim.statecodec.FrameEncoder codes a whole frame's predictive cloths at once: byte for byte what
     protocol.encode_predictive_state writes for each stream alone, keyframes included."""
-    from drape.server.service.statecodec import FrameEncoder
+    from drape.server.sim.statecodec import FrameEncoder
 
     counts = [int(c) for c in rng.integers(1, 300, 5)]
     steps = [float(s) for s in rng.choice([0.0005, 0.001, 0.004], len(counts))]

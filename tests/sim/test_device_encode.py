@@ -475,13 +475,13 @@ def test_frame_of_a_real_world(device, rng):
     enc = DeviceEncoder(device)
     enc.set_plan(FramePlan.build(cloths, pubs))
     flags = np.array([0, P.FLAG_RESET, 0, 0], np.uint16)
-    enc.encode(device.queue, world.pos.buf, world.nrm.buf, 77, 88, flags)
+    enc.encode(device.queue, world.mem.pos.buf, world.mem.nrm.buf, 77, 88, flags)
     got = [bytes(v) for v in enc.slices()]
     end = max(c.vbase + c.n for c in cloths)
     P4 = np.empty((end, 4), np.float32)
     N4 = np.empty((end, 4), np.float32)
-    cl.enqueue_copy(device.queue, P4, world.pos.buf)
-    cl.enqueue_copy(device.queue, N4, world.nrm.buf)
+    cl.enqueue_copy(device.queue, P4, world.mem.pos.buf)
+    cl.enqueue_copy(device.queue, N4, world.mem.nrm.buf)
     pos = [P4[c.vbase : c.vbase + c.n, :3] for c in cloths]
     nrm = [N4[c.vbase : c.vbase + c.n, :3] for c in cloths]
     assert all(np.isfinite(p).all() for p in pos)

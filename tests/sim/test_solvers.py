@@ -10,7 +10,8 @@ from conftest import random_grid_fabric, random_mesh_fabric
 
 from drape.server.sim import reference
 from drape.server.sim.fabric import cook_grid, cook_mesh, grid_mesh
-from drape.server.sim.opencl.clworld import CLWorld, RangeAllocator
+from drape.server.sim.opencl.buffers import RangeAllocator
+from drape.server.sim.opencl.clworld import CLWorld
 from drape.server.sim.opencl.launch import pack_lanes
 from drape.server.sim.params import ClothParams, Features, LinkOptions, Material, Sphere, pack_colliders
 from drape.server.sim.world import ReferenceWorld, inverse_masses
@@ -156,7 +157,7 @@ def test_link_solve_conserves_momentum(device, rng, solver):
     w.step(DT)
     m = 1.0 / inverse_masses(fab, params)
     # velocity after one step from rest = link corrections / h; total momentum stays zero
-    frame_v = w.vel.read(w.rec[h].vbase, fab.n_vertices)[:, :3]
+    frame_v = w.mem.vel.read(w.rec[h].vbase, fab.n_vertices)[:, :3]
     p = (m[:, None] * frame_v).sum(0)
     scale = (m[:, None] * np.abs(frame_v)).sum()
     assert scale > 1e-3  # the links did move things
@@ -180,7 +181,7 @@ def test_add_and_remove_between_ticks_leaves_others_untouched(device, rng):
         busy.step(DT)
         np.testing.assert_array_equal(alone.positions(ha), busy.positions(hb_a))
     # holes left by removed cloths get reused
-    assert busy.vert.high_water <= fa.n_vertices + 4 * fb.n_vertices
+    assert busy.mem.vert.high_water <= fa.n_vertices + 4 * fb.n_vertices
 
 
 def test_per_cloth_parameters_in_one_world(device):
@@ -484,7 +485,7 @@ def test_a_gpu_build_never_gets_the_pack_kernel():
     h = w.add(cook_grid(8, 8, pinned=[0, 7]), ClothParams())
     g = w.groups[w.rec[h].group]
     assert w.pack_lanes == 0 and g.pack == 0 and g.use_local
-    opts = w._options(g)
+    opts = w.launches.options(g)
     assert opts == [
         *Features().build_options(),
         "-DUSE_LOCAL=1",

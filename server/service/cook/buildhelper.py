@@ -174,7 +174,7 @@ def _warm_up_main(config: Any) -> None:
     from ...sim.params import ClothParams, Features
     from .warmup import warm_up
 
-    kw = {} if config.solver == "reference" else {"device": config.device}
+    kw = {} if config.solver == "reference" else {"device": config.device, "device_encode": config.device_encode}
     world = make_world(config.solver, **kw)
     warm_up(world, config)  # the server's own warm-up: what it then builds from the cache
     fabric = _fabric_fields(cook_grid(8, 8, pinned=[0, 7]))

@@ -18,10 +18,9 @@ from drape.client import protocol as P
 
 from ...sim.fabric import Fabric, cook_grid
 from ...sim.params import ClothParams, Features, Sphere, pack_colliders
+from ...sim.roster import Roster
 from ...sim.world import World
 from ..config import ServerConfig
-from ..devencode import DeviceFrames, device_world
-from ..publisher import Roster
 
 log = logging.getLogger(__name__)
 
@@ -39,18 +38,14 @@ def warm_up(world: World, config: ServerConfig) -> None:
     params = ClothParams()
     t = time.perf_counter()
     step_once(world, cook_grid(2, 2, pinned=[0]), params, config.dt)
-    dev = device_world(world, config.device_encode)
-    if dev is not None:  # states encoded on the device: its programs built, the encoder launched once
-        frames = DeviceFrames(dev)
-        frames.encoder.build_all()
+    world.warm_wire()  # the frame encoder's programs (an OpenCL World built with device_encode)
+    if config.device_encode:  # states encoded on the device: the encoder launched once
         h = world.add(cook_grid(2, 2, pinned=[0]), params)
         world.step(config.dt)
         lay = world.layout()
         f32 = [P.ENCODING_IDS["float32"]]
         roster = Roster((-1, -1), ["warm-up"], ["warm-up"], f32, lay.normals.copy(), np.array([0]), [])
-        frames.encode(roster, lay, 0, 0, np.zeros(1, np.int64)).wait()
-        frames.hold().release()
-        frames.close()
+        world.fetch_async(roster, 0).wait().release()
         world.remove(h)
         world.fetch()
     log.debug("warm-up of the default kernels took %.3f s", time.perf_counter() - t)

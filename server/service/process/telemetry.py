@@ -5,7 +5,7 @@ A PhaseTimer keeps a cumulative count, sum and fixed-bucket histogram (never res
 expects) and a window (mean and max since the last stats publication, reset by it). ``add`` is a
 few additions under a lock: cheap enough for every phase of every tick.
 
-The phases (ticks are pipelined, drape.server.service.ticker): ``apply`` the tick thread's
+The phases (ticks are pipelined, drape.server.service.tick.ticker): ``apply`` the tick thread's
 commands and reclaims; ``solve`` the device's time from the start of a step to the end of its
 readback (OpenCL profiling timestamps; the host's wait where the queue has none); ``readback``
 the tick thread's wait for the previous step's readback plus its non-finite check (near zero

@@ -24,14 +24,14 @@ from drape.client.protocol.requestfields import pins_only
 
 from ...sim import quality
 from ...sim.world import World
-from ..adaptive import AdaptiveQuality
 from ..commands import Add, BatchControl, Call, ControlSlot, Intake, MoveBlock, Remove
 from ..config import ServerConfig
 from ..cook.fabrics import FabricStore
-from ..publisher import Job
+from ..publish.publisher import Job
 from ..registry import ClothRecord, Registry
 from ..replies import Replies, Reply, send
 from ..worldparams import changes_params, params_after_control, with_preset
+from .adaptive import AdaptiveQuality
 from .moves import apply_blocks
 
 log = logging.getLogger(__name__)
@@ -49,6 +49,8 @@ class Applier:
         intake: Intake,
         fabrics: FabricStore,
         adaptive: AdaptiveQuality,
+        request_prepare: Callable[[Any, Any], bool] = lambda fabric, params: False,
+        on_drop: Callable[[ClothRecord], None] = lambda rec: None,
     ) -> None:
         self.config, self.registry, self.replies, self.intake = config, registry, replies, intake
         self.fabrics, self.adaptive = fabrics, adaptive
@@ -58,8 +60,8 @@ class Applier:
         self.reset_flags: set[int] = set()  # handles whose next frame carries the reset flag
         self.pub_changes = 0  # counts changes of a cloth's publication (its roster is rebuilt)
         self.after_next: list[Reply] = []  # remove replies, sent after the next frame
-        self.request_prepare: Callable[[Any, Any], bool] = lambda fabric, params: False
-        self.on_drop: Callable[[ClothRecord], None] = lambda rec: None  # a cloth left the World
+        self.request_prepare = request_prepare  # the cook thread builds a cloth's kernels
+        self.on_drop = on_drop  # a cloth left the World
 
     # --- commands ----------------------------------------------------------------------------------
     def apply(self, job: Job, tick: int) -> None:

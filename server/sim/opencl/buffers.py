@@ -1,8 +1,13 @@
 """Device memory bookkeeping of the OpenCL world: a first-fit range allocator, growable device
-arrays and the int32 blob a fabric is uploaded as (its parts' offsets go into the cloth tables,
-kernels/layout.h)."""
+arrays, the world's device arrays and their allocators (:class:`DeviceMemory`, one part of the
+world that its other parts share), each cloth's and fabric's place in them (:class:`ClothSlot`,
+:class:`FabricSlot`) and the int32 blob a fabric is uploaded as (its parts' offsets go into the
+cloth tables, kernels/layout.h)."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pyopencl as cl
@@ -125,3 +130,74 @@ def fabric_blob(f: Fabric) -> tuple[np.ndarray, dict[str, int]]:
         offsets[name] = pos
         pos += len(arr)
     return np.concatenate(list(parts.values())).astype(np.int32), offsets
+
+
+@dataclass
+class FabricSlot:
+    """A fabric's blob in the int arena, shared by its cloths (``refs``)."""
+
+    base: int
+    size: int
+    refs: int
+    offsets: dict[str, int]
+
+
+@dataclass
+class ClothSlot:
+    """A cloth's place in the device arrays: its table row, first vertex, fabric, multipliers,
+    colliders and the launch group it is stepped in."""
+
+    slot: int  # row in the cloth tables
+    vbase: int
+    fabric: FabricSlot
+    lam_base: int = -1
+    lam_size: int = 0
+    coll_base: int = 0
+    coll_cap: int = 0
+    group: tuple | None = None
+
+
+class DeviceMemory:
+    """Every device array of an OpenCL world: the vertex arrays (float4 positions with inverse
+    mass in w, velocities, previous positions, pin targets, normals; a second position array for
+    the Jacobi solver) with their range allocator, the fabric int arena, the XPBD multipliers,
+    the colliders and the per-cloth int/float tables."""
+
+    def __init__(self, dev: Device, jacobi: bool) -> None:
+        self.vert = RangeAllocator()
+        self.pos = DevArray(dev, np.float32, 4)
+        self.vel = DevArray(dev, np.float32, 4)
+        self.prev = DevArray(dev, np.float32, 4)
+        self.target = DevArray(dev, np.float32, 4)
+        self.nrm = DevArray(dev, np.float32, 4)
+        self.pos2 = DevArray(dev, np.float32, 4) if jacobi else None
+        self.fab_alloc = RangeAllocator()
+        self.fab = DevArray(dev, np.int32, 1)
+        self.lam_alloc = RangeAllocator()
+        self.lam = DevArray(dev, np.float32, 1)
+        self.coll_alloc = RangeAllocator()
+        self.coll = DevArray(dev, np.float32, 4 * L["COLLIDER_WORDS"])
+        self.ci = DevArray(dev, np.int32, L["CI_STRIDE"], 64)
+        self.cf = DevArray(dev, np.float32, L["CF_STRIDE"], 64)
+
+    def vertex_arrays(self) -> list[DevArray]:
+        arrs = [self.pos, self.vel, self.prev, self.target, self.nrm]
+        return arrs + ([self.pos2] if self.pos2 is not None else [])
+
+    def alloc(self, alloc: RangeAllocator, arrays: list[DevArray], n: int) -> int:
+        """A range of ``n`` items of ``alloc``, the arrays grown (doubled) when none is free."""
+        start = alloc.alloc(n)
+        if start is None:
+            cap = max(alloc.capacity * 2, alloc.capacity + n, 64)
+            for a in arrays:
+                a.resize(cap)
+            alloc.grow(cap)
+            start = alloc.alloc(n)
+        assert start is not None
+        return start
+
+    def step_buffers(self) -> list[Any]:
+        """The buffers wg_step and pack_step both take after their cloth list, in their order
+        (ci, cf, fab, pos, vel, prev, target, nrm, coll)."""
+        bufs = (self.ci, self.cf, self.fab, self.pos, self.vel, self.prev, self.target, self.nrm, self.coll)
+        return [b.buf for b in bufs]

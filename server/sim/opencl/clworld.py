@@ -1,5 +1,12 @@
 """The OpenCL world: every live cloth merged into structure-of-arrays device buffers.
 
+The CLWorld keeps the World's bookkeeping (cloth slots, fabrics, tables, colliders, groups) and
+owns its parts, each built once in its constructor and given what it reads (none imports this
+module): the device arrays (``mem``, buffers.DeviceMemory), the launch groups' set-up and
+launches (``launches``, launch.GroupLaunches), the pin targets (``targets``,
+targets.PinTargets), the frame readback (``readback``, frames.FrameReadback) and, with
+``device_encode``, the frame encoder (``device_frames``, devencode.DeviceFrames).
+
 Layout (see kernels/layout.h):
 - vertex buffers (positions with inverse mass in w, velocities, previous positions, pin
   targets, normals) hold each cloth in a contiguous range handed out by a first-fit allocator,
@@ -9,93 +16,48 @@ Layout (see kernels/layout.h):
 - per-cloth int/float tables carry ranges and parameters; kernels read them by cloth index.
 
 Cloths are grouped by the kernels they need (feature set, and substeps or local-memory fit):
-one program per build-option set, one launch (or one batch sequence) per group; the groups'
-launch set-up and the coloured, Jacobi and CPU pack launches are in launch.py (GroupLaunches),
-pin targets gathered into one upload per step in targets.py (PinTargets).
+one program per build-option set, one launch (or one batch sequence) per group (launch.py);
+pin targets are gathered into one upload per step (targets.py).
 
 A frame is read back whole: one ``pack_rows`` launch gathers every cloth's positions (xyz,
 without the inverse mass) back to back in the layout's order into one device buffer, and one
 non-blocking copy brings it into a host buffer mapped from ``ALLOC_HOST_PTR`` memory (pinned
-where the driver does that), reused from tick to tick. ``fetch_async`` returns at once; its
-``wait`` waits on that copy's event only (frames.py). The service's device-encoded frames
-read the float4 ``pos`` and ``nrm`` buffers directly instead (encode.py).
+where the driver does that), reused from tick to tick. ``frame_async`` returns at once; its
+``wait`` waits on that copy's event only (frames.py). Built with ``device_encode``, a tick's
+``fetch_async(roster, tick)`` is encoded on the device instead, straight from the float4 ``pos``
+and ``nrm`` buffers (devencode.py), unless its roster has predictive states (host-encoded).
 """
 
 from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
-import pyopencl as cl
 
 from ..fabric import Fabric
+from ..frame import Layout, PendingFrame
 from ..params import ClothParams, Features
+from ..roster import Roster
+from ..wire import PendingWire
 from ..world import Cloth, World, inverse_masses
-from .buffers import DevArray, RangeAllocator, fabric_blob  # noqa: F401 (RangeAllocator re-exported)
+from .buffers import ClothSlot, DeviceMemory, FabricSlot, fabric_blob
+from .devencode import DeviceFrames
 from .device import Device, layout
 from .frames import FrameReadback
-from .launch import (  # noqa: F401 (re-exported: _next_pow2, the LINK_UNROLL_* defaults)
-    LINK_UNROLL_GLOBAL,
-    LINK_UNROLL_LOCAL,
-    GroupLaunches,
-    _next_pow2,
-)
+from .launch import Group, GroupLaunches
 from .targets import PinTargets
 
 log = logging.getLogger(__name__)
 
 L = layout()
-MF = cl.mem_flags
 
 
-@dataclass
-class FabricSlot:
-    base: int
-    size: int
-    refs: int
-    offsets: dict[str, int]
+class CLWorld(World):
+    """The World on an OpenCL device, composed of parts it owns: its device memory (``mem``),
+    the launch groups (``launches``), the pending pin targets (``targets``), the frame readback
+    (``readback``) and, with ``device_encode``, the frame encoder (``device_frames``)."""
 
-
-@dataclass
-class ClothSlot:
-    slot: int  # row in the cloth tables
-    vbase: int
-    fabric: FabricSlot
-    lam_base: int = -1
-    lam_size: int = 0
-    coll_base: int = 0
-    coll_cap: int = 0
-    group: tuple | None = None
-
-
-@dataclass
-class Group:
-    key: tuple
-    features: Features
-    use_local: bool
-    handles: set[int] = field(default_factory=set)
-    dirty: bool = True
-    slots: np.ndarray | None = None
-    cloths_buf: cl.Buffer | None = None
-    prefix_buf: cl.Buffer | None = None
-    chunks_buf: cl.Buffer | None = None  # (cloth slot, first vertex) per vertex-phase work-group
-    n_chunks: int = 0
-    colour_totals: list[int] = field(default_factory=list)
-    max_iters: int = 0
-    max_colours: int = 0
-    max_vertices: int = 0
-    substeps: int = 1
-    local_size: int = 64
-    pack: int = 0  # CPU pack solver: lanes per pack (0: wg_step); see launch.py
-    packs_buf: cl.Buffer | None = None  # PACK_LANES cloth slots per pack, -1 = unused lane
-    n_packs: int = 0
-    pack_local_bytes: int = 0  # the largest pack's local memory
-
-
-class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
     def __init__(
         self,
         strategy: str = "workgroup",
@@ -105,6 +67,7 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
         link_group_size: int = 256,
         chunk: int | None = None,
         pack_lanes: int | None = None,
+        device_encode: bool = False,
     ) -> None:
         super().__init__()
         if strategy not in ("workgroup", "coloured", "jacobi"):
@@ -131,20 +94,7 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
         self.link_group_size = link_group_size
         # vertices per work-group in the coloured/Jacobi vertex phases: big cloths spread out
         self.chunk = int(chunk or os.environ.get("DRAPE_CHUNK", "1024"))
-        q = self.dev
-        self.vert = RangeAllocator()
-        self.pos = DevArray(q, np.float32, 4)
-        self.vel = DevArray(q, np.float32, 4)
-        self.prev = DevArray(q, np.float32, 4)
-        self.target = DevArray(q, np.float32, 4)
-        self.nrm = DevArray(q, np.float32, 4)
-        self.pos2 = DevArray(q, np.float32, 4) if strategy == "jacobi" else None
-        self.fab_alloc = RangeAllocator()
-        self.fab = DevArray(q, np.int32, 1)
-        self.lam_alloc = RangeAllocator()
-        self.lam = DevArray(q, np.float32, 1)
-        self.coll_alloc = RangeAllocator()
-        self.coll = DevArray(q, np.float32, 4 * L["COLLIDER_WORDS"])
+        self.mem = mem = DeviceMemory(self.dev, jacobi=strategy == "jacobi")
         self.coll_host = np.zeros((1, L["COLLIDER_WORDS"], 4), np.float32)
         self._coll_dirty = False
         self._moved: set[int] = set()
@@ -152,37 +102,43 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
         self.rec: dict[int, ClothSlot] = {}
         self.ci_host = np.zeros((64, L["CI_STRIDE"]), np.int32)
         self.cf_host = np.zeros((64, L["CF_STRIDE"]), np.float32)
-        self.ci = DevArray(q, np.int32, L["CI_STRIDE"], 64)
-        self.cf = DevArray(q, np.float32, L["CF_STRIDE"], 64)
         self._free_slots: list[int] = list(range(63, -1, -1))
         self._tables_dirty = True
         self.groups: dict[tuple, Group] = {}
-        self._init_frames()
-        self._init_targets()
-        self._base_options = [*Features().build_options(), "-DUSE_LOCAL=0"]
+        base_options = [*Features().build_options(), "-DUSE_LOCAL=0"]
+        self.launches = GroupLaunches(
+            self.dev,
+            mem,
+            self.rec,
+            self.cloths,
+            strategy,
+            self.chunk,
+            link_group_size,
+            self.max_local_size,
+            self.max_global_path_size,
+        )
+        self.targets = PinTargets(self.dev, mem, self.rec, base_options)
+        self.readback = FrameReadback(self.dev, mem, self.rec, base_options)
+        # the ticks' bytes encoded on the device (devencode.py)
+        self.device_frames = DeviceFrames(self.dev, mem, self.rec, self.readback) if device_encode else None
+
+    # --- a tick's output ---------------------------------------------------------------------
+    def fetch_async(self, roster: Roster, tick: int) -> PendingWire:
+        if self.device_frames is not None and not roster.predictive:
+            return self.device_frames.encode(roster, tick, self.layout(), self.steps)
+        return super().fetch_async(roster, tick)
+
+    def warm_wire(self) -> None:
+        if self.device_frames is not None:  # the frame encoder's programs: the tick thread never compiles
+            self.device_frames.build_all()
 
     # --- allocation -----------------------------------------------------------------------
-    def _alloc(self, alloc: RangeAllocator, arrays: list[DevArray], n: int) -> int:
-        start = alloc.alloc(n)
-        if start is None:
-            cap = max(alloc.capacity * 2, alloc.capacity + n, 64)
-            for a in arrays:
-                a.resize(cap)
-            alloc.grow(cap)
-            start = alloc.alloc(n)
-        assert start is not None
-        return start
-
-    def _vertex_arrays(self) -> list[DevArray]:
-        arrs = [self.pos, self.vel, self.prev, self.target, self.nrm]
-        return arrs + ([self.pos2] if self.pos2 is not None else [])
-
     def _fabric_slot(self, f: Fabric) -> FabricSlot:
         fs = self.fabrics.get(f.key)
         if fs is None:
             blob, offsets = fabric_blob(f)
-            base = self._alloc(self.fab_alloc, [self.fab], len(blob))
-            self.fab.write(base, blob)
+            base = self.mem.alloc(self.mem.fab_alloc, [self.mem.fab], len(blob))
+            self.mem.fab.write(base, blob)
             fs = FabricSlot(base, len(blob), 0, offsets)
             self.fabrics[f.key] = fs
         fs.refs += 1
@@ -193,8 +149,8 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
             old = len(self.ci_host)
             self.ci_host = np.concatenate([self.ci_host, np.zeros_like(self.ci_host)])
             self.cf_host = np.concatenate([self.cf_host, np.zeros_like(self.cf_host)])
-            self.ci.resize(2 * old)
-            self.cf.resize(2 * old)
+            self.mem.ci.resize(2 * old)
+            self.mem.cf.resize(2 * old)
             self._free_slots = list(range(2 * old - 1, old - 1, -1))
         return self._free_slots.pop()
 
@@ -202,16 +158,16 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
     def _add(self, cloth: Cloth, positions: np.ndarray | None, velocities: np.ndarray | None = None) -> None:
         f = cloth.fabric
         n = f.n_vertices
-        vbase = self._alloc(self.vert, self._vertex_arrays(), n)
+        vbase = self.mem.alloc(self.mem.vert, self.mem.vertex_arrays(), n)
         rec = ClothSlot(self._table_slot(), vbase, self._fabric_slot(f))
         self.rec[cloth.handle] = rec
-        self._note_vbase(cloth.handle, vbase)
+        self.targets.note_vbase(cloth.handle, vbase)
         x = f.rest_positions if positions is None else positions
         self._write_vertices(cloth, rec, x)
         if velocities is not None:  # protocol 1.3 resume: the velocity buffer is the state (xyz, w unused)
             v = np.zeros((n, 4), np.float32)
             v[:, :3] = velocities
-            self.vel.write(rec.vbase, v)
+            self.mem.vel.write(rec.vbase, v)
         self._write_tables(cloth, rec)
         self._regroup(cloth, rec)
 
@@ -220,21 +176,22 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
         p = np.zeros((n, 4), np.float32)
         p[:, :3] = x
         p[:, 3] = inverse_masses(cloth.fabric, cloth.params)
-        self.pos.write(rec.vbase, p)
-        self.prev.write(rec.vbase, p)
-        self.target.write(rec.vbase, p)
-        self.vel.write(rec.vbase, np.zeros((n, 4), np.float32))
-        self.nrm.write(rec.vbase, np.zeros((n, 4), np.float32))
-        if self.pos2 is not None:
-            self.pos2.write(rec.vbase, p)
+        mem = self.mem
+        mem.pos.write(rec.vbase, p)
+        mem.prev.write(rec.vbase, p)
+        mem.target.write(rec.vbase, p)
+        mem.vel.write(rec.vbase, np.zeros((n, 4), np.float32))
+        mem.nrm.write(rec.vbase, np.zeros((n, 4), np.float32))
+        if mem.pos2 is not None:
+            mem.pos2.write(rec.vbase, p)
 
     def _write_tables(self, cloth: Cloth, rec: ClothSlot) -> None:
         f, p, m = cloth.fabric, cloth.params, cloth.params.material
         if p.features.xpbd and rec.lam_size < 2 * f.n_links:
             if rec.lam_size:
-                self.lam_alloc.release(rec.lam_base, rec.lam_size)
+                self.mem.lam_alloc.release(rec.lam_base, rec.lam_size)
             rec.lam_size = 2 * f.n_links
-            rec.lam_base = self._alloc(self.lam_alloc, [self.lam], rec.lam_size)
+            rec.lam_base = self.mem.alloc(self.mem.lam_alloc, [self.mem.lam], rec.lam_size)
         ci = self.ci_host[rec.slot]
         ci[:] = 0
         ci[L["CI_VBASE"]] = rec.vbase
@@ -310,21 +267,22 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
         rec.group = None
 
     def _remove(self, cloth: Cloth) -> None:
-        if self._pending_targets:  # targets still queued for this cloth must not land in its freed range
-            self._upload_targets()
+        if self.targets.pending:  # targets still queued for this cloth must not land in its freed range
+            self.targets.upload()
         rec = self.rec.pop(cloth.handle)
-        self._note_vbase(cloth.handle, -1)
+        self.targets.note_vbase(cloth.handle, -1)
         self._leave_group(cloth.handle, rec)
-        self.vert.release(rec.vbase, cloth.fabric.n_vertices)
+        mem = self.mem
+        mem.vert.release(rec.vbase, cloth.fabric.n_vertices)
         if rec.lam_size:
-            self.lam_alloc.release(rec.lam_base, rec.lam_size)
+            mem.lam_alloc.release(rec.lam_base, rec.lam_size)
         if rec.coll_cap:
-            self.coll_alloc.release(rec.coll_base, rec.coll_cap)
+            mem.coll_alloc.release(rec.coll_base, rec.coll_cap)
         self._moved.discard(cloth.handle)
         fs = rec.fabric
         fs.refs -= 1
         if fs.refs == 0:
-            self.fab_alloc.release(fs.base, fs.size)
+            mem.fab_alloc.release(fs.base, fs.size)
             del self.fabrics[cloth.fabric.key]
         self.ci_host[rec.slot] = 0
         self._free_slots.append(rec.slot)
@@ -333,9 +291,9 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
     def _set_params(self, cloth: Cloth, old: ClothParams) -> None:
         rec = self.rec[cloth.handle]
         if old.material.mass != cloth.params.material.mass:
-            x = self.pos.read(rec.vbase, cloth.fabric.n_vertices)
+            x = self.mem.pos.read(rec.vbase, cloth.fabric.n_vertices)
             x[:, 3] = inverse_masses(cloth.fabric, cloth.params)
-            self.pos.write(rec.vbase, x)
+            self.mem.pos.write(rec.vbase, x)
         self._write_tables(cloth, rec)
         self._regroup(cloth, rec)
 
@@ -344,13 +302,14 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
         new = cloth.colliders
         n = len(new)
         W = L["COLLIDER_WORDS"]
+        mem = self.mem
         if n != rec.coll_cap:
             if rec.coll_cap:
-                self.coll_alloc.release(rec.coll_base, rec.coll_cap)
+                mem.coll_alloc.release(rec.coll_base, rec.coll_cap)
             rec.coll_cap = n
-            rec.coll_base = self._alloc(self.coll_alloc, [self.coll], n) if n else 0
-            if self.coll_alloc.capacity > len(self.coll_host):
-                grown = np.zeros((self.coll_alloc.capacity, W, 4), np.float32)
+            rec.coll_base = mem.alloc(mem.coll_alloc, [mem.coll], n) if n else 0
+            if mem.coll_alloc.capacity > len(self.coll_host):
+                grown = np.zeros((mem.coll_alloc.capacity, W, 4), np.float32)
                 grown[: len(self.coll_host)] = self.coll_host
                 self.coll_host = grown
             self.coll_host[rec.coll_base : rec.coll_base + n, 0:2] = new  # starts where it is
@@ -364,38 +323,39 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
         self._write_tables(cloth, rec)
 
     def _reset(self, cloth: Cloth, positions: np.ndarray) -> None:
-        if self._pending_targets:  # earlier pin targets first: the reset puts the pins back too
-            self._upload_targets()
+        if self.targets.pending:  # earlier pin targets first: the reset puts the pins back too
+            self.targets.upload()
         self._write_vertices(cloth, self.rec[cloth.handle], positions)
 
     # --- stepping ---------------------------------------------------------------------------
     def _flush(self) -> None:
-        if self._pending_targets:
-            self._upload_targets()
+        mem = self.mem
+        if self.targets.pending:
+            self.targets.upload()
         if self._tables_dirty:
             n = len(self.ci_host)
-            if self.ci.capacity < n:
-                self.ci.resize(n)
-                self.cf.resize(n)
-            self.ci.write(0, self.ci_host)
-            self.cf.write(0, self.cf_host)
+            if mem.ci.capacity < n:
+                mem.ci.resize(n)
+                mem.cf.resize(n)
+            mem.ci.write(0, self.ci_host)
+            mem.cf.write(0, self.cf_host)
             self._tables_dirty = False
         if self._coll_dirty:
-            self.coll.write(0, self.coll_host[: self.coll.capacity].reshape(-1, 4 * L["COLLIDER_WORDS"]))
+            mem.coll.write(0, self.coll_host[: mem.coll.capacity].reshape(-1, 4 * L["COLLIDER_WORDS"]))
             self._coll_dirty = False
         for g in self.groups.values():
             if g.dirty:
-                self._build_group(g)
+                self.launches.build_group(g)
 
     def ready(self, fabric: Fabric, params: ClothParams) -> bool:
         _, local, pack = self._group_key(Cloth(0, fabric, params))
-        return self.dev.built(self._options_for(params.features, local, pack))
+        return self.dev.built(self.launches.options_for(params.features, local, pack))
 
     def prepare(self, fabric: Fabric, params: ClothParams) -> None:
         """Build the kernels of the group such a cloth joins (Device.program is thread-safe and
         builds without blocking the other threads' use of built kernels)."""
         _, local, pack = self._group_key(Cloth(0, fabric, params))
-        opts = self._options_for(params.features, local, pack)
+        opts = self.launches.options_for(params.features, local, pack)
         if pack:
             names = ["pack_step"]
         elif self.solver == "workgroup":
@@ -413,24 +373,8 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
 
     def step(self, dt: float) -> None:
         self._flush()
-        q = self.dev.queue
-        self._step_marker = cl.enqueue_marker(q)  # device time of the step: frames.py
-        dt32 = np.float32(dt)
-        for g in self.groups.values():
-            opts = self._options(g)
-            if self.solver != "workgroup":
-                self._vertex_phase_step(g, dt32, opts)
-                continue
-            if g.pack:
-                self._pack_step(g, dt32, opts)
-                continue
-            # kernel arguments (Any: pyopencl's stub of Kernel.__call__ leaves out LocalMemory)
-            args: list[Any] = [dt32, g.cloths_buf, *self._step_buffers(), self.lam.buf]
-            if g.use_local:
-                args.append(cl.LocalMemory(16 * g.max_vertices))
-            ls = g.local_size
-            assert g.slots is not None  # set by _build_group
-            self.dev.kernel(opts, "wg_step")(q, (len(g.slots) * ls,), (ls,), *args)
+        self.readback.mark_step()  # device time of the step: frames.py
+        self.launches.step(self.groups.values(), dt)
         self.steps += 1
         self._after_step()
 
@@ -450,3 +394,21 @@ class CLWorld(GroupLaunches, PinTargets, FrameReadback, World):
 
     def close(self) -> None:
         self.dev.queue.finish()
+        if self.device_frames is not None:
+            self.device_frames.close()
+
+    # --- parts' hooks --------------------------------------------------------------------------
+    def _set_targets(self, cloth: Cloth, idx: np.ndarray, targets: np.ndarray) -> None:
+        self.targets.add(cloth.handle, idx, targets)
+
+    def _set_targets_many(self, handles: list[int], indices: list[np.ndarray], targets: list[np.ndarray]) -> None:
+        self.targets.add_many(handles, indices, targets)
+
+    def _set_targets_block(self, handles: np.ndarray, idx: np.ndarray, targets: np.ndarray) -> None:
+        self.targets.add_block(handles, idx, targets)
+
+    def _layout_changed(self, layout: Layout) -> None:
+        self.readback.layout_changed(layout)
+
+    def frame_async(self) -> PendingFrame:
+        return self.readback.frame_async(self.layout(), self.steps)

@@ -84,7 +84,7 @@ def _exercise(dev: cl.Device, lanes: int) -> None:
     pubs = [Publication("s", (0,)), Publication("b", tuple(range(1, len(cloths))), True)]
     enc = DeviceEncoder(d)
     enc.set_plan(FramePlan.build(cloths, pubs))
-    enc.encode(d.queue, world.pos.buf, world.nrm.buf, 1, 1)
+    enc.encode(d.queue, world.mem.pos.buf, world.mem.nrm.buf, 1, 1)
     if not all(len(s) for s in enc.slices()):
         raise RuntimeError("the encoder wrote an empty publication")
     enc.close()

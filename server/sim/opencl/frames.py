@@ -1,10 +1,10 @@
-"""The OpenCL world's frame readback (a mixin of CLWorld).
+"""The OpenCL world's frame readback (a part the CLWorld owns).
 
 One ``pack_rows`` launch gathers every cloth's positions (xyz, without the inverse mass) back to
 back in the layout's order into one device buffer (normals likewise when a cloth carries them),
 and one non-blocking copy brings it into a host buffer mapped from ``ALLOC_HOST_PTR`` memory
 (pinned where the driver does that), reused from tick to tick (world.FramePool). The gather map
-(frame row -> vertex) is uploaded only when the layout changes. ``fetch_async`` returns at once;
+(frame row -> vertex) is uploaded only when the layout changes. ``frame_async`` returns at once;
 its ``wait`` waits on that copy's event only; ``device_s`` is the step-to-readback device time
 from the queue's profiling timestamps.
 """
@@ -13,17 +13,13 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from typing import TYPE_CHECKING
 
 import numpy as np
 import pyopencl as cl
 
-from ..world import Frame, FramePool, Layout, PendingFrame
-from .buffers import DevArray
-
-if TYPE_CHECKING:
-    from .clworld import ClothSlot
-    from .device import Device
+from ..frame import Frame, FramePool, Layout, PendingFrame
+from .buffers import ClothSlot, DevArray, DeviceMemory
+from .device import Device
 
 log = logging.getLogger(__name__)
 
@@ -45,29 +41,20 @@ def device_span(start: cl.Event | None, end: cl.Event) -> Callable[[], float | N
 
 
 class FrameReadback:
-    """Needs ``dev``, ``rec`` (handle -> slot with ``vbase``), ``pos``, ``nrm``, ``steps``,
-    ``layout()`` and ``_base_options`` from the world."""
+    """Reads ``mem.pos`` (and ``mem.nrm``) back in the layout's order; marks each step's start."""
 
-    # declared for the type checker only (no values: CLWorld.__init__ and World.__init__ set them)
-    dev: Device
-    rec: dict[int, ClothSlot]
-    pos: DevArray
-    nrm: DevArray
-    steps: int
-    _base_options: list[str]
-
-    if TYPE_CHECKING:
-
-        def layout(self) -> Layout: ...
-
-    def _init_frames(self) -> None:
-        q = self.dev
+    def __init__(self, dev: Device, mem: DeviceMemory, rec: dict[int, ClothSlot], base_options: list[str]) -> None:
+        self.dev, self.mem, self.rec, self.base_options = dev, mem, rec, base_options
         self._pool = FramePool(self._host_array)
         self._pinned: list[cl.Buffer] = []  # host buffers of the frames, alive as long as the world
-        self._pack_src = DevArray(q, np.int32, 1, 1024)  # frame row -> vertex of the buffers
-        self._packed = DevArray(q, np.float32, 3, 1024)
-        self._packed_nrm = DevArray(q, np.float32, 3, 1024)
-        self._step_marker: cl.Event | None = None
+        self._pack_src = DevArray(dev, np.int32, 1, 1024)  # frame row -> vertex of the buffers
+        self._packed = DevArray(dev, np.float32, 3, 1024)
+        self._packed_nrm = DevArray(dev, np.float32, 3, 1024)
+        self.step_marker: cl.Event | None = None  # the last step's start (its device time)
+
+    def mark_step(self) -> None:
+        """A step starts: its device time is measured from here (device_span)."""
+        self.step_marker = cl.enqueue_marker(self.dev.queue)
 
     def _host_array(self, rows: int) -> np.ndarray:
         """A (rows, 3) float32 host array in ALLOC_HOST_PTR memory, mapped once for good."""
@@ -91,7 +78,8 @@ class FrameReadback:
             log.debug("no mapped host buffer (%s): plain host memory", e)
             return np.zeros((rows, 3), np.float32)
 
-    def _layout_changed(self, layout: Layout) -> None:
+    def layout_changed(self, layout: Layout) -> None:
+        """The gather map of a new layout (frame row -> vertex), uploaded once."""
         n = layout.n_rows
         counts = np.diff(layout.offsets)
         vbase = np.fromiter((self.rec[h].vbase for h in layout.handles.tolist()), np.int64, len(counts))
@@ -102,23 +90,23 @@ class FrameReadback:
         self._pack_src.write(0, src)
 
     def _pack(self, n: int, src: DevArray, out: DevArray) -> None:
-        k = self.dev.kernel(self._base_options, "pack_rows")
+        k = self.dev.kernel(self.base_options, "pack_rows")
         k(self.dev.queue, (-(-n // 64) * 64,), (64,), np.int32(n), self._pack_src.buf, src.buf, out.buf)
 
-    def fetch_async(self) -> PendingFrame:
-        lay = self.layout()
+    def frame_async(self, lay: Layout, step: int) -> PendingFrame:
+        """Start reading back step ``step``'s positions (and normals) in ``lay``'s order."""
         n = lay.n_rows
         want_nrm = bool(lay.normals.any())
         buf = self._pool.acquire(n, want_nrm)
         xyz, nxyz = buf.xyz[:n], (buf.nrm[:n] if want_nrm else None)
-        frame = Frame(self.steps, lay, xyz, nxyz, buf)
+        frame = Frame(step, lay, xyz, nxyz, buf)
         if not n:
             return PendingFrame(frame)
         q = self.dev.queue
-        self._pack(n, self.pos, self._packed)
+        self._pack(n, self.mem.pos, self._packed)
         if want_nrm:
-            self._pack(n, self.nrm, self._packed_nrm)
+            self._pack(n, self.mem.nrm, self._packed_nrm)
         ev = cl.enqueue_copy(q, xyz, self._packed.buf, is_blocking=False)
         if nxyz is not None:
             ev = cl.enqueue_copy(q, nxyz, self._packed_nrm.buf, is_blocking=False)
-        return PendingFrame(frame, ev.wait, device_span(self._step_marker, ev))
+        return PendingFrame(frame, ev.wait, device_span(self.step_marker, ev))

@@ -1,11 +1,11 @@
-"""The OpenCL world's per-group build options, kernel set-up and launches (a mixin of CLWorld).
+"""The OpenCL world's launch groups: build options, kernel set-up and launches (a part the CLWorld owns).
 
 A *group* is the cloths that share one kernel build (feature set, substeps, local-memory fit,
 CPU packs). ``_options_for`` is a group's build options (a GPU's never include the CPU pack's).
 ``_build_group`` sizes its launches (work-group size, chunks of the coloured and Jacobi solvers,
 per-colour link prefix sums, the CPU packs) when its cloths change; the coloured and Jacobi
-solvers' per-substep vertex phases and iterations and the CPU pack launch are enqueued here, the
-work-group solver's single launch by ``CLWorld.step``.
+solvers' per-substep vertex phases and iterations, the CPU pack launch and the work-group
+solver's single launch are enqueued here (:meth:`GroupLaunches.step`).
 
 CPU pack solver (kernels/pack.cl): on a CPU device with one work-item per cloth (the default
 there), the work-group solver's cloths that share a fabric, iterations and substeps are stepped
@@ -16,19 +16,18 @@ by one work-item, the link solve vectorised across them (docs/cpu-solver.md).
 from __future__ import annotations
 
 import os
-from typing import TYPE_CHECKING, Any
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import pyopencl as cl
 
+from ..params import Features
 from ..shared import JACOBI_OMEGA
-
-if TYPE_CHECKING:
-    from ..params import Features
-    from ..world import Cloth
-    from .buffers import DevArray
-    from .clworld import ClothSlot, Group
-    from .device import Device
+from ..world import Cloth
+from .buffers import ClothSlot, DeviceMemory
+from .device import Device
 
 MF = cl.mem_flags
 
@@ -66,35 +65,56 @@ def pack_lanes(keys: list[tuple], slots: list[int], lanes: int, compute_units: i
     return np.array(rows, np.int32).reshape(-1, lanes)
 
 
+@dataclass
+class Group:
+    """Cloths stepped by one kernel build (feature set, substeps or local-memory fit, CPU packs)."""
+
+    key: tuple
+    features: Features
+    use_local: bool
+    handles: set[int] = field(default_factory=set)
+    dirty: bool = True
+    slots: np.ndarray | None = None
+    cloths_buf: cl.Buffer | None = None
+    prefix_buf: cl.Buffer | None = None
+    chunks_buf: cl.Buffer | None = None  # (cloth slot, first vertex) per vertex-phase work-group
+    n_chunks: int = 0
+    colour_totals: list[int] = field(default_factory=list)
+    max_iters: int = 0
+    max_colours: int = 0
+    max_vertices: int = 0
+    substeps: int = 1
+    local_size: int = 64
+    pack: int = 0  # CPU pack solver: lanes per pack (0: wg_step); see launch.py
+    packs_buf: cl.Buffer | None = None  # PACK_LANES cloth slots per pack, -1 = unused lane
+    n_packs: int = 0
+    pack_local_bytes: int = 0  # the largest pack's local memory
+
+
 class GroupLaunches:
-    """Needs ``dev``, ``rec``, ``cloths``, ``solver``, ``chunk``, ``link_group_size``, the size
-    caps and the device buffers from the world."""
+    """Sets up and enqueues each group's launches over ``mem``; ``rec`` and ``cloths`` are the
+    world's (by handle), read when a group is rebuilt."""
 
-    # declared for the type checker only (no values: CLWorld.__init__ and World.__init__ set them)
-    dev: Device
-    rec: dict[int, ClothSlot]
-    cloths: dict[int, Cloth]
-    solver: str
-    chunk: int
-    link_group_size: int
-    max_local_size: int
-    max_global_path_size: int
-    ci: DevArray
-    cf: DevArray
-    fab: DevArray
-    pos: DevArray
-    pos2: DevArray | None  # the Jacobi solver's second position buffer
-    vel: DevArray
-    prev: DevArray
-    target: DevArray
-    nrm: DevArray
-    lam: DevArray
-    coll: DevArray
+    def __init__(
+        self,
+        dev: Device,
+        mem: DeviceMemory,
+        rec: dict[int, ClothSlot],
+        cloths: dict[int, Cloth],
+        solver: str,
+        chunk: int,
+        link_group_size: int,
+        max_local_size: int,
+        max_global_path_size: int,
+    ) -> None:
+        self.dev, self.mem, self.rec, self.cloths, self.solver = dev, mem, rec, cloths, solver
+        self.chunk, self.link_group_size = chunk, link_group_size
+        self.max_local_size, self.max_global_path_size = max_local_size, max_global_path_size
 
-    def _options(self, g: Group, local: bool | None = None) -> list[str]:
-        return self._options_for(g.features, g.use_local if local is None else local, g.pack)
+    def options(self, g: Group, local: bool | None = None) -> list[str]:
+        return self.options_for(g.features, g.use_local if local is None else local, g.pack)
 
-    def _options_for(self, features: Features, use_local: bool, pack: int = 0) -> list[str]:
+    def options_for(self, features: Features, use_local: bool, pack: int = 0) -> list[str]:
         if pack:  # CPU only: the pack kernel keeps the lanes in local memory itself
             return [*features.build_options(), "-DUSE_LOCAL=0", f"-DPACK_LANES={pack}", *CPU_BUILD_OPTIONS]
         g_features = features
@@ -112,12 +132,12 @@ class GroupLaunches:
             opts.append(f"-cl-nv-maxrregcount={regs}")
         return opts
 
-    def _kernel_limit(self, g: Group) -> int:
+    def kernel_limit(self, g: Group) -> int:
         name = "pack_step" if g.pack else "wg_step" if self.solver == "workgroup" else "cl_predict"
-        k = self.dev.kernel(self._options(g), name)
+        k = self.dev.kernel(self.options(g), name)
         return int(k.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, self.dev.device))
 
-    def _build_group(self, g: Group) -> None:
+    def build_group(self, g: Group) -> None:
         handles = sorted(g.handles)
         recs = [self.rec[h] for h in handles]
         cloths = [self.cloths[h] for h in handles]
@@ -159,7 +179,7 @@ class GroupLaunches:
                 self.dev.ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(chunks, np.int32)
             )
         g.local_size = int(min(cap, max(min(32, cap), _next_pow2(widest))))
-        g.local_size = min(g.local_size, self._kernel_limit(g))
+        g.local_size = min(g.local_size, self.kernel_limit(g))
         if self.solver == "coloured" and g.max_colours == 0:  # cloths without links (1 vertex)
             g.colour_totals, g.prefix_buf = [], None
         elif self.solver == "coloured":
@@ -186,23 +206,24 @@ class GroupLaunches:
         predict = self.dev.kernel(opts, "cl_predict")
         finish = self.dev.kernel(opts, "cl_finish")
         normals = self.dev.kernel(opts, "cl_normals")
-        cloth_args = (ch, g.chunks_buf, self.ci.buf, self.cf.buf, self.fab.buf, self.pos.buf)
-        normal_args = (*cloth_args, self.nrm.buf)
-        vertex_args = (*cloth_args, self.vel.buf, self.prev.buf)  # predict and finish, after dt and substep
+        cloth_args = (ch, g.chunks_buf, self.mem.ci.buf, self.mem.cf.buf, self.mem.fab.buf, self.mem.pos.buf)
+        normal_args = (*cloth_args, self.mem.nrm.buf)
+        vertex_args = (*cloth_args, self.mem.vel.buf, self.mem.prev.buf)  # predict and finish, after dt and substep
         for s in range(g.substeps):
             si = np.int32(s)
             if g.features.wind:
                 normals(q, gsize, (ls,), *normal_args)
-            predict(q, gsize, (ls,), dt32, si, *vertex_args, self.target.buf, self.nrm.buf, self.lam.buf)
+            predict(q, gsize, (ls,), dt32, si, *vertex_args, self.mem.target.buf, self.mem.nrm.buf, self.mem.lam.buf)
             if self.solver == "coloured":
                 self._coloured_iterations(g, dt32, opts)
             else:
                 self._jacobi_iterations(g, dt32, opts, gsize, ls)
             if g.features.self_collision:  # one work-group per cloth (kernels/selfcollide.cl)
-                bufs = (self.ci, self.cf, self.fab, self.pos, self.vel, self.nrm)
+                mem = self.mem
+                bufs = (mem.ci, mem.cf, mem.fab, mem.pos, mem.vel, mem.nrm)
                 collide = self.dev.kernel(opts, "cl_self_collide")
                 collide(q, (len(g.handles) * ls,), (ls,), g.cloths_buf, *(b.buf for b in bufs))
-            finish(q, gsize, (ls,), dt32, si, *vertex_args, self.coll.buf)
+            finish(q, gsize, (ls,), dt32, si, *vertex_args, self.mem.coll.buf)
         if g.features.normals:
             normals(q, gsize, (ls,), *normal_args)
 
@@ -220,11 +241,11 @@ class GroupLaunches:
             ngc,
             g.prefix_buf,
             g.cloths_buf,
-            self.ci.buf,
-            self.cf.buf,
-            self.fab.buf,
-            self.pos.buf,
-            self.lam.buf,
+            self.mem.ci.buf,
+            self.mem.cf.buf,
+            self.mem.fab.buf,
+            self.mem.pos.buf,
+            self.mem.lam.buf,
         )
         sizes = [((-(-total // lg) * lg,), c) for c, total in enumerate(g.colour_totals) if total]
         for it in range(g.max_iters):
@@ -236,12 +257,21 @@ class GroupLaunches:
     def _jacobi_iterations(self, g: Group, dt32, opts, gsize, ls) -> None:
         k = self.dev.kernel(opts, "jacobi_iter")
         q = self.dev.queue
-        pos2 = self.pos2
+        pos2 = self.mem.pos2
         assert pos2 is not None  # the Jacobi solver's world has it
-        bufs = [self.pos.buf, pos2.buf]
+        bufs = [self.mem.pos.buf, pos2.buf]
         ch = np.int32(self.chunk)
         k.set_args(
-            dt32, np.int32(0), ch, g.chunks_buf, self.ci.buf, self.cf.buf, self.fab.buf, bufs[0], bufs[1], self.lam.buf
+            dt32,
+            np.int32(0),
+            ch,
+            g.chunks_buf,
+            self.mem.ci.buf,
+            self.mem.cf.buf,
+            self.mem.fab.buf,
+            bufs[0],
+            bufs[1],
+            self.mem.lam.buf,
         )
         for it in range(g.max_iters):
             k.set_arg(1, np.int32(it))
@@ -250,17 +280,31 @@ class GroupLaunches:
             cl.enqueue_nd_range_kernel(q, k, gsize, (ls,))
         if g.max_iters & 1:
             self.dev.kernel(opts, "copy_positions")(
-                q, gsize, (ls,), ch, g.chunks_buf, self.ci.buf, pos2.buf, self.pos.buf
+                q, gsize, (ls,), ch, g.chunks_buf, self.mem.ci.buf, pos2.buf, self.mem.pos.buf
             )
-
-    def _step_buffers(self) -> list[Any]:
-        """The buffers wg_step and pack_step both take after their cloth list, in their order
-        (ci, cf, fab, pos, vel, prev, target, nrm, coll)."""
-        bufs = (self.ci, self.cf, self.fab, self.pos, self.vel, self.prev, self.target, self.nrm, self.coll)
-        return [b.buf for b in bufs]
 
     def _pack_step(self, g: Group, dt32, opts) -> None:
         """CPU: one launch of pack_step, one work-item per pack, the lanes in local memory."""
         # Any: pyopencl's stub of Kernel.__call__ leaves out LocalMemory
-        args: list[Any] = [dt32, g.packs_buf, *self._step_buffers(), cl.LocalMemory(max(64, g.pack_local_bytes))]
+        args: list[Any] = [dt32, g.packs_buf, *self.mem.step_buffers(), cl.LocalMemory(max(64, g.pack_local_bytes))]
         self.dev.kernel(opts, "pack_step")(self.dev.queue, (g.n_packs,), (1,), *args)
+
+    def step(self, groups: Iterable[Group], dt: float) -> None:
+        """Enqueue one step of every group (each built since its cloths last changed)."""
+        q = self.dev.queue
+        dt32 = np.float32(dt)
+        for g in groups:
+            opts = self.options(g)
+            if self.solver != "workgroup":
+                self._vertex_phase_step(g, dt32, opts)
+                continue
+            if g.pack:
+                self._pack_step(g, dt32, opts)
+                continue
+            # kernel arguments (Any: pyopencl's stub of Kernel.__call__ leaves out LocalMemory)
+            args: list[Any] = [dt32, g.cloths_buf, *self.mem.step_buffers(), self.mem.lam.buf]
+            if g.use_local:
+                args.append(cl.LocalMemory(16 * g.max_vertices))
+            ls = g.local_size
+            assert g.slots is not None  # set by build_group
+            self.dev.kernel(opts, "wg_step")(q, (len(g.slots) * ls,), (ls,), *args)

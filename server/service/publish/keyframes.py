@@ -21,8 +21,8 @@ import zenoh
 
 from drape.client import protocol as P
 
+from ..registry import Registry
 from .publisher import Publisher
-from .registry import Registry
 
 log = logging.getLogger(__name__)
 

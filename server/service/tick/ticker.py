@@ -8,14 +8,13 @@ vanished clients' cloths (both applier.py), enqueues step N and its readback wit
 and hands frame N - 1 to the publisher. So the device steps tick N while the host publishes
 tick N - 1.
 
-With ``device_encode`` on an OpenCL world, one launch right behind the step encodes every
-publication's bytes into one packed buffer, read back once into pinned memory (devencode.py);
-its bounds tell the non-finite cloths, reset and encoded again. The reference World keeps the
-host path (the publisher's FrameEncoder).
+One frame path: the World's ``fetch_async(roster, tick)`` gives the tick's wire-ready payloads
+(drape.server.sim.wire; encoded on the device or on the host, the World's choice), the
+non-finite cloths among them, and puts the cloths the World reset back at rest in them.
 
-Per tick the Python work is O(commands + changed cloths + non-finite cloths): the frame is one
-contiguous array, its publication roster (drape.server.service.publisher.Roster) is rebuilt
-only when the World's layout or a cloth's publication changes, and flags are one array.
+Per tick the Python work is O(commands + changed cloths + non-finite cloths): its publication
+roster (drape.server.sim.roster.Roster) is rebuilt only when the World's layout or a cloth's
+publication changes, and flags are one array.
 """
 
 from __future__ import annotations
@@ -31,21 +30,19 @@ import numpy as np
 
 from drape.client import protocol as P
 
-from ..sim.fabric import cook_grid
-from ..sim.params import ClothParams
-from ..sim.shared import vertex_normals
-from ..sim.world import PendingFrame, World
+from ...sim.roster import Roster
+from ...sim.wire import PendingWire
+from ...sim.world import World
+from ..commands import Intake
+from ..config import ServerConfig
+from ..cook.fabrics import FabricStore
+from ..process.telemetry import PhaseTimer
+from ..publish.publisher import Job, Mailbox
+from ..registry import ClothRecord, Registry
+from ..replies import Replies, Reply, send
+from ..requests.admission import Admission, TickCost
 from .adaptive import AdaptiveQuality
-from .commands import Intake
-from .config import ServerConfig
-from .cook.fabrics import FabricStore
-from .devencode import DeviceFrames, device_world
-from .process.telemetry import PhaseTimer
-from .publisher import Job, Mailbox, Roster
-from .registry import ClothRecord, Registry
-from .replies import Replies, Reply, send
-from .requests.admission import Admission, TickCost
-from .tick.applier import Applier
+from .applier import Applier
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +50,12 @@ NAN_WARN_EVERY_S = 1.0  # at most one non-finite warning per second (the rest ar
 
 
 class Ticker:
+    """The tick thread's loop over the World given by :meth:`attach` (made when the server
+    starts, after its parts). Its parts come in the constructor: ``publish_cost`` (the
+    publisher's encode and put of its last frame), ``request_prepare`` (the cook thread's
+    kernel builds, asked for by a submission whose kernels are not built) and ``on_sleep``
+    (called with True before the sleep between ticks and False after it: the request gate)."""
+
     def __init__(
         self,
         config: ServerConfig,
@@ -65,19 +68,21 @@ class Ticker:
         adaptive: AdaptiveQuality,
         timers: dict[str, PhaseTimer],
         make_stats: Callable[[], bytes],
+        publish_cost: Callable[[], float],
+        request_prepare: Callable[[Any, Any], bool],
+        on_sleep: Callable[[bool], None] | None = None,
     ) -> None:
         self.config, self.registry, self.replies, self.intake, self.mailbox = config, registry, replies, intake, mailbox
         self.admission, self.adaptive, self.timers = admission, adaptive, timers
-        self.make_stats = make_stats
-        self.applier = Applier(config, registry, replies, intake, fabrics, adaptive)  # the tick's commands
-        self.applier.on_drop = self._forget
-        self.publish_cost: Callable[[], float] = lambda: 0.0
-        self.on_sleep: Callable[[bool], None] = lambda sleeping: None  # around the sleep between ticks
+        self.make_stats, self.publish_cost = make_stats, publish_cost
+        self.on_sleep: Callable[[bool], None] = on_sleep or (lambda sleeping: None)
+        # the tick's commands
+        self.applier = Applier(config, registry, replies, intake, fabrics, adaptive, request_prepare, self._forget)
+        self.world: World | None = None
         self.tick = 0
         self.failure: BaseException | None = None
         self.stop_event = threading.Event()
-        self._pending: tuple[PendingFrame, Job, float] | None = None  # the frame in flight, its job, host s
-        self.device: DeviceFrames | None = None  # device-encoded frames (config device_encode, OpenCL worlds)
+        self._pending: tuple[PendingWire, Job, float] | None = None  # the frame in flight, its job, host s
         self._roster: Roster | None = None
         self._nan_times: dict[str, deque[float]] = {}
         self._nan_warned_at = 0.0
@@ -85,63 +90,13 @@ class Ticker:
         self._cost_layout = -1  # layout version of the last frame whose cost was measured
         self._wait_s = 0.0  # the tick thread's wait for the device in the tick that enqueued the pending frame
         self._carry: list[Reply] = []  # remove replies of a tick that stepped nothing
+        self._reset_next = np.zeros(0, np.int64)  # frame indices of the frame in flight carrying the reset flag
 
-    # --- what the Applier owns, under the names the server and the tests use ---------------------
-    @property
-    def world(self) -> World | None:
-        return self.applier.world
-
-    @world.setter
-    def world(self, world: World | None) -> None:
-        self.applier.world = world
-
-    @property
-    def live(self) -> dict[int, ClothRecord]:
-        """The cloths in the World, by handle."""
-        return self.applier.live
-
-    @property
-    def fabrics(self) -> FabricStore:
-        return self.applier.fabrics
-
-    @fabrics.setter
-    def fabrics(self, fabrics: FabricStore) -> None:
-        self.applier.fabrics = fabrics
-
-    @property
-    def request_prepare(self) -> Callable[[Any, Any], bool]:
-        return self.applier.request_prepare
-
-    @request_prepare.setter
-    def request_prepare(self, fn: Callable[[Any, Any], bool]) -> None:
-        self.applier.request_prepare = fn
-
-    @property
-    def applied_controls(self) -> int:
-        return self.applier.applied_controls
-
-    def shutdown_commands(self) -> None:
-        """Answer everything still queued once the tick thread stops."""
-        self.applier.shutdown_commands()
+    def attach(self, world: World) -> None:
+        """The World this ticker drives (and its applier applies commands to), once, before ``run``."""
+        self.world = self.applier.world = world
 
     # --- set-up ----------------------------------------------------------------------------------
-    def warm_up(self) -> None:
-        """Build the default kernels before serving so the first submission does not stall a tick."""
-        w = self.world
-        assert w is not None
-        t = time.perf_counter()
-        h = w.add(cook_grid(2, 2, pinned=[0]), ClothParams())
-        w.set_pin_targets(h, np.array([0]), np.zeros((1, 3)))  # builds the pin-target scatter too
-        w.step(self.config.dt)
-        w.fetch()
-        w.remove(h)
-        w.fetch()
-        dev = device_world(w, self.config.device_encode)
-        if dev is not None:  # the frame encoder's kernels too: the tick thread never compiles
-            self.device = DeviceFrames(dev)
-            self.device.encoder.build_all()
-        log.debug("warm-up took %.3f s", time.perf_counter() - t)
-
     # --- the loop --------------------------------------------------------------------------------
     def run(self) -> None:
         cfg = self.config
@@ -191,7 +146,7 @@ class Ticker:
             for r in (self._pending[1].after if self._pending is not None else []) + self._carry:
                 send(r)  # removes whose next frame will not be published
             self._pending = None  # its frame was never held
-            self.shutdown_commands()
+            self.applier.shutdown_commands()
 
     @staticmethod
     def _merged(first: Job, frame: Job) -> Job:
@@ -205,7 +160,7 @@ class Ticker:
     def _finish_previous(self) -> Job:
         """The job of the tick stepped last time: its frame read back, checked, flagged."""
         if self._pending is None:  # nothing was stepped: carries what waited for a next frame
-            job = Job(tick=self.tick, time_ns=time.time_ns(), after=self._carry)
+            job = Job(tick=self.tick, after=self._carry)
             self._carry = []
             self._wait_s = 0.0
             return job
@@ -213,18 +168,17 @@ class Ticker:
         self._pending = None
         busy_s = host_s - self._wait_s  # the tick thread's own work in the tick that enqueued this frame
         t = time.monotonic()
-        frame = pending.wait()
+        wire = pending.wait()
         self._wait_s = time.monotonic() - t
-        job.frame = frame.hold()
-        job.time_ns = time.time_ns()  # PROTOCOL.md: the server time is when the tick was read back
-        if job.on_device and self.device is not None and job.roster is not None:  # encoded at enqueue time
-            job.encoded = self.device.hold()
-            job.encoded.set_time(job.time_ns)
-            bad = self.device.nonfinite()
-        else:
-            bad = frame.nonfinite()
+        job.wire = wire.hold()
+        wire.set_time(time.time_ns())  # PROTOCOL.md: the server time is when the tick was read back
+        if len(self._reset_next):
+            wire.add_flags(self._reset_next, P.FLAG_RESET)
+            self._reset_next = np.zeros(0, np.int64)
+        bad = wire.nonfinite()
         if len(bad):
             self._non_finite(job, bad)
+        frame = wire.frame
         waited = time.monotonic() - t
         device_s = pending.device_s
         self.timers["readback"].add(waited)
@@ -240,7 +194,9 @@ class Ticker:
             cost_now = TickCost(int(frame.offsets[-1]), stage_tick, stage_device, self.publish_cost())
             self.admission.model.observe(cost_now)
         self._cost_layout = frame.layout.version
-        self.adaptive.observe(cost, job.tick, lambda: list(self.live.values()), self.world, self.applier.set_preset)
+        self.adaptive.observe(
+            cost, job.tick, lambda: list(self.applier.live.values()), self.world, self.applier.set_preset
+        )
         return job
 
     def _start_next(self, job: Job) -> None:
@@ -249,35 +205,24 @@ class Ticker:
         assert w is not None
         self.tick += 1
         after, self.applier.after_next = self.applier.after_next, []
-        if not self.live:
+        if not self.applier.live:
             self._carry = after  # no next frame: sent in the next tick's own publisher pass
             return
         w.step(self.config.dt)
-        lay = w.layout()  # the frame's own layout (fetch_async uses it)
+        lay = w.layout()
         roster = self._roster_for(lay)
-        # predictive states (1.5) are coded by the publisher's host encoder: that frame is read back
-        dev = device_world(w, self.config.device_encode and not roster.predictive)
-        if dev is None:
-            pending = w.fetch_async()
-        elif self.device is None or self.device.world is not dev:
-            self.device = DeviceFrames(dev)
-        flags = np.zeros(len(lay.handles), np.int64)
         reset_flags = self.applier.reset_flags
-        if reset_flags:
-            idx = [lay.index[h] for h in reset_flags if h in lay.index]
-            flags[idx] = P.FLAG_RESET
+        if reset_flags:  # the cloths the applier reset: flagged in the frame once it is back
+            self._reset_next = np.array([lay.index[h] for h in reset_flags if h in lay.index], np.int64)
             reset_flags.clear()
-        job = Job(tick=self.tick, roster=roster, flags=flags, after=after, on_device=dev is not None)
-        if dev is not None:
-            assert self.device is not None  # the server time is stamped after the readback (set_time)
-            pending = self.device.encode(roster, lay, self.tick, 0, flags)
-        self._pending = (pending, job, 0.0)
+        job = Job(tick=self.tick, after=after)
+        self._pending = (w.fetch_async(roster, self.tick), job, 0.0)
 
     def _roster_for(self, lay) -> Roster:
         version = (lay.version, self.applier.pub_changes)
         if self._roster is not None and self._roster.version == version:
             return self._roster
-        recs = [self.live[h] for h in lay.handles.tolist()]
+        recs = [self.applier.live[h] for h in lay.handles.tolist()]
         bundles: dict[str, list[int]] = {}
         singles: list[int] = []
         for i, r in enumerate(recs):
@@ -300,23 +245,16 @@ class Ticker:
         self._nan_times.pop(rec.id, None)
 
     def _non_finite(self, job: Job, bad: np.ndarray) -> None:
-        w = self.world
-        assert w is not None and job.frame is not None and job.flags is not None
-        frame, now = job.frame, time.monotonic()
-        off = frame.offsets
-        on_device = job.encoded is not None
-        reset: list[tuple[int, Any]] = []  # on the device: (handle, fabric) of reset cloths with normals
+        w, wire = self.world, job.wire
+        assert w is not None and wire is not None
+        frame, now = wire.frame, time.monotonic()
+        at_rest: list[tuple[int, Any]] = []  # (frame index, fabric): at rest with the reset flag in the frame
         for i in bad.tolist():
             h = int(frame.handles[i])
-            rec = self.live.get(h)
+            rec = self.applier.live.get(h)
             if rec is None or rec.fabric is None:
                 continue
-            sl = slice(int(off[i]), int(off[i + 1]))
-            if not on_device:
-                frame.xyz[sl] = rec.fabric.rest_positions
-                if frame.nxyz is not None and frame.layout.normals[i]:
-                    frame.nxyz[sl] = vertex_normals(rec.fabric.rest_positions, rec.fabric)[0]
-            job.flags[i] |= P.FLAG_RESET
+            at_rest.append((i, rec.fabric))
             times = self._nan_times.setdefault(rec.id, deque())
             times.append(now)
             while times and now - times[0] > self.config.nan_window:
@@ -338,8 +276,6 @@ class Ticker:
                 self.applier.drop(rec, job)
                 continue
             w.reset(h)
-            if frame.layout.normals[i]:
-                reset.append((h, rec.fabric))
             self.registry.count("nan_resets")
             if now - self._nan_warned_at >= NAN_WARN_EVERY_S:
                 more = f" ({self._nan_quiet} more since the last warning)" if self._nan_quiet else ""
@@ -353,6 +289,4 @@ class Ticker:
                 self._nan_warned_at, self._nan_quiet = now, 0
             else:
                 self._nan_quiet += 1
-        if on_device and self.device is not None and job.encoded is not None:
-            # the frame again, the reset cloths at rest with the reset flag (as the host path publishes)
-            job.encoded = self.device.reencode(job.encoded, job.tick, job.time_ns, job.flags, reset)
+        wire.reset(at_rest)

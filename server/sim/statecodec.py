@@ -1,8 +1,10 @@
-"""Encoding one tick's states of many cloths at once: the publisher's hot path.
+"""The host encoder: one tick's states of many cloths encoded at once on the CPU (the reference
+World's frames, and an OpenCL World's when its states are not encoded on the device).
 
-The tick thread hands the publisher every cloth's positions back to back in one contiguous
-float32 array (``positions``, with ``offsets[i]:offsets[i + 1]`` the vertices of cloth ``i``).
-:class:`FrameEncoder` then works per frame, not per cloth:
+A frame holds every cloth's positions back to back in one contiguous float32 array
+(``positions``, with ``offsets[i]:offsets[i + 1]`` the vertices of cloth ``i``).
+:class:`FrameEncoder` then works per frame, not per cloth (wire.HostWire drives it on the
+publisher's thread):
 
 - bounds of every cloth in two calls (``np.minimum.reduceat`` / ``np.maximum.reduceat``);
 - float16 and quant16 vertex blocks computed for all the cloths that use them in one pass;
@@ -13,10 +15,13 @@ float32 array (``positions``, with ``offsets[i]:offsets[i + 1]`` the vertices of
 Predictive states (protocol 1.5) are coded per stream against the last two states its decoders
 rebuilt (:class:`PredictiveStreams`): a keyframe when a stream starts, every
 ``keyframe_interval`` ticks, after a reset, a new step or a tick the stream was not encoded
-(nobody watched it), and when a subscriber asks (:meth:`PredictiveStreams.request`).
+(nobody watched it), and when a subscriber asks (:meth:`PredictiveStreams.request`). The
+streams are the service's state, not the World's: they live as long as the service publishes
+(across Worlds), keyframe queries reach them from the network's threads, and which streams were
+encoded depends on who subscribes; so the encoder takes them as an argument.
 
 The bytes are exactly those of :func:`drape.client.protocol.encode_state` and
-:func:`drape.client.protocol.encode_bundle` (tests/test_bundles.py checks that for every encoding):
+:func:`drape.client.protocol.encode_bundle` (tests/service/test_bundles.py checks that for every encoding):
 every layout number, size and the float16 / quant16 / snorm16 arithmetic come from the protocol
 package (``drape.client.protocol.state`` and ``.bundle``); only the batching over cloths is here.
 """
@@ -37,6 +42,11 @@ _ENTRY_PAD = bytes(P.BUNDLE_ALIGN)
 def state_bytes(n: int, encoding: int, normals: bool) -> int:
     """Size of one encoded state of ``n`` vertices (protocol.state_size)."""
     return P.state_size(n, encoding, normals)
+
+
+def bundle_bytes(entries: list[tuple[str, int]]) -> int:
+    """Size of a bundle of (cloth id, state size) entries."""
+    return P.BUNDLE_HEADER_SIZE + sum(P.bundle_entry_header_size(c) + P.align8(n) for c, n in entries)
 
 
 @dataclass(eq=False)
@@ -117,8 +127,8 @@ class FrameEncoder:
     """Encode the states of one frame (call :meth:`begin`, then :meth:`prepare` with the cloths
     that will be written, then :meth:`write_state` / :meth:`write_bundle` for each)."""
 
-    def __init__(self, keyframe_interval: int = 60) -> None:
-        self.streams = PredictiveStreams(keyframe_interval)
+    def __init__(self, keyframe_interval: int = 60, streams: PredictiveStreams | None = None) -> None:
+        self.streams = streams if streams is not None else PredictiveStreams(keyframe_interval)
         self._coded: dict[int, tuple[bytes, int, int, int, float]] = {}  # predictive: frame index -> data
         self.tick = 0
         self.time_ns = 0
@@ -260,9 +270,7 @@ class FrameEncoder:
 
     def bundle_size(self, cloths: list[tuple[str, int, int, bool]]) -> int:
         """Bytes of a bundle of (cloth id, frame index, encoding, normals) entries."""
-        return P.BUNDLE_HEADER_SIZE + sum(
-            P.bundle_entry_header_size(c) + P.align8(self.state_size(i, e, nr)) for c, i, e, nr in cloths
-        )
+        return bundle_bytes([(c, self.state_size(i, e, nr)) for c, i, e, nr in cloths])
 
     def write_bundle(self, out: bytearray, entries: list[tuple[str, int, int, int, np.ndarray | None]]) -> int:
         """Write a bundle of (cloth id, frame index, encoding, flags, normals) entries into

@@ -14,10 +14,10 @@ import time
 from collections.abc import Callable, Iterable
 from typing import Any, cast
 
-from ..sim import quality
-from ..sim.world import World
-from .config import ServerConfig
-from .registry import ClothRecord
+from ...sim import quality
+from ...sim.world import World
+from ..config import ServerConfig
+from ..registry import ClothRecord
 
 log = logging.getLogger(__name__)
 

@@ -1,0 +1,150 @@
+"""An OpenCL World's device-encoded ticks (``CLWorld(device_encode=True)``; the service's config
+``device_encode``).
+
+Per tick, right after the step and on the same queue (no host round trip), one launch of
+encode.py's ``encode_frame`` writes every publication's bytes (states and bundles exactly as
+drape.client.protocol encodes them) into one packed device buffer, straight from the world's
+float4 position and normal buffers, and one copy brings it into pinned host memory. The
+:class:`~drape.server.sim.opencl.encode.FramePlan` is rebuilt only when the roster changes
+(cloths come or go, change encoding, normals or bundling: ``Roster.version``). The World's
+``fetch_async(roster, tick)`` gives a :class:`DeviceWire` whose payloads are slices of that
+memory.
+
+Non-finite cloths show as non-finite bounds in their headers (``DeviceEncoder.nonfinite``);
+once the World has reset them, :meth:`DeviceWire.reset` writes their rest normals and encodes
+the frame again with the reset flag: the same bytes the host path publishes.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterator
+
+import numpy as np
+
+from drape.client import protocol as P
+
+from ..fabric import Fabric
+from ..frame import Frame, Layout, PendingFrame
+from ..roster import Roster
+from ..shared import vertex_normals
+from ..statecodec import PredictiveStreams
+from ..wire import Payload, PendingWire, Wire
+from .buffers import ClothSlot, DeviceMemory
+from .device import Device
+from .encode import ClothEntry, DeviceEncoder, EncodedFrame, FramePlan, Publication
+from .frames import FrameReadback, device_span
+
+log = logging.getLogger(__name__)
+
+
+class DeviceFrames:
+    """One OpenCL world's frame encoder (a part the world owns): reads ``mem.pos`` and
+    ``mem.nrm`` at each cloth's ``rec`` vertex base; a step's device time from ``readback``'s
+    step marker."""
+
+    def __init__(self, dev: Device, mem: DeviceMemory, rec: dict[int, ClothSlot], readback: FrameReadback) -> None:
+        self.dev, self.mem, self.rec, self.readback = dev, mem, rec, readback
+        self.encoder = DeviceEncoder(dev, stride=4)
+        self._plan_version: tuple[int, int] | None = None
+        self.plans = 0  # plans built (the tests count them)
+
+    def build_all(self) -> None:
+        """Every program a plan may pick, built now (the tick thread never compiles)."""
+        self.encoder.build_all()
+
+    def _plan(self, roster: Roster, lay: Layout) -> None:
+        if self._plan_version == roster.version and self.encoder.plan is not None:
+            return
+        counts = np.diff(lay.offsets).tolist()
+        rec = self.rec
+        cloths = [
+            ClothEntry(cid, rec[h].vbase, n, enc, bool(nr))
+            for cid, h, n, enc, nr in zip(
+                roster.ids, lay.handles.tolist(), counts, roster.encodings, roster.normals.tolist(), strict=True
+            )
+        ]
+        pubs = [Publication(key, tuple(idx), bundle) for _, key, idx, bundle in roster.publications()]
+        self.encoder.set_plan(FramePlan.build(cloths, pubs))
+        self._plan_version = roster.version
+        self.plans += 1
+
+    def encode(self, roster: Roster, tick: int, lay: Layout, step: int) -> PendingWire:
+        """Enqueue tick ``tick``'s frame (step ``step`` of the world, in ``lay``) right behind
+        the step (its server time is set once read back)."""
+        self._plan(roster, lay)
+        mem = self.mem
+        ev = self.encoder.encode(self.dev.queue, mem.pos.buf, mem.nrm.buf, tick, 0, None)
+        frame = Frame(step, lay, np.zeros((0, 3), np.float32), None)
+        pending = PendingFrame(frame, ev.wait, device_span(self.readback.step_marker, ev))
+        return PendingWire(pending, lambda f: DeviceWire(f, roster, tick, self))
+
+    def reencode(
+        self, old: EncodedFrame, tick: int, time_ns: int, flags: np.ndarray, reset: list[tuple[int, Fabric]]
+    ) -> EncodedFrame:
+        """The frame encoded again after the World reset some cloths (``reset``: (handle,
+        fabric) of those carrying normals, whose rest normals are written first)."""
+        mem = self.mem
+        for h, fabric in reset:
+            n = fabric.n_vertices
+            nrm = np.zeros((n, 4), np.float32)
+            nrm[:, :3] = vertex_normals(fabric.rest_positions, fabric)[0]
+            mem.nrm.write(self.rec[h].vbase, nrm)
+        old.release()
+        t = time.perf_counter()
+        self.encoder.encode(self.dev.queue, mem.pos.buf, mem.nrm.buf, tick, time_ns, flags).wait()
+        log.debug("frame of tick %d encoded again after resets in %.3f ms", tick, 1e3 * (time.perf_counter() - t))
+        return self.encoder.hold()
+
+    def close(self) -> None:
+        self.encoder.close()
+
+
+class DeviceWire(Wire):
+    """A tick's payloads as encoded on the device: slices of pinned host memory, held until released."""
+
+    def __init__(self, frame: Frame, roster: Roster, tick: int, frames: DeviceFrames) -> None:
+        super().__init__(frame, roster, tick)
+        self._frames = frames
+        self.encoded = frames.encoder.hold()
+        self._bad = frames.encoder.nonfinite()
+
+    def set_time(self, time_ns: int) -> None:
+        super().set_time(time_ns)
+        self.encoded.set_time(self.time_ns)
+
+    def add_flags(self, cloths: np.ndarray, flag: int) -> None:
+        super().add_flags(cloths, flag)
+        self.encoded.add_flags(np.asarray(cloths).tolist(), flag)
+
+    def nonfinite(self) -> np.ndarray:
+        return self._bad
+
+    def reset(self, cloths: list[tuple[int, Fabric]]) -> None:
+        live, lay = self._frames.rec, self.frame.layout
+        normals: list[tuple[int, Fabric]] = []
+        for i, fabric in cloths:
+            self.flags[i] |= P.FLAG_RESET
+            h = int(lay.handles[i])
+            if h in live and lay.normals[i]:
+                normals.append((h, fabric))
+        # the frame again, the reset cloths at rest with the reset flag (as the host path publishes)
+        self.encoded = self._frames.reencode(self.encoded, self.tick, self.time_ns, self.flags, normals)
+        self._bad = np.zeros(0, np.int64)
+
+    def sizes(self) -> list[int]:
+        return [len(v) for v in self.encoded.views]
+
+    def payloads(self, watched: list[int], streams: PredictiveStreams) -> Iterator[tuple[int, Payload]]:
+        """One ``bytes`` copy each (zenoh's ZBytes takes no memoryview; the cheapest correct
+        way, see issue 10's figures). Measured against it on the H100 (docs/loadtest.md, session
+        12): copying into a ``bytearray`` kept per key doubled the copy and put phases (3.5 ->
+        6.1 and 9.8 -> 17.4 ms a tick at 2048 float32)."""
+        views = self.encoded.views
+        for j in watched:
+            yield j, bytes(views[j])
+
+    def release(self) -> None:
+        self.encoded.release()
+        super().release()

@@ -10,6 +10,8 @@ from conftest import collect, connect, make_config
 from drape.server.service.server import Server
 from drape.server.sim.collision import penetration
 
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
 N = 17
 THICKNESS = 0.01
 

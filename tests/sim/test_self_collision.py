@@ -71,8 +71,8 @@ def test_features_off_build_todays_options(device):
     w.add(folding_cloth(), ClothParams())
     w.add(folding_cloth(), fold_params(True))
     bare = next(g for g in w.groups.values() if not g.features.names())
-    assert w._options(bare)[:5] == TODAYS_BARE_OPTIONS
-    assert not any("SELF_COLLISION" in o for o in w._options(bare))
+    assert w.launches.options(bare)[:5] == TODAYS_BARE_OPTIONS
+    assert not any("SELF_COLLISION" in o for o in w.launches.options(bare))
 
 
 @pytest.mark.parametrize(

@@ -79,6 +79,8 @@ class FramePlan:
     owner: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (k,) publication, -1 for none
     _sizes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (k,) each state's largest size
     _pred_extra: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # header and normals bytes
+    _single_pred: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # (P,) a single predictive state
+    _single_cloth: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (P,) its cloth
 
     @property
     def size(self) -> int:
@@ -175,6 +177,8 @@ class FramePlan:
         plan.owner = owner
         plan._sizes = np.array([state_size(c.n, c.encoding, c.normals) for c in cloths], np.int64)
         plan._pred_extra = np.array([P.PREDICTIVE_HEADER_SIZE + 6 * c.n * c.normals for c in cloths], np.int64)
+        plan._single_cloth = np.array([-1 if p.bundle else p.cloths[0] for p in publications], np.int64)
+        plan._single_pred = (plan._single_cloth >= 0) & plan.predictive[np.maximum(plan._single_cloth, 0)]
         return plan
 
     @staticmethod
@@ -217,58 +221,54 @@ class FramePlan:
         return sizes
 
     def _segment_table(self) -> tuple[np.ndarray, ...]:
-        """The byte runs of the publications holding a predictive state, in order: (publication,
-        source offset, fixed length, cloth whose state follows or -1, whether padded to 8)."""
+        """The byte runs of the bundles holding a predictive state, in order: (publication,
+        source offset, fixed length, cloth whose state follows or -1); all multiples of 8."""
         if self._segments is None:
-            segs: list[tuple[int, int, int, int, bool]] = []  # (publication, source, fixed, cloth, padded)
+            segs: list[tuple[int, int, int, int]] = []
             pred = self.predictive
             for p, pub in enumerate(self.publications):
-                if not pred[list(pub.cloths)].any():
+                if not pub.bundle or not pred[list(pub.cloths)].any():
                     continue
-                if not pub.bundle:
-                    i = pub.cloths[0]
-                    segs.append((p, int(self.state_offset[i]), 0, i, False))
-                    continue
-                segs.append((p, int(self.pub_offset[p]), P.BUNDLE_HEADER_SIZE, -1, False))
+                segs.append((p, int(self.pub_offset[p]), P.BUNDLE_HEADER_SIZE, -1))
                 for i in pub.cloths:
                     eh = P.bundle_entry_header_size(self.cloths[i].cloth)
-                    segs.append((p, int(self.state_offset[i]) - eh, eh, i, True))
-            cols = list(zip(*segs, strict=True)) if segs else [()] * 5
-            self._segments = (
-                np.array(cols[0], np.int64),
-                np.array(cols[1], np.int64),
-                np.array(cols[2], np.int64),
-                np.array(cols[3], np.int64),
-                np.array(cols[4], bool),
-            )
+                    segs.append((p, int(self.state_offset[i]) - eh, eh, i))
+            cols = list(zip(*segs, strict=True)) if segs else [()] * 4
+            self._segments = tuple(np.array(c, np.int64) for c in cols)
         return self._segments
 
     def compact(self, data: np.ndarray, watched: Sequence[int]) -> dict[int, np.ndarray]:
-        """The payloads of the ``watched`` publications that hold a predictive state, gathered
-        out of the encoded frame ``data`` (whose predictive states sit in slots of their largest
-        size): each state cut to its size, a bundle's entries back to back. Whole arrays: one
-        gather for the frame. Publication index -> its bytes (uint8)."""
-        pub, src, fix, cl, pad = self._segment_table()
-        if not len(pub):
-            return {}
+        """The payloads of the ``watched`` publications that hold a predictive state, out of the
+        encoded frame ``data`` (whose predictive states sit in slots of their largest size): a
+        single state its slot cut to its size, a bundle's entries gathered back to back (one
+        gather of 8-byte words for the frame's bundles). Publication index -> its bytes (uint8
+        views of ``data`` or of the gathered array)."""
+        sizes = self.state_sizes(data)
+        out: dict[int, np.ndarray] = {}
         want = np.zeros(len(self.publications), bool)
         want[np.asarray(list(watched), np.int64)] = True
+        single = want & self._single_pred
+        for p, i in zip(np.flatnonzero(single).tolist(), self._single_cloth[single].tolist(), strict=True):
+            at = int(self.state_offset[i])
+            out[p] = data[at : at + int(sizes[i])]
+        pub, src, fix, cl = self._segment_table()
+        if not len(pub):
+            return out
         sel = want[pub]
         if not sel.any():
-            return {}
-        pub, src, fix, cl, pad = pub[sel], src[sel], fix[sel], cl[sel], pad[sel]
-        sizes = self.state_sizes(data)
+            return out
+        pub, src, fix, cl = pub[sel], src[sel], fix[sel], cl[sel]
         st = np.where(cl >= 0, sizes[np.maximum(cl, 0)], 0)
-        length = fix + np.where(pad, (st + 7) & ~7, st)
+        length = (fix + ((st + 7) & ~7)) >> 3  # in words of 8 bytes
         ends = np.cumsum(length)
         starts = ends - length
-        idx = np.repeat(src - starts, length) + np.arange(int(ends[-1]))
-        out = data[idx]
+        idx = np.repeat((src >> 3) - starts, length) + np.arange(int(ends[-1]))
+        words = data[: len(data) & ~7].view("<u8")[idx].view(np.uint8)
         last = np.flatnonzero(np.r_[pub[1:] != pub[:-1], True])
         first = np.r_[0, last[:-1] + 1]
-        return {
-            int(pub[a]): out[int(starts[a]) : int(ends[b])] for a, b in zip(first.tolist(), last.tolist(), strict=True)
-        }
+        for a, b in zip(first.tolist(), last.tolist(), strict=True):
+            out[int(pub[a])] = words[8 * int(starts[a]) : 8 * int(ends[b])]
+        return out
 
     @property
     def encoded(self) -> np.ndarray:

@@ -191,18 +191,25 @@ inline int residual(__global const int *qc, __global const int *h1, __global con
     return q - (2 * h1[i] - h2[i]);
 }
 
-/* predictive: symbol j of block b (axis b / nb) of a cloth of n vertices at vertex base vb */
-inline uint symbol(__global const int *qc, __global const int *h1, __global const int *h2, uint vb, uint n,
-                   uint nb, uint order, uint b, uint j)
+/* predictive: the 32 symbols of block b (axis b / nb) of a cloth of n vertices at vertex base vb
+ * (each residual loaded once: the neighbour difference runs along the block) */
+inline void block_symbols(__global const int *qc, __global const int *h1, __global const int *h2, uint vb, uint n,
+                          uint nb, uint order, uint b, uint *z)
 {
     uint a = b / nb;
-    uint v = (b - a * nb) * 32 + j;
-    if (v >= n)
-        return 0;
-    int d = residual(qc, h1, h2, (vb + v) * 3 + a, order);
-    if (v > 0)
-        d -= residual(qc, h1, h2, (vb + v - 1) * 3 + a, order);
-    return ((uint)d << 1) ^ (uint)(d >> 31);
+    uint v0 = (b - a * nb) * 32;
+    int prev = v0 > 0 ? residual(qc, h1, h2, (vb + v0 - 1) * 3 + a, order) : 0;
+    for (uint j = 0; j < 32; j++) {
+        uint v = v0 + j;
+        if (v >= n) {
+            z[j] = 0;
+            continue;
+        }
+        int r = residual(qc, h1, h2, (vb + v) * 3 + a, order);
+        int d = r - prev;
+        prev = r;
+        z[j] = ((uint)d << 1) ^ (uint)(d >> 31);
+    }
 }
 
 __kernel void encode_frame(
@@ -301,10 +308,12 @@ __kernel void encode_frame(
         const uint per = (nblk + ENC_WG - 1) / ENC_WG;
         const uint b0 = min(lid * per, nblk), b1 = min(b0 + per, nblk);
         uint wsum = 0;
+        uint z[32];
         for (uint b = b0; b < b1; b++) {
+            block_symbols(qcur, q1, q2, vbase, n, nb, order, b, z);
             uint m = 0;
             for (uint j = 0; j < 32; j++)
-                m |= symbol(qcur, q1, q2, vbase, n, nb, order, b, j);
+                m |= z[j];
             uint w = 32 - clz(m);
             pd[b] = (uchar)w;
             wsum += w;
@@ -324,15 +333,17 @@ __kernel void encode_frame(
         __global uint *words = (__global uint *)(pd + head) + lsum[lid];
         for (uint b = b0; b < b1; b++) {
             uint w = pd[b];
+            if (!w)
+                continue;
+            block_symbols(qcur, q1, q2, vbase, n, nb, order, b, z);
             uint cur = 0, fill = 0;
-            for (uint j = 0; j < 32 && w; j++) {
-                uint z = symbol(qcur, q1, q2, vbase, n, nb, order, b, j);
-                cur |= z << fill;
+            for (uint j = 0; j < 32; j++) {
+                cur |= z[j] << fill;
                 fill += w;
                 if (fill >= 32) {
                     *words++ = cur;
                     fill -= 32;
-                    cur = fill ? z >> (w - fill) : 0u;
+                    cur = fill ? z[j] >> (w - fill) : 0u;
                 }
             }
         }

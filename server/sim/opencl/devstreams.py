@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import threading
 import zlib
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -185,7 +185,3 @@ class DeviceStreams:
         plan = self._plan
         self._kept = {plan.cloths[i].cloth for i in np.flatnonzero(kept).tolist()} if plan is not None else set()
         return out, keyframe
-
-    def ids(self, cloths: Sequence[int]) -> list[str]:
-        assert self._plan is not None
-        return [self._plan.cloths[i].cloth for i in cloths]

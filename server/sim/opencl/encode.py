@@ -32,6 +32,16 @@ first row in a packed xyz buffer (``stride=3``). A frame's views stay valid unti
 :meth:`DeviceEncoder.hold` keeps a frame from reuse until it is released (the service's
 publisher holds the frame it publishes while the next ones are encoded).
 
+Predictive states (protocol 1.5) are coded against the history the encoder keeps on the device
+(three buffers of grid values per position-buffer vertex, whose roles rotate per tick), with the
+order and reference ticks devstreams.DeviceStreams decides per tick (``encode(predictive=...)``).
+Their size varies, so each is written into a slot of its largest size (the plan's layout stays
+fixed: one launch, no frame-wide prefix sum) and :meth:`EncodedFrame.payloads` cuts a single
+state to its size and gathers a bundle's entries back to back (one gather of 8-byte words per
+frame); the bytes equal statecodec.FrameEncoder's (the host path's) for the same streams. The
+price: the copy reads the slots whole (about 2x a quant16 frame of 32x32 cloths, while about 1/6
+of it goes on the wire); compacting on the device before the copy is the next step.
+
 The bytes equal :func:`drape.client.protocol.encode_state` / :func:`~drape.client.protocol.encode_bundle`
 (tests/sim/test_device_encode.py), with two documented exceptions:
 

@@ -1,5 +1,7 @@
 """The frame encoded on the device (drape.server.sim.opencl.encode, kernels/encode.cl): every
-publication's bytes equal drape.client.protocol's encode_state / encode_bundle, on real OpenCL."""
+publication's bytes equal drape.client.protocol's encode_state / encode_bundle, on real OpenCL;
+predictive states (1.5, devstreams' decisions) equal the host encoder's (statecodec) tick after
+tick, and decode within half a step through the SDK's StateStream."""
 
 from __future__ import annotations
 

@@ -22,6 +22,19 @@
  *            With ENC_FP64 0 (a device without cl_khr_fp64) the same formulas run in float and a
  *            value can differ from the reference by 1 (see encode.py, QUANT16_FP32_TOLERANCE).
  *
+ *   predictive (1.5, PROTOCOL.md 9.2; byte-exact with drape.client.protocol.predictive.pack_frame):
+ *            each vertex quantised on the step's grid (q = clamp(rint(x * inv_step)), float32
+ *            product) into this tick's history buffer qcur (per position-buffer vertex, 3 ints);
+ *            the prediction of the order the host chose (0: none, 1: q1, 2: 2 q1 - q2 from the
+ *            last two states the decoders hold, the buffers q1 and q2); the residual's
+ *            neighbour difference zig-zagged; blocks of 32 symbols per axis, each block's width
+ *            (bit length of the OR of its symbols), then every block's words at the offset the
+ *            work-group's prefix sum of widths gives. A predictive state is written into a
+ *            slot of its largest size (the plan's): one launch, no frame-wide prefix sum; its
+ *            real size goes into its data_size field (and its bundle entry's state size), the
+ *            normals (snorm16) follow its data and zeros pad it to 8 bytes. The host compacts
+ *            bundles (encode.py: EncodedFrame.payloads).
+ *
  * Build options (-D): ENC_WG (work-group size, a power of two), ENC_FP64 (0/1), ENC_STRIDE
  * (floats per vertex in the position and normal buffers, xyz first: 4 for the world's float4
  * buffers, w ignored; 3 for packed xyz rows), ENC_SOFT_HALF (1: float16 by integer SIMD instead
@@ -29,7 +42,7 @@
  */
 
 /* Table of encoded cloths: ENC_ROW_WORDS uints per row (parsed by encode.py, the one copy). */
-#define ENC_ROW_WORDS 8
+#define ENC_ROW_WORDS 9
 #define ENC_ROW_VBASE 0      /* first vertex of the cloth in the positions / normals buffers */
 #define ENC_ROW_N 1          /* vertex count */
 #define ENC_ROW_ENC 2        /* protocol encoding id: 0 float32, 1 float16, 2 quant16 */
@@ -37,13 +50,17 @@
 #define ENC_ROW_STATE 4      /* byte offset of the state payload in the output (a multiple of 8) */
 #define ENC_ROW_BUNDLE 5     /* byte offset of the bundle header this cloth opens, or ENC_NONE */
 #define ENC_ROW_CLOTH 6      /* index of the cloth in the plan (into the per-tick flags) */
+#define ENC_ROW_ENTRY 7      /* predictive: byte offset of its bundle entry's state size, or ENC_NONE */
+#define ENC_ROW_INVSTEP 8    /* predictive: float32 bits of 1 / step (predictive.inverse_step) */
 #define ENC_NONE 4294967295
 
 /* Header field offsets and protocol constants come from drape.client.protocol (the one copy of
  * the wire layout): encode.py finds them in the protocol's structs and passes them as -D. */
 #if !defined(ST_FLAGS) || !defined(ST_TICK) || !defined(ST_TIME) || !defined(ST_MIN) || !defined(ST_MAX) \
     || !defined(ST_DATA) || !defined(BH_TICK) || !defined(BH_TIME) || !defined(FLAG_NORMALS) \
-    || !defined(FLOAT16_MAX) || !defined(QUANT_MAX) || !defined(SNORM_MAX)
+    || !defined(FLOAT16_MAX) || !defined(QUANT_MAX) || !defined(SNORM_MAX) || !defined(ENC_PREDICTIVE) \
+    || !defined(PH_ORDER) || !defined(PH_REF1) || !defined(PH_REF2) || !defined(PH_SIZE) || !defined(PH_DATA) \
+    || !defined(BE_SIZE) || !defined(Q_CLAMP) || !defined(Q_LIMIT)
 #error "encode.cl needs the protocol's header offsets and constants as -D options (see encode.py)"
 #endif
 
@@ -154,6 +171,47 @@ inline float4 load4(__global const float *buf, uint i)
     return (float4)(p, p.x);
 }
 
+/* predictive: grid value of one coordinate, predictive.quantise (rint ties to even; the clamp
+ * to +-2^27 exact in float, then to +-Q_LIMIT in int) */
+inline int3 quantise3(float3 x, float inv)
+{
+    float3 q = rint(x * inv);
+    q = clamp(q, (float3)(-(float)Q_CLAMP), (float3)((float)Q_CLAMP));
+    return clamp(convert_int3(q), (int3)(-Q_LIMIT), (int3)(Q_LIMIT));
+}
+
+/* predictive: the residual of coordinate a of vertex v against the order's prediction */
+inline int residual(__global const int *qc, __global const int *h1, __global const int *h2, uint i, uint order)
+{
+    int q = qc[i];
+    if (order == 0)
+        return q;
+    if (order == 1)
+        return q - h1[i];
+    return q - (2 * h1[i] - h2[i]);
+}
+
+/* predictive: the 32 symbols of block b (axis b / nb) of a cloth of n vertices at vertex base vb
+ * (each residual loaded once: the neighbour difference runs along the block) */
+inline void block_symbols(__global const int *qc, __global const int *h1, __global const int *h2, uint vb, uint n,
+                          uint nb, uint order, uint b, uint *z)
+{
+    uint a = b / nb;
+    uint v0 = (b - a * nb) * 32;
+    int prev = v0 > 0 ? residual(qc, h1, h2, (vb + v0 - 1) * 3 + a, order) : 0;
+    for (uint j = 0; j < 32; j++) {
+        uint v = v0 + j;
+        if (v >= n) {
+            z[j] = 0;
+            continue;
+        }
+        int r = residual(qc, h1, h2, (vb + v) * 3 + a, order);
+        int d = r - prev;
+        prev = r;
+        z[j] = ((uint)d << 1) ^ (uint)(d >> 31);
+    }
+}
+
 __kernel void encode_frame(
     __global const float *pos,         /* ENC_STRIDE floats per vertex */
     __global const float *nrm,         /* the same layout; any buffer when no row has normals */
@@ -161,10 +219,15 @@ __kernel void encode_frame(
     __global const ushort *cloth_flags, /* per plan cloth, this tick's state flags */
     const ulong tick,
     const ulong time_ns,
-    __global uchar *out)
+    __global uchar *out,
+    __global const ulong *pred,        /* predictive: per plan cloth (order, ref tick, ref2 tick) */
+    __global int *qcur,                /* predictive: this tick's grid values, 3 per vertex */
+    __global const int *q1,            /* predictive: the decoders' last state, 3 per vertex */
+    __global const int *q2)            /* and the one before */
 {
     __local float4 lmin[ENC_WG];
     __local float4 lmax[ENC_WG];
+    __local uint lsum[ENC_WG + 1];
     const uint row = get_group_id(0);
     const uint lid = get_local_id(0);
     __global const uint *r = table + row * ENC_ROW_WORDS;
@@ -230,6 +293,78 @@ __kernel void encode_frame(
             o += 3 * n;
             for (uint v = lid; v < n; v += ENC_WG)
                 STORE_HALF3(load4(nrm, vbase + v), v, o);
+        }
+    } else if (enc == ENC_PREDICTIVE) {
+        const float inv = as_float(r[ENC_ROW_INVSTEP]);
+        const uint ci = r[ENC_ROW_CLOTH];
+        const uint order = (uint)pred[3 * ci];
+        __global uchar *pd = st + PH_DATA;
+        for (uint v = lid; v < n; v += ENC_WG)
+            vstore3(quantise3(LOAD3(pos, vbase + v), inv), vbase + v, qcur);
+        barrier(CLK_GLOBAL_MEM_FENCE);
+        const uint nb = (n + 31) / 32, nblk = 3 * nb;
+        const uint head = 4 * ((nblk + 3) / 4);
+        /* each work-item a contiguous share of the blocks: their widths, then their words */
+        const uint per = (nblk + ENC_WG - 1) / ENC_WG;
+        const uint b0 = min(lid * per, nblk), b1 = min(b0 + per, nblk);
+        uint wsum = 0;
+        uint z[32];
+        for (uint b = b0; b < b1; b++) {
+            block_symbols(qcur, q1, q2, vbase, n, nb, order, b, z);
+            uint m = 0;
+            for (uint j = 0; j < 32; j++)
+                m |= z[j];
+            uint w = 32 - clz(m);
+            pd[b] = (uchar)w;
+            wsum += w;
+        }
+        lsum[lid] = wsum;
+        barrier(CLK_LOCAL_MEM_FENCE);
+        if (lid == 0) {
+            uint acc = 0;
+            for (uint i = 0; i < ENC_WG; i++) {
+                uint t = lsum[i];
+                lsum[i] = acc;
+                acc += t;
+            }
+            lsum[ENC_WG] = acc;
+        }
+        barrier(CLK_LOCAL_MEM_FENCE);
+        __global uint *words = (__global uint *)(pd + head) + lsum[lid];
+        for (uint b = b0; b < b1; b++) {
+            uint w = pd[b];
+            if (!w)
+                continue;
+            block_symbols(qcur, q1, q2, vbase, n, nb, order, b, z);
+            uint cur = 0, fill = 0;
+            for (uint j = 0; j < 32; j++) {
+                cur |= z[j] << fill;
+                fill += w;
+                if (fill >= 32) {
+                    *words++ = cur;
+                    fill -= 32;
+                    cur = fill ? z[j] >> (w - fill) : 0u;
+                }
+            }
+        }
+        const uint dsize = head + 4 * lsum[ENC_WG];
+        if (has_nrm) {
+            __global short *on = (__global short *)(pd + dsize);
+            for (uint v = lid; v < n; v += ENC_WG)
+                vstore3(snorm4(load4(nrm, vbase + v)).xyz, v, on);
+        }
+        if (lid == 0) {
+            __global const ulong *pc = pred + 3 * ci;
+            st[PH_ORDER] = (uchar)order;
+            *(__global ulong *)(st + PH_REF1) = pc[1];
+            *(__global ulong *)(st + PH_REF2) = pc[2];
+            *(__global uint *)(st + PH_SIZE) = dsize;
+            const uint size = PH_DATA + dsize + (has_nrm ? 6 * n : 0);
+            uint eo = r[ENC_ROW_ENTRY];
+            if (eo != ENC_NONE)
+                *(__global uint *)(out + eo) = size;
+            for (uint e = size; e & 7; e++) /* zeros up to the next entry (a bundle's padding) */
+                st[e] = 0;
         }
     } else {
         float4 lo4 = (float4)(lo, lo.x), hi4 = (float4)(hi, hi.x);

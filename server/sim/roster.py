@@ -32,8 +32,9 @@ class Roster:
 
     @property
     def predictive(self) -> bool:
-        """Whether a cloth of this roster is published with the predictive encoding (1.5):
-        its frames are encoded on the host (the device encoder does not code them yet)."""
+        """Whether a cloth of this roster is published with the predictive encoding (1.5): its
+        states are coded against streams (statecodec.PredictiveStreams on the host path,
+        opencl/devstreams.DeviceStreams on the device's)."""
         return P.ENC_PREDICTIVE in self.encodings
 
     def publications(self) -> list[tuple[str, str, list[int], bool]]:

@@ -31,6 +31,7 @@ from __future__ import annotations
 import threading
 import zlib
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -49,6 +50,31 @@ def bundle_bytes(entries: list[tuple[str, int]]) -> int:
     return P.BUNDLE_HEADER_SIZE + sum(P.bundle_entry_header_size(c) + P.align8(n) for c, n in entries)
 
 
+#: A requested keyframe waits until this many ticks have passed since the stream's last one
+#: (requests from many subscribers, or a hostile one asking every tick, cost one keyframe).
+MIN_REQUESTED_GAP = 6
+
+
+def keyframe_rule(
+    tick: Any, key_tick: Any, step: Any, old_step: Any, reset: Any, requested: Any, interval: int
+) -> tuple[Any, Any]:
+    """The one copy of the keyframe rules (the host's streams and the device encoder's, one
+    cloth's scalars or a whole frame's arrays alike): (keyframe due, request kept for a later
+    tick). A keyframe when a stream starts (its ``key_tick`` far in the past, its ``old_step``
+    0), every ``interval`` ticks, after a reset, on a new step and when a subscriber asked
+    (at most one every :data:`MIN_REQUESTED_GAP` ticks: an earlier request is kept)."""
+    since = tick - key_tick
+    granted = requested & (since >= MIN_REQUESTED_GAP)
+    return granted | reset | (step != old_step) | (since >= interval), requested ^ granted
+
+
+def stream_phase(cloth: str, interval: int) -> int:
+    """Ticks a new stream's periodic keyframes are shifted by (its key tick is set this much in
+    the past): cloths added together do not all send theirs in one tick (16 capes' keyframes at
+    once queued 110 ms on a 20 Mbit/s link)."""
+    return zlib.crc32(cloth.encode()) % interval
+
+
 @dataclass(eq=False)
 class _Stream:
     """One predictive stream: the decoders' last two states, its step and its last keyframe."""
@@ -62,9 +88,7 @@ class PredictiveStreams:
     """Every predictive cloth's stream (by cloth id), kept from frame to frame by the publisher.
     ``request`` may be called from any thread (a keyframe query); the rest from the publisher's."""
 
-    #: A requested keyframe waits until this many ticks have passed since the stream's last one
-    #: (requests from many subscribers, or a hostile one asking every tick, cost one keyframe).
-    MIN_REQUESTED_GAP = 6
+    MIN_REQUESTED_GAP = MIN_REQUESTED_GAP
 
     def __init__(self, keyframe_interval: int = 60) -> None:
         self.keyframe_interval = keyframe_interval
@@ -85,22 +109,20 @@ class PredictiveStreams:
 
     def start(self, cloth: str, tick: int, step: float, reset: bool, requested: bool) -> tuple[_Stream, int]:
         """The stream of ``cloth`` about to code its state at ``tick``, and that state's order
-        (0: a keyframe, when due; the stream's history then starts afresh)."""
+        (0: a keyframe, when due (:func:`keyframe_rule`); the stream's history then starts afresh)."""
         s = self.streams.get(cloth)
         new = s is None
         if s is None:
             s = self.streams[cloth] = _Stream()
-        if requested and tick - s.key_tick < self.MIN_REQUESTED_GAP:
+        keyframe, kept = keyframe_rule(tick, s.key_tick, step, s.step, reset, requested, self.keyframe_interval)
+        if kept:
             self.request([cloth])  # kept for a later tick
-            requested = False
-        keyframe = requested or reset or step != s.step or tick - s.key_tick >= self.keyframe_interval
         if keyframe:
             s.key_tick, s.step = tick, step
             s.history.clear()
             self.keyframes += 1
-        if new:  # its periodic keyframes at a phase of its own: cloths added together do not all
-            # send theirs in one tick (16 capes' keyframes at once queued 110 ms on a 20 Mbit/s link)
-            s.key_tick = tick - zlib.crc32(cloth.encode()) % self.keyframe_interval
+        if new:
+            s.key_tick = tick - stream_phase(cloth, self.keyframe_interval)
         return s, s.history.order()
 
     def keep_only(self, cloths: set[str]) -> None:

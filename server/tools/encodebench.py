@@ -11,6 +11,14 @@ one float4 device buffer (as the world holds them) and, for each encoding, times
 
 Medians over ``--repeat`` frames after a warm-up; the first frame of both paths is compared byte
 for byte. ``--bundle B`` puts B cloths in each bundle (0: every cloth on its own key).
+
+``--encoding predictive`` (protocol 1.5, ``--step`` metres): the cloths sway (a smooth motion, a
+new position upload before each frame, not timed) and both paths code every frame against their
+streams: the host's FrameEncoder with its PredictiveStreams, the device's encoder with
+devstreams.DeviceStreams' decisions (a keyframe every ``--keyframe-interval`` frames); the device
+time then includes the compaction of the predictive states out of their largest-size slots
+(EncodedFrame.payloads: one gather, one ``bytes`` per publication, as the service publishes). Every
+warm-up frame and the first timed one are compared byte for byte; ``wire MB`` is what goes out.
 """
 
 from __future__ import annotations
@@ -26,12 +34,29 @@ import pyopencl as cl
 from drape.client import protocol as P
 
 from ..sim.opencl.device import Device
+from ..sim.opencl.devstreams import DeviceStreams
 from ..sim.opencl.encode import ClothEntry, DeviceEncoder, FramePlan, Publication
-from ..sim.statecodec import FrameEncoder
+from ..sim.statecodec import FrameEncoder, PredictiveStreams
 
 log = logging.getLogger(__name__)
 
-ENCODINGS = {"float32": P.ENC_FLOAT32, "float16": P.ENC_FLOAT16, "quant16": P.ENC_QUANT16}
+ENCODINGS = {
+    "float32": P.ENC_FLOAT32,
+    "float16": P.ENC_FLOAT16,
+    "quant16": P.ENC_QUANT16,
+    "predictive": P.ENC_PREDICTIVE,
+}
+
+
+def _sway(pos: np.ndarray, frame: int) -> np.ndarray:
+    """The world's positions at ``frame``: every vertex swaying smoothly (up to 5 cm a frame,
+    with a phase along the cloth), as a cape on a running character moves."""
+    out = pos.copy()
+    t = 0.1 * frame
+    phase = np.arange(len(pos), dtype=np.float32) * np.float32(0.01)
+    out[:, 0] += np.float32(0.5) * np.sin(t + phase)
+    out[:, 1] += np.float32(0.2) * np.sin(0.7 * t + 2 * phase)
+    return out
 
 
 def _world(rng: np.random.Generator, cloths: int, side: int) -> tuple[np.ndarray, np.ndarray]:
@@ -62,7 +87,15 @@ def _publications(n: int, bundle: int) -> list[Publication]:
 class HostPath:
     """What the service does today: readback, gather, FrameEncoder into per-key bytearrays."""
 
-    def __init__(self, dev: Device, pos_buf: cl.Buffer, plan: FramePlan, side: int, nrm_host: np.ndarray | None):
+    def __init__(
+        self,
+        dev: Device,
+        pos_buf: cl.Buffer,
+        plan: FramePlan,
+        side: int,
+        nrm_host: np.ndarray | None,
+        keyframe_interval: int = 60,
+    ):
         self.dev, self.pos_buf, self.plan = dev, pos_buf, plan
         self.k, self.nv = len(plan.cloths), side * side
         # pinned host memory, as the world reads frames back into
@@ -77,7 +110,9 @@ class HostPath:
             is_blocking=True,
         )
         self.offsets = np.arange(self.k + 1, dtype=np.int64) * self.nv
-        self.encoder = FrameEncoder()
+        self.encoder = FrameEncoder(streams=PredictiveStreams(keyframe_interval))
+        self.ids = [c.cloth for c in plan.cloths]
+        self.steps = [c.step for c in plan.cloths]
         self.bufs = [bytearray(int(s)) for s in plan.pub_size.tolist()]
         self.nrm = [
             None if nrm_host is None else nrm_host[i * self.nv : (i + 1) * self.nv, :3].copy() for i in range(self.k)
@@ -93,13 +128,26 @@ class HostPath:
         t2 = time.perf_counter()
         enc = self.encoder
         enc.begin(tick, time_ns, pos, self.offsets)
-        enc.prepare(list(range(self.k)), self.encs)
-        for pub, buf in zip(self.plan.publications, self.bufs, strict=True):
+        every = list(range(self.k))
+        enc.prepare(every, self.encs)
+        pred = P.ENC_PREDICTIVE in self.encs
+        if pred:  # coded against the streams; sizes then exact (the service's KeyBuffers resize)
+            enc.prepare_predictive(every, self.ids, self.encs, self.steps, [0] * self.k)
+        for j, pub in enumerate(self.plan.publications):
+            buf = self.bufs[j]
             if pub.bundle:
                 entries = [(self.plan.cloths[i].cloth, i, self.encs[i], 0, self.nrm[i]) for i in pub.cloths]
+                if pred:
+                    size = enc.bundle_size([(c, i, e, n is not None) for c, i, e, _, n in entries])
+                    if len(buf) != size:
+                        buf = self.bufs[j] = bytearray(size)
                 enc.write_bundle(buf, entries)
             else:
                 i = pub.cloths[0]
+                if pred:
+                    size = enc.state_size(i, self.encs[i], self.nrm[i] is not None)
+                    if len(buf) != size:
+                        buf = self.bufs[j] = bytearray(size)
                 enc.write_state(buf, 0, i, self.encs[i], 0, self.nrm[i])
         t3 = time.perf_counter()
         for name, dt in zip(self.parts, (t1 - t0, t2 - t1, t3 - t2), strict=True):
@@ -118,6 +166,8 @@ def run(
     dev: Device,
     seed: int = 1,
     local_size: int | None = None,
+    step: float = P.DEFAULT_STEP,
+    keyframe_interval: int = 60,
 ) -> dict[str, float]:
     rng = np.random.default_rng(seed)
     nv = side * side
@@ -125,30 +175,44 @@ def run(
     pos_buf = cl.Buffer(dev.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=pos)
     nrm_buf = cl.Buffer(dev.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=nrm)
     encs = [ENCODINGS[encoding]] * cloths if encoding != "mixed" else [i % 3 for i in range(cloths)]
-    entries = [ClothEntry(f"c{i:05d}", i * nv, nv, encs[i], normals) for i in range(cloths)]
+    entries = [ClothEntry(f"c{i:05d}", i * nv, nv, encs[i], normals, step) for i in range(cloths)]
     plan = FramePlan.build(entries, _publications(cloths, bundle))
-    host = HostPath(dev, pos_buf, plan, side, nrm if normals else None)
+    predictive = bool(plan.predictive.any())
+    host = HostPath(dev, pos_buf, plan, side, nrm if normals else None, keyframe_interval)
     pq = cl.CommandQueue(dev.ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
     denc = DeviceEncoder(dev, local_size=local_size)
     denc.set_plan(plan)
+    streams = DeviceStreams(keyframe_interval)
+    streams.follow(plan)
+    every = list(range(len(plan.publications)))
     flags = np.zeros(cloths, np.uint16)
     host_t: list[float] = []
     dev_t: list[float] = []
     kern_t: list[float] = []
     copy_t: list[float] = []
-    same = None
+    wire: list[int] = []
+    same = True
     for f in range(warmup + repeat):
+        if predictive:  # a motion to predict: new positions (not timed)
+            cl.enqueue_copy(dev.queue, pos_buf, _sway(pos, f), is_blocking=True)
         t0 = time.perf_counter()
         hb = host.frame(f, 1000 + f)
         t1 = time.perf_counter()
-        copy_ev = denc.encode(pq, pos_buf, nrm_buf if normals else None, f, 1000 + f, flags)
-        views = denc.slices()
+        pred = streams.decide(f, flags)[0] if predictive else None
+        copy_ev = denc.encode(pq, pos_buf, nrm_buf if normals else None, f, 1000 + f, flags, predictive=pred)
+        if predictive:
+            frame = denc.hold()
+            views: list = [b for _, b in frame.payloads(every)]
+            frame.release()
+        else:
+            views = denc.slices()
         t2 = time.perf_counter()
-        if f == 0:
+        if f <= (warmup if predictive else 0):
             differ = sum(bytes(a) != bytes(b) for a, b in zip(hb, views, strict=True))
-            same = differ == 0
+            same = same and differ == 0
             if differ:
                 log.warning("%s: %d of %d publications differ between host and device", encoding, differ, len(hb))
+        wire.append(sum(len(v) for v in views))
         if f >= warmup:
             host_t.append(t1 - t0)
             dev_t.append(t2 - t1)
@@ -167,6 +231,7 @@ def run(
         "kernel_ms": med(kern_t),
         "copy_ms": med(copy_t),
         "frame_mb": plan.size / 1e6,
+        "wire_mb": statistics.median(wire[warmup:] or wire) / 1e6,
         "same": bool(same),
     }
 
@@ -186,6 +251,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--normals", action="store_true", help="normals in every state")
     ap.add_argument("--repeat", type=int, default=20, help="timed frames (median)")
     ap.add_argument("--warmup", type=int, default=3)
+    ap.add_argument("--step", type=float, default=P.DEFAULT_STEP, help="predictive: grid step, metres")
+    ap.add_argument("--keyframe-interval", type=int, default=60, help="predictive: frames between keyframes")
     ap.add_argument("--local-size", type=int, default=None, help="encoder work-group size (default: per device)")
     ap.add_argument("--device", default=None, help="DRAPE_DEVICE: auto, gpu, cpu or part of a name")
     args = ap.parse_args(argv)
@@ -197,16 +264,27 @@ def main(argv: list[str] | None = None) -> int:
         f"median ms per frame over {args.repeat} frames"
     )
     print(
-        f"{'encoding':9} {'cloths':>6} {'MB':>7} | {'host':>8} {'readback':>8} {'gather':>7} {'encode':>7} | "
+        f"{'encoding':10} {'cloths':>6} {'MB':>7} {'wire MB':>7} | "
+        f"{'host':>8} {'readback':>8} {'gather':>7} {'encode':>7} | "
         f"{'device':>7} {'kernel':>7} {'copy':>7} | {'speed-up':>8} same"
     )
     for n in args.cloths:
         for e in args.encoding:
             r = run(
-                e, n, args.side, args.bundle, args.normals, args.repeat, args.warmup, dev, local_size=args.local_size
+                e,
+                n,
+                args.side,
+                args.bundle,
+                args.normals,
+                args.repeat,
+                args.warmup,
+                dev,
+                local_size=args.local_size,
+                step=args.step,
+                keyframe_interval=args.keyframe_interval,
             )
             print(
-                f"{e:9} {n:6d} {r['frame_mb']:7.2f} | {r['host_ms']:8.2f} {r['readback_ms']:8.2f} "
+                f"{e:10} {n:6d} {r['frame_mb']:7.2f} {r['wire_mb']:7.2f} | {r['host_ms']:8.2f} {r['readback_ms']:8.2f} "
                 f"{r['gather_ms']:7.2f} {r['encode_ms']:7.2f} | {r['device_ms']:7.2f} {r['kernel_ms']:7.2f} "
                 f"{r['copy_ms']:7.2f} | {r['host_ms'] / r['device_ms']:7.1f}x {'yes' if r['same'] else 'NO'}",
                 flush=True,

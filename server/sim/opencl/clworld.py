@@ -25,7 +25,7 @@ non-blocking copy brings it into a host buffer mapped from ``ALLOC_HOST_PTR`` me
 where the driver does that), reused from tick to tick. ``frame_async`` returns at once; its
 ``wait`` waits on that copy's event only (frames.py). Built with ``device_encode``, a tick's
 ``fetch_async(roster, tick)`` is encoded on the device instead, straight from the float4 ``pos``
-and ``nrm`` buffers (devencode.py), unless its roster has predictive states (host-encoded).
+and ``nrm`` buffers (devencode.py), predictive states (1.5) included.
 """
 
 from __future__ import annotations
@@ -124,7 +124,7 @@ class CLWorld(World):
 
     # --- a tick's output ---------------------------------------------------------------------
     def fetch_async(self, roster: Roster, tick: int) -> PendingWire:
-        if self.device_frames is not None and not roster.predictive:
+        if self.device_frames is not None:
             return self.device_frames.encode(roster, tick, self.layout(), self.steps)
         return super().fetch_async(roster, tick)
 

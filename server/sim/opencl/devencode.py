@@ -13,6 +13,13 @@ memory.
 Non-finite cloths show as non-finite bounds in their headers (``DeviceEncoder.nonfinite``);
 once the World has reset them, :meth:`DeviceWire.reset` writes their rest normals and encodes
 the frame again with the reset flag: the same bytes the host path publishes.
+
+Predictive cloths (protocol 1.5) are coded here too: devstreams.DeviceStreams decides each
+stream's order and reference ticks per tick (the host path's rules), the kernel codes it against
+the history the encoder keeps on the device. A cloth reset on the tick thread after its frame was
+encoded (:meth:`DeviceWire.add_flags`, :meth:`DeviceWire.reset`) is coded again as a keyframe;
+the publisher's news (keyframe requests, states nobody watched, frames it dropped) reach the
+streams through :meth:`DeviceWire.payloads` and :meth:`DeviceWire.release`.
 """
 
 from __future__ import annotations
@@ -33,6 +40,7 @@ from ..statecodec import PredictiveStreams
 from ..wire import Payload, PendingWire, Wire
 from .buffers import ClothSlot, DeviceMemory
 from .device import Device
+from .devstreams import DeviceStreams
 from .encode import ClothEntry, DeviceEncoder, EncodedFrame, FramePlan, Publication
 from .frames import FrameReadback, device_span
 
@@ -47,8 +55,11 @@ class DeviceFrames:
     def __init__(self, dev: Device, mem: DeviceMemory, rec: dict[int, ClothSlot], readback: FrameReadback) -> None:
         self.dev, self.mem, self.rec, self.readback = dev, mem, rec, readback
         self.encoder = DeviceEncoder(dev, stride=4)
+        self.streams = DeviceStreams()
         self._plan_version: tuple[int, int] | None = None
         self.plans = 0  # plans built (the tests count them)
+        self.frames = 0  # frames encoded
+        self.predictive_frames = 0  # of which with predictive states (issue 21: no host fallback)
 
     def build_all(self) -> None:
         """Every program a plan may pick, built now (the tick thread never compiles)."""
@@ -59,14 +70,17 @@ class DeviceFrames:
             return
         counts = np.diff(lay.offsets).tolist()
         rec = self.rec
+        steps = roster.steps if len(roster.steps) == len(roster.ids) else [P.DEFAULT_STEP] * len(roster.ids)
         cloths = [
-            ClothEntry(cid, rec[h].vbase, n, enc, bool(nr))
-            for cid, h, n, enc, nr in zip(
-                roster.ids, lay.handles.tolist(), counts, roster.encodings, roster.normals.tolist(), strict=True
+            ClothEntry(cid, rec[h].vbase, n, enc, bool(nr), st)
+            for cid, h, n, enc, nr, st in zip(
+                roster.ids, lay.handles.tolist(), counts, roster.encodings, roster.normals.tolist(), steps, strict=True
             )
         ]
         pubs = [Publication(key, tuple(idx), bundle) for _, key, idx, bundle in roster.publications()]
-        self.encoder.set_plan(FramePlan.build(cloths, pubs))
+        plan = FramePlan.build(cloths, pubs)
+        self.encoder.set_plan(plan)
+        self.streams.follow(plan)
         self._plan_version = roster.version
         self.plans += 1
 
@@ -75,16 +89,24 @@ class DeviceFrames:
         the step (its server time is set once read back)."""
         self._plan(roster, lay)
         mem = self.mem
-        ev = self.encoder.encode(self.dev.queue, mem.pos.buf, mem.nrm.buf, tick, 0, None)
+        assert self.encoder.plan is not None
+        pred = keyframes = None
+        if self.encoder.plan.predictive.any():
+            pred, keyframes = self.streams.decide(tick, None)
+            self.predictive_frames += 1
+        ev = self.encoder.encode(self.dev.queue, mem.pos.buf, mem.nrm.buf, tick, 0, None, predictive=pred)
+        self.frames += 1
         frame = Frame(step, lay, np.zeros((0, 3), np.float32), None)
         pending = PendingFrame(frame, ev.wait, device_span(self.readback.step_marker, ev))
-        return PendingWire(pending, lambda f: DeviceWire(f, roster, tick, self))
+        return PendingWire(pending, lambda f: DeviceWire(f, roster, tick, self, keyframes))
 
     def reencode(
         self, old: EncodedFrame, tick: int, time_ns: int, flags: np.ndarray, reset: list[tuple[int, Fabric]]
-    ) -> EncodedFrame:
+    ) -> tuple[EncodedFrame, np.ndarray | None]:
         """The frame encoded again after the World reset some cloths (``reset``: (handle,
-        fabric) of those carrying normals, whose rest normals are written first)."""
+        fabric) of those carrying normals, whose rest normals are written first); its
+        predictive cloths' decisions taken again with ``flags`` (reset: keyframes). Returns the
+        frame and its keyframes."""
         mem = self.mem
         for h, fabric in reset:
             n = fabric.n_vertices
@@ -93,9 +115,13 @@ class DeviceFrames:
             mem.nrm.write(self.rec[h].vbase, nrm)
         old.release()
         t = time.perf_counter()
-        self.encoder.encode(self.dev.queue, mem.pos.buf, mem.nrm.buf, tick, time_ns, flags).wait()
+        pred = keyframes = None
+        assert self.encoder.plan is not None
+        if self.encoder.plan.predictive.any():
+            pred, keyframes = self.streams.redo(tick, flags)
+        self.encoder.encode(self.dev.queue, mem.pos.buf, mem.nrm.buf, tick, time_ns, flags, predictive=pred).wait()
         log.debug("frame of tick %d encoded again after resets in %.3f ms", tick, 1e3 * (time.perf_counter() - t))
-        return self.encoder.hold()
+        return self.encoder.hold(), keyframes
 
     def close(self) -> None:
         self.encoder.close()
@@ -104,19 +130,38 @@ class DeviceFrames:
 class DeviceWire(Wire):
     """A tick's payloads as encoded on the device: slices of pinned host memory, held until released."""
 
-    def __init__(self, frame: Frame, roster: Roster, tick: int, frames: DeviceFrames) -> None:
+    def __init__(
+        self, frame: Frame, roster: Roster, tick: int, frames: DeviceFrames, keyframes: np.ndarray | None
+    ) -> None:
         super().__init__(frame, roster, tick)
         self._frames = frames
         self.encoded = frames.encoder.hold()
         self._bad = frames.encoder.nonfinite()
+        self._keyframes = keyframes  # (k,) bool, predictive plans only
+        self._put = False  # payloads taken (else, at release, its predictive states were lost)
 
     def set_time(self, time_ns: int) -> None:
         super().set_time(time_ns)
         self.encoded.set_time(self.time_ns)
 
     def add_flags(self, cloths: np.ndarray, flag: int) -> None:
+        """On the tick thread, before the next frame is encoded: a predictive cloth reset is
+        coded again as a keyframe (the whole frame encoded again, as after a non-finite step)."""
         super().add_flags(cloths, flag)
-        self.encoded.add_flags(np.asarray(cloths).tolist(), flag)
+        plan = self.encoded.plan
+        if flag & P.FLAG_RESET and plan.predictive[np.asarray(cloths, np.int64)].any():
+            self.encoded, self._keyframes = self._frames.reencode(self.encoded, self.tick, self.time_ns, self.flags, [])
+        else:
+            self.encoded.add_flags(np.asarray(cloths).tolist(), flag)
+
+    def carry_flags(self, older: Wire) -> None:
+        """On the publisher's thread: the header flags only (the older frame's predictive
+        states were lost with it, so these streams' next states are keyframes anyway)."""
+        if older.roster.version == self.roster.version:
+            bad = np.flatnonzero(older.flags & P.FLAG_RESET)
+            if len(bad):
+                Wire.add_flags(self, bad, P.FLAG_RESET)
+                self.encoded.add_flags(bad.tolist(), P.FLAG_RESET)
 
     def nonfinite(self) -> np.ndarray:
         return self._bad
@@ -130,7 +175,9 @@ class DeviceWire(Wire):
             if h in live and lay.normals[i]:
                 normals.append((h, fabric))
         # the frame again, the reset cloths at rest with the reset flag (as the host path publishes)
-        self.encoded = self._frames.reencode(self.encoded, self.tick, self.time_ns, self.flags, normals)
+        self.encoded, self._keyframes = self._frames.reencode(
+            self.encoded, self.tick, self.time_ns, self.flags, normals
+        )
         self._bad = np.zeros(0, np.int64)
 
     def sizes(self) -> list[int]:
@@ -141,10 +188,24 @@ class DeviceWire(Wire):
         way, see issue 10's figures). Measured against it on the H100 (docs/loadtest.md, session
         12): copying into a ``bytearray`` kept per key doubled the copy and put phases (3.5 ->
         6.1 and 9.8 -> 17.4 ms a tick at 2048 float32)."""
-        views = self.encoded.views
-        for j in watched:
-            yield j, bytes(views[j])
+        self._put = True
+        enc = self.encoded
+        plan = enc.plan
+        if self._keyframes is not None:  # 1.5: what the publisher knows reaches the streams
+            ds = self._frames.streams
+            ds.keyframe_interval = streams.keyframe_interval
+            ds.request(streams.take_requests())
+            shown = np.zeros(len(plan.publications) + 1, bool)  # [-1]: no publication
+            shown[np.asarray(watched, np.int64)] = True
+            seen = shown[plan.owner]
+            ds.lost(plan, np.flatnonzero(plan.predictive & ~seen))
+            streams.keyframes += int((self._keyframes & seen).sum())
+        yield from enc.payloads(watched)
 
     def release(self) -> None:
+        if not self._put and self._keyframes is not None:  # a dropped frame: its states never went out
+            plan = self.encoded.plan
+            self._frames.streams.lost(plan, np.flatnonzero(plan.predictive))
+        self._put = True
         self.encoded.release()
         super().release()

@@ -17,7 +17,7 @@ from dataclasses import fields
 import numpy as np
 import pyopencl as cl
 
-from drape.client.protocol.vocabulary import ENCODING_IDS, STATELESS_ENCODINGS
+from drape.client.protocol.vocabulary import ENCODING_IDS
 
 from ..fabric import cook_grid
 from ..params import Capsule, ClothParams, Features, LinkOptions, Sphere, pack_colliders
@@ -73,7 +73,7 @@ def _exercise(dev: cl.Device, lanes: int) -> None:
 
     _stage("encode_frame (kernels/encode.cl)")
     world = CLWorld("workgroup", device=d, pack_lanes=lanes if not gpu else 0)
-    encodings = [ENCODING_IDS[e] for e in STATELESS_ENCODINGS]  # what the device encoder writes
+    encodings = list(ENCODING_IDS.values())  # what the device encoder writes, predictive (1.5) included
     hs = [world.add(fabric, ClothParams(features=Features(normals=True))) for _ in encodings]
     world.step(1 / 60)
     world.sync()
@@ -84,7 +84,7 @@ def _exercise(dev: cl.Device, lanes: int) -> None:
     pubs = [Publication("s", (0,)), Publication("b", tuple(range(1, len(cloths))), True)]
     enc = DeviceEncoder(d)
     enc.set_plan(FramePlan.build(cloths, pubs))
-    enc.encode(d.queue, world.mem.pos.buf, world.mem.nrm.buf, 1, 1)
+    enc.encode(d.queue, world.mem.pos.buf, world.mem.nrm.buf, 1, 1, predictive=np.zeros((len(cloths), 3), np.uint64))
     if not all(len(s) for s in enc.slices()):
         raise RuntimeError("the encoder wrote an empty publication")
     enc.close()

@@ -32,6 +32,16 @@ first row in a packed xyz buffer (``stride=3``). A frame's views stay valid unti
 :meth:`DeviceEncoder.hold` keeps a frame from reuse until it is released (the service's
 publisher holds the frame it publishes while the next ones are encoded).
 
+Predictive states (protocol 1.5) are coded against the history the encoder keeps on the device
+(three buffers of grid values per position-buffer vertex, whose roles rotate per tick), with the
+order and reference ticks devstreams.DeviceStreams decides per tick (``encode(predictive=...)``).
+Their size varies, so each is written into a slot of its largest size (the plan's layout stays
+fixed: one launch, no frame-wide prefix sum) and :meth:`EncodedFrame.payloads` cuts a single
+state to its size and gathers a bundle's entries back to back (one gather of 8-byte words per
+frame); the bytes equal statecodec.FrameEncoder's (the host path's) for the same streams. The
+price: the copy reads the slots whole (about 2x a quant16 frame of 32x32 cloths, while about 1/6
+of it goes on the wire); compacting on the device before the copy is the next step.
+
 The bytes equal :func:`drape.client.protocol.encode_state` / :func:`~drape.client.protocol.encode_bundle`
 (tests/sim/test_device_encode.py), with two documented exceptions:
 
@@ -44,7 +54,7 @@ The bytes equal :func:`drape.client.protocol.encode_state` / :func:`~drape.clien
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -115,6 +125,19 @@ class EncodedFrame:
             stamp = np.frombuffer(int(time_ns).to_bytes(8, "little"), np.uint8)
             self._host.data[(at[:, None] + np.arange(8)).ravel()] = np.tile(stamp, len(at))
 
+    def payloads(self, watched: Sequence[int]) -> Iterator[tuple[int, bytes]]:
+        """(publication index, its bytes) of the ``watched`` publications, in order: one
+        ``bytes`` copy of each view, or of a publication holding predictive states its compacted
+        bytes (FramePlan.compact: one gather for the frame)."""
+        if self._host is None:
+            raise RuntimeError("frame already released")
+        data = self._host.data
+        packed = self.plan.compact(data, watched) if self.plan.predictive.any() else {}
+        views = self.views
+        for j in watched:
+            c = packed.get(j)
+            yield j, c.tobytes() if c is not None else bytes(views[j])
+
     def release(self) -> None:
         if self._host is not None:
             self._host.held = False
@@ -168,6 +191,15 @@ class DeviceEncoder:
         self._table: cl.Buffer | None = None
         self._flags_buf: cl.Buffer | None = None
         self._flags = np.zeros(0, np.uint16)
+        # 1.5 predictive: per plan cloth (order, ref tick, ref2 tick) of this tick, and the grid
+        # values of the last three encoded ticks per position-buffer vertex (3 int32 each): this
+        # tick's, and the two states the decoders hold; their roles rotate once per new tick
+        self._pred_buf: cl.Buffer | None = None
+        self._pred = np.zeros((0, 3), np.uint64)
+        self._hist: list[cl.Buffer] = []
+        self._hist_cap = 0  # vertices
+        self._hist_tick: int | None = None
+        self._rot = 0
         self._hosts: list[_HostFrame] = []
         self._next = 0
         self._last: _HostFrame | None = None
@@ -222,8 +254,11 @@ class DeviceEncoder:
         table = cl.Buffer(ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=rows)
         flags = np.zeros(max(len(plan.cloths), 1), np.uint16)
         flags_buf = cl.Buffer(ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=flags)
+        pred_buf = cl.Buffer(ctx, MF.READ_ONLY, 24 * max(len(plan.cloths), 1))
+        self._grow_history(plan.vertex_end if plan.predictive.any() else 0)
         hosts = [self._host_frame(plan) for _ in range(self._host_buffers)]
         self._release_hosts()
+        self._pred_buf, self._pred = pred_buf, np.zeros((0, 3), np.uint64)
         self._kernel, self._wg, self._out, self._table = kernel, wg, out, table
         self._flags, self._flags_buf = flags, flags_buf
         self._hosts, self._next = hosts, 0
@@ -235,6 +270,18 @@ class DeviceEncoder:
             plan.size,
             wg,
         )
+
+    def _grow_history(self, vertices: int) -> None:
+        """The predictive history buffers hold ``vertices`` position-buffer vertices (grown,
+        their contents kept: the streams go on across plans)."""
+        if self._hist and vertices <= self._hist_cap:
+            return
+        cap = max(vertices, 2 * self._hist_cap, 1)
+        new = [cl.Buffer(self.dev.ctx, MF.READ_WRITE, 12 * cap) for _ in range(3)]
+        for old, nb in zip(self._hist, new, strict=False):
+            cl.enqueue_copy(self.dev.queue, nb, old, byte_count=12 * self._hist_cap)
+        self.dev.queue.finish()
+        self._hist, self._hist_cap = new, cap
 
     def _host_frame(self, plan: FramePlan) -> _HostFrame:
         """One pinned (ALLOC_HOST_PTR, mapped for good) host copy of a frame of ``plan``."""
@@ -271,8 +318,13 @@ class DeviceEncoder:
         time_ns: int,
         flags: np.ndarray | None = None,
         wait_for: Sequence[cl.Event] | None = None,
+        predictive: np.ndarray | None = None,
     ) -> cl.Event:
         """Enqueue this tick's frame: one launch, one copy into the next pinned host buffer.
+        ``predictive`` (plan cloths, 3) uint64: each predictive cloth's (order, ref tick, ref2
+        tick) this tick (devstreams.DeviceStreams decides them); required when the plan has
+        predictive cloths. Encoding the same tick again (after resets) codes it against the same
+        history; a new tick makes the last one's grid values the decoders' newest state.
         ``positions`` / ``normals``: device buffers (``stride`` floats per vertex) holding every
         plan cloth's range;
         ``flags`` (plan cloths,) state flags (FLAG_RESET...; FLAG_NORMALS is set per the plan),
@@ -306,14 +358,38 @@ class DeviceEncoder:
             events.append(cl.enqueue_copy(queue, self._flags_buf, self._flags, is_blocking=False))
         if self._last is not None and self._last.event is not None:
             events.append(self._last.event)  # frames in order even when callers use several queues
+        if plan.predictive.any():
+            assert self._pred_buf is not None
+            if predictive is None:
+                raise ValueError("the plan has predictive cloths: give each its order and reference ticks")
+            pr = np.ascontiguousarray(predictive, np.uint64)
+            if pr.shape != (k, 3):
+                raise ValueError(f"predictive of shape {pr.shape}; the plan has {k} cloths")
+            self._pred = pr  # kept: the upload may still read it
+            events.append(cl.enqueue_copy(queue, self._pred_buf, pr, is_blocking=False))
+            if tick != self._hist_tick:
+                self._rot = (self._rot + 1) % 3
+                self._hist_tick = tick
         host = self._free_host()
         if host.event is not None:
             host.event.wait()  # its last copy (normally long done)
         n_rows = len(plan.rows)
         if n_rows:
             nb = normals if normals is not None else positions
+            h = self._hist
+            r = self._rot
             self._kernel.set_args(
-                positions, nb, self._table, self._flags_buf, np.uint64(tick), np.uint64(time_ns), self._out
+                positions,
+                nb,
+                self._table,
+                self._flags_buf,
+                np.uint64(tick),
+                np.uint64(time_ns),
+                self._out,
+                self._pred_buf,
+                h[r],
+                h[(r + 2) % 3],
+                h[(r + 1) % 3],
             )
             ev = cl.enqueue_nd_range_kernel(
                 queue, self._kernel, (n_rows * self._wg,), (self._wg,), wait_for=events or None

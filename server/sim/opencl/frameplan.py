@@ -36,13 +36,15 @@ def state_size(n: int, encoding: int, normals: bool) -> int:
 @dataclass(frozen=True)
 class ClothEntry:
     """One cloth of a plan: its id, vertex range ``[vbase, vbase + n)`` in the world's float4
-    position (and normal) buffers, protocol encoding id and whether normals follow."""
+    position (and normal) buffers, protocol encoding id, whether normals follow and (predictive,
+    1.5) its grid step in metres."""
 
     cloth: str
     vbase: int
     n: int
     encoding: int = P.ENC_FLOAT32
     normals: bool = False
+    step: float = P.DEFAULT_STEP
 
 
 @dataclass(frozen=True)
@@ -72,6 +74,13 @@ class FramePlan:
     normals: bool = False  # whether any row reads normals
     _bounds_at: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     _time_at: np.ndarray | None = None
+    _segments: tuple[np.ndarray, ...] | None = None
+    predictive: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # (k,) coded predictively (1.5)
+    owner: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (k,) publication, -1 for none
+    _sizes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (k,) each state's largest size
+    _pred_extra: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # header and normals bytes
+    _single_pred: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # (P,) a single predictive state
+    _single_cloth: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (P,) its cloth
 
     @property
     def size(self) -> int:
@@ -87,10 +96,8 @@ class FramePlan:
         for i, c in enumerate(cloths):
             if c.encoding not in P.ENCODING_NAMES:
                 raise ValueError(f"cloth {i} ({c.cloth!r}): unknown encoding {c.encoding}")
-            if P.ENCODING_NAMES[c.encoding] not in P.STATELESS_ENCODINGS:  # coded per stream: the host's
-                raise ValueError(
-                    f"cloth {i} ({c.cloth!r}): the device encoder does not write {P.ENCODING_NAMES[c.encoding]} states"
-                )
+            if c.encoding == P.ENC_PREDICTIVE and not P.STEP_RANGE[0] <= c.step <= P.STEP_RANGE[1]:
+                raise ValueError(f"cloth {i} ({c.cloth!r}): step {c.step} out of {P.STEP_RANGE}")
             if c.vbase < 0 or c.n < 0 or c.vbase + c.n >= 2**32:
                 raise ValueError(f"cloth {i} ({c.cloth!r}): bad vertex range {c.vbase}+{c.n}")
         owner = np.full(k, -1, np.int64)
@@ -121,14 +128,17 @@ class FramePlan:
                 size = P.bundle_size((cloths[i].cloth, s) for i, s in zip(idx, sizes, strict=True))
                 s_at = at + P.BUNDLE_HEADER_SIZE
                 for j, (i, s) in enumerate(zip(idx, sizes, strict=True)):
-                    s_at += P.bundle_entry_header_size(cloths[i].cloth)
+                    eh = P.bundle_entry_header_size(cloths[i].cloth)
+                    s_at += eh
                     state_offset[i] = s_at
-                    rows.append(cls._row(cloths[i], s_at, at if j == 0 else none, i))
+                    rows.append(
+                        cls._row(cloths[i], s_at, at if j == 0 else none, i, s_at - eh + HEADER_OFFSETS["BE_SIZE"])
+                    )
                     s_at += P.align8(s)
             else:
                 size = sizes[0]
                 state_offset[idx[0]] = at
-                rows.append(cls._row(cloths[idx[0]], at, none, idx[0]))
+                rows.append(cls._row(cloths[idx[0]], at, none, idx[0], none))
             pub_offset[p], pub_size[p] = at, size
             parts.append((at, pub))
             at = P.align8(at + size)
@@ -146,7 +156,15 @@ class FramePlan:
                     P.pack_bundle_entry(buf, e, c.cloth, state_size(c.n, c.encoding, c.normals))
             for i in pub.cloths:
                 c = cloths[i]
-                P.pack_state_header(buf, int(state_offset[i]), c.encoding, 0, c.n, 0, 0, (0.0,) * 3, (0.0,) * 3)
+                so = int(state_offset[i])
+                if c.encoding == P.ENC_PREDICTIVE:  # its static fields: the step, a stride of 1
+                    hs = P.PREDICTIVE_HEADER_SIZE
+                    P.pack_state_header(buf, so, c.encoding, 0, c.n, 0, 0, (0.0,) * 3, (0.0,) * 3, hs)
+                    P.PREDICTIVE_HEADER.pack_into(
+                        buf, so + P.STATE_HEADER_SIZE, float(np.float32(c.step)), 0, 1, 0, 0, 0
+                    )
+                else:
+                    P.pack_state_header(buf, so, c.encoding, 0, c.n, 0, 0, (0.0,) * 3, (0.0,) * 3)
         table = np.array(rows, np.uint32).reshape(-1, W["ENC_ROW_WORDS"])
         enc_idx = table[:, W["ENC_ROW_CLOTH"]].astype(np.int64)
         plan = cls(cloths, publications, pub_offset, pub_size, state_offset, table, template)
@@ -155,10 +173,16 @@ class FramePlan:
         plan.vertex_end = int(ends.max(initial=0))
         plan.normals = bool(table[:, W["ENC_ROW_NORMALS"]].any())
         plan._bounds_at = state_offset[enc_idx] if len(enc_idx) else np.zeros(0, np.int64)
+        plan.predictive = np.array([c.encoding == P.ENC_PREDICTIVE for c in cloths], bool)
+        plan.owner = owner
+        plan._sizes = np.array([state_size(c.n, c.encoding, c.normals) for c in cloths], np.int64)
+        plan._pred_extra = np.array([P.PREDICTIVE_HEADER_SIZE + 6 * c.n * c.normals for c in cloths], np.int64)
+        plan._single_cloth = np.array([-1 if p.bundle else p.cloths[0] for p in publications], np.int64)
+        plan._single_pred = (plan._single_cloth >= 0) & plan.predictive[np.maximum(plan._single_cloth, 0)]
         return plan
 
     @staticmethod
-    def _row(c: ClothEntry, state_at: int, bundle_at: int, index: int) -> list[int]:
+    def _row(c: ClothEntry, state_at: int, bundle_at: int, index: int, entry_at: int) -> list[int]:
         W = encode_layout()
         row = [0] * W["ENC_ROW_WORDS"]
         row[W["ENC_ROW_VBASE"]] = c.vbase
@@ -168,6 +192,11 @@ class FramePlan:
         row[W["ENC_ROW_STATE"]] = state_at
         row[W["ENC_ROW_BUNDLE"]] = bundle_at
         row[W["ENC_ROW_CLOTH"]] = index
+        if c.encoding == P.ENC_PREDICTIVE:
+            row[W["ENC_ROW_ENTRY"]] = entry_at
+            row[W["ENC_ROW_INVSTEP"]] = int(np.array(P.inverse_step(c.step), np.float32).view(np.uint32))
+        else:
+            row[W["ENC_ROW_ENTRY"]] = W["ENC_NONE"]
         return row
 
     def time_offsets(self) -> np.ndarray:
@@ -178,6 +207,68 @@ class FramePlan:
             bundles = self.pub_offset[np.array([p.bundle for p in self.publications], bool)] + HEADER_OFFSETS["BH_TIME"]
             self._time_at = np.concatenate([states, bundles]).astype(np.int64)
         return self._time_at
+
+    def state_sizes(self, data: np.ndarray) -> np.ndarray:
+        """(k,) int64: each plan cloth's state size in the encoded frame ``data`` (a predictive
+        state's from its data_size field; -1 for cloths in no publication)."""
+        sizes = self._sizes.copy()
+        pred = np.flatnonzero(self.predictive & (self.state_offset >= 0))
+        if len(pred):
+            at = self.state_offset[pred] + HEADER_OFFSETS["PH_SIZE"]
+            ds = np.ascontiguousarray(data[at[:, None] + np.arange(4)]).view("<u4").ravel().astype(np.int64)
+            sizes[pred] = self._pred_extra[pred] + ds
+        sizes[self.state_offset < 0] = -1
+        return sizes
+
+    def _segment_table(self) -> tuple[np.ndarray, ...]:
+        """The byte runs of the bundles holding a predictive state, in order: (publication,
+        source offset, fixed length, cloth whose state follows or -1); all multiples of 8."""
+        if self._segments is None:
+            segs: list[tuple[int, int, int, int]] = []
+            pred = self.predictive
+            for p, pub in enumerate(self.publications):
+                if not pub.bundle or not pred[list(pub.cloths)].any():
+                    continue
+                segs.append((p, int(self.pub_offset[p]), P.BUNDLE_HEADER_SIZE, -1))
+                for i in pub.cloths:
+                    eh = P.bundle_entry_header_size(self.cloths[i].cloth)
+                    segs.append((p, int(self.state_offset[i]) - eh, eh, i))
+            cols = list(zip(*segs, strict=True)) if segs else [()] * 4
+            self._segments = tuple(np.array(c, np.int64) for c in cols)
+        return self._segments
+
+    def compact(self, data: np.ndarray, watched: Sequence[int]) -> dict[int, np.ndarray]:
+        """The payloads of the ``watched`` publications that hold a predictive state, out of the
+        encoded frame ``data`` (whose predictive states sit in slots of their largest size): a
+        single state its slot cut to its size, a bundle's entries gathered back to back (one
+        gather of 8-byte words for the frame's bundles). Publication index -> its bytes (uint8
+        views of ``data`` or of the gathered array)."""
+        sizes = self.state_sizes(data)
+        out: dict[int, np.ndarray] = {}
+        want = np.zeros(len(self.publications), bool)
+        want[np.asarray(list(watched), np.int64)] = True
+        single = want & self._single_pred
+        for p, i in zip(np.flatnonzero(single).tolist(), self._single_cloth[single].tolist(), strict=True):
+            at = int(self.state_offset[i])
+            out[p] = data[at : at + int(sizes[i])]
+        pub, src, fix, cl = self._segment_table()
+        if not len(pub):
+            return out
+        sel = want[pub]
+        if not sel.any():
+            return out
+        pub, src, fix, cl = pub[sel], src[sel], fix[sel], cl[sel]
+        st = np.where(cl >= 0, sizes[np.maximum(cl, 0)], 0)
+        length = (fix + ((st + 7) & ~7)) >> 3  # in words of 8 bytes
+        ends = np.cumsum(length)
+        starts = ends - length
+        idx = np.repeat((src >> 3) - starts, length) + np.arange(int(ends[-1]))
+        words = data[: len(data) & ~7].view("<u8")[idx].view(np.uint8)
+        last = np.flatnonzero(np.r_[pub[1:] != pub[:-1], True])
+        first = np.r_[0, last[:-1] + 1]
+        for a, b in zip(first.tolist(), last.tolist(), strict=True):
+            out[int(pub[a])] = words[8 * int(starts[a]) : 8 * int(ends[b])]
+        return out
 
     @property
     def encoded(self) -> np.ndarray:
@@ -199,6 +290,10 @@ def _header_offsets() -> dict[str, int]:
     P.pack_state_header(st, 0, 0, 0xA5C3, 0, 0x1122334455667788, 0x99AABBCCDDEEFF10, (1.5, 2.5, 3.5), (4.5, 5.5, 6.5))
     bh = bytearray(P.BUNDLE_HEADER_SIZE)
     P.pack_bundle_header(bh, 0x1122334455667788, 0x99AABBCCDDEEFF10, 0)
+    ph = bytearray(P.PREDICTIVE_HEADER.size)
+    P.PREDICTIVE_HEADER.pack_into(ph, 0, 0.0, 0xA5, 0, 0x1122334455667788, 0x99AABBCCDDEEFF10, 0x5A6B7C8D)
+    be = bytearray(P.BUNDLE_ENTRY_SIZE + 8)
+    P.pack_bundle_entry(be, 0, "x", 0x5A6B7C8D)
     f32 = lambda x: np.float32(x).tobytes()  # noqa: E731
     return {
         "ST_FLAGS": _find(bytes(st), (0xA5C3).to_bytes(2, "little")),
@@ -209,6 +304,15 @@ def _header_offsets() -> dict[str, int]:
         "ST_DATA": P.STATE_HEADER_SIZE,
         "BH_TICK": _find(bytes(bh), (0x1122334455667788).to_bytes(8, "little")),
         "BH_TIME": _find(bytes(bh), (0x99AABBCCDDEEFF10).to_bytes(8, "little")),
+        "PH_ORDER": P.STATE_HEADER_SIZE + _find(bytes(ph), bytes([0xA5])),
+        "PH_REF1": P.STATE_HEADER_SIZE + _find(bytes(ph), (0x1122334455667788).to_bytes(8, "little")),
+        "PH_REF2": P.STATE_HEADER_SIZE + _find(bytes(ph), (0x99AABBCCDDEEFF10).to_bytes(8, "little")),
+        "PH_SIZE": P.STATE_HEADER_SIZE + _find(bytes(ph), (0x5A6B7C8D).to_bytes(4, "little")),
+        "PH_DATA": P.PREDICTIVE_HEADER_SIZE,
+        "BE_SIZE": _find(bytes(be), (0x5A6B7C8D).to_bytes(4, "little")),
+        "ENC_PREDICTIVE": P.ENC_PREDICTIVE,
+        "Q_CLAMP": 1 << 27,
+        "Q_LIMIT": P.Q_LIMIT,
         "FLAG_NORMALS": P.FLAG_NORMALS,
         "FLOAT16_MAX": int(P.FLOAT16_MAX),
         "QUANT_MAX": P.QUANT_MAX,

@@ -1,0 +1,187 @@
+"""The predictive streams of a device-encoded frame (protocol 1.5): per tick, each predictive
+cloth's order and reference ticks, decided on the host as whole-frame arrays and uploaded with the
+frame (encode.py's ``DeviceEncoder.encode(predictive=...)``); the grid values themselves stay on
+the device, in the encoder's history buffers.
+
+The rules are statecodec's (:func:`~drape.server.sim.statecodec.keyframe_rule`,
+:func:`~drape.server.sim.statecodec.stream_phase`: one copy for both paths): a keyframe when a
+stream starts, every ``keyframe_interval`` ticks (at a phase of its own), after a reset, on a new
+step, when a subscriber asked (at most one every ``MIN_REQUESTED_GAP`` ticks) and after a tick
+its state was not put (nobody watched it, or the publisher dropped the frame: the decoders lack
+that state). The device encodes every published cloth every tick, right behind the step, before
+the publisher knows who watches; so what the publisher learns (requests, states not put) reaches
+:class:`DeviceStreams` through :meth:`lost` and :meth:`request` (any thread) and applies from the
+next frame encoded. A state whose reference the decoders lack is dropped by them (its ref ticks
+say so; PROTOCOL.md 9.2), never shown.
+
+A stream lives with its cloth id in the plan; it is carried across plans while the cloth keeps
+its vertex range (its history is indexed by the position buffer's vertices).
+"""
+
+from __future__ import annotations
+
+import threading
+import zlib
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from drape.client import protocol as P
+
+from ..statecodec import keyframe_rule
+from .frameplan import FramePlan
+
+_FAR = -(1 << 62)  # a new stream's key tick: its first state is a keyframe
+
+
+@dataclass
+class _State:
+    """Every plan cloth's stream, as arrays (k,)."""
+
+    valid: np.ndarray  # bool: a stream whose decoders hold its last state
+    key_tick: np.ndarray  # int64
+    step: np.ndarray  # float64
+    since: np.ndarray  # int64, states since the keyframe, up to 2 (the order they allow)
+    tick1: np.ndarray  # int64, ticks of the last two states
+    tick2: np.ndarray
+
+    @classmethod
+    def empty(cls, k: int) -> _State:
+        z = np.zeros(k, np.int64)
+        return cls(np.zeros(k, bool), np.full(k, _FAR, np.int64), np.zeros(k), z, z.copy(), z.copy())
+
+    def copy(self) -> _State:
+        return _State(*(a.copy() for a in (self.valid, self.key_tick, self.step, self.since, self.tick1, self.tick2)))
+
+    def take(self, rows: np.ndarray, into: _State, at: np.ndarray) -> None:
+        for name in ("valid", "key_tick", "step", "since", "tick1", "tick2"):
+            getattr(into, name)[at] = getattr(self, name)[rows]
+
+
+class DeviceStreams:
+    """The predictive streams of one device encoder's plans (the World's tick thread calls
+    :meth:`follow`, :meth:`decide` and :meth:`redo`; the publisher :meth:`lost` and
+    :meth:`request`)."""
+
+    def __init__(self, keyframe_interval: int = 60) -> None:
+        self.keyframe_interval = keyframe_interval
+        self._plan: FramePlan | None = None
+        self._ids: dict[str, int] = {}
+        self._state = _State.empty(0)
+        self._pred = np.zeros(0, bool)
+        self._steps = np.zeros(0)
+        self._phase = np.zeros(0, np.int64)
+        self._lock = threading.Lock()
+        self._requested: set[str] = set()
+        self._lost: list[tuple[FramePlan, np.ndarray]] = []
+        # the last decision, for redo: (tick, the state before it, requested and lost masks)
+        self._last: tuple[int, _State, np.ndarray, np.ndarray] | None = None
+        self._kept: set[str] = set()
+
+    # -- any thread -------------------------------------------------------------------------
+
+    def request(self, cloths: Iterable[str]) -> None:
+        """The next state of each of these cloths' streams is a keyframe (a subscriber asked)."""
+        with self._lock:
+            self._requested.update(cloths)
+
+    def lost(self, plan: FramePlan, cloths: np.ndarray) -> None:
+        """These plan cloths' states (of a frame of ``plan``) were not put: their decoders lack
+        them, so their next states are keyframes."""
+        if len(cloths):
+            with self._lock:
+                self._lost.append((plan, np.asarray(cloths, np.int64)))
+
+    # -- the tick thread ----------------------------------------------------------------------
+
+    def follow(self, plan: FramePlan) -> None:
+        """Streams for a new plan: those of cloths still there, at the same vertices with the
+        same count, go on; the others start afresh (per cloth only here, when the plan changes)."""
+        if plan is self._plan:
+            return
+        k = len(plan.cloths)
+        new = _State.empty(k)
+        old_ids, old = self._ids, self._state
+        prev = self._plan.cloths if self._plan is not None else []
+        rows, at = [], []
+        for i, c in enumerate(plan.cloths):
+            j = old_ids.get(c.cloth)
+            if j is not None and prev[j].vbase == c.vbase and prev[j].n == c.n:
+                rows.append(j)
+                at.append(i)
+        if rows:
+            old.take(np.array(rows, np.int64), new, np.array(at, np.int64))
+        self._ids = {c.cloth: i for i, c in enumerate(plan.cloths)}
+        self._pred = plan.predictive & (plan.state_offset >= 0)
+        new.valid &= self._pred
+        self._state = new
+        self._steps = np.array([c.step for c in plan.cloths], np.float64)
+        self._phase = np.array([zlib.crc32(c.cloth.encode()) for c in plan.cloths], np.int64)
+        self._plan = plan
+        self._last = None
+
+    def decide(self, tick: int, flags: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """This tick's (order, ref tick, ref2 tick) per plan cloth ((k, 3) uint64) and which
+        are keyframes ((k,) bool); the streams move on to ``tick``."""
+        k = len(self._pred)
+        with self._lock:
+            asked = self._requested | self._kept
+            self._requested = set()
+            lost_in = self._lost
+            self._lost = []
+        requested = np.zeros(k, bool)
+        for c in asked:
+            i = self._ids.get(c)
+            if i is not None:
+                requested[i] = True
+        lost = np.zeros(k, bool)
+        for plan, idx in lost_in:
+            if plan is self._plan:
+                lost[idx] = True
+            else:  # a frame of an earlier plan: by id
+                for i in idx.tolist():
+                    j = self._ids.get(plan.cloths[i].cloth)
+                    if j is not None:
+                        lost[j] = True
+        self._last = (tick, self._state, requested, lost)
+        return self._decide(tick, flags)
+
+    def redo(self, tick: int, flags: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """The decision of the tick just decided again, with new flags (cloths reset after the
+        frame was encoded: keyframes)."""
+        if self._last is None or self._last[0] != tick:
+            raise RuntimeError(f"tick {tick} was not the last decided")
+        return self._decide(tick, flags)
+
+    def _decide(self, tick: int, flags: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        assert self._last is not None
+        _, s, requested, lost = self._last
+        pred = self._pred
+        k = len(pred)
+        new = ~s.valid | lost
+        key_tick = np.where(new, _FAR, s.key_tick)
+        old_step = np.where(new, 0.0, s.step)
+        since = np.where(new, 0, s.since)
+        reset = (np.asarray(flags) & P.FLAG_RESET) != 0 if flags is not None else np.zeros(k, bool)
+        keyframe, kept = keyframe_rule(tick, key_tick, self._steps, old_step, reset, requested, self.keyframe_interval)
+        keyframe &= pred
+        kept &= pred
+        order = np.where(keyframe, 0, np.minimum(since, 2))
+        out = np.zeros((k, 3), np.uint64)
+        out[:, 0] = order
+        out[:, 1] = np.where(order >= 1, s.tick1, 0)
+        out[:, 2] = np.where(order >= 2, s.tick2, 0)
+        key_tick = np.where(keyframe, tick, key_tick)
+        key_tick = np.where(new, tick - self._phase % self.keyframe_interval, key_tick)
+        self._state = _State(
+            pred.copy(),
+            key_tick,
+            self._steps.copy(),
+            np.where(keyframe, 1, np.minimum(since + 1, 2)),
+            np.full(k, tick, np.int64),
+            np.where(keyframe, 0, s.tick1),
+        )
+        plan = self._plan
+        self._kept = {plan.cloths[i].cloth for i in np.flatnonzero(kept).tolist()} if plan is not None else set()
+        return out, keyframe

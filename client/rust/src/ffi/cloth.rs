@@ -130,7 +130,7 @@ unsafe fn submit_fields(o: &DrapeClothOptions, mut s: Submit) -> Result<Submit, 
     s.pinned = slice(o.pinned, o.pinned_count).ok_or_else(|| bad("pinned is NULL"))?.to_vec();
     let encoding = Encoding::from_id(u8::try_from(o.encoding).unwrap_or(255)).ok_or_else(|| bad("encoding must be 0, 1 or 2"))?;
     if encoding != Encoding::Float32 || o.normals || o.bundle {
-        s.state = Some(StateOptions { normals: Some(o.normals), encoding: Some(encoding), bundle: o.bundle.then_some(true) });
+        s.state = Some(StateOptions { normals: Some(o.normals), encoding: Some(encoding), bundle: o.bundle.then_some(true), step: None });
     }
     s.quality = opt_str(o.quality, "quality")?.map(str::to_string);
     if !o.gravity.is_null() {

@@ -158,7 +158,7 @@ pub(crate) unsafe fn control_of(c: *const DrapeControl) -> Result<Control, i32> 
     }
     if c.set_state {
         let e = Encoding::from_id(u8::try_from(c.encoding).unwrap_or(255)).ok_or_else(|| bad("encoding must be 0, 1 or 2"))?;
-        ctl.state = Some(StateOptions { normals: Some(c.normals), encoding: Some(e), bundle: None });
+        ctl.state = Some(StateOptions { normals: Some(c.normals), encoding: Some(e), bundle: None, step: None });
     }
     if c.pin_count > 0 {
         let (Some(i), Some(t)) = (slice(c.pin_indices, c.pin_count), slice(c.pin_targets, 3 * c.pin_count)) else {

@@ -1,9 +1,9 @@
 //! The predictive state encoding of protocol 1.5 (PROTOCOL.md 9.2), the decoder's side: a
 //! cloth's [`Stream`] decodes each predictive state against the last two states it rebuilt, into
-//! a caller-provided `f32` slice, without allocating once its history exists. The crate speaks
-//! 1.4: it never asks for this encoding, but a client that does (a 1.5 `state.encoding:
-//! "predictive"` in its submit) decodes its states here. `client/protocol/predictive.py` is the
-//! reference; `tests/predictive.rs` checks this decoder against `tests/vectors/predictive.json`.
+//! a caller-provided `f32` slice, without allocating once its history exists. A cloth asks for
+//! the encoding with `StateOptions { encoding: Some(Encoding::Predictive), step, .. }` (a 1.5
+//! server); the client decodes its states here on delivery, in order (`client::recv`).
+//! `client/protocol/predictive.py` is the reference; `tests/predictive.rs` checks this decoder against `tests/vectors/predictive.json`.
 use super::error::{invalid, malformed, Result};
 use super::layout::state as L;
 use super::state::STATE_HEADER_SIZE;

@@ -7,6 +7,7 @@ mod cloth;
 mod failover;
 mod moves;
 mod placement;
+mod predictive;
 mod recv;
 
 pub use cloth::{Batch, Cloth, ClothStatus, Counters, StateInfo};

@@ -325,6 +325,13 @@ impl Cloth {
         Counters { unread: s.unread.len() as u64, last_tick: s.last_tick, ..s.counters }
     }
 
+    /// 1.5: forget what the cloth's predictive stream holds, as a client that lost a state or
+    /// joined late: its next predicted state is a gap (a keyframe is asked for). For tests.
+    #[doc(hidden)]
+    pub fn forget_predictive_stream(&self) {
+        self.inner.pred.lock().unwrap().forget();
+    }
+
     /// States kept unread per cloth (the `queue_size` it was submitted with; 1: the newest only).
     pub fn queue_size(&self) -> usize {
         self.inner.queue_size

@@ -46,6 +46,12 @@ impl Pred {
         *self = Pred { asked, ..Pred::default() };
     }
 
+    /// Drop the states held, keeping the newest tick (a later state is not stale) and the
+    /// query time: the next predicted state is a gap.
+    pub(crate) fn forget(&mut self) {
+        self.stream = PredictiveStream::new();
+    }
+
     /// Decode the predictive state `l` (of tick `tick`) against this stream.
     pub(crate) fn decode(&mut self, l: &Latest, tick: u64) -> Outcome {
         if self.last_tick != 0 && tick <= self.last_tick {

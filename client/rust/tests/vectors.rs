@@ -416,7 +416,7 @@ fn predictive_vectors() {
     let st = s.state.unwrap();
     assert_eq!((st.encoding, st.step), (Some(Encoding::Predictive), Some(0.002)));
     assert!(st.needs_1_5());
-    let mut stream = PredictiveStream::new();
+    let (mut stream, mut as_f32) = (PredictiveStream::new(), PredictiveStream::new());
     let mut seen = 0;
     for v in vs.iter().filter(|v| v["message"] == "state") {
         let name = v["name"].as_str().unwrap();
@@ -429,6 +429,12 @@ fn predictive_vectors() {
         let mut nrm = pos.clone();
         assert_eq!(decode_state_into(&data, &mut pos, None).unwrap_err().code, ErrorCode::InvalidValue, "{name}");
         let p = stream.decode(&data, &mut pos, Some(&mut nrm)).unwrap().expect("in order");
+        // what the client keeps: the same state as a float32 payload, read like any other
+        let (f32_state, _) = as_f32.decode_to_float32(&data).unwrap().expect("in order");
+        let (mut pos2, mut nrm2) = (pos.clone(), nrm.clone());
+        let h2 = decode_state_into(&f32_state, &mut pos2, Some(&mut nrm2)).unwrap();
+        assert_eq!((h2.encoding, h2.tick, h2.flags, h2.bounds_min, h2.bounds_max), (Encoding::Float32, h.tick, h.flags, h.bounds_min, h.bounds_max), "{name}");
+        assert_eq!((&pos2, h2.has_normals().then_some(&nrm2)), (&pos, h.has_normals().then_some(&nrm)), "{name}");
         assert_eq!((p.order as u64, p.step as f64), (want["order"].as_u64().unwrap(), want["step"].as_f64().unwrap()), "{name}");
         assert_eq!(pos, f32s(&want["positions"]), "{name}: positions");
         if h.has_normals() {

@@ -7,8 +7,7 @@
 //! query on the key its states come on (what the Python SDK's `ClothHandle.ask_keyframe` sends;
 //! the server's `publish/keyframes.py` answers it), at most one every `KEYFRAME_QUERY_INTERVAL`.
 use super::recv::{Buf, Latest};
-use crate::wire::layout::state as L;
-use crate::wire::{PredictiveStream, FLAG_NORMALS, STATE_HEADER_SIZE};
+use crate::wire::PredictiveStream;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 use zenoh::{Session, Wait};
@@ -23,8 +22,6 @@ pub(crate) struct Pred {
     /// The tick of the newest state decoded (0: none yet).
     last_tick: u64,
     asked: Option<Instant>,
-    positions: Vec<f32>,
-    normals: Vec<f32>,
 }
 
 /// What became of a delivered predictive state.
@@ -57,33 +54,16 @@ impl Pred {
         if self.last_tick != 0 && tick <= self.last_tick {
             return Outcome::Stale;
         }
-        l.buf.with(|d| {
-            let data = &d[l.off..l.off + l.len];
-            let Ok(h) = crate::wire::parse_predictive(data) else { return Outcome::Invalid };
-            let k = 3 * h.vertex_count as usize;
-            self.positions.resize(k, 0.0);
-            let normals = h.has_normals();
-            self.normals.resize(if normals { k } else { 0 }, 0.0);
-            let nrm = if normals { Some(&mut self.normals[..]) } else { None };
-            let keyframe = match self.stream.decode(data, &mut self.positions, nrm) {
-                Ok(Some(p)) => p.order == 0,
-                Ok(None) => return Outcome::Gap,
-                Err(_) => return Outcome::Invalid,
-            };
-            self.last_tick = tick;
-            // the common 64-byte header as received (tick, times, bounds, flags), as float32
-            let mut out = Vec::with_capacity(STATE_HEADER_SIZE + 4 * (k + self.normals.len()));
-            out.extend_from_slice(&data[..STATE_HEADER_SIZE]);
-            L::HEADER_SIZE.put(&mut out, 0, &(STATE_HEADER_SIZE as u16).to_le_bytes());
-            L::ENCODING.put(&mut out, 0, &[crate::wire::Encoding::Float32 as u8]);
-            let flags = if normals { h.flags | FLAG_NORMALS } else { h.flags & !FLAG_NORMALS };
-            L::FLAGS.put(&mut out, 0, &flags.to_le_bytes());
-            for v in self.positions.iter().chain(&self.normals) {
-                out.extend_from_slice(&v.to_le_bytes());
+        let r = l.buf.with(|d| self.stream.decode_to_float32(&d[l.off..l.off + l.len]));
+        match r {
+            Ok(Some((out, h))) => {
+                self.last_tick = tick;
+                let len = out.len();
+                Outcome::Decoded(Latest { buf: Buf::D(Arc::new(out)), off: 0, len, receive_time_ns: l.receive_time_ns }, h.order == 0)
             }
-            let len = out.len();
-            Outcome::Decoded(Latest { buf: Buf::D(Arc::new(out)), off: 0, len, receive_time_ns: l.receive_time_ns }, keyframe)
-        })
+            Ok(None) => Outcome::Gap,
+            Err(_) => Outcome::Invalid,
+        }
     }
 
     /// Whether a keyframe query may be sent now (at most one per `KEYFRAME_QUERY_INTERVAL`);

@@ -3,13 +3,20 @@
 //! (`--keyframe-interval 100000`): a predictive cloth's states, decoded on delivery, are within
 //! step / 2 of a float32 twin's at the same age; a forced gap (the stream forgotten, as a late
 //! joiner's) shows nothing new until the keyframe the client asks for arrives, then decodes
-//! again; the same in a bundle; and a float32 cloth switched to the encoding by control.
+//! again; the same in a bundle; a float32 cloth switched to the encoding by control; and the
+//! same through the C ABI.
 mod common;
 
 use drape::client::{Client, Cloth, Counters};
 use drape::wire::{grid_geometry, Control, Encoding, Grid, Orientation, Shape, StateOptions, Submit};
 use std::collections::BTreeMap;
+use std::sync::OnceLock;
 use std::time::{Duration, Instant};
+
+fn shared() -> Option<&'static common::Server> {
+    static S: OnceLock<Option<common::Server>> = OnceLock::new();
+    S.get_or_init(|| common::drape_bin().map(|b| common::start(&b, &["--keyframe-interval", "100000"]))).as_ref()
+}
 
 const STEP: f64 = 0.002;
 const COLS: u32 = 12;
@@ -72,9 +79,8 @@ fn wait_counters(cloth: &Cloth, what: &str, ok: impl Fn(&Counters) -> bool) -> C
 
 #[test]
 fn predictive_cloths_decode_resync_and_switch() {
-    let Some(bin) = common::drape_bin() else { return };
-    let server = common::start(&bin, &["--keyframe-interval", "100000"]);
-    let client = common::connect(&[&server], Some(&server.id), false);
+    let Some(server) = shared() else { return };
+    let client = common::connect(&[server], Some(&server.id), false);
     let twin = submit(&client, StateOptions::default());
     let pred = submit(&client, predictive(false));
     let bundled = submit(&client, predictive(true));
@@ -126,4 +132,63 @@ fn predictive_cloths_decode_resync_and_switch() {
     let bad = StateOptions { step: Some(0.5), ..Default::default() };
     assert!(twin.control(Control { state: Some(bad), ..Default::default() }, true).is_err());
     client.close(true);
+}
+
+#[test]
+fn c_abi_predictive_cloth() {
+    use drape::ffi::*;
+    use std::ffi::CString;
+    let Some(s) = shared() else { return };
+    let connect = CString::new(s.endpoint.clone()).unwrap();
+    let server = CString::new(s.id.clone()).unwrap();
+    unsafe {
+        let opts = DrapeClientOptions {
+            connect: connect.as_ptr(),
+            server_id: server.as_ptr(),
+            client_id: std::ptr::null(),
+            namespace_: std::ptr::null(),
+            timeout_ms: 60_000,
+            failover: false,
+            lazy: false,
+        };
+        let mut client = std::ptr::null_mut();
+        assert_eq!(drape_client_open(&opts, &mut client), DRAPE_OK);
+        assert_eq!(drape_client_set_predictive_step(client, 0.5), DRAPE_E_INVALID_VALUE);
+        assert_eq!(drape_client_set_predictive_step(client, STEP), DRAPE_OK);
+        let grid = DrapeGrid { cols: 8, rows: 8, width: 0.0, height: 0.0, vertical: true, origin: [0.0, 2.0, 0.0] };
+        let pins = [0u32, 7];
+        let copts = DrapeClothOptions { encoding: DRAPE_ENCODING_PREDICTIVE, queue_size: 64, ..common::c_cloth_options(&pins, true) };
+        let mut cloth = std::ptr::null_mut();
+        assert_eq!(drape_submit_grid(client, &grid, &copts, &mut cloth), DRAPE_OK);
+        let (mut pos, mut nrm) = (vec![0f32; 192], vec![0f32; 192]);
+        let mut info: DrapeStateInfo = std::mem::zeroed();
+        let mut first = None;
+        for _ in 0..20 {
+            let rc = drape_cloth_wait_state(cloth, pos.as_mut_ptr(), 192, nrm.as_mut_ptr(), 192, 5000, &mut info);
+            assert_eq!(rc, DRAPE_OK);
+            assert_eq!(info.encoding as i32, DRAPE_ENCODING_PREDICTIVE);
+            assert!(info.has_normals && pos.iter().chain(&nrm).all(|x| x.is_finite()));
+            first.get_or_insert(pos.clone());
+        }
+        assert!(first.unwrap().iter().zip(&pos).any(|(a, b)| (a - b).abs() > 0.005), "the cloth moves");
+        let mut k = DrapePredictiveCounters::default();
+        assert_eq!(drape_cloth_predictive_counters(cloth, &mut k), DRAPE_OK);
+        assert!(k.decoded >= 20 && k.keyframes >= 1, "{k:?}");
+        // a control re-gridding it: the next state is a keyframe
+        let mut tick = 0u64;
+        assert_eq!(drape_cloth_set_predictive(cloth, 2.0 * STEP, true, &mut tick), DRAPE_OK);
+        assert_eq!(drape_cloth_set_predictive(cloth, 1.0, true, &mut tick), DRAPE_E_INVALID_VALUE);
+        let t0 = Instant::now();
+        loop {
+            assert_eq!(drape_cloth_predictive_counters(cloth, &mut k), DRAPE_OK);
+            if k.keyframes >= 2 {
+                break;
+            }
+            assert!(t0.elapsed() < Duration::from_secs(5), "no keyframe after the new step: {k:?}");
+            drape_cloth_wait_state(cloth, pos.as_mut_ptr(), 192, std::ptr::null_mut(), 0, 100, &mut info);
+        }
+        assert_eq!(drape_cloth_remove(cloth, std::ptr::null_mut()), DRAPE_OK);
+        drape_cloth_free(cloth);
+        drape_client_close(client, true);
+    }
 }

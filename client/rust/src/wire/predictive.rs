@@ -91,6 +91,15 @@ pub fn parse_predictive(data: &[u8]) -> Result<PredictiveHeader> {
             h.step
         )));
     }
+    // the packed positions hold at least their width bytes (3 per 32 vertices, padded to 4):
+    // a vertex count beyond what `data_size` can hold is malformed (and allocates nothing)
+    let widths = 4 * (3 * (h.vertex_count as usize).div_ceil(BLOCK)).div_ceil(4);
+    if (h.data_size as usize) < widths || h.data_size % 4 != 0 {
+        return Err(malformed(format!(
+            "predictive data_size {} cannot hold the width bytes of {} vertices",
+            h.data_size, h.vertex_count
+        )));
+    }
     let normals = if h.has_normals() {
         6 * h.vertex_count as usize
     } else {

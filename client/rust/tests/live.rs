@@ -431,7 +431,7 @@ fn c_abi_feature_changes() {
         assert_eq!(drape_submit_grid(client, &grid, &copts, &mut cloth), DRAPE_OK);
         let mut mask = 0u32;
         assert_eq!(drape_cloth_features(cloth, &mut mask), DRAPE_NO_DATA);
-        assert_eq!(drape_cloth_change_features(cloth, 1 << 5, 0, true, std::ptr::null_mut(), &mut mask), DRAPE_E_INVALID_VALUE);
+        assert_eq!(drape_cloth_change_features(cloth, 1 << 6, 0, true, std::ptr::null_mut(), &mut mask), DRAPE_E_INVALID_VALUE);
         let both = drape_cloth_change_features(cloth, DRAPE_FEATURE_WIND, DRAPE_FEATURE_WIND, true, std::ptr::null_mut(), &mut mask);
         assert_eq!(both, DRAPE_E_INVALID_VALUE);
         let mut tick = 0u64;

@@ -47,9 +47,9 @@ fn to_json(v: &Value, key: &str) -> Json {
 }
 
 /// Every vector set: its directory, the version its messages carry. This crate speaks 1.4 (the
-/// frozen `v1.4/` set; the top-level set is 1.5, whose predictive states the crate does not
-/// decode yet); the 1.0 to 1.3 sets are frozen and must be read as they mean (PROTOCOL.md
-/// section 15).
+/// frozen `v1.4/` set; of the top-level set it checks 1.5's predictive vectors, in
+/// `predictive_vectors`); the 1.0 to 1.3 sets are frozen and must be read as they mean
+/// (PROTOCOL.md section 15).
 const SETS: [(&str, u64); 5] =
     [("v1.4/", PROTOCOL_MINOR as u64), ("v1.3/", 3), ("v1.2/", 2), ("v1.1/", 1), ("v1.0/", 0)];
 

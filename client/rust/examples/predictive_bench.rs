@@ -1,7 +1,10 @@
 //! Decode cost of predictive states (protocol 1.5) in ns per vertex: a recorded stream of states
 //! (`python -m drape.server.tools.codecbench --stream FILE` writes one: the cape motion's 240
 //! states, each prefixed by its u32 length) decoded from its keyframe on, 64 times, into reused
-//! buffers; the median of 15 rounds.
+//! buffers; the median of 15 rounds. Then the client's path for the same states (what a cloth
+//! of `drape::client` does per state): the header checked (`parse_state`), the state decoded on
+//! delivery into the float32 state kept (`decode_to_float32`, one allocation) and read into the
+//! game's buffer (`decode_state_into`).
 //!     cargo run --release --no-default-features --example predictive_bench -- FILE
 use drape::wire::PredictiveStream;
 use std::hint::black_box;
@@ -40,5 +43,24 @@ fn main() {
         states.len(),
         n,
         rounds[7]
+    );
+    let mut client = Vec::new();
+    for _ in 0..15 {
+        let t = Instant::now();
+        for _ in 0..64 {
+            let mut s = PredictiveStream::new();
+            for st in &states {
+                black_box(drape::wire::parse_state(st).unwrap());
+                let (kept, _) = s.decode_to_float32(st).unwrap().expect("in order");
+                black_box(drape::wire::decode_state_into(&kept, &mut pos, None).unwrap());
+            }
+        }
+        client.push(t.elapsed().as_nanos() as f64 / (64 * states.len() * n) as f64);
+    }
+    client.sort_by(|a, b| a.partial_cmp(b).unwrap());
+    println!(
+        "client path (header check, decode on delivery into the float32 state kept, read into \
+         the caller's buffer): {:.2} ns per vertex (median of 15)",
+        client[7]
     );
 }

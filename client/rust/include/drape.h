@@ -153,6 +153,26 @@
 
 #define DRAPE_MATERIAL_TETHER_LIMIT 256
 
+// State encodings (`DrapeClothOptions.encoding`, `DrapeControl.encoding`,
+// `DrapeStateInfo.encoding`).
+#define DRAPE_ENCODING_FLOAT32 0
+
+#define DRAPE_ENCODING_FLOAT16 1
+
+#define DRAPE_ENCODING_QUANT16 2
+
+// Protocol 1.5: a few bits per vertex, each state coded against the two before it on a grid of
+// `step` metres (a position is within step / 2 of the simulated one). Needs a 1.5 server.
+#define DRAPE_ENCODING_PREDICTIVE 3
+
+// The range of the predictive grid step, metres, and the server's default.
+// (Literals, for cbindgen; a unit test checks they are `wire::STEP_*`.)
+#define DRAPE_STEP_MIN 1e-5
+
+#define DRAPE_STEP_MAX 0.1
+
+#define DRAPE_STEP_DEFAULT 0.001
+
 // Controls of many cloths sent as one batch control (opaque; not synchronized).
 typedef struct DrapeBatch DrapeBatch;
 
@@ -269,7 +289,8 @@ typedef struct DrapeClothOptions {
   // Pinned vertex indices (may be NULL when `pinned_count` is 0).
   const uint32_t *pinned;
   size_t pinned_count;
-  // State encoding: 0 float32, 1 float16, 2 quant16.
+  // State encoding: DRAPE_ENCODING_* (0 float32, 1 float16, 2 quant16, 3 predictive: 1.5,
+  // its step set by `drape_client_set_predictive_step`).
   int32_t encoding;
   // Publish normals too.
   bool normals;
@@ -307,7 +328,7 @@ typedef struct DrapeStateInfo {
   uint64_t receive_time_ns;
   uint32_t vertex_count;
   uint16_t flags;
-  // 0 float32, 1 float16, 2 quant16.
+  // 0 float32, 1 float16, 2 quant16, 3 predictive (1.5: decoded on delivery, read as float32).
   uint8_t encoding;
   bool has_normals;
   // This state is the rest pose (after a reset control or a non-finite step).
@@ -364,7 +385,9 @@ typedef struct DrapeControl {
   uint32_t substeps;
   // Quality preset ("fast", "balanced", "accurate", "exact") or NULL.
   const char *quality;
-  // When `set_state`: the state encoding (0 float32, 1 float16, 2 quant16) and normals.
+  // When `set_state`: the state encoding (DRAPE_ENCODING_*: 0 float32, 1 float16, 2 quant16,
+  // 3 predictive on the step the cloth has, else the server's default: see
+  // `drape_cloth_set_predictive`) and normals.
   bool set_state;
   int32_t encoding;
   bool normals;
@@ -436,6 +459,22 @@ typedef struct DrapeServerStats {
   // Cloths below the quality preset their client asked for (adaptive quality).
   uint64_t quality_degraded;
 } DrapeServerStats;
+
+// How a predictive cloth's states were decoded (`drape_cloth_predictive_counters`; all 0 for
+// the other encodings). Cumulative over the cloth's placements.
+typedef struct DrapePredictiveCounters {
+  // States decoded on delivery (keyframes among them).
+  uint64_t decoded;
+  // Keyframes (intra-coded states) among `decoded`.
+  uint64_t keyframes;
+  // States received but predicted from one this client lacks (a state lost, a late join):
+  // not shown (reads keep giving the last state) while the cloth waits for a keyframe.
+  // `drape_cloth_counters`' `received` counts them; with them,
+  // `read + replaced + missed + unread + undecodable == ticks`.
+  uint64_t undecodable;
+  // Keyframe queries this client sent for the cloth (at most one per 100 ms).
+  uint64_t keyframe_requests;
+} DrapePredictiveCounters;
 
 #ifdef __cplusplus
 extern "C" {
@@ -724,6 +763,23 @@ int32_t drape_move_pins_many(const struct DrapeClient *client,
                              bool wait,
                              int32_t *codes,
                              uint64_t *ticks);
+
+// The predictive grid step (metres, DRAPE_STEP_MIN..DRAPE_STEP_MAX; 0: the server's default)
+// that this client's later submissions with DRAPE_ENCODING_PREDICTIVE ask for.
+int32_t drape_client_set_predictive_step(const struct DrapeClient *client, double step);
+
+// A control switching the cloth to the predictive encoding on a grid of `step` metres
+// (DRAPE_STEP_MIN..DRAPE_STEP_MAX; or changing the step of a predictive cloth): the next state
+// is a keyframe. Needs a 1.5 server (INVALID_VALUE otherwise, nothing sent). `wait` and `tick`
+// as in `drape_cloth_set_gravity`.
+int32_t drape_cloth_set_predictive(const struct DrapeCloth *cloth,
+                                   double step,
+                                   bool wait,
+                                   uint64_t *tick);
+
+// Fill `*out` with the cloth's predictive counters. Never blocks.
+int32_t drape_cloth_predictive_counters(const struct DrapeCloth *cloth,
+                                        struct DrapePredictiveCounters *out);
 
 #ifdef __cplusplus
 }  // extern "C"

@@ -80,7 +80,7 @@ fn mesh_obj_encodings_and_errors() {
     let Some(s) = shared() else { return };
     let client = connect(&[s], Some(&s.id), false);
     let obj = "v 0 2 0\nv 1 2 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\n";
-    let state = StateOptions { normals: Some(true), encoding: Some(Encoding::Quant16), bundle: None };
+    let state = StateOptions { normals: Some(true), encoding: Some(Encoding::Quant16), bundle: None, step: None };
     let cloth = client.submit_obj(obj, Submit { pinned: vec![0, 1], state: Some(state), ..opts() }).unwrap();
     assert_eq!((cloth.vertex_count(), cloth.triangles()), (4, &[0u32, 1, 2, 0, 2, 3][..]));
     let (mut pos, mut nrm) = (vec![0f32; 12], vec![0f32; 12]);
@@ -118,7 +118,7 @@ fn bundles_and_batch_control() {
     let client = connect(&[s], Some(&s.id), false);
     let encodings = [Encoding::Float32, Encoding::Float16, Encoding::Quant16];
     let cloths: Vec<Cloth> = encodings.iter().map(|e| {
-        let state = StateOptions { encoding: Some(*e), bundle: Some(true), normals: None };
+        let state = StateOptions { encoding: Some(*e), bundle: Some(true), normals: None, step: None };
         client.submit_grid(Grid::new(6, 6), Submit { pinned: vec![0, 5], state: Some(state), ..opts() }).unwrap()
     }).collect();
     let mut pos = vec![0f32; 108];
@@ -431,7 +431,7 @@ fn c_abi_feature_changes() {
         assert_eq!(drape_submit_grid(client, &grid, &copts, &mut cloth), DRAPE_OK);
         let mut mask = 0u32;
         assert_eq!(drape_cloth_features(cloth, &mut mask), DRAPE_NO_DATA);
-        assert_eq!(drape_cloth_change_features(cloth, 1 << 5, 0, true, std::ptr::null_mut(), &mut mask), DRAPE_E_INVALID_VALUE);
+        assert_eq!(drape_cloth_change_features(cloth, 1 << 6, 0, true, std::ptr::null_mut(), &mut mask), DRAPE_E_INVALID_VALUE);
         let both = drape_cloth_change_features(cloth, DRAPE_FEATURE_WIND, DRAPE_FEATURE_WIND, true, std::ptr::null_mut(), &mut mask);
         assert_eq!(both, DRAPE_E_INVALID_VALUE);
         let mut tick = 0u64;

@@ -117,4 +117,9 @@ fn malformed_predictive_states_are_refused() {
     let mut wide = unhex(&vectors()[0]);
     wide[96] = 33; // a width over 32
     assert!(stream.decode(&wide, &mut [0f32; 9], None).is_err());
+    // a vertex count its data cannot hold: refused before anything is allocated
+    let mut huge = unhex(&vectors()[0]);
+    huge[12..16].copy_from_slice(&u32::MAX.to_le_bytes());
+    assert!(parse_predictive(&huge).is_err());
+    assert!(stream.decode_to_float32(&huge).is_err());
 }

@@ -47,9 +47,9 @@ fn to_json(v: &Value, key: &str) -> Json {
 }
 
 /// Every vector set: its directory, the version its messages carry. This crate speaks 1.4 (the
-/// frozen `v1.4/` set; the top-level set is 1.5, whose predictive states the crate does not
-/// decode yet); the 1.0 to 1.3 sets are frozen and must be read as they mean (PROTOCOL.md
-/// section 15).
+/// frozen `v1.4/` set; of the top-level set it checks 1.5's predictive vectors, in
+/// `predictive_vectors`); the 1.0 to 1.3 sets are frozen and must be read as they mean
+/// (PROTOCOL.md section 15).
 const SETS: [(&str, u64); 5] =
     [("v1.4/", PROTOCOL_MINOR as u64), ("v1.3/", 3), ("v1.2/", 2), ("v1.1/", 1), ("v1.0/", 0)];
 
@@ -400,4 +400,58 @@ fn grid_geometry_matches_the_protocol() {
     assert_eq!(t, vec![0, 3, 1, 1, 4, 2, 1, 3, 4, 2, 4, 5]);
     let (v, t) = grid_geometry(1, 1, 1.0, 1.0, Orientation::Horizontal, [0.0; 3]).unwrap();
     assert_eq!((v.len(), t.len()), (3, 0));
+}
+
+/// 1.5's predictive vectors (`predictive.json`): the submit asking for the encoding read and
+/// written back (but for the version this crate writes), each state's header read by
+/// `parse_state` (its packed positions refused by `decode_state_into`: they decode only in
+/// order) and the stream decoded in order by `PredictiveStream` to the vectors' positions.
+#[test]
+fn predictive_vectors() {
+    let vs = load("predictive.json");
+    let sub = vs.iter().find(|v| v["name"] == "submit_predictive").expect("submit_predictive");
+    let minor = sub["value"]["v"][1].as_u64().unwrap();
+    check_message(&as_current(sub, minor));
+    let s = Submit::decode(&unhex(sub)).unwrap();
+    let st = s.state.unwrap();
+    assert_eq!((st.encoding, st.step), (Some(Encoding::Predictive), Some(0.002)));
+    assert!(st.needs_1_5());
+    let (mut stream, mut as_f32) = (PredictiveStream::new(), PredictiveStream::new());
+    let mut seen = 0;
+    for v in vs.iter().filter(|v| v["message"] == "state") {
+        let name = v["name"].as_str().unwrap();
+        let (data, want) = (unhex(v), &v["value"]);
+        let h = parse_state(&data).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!(h.encoding, Encoding::Predictive, "{name}");
+        assert_eq!(json!([h.header_size, h.flags, h.vertex_count, h.tick, h.server_time_ns]),
+                   json!([want["header_size"], want["flags"], want["vertex_count"], want["tick"], want["server_time_ns"]]), "{name}");
+        let mut pos = vec![0f32; 3 * h.vertex_count as usize];
+        let mut nrm = pos.clone();
+        assert_eq!(decode_state_into(&data, &mut pos, None).unwrap_err().code, ErrorCode::InvalidValue, "{name}");
+        let p = stream.decode(&data, &mut pos, Some(&mut nrm)).unwrap().expect("in order");
+        // what the client keeps: the same state as a float32 payload, read like any other
+        let (f32_state, _) = as_f32.decode_to_float32(&data).unwrap().expect("in order");
+        let (mut pos2, mut nrm2) = (pos.clone(), nrm.clone());
+        let h2 = decode_state_into(&f32_state, &mut pos2, Some(&mut nrm2)).unwrap();
+        assert_eq!((h2.encoding, h2.tick, h2.flags, h2.bounds_min, h2.bounds_max), (Encoding::Float32, h.tick, h.flags, h.bounds_min, h.bounds_max), "{name}");
+        assert_eq!((&pos2, h2.has_normals().then_some(&nrm2)), (&pos, h.has_normals().then_some(&nrm)), "{name}");
+        assert_eq!((p.order as u64, p.step as f64), (want["order"].as_u64().unwrap(), want["step"].as_f64().unwrap()), "{name}");
+        assert_eq!(pos, f32s(&want["positions"]), "{name}: positions");
+        if h.has_normals() {
+            assert_eq!(nrm, f32s(&want["normals"]), "{name}: normals");
+        }
+        // a payload cut short of what its 1.5 header announces is malformed
+        assert_eq!(parse_state(&data[..data.len() - 4]).unwrap_err().code, ErrorCode::Malformed, "{name}");
+        seen += 1;
+    }
+    assert_eq!(seen, 5);
+    assert!(encode_state(1, 0, &[0.0; 3], None, Encoding::Predictive, 0).is_err());
+    // the step's range (PROTOCOL.md section 4: 1e-5 to 0.1 metres)
+    for (step, ok) in [(STEP_MIN, true), (STEP_MAX, true), (STEP_DEFAULT, true), (0.5 * STEP_MIN, false), (0.2, false), (f64::NAN, false)] {
+        let mut s = Submit::decode(&unhex(sub)).unwrap();
+        s.state.as_mut().unwrap().step = Some(step);
+        assert_eq!(s.validate(&Limits::default()).is_ok(), ok, "submit step {step}");
+        let ctl = Control { state: Some(StateOptions { step: Some(step), ..Default::default() }), ..Control::new("5ba88a14c526242f", "0123456789abcdef0123456789abcdef") };
+        assert_eq!(ctl.validate(&Limits::default(), None).is_ok(), ok, "control step {step}");
+    }
 }

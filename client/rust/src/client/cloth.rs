@@ -1,6 +1,7 @@
 //! A submitted cloth: its handle (stable across failover), its newest state read into caller
 //! buffers, its controls (waited for or not), batch controls and removal.
-use super::recv::Latest;
+use super::predictive::Pred;
+use super::recv::{Buf, Latest};
 use super::{Event, Inner};
 use crate::wire::error::{Error, ErrorCode, Result};
 use crate::wire::msg::{ControlBatch, Pins, Submit};
@@ -57,7 +58,8 @@ pub(crate) struct Sent {
 
 /// What became of the states of a cloth (cumulative over its placements). Every tick from the
 /// first state received on a placement to the last is accounted for exactly once:
-/// `read + replaced + missed + unread == ticks` (`received == read + replaced + unread`).
+/// `read + replaced + missed + unread + undecodable == ticks`
+/// (`received == read + replaced + unread + undecodable`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct Counters {
     /// States received (in tick order; stale and invalid ones not counted).
@@ -79,6 +81,15 @@ pub struct Counters {
     pub stale: u64,
     /// Tick of the newest state received (current placement), 0 before any.
     pub last_tick: u64,
+    /// 1.5, the predictive encoding: states decoded on delivery (keyframes among them).
+    pub decoded: u64,
+    /// 1.5: keyframes (intra-coded states) among `decoded`.
+    pub keyframes: u64,
+    /// 1.5: states received but predicted from one this client lacks (a state lost, a late
+    /// join): not shown (the last state stays) while the cloth waits for a keyframe.
+    pub undecodable: u64,
+    /// 1.5: keyframe queries sent (at most one per 100 ms per cloth).
+    pub keyframe_requests: u64,
 }
 
 pub(crate) struct ClothInner {
@@ -93,6 +104,9 @@ pub(crate) struct ClothInner {
     pub(crate) triangles: Vec<u32>,
     pub(crate) n_vertices: u32,
     pub(crate) slot: Mutex<Slot>,
+    /// 1.5: the predictive stream its states are decoded by on delivery (when both are held,
+    /// `slot` is locked first).
+    pub(crate) pred: Mutex<Pred>,
     pub(crate) cv: Condvar,
     pub(crate) sent: Mutex<Sent>,
 }
@@ -127,6 +141,7 @@ impl ClothInner {
             triangles,
             n_vertices,
             slot: Mutex::new(slot),
+            pred: Mutex::new(Pred::default()),
             cv: Condvar::new(),
             sent: Mutex::new(Sent::default()),
         })
@@ -203,13 +218,15 @@ enum Read {
 
 fn decode(l: &Latest, positions: &mut [f32], normals: Option<&mut [f32]>) -> Result<StateInfo> {
     let h = l.buf.with(|d| decode_state_into(&d[l.off..l.off + l.len], positions, normals))?;
+    // a predictive state, decoded on delivery, is kept as float32: say what it was
+    let encoding = if matches!(l.buf, Buf::D(_)) { Encoding::Predictive } else { h.encoding };
     Ok(StateInfo {
         tick: h.tick,
         server_time_ns: h.server_time_ns,
         receive_time_ns: l.receive_time_ns,
         vertex_count: h.vertex_count,
         flags: h.flags,
-        encoding: h.encoding,
+        encoding,
         has_normals: h.has_normals(),
         reset: h.is_reset(),
         bounds_min: h.bounds_min,
@@ -306,6 +323,13 @@ impl Cloth {
     pub fn state_counters(&self) -> Counters {
         let s = self.inner.slot.lock().unwrap();
         Counters { unread: s.unread.len() as u64, last_tick: s.last_tick, ..s.counters }
+    }
+
+    /// 1.5: forget what the cloth's predictive stream holds, as a client that lost a state or
+    /// joined late: its next predicted state is a gap (a keyframe is asked for). For tests.
+    #[doc(hidden)]
+    pub fn forget_predictive_stream(&self) {
+        self.inner.pred.lock().unwrap().forget();
     }
 
     /// States kept unread per cloth (the `queue_size` it was submitted with; 1: the newest only).

@@ -7,6 +7,7 @@ mod cloth;
 mod failover;
 mod moves;
 mod placement;
+mod predictive;
 mod recv;
 
 pub use cloth::{Batch, Cloth, ClothStatus, Counters, StateInfo};
@@ -802,10 +803,20 @@ impl Inner {
     /// Refuse a control that uses 1.2 fields (`features_add` / `features_remove`) toward a
     /// server older than 1.2, which would ignore them silently (PROTOCOL.md section 5.2).
     pub(crate) fn check_version(&self, server: &str, ctl: &Control) -> Result<()> {
-        if !ctl.needs_1_2() {
+        let needs_1_5 = ctl.state.is_some_and(|s| s.needs_1_5());
+        if !ctl.needs_1_2() && !needs_1_5 {
             return Ok(());
         }
         let ((ma, mi), _) = self.server_info(server)?;
+        if needs_1_5 && (ma, mi) < (1, 5) {
+            return Err(Error::new(
+                ErrorCode::InvalidValue,
+                format!("the predictive encoding and state.step need a protocol 1.5 server; server {server} speaks {ma}.{mi}"),
+            ));
+        }
+        if !ctl.needs_1_2() {
+            return Ok(());
+        }
         if (ma, mi) < (1, 2) {
             return Err(Error::new(
                 ErrorCode::InvalidValue,

@@ -1,12 +1,14 @@
 //! State reception: the registry of this client's cloths, the per-cloth subscription, the
 //! bundle dispatcher and the one-slot "latest state" each cloth keeps. A received payload is
 //! kept as Zenoh delivered it (no copy when contiguous) and decoded only when the caller reads
-//! it into its own buffers.
+//! it into its own buffers; a predictive one (1.5) is decoded on delivery, in order, by the
+//! cloth's stream (`predictive.rs`) and kept as the float32 state it gave.
 use super::cloth::{ClothInner, Status};
+use super::predictive::{ask_keyframe, Outcome};
 use super::Inner;
 use crate::wire::error::Result;
 use crate::wire::replies::SubmitReply;
-use crate::wire::{parse_bundle, parse_state};
+use crate::wire::{parse_bundle, parse_state, Encoding};
 use std::borrow::Cow;
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -15,11 +17,13 @@ use zenoh::Wait;
 
 const MAX_ORPHANS: usize = 256;
 
-/// A received payload: Zenoh's buffer when contiguous, else one contiguous copy.
+/// A received payload: Zenoh's buffer when contiguous, else one contiguous copy; or the
+/// float32 state a predictive one decoded to (`D`).
 #[derive(Clone)]
 pub(crate) enum Buf {
     Z(ZBytes),
     V(Arc<Vec<u8>>),
+    D(Arc<Vec<u8>>),
 }
 
 impl Buf {
@@ -33,7 +37,7 @@ impl Buf {
     pub(crate) fn with<R>(&self, f: impl FnOnce(&[u8]) -> R) -> R {
         match self {
             Buf::Z(z) => f(&z.to_bytes()),
-            Buf::V(v) => f(v),
+            Buf::V(v) | Buf::D(v) => f(v),
         }
     }
 }
@@ -70,26 +74,54 @@ pub(crate) fn now_ns() -> u64 {
 
 /// Keep `l` as the cloth's newest state (checking its header first) and count it: a state
 /// older than the newest is ignored (stale), a gap in tick numbers is counted as missed, and an
-/// unread state pushed out of a full queue as replaced.
-pub(crate) fn deliver(c: &ClothInner, l: Latest) {
-    let tick = l.buf.with(|d| parse_state(&d[l.off..l.off + l.len]).map(|h| h.tick));
+/// unread state pushed out of a full queue as replaced. A predictive state is decoded here, in
+/// order; one predicted from a state this client lacks is counted (`undecodable`) and not
+/// shown: then the key to ask a keyframe on is returned ([`deliver_and_ask`] asks).
+pub(crate) fn deliver(c: &ClothInner, l: Latest) -> Option<String> {
+    let head = l.buf.with(|d| parse_state(&d[l.off..l.off + l.len]).map(|h| (h.tick, h.encoding)));
+    // (state, decoded from a predictive one: whether a keyframe, a gap)
+    let (l, decoded, gap) = match head {
+        Ok((tick, Encoding::Predictive)) => match c.pred.lock().unwrap().decode(&l, tick) {
+            Outcome::Decoded(d, keyframe) => (d, Some(keyframe), false),
+            Outcome::Stale => (l, None, false), // counted as stale below
+            Outcome::Gap => (l, None, true),
+            Outcome::Invalid => {
+                c.slot.lock().unwrap().counters.invalid += 1;
+                return None;
+            }
+        },
+        _ => (l, None, false),
+    };
     let mut s = c.slot.lock().unwrap();
-    let Ok(tick) = tick else {
+    let Ok((tick, _)) = head else {
         s.counters.invalid += 1;
-        return;
+        return None;
     };
     if s.status != Status::Live {
-        return;
+        return None;
     }
     if s.last_tick != 0 && tick <= s.last_tick {
         s.counters.stale += 1;
-        return;
+        return None;
     }
     s.counters.ticks += if s.last_tick == 0 { 1 } else { tick - s.last_tick };
     if s.last_tick != 0 {
         s.counters.missed += tick - s.last_tick - 1;
     }
     s.last_tick = tick;
+    if gap {
+        s.counters.received += 1;
+        s.counters.undecodable += 1;
+        if !c.pred.lock().unwrap().may_ask() {
+            return None;
+        }
+        s.counters.keyframe_requests += 1;
+        return Some(s.bundle_key.clone().unwrap_or_else(|| s.key.clone()));
+    }
+    if let Some(keyframe) = decoded {
+        s.counters.decoded += 1;
+        s.counters.keyframes += keyframe as u64;
+    }
     if s.unread.len() >= c.queue_size {
         s.unread.pop_front();
         s.counters.replaced += 1; // never read
@@ -100,6 +132,14 @@ pub(crate) fn deliver(c: &ClothInner, l: Latest) {
     s.counters.received += 1;
     drop(s);
     c.cv.notify_all();
+    None
+}
+
+/// [`deliver`], then the keyframe query it asks for, if any.
+pub(crate) fn deliver_and_ask(inner: &Inner, c: &ClothInner, l: Latest) {
+    if let Some(key) = deliver(c, l) {
+        ask_keyframe(&inner.session, &key);
+    }
 }
 
 /// The cloth entered the simulation on `server`: record the reply, subscribe to its key (or
@@ -107,14 +147,15 @@ pub(crate) fn deliver(c: &ClothInner, l: Latest) {
 pub(crate) fn attach(inner: &Arc<Inner>, c: &Arc<ClothInner>, server: &str, rep: SubmitReply) -> Result<()> {
     let sub = if rep.bundle_key.is_none() {
         let weak = Arc::downgrade(c);
+        let client = Arc::downgrade(inner);
         let sub = inner
             .session
             .declare_subscriber(rep.key.as_str())
             .callback(move |s| {
-                if let Some(c) = weak.upgrade() {
+                if let (Some(c), Some(inner)) = (weak.upgrade(), client.upgrade()) {
                     let buf = Buf::new(s.payload().clone());
                     let len = buf.with(|d| d.len());
-                    deliver(&c, Latest { buf, off: 0, len, receive_time_ns: now_ns() });
+                    deliver_and_ask(&inner, &c, Latest { buf, off: 0, len, receive_time_ns: now_ns() });
                 }
             })
             .wait()
@@ -140,6 +181,7 @@ pub(crate) fn attach(inner: &Arc<Inner>, c: &Arc<ClothInner>, server: &str, rep:
         s.last_tick = 0; // tick numbers are the new server's
         s.features = None; // a new placement: nothing reported by its server yet
         s.sub = sub;
+        c.pred.lock().unwrap().reset(); // the new placement's stream starts with a keyframe
         old
     };
     let early = {
@@ -152,7 +194,7 @@ pub(crate) fn attach(inner: &Arc<Inner>, c: &Arc<ClothInner>, server: &str, rep:
         reg.orphans.remove(&rep.cloth)
     };
     if let Some(l) = early {
-        deliver(c, l);
+        deliver_and_ask(inner, c, l);
     }
     Ok(())
 }
@@ -177,7 +219,7 @@ pub(crate) fn on_bundle(inner: &Inner, payload: ZBytes) {
         }
     });
     for (c, l) in targets {
-        deliver(&c, l);
+        deliver_and_ask(inner, &c, l);
     }
 }
 

@@ -38,7 +38,8 @@ pub struct DrapeClothOptions {
     /// Pinned vertex indices (may be NULL when `pinned_count` is 0).
     pub pinned: *const u32,
     pub pinned_count: usize,
-    /// State encoding: 0 float32, 1 float16, 2 quant16.
+    /// State encoding: DRAPE_ENCODING_* (0 float32, 1 float16, 2 quant16, 3 predictive: 1.5,
+    /// its step set by `drape_client_set_predictive_step`).
     pub encoding: i32,
     /// Publish normals too.
     pub normals: bool,
@@ -100,7 +101,7 @@ pub struct DrapeStateInfo {
     pub receive_time_ns: u64,
     pub vertex_count: u32,
     pub flags: u16,
-    /// 0 float32, 1 float16, 2 quant16.
+    /// 0 float32, 1 float16, 2 quant16, 3 predictive (1.5: decoded on delivery, read as float32).
     pub encoding: u8,
     pub has_normals: bool,
     /// This state is the rest pose (after a reset control or a non-finite step).
@@ -128,9 +129,9 @@ unsafe fn submit_of(opts: *const DrapeClothOptions) -> Result<(Submit, usize, Du
 
 unsafe fn submit_fields(o: &DrapeClothOptions, mut s: Submit) -> Result<Submit, i32> {
     s.pinned = slice(o.pinned, o.pinned_count).ok_or_else(|| bad("pinned is NULL"))?.to_vec();
-    let encoding = Encoding::from_id(u8::try_from(o.encoding).unwrap_or(255)).ok_or_else(|| bad("encoding must be 0, 1 or 2"))?;
+    let encoding = Encoding::from_id(u8::try_from(o.encoding).unwrap_or(255)).ok_or_else(|| bad("encoding must be 0, 1, 2 or 3 (DRAPE_ENCODING_*)"))?;
     if encoding != Encoding::Float32 || o.normals || o.bundle {
-        s.state = Some(StateOptions { normals: Some(o.normals), encoding: Some(encoding), bundle: o.bundle.then_some(true) });
+        s.state = Some(StateOptions { normals: Some(o.normals), encoding: Some(encoding), bundle: o.bundle.then_some(true), step: None });
     }
     s.quality = opt_str(o.quality, "quality")?.map(str::to_string);
     if !o.gravity.is_null() {
@@ -164,7 +165,8 @@ fn submit_any(c: &DrapeClient, sub: (Submit, usize, Duration), shape: Shape, asy
         Ok(x) => x,
         Err(e) => return fail(e),
     };
-    let sub = Submit { shape, ..sub };
+    let mut sub = Submit { shape, ..sub };
+    super::predictive::submit_step(c, &mut sub.state);
     let r = if asynchronous {
         c.client.submit_async(sub, rest, tris, queue, retry)
     } else {
@@ -486,7 +488,7 @@ pub unsafe extern "C" fn drape_cloth_status(cloth: *const DrapeCloth) -> i32 {
     }
 }
 
-unsafe fn control(cloth: *const DrapeCloth, ctl: Control, wait: bool, tick: *mut u64) -> i32 {
+pub(crate) unsafe fn control(cloth: *const DrapeCloth, ctl: Control, wait: bool, tick: *mut u64) -> i32 {
     let Some(c) = cloth.as_ref() else { return bad("cloth is NULL") };
     match c.cloth.control(ctl, wait) {
         Ok(t) => {

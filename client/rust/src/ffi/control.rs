@@ -79,7 +79,9 @@ pub struct DrapeControl {
     pub substeps: u32,
     /// Quality preset ("fast", "balanced", "accurate", "exact") or NULL.
     pub quality: *const c_char,
-    /// When `set_state`: the state encoding (0 float32, 1 float16, 2 quant16) and normals.
+    /// When `set_state`: the state encoding (DRAPE_ENCODING_*: 0 float32, 1 float16, 2 quant16,
+    /// 3 predictive on the step the cloth has, else the server's default: see
+    /// `drape_cloth_set_predictive`) and normals.
     pub set_state: bool,
     pub encoding: i32,
     pub normals: bool,
@@ -157,8 +159,8 @@ pub(crate) unsafe fn control_of(c: *const DrapeControl) -> Result<Control, i32> 
         ctl.colliders = Some(colliders_of(c.colliders, c.collider_count)?);
     }
     if c.set_state {
-        let e = Encoding::from_id(u8::try_from(c.encoding).unwrap_or(255)).ok_or_else(|| bad("encoding must be 0, 1 or 2"))?;
-        ctl.state = Some(StateOptions { normals: Some(c.normals), encoding: Some(e), bundle: None });
+        let e = Encoding::from_id(u8::try_from(c.encoding).unwrap_or(255)).ok_or_else(|| bad("encoding must be 0, 1, 2 or 3 (DRAPE_ENCODING_*)"))?;
+        ctl.state = Some(StateOptions { normals: Some(c.normals), encoding: Some(e), bundle: None, step: None });
     }
     if c.pin_count > 0 {
         let (Some(i), Some(t)) = (slice(c.pin_indices, c.pin_count), slice(c.pin_targets, 3 * c.pin_count)) else {

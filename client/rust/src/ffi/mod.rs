@@ -12,10 +12,12 @@ mod cloth;
 mod control;
 mod info;
 mod moves;
+mod predictive;
 pub use cloth::*;
 pub use control::*;
 pub use info::*;
 pub use moves::*;
+pub use predictive::*;
 
 use crate::client::{Client, ClientOptions, Cloth, Event, LossReason};
 use crate::wire::error::{Error, ErrorCode};
@@ -91,6 +93,8 @@ pub const DRAPE_REASON_RECLAIMED: i32 = 2;
 /// A client (opaque): a Zenoh session to the Drape server(s).
 pub struct DrapeClient {
     pub(crate) client: Client,
+    /// 1.5: the predictive step of later submissions (f64 bits; 0: the server's default).
+    pub(crate) step: std::sync::atomic::AtomicU64,
 }
 
 /// How to connect. Strings are NUL-terminated; NULL means the default.
@@ -324,7 +328,7 @@ unsafe fn open(
     }
     match Client::open(o) {
         Ok(client) => {
-            *out = Box::into_raw(Box::new(DrapeClient { client }));
+            *out = Box::into_raw(Box::new(DrapeClient { client, step: Default::default() }));
             DRAPE_OK
         }
         Err(e) => fail(e),

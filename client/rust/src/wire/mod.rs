@@ -58,6 +58,10 @@ pub const QUALITY_PRESETS: [&str; 4] = ["fast", "balanced", "accurate", "exact"]
 /// 1.2: the least total `material.mass` (kg); smaller masses make float32 per-vertex masses
 /// subnormal or infinite (PROTOCOL.md section 4).
 pub const MIN_MASS: f64 = 1.0e-9;
+/// 1.5: the predictive encoding's grid `state.step` (metres): its range and the server's default.
+pub const STEP_MIN: f64 = 1e-5;
+pub const STEP_MAX: f64 = 0.1;
+pub const STEP_DEFAULT: f64 = 0.001;
 /// 1.2 decoding caps (PROTOCOL.md sections 3 and 13): deeper nesting, more keys in a map, a
 /// longer array or string, or an extension type are `malformed`; more values than
 /// `MAX_VALUES` in one message is `too_large`. The message map is nesting level 1.

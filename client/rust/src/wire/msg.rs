@@ -12,21 +12,33 @@ pub enum Encoding {
     Float32 = 0,
     Float16 = 1,
     Quant16 = 2,
+    /// 1.5 (PROTOCOL.md 9.2): each state coded against the stream's last two on a grid of
+    /// `StateOptions::step`; decoded in order ([`super::PredictiveStream`]; the client does it
+    /// on delivery). Ask for it only from a server of version >= 1.5.
+    Predictive = 3,
 }
 
 impl Encoding {
+    /// Every encoding, by id.
+    pub const ALL: [Encoding; 4] = [Self::Float32, Self::Float16, Self::Quant16, Self::Predictive];
+
     pub fn from_id(id: u8) -> Option<Encoding> {
-        [Self::Float32, Self::Float16, Self::Quant16].get(id as usize).copied()
+        Self::ALL.get(id as usize).copied()
     }
     pub fn name(self) -> &'static str {
-        ["float32", "float16", "quant16"][self as usize]
+        ["float32", "float16", "quant16", "predictive"][self as usize]
     }
     pub fn from_name(name: &str) -> Option<Encoding> {
-        (0..3).map(|i| Self::from_id(i).unwrap()).find(|e| e.name() == name)
+        Self::ALL.into_iter().find(|e| e.name() == name)
     }
-    /// Bytes per coordinate: 4 for float32, 2 otherwise.
+    /// Bytes per coordinate: 4 for float32, 2 for float16 and quant16, 0 for predictive (its
+    /// packed positions are of variable length: their size is in its 1.5 header).
     pub fn element_size(self) -> usize {
-        if self == Self::Float32 { 4 } else { 2 }
+        match self {
+            Self::Float32 => 4,
+            Self::Float16 | Self::Quant16 => 2,
+            Self::Predictive => 0,
+        }
     }
 }
 
@@ -111,6 +123,18 @@ pub struct StateOptions {
     pub normals: Option<bool>,
     pub encoding: Option<Encoding>,
     pub bundle: Option<bool>,
+    /// 1.5: the predictive encoding's grid, metres ([`super::STEP_MIN`]..[`super::STEP_MAX`];
+    /// the server's default [`super::STEP_DEFAULT`]); a decoded position is within `step / 2`
+    /// of the simulated one. A control changing it makes the next predictive state a keyframe.
+    pub step: Option<f64>,
+}
+
+impl StateOptions {
+    /// Whether these options need a protocol 1.5 server (the predictive encoding or a step; a
+    /// 1.4 server refuses them with `invalid_value`).
+    pub fn needs_1_5(&self) -> bool {
+        self.encoding == Some(Encoding::Predictive) || self.step.is_some()
+    }
 }
 
 /// Pin updates: `targets[3i..3i+3]` is where pinned vertex `indices[i]` goes.
@@ -294,6 +318,9 @@ fn state_map(o: &StateOptions) -> Value {
     }
     if let Some(b) = o.bundle {
         m.push((s("bundle"), Value::Boolean(b)));
+    }
+    if let Some(x) = o.step {
+        m.push((s("step"), Value::F64(x)));
     }
     Value::Map(m)
 }

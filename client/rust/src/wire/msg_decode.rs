@@ -67,5 +67,10 @@ pub(crate) fn read_state(r: &Reader<'_>) -> Result<Option<StateOptions>> {
         None => None,
         Some(e) => Some(Encoding::from_name(e).ok_or_else(|| invalid(format!("unknown encoding {e:?}")))?),
     };
-    Ok(Some(StateOptions { normals: st.bool("normals", false)?, encoding, bundle: st.bool("bundle", false)? }))
+    Ok(Some(StateOptions {
+        normals: st.bool("normals", false)?,
+        encoding,
+        bundle: st.bool("bundle", false)?,
+        step: st.f64("step", false)?,
+    }))
 }

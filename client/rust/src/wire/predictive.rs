@@ -1,9 +1,9 @@
 //! The predictive state encoding of protocol 1.5 (PROTOCOL.md 9.2), the decoder's side: a
 //! cloth's [`Stream`] decodes each predictive state against the last two states it rebuilt, into
-//! a caller-provided `f32` slice, without allocating once its history exists. The crate speaks
-//! 1.4: it never asks for this encoding, but a client that does (a 1.5 `state.encoding:
-//! "predictive"` in its submit) decodes its states here. `client/protocol/predictive.py` is the
-//! reference; `tests/predictive.rs` checks this decoder against `tests/vectors/predictive.json`.
+//! a caller-provided `f32` slice, without allocating once its history exists. A cloth asks for
+//! the encoding with `StateOptions { encoding: Some(Encoding::Predictive), step, .. }` (a 1.5
+//! server); the client decodes its states here on delivery, in order (`client::recv`).
+//! `client/protocol/predictive.py` is the reference; `tests/predictive.rs` checks this decoder against `tests/vectors/predictive.json`.
 use super::error::{invalid, malformed, Result};
 use super::layout::state as L;
 use super::state::STATE_HEADER_SIZE;
@@ -91,6 +91,15 @@ pub fn parse_predictive(data: &[u8]) -> Result<PredictiveHeader> {
             h.step
         )));
     }
+    // the packed positions hold at least their width bytes (3 per 32 vertices, padded to 4):
+    // a vertex count beyond what `data_size` can hold is malformed (and allocates nothing)
+    let widths = 4 * (3 * (h.vertex_count as usize).div_ceil(BLOCK)).div_ceil(4);
+    if (h.data_size as usize) < widths || h.data_size % 4 != 0 {
+        return Err(malformed(format!(
+            "predictive data_size {} cannot hold the width bytes of {} vertices",
+            h.data_size, h.vertex_count
+        )));
+    }
     let normals = if h.has_normals() {
         6 * h.vertex_count as usize
     } else {
@@ -115,6 +124,9 @@ pub struct Stream {
     tick2: Option<u64>,
     step: f32,
     scratch: Vec<i32>,
+    /// [`Stream::decode_to_float32`]'s positions and normals.
+    pos: Vec<f32>,
+    nrm: Vec<f32>,
     /// States decoded, keyframes among them, and states predicted from one this stream lacked.
     pub decoded: u64,
     pub keyframes: u64,
@@ -212,6 +224,38 @@ impl Stream {
         self.step = h.step;
         self.decoded += 1;
         Ok(Some(h))
+    }
+}
+
+impl Stream {
+    /// Decode a predictive state as [`Stream::decode`] does, into a float32 state payload
+    /// (`DRPS`, encoding 0, header 64 bytes: the state's common header as received, tick, times,
+    /// bounds and flags; its normals as float32 when it has them), what a client keeps and reads
+    /// like any other state (`decode_state_into`). `Ok(None)`: not decodable (see `decode`).
+    pub fn decode_to_float32(&mut self, data: &[u8]) -> Result<Option<(Vec<u8>, PredictiveHeader)>> {
+        let h = parse_predictive(data)?;
+        let k = 3 * h.vertex_count as usize;
+        let (mut pos, mut nrm) = (std::mem::take(&mut self.pos), std::mem::take(&mut self.nrm));
+        pos.resize(k, 0.0);
+        nrm.resize(if h.has_normals() { k } else { 0 }, 0.0);
+        let normals = if h.has_normals() { Some(&mut nrm[..]) } else { None };
+        let r = self.decode(data, &mut pos, normals);
+        let out = match r {
+            Ok(Some(h)) => {
+                let mut out = Vec::with_capacity(STATE_HEADER_SIZE + 4 * (pos.len() + nrm.len()));
+                out.extend_from_slice(&data[..STATE_HEADER_SIZE]);
+                L::HEADER_SIZE.put(&mut out, 0, &(STATE_HEADER_SIZE as u16).to_le_bytes());
+                L::ENCODING.put(&mut out, 0, &[0]); // float32
+                for v in pos.iter().chain(&nrm) {
+                    out.extend_from_slice(&v.to_le_bytes());
+                }
+                Ok(Some((out, h)))
+            }
+            Ok(None) => Ok(None),
+            Err(e) => Err(e),
+        };
+        (self.pos, self.nrm) = (pos, nrm);
+        out
     }
 }
 

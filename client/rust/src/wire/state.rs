@@ -35,8 +35,13 @@ impl StateHeader {
     pub fn floats(&self) -> usize {
         3 * self.vertex_count as usize
     }
-    /// Bytes the payload needs: `header_size + 3n·s·(1 + normals)`.
+    /// Bytes the payload needs: `header_size + 3n·s·(1 + normals)`; of a predictive state the
+    /// least (`header_size` and its normals: its packed positions' size is in its 1.5 header,
+    /// [`super::parse_predictive`]).
     pub fn needed_size(&self) -> usize {
+        if self.encoding == Encoding::Predictive {
+            return self.header_size as usize + if self.has_normals() { 6 * self.vertex_count as usize } else { 0 };
+        }
         self.header_size as usize + self.block() * if self.has_normals() { 2 } else { 1 }
     }
     fn block(&self) -> usize {
@@ -84,7 +89,9 @@ pub fn parse_state(data: &[u8]) -> Result<StateHeader> {
         bounds_min: L::BOUNDS_MIN.f32x3(data),
         bounds_max: L::BOUNDS_MAX.f32x3(data),
     };
-    if data.len() < h.needed_size() {
+    if encoding == Encoding::Predictive {
+        super::predictive::parse_predictive(data)?; // its 1.5 header and the size it announces
+    } else if data.len() < h.needed_size() {
         return Err(malformed(format!(
             "state payload of {} bytes is shorter than the {} bytes its header announces ({} vertices, {}{})",
             data.len(),
@@ -99,9 +106,14 @@ pub fn parse_state(data: &[u8]) -> Result<StateHeader> {
 
 /// Decode a state into caller-owned buffers: `positions` gets `3n` floats (xyz interleaved),
 /// `normals` (if given and the state has normals) `3n` more. A buffer shorter than `3n` is an
-/// `invalid_value` error; a longer one is left untouched past `3n`. No allocation.
+/// `invalid_value` error; a longer one is left untouched past `3n`. No allocation. A predictive
+/// state (1.5) is an `invalid_value` error here: it decodes only against its stream's previous
+/// states ([`super::PredictiveStream`]; the client does that on delivery).
 pub fn decode_state_into(data: &[u8], positions: &mut [f32], normals: Option<&mut [f32]>) -> Result<StateHeader> {
     let h = parse_state(data)?;
+    if h.encoding == Encoding::Predictive {
+        return Err(invalid("a predictive state decodes only in order, against its stream's previous states (PredictiveStream)"));
+    }
     let k = h.floats();
     if positions.len() < k {
         return Err(invalid(format!("positions buffer holds {} floats, the state has {k}", positions.len())));
@@ -112,6 +124,7 @@ pub fn decode_state_into(data: &[u8], positions: &mut [f32], normals: Option<&mu
     match h.encoding {
         Encoding::Float32 => decode_f32(&data[at..at + block], &mut positions[..k]),
         Encoding::Float16 => decode_f16(&data[at..at + block], &mut positions[..k]),
+        Encoding::Predictive => unreachable!("refused above"),
         Encoding::Quant16 => {
             let lo64 = [lo[0] as f64, lo[1] as f64, lo[2] as f64];
             let step = [0, 1, 2].map(|i| (hi[i] as f64 - lo64[i]) / QUANT_MAX);
@@ -130,6 +143,7 @@ pub fn decode_state_into(data: &[u8], positions: &mut [f32], normals: Option<&mu
         match h.encoding {
             Encoding::Float32 => decode_f32(src, &mut nrm[..k]),
             Encoding::Float16 => decode_f16(src, &mut nrm[..k]),
+            Encoding::Predictive => unreachable!("refused above"),
             Encoding::Quant16 => {
                 for (out, q) in nrm[..k].iter_mut().zip(src.chunks_exact(2)) {
                     *out = (i16::from_le_bytes([q[0], q[1]]) as f64 / SNORM_MAX) as f32;
@@ -156,7 +170,8 @@ fn decode_f16(src: &[u8], out: &mut [f32]) {
 
 /// Encode a state (what a server publishes; here for tests and tools). `positions`: `3n` finite
 /// floats; `normals`: `3n` floats or None. The normals flag follows `normals`; other `flags`
-/// bits are written as given. Bounds are the positions' per-axis min and max.
+/// bits are written as given. Bounds are the positions' per-axis min and max. Not predictive
+/// states (they are coded against a stream's previous ones: `invalid_value`).
 pub fn encode_state(
     tick: u64,
     server_time_ns: u64,
@@ -167,6 +182,9 @@ pub fn encode_state(
 ) -> Result<Vec<u8>> {
     if positions.len() % 3 != 0 {
         return Err(invalid(format!("positions hold {} floats, not a multiple of 3", positions.len())));
+    }
+    if encoding == Encoding::Predictive {
+        return Err(invalid("predictive states are coded against their stream's previous states; encode_state writes the others"));
     }
     let n = positions.len() / 3;
     if let Some(nrm) = normals {
@@ -213,6 +231,7 @@ pub fn encode_state(
                 out.extend_from_slice(&f32_to_f16(*v).to_le_bytes());
             }
         }
+        Encoding::Predictive => unreachable!("refused above"),
         Encoding::Quant16 => {
             let scale = [0, 1, 2].map(|i| quant_scale(lo[i], hi[i]));
             for p in positions.chunks_exact(3) {

@@ -3,7 +3,8 @@
 //! of a round trip. Quotas that depend on the server's load (`limit_exceeded`) stay server-side.
 use super::error::{invalid, Error, ErrorCode, Result};
 use super::keys::{valid_id, valid_token};
-use super::msg::{Collider, Control, ControlBatch, Material, Resume, Shape, Submit};
+use super::msg::{Collider, Control, ControlBatch, Material, Resume, Shape, StateOptions, Submit};
+use super::{STEP_MAX, STEP_MIN};
 use super::{FEATURE_NAMES, MAX_BATCH_ITEMS, MAX_COLLIDERS, MAX_FEATURES, MAX_PIN_UPDATES, MIN_MASS, QUALITY_PRESETS};
 
 /// Per-server limits a client checks against (PROTOCOL.md section 13 defaults, or `info`'s).
@@ -48,6 +49,14 @@ fn vec3(name: &str, v: Option<[f64; 3]>, bound: f64) -> Result<()> {
         finite(&format!("{name}[{i}]"), *x, -bound, bound)?;
     }
     Ok(())
+}
+
+/// 1.5: `state.step` within [`STEP_MIN`, `STEP_MAX`] metres.
+fn state_options(o: Option<&StateOptions>) -> Result<()> {
+    match o.and_then(|o| o.step) {
+        Some(x) => finite("state.step", x, STEP_MIN, STEP_MAX),
+        None => Ok(()),
+    }
 }
 
 fn material(m: &Material) -> Result<()> {
@@ -192,6 +201,7 @@ impl Submit {
         vec3("wind", self.wind, ACCEL)?;
         material(&self.material)?;
         colliders(&self.colliders)?;
+        state_options(self.state.as_ref())?;
         options(Some(&self.features), self.quality.as_deref(), self.iterations, self.substeps, self.chebyshev_rho, lim)?;
         match &self.resume {
             Some(r) => r.validate(n, lim),
@@ -265,6 +275,7 @@ impl Control {
         vec3("wind", self.wind, ACCEL)?;
         material(&self.material)?;
         colliders(&self.colliders)?;
+        state_options(self.state.as_ref())?;
         options(self.features.as_deref(), self.quality.as_deref(), self.iterations, self.substeps, self.chebyshev_rho, lim)?;
         feature_list("features_add", self.features_add.as_deref())?;
         feature_list("features_remove", self.features_remove.as_deref())?;

@@ -75,7 +75,7 @@ namespace Drape
     public sealed class ClothOptions
     {
         public uint[] Pinned;
-        /// 0 float32, 1 float16, 2 quant16.
+        /// Native.ENCODING_*: 0 float32, 1 float16, 2 quant16, 3 predictive (protocol 1.5).
         public int Encoding;
         public bool Normals, Bundle;
         public string Quality;

@@ -20,6 +20,9 @@ namespace Drape
                          EVENT_REQUEST_FAILED = 5, EVENT_REQUEST_DONE = 6, EVENT_SUBMITTED = 7, EVENT_SUBMIT_FAILED = 8;
         public const int CLOTH_PENDING = 0, CLOTH_LIVE = 1, CLOTH_RESUBMITTING = 2, CLOTH_LOST = 3, CLOTH_REMOVED = 4;
         public const int COLLIDER_SPHERE = 0, COLLIDER_CAPSULE = 1, COLLIDER_PLANE = 2;
+        /// State encodings (ClothOptions.Encoding); 3, predictive, needs a protocol 1.5 server (decoded by
+        /// the library on delivery, read as float32; its step: drape_client_set_predictive_step).
+        public const int ENCODING_FLOAT32 = 0, ENCODING_FLOAT16 = 1, ENCODING_QUANT16 = 2, ENCODING_PREDICTIVE = 3;
         public const uint MATERIAL_MASS = 1, MATERIAL_STIFFNESS = 2, MATERIAL_COMPLIANCE = 4, MATERIAL_DAMPING = 8,
                           MATERIAL_FRICTION = 16, MATERIAL_DRAG = 32, MATERIAL_LIFT = 64, MATERIAL_AIR_DENSITY = 128,
                           MATERIAL_TETHER_LIMIT = 256;

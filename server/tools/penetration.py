@@ -2,7 +2,7 @@
 metric (drape.server.sim.collision.penetration) reported at the end of every tick.
 
     python -m drape.server.tools.penetration [--solver workgroup] [--scenario NAME ...] [--size full|small]
-                                             [--json FILE]
+                                             [--substeps 1,2,4,8] [--self-collision on,off] [--json FILE]
 
 Scenarios (every cloth 5 mm thick with self-collision on, 60 Hz, 10 iterations, 2 substeps):
 
@@ -22,6 +22,8 @@ the cloths), ``behind`` (free vertices behind a collider's surface), their depth
 at the end of each substep alone lets a fast capsule pass through the cloth and leaves no
 vertex inside it at the end of the tick, which ``behind`` cannot see). The scenarios are
 shared with the tests (tests/sim/test_ccd.py, small sizes) and the stability suite.
+``--substeps`` and ``--self-collision`` give the trade of collision's accuracy against its cost
+(each row's ``ms_per_tick``: the median tick of the World's step alone).
 """
 
 from __future__ import annotations
@@ -29,8 +31,9 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import time
 from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -59,14 +62,18 @@ CROSSED_CORE = 0.25  # crossed(): the share of a collider's radius a vertex's ch
 SIZES = {"full": 32, "small": 9}  # vertices along a cloth's side
 
 
-def params(colliders: bool = True, **material) -> ClothParams:
-    """The scenarios' cloth: self-collision at 5 mm, bending links' fabric, 10 iterations, 2 substeps."""
-    return ClothParams(
-        features=Features(colliders=colliders, self_collision=True, tethers=True),
-        material=Material(thickness=THICKNESS, **material),
-        iterations=10,
-        substeps=2,
-    )
+#: The scenarios' cloth: self-collision at 5 mm, tethers, 10 iterations, 2 substeps (each
+#: scenario sets its friction; ``--substeps`` and ``--self-collision off`` change this).
+BASE = ClothParams(
+    features=Features(colliders=True, self_collision=True, tethers=True),
+    material=Material(thickness=THICKNESS),
+    iterations=10,
+    substeps=2,
+)
+
+
+def params(base: ClothParams, friction: float = 0.0) -> ClothParams:
+    return base.with_(material=replace(base.material, friction=friction))
 
 
 @dataclass
@@ -84,6 +91,7 @@ class Tick:
     """The state after one tick: each cloth's positions (and the previous tick's, for ``crossed``)."""
 
     index: int
+    seconds: float  # the World's step and positions (not the metric)
     cloths: list[Cloth]
     x: list[np.ndarray]
     x_before: list[np.ndarray]
@@ -95,6 +103,7 @@ class Record:
     """The penetration metric of one tick, over every cloth of a scenario."""
 
     tick: int
+    seconds: float = 0.0
     pairs: int = 0
     deepest_pair: float = 0.0
     behind: int = 0
@@ -114,16 +123,18 @@ def _stepper(world: World, cloths: list[Cloth], ticks: int, move: Callable[[int]
         for c in cloths:
             if c.params.features.colliders:
                 world.set_colliders(c.handle, c.colliders)
+        t0 = time.perf_counter()
         world.step(DT)
         now = [world.positions(c.handle).copy() for c in cloths]
-        yield Tick(k, cloths, now, x, before)
+        yield Tick(k, time.perf_counter() - t0, cloths, now, x, before)
         x = now
 
 
-def capsule_hit(world: World, n: int, ticks: int = 12) -> Iterator[Tick]:
+def capsule_hit(world: World, n: int, ticks: int = 12, base: ClothParams = BASE) -> Iterator[Tick]:
     """A 0.5 m cloth hanging by its top corners, a 4 cm capsule crossing it at 10 m/s."""
     fab = cook_grid(n, n, 0.5, 0.5, LinkOptions(bending=True), [0, n - 1], "vertical", (-0.25, 1.0, 0.0))
-    cloth = Cloth(world.add(fab, params(friction=0.5)), fab, params(friction=0.5))
+    p = params(base, 0.5)
+    cloth = Cloth(world.add(fab, p), fab, p)
     y = float(fab.rest_positions[:, 1].mean())
 
     def move(k: int) -> None:
@@ -134,21 +145,23 @@ def capsule_hit(world: World, n: int, ticks: int = 12) -> Iterator[Tick]:
     return _stepper(world, [cloth], ticks, move)
 
 
-def plane_drop(world: World, n: int, ticks: int = 150) -> Iterator[Tick]:
+def plane_drop(world: World, n: int, ticks: int = 150, base: ClothParams = BASE) -> Iterator[Tick]:
     """A flat 0.5 m cloth falling 20.4 m onto a plane (20 m/s at contact), then lying on it."""
     height = DROP_SPEED**2 / (2 * 9.81)
     fab = cook_grid(n, n, 0.5, 0.5, LinkOptions(bending=True), [], "horizontal", (-0.25, height + 0.01, -0.25))
-    cloth = Cloth(world.add(fab, params()), fab, params())
+    p = params(base)
+    cloth = Cloth(world.add(fab, p), fab, p)
     cloth.colliders = pack_colliders([Plane((0.0, 1.0, 0.0), 0.0)])
     return _stepper(world, [cloth], ticks, lambda k: None)
 
 
-def stack(world: World, n: int, ticks: int = 90, count: int = 8) -> Iterator[Tick]:
+def stack(world: World, n: int, ticks: int = 90, count: int = 8, base: ClothParams = BASE) -> Iterator[Tick]:
     """``count`` cloths stacked 2 cm apart, 0.3 m above a plane, dropped (each its own)."""
     cloths = []
     for i in range(count):
         fab = cook_grid(n, n, 0.5, 0.5, LinkOptions(bending=True), [], "horizontal", (-0.25, 0.3 + 0.02 * i, -0.25))
-        c = Cloth(world.add(fab, params(friction=0.3)), fab, params(friction=0.3))
+        p = params(base, 0.3)
+        c = Cloth(world.add(fab, p), fab, p)
         c.colliders = pack_colliders([Plane((0.0, 1.0, 0.0), 0.0)])
         cloths.append(c)
     return _stepper(world, cloths, ticks, lambda k: None)
@@ -195,13 +208,13 @@ def character(t: float, pos: np.ndarray, heading: float, speed: float) -> tuple[
     return tuple(Capsule(tuple(rot @ a + pos), tuple(rot @ b + pos), r) for a, b, r in parts), rot
 
 
-def cape_run(world: World, n: int, ticks: int = 300) -> Iterator[Tick]:
+def cape_run(world: World, n: int, ticks: int = 300, base: ClothParams = BASE) -> Iterator[Tick]:
     """A 0.6 x 1.0 m cape pinned across the shoulders of a character that runs up to 5 m/s,
     turns left and stops (codecbench's cape_run motion, with a body to hit)."""
     shoulders = np.array([0.0, 1.42, -0.2])
     top = np.arange(n)  # row 0, at the origin's height (the grid's rows go down)
     fab = cook_grid(n, n, 0.6, 1.0, LinkOptions(bending=True), top, "vertical", tuple(shoulders - [0.3, 0, 0]))
-    p = params(friction=0.3)
+    p = params(base, 0.3)
     cloth = Cloth(world.add(fab, p), fab, p)
     rest_top = fab.rest_positions[top] - shoulders
     run = Runner()
@@ -258,7 +271,7 @@ def crossed(x: np.ndarray, x_before: np.ndarray, c_before: np.ndarray, c_now: np
 
 def measure(tick: Tick) -> Record:
     """The penetration metric of one tick over its cloths."""
-    rec = Record(tick.index)
+    rec = Record(tick.index, tick.seconds)
     for c, x, xb, cb in zip(tick.cloths, tick.x, tick.x_before, tick.colliders_before, strict=True):
         free = ~c.fabric.pinned
         p = penetration(x, c.fabric.rest_positions, c.params.material.thickness, c.colliders, free.astype(np.float64))
@@ -270,15 +283,16 @@ def measure(tick: Tick) -> Record:
     return rec
 
 
-def run(name: str, world: World, n: int, ticks: int | None = None) -> list[Record]:
+def run(name: str, world: World, n: int, ticks: int | None = None, base: ClothParams = BASE) -> list[Record]:
     """One scenario's records, one per tick."""
     kw = {} if ticks is None else {"ticks": ticks}
-    return [measure(t) for t in SCENARIOS[name](world, n, **kw)]
+    return [measure(t) for t in SCENARIOS[name](world, n, base=base, **kw)]
 
 
 def summary(records: list[Record]) -> dict:
     return {
         "ticks": len(records),
+        "ms_per_tick": 1e3 * float(np.median([r.seconds for r in records])),
         "ticks_over_0": sum(r.total > 0 for r in records),
         "max_pairs": max(r.pairs for r in records),
         "max_behind": max(r.behind for r in records),
@@ -293,16 +307,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--solver", default="workgroup", help="workgroup, coloured, jacobi or reference")
     ap.add_argument("--scenario", nargs="*", default=list(SCENARIOS), choices=list(SCENARIOS))
     ap.add_argument("--size", default="full", choices=list(SIZES))
+    ap.add_argument("--substeps", default="2", help="a comma list: the trade of substeps against penetration")
+    ap.add_argument("--self-collision", default="on", help="on, off or on,off")
     ap.add_argument("--json", help="write every tick's records here")
     args = ap.parse_args(argv)
     out = {}
     for name in args.scenario:
-        world = make_world(args.solver)
-        records = run(name, world, SIZES[args.size])
-        world.close()
-        s = summary(records)
-        out[name] = {"summary": s, "ticks": [asdict(r) for r in records]}
-        print(f"{name:12s} " + "  ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in s.items()))
+        for sub in (int(v) for v in args.substeps.split(",")):
+            for sc in args.self_collision.split(","):
+                base = BASE.with_(substeps=sub, features=replace(BASE.features, self_collision=sc == "on"))
+                world = make_world(args.solver)
+                records = run(name, world, SIZES[args.size], base=base)
+                world.close()
+                s = summary(records)
+                key = f"{name} substeps={sub} self_collision={sc}"
+                out[key] = {"summary": s, "ticks": [asdict(r) for r in records]}
+                print(
+                    f"{key:44s} "
+                    + "  ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in s.items())
+                )
     if args.json:
         with open(args.json, "w") as f:
             json.dump(out, f, indent=1)

@@ -1,8 +1,24 @@
 /* Colliders: spheres, capsules and planes moving linearly over the step (each slot holds the
  * previous and the current pose), pushing a vertex out and applying friction against the
  * collider's own motion. Built with FEATURE_COLLIDERS only. Included by cloth.cl.
+ * Spheres and capsules are continuous (no tunnelling): the vertex's motion in the substep (xp ->
+ * x) is walked against the collider moving from its pose at the substep's start to its pose at
+ * the end, by conservative advancement (each step advances by the distance to the surface over
+ * the largest speed of the vertex relative to the collider's axis, so it never passes the first
+ * contact), at most CCD_STEPS steps; where it meets the surface (or the steps run out before the
+ * end of the substep), the end position is put back onto the plane tangent to the collider at
+ * that contact point, carried to the collider's end pose (the rest of the motion slides along the
+ * surface). A discrete push-out at the end pose follows (what a rotating capsule leaves). Planes
+ * are half-spaces: the discrete push-out along the normal is already the continuous answer.
+ * The float64 reference is drape.server.sim.reference.collide.
  * The type ids are the protocol's (drape.client.protocol.COLLIDER_SHAPES: its row order; checked by
  * tests/client/test_protocol_tables.py). */
+#ifndef CCD_STEPS
+#define CCD_STEPS 12
+#endif
+#ifndef CCD_SLOP
+#define CCD_SLOP 1e-5f
+#endif
 #define COLLIDER_SPHERE 0
 #define COLLIDER_CAPSULE 1
 #define COLLIDER_PLANE 2
@@ -17,6 +33,20 @@ inline float3 friction(float3 x, float3 xp, float3 n, float pen, float3 cdisp, f
     if (tl > 1e-12f)
         x -= tang * (fmin(mu * pen, tl) / tl);
     return x;
+}
+
+/* the point of a sphere's centre (cap = 0) or a capsule's axis a0 -> a1 closest to x; *t: its
+ * parameter along the axis */
+inline float3 axis_point(float3 x, float3 a0, float3 a1, int cap, float *t)
+{
+    float s = 0.0f;
+    if (cap) {
+        float3 axis = a1 - a0;
+        float aa = dot(axis, axis);
+        s = aa > EPS_LEN2 ? clamp(dot(x - a0, axis) / aa, 0.0f, 1.0f) : 0.0f;
+    }
+    *t = s;
+    return a0 + s * (a1 - a0);
 }
 
 inline float3 collide_vertex(float3 x, float3 xp, __global const float4 *coll, int base, int ncoll,
@@ -40,12 +70,41 @@ inline float3 collide_vertex(float3 x, float3 xp, __global const float4 *coll, i
         }
         float r = p0.w;
         float t = 0.0f;
-        if (kind == COLLIDER_CAPSULE) {
-            float3 axis = p1.xyz - p0.xyz;
-            float aa = dot(axis, axis);
-            t = aa > EPS_LEN2 ? clamp(dot(x - p0.xyz, axis) / aa, 0.0f, 1.0f) : 0.0f;
+        int cap = kind == COLLIDER_CAPSULE;
+        if (r > 0.0f) {
+            /* continuous: the first contact along the substep's motion (conservative advancement) */
+            float3 dx = x - xp;
+            float L = length(dx - (p0.xyz - q0.xyz));
+            if (cap)
+                L = fmax(L, length(dx - (p1.xyz - q1.xyz)));
+            float tau = 0.0f;
+            float3 v = xp;
+            float3 c = axis_point(v, q0.xyz, q1.xyz, cap, &t);
+            float f = length(v - c) - r;
+            for (int k = 0; k < CCD_STEPS && f >= CCD_SLOP; ++k) {
+                if (!(f <= L * (1.0f - tau))) { /* no contact before the substep's end */
+                    tau = 2.0f;
+                    break;
+                }
+                tau += f / L;
+                v = xp + dx * tau;
+                c = axis_point(v, q0.xyz + (p0.xyz - q0.xyz) * tau, q1.xyz + (p1.xyz - q1.xyz) * tau, cap, &t);
+                f = length(v - c) - r;
+            }
+            if (tau <= 1.0f) {
+                float3 d = v - c;
+                float dl = length(d);
+                float3 n = dl > 1e-12f ? d / dl : (float3)(0.0f, 1.0f, 0.0f);
+                float3 ce = p0.xyz + t * (p1.xyz - p0.xyz);
+                float depth = dot(ce + n * r - x, n);
+                if (depth > 0.0f) {
+                    x += n * depth;
+                    x = friction(x, xp, n, depth, ce - (q0.xyz + t * (q1.xyz - q0.xyz)), mu);
+                }
+            }
         }
-        float3 centre = p0.xyz + t * (p1.xyz - p0.xyz);
+        /* discrete: out of the collider at its end pose */
+        float3 centre = axis_point(x, p0.xyz, p1.xyz, cap, &t);
         float3 d = x - centre;
         float d2 = dot(d, d);
         if (d2 < r * r) {

@@ -58,6 +58,12 @@ class LinkOptions:
 #: Self-collision's passes per substep (the kernels' -DSELF_COLLISION_PASSES, the reference's).
 SELF_COLLISION_PASSES = 2
 
+#: Continuous collision against spheres and capsules (kernels/colliders.cl, reference.collide): at
+#: most this many conservative-advancement steps along a vertex's motion in a substep (the
+#: kernels' -DCCD_STEPS), stopping within CCD_SLOP metres of the surface (-DCCD_SLOP).
+CCD_STEPS = 12
+CCD_SLOP = 1e-5
+
 #: The features whose build option is spelled out even when off (those of protocol 1.5's kernels).
 ALWAYS_SPELLED = ("xpbd", "tethers", "colliders", "wind", "normals")
 
@@ -88,6 +94,8 @@ class Features:
             for f in fields(self)
             if f.name in ALWAYS_SPELLED or getattr(self, f.name)
         ]
+        if self.colliders:
+            opts += [f"-DCCD_STEPS={CCD_STEPS}", f"-DCCD_SLOP={CCD_SLOP!r}f"]
         if self.self_collision:
             opts.append(f"-DSELF_COLLISION_PASSES={SELF_COLLISION_PASSES}")
         return opts

@@ -22,7 +22,8 @@ One step of one cloth, in this order (the OpenCL kernels in kernels/cloth.cl do 
                      SELF_COLLISION_PASSES Jacobi passes (collision.py; the work-group solver's)
         [tethers]    the tethers again (every mode: the device's coloured and Jacobi solvers
                      apply them here only)
-        [colliders]  push out of spheres, capsules, planes (interpolated over substeps), friction
+        [colliders]  push out of spheres, capsules, planes (interpolated over substeps), friction;
+                     spheres and capsules first along the substep's motion (continuous: no tunnelling)
         all:         v = (x - x_prev) / h * (1 - damping)
 
 ``mode="serial"`` visits links one at a time in fabric order exactly like the talk's CPU loop;
@@ -43,6 +44,8 @@ import numpy as np
 from .collision import self_collide
 from .fabric import Fabric, vertex_masses
 from .params import (
+    CCD_SLOP,
+    CCD_STEPS,
     COLLIDER_CAPSULE,
     COLLIDER_PLANE,
     ClothParams,
@@ -328,13 +331,10 @@ def collide(x, x_prev, invm, c_prev, c_now, friction):
         r = c_now[c, 0, 3]
         p0, p1 = c_now[c, 0, :3], c_now[c, 1, :3]
         q0, q1 = c_prev[c, 0, :3], c_prev[c, 1, :3]
-        if kind == COLLIDER_CAPSULE:
-            axis = p1 - p0
-            aa = float(axis @ axis)
-            t = np.clip(((x - p0) @ axis) / aa, 0.0, 1.0) if aa > EPS_LEN2 else np.zeros(len(x))
-        else:
-            t = np.zeros(len(x))
-        centre = p0 + t[:, None] * (p1 - p0)
+        cap = kind == COLLIDER_CAPSULE
+        if r > 0:
+            _continuous(x, x_prev, free, q0, q1, p0, p1, r, cap, friction)
+        centre, t = _axis_point(x, p0, p1, cap)
         d = x - centre
         dist2 = np.einsum("ij,ij->i", d, d)
         inside = free & (dist2 < r * r)
@@ -342,13 +342,79 @@ def collide(x, x_prev, invm, c_prev, c_now, friction):
             continue
         di = d[inside]
         dist = np.sqrt(dist2[inside])
-        safe = dist > 1e-12
-        nn = np.where(safe[:, None], di / np.where(safe, dist, 1.0)[:, None], np.array([0.0, 1.0, 0.0]))
+        nn = _unit_or_up(di, dist)
         pen = r - dist
         x[inside] = centre[inside] + nn * r
         ti = t[inside][:, None]
         cdisp = (p0 + ti * (p1 - p0)) - (q0 + ti * (q1 - q0))
         _friction(x, x_prev, inside, nn, pen, cdisp, friction)
+
+
+def _axis_point(x, a0, a1, cap: bool):
+    """The point of a sphere's centre (a0) or a capsule's axis a0 -> a1 (per row or shared)
+    closest to each row of x, and its parameter along the axis (colliders.cl's axis_point)."""
+    if not cap:
+        return np.broadcast_to(a0, x.shape), np.zeros(len(x), x.dtype)
+    axis = a1 - a0
+    aa = np.einsum("...j,...j->...", axis, axis)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(
+            aa > EPS_LEN2, np.clip(np.einsum("ij,ij->i", x - a0, np.broadcast_to(axis, x.shape)) / aa, 0, 1), 0
+        )
+    t = t.astype(x.dtype)
+    return a0 + t[:, None] * axis, t
+
+
+def _unit_or_up(d, dist):
+    safe = dist > 1e-12
+    return np.where(safe[:, None], d / np.where(safe, dist, 1.0)[:, None], np.array([0.0, 1.0, 0.0], d.dtype))
+
+
+def _continuous(x, x_prev, free, q0, q1, p0, p1, r, cap: bool, mu) -> None:
+    """No tunnelling through a sphere or capsule (colliders.cl): the first contact of each free
+    vertex's motion x_prev -> x with the collider moving from (q0, q1) to (p0, p1) over the substep,
+    by conservative advancement (CCD_STEPS steps at most, CCD_SLOP from the surface); where it
+    is met before the substep's end (or the steps run out first), x goes back onto the plane
+    tangent to the collider at that contact, carried to the end pose, with friction."""
+    dx = x - x_prev
+    L = np.linalg.norm(dx - (p0 - q0), axis=1)
+    if cap:
+        L = np.maximum(L, np.linalg.norm(dx - (p1 - q1), axis=1))
+    tau = np.zeros(len(x), x.dtype)
+    v = x_prev.copy()
+    c, t = _axis_point(v, q0, q1, cap)
+    c = np.array(c)
+    f = np.linalg.norm(v - c, axis=1) - r
+    active = free & (f >= CCD_SLOP)
+    for _ in range(CCD_STEPS):
+        if not active.any():
+            break
+        miss = active & ~(f <= L * (1 - tau))
+        tau[miss] = 2
+        active &= ~miss
+        i = np.nonzero(active)[0]
+        tau[i] += f[i] / L[i]
+        v[i] = x_prev[i] + dx[i] * tau[i, None]
+        ti = tau[i, None]
+        c[i], t[i] = _axis_point(v[i], q0 + (p0 - q0) * ti, q1 + (p1 - q1) * ti, cap)
+        f[i] = np.linalg.norm(v[i] - c[i], axis=1) - r
+        active[i] = f[i] >= CCD_SLOP
+    hit = free & (tau <= 1)
+    if not hit.any():
+        return
+    d = v[hit] - c[hit]
+    n = _unit_or_up(d, np.linalg.norm(d, axis=1))
+    th = t[hit][:, None]
+    ce = p0 + th * (p1 - p0)
+    depth = np.einsum("ij,ij->i", ce + n * r - x[hit], n)
+    push = depth > 0
+    if not push.any():
+        return
+    rows = np.nonzero(hit)[0][push]
+    mask = np.zeros(len(x), bool)
+    mask[rows] = True
+    x[rows] += n[push] * depth[push, None]
+    _friction(x, x_prev, mask, n[push], depth[push], (ce - (q0 + th * (q1 - q0)))[push], mu)
 
 
 def _friction(x, x_prev, mask, n, pen, cdisp, mu):

@@ -45,6 +45,7 @@ from drape.server.sim.params import (
 )
 from drape.server.sim.quality import PRESETS
 from drape.server.sim.world import ReferenceWorld
+from drape.server.tools import penetration as pen
 
 SOLVERS = ["workgroup", "coloured", "jacobi", "reference"]
 DT = 1 / 60
@@ -590,3 +591,38 @@ def test_self_collision_extremes(device, rng, solver, how):
     check_run(
         new_world(solver, device), fab, params, DT, 60, positions=x, colliders=colliders, what=f"{solver} self ({how})"
     )
+
+
+# ---------------------------------------------------------------------------------------------
+# No tunnelling (issue 22): the penetration scenarios (drape.server.tools.penetration, small)
+
+# the fastest a collider (or a pin) of each scenario moves, m/s: the capsule; none (the cloth
+# falls); none; the running character's swinging limbs (a leg's foot: 0.6 rad x 2 pi 2.5 Hz x
+# 0.85 m, on top of 5 m/s)
+SCENARIO_SPEED = {"capsule_hit": 10.0, "plane_drop": 0.0, "stack": 0.0, "cape_run": 13.0}
+
+
+@pytest.mark.parametrize("name", list(SCENARIO_SPEED))
+@pytest.mark.parametrize("solver", SOLVERS)
+def test_penetration_scenarios_stay_finite_and_bounded(device, solver, name):
+    """0 NaN and no energy made: kinetic plus gravitational energy of the free vertices never
+    exceeds its start by more than the cloth's mass moved at twice the scenario's fastest
+    collider (what a collider can give a vertex it pushes) and lifted by the cloth's size."""
+    world = new_world(solver, device)
+    e0 = None
+    for tick in pen.SCENARIOS[name](world, pen.SIZES["small"]):
+        assert all(np.all(np.isfinite(x)) for x in tick.x), f"{name} {solver}: tick {tick.index}: non-finite"
+        energy, allow = 0.0, 0.0
+        for c, x, xb in zip(tick.cloths, tick.x, tick.x_before, strict=True):
+            free = ~c.fabric.pinned
+            m = vertex_masses(c.fabric, c.params.material.mass)[free]
+            v = (x[free].astype(np.float64) - xb[free]) / pen.DT
+            energy += 0.5 * float(m @ np.einsum("ij,ij->i", v, v)) + 9.81 * float(m @ x[free, 1])
+            size = float(np.ptp(c.fabric.rest_positions, axis=0).max())
+            allow += float(m.sum()) * (0.5 * (2 * SCENARIO_SPEED[name]) ** 2 + 9.81 * size)
+        if e0 is None:
+            e0 = energy
+        assert energy - e0 <= allow, (
+            f"{name} {solver}: tick {tick.index}: energy grew by {energy - e0:.4g} J > {allow:.4g}"
+        )
+    world.close()

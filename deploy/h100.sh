@@ -10,6 +10,7 @@
 #   bash deploy/h100.sh serve [ARGS]              # drape serve itself (e.g. --workers 2 --device gpu:0,gpu:1)
 #   bash deploy/h100.sh devices                   # the device check on the GPU and on the wheel's CPU PoCL
 #   bash deploy/h100.sh latency [ARGS]            # input latency with the pipeline on and off
+#   bash deploy/h100.sh tool NAME [ARGS]          # python -m drape.server.tools.NAME (encodebench, penetration...)
 #
 # The load-test table: 16 client processes, 32x32 cloths with bending, 10 iterations, bundles,
 # loads of 128 .. 4096 cloths in float32 and 4096 in quant16, one server (admission off: the raw
@@ -90,6 +91,9 @@ case "$what" in
     latency)
         python3 -m drape.server.tools.latencybench --json "$OUT/latency-h100.json" "$@" 2>&1 \
             | grep -v "INFO" | tee "$OUT/latency-h100.txt" ;;
+    tool)
+        name=$1; shift
+        python3 -m "drape.server.tools.$name" "$@" 2>&1 | grep -v " INFO " | tee "$OUT/$name-h100.txt" ;;
     devices)
         # the device check (server/sim/opencl/devicecheck.py) afresh on every device: NVIDIA's and
         # the CPU PoCL inside the pyopencl wheel (LLVM 14) on this host's CPU

@@ -5,7 +5,8 @@ owns its parts, each built once in its constructor and given what it reads (none
 module): the device arrays (``mem``, buffers.DeviceMemory), the launch groups' set-up and
 launches (``launches``, launch.GroupLaunches), the pin targets (``targets``,
 targets.PinTargets), the frame readback (``readback``, frames.FrameReadback) and, with
-``device_encode``, the frame encoder (``device_frames``, devencode.DeviceFrames).
+``device_encode``, the frame encoder (``device_frames``, devencode.DeviceFrames), and the
+scenes' inter-cloth collision after each step (``scene_collision``, scenes.SceneCollision, 1.7).
 
 Layout (see kernels/layout.h):
 - vertex buffers (positions with inverse mass in w, velocities, previous positions, pin
@@ -46,6 +47,7 @@ from .devencode import DeviceFrames
 from .device import Device, layout
 from .frames import FrameReadback
 from .launch import Group, GroupLaunches
+from .scenes import SceneCollision
 from .targets import PinTargets
 
 log = logging.getLogger(__name__)
@@ -121,6 +123,8 @@ class CLWorld(World):
         self.readback = FrameReadback(self.dev, mem, self.rec, base_options)
         # the ticks' bytes encoded on the device (devencode.py)
         self.device_frames = DeviceFrames(self.dev, mem, self.rec, self.readback) if device_encode else None
+        # 1.7: cloths of one scene kept apart after each step (nothing built while no scene has two)
+        self.scene_collision = SceneCollision(self.dev, mem, self.rec, self.cloths, self.scenes)
 
     # --- a tick's output ---------------------------------------------------------------------
     def fetch_async(self, roster: Roster, tick: int) -> PendingWire:
@@ -296,6 +300,11 @@ class CLWorld(World):
             self.mem.pos.write(rec.vbase, x)
         self._write_tables(cloth, rec)
         self._regroup(cloth, rec)
+        if cloth.scene is not None:
+            self.scene_collision.changed()
+
+    def _scenes_changed(self) -> None:
+        self.scene_collision.changed()
 
     def _set_colliders(self, cloth: Cloth) -> None:
         rec = self.rec[cloth.handle]
@@ -375,6 +384,7 @@ class CLWorld(World):
         self._flush()
         self.readback.mark_step()  # device time of the step: frames.py
         self.launches.step(self.groups.values(), dt)
+        self.scene_collision.step(dt)
         self.steps += 1
         self._after_step()
 

@@ -26,13 +26,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from drape.client.protocol.vocabulary import MAX_SCENE_COLLIDERS  # noqa: F401 (the scenes' collider capacity)
+
 #: Inter-cloth collision's passes per step (the kernels' -DINTER_COLLISION_PASSES, the reference's).
 INTER_COLLISION_PASSES = 8
 #: Cloths of one scene at most (a scene is a shared space; the spatial hash is keyed by scene).
 MAX_SCENE_CLOTHS = 1024
-#: Colliders of a scene at most (each cloth of it gets them beside its own; together at most
-#: MAX_COLLIDERS_PER_CLOTH).
-MAX_SCENE_COLLIDERS = 16
 
 _CHUNK = 512  # rows of the pairwise distances computed at once
 

@@ -7,7 +7,8 @@
  * The scene cloths' vertices are numbered t = 0..nv-1 in one list, scene by scene, each scene's
  * cloths in the order they joined it: vidx[t] is vertex t's row of the World's position and
  * velocity buffers, vcl[t] its cloth k (0..ncl-1). Per cloth k, cinfo[k] = (vbase, n, scene,
- * first cloth of its scene, cloths of its scene, -, -, -) and cpar[k] = (thickness, stiffness).
+ * first cloth of its scene, cloths of its scene, -, -, -) and cpar[k] = (thickness x
+ * INTER_COLLISION_MARGIN, stiffness): the thickness the solve keeps.
  *
  *   INTER_COLLISION_PASSES passes of
  *   ic_bounds    one work-group per cloth: its box grown by half its thickness (the broad phase)

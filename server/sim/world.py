@@ -228,8 +228,9 @@ class World(ABC):
 
     def set_scene_colliders(self, scene: str, packed: np.ndarray) -> None:
         """A scene's collider poses for the end of the next step (1.7), for every cloth of it
-        beside its own colliders (each cloth's rows are those of its own, then the scene's)."""
-        sc = self.scenes[scene]
+        beside its own colliders (each cloth's rows are those of its own, then the scene's). A
+        scene without cloths yet keeps them for its first (its founder may still be cooking)."""
+        sc = self.scenes.setdefault(scene, Scene(scene))
         packed = np.asarray(packed, np.float32).reshape(-1, 2, 4)
         if len(packed) > MAX_SCENE_COLLIDERS:
             raise ValueError(f"at most {MAX_SCENE_COLLIDERS} colliders per scene")

@@ -17,7 +17,7 @@ from collections.abc import Mapping
 import numpy as np
 import pyopencl as cl
 
-from ..scenes import INTER_COLLISION_PASSES, Scene
+from ..scenes import INTER_COLLISION_MARGIN, INTER_COLLISION_PASSES, Scene
 from ..world import Cloth
 from .buffers import ClothSlot, DevArray, DeviceMemory
 from .device import Device
@@ -84,7 +84,7 @@ class SceneCollision:
                 k, slot, m = len(cinfo), self.rec[h], self.cloths[h].params.material
                 n = self.cloths[h].fabric.n_vertices
                 cinfo.append([slot.vbase, n, si, first, len(sc.handles), 0, 0, 0])
-                cpar.append([m.thickness, m.contact_stiffness])
+                cpar.append([m.thickness * INTER_COLLISION_MARGIN, m.contact_stiffness])
                 vidx.append(np.arange(slot.vbase, slot.vbase + n, dtype=np.int32))
                 vcl.append(np.full(n, k, np.int32))
         self._dirty = False

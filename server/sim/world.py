@@ -236,11 +236,25 @@ class World(ABC):
             raise ValueError(f"at most {MAX_SCENE_COLLIDERS} colliders per scene")
         if not np.all(np.isfinite(packed)):
             raise ValueError("collider values must be finite")
-        if any(len(self.cloths[h].own_colliders) + len(packed) > MAX_COLLIDERS_PER_CLOTH for h in sc.handles):
+        moved = len(packed) == len(sc.colliders) > 0  # the per-tick case: the same colliders, new poses
+        if not moved and any(
+            len(self.cloths[h].own_colliders) + len(packed) > MAX_COLLIDERS_PER_CLOTH for h in sc.handles
+        ):
             raise ValueError(f"at most {MAX_COLLIDERS_PER_CLOTH} colliders per cloth, its scene's included")
         sc.colliders = packed.copy()
+        if moved:
+            k = len(packed)
+            for h in sc.handles:  # each cloth's scene rows in place (they follow its own)
+                self.cloths[h].colliders[-k:] = packed
+            if self._move_scene_colliders(sc):
+                return
         for h in sc.handles:
             self._apply_colliders(self.cloths[h])
+
+    def _move_scene_colliders(self, sc: Scene) -> bool:
+        """Back-end hook: the scene's colliders (as many as before) moved for all its cloths at
+        once, ``cloth.colliders`` already updated; False: not handled (each cloth's rows set one by one)."""
+        return False
 
     def _apply_colliders(self, cloth: Cloth) -> None:
         """A cloth's collider rows: its own, then its scene's."""

@@ -125,3 +125,26 @@ def test_no_scene_builds_nothing(device):
     w.step(DT)
     assert w.scene_collision.n_cloths == 0
     assert not device.built(w.scene_collision.options, SOURCE) or w.scene_collision._kernels is None
+
+
+def test_moving_scene_colliders_on_the_device(device):
+    """A scene's ball rising under its two cloths every tick (the per-tick move, which the device
+    writes for every cloth at once) moves them as the reference's per-cloth rows do."""
+    from drape.server.sim.params import Features
+
+    p = ClothParams(features=Features(colliders=True), material=Material(thickness=THICKNESS), iterations=10)
+    fab = cook_grid(9, 9, 0.4, 0.4, pinned=[0, 8], origin=(-0.2, 1.0, -0.2))
+    out = []
+    for w in (ReferenceWorld(), CLWorld("workgroup", device=device, pack_lanes=0)):
+        hs = [w.add(fab, p, scene="s"), w.add(fab, p, scene="s")]
+        w.set_colliders(hs[1], pack_colliders([Sphere((5.0, 0.0, 0.0), 0.1)]))  # its own, before the scene's
+        got = []
+        for t in range(25):
+            w.set_scene_colliders("s", pack_colliders([Sphere((0.0, 0.6 + 0.02 * t, 0.0), 0.3)]))
+            w.step(DT)
+            got.append([w.fetch().positions[h].astype(np.float64) for h in hs])
+        out.append(got)
+    for ref, dev in zip(*out, strict=True):
+        for r, d in zip(ref, dev, strict=True):
+            assert np.abs(r - d).max() < 1e-4
+    assert out[1][-1][0][:, 1].max() > 1.05  # the ball lifted them

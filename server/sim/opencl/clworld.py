@@ -40,6 +40,7 @@ from ..fabric import Fabric
 from ..frame import Layout, PendingFrame
 from ..params import ClothParams, Features
 from ..roster import Roster
+from ..scenes import Scene
 from ..wire import PendingWire
 from ..world import Cloth, World, inverse_masses
 from .buffers import ClothSlot, DeviceMemory, FabricSlot, fabric_blob
@@ -305,6 +306,20 @@ class CLWorld(World):
 
     def _scenes_changed(self) -> None:
         self.scene_collision.changed()
+
+    def _move_scene_colliders(self, sc: Scene) -> bool:
+        """A scene's colliders moved (1.7, the per-tick case): the scene's rows of every cloth of it
+        in the collider table at once, the previous poses becoming the step's start."""
+        k = len(sc.colliders)
+        starts = np.fromiter(
+            (self.rec[h].coll_base + len(self.cloths[h].own_colliders) for h in sc.handles), np.int64, len(sc.handles)
+        )
+        rows = (starts[:, None] + np.arange(k)).reshape(-1)
+        self.coll_host[rows, 0:2] = self.coll_host[rows, 2:4]
+        self.coll_host[rows, 2:4] = np.broadcast_to(sc.colliders, (len(starts), k, 2, 4)).reshape(-1, 2, 4)
+        self._moved.update(sc.handles)
+        self._coll_dirty = True
+        return True
 
     def _set_colliders(self, cloth: Cloth) -> None:
         rec = self.rec[cloth.handle]

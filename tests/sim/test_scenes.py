@@ -148,3 +148,28 @@ def test_moving_scene_colliders_on_the_device(device):
         for r, d in zip(ref, dev, strict=True):
             assert np.abs(r - d).max() < 1e-4
     assert out[1][-1][0][:, 1].max() > 1.05  # the ball lifted them
+
+
+def test_a_thickness_changed_by_a_control_reaches_the_device(device):
+    """A scene cloth's material changed on the fly (0 thickness: no contact, then 3 cm) changes
+    the device's scene tables as it changes the reference's contacts."""
+    out = []
+    for w in (ReferenceWorld(), CLWorld("workgroup", device=device, pack_lanes=0)):
+        a, b = capes()
+        thin = ClothParams(material=Material(thickness=0.0), iterations=10, substeps=2)
+        ha, hb = w.add(a, thin, scene="s"), w.add(b, thin, scene="s")
+        got = []
+        for t in range(40):
+            if t == 10:
+                for h in (ha, hb):
+                    w.set_params(h, params())
+            s = min(1.0, (t + 1) / 30)
+            w.set_pin_targets(ha, PINS, a.rest_positions[PINS] + [0, 0, 0.3 * s])
+            w.set_pin_targets(hb, PINS, b.rest_positions[PINS] - [0, 0, 0.3 * s])
+            w.step(DT)
+            f = w.fetch()
+            got.append((f.positions[ha].astype(np.float64), f.positions[hb].astype(np.float64)))
+        out.append(got)
+    for (rx, ry), (x, y) in zip(*out, strict=True):
+        assert np.abs(x - rx).max() < 1e-3 and np.abs(y - ry).max() < 1e-3
+    assert max(pairs_left(out[1][10:])) == 0

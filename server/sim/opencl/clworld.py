@@ -301,7 +301,8 @@ class CLWorld(World):
             self.mem.pos.write(rec.vbase, x)
         self._write_tables(cloth, rec)
         self._regroup(cloth, rec)
-        if cloth.scene is not None:
+        m, was = cloth.params.material, old.material
+        if cloth.scene is not None and (m.thickness, m.contact_stiffness) != (was.thickness, was.contact_stiffness):
             self.scene_collision.changed()
 
     def _scenes_changed(self) -> None:

@@ -394,6 +394,28 @@ class DrapeClient:
         v, t = P.parse_obj(Path(path).read_text())
         return self.submit_mesh(v, t, **options)
 
+    def set_scene(
+        self,
+        scene: str,
+        colliders: Sequence[Any] | None = None,
+        members: Sequence[str] | None = None,
+        timeout: float | None = None,
+        server: str | None = None,
+    ) -> P.SceneReply:
+        """Protocol 1.7: move the colliders of ``scene`` (they act on every cloth of the scene
+        beside its own; ``[]`` clears them) and/or set who else may submit cloths into it
+        (client ids, ``"*"``: anyone), as the scene's owner: the client whose cloth founded it
+        on ``server`` (PROTOCOL.md 5.3). None leaves a field as it is. Raises Forbidden for
+        another client's scene, NotFound for a scene without cloths."""
+        req = P.SceneRequest(
+            self.client_id,
+            scene,
+            tuple(P.as_collider(c) for c in colliders) if colliders is not None else None,
+            tuple(members) if members is not None else None,
+            self.connection.next_rid(),
+        )
+        return P.scene_reply_from_map(self.connection.request("scene", P.encode_scene(req), timeout, server))
+
     def _submit(
         self,
         *,

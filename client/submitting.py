@@ -100,6 +100,7 @@ def submit_request(
     step: float | None = None,
     bundle: bool = False,
     quality: str | None = None,
+    scene: str | None = None,
 ) -> P.SubmitRequest:
     """The SubmitRequest of ``client`` for a grid or a mesh with the SDK's options (``cloth_options``
     but timeout, queue_size and server, which are the sending's)."""
@@ -130,6 +131,7 @@ def submit_request(
         ),
         quality=quality,
         rid=rid,
+        scene=scene,
     )
 
 

@@ -20,13 +20,14 @@ from .errors import (
     ERR_TOO_LARGE,
     ProtocolError,
 )
-from .keys import ID_RE, TOKEN_RE
+from .keys import ID_RE, SCENE_ANYONE, TOKEN_RE
 from .messages import (
     ControlBatchRequest,
     ControlRequest,
     DecodedControlBatch,
     InfoRequest,
     RemoveRequest,
+    SceneRequest,
     SubmitRequest,
 )
 from .moves import check_items_with_moves, read_moves
@@ -42,8 +43,10 @@ from .replies import (  # noqa: F401  re-exported: codec names every message's c
     encode_error,
     encode_ok,
     encode_remove_reply,
+    encode_scene_reply,
     encode_stats,
     encode_submit_reply,
+    scene_reply_from_map,
     submit_reply_from_map,
     tick_reply_from_map,
 )
@@ -67,6 +70,8 @@ from .validate import (
 )
 from .vocabulary import (
     DEFAULT_LIMITS,
+    MAX_SCENE_COLLIDERS,
+    MAX_SCENE_MEMBERS,
     ORIENTATIONS,
     QUALITY_PRESETS,
     GridSpec,
@@ -82,6 +87,7 @@ from .wiremaps import (  # noqa: F401  re-exported: codec names every message's 
     control_item_to_map,
     control_to_map,
     resume_to_map,
+    scene_to_map,
     submit_to_map,
 )
 
@@ -188,8 +194,49 @@ def submit_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS) -> Su
         links=links,
         rid=rid,
         resume=_read_resume(r, n, limits),
+        scene=r.str_("scene", pattern=ID_RE, what=f"a scene id ({_ID_WHAT})"),  # 1.7
         **shared,
     )
+
+
+# ---------------------------------------------------------------------------------------------
+# Scene (1.7)
+
+
+def encode_scene(req: SceneRequest) -> bytes:
+    return pack(scene_to_map(req))
+
+
+def decode_scene(data: bytes | bytearray, limits: Limits = DEFAULT_LIMITS) -> SceneRequest:
+    return scene_from_map(unpack_message(data, limits), limits)
+
+
+def scene_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS) -> SceneRequest:
+    """1.7: a scene request: ``client`` and ``scene`` ids, at most MAX_SCENE_COLLIDERS colliders,
+    at most MAX_SCENE_MEMBERS members, each a client id or ``"*"``."""
+    r = _Reader(m, "", _peek_rid(dict(m)), limits)
+    rid = _rid(r)
+    client = r.str_("client", True, pattern=ID_RE, what=_ID_WHAT)
+    scene = r.str_("scene", True, pattern=ID_RE, what=f"a scene id ({_ID_WHAT})")
+    colliders = _read_colliders(r)
+    if colliders is not None and len(colliders) > MAX_SCENE_COLLIDERS:
+        raise r.fail(
+            ERR_TOO_LARGE, f"'colliders' has {len(colliders)} colliders; a scene has at most {MAX_SCENE_COLLIDERS}"
+        )
+    members = None
+    raw = r.raw("members", False)
+    if raw is not None:
+        if not isinstance(raw, list):
+            raise r.fail(ERR_INVALID_TYPE, f"'members' must be an array of client ids, got {_tname(raw)}")
+        if len(raw) > MAX_SCENE_MEMBERS:
+            raise r.fail(ERR_TOO_LARGE, f"'members' has {len(raw)} entries; at most {MAX_SCENE_MEMBERS}")
+        for i, x in enumerate(raw):
+            if not isinstance(x, str):
+                raise r.fail(ERR_INVALID_TYPE, f"'members[{i}]' must be a string, got {_tname(x)}")
+            if x != SCENE_ANYONE and not ID_RE.match(x):
+                raise r.fail(ERR_INVALID_VALUE, f"'members[{i}]' must be a client id ({_ID_WHAT}) or '*', got {x!r}")
+        members = tuple(raw)
+    return SceneRequest(client, scene, colliders, members, rid)  # type: ignore[arg-type]
 
 
 # ---------------------------------------------------------------------------------------------

@@ -6,11 +6,11 @@ import re
 from dataclasses import dataclass
 
 PROTOCOL_MAJOR = 1
-PROTOCOL_MINOR = 6
+PROTOCOL_MINOR = 7
 PROTOCOL_VERSION: tuple[int, int] = (PROTOCOL_MAJOR, PROTOCOL_MINOR)
 VERSION_STRING = f"{PROTOCOL_MAJOR}.{PROTOCOL_MINOR}"
 #: The minor versions this side has vectors for (every minor of the major is accepted on the wire).
-KNOWN_MINORS = (0, 1, 2, 3, 4, 5)
+KNOWN_MINORS = (0, 1, 2, 3, 4, 5, 6)
 
 DEFAULT_NAMESPACE = "drape"
 DEFAULT_PORT = 7447
@@ -21,8 +21,10 @@ ID_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
 NAMESPACE_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,64}(/[A-Za-z0-9_.\-]{1,64}){0,7}$")
 TOKEN_RE = re.compile(r"^[0-9a-f]{32}$")
 
-#: The requests a 1.4 client sends on its own client-scoped key (info stays server-wide).
-CLIENT_REQUESTS = ("submit", "control", "control_batch", "remove")
+#: The requests a 1.4 client sends on its own client-scoped key (info stays server-wide); 1.7 adds scene.
+CLIENT_REQUESTS = ("submit", "control", "control_batch", "remove", "scene")
+#: 1.7: the members entry that lets every client put cloths into a scene.
+SCENE_ANYONE = "*"
 
 
 def valid_id(s: object) -> bool:
@@ -50,6 +52,9 @@ class Keys:
 
     def remove(self, server: str) -> str:  # queryable
         return f"{self.namespace}/server/{server}/remove"
+
+    def scene(self, server: str) -> str:  # queryable (1.7)
+        return f"{self.namespace}/server/{server}/scene"
 
     def info(self, server: str) -> str:  # queryable
         return f"{self.namespace}/server/{server}/info"

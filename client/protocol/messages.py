@@ -24,7 +24,7 @@ from .vocabulary import (
     Vec3,
     _empty_u32,
 )
-from .wiremaps import control_batch_to_map, control_to_map, submit_to_map
+from .wiremaps import control_batch_to_map, control_to_map, scene_to_map, submit_to_map
 
 
 @dataclass(eq=False)
@@ -48,6 +48,7 @@ class SubmitRequest:
     quality: str | None = None  # 1.1: a QUALITY_PRESETS name; sets iterations, substeps, xpbd, tethers
     rid: int = 0
     resume: ResumeState | None = None  # 1.3: start from this state instead of the rest pose
+    scene: str | None = None  # 1.7: collide with the scene's other cloths and its colliders
 
     @property
     def n_vertices(self) -> int:
@@ -104,6 +105,33 @@ class RemoveRequest:
 
 @dataclass
 class InfoRequest:
+    rid: int = 0
+
+
+@dataclass(eq=False)
+class SceneRequest:
+    """1.7: a scene's colliders and members, sent by its owner (PROTOCOL.md 5.3). ``None``
+    leaves a field as it is."""
+
+    client: str
+    scene: str
+    colliders: tuple[Collider, ...] | None = None  # replaces the scene's colliders; () clears them
+    members: tuple[str, ...] | None = None  # replaces who else may put cloths in ("*": anyone); () nobody
+    rid: int = 0
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, SceneRequest) and scene_to_map(self) == scene_to_map(other)
+
+
+@dataclass
+class SceneReply:
+    """1.7: ``tick``, the first tick whose states reflect the scene's new colliders; the scene's
+    owner, its cloths on this server and its members after the change."""
+
+    tick: int
+    owner: str
+    cloths: int
+    members: tuple[str, ...] = ()
     rid: int = 0
 
 

@@ -15,6 +15,7 @@ from .messages import (
     ControlReply,
     ErrorReply,
     RemoveReply,
+    SceneReply,
     SubmitReply,
     feature_list,
 )
@@ -96,6 +97,25 @@ def _reply_features(r: _Reader) -> tuple[str, ...] | None:
     if not (isinstance(v, list) and all(isinstance(x, str) for x in v)):
         raise r.fail(ERR_INVALID_TYPE, f"'{r.name('features')}' must be an array of strings, got {_tname(v)}")
     return tuple(v)
+
+
+def encode_scene_reply(rep: SceneReply) -> bytes:
+    """1.7: a scene request's reply (PROTOCOL.md 5.3)."""
+    m = _header(rep.rid)
+    m.update(ok=True, tick=int(rep.tick), owner=rep.owner, cloths=int(rep.cloths), members=list(rep.members))
+    return pack(m)
+
+
+def scene_reply_from_map(m: Mapping[str, Any]) -> SceneReply:
+    """A scene reply's map (as decode_reply returns it) as a SceneReply."""
+    r = _Reader(m, "", _peek_rid(dict(m)), DEFAULT_LIMITS)
+    tick = r.int_("tick", 0, (1 << 64) - 1, True)
+    owner = r.str_("owner", True, pattern=ID_RE)
+    cloths = r.int_("cloths", 0, (1 << 32) - 1, True)
+    members = r.raw("members", False) or []
+    if not (isinstance(members, list) and all(isinstance(x, str) for x in members)):
+        raise r.fail(ERR_INVALID_TYPE, f"'members' must be an array of strings, got {_tname(members)}")
+    return SceneReply(tick, owner, cloths, tuple(members), _rid(r))  # type: ignore[arg-type]
 
 
 def encode_remove_reply(rep: RemoveReply) -> bytes:

@@ -22,7 +22,7 @@ from typing import Any
 
 from .cheader import c_header
 from .errors import ERROR_CODES
-from .keys import ID_RE, PROTOCOL_MAJOR, TOKEN_RE, VERSION_STRING
+from .keys import ID_RE, PROTOCOL_MAJOR, SCENE_ANYONE, TOKEN_RE, VERSION_STRING
 from .requestfields import CONTROL_FIELDS, SUBMIT_FIELDS, RequestField
 from .stats import STATS_FIELDS
 from .vocabulary import (
@@ -33,6 +33,8 @@ from .vocabulary import (
     MATERIAL_DEFAULTS,
     MATERIAL_FIELDS,
     MAX_MAP_KEYS,
+    MAX_SCENE_COLLIDERS,
+    MAX_SCENE_MEMBERS,
     ORIENTATIONS,
     QUALITY_PRESETS,
     STEP_MAX,
@@ -262,9 +264,29 @@ def schemas() -> dict[str, dict[str, Any]]:
                 "links": _nullable(_obj(link)),
                 **_solver_fields(),
                 "resume": _nullable(resume),
+                "scene": _nullable({"$ref": "#/$defs/id", "description": "1.7: the scene the cloth collides in"}),
             },
             ("v", "client"),
             oneOf=[{"required": ["grid"]}, {"required": ["mesh"]}],
+        ),
+        "scene": _obj(
+            {
+                **_head(),
+                "client": {"$ref": "#/$defs/id"},
+                "scene": {"$ref": "#/$defs/id"},
+                "colliders": _nullable(
+                    {"type": "array", "items": {"$ref": "#/$defs/collider"}, "maxItems": MAX_SCENE_COLLIDERS}
+                ),
+                "members": _nullable(
+                    {
+                        "type": "array",
+                        "maxItems": MAX_SCENE_MEMBERS,
+                        "items": {"anyOf": [{"$ref": "#/$defs/id"}, {"const": SCENE_ANYONE}]},
+                    }
+                ),
+            },
+            ("v", "client", "scene"),
+            description="1.7: a scene's colliders and members, from its owner (PROTOCOL.md 5.3)",
         ),
         "control": _obj({**_head(), **_control_item()}, ("v", "cloth", "token")),
         "control_batch": _obj(
@@ -304,6 +326,15 @@ def schemas() -> dict[str, dict[str, Any]]:
             {"tick": {"$ref": "#/$defs/tick"}, "features": {"type": "array", "items": {"type": "string"}}}, ("tick",)
         ),
         "reply_remove": _reply({"tick": {"$ref": "#/$defs/tick"}}, ("tick",)),
+        "reply_scene": _reply(
+            {
+                "tick": {"$ref": "#/$defs/tick"},
+                "owner": {"$ref": "#/$defs/id"},
+                "cloths": _int(0, (1 << 32) - 1),
+                "members": {"type": "array", "items": {"type": "string"}},
+            },
+            ("tick", "owner", "cloths"),
+        ),
         "reply_control_batch": _reply(
             {
                 "tick": {"$ref": "#/$defs/tick"},

@@ -13,6 +13,8 @@ from typing import Any
 import numpy as np
 
 MAX_COLLIDERS_PER_CLOTH = 32  # the server's per-cloth collider capacity (device buffers)
+MAX_SCENE_COLLIDERS = 16  # 1.7: a scene's colliders (each cloth of it: its own + these <= MAX_COLLIDERS_PER_CLOTH)
+MAX_SCENE_MEMBERS = 64  # 1.7: client ids a scene request's members may list
 
 #: Decoding caps against hostile input (1.2, PROTOCOL.md section 13), independent of the server's
 #: configured limits: no legitimate message comes near them. Nesting counts maps and arrays (a

@@ -1,6 +1,7 @@
-"""Every request as its msgpack map (PROTOCOL.md sections 4, 5, 5.1): submit (with 1.3
-resume), control, batch control (with 1.4 moves). The fields a submission and a control share are
-written by iterating over the field table (requestfields.CONTROL_FIELDS), one writer per kind.
+"""Every request as its msgpack map (PROTOCOL.md sections 4, 5, 5.1, 5.3): submit (with 1.3
+resume and 1.7 scene), control, batch control (with 1.4 moves), scene (1.7). The fields a
+submission and a control share are written by iterating over the field table
+(requestfields.CONTROL_FIELDS), one writer per kind.
 The request dataclasses compare by these maps; :mod:`.codec` packs them."""
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from .vocabulary import ResumeState
 SubmitRequest: TypeAlias = Any
 ControlRequest: TypeAlias = Any
 ControlBatchRequest: TypeAlias = Any
+SceneRequest: TypeAlias = Any
 
 #: kind -> the wire value of a given field of that kind (requestfields.FIELD_KINDS).
 WRITERS: dict[str, Callable[[Any], Any]] = {
@@ -88,6 +90,20 @@ def submit_to_map(req: SubmitRequest) -> dict[str, Any]:
     _write_fields(m, req, SUBMIT_FIELDS)
     if req.resume is not None:
         m["resume"] = resume_to_map(req.resume)
+    if req.scene is not None:  # 1.7
+        m["scene"] = str(req.scene)
+    return m
+
+
+def scene_to_map(req: SceneRequest) -> dict[str, Any]:
+    """1.7: a scene request (PROTOCOL.md 5.3)."""
+    m = _header(req.rid)
+    m["client"] = req.client
+    m["scene"] = req.scene
+    if req.colliders is not None:
+        m["colliders"] = [collider_to_map(c) for c in req.colliders]
+    if req.members is not None:
+        m["members"] = [str(x) for x in req.members]
     return m
 
 

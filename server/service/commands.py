@@ -60,6 +60,16 @@ class Add:
 
 
 @dataclass(eq=False)
+class SceneColliders:
+    """1.7: a scene's colliders, for every cloth of it from the next tick on; the reply waits."""
+
+    scene: str
+    colliders: np.ndarray
+    query: zenoh.Query
+    reply: P.SceneReply  # its tick set when applied
+
+
+@dataclass(eq=False)
 class Remove:
     record: ClothRecord
     query: zenoh.Query

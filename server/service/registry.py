@@ -4,7 +4,9 @@ Lock-protected; used by the Zenoh callbacks (reserve, ownership), the cook worke
 thread. It does NOT hold cloth parameters: the World is their one owner (``world.cloths[h]
 .params``, tick thread only). A record carries what the service needs around the World: ids,
 keys, token, the fabric (immutable, for validating pin indices), the handle once added, the
-state encoding and the quality presets asked for and in force.
+state encoding and the quality presets asked for and in force. Scenes (protocol 1.7,
+PROTOCOL.md 5.3): each one's owner (the client of its first cloth), members and cloths; a scene
+ends with its last cloth.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ import logging
 import threading
 import time
 from collections import Counter, OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from drape.client import protocol as P
 
@@ -44,6 +46,19 @@ class ClothRecord:
     bundle_key: str | None = None  # published inside this client's bundle on this key (1.1), not on ``key``
     quality_wanted: str | None = None  # the preset the client asked for (1.1)
     quality: str | None = None  # the preset in force: lower than wanted while the server is overloaded
+    scene: str | None = None  # 1.7: the scene it collides in
+
+
+@dataclass(eq=False)
+class SceneRecord:
+    """A scene (1.7): its owner, who else may put cloths in it (``*``: anyone), its cloths."""
+
+    owner: str
+    members: tuple[str, ...] = ()
+    cloths: set[str] = field(default_factory=set)
+
+    def admits(self, client: str) -> bool:
+        return client == self.owner or client in self.members or P.SCENE_ANYONE in self.members
 
 
 class Registry:
@@ -62,6 +77,7 @@ class Registry:
         self.errors: Counter[str] = Counter()
         self.counters: Counter[str] = Counter()
         self.tombstones: OrderedDict[str, str] = OrderedDict()  # cloths the server removed itself: why
+        self.scenes: dict[str, SceneRecord] = {}  # 1.7: by scene id
 
     def bury(self, cloth: str, reason: str) -> None:
         """Remember why the server removed ``cloth`` (its owner's next request is told)."""
@@ -104,6 +120,14 @@ class Registry:
                     f"server vertex budget exhausted: {self.vertices} + {rec.n_vertices} > {cfg.max_total_vertices}",
                     rid,
                 )
+            scene = self.scenes.get(rec.scene) if rec.scene is not None else None
+            if scene is not None and not scene.admits(rec.client):
+                raise P.Forbidden(
+                    P.ERR_FORBIDDEN,
+                    f"scene {rec.scene!r} is client {scene.owner!r}'s, who has not made client {rec.client!r} "
+                    "a member (PROTOCOL.md 5.3)",
+                    rid,
+                )
             if not mine and not self._take_new_client_token():
                 raise P.Overloaded(
                     P.ERR_OVERLOADED,
@@ -111,6 +135,8 @@ class Registry:
                     f"{cfg.new_clients_burst}): retry later",
                     rid,
                 )
+            if rec.scene is not None:
+                self.scenes.setdefault(rec.scene, SceneRecord(rec.client)).cloths.add(rec.id)
             self.cloths[rec.id] = rec
             self.by_client.setdefault(rec.client, set()).add(rec.id)
             self.vertices += rec.n_vertices
@@ -142,6 +168,11 @@ class Registry:
                     mine.discard(rec.id)
                     if not mine:
                         del self.by_client[rec.client]
+                scene = self.scenes.get(rec.scene) if rec.scene is not None else None
+                if scene is not None:
+                    scene.cloths.discard(rec.id)
+                    if not scene.cloths:  # a scene ends with its last cloth
+                        del self.scenes[rec.scene]  # type: ignore[arg-type]
             rec.removed = True
             self.generation += 1
 
@@ -160,6 +191,18 @@ class Registry:
             raise P.NotFound(P.ERR_NOT_FOUND, f"no cloth {cloth!r} on server {self.config.server_id!r}", rid)
         if not hmac.compare_digest(rec.token, token):
             raise P.Forbidden(P.ERR_FORBIDDEN, f"the token does not own cloth {cloth!r}", rid)
+        return rec
+
+    def owned_scene(self, scene: str, client: str, rid: int) -> SceneRecord:
+        """The record of ``scene`` if ``client`` owns it; raises NotFound or Forbidden (1.7)."""
+        with self.lock:
+            rec = self.scenes.get(scene)
+        if rec is None:
+            raise P.NotFound(P.ERR_NOT_FOUND, f"no scene {scene!r} on server {self.config.server_id!r}", rid)
+        if rec.owner != client:
+            raise P.Forbidden(
+                P.ERR_FORBIDDEN, f"scene {scene!r} is client {rec.owner!r}'s, not {client!r}'s (PROTOCOL.md 5.3)", rid
+            )
         return rec
 
     # --- clients -----------------------------------------------------------------------------

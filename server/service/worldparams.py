@@ -54,7 +54,7 @@ def params_with(
 
 def params_from_submit(req: P.SubmitRequest) -> ClothParams:
     feats = set(req.features)
-    if req.colliders:
+    if req.colliders or req.scene is not None:  # 1.7: a scene's colliders act on its cloths
         feats.add("colliders")
     if req.state is not None and req.state.normals:
         feats.add("normals")

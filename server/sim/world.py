@@ -30,6 +30,7 @@ from .fabric import Fabric, vertex_masses
 from .frame import Frame, FramePool, HostBuffer, Layout, PendingFrame  # noqa: F401  re-exported
 from .params import MAX_COLLIDERS_PER_CLOTH, ClothParams
 from .roster import Roster
+from .scenes import MAX_SCENE_CLOTHS, MAX_SCENE_COLLIDERS, Scene, SceneCloth, inter_collide
 from .wire import HostWire, KeyBuffers, PendingWire
 
 log = logging.getLogger(__name__)
@@ -40,7 +41,9 @@ class Cloth:
     handle: int
     fabric: Fabric
     params: ClothParams
-    colliders: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 4), np.float32))
+    colliders: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 4), np.float32))  # own + scene's
+    scene: str | None = None  # 1.7: the scene it collides in with the scene's other cloths
+    own_colliders: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 4), np.float32))
 
 
 class World(ABC):
@@ -54,6 +57,7 @@ class World(ABC):
         self._layout_version = 0
         self._live = np.zeros(64, bool)  # by handle (handles are never reused): set_pin_targets_block
         self._key_buffers = KeyBuffers()  # the host-encoded payloads' buffers (wire.HostWire)
+        self.scenes: dict[str, Scene] = {}  # 1.7: a scene exists while it holds a cloth (scenes.py)
 
     # --- cloth lifecycle -------------------------------------------------------------------
     def add(
@@ -62,11 +66,15 @@ class World(ABC):
         params: ClothParams,
         positions: np.ndarray | None = None,
         velocities: np.ndarray | None = None,
+        scene: str | None = None,
     ) -> int:
         """Add a cloth at ``positions`` (default: its rest pose) moving at ``velocities`` (m/s,
         default zero; protocol 1.3 ``resume``: a cloth continued from another server's state).
-        Pinned vertices start at ``positions`` with their pin targets there, and keep zero velocity."""
+        Pinned vertices start at ``positions`` with their pin targets there, and keep zero velocity.
+        ``scene`` (1.7): the cloth collides with the scene's other cloths and its colliders."""
         params.validate()
+        if scene is not None and len(self.scenes.get(scene, Scene(scene)).handles) >= MAX_SCENE_CLOTHS:
+            raise ValueError(f"scene {scene!r} is full: {MAX_SCENE_CLOTHS} cloths")
         if positions is not None:
             positions = np.asarray(positions, np.float64).reshape(fabric.n_vertices, 3)
             if not np.all(np.isfinite(positions)):
@@ -77,13 +85,19 @@ class World(ABC):
                 raise ValueError("velocities must be finite")
             velocities[fabric.pinned] = 0.0  # kinematic vertices move only with their targets
         h = next(self._handles)
-        cloth = Cloth(h, fabric, params)
+        cloth = Cloth(h, fabric, params, scene=scene)
         self.cloths[h] = cloth
         try:
             self._add(cloth, positions, velocities)
         except BaseException:
             del self.cloths[h]
             raise
+        if scene is not None:
+            sc = self.scenes.setdefault(scene, Scene(scene))
+            sc.handles.append(h)
+            self._scenes_changed()
+            if len(sc.colliders):
+                self._apply_colliders(cloth)
         if h >= len(self._live):
             self._live = np.concatenate([self._live, np.zeros(max(h + 1, len(self._live)), bool)])
         self._live[h] = True
@@ -95,6 +109,12 @@ class World(ABC):
         self._live[handle] = False
         self._remove(cloth)
         self._layout = None
+        if cloth.scene is not None:
+            sc = self.scenes[cloth.scene]
+            sc.handles.remove(handle)
+            if not sc.handles:
+                del self.scenes[cloth.scene]
+            self._scenes_changed()
 
     def live(self, handles: np.ndarray) -> np.ndarray:
         """Which of ``handles`` are cloths of this World now: one bool per handle, vectorised."""
@@ -200,8 +220,52 @@ class World(ABC):
             raise ValueError(f"at most {MAX_COLLIDERS_PER_CLOTH} colliders per cloth")
         if not np.all(np.isfinite(packed)):
             raise ValueError("collider values must be finite")
-        cloth.colliders = packed.copy()
+        scene = self.scenes[cloth.scene].colliders if cloth.scene is not None else packed[:0]
+        if len(packed) + len(scene) > MAX_COLLIDERS_PER_CLOTH:
+            raise ValueError(f"at most {MAX_COLLIDERS_PER_CLOTH} colliders per cloth, its scene's included")
+        cloth.own_colliders = packed.copy()
+        self._apply_colliders(cloth)
+
+    def set_scene_colliders(self, scene: str, packed: np.ndarray) -> None:
+        """A scene's collider poses for the end of the next step (1.7), for every cloth of it
+        beside its own colliders (each cloth's rows are those of its own, then the scene's). A
+        scene without cloths yet keeps them for its first (its founder may still be cooking)."""
+        sc = self.scenes.setdefault(scene, Scene(scene))
+        packed = np.asarray(packed, np.float32).reshape(-1, 2, 4)
+        if len(packed) > MAX_SCENE_COLLIDERS:
+            raise ValueError(f"at most {MAX_SCENE_COLLIDERS} colliders per scene")
+        if not np.all(np.isfinite(packed)):
+            raise ValueError("collider values must be finite")
+        moved = len(packed) == len(sc.colliders) > 0  # the per-tick case: the same colliders, new poses
+        if not moved and any(
+            len(self.cloths[h].own_colliders) + len(packed) > MAX_COLLIDERS_PER_CLOTH for h in sc.handles
+        ):
+            raise ValueError(f"at most {MAX_COLLIDERS_PER_CLOTH} colliders per cloth, its scene's included")
+        sc.colliders = packed.copy()
+        if moved:
+            k = len(packed)
+            for h in sc.handles:  # each cloth's scene rows in place (they follow its own)
+                self.cloths[h].colliders[-k:] = packed
+            if self._move_scene_colliders(sc):
+                return
+        for h in sc.handles:
+            self._apply_colliders(self.cloths[h])
+
+    def _move_scene_colliders(self, sc: Scene) -> bool:
+        """Back-end hook: the scene's colliders (as many as before) moved for all its cloths at
+        once, ``cloth.colliders`` already updated; False: not handled (each cloth's rows set one by one)."""
+        return False
+
+    def _apply_colliders(self, cloth: Cloth) -> None:
+        """A cloth's collider rows: its own, then its scene's."""
+        scene = self.scenes[cloth.scene].colliders if cloth.scene is not None else None
+        cloth.colliders = (
+            cloth.own_colliders if scene is None or not len(scene) else np.concatenate([cloth.own_colliders, scene])
+        )
         self._set_colliders(cloth)
+
+    def _scenes_changed(self) -> None:  # noqa: B027 (optional hook)
+        """A cloth joined or left a scene (an OpenCL World rebuilds its scene tables)."""
 
     def reset(self, handle: int, positions: np.ndarray | None = None) -> None:
         """Put a cloth back at ``positions`` (default: its rest pose) with zero velocity."""
@@ -339,7 +403,13 @@ class ReferenceWorld(World):
             st = self.states[h]
             reference.step(st, cloth.fabric, cloth.params, dt, self.mode)
             st.colliders_prev = st.colliders  # a collider not moved again stays where it is
+        for sc in self.scenes.values():  # 1.7: after every cloth's own solve (scenes.py)
+            inter_collide([self._scene_cloth(h) for h in sc.handles], dt)
         self.steps += 1
+
+    def _scene_cloth(self, h: int) -> SceneCloth:
+        st, m = self.states[h], self.cloths[h].params.material
+        return SceneCloth(st.x, st.v, st.invm, m.thickness, m.contact_stiffness)
 
     def frame_async(self) -> PendingFrame:
         lay = self.layout()

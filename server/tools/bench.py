@@ -237,6 +237,33 @@ def bench_self(device, frames, max_seconds, step: Step = _no_step) -> list[Recor
     return out
 
 
+def bench_scenes(device, scenes: int, per_scene: int, frames, max_seconds, step: Step = _no_step) -> list[Record]:
+    """Inter-cloth collision's cost (protocol 1.7): ``scenes`` crowds of ``per_scene`` 32 x 32
+    capes (0.5 m, pinned at the shoulders) hanging in rows 0.3 m apart, each overlapping its
+    neighbours and 12 mm behind the row before (every box meets others: the whole crowd takes part),
+    on the work-group solver, with every cloth in its crowd's scene and with no scene at all."""
+    n = 32
+    fabs = []
+    for s in range(scenes):
+        for j in range(per_scene):
+            origin = (0.3 * (j % 8), 1.0, 10.0 * s + 0.012 * (j // 8))
+            fabs.append((s, cook_grid(n, n, 0.5, 0.5, orientation="vertical", pinned=[0, n - 1], origin=origin)))
+    out = []
+    for label in ("none", "scenes"):
+        step(f"scenes: {scenes} x {per_scene} {label}")
+        w = make("workgroup", device)
+        p = ClothParams(iterations=10, material=Material(thickness=0.01))
+        for s, fab in fabs:
+            w.add(fab, p, scene=f"crowd-{s}" if label == "scenes" else None)
+        t = time_frames(w, warmup=2, frames=frames, max_seconds=max_seconds)
+        extra = {"features": label, "scenes": scenes if label == "scenes" else 0, "per_scene": per_scene}
+        out.append(_record("scenes", "workgroup", w, [(f, p) for _, f in fabs], t, extra))
+        w.close()
+    for r in out:
+        r.extra["vs_none"] = round(r.ms_per_frame / out[0].ms_per_frame, 3)
+    return out
+
+
 def stretch(x: np.ndarray, fab: Fabric) -> tuple[float, float]:
     s = fab.link_type == 0
     a, b = fab.links[s, 0], fab.links[s, 1]
@@ -331,7 +358,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
     require_extra("server", "bench")
     require_extra("tools", "bench")
     parser.add_argument(
-        "workloads", nargs="*", metavar="WORKLOAD", help="seed, many, hang, features, self (default: all)"
+        "workloads", nargs="*", metavar="WORKLOAD", help="seed, many, hang, features, self, scenes (default: all)"
+    )
+    parser.add_argument(
+        "--scenes",
+        default=None,
+        help="the 'scenes' workload: SCENES,CLOTHS_PER_SCENE (default 64,64 on a GPU: issue 22's 4096 cloths "
+        "in 64 scenes; 4,8 on a CPU)",
     )
     parser.add_argument(
         "--feature-cloths",
@@ -362,7 +395,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     solvers = csv_list(args.solvers)
-    known = ["seed", "many", "hang", "features", "self"]
+    known = ["seed", "many", "hang", "features", "self", "scenes"]
     workloads = args.workloads or known
     unknown = set(workloads) - set(known)
     if unknown:
@@ -370,7 +403,7 @@ def run(args: argparse.Namespace) -> int:
     frames = 5 if args.quick else args.frames
     from ..sim.opencl.device import Device
 
-    gpu = Device(args.device).info.is_gpu if set(workloads) & {"many", "features"} else False
+    gpu = Device(args.device).info.is_gpu if set(workloads) & {"many", "features", "scenes"} else False
     if args.counts:
         counts = [int(c) for c in args.counts.split(",")]
     elif args.quick:
@@ -379,6 +412,9 @@ def run(args: argparse.Namespace) -> int:
         counts = [64, 256, 1024, 4096] if gpu else [64, 256, 512]
     feature_cloths = args.feature_cloths or (16 if args.quick else 4096 if gpu else 128)
     sizes = [int(s) for s in args.sizes.split(",")] if not args.quick else [32]
+    scenes, per_scene = (
+        int(v) for v in (args.scenes or ("2,4" if args.quick else "64,64" if gpu else "4,8")).split(",")
+    )
     records: list[Record] = []
     lanes_list: list[int | None] = [int(v) for v in args.pack_lanes.split(",")] if args.pack_lanes else [None]
     global PACK_LANES
@@ -404,6 +440,8 @@ def run(args: argparse.Namespace) -> int:
                 new += bench_features(run_solvers, args.device, feature_cloths, frames, args.max_seconds, step)
             if "self" in workloads and "workgroup" in run_solvers:
                 new += bench_self(args.device, frames, args.max_seconds, step)
+            if "scenes" in workloads and "workgroup" in run_solvers:
+                new += bench_scenes(args.device, scenes, per_scene, frames, args.max_seconds, step)
             if lanes is not None:
                 for r in new:
                     r.extra["pack_lanes"] = lanes

@@ -27,7 +27,7 @@ from generate import wire_to_json  # noqa: E402
 
 def _message_vectors() -> list:
     out = []
-    for folder in (VECTORS, *(VECTORS / f"v1.{m}" for m in range(5))):
+    for folder in (VECTORS, *(VECTORS / f"v1.{m}" for m in range(7))):
         for g in ("submit", "control", "misc"):
             for v in json.loads((folder / f"{g}.json").read_text()):
                 out.append(pytest.param(v, id=f"{folder.name}-{v['name']}"))

@@ -32,6 +32,7 @@ REENCODE = {
     "control": (P.decode_control, P.encode_control, P.control_from_map),
     "remove": (P.decode_remove, P.encode_remove, P.remove_from_map),
     "info": (P.decode_info, P.encode_info, None),
+    "scene": (P.decode_scene, P.encode_scene, P.scene_from_map),
 }
 
 
@@ -44,6 +45,8 @@ def _reply_encoders(kind: str, m: dict) -> bytes:
         return P.encode_remove_reply(P.RemoveReply(P.tick_reply_from_map(m), m["rid"]))
     if kind == "reply_control_batch":
         return P.encode_control_batch_reply(P.control_batch_reply_from_map(m))
+    if kind == "reply_scene":
+        return P.encode_scene_reply(P.scene_reply_from_map(m))
     if kind == "reply_info":
         return P.encode_ok(m["rid"], **{k: v for k, v in m.items() if k not in ("v", "rid", "ok")})
     if kind == "stats":
@@ -218,7 +221,7 @@ def test_accepted_vectors():
         assert all(k not in known for k in vec["ignored"])
 
 
-FROZEN = {v: VECTORS / f"v{v}" for v in ("1.0", "1.1", "1.2", "1.3", "1.4", "1.5")}
+FROZEN = {v: VECTORS / f"v{v}" for v in ("1.0", "1.1", "1.2", "1.3", "1.4", "1.5", "1.6")}
 
 
 def _as_current(wire: dict) -> dict:

@@ -325,6 +325,22 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
             ),
         ),
         msg_vector(
+            "submit_scene",
+            "submit",
+            "1.7: a cape in scene arena-1, where it collides with the scene's other cloths (3 cm apart: "
+            "the material's thickness) and the scene's colliders.",
+            P.encode_submit(
+                P.SubmitRequest(
+                    client="c1",
+                    grid=P.GridSpec(8, 8, 0.5, 0.5, "vertical"),
+                    pinned=np.array([0, 7], np.uint32),
+                    material={"thickness": 0.03},
+                    scene="arena-1",
+                    rid=13,
+                )
+            ),
+        ),
+        msg_vector(
             "submit_resume_positions",
             "submit",
             "1.3: the least resume: positions only (velocities zero).",
@@ -495,6 +511,33 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
             P.encode_control_batch_reply(
                 P.ControlBatchReply(1050, [], 13, 1050, [(1, "forbidden", f"the token does not own cloth '{CLOTH2}'")])
             ),
+        ),
+        msg_vector(
+            "scene",
+            "scene",
+            "1.7: the owner of scene arena-1 moves its colliders (a body's capsule and the floor) and lets "
+            "clients c2 and c3 put cloths in it.",
+            P.encode_scene(
+                P.SceneRequest(
+                    "c1",
+                    "arena-1",
+                    (P.Capsule((0.0, 0.2, 0.0), (0.0, 1.4, 0.0), 0.2), P.Plane((0.0, 1.0, 0.0), 0.0)),
+                    ("c2", "c3"),
+                    14,
+                )
+            ),
+        ),
+        msg_vector(
+            "scene_open",
+            "scene",
+            "1.7: the owner of scene arena-1 lets every client put cloths in it and leaves its colliders as they are.",
+            P.encode_scene(P.SceneRequest("c1", "arena-1", members=(P.SCENE_ANYONE,), rid=15)),
+        ),
+        msg_vector(
+            "reply_scene",
+            "reply_scene",
+            "1.7: a scene request applied: its colliders are where they were sent in the state of tick 1062.",
+            P.encode_scene_reply(P.SceneReply(1062, "c1", 3, ("c2", "c3"), 14)),
         ),
         msg_vector(
             "reply_remove",
@@ -916,27 +959,27 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
     future = {
         "name": "submit_future_minor",
         "message": "submit",
-        "description": "Version 1.7 with a key this version does not know: accepted, the key ignored.",
+        "description": "Version 1.8 with a key this version does not know: accepted, the key ignored.",
         "hex": msgpack.packb(
-            {"v": [1, 7], "rid": 0, "client": "c1", "grid": {"cols": 2, "rows": 2}, "hologram": True}
+            {"v": [1, 8], "rid": 0, "client": "c1", "grid": {"cols": 2, "rows": 2}, "hologram": True}
         ).hex(),
-        "value": {"v": [1, 7], "rid": 0, "client": "c1", "grid": {"cols": 2, "rows": 2}, "hologram": True},
+        "value": {"v": [1, 8], "rid": 0, "client": "c1", "grid": {"cols": 2, "rows": 2}, "hologram": True},
         "ignored": ["hologram"],
     }
     # A bundle of a future minor version: a longer header, an unknown flag, bytes after the last entry.
     later = bytearray(one[:32] + b"\xee" * 8 + one[32:] + b"trailing")
-    later[5] = 7
+    later[5] = 8
     later[6:8] = (40).to_bytes(2, "little")
     later[12:16] = (1 << 31).to_bytes(4, "little")
     future_bundle = {
         "name": "bundle_future_minor",
         "message": "bundle",
-        "description": "Version 1.7 bundle with a "
+        "description": "Version 1.8 bundle with a "
         "40-byte header, an unknown flag and trailing bytes: read as the bundle it contains.",
         "hex": bytes(later).hex(),
         "value": {
             **bundles[1]["value"],
-            "minor": 7,
+            "minor": 8,
             "header_size": 40,
             "flags": 1 << 31,
             "size": len(later),

@@ -126,6 +126,7 @@ fn submit_fields_are_the_schemas() {
     sub.state = Some(every_state());
     sub.quality = Some("fast".into());
     sub.resume = Some(Resume { positions: vec![0.0; 12], ..Default::default() });
+    sub.scene = Some("arena-1".into());
     let Value::Map(m) = sub.to_value() else { panic!("not a map") };
     let mut written = set(keys(&m));
     written.insert("mesh".into()); // the other of grid / mesh

@@ -31,7 +31,7 @@ import zenoh
 
 from drape.client import protocol as P
 
-from ..commands import BatchControl, Intake, Remove
+from ..commands import BatchControl, Intake, Remove, SceneColliders
 from ..config import ServerConfig
 from ..registry import ClothRecord, Registry
 from ..replies import Replies, Reply, send
@@ -99,6 +99,7 @@ class Handlers:
             "control": self.on_control,
             "control_batch": self.on_control_batch,
             "remove": self.on_remove,
+            "scene": self.on_scene,  # 1.7
         }
         out = [(self.keys.client_request(n, sid, "*"), self._guard(n, cb, scoped=True)) for n, cb in callbacks.items()]
         if self.config.identity == "open":
@@ -170,6 +171,7 @@ class Handlers:
         rec.key = self.keys.state(rec.id) if client is None else self.keys.client_state(client, rec.id)
         if req.state is not None and req.state.bundle:
             rec.bundle_key = self.keys.bundle(req.client)
+        rec.scene = req.scene  # 1.7: reserve checks it admits the client (PROTOCOL.md 5.3)
         with self.registry.lock:
             before = self.registry.vertices
         self.admission.check(before, rec.n_vertices, req.rid)
@@ -259,6 +261,21 @@ class Handlers:
         if client is not None and rec.client != client:
             raise P.Forbidden(P.ERR_FORBIDDEN, f"cloth {rec.id!r} is not a cloth of client {client!r}", req.rid)
         self.intake.put(Remove(rec, query, req.rid), req.rid)
+
+    def on_scene(self, query: zenoh.Query, payload: bytes, client: str | None = None) -> None:
+        """1.7: a scene's colliders and members, from its owner only (PROTOCOL.md 5.3)."""
+        req = P.decode_scene(payload, self.limits)
+        self.same_client(req.client, client, req.rid)
+        scene = self.registry.owned_scene(req.scene, req.client, req.rid)
+        packed = pack(req.colliders, req.rid) if req.colliders is not None else None
+        with self.registry.lock:
+            if req.members is not None:
+                scene.members = req.members
+            reply = P.SceneReply(self._tick() + 1, scene.owner, len(scene.cloths), scene.members, req.rid)
+        if packed is None:
+            send(Reply(query, P.encode_scene_reply(reply)))
+            return
+        self.intake.put(SceneColliders(req.scene, packed, query, reply), req.rid)
 
     def on_info(self, query: zenoh.Query, payload: bytes, client: str | None = None) -> None:
         req = P.decode_info(payload, self.limits)

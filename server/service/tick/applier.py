@@ -24,7 +24,7 @@ from drape.client.protocol.requestfields import pins_only
 
 from ...sim import quality
 from ...sim.world import World
-from ..commands import Add, BatchControl, Call, ControlSlot, Intake, MoveBlock, Remove
+from ..commands import Add, BatchControl, Call, ControlSlot, Intake, MoveBlock, Remove, SceneColliders
 from ..config import ServerConfig
 from ..cook.fabrics import FabricStore
 from ..publish.publisher import Job
@@ -97,6 +97,14 @@ class Applier:
             cmd.done.set()
         elif isinstance(cmd, Add):
             self._add(cmd, job, tick)
+        elif isinstance(cmd, SceneColliders):  # 1.7: every cloth of the scene, from the next tick
+            try:
+                w.set_scene_colliders(cmd.scene, cmd.colliders)
+            except ValueError as e:
+                job.before.append(self.replies.error(cmd.query, P.ERR_INVALID_VALUE, str(e), cmd.reply.rid))
+                return
+            cmd.reply.tick = tick + 1
+            job.before.append(Reply(cmd.query, P.encode_scene_reply(cmd.reply)))
         elif isinstance(cmd, Remove):
             rec = cmd.record
             if rec.removed or rec.handle is None:
@@ -133,7 +141,7 @@ class Applier:
                 params = quality.apply_preset(params, rec.quality, self.config.tick_rate)
         h = None
         try:
-            h = w.add(rec.fabric, params, cmd.positions, cmd.velocities)
+            h = w.add(rec.fabric, params, cmd.positions, cmd.velocities, scene=rec.scene)
             if cmd.colliders is not None:
                 w.set_colliders(h, cmd.colliders)
         except Exception as e:

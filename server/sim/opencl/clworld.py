@@ -5,7 +5,8 @@ owns its parts, each built once in its constructor and given what it reads (none
 module): the device arrays (``mem``, buffers.DeviceMemory), the launch groups' set-up and
 launches (``launches``, launch.GroupLaunches), the pin targets (``targets``,
 targets.PinTargets), the frame readback (``readback``, frames.FrameReadback) and, with
-``device_encode``, the frame encoder (``device_frames``, devencode.DeviceFrames).
+``device_encode``, the frame encoder (``device_frames``, devencode.DeviceFrames), and the
+scenes' inter-cloth collision after each step (``scene_collision``, scenes.SceneCollision, 1.7).
 
 Layout (see kernels/layout.h):
 - vertex buffers (positions with inverse mass in w, velocities, previous positions, pin
@@ -39,6 +40,7 @@ from ..fabric import Fabric
 from ..frame import Layout, PendingFrame
 from ..params import ClothParams, Features
 from ..roster import Roster
+from ..scenes import Scene
 from ..wire import PendingWire
 from ..world import Cloth, World, inverse_masses
 from .buffers import ClothSlot, DeviceMemory, FabricSlot, fabric_blob
@@ -46,6 +48,7 @@ from .devencode import DeviceFrames
 from .device import Device, layout
 from .frames import FrameReadback
 from .launch import Group, GroupLaunches
+from .scenes import SceneCollision
 from .targets import PinTargets
 
 log = logging.getLogger(__name__)
@@ -121,6 +124,8 @@ class CLWorld(World):
         self.readback = FrameReadback(self.dev, mem, self.rec, base_options)
         # the ticks' bytes encoded on the device (devencode.py)
         self.device_frames = DeviceFrames(self.dev, mem, self.rec, self.readback) if device_encode else None
+        # 1.7: cloths of one scene kept apart after each step (nothing built while no scene has two)
+        self.scene_collision = SceneCollision(self.dev, mem, self.rec, self.cloths, self.scenes)
 
     # --- a tick's output ---------------------------------------------------------------------
     def fetch_async(self, roster: Roster, tick: int) -> PendingWire:
@@ -296,6 +301,26 @@ class CLWorld(World):
             self.mem.pos.write(rec.vbase, x)
         self._write_tables(cloth, rec)
         self._regroup(cloth, rec)
+        m, was = cloth.params.material, old.material
+        if cloth.scene is not None and (m.thickness, m.contact_stiffness) != (was.thickness, was.contact_stiffness):
+            self.scene_collision.changed()
+
+    def _scenes_changed(self) -> None:
+        self.scene_collision.changed()
+
+    def _move_scene_colliders(self, sc: Scene) -> bool:
+        """A scene's colliders moved (1.7, the per-tick case): the scene's rows of every cloth of it
+        in the collider table at once, the previous poses becoming the step's start."""
+        k = len(sc.colliders)
+        starts = np.fromiter(
+            (self.rec[h].coll_base + len(self.cloths[h].own_colliders) for h in sc.handles), np.int64, len(sc.handles)
+        )
+        rows = (starts[:, None] + np.arange(k)).reshape(-1)
+        self.coll_host[rows, 0:2] = self.coll_host[rows, 2:4]
+        self.coll_host[rows, 2:4] = np.broadcast_to(sc.colliders, (len(starts), k, 2, 4)).reshape(-1, 2, 4)
+        self._moved.update(sc.handles)
+        self._coll_dirty = True
+        return True
 
     def _set_colliders(self, cloth: Cloth) -> None:
         rec = self.rec[cloth.handle]
@@ -375,6 +400,7 @@ class CLWorld(World):
         self._flush()
         self.readback.mark_step()  # device time of the step: frames.py
         self.launches.step(self.groups.values(), dt)
+        self.scene_collision.step(dt)
         self.steps += 1
         self._after_step()
 

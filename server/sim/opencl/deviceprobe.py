@@ -71,6 +71,14 @@ def _exercise(dev: cl.Device, lanes: int) -> None:
             _stage(f"{solver} solver (cl_predict, {'cl_links' if solver == 'coloured' else 'jacobi_iter'}), {fname}")
             run(CLWorld(solver, device=d), 2, features)
 
+    _stage("inter-cloth collision (kernels/intercollide.cl)")
+    world = CLWorld("workgroup", device=d, pack_lanes=lanes if not gpu else 0)
+    for _ in range(2):
+        world.add(fabric, ClothParams(iterations=2), scene="probe")
+    world.step(1 / 60)
+    if not np.isfinite(world.fetch().xyz).all():
+        raise RuntimeError("inter-cloth collision gave non-finite positions")
+
     _stage("encode_frame (kernels/encode.cl)")
     world = CLWorld("workgroup", device=d, pack_lanes=lanes if not gpu else 0)
     encodings = list(ENCODING_IDS.values())  # what the device encoder writes, predictive (1.5) included

@@ -208,6 +208,8 @@ pub struct Submit {
     pub quality: Option<String>,
     /// 1.3: continue from this state instead of the rest pose (a 1.2 server ignores it).
     pub resume: Option<Resume>,
+    /// 1.7: the scene the cloth collides in (a 1.6 server ignores it: the cloth is alone).
+    pub scene: Option<String>,
 }
 
 impl Submit {
@@ -229,6 +231,7 @@ impl Submit {
             state: None,
             quality: None,
             resume: None,
+            scene: None,
         }
     }
 }
@@ -380,6 +383,9 @@ impl Submit {
         if let Some(r) = &self.resume {
             m.push((s("resume"), r.to_value()));
         }
+        if let Some(sc) = &self.scene {
+            m.push((s("scene"), s(sc)));
+        }
         Value::Map(m)
     }
 
@@ -440,6 +446,7 @@ impl Submit {
                 None => None,
                 Some(x) => Some(Resume::from_reader(&x)?),
             },
+            scene: r.str("scene", false)?.map(str::to_string),
         })
     }
 }

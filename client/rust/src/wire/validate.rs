@@ -203,6 +203,11 @@ impl Submit {
         colliders(&self.colliders)?;
         state_options(self.state.as_ref())?;
         options(Some(&self.features), self.quality.as_deref(), self.iterations, self.substeps, self.chebyshev_rho, lim)?;
+        if let Some(sc) = &self.scene {
+            if !valid_id(sc) {
+                return Err(invalid(format!("'scene' must be 1-64 characters of [A-Za-z0-9_.-], got {sc:?}")));
+            }
+        }
         match &self.resume {
             Some(r) => r.validate(n, lim),
             None => Ok(()),

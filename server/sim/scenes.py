@@ -1,0 +1,150 @@
+"""Scenes (protocol 1.7): cloths of one scene collide with each other, cloths of different scenes
+never interact. What every World keeps of them (which cloths are in which scene, the scene's
+colliders), and inter-cloth collision in float64 numpy: the reference of kernels/intercollide.cl
+(drape.server.sim.opencl.scenes) and the metric of what it leaves.
+
+Inter-cloth collision runs once per step (tick), after every cloth's own solve (its substeps,
+links, self-collision, colliders): a World-level phase, as NvCloth puts inter-collision on its
+Solver. Each of INTER_COLLISION_PASSES passes
+
+1. takes every cloth's bounds (its positions' box grown by half its thickness x margin): the broad phase,
+   a cloth whose box meets no other box of its scene takes no part;
+2. finds every pair of vertices of two different cloths of one scene closer than the pair's
+   contact distance ``d = (thickness_a + thickness_b) / 2`` (the materials' ``thickness``) times
+   INTER_COLLISION_MARGIN, the distance the solve sets them at;
+3. moves each free end by ``k (d' - |x_a - x_b|) w_a / (w_a + w_b)`` (``d'`` = d x margin)
+   along the pair's direction (``k`` the mean of the two materials' ``contact_stiffness``, ``w`` inverse masses; two
+   coincident vertices part along +y for the cloth added first, -y for the other): Jacobi, every
+   contact from the same positions, so the order of the work does not matter.
+
+A vertex moved by ``dx`` in these passes also gains ``dx / dt`` of velocity (the step's
+velocity is its displacement over the step, as PBD has it), so contacts carry cloths along.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from drape.client.protocol.vocabulary import MAX_SCENE_COLLIDERS  # noqa: F401 (the scenes' collider capacity)
+
+#: Inter-cloth collision's passes per step (the kernels' -DINTER_COLLISION_PASSES, the reference's).
+INTER_COLLISION_PASSES = 8
+#: The solve keeps each pair this much further than its contact distance (1.05: 1.5 mm at 3 cm),
+#: so that what the Jacobi passes leave of many contacts at once (a cloth resting on another)
+#: stays outside the contact distance; the device multiplies each cloth's thickness by it.
+INTER_COLLISION_MARGIN = 1.05
+#: Cloths of one scene at most (a scene is a shared space; the spatial hash is keyed by scene).
+MAX_SCENE_CLOTHS = 1024
+
+_CHUNK = 512  # rows of the pairwise distances computed at once
+
+
+@dataclass
+class Scene:
+    """One scene of a World: its cloths (handles, in the order they joined) and its colliders
+    (packed as params.pack_colliders), which act on each of its cloths beside the cloth's own."""
+
+    name: str
+    handles: list[int] = field(default_factory=list)
+    colliders: np.ndarray = field(default_factory=lambda: np.zeros((0, 2, 4), np.float32))
+
+
+@dataclass
+class SceneCloth:
+    """What inter-cloth collision reads and writes of one cloth: views of its state."""
+
+    x: np.ndarray  # (n, 3) positions, moved in place
+    v: np.ndarray  # (n, 3) velocities, moved in place
+    invm: np.ndarray  # (n,) inverse masses (0: pinned)
+    thickness: float
+    stiffness: float
+
+
+def bounds(x: np.ndarray, grow: float) -> np.ndarray:
+    """(2, 3): the box of positions ``x`` grown by ``grow`` on every side."""
+    return np.stack([x.min(axis=0) - grow, x.max(axis=0) + grow])
+
+
+def overlapping(boxes: list[np.ndarray]) -> list[tuple[int, int]]:
+    """The broad phase: every pair (a, b), a < b, of boxes that meet."""
+    out = []
+    for a in range(len(boxes)):
+        for b in range(a + 1, len(boxes)):
+            if np.all(boxes[a][0] <= boxes[b][1]) and np.all(boxes[b][0] <= boxes[a][1]):
+                out.append((a, b))
+    return out
+
+
+def _pairs(xa: np.ndarray, xb: np.ndarray, d: float) -> tuple[np.ndarray, np.ndarray]:
+    """Every (i, j) with |xa[i] - xb[j]| < d."""
+    d2 = d * d
+    out_i, out_j = [], []
+    for lo in range(0, len(xa), _CHUNK):
+        hi = min(lo + _CHUNK, len(xa))
+        diff = xa[lo:hi, None, :] - xb[None, :, :]
+        i, j = np.nonzero(np.einsum("ijk,ijk->ij", diff, diff) < d2)
+        out_i.append(lo + i)
+        out_j.append(j)
+    if not out_i:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return np.concatenate(out_i), np.concatenate(out_j)
+
+
+def inter_collide(cloths: list[SceneCloth], dt: float, passes: int = INTER_COLLISION_PASSES) -> None:
+    """Inter-cloth collision of one scene's cloths (in the order they joined it), in place."""
+    if len(cloths) < 2:
+        return
+    start = [c.x.copy() for c in cloths]
+    for _ in range(passes):
+        boxes = [bounds(c.x, 0.5 * c.thickness * INTER_COLLISION_MARGIN) for c in cloths]
+        corr = [np.zeros_like(c.x) for c in cloths]
+        for a, b in overlapping(boxes):
+            ca, cb = cloths[a], cloths[b]
+            d = 0.5 * (ca.thickness + cb.thickness) * INTER_COLLISION_MARGIN
+            k = 0.5 * (ca.stiffness + cb.stiffness)
+            if not (d > 0.0 and k > 0.0):
+                continue
+            i, j = _pairs(ca.x, cb.x, d)
+            wa, wb = ca.invm[i], cb.invm[j]
+            keep = (wa + wb) > 0
+            i, j, wa, wb = i[keep], j[keep], wa[keep], wb[keep]
+            if not len(i):
+                continue
+            diff = ca.x[i] - cb.x[j]
+            dist = np.linalg.norm(diff, axis=1)
+            apart = dist > 1e-12
+            n = np.where(apart[:, None], diff / np.where(apart, dist, 1.0)[:, None], np.array([0.0, 1.0, 0.0]))
+            push = n * (k * (d - dist) / (wa + wb))[:, None]
+            np.add.at(corr[a], i, push * wa[:, None])
+            np.add.at(corr[b], j, -push * wb[:, None])
+        for c, dx in zip(cloths, corr, strict=True):
+            c.x += dx
+    for c, x0 in zip(cloths, start, strict=True):
+        c.v += (c.x - x0) / dt
+
+
+@dataclass(frozen=True)
+class ScenePenetration:
+    """What a scene's cloths leave inside each other's contact distance."""
+
+    pairs: int  # vertex pairs of two different cloths closer than their contact distance - tolerance
+    deepest: float  # metres: the contact distance minus the closest such pair's distance (0: none)
+
+
+def scene_penetration(xs: list[np.ndarray], thicknesses: list[float], tolerance: float = 1e-3) -> ScenePenetration:
+    """The penetration metric between the cloths of one scene (positions ``xs``): pairs of
+    vertices of two different cloths closer than ``(t_a + t_b) / 2 - tolerance``."""
+    pairs, deepest = 0, 0.0
+    xs = [np.asarray(x, np.float64) for x in xs]
+    for a in range(len(xs)):
+        for b in range(a + 1, len(xs)):
+            d = 0.5 * (thicknesses[a] + thicknesses[b])
+            if d <= tolerance:
+                continue
+            i, j = _pairs(xs[a], xs[b], d - tolerance)
+            pairs += len(i)
+            if len(i):
+                deepest = max(deepest, float(d - np.linalg.norm(xs[a][i] - xs[b][j], axis=1).min()))
+    return ScenePenetration(pairs, deepest)

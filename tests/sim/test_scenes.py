@@ -1,0 +1,176 @@
+"""Scenes (issue 22, protocol 1.7): cloths of one scene collide with each other on the device as
+in the float64 reference, cloths of different scenes never interact, two capes dragged through
+each other leave no penetration, a World without scenes builds and launches nothing new."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from drape.server.sim.fabric import cook_grid
+from drape.server.sim.opencl.clworld import CLWorld
+from drape.server.sim.opencl.scenes import SOURCE
+from drape.server.sim.params import ClothParams, LinkOptions, Material, Sphere, pack_colliders
+from drape.server.sim.scenes import scene_penetration
+from drape.server.sim.world import ReferenceWorld
+
+DT = 1 / 60
+N = 17  # a 0.5 m cape, 31 mm between neighbours
+THICKNESS = 0.03
+PINS = np.array([0, N - 1])  # the shoulders
+
+
+def capes():
+    """Two capes hanging 0.3 m apart in z, the second higher and to the side, pinned by their
+    shoulders: dragged 0.3 m towards each other they pass through each other's lower halves."""
+    a = cook_grid(
+        N, N, 0.5, 0.5, LinkOptions(bending=True), orientation="vertical", pinned=PINS, origin=(-0.25, 1.0, -0.15)
+    )
+    b = cook_grid(
+        N, N, 0.5, 0.5, LinkOptions(bending=True), orientation="vertical", pinned=PINS, origin=(-0.1, 1.25, 0.15)
+    )
+    return a, b
+
+
+def params() -> ClothParams:
+    return ClothParams(material=Material(thickness=THICKNESS), iterations=10, substeps=2)
+
+
+def drag(world, scene: str | None, ticks: int = 45) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Both capes' positions at each tick while their shoulders are dragged through each other."""
+    a, b = capes()
+    ha, hb = world.add(a, params(), scene=scene), world.add(b, params(), scene=scene)
+    out = []
+    for t in range(ticks):
+        s = min(1.0, (t + 1) / 30)
+        world.set_pin_targets(ha, PINS, a.rest_positions[PINS] + [0, 0, 0.3 * s])
+        world.set_pin_targets(hb, PINS, b.rest_positions[PINS] - [0, 0, 0.3 * s])
+        world.step(DT)
+        f = world.fetch()
+        out.append((f.positions[ha].astype(np.float64), f.positions[hb].astype(np.float64)))
+    return out
+
+
+def pairs_left(states) -> list[int]:
+    return [scene_penetration([x, y], [THICKNESS, THICKNESS]).pairs for x, y in states]
+
+
+def test_reference_capes_dragged_through_each_other():
+    """Penetration 0 at the end of every tick in one scene; > 0 without the scene."""
+    assert max(pairs_left(drag(ReferenceWorld(), "arena"))) == 0
+    assert max(pairs_left(drag(ReferenceWorld(), None))) > 0
+
+
+@pytest.mark.parametrize(("solver", "lanes"), [("workgroup", 0), ("workgroup", 4), ("coloured", 0), ("jacobi", 0)])
+def test_device_follows_reference(device, solver, lanes):
+    """The OpenCL world's inter-cloth collision against the float64 reference (the mode that
+    mirrors the solver) through the whole drag, and penetration 0 at every tick; ``lanes`` 4:
+    the CPU pack solver (the server's default on a CPU)."""
+    mode = {"workgroup": "coloured", "coloured": "batches", "jacobi": "jacobi"}[solver]
+    ref = drag(ReferenceWorld(mode), "arena")
+    ref32 = drag(ReferenceWorld(mode, np.float32), "arena")
+    got = drag(CLWorld(solver, device=device, pack_lanes=lanes), "arena")
+    for (x, y), (rx, ry), (fx, fy) in zip(got, ref, ref32, strict=True):
+        slack = 3e-4 + 2 * max(np.abs(fx - rx).max(), np.abs(fy - ry).max())
+        assert np.abs(x - rx).max() < slack and np.abs(y - ry).max() < slack
+    assert max(pairs_left(got)) == 0
+
+
+def test_scenes_isolate(device):
+    """A cloth in scene A moves exactly as it does alone, whatever cloths of scene B overlap it."""
+    for make in (ReferenceWorld, lambda: CLWorld("workgroup", device=device, pack_lanes=0)):
+        alone, crowded = make(), make()
+        a, b = capes()
+        ha = alone.add(a, params(), scene="A")
+        hc = crowded.add(a, params(), scene="A")
+        crowded.add(b, params(), scene="B")
+        crowded.add(
+            cook_grid(N, N, 0.5, 0.5, pinned=PINS, orientation="vertical", origin=(-0.25, 1.0, -0.15)),
+            params(),
+            scene="B",
+        )
+        for t in range(20):
+            for w, h in ((alone, ha), (crowded, hc)):
+                w.set_pin_targets(h, PINS, a.rest_positions[PINS] + [0, 0, 0.01 * t])
+                w.step(DT)
+            np.testing.assert_array_equal(alone.fetch().positions[ha], crowded.fetch().positions[hc])
+
+
+def test_scene_colliders_act_on_every_cloth():
+    """A scene's collider acts on each of its cloths beside their own; it leaves with the scene."""
+    from drape.server.sim.params import Features
+
+    w = ReferenceWorld()
+    p = ClothParams(features=Features(colliders=True))
+    fab = cook_grid(5, 5, 0.4, 0.4, origin=(-0.2, 0.05, -0.2))
+    h1, h2 = w.add(fab, p, scene="s"), w.add(fab, p, scene="s")
+    w.set_colliders(h1, pack_colliders([Sphere((5.0, 0.0, 0.0), 0.1)]))
+    w.set_scene_colliders("s", pack_colliders([Sphere((0.0, -0.5, 0.0), 0.5)]))
+    assert len(w.cloths[h1].colliders) == 2 and len(w.cloths[h2].colliders) == 1
+    for _ in range(30):
+        w.step(DT)
+    for h in (h1, h2):
+        r = np.linalg.norm(w.state(h).x - [0.0, -0.5, 0.0], axis=1)
+        assert r.min() > 0.5 - 1e-6  # every cloth rests on the scene's ball
+    w.remove(h1)
+    w.remove(h2)
+    assert "s" not in w.scenes
+
+
+def test_no_scene_builds_nothing(device):
+    """Without a scene of two cloths the inter-collision program is neither built nor launched."""
+    w = CLWorld("workgroup", device=device, pack_lanes=0)
+    a, _ = capes()
+    w.add(a, params())
+    w.add(a, params(), scene="lonely")
+    w.step(DT)
+    assert w.scene_collision.n_cloths == 0
+    assert not device.built(w.scene_collision.options, SOURCE) or w.scene_collision._kernels is None
+
+
+def test_moving_scene_colliders_on_the_device(device):
+    """A scene's ball rising under its two cloths every tick (the per-tick move, which the device
+    writes for every cloth at once) moves them as the reference's per-cloth rows do."""
+    from drape.server.sim.params import Features
+
+    p = ClothParams(features=Features(colliders=True), material=Material(thickness=THICKNESS), iterations=10)
+    fab = cook_grid(9, 9, 0.4, 0.4, pinned=[0, 8], origin=(-0.2, 1.0, -0.2))
+    out = []
+    for w in (ReferenceWorld(), CLWorld("workgroup", device=device, pack_lanes=0)):
+        hs = [w.add(fab, p, scene="s"), w.add(fab, p, scene="s")]
+        w.set_colliders(hs[1], pack_colliders([Sphere((5.0, 0.0, 0.0), 0.1)]))  # its own, before the scene's
+        got = []
+        for t in range(25):
+            w.set_scene_colliders("s", pack_colliders([Sphere((0.0, 0.6 + 0.02 * t, 0.0), 0.3)]))
+            w.step(DT)
+            got.append([w.fetch().positions[h].astype(np.float64) for h in hs])
+        out.append(got)
+    for ref, dev in zip(*out, strict=True):
+        for r, d in zip(ref, dev, strict=True):
+            assert np.abs(r - d).max() < 1e-4
+    assert out[1][-1][0][:, 1].max() > 1.05  # the ball lifted them
+
+
+def test_a_thickness_changed_by_a_control_reaches_the_device(device):
+    """A scene cloth's material changed on the fly (0 thickness: no contact, then 3 cm) changes
+    the device's scene tables as it changes the reference's contacts."""
+    out = []
+    for w in (ReferenceWorld(), CLWorld("workgroup", device=device, pack_lanes=0)):
+        a, b = capes()
+        thin = ClothParams(material=Material(thickness=0.0), iterations=10, substeps=2)
+        ha, hb = w.add(a, thin, scene="s"), w.add(b, thin, scene="s")
+        got = []
+        for t in range(40):
+            if t == 10:
+                for h in (ha, hb):
+                    w.set_params(h, params())
+            s = min(1.0, (t + 1) / 30)
+            w.set_pin_targets(ha, PINS, a.rest_positions[PINS] + [0, 0, 0.3 * s])
+            w.set_pin_targets(hb, PINS, b.rest_positions[PINS] - [0, 0, 0.3 * s])
+            w.step(DT)
+            f = w.fetch()
+            got.append((f.positions[ha].astype(np.float64), f.positions[hb].astype(np.float64)))
+        out.append(got)
+    for (rx, ry), (x, y) in zip(*out, strict=True):
+        assert np.abs(x - rx).max() < 1e-3 and np.abs(y - ry).max() < 1e-3
+    assert max(pairs_left(out[1][10:])) == 0

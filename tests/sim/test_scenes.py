@@ -136,7 +136,9 @@ def test_moving_scene_colliders_on_the_device(device):
     p = ClothParams(features=Features(colliders=True), material=Material(thickness=THICKNESS), iterations=10)
     fab = cook_grid(9, 9, 0.4, 0.4, pinned=[0, 8], origin=(-0.2, 1.0, -0.2))
     out = []
-    for w in (ReferenceWorld(), CLWorld("workgroup", device=device, pack_lanes=0)):
+    # the float64 reference, the same in float32 (how far float32 alone strays: with colliders the
+    # continuous test's contact times amplify rounding), the device
+    for w in (ReferenceWorld(), ReferenceWorld(dtype=np.float32), CLWorld("workgroup", device=device, pack_lanes=0)):
         hs = [w.add(fab, p, scene="s"), w.add(fab, p, scene="s")]
         w.set_colliders(hs[1], pack_colliders([Sphere((5.0, 0.0, 0.0), 0.1)]))  # its own, before the scene's
         got = []
@@ -145,10 +147,10 @@ def test_moving_scene_colliders_on_the_device(device):
             w.step(DT)
             got.append([w.fetch().positions[h].astype(np.float64) for h in hs])
         out.append(got)
-    for ref, dev in zip(*out, strict=True):
-        for r, d in zip(ref, dev, strict=True):
-            assert np.abs(r - d).max() < 1e-4
-    assert out[1][-1][0][:, 1].max() > 1.05  # the ball lifted them
+    ref, f32, dev = (np.array(o) for o in out)
+    atol = 1e-4 + 2 * float(np.abs(f32 - ref).max())  # as test_ccd.py (PoCL: device 1.5e-4, float32 7e-5)
+    np.testing.assert_allclose(dev, ref, atol=atol, rtol=0)
+    assert dev[-1][0][:, 1].max() > 1.05  # the ball lifted them
 
 
 def test_a_thickness_changed_by_a_control_reaches_the_device(device):

@@ -358,7 +358,8 @@ class ServerConfig:
     # --- admission and misbehaving cloths -------------------------------------------------------
     admission: bool = setting(
         True,
-        "refuse submissions ('overloaded') that would push the predicted tick cost over admission_budget",
+        "refuse submissions and controls ('overloaded') whose work would push the predicted tick cost over "
+        "admission_budget",
         group=ADMISSION,
     )
     admission_budget: float = setting(
@@ -369,9 +370,26 @@ class ServerConfig:
         high=100,
         low_open=True,
     )
+    admission_client_share: float = setting(
+        0.5,
+        "share of the work the tick budget holds that one client may take while others could come; past it, that "
+        "client is admitted more only while admission_newcomer_reserve stays free (1: no shares)",
+        group=ADMISSION,
+        low=0,
+        high=1,
+        low_open=True,
+    )
+    admission_newcomer_reserve: float = setting(
+        0.1,
+        "share of the work the tick budget holds kept free for clients under their admission_client_share",
+        group=ADMISSION,
+        low=0,
+        high=1,
+    )
     admission_unmeasured_vertices: int = setting(
         65_536,
-        "vertices admitted before the first steady tick is measured, then 'overloaded' until one is (64 32x32 "
+        "work units (vertices at the plain 10-iteration solve) admitted before the first steady tick is "
+        "measured, then 'overloaded' until one is (64 32x32 "
         "cloths: a CPU's; on a GPU raise it, e.g. 2097152 for 2048 cloths, or a level's first burst at start-up "
         "is refused past 64 cloths)",
         group=ADMISSION,

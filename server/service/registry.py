@@ -44,6 +44,7 @@ class ClothRecord:
     bundle_key: str | None = None  # published inside this client's bundle on this key (1.1), not on ``key``
     quality_wanted: str | None = None  # the preset the client asked for (1.1)
     quality: str | None = None  # the preset in force: lower than wanted while the server is overloaded
+    priced: object | None = None  # what admission priced it at (requests/admission.py: Priced; request thread)
 
 
 class Registry:

@@ -146,6 +146,7 @@ class Server:
         self.device_name = getattr(world, "device_name", cfg.solver)
         dev = getattr(world, "dev", None)
         self.quality.use_device(bool(dev is not None and dev.info.is_gpu))
+        self.admission.use_device(bool(dev is not None and dev.info.is_gpu))
         if self.warmup:  # before serving: the first cloths build nothing (cook/warmup.py)
             warm_up(world, cfg)
         zc = zenoh_config(cfg.mode, cfg.listen, cfg.connect, cfg.multicast_scouting, cfg.zenoh_config)

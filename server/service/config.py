@@ -333,11 +333,12 @@ class ServerConfig:
         low=0,
     )
     build_in_child: str = setting(
-        "off",
-        "drape serve: kernels built and first run in a short-lived child process, then loaded from the driver's "
-        "disk cache (the compiler's memory and first-launch JIT stay out of the server); start: every feature "
-        "combination before serving (recommended on a CPU device; +2 s start-up with PoCL's cache filled); "
-        "always: also each new combination a cloth brings",
+        "always",
+        "kernels built and first run in a short-lived child process at lower priority, then loaded from the "
+        "driver's disk cache (the compiler's memory and first-launch JIT stay off the tick); start: drape serve "
+        "builds every feature combination before serving (+2 s start-up with PoCL's cache filled, about 20 s "
+        "cold); always (the default): also each new combination a cloth brings, so that no first cloth stalls "
+        "a tick; off: built in the server process (tests; a first cloth of a new set stalls ticks)",
         group=SERVICE,
         choices=BUILD_IN_CHILD,
     )

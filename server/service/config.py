@@ -191,8 +191,9 @@ class ServerConfig:
     zenoh_config: str | None = setting(
         None,
         "a Zenoh JSON5 configuration file (TLS endpoints, user/password authentication, access control); the "
-        "settings above override it. deploy/zenoh-peer.json5 is a sample (deploy/zenoh-client.json5 the same "
-        "for a client-mode session)",
+        "settings above override it, but its listen endpoints are opened (listen adds to them; its default is "
+        "used only where the file sets none). deploy/zenoh-peer.json5 is a sample (deploy/zenoh-client.json5 "
+        "the same for a client-mode session)",
         group=ZENOH,
         sample="/etc/drape/zenoh-peer.json5",
         commented=True,

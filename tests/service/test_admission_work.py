@@ -118,9 +118,11 @@ def test_one_huge_cloth_beside_a_small_steady_load_is_not_admitted_on_trust():
     adm.model = m
     for _ in range(30):  # 4 cloths of 32x32: device 1 ms
         m.observe(TickCost(4096, 0.0002, 0.001, 0.0001))
-    with pytest.raises(DrapeError):
-        adm.check(4096, 256 * 256, 1)  # 17x the load: 17 ms proportional, under 4 budgets but not trusted
-    adm.check(4096, 4096, 2)  # one of the load's size: on trust
+    with pytest.raises(DrapeError):  # 17x the load: 17 ms proportional, under 4 budgets but not trusted
+        adm.check(4096, 256 * 256, 1, cloth_vertices=256 * 256)
+    adm.check(4096, 32 * 32 * 18, 2, cloth_vertices=32 * 32)  # a small cloth of a heavy solve: on trust
+    with pytest.raises(DrapeError):  # trust is spent for this load: proportional, 19 ms
+        adm.check(4096 + 32 * 32 * 18, 3 * 32 * 32 * 18, 3, cloth_vertices=32 * 32)
 
 
 @pytest.mark.opencl
@@ -140,9 +142,8 @@ def test_a_heavy_control_is_refused_end_to_end_and_the_good_clients_cloths_keep_
             assert [getattr(r, "code", r) for r in be.value.results] == ["overloaded"]
             assert wait_until(lambda: srv.stats()["overload_refusals"] == 2)
             h.set(gravity=(0.0, -5.0, 0.0))  # no work changed: applied
-            for g in mine:
-                ticks = [s.tick for s in collect(g, 10)]
-                assert ticks == list(range(ticks[0], ticks[0] + 10))
+            for g in mine:  # still published (their rate is drape chaos heavy-control's to judge)
+                assert len(collect(g, 10)) == 10
             assert np.isfinite(h.latest().positions).all()
         finally:
             good.close()

@@ -118,8 +118,8 @@ UNMEASURED = "unmeasured"  # the "stage" of a prediction refused because nothing
 MIN_SPREAD = 1.1  # the fit needs its largest load at least this many times its smallest
 TRUST = 0.5  # below this share of the budget, a load that cannot be fitted admits (once a load) ...
 TRUST_LIMIT = 4.0  # ... a submit that, were every second measured per vertex, would take at most this many budgets
-TRUST_GROWTH = 2.0  # ... and that at most this many times the load measured or at most TRUST_SMALL more
-TRUST_SMALL = 4096  # (a 64x64 cloth's work): one 256x256 beside a small steady load is not trusted (issue 26)
+TRUST_GROWTH = 2.0  # ... and that at most this many times the load measured, or a cloth of at most
+TRUST_SMALL = 4096  # vertices (a 64x64): one 256x256 beside a small steady load is not trusted (issue 26)
 
 #: Each feature's factor on a cloth's work where it is on (features not named: 1, their cost in
 #: the measured per-work cost). self_collision: docs/collision.md's cost table, at most 4.8x.
@@ -277,7 +277,9 @@ class Fit(NamedTuple):
 class CostModel(Protocol):
     def observe(self, cost: TickCost) -> None: ...
 
-    def predict(self, vertices: int, budget_s: float = float("inf")) -> dict[str, float] | None: ...
+    def predict(
+        self, vertices: int, budget_s: float = float("inf"), cloth_vertices: int = 0
+    ) -> dict[str, float] | None: ...
 
     def capacity(self, budget_s: float) -> float | None: ...
 
@@ -299,7 +301,9 @@ class FixedCost:
     def observe(self, cost: TickCost) -> None:
         pass
 
-    def predict(self, vertices: int, budget_s: float = float("inf")) -> dict[str, float] | None:
+    def predict(
+        self, vertices: int, budget_s: float = float("inf"), cloth_vertices: int = 0
+    ) -> dict[str, float] | None:
         return {"fixed": self.base_s + self.per_vertex_s * vertices}
 
     def capacity(self, budget_s: float) -> float | None:
@@ -325,10 +329,10 @@ class MeasuredCost:
     cloth next to one small one. So while the loads are not separable and the largest stage at
     the latest load is under ``trust`` of the budget, ``predict`` answers None (no opinion:
     admit) **once per load measured**, and only for a submit that the conservative line puts
-    under ``trust_limit`` budgets and that at most doubles the load or adds ``TRUST_SMALL`` (a
-    256 x 256 beside a small steady load was trusted in 3 runs of 5 and took the server to 13-34
-    Hz, issue 26): the next submit is predicted conservatively until a tick with
-    a new load is measured. The old rule (admit while light) let a burst of submits arriving
+    under ``trust_limit`` budgets and that at most doubles the load or is a cloth of at most
+    ``TRUST_SMALL`` vertices (a 256 x 256 beside a small steady load was trusted in 3 runs of 5
+    and took the server to 13-34 Hz, issue 26): the next submit is predicted conservatively
+    until a tick with a new load is measured. The old rule (admit while light) let a burst of submits arriving
     between two measurements through unchecked (docs/loadtest.md, session 12: 494 cloths
     admitted where 384 hold), and any one huge cloth beside a small one (``drape chaos``'s
     big-submit); now a burst grows the load by one trusted cloth, then by what the conservative
@@ -444,7 +448,11 @@ class MeasuredCost:
             return float(self.unmeasured)
         return min(min(_room(got.lines[s], budget_s), _room(got.floors[s], budget_s)) for s in got.lines)
 
-    def predict(self, vertices: int, budget_s: float = float("inf")) -> dict[str, float] | None:
+    def predict(
+        self, vertices: int, budget_s: float = float("inf"), cloth_vertices: int = 0
+    ) -> dict[str, float] | None:
+        """Each stage's seconds at a load of ``vertices`` work units (None: no opinion, admit);
+        ``cloth_vertices``: the vertices of the cloth asking (trust is for small cloths)."""
         got = self.fit()
         if got is None:  # no steady tick yet: no opinion up to a first load, then wait for one
             return None if vertices <= self.unmeasured else {UNMEASURED: math.inf}
@@ -454,7 +462,7 @@ class MeasuredCost:
             not fitted
             and max(line(latest) for line in lines.values()) < self.trust * budget_s
             and max(stages.values()) <= self.trust_limit * budget_s
-            and (vertices <= TRUST_GROWTH * latest or vertices - latest <= TRUST_SMALL)
+            and (vertices <= TRUST_GROWTH * latest or cloth_vertices <= TRUST_SMALL)
         ):
             with self._lock:  # lightly loaded, fixed and per-vertex costs not told apart: admit, once a load
                 if self._trusted_at != latest:
@@ -514,7 +522,7 @@ class Admission:
         """Price a submission onto ``rec.priced`` and refuse it (``overloaded``) where its work
         does not fit the tick budget or its client's share (request thread)."""
         rec.priced = self.price_submit(req)
-        self.admit(registry, rec.client, rec.priced.work, req.rid)
+        self.admit(registry, rec.client, rec.priced.work, req.rid, cloth_vertices=rec.n_vertices)
 
     def admit_control(self, registry: Registry, rec: ClothRecord, req: P.ControlRequest) -> None:
         """Re-price a cloth a control changes; a control that raises its work is admitted like a
@@ -524,12 +532,14 @@ class Admission:
             return
         added = new.work - work_of(rec)
         if added > 0.0:
-            self.admit(registry, rec.client, added, req.rid, "this control")
+            self.admit(registry, rec.client, added, req.rid, "this control", rec.n_vertices)
         if added != 0.0:
             self.generation += 1
         rec.priced = new
 
-    def admit(self, registry: Registry, client: str, work: float, rid: int, what: str = "this cloth") -> None:
+    def admit(
+        self, registry: Registry, client: str, work: float, rid: int, what: str = "this cloth", cloth_vertices: int = 0
+    ) -> None:
         """Raise ``overloaded`` where ``work`` more units of ``client`` would not fit the tick
         budget (:meth:`check`) or would take its client past its share (:meth:`check_share`)."""
         if not self.config.admission:
@@ -537,7 +547,7 @@ class Admission:
         with registry.lock:
             total = sum(work_of(r) for r in registry.cloths.values())
             mine = sum(work_of(registry.cloths[c]) for c in registry.by_client.get(client, ()) if c in registry.cloths)
-        self.check(total, work, rid, what)
+        self.check(total, work, rid, what, cloth_vertices)
         self.check_share(total, mine, work, rid)
 
     def check_share(self, total: float, mine: float, work: float, rid: int) -> None:
@@ -560,12 +570,14 @@ class Admission:
                 rid,
             )
 
-    def check(self, vertices_before: float, n_vertices: float, rid: int, what: str = "this cloth") -> None:
+    def check(
+        self, vertices_before: float, n_vertices: float, rid: int, what: str = "this cloth", cloth_vertices: int = 0
+    ) -> None:
         """Raise ``overloaded`` when ``n_vertices`` more work units would not fit the tick budget."""
         if not self.config.admission or vertices_before <= 0:
             return
         total = math.ceil(vertices_before + n_vertices)
-        stages = self.model.predict(total, self.budget_s)
+        stages = self.model.predict(total, self.budget_s, cloth_vertices)
         if not stages:
             log.debug("admission: admitted %d vertices without a prediction", total)
             return

@@ -42,6 +42,7 @@ def heavy_control(ctx: Context) -> dict[str, Any]:
     with Stage(ctx, "heavy-control") as st:
         base = st.baseline()
         submitted, reply = st.submit(grid_request("heavy", 64))
+        time.sleep(1.0)  # the plain cloth's own arrival (a new group's buffers) is not the control's
         w = Window.open(st.server)
         ctl = P.ControlRequest(reply.get("cloth", ""), reply.get("token", ""), iterations=100, substeps=100)
         outcome, _ = st.request("control", P.encode_control(ctl))

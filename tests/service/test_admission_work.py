@@ -148,3 +148,26 @@ def test_a_heavy_control_is_refused_end_to_end_and_the_good_clients_cloths_keep_
         finally:
             good.close()
             bad.close()
+
+
+def test_a_heavy_solve_small_cloth_beside_a_tiny_load_is_trusted_by_the_devices_measured_cost():
+    """One 16x16 measured (device 1 ms: fixed costs); the proportional line counts that per work
+    unit (an 'accurate' 32x32 would be 73 ms), the cost file's per-work cost three times over
+    puts it at 2 ms: admitted once; a 64x64 at 100 x 100 is not, by either."""
+    cfg = make_config(admission_budget=0.85)
+    adm = Admission(cfg)
+    m = MeasuredCost(prior_s=2e-8)  # the CPU cost file's figure (Pricing("cpu").work_s), about 20 ns
+    adm.model = m
+    for _ in range(30):
+        m.observe(TickCost(256, 0.0002, 0.001, 0.0001))
+    heavy = Pricing("cpu").work(4096, ClothParams().with_(iterations=100, substeps=100))
+    with pytest.raises(DrapeError):
+        adm.check(256, heavy, 1, cloth_vertices=4096)
+    accurate = Pricing("cpu").work(1024, quality_params("accurate"))
+    adm.check(256, accurate, 2, cloth_vertices=1024)
+
+
+def quality_params(name: str) -> ClothParams:
+    from drape.server.sim.quality import apply_preset
+
+    return apply_preset(ClothParams(), name)

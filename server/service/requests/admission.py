@@ -81,6 +81,7 @@ Tests and operators may replace the model (``Admission.model``) with a :class:`F
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import statistics
@@ -120,12 +121,16 @@ TRUST = 0.5  # below this share of the budget, a load that cannot be fitted admi
 TRUST_LIMIT = 4.0  # ... a submit that, were every second measured per vertex, would take at most this many budgets
 TRUST_GROWTH = 2.0  # ... and that at most this many times the load measured, or a cloth of at most
 TRUST_SMALL = 4096  # vertices (a 64x64): one 256x256 beside a small steady load is not trusted (issue 26)
+PRIOR_MARGIN = 3.0  # trust also where the device's cost file, this many times over, puts the load within budget
+# (this shared CPU ran 2-3x slower under others' load, docs/collision.md): a small load's proportional line
+# counts its fixed costs per work unit and refused any heavy-solve cloth beside it (drape chaos share)
 
 #: Each feature's factor on a cloth's work where it is on (features not named: 1, their cost in
 #: the measured per-work cost). self_collision: docs/collision.md's cost table, at most 4.8x.
 FEATURE_WORK: dict[str, float] = {"self_collision": 5.0}
 DENSITY_LIMITS = (0.5, 4.0)  # a topology's link density against a grid's is taken within these
 GRID_TRIANGLES_PER_VERTEX = 2.0  # a grid's (two per cell): density 1
+SCENE_VERTICES = 64 * 64  # the cost file's scene: hanging 64 x 64
 assert set(FEATURE_WORK) <= set(Features().__dataclass_fields__), FEATURE_WORK
 
 
@@ -139,6 +144,10 @@ class Pricing:
 
     def __init__(self, kind: str = "cpu") -> None:
         self.kind = kind
+        try:
+            self._entry: dict = json.loads(quality.COSTS_FILE.read_text()).get(kind) or {}
+        except (OSError, ValueError):
+            self._entry = {}
         measured = quality.measured(kind)
         self.exact = {  # (iterations, substeps, xpbd): cost ("workgroup pbd 10it x 1ss 60Hz": PBD)
             (int(c["iterations"]), int(c["substeps"]), str(c.get("describe", "")).split()[1:2] != ["pbd"]): c["cost"]
@@ -152,6 +161,16 @@ class Pricing:
             co = np.linalg.lstsq(x, y, rcond=None)[0]
             if np.all(co >= 0.0):
                 self.coef = (float(co[0]), float(co[1]), float(co[2]))
+
+    @property
+    def work_s(self) -> float:
+        """The device's seconds per work unit as the cost file measured it: the plain solve's
+        median frame over its cloths' vertices (0: not measured)."""
+        entry = self._entry
+        ms, cloths = entry.get("pbd10_ms") or [], entry.get("cloths") or 0
+        if not ms or not cloths:
+            return 0.0
+        return 1e-3 * statistics.median(ms) / (cloths * SCENE_VERTICES)
 
     def frame_cost(self, iterations: int, substeps: int, xpbd: bool) -> float:
         got = self.exact.get((iterations, substeps, xpbd))
@@ -348,12 +367,14 @@ class MeasuredCost:
         trust_limit: float = TRUST_LIMIT,
         q: float = QUANTILE,
         unmeasured: int = UNMEASURED_VERTICES,
+        prior_s: float = 0.0,
     ) -> None:
         if per_load < min_samples or min_samples < 1 or loads < 1 or not 0.0 < q <= 1.0:
             raise ValueError("MeasuredCost needs 1 <= min_samples <= per_load, loads >= 1 and 0 < q <= 1")
         self.per_load, self.loads, self.min_samples = per_load, loads, min_samples
         self.trust, self.min_spread, self.trust_limit, self.q = trust, min_spread, trust_limit, q
         self.unmeasured = unmeasured
+        self.prior_s = prior_s  # the device's seconds per work unit as measured offline (Pricing.work_s)
         self._by_load: OrderedDict[int, deque[TickCost]] = OrderedDict()  # least recently observed first
         self._trusted_at = 0  # the latest load when predict last answered None on trust
         self._observed = 0  # steady ticks observed so far (the fit is cached until the next one)
@@ -461,7 +482,11 @@ class MeasuredCost:
         if (
             not fitted
             and max(line(latest) for line in lines.values()) < self.trust * budget_s
-            and max(stages.values()) <= self.trust_limit * budget_s
+            and (
+                max(stages.values()) <= self.trust_limit * budget_s
+                or 0.0 < self.prior_s
+                and lines["device"](latest) + PRIOR_MARGIN * self.prior_s * (vertices - latest) <= budget_s
+            )
             and (vertices <= TRUST_GROWTH * latest or cloth_vertices <= TRUST_SMALL)
         ):
             with self._lock:  # lightly loaded, fixed and per-vertex costs not told apart: admit, once a load
@@ -479,14 +504,18 @@ def work_of(rec: ClothRecord) -> float:
 class Admission:
     def __init__(self, config: ServerConfig) -> None:
         self.config = config
-        self.model: CostModel = MeasuredCost(unmeasured=config.admission_unmeasured_vertices)
         self.pricing = Pricing("cpu")  # the CPU's costs until the server knows its World's device
+        self.model: CostModel = MeasuredCost(
+            unmeasured=config.admission_unmeasured_vertices, prior_s=self.pricing.work_s
+        )
         self.generation = 0  # bumped whenever a record's work changes (the tick thread's sum is cached by it)
 
     def use_device(self, is_gpu: bool) -> None:
         """Price by the measured costs of the World's kind of device (the server calls it once the
         World exists)."""
         self.pricing = Pricing("gpu" if is_gpu else "cpu")
+        if isinstance(self.model, MeasuredCost):
+            self.model.prior_s = self.pricing.work_s
 
     @property
     def budget_s(self) -> float:
@@ -577,7 +606,7 @@ class Admission:
         if not self.config.admission or vertices_before <= 0:
             return
         total = math.ceil(vertices_before + n_vertices)
-        stages = self.model.predict(total, self.budget_s, cloth_vertices)
+        stages = self.model.predict(total, self.budget_s, cloth_vertices or math.ceil(n_vertices))
         if not stages:
             log.debug("admission: admitted %d vertices without a prediction", total)
             return

@@ -586,7 +586,9 @@ class Admission:
         if total <= 0 or cfg.admission_client_share >= 1.0:
             return
         cap = self.model.capacity(self.budget_s)
-        if cap is None or not math.isfinite(cap):
+        if cap is None or not math.isfinite(cap) or cap < total + work:
+            # below what the budget check just admitted: it admitted on trust (one light load, whose
+            # proportional line counts fixed costs per unit), and this capacity says nothing
             return
         free = (1.0 - cfg.admission_newcomer_reserve) * cap
         if mine + work > cfg.admission_client_share * cap and total + work > free:

@@ -419,7 +419,7 @@ fn c_abi_feature_changes() {
             client_id: std::ptr::null(),
             namespace_: std::ptr::null(),
             timeout_ms: 60_000,
-            failover: false,
+            no_failover: true,
             lazy: false,
         };
         let mut client = std::ptr::null_mut();
@@ -565,7 +565,7 @@ fn c_abi_identity_keys_server() {
             client_id: me.as_ptr(),
             namespace_: std::ptr::null(),
             timeout_ms: 60_000,
-            failover: false,
+            no_failover: true,
             lazy: false,
         };
         let mut client = std::ptr::null_mut();

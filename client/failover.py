@@ -1,5 +1,5 @@
-"""Failover of the Python SDK (PROTOCOL.md section 11.1): a DrapeClient created with
-``failover=True`` keeps every cloth it submitted alive across the loss of its server.
+"""Failover of the Python SDK (PROTOCOL.md section 11.1): a DrapeClient (``failover=True``, the
+default since issue 26) keeps every cloth it submitted alive across the loss of its server.
 
 Detection, on Zenoh threads: the server's liveliness token disappears (the client's server watch
 calls :meth:`Failover.server_lost`), or a cloth's states stall and a probe (an empty control)

@@ -18,8 +18,9 @@ before) and moves them all with one message per tick::
             for c in cloths:
                 b.move_pins(c, [0, 15], targets_of(c))
 
-``DrapeClient(failover=True)`` keeps every cloth across the loss of its server or a reclaim
-(protocol 1.3, PROTOCOL.md 11.1): see :mod:`drape.client.failover`.
+A ``DrapeClient`` keeps every cloth across the loss of its server or a reclaim (failover, on by
+default; ``failover=False`` turns it off; protocol 1.3, PROTOCOL.md 11.1): see
+:mod:`drape.client.failover`.
 
 This module is the facade: :class:`DrapeClient` composes the SDK's layers, each given the parts
 below it (no mixins): :mod:`.connection` the Session (Zenoh session, servers seen, one per-server
@@ -79,7 +80,9 @@ class DrapeClient:
 
     Its parts, built once here in dependency order: ``connection`` (the Session), ``placement``,
     ``cloths`` (the open cloths), ``bundles``, ``sender`` (the sending path of controls),
-    ``submitter`` and, with ``failover=True``, the failover worker."""
+    ``submitter`` and, with ``failover`` (the default), the failover worker; ``failover=False``:
+    none, a cloth lost with its server is closed (issue 26: a game using the first example lost
+    every cloth with its server while failover was opt-in)."""
 
     def __init__(
         self,
@@ -94,7 +97,7 @@ class DrapeClient:
         multicast_scouting: bool = False,
         zenoh_config_file: str | None = None,
         queue_size: int = 64,
-        failover: bool = False,
+        failover: bool = True,
         stall_timeout: float = 0.5,
         failover_give_up: float = 60.0,
     ) -> None:
@@ -131,7 +134,7 @@ class DrapeClient:
         self.bundles = BundleReceiver(self.cloths.by_id, self.cloths.lock, queue_size, self.keys.bundle(self.client_id))
         self.sender = ControlSender(self.connection, MoveBook(self), self._cloth_not_found)
         self.submitter = Submitter(self, self.connection, self.placement, self.cloths, self.bundles, queue_size)
-        # failover=True: cloths survive the loss of their server (client/failover.py, PROTOCOL.md 11.1)
+        # failover (the default): cloths survive the loss of their server (client/failover.py, PROTOCOL.md 11.1)
         if failover:
             self._failover = Failover(
                 self.connection,

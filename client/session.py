@@ -73,18 +73,44 @@ def open_session(config: zenoh.Config, what: str = "") -> zenoh.Session:
         raise ConnectionError(f"cannot open a Zenoh session{where}: {zenoh_message(e)}") from None
 
 
+def _endpoints(cfg: zenoh.Config, key: str, mode: str) -> list[str]:
+    """The endpoints ``cfg`` gives under ``key`` for ``mode`` (a list, or a map by mode)."""
+    try:
+        raw = json.loads(cfg.get_json(key))
+    except (zenoh.ZError, ValueError, TypeError):
+        return []
+    if isinstance(raw, dict):
+        raw = raw.get(mode, [])
+    return [str(e) for e in raw] if isinstance(raw, list) else []
+
+
+def file_listen(cfg: zenoh.Config, mode: str) -> list[str]:
+    """The listen endpoints a configuration file set for ``mode`` (none where it left Zenoh's
+    own defaults)."""
+    got = _endpoints(cfg, "listen/endpoints", mode)
+    return [] if got == _endpoints(zenoh.Config(), "listen/endpoints", mode) else got
+
+
+def listening(cfg: zenoh.Config, mode: str) -> list[str]:
+    """The endpoints a session of ``cfg`` listens on (client mode: none)."""
+    return [] if mode == "client" else _endpoints(cfg, "listen/endpoints", mode)
+
+
 def zenoh_config(
     mode: str = "peer",
     listen: Iterable[str] = (),
     connect: Iterable[str] = (),
     multicast_scouting: bool = False,
     base_file: str | None = None,
+    default_listen: Iterable[str] = (),
 ) -> zenoh.Config:
     """A Zenoh configuration: ``base_file`` (JSON5: TLS, auth, access control...) if given,
-    then mode, listen and connect endpoints and multicast scouting set explicitly. A client-mode
-    session listens on nothing (Zenoh refuses listen endpoints in client mode). Every endpoint is
-    checked first (``check_endpoint``); a base file or endpoint Zenoh refuses is a ValueError
-    with Zenoh's message."""
+    then mode, listen and connect endpoints and multicast scouting set explicitly. The listen
+    endpoints are the file's (a TLS file's ``tls/`` port is opened, never replaced), then
+    ``listen``'s others; where neither gives one, ``default_listen``. A client-mode session listens
+    on nothing (Zenoh refuses listen endpoints in client mode; :func:`listening` says what a
+    configuration listens on). Every endpoint is checked first (``check_endpoint``); a base file
+    or endpoint Zenoh refuses is a ValueError with Zenoh's message."""
     if mode not in MODES:
         raise ValueError(f"unknown Zenoh mode {mode!r}; choose from {MODES}")
     listen = [check_endpoint(e) for e in listen]
@@ -93,6 +119,8 @@ def zenoh_config(
         cfg = zenoh.Config.from_file(base_file) if base_file else zenoh.Config()
     except zenoh.ZError as e:
         raise ValueError(f"Zenoh configuration {base_file}: {zenoh_message(e)}") from None
+    own = file_listen(cfg, mode) if base_file else []
+    listen = own + [e for e in listen if e not in own] or [check_endpoint(e) for e in default_listen]
     cfg.insert_json5("mode", json.dumps(mode))
     try:
         if mode != "client":

@@ -26,6 +26,10 @@ import pytest
 from drape.server.sim.fabric import cook, cook_grid, grid_links, grid_mesh, mesh_links
 from drape.server.sim.params import LinkOptions
 
+# `drape serve` children of the tests build kernels in-process (quick; the default, built in a child,
+# adds a start-up warm of every feature set): test_build_offtick.py tests the default
+os.environ.setdefault("DRAPE_BUILD_IN_CHILD", "off")
+
 if TYPE_CHECKING:
     from drape.server.service.config import ServerConfig
 
@@ -184,6 +188,7 @@ def make_config(**kw) -> ServerConfig:
         max_pin_updates=64,
         multicast_scouting=False,
         admission_budget=50.0,
+        build_in_child="off",  # kernels built in-process: quick (test_build_offtick.py tests the default)
     )
     base.update(kw)
     return ServerConfig(**base).validate()

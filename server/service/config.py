@@ -191,8 +191,9 @@ class ServerConfig:
     zenoh_config: str | None = setting(
         None,
         "a Zenoh JSON5 configuration file (TLS endpoints, user/password authentication, access control); the "
-        "settings above override it. deploy/zenoh-peer.json5 is a sample (deploy/zenoh-client.json5 the same "
-        "for a client-mode session)",
+        "settings above override it, but its listen endpoints are opened (listen adds to them; its default is "
+        "used only where the file sets none). deploy/zenoh-peer.json5 is a sample (deploy/zenoh-client.json5 "
+        "the same for a client-mode session)",
         group=ZENOH,
         sample="/etc/drape/zenoh-peer.json5",
         commented=True,
@@ -333,11 +334,12 @@ class ServerConfig:
         low=0,
     )
     build_in_child: str = setting(
-        "off",
-        "drape serve: kernels built and first run in a short-lived child process, then loaded from the driver's "
-        "disk cache (the compiler's memory and first-launch JIT stay out of the server); start: every feature "
-        "combination before serving (recommended on a CPU device; +2 s start-up with PoCL's cache filled); "
-        "always: also each new combination a cloth brings",
+        "always",
+        "kernels built and first run in a short-lived child process at lower priority, then loaded from the "
+        "driver's disk cache (the compiler's memory and first-launch JIT stay off the tick); start: drape serve "
+        "builds every feature combination before serving (+2 s start-up with PoCL's cache filled, about 20 s "
+        "cold); always (the default): also each new combination a cloth brings, so that no first cloth stalls "
+        "a tick; off: built in the server process (tests; a first cloth of a new set stalls ticks)",
         group=SERVICE,
         choices=BUILD_IN_CHILD,
     )
@@ -358,7 +360,8 @@ class ServerConfig:
     # --- admission and misbehaving cloths -------------------------------------------------------
     admission: bool = setting(
         True,
-        "refuse submissions ('overloaded') that would push the predicted tick cost over admission_budget",
+        "refuse submissions and controls ('overloaded') whose work would push the predicted tick cost over "
+        "admission_budget",
         group=ADMISSION,
     )
     admission_budget: float = setting(
@@ -369,9 +372,26 @@ class ServerConfig:
         high=100,
         low_open=True,
     )
+    admission_client_share: float = setting(
+        0.5,
+        "share of the work the tick budget holds that one client may take while others could come; past it, that "
+        "client is admitted more only while admission_newcomer_reserve stays free (1: no shares)",
+        group=ADMISSION,
+        low=0,
+        high=1,
+        low_open=True,
+    )
+    admission_newcomer_reserve: float = setting(
+        0.1,
+        "share of the work the tick budget holds kept free for clients under their admission_client_share",
+        group=ADMISSION,
+        low=0,
+        high=1,
+    )
     admission_unmeasured_vertices: int = setting(
         65_536,
-        "vertices admitted before the first steady tick is measured, then 'overloaded' until one is (64 32x32 "
+        "work units (vertices at the plain 10-iteration solve) admitted before the first steady tick is "
+        "measured, then 'overloaded' until one is (64 32x32 "
         "cloths: a CPU's; on a GPU raise it, e.g. 2097152 for 2048 cloths, or a level's first burst at start-up "
         "is refused past 64 cloths)",
         group=ADMISSION,

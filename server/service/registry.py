@@ -47,6 +47,7 @@ class ClothRecord:
     quality_wanted: str | None = None  # the preset the client asked for (1.1)
     quality: str | None = None  # the preset in force: lower than wanted while the server is overloaded
     scene: str | None = None  # 1.7: the scene it collides in
+    priced: object | None = None  # what admission priced it at (requests/admission.py: Priced; request thread)
 
 
 @dataclass(eq=False)

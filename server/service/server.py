@@ -34,7 +34,7 @@ import zenoh
 
 from drape.client import protocol as P
 from drape.client.protocol.stats import STAT_COUNTERS
-from drape.client.session import open_session, zenoh_config
+from drape.client.session import listening, open_session, zenoh_config
 
 from ..sim import make_world
 from ..sim.world import World
@@ -123,6 +123,7 @@ class Server:
             self.gate.tick_sleeps if self.gate is not None else None,
         )
         self._session: zenoh.Session | None = None
+        self.listening: list[str] = []  # the endpoints the session listens on (client mode: none)
         self._declared: list[Any] = []
         self._token: Any = None
         self._threads: list[threading.Thread] = []
@@ -146,15 +147,19 @@ class Server:
         self.device_name = getattr(world, "device_name", cfg.solver)
         dev = getattr(world, "dev", None)
         self.quality.use_device(bool(dev is not None and dev.info.is_gpu))
+        self.admission.use_device(bool(dev is not None and dev.info.is_gpu))
         if self.warmup:  # before serving: the first cloths build nothing (cook/warmup.py)
             warm_up(world, cfg)
-        zc = zenoh_config(cfg.mode, cfg.listen, cfg.connect, cfg.multicast_scouting, cfg.zenoh_config)
+        # a --zenoh-config file's listen endpoints are honoured: --listen's default only where it sets none
+        listen = [] if cfg.zenoh_config and cfg.listen == [P.DEFAULT_ENDPOINT] else cfg.listen
+        zc = zenoh_config(cfg.mode, listen, cfg.connect, cfg.multicast_scouting, cfg.zenoh_config, [P.DEFAULT_ENDPOINT])
+        self.listening = listening(zc, cfg.mode)
         if cfg.zenoh_config is None:
             # States go out in bursts under DROP congestion control; Zenoh's default data queue (2
             # batches, drop after 1 ms) lost states of a briefly descheduled server on a busy 2-core
             # box. Sixteen batches (Zenoh's maximum) ride that out.
             zc.insert_json5("transport/link/tx/queue/size/data", "16")
-        self._session = s = open_session(zc, f"{cfg.mode}, listen {cfg.listen}, connect {cfg.connect}")
+        self._session = s = open_session(zc, f"{cfg.mode}, listen {self.listening}, connect {cfg.connect}")
         self.publisher.attach(s)
         sid = cfg.server_id
         self._started_at = time.monotonic()
@@ -174,13 +179,13 @@ class Server:
             self._declared.append(s.declare_queryable(key, cb))
         self._token = lv.declare_token(self.keys.alive_server(sid))
         log.info(
-            "drape server %s up: %s solver on %s, %.0f Hz, %s mode, listen %s connect %s, namespace %r, identity %s",
+            "drape server %s up: %s solver on %s, %.0f Hz, %s mode, %s, connect %s, namespace %r, identity %s",
             sid,
             cfg.solver,
             self.device_name,
             cfg.tick_rate,
             cfg.mode,
-            cfg.listen,
+            f"listening on {self.listening}" if self.listening else "listening on nothing (client mode)",
             cfg.connect,
             cfg.namespace,
             cfg.identity,

@@ -17,7 +17,8 @@ restarted ``--kill-gap`` s later); pause: 100 % back within 1 s of SIGCONT. Fail
 reported as failures (exit status 1).
 
 Scenarios (``drape chaos --list``): fuzz, flood-ids, big-submit, big-cook, tiny-mass,
-new-features, kill, pause. Each is bounded in messages and seconds; a server passing
+new-features, heavy-control, big-beside-small, share (admission, issue 26: :mod:`.chaos_admission`),
+kill, pause. Each is bounded in messages and seconds; a server passing
 ``--rss-limit-mb`` is killed (and that is a failure). Prints a table; ``--json`` writes the report.
 """
 
@@ -38,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from ..service.config import ServerConfig
-from . import chaos_failover, chaos_faults
+from . import chaos_admission, chaos_failover, chaos_faults
 from .chaos_faults import Context
 
 #: Every scenario, by the name the command takes, in the order ``drape chaos`` runs them.
@@ -49,6 +50,9 @@ SCENARIOS: dict[str, Callable[[Context], dict[str, Any]]] = {
     "big-cook": chaos_faults.big_cook,
     "tiny-mass": chaos_faults.tiny_mass,
     "new-features": chaos_faults.new_features,
+    "heavy-control": chaos_admission.heavy_control,
+    "big-beside-small": chaos_admission.big_beside_small,
+    "share": chaos_admission.share,
     "kill": chaos_failover.kill,
     "pause": chaos_failover.pause,
 }

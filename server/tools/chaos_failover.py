@@ -1,7 +1,7 @@
 """The failover scenarios of ``drape chaos`` (see :mod:`drape.server.tools.chaos`): ``kill``
 (SIGKILL of servers under game clients whose cloths the SDK placed by load, repeatable with
 ``--kills``, each server restarted after a moment) and ``pause`` (SIGSTOP of a game client past
-the server's lease and grace period). Both use game clients with the SDK's ``failover=True``
+the server's lease and grace period). Both use game clients with the SDK's defaults (``failover=True``)
 (:class:`FailoverClient`), measure how soon every cloth is served again and how far its first
 state is from its last, and judge against issue 11: every cloth back within 1 s, within 1 cm.
 """
@@ -41,7 +41,8 @@ def _failover_client_main(
     from drape.client import DrapeClient
 
     try:
-        with DrapeClient(endpoints, server_id=server_id, client_id=client_id, timeout=WAIT, failover=True) as client:
+        # the SDK's defaults (failover on): what a game using the README's first example gets
+        with DrapeClient(endpoints, server_id=server_id, client_id=client_id, timeout=WAIT) as client:
             handles: list[Any] = []
             current: dict[int, tuple[str, np.ndarray]] = {}
 

@@ -34,7 +34,8 @@ from drape.server.tools.procs import ProcessFigures, free_port, serve_command
 log = logging.getLogger(__name__)
 
 _RUNS = itertools.count()
-WAIT = 60.0  # the longest any start-up or reply is waited for (a loaded 2-core machine)
+WAIT = 180.0  # the longest any start-up or reply is waited for (a loaded 2-core machine; a cold
+# kernel cache: drape serve first builds every feature set in a child, build_in_child = "always")
 
 
 def zenoh_session(endpoint: str) -> zenoh.Session:

@@ -28,7 +28,7 @@ pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest
 
 
 def test_submits_beyond_capacity_are_overloaded_and_admitted_cloths_keep_their_rate():
-    with Server(make_config(admission_budget=0.85)) as srv:
+    with Server(make_config(admission_budget=0.85, admission_client_share=1.0)) as srv:  # one client: no shares
         # 200 vertices fill the budget exactly: three 8x8 cloths (192) fit, a fourth does not
         srv.admission.model = FixedCost(per_vertex_s=srv.admission.budget_s / 200)
         c = connect(srv)
@@ -352,7 +352,7 @@ def test_submits_past_a_light_measurement_are_trusted_once_then_predicted_end_to
     """Through a real server: one 8x8 cloth measured at 2 ms of device time (light, one load).
     The next submit is admitted on trust; the ones after it by the conservative line (2 ms per
     64 vertices), so 7 cloths in all fit the 14.2 ms budget and the 8th is refused."""
-    with Server(make_config(admission_budget=0.85, max_cloths_per_client=20)) as srv:
+    with Server(make_config(admission_budget=0.85, max_cloths_per_client=20, admission_client_share=1.0)) as srv:
         model = Synthetic()
         model.feed(TickCost(64, 0.0005, 0.002, 0.0005), 30)
         srv.admission.model = model

@@ -122,7 +122,7 @@ def _wait(pred, timeout: float) -> bool:
 def _client(servers, server_id: str, **kw):
     from drape.client import DrapeClient
 
-    c = DrapeClient([s.endpoint for s in servers], server_id=server_id, timeout=10.0, failover=True, **kw)
+    c = DrapeClient([s.endpoint for s in servers], server_id=server_id, timeout=10.0, **kw)  # failover: the default
     assert _wait(lambda: {s.server_id for s in servers} <= set(c.live_servers()), SERVER_WAIT), (
         f"servers not up: {c.live_servers()}"
     )
@@ -302,3 +302,19 @@ def test_a_resubmission_refused_for_itself_is_reported_at_once(tmp_path):
     finally:
         a.stop()
         b.stop()
+
+
+def test_with_failover_turned_off_a_killed_servers_cloths_are_closed(tmp_path):
+    """``failover=False`` (failover is on by default since issue 26): the old behaviour, the
+    handles close when their server goes, nothing is resubmitted."""
+    srv = Serve(tmp_path, "fo-off")
+    try:
+        with _client([srv], srv.server_id, failover=False) as client:
+            assert not client.failover
+            handles = [client.submit_grid(4, 4, pinned=[0, 3]) for _ in range(2)]
+            _settle(handles, 5)
+            srv.kill()
+            assert _wait(lambda: all(h.closed for h in handles), EVENT_WAIT), "the handles should close"
+            assert client.failover_events == []
+    finally:
+        srv.stop()

@@ -535,7 +535,7 @@ def test_drape_serve_process_stops_cleanly_on_sigterm(tmp_path: Path):
         env=env,
     )
     try:
-        with DrapeClient(ep, server_id="proc", timeout=15.0) as c:
+        with DrapeClient(ep, server_id="proc", timeout=15.0, failover=False) as c:  # the handle closes
             info = c.info()
             assert info["stats_period_s"] == 0.5 and info["grace_period_s"] == 2.0
             h = c.submit_grid(6, 6, pinned=[0, 5])

@@ -10,7 +10,7 @@
 
 int main(void) {
     S(DrapeClientOptions); F(DrapeClientOptions, connect); F(DrapeClientOptions, server_id); F(DrapeClientOptions, client_id);
-    F(DrapeClientOptions, namespace_); F(DrapeClientOptions, timeout_ms); F(DrapeClientOptions, failover); F(DrapeClientOptions, lazy);
+    F(DrapeClientOptions, namespace_); F(DrapeClientOptions, timeout_ms); F(DrapeClientOptions, no_failover); F(DrapeClientOptions, lazy);
     S(DrapeEvent); F(DrapeEvent, kind); F(DrapeEvent, code); F(DrapeEvent, handle); F(DrapeEvent, server); F(DrapeEvent, cloth);
     F(DrapeEvent, old_cloth); F(DrapeEvent, message); F(DrapeEvent, old_server); F(DrapeEvent, resumed_tick); F(DrapeEvent, reason);
     F(DrapeEvent, resumed); F(DrapeEvent, kept); F(DrapeEvent, request); F(DrapeEvent, tick); F(DrapeEvent, features);

@@ -196,11 +196,12 @@ typedef struct DrapeClientOptions {
   const char *namespace_;
   // Request and discovery timeout in milliseconds (0: 5000).
   uint32_t timeout_ms;
-  // Opt-in failover (protocol 1.3, PROTOCOL.md 11.1; README.md "Failover"): a cloth lost
-  // with its server, or reclaimed, is resubmitted to the least loaded live server with its
-  // last received state (positions and velocities), its last pins and colliders sent again,
-  // under the same handle (DRAPE_EVENT_CLOTH_RESUBMITTED).
-  bool failover;
+  // false (the default, a zeroed struct, as NULL options): failover (protocol 1.3, PROTOCOL.md
+  // 11.1; README.md "Failover"): a cloth lost with its server, or reclaimed, is resubmitted to
+  // the least loaded live server with its last received state (positions and velocities), its
+  // last pins and colliders sent again, under the same handle (DRAPE_EVENT_CLOTH_RESUBMITTED).
+  // true: no failover; a cloth lost with its server is lost (DRAPE_EVENT_CLOTH_LOST).
+  bool no_failover;
   // false (the default): `drape_client_open` waits up to the timeout for a server's
   // liveliness token (`server_id`'s, else any) and fails with DRAPE_E_UNAVAILABLE when none
   // appears. true: return at once (servers are announced by DRAPE_EVENT_SERVER_FOUND; a

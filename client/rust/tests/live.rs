@@ -1,7 +1,7 @@
 //! End-to-end tests against real `drape serve` processes on loopback (see tests/common): real
 //! Zenoh, a real server, no mocks. Submissions of grids, meshes and OBJ text, states on single
 //! keys and in bundles, controls waited for or not, batch control, errors, removal, and a
-//! server killed under its cloths (reported, and resumed elsewhere with the opt-in failover).
+//! server killed under its cloths (reported, and resumed elsewhere with failover, on by default).
 mod common;
 
 use drape::client::{Client, Cloth, Event, LossReason};
@@ -189,11 +189,11 @@ fn lost_server_is_reported_and_failover_resumes() {
         c.move_pins(&[0, 3], &lifted, true).unwrap();
     }
     wait(&lost, &mut pos);
-    // The same through the C ABI: a client with DrapeClientOptions.failover.
+    // The same through the C ABI: a client with failover on (DrapeClientOptions.no_failover false, the default).
     use drape::ffi::*;
     let (c_connect, c_server) = (std::ffi::CString::new(format!("{},{}", a.endpoint, b.endpoint)).unwrap(), std::ffi::CString::new(a.id.clone()).unwrap());
     let c_opts = DrapeClientOptions { connect: c_connect.as_ptr(), server_id: c_server.as_ptr(), client_id: std::ptr::null(),
-                                      namespace_: std::ptr::null(), timeout_ms: 10_000, failover: true, lazy: false };
+                                      namespace_: std::ptr::null(), timeout_ms: 10_000, no_failover: false, lazy: false };
     let (mut cclient, mut ccloth) = (std::ptr::null_mut(), std::ptr::null_mut());
     let pins = [0u32, 3];
     let grid = DrapeGrid { cols: 4, rows: 4, width: 1.0, height: 1.0, vertical: false, origin: [0.0; 3] };
@@ -419,7 +419,7 @@ fn c_abi_feature_changes() {
             client_id: std::ptr::null(),
             namespace_: std::ptr::null(),
             timeout_ms: 60_000,
-            failover: false,
+            no_failover: true,
             lazy: false,
         };
         let mut client = std::ptr::null_mut();
@@ -565,7 +565,7 @@ fn c_abi_identity_keys_server() {
             client_id: me.as_ptr(),
             namespace_: std::ptr::null(),
             timeout_ms: 60_000,
-            failover: false,
+            no_failover: true,
             lazy: false,
         };
         let mut client = std::ptr::null_mut();

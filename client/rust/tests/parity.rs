@@ -22,7 +22,7 @@ fn cstr(b: &[c_char]) -> String {
 fn open(endpoint: &str, timeout_ms: u32) -> (i32, *mut DrapeClient) {
     let connect = CString::new(endpoint).unwrap();
     let opts = DrapeClientOptions { connect: connect.as_ptr(), server_id: std::ptr::null(), client_id: std::ptr::null(),
-                                    namespace_: std::ptr::null(), timeout_ms, failover: false, lazy: false };
+                                    namespace_: std::ptr::null(), timeout_ms, no_failover: true, lazy: false };
     let mut client = std::ptr::null_mut();
     let rc = unsafe { drape_client_open(&opts, &mut client) };
     (rc, client)

@@ -193,7 +193,7 @@ fn c_abi_authenticated_client_through_an_acl_router() {
             client_id: std::ptr::null(),
             namespace_: std::ptr::null(),
             timeout_ms: 30_000,
-            failover: false,
+            no_failover: true,
             lazy: false,
         };
         let mut client = std::ptr::null_mut();

@@ -57,11 +57,31 @@ with them, 177-272 in 5 runs, at most 4 missed ticks, p99 at most 31 ms:
 The budget (``admission_budget`` x dt, server/service/config.py) keeps its meaning: the share of
 a tick the slowest stage may take; what changed is which tick it is measured on.
 
+**Work, not vertices** (issue 26). A 64 x 64 cloth at 100 iterations x 100 substeps costs what
+1,500 plain ones do; priced by its vertices it was admitted, and so was a control raising an
+admitted cloth to it. Every figure above is in *work units*: a cloth's work is its vertices x
+its solve's cost per frame relative to the plain 10-iteration PBD solve (:class:`Pricing`,
+fitted over ``server/sim/preset_costs.json``'s measured configurations of the device's kind,
+each measured configuration at its own figure) x its topology's link density (triangles per
+vertex against a grid's) x its features' factors (:data:`FEATURE_WORK`). A default cloth's work
+is its vertex count. The tick thread reports the work of the cloths it stepped (the records'
+``work``, priced on admission); the model fits seconds per work unit, so the device's measured
+per-sweep cost prices a submission and every control that changes work (``worldparams.
+changes_params``: iterations, substeps, features, quality, a first collider, normals): a control
+that raises a cloth's work is checked like a submission of the difference.
+
+**Shares.** One client must not lock the others out: the work the model says fits the budget
+(:meth:`MeasuredCost.capacity`) is the server's capacity, and a client that would hold more
+than ``admission_client_share`` of it is admitted more only while ``admission_newcomer_reserve``
+of the capacity stays free, for clients under their share. A lone client fills all but the
+reserve; a newcomer's small cloth is admitted while another client holds its share.
+
 Tests and operators may replace the model (``Admission.model``) with a :class:`FixedCost`.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import statistics
@@ -70,9 +90,15 @@ from collections import OrderedDict, deque
 from dataclasses import dataclass
 from typing import NamedTuple, Protocol
 
+import numpy as np
+
 from drape.client import protocol as P
 
+from ...sim import quality
+from ...sim.params import ClothParams, Features
 from ..config import ServerConfig
+from ..registry import ClothRecord, Registry
+from ..worldparams import changes_params, params_after_control, params_from_submit, with_preset
 
 log = logging.getLogger(__name__)
 
@@ -93,6 +119,94 @@ UNMEASURED = "unmeasured"  # the "stage" of a prediction refused because nothing
 MIN_SPREAD = 1.1  # the fit needs its largest load at least this many times its smallest
 TRUST = 0.5  # below this share of the budget, a load that cannot be fitted admits (once a load) ...
 TRUST_LIMIT = 4.0  # ... a submit that, were every second measured per vertex, would take at most this many budgets
+TRUST_GROWTH = 2.0  # ... and that at most this many times the load measured, or a cloth of at most
+TRUST_SMALL = 4096  # vertices (a 64x64): one 256x256 beside a small steady load is not trusted (issue 26)
+PRIOR_MARGIN = 3.0  # trust also where the device's cost file, this many times over, puts the load within budget
+# (this shared CPU ran 2-3x slower under others' load, docs/collision.md): a small load's proportional line
+# counts its fixed costs per work unit and refused any heavy-solve cloth beside it (drape chaos share)
+
+#: Each feature's factor on a cloth's work where it is on (features not named: 1, their cost in
+#: the measured per-work cost). self_collision: docs/collision.md's cost table, at most 4.8x.
+FEATURE_WORK: dict[str, float] = {"self_collision": 5.0}
+DENSITY_LIMITS = (0.5, 4.0)  # a topology's link density against a grid's is taken within these
+GRID_TRIANGLES_PER_VERTEX = 2.0  # a grid's (two per cell): density 1
+SCENE_VERTICES = 64 * 64  # the cost file's scene: hanging 64 x 64
+assert set(FEATURE_WORK) <= set(Features().__dataclass_fields__), FEATURE_WORK
+
+
+class Pricing:
+    """A solve's cost per frame relative to the plain 10-iteration PBD solve, on a device of
+    ``kind`` (``preset_costs.json``, written by ``drape tradeoff --costs``): a configuration
+    measured with the same iterations, substeps and XPBD switch costs its figure; any other the
+    least-squares line ``a + substeps x (b + c x iterations)`` over the measured ones (a frame's
+    fixed part, then each substep's integration and each sweep of links; coefficients kept
+    non-negative), or, with nothing measured, ``iterations x substeps / 10``."""
+
+    def __init__(self, kind: str = "cpu") -> None:
+        self.kind = kind
+        try:
+            self._entry: dict = json.loads(quality.COSTS_FILE.read_text()).get(kind) or {}
+        except (OSError, ValueError):
+            self._entry = {}
+        measured = quality.measured(kind)
+        self.exact = {  # (iterations, substeps, xpbd): cost ("workgroup pbd 10it x 1ss 60Hz": PBD)
+            (int(c["iterations"]), int(c["substeps"]), str(c.get("describe", "")).split()[1:2] != ["pbd"]): c["cost"]
+            for c in measured.values()
+            if "iterations" in c and "substeps" in c
+        }
+        self.coef: tuple[float, float, float] | None = None
+        if len(measured) >= 3:
+            x = np.array([[1.0, c["substeps"], c["substeps"] * c["iterations"]] for c in measured.values()])
+            y = np.array([c["cost"] for c in measured.values()])
+            co = np.linalg.lstsq(x, y, rcond=None)[0]
+            if np.all(co >= 0.0):
+                self.coef = (float(co[0]), float(co[1]), float(co[2]))
+
+    @property
+    def work_s(self) -> float:
+        """The device's seconds per work unit as the cost file measured it: the plain solve's
+        median frame over its cloths' vertices (0: not measured)."""
+        entry = self._entry
+        ms, cloths = entry.get("pbd10_ms") or [], entry.get("cloths") or 0
+        if not ms or not cloths:
+            return 0.0
+        return 1e-3 * statistics.median(ms) / (cloths * SCENE_VERTICES)
+
+    def frame_cost(self, iterations: int, substeps: int, xpbd: bool) -> float:
+        got = self.exact.get((iterations, substeps, xpbd))
+        if got is not None:
+            return got
+        if self.coef is None:
+            return max(iterations * substeps, 1) / 10.0
+        a, b, c = self.coef
+        return a + substeps * (b + c * iterations)
+
+    @staticmethod
+    def density(n_vertices: int, n_triangles: int | None) -> float:
+        """Links per vertex against a grid's, from triangles per vertex (links follow the edges
+        and their bends); None (a grid): 1."""
+        if n_triangles is None or n_vertices <= 0:
+            return 1.0
+        lo, hi = DENSITY_LIMITS
+        return min(hi, max(lo, n_triangles / n_vertices / GRID_TRIANGLES_PER_VERTEX))
+
+    def work(self, n_vertices: int, params: ClothParams, density: float = 1.0) -> float:
+        """A cloth's work units: vertices x relative frame cost x link density x features' factors."""
+        w = n_vertices * density * self.frame_cost(params.iterations, params.substeps, params.features.xpbd)
+        for name in params.features.names():
+            w *= FEATURE_WORK.get(name, 1.0)
+        return w
+
+
+@dataclass(frozen=True)
+class Priced:
+    """What admission priced a cloth at: its parameters as admitted (the submission's, then each
+    admitted control's; the World's own may be lower under adaptive quality), its topology's
+    link density and its work units. Kept on the cloth's record (``ClothRecord.priced``)."""
+
+    params: ClothParams
+    density: float
+    work: float
 
 
 @dataclass(frozen=True)
@@ -182,7 +296,18 @@ class Fit(NamedTuple):
 class CostModel(Protocol):
     def observe(self, cost: TickCost) -> None: ...
 
-    def predict(self, vertices: int, budget_s: float = float("inf")) -> dict[str, float] | None: ...
+    def predict(
+        self, vertices: int, budget_s: float = float("inf"), cloth_vertices: int = 0
+    ) -> dict[str, float] | None: ...
+
+    def capacity(self, budget_s: float) -> float | None: ...
+
+
+def _room(line: Line, budget_s: float) -> float:
+    """The largest load ``line`` puts within ``budget_s`` (inf: a line that does not grow)."""
+    if line.base_s > budget_s:
+        return 0.0
+    return math.inf if line.slope_s <= 0.0 else (budget_s - line.base_s) / line.slope_s
 
 
 @dataclass
@@ -195,8 +320,13 @@ class FixedCost:
     def observe(self, cost: TickCost) -> None:
         pass
 
-    def predict(self, vertices: int, budget_s: float = float("inf")) -> dict[str, float] | None:
+    def predict(
+        self, vertices: int, budget_s: float = float("inf"), cloth_vertices: int = 0
+    ) -> dict[str, float] | None:
         return {"fixed": self.base_s + self.per_vertex_s * vertices}
+
+    def capacity(self, budget_s: float) -> float | None:
+        return _room(Line(self.base_s, self.per_vertex_s), budget_s)
 
 
 class MeasuredCost:
@@ -218,8 +348,10 @@ class MeasuredCost:
     cloth next to one small one. So while the loads are not separable and the largest stage at
     the latest load is under ``trust`` of the budget, ``predict`` answers None (no opinion:
     admit) **once per load measured**, and only for a submit that the conservative line puts
-    under ``trust_limit`` budgets: the next submit is predicted conservatively until a tick with
-    a new load is measured. The old rule (admit while light) let a burst of submits arriving
+    under ``trust_limit`` budgets and that at most doubles the load or is a cloth of at most
+    ``TRUST_SMALL`` vertices (a 256 x 256 beside a small steady load was trusted in 3 runs of 5
+    and took the server to 13-34 Hz, issue 26): the next submit is predicted conservatively
+    until a tick with a new load is measured. The old rule (admit while light) let a burst of submits arriving
     between two measurements through unchecked (docs/loadtest.md, session 12: 494 cloths
     admitted where 384 hold), and any one huge cloth beside a small one (``drape chaos``'s
     big-submit); now a burst grows the load by one trusted cloth, then by what the conservative
@@ -235,12 +367,14 @@ class MeasuredCost:
         trust_limit: float = TRUST_LIMIT,
         q: float = QUANTILE,
         unmeasured: int = UNMEASURED_VERTICES,
+        prior_s: float = 0.0,
     ) -> None:
         if per_load < min_samples or min_samples < 1 or loads < 1 or not 0.0 < q <= 1.0:
             raise ValueError("MeasuredCost needs 1 <= min_samples <= per_load, loads >= 1 and 0 < q <= 1")
         self.per_load, self.loads, self.min_samples = per_load, loads, min_samples
         self.trust, self.min_spread, self.trust_limit, self.q = trust, min_spread, trust_limit, q
         self.unmeasured = unmeasured
+        self.prior_s = prior_s  # the device's seconds per work unit as measured offline (Pricing.work_s)
         self._by_load: OrderedDict[int, deque[TickCost]] = OrderedDict()  # least recently observed first
         self._trusted_at = 0  # the latest load when predict last answered None on trust
         self._observed = 0  # steady ticks observed so far (the fit is cached until the next one)
@@ -327,7 +461,19 @@ class MeasuredCost:
             self._fit = (observed, got)
         return got
 
-    def predict(self, vertices: int, budget_s: float = float("inf")) -> dict[str, float] | None:
+    def capacity(self, budget_s: float) -> float | None:
+        """The load every stage's prediction (line and floor) puts within ``budget_s``; before
+        the first steady tick, ``unmeasured``. No trust here: it is what the fit says."""
+        got = self.fit()
+        if got is None:
+            return float(self.unmeasured)
+        return min(min(_room(got.lines[s], budget_s), _room(got.floors[s], budget_s)) for s in got.lines)
+
+    def predict(
+        self, vertices: int, budget_s: float = float("inf"), cloth_vertices: int = 0
+    ) -> dict[str, float] | None:
+        """Each stage's seconds at a load of ``vertices`` work units (None: no opinion, admit);
+        ``cloth_vertices``: the vertices of the cloth asking (trust is for small cloths)."""
         got = self.fit()
         if got is None:  # no steady tick yet: no opinion up to a first load, then wait for one
             return None if vertices <= self.unmeasured else {UNMEASURED: math.inf}
@@ -336,7 +482,12 @@ class MeasuredCost:
         if (
             not fitted
             and max(line(latest) for line in lines.values()) < self.trust * budget_s
-            and max(stages.values()) <= self.trust_limit * budget_s
+            and (
+                max(stages.values()) <= self.trust_limit * budget_s
+                or 0.0 < self.prior_s
+                and lines["device"](latest) + PRIOR_MARGIN * self.prior_s * (vertices - latest) <= budget_s
+            )
+            and (vertices <= TRUST_GROWTH * latest or cloth_vertices <= TRUST_SMALL)
         ):
             with self._lock:  # lightly loaded, fixed and per-vertex costs not told apart: admit, once a load
                 if self._trusted_at != latest:
@@ -345,21 +496,119 @@ class MeasuredCost:
         return stages
 
 
+def work_of(rec: ClothRecord) -> float:
+    """A record's work units as priced (a record admission never priced: its vertices)."""
+    return rec.priced.work if isinstance(rec.priced, Priced) else float(rec.n_vertices)
+
+
 class Admission:
     def __init__(self, config: ServerConfig) -> None:
         self.config = config
-        self.model: CostModel = MeasuredCost(unmeasured=config.admission_unmeasured_vertices)
+        self.pricing = Pricing("cpu")  # the CPU's costs until the server knows its World's device
+        self.model: CostModel = MeasuredCost(
+            unmeasured=config.admission_unmeasured_vertices, prior_s=self.pricing.work_s
+        )
+        self.generation = 0  # bumped whenever a record's work changes (the tick thread's sum is cached by it)
+
+    def use_device(self, is_gpu: bool) -> None:
+        """Price by the measured costs of the World's kind of device (the server calls it once the
+        World exists)."""
+        self.pricing = Pricing("gpu" if is_gpu else "cpu")
+        if isinstance(self.model, MeasuredCost):
+            self.model.prior_s = self.pricing.work_s
 
     @property
     def budget_s(self) -> float:
         return self.config.admission_budget * self.config.dt
 
-    def check(self, vertices_before: int, n_vertices: int, rid: int) -> None:
-        """Raise ``overloaded`` when ``n_vertices`` more would not fit the tick budget."""
+    # --- pricing -----------------------------------------------------------------------------
+    def price_submit(self, req: P.SubmitRequest) -> Priced:
+        """A submission's parameters (as the cook worker will build them) and work."""
+        params = params_from_submit(req)
+        if req.quality is not None:
+            params = with_preset(self.config, params, req.quality, req.rid)
+        n = req.n_vertices
+        density = Pricing.density(n, None if req.mesh is None else len(req.mesh.triangles))
+        return Priced(params, density, self.pricing.work(n, params, density))
+
+    def price_control(self, rec: ClothRecord, req: P.ControlRequest) -> Priced | None:
+        """The cloth's price once ``req`` applies; None where it changes no parameter
+        (``worldparams.changes_params``: pins, a moved collider) or is invalid (the applier
+        refuses it with its own error)."""
+        old = rec.priced
+        if not isinstance(old, Priced) or not changes_params(req, old.params):
+            return None
+        try:
+            new = params_after_control(req, old.params)
+        except (TypeError, ValueError):
+            return None
+        if req.quality is not None:
+            new = with_preset(self.config, new, req.quality, req.rid)
+        return Priced(new, old.density, self.pricing.work(rec.n_vertices, new, old.density))
+
+    # --- admitting ---------------------------------------------------------------------------
+    def admit_submit(self, registry: Registry, rec: ClothRecord, req: P.SubmitRequest) -> None:
+        """Price a submission onto ``rec.priced`` and refuse it (``overloaded``) where its work
+        does not fit the tick budget or its client's share (request thread)."""
+        rec.priced = self.price_submit(req)
+        self.admit(registry, rec.client, rec.priced.work, req.rid, cloth_vertices=rec.n_vertices)
+
+    def admit_control(self, registry: Registry, rec: ClothRecord, req: P.ControlRequest) -> None:
+        """Re-price a cloth a control changes; a control that raises its work is admitted like a
+        submission of the difference, or refused (``overloaded``; the cloth keeps its settings)."""
+        new = self.price_control(rec, req)
+        if new is None:
+            return
+        added = new.work - work_of(rec)
+        if added > 0.0:
+            self.admit(registry, rec.client, added, req.rid, "this control", rec.n_vertices)
+        if added != 0.0:
+            self.generation += 1
+        rec.priced = new
+
+    def admit(
+        self, registry: Registry, client: str, work: float, rid: int, what: str = "this cloth", cloth_vertices: int = 0
+    ) -> None:
+        """Raise ``overloaded`` where ``work`` more units of ``client`` would not fit the tick
+        budget (:meth:`check`) or would take its client past its share (:meth:`check_share`)."""
+        if not self.config.admission:
+            return
+        with registry.lock:
+            total = sum(work_of(r) for r in registry.cloths.values())
+            mine = sum(work_of(registry.cloths[c]) for c in registry.by_client.get(client, ()) if c in registry.cloths)
+        self.check(total, work, rid, what, cloth_vertices)
+        self.check_share(total, mine, work, rid)
+
+    def check_share(self, total: float, mine: float, work: float, rid: int) -> None:
+        """A client past ``admission_client_share`` of the capacity is admitted only while
+        ``admission_newcomer_reserve`` of it stays free (the module docstring)."""
+        cfg = self.config
+        if total <= 0 or cfg.admission_client_share >= 1.0:
+            return
+        cap = self.model.capacity(self.budget_s)
+        if cap is None or not math.isfinite(cap) or cap < total + work:
+            # below what the budget check just admitted: it admitted on trust (one light load, whose
+            # proportional line counts fixed costs per unit), and this capacity says nothing
+            return
+        free = (1.0 - cfg.admission_newcomer_reserve) * cap
+        if mine + work > cfg.admission_client_share * cap and total + work > free:
+            log.debug("admission: refused %.0f work units: the client holds %.0f of %.0f", work, mine, cap)
+            raise _OVERLOADED_EXC(
+                ERR_OVERLOADED,
+                f"server overloaded for this client: it holds {mine:.0f} of the {cap:.0f} work units the tick "
+                f"budget holds, over its share of {cfg.admission_client_share:g}; the rest is kept for other "
+                "clients; retry later or elsewhere",
+                rid,
+            )
+
+    def check(
+        self, vertices_before: float, n_vertices: float, rid: int, what: str = "this cloth", cloth_vertices: int = 0
+    ) -> None:
+        """Raise ``overloaded`` when ``n_vertices`` more work units would not fit the tick budget."""
         if not self.config.admission or vertices_before <= 0:
             return
-        total = vertices_before + n_vertices
-        stages = self.model.predict(total, self.budget_s)
+        total = math.ceil(vertices_before + n_vertices)
+        stages = self.model.predict(total, self.budget_s, cloth_vertices or math.ceil(n_vertices))
         if not stages:
             log.debug("admission: admitted %d vertices without a prediction", total)
             return
@@ -368,7 +617,7 @@ class Admission:
             log.debug("admission: refused %d vertices: no steady tick measured yet", total)
             raise _OVERLOADED_EXC(
                 ERR_OVERLOADED,
-                f"server overloaded: {vertices_before} vertices admitted and no tick of them measured yet; "
+                f"server overloaded: {vertices_before:.0f} work units admitted and no tick of them measured yet; "
                 "retry later or elsewhere",
                 rid,
             )
@@ -380,7 +629,7 @@ class Admission:
             raise _OVERLOADED_EXC(
                 ERR_OVERLOADED,
                 f"server overloaded: the tick's {stage} stage would take {1e3 * predicted:.1f} ms with "
-                f"this cloth, over the budget of {1e3 * self.budget_s:.1f} ms; retry later or "
+                f"{what}, over the budget of {1e3 * self.budget_s:.1f} ms; retry later or "
                 "elsewhere",
                 rid,
             )

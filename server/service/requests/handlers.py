@@ -1,5 +1,6 @@
 """The request handlers: decode and validate every request with drape.client.protocol, check
-ownership and quotas against the registry, admission against the cost model, then hand the work
+ownership and quotas against the registry, admission (submissions and controls that change work)
+against the cost model, then hand the work
 on (submissions to the cook worker, everything else to the tick thread's intake). A bad request
 gets its error reply right here; nothing else notices it. Zenoh's queryable callbacks only queue
 the queries (requestq.py: bounded, a full queue answers ``busy`` without decoding); the handlers
@@ -172,9 +173,7 @@ class Handlers:
         if req.state is not None and req.state.bundle:
             rec.bundle_key = self.keys.bundle(req.client)
         rec.scene = req.scene  # 1.7: reserve checks it admits the client (PROTOCOL.md 5.3)
-        with self.registry.lock:
-            before = self.registry.vertices
-        self.admission.check(before, rec.n_vertices, req.rid)
+        self.admission.admit_submit(self.registry, rec, req)  # priced by its work (rec.priced)
         self.registry.reserve(rec, req.rid)
         try:
             self.cook_q.put_nowait((rec, req, query))
@@ -207,6 +206,7 @@ class Handlers:
                     req.rid,
                 )
         packed = pack(req.colliders, req.rid) if req.colliders is not None else None
+        self.admission.admit_control(self.registry, rec, req)  # a control that raises the cloth's work
         return rec, packed
 
     def on_control(self, query: zenoh.Query, payload: bytes, client: str | None = None) -> None:
@@ -229,6 +229,8 @@ class Handlers:
             except P.DrapeError as e:
                 results[i] = P.BatchItemResult(None, e.code, e.message)
                 failed[e.code] += 1
+                if e.code == ERR_OVERLOADED:
+                    self.registry.count("overload_refusals")
                 continue
             todo.append((rec, item, packed, waiter, i))
         block = None

@@ -40,7 +40,7 @@ from ..process.telemetry import PhaseTimer
 from ..publish.publisher import Job, Mailbox
 from ..registry import ClothRecord, Registry
 from ..replies import Replies, Reply, send
-from ..requests.admission import Admission, TickCost
+from ..requests.admission import Admission, TickCost, work_of
 from .adaptive import AdaptiveQuality
 from .applier import Applier
 
@@ -88,6 +88,7 @@ class Ticker:
         self._nan_warned_at = 0.0
         self._nan_quiet = 0
         self._cost_layout = -1  # layout version of the last frame whose cost was measured
+        self._work_at: tuple[tuple[int, int], int] = ((-1, -1), 0)  # (layout version, admission generation): work
         self._wait_s = 0.0  # the tick thread's wait for the device in the tick that enqueued the pending frame
         self._carry: list[Reply] = []  # remove replies of a tick that stepped nothing
         self._reset_next = np.zeros(0, np.int64)  # frame indices of the frame in flight carrying the reset flag
@@ -191,13 +192,21 @@ class Ticker:
             stage_device = device_s if device_s is not None else self._wait_s
             # without the pipeline the tick thread waits for the device within the tick: one stage
             stage_tick = busy_s if self.config.pipeline else busy_s + stage_device
-            cost_now = TickCost(int(frame.offsets[-1]), stage_tick, stage_device, self.publish_cost())
+            cost_now = TickCost(self._work(frame.layout.version), stage_tick, stage_device, self.publish_cost())
             self.admission.model.observe(cost_now)
         self._cost_layout = frame.layout.version
         self.adaptive.observe(
             cost, job.tick, lambda: list(self.applier.live.values()), self.world, self.applier.set_preset
         )
         return job
+
+    def _work(self, version: int) -> int:
+        """The work units of the cloths stepped (admission's prices, requests/admission.py): summed
+        once per layout and change of a price, not per tick."""
+        key = (version, self.admission.generation)
+        if self._work_at[0] != key:
+            self._work_at = (key, round(sum(work_of(r) for r in self.applier.live.values())))
+        return self._work_at[1]
 
     def _start_next(self, job: Job) -> None:
         """Enqueue the next step and its readback (no waiting); the tick counter moves on."""

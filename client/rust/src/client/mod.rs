@@ -50,9 +50,10 @@ pub struct ClientOptions {
     /// `zenoh_config_file` does. Its sidecar `<file>.client_id` gives the client id when neither
     /// `client_id` nor `$DRAPE_CLIENT_ID` does ([`deployment_client_id_for`]).
     pub zenoh_config_file: Option<std::path::PathBuf>,
-    /// Opt-in failover (PROTOCOL.md 11.1, README.md "Failover"): a cloth lost with its server,
-    /// or reclaimed while this client was away, is resubmitted with `resume` (its last received
-    /// state) to the least loaded live server, under the same handle.
+    /// Failover (PROTOCOL.md 11.1, README.md "Failover"; default true): a cloth lost with its
+    /// server, or reclaimed while this client was away, is resubmitted with `resume` (its last
+    /// received state) to the least loaded live server, under the same handle. false: a cloth
+    /// lost with its server is lost (`Event::ClothLost`).
     pub failover: bool,
     /// Failover: a cloth without a state for this long is probed (an empty control); `not_found`
     /// means it was reclaimed. Default 0.5 s.
@@ -77,7 +78,7 @@ impl Default for ClientOptions {
             timeout: Duration::from_secs(5),
             mode: "peer".to_string(),
             zenoh_config_file: None,
-            failover: false,
+            failover: true,
             stall_timeout: Duration::from_millis(500),
             failover_give_up: Duration::from_secs(60),
             require_server: false,

@@ -111,11 +111,12 @@ pub struct DrapeClientOptions {
     pub namespace_: *const c_char,
     /// Request and discovery timeout in milliseconds (0: 5000).
     pub timeout_ms: u32,
-    /// Opt-in failover (protocol 1.3, PROTOCOL.md 11.1; README.md "Failover"): a cloth lost
-    /// with its server, or reclaimed, is resubmitted to the least loaded live server with its
-    /// last received state (positions and velocities), its last pins and colliders sent again,
-    /// under the same handle (DRAPE_EVENT_CLOTH_RESUBMITTED).
-    pub failover: bool,
+    /// false (the default, a zeroed struct, as NULL options): failover (protocol 1.3, PROTOCOL.md
+    /// 11.1; README.md "Failover"): a cloth lost with its server, or reclaimed, is resubmitted to
+    /// the least loaded live server with its last received state (positions and velocities), its
+    /// last pins and colliders sent again, under the same handle (DRAPE_EVENT_CLOTH_RESUBMITTED).
+    /// true: no failover; a cloth lost with its server is lost (DRAPE_EVENT_CLOTH_LOST).
+    pub no_failover: bool,
     /// false (the default): `drape_client_open` waits up to the timeout for a server's
     /// liveliness token (`server_id`'s, else any) and fails with DRAPE_E_UNAVAILABLE when none
     /// appears. true: return at once (servers are announced by DRAPE_EVENT_SERVER_FOUND; a
@@ -321,7 +322,7 @@ unsafe fn open(
         if opts.timeout_ms > 0 {
             o.timeout = Duration::from_millis(opts.timeout_ms as u64);
         }
-        o.failover = opts.failover;
+        o.failover = !opts.no_failover;
         o.require_server = !opts.lazy;
     } else {
         o.require_server = true;

@@ -102,7 +102,7 @@ namespace Drape
 
         /// Connect (comma-separated Zenoh endpoints). Unless lazy, waits up to the timeout for a
         /// server and throws DrapeException (E_UNAVAILABLE) when none is there.
-        public static DrapeClient Open(string connect, string serverId = null, uint timeoutMs = 0, bool failover = false,
+        public static DrapeClient Open(string connect, string serverId = null, uint timeoutMs = 0, bool failover = true,
                                        bool lazy = false)
         {
             IntPtr c = Utf8.Alloc(connect), s = Utf8.Alloc(serverId);
@@ -110,7 +110,7 @@ namespace Drape
             {
                 var o = new Native.DrapeClientOptions
                 {
-                    connect = c, server_id = s, timeout_ms = timeoutMs, failover = (byte)(failover ? 1 : 0), lazy = (byte)(lazy ? 1 : 0),
+                    connect = c, server_id = s, timeout_ms = timeoutMs, no_failover = (byte)(failover ? 0 : 1), lazy = (byte)(lazy ? 1 : 0),
                 };
                 IntPtr h;
                 DrapeException.Check(Native.drape_client_open(&o, out h), "drape_client_open");

@@ -33,7 +33,7 @@ namespace Drape
         {
             public IntPtr connect, server_id, client_id, namespace_;
             public uint timeout_ms;
-            public byte failover, lazy;
+            public byte no_failover, lazy;
         }
 
         [StructLayout(LayoutKind.Sequential)]

@@ -148,7 +148,7 @@ fn c_abi_predictive_cloth() {
             client_id: std::ptr::null(),
             namespace_: std::ptr::null(),
             timeout_ms: 60_000,
-            failover: false,
+            no_failover: true,
             lazy: false,
         };
         let mut client = std::ptr::null_mut();

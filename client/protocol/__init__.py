@@ -1,4 +1,4 @@
-"""The Drape wire protocol, version 1.5 (see PROTOCOL.md at the repository root).
+"""The Drape wire protocol, version 1.7 (see PROTOCOL.md at the repository root).
 
 Requests and replies are msgpack maps; the per-tick cloth state is a fixed little-endian binary
 layout that any language reads with a struct. This package is the single source of truth for
@@ -31,7 +31,10 @@ the ``overloaded`` error code and documented decoding caps; 1.3 adds ``resume`` 
 (:class:`ResumeState`: continue a cloth from its last state after a failover; PROTOCOL.md 4.1, 11.1);
 1.4 adds ``moves`` in batch controls (:class:`PinMoves`, :mod:`.moves`: many cloths' pin moves as
 one columnar block; PROTOCOL.md 5.1.1); 1.5 adds the ``predictive`` state encoding (a state coded
-against the last two its decoders rebuilt: PROTOCOL.md 9.2) and ``state.step``.
+against the last two its decoders rebuilt: PROTOCOL.md 9.2) and ``state.step``. 1.6 adds the
+``self_collision`` feature with the material's ``thickness`` and ``contact_stiffness``; 1.7 adds
+``scene`` in submissions and the ``scene`` request (cloths of one scene collide with each other;
+PROTOCOL.md 5.3).
 
 It imports only numpy, msgpack and the standard library, so a game client or a tool can use it
 without Zenoh or OpenCL installed.

@@ -72,6 +72,25 @@ def pin_changes(
     return out
 
 
+def feature_names(names: Iterable[str] | None) -> tuple[str, ...] | None:
+    if names is None:
+        return None
+    out = (names,) if isinstance(names, str) else tuple(names)
+    bad = [n for n in out if n not in P.FEATURE_NAMES]
+    if bad:
+        raise ValueError(f"unknown feature(s) {bad}; known: {list(P.FEATURE_NAMES)}")
+    return out
+
+
+def vec3(v: Sequence[float] | None) -> P.Vec3 | None:
+    if v is None:
+        return None
+    t = tuple(float(x) for x in v)
+    if len(t) != 3:
+        raise ValueError(f"expected 3 numbers, got {len(t)}")
+    return t  # type: ignore[return-value]
+
+
 class SetOptions(TypedDict, total=False):
     """The keyword arguments of :meth:`ClothHandle.set <drape.client.handle.ClothHandle.set>` and
     :meth:`ControlBatch.set <drape.client.batching.ControlBatch.set>`: every control field of
@@ -105,9 +124,9 @@ def _same(v: Any) -> Any:
 
 #: How a ``set`` argument of each field kind becomes its protocol value (kinds: requestfields.FIELD_KINDS).
 CONVERT_KIND: dict[str, Callable[[Any], Any]] = {
-    "vec3": lambda v: vec3(v),
+    "vec3": vec3,
     "material": _material,
-    "features": lambda v: feature_names(v),
+    "features": feature_names,
     "int": _same,
     "fraction": _same,
     "quality": _same,
@@ -131,25 +150,6 @@ def set_changes(**options: Any) -> dict[str, Any]:
     if add and remove and set(add) & set(remove):
         raise ValueError(f"feature(s) {sorted(set(add) & set(remove))} both added and removed")
     return out
-
-
-def feature_names(names: Iterable[str] | None) -> tuple[str, ...] | None:
-    if names is None:
-        return None
-    out = (names,) if isinstance(names, str) else tuple(names)
-    bad = [n for n in out if n not in P.FEATURE_NAMES]
-    if bad:
-        raise ValueError(f"unknown feature(s) {bad}; known: {list(P.FEATURE_NAMES)}")
-    return out
-
-
-def vec3(v: Sequence[float] | None) -> P.Vec3 | None:
-    if v is None:
-        return None
-    t = tuple(float(x) for x in v)
-    if len(t) != 3:
-        raise ValueError(f"expected 3 numbers, got {len(t)}")
-    return t  # type: ignore[return-value]
 
 
 def links_of(links: Any) -> P.LinkSpec | None:

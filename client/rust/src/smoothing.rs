@@ -127,7 +127,9 @@ mod tests {
     fn states_out_of_order_or_of_other_sizes_show_the_last() {
         let (a, b) = ([1.0f32; 3], [2.0f32; 3]);
         let mut out = [0f32; 3];
-        let f = |t, p: &[f32; 3]| Frame { server_time_ns: t, positions: &p[..] };
+        fn f(t: u64, p: &[f32; 3]) -> Frame<'_> {
+            Frame { server_time_ns: t, positions: p }
+        }
         assert!(sample_into(Some(f(20, &a)), Some(f(10, &b)), 15, None, false, MAX_AHEAD, &mut out));
         assert_eq!(out, b);
         let short = [3.0f32; 0];

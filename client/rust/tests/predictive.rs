@@ -124,7 +124,7 @@ fn malformed_predictive_states_are_refused() {
     assert!(stream.decode_to_float32(&huge).is_err());
 }
 
-/// Encodes 40 states of 1000 vertices (partial last block) with the Python reference
+/// Encodes 40 states of 1001 vertices (partial last block) with the Python reference
 /// (`encode_predictive_state`), blocks moving at scales from none (width 0) to the grid's ends
 /// (widths up to 31), keyframes at 0 and 20, normals in some states, and decodes them with the
 /// reference `StateStream`; then this crate's `decode` and `decode_to_float32` must give the same
@@ -138,7 +138,7 @@ from drape.client.protocol.predictive import History
 from drape.client.protocol.stream import StateStream
 
 rng = np.random.default_rng(7)
-n, step = 1000, 0.001
+n, step = 1001, 0.001  # a partial block, and a vertex past the last group of 4
 # blocks of 32 vertices moving at scales from 0 (widths 0) to a km per tick (widths near 32)
 scale = np.repeat(10.0 ** rng.uniform(-5, 3, size=n // 32 + 1), 32)[:n, None]
 scale[64:96] = 0.0

@@ -142,15 +142,7 @@ fn c_abi_predictive_cloth() {
     let connect = CString::new(s.endpoint.clone()).unwrap();
     let server = CString::new(s.id.clone()).unwrap();
     unsafe {
-        let opts = DrapeClientOptions {
-            connect: connect.as_ptr(),
-            server_id: server.as_ptr(),
-            client_id: std::ptr::null(),
-            namespace_: std::ptr::null(),
-            timeout_ms: 60_000,
-            no_failover: true,
-            lazy: false,
-        };
+        let opts = common::c_client_options(&connect, Some(&server), None, 60_000, true);
         let mut client = std::ptr::null_mut();
         assert_eq!(drape_client_open(&opts, &mut client), DRAPE_OK);
         assert_eq!(drape_client_set_predictive_step(client, 0.5), DRAPE_E_INVALID_VALUE);

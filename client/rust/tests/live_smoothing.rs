@@ -94,8 +94,7 @@ fn c_abi_a_144_hz_sampler_moves_every_frame() {
     use std::ffi::CString;
     let Some(s) = shared() else { return };
     let (connect, server) = (CString::new(s.endpoint.clone()).unwrap(), CString::new(s.id.clone()).unwrap());
-    let opts = DrapeClientOptions { connect: connect.as_ptr(), server_id: server.as_ptr(), client_id: std::ptr::null(),
-                                    namespace_: std::ptr::null(), timeout_ms: 60_000, no_failover: true, lazy: false };
+    let opts = common::c_client_options(&connect, Some(&server), None, 60_000, true);
     let grid = DrapeGrid { cols: COLS, rows: COLS, width: 1.0, height: 1.0, vertical: true, origin: [0.0, 2.0, 0.0] };
     let n = 3 * (COLS * COLS) as usize;
     let (mut pos, mut raw) = (vec![0f32; n], vec![0f32; n]);

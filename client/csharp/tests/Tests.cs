@@ -161,7 +161,8 @@ static unsafe class Tests
             // states that arrived while the others were being admitted: read, and counted apart
             var before0 = new Native.DrapeStateCounters[N];
             for (int i = 0; i < N; i++) { streams[i].Update(); before0[i] = capes[i].Counters; }
-            long allocated = 0, states = 0, eventsSeen = 0;
+            long allocated = 0, states = 0, eventsSeen = 0, samples = 0;
+            var drawn = new float[3 * Cols * Rows]; // cape 0 drawn at each frame's time (Sample)
             for (int frame = 0; frame < Frames; frame++)
             {
                 long before = GC.GetAllocatedBytesForCurrentThread();
@@ -176,6 +177,7 @@ static unsafe class Tests
                     }
                 client.MovePinsMany(handles, pins, targets);
                 for (int i = 0; i < N; i++) states += streams[i].Update();
+                if (capes[0].Sample(drawn)) samples++;
                 while (client.PollEvent(out ev)) eventsSeen++;
                 long after = GC.GetAllocatedBytesForCurrentThread();
                 if (frame >= 10) allocated += after - before; // the first frames warm the JIT
@@ -183,6 +185,7 @@ static unsafe class Tests
             }
             Check(allocated == 0, "frames 10.." + Frames + " allocated " + allocated + " bytes");
             Check(states > 0, states + " states read");
+            Check(samples > Frames / 2 && capes[0].ClockOffsetNs.HasValue && !float.IsNaN(drawn[0]), "cape 0 sampled in " + samples + " frames");
             ulong read = 0, replaced = 0, missed = 0, unread = 0, ticks = 0;
             for (int i = 0; i < N; i++)
             {

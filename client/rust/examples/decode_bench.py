@@ -29,7 +29,9 @@ def median_ns(fn, iters: int, rounds: int = 31) -> float:
 def main() -> None:
     pos = np.zeros((4096, 3), np.float32)
     nrm = np.zeros((4096, 3), np.float32)
-    for path in sorted(Path(sys.argv[1]).glob("*.bin")):
+    # the folder also holds predictive_bench's stream (not one state): only decode_bench's payloads
+    paths = [p for p in sorted(Path(sys.argv[1]).glob("*.bin")) if p.name.startswith(("state_", "bundle_"))]
+    for path in paths:
         data = path.read_bytes()
         if path.name.startswith("bundle"):
             def dec():

@@ -33,12 +33,12 @@ fn main() {
         let st = encode_state(1042, 1, &pos, nrm.then_some(&n[..]), enc, 0).unwrap();
         cases.push((format!("state_64x64_{}{}", enc.name(), if nrm { "_normals" } else { "" }), st, 4096, false));
     }
-    for enc in [Encoding::Float32, Encoding::Quant16] {
-        let states: Vec<(String, Vec<u8>)> = (0..16)
+    for (enc, cloths) in [(Encoding::Float32, 16), (Encoding::Quant16, 16), (Encoding::Quant16, 64)] {
+        let states: Vec<(String, Vec<u8>)> = (0..cloths)
             .map(|k| (format!("{:016x}", 0x5ba8_8a14_c526_2420u64 + k), encode_state(7, 42, &grid(32, 32, k as f32), None, enc, 0).unwrap()))
             .collect();
         let refs: Vec<(&str, &[u8])> = states.iter().map(|(c, s)| (c.as_str(), s.as_slice())).collect();
-        cases.push((format!("bundle_16x32x32_{}", enc.name()), encode_bundle(7, 42, &refs, 0).unwrap(), 16 * 1024, true));
+        cases.push((format!("bundle_{cloths}x32x32_{}", enc.name()), encode_bundle(7, 42, &refs, 0).unwrap(), cloths as usize * 1024, true));
     }
     let mut pos = vec![0f32; 3 * 4096];
     let mut nrm = vec![0f32; 3 * 4096];

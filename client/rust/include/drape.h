@@ -630,6 +630,31 @@ int32_t drape_cloth_read_latest(const struct DrapeCloth *cloth,
                                 size_t normals_len,
                                 struct DrapeStateInfo *info);
 
+// The positions to draw at render time `now_ns` (this client's clock: Unix ns, as
+// `DrapeStateInfo.receive_time_ns`; 0: now) into `positions` (`positions_len` FLOATS, at least
+// `3 * drape_cloth_vertex_count`): the last two states received interpolated `delay_ns` behind
+// the newest (negative: one tick, the time between the two states), so that a renderer faster
+// than the server (144 Hz against 60) moves the cloth every frame, at the cost of that delay;
+// `extrapolate`: carried past the newest state instead (no delay; up to one state interval,
+// overshooting where the motion turns). Render times are mapped onto the server's clock by
+// `drape_cloth_clock_offset`. Returns DRAPE_OK, DRAPE_NO_DATA before the first state (nothing
+// written), or an error as `drape_cloth_read_state`. The newest state alone while there is
+// one. Takes nothing from the state queue (the reads and counters are unchanged); each state is
+// decoded once however many frames sample it. Never blocks. (The Python SDK's
+// `ClothHandle.sample`.)
+int32_t drape_cloth_sample(const struct DrapeCloth *cloth,
+                           uint64_t now_ns,
+                           int64_t delay_ns,
+                           bool extrapolate,
+                           float *positions,
+                           size_t positions_len);
+
+// This client's clock minus the server's as the cloth's states measure it (the smallest
+// `receive_time_ns - server_time_ns` of its last 120 states: the clock offset plus the
+// network's shortest delay) into `*offset_ns`: a render time `t` is server time
+// `t - offset_ns`. DRAPE_OK, or DRAPE_NO_DATA before the first state.
+int32_t drape_cloth_clock_offset(const struct DrapeCloth *cloth, int64_t *offset_ns);
+
 // Fill `*out` with the cloth's state counters. Never blocks.
 int32_t drape_cloth_counters(const struct DrapeCloth *cloth, struct DrapeStateCounters *out);
 

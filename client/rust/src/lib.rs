@@ -1,5 +1,7 @@
-//! Drape client: the wire protocol (module [`wire`], no network) and, with the default
-//! `client` feature, a Zenoh client ([`client`]) and its C ABI ([`ffi`]).
+//! Drape client: the wire protocol (module [`wire`], no network), rendering between states
+//! ([`smoothing`], no network) and, with the default `client` feature, a Zenoh client
+//! ([`client`]) and its C ABI ([`ffi`]).
+pub mod smoothing;
 pub mod wire;
 #[cfg(feature = "client")]
 pub mod client;

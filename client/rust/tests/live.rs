@@ -192,8 +192,7 @@ fn lost_server_is_reported_and_failover_resumes() {
     // The same through the C ABI: a client with failover on (DrapeClientOptions.no_failover false, the default).
     use drape::ffi::*;
     let (c_connect, c_server) = (std::ffi::CString::new(format!("{},{}", a.endpoint, b.endpoint)).unwrap(), std::ffi::CString::new(a.id.clone()).unwrap());
-    let c_opts = DrapeClientOptions { connect: c_connect.as_ptr(), server_id: c_server.as_ptr(), client_id: std::ptr::null(),
-                                      namespace_: std::ptr::null(), timeout_ms: 10_000, no_failover: false, lazy: false };
+    let c_opts = common::c_client_options(&c_connect, Some(&c_server), None, 10_000, false);
     let (mut cclient, mut ccloth) = (std::ptr::null_mut(), std::ptr::null_mut());
     let pins = [0u32, 3];
     let grid = DrapeGrid { cols: 4, rows: 4, width: 1.0, height: 1.0, vertical: false, origin: [0.0; 3] };
@@ -413,15 +412,7 @@ fn c_abi_feature_changes() {
     assert_eq!(name(DRAPE_E_UNKNOWN), "unknown");
     assert!(unsafe { CStr::from_ptr(drape_version()) }.to_str().unwrap().ends_with("protocol 1.4"));
     unsafe {
-        let opts = DrapeClientOptions {
-            connect: connect.as_ptr(),
-            server_id: server.as_ptr(),
-            client_id: std::ptr::null(),
-            namespace_: std::ptr::null(),
-            timeout_ms: 60_000,
-            no_failover: true,
-            lazy: false,
-        };
+        let opts = common::c_client_options(&connect, Some(&server), None, 60_000, true);
         let mut client = std::ptr::null_mut();
         assert_eq!(drape_client_open(&opts, &mut client), DRAPE_OK);
         let grid = DrapeGrid { cols: 4, rows: 4, width: 0.0, height: 0.0, vertical: false, origin: [0.0; 3] };
@@ -559,15 +550,7 @@ fn c_abi_identity_keys_server() {
     let server = CString::new(s.id.clone()).unwrap();
     let me = CString::new(format!("c-abi-{}", std::process::id())).unwrap();
     unsafe {
-        let opts = DrapeClientOptions {
-            connect: connect.as_ptr(),
-            server_id: server.as_ptr(),
-            client_id: me.as_ptr(),
-            namespace_: std::ptr::null(),
-            timeout_ms: 60_000,
-            no_failover: true,
-            lazy: false,
-        };
+        let opts = common::c_client_options(&connect, Some(&server), Some(&me), 60_000, true);
         let mut client = std::ptr::null_mut();
         assert_eq!(drape_client_open(&opts, &mut client), DRAPE_OK);
         let grid = DrapeGrid { cols: 4, rows: 4, width: 0.0, height: 0.0, vertical: false, origin: [0.0; 3] };

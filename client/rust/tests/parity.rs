@@ -21,8 +21,7 @@ fn cstr(b: &[c_char]) -> String {
 
 fn open(endpoint: &str, timeout_ms: u32) -> (i32, *mut DrapeClient) {
     let connect = CString::new(endpoint).unwrap();
-    let opts = DrapeClientOptions { connect: connect.as_ptr(), server_id: std::ptr::null(), client_id: std::ptr::null(),
-                                    namespace_: std::ptr::null(), timeout_ms, no_failover: true, lazy: false };
+    let opts = common::c_client_options(&connect, None, None, timeout_ms, true);
     let mut client = std::ptr::null_mut();
     let rc = unsafe { drape_client_open(&opts, &mut client) };
     (rc, client)

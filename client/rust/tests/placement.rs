@@ -164,8 +164,7 @@ fn moves_blocks_reach_the_states() {
 fn c_abi_moves(s: &common::Server) {
     use drape::ffi::*;
     let connect = std::ffi::CString::new(s.endpoint.clone()).unwrap();
-    let opts = DrapeClientOptions { connect: connect.as_ptr(), server_id: std::ptr::null(), client_id: std::ptr::null(),
-                                    namespace_: std::ptr::null(), timeout_ms: 10_000, no_failover: true, lazy: false };
+    let opts = common::c_client_options(&connect, None, None, 10_000, true);
     let pins = [0u32, 7];
     let grid = DrapeGrid { cols: 8, rows: 4, width: 1.4, height: 0.6, vertical: true, origin: [0.0, 2.0, 0.0] };
     let o = common::c_cloth_options(&pins, false);

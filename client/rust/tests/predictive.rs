@@ -123,3 +123,74 @@ fn malformed_predictive_states_are_refused() {
     assert!(parse_predictive(&huge).is_err());
     assert!(stream.decode_to_float32(&huge).is_err());
 }
+
+/// Encodes 40 states of 1001 vertices (partial last block) with the Python reference
+/// (`encode_predictive_state`), blocks moving at scales from none (width 0) to the grid's ends
+/// (widths up to 31), keyframes at 0 and 20, normals in some states, and decodes them with the
+/// reference `StateStream`; then this crate's `decode` and `decode_to_float32` must give the same
+/// float32 bits. Needs the repository's venv (`DRAPE_PYTHON`, default `../../.venv/bin/python`):
+/// skipped without it outside CI.
+const REFERENCE_STREAM: &str = r#"
+import struct, sys
+import numpy as np
+from drape.client.protocol.state import encode_predictive_state
+from drape.client.protocol.predictive import History
+from drape.client.protocol.stream import StateStream
+
+rng = np.random.default_rng(7)
+n, step = 1001, 0.001  # a partial block, and a vertex past the last group of 4
+# blocks of 32 vertices moving at scales from 0 (widths 0) to a km per tick (widths near 32)
+scale = np.repeat(10.0 ** rng.uniform(-5, 3, size=n // 32 + 1), 32)[:n, None]
+scale[64:96] = 0.0
+pos = rng.normal(size=(n, 3)) * scale
+hist, dec, out = History(), StateStream("c"), bytearray()
+widths = set()
+for t in range(40):
+    pos = pos + rng.normal(size=(n, 3)) * scale * (0.05 if t % 7 else 1.0)
+    pos[128:160] = rng.choice([-1.3e5, 1.3e5], size=(32, 3))  # the grid's ends: widths up to 32
+    pos = np.clip(pos, -1.3e5, 1.3e5).astype(np.float32)
+    nrm = rng.uniform(-1, 1, size=(n, 3)).astype(np.float32) if t % 5 == 3 else None
+    st = encode_predictive_state(100 + t, 1000 + t, pos, step, hist, keyframe=t in (0, 20), normals=nrm)
+    got = dec.decode(bytes(st))
+    ref = got.positions.astype("<f4").tobytes() + (got.normals.astype("<f4").tobytes() if got.normals is not None else b"")
+    out += struct.pack("<II", len(st), len(ref)) + st + ref
+    widths.update(st[96 : 96 + 3 * ((n + 31) // 32)])
+sys.stdout.buffer.write(out)
+assert max(widths) >= 31 and min(widths) == 0, sorted(widths)
+"#;
+
+#[test]
+fn a_long_stream_of_every_width_decodes_as_the_reference() {
+    let python = std::env::var_os("DRAPE_PYTHON").map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../.venv/bin/python"));
+    if !python.exists() {
+        let ci = std::env::var("CI").map(|v| v.eq_ignore_ascii_case("true") || v == "1").unwrap_or(false);
+        assert!(!ci, "{} is missing", python.display());
+        eprintln!("SKIPPED: {} is missing", python.display());
+        return;
+    }
+    let run = std::process::Command::new(&python).arg("-c").arg(REFERENCE_STREAM).output().unwrap();
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let data = run.stdout;
+    let (mut a, mut b) = (PredictiveStream::new(), PredictiveStream::new());
+    let (mut at, mut states) = (0, 0);
+    while at < data.len() {
+        let le = |i: usize| u32::from_le_bytes(data[i..i + 4].try_into().unwrap()) as usize;
+        let (ns, nr) = (le(at), le(at + 4));
+        let (st, want) = (&data[at + 8..at + 8 + ns], &data[at + 8 + ns..at + 8 + ns + nr]);
+        at += 8 + ns + nr;
+        let h = parse_predictive(st).unwrap();
+        let k = 3 * h.vertex_count as usize;
+        let (mut pos, mut nrm) = (vec![0f32; k], vec![0f32; k]);
+        a.decode(st, &mut pos, Some(&mut nrm)).unwrap().expect("in order");
+        let mut got: Vec<u8> = pos.iter().flat_map(|x| x.to_le_bytes()).collect();
+        if h.has_normals() {
+            got.extend(nrm.iter().flat_map(|x| x.to_le_bytes()));
+        }
+        assert!(got == want, "state {states}: decode differs from the reference");
+        let (kept, _) = b.decode_to_float32(st).unwrap().expect("in order");
+        assert!(kept[64..] == *want, "state {states}: decode_to_float32 differs from the reference");
+        states += 1;
+    }
+    assert_eq!(states, 40);
+}

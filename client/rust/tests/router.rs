@@ -187,15 +187,7 @@ fn c_abi_authenticated_client_through_an_acl_router() {
     let server = CString::new("eu-1").unwrap();
     let mode = CString::new("client").unwrap();
     unsafe {
-        let opts = DrapeClientOptions {
-            connect: connect.as_ptr(),
-            server_id: server.as_ptr(),
-            client_id: std::ptr::null(),
-            namespace_: std::ptr::null(),
-            timeout_ms: 30_000,
-            no_failover: true,
-            lazy: false,
-        };
+        let opts = common::c_client_options(&connect, Some(&server), None, 30_000, true);
         let mut client = std::ptr::null_mut();
         assert_eq!(drape_client_open_with_config(&opts, file.as_ptr(), mode.as_ptr(), &mut client), DRAPE_OK);
         let mut id = [0 as std::ffi::c_char; 64];

@@ -1,12 +1,17 @@
 /* cape.c: a small game loop in C over the drape C ABI (include/drape.h): submit a 16x12 cape
  * pinned at its two top corners, move the pins every frame without waiting, read each new
- * state into a caller-owned buffer and print what arrives. Build: examples/c/build.sh.
+ * state into a caller-owned buffer and print what arrives; then render one second at 144 Hz
+ * with drape_cloth_sample (the last two states interpolated a tick behind the newest) and count
+ * the frames where the cape moved. Build: examples/c/build.sh.
  * Usage: cape [ENDPOINT] [FRAMES]   (default tcp/127.0.0.1:7447, 120) */
+#define _POSIX_C_SOURCE 199309L
 #include "drape.h"
 
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
+#include <string.h>
+#include <time.h>
 
 static int check(int32_t rc, const char *what) {
     if (rc != DRAPE_OK) {
@@ -81,6 +86,27 @@ int main(int argc, char **argv) {
             if (ev.kind != DRAPE_EVENT_SERVER_FOUND)
                 printf("event %d (%s): %s\n", ev.kind, drape_error_name(ev.code), ev.message);
     }
+    /* Render at 144 Hz, faster than the server's 60 Hz states: sampled at each frame's time, the
+     * cape moves in every frame (read raw, it would repeat a state in most frames). */
+    float *previous = calloc(3 * (size_t)n, sizeof(float));
+    int moved = 0, sampled = 0;
+    for (int frame = 0; frame < 144; frame++) {
+        float a = (frames + frame * 60 / 144) * 0.05f, dx = 0.3f * cosf(a), dz = 0.3f * sinf(a);
+        float targets[6] = {-0.4f + dx, 1.8f, dz, 0.4f + dx, 1.8f, dz};
+        check(drape_cloth_move_pins(cape, pins, 2, targets, false, NULL), "drape_cloth_move_pins");
+        /* now (0), one tick behind the newest state (-1), interpolated (not extrapolated) */
+        int32_t rc = drape_cloth_sample(cape, 0, -1, false, positions, 3 * (size_t)n);
+        if (rc == DRAPE_OK) {
+            moved += sampled++ > 0 && memcmp(previous, positions, sizeof(float) * 3 * n) != 0;
+            memcpy(previous, positions, sizeof(float) * 3 * n);
+        } else if (rc != DRAPE_NO_DATA) {
+            check(rc, "drape_cloth_sample");
+        }
+        struct timespec ts = {0, 1000000000L / 144};
+        nanosleep(&ts, NULL);
+    }
+    printf("144 Hz for 1 s: the sampled cape moved in %d of %d frames\n", moved, sampled > 0 ? sampled - 1 : 0);
+    free(previous);
     uint64_t last = 0;
     check(drape_cloth_remove(cape, &last), "drape_cloth_remove");
     printf("%d frames: %d states read; removed, last tick %llu\n", frames, received, (unsigned long long)last);

@@ -6,7 +6,8 @@ use super::{Event, Inner};
 use crate::wire::error::{Error, ErrorCode, Result};
 use crate::wire::msg::{ControlBatch, Pins, Submit};
 use crate::wire::replies::{tick_of, Applied, BatchReply};
-use crate::wire::{decode_state_into, Collider, Control, Encoding};
+use crate::smoothing::{sample_into, Frame, ServerClock, MAX_AHEAD};
+use crate::wire::{decode_state_into, parse_state, Collider, Control, Encoding};
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::sync::{Arc, Condvar, Mutex, Weak};
 use std::time::{Duration, Instant};
@@ -46,6 +47,8 @@ pub(crate) struct Slot {
     pub(crate) last_tick: u64,
     /// 1.2: the feature set the newest control reply reported, with that reply's tick.
     pub(crate) features: Option<(u64, Vec<String>)>,
+    /// Render times (client clock) as server times ([`Cloth::sample`]), from the states received.
+    pub(crate) clock: ServerClock,
 }
 
 /// What the game last sent by controls that a failover sends again (PROTOCOL.md 11.1): the last
@@ -109,6 +112,63 @@ pub(crate) struct ClothInner {
     pub(crate) pred: Mutex<Pred>,
     pub(crate) cv: Condvar,
     pub(crate) sent: Mutex<Sent>,
+    /// [`Cloth::sample`]'s last two states decoded (each decoded once, however many frames
+    /// sample between them).
+    pub(crate) smooth: Mutex<Smooth>,
+}
+
+/// A state decoded for [`Cloth::sample`]: which one (tick, server and receive times) and its
+/// positions.
+#[derive(Default)]
+pub(crate) struct Decoded {
+    key: Option<(u64, u64, u64)>,
+    server_time_ns: u64,
+    positions: Vec<f32>,
+}
+
+/// The two states [`Cloth::sample`] blends: `prev` and `last` as last decoded.
+#[derive(Default)]
+pub(crate) struct Smooth {
+    prev: Decoded,
+    last: Decoded,
+    /// The cloth's clock offset when they were taken.
+    offset: Option<i64>,
+}
+
+impl Smooth {
+    /// Make `last` (and `prev`, if given) hold those states, decoding only what they do not
+    /// hold yet (the newest state of one frame is the older one of a later frame: swapped).
+    fn hold(&mut self, prev: Option<&Latest>, last: &Latest, n: usize) -> Result<()> {
+        let key = |l: &Latest| l.buf.with(|d| parse_state(&d[l.off..l.off + l.len]).map(|h| (h.tick, h.server_time_ns, l.receive_time_ns)));
+        let (kl, kp) = (Some(key(last)?), prev.map(key).transpose()?);
+        if self.last.key != kl {
+            if self.prev.key == kl || (kp.is_some() && self.last.key == kp) {
+                std::mem::swap(&mut self.prev, &mut self.last);
+            }
+            if self.last.key != kl {
+                self.last.fill(last, n)?;
+            }
+        }
+        if let (Some(p), true) = (prev, kp.is_some() && self.prev.key != kp) {
+            self.prev.fill(p, n)?;
+        }
+        Ok(())
+    }
+}
+
+impl Decoded {
+    fn fill(&mut self, l: &Latest, n: usize) -> Result<()> {
+        self.key = None;
+        self.positions.resize(3 * n, 0.0);
+        let info = decode(l, &mut self.positions, None)?;
+        self.key = Some((info.tick, info.server_time_ns, info.receive_time_ns));
+        self.server_time_ns = info.server_time_ns;
+        Ok(())
+    }
+
+    fn frame(&self) -> Frame<'_> {
+        Frame { server_time_ns: self.server_time_ns, positions: &self.positions }
+    }
 }
 
 impl ClothInner {
@@ -131,6 +191,7 @@ impl ClothInner {
             counters: Counters::default(),
             last_tick: 0,
             features: None,
+            clock: ServerClock::default(),
         };
         Arc::new(ClothInner {
             handle,
@@ -144,6 +205,7 @@ impl ClothInner {
             pred: Mutex::new(Pred::default()),
             cv: Condvar::new(),
             sent: Mutex::new(Sent::default()),
+            smooth: Mutex::new(Smooth::default()),
         })
     }
 
@@ -366,6 +428,63 @@ impl Cloth {
     /// states older than it are dropped (counted as `replaced`).
     pub fn latest_state(&self, positions: &mut [f32], normals: Option<&mut [f32]>) -> Result<Option<StateInfo>> {
         self.read(positions, normals, Duration::ZERO, Read::Latest)
+    }
+
+    /// The positions to draw at render time `now_ns` (client clock, Unix ns as
+    /// [`StateInfo::receive_time_ns`]; None: now), written into `positions` (`3 * vertex_count`
+    /// floats): the last two states received interpolated `delay` (None: one tick, the time
+    /// between them) behind the newest, mapped onto the server's clock by the cloth's
+    /// [`Cloth::clock_offset_ns`], so that a renderer faster than the server moves the cloth
+    /// every frame, at the cost of that delay; `extrapolate`: carried past the newest state
+    /// instead (no delay; up to one state interval, overshooting where the motion turns).
+    /// `Ok(false)` before the first state (nothing written); the newest state alone while there
+    /// is one. Reads nothing from the queue (`read_state` and its counters are unchanged); each
+    /// state is decoded once however many frames sample it. Never blocks (a state being
+    /// delivered at that instant: the states held before it are sampled). Errors as
+    /// [`Cloth::read_state`]. (The Python SDK's `ClothHandle.sample`, `client/smoothing.py`.)
+    pub fn sample(&self, now_ns: Option<u64>, delay: Option<Duration>, extrapolate: bool, positions: &mut [f32]) -> Result<bool> {
+        self.client.check_open()?;
+        let c = &self.inner;
+        let n = c.n_vertices as usize;
+        if positions.len() < 3 * n {
+            return Err(Error::new(ErrorCode::InvalidValue, format!(
+                "a buffer of {} floats: {} floats (3 per vertex) needed", positions.len(), 3 * n)));
+        }
+        let mut smooth = c.smooth.lock().unwrap(); // the game's threads only
+        // a state being delivered holds the slot: the states and clock offset held last time
+        if let Some(s) = lock_briefly(&c.slot) {
+            match &s.status {
+                Status::Lost(e) => return Err(e.clone()),
+                Status::Removed => return Err(Error::new(ErrorCode::Closed, "the cloth was removed")),
+                _ => {}
+            }
+            let Some(last) = s.latest.clone() else { return Ok(false) };
+            let (prev, offset) = (s.prev.clone(), s.clock.offset_ns());
+            drop(s);
+            smooth.hold(prev.as_ref(), &last, n)?;
+            if prev.is_none() {
+                smooth.prev.key = None;
+            }
+            smooth.offset = offset;
+        }
+        if smooth.last.key.is_none() {
+            return Ok(false);
+        }
+        let Some(offset) = smooth.offset else {
+            positions[..3 * n].copy_from_slice(&smooth.last.positions);
+            return Ok(true);
+        };
+        let server_ns = now_ns.unwrap_or_else(super::recv::now_ns) as i64 - offset;
+        let prev = smooth.prev.key.map(|_| smooth.prev.frame());
+        let delay = delay.map(|d| d.as_nanos() as i64);
+        Ok(sample_into(prev, Some(smooth.last.frame()), server_ns, delay, extrapolate, MAX_AHEAD, positions))
+    }
+
+    /// The client clock minus the server's, as the cloth's states measure it: the smallest
+    /// `receive_time_ns - server_time_ns` of its last 120 states (the clock offset plus the
+    /// network's shortest delay); None before any state. [`Cloth::sample`] maps render times by it.
+    pub fn clock_offset_ns(&self) -> Option<i64> {
+        self.inner.slot.lock().unwrap().clock.offset_ns()
     }
 
     fn read(&self, positions: &mut [f32], normals: Option<&mut [f32]>, timeout: Duration, how: Read) -> Result<Option<StateInfo>> {

@@ -3,14 +3,25 @@
 //! bundles), placement by load (PROTOCOL.md 11.3, protocol 1.4), 1.4 `moves` blocks and, opt-in,
 //! the failover of PROTOCOL.md section 11.1 (protocol 1.3): lost or reclaimed cloths resumed on
 //! the least loaded live server from their last received states.
+//!
+//! This file is the facade (options, events, the client's shared state and its open and close);
+//! the parts are `session` (servers, their info, waited requests), `sending` (requests not waited
+//! for), `submit`, `controls`, `cloth`, `recv` (states), `predictive`, `moves`, `placement` and
+//! `failover`.
 mod cloth;
+mod controls;
 mod failover;
 mod moves;
 mod placement;
 mod predictive;
 mod recv;
+mod sending;
+mod session;
+mod submit;
 
 pub use cloth::{Batch, Cloth, ClothStatus, Counters, StateInfo};
+use sending::{SendJob, Sends};
+use session::reply_result;
 
 use crate::wire::error::{Error, ErrorCode, Result};
 use crate::wire::msg::{encode_info, Control, Grid, Mesh, Resume, Shape, Submit};
@@ -122,29 +133,6 @@ pub enum Event {
     /// retries included) or not answered: the handle is lost (`error`).
     SubmitFailed { handle: u64, error: Error },
 }
-
-/// A request handed to the sender thread.
-type SendJob = Box<dyn FnOnce() + Send>;
-
-/// How many requests were handed to the sender thread, and how many it has given to Zenoh: a
-/// waited request first waits for the earlier unwaited ones to be sent, so that requests leave
-/// in the order they were made.
-#[derive(Default)]
-struct Sends {
-    queued: AtomicU64,
-    sent: Mutex<u64>,
-    cv: Condvar,
-}
-
-impl Sends {
-    fn wait_for(&self, n: u64) {
-        let g = self.sent.lock().unwrap();
-        drop(self.cv.wait_while(g, |sent| *sent < n).unwrap());
-    }
-}
-
-/// What a request sent without waiting does with its success map (on a Zenoh thread).
-pub(crate) type OnOk = Box<dyn Fn(&Arc<Inner>, Map) + Send + Sync>;
 
 /// Why a cloth failed over.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -411,64 +399,6 @@ impl Client {
         self.inner.request(&server, "info", encode_info(self.inner.next_rid()))
     }
 
-    /// Submit a grid cloth (`submit` carries the options; its `client` and `rid` are set here).
-    pub fn submit_grid(&self, grid: Grid, submit: Submit) -> Result<Cloth> {
-        let (rest, tris) = grid_geometry(grid.cols, grid.rows, grid.width, grid.height, grid.orientation, grid.origin)?;
-        self.submit(Submit { shape: Shape::Grid(grid), ..submit }, rest, tris)
-    }
-
-    /// Submit a triangle mesh cloth.
-    pub fn submit_mesh(&self, vertices: Vec<f32>, triangles: Vec<u32>, submit: Submit) -> Result<Cloth> {
-        let (rest, tris) = (vertices.clone(), triangles.clone());
-        self.submit(Submit { shape: Shape::Mesh(Mesh { vertices, triangles }), ..submit }, rest, tris)
-    }
-
-    /// Submit a cloth from Wavefront OBJ text (faces fan-triangulated).
-    pub fn submit_obj(&self, obj_text: &str, submit: Submit) -> Result<Cloth> {
-        let (v, t) = parse_obj(obj_text)?;
-        self.submit_mesh(v, t, submit)
-    }
-
-    /// Submit as is (shape included) and subscribe to the cloth's state. `rest`/`triangles`
-    /// are kept on the handle for rendering. To the server given in the options, else to the
-    /// live server the placement ranks first (PROTOCOL.md 11.3); a refusal another server may not
-    /// give (`overloaded`, `busy`, `limit_exceeded`, no reply) tries the next one, and the last
-    /// refusal is returned when every live server refused.
-    pub fn submit(&self, submit: Submit, rest: Vec<f32>, triangles: Vec<u32>) -> Result<Cloth> {
-        self.submit_queued(submit, rest, triangles, 1)
-    }
-
-    /// [`Client::submit`] keeping up to `queue_size` states unread per cloth (reads take the
-    /// oldest first; 1: only the newest, as `submit`).
-    pub fn submit_queued(&self, mut submit: Submit, rest: Vec<f32>, triangles: Vec<u32>, queue_size: usize) -> Result<Cloth> {
-        submit.client = self.inner.client_id.clone();
-        let handle = self.inner.next_handle.fetch_add(1, Ordering::Relaxed);
-        let c = cloth::ClothInner::new(handle, submit, rest, triangles, queue_size);
-        self.inner.submit_placed(&c)?;
-        Ok(Cloth { inner: c, client: self.inner.clone() })
-    }
-
-    /// Submit without waiting: the handle comes back at once, [`ClothStatus::Pending`] until
-    /// the reply (reads return nothing, controls fail with `unavailable`); then an
-    /// [`Event::Submitted`] (live) or [`Event::SubmitFailed`] (the handle is lost). Placement
-    /// as [`Client::submit`], on a thread of its own; a refusal that may pass
-    /// ([`ErrorCode::is_retryable`]: `overloaded`, `busy`, `limit_exceeded`) or no reply is
-    /// retried for up to `retry_for` (backing off from 50 ms to 1 s). Removing the handle
-    /// before the reply cancels it (a cloth placed meanwhile is removed from its server).
-    pub fn submit_async(&self, mut submit: Submit, rest: Vec<f32>, triangles: Vec<u32>, queue_size: usize,
-                        retry_for: Duration) -> Result<Cloth> {
-        self.inner.check_open()?;
-        submit.client = self.inner.client_id.clone();
-        let handle = self.inner.next_handle.fetch_add(1, Ordering::Relaxed);
-        let c = cloth::ClothInner::new(handle, submit, rest, triangles, queue_size);
-        let (inner, c2) = (self.inner.clone(), c.clone());
-        std::thread::Builder::new()
-            .name("drape-submit".into())
-            .spawn(move || inner.submit_in_background(c2, retry_for))
-            .map_err(|e| Error::new(ErrorCode::Internal, format!("cannot start a submit thread: {e}")))?;
-        Ok(Cloth { inner: c, client: self.inner.clone() })
-    }
-
     /// An empty batch of controls (sent with [`Client::send_batch`]).
     pub fn batch(&self) -> Batch {
         Batch::default()
@@ -527,45 +457,6 @@ impl Inner {
         self.events_cv.notify_all();
     }
 
-    /// [`Client::submit_async`]'s thread.
-    fn submit_in_background(self: Arc<Self>, c: Arc<cloth::ClothInner>, retry_for: Duration) {
-        let deadline = Instant::now() + retry_for;
-        let mut delay = Duration::from_millis(50);
-        let cancelled = |c: &cloth::ClothInner| c.cancelled.load(Ordering::SeqCst);
-        loop {
-            match self.submit_placed(&c) {
-                Ok(()) => {
-                    let cloth = Cloth { inner: c.clone(), client: self.clone() };
-                    if cancelled(&c) {
-                        let _ = cloth.remove();
-                        return;
-                    }
-                    let (id, server) = (cloth.id(), cloth.server());
-                    self.push_event(Event::Submitted { handle: c.handle, cloth: id, server });
-                    return;
-                }
-                Err(e) if (e.code.is_retryable() || e.code == ErrorCode::Unavailable)
-                    && Instant::now() + delay < deadline && !cancelled(&c) && self.check_open().is_ok() => {
-                    std::thread::sleep(delay);
-                    delay = (delay * 2).min(Duration::from_secs(1));
-                }
-                Err(error) => {
-                    {
-                        let mut s = c.slot.lock().unwrap();
-                        if s.status == cloth::Status::Pending {
-                            s.status = cloth::Status::Lost(error.clone());
-                        }
-                    }
-                    c.cv.notify_all();
-                    if !cancelled(&c) {
-                        self.push_event(Event::SubmitFailed { handle: c.handle, error });
-                    }
-                    return;
-                }
-            }
-        }
-    }
-
     pub(crate) fn check_open(&self) -> Result<()> {
         if self.closed.load(Ordering::SeqCst) {
             return Err(Error::new(ErrorCode::Closed, "the client is closed"));
@@ -573,352 +464,6 @@ impl Inner {
         Ok(())
     }
 
-    fn on_server(self: &Arc<Self>, id: String, alive: bool) {
-        let mut s = self.servers.lock().unwrap();
-        if alive {
-            if s.live.insert(id.clone()) {
-                drop(s);
-                self.servers_cv.notify_all();
-                self.push_event(Event::ServerFound { server: id });
-                if let Some(fo) = self.fo.as_ref() {
-                    fo.wake(); // lost cloths may go there
-                }
-            }
-            return;
-        }
-        s.live.remove(&id);
-        s.info.remove(&id);
-        drop(s);
-        self.placement.server_gone(&id);
-        self.push_event(Event::ServerLost { server: id.clone() });
-        failover::server_lost(self, &id);
-    }
-
-    /// The server's limits (asked once with info; defaults if it does not answer).
-    pub(crate) fn limits(&self, server: &str) -> Limits {
-        self.server_info(server).map(|(_, l)| l).unwrap_or_default()
-    }
-
-    pub(crate) fn server_info(&self, server: &str) -> Result<((u8, u8), Limits)> {
-        self.server_info_within(server, self.timeout)
-    }
-
-    /// The server's version and limits, asked with info once per server (kept until its
-    /// liveliness token vanishes; an unanswered info is not remembered).
-    pub(crate) fn server_info_within(&self, server: &str, timeout: Duration) -> Result<((u8, u8), Limits)> {
-        if let Some(i) = self.servers.lock().unwrap().info.get(server) {
-            return Ok(*i);
-        }
-        let m = self.request_within(server, "info", encode_info(self.next_rid()), timeout)?;
-        let r = Reader::new(&m, "");
-        let version = r.str("version", false)?.unwrap_or("1.0");
-        let (ma, mi) = version.split_once('.').unwrap_or((version, "0"));
-        let v = (ma.parse().unwrap_or(1), mi.parse().unwrap_or(0));
-        let mut lim = Limits::default();
-        if let Some(rate) = r.f64("tick_rate", false).ok().flatten().filter(|x| *x > 0.0 && x.is_finite()) {
-            self.servers.lock().unwrap().rates.insert(server.to_string(), rate);
-        }
-        if let Some(l) = r.sub("limits", false)? {
-            let get = |k: &str| l.u64(k, false).ok().flatten();
-            lim.max_vertices_per_cloth = get("max_vertices_per_cloth").unwrap_or(lim.max_vertices_per_cloth);
-            lim.max_pin_updates = get("max_pin_updates").map_or(lim.max_pin_updates, |x| x as usize);
-            lim.max_batch_items = get("max_batch_items").map_or(if v < (1, 1) { 0 } else { lim.max_batch_items }, |x| x as usize);
-            lim.max_iterations = get("max_iterations").unwrap_or(lim.max_iterations);
-            lim.max_substeps = get("max_substeps").unwrap_or(lim.max_substeps);
-        }
-        self.servers.lock().unwrap().info.insert(server.to_string(), (v, lim));
-        Ok((v, lim))
-    }
-
-    /// The key of a `kind` request to `server` (PROTOCOL.md 11.2): this client's own key
-    /// `{ns}/server/{server}/client/{client}/{kind}` when the server speaks 1.4 or later (its
-    /// `info.version`, asked once per server), else the server-wide key of 1.0-1.3 (always for
-    /// info). A 1.3 server has no client-scoped queryable and a server run with
-    /// `identity = "keys"` has no server-wide one, so the version decides.
-    pub(crate) fn request_key(&self, server: &str, kind: &str, timeout: Duration) -> String {
-        if CLIENT_REQUESTS.contains(&kind) && self.client_scoped(server, timeout) {
-            return self.keys.client_request(server, &self.client_id, kind);
-        }
-        self.keys.query(server, kind)
-    }
-
-    /// Whether `server` speaks 1.4 (client-scoped request keys); false when its info is not
-    /// answered (not remembered: asked again by the next request).
-    fn client_scoped(&self, server: &str, timeout: Duration) -> bool {
-        self.server_info_within(server, timeout).map(|(v, _)| v >= (1, 4)).unwrap_or(false)
-    }
-
-    /// Whether `server`'s info (version) is known.
-    fn info_known(&self, server: &str) -> bool {
-        self.servers.lock().unwrap().info.contains_key(server)
-    }
-
-    /// A waited-for request: the success map, the server's error, or `unavailable`.
-    pub(crate) fn request(&self, server: &str, kind: &str, payload: Vec<u8>) -> Result<Map> {
-        self.request_within(server, kind, payload, self.timeout)
-    }
-
-    /// A waited-for request with its own timeout.
-    pub(crate) fn request_within(&self, server: &str, kind: &str, payload: Vec<u8>, timeout: Duration) -> Result<Map> {
-        self.check_open()?;
-        self.sends.wait_for(self.sends.queued.load(Ordering::SeqCst)); // earlier unwaited requests leave first
-        let deadline = Instant::now() + timeout;
-        let mut key = self.request_key(server, kind, timeout);
-        loop {
-            let left = deadline.saturating_duration_since(Instant::now()).max(Duration::from_millis(10));
-            let started = Instant::now();
-            let replies = self.session.get(&key).payload(payload.clone()).timeout(left).wait().map_err(|e| zerr(&key, e))?;
-            if let Ok(r) = replies.recv() {
-                return reply_result(&key, r);
-            }
-            // No reply at all: the queryable is not known yet (connecting) -> retry until the deadline.
-            if Instant::now() + Duration::from_millis(50) < deadline && started.elapsed() < left / 2 {
-                std::thread::sleep(Duration::from_millis(50));
-                if CLIENT_REQUESTS.contains(&kind) && !self.info_known(server) {
-                    // its info went unanswered too: ask again which keys it has
-                    key = self.request_key(server, kind, deadline.saturating_duration_since(Instant::now()).max(Duration::from_millis(10)));
-                }
-                continue;
-            }
-            return Err(Error::new(ErrorCode::Unavailable, format!("no reply from {key} within {timeout:?}")));
-        }
-    }
-
-    /// A request not waited for: failures become [`Event::RequestFailed`]; `on_ok` gets a
-    /// success map (on a Zenoh thread).
-    /// `watch`: the cloth (and its id then) whose `not_found` answer means it was reclaimed.
-    pub(crate) fn send(self: &Arc<Self>, server: &str, kind: &str, payload: Vec<u8>, handle: Option<u64>,
-                       on_ok: Option<OnOk>,
-                       watch: Option<(std::sync::Weak<cloth::ClothInner>, String)>) -> Result<()> {
-        self.send_request(server, kind, payload, handle, on_ok, watch, 0)
-    }
-
-    /// [`Inner::send`] with the request number of an asynchronous control (0: none), carried
-    /// by its failure event.
-    #[allow(clippy::too_many_arguments)]
-    pub(crate) fn send_request(self: &Arc<Self>, server: &str, kind: &str, payload: Vec<u8>, handle: Option<u64>,
-                       on_ok: Option<OnOk>,
-                       watch: Option<(std::sync::Weak<cloth::ClothInner>, String)>, request: u64) -> Result<()> {
-        self.check_open()?;
-        let key = self.request_key(server, kind, self.timeout);
-        struct Done {
-            inner: std::sync::Weak<Inner>,
-            answered: AtomicBool,
-            key: String,
-            handle: Option<u64>,
-            cloth: String,
-            request: u64,
-        }
-        impl Drop for Done {
-            fn drop(&mut self) {
-                if !self.answered.load(Ordering::SeqCst) {
-                    if let Some(i) = self.inner.upgrade() {
-                        let error = Error::new(ErrorCode::Unavailable, format!("no reply from {}", self.key));
-                        i.push_event(Event::RequestFailed { handle: self.handle, cloth: self.cloth.clone(), request: self.request, error });
-                    }
-                }
-            }
-        }
-        let cloth = watch.as_ref().map(|w| w.1.clone()).unwrap_or_default();
-        let done = Done { inner: Arc::downgrade(self), answered: AtomicBool::new(false), key: key.clone(), handle, cloth, request };
-        let (session, timeout) = (self.session.clone(), self.timeout);
-        let job = move || {
-            // an error here drops the callback unanswered: its Done reports the request failed
-            let _ = session
-                .get(&key)
-                .payload(payload)
-                .timeout(timeout)
-                .callback(move |r| {
-                    done.answered.store(true, Ordering::SeqCst);
-                    let Some(inner) = done.inner.upgrade() else { return };
-                    match reply_result(&done.key, r) {
-                        Ok(m) => {
-                            if let Some(f) = &on_ok {
-                                f(&inner, m)
-                            }
-                        }
-                        Err(error) => {
-                            if let (ErrorCode::NotFound, Some((c, id))) = (error.code, &watch) {
-                                if let Some(c) = c.upgrade() {
-                                    failover::cloth_not_found(&inner, &c, id);
-                                }
-                            }
-                            inner.push_event(Event::RequestFailed { handle: done.handle, cloth: done.cloth.clone(), request: done.request, error })
-                        }
-                    }
-                })
-                .wait();
-        };
-        self.sends.queued.fetch_add(1, Ordering::SeqCst);
-        self.sender.send(Box::new(job)).map_err(|_| {
-            self.sends.queued.fetch_sub(1, Ordering::SeqCst);
-            Error::new(ErrorCode::Closed, "the client is closed")
-        })
-    }
-
-    /// Submit `c`'s stored request to `server` and start receiving its states.
-    /// `resume` (1.3, failover): the state it continues from.
-    pub(crate) fn place(self: &Arc<Self>, c: &Arc<cloth::ClothInner>, server: &str, resume: Option<Resume>) -> Result<SubmitReply> {
-        self.check_open()?;
-        let bundled = c.submit.state.and_then(|s| s.bundle).unwrap_or(false);
-        if bundled {
-            self.ensure_bundle_sub()?;
-            self.reg.lock().unwrap().pending_bundled += 1;
-        }
-        let mut req = c.submit.clone();
-        req.rid = self.next_rid();
-        req.resume = resume;
-        let ticket = self.placement.placing(server, c.n_vertices as u64); // counted there until its next stats
-        let res = self.request(server, "submit", req.encode()).and_then(|m| SubmitReply::from_map(&m));
-        self.placement.placed(ticket, res.is_ok());
-        let out = res.and_then(|rep| recv::attach(self, c, server, rep.clone()).map(|_| rep));
-        if bundled {
-            let mut reg = self.reg.lock().unwrap();
-            reg.pending_bundled -= 1;
-            if reg.pending_bundled == 0 {
-                reg.orphans.clear();
-            }
-        }
-        out
-    }
-
-    fn ensure_bundle_sub(self: &Arc<Self>) -> Result<()> {
-        let mut b = self.bundle_sub.lock().unwrap();
-        if b.is_none() {
-            let weak = Arc::downgrade(self);
-            let sub = self
-                .session
-                .declare_subscriber(self.keys.bundle(&self.client_id))
-                .callback(move |s| {
-                    if let Some(inner) = weak.upgrade() {
-                        recv::on_bundle(&inner, s.payload().clone());
-                    }
-                })
-                .wait()
-                .map_err(|e| zerr("bundle subscriber", e))?;
-            *b = Some(sub);
-        }
-        Ok(())
-    }
-
-    /// Refuse a control that uses 1.2 fields (`features_add` / `features_remove`) toward a
-    /// server older than 1.2, which would ignore them silently (PROTOCOL.md section 5.2).
-    pub(crate) fn check_version(&self, server: &str, ctl: &Control) -> Result<()> {
-        let needs_1_5 = ctl.state.is_some_and(|s| s.needs_1_5());
-        if !ctl.needs_1_2() && !needs_1_5 {
-            return Ok(());
-        }
-        let ((ma, mi), _) = self.server_info(server)?;
-        if needs_1_5 && (ma, mi) < (1, 5) {
-            return Err(Error::new(
-                ErrorCode::InvalidValue,
-                format!("the predictive encoding and state.step need a protocol 1.5 server; server {server} speaks {ma}.{mi}"),
-            ));
-        }
-        if !ctl.needs_1_2() {
-            return Ok(());
-        }
-        if (ma, mi) < (1, 2) {
-            return Err(Error::new(
-                ErrorCode::InvalidValue,
-                format!("features_add / features_remove need a protocol 1.2 server; server {server} speaks {ma}.{mi} \
-                         (it would ignore them): send the whole set with `features` instead"),
-            ));
-        }
-        Ok(())
-    }
-
-    /// A control of one cloth (waited for: the tick it applies from and, 1.2, the cloth's
-    /// features). The features a reply reports are kept on the cloth, waited for or not.
-    pub(crate) fn control(self: &Arc<Self>, c: &Arc<cloth::ClothInner>, mut ctl: Control, wait: bool) -> Result<Option<Applied>> {
-        let (server, id, token, n) = c.owner()?;
-        ctl.cloth = id;
-        ctl.token = token;
-        ctl.validate(&self.limits(&server), Some(n))?;
-        self.check_version(&server, &ctl)?;
-        let payload = ctl.encode(self.next_rid());
-        c.note_sent(&ctl);
-        if wait {
-            let m = match self.request(&server, "control", payload) {
-                Err(e) if e.code == ErrorCode::NotFound => {
-                    failover::cloth_not_found(self, c, &ctl.cloth);
-                    return Err(e);
-                }
-                r => r?,
-            };
-            let a = Applied::from_map(&m)?;
-            c.note_applied(&a);
-            return Ok(Some(a));
-        }
-        let weak = Arc::downgrade(c);
-        let on_ok = move |_: &Arc<Inner>, m: Map| {
-            if let (Some(c), Ok(a)) = (weak.upgrade(), Applied::from_map(&m)) {
-                c.note_applied(&a);
-            }
-        };
-        let watch = Some((Arc::downgrade(c), ctl.cloth.clone()));
-        self.send(&server, "control", payload, Some(c.handle), Some(Box::new(on_ok)), watch)?;
-        Ok(None)
-    }
-}
-
-impl Inner {
-    /// A control sent without waiting whose outcome is an event: [`Event::RequestDone`] or
-    /// [`Event::RequestFailed`], both with `request` (returned here). Never waits on the network:
-    /// when the cloth's server's info (limits, keys) is not known yet, the control is validated
-    /// and sent from a thread of its own.
-    pub(crate) fn control_async(self: &Arc<Self>, c: &Arc<cloth::ClothInner>, mut ctl: Control) -> Result<u64> {
-        let (server, id, token, n) = c.owner()?;
-        ctl.cloth = id;
-        ctl.token = token;
-        let request = self.next_rid();
-        if self.info_known(&server) {
-            self.send_control(c, ctl, request, &server, n)?;
-        } else {
-            let (inner, c) = (self.clone(), c.clone());
-            std::thread::spawn(move || {
-                let cloth = ctl.cloth.clone();
-                if let Err(error) = inner.send_control(&c, ctl, request, &server, n) {
-                    inner.push_event(Event::RequestFailed { handle: Some(c.handle), cloth, request, error });
-                }
-            });
-        }
-        Ok(request)
-    }
-
-    fn send_control(self: &Arc<Self>, c: &Arc<cloth::ClothInner>, ctl: Control, request: u64, server: &str, n: u32) -> Result<()> {
-        ctl.validate(&self.limits(server), Some(n))?;
-        self.check_version(server, &ctl)?;
-        let payload = ctl.encode(request);
-        c.note_sent(&ctl);
-        let (weak, handle, id) = (Arc::downgrade(c), c.handle, ctl.cloth.clone());
-        let on_ok = move |inner: &Arc<Inner>, m: Map| match Applied::from_map(&m) {
-            Ok(a) => {
-                if let Some(c) = weak.upgrade() {
-                    c.note_applied(&a);
-                }
-                inner.push_event(Event::RequestDone { request, handle, cloth: id.clone(), tick: a.tick, features: a.features });
-            }
-            Err(error) => inner.push_event(Event::RequestFailed { handle: Some(handle), cloth: id.clone(), request, error }),
-        };
-        let watch = Some((Arc::downgrade(c), ctl.cloth.clone()));
-        self.send_request(server, "control", payload, Some(handle), Some(Box::new(on_ok)), watch, request)
-    }
-}
-
-/// A reply's outcome: an `ok` map, the server's error, or `unavailable` for Zenoh's own errors.
-fn reply_result(key: &str, r: zenoh::query::Reply) -> Result<Map> {
-    match r.result() {
-        Ok(sample) => decode_reply(&sample.payload().to_bytes()),
-        Err(e) => {
-            let data = e.payload().to_bytes();
-            match decode_reply(&data) {
-                Err(err) if err.code != ErrorCode::Malformed => Err(err),
-                Ok(_) => Err(Error::new(ErrorCode::Unavailable, format!("{key}: error reply without an error"))),
-                Err(_) => Err(Error::new(ErrorCode::Unavailable, format!("{key}: {}", String::from_utf8_lossy(&data[..data.len().min(80)])))),
-            }
-        }
-    }
 }
 
 /// The environment variable giving this client's id (PROTOCOL.md 11.2), as the Python SDK reads it.

@@ -78,10 +78,10 @@ pub(crate) fn now_ns() -> u64 {
 /// order; one predicted from a state this client lacks is counted (`undecodable`) and not
 /// shown: then the key to ask a keyframe on is returned ([`deliver_and_ask`] asks).
 pub(crate) fn deliver(c: &ClothInner, l: Latest) -> Option<String> {
-    let head = l.buf.with(|d| parse_state(&d[l.off..l.off + l.len]).map(|h| (h.tick, h.encoding)));
+    let head = l.buf.with(|d| parse_state(&d[l.off..l.off + l.len]).map(|h| (h.tick, h.encoding, h.server_time_ns)));
     // (state, decoded from a predictive one: whether a keyframe, a gap)
     let (l, decoded, gap) = match head {
-        Ok((tick, Encoding::Predictive)) => match c.pred.lock().unwrap().decode(&l, tick) {
+        Ok((tick, Encoding::Predictive, _)) => match c.pred.lock().unwrap().decode(&l, tick) {
             Outcome::Decoded(d, keyframe) => (d, Some(keyframe), false),
             Outcome::Stale => (l, None, false), // counted as stale below
             Outcome::Gap => (l, None, true),
@@ -93,7 +93,7 @@ pub(crate) fn deliver(c: &ClothInner, l: Latest) -> Option<String> {
         _ => (l, None, false),
     };
     let mut s = c.slot.lock().unwrap();
-    let Ok((tick, _)) = head else {
+    let Ok((tick, _, server_time_ns)) = head else {
         s.counters.invalid += 1;
         return None;
     };
@@ -126,6 +126,7 @@ pub(crate) fn deliver(c: &ClothInner, l: Latest) -> Option<String> {
         s.unread.pop_front();
         s.counters.replaced += 1; // never read
     }
+    s.clock.observe(l.receive_time_ns, server_time_ns);
     s.unread.push_back(l.clone());
     s.prev = s.latest.replace(l); // the last two states: references, nothing copied
     s.last_receipt = std::time::Instant::now();

@@ -416,6 +416,55 @@ pub unsafe extern "C" fn drape_cloth_read_latest(cloth: *const DrapeCloth, posit
     read(cloth, positions, positions_len, normals, normals_len, info, How::Latest)
 }
 
+/// The positions to draw at render time `now_ns` (this client's clock: Unix ns, as
+/// `DrapeStateInfo.receive_time_ns`; 0: now) into `positions` (`positions_len` FLOATS, at least
+/// `3 * drape_cloth_vertex_count`): the last two states received interpolated `delay_ns` behind
+/// the newest (negative: one tick, the time between the two states), so that a renderer faster
+/// than the server (144 Hz against 60) moves the cloth every frame, at the cost of that delay;
+/// `extrapolate`: carried past the newest state instead (no delay; up to one state interval,
+/// overshooting where the motion turns). Render times are mapped onto the server's clock by
+/// `drape_cloth_clock_offset`. Returns DRAPE_OK, DRAPE_NO_DATA before the first state (nothing
+/// written), or an error as `drape_cloth_read_state`. The newest state alone while there is
+/// one. Takes nothing from the state queue (the reads and counters are unchanged); each state is
+/// decoded once however many frames sample it. Never blocks. (The Python SDK's
+/// `ClothHandle.sample`.)
+#[no_mangle]
+pub unsafe extern "C" fn drape_cloth_sample(cloth: *const DrapeCloth, now_ns: u64, delay_ns: i64, extrapolate: bool,
+                                            positions: *mut f32, positions_len: usize) -> i32 {
+    guard(|| {
+        let Some(c) = cloth.as_ref() else { return bad("cloth is NULL") };
+        if positions.is_null() {
+            return bad("positions is NULL");
+        }
+        let pos = std::slice::from_raw_parts_mut(positions, positions_len);
+        let now = (now_ns != 0).then_some(now_ns);
+        let delay = u64::try_from(delay_ns).ok().map(Duration::from_nanos);
+        match c.cloth.sample(now, delay, extrapolate, pos) {
+            Ok(true) => DRAPE_OK,
+            Ok(false) => DRAPE_NO_DATA,
+            Err(e) => fail(e),
+        }
+    })
+}
+
+/// This client's clock minus the server's as the cloth's states measure it (the smallest
+/// `receive_time_ns - server_time_ns` of its last 120 states: the clock offset plus the
+/// network's shortest delay) into `*offset_ns`: a render time `t` is server time
+/// `t - offset_ns`. DRAPE_OK, or DRAPE_NO_DATA before the first state.
+#[no_mangle]
+pub unsafe extern "C" fn drape_cloth_clock_offset(cloth: *const DrapeCloth, offset_ns: *mut i64) -> i32 {
+    guard(|| {
+        let (Some(c), Some(o)) = (cloth.as_ref(), offset_ns.as_mut()) else { return bad("cloth or offset_ns is NULL") };
+        match c.cloth.clock_offset_ns() {
+            Some(v) => {
+                *o = v;
+                DRAPE_OK
+            }
+            None => DRAPE_NO_DATA,
+        }
+    })
+}
+
 /// What became of a cloth's states (`drape_cloth_counters`). Every tick from the first state
 /// received (per placement) to the newest is counted once:
 /// `read + replaced + missed + unread == ticks`, and `received == read + replaced + unread`.

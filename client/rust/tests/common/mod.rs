@@ -99,6 +99,24 @@ pub fn connect(servers: &[&Server], server_id: Option<&str>, failover: bool) -> 
     client
 }
 
+/// C ABI client options: the endpoints `connect` (comma-separated), the server `server_id`
+/// (None: placement by load), the client id `client_id` (None: `$DRAPE_CLIENT_ID` or random), the
+/// default namespace, `timeout_ms`, failover off when `no_failover`, not lazy. The strings must
+/// outlive the options.
+pub fn c_client_options(connect: &std::ffi::CStr, server_id: Option<&std::ffi::CStr>, client_id: Option<&std::ffi::CStr>,
+                        timeout_ms: u32, no_failover: bool) -> drape::ffi::DrapeClientOptions {
+    let ptr = |s: Option<&std::ffi::CStr>| s.map_or(std::ptr::null(), |s| s.as_ptr());
+    drape::ffi::DrapeClientOptions {
+        connect: connect.as_ptr(),
+        server_id: ptr(server_id),
+        client_id: ptr(client_id),
+        namespace_: std::ptr::null(),
+        timeout_ms,
+        no_failover,
+        lazy: false,
+    }
+}
+
 /// C ABI submission options pinning `pins`: float32, no bundle, server defaults for the rest.
 pub fn c_cloth_options(pins: &[u32], normals: bool) -> drape::ffi::DrapeClothOptions {
     drape::ffi::DrapeClothOptions {

@@ -324,6 +324,36 @@ namespace Drape
             throw DrapeException.Last(rc, "drape_cloth_read_state");
         }
 
+        /// The positions to draw now (`nowNs` 0; else a render time on this client's clock, Unix
+        /// ns) into `positions` (3 floats per vertex): the last two states interpolated `delayNs`
+        /// behind the newest (negative: one tick), so that a renderer faster than the server moves
+        /// the cloth every frame at the cost of that delay; `extrapolate`: carried past the newest
+        /// state instead (no delay, overshoots where the motion turns). False before the first
+        /// state. Takes nothing from the state queue. Never blocks; no allocation.
+        public bool Sample(Span<float> positions, bool extrapolate = false, long delayNs = -1, ulong nowNs = 0)
+        {
+            int rc;
+            fixed (float* p = positions)
+                rc = Native.drape_cloth_sample(Handle, nowNs, delayNs, extrapolate ? (byte)1 : (byte)0, p, (UIntPtr)positions.Length);
+            if (rc == Native.OK) return true;
+            if (rc == Native.NO_DATA) return false;
+            throw DrapeException.Last(rc, "drape_cloth_sample");
+        }
+
+        /// This client's clock minus the server's as the cloth's states measure it (ns), or null
+        /// before the first state: what `Sample` maps render times by.
+        public long? ClockOffsetNs
+        {
+            get
+            {
+                long o;
+                int rc = Native.drape_cloth_clock_offset(Handle, &o);
+                if (rc == Native.OK) return o;
+                if (rc == Native.NO_DATA) return null;
+                throw DrapeException.Last(rc, "drape_cloth_clock_offset");
+            }
+        }
+
         public Native.DrapeStateCounters Counters
         {
             get

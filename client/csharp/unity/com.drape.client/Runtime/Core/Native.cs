@@ -183,6 +183,9 @@ namespace Drape
                                                                         float* normals, UIntPtr normals_len, DrapeStateInfo* info);
         [DllImport(Lib)] public static extern int drape_cloth_read_latest(IntPtr cloth, float* positions, UIntPtr positions_len,
                                                                          float* normals, UIntPtr normals_len, DrapeStateInfo* info);
+        [DllImport(Lib)] public static extern int drape_cloth_sample(IntPtr cloth, ulong now_ns, long delay_ns, byte extrapolate,
+                                                                    float* positions, UIntPtr positions_len);
+        [DllImport(Lib)] public static extern int drape_cloth_clock_offset(IntPtr cloth, long* offset_ns);
         [DllImport(Lib)] public static extern int drape_cloth_counters(IntPtr cloth, DrapeStateCounters* counters);
         [DllImport(Lib)] public static extern int drape_cloth_control(IntPtr cloth, DrapeControl* control, ulong* tick, uint* features);
         [DllImport(Lib)] public static extern int drape_cloth_control_async(IntPtr cloth, DrapeControl* control, ulong* request);

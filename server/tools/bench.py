@@ -261,8 +261,8 @@ def bench_scenes(device, scenes: int, per_scene: int, frames, max_seconds, step:
             w.add(fab, p, positions=fab.rest_positions + shift, scene=f"crowd-{s}" if label == "scenes" else None)
         add_ms = (time.perf_counter() - t0) * 1e3 / len(places)
         t = time_frames(w, warmup=2, frames=frames, max_seconds=max_seconds)
-        extra = {"features": label, "scenes": scenes if label == "scenes" else 0, "per_scene": per_scene}
-        extra["add_ms"] = round(add_ms, 4)
+        extra: dict[str, object] = {"features": label, "scenes": scenes if label == "scenes" else 0}
+        extra.update(per_scene=per_scene, add_ms=round(add_ms, 4))
         out.append(_record("scenes", "workgroup", w, [(fab, p)] * len(places), t, extra))
         w.close()
     for r in out:

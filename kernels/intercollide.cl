@@ -134,11 +134,12 @@ inline float3 ic_push(float4 x, int k, float2 pk, float4 xu, int ku, float2 pu)
 }
 
 /* Walks the hash's 2 x 2 x 2 cells around vertex t's start position x0: with list != 0 lists its
- * candidates (count returned, IC_LIST at most stored), else sums its contacts at positions x. */
+ * candidates (count returned, IC_LIST at most stored, every nv-th int: candidate i of every vertex
+ * side by side, so that a pass's work-items read them coalesced), else sums its contacts at x. */
 inline int ic_walk(int t, int k, int scene, float2 pk, float4 x0, __global const float4 *xs0,
                    __global const int *vcl, __global const int8 *cinfo, __global const float2 *cpar,
                    __global const int *heads, __global const int *next, float inv, uint mask,
-                   __global int *list, __global const float4 *x, float3 *corr)
+                   __global int *list, int nv, __global const float4 *x, float3 *corr)
 {
     const int3 c0 = convert_int3_sat_rtn(x0.xyz * inv - 0.5f);
     int seen[8];
@@ -163,7 +164,7 @@ inline int ic_walk(int t, int k, int scene, float2 pk, float4 x0, __global const
                         const float3 df = x0.xyz - xs0[u].xyz;
                         if (dot(df, df) < r * r) {
                             if (count < IC_LIST)
-                                list[count] = u;
+                                list[(long)count * nv] = u;
                             ++count;
                         }
                     } else {
@@ -189,8 +190,8 @@ __kernel void ic_find(__global const float4 *xs0, __global const int *vcl, __glo
     const float4 x0 = xs0[t];
     int c = 0;
     if (active[k] && x0.w > 0.0f)
-        c = ic_walk(t, k, cinfo[k].s2, cpar[k], x0, xs0, vcl, cinfo, cpar, heads, next, inv, mask,
-                    nbr + (long)t * IC_LIST, xs0, 0);
+        c = ic_walk(t, k, cinfo[k].s2, cpar[k], x0, xs0, vcl, cinfo, cpar, heads, next, inv, mask, nbr + t, nv,
+                    xs0, 0);
     count[t] = c;
 }
 
@@ -209,13 +210,12 @@ __kernel void ic_pass(__global const float4 *xs0, __global const float4 *xin, __
         const int k = vcl[t];
         const float2 pk = cpar[k];
         if (c <= IC_LIST) {
-            __global const int *list = nbr + (long)t * IC_LIST;
             for (int i = 0; i < c; ++i) {
-                const int u = list[i], ku = vcl[u];
+                const int u = nbr[(long)i * nv + t], ku = vcl[u];
                 corr += ic_push(x, k, pk, xin[u], ku, cpar[ku]);
             }
         } else {
-            ic_walk(t, k, cinfo[k].s2, pk, xs0[t], xs0, vcl, cinfo, cpar, heads, next, inv, mask, 0, xin, &corr);
+            ic_walk(t, k, cinfo[k].s2, pk, xs0[t], xs0, vcl, cinfo, cpar, heads, next, inv, mask, 0, nv, xin, &corr);
         }
     }
     xout[t] = (float4)(x.xyz + corr, x.w);

@@ -197,3 +197,21 @@ def test_vertices_with_more_candidates_than_listed_follow_the_reference(device):
             assert np.abs(x - rx).max() < 3e-4 + 2 * np.abs(fx - rx).max()
     sc = dev.scene_collision
     assert sc._count.read(0, sc.n_vertices)[:, 0].max() > IC_LIST
+
+
+def test_a_step_is_the_same_launches_whatever_the_scenes(device):
+    """The scenes' step enqueues INTER_COLLISION_PASSES + 5 kernels whose arguments were set when
+    the tables changed, for 2 scenes as for 6 (no launch, and no Python, per scene or cloth)."""
+    from drape.server.sim.scenes import INTER_COLLISION_PASSES
+
+    fab = cook_grid(5, 5, 0.2, 0.2, pinned=[0, 4])
+    counts = []
+    for scenes in (2, 6):
+        w = CLWorld("workgroup", device=device, pack_lanes=0)
+        for s in range(scenes):
+            for j in range(3):
+                w.add(fab, params(), positions=fab.rest_positions + [0.05 * j, 0.0, 5.0 * s], scene=f"s{s}")
+        w.step(DT)
+        counts.append(len(w.scene_collision._launches))
+        w.close()
+    assert counts == [INTER_COLLISION_PASSES + 5] * 2

@@ -28,7 +28,8 @@
  *                they coincide), and writes its moved position
  *   ic_finish    every vertex's last position into the World's positions, the displacement / dt
  *                added to its velocity; the bucket heads cleared for the next step
- * Eleven launches a step whatever the number of scenes and cloths, their arguments set once.
+ * INTER_COLLISION_PASSES + 5 launches a step (13) whatever the number of scenes and cloths, their
+ * arguments set once (ic_clear: every bucket head -1, once when the tables are rebuilt).
  */
 
 #ifndef INTER_COLLISION_PASSES

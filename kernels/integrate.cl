@@ -26,6 +26,28 @@ inline float4 predict_vertex(float4 x, __global float4 *vel, __global float4 *pr
     return x;
 }
 
+/* a vertex's velocity from its position x and its substep's start xp, damped (finish_vertex's last
+ * step; a solver with self-collision takes it again after the passes that follow finish_vertex) */
+inline float4 vertex_velocity(float4 x, float4 xp, float h, __global const float *F)
+{
+    return (float4)((x.xyz - xp.xyz) / h * (1.0f - F[CF_DAMP_SUB]), 0.0f);
+}
+
+/* after self-collision's passes (which follow finish_vertex): out of the colliders again at their
+ * end pose, without friction (a pass may push a vertex into one), and the velocity again */
+inline float4 refinish_vertex(float4 x, __global const int *I, __global const float *F, __global float4 *vel,
+                              __global const float4 *prev, __global const float4 *coll, int gv, float h, int s, int S)
+{
+#if FEATURE_COLLIDERS
+    if (x.w > 0.0f) {
+        const float t1 = (float)(s + 1) / (float)S;
+        x.xyz = collide_vertex(x.xyz, x.xyz, coll, I[CI_COLL], I[CI_NCOLL], t1, t1, 0.0f);
+    }
+#endif
+    vel[gv] = vertex_velocity(x, prev[gv], h, F);
+    return x;
+}
+
 /* tethers (where the solver applies them after the links: tethers = 1), colliders, velocity from
  * positions */
 inline float4 finish_vertex(float4 x, XS const float4 *X, __global const int *fb, __global const int *I,
@@ -43,6 +65,6 @@ inline float4 finish_vertex(float4 x, XS const float4 *X, __global const int *fb
                                (float)(s + 1) / (float)S, F[CF_FRICTION]);
 #endif
     }
-    vel[gv] = (float4)((x.xyz - xp.xyz) / h * (1.0f - F[CF_DAMP_SUB]), 0.0f);
+    vel[gv] = vertex_velocity(x, xp, h, F);
     return x;
 }

@@ -10,18 +10,26 @@
  * first cloth of its scene, cloths of its scene, -, -, -) and cpar[k] = (thickness x
  * INTER_COLLISION_MARGIN, stiffness): the thickness the solve keeps.
  *
- *   INTER_COLLISION_PASSES passes of
- *   ic_bounds    one work-group per cloth: its box grown by half its thickness (the broad phase)
+ * Once per step (the contacts are found once, at the step's positions, and iterated):
+ *   ic_bounds    one work-group per cloth: its box grown by half its thickness x IC_REACH
  *   ic_active    per cloth: whether its box meets another box of its scene (else it takes no part)
- *   ic_clear     the spatial hash's bucket heads
- *   ic_insert    every vertex of an active cloth into the bucket of (its cell, its scene): cells
- *                of edge 2 dmax (dmax the largest contact distance of the World), one linked
- *                list per bucket built with one atomic exchange per vertex
- *   ic_contacts  every free vertex of an active cloth walks the 2 x 2 x 2 cells around it (each
- *                bucket once) and sums, over the vertices u of the other cloths of its scene
- *                closer than d = (th_k + th_u) / 2, k (d - |x - x_u|) w / (w + w_u) along
- *                (x - x_u) / |x - x_u| (+y for the cloth that joined first where they coincide)
- *   ic_apply     every vertex adds its sum to its position, and the sum / dt to its velocity
+ *   ic_insert    every vertex's start position into xs0 (w: inverse mass), and every vertex of an
+ *                active cloth into the bucket of (its cell, its scene): cells of edge 2 IC_REACH
+ *                dmax (dmax the largest contact distance of the World), one linked list per
+ *                bucket built with one atomic exchange per vertex (the heads are all -1 here:
+ *                ic_finish of the step before, or the tables' rebuild, cleared them)
+ *   ic_find      every free vertex of an active cloth walks the 2 x 2 x 2 cells around it (each
+ *                bucket once) and lists the vertices of the other cloths of its scene closer than
+ *                IC_REACH x their contact distance: its candidates, IC_LIST at most in nbr (more:
+ *                its count says so, and the passes walk the hash for it instead)
+ *   INTER_COLLISION_PASSES ic_pass, from xa into xb and back (Jacobi): every free vertex sums,
+ *                over its candidates u closer than d = (th_k + th_u) / 2, k (d - |x - x_u|) w /
+ *                (w + w_u) along (x - x_u) / |x - x_u| (+y for the cloth that joined first where
+ *                they coincide), and writes its moved position
+ *   ic_finish    every vertex's last position into the World's positions, the displacement / dt
+ *                added to its velocity; the bucket heads cleared for the next step
+ * INTER_COLLISION_PASSES + 5 launches a step (13) whatever the number of scenes and cloths, their
+ * arguments set once (ic_clear: every bucket head -1, once when the tables are rebuilt).
  */
 
 #ifndef INTER_COLLISION_PASSES
@@ -29,6 +37,12 @@
 #endif
 #ifndef IC_LS
 #define IC_LS 64 /* work-items of ic_bounds' groups: a power of 2 */
+#endif
+#ifndef IC_REACH
+#define IC_REACH 1.5f /* candidates: pairs closer than IC_REACH x their contact distance at the step's start */
+#endif
+#ifndef IC_LIST
+#define IC_LIST 16 /* candidates listed per vertex (more: found again in the hash each pass) */
 #endif
 
 __kernel void ic_bounds(__global const float4 *pos, __global const int8 *cinfo, __global const float2 *cpar,
@@ -54,7 +68,7 @@ __kernel void ic_bounds(__global const float4 *pos, __global const int8 *cinfo, 
         barrier(CLK_LOCAL_MEM_FENCE);
     }
     if (lid == 0) {
-        const float g = 0.5f * cpar[k].x;
+        const float g = 0.5f * cpar[k].x * IC_REACH;
         box[2 * k] = (float4)(lo[0].xyz - g, 0.0f);
         box[2 * k + 1] = (float4)(hi[0].xyz + g, 0.0f);
     }
@@ -92,75 +106,135 @@ inline int ic_bucket(int3 c, int scene, uint mask)
 
 __kernel void ic_insert(__global const float4 *pos, __global const int *vidx, __global const int *vcl,
                         __global const int8 *cinfo, __global const int *active, __global int *heads,
-                        __global int *next, int nv, float inv, uint mask)
+                        __global int *next, __global float4 *xs0, __global float4 *xa, int nv, float inv, uint mask)
 {
     const int t = get_global_id(0);
     if (t >= nv)
         return;
     const int k = vcl[t];
+    const float4 x = pos[vidx[t]];
+    xs0[t] = x;
+    xa[t] = x;
     if (!active[k])
         return;
-    const int b = ic_bucket(convert_int3_sat_rtn(pos[vidx[t]].xyz * inv), cinfo[k].s2, mask);
+    const int b = ic_bucket(convert_int3_sat_rtn(x.xyz * inv), cinfo[k].s2, mask);
     next[t] = atomic_xchg(&heads[b], t);
 }
 
-__kernel void ic_contacts(__global const float4 *pos, __global const int *vidx, __global const int *vcl,
-                          __global const int8 *cinfo, __global const float2 *cpar, __global const int *active,
-                          __global const int *heads, __global const int *next, __global float4 *delta, int nv,
-                          float inv, uint mask)
+/* The contact of vertex t (at x, cloth k, parameters pk) with vertex u at xu (cloth ku, pu). */
+inline float3 ic_push(float4 x, int k, float2 pk, float4 xu, int ku, float2 pu)
+{
+    const float d = 0.5f * (pk.x + pu.x), st = 0.5f * (pk.y + pu.y);
+    const float3 df = x.xyz - xu.xyz;
+    const float dist2 = dot(df, df);
+    if (!(dist2 < d * d) || !(st > 0.0f))
+        return (float3)(0.0f);
+    const float dist = sqrt(dist2);
+    const float3 n = dist > 1e-12f ? df / dist : (float3)(0.0f, k < ku ? 1.0f : -1.0f, 0.0f);
+    return n * (st * (d - dist) * x.w / (x.w + xu.w));
+}
+
+/* Walks the hash's 2 x 2 x 2 cells around vertex t's start position x0: with list != 0 lists its
+ * candidates (count returned, IC_LIST at most stored, every nv-th int: candidate i of every vertex
+ * side by side, so that a pass's work-items read them coalesced), else sums its contacts at x. */
+inline int ic_walk(int t, int k, int scene, float2 pk, float4 x0, __global const float4 *xs0,
+                   __global const int *vcl, __global const int8 *cinfo, __global const float2 *cpar,
+                   __global const int *heads, __global const int *next, float inv, uint mask,
+                   __global int *list, int nv, __global const float4 *x, float3 *corr)
+{
+    const int3 c0 = convert_int3_sat_rtn(x0.xyz * inv - 0.5f);
+    int seen[8];
+    int nseen = 0, count = 0;
+    for (int dz = 0; dz < 2; ++dz)
+        for (int dy = 0; dy < 2; ++dy)
+            for (int dx = 0; dx < 2; ++dx) {
+                const int b = ic_bucket(c0 + (int3)(dx, dy, dz), scene, mask);
+                int dup = 0;
+                for (int i = 0; i < nseen; ++i)
+                    dup |= seen[i] == b;
+                if (dup)
+                    continue;
+                seen[nseen++] = b;
+                for (int u = heads[b]; u >= 0; u = next[u]) {
+                    const int ku = vcl[u];
+                    if (ku == k || cinfo[ku].s2 != scene)
+                        continue;
+                    const float2 pu = cpar[ku];
+                    if (list) {
+                        const float r = IC_REACH * 0.5f * (pk.x + pu.x);
+                        const float3 df = x0.xyz - xs0[u].xyz;
+                        if (dot(df, df) < r * r) {
+                            if (count < IC_LIST)
+                                list[(long)count * nv] = u;
+                            ++count;
+                        }
+                    } else {
+                        const float r = IC_REACH * 0.5f * (pk.x + pu.x);
+                        const float3 df = x0.xyz - xs0[u].xyz;
+                        if (dot(df, df) < r * r)
+                            *corr += ic_push(x[t], k, pk, x[u], ku, pu);
+                    }
+                }
+            }
+    return count;
+}
+
+__kernel void ic_find(__global const float4 *xs0, __global const int *vcl, __global const int8 *cinfo,
+                      __global const float2 *cpar, __global const int *active, __global const int *heads,
+                      __global const int *next, __global int *nbr, __global int *count, int nv, float inv,
+                      uint mask)
 {
     const int t = get_global_id(0);
     if (t >= nv)
         return;
     const int k = vcl[t];
-    const float4 xv = pos[vidx[t]];
-    float3 corr = (float3)(0.0f);
-    if (active[k] && xv.w > 0.0f) {
-        const int scene = cinfo[k].s2;
-        const float2 pk = cpar[k];
-        const int3 c0 = convert_int3_sat_rtn(xv.xyz * inv - 0.5f);
-        int seen[8];
-        int nseen = 0;
-        for (int dz = 0; dz < 2; ++dz)
-            for (int dy = 0; dy < 2; ++dy)
-                for (int dx = 0; dx < 2; ++dx) {
-                    const int b = ic_bucket(c0 + (int3)(dx, dy, dz), scene, mask);
-                    int dup = 0;
-                    for (int i = 0; i < nseen; ++i)
-                        dup |= seen[i] == b;
-                    if (dup)
-                        continue;
-                    seen[nseen++] = b;
-                    for (int u = heads[b]; u >= 0; u = next[u]) {
-                        const int ku = vcl[u];
-                        if (ku == k || cinfo[ku].s2 != scene)
-                            continue;
-                        const float2 pu = cpar[ku];
-                        const float d = 0.5f * (pk.x + pu.x), st = 0.5f * (pk.y + pu.y);
-                        const float4 xu = pos[vidx[u]];
-                        const float3 df = xv.xyz - xu.xyz;
-                        const float dist2 = dot(df, df);
-                        if (!(dist2 < d * d) || !(st > 0.0f))
-                            continue;
-                        const float dist = sqrt(dist2);
-                        const float3 n = dist > 1e-12f ? df / dist : (float3)(0.0f, k < ku ? 1.0f : -1.0f, 0.0f);
-                        corr += n * (st * (d - dist) * xv.w / (xv.w + xu.w));
-                    }
-                }
-    }
-    delta[t] = (float4)(corr, 0.0f);
+    const float4 x0 = xs0[t];
+    int c = 0;
+    if (active[k] && x0.w > 0.0f)
+        c = ic_walk(t, k, cinfo[k].s2, cpar[k], x0, xs0, vcl, cinfo, cpar, heads, next, inv, mask, nbr + t, nv,
+                    xs0, 0);
+    count[t] = c;
 }
 
-__kernel void ic_apply(__global float4 *pos, __global float4 *vel, __global const int *vidx,
-                       __global const float4 *delta, int nv, float inv_dt)
+__kernel void ic_pass(__global const float4 *xs0, __global const float4 *xin, __global float4 *xout,
+                      __global const int *vcl, __global const int8 *cinfo, __global const float2 *cpar,
+                      __global const int *heads, __global const int *next, __global const int *nbr,
+                      __global const int *count, int nv, float inv, uint mask)
 {
     const int t = get_global_id(0);
     if (t >= nv)
         return;
-    const float3 d = delta[t].xyz;
+    const float4 x = xin[t];
+    const int c = count[t];
+    float3 corr = (float3)(0.0f);
+    if (c > 0) {
+        const int k = vcl[t];
+        const float2 pk = cpar[k];
+        if (c <= IC_LIST) {
+            for (int i = 0; i < c; ++i) {
+                const int u = nbr[(long)i * nv + t], ku = vcl[u];
+                corr += ic_push(x, k, pk, xin[u], ku, cpar[ku]);
+            }
+        } else {
+            ic_walk(t, k, cinfo[k].s2, pk, xs0[t], xs0, vcl, cinfo, cpar, heads, next, inv, mask, 0, nv, xin, &corr);
+        }
+    }
+    xout[t] = (float4)(x.xyz + corr, x.w);
+}
+
+__kernel void ic_finish(__global float4 *pos, __global float4 *vel, __global const int *vidx,
+                        __global const float4 *xs0, __global const float4 *x, __global int *heads, int nv, int nb,
+                        float inv_dt)
+{
+    const int t = get_global_id(0);
+    for (int b = t; b < nb; b += nv)
+        heads[b] = -1;
+    if (t >= nv)
+        return;
+    const float3 d = x[t].xyz - xs0[t].xyz;
     if (d.x != 0.0f || d.y != 0.0f || d.z != 0.0f) {
         const int g = vidx[t];
-        pos[g].xyz += d;
+        pos[g].xyz = x[t].xyz;
         vel[g].xyz += d * inv_dt;
     }
 }

@@ -434,22 +434,28 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
             }
             continue;
         }
-        /* per lane: out of the lanes, then [self-collision,] colliders, velocities on global memory */
+        /* per lane: out of the lanes, then colliders, velocities[, self-collision] on global memory */
         for (int j = 0; j < PACK_LANES; ++j) {
             LANE_CLOTH(j)
             for (int v = 0; v < nv; ++v)
                 X[v].xyz = lane_get3(sxf, v, j);
-#if FEATURE_SELF_COLLISION /* one work-item: its barriers are trivially uniform */
-            self_collide(X, vel + vbase, (__global int *)(nrm + vbase), fb + I[CI_OFF_REST], nv, F[CF_THICKNESS],
-                         F[CF_CONTACT_STIFFNESS], 0, 1);
-#endif
             for (int v = 0; v < nv; ++v) {
                 const float4 x = finish_vertex(X[v], X, fb, I, F, vel, prev, coll, v, vbase + v, h, s, S, 1);
                 X[v] = x;
-#if FEATURE_WIND || FEATURE_NORMALS
+#if (FEATURE_WIND || FEATURE_NORMALS) && !FEATURE_SELF_COLLISION
                 lane_put3(sxf, v, j, x.xyz); /* the normals read the lanes */
 #endif
             }
+#if FEATURE_SELF_COLLISION /* after the colliders' friction; one work-item: its barriers are trivially uniform */
+            self_collide(X, vel + vbase, (__global int *)(nrm + vbase), fb + I[CI_OFF_REST], nv, F[CF_THICKNESS],
+                         F[CF_CONTACT_STIFFNESS], 0, 1);
+            for (int v = 0; v < nv; ++v) {
+                X[v] = refinish_vertex(X[v], I, F, vel, prev, coll, vbase + v, h, s, S);
+#if FEATURE_WIND || FEATURE_NORMALS
+                lane_put3(sxf, v, j, X[v].xyz); /* the normals read the lanes */
+#endif
+            }
+#endif
         }
     }
     if (vec) /* positions and velocities back to global memory, once per step */

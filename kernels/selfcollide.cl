@@ -1,8 +1,11 @@
 /* Self-collision (FEATURE_SELF_COLLISION, protocol 1.6): every vertex keeps the material's
  * thickness th from the cloth's other vertices that are further apart than th at rest (closer
  * ones are the cloth's own neighbourhood and never collide; NvCloth's rule). Called once per
- * substep after the link iterations by every work-item of the cloth's work-group: wg_step's, or
- * cl_self_collide's (below: the coloured and Jacobi solvers, one work-group per cloth).
+ * substep after the link iterations, tethers and colliders (finish_vertex: the colliders' friction
+ * would take back the separation it makes), by every work-item of the cloth's work-group: wg_step's,
+ * or cl_self_collide's (below: the coloured and Jacobi solvers, one work-group per cloth); the
+ * caller then puts every vertex out of the colliders again and takes its velocity again
+ * (integrate.cl's refinish_vertex).
  *
  * Each of SELF_COLLISION_PASSES passes rebuilds a spatial hash of the cloth and projects every
  * contact as a position constraint, Jacobi style (the same sums as
@@ -14,8 +17,8 @@
  *          |x_v - x_u| < th and |rest_v - rest_u| > th, and v moves by k (th - |d|) w_v / (w_v + w_u)
  *          along d / |d| (the rest-pose direction where the two coincide), summed in the xyz of S
  *   apply  every free vertex adds its sum
- * Scratch, no buffer of its own: S is the cloth's rows of the velocity buffer (predict_vertex
- * wrote them, finish_vertex overwrites every one, nothing reads them between), `heads` its rows
+ * Scratch, no buffer of its own: S is the cloth's rows of the velocity buffer (finish_vertex wrote
+ * them, the caller overwrites every one after the passes, nothing reads them between), `heads` its rows
  * of the normals buffer (written before they are read: by the wind at each substep's start, by
  * the normals at the step's end; a cloth without either publishes none).
  * Included by cloth.cl. */
@@ -94,16 +97,22 @@ inline void self_collide(XS float4 *X, __global float4 *S, __global int *heads, 
 
 #if !USE_LOCAL
 /* The coloured and Jacobi solvers' self-collision: one work-group per cloth of the group (its
- * cloth list), launched between their link iterations and cl_finish, on global memory. */
-__kernel void cl_self_collide(__global const int *cloths, __global const int *ci, __global const float *cf,
-                              __global const int *fab, __global float4 *pos, __global float4 *vel,
-                              __global float4 *nrm)
+ * cloth list), launched after cl_finish (after the colliders' friction, which would take back its
+ * separation), on global memory; then refinish_vertex, as the other solvers. */
+__kernel void cl_self_collide(const float dt, const int s, __global const int *cloths, __global const int *ci,
+                              __global const float *cf, __global const int *fab, __global float4 *pos,
+                              __global float4 *vel, __global float4 *nrm, __global const float4 *prev,
+                              __global const float4 *coll)
 {
     const int c = cloths[get_group_id(0)];
     __global const int *I = ci + c * CI_STRIDE;
     __global const float *F = cf + c * CF_STRIDE;
-    const int vbase = I[CI_VBASE];
-    self_collide(pos + vbase, vel + vbase, (__global int *)(nrm + vbase), fab + I[CI_FAB] + I[CI_OFF_REST],
-                 I[CI_NVERTS], F[CF_THICKNESS], F[CF_CONTACT_STIFFNESS], get_local_id(0), get_local_size(0));
+    const int vbase = I[CI_VBASE], nv = I[CI_NVERTS], lid = get_local_id(0), ls = get_local_size(0);
+    const int S = I[CI_SUBSTEPS];
+    const float h = dt / (float)S;
+    self_collide(pos + vbase, vel + vbase, (__global int *)(nrm + vbase), fab + I[CI_FAB] + I[CI_OFF_REST], nv,
+                 F[CF_THICKNESS], F[CF_CONTACT_STIFFNESS], lid, ls);
+    for (int v = lid; v < nv; v += ls)
+        pos[vbase + v] = refinish_vertex(pos[vbase + v], I, F, vel, prev, coll, vbase + v, h, s, S);
 }
 #endif

@@ -120,14 +120,16 @@ __kernel void wg_step(const float dt, __global const int *cloths, __global const
                 barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
             }
         }
-#if FEATURE_SELF_COLLISION
-        self_collide(X, vel + vbase, (__global int *)(nrm + vbase), rest, nv, F[CF_THICKNESS],
-                     F[CF_CONTACT_STIFFNESS], lid, ls);
-#endif
-
         for (int v = lid; v < nv; v += ls)
             X[v] = finish_vertex(X[v], X, fb, I, F, vel, prev, coll, v, vbase + v, h, s, S, 1);
         barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
+#if FEATURE_SELF_COLLISION /* after the colliders' friction, which would take back its separation */
+        self_collide(X, vel + vbase, (__global int *)(nrm + vbase), rest, nv, F[CF_THICKNESS],
+                     F[CF_CONTACT_STIFFNESS], lid, ls);
+        for (int v = lid; v < nv; v += ls)
+            X[v] = refinish_vertex(X[v], I, F, vel, prev, coll, vbase + v, h, s, S);
+        barrier(CLK_LOCAL_MEM_FENCE | CLK_GLOBAL_MEM_FENCE);
+#endif
     }
 
 #if FEATURE_NORMALS

@@ -18,12 +18,14 @@ One step of one cloth, in this order (the OpenCL kernels in kernels/cloth.cl do 
                      [tethers] first the long-range links, colour by colour: unilateral and hard,
                      a link no longer than rest * limit (k = (rest * limit / len - 1) / (im0 + im1)
                      where that is negative)
-        [self_collision]  vertices further apart than the thickness at rest pushed apart to it,
-                     SELF_COLLISION_PASSES Jacobi passes (collision.py; the work-group solver's)
         [tethers]    the tethers again (every mode: the device's coloured and Jacobi solvers
                      apply them here only)
         [colliders]  push out of spheres, capsules, planes (interpolated over substeps), friction;
                      spheres and capsules first along the substep's motion (continuous: no tunnelling)
+        [self_collision]  vertices further apart than the thickness at rest pushed apart to it,
+                     SELF_COLLISION_PASSES Jacobi passes (collision.py; the work-group solver's),
+                     after the colliders (whose friction would take back their separation), then
+                     [colliders] the push-out again at the end pose, without friction
         all:         v = (x - x_prev) / h * (1 - damping)
 
 ``mode="serial"`` visits links one at a time in fabric order exactly like the talk's CPU loop;
@@ -146,8 +148,6 @@ def step(state: ClothState, fabric: Fabric, params: ClothParams, dt: float, mode
                 if omega != 1.0:
                     x[free] = omega * (x[free] - x_before[free]) + x_before[free]
                 x_before = x_k
-        if f.self_collision:
-            self_collide(x, invm, fabric.rest_positions, m.thickness, m.contact_stiffness)
         if f.tethers:  # after the links: in every mode (serial, coloured: again)
             apply_tethers(x, fabric, m.tether_limit)
         if f.colliders and len(state.colliders):
@@ -155,6 +155,10 @@ def step(state: ClothState, fabric: Fabric, params: ClothParams, dt: float, mode
             c_prev = _lerp_colliders(state.colliders_prev, state.colliders, t0)
             c_now = _lerp_colliders(state.colliders_prev, state.colliders, t1)
             collide(x, x_prev, invm, c_prev, c_now, m.friction)
+        if f.self_collision:  # after the colliders' friction, which would take back its separation
+            self_collide(x, invm, fabric.rest_positions, m.thickness, m.contact_stiffness)
+            if f.colliders and len(state.colliders):  # and out of the colliders again, without friction
+                collide(x, x.copy(), invm, c_now, c_now, 0.0)
         v[:] = (x - x_prev) / h * (1.0 - damp)
     if f.needs_normals:
         state.normals, _ = vertex_normals(x, fabric)

@@ -5,18 +5,22 @@ colliders), and inter-cloth collision in float64 numpy: the reference of kernels
 
 Inter-cloth collision runs once per step (tick), after every cloth's own solve (its substeps,
 links, self-collision, colliders): a World-level phase, as NvCloth puts inter-collision on its
-Solver. Each of INTER_COLLISION_PASSES passes
+Solver. The contacts are found once, at the step's positions, then iterated:
 
-1. takes every cloth's bounds (its positions' box grown by half its thickness x margin): the broad phase,
-   a cloth whose box meets no other box of its scene takes no part;
-2. finds every pair of vertices of two different cloths of one scene closer than the pair's
-   contact distance ``d = (thickness_a + thickness_b) / 2`` (the materials' ``thickness``) times
-   INTER_COLLISION_MARGIN, the distance the solve sets them at;
-3. moves each free end by ``k (d' - |x_a - x_b|) w_a / (w_a + w_b)`` (``d'`` = d x margin)
-   along the pair's direction (``k`` the mean of the two materials' ``contact_stiffness``, ``w`` inverse masses; two
+1. every cloth's bounds (its positions' box grown by half its thickness x margin x
+   INTER_COLLISION_REACH): the broad phase, a cloth whose box meets no other box of its scene
+   takes no part;
+2. the candidates: every pair of vertices of two different cloths of one scene closer than
+   INTER_COLLISION_REACH times the pair's contact distance ``d' = (thickness_a + thickness_b) / 2
+   x INTER_COLLISION_MARGIN`` (the materials' ``thickness``), the distance the solve sets them at;
+3. INTER_COLLISION_PASSES passes, each of which moves each free end of every candidate pair now
+   closer than ``d'`` by ``k (d' - |x_a - x_b|) w_a / (w_a + w_b)`` along the pair's direction
+   (``k`` the mean of the two materials' ``contact_stiffness``, ``w`` inverse masses; two
    coincident vertices part along +y for the cloth added first, -y for the other): Jacobi, every
    contact from the same positions, so the order of the work does not matter.
 
+A pair that comes within ``d'`` only during the passes from further than the reach at the start
+is left to the next step (the passes move vertices apart, by a share of the contact distance).
 A vertex moved by ``dx`` in these passes also gains ``dx / dt`` of velocity (the step's
 velocity is its displacement over the step, as PBD has it), so contacts carry cloths along.
 """
@@ -35,6 +39,8 @@ INTER_COLLISION_PASSES = 8
 #: so that what the Jacobi passes leave of many contacts at once (a cloth resting on another)
 #: stays outside the contact distance; the device multiplies each cloth's thickness by it.
 INTER_COLLISION_MARGIN = 1.05
+#: Candidate pairs: closer than this many contact distances at the step's start (-DIC_REACH).
+INTER_COLLISION_REACH = 1.5
 #: Cloths of one scene at most (a scene is a shared space; the spatial hash is keyed by scene).
 MAX_SCENE_CLOTHS = 1024
 
@@ -97,23 +103,29 @@ def inter_collide(cloths: list[SceneCloth], dt: float, passes: int = INTER_COLLI
     if len(cloths) < 2:
         return
     start = [c.x.copy() for c in cloths]
+    boxes = [bounds(c.x, 0.5 * c.thickness * INTER_COLLISION_MARGIN * INTER_COLLISION_REACH) for c in cloths]
+    cands = []  # (a, b, i, j, d, k): the candidate pairs of cloths a and b, found once
+    for a, b in overlapping(boxes):
+        ca, cb = cloths[a], cloths[b]
+        d = 0.5 * (ca.thickness + cb.thickness) * INTER_COLLISION_MARGIN
+        k = 0.5 * (ca.stiffness + cb.stiffness)
+        if not (d > 0.0 and k > 0.0):
+            continue
+        i, j = _pairs(ca.x, cb.x, d * INTER_COLLISION_REACH)
+        keep = (ca.invm[i] + cb.invm[j]) > 0
+        if np.any(keep):
+            cands.append((a, b, i[keep], j[keep], d, k))
     for _ in range(passes):
-        boxes = [bounds(c.x, 0.5 * c.thickness * INTER_COLLISION_MARGIN) for c in cloths]
         corr = [np.zeros_like(c.x) for c in cloths]
-        for a, b in overlapping(boxes):
+        for a, b, i0, j0, d, k in cands:
             ca, cb = cloths[a], cloths[b]
-            d = 0.5 * (ca.thickness + cb.thickness) * INTER_COLLISION_MARGIN
-            k = 0.5 * (ca.stiffness + cb.stiffness)
-            if not (d > 0.0 and k > 0.0):
-                continue
-            i, j = _pairs(ca.x, cb.x, d)
-            wa, wb = ca.invm[i], cb.invm[j]
-            keep = (wa + wb) > 0
-            i, j, wa, wb = i[keep], j[keep], wa[keep], wb[keep]
-            if not len(i):
-                continue
-            diff = ca.x[i] - cb.x[j]
+            diff = ca.x[i0] - cb.x[j0]
             dist = np.linalg.norm(diff, axis=1)
+            near = dist < d
+            if not np.any(near):
+                continue
+            i, j, diff, dist = i0[near], j0[near], diff[near], dist[near]
+            wa, wb = ca.invm[i], cb.invm[j]
             apart = dist > 1e-12
             n = np.where(apart[:, None], diff / np.where(apart, dist, 1.0)[:, None], np.array([0.0, 1.0, 0.0]))
             push = n * (k * (d - dist) / (wa + wb))[:, None]

@@ -139,7 +139,12 @@ SKIN = (214, 176, 146)
 def walker_parts(t: float) -> tuple[list[list[Any]], list[dict[str, Any]]]:
     """The wearer's body at time t: capsules to draw [(p0, p1, radius, colour)] and the cape's
     colliders (torso, legs and head)."""
-    pos, frame, phase = walker_pose(t)
+    return body_parts(*walker_pose(t))
+
+
+def body_parts(pos: np.ndarray, frame: np.ndarray, phase: float) -> tuple[list[list[Any]], list[dict[str, Any]]]:
+    """A walker's body at its feet ``pos``, ``frame`` (right, up, behind) and stride ``phase``:
+    capsules to draw and a cape's colliders (walker_parts; demoscene's two walkers)."""
 
     def at(x: float, y: float, z: float) -> np.ndarray:
         return pos + frame @ np.array([x, y, z])
@@ -405,9 +410,12 @@ def _render_chunk(args: tuple[Path, list[int], tuple[int, int], int]) -> list[Pa
     return paths
 
 
-def render(recs: list[Recording], out: Path, size: tuple[int, int], fps: float) -> tuple[list[Path], Path]:
-    """Every common tick's frame as PNG (in two processes: the demo machine may have two cores),
-    then the GIF."""
+def render(
+    recs: list[Recording], out: Path, size: tuple[int, int], fps: float, chunk: Any = None, name: str = "drape-demo.gif"
+) -> tuple[list[Path], Path]:
+    """Every common tick's frame as PNG (in two processes: the demo machine may have two cores;
+    ``chunk`` renders a part, default this stage's), then the GIF ``name``."""
+    chunk = chunk or _render_chunk
     from PIL import Image
 
     from .render import write_gif
@@ -418,11 +426,11 @@ def render(recs: list[Recording], out: Path, size: tuple[int, int], fps: float) 
     work = [(out, [common[i] for i in p.tolist()], size, int(p[0]) if len(p) else 0) for p in parts]
     if jobs > 1:
         with mp.get_context("spawn").Pool(jobs) as pool:
-            paths = [q for chunk in pool.map(_render_chunk, work) for q in chunk]
+            paths = [q for part in pool.map(chunk, work) for q in part]
     else:
-        paths = _render_chunk(work[0]) if common else []
+        paths = chunk(work[0]) if common else []
     frames = [np.asarray(Image.open(p).convert("RGB")) for p in paths]
-    gif = out / "drape-demo.gif"
+    gif = out / name
     if frames:
         write_gif(gif, frames, fps=fps, colours=256)  # smooth shading: 128 colours band
     return paths, gif
@@ -442,6 +450,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--port", type=int, default=0, help="server port on 127.0.0.1 (0: a free one)")
     parser.add_argument("--solver", default=None, help="server solver (default: the server's)")
     parser.add_argument("--device", default=None, help="OpenCL device for the server")
+    parser.add_argument(
+        "--stage",
+        default="three",
+        choices=["three", "crossing"],
+        help="three clients' cloths, or (demoscene) two characters whose capes brush past each other in one scene",
+    )
 
 
 class ClientFailed(RuntimeError):
@@ -493,6 +507,10 @@ def _run_clients(server: ServerProcess, args: argparse.Namespace, out: Path) -> 
 
 
 def run(args: argparse.Namespace) -> int:
+    if getattr(args, "stage", "three") == "crossing":
+        from .demoscene import run as run_crossing
+
+        return run_crossing(args)
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     # three small cloths: admission control (which refuses cloths while a busy machine stretches

@@ -43,7 +43,7 @@ Metrics of one run (every one over the 2 s, on what a client would decode):
 This module is the command (arguments, the plan, the timing rounds, the output); its parts:
 tradeoffrun (scenes, configurations, one run and its metrics), tradeoffsweep (which
 configurations run where), tradeofftruth (the cached ground truths) and tradeoffreport (tables,
-plots, the presets' summary).
+plots, the presets' summary); ``--collision`` is tradeoffcollision (the collision axis).
 """
 
 from __future__ import annotations
@@ -155,12 +155,27 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="--costs: also simulate every configuration once (hanging 64 x 64, 2 s, float32 on "
         "the device) and plot stretch against cost to this PNG",
     )
+    parser.add_argument(
+        "--collision",
+        action="store_true",
+        help="instead of the sweep: the collision axis (tradeoffcollision): substeps and self-collision "
+        "passes against the penetration left in the penetration scenarios",
+    )
+    parser.add_argument("--collision-scenarios", default="capsule_hit,cape_run,stack", help="--collision: scenarios")
+    parser.add_argument("--collision-substeps", default="1,2,4,8", help="--collision: substep counts")
+    parser.add_argument("--collision-passes", default="1,2,4", help="--collision: self-collision pass counts")
+    parser.add_argument("--collision-solver", default="workgroup", help="--collision: the solver")
+    parser.add_argument("--collision-size", default="full", help="--collision: full (32 x 32) or small (9 x 9)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
     if args.costs:
         return run_costs(args)
+    if args.collision:
+        from .tradeoffcollision import run as run_collision
+
+        return run_collision(args)
     from ..sim.opencl.device import Device
 
     level = "quick" if args.quick else "full" if args.full else "default"

@@ -176,3 +176,42 @@ def test_a_thickness_changed_by_a_control_reaches_the_device(device):
     for (rx, ry), (x, y) in zip(*out, strict=True):
         assert np.abs(x - rx).max() < 1e-3 and np.abs(y - ry).max() < 1e-3
     assert max(pairs_left(out[1][10:])) == 0
+
+
+def test_vertices_with_more_candidates_than_listed_follow_the_reference(device):
+    """Three coarse cloths stacked 1 cm apart with a 12 cm thickness: every vertex has more
+    candidates than the device lists (IC_LIST), so each pass walks the hash for it instead;
+    the device still follows the float64 reference, and the count buffer says the walk ran."""
+    from drape.server.sim.opencl.scenes import IC_LIST
+
+    thick = ClothParams(material=Material(thickness=0.12), iterations=4)
+    fabs = [cook_grid(6, 6, 0.3, 0.3, pinned=[0, 5], origin=(0.0, 1.0 + 0.01 * i, 0.0)) for i in range(3)]
+    ref, ref32 = ReferenceWorld("coloured"), ReferenceWorld("coloured", np.float32)
+    dev = CLWorld("workgroup", device=device, pack_lanes=0)
+    hs = [[w.add(f, thick, scene="pile") for f in fabs] for w in (ref, ref32, dev)]
+    for _ in range(10):
+        for w in (ref, ref32, dev):
+            w.step(DT)
+        for hr, h32, hd in zip(*hs, strict=True):
+            rx, fx, x = ref.positions(hr), ref32.positions(h32), dev.positions(hd)
+            assert np.abs(x - rx).max() < 3e-4 + 2 * np.abs(fx - rx).max()
+    sc = dev.scene_collision
+    assert sc._count.read(0, sc.n_vertices)[:, 0].max() > IC_LIST
+
+
+def test_a_step_is_the_same_launches_whatever_the_scenes(device):
+    """The scenes' step enqueues INTER_COLLISION_PASSES + 5 kernels whose arguments were set when
+    the tables changed, for 2 scenes as for 6 (no launch, and no Python, per scene or cloth)."""
+    from drape.server.sim.scenes import INTER_COLLISION_PASSES
+
+    fab = cook_grid(5, 5, 0.2, 0.2, pinned=[0, 4])
+    counts = []
+    for scenes in (2, 6):
+        w = CLWorld("workgroup", device=device, pack_lanes=0)
+        for s in range(scenes):
+            for j in range(3):
+                w.add(fab, params(), positions=fab.rest_positions + [0.05 * j, 0.0, 5.0 * s], scene=f"s{s}")
+        w.step(DT)
+        counts.append(len(w.scene_collision._launches))
+        w.close()
+    assert counts == [INTER_COLLISION_PASSES + 5] * 2

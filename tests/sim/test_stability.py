@@ -626,3 +626,86 @@ def test_penetration_scenarios_stay_finite_and_bounded(device, solver, name):
             f"{name} {solver}: tick {tick.index}: energy grew by {energy - e0:.4g} J > {allow:.4g}"
         )
     world.close()
+
+
+# ---------------------------------------------------------------------------------------------
+# Scenes (protocol 1.7): cloths of one scene against each other and the scene's colliders, fast
+
+
+def _scene_case(rng, how: str):
+    """Three random cloths of one scene, where they start, how fast, and the scene's collider at
+    each tick (packed, or None) with its speed in m/s."""
+    cols, rows = int(rng.integers(3, 8)), int(rng.integers(3, 8))
+    fab = cook_grid(cols, rows, 0.5, 0.5, orientation="vertical", pinned=[0, cols - 1], origin=(-0.25, 1.0, 0.0))
+    x = fab.rest_positions
+    if how == "coincident":  # every vertex of every cloth at another cloth's: they part along +-y
+        starts = [x.copy() for _ in range(3)]
+    elif how == "crumpled":  # each cloth at one point, the three points 1 mm apart
+        starts = [np.broadcast_to(x[len(x) // 2] + [0.0, 0.0, 1e-3 * i], x.shape).copy() for i in range(3)]
+        for s in starts:
+            s[fab.pinned] = x[fab.pinned]
+    else:  # hanging 1 cm apart, one behind the other
+        starts = [x + [0.0, 0.0, 0.01 * i] for i in range(3)]
+    thickness = 1.0 if how == "thickness-1m" else float(rng.uniform(0.005, 0.03))
+    speed = {"capsule-30m/s": 30.0, "ball-rising-20m/s": 20.0}.get(how, 0.0)
+
+    def collider(k: int):
+        # moving for 4 ticks (through the cloths and 1 m past), then still: a wide collider
+        # dragging pinned inextensible cloth on for ever is work without bound, not a blow-up
+        if how == "capsule-30m/s":  # across the cloths at mid-height, 0.5 m a tick
+            z = -1.0 + speed * DT * min(k, 4)
+            return pack_colliders([Capsule((-1.0, 0.75, z), (1.0, 0.75, z), 0.04)])
+        if how == "ball-rising-20m/s":
+            return pack_colliders([Sphere((0.0, -0.5 + speed * DT * min(k, 4), 0.0), 0.2)])
+        return None
+
+    return fab, starts, thickness, speed, collider
+
+
+@pytest.mark.parametrize("solver", SOLVERS)
+@pytest.mark.parametrize("how", ["capsule-30m/s", "ball-rising-20m/s", "coincident", "crumpled", "thickness-1m"])
+def test_scene_extremes(device, rng, solver, how):
+    """Three cloths of one scene (random sizes, thickness and stiffness; self-collision on one of
+    them) hit by the scene's capsule at 30 m/s or a ball rising through them at 20 m/s (4 ticks), started
+    all at the same points, crumpled each to a point, or 1 m thick: 0 NaN, and the free vertices'
+    kinetic plus gravitational energy never above its start by more than their mass moved at
+    twice the collider's speed, lifted by the cloth's size, and parted at the scene's contact
+    distance per pass and tick (what resolving a start inside each other may give) and check_run's
+    allowance for the links' violation at the start (the crumpled cloths)."""
+    from drape.server.sim.scenes import INTER_COLLISION_MARGIN, INTER_COLLISION_PASSES
+
+    fab, starts, thickness, speed, collider = _scene_case(rng, how)
+    world = new_world(solver, device)
+    hs = []
+    for i, x in enumerate(starts):
+        material = Material(thickness=thickness, contact_stiffness=float(rng.uniform(0.2, 1.0)), friction=0.5)
+        feats = Features(colliders=True, tethers=True, self_collision=i == 0, xpbd=bool(rng.random() < 0.5))
+        params = ClothParams(features=feats, material=material, iterations=int(rng.integers(2, 12)))
+        hs.append(world.add(fab, params, positions=x, scene="extreme"))
+    free = ~fab.pinned
+    m = vertex_masses(fab, Material().mass)[free]
+    size = float(np.ptp(fab.rest_positions, axis=0).max())
+    part = INTER_COLLISION_PASSES * thickness * INTER_COLLISION_MARGIN / DT
+    viol = max(violation(s, fab) for s in starts) / DT  # resolving the links' violation at the start (check_run's)
+    allow = 3 * float(m.sum()) * (0.5 * (2 * speed) ** 2 + 9.81 * (size + thickness) + 0.5 * part**2 + viol**2)
+
+    def energy(xs, xbs):
+        e = 0.0
+        for x, xb in zip(xs, xbs, strict=True):
+            v = (x[free] - xb[free]) / DT
+            e += 0.5 * float(m @ np.einsum("ij,ij->i", v, v)) + 9.81 * float(m @ x[free, 1])
+        return e
+
+    xb = [np.asarray(s, np.float64) for s in starts]
+    e0 = energy(xb, xb)
+    for k in range(1, 31):
+        c = collider(k)
+        if c is not None:
+            world.set_scene_colliders("extreme", c)
+        world.step(DT)
+        xs = [np.asarray(world.positions(h), np.float64) for h in hs]
+        assert all(np.all(np.isfinite(x)) for x in xs), f"{solver} {how}: tick {k}: non-finite"
+        e = energy(xs, xb)
+        assert e - e0 <= allow, f"{solver} {how}: tick {k}: energy grew by {e - e0:.4g} J > {allow:.4g}"
+        xb = xs
+    world.close()

@@ -93,6 +93,56 @@ def test_demo_writes_frames_and_a_gif(tmp_path):
         assert gif.n_frames == len(frames) and gif.size == (200, 125)
 
 
+def test_demo_crossing_writes_two_capes(tmp_path):
+    """``drape demo --stage crossing``: two clients' capes in one scene, as frames and a GIF."""
+    r = drape(
+        "demo",
+        "--stage",
+        "crossing",
+        "--seconds",
+        "1.0",
+        "--fps",
+        "10",
+        "--size",
+        "200x125",
+        "--port",
+        str(free_port()),
+        "--out",
+        str(tmp_path),
+    )
+    assert "alice" in r.stdout and "bob" in r.stdout
+    frames = sorted(tmp_path.glob("crossing_*.png"))
+    assert len(frames) >= 3
+    with Image.open(frames[-1]) as im:
+        rgb = np.asarray(im.convert("RGB")).astype(int)
+    assert (rgb[..., 2] - rgb[..., 0] > 60).sum() > 20  # alice's blue cape
+    assert (rgb[..., 1] - rgb[..., 0] > 30).sum() > 20  # bob's green one
+    with Image.open(tmp_path / "drape-crossing.gif") as gif:
+        assert gif.n_frames == len(frames)
+
+
+def test_tradeoff_collision_writes_its_table(tmp_path):
+    """``drape tradeoff --collision`` on the small scenarios: a record per scenario and setting."""
+    r = drape(
+        "tradeoff",
+        "--collision",
+        "--collision-scenarios",
+        "capsule_hit",
+        "--collision-substeps",
+        "1,2",
+        "--collision-passes",
+        "2",
+        "--collision-size",
+        "small",
+        "--out",
+        str(tmp_path),
+    )
+    assert "| substeps | self-collision |" in r.stdout
+    records = json.loads((tmp_path / "tradeoff-collision.json").read_text())
+    assert len(records) == 4 and all(rec["max_crossed"] == 0 for rec in records)
+    assert (tmp_path / "tradeoff-collision.png").exists()
+
+
 def test_a_missing_extra_is_named():
     with pytest.raises(
         SystemExit,

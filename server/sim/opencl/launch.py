@@ -218,12 +218,12 @@ class GroupLaunches:
                 self._coloured_iterations(g, dt32, opts)
             else:
                 self._jacobi_iterations(g, dt32, opts, gsize, ls)
-            if g.features.self_collision:  # one work-group per cloth (kernels/selfcollide.cl)
-                mem = self.mem
-                bufs = (mem.ci, mem.cf, mem.fab, mem.pos, mem.vel, mem.nrm)
-                collide = self.dev.kernel(opts, "cl_self_collide")
-                collide(q, (len(g.handles) * ls,), (ls,), g.cloths_buf, *(b.buf for b in bufs))
             finish(q, gsize, (ls,), dt32, si, *vertex_args, self.mem.coll.buf)
+            if g.features.self_collision:  # after the colliders: one work-group per cloth (kernels/selfcollide.cl)
+                mem = self.mem
+                bufs = (mem.ci, mem.cf, mem.fab, mem.pos, mem.vel, mem.nrm, mem.prev, mem.coll)
+                collide = self.dev.kernel(opts, "cl_self_collide")
+                collide(q, (len(g.handles) * ls,), (ls,), dt32, si, g.cloths_buf, *(b.buf for b in bufs))
         if g.features.normals:
             normals(q, gsize, (ls,), *normal_args)
 

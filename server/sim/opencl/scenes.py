@@ -1,13 +1,17 @@
 """The OpenCL world's inter-cloth collision (a part the CLWorld owns; protocol 1.7 scenes): once per
 step, after every launch group's solve, the cloths of each scene are kept apart from each other
-on the device by kernels/intercollide.cl (the broad phase over the cloths' boxes, then a spatial
-hash keyed by scene over every vertex of the cloths whose box meets another of their scene,
-INTER_COLLISION_PASSES Jacobi passes), the float64 twin being drape.server.sim.scenes.inter_collide.
+on the device by kernels/intercollide.cl (the broad phase over the cloths' boxes, a spatial hash
+keyed by scene over every vertex of the cloths whose box meets another of their scene, each
+vertex's candidates listed once, then INTER_COLLISION_PASSES Jacobi passes over them), the
+float64 twin being drape.server.sim.scenes.inter_collide.
 
 Nothing is built or launched while no scene holds two cloths: a World without scenes pays
 nothing, and the solvers' programs keep their build options. The tables (which vertex rows,
 which cloth, which scene, thickness and stiffness) are rebuilt on the host only when a cloth
-joins or leaves a scene or a scene cloth's material changes (``changed``), never per tick.
+joins or leaves a scene or a scene cloth's material changes (``changed``), never per tick; the
+kernels' arguments are set then (and when the World's buffers grow), so a step is the same
+INTER_COLLISION_PASSES + 5 launches whatever the number of scenes and cloths, with no Python
+per scene or cloth.
 """
 
 from __future__ import annotations
@@ -17,13 +21,15 @@ from collections.abc import Mapping
 import numpy as np
 import pyopencl as cl
 
-from ..scenes import INTER_COLLISION_MARGIN, INTER_COLLISION_PASSES, Scene
+from ..scenes import INTER_COLLISION_MARGIN, INTER_COLLISION_PASSES, INTER_COLLISION_REACH, Scene
 from ..world import Cloth
 from .buffers import ClothSlot, DevArray, DeviceMemory
 from .device import Device
 
 SOURCE = "intercollide.cl"
-KERNELS = ("ic_bounds", "ic_active", "ic_clear", "ic_insert", "ic_contacts", "ic_apply")
+KERNELS = ("ic_bounds", "ic_active", "ic_clear", "ic_insert", "ic_find", "ic_pass", "ic_finish")
+#: Candidates listed per vertex (-DIC_LIST); a vertex with more walks the hash in every pass instead.
+IC_LIST = 16
 
 
 def _pow2_at_least(n: int) -> int:
@@ -43,7 +49,12 @@ class SceneCollision:
     ) -> None:
         self.dev, self.mem, self.rec, self.cloths, self.scenes = dev, mem, rec, cloths, scenes
         self.ls = 64 if dev.info.is_gpu else 1
-        self.options = [f"-DIC_LS={self.ls}", f"-DINTER_COLLISION_PASSES={INTER_COLLISION_PASSES}"]
+        self.options = [
+            f"-DIC_LS={self.ls}",
+            f"-DINTER_COLLISION_PASSES={INTER_COLLISION_PASSES}",
+            f"-DIC_REACH={INTER_COLLISION_REACH!r}f",
+            f"-DIC_LIST={IC_LIST}",
+        ]
         self._dirty = True
         self.n_cloths = 0  # scene cloths taking part (scenes of two cloths or more)
         self.n_vertices = 0
@@ -55,10 +66,18 @@ class SceneCollision:
         self._box = DevArray(dev, np.float32, 8)
         self._active = DevArray(dev, np.int32, 1)
         self._next = DevArray(dev, np.int32, 1)
-        self._delta = DevArray(dev, np.float32, 4)
+        self._count = DevArray(dev, np.int32, 1)
+        self._nbr = DevArray(dev, np.int32, IC_LIST)
+        self._xs0 = DevArray(dev, np.float32, 4)
+        self._xa = DevArray(dev, np.float32, 4)
+        self._xb = DevArray(dev, np.float32, 4)
         self._heads = DevArray(dev, np.int32, 1)
         self._nb = 64
         self._inv = 1.0
+        self._bound: tuple[object, ...] | None = None  # the buffers the kernels' arguments were set for
+        self._dt = 0.0
+        self._launches: list[tuple[cl.Kernel, tuple[int], tuple[int] | None]] = []
+        self._finish: cl.Kernel | None = None
 
     def changed(self) -> None:
         """A cloth joined or left a scene, or a scene cloth's material changed: tables rebuilt
@@ -69,6 +88,8 @@ class SceneCollision:
         if self._kernels is None:
             prg = self.dev.program(self.options, source=SOURCE)
             self._kernels = {name: cl.Kernel(prg, name) for name in KERNELS}
+            # ic_pass twice: from xa into xb and from xb into xa, each with its arguments set once
+            self._kernels["ic_pass_ba"] = cl.Kernel(prg, "ic_pass")
         return self._kernels
 
     def _rebuild(self) -> None:
@@ -88,6 +109,7 @@ class SceneCollision:
                 vidx.append(np.arange(slot.vbase, slot.vbase + n, dtype=np.int32))
                 vcl.append(np.full(n, k, np.int32))
         self._dirty = False
+        self._bound = None
         self.n_cloths = len(cinfo)
         if not cinfo:
             self.n_vertices = 0
@@ -103,14 +125,49 @@ class SceneCollision:
             if arr.capacity < len(host):
                 arr.resize(_pow2_at_least(len(host)))
             arr.write(0, host)
-        for arr, n in ((self._box, self.n_cloths), (self._active, self.n_cloths), (self._next, nv), (self._delta, nv)):
+        per_vertex = (self._next, self._count, self._nbr, self._xs0, self._xa, self._xb)
+        for arr, n in ((self._box, self.n_cloths), (self._active, self.n_cloths), *((a, nv) for a in per_vertex)):
             if arr.capacity < n:
                 arr.resize(_pow2_at_least(n))
         self._nb = _pow2_at_least(2 * nv)
         if self._heads.capacity < self._nb:
             self._heads.resize(self._nb)
         dmax = float(np.max(np.asarray(cpar)[:, 0]))
-        self._inv = 0.5 / dmax if dmax > 0 else 0.0
+        self._inv = 0.5 / (dmax * INTER_COLLISION_REACH) if dmax > 0 else 0.0
+        if self._inv > 0.0:  # every head -1 before the first step's inserts (then ic_finish clears them)
+            clear = self.kernels()["ic_clear"]
+            clear(self.dev.queue, (self._nb,), None, self._heads.buf, np.int32(self._nb))
+
+    def _bind(self, dt: float) -> None:
+        """The kernels' arguments, set once per table rebuild or buffer growth, and the launches."""
+        k = self.kernels()
+        mem = self.mem
+        pos, vel = mem.pos.buf, mem.vel.buf
+        ncl, nv, nb = np.int32(self.n_cloths), np.int32(self.n_vertices), np.int32(self._nb)
+        inv, mask = np.float32(self._inv), np.uint32(self._nb - 1)
+        vidx, vcl, cinfo, cpar = self._vidx.buf, self._vcl.buf, self._cinfo.buf, self._cpar.buf
+        box, active, heads, nxt = self._box.buf, self._active.buf, self._heads.buf, self._next.buf
+        nbr, count, xs0, xa, xb = self._nbr.buf, self._count.buf, self._xs0.buf, self._xa.buf, self._xb.buf
+        k["ic_bounds"].set_args(pos, cinfo, cpar, box)
+        k["ic_active"].set_args(cinfo, box, active, ncl)
+        k["ic_insert"].set_args(pos, vidx, vcl, cinfo, active, heads, nxt, xs0, xa, nv, inv, mask)
+        k["ic_find"].set_args(xs0, vcl, cinfo, cpar, active, heads, nxt, nbr, count, nv, inv, mask)
+        k["ic_pass"].set_args(xs0, xa, xb, vcl, cinfo, cpar, heads, nxt, nbr, count, nv, inv, mask)
+        k["ic_pass_ba"].set_args(xs0, xb, xa, vcl, cinfo, cpar, heads, nxt, nbr, count, nv, inv, mask)
+        last = xa if INTER_COLLISION_PASSES % 2 == 0 else xb
+        k["ic_finish"].set_args(pos, vel, vidx, xs0, last, heads, nv, nb, np.float32(1.0 / dt))
+        self._dt = dt
+        per_vertex = (self.n_vertices,)
+        self._launches = [
+            (k["ic_bounds"], (self.n_cloths * self.ls,), (self.ls,)),
+            (k["ic_active"], (self.n_cloths,), None),
+            (k["ic_insert"], per_vertex, None),
+            (k["ic_find"], per_vertex, None),
+            *((k["ic_pass" if p % 2 == 0 else "ic_pass_ba"], per_vertex, None) for p in range(INTER_COLLISION_PASSES)),
+            (k["ic_finish"], per_vertex, None),
+        ]
+        self._finish = k["ic_finish"]
+        self._bound = (pos, vel)
 
     def step(self, dt: float) -> None:
         """The scenes' inter-cloth collision, after the solvers' launches of a step."""
@@ -118,25 +175,12 @@ class SceneCollision:
             self._rebuild()
         if self.n_cloths < 2 or self._inv <= 0.0:
             return
-        k = self.kernels()
-        q, mem = self.dev.queue, self.mem
-        pos, vel = mem.pos.buf, mem.vel.buf
-        ncl, nv, nb = np.int32(self.n_cloths), np.int32(self.n_vertices), np.int32(self._nb)
-        inv, mask = np.float32(self._inv), np.uint32(self._nb - 1)
-        vidx, vcl, cinfo, cpar = self._vidx.buf, self._vcl.buf, self._cinfo.buf, self._cpar.buf
-        box, active, heads, nxt, delta = (
-            self._box.buf,
-            self._active.buf,
-            self._heads.buf,
-            self._next.buf,
-            self._delta.buf,
-        )
-        for _ in range(INTER_COLLISION_PASSES):
-            k["ic_bounds"](q, (self.n_cloths * self.ls,), (self.ls,), pos, cinfo, cpar, box)
-            k["ic_active"](q, (self.n_cloths,), None, cinfo, box, active, ncl)
-            k["ic_clear"](q, (self._nb,), None, heads, nb)
-            k["ic_insert"](q, (self.n_vertices,), None, pos, vidx, vcl, cinfo, active, heads, nxt, nv, inv, mask)
-            k["ic_contacts"](
-                q, (self.n_vertices,), None, pos, vidx, vcl, cinfo, cpar, active, heads, nxt, delta, nv, inv, mask
-            )
-            k["ic_apply"](q, (self.n_vertices,), None, pos, vel, vidx, delta, nv, np.float32(1.0 / dt))
+        if self._bound is None or self._bound[0] is not self.mem.pos.buf or self._bound[1] is not self.mem.vel.buf:
+            self._bind(dt)
+        elif dt != self._dt:
+            assert self._finish is not None
+            self._finish.set_arg(8, np.float32(1.0 / dt))
+            self._dt = dt
+        q = self.dev.queue
+        for kernel, gsize, lsize in self._launches:
+            cl.enqueue_nd_range_kernel(q, kernel, gsize, lsize)

@@ -1,4 +1,4 @@
-"""The Drape wire protocol, version 1.7 (see PROTOCOL.md at the repository root).
+"""The Drape wire protocol, version 1.8 (see PROTOCOL.md at the repository root).
 
 Requests and replies are msgpack maps; the per-tick cloth state is a fixed little-endian binary
 layout that any language reads with a struct. This package is the single source of truth for
@@ -130,16 +130,20 @@ from .keys import (
     DEFAULT_ENDPOINT,
     DEFAULT_NAMESPACE,
     DEFAULT_PORT,
+    EVERY_CHUNK,
     ID_RE,
     KNOWN_MINORS,
     NAMESPACE_RE,
     PROTOCOL_MAJOR,
     PROTOCOL_MINOR,
     PROTOCOL_VERSION,
+    RATES,
     SCENE_ANYONE,
     TOKEN_RE,
     VERSION_STRING,
     Keys,
+    every_key,
+    split_every,
     valid_id,
 )
 from .messages import (
@@ -350,6 +354,8 @@ __all__ = [
     "scene_from_map",
     "scene_to_map",
     "SCENE_ANYONE",
+    "RATES",
+    "EVERY_CHUNK",
     "SceneReply",
     "SceneRequest",
     "encode_scene_reply",
@@ -584,4 +590,6 @@ __all__ = [
     "unpack_message",
     "unsymbols",
     "valid_id",
+    "every_key",
+    "split_every",
 ]

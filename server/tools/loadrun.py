@@ -37,6 +37,7 @@ import numpy as np
 from drape.client.placement import spread
 
 from .loadclient import OVERLOADED_RETRIES, ClientResult, ClientSpec, Workload, client_main
+from .loadlink import LinkSpec, links_report
 from .loadreport import (
     Report,
     achieved_rate,
@@ -61,6 +62,7 @@ class LoadSpec(Workload):
     cloths: int = 64  # total cloths wanted (each client offers its share x ``offered``)
     seconds: float = 5.0  # the measured window, at least
     offered: float = 1.0  # offer this many times ``cloths``
+    link: LinkSpec = LinkSpec()  # issue 21: some clients behind a home link (loadlink.py)
 
     def client_specs(self) -> list[ClientSpec]:
         """Each client's share of the offered cloths (the first ones take the remainder)."""
@@ -68,8 +70,14 @@ class LoadSpec(Workload):
         base, extra = divmod(total, self.clients)
         retries = OVERLOADED_RETRIES if self.offered <= 1.0 else 0
         return [
-            ClientSpec(index=i, offered=base + (i < extra), retries=retries, **self.workload())
-            for i in range(self.clients)
+            ClientSpec(
+                index=i,
+                offered=base + (i < extra),
+                retries=retries,
+                client_rate=self.link.client_rate if shaped else "1",
+                **self.workload(),
+            )
+            for i, shaped in zip(range(self.clients), self.link.shaped(self.clients), strict=True)
         ]
 
 
@@ -209,6 +217,8 @@ def run_fleet_load(
     ]
     results = ctx.Queue()
     sid = None if several else targets[0].server_id
+    shapers = spec.link.shapers(endpoint, spec.link.shaped(len(cspecs)))  # a home link each (issue 21)
+    cspecs = [c if sh is None else replace(c, link_endpoint=sh.endpoint) for c, sh in zip(cspecs, shapers, strict=True)]
     procs = [
         ctx.Process(
             target=client_main,
@@ -330,6 +340,9 @@ def run_fleet_load(
             if p.is_alive():
                 p.terminate()
                 p.join(5)
+        for sh in shapers:
+            if sh is not None:
+                sh.stop()
     windows = [t.stats.samples[i0 + 1 : i1 + 1] for t, (i0, _), (i1, _) in zip(targets, first, last, strict=True)]
     per_server = [
         server_window(str(t.server_id), s0, s1, [st for _, st in w])
@@ -387,6 +400,7 @@ def run_fleet_load(
         spread=round(spread(p["cloths"] for p in per_server), 4) if several else 0.0,
         load_average=[x for x in (load0, load1) if x is not None],
         timeline=timeline(s0, [st for _, st in windows[0]]),
+        links=links_report(out, seconds, spec.link),
     )
     return report, out, windows[0]
 

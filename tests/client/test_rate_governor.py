@@ -67,3 +67,31 @@ def test_rate_options():
     assert P.every_key("drape/client/c/states", 2) == "drape/client/c/states/every/2"
     assert P.split_every("drape/cloth/x/state/every/3") == ("drape/cloth/x/state", 3)
     assert P.split_every("drape/cloth/x/state/every/9") == ("drape/cloth/x/state/every/9", 1)
+
+
+def test_the_rates_vectors():
+    """tests/vectors/rates.json (1.8): the decimated keys, and a stream of every 2nd state that
+    decodes in order to its values, each predicted from the key's own states."""
+    import json
+    from pathlib import Path
+
+    import numpy as np
+
+    vectors = json.loads((Path(__file__).resolve().parents[1] / "vectors" / "rates.json").read_text())
+    for v in (v for v in vectors if v["message"] == "key"):
+        assert P.every_key(v["input"]["key"], v["input"]["every"]) == v["value"]["key"]
+        assert P.split_every(v["value"]["key"]) == (v["input"]["key"], v["input"]["every"])
+    stream = P.StateStream("c")
+    states = [v for v in vectors if v["message"] == "state"]
+    assert len(states) == 3
+    for v in states:
+        data = bytes.fromhex(v["hex"])
+        st = stream.decode(data)
+        assert st is not None and st.tick == v["value"]["tick"]
+        np.testing.assert_array_equal(st.positions, np.asarray(v["value"]["positions"], np.float32))
+        ph = P.read_predictive_header(data)
+        assert (ph.order, ph.ref_tick, ph.ref2_tick) == (
+            v["value"]["order"],
+            v["value"]["ref_tick"],
+            v["value"]["ref2_tick"],
+        )

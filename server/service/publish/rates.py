@@ -2,8 +2,8 @@
 or a client's bundle key) has decimated twins, ``{key}/every/{k}`` for k in ``RATES[1:]``, which
 carry every k-th state (the ticks with ``tick % k == 0``), each a stream of its own: predictive
 states on it are coded against its own previous states (a :class:`PredictiveStreams` per k,
-keyed by cloth id like the full-rate ones), so a client that takes 30 Hz never needs a state it
-did not get.
+keyed by cloth id like the full-rate ones, with a periodic keyframe every ``keyframe_interval``
+of its own states), so a client that takes 30 Hz never needs a state it did not get.
 
 A decimated key is encoded only while someone subscribes to it: its publisher's matching listener
 (on Zenoh's threads) keeps the set of watched (publication, k), and the publisher thread looks at
@@ -58,7 +58,8 @@ class RatePublishers:
     warned: bool = False
 
     def __post_init__(self) -> None:
-        self.streams = {k: PredictiveStreams(self.keyframe_interval) for k in DECIMATED}
+        # a periodic keyframe every keyframe_interval of the stream's own states (k x the ticks)
+        self.streams = {k: PredictiveStreams(k * self.keyframe_interval) for k in DECIMATED}
         self._watched = {k: set() for k in DECIMATED}
 
     # -- Zenoh's threads ------------------------------------------------------------------

@@ -82,21 +82,21 @@ class BundleReceiver:
         with self._lock:
             if rate == self.rate or self._session is None or (rate != 1 and not self.rate_ok):
                 return
-            old, self._sub = self._sub, None
-            self.rate = rate
+            self.rate = rate  # from now on the old key's bundles are ignored
             handles = [h for h in self._handles.values() if h.bundle_key is not None]
+            session = self._session
         for h in handles:
             with h._cond:
                 h.rate = rate
                 h.stream = P.StateStream(h.id)
+        new = self._subscribe(session, rate)  # before the old one goes (make before break)
+        with self._lock:
+            old, self._sub = self._sub, new
         if old is not None:
             try:
                 old.undeclare()
             except Exception:
                 pass
-        session = self._session
-        with self._lock:
-            self._sub = session.declare_subscriber(P.every_key(self.key, rate), self.on_sample)
         if handles:
             handles[0].ask_keyframe(0.0)  # one query on the bundle's key: every stream of it
 
@@ -106,7 +106,16 @@ class BundleReceiver:
         with self._lock:
             self._session = session
             if self._sub is None:
-                self._sub = session.declare_subscriber(P.every_key(self.key, self.rate), self.on_sample)
+                self._sub = self._subscribe(session, self.rate)
+
+    def _subscribe(self, session: zenoh.Session, rate: int) -> Any:
+        """A subscriber of the bundle key at ``rate`` whose bundles count only while it is the rate."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            if rate == self.rate:
+                self.on_sample(sample)
+
+        return session.declare_subscriber(P.every_key(self.key, rate), on_sample)
 
     def close(self) -> None:
         if self._sub is not None:

@@ -110,7 +110,7 @@ class ClothHandle:
         self.rate = rate
         self.governor = RateGovernor(rate=rate) if governed and self.bundle_key is None else None
         if self.bundle_key is None:
-            self._sub = client.session.declare_subscriber(P.every_key(self.key, rate), self._on_sample)
+            self._sub = self._subscribe(rate)
 
     @property
     def step_downs(self) -> int:
@@ -132,16 +132,27 @@ class ClothHandle:
         with self._cond:
             if rate == self.rate or self.closed:
                 return
-            old, self._sub = self._sub, None
-            self.rate = rate
+            self.rate = rate  # from now on the old key's states are ignored
             self.stream = P.StateStream(self.id)  # the new key's stream: its own states
+        new = self._subscribe(rate)  # before the old one goes: no more of a gap than the new key's first state
+        with self._cond:
+            old, self._sub = self._sub, new
         if old is not None:
             try:
                 old.undeclare()
             except Exception:
                 pass
-        self._sub = self.client.session.declare_subscriber(P.every_key(self.key, rate), self._on_sample)
         self.ask_keyframe(0.0)
+
+    def _subscribe(self, rate: int) -> Any:
+        """A subscriber of this cloth's key at ``rate`` whose states count only while it is the
+        handle's rate."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            if rate == self.rate:
+                self._on_sample(sample)
+
+        return self.client.session.declare_subscriber(P.every_key(self.key, rate), on_sample)
 
     @property
     def bundled(self) -> bool:
@@ -282,7 +293,7 @@ class ClothHandle:
             except Exception:
                 pass
         if self.bundle_key is None:
-            self._sub = self.client.session.declare_subscriber(P.every_key(self.key, self.rate), self._on_sample)
+            self._sub = self._subscribe(self.rate)
 
     def record_pins(self, indices: list[int], targets: np.ndarray) -> None:
         """Pins ``indices`` were last sent to ``targets`` ((k, 3)): what a failover sends again."""

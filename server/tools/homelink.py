@@ -101,11 +101,13 @@ def _measure(
         down = shaper.down.bytes - bytes0
         gaps = [h.gaps for h in handles]
         ended_at, steps = c.bundles.rate, (c.bundles.step_downs, c.bundles.step_ups)
-    rates, lat, longest = [], [], []
+    rates, lat, longest, late_end = [], [], [], []
+    t_end = max((x[2] for s in seen for x in s), default=0)
     for s in seen:
         ticks = [x for x in s if x[2] - x[1] >= 0]
         rates.append(len(ticks) / elapsed)
         lat += [(r - sv) / 1e6 for _, sv, r in ticks]
+        late_end += [(r - sv) / 1e6 for _, sv, r in ticks if r >= t_end - 2e9]  # the last 2 s
         rx = sorted(r for _, _, r in ticks)
         longest.append(max((b - a) / 1e6 for a, b in zip(rx, rx[1:], strict=False)) if len(rx) > 1 else float("inf"))
     a = np.array(lat) if lat else np.array([float("nan")])
@@ -117,6 +119,8 @@ def _measure(
         "states_per_s_per_cape_mean": float(np.mean(rates)),
         "latency_p50_ms": float(np.percentile(a, 50)),
         "latency_p99_ms": float(np.percentile(a, 99)),
+        "latency_p50_last_2s_ms": float(np.percentile(late_end, 50)) if late_end else float("nan"),
+        "link_peak_queue_kib": shaper.down.peak_queue / 1024,
         "longest_gap_ms": float(max(longest)),
         "down_mbit_per_s": down * 8 / elapsed / 1e6,
         "undecodable_states": int(sum(gaps)),

@@ -3,7 +3,9 @@ through a :class:`~.shaper.Shaper` each (a rate, a one-way delay and a queue per
 Zenoh client mode with shared memory off (so every byte crosses the link, as
 :mod:`.homelink`'s player does), optionally taking every k-th state (protocol 1.8: ``--link-client-rate``
 1, 2, 3 or ``auto``). Their states per second per cloth, latency p50 / p99 and longest gap
-between two states of one cloth are reported apart from the unshaped clients' (``Report.links``).
+between two states of one cloth are reported apart from the unshaped clients' (``Report.links``);
+the report's own states, losses and latency are then the unshaped clients' (the server's figures,
+whether the load is held), since a shaped client's link, not the server, decides its states.
 
     drape loadtest --clients 4 --cloths 16 --link-rate 5 --link-delay 40 --link-share 0.5
 """

@@ -350,7 +350,10 @@ def run_fleet_load(
     ]
     s0, s1 = first[0][1], last[0][1]
     seconds = float(np.mean([p["seconds"] for p in per_server]))
-    lat = np.concatenate([r.latencies_ms for r in out]) if out else np.zeros(0)
+    # with home links (loadlink.py) the server's figures are the unshaped clients' (the shaped ones
+    # are reported apart, in Report.links: their link, not the server, decides their states)
+    main = [r for r in out if not r.extra.get("shaped")] or out
+    lat = np.concatenate([r.latencies_ms for r in main]) if main else np.zeros(0)
     refused: Counter[str] = Counter()
     for r in out:
         refused.update(r.refused)
@@ -360,7 +363,7 @@ def run_fleet_load(
         rss = [f.rss_summary() for f in figures]
         server_info.update({k: round(sum(r[k] for r in rss), 1) for k in rss[0]})  # all processes together
         server_info["rss_window_start_mb"] = round(sum(rss0), 1)
-    states = sum(r.received for r in out)
+    states = sum(r.received for r in main)
     report = Report(
         cloths=sum(r.admitted for r in out),
         offered=sum(r.offered for r in out),
@@ -380,10 +383,10 @@ def run_fleet_load(
         skipped_frames=sum(p["skipped_frames"] for p in per_server),
         latency_ms=latency_summary(lat),
         states=states,
-        expected_states=sum(r.expected for r in out),
-        lost=sum(r.lost for r in out),
-        duplicated=sum(r.duplicated for r in out),
-        out_of_order=sum(r.out_of_order for r in out),
+        expected_states=sum(r.expected for r in main),
+        lost=sum(r.lost for r in main),
+        duplicated=sum(r.duplicated for r in main),
+        out_of_order=sum(r.out_of_order for r in main),
         messages_per_s=round(states / seconds, 1),
         bytes_per_s=round(sum(r.bytes for r in out) / seconds, 1),
         send_errors=sum(r.send_errors for r in out),

@@ -64,3 +64,5 @@ def test_a_load_with_one_client_behind_a_home_link():
     assert 0 < max(s.extra["per_cloth_states"]) <= report.ticks // 2 + 1
     assert min(p.extra["per_cloth_states"]) > report.ticks // 2 + 1
     assert np.isfinite(shaped["latency_ms"]["p99"]) and shaped["longest_gap_ms"] > 0
+    # the report's own figures are the unshaped client's (the server's, not the link's)
+    assert report.expected_states == 2 * report.ticks and report.states == sum(p.extra["per_cloth_states"])

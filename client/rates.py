@@ -8,8 +8,10 @@ minus the smallest such difference seen lately (the clock offset plus the link's
 as smoothing.ServerClock takes it), so only the queueing on the way counts. Over each window
 (``window_s`` of receive time) the governor looks at the 90th percentile of that lateness and at
 the share of the window's states (at the current rate) that never came; either over its bound
-steps down. A step up waits ``quiet_s`` of good windows, doubled (up to ``max_quiet_s``) each
-time a step up is followed by a step down in the first window judged after it, so a link that cannot carry the
+steps down, one rate at a time, or straight to the lowest when the lateness is far over
+(``jump_s``: a link far too slow, where each step would cost another window of backlog). A
+step up waits ``quiet_s`` of good windows, doubled (up to ``max_quiet_s``) each time a step up
+is followed by a step down in the first window judged after it, so a link that cannot carry the
 higher rate is not probed every few seconds. The first window after a change is not judged
 (what was queued before it drains). Every input is an argument (the receive time included), so
 tests drive it with injected times.
@@ -43,6 +45,7 @@ class RateGovernor:
 
     window_s: float = 1.0
     late_s: float = 0.05  # lateness (90th percentile over a window) past which it steps down
+    jump_s: float = 0.2  # lateness past which it steps straight to the lowest rate (a link far too slow)
     lost_share: float = 0.25  # share of a window's states that never came past which it steps down
     quiet_s: float = 5.0  # good windows' length before a step up
     max_quiet_s: float = 60.0
@@ -97,7 +100,7 @@ class RateGovernor:
                 self._quiet = min(2 * self._quiet, self.max_quiet_s)  # the step up did not hold
             self._up_at = None
             self.step_downs += 1
-            return self._change(self.rates[i + 1], now)
+            return self._change(self.rates[-1] if late > self.jump_s else self.rates[i + 1], now)
         if self._good_since is None:
             self._good_since = now
         if i > 0 and now - self._good_since >= self._quiet * 1e9:

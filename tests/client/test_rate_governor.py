@@ -46,6 +46,12 @@ def test_a_growing_backlog_steps_down_to_20_hz_and_back_up_after_a_quiet_period(
     assert 5 * 60 <= up[0][0] - down[-1][0] <= 8 * 60 and 5 * 60 <= up[1][0] - up[0][0] <= 8 * 60
 
 
+def test_a_link_far_too_slow_steps_straight_to_20_hz():
+    gov = RateGovernor()
+    changes = feed(gov, range(1, 60 * 3), late_ms=lambda t: 0.0 if gov.rate == 3 else t * 5.0)  # 300 ms a second
+    assert [r for _, r in changes] == [3] and gov.step_downs == 1
+
+
 def test_lost_states_step_down_too():
     gov = RateGovernor()
     changes = feed(gov, range(1, 60 * 4), drop=lambda t: t % 2 == 1)  # half the states never come

@@ -34,7 +34,8 @@ one columnar block; PROTOCOL.md 5.1.1); 1.5 adds the ``predictive`` state encodi
 against the last two its decoders rebuilt: PROTOCOL.md 9.2) and ``state.step``. 1.6 adds the
 ``self_collision`` feature with the material's ``thickness`` and ``contact_stiffness``; 1.7 adds
 ``scene`` in submissions and the ``scene`` request (cloths of one scene collide with each other;
-PROTOCOL.md 5.3).
+PROTOCOL.md 5.3); 1.8 adds rates per subscriber (every k-th state on ``{key}/every/{k}``,
+:func:`every_key`, predicted against its own states: PROTOCOL.md 9.3).
 
 It imports only numpy, msgpack and the standard library, so a game client or a tool can use it
 without Zenoh or OpenCL installed.

@@ -8,6 +8,10 @@ A handle's guarantees hold as with states on a cloth's own key: its queue, ``rec
 cloth whose submit reply has not been handled yet (the bundle can overtake the reply) are kept for
 it as orphans while a bundled submission is on its way, and delivered first when its handle is
 registered (:meth:`drape.client.submitting.Submitter.place`).
+
+1.8: the bundle is taken at one rate for all its cloths (every k-th bundle on its own key,
+:meth:`BundleReceiver.set_rate`; with ``rate="auto"`` a rates.RateGovernor steps it down when
+bundles arrive late), only while every server its cloths live on speaks 1.8 (``rate_ok``).
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ import zenoh
 
 from . import protocol as P
 from .protocol import ClothState, DrapeError
+from .rates import RateGovernor
 
 if TYPE_CHECKING:
     from .handle import ClothHandle
@@ -39,7 +44,13 @@ class BundleReceiver:
     ``queue_size``: states kept per orphan cloth; ``key``: the bundle key (for the logs)."""
 
     def __init__(
-        self, handles: dict[str, ClothHandle], lock: threading.Lock, queue_size: int = 64, key: str = ""
+        self,
+        handles: dict[str, ClothHandle],
+        lock: threading.Lock,
+        queue_size: int = 64,
+        key: str = "",
+        rate: int = 1,
+        governed: bool = False,
     ) -> None:
         self._handles = handles
         self._lock = lock
@@ -50,13 +61,61 @@ class BundleReceiver:
         self._submits = 0  # bundled submissions waiting for their reply
         self._orphans: dict[str, list[ClothState]] = {}  # their states that arrived before the reply
         self._sub: Any = None
+        self._session: zenoh.Session | None = None
+        self.rate = rate  # 1.8: every rate-th bundle, on its own key
+        self.rate_ok = True  # every server of its cloths speaks 1.8 (else the full-rate key only)
+        self.governor = RateGovernor(rate=rate) if governed else None
+
+    @property
+    def step_downs(self) -> int:
+        return self.governor.step_downs if self.governor is not None else 0
+
+    @property
+    def step_ups(self) -> int:
+        return self.governor.step_ups if self.governor is not None else 0
+
+    def set_rate(self, rate: int) -> None:
+        """1.8: take every ``rate``-th bundle from now on (its own key, its own streams): each
+        bundled handle's stream starts afresh and one keyframe is asked for on the new key."""
+        if rate not in P.RATES:
+            raise ValueError(f"rate {rate!r}: one of {P.RATES}")
+        with self._lock:
+            if rate == self.rate or self._session is None or (rate != 1 and not self.rate_ok):
+                return
+            self.rate = rate  # from now on the old key's bundles are ignored
+            handles = [h for h in self._handles.values() if h.bundle_key is not None]
+            session = self._session
+        for h in handles:
+            with h._cond:
+                h.rate = rate
+                h.stream = P.StateStream(h.id)
+        new = self._subscribe(session, rate)  # before the old one goes (make before break)
+        with self._lock:
+            old, self._sub = self._sub, new
+        if old is not None:
+            try:
+                old.undeclare()
+            except Exception:
+                pass
+        if handles:
+            handles[0].ask_keyframe(0.0)  # one query on the bundle's key: every stream of it
 
     def subscribe(self, session: zenoh.Session) -> None:
         """Subscribe to the bundle key once, before the first bundled submission, so the
         subscription is in place when the cloth's first state is published."""
         with self._lock:
+            self._session = session
             if self._sub is None:
-                self._sub = session.declare_subscriber(self.key, self.on_sample)
+                self._sub = self._subscribe(session, self.rate)
+
+    def _subscribe(self, session: zenoh.Session, rate: int) -> Any:
+        """A subscriber of the bundle key at ``rate`` whose bundles count only while it is the rate."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            if rate == self.rate:
+                self.on_sample(sample)
+
+        return session.declare_subscriber(P.every_key(self.key, rate), on_sample)
 
     def close(self) -> None:
         if self._sub is not None:
@@ -67,7 +126,19 @@ class BundleReceiver:
 
     def on_sample(self, sample: zenoh.Sample) -> None:
         """The bundle subscriber's callback (on the Zenoh thread)."""
-        self.receive(sample.payload.to_bytes(), time.time_ns())
+        now = time.time_ns()
+        self.receive(sample.payload.to_bytes(), now)
+
+    def observe(self, tick: int, server_ns: int, receive_ns: int) -> None:
+        """1.8, ``rate="auto"``: a bundle of ``tick`` arrived; the rate stepped when it calls for it
+        (the subscription switched off the receiving thread)."""
+        gov = self.governor
+        if gov is None or not self.rate_ok:
+            return
+        new = gov.observe(tick, server_ns, receive_ns)
+        if new is not None:
+            log.info("bundle %s: every %d ticks from now", self.key, new)
+            threading.Thread(target=self.set_rate, args=(new,), name="drape-rate", daemon=True).start()
 
     def receive(self, data: bytes | bytearray | memoryview, receive_time_ns: int = 0) -> None:
         """Decode one bundle payload and deliver each state to its handle (on the calling thread)."""
@@ -78,6 +149,7 @@ class BundleReceiver:
             self.invalid += 1
             log.warning("invalid bundle payload on %s: %s", self.key, e)
             return
+        self.observe(bundle.tick, bundle.server_time_ns, receive_time_ns)
         cols = P.BundleEntries.of(bundle.entries)
         # 1.5: predictive states are each their stream's (decoded together below); the others
         # whole-bundle as before

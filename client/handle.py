@@ -1,6 +1,8 @@
 """One submitted cloth of the Python SDK (:class:`ClothHandle`): its state stream (queue,
 callbacks, iterators), its controls, and what a failover needs of it (its submission, its last
 two states, the last pin targets and colliders sent; ``rebind`` moves it to its new incarnation).
+1.8: the rate its states come at (every k-th state on its own key, :meth:`ClothHandle.set_rate`;
+with ``rate="auto"`` a rates.RateGovernor steps it down when its states arrive late).
 
 A handle works over the parts its owner (the DrapeClient, :class:`HandleOwner`) gives it: the
 Zenoh session its states come on, and the sending path its controls take."""
@@ -20,6 +22,7 @@ import zenoh
 from . import protocol as P
 from .controls import SetOptions, collider, pin_changes, set_changes
 from .protocol import ClothState, DrapeError, Unavailable
+from .rates import RateGovernor
 from .sending import ControlSender
 from .smoothing import ServerClock, sample
 
@@ -59,6 +62,8 @@ class ClothHandle:
         queue_size: int = 64,
         server_id: str = "",
         request: P.SubmitRequest | None = None,
+        rate: int = 1,
+        governed: bool = False,
     ) -> None:
         self.client = client
         self.server_id = server_id  # the server holding the cloth now (failover may change it)
@@ -101,8 +106,53 @@ class ClothHandle:
         self._latest: ClothState | None = None
         self._callbacks: tuple[StateCallback, ...] = ()  # replaced, never changed: deliver reads it as is
         self._sub: Any = None
+        # 1.8: every ``rate``-th state, on its own key (a bundled cloth's: its bundle receiver's)
+        self.rate = rate
+        self.governor = RateGovernor(rate=rate) if governed and self.bundle_key is None else None
         if self.bundle_key is None:
-            self._sub = client.session.declare_subscriber(self.key, self._on_sample)
+            self._sub = self._subscribe(rate)
+
+    @property
+    def step_downs(self) -> int:
+        """1.8: times ``rate="auto"`` stepped this cloth's states down (a bundled cloth: its bundle's)."""
+        return self.governor.step_downs if self.governor is not None else 0
+
+    @property
+    def step_ups(self) -> int:
+        return self.governor.step_ups if self.governor is not None else 0
+
+    def set_rate(self, rate: int) -> None:
+        """1.8: take every ``rate``-th state (protocol.RATES) from now on, on its own key: the
+        stream starts afresh with a keyframe asked for. A bundled cloth's rate is its bundle's
+        (BundleReceiver.set_rate)."""
+        if rate not in P.RATES:
+            raise ValueError(f"rate {rate!r}: one of {P.RATES}")
+        if self.bundle_key is not None:
+            raise ValueError("a bundled cloth takes its bundle's rate (DrapeClient.bundles.set_rate)")
+        with self._cond:
+            if rate == self.rate or self.closed:
+                return
+            self.rate = rate  # from now on the old key's states are ignored
+            self.stream = P.StateStream(self.id)  # the new key's stream: its own states
+        new = self._subscribe(rate)  # before the old one goes: no more of a gap than the new key's first state
+        with self._cond:
+            old, self._sub = self._sub, new
+        if old is not None:
+            try:
+                old.undeclare()
+            except Exception:
+                pass
+        self.ask_keyframe(0.0)
+
+    def _subscribe(self, rate: int) -> Any:
+        """A subscriber of this cloth's key at ``rate`` whose states count only while it is the
+        handle's rate."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            if rate == self.rate:
+                self._on_sample(sample)
+
+        return self.client.session.declare_subscriber(P.every_key(self.key, rate), on_sample)
 
     @property
     def bundled(self) -> bool:
@@ -124,6 +174,12 @@ class ClothHandle:
             return
         if st is not None:
             self.deliver(st)
+            gov = self.governor
+            if gov is not None and not st.extrapolated:
+                new = gov.observe(st.tick, st.server_time_ns, now)
+                if new is not None:  # switched off this thread: its subscriber is undeclared
+                    log.info("cloth %s: states every %d ticks from now", self.id, new)
+                    threading.Thread(target=self.set_rate, args=(new,), name="drape-rate", daemon=True).start()
 
     def _decode(self, data: bytes | memoryview, receive_time_ns: int) -> ClothState | None:
         """The state of a payload, through the cloth's stream (1.5: a predictive state needs the
@@ -151,7 +207,7 @@ class ClothHandle:
             return False
         self._keyframe_asked = now
         self.keyframe_queries += 1
-        key = self.bundle_key or self.key
+        key = P.every_key(self.bundle_key or self.key, self.rate)
         try:
             self.client.session.get(key, _ignore_reply, timeout=1.0)
         except Exception as e:  # the session closing
@@ -237,7 +293,7 @@ class ClothHandle:
             except Exception:
                 pass
         if self.bundle_key is None:
-            self._sub = self.client.session.declare_subscriber(self.key, self._on_sample)
+            self._sub = self._subscribe(self.rate)
 
     def record_pins(self, indices: list[int], targets: np.ndarray) -> None:
         """Pins ``indices`` were last sent to ``targets`` ((k, 3)): what a failover sends again."""

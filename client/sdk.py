@@ -52,6 +52,7 @@ from .handle import ClothHandle, StateCallback
 from .moves import MoveBook
 from .placement import PLACE_ELSEWHERE, Placement
 from .protocol import ClothState, DrapeError, Unavailable
+from .rates import rate_option
 from .registry import Cloths
 from .sending import ControlSender, Target
 from .session import zenoh_config
@@ -82,7 +83,13 @@ class DrapeClient:
     ``cloths`` (the open cloths), ``bundles``, ``sender`` (the sending path of controls),
     ``submitter`` and, with ``failover`` (the default), the failover worker; ``failover=False``:
     none, a cloth lost with its server is closed (issue 26: a game using the first example lost
-    every cloth with its server while failover was opt-in)."""
+    every cloth with its server while failover was opt-in).
+
+    ``rate`` (1.8): take every k-th state (1, 2, 3: 60, 30, 20 Hz at the default tick) of each
+    cloth and bundle, on its own key, or ``"auto"``: full rate, stepped down by itself when states
+    arrive late (and back up after a quiet period; client/rates.py), counted in each handle's
+    ``step_downs`` / ``step_ups`` (a bundle's: ``client.bundles``). Cloths on a server older than
+    1.8 come at full rate."""
 
     def __init__(
         self,
@@ -100,6 +107,7 @@ class DrapeClient:
         failover: bool = True,
         stall_timeout: float = 0.5,
         failover_give_up: float = 60.0,
+        rate: int | str = 1,
     ) -> None:
         if connect is None:
             connect = [P.DEFAULT_ENDPOINT]
@@ -131,9 +139,14 @@ class DrapeClient:
             self.placement.attach(self.session, self.keys)
         self.cloths = Cloths()
         # this client's bundle: decoded whole, its states delivered to the handles (client/bundles.py)
-        self.bundles = BundleReceiver(self.cloths.by_id, self.cloths.lock, queue_size, self.keys.bundle(self.client_id))
+        start, governed = rate_option(rate)  # 1.8: every k-th state, or "auto" (client/rates.py)
+        self.bundles = BundleReceiver(
+            self.cloths.by_id, self.cloths.lock, queue_size, self.keys.bundle(self.client_id), start, governed
+        )
         self.sender = ControlSender(self.connection, MoveBook(self), self._cloth_not_found)
-        self.submitter = Submitter(self, self.connection, self.placement, self.cloths, self.bundles, queue_size)
+        self.submitter = Submitter(
+            self, self.connection, self.placement, self.cloths, self.bundles, queue_size, (start, governed)
+        )
         # failover (the default): cloths survive the loss of their server (client/failover.py, PROTOCOL.md 11.1)
         if failover:
             self._failover = Failover(

@@ -147,8 +147,10 @@ class Submitter:
         cloths: Cloths,
         bundles: BundleReceiver,
         queue_size: int = 64,
+        rate: tuple[int, bool] = (1, False),
     ) -> None:
         self.owner = owner
+        self.rate = rate  # 1.8: (the rate new cloths start at, governed by rates.RateGovernor)
         self.session = session
         self.placement = placement
         self.cloths = cloths
@@ -174,7 +176,16 @@ class Submitter:
                 if rest is None and req.grid is not None:  # built once the server took the cloth
                     g = req.grid
                     rest, tris = P.grid_geometry(g.cols, g.rows, g.width, g.height, g.orientation, g.origin)
-                return ClothHandle(self.owner, rep, rest, tris, queue_size or self.queue_size, target, req)
+                # 1.8: the client's rate, on a server that has decimated keys (an older one: full rate)
+                info = self.session.known_info(target)
+                rated = info is not None and info.version >= (1, 8)
+                if rep.bundle_key is not None and not rated:
+                    self.bundles.rate_ok = False
+                    self.bundles.set_rate(1)
+                rate, governed = self.rate if rated else (1, False)
+                return ClothHandle(
+                    self.owner, rep, rest, tris, queue_size or self.queue_size, target, req, rate, governed
+                )
 
             return handle
 

@@ -1,4 +1,4 @@
-"""The Drape wire protocol, version 1.7 (see PROTOCOL.md at the repository root).
+"""The Drape wire protocol, version 1.8 (see PROTOCOL.md at the repository root).
 
 Requests and replies are msgpack maps; the per-tick cloth state is a fixed little-endian binary
 layout that any language reads with a struct. This package is the single source of truth for
@@ -34,7 +34,8 @@ one columnar block; PROTOCOL.md 5.1.1); 1.5 adds the ``predictive`` state encodi
 against the last two its decoders rebuilt: PROTOCOL.md 9.2) and ``state.step``. 1.6 adds the
 ``self_collision`` feature with the material's ``thickness`` and ``contact_stiffness``; 1.7 adds
 ``scene`` in submissions and the ``scene`` request (cloths of one scene collide with each other;
-PROTOCOL.md 5.3).
+PROTOCOL.md 5.3); 1.8 adds rates per subscriber (every k-th state on ``{key}/every/{k}``,
+:func:`every_key`, predicted against its own states: PROTOCOL.md 9.3).
 
 It imports only numpy, msgpack and the standard library, so a game client or a tool can use it
 without Zenoh or OpenCL installed.
@@ -130,16 +131,20 @@ from .keys import (
     DEFAULT_ENDPOINT,
     DEFAULT_NAMESPACE,
     DEFAULT_PORT,
+    EVERY_CHUNK,
     ID_RE,
     KNOWN_MINORS,
     NAMESPACE_RE,
     PROTOCOL_MAJOR,
     PROTOCOL_MINOR,
     PROTOCOL_VERSION,
+    RATES,
     SCENE_ANYONE,
     TOKEN_RE,
     VERSION_STRING,
     Keys,
+    every_key,
+    split_every,
     valid_id,
 )
 from .messages import (
@@ -350,6 +355,8 @@ __all__ = [
     "scene_from_map",
     "scene_to_map",
     "SCENE_ANYONE",
+    "RATES",
+    "EVERY_CHUNK",
     "SceneReply",
     "SceneRequest",
     "encode_scene_reply",
@@ -584,4 +591,6 @@ __all__ = [
     "unpack_message",
     "unsymbols",
     "valid_id",
+    "every_key",
+    "split_every",
 ]

@@ -6,11 +6,11 @@ import re
 from dataclasses import dataclass
 
 PROTOCOL_MAJOR = 1
-PROTOCOL_MINOR = 7
+PROTOCOL_MINOR = 8
 PROTOCOL_VERSION: tuple[int, int] = (PROTOCOL_MAJOR, PROTOCOL_MINOR)
 VERSION_STRING = f"{PROTOCOL_MAJOR}.{PROTOCOL_MINOR}"
 #: The minor versions this side has vectors for (every minor of the major is accepted on the wire).
-KNOWN_MINORS = (0, 1, 2, 3, 4, 5, 6)
+KNOWN_MINORS = (0, 1, 2, 3, 4, 5, 6, 7)
 
 DEFAULT_NAMESPACE = "drape"
 DEFAULT_PORT = 7447
@@ -25,10 +25,32 @@ TOKEN_RE = re.compile(r"^[0-9a-f]{32}$")
 CLIENT_REQUESTS = ("submit", "control", "control_batch", "remove", "scene")
 #: 1.7: the members entry that lets every client put cloths into a scene.
 SCENE_ANYONE = "*"
+#: 1.8: the rates a subscriber may take a state or bundle key at: every k-th state (k = 1: the key
+#: itself; 2 and 3: 30 and 20 Hz at the default 60 Hz tick), each on its own key (:func:`every_key`).
+RATES = (1, 2, 3)
+#: 1.8: the chunk that names a decimated stream's key: ``{state or bundle key}/every/{k}``.
+EVERY_CHUNK = "every"
 
 
 def valid_id(s: object) -> bool:
     return isinstance(s, str) and bool(ID_RE.match(s))
+
+
+def every_key(key: str, every: int) -> str:
+    """1.8: the key of every ``every``-th state published on ``key`` (a state or bundle key; a
+    stream of its own, predicted against its own states); ``key`` itself for 1."""
+    if every not in RATES:
+        raise ValueError(f"rate every={every!r}: one of {RATES}")
+    return key if every == 1 else f"{key}/{EVERY_CHUNK}/{every}"
+
+
+def split_every(key: str) -> tuple[str, int]:
+    """1.8: (the full-rate key, k) of a decimated stream's key; (``key``, 1) for any other key
+    (k not in RATES: the key is taken as is, as no stream's)."""
+    base, sep, last = str(key).rpartition(f"/{EVERY_CHUNK}/")
+    if sep and last.isdigit() and int(last) in RATES[1:]:
+        return base, int(last)
+    return str(key), 1
 
 
 @dataclass(frozen=True)
@@ -78,6 +100,11 @@ class Keys:
 
     def client_state(self, client: str, cloth: str) -> str:  # publication, every tick, binary (1.4)
         return f"{self.namespace}/client/{client}/cloth/{cloth}/state"
+
+    def every(self, key: str) -> str:
+        """1.8: the decimated streams of a state or bundle key expression (``key`` may hold
+        wildcards): what a server declares its keyframe queryables and ACL rules on."""
+        return f"{key}/{EVERY_CHUNK}/*"
 
     def client_all(self, client: str) -> str:
         """Everything published for one client: its bundle and its cloths' states (1.4)."""

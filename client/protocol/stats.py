@@ -77,6 +77,13 @@ STATS_FIELDS: tuple[StatField, ...] = (
     StatField("batch_moves", "integer", "counter", "Moves received in batch controls' moves blocks (protocol 1.4)"),
     StatField("keyframes", "integer", "counter", "Intra-coded predictive states written (protocol 1.5)"),
     StatField("keyframe_queries", "integer", "counter", "Keyframe queries answered (protocol 1.5)"),
+    StatField("rate_published", "integer", "counter", "Cloth states published on decimated keys (protocol 1.8)"),
+    StatField(
+        "rate_unserved",
+        "integer",
+        "counter",
+        "Cloth states of watched decimated keys not published: predictive on a device-encoded frame (protocol 1.8)",
+    ),
     StatField("moves_applied", "integer", "counter", "Moves applied by the tick thread (protocol 1.4)"),
     StatField("move_blocks", "integer", "counter", "Moves blocks applied by the tick thread (protocol 1.4)"),
     StatField(

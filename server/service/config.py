@@ -282,6 +282,15 @@ class ServerConfig:
     drop_max_bytes: int = setting(
         60000, "auto congestion: the largest state published with DROP (larger ones: BLOCK)", group=SERVICE
     )
+    send_buffer: int = setting(
+        0,
+        "bytes of each Zenoh TCP link's kernel send buffer (SO_SNDBUF, which Linux doubles; 0: the kernel's own, "
+        "grown to megabytes): a small one keeps a slow subscriber's states fresh (DROP drops once it is full: "
+        "docs/rates.md; Zenoh's data queue then stays at its 2 batches) but caps each link at about 2 x send_buffer "
+        "per round trip (never on a router link)",
+        group=SERVICE,
+        low=0,
+    )
     device_encode: bool = setting(
         True,
         "OpenCL solvers: the device writes every state as it goes on the wire into one packed frame, read back "

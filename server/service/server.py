@@ -154,11 +154,13 @@ class Server:
         listen = [] if cfg.zenoh_config and cfg.listen == [P.DEFAULT_ENDPOINT] else cfg.listen
         zc = zenoh_config(cfg.mode, listen, cfg.connect, cfg.multicast_scouting, cfg.zenoh_config, [P.DEFAULT_ENDPOINT])
         self.listening = listening(zc, cfg.mode)
-        if cfg.zenoh_config is None:
+        if cfg.zenoh_config is None and not cfg.send_buffer:
             # States go out in bursts under DROP congestion control; Zenoh's default data queue (2
             # batches, drop after 1 ms) lost states of a briefly descheduled server on a busy 2-core
             # box. Sixteen batches (Zenoh's maximum) ride that out.
             zc.insert_json5("transport/link/tx/queue/size/data", "16")
+        if cfg.send_buffer:  # fresh or nothing on slow links (docs/rates.md): Zenoh's 2 batches, a small socket
+            zc.insert_json5("transport/link/tcp/so_sndbuf", str(int(cfg.send_buffer)))
         self._session = s = open_session(zc, f"{cfg.mode}, listen {self.listening}, connect {cfg.connect}")
         self.publisher.attach(s)
         sid = cfg.server_id

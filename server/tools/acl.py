@@ -139,8 +139,10 @@ def server_rules(keys: Keys, user: User) -> list[dict[str, Any]]:
     """What a server user may do (ingress: from it into the router; egress: from the router to it)."""
     sid, p = user.id, f"u-{user.name}"
     queryables = server_queryables(keys, sid)
-    publications = [keys.client_state("*", "*"), keys.bundle("*"), keys.stats(sid)]
-    keyframes = [keys.client_state("*", "*"), keys.bundle("*")]  # 1.5: keyframe queries on what it publishes
+    states = [keys.client_state("*", "*"), keys.bundle("*")]
+    states += [keys.every(k) for k in states]  # 1.8: the decimated keys (every k-th state)
+    publications = [*states, keys.stats(sid)]
+    keyframes = states  # 1.5: keyframe queries on what it publishes
     return [
         *_rules(f"{p}-serve", ["declare_queryable", "reply"], "ingress", queryables),
         *_rules(f"{p}-keyframes", ["declare_queryable", "reply"], "ingress", keyframes),

@@ -8,7 +8,9 @@ it moves every cloth's pins once per tick (with bundles one batch control per ti
 per cloth without) and records every state it receives: tick, latency (server timestamp ->
 receipt, one host so one clock) and the time from the payload's arrival to the state's delivery
 (the SDK's decode cost). The parent tells it which server ticks the measured window covers; only
-states of those ticks count.
+states of those ticks count. Behind a home link (``ClientSpec.link_endpoint``, loadlink.py) it
+connects in client mode to its shaper only, shared memory off, at its rate (1.8), and reports its
+states per cloth and longest gap apart.
 
 Runs in a ``spawn``-ed process: everything it needs comes through its arguments.
 """
@@ -18,6 +20,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import tempfile
 import time
 from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
@@ -62,6 +65,8 @@ class ClientSpec(Workload):
     # submits refused ``overloaded`` are tried again this many times (the error says "retry later";
     # a game loading a level does): 0 when the load is offered past the nominal on purpose
     retries: int = 0
+    link_endpoint: str = ""  # behind a home link: its shaper's endpoint (loadlink.py); "": none
+    client_rate: str = "1"  # 1.8: the rate it takes (1, 2, 3 or auto)
 
 
 @dataclass
@@ -147,6 +152,19 @@ def _wait_turn(client: Any, shared: dict[str, Any], placing: bool) -> None:
         time.sleep(0.02)
 
 
+def _open(make: Any, endpoint: str | list[str], server_id: str | None, rate: int | str, link: dict[str, Any]) -> Any:
+    """The client's DrapeClient; behind a link (client mode, which fails at once while the server
+    does not listen yet, where a peer waits) tried again for up to a minute."""
+    deadline = time.monotonic() + 60.0
+    while True:
+        try:
+            return make(endpoint, server_id=server_id, timeout=60.0, queue_size=4, rate=rate, **link)
+        except ConnectionError:
+            if not link or time.monotonic() > deadline:
+                raise
+            time.sleep(0.5)
+
+
 def client_main(
     spec: ClientSpec,
     endpoint: str | list[str],
@@ -170,13 +188,23 @@ def client_main(
     from drape.client import DrapeClient
     from drape.client import protocol as P
 
+    from .loadlink import NO_SHM, longest_gap_ms
+
+    link: dict[str, Any] = {}
+    if spec.link_endpoint:  # a home link: client mode through the shaper only, no shared memory
+        zc = tempfile.NamedTemporaryFile("w", suffix=".json5", delete=False)
+        zc.write(NO_SHM)
+        zc.close()
+        endpoint = spec.link_endpoint
+        link = {"mode": "client", "zenoh_config_file": zc.name}
+    rate: int | str = spec.client_rate if spec.client_rate == "auto" else int(spec.client_rate)
     n = spec.size
     pins = [0, n - 1]
     handles: list[Any] = []
     recs: list[_Recorder] = []
     refused: Counter[str] = Counter()
     try:
-        with DrapeClient(endpoint, server_id=server_id, timeout=60.0, queue_size=4) as client:
+        with _open(DrapeClient, endpoint, server_id, rate, link) as client:
             t_end = time.monotonic() + 60.0
             while server_id is None and len(client.live_servers()) < spec.servers and time.monotonic() < t_end:
                 time.sleep(0.05)
@@ -265,6 +293,8 @@ def client_main(
                     next_t = time.monotonic()
             cpu_s = time.process_time() - cpu0
             send_errors = client.send_errors - err0
+            steps = client.bundles.step_downs + sum(h.step_downs for h in handles if not h.bundled)
+            rate_at_end = max([client.bundles.rate] + [h.rate for h in handles if not h.bundled])
             per_state = P.state_size(n * n, spec.encoding)
             lo, hi = int(shared["lo"].value), int(shared["hi"].value)
             for cancel in cancels:  # stop recording before the client closes
@@ -288,12 +318,17 @@ def client_main(
         raise
     received = lost = dup = ooo = 0
     lat, rx, dl = [], [], []
+    per_cloth: list[int] = []
+    gap = float("nan")
     for ticks, lat_ns, rx_ns, delay_ns in snapshot:
         k = min(len(ticks), len(lat_ns), len(rx_ns), len(delay_ns))  # the callback may have raced the copy
         ticks, lat_ns, rx_ns, delay_ns = ticks[:k], lat_ns[:k], rx_ns[:k], delay_ns[:k]
         r, lo_, d, o = window_counts(ticks, lo, hi)
         received, lost, dup, ooo = received + r, lost + lo_, dup + d, ooo + o
         inside = (ticks > lo) & (ticks <= hi)
+        per_cloth.append(r)
+        g = longest_gap_ms(rx_ns[inside])
+        gap = g if math.isnan(gap) else max(gap, g)
         lat.append(lat_ns[inside])
         rx.append(rx_ns[inside])
         dl.append(delay_ns[inside])
@@ -322,6 +357,13 @@ def client_main(
                 bytes=received * per_state,
                 send_errors=send_errors,
                 cpu_s=cpu_s,
+                extra={
+                    "shaped": bool(spec.link_endpoint),
+                    "per_cloth_states": per_cloth,
+                    "longest_gap_ms": gap,
+                    "step_downs": steps,
+                    "rate_at_end": rate_at_end,
+                },
             ),
         )
     )

@@ -171,6 +171,7 @@ class Report:
     spread: float = 0.0  # several servers: max / mean - 1 of their cloths (0: even)
     load_average: list[float] = field(default_factory=list)  # the host's 1-minute load at the window's start, end
     affinity: dict[str, str] = field(default_factory=dict)  # CPUs the clients / each server were kept on, if any
+    links: dict[str, Any] = field(default_factory=dict)  # issue 21: home links' clients apart (loadlink.py)
     timeline: list[list[float]] = field(default_factory=list)  # per stats period: s, ticks, missed, coalesced
 
     @property

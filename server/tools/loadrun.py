@@ -37,6 +37,7 @@ import numpy as np
 from drape.client.placement import spread
 
 from .loadclient import OVERLOADED_RETRIES, ClientResult, ClientSpec, Workload, client_main
+from .loadlink import LinkSpec, links_report
 from .loadreport import (
     Report,
     achieved_rate,
@@ -61,6 +62,7 @@ class LoadSpec(Workload):
     cloths: int = 64  # total cloths wanted (each client offers its share x ``offered``)
     seconds: float = 5.0  # the measured window, at least
     offered: float = 1.0  # offer this many times ``cloths``
+    link: LinkSpec = LinkSpec()  # issue 21: some clients behind a home link (loadlink.py)
 
     def client_specs(self) -> list[ClientSpec]:
         """Each client's share of the offered cloths (the first ones take the remainder)."""
@@ -68,8 +70,14 @@ class LoadSpec(Workload):
         base, extra = divmod(total, self.clients)
         retries = OVERLOADED_RETRIES if self.offered <= 1.0 else 0
         return [
-            ClientSpec(index=i, offered=base + (i < extra), retries=retries, **self.workload())
-            for i in range(self.clients)
+            ClientSpec(
+                index=i,
+                offered=base + (i < extra),
+                retries=retries,
+                client_rate=self.link.client_rate if shaped else "1",
+                **self.workload(),
+            )
+            for i, shaped in zip(range(self.clients), self.link.shaped(self.clients), strict=True)
         ]
 
 
@@ -209,6 +217,8 @@ def run_fleet_load(
     ]
     results = ctx.Queue()
     sid = None if several else targets[0].server_id
+    shapers = spec.link.shapers(endpoint, spec.link.shaped(len(cspecs)))  # a home link each (issue 21)
+    cspecs = [c if sh is None else replace(c, link_endpoint=sh.endpoint) for c, sh in zip(cspecs, shapers, strict=True)]
     procs = [
         ctx.Process(
             target=client_main,
@@ -330,6 +340,9 @@ def run_fleet_load(
             if p.is_alive():
                 p.terminate()
                 p.join(5)
+        for sh in shapers:
+            if sh is not None:
+                sh.stop()
     windows = [t.stats.samples[i0 + 1 : i1 + 1] for t, (i0, _), (i1, _) in zip(targets, first, last, strict=True)]
     per_server = [
         server_window(str(t.server_id), s0, s1, [st for _, st in w])
@@ -337,7 +350,10 @@ def run_fleet_load(
     ]
     s0, s1 = first[0][1], last[0][1]
     seconds = float(np.mean([p["seconds"] for p in per_server]))
-    lat = np.concatenate([r.latencies_ms for r in out]) if out else np.zeros(0)
+    # with home links (loadlink.py) the server's figures are the unshaped clients' (the shaped ones
+    # are reported apart, in Report.links: their link, not the server, decides their states)
+    main = [r for r in out if not r.extra.get("shaped")] or out
+    lat = np.concatenate([r.latencies_ms for r in main]) if main else np.zeros(0)
     refused: Counter[str] = Counter()
     for r in out:
         refused.update(r.refused)
@@ -347,7 +363,7 @@ def run_fleet_load(
         rss = [f.rss_summary() for f in figures]
         server_info.update({k: round(sum(r[k] for r in rss), 1) for k in rss[0]})  # all processes together
         server_info["rss_window_start_mb"] = round(sum(rss0), 1)
-    states = sum(r.received for r in out)
+    states = sum(r.received for r in main)
     report = Report(
         cloths=sum(r.admitted for r in out),
         offered=sum(r.offered for r in out),
@@ -367,10 +383,10 @@ def run_fleet_load(
         skipped_frames=sum(p["skipped_frames"] for p in per_server),
         latency_ms=latency_summary(lat),
         states=states,
-        expected_states=sum(r.expected for r in out),
-        lost=sum(r.lost for r in out),
-        duplicated=sum(r.duplicated for r in out),
-        out_of_order=sum(r.out_of_order for r in out),
+        expected_states=sum(r.expected for r in main),
+        lost=sum(r.lost for r in main),
+        duplicated=sum(r.duplicated for r in main),
+        out_of_order=sum(r.out_of_order for r in main),
         messages_per_s=round(states / seconds, 1),
         bytes_per_s=round(sum(r.bytes for r in out) / seconds, 1),
         send_errors=sum(r.send_errors for r in out),
@@ -387,6 +403,7 @@ def run_fleet_load(
         spread=round(spread(p["cloths"] for p in per_server), 4) if several else 0.0,
         load_average=[x for x in (load0, load1) if x is not None],
         timeline=timeline(s0, [st for _, st in windows[0]]),
+        links=links_report(out, seconds, spec.link),
     )
     return report, out, windows[0]
 

@@ -33,7 +33,8 @@ SDK's placement, PROTOCOL.md 11.3): per server its cloths, vertices, achieved ra
 ticks, and the spread of cloths (max / mean - 1). ``--scale-out`` finds the knee of one server,
 then of N, and prints the ratio. ``--endpoint E --server-id A,B`` measures servers already
 running the same way (say ``drape serve --workers 2``'s ``<id>-0,<id>-1``). The measurement
-itself is :mod:`.loadrun`'s.
+itself is :mod:`.loadrun`'s. ``--link-rate R --link-delay D [--link-share S --link-client-rate auto]``
+puts some or all clients behind a home link each (:mod:`.loadlink`), reported apart.
 """
 
 from __future__ import annotations
@@ -50,6 +51,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from .loadlink import add_arguments as add_link_arguments
+from .loadlink import link_spec, print_links
 from .loadreport import Report, markdown_table, print_report, write_plots, write_summary_plot
 from .loadrun import LoadSpec, StatsWatch, Target, run_fleet_load, run_load  # noqa: F401  (lt.run_load as before)
 from .procs import ServerProcess, csv_list, free_port, parse_cpus, require_extra
@@ -189,6 +192,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--markdown", type=Path, default=None, help="write a markdown table here (a row per load)")
     parser.add_argument("--out", type=Path, default=Path("out/loadtest"), help="PNG plots go here")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_link_arguments(parser)  # issue 21: clients behind a home link (loadlink.py)
 
 
 def _serve_args(args: argparse.Namespace) -> list[str]:
@@ -378,6 +382,7 @@ def _run(args: argparse.Namespace) -> int:
         tick_rate=args.tick_rate,
         bundle=args.bundle,
         offered=args.offered,
+        link=link_spec(args),
     )
     loads = parse_loads(args.loads, args.encoding) if args.loads else [(base.cloths, base.encoding)]
     base = replace(base, cloths=loads[0][0], encoding=loads[0][1])
@@ -390,6 +395,7 @@ def _run(args: argparse.Namespace) -> int:
         def run_one(spec: LoadSpec) -> Report:
             report, results, window = run_fleet_load(spec, fleet.endpoint, fleet.targets, args.quiet, client_cpus)
             print_report(report)
+            print_links(report.links)
             tag = f"{report.cloths}-{report.encoding}" + (
                 f"-{len(fleet.targets)}servers" if len(fleet.targets) > 1 else ""
             )

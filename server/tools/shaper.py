@@ -10,7 +10,11 @@ behind a 20 Mbit/s, 20 ms link on one machine (issue 21; docs/codec.md).
 Each direction is a bottleneck: bytes leave at ``rate_bps`` (a byte's turn comes when the ones
 before it have left) and are delivered ``delay_s`` after they left; at most ``queue_bytes`` wait
 to leave (when the queue is full the proxy stops reading, so the sender's TCP send buffer fills
-up, as behind a real one). ``rate_bps`` 0: no limit. The proxy
+up, as behind a real one). The proxy's own sockets keep small kernel buffers (``SOCKET_BUFFER``
+each way, and its readers at most one chunk), so that bytes wait in the link's queue or in the
+sender's, never megabytes in the proxy's receive buffer, which a real link does not have (the
+kernel grows a receive buffer to several MB while the proxy does not read). ``rate_bps`` 0: no
+limit. The proxy
 runs on its own asyncio loop in a thread; it counts the bytes each way.
 """
 
@@ -18,6 +22,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import socket
 import threading
 import time
 from collections import deque
@@ -26,6 +31,7 @@ from dataclasses import dataclass, field
 log = logging.getLogger(__name__)
 
 CHUNK = 16 << 10  # bytes read at a time
+SOCKET_BUFFER = 64 << 10  # SO_RCVBUF of the proxy's sockets (the kernel doubles it)
 
 
 @dataclass
@@ -96,7 +102,11 @@ class Shaper:
             loop.close()
 
     async def _serve(self) -> None:
-        self._server = await asyncio.start_server(self._accept, self.host, self.port)
+        lsock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        lsock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        lsock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, SOCKET_BUFFER)  # inherited by accepted ones
+        lsock.bind((self.host, self.port))
+        self._server = await asyncio.start_server(self._accept, sock=lsock, limit=CHUNK)
         self.port = self._server.sockets[0].getsockname()[1]
         self._stopped = asyncio.Event()
         self._ready.set()
@@ -113,7 +123,15 @@ class Shaper:
 
     async def _accept(self, creader: asyncio.StreamReader, cwriter: asyncio.StreamWriter) -> None:
         try:
-            sreader, swriter = await asyncio.open_connection(*self.target)
+            ssock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            ssock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, SOCKET_BUFFER)  # before connect: the window
+            ssock.setblocking(False)
+            try:
+                await asyncio.get_running_loop().sock_connect(ssock, self.target)
+            except OSError:
+                ssock.close()
+                raise
+            sreader, swriter = await asyncio.open_connection(sock=ssock, limit=CHUNK)
         except OSError as e:
             log.warning("shaper: cannot reach %s:%d: %s", *self.target, e)
             cwriter.close()

@@ -118,6 +118,56 @@ def state_value(st: P.ClothState, data: bytes | memoryview) -> dict[str, Any]:
     }
 
 
+def rates_vectors() -> list[dict[str, Any]]:
+    """1.8 (PROTOCOL.md 9.3): the decimated keys of a state key and a bundle key, and a stream of
+    every 2nd state (ticks 100, 102, 104 of the motion of ``predictive_vectors``' first three
+    frames, sampled at 30 Hz), each predicted from the key's own states (ref ticks T - 2, T - 4)."""
+    keys = P.Keys()
+    out: list[dict[str, Any]] = [
+        {
+            "name": f"rate_key_{kind}_{k}",
+            "message": "key",
+            "description": f"1.8: the key of every {k}-th state of a {kind} key.",
+            "input": {"key": base, "every": k},
+            "value": {"key": P.every_key(base, k)},
+        }
+        for kind, base in (("state", keys.client_state("alice", "cape-1")), ("bundle", keys.bundle("alice")))
+        for k in P.RATES[1:]
+    ]
+    step = 0.002
+    frames = [
+        [[0.0, 2.0, 0.0], [1.0, 1.5, -0.25], [0.5, 1.0, 0.75]],
+        [[0.021, 2.001, 0.0], [1.023, 1.481, -0.249], [0.499, 0.985, 0.771]],
+        [[0.04, 2.0, 0.002], [1.046, 1.46, -0.251], [0.497, 0.97, 0.79]],
+    ]
+    enc, dec = P.History(), P.StateStream("c")
+    for i, pos in enumerate(frames):
+        tick, t_ns = 100 + 2 * i, 1_700_000_000_000_000_000 + 2 * i * 16_666_667
+        x = np.asarray(pos, np.float32)
+        data = bytes(P.encode_predictive_state(tick, t_ns, x, step, enc, keyframe=i == 0))
+        st = dec.decode(data)
+        assert st is not None
+        ph = P.read_predictive_header(data)
+        assert (ph.ref_tick, ph.ref2_tick) == ((tick - 2 if i else 0), (tick - 4 if i > 1 else 0))
+        out.append(
+            {
+                "name": f"every_2_predictive_{i}",
+                "message": "state",
+                "description": f"1.8: state {i} of a stream of every 2nd state (order {ph.order}), step 2 mm, "
+                "on {key}/every/2: predicted from the key's own states.",
+                "hex": data.hex(),
+                "input": {"positions": x.tolist(), "keyframe": i == 0, "step": step},
+                "value": {
+                    **state_value(st, data),
+                    "order": ph.order,
+                    "ref_tick": ph.ref_tick,
+                    "ref2_tick": ph.ref2_tick,
+                },
+            }
+        )
+    return out
+
+
 def predictive_vectors() -> list[dict[str, Any]]:
     """1.5: one stream of predictive states (PROTOCOL.md 9.2), in order: a keyframe, a state of
     order 1, two of order 2 (the last with normals), then a keyframe again; and a submit asking
@@ -998,6 +1048,7 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
         "invalid": invalid,
         "accepted": [future, future_bundle],
         "predictive": predictive_vectors(),
+        "rates": rates_vectors(),
     }
 
 

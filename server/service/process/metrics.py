@@ -69,6 +69,8 @@ STAT_METRICS: dict[str, str] = {
     "move_blocks_superseded": "drape_move_blocks_superseded",
     "keyframes": "drape_keyframes",
     "keyframe_queries": "drape_keyframe_queries",
+    "rate_published": "drape_rate_published_states",
+    "rate_unserved": "drape_rate_unserved_states",
 }
 
 

@@ -7,7 +7,8 @@ intra-coded, for every subscriber at once (one stream for all: the server keeps 
 subscriber), and the query is answered ``{"v": [1, 5], "tick": T, "cloths": k}``: T the
 earliest tick that keyframe can carry, k the predictive cloths it covers. A server answers only
 for keys of its own cloths; requests within a few ticks of a stream's last keyframe are served
-by the next one allowed (``PredictiveStreams.MIN_REQUESTED_GAP``).
+by the next one allowed (``PredictiveStreams.MIN_REQUESTED_GAP``). 1.8: a query on a decimated
+key (``{key}/every/{k}``) asks for a keyframe of that rate's streams only (their own, rates.py).
 
 The callbacks run on Zenoh's threads and do no more than look the key up and mark the streams."""
 
@@ -34,7 +35,8 @@ class KeyframeQueries:
     def endpoints(self) -> list[tuple[str, Callable[[zenoh.Query], None]]]:
         """(key expression, callback) of the keyframe queryables: every state and bundle key."""
         k = self.keys
-        return [(key, self.on_query) for key in (k.state("*"), k.client_state("*", "*"), k.bundle("*"))]
+        full = (k.state("*"), k.client_state("*", "*"), k.bundle("*"))
+        return [(key, self.on_query) for key in (*full, *(k.every(f) for f in full))]
 
     def cloths_on(self, key: str) -> list[str]:
         """The predictive cloths of this server published on ``key``."""
@@ -50,10 +52,11 @@ class KeyframeQueries:
     def on_query(self, query: zenoh.Query) -> None:
         try:
             key = str(query.key_expr)
-            cloths = self.cloths_on(key)
+            base, every = P.split_every(key)
+            cloths = self.cloths_on(base)
             if not cloths:
                 return  # not this server's, or nothing predictive there: another server may answer
-            tick = self.publisher.request_keyframes(cloths)
+            tick = self.publisher.request_keyframes(cloths, every)
             self.registry.count("keyframe_queries")
             query.reply(key, msgpack.packb({"v": list(P.PROTOCOL_VERSION), "tick": tick, "cloths": len(cloths)}))
         except Exception:

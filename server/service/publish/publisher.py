@@ -8,7 +8,8 @@ Per tick it works per *publication* (a state or a bundle), never per live cloth.
 from the World as they are: encoded on the host as they are taken, or slices of a frame encoded
 on the device (one ``bytes`` copy each). Publications whose key has no subscriber are not
 encoded or copied (counted ``unwatched``). The predictive streams (1.5) are kept here, with the
-keyframe requests of subscribers (:meth:`Publisher.request_keyframes`). A frame the publisher
+keyframe requests of subscribers (:meth:`Publisher.request_keyframes`); the decimated keys of
+1.8 (every k-th state, their own streams) in :mod:`.rates`. A frame the publisher
 had not taken when the next one was ready is dropped and its replies carried over (counted
 ``skipped_frames`` by the tick thread): the tick thread never waits for the network.
 """
@@ -25,12 +26,13 @@ import zenoh
 from drape.client import protocol as P
 
 from ...sim.statecodec import PredictiveStreams
-from ...sim.wire import Wire
+from ...sim.wire import HostWire, Wire
 from ..config import ServerConfig
 from ..process.memory import freeze_long_lived
 from ..process.telemetry import PhaseTimer
 from ..registry import Registry
 from ..replies import Replier, Reply, send, undeclare
+from .rates import RatePublishers
 
 log = logging.getLogger(__name__)
 
@@ -102,6 +104,7 @@ class Publisher:
         self._pubs: dict[str, tuple[zenoh.Publisher, bool]] = {}  # per cloth id
         self._bundle_pubs: dict[str, tuple[zenoh.Publisher, bool]] = {}  # per bundle key
         self.streams = PredictiveStreams(config.keyframe_interval)  # 1.5: the predictive streams
+        self.rates = RatePublishers(config.keyframe_interval)  # 1.8: the decimated keys and their streams
         self._roster_version: tuple[int, int] | None = None
         self.last_cost_s = 0.0  # encode + put of the last frame (the tick's cost model adds it)
         self.replier: Replier | None = None  # the run thread's (replies never wait in the publisher)
@@ -137,6 +140,7 @@ class Publisher:
             undeclare(pub)
         self._pubs.clear()
         self._bundle_pubs.clear()
+        self.rates.close()
         if self.stats_pub is not None:
             undeclare(self.stats_pub)
             self.stats_pub = None
@@ -157,13 +161,19 @@ class Publisher:
         cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         pub = self.session.declare_publisher(key, congestion_control=cc)
         store[ident] = (pub, block)
+        self.rates.declare(self.session, ident, key, block)  # 1.8: its decimated keys, with it
         return pub
 
-    def request_keyframes(self, cloths: list[str]) -> int:
+    def request_keyframes(self, cloths: list[str], every: int = 1) -> int:
         """1.5, any thread (a keyframe query): the next state of these cloths' predictive streams
-        is intra-coded. Returns the tick it will be at the earliest."""
-        self.streams.request(cloths)
-        return self.last_tick + 1
+        (1.8: of their rate-``every`` streams) is intra-coded. Returns the tick it will be at the
+        earliest."""
+        if every == 1:
+            self.streams.request(cloths)
+        else:
+            self.rates.request_keyframes(cloths, every)
+        t = self.last_tick + 1
+        return t + (-t) % every
 
     def publish(self, job: Job) -> None:
         reply = self.replier.put if self.replier is not None else send
@@ -177,6 +187,7 @@ class Publisher:
             have = self._pubs.pop(cid, None)
             if have is not None:
                 undeclare(have[0])
+                self.rates.remove(cid)
         if wire is not None and wire.roster.version != self._roster_version:
             roster = wire.roster
             self._roster_version = roster.version
@@ -185,6 +196,7 @@ class Publisher:
             live = {k for k, _ in roster.bundles}
             for bkey in [k for k in self._bundle_pubs if k not in live]:  # the client has no bundled cloth left
                 undeclare(self._bundle_pubs.pop(bkey)[0])
+            self.rates.keep_only(set(self._pubs) | set(self._bundle_pubs), set(roster.ids))
         for r in job.after:
             reply(r)
         if job.stats is not None and self.stats_pub is not None:
@@ -229,7 +241,45 @@ class Publisher:
             pub_t += a - b
         if self.streams.keyframes != keyframes:
             self.registry.count("keyframes", self.streams.keyframes - keyframes)
+        rate_t = self._put_rates(wire)
         self.timers["encode"].add(enc_t)
-        self.timers["publish"].add(pub_t)
-        self.last_cost_s = enc_t + pub_t
+        self.timers["publish"].add(pub_t + rate_t)
+        self.last_cost_s = enc_t + pub_t + rate_t
         self.registry.count_many(published=published, unwatched=unwatched, publish_errors=errors, bundles=n_bundles)
+
+    def _put_rates(self, wire: Wire) -> float:
+        """1.8: the decimated keys someone subscribes to whose state is this tick's, each coded
+        against its own streams (the host path; a device-encoded frame is served only when it holds
+        no predictive cloth, rates.py says why). Returns the seconds it took."""
+        due = self.rates.due(wire.tick, wire.roster)
+        if not due:
+            return 0.0
+        a = time.perf_counter()
+        pubs = wire.roster.publications()
+        own_streams = isinstance(wire, HostWire)  # its payloads code predictive states against the given streams
+        published = unserved = errors = 0
+        for k, watched in due:
+            streams = self.rates.streams[k]
+            if not own_streams and wire.roster.predictive:  # its payloads would tell the device streams of lost states
+                unserved += sum(len(pubs[j][2]) for j in watched)
+                if not self.rates.warned:
+                    self.rates.warned = True
+                    log.warning("decimated keys of device-encoded predictive frames need device_encode = false")
+                continue
+            keyframes = streams.keyframes
+            for j, payload in wire.payloads(watched, streams):
+                ident, _, idx, _ = pubs[j]
+                pub = self.rates.publisher(ident, k)
+                if payload is None or pub is None:
+                    errors += len(idx)
+                    continue
+                try:
+                    pub.put(payload)
+                    published += len(idx)
+                except Exception as e:
+                    errors += len(idx)
+                    log.warning("publishing %s every %d at tick %d failed: %s", ident, k, wire.tick, e)
+            if streams.keyframes != keyframes:
+                self.registry.count("keyframes", streams.keyframes - keyframes)
+        self.registry.count_many(rate_published=published, rate_unserved=unserved, publish_errors=errors)
+        return time.perf_counter() - a

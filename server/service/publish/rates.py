@@ -1,0 +1,141 @@
+"""Rates per subscriber (protocol 1.8, PROTOCOL.md 9.3): every publication (a cloth's state key
+or a client's bundle key) has decimated twins, ``{key}/every/{k}`` for k in ``RATES[1:]``, which
+carry every k-th state (the ticks with ``tick % k == 0``), each a stream of its own: predictive
+states on it are coded against its own previous states (a :class:`PredictiveStreams` per k,
+keyed by cloth id like the full-rate ones, with a periodic keyframe every ``keyframe_interval``
+of its own states), so a client that takes 30 Hz never needs a state it did not get.
+
+A decimated key is encoded only while someone subscribes to it: its publisher's matching listener
+(on Zenoh's threads) keeps the set of watched (publication, k), and the publisher thread looks at
+that set only on the ticks of k, so the cost of rates nobody takes is one listener per key.
+
+Only a World whose payloads code predictive states against the streams they are given (the host
+path, ``wire.HostWire``) can code a decimated predictive stream; on a device-encoded frame
+(whose predictive history is one per cloth on the device, and whose payloads report the states
+not taken to the device's streams) the decimated keys are served only while the frame holds no
+predictive cloth (float32 / float16 / quant16: the full-rate bytes every k-th tick); otherwise
+they are not (counted ``rate_unserved``, logged once): a server that offers decimated predictive
+streams runs with ``device_encode = false`` until the device encoder keeps a history per rate.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from dataclasses import dataclass, field
+
+import zenoh
+
+from drape.client import protocol as P
+
+from ...sim.roster import Roster
+from ...sim.statecodec import PredictiveStreams
+from ..replies import undeclare
+
+log = logging.getLogger(__name__)
+
+DECIMATED = P.RATES[1:]  # the rates with keys of their own
+
+
+@dataclass(eq=False)
+class _RateKey:
+    """One publication's decimated key of rate ``every`` (its publisher and matching listener)."""
+
+    pub: zenoh.Publisher
+    listener: object
+    block: bool
+
+
+@dataclass(eq=False)
+class RatePublishers:
+    """The decimated publishers of one server's publications and who watches them."""
+
+    keyframe_interval: int = 60
+    streams: dict[int, PredictiveStreams] = field(default_factory=dict)
+    _keys: dict[tuple[str, int], _RateKey] = field(default_factory=dict)  # (ident, k)
+    _watched: dict[int, set[str]] = field(default_factory=dict)  # k -> idents with a subscriber
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+    warned: bool = False
+
+    def __post_init__(self) -> None:
+        # a periodic keyframe every keyframe_interval of the stream's own states (k x the ticks)
+        self.streams = {k: PredictiveStreams(k * self.keyframe_interval) for k in DECIMATED}
+        self._watched = {k: set() for k in DECIMATED}
+
+    # -- Zenoh's threads ------------------------------------------------------------------
+    def _matching(self, ident: str, every: int, status: zenoh.MatchingStatus) -> None:
+        with self._lock:
+            if status.matching:
+                self._watched[every].add(ident)
+            else:
+                self._watched[every].discard(ident)
+
+    def request_keyframes(self, cloths: list[str], every: int) -> None:
+        """1.8, any thread: the next state of these cloths' rate-``every`` streams is a keyframe."""
+        self.streams[every].request(cloths)
+
+    # -- the publisher thread -------------------------------------------------------------
+    def declare(self, session: zenoh.Session, ident: str, key: str, block: bool) -> None:
+        """The decimated publishers of publication ``ident`` on ``key`` (again when its congestion
+        control changed)."""
+        cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        for k in DECIMATED:
+            have = self._keys.get((ident, k))
+            if have is not None and have.block == block:
+                continue
+            if have is not None:
+                self._drop(ident, k)
+            pub = session.declare_publisher(P.every_key(key, k), congestion_control=cc)
+            listener = pub.declare_matching_listener(
+                lambda st, ident=ident, k=k: self._matching(ident, k, st)  # type: ignore[misc]
+            )
+            self._keys[(ident, k)] = _RateKey(pub, listener, block)
+            if pub.matching_status.matching:  # type: ignore[attr-defined]
+                with self._lock:
+                    self._watched[k].add(ident)
+
+    def _drop(self, ident: str, every: int) -> None:
+        have = self._keys.pop((ident, every), None)
+        if have is None:
+            return
+        try:
+            have.listener.undeclare()  # type: ignore[attr-defined]
+        except Exception:
+            pass
+        undeclare(have.pub)
+        with self._lock:
+            self._watched[every].discard(ident)
+
+    def remove(self, ident: str) -> None:
+        """A cloth (or bundle) no longer published."""
+        for k in DECIMATED:
+            self._drop(ident, k)
+
+    def keep_only(self, idents: set[str], cloths: set[str]) -> None:
+        """Forget the keys of publications gone and the streams of cloths gone."""
+        for ident, k in [x for x in self._keys if x[0] not in idents]:
+            self._drop(ident, k)
+        for s in self.streams.values():
+            s.keep_only(cloths)
+
+    def due(self, tick: int, roster: Roster) -> list[tuple[int, list[int]]]:
+        """(k, publication indices someone watches at rate k) of the rates whose state is this
+        tick's (``tick % k == 0``)."""
+        out = []
+        pubs = roster.publications()
+        for k in DECIMATED:
+            if tick % k:
+                continue
+            with self._lock:
+                watched = set(self._watched[k])
+            if watched:
+                out.append((k, [j for j, p in enumerate(pubs) if p[0] in watched]))
+        return out
+
+    def publisher(self, ident: str, every: int) -> zenoh.Publisher | None:
+        have = self._keys.get((ident, every))
+        return have.pub if have is not None else None
+
+    def close(self) -> None:
+        for ident, k in list(self._keys):
+            self._drop(ident, k)

@@ -174,6 +174,7 @@ def test_predictive_states_decode_within_half_a_step(device_encode, rng):
             frames = getattr(server.ticker.world, "device_frames", None)
             if device_encode:  # a counted event, not a timing: frames with predictive states coded on the device
                 assert frames is not None and frames.predictive_frames >= 16
+                assert frames.encoder.compactor.frames >= 16  # and compacted there
             else:
                 assert frames is None
             streams = {h.id: P.StateStream(h.id) for h, _, _, _ in cloths}

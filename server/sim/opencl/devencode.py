@@ -181,13 +181,15 @@ class DeviceWire(Wire):
         self._bad = np.zeros(0, np.int64)
 
     def sizes(self) -> list[int]:
-        return [len(v) for v in self.encoded.views]
+        return self.encoded.sizes()
 
     def payloads(self, watched: list[int], streams: PredictiveStreams) -> Iterator[tuple[int, Payload]]:
-        """One ``bytes`` copy each (zenoh's ZBytes takes no memoryview; the cheapest correct
-        way, see issue 10's figures). Measured against it on the H100 (docs/loadtest.md, session
-        12): copying into a ``bytearray`` kept per key doubled the copy and put phases (3.5 ->
-        6.1 and 9.8 -> 17.4 ms a tick at 2048 float32)."""
+        """One ``bytes`` copy each: eclipse-zenoh 1.10's put takes ``bytes``, ``bytearray``,
+        ``str`` or ``ZBytes`` (made from one of those), not a memoryview (checked: "expected
+        bytes/str type, found 'memoryview'"), so each payload is one copy out of the pinned
+        frame (a compacted frame's slice: no gather). Measured against it on the H100
+        (docs/loadtest.md, session 12): copying into a ``bytearray`` kept per key doubled the
+        copy and put phases (3.5 -> 6.1 and 9.8 -> 17.4 ms a tick at 2048 float32)."""
         self._put = True
         enc = self.encoded
         plan = enc.plan

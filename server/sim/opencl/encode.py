@@ -233,6 +233,7 @@ class DeviceEncoder:
         self._last: _HostFrame | None = None
         self.kernel_event: cl.Event | None = None  # the last launch (profiling on a profiling queue)
         self.compactor = Compactor(dev)  # plans with predictive states: compacted on the device
+        self._uploads: list[cl.Event] = []  # this frame's uploads (flags, predictive decisions)
         self._compact = False
 
     # -- plan ------------------------------------------------------------------------------
@@ -430,6 +431,7 @@ class DeviceEncoder:
             ev = cl.enqueue_nd_range_kernel(
                 queue, self._kernel, (n_rows * self._wg,), (self._wg,), wait_for=events or None
             )
+            self._uploads = events  # kept: pyopencl's event of a host-memory copy waits when dropped
             events = [ev]
             self.kernel_event = ev
         last = self._last

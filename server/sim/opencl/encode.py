@@ -68,7 +68,9 @@ from .frameplan import (  # noqa: F401 (the plan's names, re-exported: encode.py
     FramePlan,
     Publication,
     encode_layout,
+    put_words,
     state_size,
+    take_bytes,
 )
 
 log = logging.getLogger(__name__)
@@ -143,8 +145,7 @@ class EncodedFrame:
         w = self._where
         at = self.plan.time_offsets() if w is None else self.plan.time_offsets(w.state_at, w.pub_at)
         if len(at):
-            stamp = np.frombuffer(int(time_ns).to_bytes(8, "little"), np.uint8)
-            self._host.data[(at[:, None] + np.arange(8)).ravel()] = np.tile(stamp, len(at))
+            put_words(self._host.data, at, np.frombuffer(int(time_ns).to_bytes(8, "little"), np.uint8))
 
     def payloads(self, watched: Sequence[int]) -> Iterator[tuple[int, bytes]]:
         """(publication index, its bytes) of the ``watched`` publications, in order: one
@@ -504,7 +505,7 @@ class DeviceEncoder:
         host = self._frame()
         data = host.data
         at = host.state_at()[self.plan.encoded] + HEADER_OFFSETS["ST_MIN"]
-        return data[at[:, None] + np.arange(24)].view("<f4").reshape(-1, 2, 3)
+        return take_bytes(data, at, 24).view("<f4").reshape(-1, 2, 3)
 
     def nonfinite(self) -> np.ndarray:
         """Plan cloth indices whose positions held a NaN or an infinity this frame (their header

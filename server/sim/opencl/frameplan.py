@@ -215,6 +215,25 @@ class FramePlan:
         return self.rows[:, encode_layout()["ENC_ROW_CLOTH"]].astype(np.int64)
 
 
+def take_bytes(data: np.ndarray, at: np.ndarray, n: int) -> np.ndarray:
+    """(len(at), n) uint8: ``n`` bytes at each offset ``at`` of the frame ``data``; whole 8-byte
+    words when the offsets and ``n`` are multiples of 8 (a header's fields in a frame of
+    8-byte aligned states: 8x fewer indices than bytes)."""
+    if n % 8 == 0 and len(data) % 8 == 0 and not (at % 8).any():
+        words = data.view("<u8")[(at >> 3)[:, None] + np.arange(n >> 3)]
+        return words.view(np.uint8).reshape(len(at), n)
+    return data[at[:, None] + np.arange(n)]
+
+
+def put_words(data: np.ndarray, at: np.ndarray, value: np.ndarray) -> None:
+    """Write the 8 bytes ``value`` at each offset ``at`` of the frame ``data`` (one word each when
+    the offsets are 8-byte aligned)."""
+    if len(data) % 8 == 0 and not (at % 8).any():
+        data.view("<u8")[at >> 3] = value.view("<u8")[0]
+    else:
+        data[(at[:, None] + np.arange(8)).ravel()] = np.tile(value, len(at))
+
+
 def _find(packed: bytes, marker: bytes) -> int:
     at = packed.find(marker)
     assert at >= 0 and packed.find(marker, at + 1) < 0

@@ -209,7 +209,7 @@ class Publisher:
                 log.warning("publishing %s at tick %d failed: %s", ident, wire.tick, e)
         keyframes = self.streams.keyframes
         enc_t = pub_t = 0.0
-        published = n_bundles = 0
+        published = n_bundles = n_bytes = 0
         a = time.perf_counter()
         for j, payload in wire.payloads(list(targets), self.streams):
             b = time.perf_counter()
@@ -221,6 +221,7 @@ class Publisher:
                 try:
                     targets[j].put(payload)
                     published += len(idx)
+                    n_bytes += len(payload)
                     n_bundles += bundle
                 except Exception as e:
                     errors += len(idx)
@@ -232,4 +233,6 @@ class Publisher:
         self.timers["encode"].add(enc_t)
         self.timers["publish"].add(pub_t)
         self.last_cost_s = enc_t + pub_t
-        self.registry.count_many(published=published, unwatched=unwatched, publish_errors=errors, bundles=n_bundles)
+        self.registry.count_many(
+            published=published, published_bytes=n_bytes, unwatched=unwatched, publish_errors=errors, bundles=n_bundles
+        )

@@ -26,7 +26,9 @@ The device path's columns: ``device`` its wall time per frame (everything below)
 ``host`` its host share without the payloads' copies (the streams' decisions, the enqueues, the
 frame's index and sizes), ``bytes`` one ``bytes`` per publication; ``kernel``, ``compact`` (the
 two compaction launches) and ``copy`` (the copy to the host) from the queue's profiling.
-``--no-host`` skips the host path (and the byte comparison).
+``--no-host`` skips the host path (and the byte comparison). The process's heap is set as
+``drape serve`` sets it (``malloc_mmap_threshold``: a tick's payload copies are not given back to
+the OS and faulted in again every frame).
 """
 
 from __future__ import annotations
@@ -41,6 +43,8 @@ import pyopencl as cl
 
 from drape.client import protocol as P
 
+from ..service.config import ServerConfig
+from ..service.process.memory import configure_heap
 from ..sim.opencl.device import Device
 from ..sim.opencl.devstreams import DeviceStreams
 from ..sim.opencl.encode import ClothEntry, DeviceEncoder, FramePlan, Publication
@@ -229,7 +233,7 @@ def run(
             if differ:
                 log.warning("%s: %d of %d publications differ between host and device", encoding, differ, len(hb))
         wire.append(sum(len(v) for v in views))
-        read.append(len(denc.read()) if predictive else plan.size)
+        read.append(denc.compactor.copied if predictive else plan.size)
         if f >= warmup:
             host_t.append(t1 - t0)
             dev_t.append(t2 - t1)
@@ -287,6 +291,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-host", action="store_true", help="time the device path only (no host path, no comparison)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    configure_heap(ServerConfig().malloc_mmap_threshold)  # as drape serve's (the payloads' copies)
     dev = Device(args.device)
     print(
         f"device: {dev.info.name}; {args.side}x{args.side} vertices per cloth, "

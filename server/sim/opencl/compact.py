@@ -127,7 +127,8 @@ class Compactor:
         self._table: cl.Buffer | None = None
         self._index: cl.Buffer | None = None
         self.packed: cl.Buffer | None = None
-        self._recent: list[int] = []  # the last frames' compacted sizes (the copy's guess)
+        self._recent: list[float] = []  # the last frames' compacted bytes per piece (the copy's guess)
+        self.copied = 0  # bytes the last frame finished took from the device (its guess and the rest)
         self.frames = 0  # frames compacted
         self.short = 0  # of which the guess was short (a second copy)
         self._scan: cl.Kernel | None = None
@@ -160,15 +161,15 @@ class Compactor:
         copy.set_args(rows, table, frame, index, packed)
         self._table, self._index, self.packed, self._scan, self._copy = table, index, packed, scan, copy
         self.pieces = pieces
-        self._recent = []
         return pieces
 
     def guess(self, size: int) -> int:
-        """Bytes to copy before the index is known: the largest of the last frames' sizes and a
-        quarter more (all of ``size`` until a frame was compacted)."""
-        if not self._recent:
+        """Bytes to copy before the index is known: the largest of the last frames' bytes per
+        piece times this plan's pieces, and a quarter more (kept across plans: cloths coming and
+        going do not make the next frame copy its slots whole); all of ``size`` at first."""
+        if not self._recent or self.pieces is None:
             return size
-        return min(size, P.align8(max(self._recent) * 5 // 4 + 4096))
+        return min(size, P.align8(int(max(self._recent) * len(self.pieces.cloth) * 1.25) + 4096))
 
     def enqueue(
         self,
@@ -203,7 +204,8 @@ class Compactor:
         guess was short (blocking; ``packed`` must still hold this frame)."""
         assert self.pieces is not None and self.packed is not None
         fi = self.pieces.frame_index(host_index)
-        self._recent = [*self._recent[-7:], fi.size]
+        self._recent = [*self._recent[-3:], fi.size / max(len(self.pieces.cloth), 1)]
+        self.copied = max(copied, fi.size)
         if fi.size > copied:
             self.short += 1
             cl.enqueue_copy(

@@ -15,11 +15,13 @@ once the World has reset them, :meth:`DeviceWire.reset` writes their rest normal
 the frame again with the reset flag: the same bytes the host path publishes.
 
 Predictive cloths (protocol 1.5) are coded here too: devstreams.DeviceStreams decides each
-stream's order and reference ticks per tick (the host path's rules), the kernel codes it against
-the history the encoder keeps on the device. A cloth reset on the tick thread after its frame was
-encoded (:meth:`DeviceWire.add_flags`, :meth:`DeviceWire.reset`) is coded again as a keyframe;
-the publisher's news (keyframe requests, states nobody watched, frames it dropped) reach the
-streams through :meth:`DeviceWire.payloads` and :meth:`DeviceWire.release`.
+stream's order and reference ticks per tick (the host path's rules, whole-frame arrays), the
+kernel codes it against the history the encoder keeps on the device, and compact.py's launches
+write the frame's wire bytes back to back before the copy (each payload is then a slice). A
+cloth reset on the tick thread after its frame was encoded (:meth:`DeviceWire.add_flags`,
+:meth:`DeviceWire.reset`) is coded again as a keyframe; the publisher's news (keyframe
+requests, states nobody watched, frames it dropped) reach the streams through
+:meth:`DeviceWire.payloads` and :meth:`DeviceWire.release` (O(news), not O(cloths), per tick).
 """
 
 from __future__ import annotations

@@ -333,11 +333,12 @@ class DeviceEncoder:
             np.uint8,  # type: ignore[arg-type,type-var]
             is_blocking=True,
         )
+        if self._compact:  # compacted frames: views made per frame from its index
+            return _HostFrame(data.base, hb, data, [], plan=plan, index=np.zeros(2 * len(plan.rows) + 1, np.uint32))
         data[: plan.size] = plan.template  # a frame read before any encode is the static bytes
         mv = memoryview(data).cast("B")  # type: ignore[arg-type]
         views = [mv[o : o + s] for o, s in zip(plan.pub_offset.tolist(), plan.pub_size.tolist(), strict=True)]
-        index = np.zeros(2 * len(plan.rows) + 1, np.uint32) if self._compact else None
-        return _HostFrame(data.base, hb, data, views, plan=plan, index=index)
+        return _HostFrame(data.base, hb, data, views, plan=plan)
 
     def _release_hosts(self) -> None:
         """Drop the pinned host frames. A view still held elsewhere keeps its memory (and its

@@ -163,6 +163,28 @@ class Compactor:
         self.pieces = pieces
         return pieces
 
+    def host_index(self) -> np.ndarray:
+        """A host array for one frame's index, in pinned memory (ALLOC_HOST_PTR, mapped for good;
+        its mapping keeps the buffer): a driver may copy into pageable memory synchronously, which
+        would make the enqueue wait for the frame."""
+        assert self.pieces is not None
+        n = 2 * len(self.pieces.cloth) + 1
+        try:
+            buf = cl.Buffer(self.dev.ctx, MF.READ_WRITE | MF.ALLOC_HOST_PTR, 4 * n)
+            arr, _ = cl.enqueue_map_buffer(  # type: ignore[misc]
+                self.dev.queue,
+                buf,
+                cl.map_flags.READ | cl.map_flags.WRITE,  # type: ignore[arg-type]
+                0,
+                (n,),
+                np.uint32,  # type: ignore[arg-type,type-var]
+                is_blocking=True,
+            )
+            return arr
+        except cl.Error as e:  # a driver without mappable host memory: plain numpy
+            log.debug("no mapped host buffer for the index (%s): plain host memory", e)
+            return np.zeros(n, np.uint32)
+
     def guess(self, size: int) -> int:
         """Bytes to copy before the index is known: the largest of the last frames' bytes per
         piece times this plan's pieces, and a quarter more (kept across plans: cloths coming and

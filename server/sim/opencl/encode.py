@@ -334,7 +334,7 @@ class DeviceEncoder:
             is_blocking=True,
         )
         if self._compact:  # compacted frames: views made per frame from its index
-            return _HostFrame(data.base, hb, data, [], plan=plan, index=np.zeros(2 * len(plan.rows) + 1, np.uint32))
+            return _HostFrame(data.base, hb, data, [], plan=plan, index=self.compactor.host_index())
         data[: plan.size] = plan.template  # a frame read before any encode is the static bytes
         mv = memoryview(data).cast("B")  # type: ignore[arg-type]
         views = [mv[o : o + s] for o, s in zip(plan.pub_offset.tolist(), plan.pub_size.tolist(), strict=True)]

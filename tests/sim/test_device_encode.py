@@ -646,6 +646,27 @@ def test_predictive_frames_equal_the_host_encoder(device, rng, k, local_size, co
         enc.close()
 
 
+def test_predictive_plan_with_nothing_published(device):
+    """Predictive cloths in no publication (nobody subscribes yet): an empty frame, no launch of
+    the compaction, no copy, nothing to publish."""
+    cloths = [ClothEntry("a", 0, 5, P.ENC_PREDICTIVE), ClothEntry("b", 5, 3, P.ENC_QUANT16)]
+    enc = DeviceEncoder(device)
+    plan = FramePlan.build(cloths, [])
+    enc.set_plan(plan)
+    ds = DeviceStreams()
+    ds.follow(plan)
+    P4 = np.ones((8, 4), np.float32)
+    try:
+        for tick in (1, 2):
+            enc.encode(device.queue, _buffer(device, P4), None, tick, 5, None, predictive=ds.decide(tick, None)[0])
+            frame = enc.hold()
+            assert frame.sizes() == [] and list(frame.payloads([])) == [] and len(enc.read()) == 0
+            assert len(enc.nonfinite()) == 0
+            frame.release()
+    finally:
+        enc.close()
+
+
 def test_compacted_frame_headers(device, rng):
     """A compacted frame's headers as the service edits them after the encode: its bounds show a
     non-finite predictive cloth (nonfinite), and the server time and flags written on the host

@@ -442,6 +442,10 @@ class DeviceEncoder:
         if self._compact:
             assert host.index is not None
             host.where = None
+            if not plan.size:
+                host.index[:] = 0  # nothing published: no launch, an empty frame
+        if self._compact and plan.size:
+            assert host.index is not None
             host.event, host.copied = self.compactor.enqueue(queue, host.data, host.index, plan.size, events)
         elif plan.size:
             host.event = cl.enqueue_copy(

@@ -32,8 +32,8 @@
  *            work-group's prefix sum of widths gives. A predictive state is written into a
  *            slot of its largest size (the plan's): one launch, no frame-wide prefix sum; its
  *            real size goes into its data_size field (and its bundle entry's state size), the
- *            normals (snorm16) follow its data and zeros pad it to 8 bytes. The host compacts
- *            bundles (encode.py: EncodedFrame.payloads).
+ *            normals (snorm16) follow its data and zeros pad it to 8 bytes. compact.cl then
+ *            writes the frame's wire bytes back to back (two launches behind this one).
  *
  * Build options (-D): ENC_WG (work-group size, a power of two), ENC_FP64 (0/1), ENC_STRIDE
  * (floats per vertex in the position and normal buffers, xyz first: 4 for the world's float4

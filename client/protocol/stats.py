@@ -54,7 +54,6 @@ STATS_FIELDS: tuple[StatField, ...] = (
         "integer",
         "counter",
         "Bytes of state payloads published (when the server reports it)",
-        reported=False,
     ),
     StatField("unwatched", "integer", "counter", "States not encoded because nobody subscribed to their key"),
     StatField("publish_errors", "integer", "counter", "States that failed to publish"),

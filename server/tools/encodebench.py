@@ -7,7 +7,8 @@ one float4 device buffer (as the world holds them) and, for each encoding, times
   the tick loop hands the publisher), then :class:`drape.server.sim.statecodec.FrameEncoder`
   writes every publication into its own reused ``bytearray``;
 - device: :class:`drape.server.sim.opencl.encode.DeviceEncoder`: one launch and one copy of the
-  packed frame into pinned host memory, then the publications' views.
+  packed frame into pinned host memory, then one ``bytes`` per publication (as the service's
+  publisher puts them).
 
 Medians over ``--repeat`` frames after a warm-up; the first frame of both paths is compared byte
 for byte. ``--bundle B`` puts B cloths in each bundle (0: every cloth on its own key).
@@ -15,10 +16,19 @@ for byte. ``--bundle B`` puts B cloths in each bundle (0: every cloth on its own
 ``--encoding predictive`` (protocol 1.5, ``--step`` metres): the cloths sway (a smooth motion, a
 new position upload before each frame, not timed) and both paths code every frame against their
 streams: the host's FrameEncoder with its PredictiveStreams, the device's encoder with
-devstreams.DeviceStreams' decisions (a keyframe every ``--keyframe-interval`` frames); the device
-time then includes the compaction of the predictive states out of their largest-size slots
-(EncodedFrame.payloads: one gather, one ``bytes`` per publication, as the service publishes). Every
-warm-up frame and the first timed one are compared byte for byte; ``wire MB`` is what goes out.
+devstreams.DeviceStreams' decisions (a keyframe every ``--keyframe-interval`` frames) and the
+frame compacted on the device (kernels/compact.cl) before its copy. Every warm-up frame and the
+first timed one are compared byte for byte; ``wire MB`` is what goes out, ``read MB`` what the
+device path copies to the host.
+
+The device path's columns: ``device`` its wall time per frame (everything below), of which
+``wait`` waiting for the device (on a GPU: the kernels and the copy, which overlap nothing here);
+``host`` its host share without the payloads' copies (the streams' decisions, the enqueues, the
+frame's index and sizes), ``bytes`` one ``bytes`` per publication; ``kernel``, ``compact`` (the
+two compaction launches) and ``copy`` (the copy to the host) from the queue's profiling.
+``--no-host`` skips the host path (and the byte comparison). The process's heap is set as
+``drape serve`` sets it (``malloc_mmap_threshold``: a tick's payload copies are not given back to
+the OS and faulted in again every frame).
 """
 
 from __future__ import annotations
@@ -33,6 +43,8 @@ import pyopencl as cl
 
 from drape.client import protocol as P
 
+from ..service.config import ServerConfig
+from ..service.process.memory import configure_heap
 from ..sim.opencl.device import Device
 from ..sim.opencl.devstreams import DeviceStreams
 from ..sim.opencl.encode import ClothEntry, DeviceEncoder, FramePlan, Publication
@@ -168,7 +180,8 @@ def run(
     local_size: int | None = None,
     step: float = P.DEFAULT_STEP,
     keyframe_interval: int = 60,
-) -> dict[str, float]:
+    with_host: bool = True,
+) -> dict[str, float | bool | None]:
     rng = np.random.default_rng(seed)
     nv = side * side
     pos, nrm = _world(rng, cloths, side)
@@ -178,7 +191,7 @@ def run(
     entries = [ClothEntry(f"c{i:05d}", i * nv, nv, encs[i], normals, step) for i in range(cloths)]
     plan = FramePlan.build(entries, _publications(cloths, bundle))
     predictive = bool(plan.predictive.any())
-    host = HostPath(dev, pos_buf, plan, side, nrm if normals else None, keyframe_interval)
+    host = HostPath(dev, pos_buf, plan, side, nrm if normals else None, keyframe_interval) if with_host else None
     pq = cl.CommandQueue(dev.ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
     denc = DeviceEncoder(dev, local_size=local_size)
     denc.set_plan(plan)
@@ -188,6 +201,11 @@ def run(
     flags = np.zeros(cloths, np.uint16)
     host_t: list[float] = []
     dev_t: list[float] = []
+    wait_t: list[float] = []
+    share_t: list[float] = []
+    bytes_t: list[float] = []
+    compact_t: list[float] = []
+    read: list[int] = []
     kern_t: list[float] = []
     copy_t: list[float] = []
     wire: list[int] = []
@@ -196,43 +214,58 @@ def run(
         if predictive:  # a motion to predict: new positions (not timed)
             cl.enqueue_copy(dev.queue, pos_buf, _sway(pos, f), is_blocking=True)
         t0 = time.perf_counter()
-        hb = host.frame(f, 1000 + f)
+        hb = host.frame(f, 1000 + f) if host is not None else None
         t1 = time.perf_counter()
         pred = streams.decide(f, flags)[0] if predictive else None
         copy_ev = denc.encode(pq, pos_buf, nrm_buf if normals else None, f, 1000 + f, flags, predictive=pred)
-        if predictive:
-            frame = denc.hold()
-            views: list = [b for _, b in frame.payloads(every)]
-            frame.release()
-        else:
-            views = denc.slices()
+        ta = time.perf_counter()
+        copy_ev.wait()
+        tb = time.perf_counter()
+        frame = denc.hold()  # a compacted frame's index read (and the rest of its bytes, if any)
+        frame.sizes()  # what the publisher asks first
+        tc = time.perf_counter()
+        views: list = [b for _, b in frame.payloads(every)]
+        frame.release()
         t2 = time.perf_counter()
-        if f <= (warmup if predictive else 0):
+        if f <= (warmup if predictive else 0) and hb is not None:
             differ = sum(bytes(a) != bytes(b) for a, b in zip(hb, views, strict=True))
             same = same and differ == 0
             if differ:
                 log.warning("%s: %d of %d publications differ between host and device", encoding, differ, len(hb))
         wire.append(sum(len(v) for v in views))
+        read.append(denc.compactor.copied if predictive else plan.size)
         if f >= warmup:
             host_t.append(t1 - t0)
             dev_t.append(t2 - t1)
+            wait_t.append(tb - ta)
+            share_t.append((ta - t1) + (tc - tb))
+            bytes_t.append(t2 - tc)
             k = denc.kernel_event
             if k is not None:
                 kern_t.append((k.profile.end - k.profile.start) * 1e-9)
+            c = denc.compactor
+            if predictive and c.scan_event is not None and c.copy_event is not None:
+                compact_t.append((c.copy_event.profile.end - c.scan_event.profile.start) * 1e-9)
             copy_t.append((copy_ev.profile.end - copy_ev.profile.start) * 1e-9)
     denc.close()
     med = lambda xs: statistics.median(xs) * 1e3 if xs else float("nan")  # noqa: E731
+    parts = host.parts if host is not None else {"readback": [], "gather": [], "encode": []}
     return {
-        "host_ms": med(host_t),
-        "readback_ms": med(host.parts["readback"][warmup:]),
-        "gather_ms": med(host.parts["gather"][warmup:]),
-        "encode_ms": med(host.parts["encode"][warmup:]),
+        "host_ms": med(host_t) if host is not None else float("nan"),
+        "readback_ms": med(parts["readback"][warmup:]),
+        "gather_ms": med(parts["gather"][warmup:]),
+        "encode_ms": med(parts["encode"][warmup:]),
         "device_ms": med(dev_t),
+        "wait_ms": med(wait_t),
+        "share_ms": med(share_t),
+        "bytes_ms": med(bytes_t),
         "kernel_ms": med(kern_t),
+        "compact_ms": med(compact_t),
         "copy_ms": med(copy_t),
         "frame_mb": plan.size / 1e6,
+        "read_mb": statistics.median(read[warmup:] or read) / 1e6,
         "wire_mb": statistics.median(wire[warmup:] or wire) / 1e6,
-        "same": bool(same),
+        "same": bool(same) if host is not None else None,
     }
 
 
@@ -255,8 +288,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--keyframe-interval", type=int, default=60, help="predictive: frames between keyframes")
     ap.add_argument("--local-size", type=int, default=None, help="encoder work-group size (default: per device)")
     ap.add_argument("--device", default=None, help="DRAPE_DEVICE: auto, gpu, cpu or part of a name")
+    ap.add_argument("--no-host", action="store_true", help="time the device path only (no host path, no comparison)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    configure_heap(ServerConfig().malloc_mmap_threshold)  # as drape serve's (the payloads' copies)
     dev = Device(args.device)
     print(
         f"device: {dev.info.name}; {args.side}x{args.side} vertices per cloth, "
@@ -264,9 +299,9 @@ def main(argv: list[str] | None = None) -> int:
         f"median ms per frame over {args.repeat} frames"
     )
     print(
-        f"{'encoding':10} {'cloths':>6} {'MB':>7} {'wire MB':>7} | "
+        f"{'encoding':10} {'cloths':>6} {'MB':>7} {'read MB':>7} {'wire MB':>7} | "
         f"{'host':>8} {'readback':>8} {'gather':>7} {'encode':>7} | "
-        f"{'device':>7} {'kernel':>7} {'copy':>7} | {'speed-up':>8} same"
+        f"{'device':>7} {'wait':>7} {'host':>6} {'bytes':>6} | {'kernel':>7} {'compact':>7} {'copy':>6} | same"
     )
     for n in args.cloths:
         for e in args.encoding:
@@ -282,11 +317,14 @@ def main(argv: list[str] | None = None) -> int:
                 local_size=args.local_size,
                 step=args.step,
                 keyframe_interval=args.keyframe_interval,
+                with_host=not args.no_host,
             )
+            same = {True: "yes", False: "NO", None: "-"}[r["same"]]  # type: ignore[index]
             print(
-                f"{e:10} {n:6d} {r['frame_mb']:7.2f} {r['wire_mb']:7.2f} | {r['host_ms']:8.2f} {r['readback_ms']:8.2f} "
-                f"{r['gather_ms']:7.2f} {r['encode_ms']:7.2f} | {r['device_ms']:7.2f} {r['kernel_ms']:7.2f} "
-                f"{r['copy_ms']:7.2f} | {r['host_ms'] / r['device_ms']:7.1f}x {'yes' if r['same'] else 'NO'}",
+                f"{e:10} {n:6d} {r['frame_mb']:7.2f} {r['read_mb']:7.2f} {r['wire_mb']:7.2f} | "
+                f"{r['host_ms']:8.2f} {r['readback_ms']:8.2f} {r['gather_ms']:7.2f} {r['encode_ms']:7.2f} | "
+                f"{r['device_ms']:7.2f} {r['wait_ms']:7.2f} {r['share_ms']:6.2f} {r['bytes_ms']:6.2f} | "
+                f"{r['kernel_ms']:7.2f} {r['compact_ms']:7.2f} {r['copy_ms']:6.2f} | {same}",
                 flush=True,
             )
     return 0

@@ -87,7 +87,7 @@ class ClientResult:
     decode_us_per_payload: float  # mean arrival -> last state delivered, per payload (bundle or state)
     decode_s: float  # total decode time in the window
     payloads: int  # bundles (or single states) received in the window
-    bytes: int
+    bytes: int  # received states x their encoding's size (predictive: its largest; reports take the servers')
     send_errors: int
     cpu_s: float  # the process's CPU time over the window
     extra: dict[str, Any] = field(default_factory=dict)

@@ -40,7 +40,8 @@ def server_window(
 ) -> dict[str, Any]:
     """One server's figures over a window (two of its stats publications, those in between):
     cloths and vertices at its end, achieved rate, ticks, missed ticks, coalesced frames, the
-    mean tick and the window's length on its clock."""
+    bytes it put (None when its stats do not report them), the mean tick and the window's
+    length on its clock."""
     ph = phase_means(window)
     return {
         "server": server,
@@ -50,6 +51,7 @@ def server_window(
         "ticks": counter_delta(s0, s1, "ticks"),
         "missed_ticks": counter_delta(s0, s1, "missed_ticks"),
         "skipped_frames": counter_delta(s0, s1, "skipped_frames"),
+        "published_bytes": counter_delta(s0, s1, "published_bytes") if "published_bytes" in s1 else None,
         "tick_ms": ph.get("tick", {}).get("mean", float("nan")),
         "seconds": (int(s1["time_ns"]) - int(s0["time_ns"])) / 1e9,
     }
@@ -161,7 +163,7 @@ class Report:
     duplicated: int
     out_of_order: int
     messages_per_s: float
-    bytes_per_s: float
+    bytes_per_s: float  # the payload bytes the servers put (a predictive state's real size), else the clients' count
     send_errors: int
     decode_us: dict[str, float]  # per state, per payload (bundle or state), clients' share of one core
     server: dict[str, Any] = field(default_factory=dict)  # phases_ms, cpu_percent, rss_*_mb

@@ -388,7 +388,7 @@ def run_fleet_load(
         duplicated=sum(r.duplicated for r in main),
         out_of_order=sum(r.out_of_order for r in main),
         messages_per_s=round(states / seconds, 1),
-        bytes_per_s=round(sum(r.bytes for r in out) / seconds, 1),
+        bytes_per_s=round(bytes_put(per_server, out) / seconds, 1),
         send_errors=sum(r.send_errors for r in out),
         decode_us=decode_summary(out, seconds),
         server=server_info,
@@ -406,6 +406,17 @@ def run_fleet_load(
         links=links_report(out, seconds, spec.link),
     )
     return report, out, windows[0]
+
+
+def bytes_put(per_server: list[dict[str, Any]], out: list[ClientResult]) -> int:
+    """The window's payload bytes: what the servers' publishers put (their stats' published_bytes:
+    a predictive state's real size, a bundle's header and entries), or where a server does not
+    report it the states the clients received times their encoding's size (exact for the
+    fixed-size encodings, a predictive state's largest size)."""
+    put = [p.get("published_bytes") for p in per_server]
+    if put and all(b is not None for b in put):
+        return int(sum(put))  # type: ignore[arg-type]
+    return sum(r.bytes for r in out)
 
 
 __all__ = ["LoadSpec", "StatsWatch", "Target", "run_load", "run_fleet_load"]

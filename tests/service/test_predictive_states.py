@@ -60,7 +60,8 @@ def test_predictive_states_stay_within_half_a_step_of_float32(server):
         assert pred.stream.keyframes >= 2  # the first state, then one every 30 ticks
         assert pred.gaps == 0 and pred.stream.undecodable == 0
         # coded on the device (issue 21: an OpenCL World no longer falls back to the host path)
-        assert server.ticker.world.device_frames.predictive_frames > 0
+        frames = server.ticker.world.device_frames
+        assert frames.predictive_frames > 0 and frames.encoder.compactor.frames > 0  # and compacted there
         sizes = pred.stream.last
         assert sizes is not None and sizes.encoding == "predictive"
     finally:

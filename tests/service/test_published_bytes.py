@@ -174,6 +174,7 @@ def test_predictive_states_decode_within_half_a_step(device_encode, rng):
             frames = getattr(server.ticker.world, "device_frames", None)
             if device_encode:  # a counted event, not a timing: frames with predictive states coded on the device
                 assert frames is not None and frames.predictive_frames >= 16
+                assert frames.encoder.compactor.frames >= 16  # and compacted there
             else:
                 assert frames is None
             streams = {h.id: P.StateStream(h.id) for h, _, _, _ in cloths}
@@ -199,6 +200,37 @@ def test_predictive_states_decode_within_half_a_step(device_encode, rng):
                     check(e.cloth, b.payload(i))
             assert all(n >= 8 for n in shown.values()), shown
             assert all(s.undecodable == 0 or s.keyframes > 0 for s in streams.values())
+        finally:
+            client.close()
+    finally:
+        server.stop()
+    assert server.failure is None
+
+
+@pytest.mark.parametrize("device_encode", [True, False], ids=["device", "host"])
+def test_published_bytes_count_what_was_put(device_encode, rng):
+    """The stats' published_bytes is the bytes the publisher put (what loadtest's MB/s reads):
+    a quant16 cloth's states at their fixed size, a predictive cloth's at their real size (far
+    under the largest), counted against the payloads a raw subscriber received."""
+    server = Server(make_config(device_encode=device_encode, keyframe_interval=30)).start()
+    try:
+        client = connect(server)
+        try:
+            v, t = random_mesh(rng)
+            fixed = client.submit_mesh(v, t, pinned=list(range(len(v))), encoding="quant16")
+            pred = client.submit_mesh(v, t, pinned=list(range(len(v))), encoding="predictive", step=1e-3)
+            raws = [Raw(client.session, h.key) for h in (fixed, pred)]
+            assert wait_until(lambda: all(len(r.payloads()) >= 40 for r in raws), TIMEOUT)
+            s0 = server.stats()
+            assert wait_until(lambda: server.stats()["published"] >= s0["published"] + 40, TIMEOUT)
+            s1 = server.stats()
+            states, put = s1["published"] - s0["published"], s1["published_bytes"] - s0["published_bytes"]
+            q16, largest = P.state_size(len(v), "quant16"), P.state_size(len(v), "predictive")
+            got = raws[1].payloads()
+            assert max(len(p) for p in got) < largest  # pinned: predicted exactly, all but keyframes tiny
+            # both cloths' states are put every tick: half of them quant16, half predictive
+            assert states // 2 * q16 < put < states // 2 * (q16 + largest)
+            assert put < states // 2 * q16 + states * largest // 4  # the predictive states' real size counted
         finally:
             client.close()
     finally:

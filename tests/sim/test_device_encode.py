@@ -15,6 +15,7 @@ from conftest import random_grid_fabric
 
 from drape.client import protocol as P
 from drape.client.protocol.predictive import Q_LIMIT
+from drape.server.sim.opencl.compact import Compactor
 from drape.server.sim.opencl.devstreams import DeviceStreams
 from drape.server.sim.opencl.encode import (
     HEADER_OFFSETS,
@@ -574,18 +575,26 @@ def _move(rng: np.random.Generator, pos: list[np.ndarray], vel: list[np.ndarray]
             p += rng.normal(0, 10.0, 3).astype(np.float32)
 
 
-@pytest.mark.parametrize("k, local_size, ticks", [(12, None, 40), (20, 64, 25), (6, 256, 25)])
-def test_predictive_frames_equal_the_host_encoder(device, rng, k, local_size, ticks):
+@pytest.mark.parametrize(
+    "k, local_size, compact_wg, short, ticks",
+    [(12, None, None, False, 40), (20, 64, 1, True, 25), (6, 256, 256, False, 25), (40, 1, 4, True, 12)],
+)
+def test_predictive_frames_equal_the_host_encoder(device, rng, k, local_size, compact_wg, short, ticks):
     """Many ticks of device-encoded predictive states (devstreams' decisions, the kernel's
-    packing, the host's compaction) byte for byte the host path's (statecodec.FrameEncoder and
-    PredictiveStreams): keyframes at start and every interval, resets, keyframe requests,
-    publications nobody watches, frames dropped, a step change (a new plan), bundles."""
+    packing, the compaction on the device) byte for byte the host path's (statecodec.FrameEncoder
+    and PredictiveStreams): keyframes at start and every interval, resets, keyframe requests,
+    publications nobody watches, frames dropped, a step change (a new plan), bundles mixing
+    encodings, normals; the compaction's work-group sizes, and (``short``) every frame's first
+    copy too short for it (the rest copied once its index is read)."""
     cloths, pos, nrm, pubs = _predictive_frame(rng, k)
     vel = [np.zeros_like(p) for p in pos]
     interval = 9
     fe = FrameEncoder(streams=PredictiveStreams(interval))
     ds = DeviceStreams(interval)
     enc = DeviceEncoder(device, local_size=local_size)
+    enc.compactor = Compactor(device, local_size=compact_wg)
+    if short:
+        enc.compactor.guess = lambda size: 8  # type: ignore[method-assign]
     plan = FramePlan.build(cloths, pubs)
     enc.set_plan(plan)
     ds.follow(plan)
@@ -611,6 +620,8 @@ def test_predictive_frames_equal_the_host_encoder(device, rng, k, local_size, ti
             pred, kf = ds.decide(tick, flags)
             enc.encode(device.queue, _buffer(device, P4), _buffer(device, N4), tick, time_ns, flags, predictive=pred)
             frame = enc.hold()
+            # the frame read back is the wire bytes, back to back (each padded to 8 bytes)
+            assert len(enc.read()) == sum(P.align8(len(v)) for v in frame.views)
             if dropped:  # the publisher dropped it: the host path never coded it
                 ds.lost(plan, np.flatnonzero(plan.predictive))
                 frame.release()
@@ -629,6 +640,64 @@ def test_predictive_frames_equal_the_host_encoder(device, rng, k, local_size, ti
                 _assert_same([got[j]], [want[j]], [pubs[j]])
         assert keyframes == fe.streams.keyframes
         assert keyframes > k  # keyframes came at start, on resets, requests, intervals, and after gaps
+        assert enc.compactor.frames == ticks  # every frame compacted on the device (counted, not timed)
+        assert enc.compactor.short == (ticks if short else enc.compactor.short)
+    finally:
+        enc.close()
+
+
+def test_predictive_plan_with_nothing_published(device):
+    """Predictive cloths in no publication (nobody subscribes yet): an empty frame, no launch of
+    the compaction, no copy, nothing to publish."""
+    cloths = [ClothEntry("a", 0, 5, P.ENC_PREDICTIVE), ClothEntry("b", 5, 3, P.ENC_QUANT16)]
+    enc = DeviceEncoder(device)
+    plan = FramePlan.build(cloths, [])
+    enc.set_plan(plan)
+    ds = DeviceStreams()
+    ds.follow(plan)
+    P4 = np.ones((8, 4), np.float32)
+    try:
+        for tick in (1, 2):
+            enc.encode(device.queue, _buffer(device, P4), None, tick, 5, None, predictive=ds.decide(tick, None)[0])
+            frame = enc.hold()
+            assert frame.sizes() == [] and list(frame.payloads([])) == [] and len(enc.read()) == 0
+            assert len(enc.nonfinite()) == 0
+            frame.release()
+    finally:
+        enc.close()
+
+
+def test_compacted_frame_headers(device, rng):
+    """A compacted frame's headers as the service edits them after the encode: its bounds show a
+    non-finite predictive cloth (nonfinite), and the server time and flags written on the host
+    (set_time, add_flags) land in the right states and bundles: the bytes of the frame encoded
+    with that time and those flags from the start (keyframes alike, the same streams' decision)."""
+    cloths, pos, nrm, pubs = _predictive_frame(rng, 16)
+    plan = FramePlan.build(cloths, pubs)
+    enc = DeviceEncoder(device)
+    enc.set_plan(plan)
+    ds = DeviceStreams(5)
+    ds.follow(plan)
+    try:
+        for tick in (1, 2, 3):
+            P4, N4 = _world_arrays(rng, cloths, pos, nrm)
+            bad = int(rng.choice(np.flatnonzero(plan.predictive & (plan.state_offset >= 0))))
+            c = cloths[bad]
+            P4[c.vbase + c.n // 2, 1] = np.nan
+            pred, _ = ds.decide(tick, None)
+            flags = np.zeros(len(cloths), np.uint16)
+            flags[rng.permutation(len(cloths))[:3]] = P.FLAG_RESET
+            enc.encode(device.queue, _buffer(device, P4), _buffer(device, N4), tick, 123, flags, predictive=pred)
+            want = [bytes(v) for v in enc.slices()]
+            enc.encode(device.queue, _buffer(device, P4), _buffer(device, N4), tick, 0, None, predictive=pred)
+            assert bad in enc.nonfinite().tolist()
+            frame = enc.hold()
+            frame.set_time(123)
+            frame.add_flags(np.flatnonzero(flags).tolist(), P.FLAG_RESET)
+            assert [bytes(v) for v in frame.views] == want
+            assert dict(frame.payloads(range(len(pubs)))) == dict(enumerate(want))
+            frame.release()
+            pos = [p + rng.normal(0, 1e-3, p.shape).astype(np.float32) for p in pos]
     finally:
         enc.close()
 

@@ -88,6 +88,23 @@ def test_admission_capacity_replays_a_load_tests_figures():
         admission_capacity(reports, [30], 0.010)
 
 
+def test_bytes_are_what_the_servers_put_when_they_report_it():
+    """MB/s: the servers' published_bytes over the window (a predictive state's real size);
+    the clients' received states x state size only when a server does not report it."""
+    from types import SimpleNamespace
+
+    from drape.server.tools.loadreport import server_window
+    from drape.server.tools.loadrun import bytes_put
+
+    s0 = {"ticks": 0, "time_ns": 0, "published_bytes": 1000}
+    s1 = {"ticks": 60, "time_ns": 1_000_000_000, "published_bytes": 5000}
+    a, b = server_window("a", s0, s1, []), server_window("b", s0, {**s1, "published_bytes": 2000}, [])
+    clients = [SimpleNamespace(bytes=123_456)]
+    assert bytes_put([a, b], clients) == 4000 + 1000  # type: ignore[arg-type]
+    old = server_window("c", {"ticks": 0, "time_ns": 0}, {"ticks": 60, "time_ns": 10**9}, [])
+    assert old["published_bytes"] is None and bytes_put([a, old], clients) == 123_456  # type: ignore[arg-type]
+
+
 def test_window_counts_only_the_window_ticks():
     # ticks 10..20 are the window (lo=9, hi=20); 5..9 are warm-up, 21.. after it
     ticks = np.array([5, 6, 9, 10, 11, 13, 12, 12, 14, 15, 16, 17, 18, 19, 20, 21, 22])

@@ -221,7 +221,7 @@ class Publisher:
                 log.warning("publishing %s at tick %d failed: %s", ident, wire.tick, e)
         keyframes = self.streams.keyframes
         enc_t = pub_t = 0.0
-        published = n_bundles = 0
+        published = n_bundles = n_bytes = 0
         a = time.perf_counter()
         for j, payload in wire.payloads(list(targets), self.streams):
             b = time.perf_counter()
@@ -233,6 +233,7 @@ class Publisher:
                 try:
                     targets[j].put(payload)
                     published += len(idx)
+                    n_bytes += len(payload)
                     n_bundles += bundle
                 except Exception as e:
                     errors += len(idx)
@@ -245,7 +246,9 @@ class Publisher:
         self.timers["encode"].add(enc_t)
         self.timers["publish"].add(pub_t + rate_t)
         self.last_cost_s = enc_t + pub_t + rate_t
-        self.registry.count_many(published=published, unwatched=unwatched, publish_errors=errors, bundles=n_bundles)
+        self.registry.count_many(
+            published=published, published_bytes=n_bytes, unwatched=unwatched, publish_errors=errors, bundles=n_bundles
+        )
 
     def _put_rates(self, wire: Wire) -> float:
         """1.8: the decimated keys someone subscribes to whose state is this tick's, each coded
@@ -257,7 +260,7 @@ class Publisher:
         a = time.perf_counter()
         pubs = wire.roster.publications()
         own_streams = isinstance(wire, HostWire)  # its payloads code predictive states against the given streams
-        published = unserved = errors = 0
+        published = unserved = errors = n_bytes = 0
         for k, watched in due:
             streams = self.rates.streams[k]
             if not own_streams and wire.roster.predictive:  # its payloads would tell the device streams of lost states
@@ -276,10 +279,13 @@ class Publisher:
                 try:
                     pub.put(payload)
                     published += len(idx)
+                    n_bytes += len(payload)
                 except Exception as e:
                     errors += len(idx)
                     log.warning("publishing %s every %d at tick %d failed: %s", ident, k, wire.tick, e)
             if streams.keyframes != keyframes:
                 self.registry.count("keyframes", streams.keyframes - keyframes)
-        self.registry.count_many(rate_published=published, rate_unserved=unserved, publish_errors=errors)
+        self.registry.count_many(
+            rate_published=published, rate_unserved=unserved, published_bytes=n_bytes, publish_errors=errors
+        )
         return time.perf_counter() - a

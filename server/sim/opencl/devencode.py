@@ -15,11 +15,13 @@ once the World has reset them, :meth:`DeviceWire.reset` writes their rest normal
 the frame again with the reset flag: the same bytes the host path publishes.
 
 Predictive cloths (protocol 1.5) are coded here too: devstreams.DeviceStreams decides each
-stream's order and reference ticks per tick (the host path's rules), the kernel codes it against
-the history the encoder keeps on the device. A cloth reset on the tick thread after its frame was
-encoded (:meth:`DeviceWire.add_flags`, :meth:`DeviceWire.reset`) is coded again as a keyframe;
-the publisher's news (keyframe requests, states nobody watched, frames it dropped) reach the
-streams through :meth:`DeviceWire.payloads` and :meth:`DeviceWire.release`.
+stream's order and reference ticks per tick (the host path's rules, whole-frame arrays), the
+kernel codes it against the history the encoder keeps on the device, and compact.py's launches
+write the frame's wire bytes back to back before the copy (each payload is then a slice). A
+cloth reset on the tick thread after its frame was encoded (:meth:`DeviceWire.add_flags`,
+:meth:`DeviceWire.reset`) is coded again as a keyframe; the publisher's news (keyframe
+requests, states nobody watched, frames it dropped) reach the streams through
+:meth:`DeviceWire.payloads` and :meth:`DeviceWire.release` (O(news), not O(cloths), per tick).
 """
 
 from __future__ import annotations
@@ -181,13 +183,15 @@ class DeviceWire(Wire):
         self._bad = np.zeros(0, np.int64)
 
     def sizes(self) -> list[int]:
-        return [len(v) for v in self.encoded.views]
+        return self.encoded.sizes()
 
     def payloads(self, watched: list[int], streams: PredictiveStreams) -> Iterator[tuple[int, Payload]]:
-        """One ``bytes`` copy each (zenoh's ZBytes takes no memoryview; the cheapest correct
-        way, see issue 10's figures). Measured against it on the H100 (docs/loadtest.md, session
-        12): copying into a ``bytearray`` kept per key doubled the copy and put phases (3.5 ->
-        6.1 and 9.8 -> 17.4 ms a tick at 2048 float32)."""
+        """One ``bytes`` copy each: eclipse-zenoh 1.10's put takes ``bytes``, ``bytearray``,
+        ``str`` or ``ZBytes`` (made from one of those), not a memoryview (checked: "expected
+        bytes/str type, found 'memoryview'"), so each payload is one copy out of the pinned
+        frame (a compacted frame's slice: no gather). Measured against it on the H100
+        (docs/loadtest.md, session 12): copying into a ``bytearray`` kept per key doubled the
+        copy and put phases (3.5 -> 6.1 and 9.8 -> 17.4 ms a tick at 2048 float32)."""
         self._put = True
         enc = self.encoded
         plan = enc.plan

@@ -36,11 +36,10 @@ Predictive states (protocol 1.5) are coded against the history the encoder keeps
 (three buffers of grid values per position-buffer vertex, whose roles rotate per tick), with the
 order and reference ticks devstreams.DeviceStreams decides per tick (``encode(predictive=...)``).
 Their size varies, so each is written into a slot of its largest size (the plan's layout stays
-fixed: one launch, no frame-wide prefix sum) and :meth:`EncodedFrame.payloads` cuts a single
-state to its size and gathers a bundle's entries back to back (one gather of 8-byte words per
-frame); the bytes equal statecodec.FrameEncoder's (the host path's) for the same streams. The
-price: the copy reads the slots whole (about 2x a quant16 frame of 32x32 cloths, while about 1/6
-of it goes on the wire); compacting on the device before the copy is the next step.
+fixed) and compact.py's :class:`~.compact.Compactor` (kernels/compact.cl, two more launches on
+the same queue) writes the frame's wire bytes back to back into a second buffer: the host copies
+only those and a small index, and each publication is a slice of them. The bytes equal
+statecodec.FrameEncoder's (the host path's) for the same streams.
 
 The bytes equal :func:`drape.client.protocol.encode_state` / :func:`~drape.client.protocol.encode_bundle`
 (tests/sim/test_device_encode.py), with two documented exceptions:
@@ -60,6 +59,7 @@ from dataclasses import dataclass
 import numpy as np
 import pyopencl as cl
 
+from .compact import Compactor, FrameIndex
 from .device import Device
 from .frameplan import (  # noqa: F401 (the plan's names, re-exported: encode.py is the entry point)
     HEADER_OFFSETS,
@@ -68,7 +68,9 @@ from .frameplan import (  # noqa: F401 (the plan's names, re-exported: encode.py
     FramePlan,
     Publication,
     encode_layout,
+    put_words,
     state_size,
+    take_bytes,
 )
 
 log = logging.getLogger(__name__)
@@ -90,6 +92,16 @@ class _HostFrame:
     event: cl.Event | None = None
     plan: FramePlan | None = None
     held: bool = False
+    # a compacted frame (plans with predictive states): the kernel's index, the bytes the first
+    # copy brought, and where things lie once it is back (views are then made on demand)
+    index: np.ndarray | None = None
+    copied: int = 0
+    where: FrameIndex | None = None
+
+    def state_at(self) -> np.ndarray:
+        """(k,) each plan cloth's state offset in ``data`` (-1: in no publication)."""
+        assert self.plan is not None
+        return self.where.state_at if self.where is not None else self.plan.state_offset
 
 
 class EncodedFrame:
@@ -100,15 +112,25 @@ class EncodedFrame:
         assert host.plan is not None
         self._host: _HostFrame | None = host
         self.plan = host.plan
-        self.views = list(host.views)
+        self._views = list(host.views) if host.where is None else None
+        self._where = host.where
+        self._data = host.data
         host.held = True
+
+    @property
+    def views(self) -> list[memoryview]:
+        """Each publication's bytes, a view of the pinned host memory, in plan order."""
+        if self._views is None:
+            assert self._where is not None
+            self._views = self._where.views(self._data)
+        return self._views
 
     def add_flags(self, cloths: Sequence[int], flags: int) -> None:
         """OR ``flags`` into the state headers of plan cloths ``cloths`` (e.g. FLAG_RESET carried
         over from a frame that was dropped); cloths in no publication are ignored."""
         if self._host is None:
             raise RuntimeError("frame already released")
-        at = self.plan.state_offset[np.asarray(list(cloths), np.int64)]
+        at = self._host.state_at()[np.asarray(list(cloths), np.int64)]
         at = at[at >= 0] + HEADER_OFFSETS["ST_FLAGS"]
         if len(at):
             f = self._host.data[at] | np.uint8(flags & 0xFF)
@@ -120,23 +142,30 @@ class EncodedFrame:
         was read back, known only after the encode): one vectorised write per frame."""
         if self._host is None:
             raise RuntimeError("frame already released")
-        at = self.plan.time_offsets()
+        w = self._where
+        at = self.plan.time_offsets() if w is None else self.plan.time_offsets(w.state_at, w.pub_at)
         if len(at):
-            stamp = np.frombuffer(int(time_ns).to_bytes(8, "little"), np.uint8)
-            self._host.data[(at[:, None] + np.arange(8)).ravel()] = np.tile(stamp, len(at))
+            put_words(self._host.data, at, np.frombuffer(int(time_ns).to_bytes(8, "little"), np.uint8))
 
     def payloads(self, watched: Sequence[int]) -> Iterator[tuple[int, bytes]]:
         """(publication index, its bytes) of the ``watched`` publications, in order: one
-        ``bytes`` copy of each view, or of a publication holding predictive states its compacted
-        bytes (FramePlan.compact: one gather for the frame)."""
+        ``bytes`` copy of each (of a compacted frame: a slice of it, no view made)."""
         if self._host is None:
             raise RuntimeError("frame already released")
-        data = self._host.data
-        packed = self.plan.compact(data, watched) if self.plan.predictive.any() else {}
-        views = self.views
-        for j in watched:
-            c = packed.get(j)
-            yield j, c.tobytes() if c is not None else bytes(views[j])
+        w = self._where
+        if w is None:
+            views = self.views
+            for j in watched:
+                yield j, bytes(views[j])
+            return
+        sel = np.asarray(watched, np.int64)
+        mv = memoryview(self._data).cast("B")  # type: ignore[arg-type]
+        for j, a, b in zip(watched, w.pub_at[sel].tolist(), (w.pub_at[sel] + w.pub_len[sel]).tolist(), strict=True):
+            yield j, mv[a:b].tobytes()
+
+    def sizes(self) -> list[int]:
+        """Each publication's payload size, in plan order (no view made)."""
+        return (self._where.pub_len if self._where is not None else self.plan.pub_size).tolist()
 
     def release(self) -> None:
         if self._host is not None:
@@ -204,6 +233,9 @@ class DeviceEncoder:
         self._next = 0
         self._last: _HostFrame | None = None
         self.kernel_event: cl.Event | None = None  # the last launch (profiling on a profiling queue)
+        self.compactor = Compactor(dev)  # plans with predictive states: compacted on the device
+        self._uploads: list[cl.Event] = []  # this frame's uploads (flags, predictive decisions)
+        self._compact = False
 
     # -- plan ------------------------------------------------------------------------------
 
@@ -234,6 +266,7 @@ class DeviceEncoder:
         while wg <= top:
             self.dev.program(self._options(wg), source=SOURCE)
             wg *= 2
+        self.compactor.build()
         return top.bit_length()
 
     def set_plan(self, plan: FramePlan) -> None:
@@ -256,6 +289,10 @@ class DeviceEncoder:
         flags_buf = cl.Buffer(ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=flags)
         pred_buf = cl.Buffer(ctx, MF.READ_ONLY, 24 * max(len(plan.cloths), 1))
         self._grow_history(plan.vertex_end if plan.predictive.any() else 0)
+        compact = bool(plan.predictive.any())
+        if compact:
+            self.compactor.set_plan(plan, out)
+        self._compact = compact
         hosts = [self._host_frame(plan) for _ in range(self._host_buffers)]
         self._release_hosts()
         self._pred_buf, self._pred = pred_buf, np.zeros((0, 3), np.uint64)
@@ -296,6 +333,8 @@ class DeviceEncoder:
             np.uint8,  # type: ignore[arg-type,type-var]
             is_blocking=True,
         )
+        if self._compact:  # compacted frames: views made per frame from its index
+            return _HostFrame(data.base, hb, data, [], plan=plan, index=self.compactor.host_index())
         data[: plan.size] = plan.template  # a frame read before any encode is the static bytes
         mv = memoryview(data).cast("B")  # type: ignore[arg-type]
         views = [mv[o : o + s] for o, s in zip(plan.pub_offset.tolist(), plan.pub_size.tolist(), strict=True)]
@@ -394,9 +433,21 @@ class DeviceEncoder:
             ev = cl.enqueue_nd_range_kernel(
                 queue, self._kernel, (n_rows * self._wg,), (self._wg,), wait_for=events or None
             )
+            self._uploads = events  # kept: pyopencl's event of a host-memory copy waits when dropped
             events = [ev]
             self.kernel_event = ev
-        if plan.size:
+        last = self._last
+        if last is not None and last.index is not None and last.where is None:
+            self._finish(last)  # its bytes must leave the compacted buffer before it is reused
+        if self._compact:
+            assert host.index is not None
+            host.where = None
+            if not plan.size:
+                host.index[:] = 0  # nothing published: no launch, an empty frame
+        if self._compact and plan.size:
+            assert host.index is not None
+            host.event, host.copied = self.compactor.enqueue(queue, host.data, host.index, plan.size, events)
+        elif plan.size:
             host.event = cl.enqueue_copy(
                 queue, host.data[: plan.size], self._out, is_blocking=False, wait_for=events or None
             )
@@ -429,24 +480,37 @@ class DeviceEncoder:
             raise RuntimeError("no frame encoded yet")
         if self._last.event is not None:
             self._last.event.wait()
+        if self._last.index is not None and self._last.where is None:
+            self._finish(self._last)
         return self._last
+
+    def _finish(self, host: _HostFrame) -> None:
+        """A compacted frame's index read, and its bytes past the first copy's guess copied."""
+        assert host.index is not None
+        if host.event is not None:
+            host.event.wait()
+        host.where = self.compactor.finish(host.data, host.index, host.copied)
 
     def read(self) -> memoryview:
         """The whole packed frame last encoded (waits for it), a view of pinned host memory."""
         assert self.plan is not None
-        return memoryview(self._frame().data).cast("B")[: self.plan.size]  # type: ignore[arg-type]
+        host = self._frame()
+        size = host.where.size if host.where is not None else self.plan.size
+        return memoryview(host.data).cast("B")[:size]  # type: ignore[arg-type]
 
     def slices(self) -> list[memoryview]:
         """Publication index -> its payload, views of the frame last encoded (waits for it)."""
-        return list(self._frame().views)
+        host = self._frame()
+        return host.where.views(host.data) if host.where is not None else list(host.views)
 
     def bounds(self) -> np.ndarray:
         """(rows, 2, 3) float32: the bounds min and max in each encoded cloth's header, in
         :attr:`FramePlan.encoded` order (waits for the frame)."""
         assert self.plan is not None
-        data = self._frame().data
-        at = self.plan._bounds_at + HEADER_OFFSETS["ST_MIN"]
-        return data[at[:, None] + np.arange(24)].view("<f4").reshape(-1, 2, 3)
+        host = self._frame()
+        data = host.data
+        at = host.state_at()[self.plan.encoded] + HEADER_OFFSETS["ST_MIN"]
+        return take_bytes(data, at, 24).view("<f4").reshape(-1, 2, 3)
 
     def nonfinite(self) -> np.ndarray:
         """Plan cloth indices whose positions held a NaN or an infinity this frame (their header

@@ -15,15 +15,8 @@ from drape.client import protocol as P
 from drape.client.controls import BatchError
 from drape.server.service import Server
 from drape.server.service.registry import ClothRecord, Registry
-from drape.server.service.requests.admission import (
-    FEATURE_WORK,
-    Admission,
-    FixedCost,
-    MeasuredCost,
-    Pricing,
-    TickCost,
-    work_of,
-)
+from drape.server.service.requests.admission import FEATURE_WORK, Admission, Pricing, work_of
+from drape.server.service.requests.admission_model import FixedCost, MeasuredCost, TickCost
 from drape.server.sim.params import ClothParams, Features
 
 

@@ -40,7 +40,8 @@ from ..process.telemetry import PhaseTimer
 from ..publish.publisher import Job, Mailbox
 from ..registry import ClothRecord, Registry
 from ..replies import Replies, Reply, send
-from ..requests.admission import Admission, TickCost, work_of
+from ..requests.admission import Admission, work_of
+from ..requests.admission_model import TickCost
 from .adaptive import AdaptiveQuality
 from .applier import Applier
 

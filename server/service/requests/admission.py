@@ -33,6 +33,7 @@ import json
 import logging
 import math
 import statistics
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,6 +42,7 @@ from drape.client import protocol as P
 
 from ...sim import quality
 from ...sim.params import ClothParams, Features
+from ...sim.scenes import INTER_COLLISION_PASSES
 from ..config import ServerConfig
 from ..registry import ClothRecord, Registry
 from ..worldparams import changes_params, params_after_control, params_from_submit, with_preset
@@ -57,6 +59,12 @@ FEATURE_WORK: dict[str, float] = {"self_collision": 5.0}
 DENSITY_LIMITS = (0.5, 4.0)  # a topology's link density against a grid's is taken within these
 GRID_TRIANGLES_PER_VERTEX = 2.0  # a grid's (two per cell): density 1
 SCENE_VERTICES = 64 * 64  # the cost file's scene: hanging 64 x 64
+#: One inter-collision pass's work per vertex of a scene cloth (scenes of two cloths or more: each
+#: pass a hash build and walk over every scene vertex), in plain solves of that vertex, by device
+#: kind: measured by `drape bench scenes` as the time a frame takes in scenes less the same cloths'
+#: frame without, over the passes and the cloths' own frame (docs/reliability.md, issue 26;
+#: docs/collision.md's cost table: CPU pack 7.0 -> 49.2 ms over 8 passes, H100 0.474 -> 3.98 ms).
+SCENE_PASS_WORK: dict[str, float] = {"cpu": 0.75, "gpu": 0.92}
 assert set(FEATURE_WORK) <= set(Features().__dataclass_fields__), FEATURE_WORK
 
 
@@ -97,6 +105,11 @@ class Pricing:
         if not ms or not cloths:
             return 0.0
         return 1e-3 * statistics.median(ms) / (cloths * SCENE_VERTICES)
+
+    def scene_work(self, n_vertices: int) -> float:
+        """The work units of ``n_vertices`` of scene cloths in inter-collision: every pass of a step
+        (``INTER_COLLISION_PASSES``) walks each of them once."""
+        return n_vertices * INTER_COLLISION_PASSES * SCENE_PASS_WORK.get(self.kind, max(SCENE_PASS_WORK.values()))
 
     def frame_cost(self, iterations: int, substeps: int, xpbd: bool) -> float:
         got = self.exact.get((iterations, substeps, xpbd))
@@ -185,12 +198,38 @@ class Admission:
             new = with_preset(self.config, new, req.quality, req.rid)
         return Priced(new, old.density, self.pricing.work(rec.n_vertices, new, old.density))
 
+    def total_work(self, records: Iterable[ClothRecord]) -> float:
+        """The work units of these cloths stepped together: each one's price, plus the
+        inter-collision of every scene of two cloths or more among them (:meth:`Pricing.scene_work`
+        of its vertices; a scene of one cloth collides with nothing and costs nothing)."""
+        total = 0.0
+        scenes: dict[str, list[int]] = {}
+        for r in records:
+            total += work_of(r)
+            if r.scene is not None:
+                scenes.setdefault(r.scene, []).append(r.n_vertices)
+        return total + sum(self.pricing.scene_work(sum(vs)) for vs in scenes.values() if len(vs) > 1)
+
+    def scene_growth(self, records: Iterable[ClothRecord], scene: str | None, n_vertices: int) -> float:
+        """The inter-collision work a cloth of ``n_vertices`` adds by joining ``scene``: its own
+        vertices' passes, and the scene's first cloth's where it makes a scene of one a scene of
+        two (a cloth founding a scene adds none)."""
+        if scene is None:
+            return 0.0
+        there = [r.n_vertices for r in records if r.scene == scene]
+        if not there:
+            return 0.0
+        return self.pricing.scene_work(n_vertices + (there[0] if len(there) == 1 else 0))
+
     # --- admitting ---------------------------------------------------------------------------
     def admit_submit(self, registry: Registry, rec: ClothRecord, req: P.SubmitRequest) -> None:
-        """Price a submission onto ``rec.priced`` and refuse it (``overloaded``) where its work
-        does not fit the tick budget or its client's share (request thread)."""
+        """Price a submission onto ``rec.priced`` and refuse it (``overloaded``) where its work,
+        with the inter-collision it adds to its scene (:meth:`scene_growth`), does not fit the
+        tick budget or its client's share (request thread)."""
         rec.priced = self.price_submit(req)
-        self.admit(registry, rec.client, rec.priced.work, req.rid, cloth_vertices=rec.n_vertices)
+        with registry.lock:
+            grows = self.scene_growth(list(registry.cloths.values()), rec.scene, rec.n_vertices)
+        self.admit(registry, rec.client, rec.priced.work + grows, req.rid, cloth_vertices=rec.n_vertices)
 
     def admit_control(self, registry: Registry, rec: ClothRecord, req: P.ControlRequest) -> None:
         """Re-price a cloth a control changes; a control that raises its work is admitted like a
@@ -213,7 +252,7 @@ class Admission:
         if not self.config.admission:
             return
         with registry.lock:
-            total = sum(work_of(r) for r in registry.cloths.values())
+            total = self.total_work(registry.cloths.values())
             mine = sum(work_of(registry.cloths[c]) for c in registry.by_client.get(client, ()) if c in registry.cloths)
         self.check(total, work, rid, what, cloth_vertices)
         self.check_share(total, mine, work, rid)

@@ -31,7 +31,7 @@ from ..process.memory import PERIOD_S, MemoryKeeper
 from ..registry import Registry
 from ..replies import Replies, send
 from ..worldparams import pack, params_from_submit, with_preset
-from .buildhelper import BuildHelper
+from .buildhelper import BuildHelper, BuildMemoryExceeded
 from .fabrics import FabricStore, cook_fabric
 
 log = logging.getLogger(__name__)
@@ -74,7 +74,11 @@ class CookWorker:
         # cache the helper filled; the warm-up's own combination ran in this process already
         key = params.features.key()
         if self.helper is not None and key not in self._warmed:
-            if self.helper.warm(fabric, params):
+            try:
+                warmed = self.helper.warm(fabric, params)
+            except BuildMemoryExceeded as e:  # not built here either: it would take that memory here
+                raise P.ProtocolError(P.ERR_TOO_LARGE, f"cannot build this cloth's kernels: {e}") from e
+            if warmed:
                 self._warmed.add(key)
         world.prepare(fabric, params)
 
@@ -83,7 +87,7 @@ class CookWorker:
         if dev is not None:  # the server warmed up before this thread started: keep its kernels
             dev.pin()
             if self.config.build_in_child == "always":
-                self.helper = BuildHelper(self.config.solver, self.config.device)
+                self.helper = BuildHelper(self.config.solver, self.config.device, memory_mb=self.config.build_memory_mb)
         try:
             self._loop()
         finally:
@@ -201,6 +205,8 @@ class CookWorker:
             self.fabrics.release(fabric)
             self.registry.unreserve(rec)
             send(self.replies.error(query, e.code, e.message, req.rid))
+            if e.code == P.ERR_TOO_LARGE:
+                log.warning("cloth %s of client %s refused: %s", rec.id, rec.client, e.message)
         except Exception as e:
             log.exception("preparing cloth %s failed", rec.id)
             rec.fabric = None

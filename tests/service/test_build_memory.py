@@ -1,0 +1,45 @@
+"""The build child's memory bound (issue 26, ``build_memory_mb``): a child past it is killed, the
+cloth that asked is refused ``too_large`` with a message naming the setting, it is not built in
+the server instead, and the server goes on serving. The bound here is below what any child
+takes (a Python process with OpenCL: over 100 MB), so every build passes it."""
+
+from __future__ import annotations
+
+import pytest
+from conftest import collect, connect, make_config
+
+from drape.client import DrapeError
+from drape.server.service import Server
+from drape.server.service.cook.buildhelper import BuildHelper, BuildMemoryExceeded
+from drape.server.sim.fabric import cook_grid
+from drape.server.sim.params import ClothParams, Features
+
+pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
+
+BOUND_MB = 40.0
+
+
+def test_a_build_child_past_its_memory_bound_is_killed_with_a_clear_error():
+    helper = BuildHelper("workgroup", "cpu", memory_mb=BOUND_MB)
+    try:
+        with pytest.raises(BuildMemoryExceeded) as e:
+            helper.warm(cook_grid(8, 8, pinned=[0, 7]), ClothParams(features=Features(tethers=True)))
+        assert "build_memory_mb" in str(e.value) and "killed" in str(e.value)
+        assert helper.memory_kills == 1 and helper.runs == 0 and helper._proc is None  # nothing left running
+    finally:
+        helper.close()
+
+
+def test_the_server_refuses_that_cloth_and_goes_on():
+    cfg = make_config(build_in_child="always", build_memory_mb=BOUND_MB)
+    with Server(cfg) as srv:
+        c = connect(srv)
+        try:
+            plain = c.submit_grid(8, 8, pinned=[0, 7])  # the warm-up's feature set: no child needed
+            with pytest.raises(DrapeError) as e:
+                c.submit_grid(8, 8, pinned=[0, 7], features=["wind"])
+            assert e.value.code == "too_large" and "build_memory_mb" in e.value.message
+            assert srv.cook.helper is not None and srv.cook.helper.memory_kills == 1
+            assert len(collect(plain, 10)) == 10  # still served
+        finally:
+            c.close()

@@ -17,8 +17,9 @@ restarted ``--kill-gap`` s later); pause: 100 % back within 1 s of SIGCONT. Fail
 reported as failures (exit status 1).
 
 Scenarios (``drape chaos --list``): fuzz, flood-ids, big-submit, big-cook, tiny-mass,
-new-features, heavy-control, big-beside-small, share (admission, issue 26: :mod:`.chaos_admission`),
-kill, pause. Each is bounded in messages and seconds; a server passing
+new-features, cold-burst, big-mesh (builds and big preparations, issue 26: :mod:`.chaos_builds`),
+heavy-control, big-beside-small, share (admission, issue 26: :mod:`.chaos_admission`), kill, pause.
+Each is bounded in messages and seconds; a server passing
 ``--rss-limit-mb`` is killed (and that is a failure). Prints a table; ``--json`` writes the report.
 """
 
@@ -39,7 +40,7 @@ from pathlib import Path
 from typing import Any
 
 from ..service.config import ServerConfig
-from . import chaos_admission, chaos_failover, chaos_faults
+from . import chaos_admission, chaos_builds, chaos_failover, chaos_faults
 from .chaos_faults import Context
 
 #: Every scenario, by the name the command takes, in the order ``drape chaos`` runs them.
@@ -50,6 +51,8 @@ SCENARIOS: dict[str, Callable[[Context], dict[str, Any]]] = {
     "big-cook": chaos_faults.big_cook,
     "tiny-mass": chaos_faults.tiny_mass,
     "new-features": chaos_faults.new_features,
+    "cold-burst": chaos_builds.cold_burst,
+    "big-mesh": chaos_builds.big_mesh,
     "heavy-control": chaos_admission.heavy_control,
     "big-beside-small": chaos_admission.big_beside_small,
     "share": chaos_admission.share,
@@ -176,6 +179,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--kill-gap", type=float, default=1.0, help="kill: seconds before a killed server restarts (default 1)"
     )
     parser.add_argument(
+        "--auth",
+        choices=("tls", "tcp"),
+        default="",
+        help="run each scenario's server and clients behind an authenticated ACL router (drape acl's "
+        "configuration, user/password, over TLS or TCP; servers with --identity keys): the documented "
+        "deployment, for the scenarios built on one server and its good client (not fuzz, flood-ids, kill, pause)",
+    )
+    parser.add_argument(
         "--serve-args",
         default="",
         metavar="ARGS",
@@ -211,6 +222,7 @@ def run(args: argparse.Namespace) -> int:
         kill_servers=args.kill_servers,
         kills=args.kills,
         kill_gap=args.kill_gap,
+        auth=args.auth,
     )
     report = run_scenarios(names, ctx)
     print(format_table(report))

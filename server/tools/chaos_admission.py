@@ -49,7 +49,7 @@ def heavy_control(ctx: Context) -> dict[str, Any]:
         time.sleep(1.0)  # the plain cloth's own arrival (a new group's buffers) is not the control's
         w = Window.open(st.server)
         ctl = P.ControlRequest(reply.get("cloth", ""), reply.get("token", ""), iterations=100, substeps=100)
-        outcome, _ = st.request("control", P.encode_control(ctl))
+        outcome, _ = st.request("control", P.encode_control(ctl), client="heavy")
         time.sleep(ctx.seconds)
         m = w.close([st.good] if st.good else [])
         st.remove(reply)

@@ -77,23 +77,49 @@ class ChaosServer:
         rss_limit_mb: float = 4096.0,
         endpoint: str | None = None,
         server_id: str | None = None,
+        env: dict[str, str | None] | None = None,
+        router: Any = None,
     ) -> None:
-        self.server_id = server_id or f"chaos-{name}-{os.getpid()}"
-        self.endpoint = endpoint or f"tcp/127.0.0.1:{free_port()}"
+        """``env``: environment variables for the server on top of ours (None: removed);
+        ``router``: a :class:`~.chaos_router.AuthRouter` the server runs behind (client mode,
+        ``--identity keys``; ``endpoint`` is then the router's)."""
+        self.server_id = server_id or self.id_of(name)
+        self.endpoint = router.endpoint if router is not None else endpoint or f"tcp/127.0.0.1:{free_port()}"
         self.log_path = out / f"{name}-{os.getpid()}-{next(_RUNS)}.log"
         self.rss_limit_mb = rss_limit_mb
         self.killed_for_rss = False
-        self.cmd = serve_command(self.endpoint, self.server_id, "--stats-period", "0.5", "--device", "cpu", *args)
+        if router is None:
+            self.cmd = serve_command(self.endpoint, self.server_id, "--stats-period", "0.5", "--device", "cpu", *args)
+        else:  # listens on nothing: a client of the router
+            self.cmd = serve_command(self.endpoint, self.server_id, "--stats-period", "0.5", "--device", "cpu", *args)
+            at = self.cmd.index("--listen")
+            del self.cmd[at : at + 2]
+            self.cmd += router.serve_args(self.server_id)
         for c in connect:
             self.cmd += ["--connect", c]
         log.info("starting %s", " ".join(self.cmd))
         self._log_fh = open(self.log_path, "w")
-        self.proc = subprocess.Popen(self.cmd, stdout=self._log_fh, stderr=subprocess.STDOUT, start_new_session=True)
+        environ = dict(os.environ)
+        for k, v in (env or {}).items():
+            if v is None:
+                environ.pop(k, None)
+            else:
+                environ[k] = v
+        self.proc = subprocess.Popen(
+            self.cmd, stdout=self._log_fh, stderr=subprocess.STDOUT, start_new_session=True, env=environ
+        )
         self.figures = ProcessFigures(self.proc.pid)
-        self.stats = StatsWatch(self.endpoint, self.server_id)
+        self.stats = StatsWatch(
+            self.endpoint, self.server_id, session=None if router is None else router.session(router.watcher)
+        )
         self._watch_stop = threading.Event()
         self._watch = threading.Thread(target=self._rss_watch, daemon=True, name=f"rss-{self.server_id}")
         self._watch.start()
+
+    @staticmethod
+    def id_of(name: str) -> str:
+        """The server id of scenario ``name``'s server (unless one is given)."""
+        return f"chaos-{name}-{os.getpid()}"
 
     def _rss_watch(self) -> None:
         """Sample RSS every 0.2 s; SIGKILL the server when it passes the cap (it would take the machine)."""
@@ -158,8 +184,10 @@ class ChaosServer:
 class StatsWatch:
     """A server's stats publications (msgpack maps) with the monotonic time they arrived."""
 
-    def __init__(self, endpoint: str, server_id: str, namespace: str = P.DEFAULT_NAMESPACE) -> None:
-        self.session = zenoh_session(endpoint)
+    def __init__(
+        self, endpoint: str, server_id: str, namespace: str = P.DEFAULT_NAMESPACE, session: zenoh.Session | None = None
+    ) -> None:
+        self.session = session if session is not None else zenoh_session(endpoint)
         self.samples: list[tuple[float, dict[str, Any]]] = []
         self._cond = threading.Condition()
         self._sub = self.session.declare_subscriber(P.Keys(namespace).stats(server_id), self._on)
@@ -202,7 +230,15 @@ class StatsWatch:
 
 
 def _good_client_main(
-    endpoint: str, server_id: str, client_id: str, cloths: int, size: int, records: Any, ready: Any, stop: Any
+    endpoint: str,
+    server_id: str,
+    client_id: str,
+    cloths: int,
+    size: int,
+    records: Any,
+    ready: Any,
+    stop: Any,
+    sdk: dict[str, Any] | None = None,
 ) -> None:
     logging.basicConfig(level=logging.WARNING)
     from drape.client import DrapeClient, DrapeError
@@ -219,7 +255,8 @@ def _good_client_main(
                 time.sleep(0.5)
 
     try:
-        with DrapeClient(endpoint, server_id=server_id, client_id=client_id, timeout=WAIT) as client:
+        kw = {"client_id": client_id, **(sdk or {})}  # sdk: an authenticated deployment's (chaos_router)
+        with DrapeClient(endpoint, server_id=server_id, timeout=WAIT, **kw) as client:
             handles = []
             for j in range(cloths):
                 h = submit(client, j)
@@ -255,16 +292,39 @@ class StateLog:
 class GoodClient:
     """A game client process holding ``cloths`` small cloths on one server and receiving every state."""
 
-    def __init__(self, endpoint: str, server_id: str, name: str, cloths: int = 1, size: int = 16) -> None:
-        self._start(_good_client_main, "good", endpoint, server_id, name, cloths, size)
+    def __init__(
+        self,
+        endpoint: str,
+        server_id: str,
+        name: str,
+        cloths: int = 1,
+        size: int = 16,
+        sdk: dict[str, Any] | None = None,
+    ) -> None:
+        """``sdk``: more ``DrapeClient`` arguments (an authenticated deployment's, whose
+        ``client_id`` must then be :meth:`id_of` ``("good", name)``)."""
+        self._start(_good_client_main, "good", endpoint, server_id, name, cloths, size, sdk)
+
+    @staticmethod
+    def id_of(kind: str, name: str) -> str:
+        """The client id of a client process of ``kind`` for scenario ``name``."""
+        return f"{kind}-{name}-{os.getpid()}"
 
     def _start(
-        self, target: Any, kind: str, where: Any, server_id: str | None, name: str, cloths: int, size: int
+        self,
+        target: Any,
+        kind: str,
+        where: Any,
+        server_id: str | None,
+        name: str,
+        cloths: int,
+        size: int,
+        sdk: dict[str, Any] | None = None,
     ) -> None:
         """Start the client process ``target(where, server_id, client_id, cloths, size, records,
-        ready, stop)`` and the thread draining its records."""
+        ready, stop[, sdk=])`` and the thread draining its records."""
         ctx = mp.get_context("spawn")
-        self.client_id = f"{kind}-{name}-{os.getpid()}"
+        self.client_id = self.id_of(kind, name)
         self.records = ctx.Queue()
         self.ready, self.stop_event = ctx.Event(), ctx.Event()
         self.log = StateLog()
@@ -274,6 +334,7 @@ class GoodClient:
             name=self.client_id,
             daemon=True,
             args=(where, server_id, self.client_id, cloths, size, self.records, self.ready, self.stop_event),
+            kwargs={} if sdk is None else {"sdk": sdk},
         )
         self.proc.start()
         self._drain = threading.Thread(target=self._drain_loop, daemon=True)
@@ -395,6 +456,14 @@ def stats_delta(s0: dict[str, Any], s1: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _tick_max_ms(stats: dict[str, Any]) -> float:
+    """The longest tick-thread tick (its own work) of a stats period."""
+    try:
+        return float(stats["phases"]["tick"]["max_ms"])
+    except (KeyError, TypeError, ValueError):
+        return 0.0
+
+
 @dataclass
 class Window:
     """Start-of-window figures of one server; :meth:`close` measures the window."""
@@ -404,11 +473,12 @@ class Window:
     stats0: dict[str, Any]
     rss0: float
     log0: dict[str, int]
+    n0: int = 0  # stats publications received before the window
 
     @classmethod
     def open(cls, server: ChaosServer) -> Window:
         stats0 = server.stats.next(WAIT) or server.stats.latest()
-        return cls(server, time.monotonic(), stats0, server.rss_mb(), server.log_counts())
+        return cls(server, time.monotonic(), stats0, server.rss_mb(), server.log_counts(), len(server.stats.samples))
 
     def close(self, clients: Sequence[GoodClient] = (), settle_s: float = 0.0) -> dict[str, Any]:
         """Measure up to now; then let the server settle ``settle_s`` seconds and sample its RSS."""
@@ -421,6 +491,8 @@ class Window:
             "stats_stalled": stalled,
         }
         out.update(stats_delta(self.stats0, stats1 or self.server.stats.latest()))
+        periods = [st for _, st in self.server.stats.samples[self.n0 :]]
+        out["tick_max_ms"] = round(max((_tick_max_ms(st) for st in periods), default=0.0), 1)
         if clients:
             per = [c.window(self.t0, t1) for c in clients]
             out["good_states"] = sum(p["states"] for p in per)

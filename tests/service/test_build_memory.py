@@ -35,9 +35,9 @@ def test_the_server_refuses_that_cloth_and_goes_on():
     with Server(cfg) as srv:
         c = connect(srv)
         try:
-            plain = c.submit_grid(8, 8, pinned=[0, 7])  # the warm-up's feature set: no child needed
-            with pytest.raises(DrapeError) as e:
-                c.submit_grid(8, 8, pinned=[0, 7], features=["wind"])
+            plain = c.submit_grid(8, 8, pinned=[0, 7])  # a warm-up's kernels: no child needed
+            with pytest.raises(DrapeError) as e:  # 4096 vertices: another kernel group (PoCL: 8 pack lanes, not 16)
+                c.submit_grid(64, 64, pinned=[0, 63], features=["wind"])
             assert e.value.code == "too_large" and "build_memory_mb" in e.value.message
             assert srv.cook.helper is not None and srv.cook.helper.memory_kills == 1
             assert len(collect(plain, 10)) == 10  # still served

@@ -13,6 +13,7 @@ serving). About once a second the same thread gives memory back
 
 from __future__ import annotations
 
+import itertools
 import logging
 import queue
 import threading
@@ -37,6 +38,20 @@ from .fabrics import FabricStore, cook_fabric
 log = logging.getLogger(__name__)
 
 
+def warmed_keys(world: World, all_sets: bool) -> set:
+    """The kernel groups (``World.build_key``) the warm-ups ran: the default set's small cloth in
+    this process, and with ``all_sets`` one small cloth (8 x 8, :func:`.buildhelper.warm_up_in_child`'s)
+    of every feature combination in the start-up child."""
+    from ...sim.fabric import cook_grid
+    from ...sim.params import Features
+
+    small = cook_grid(8, 8, pinned=[0, 7])
+    sets: list[tuple[str, ...]] = [()]
+    if all_sets:
+        sets += [c for n in range(1, len(P.FEATURE_NAMES) + 1) for c in itertools.combinations(P.FEATURE_NAMES, n)]
+    return {world.build_key(small, ClothParams(features=Features.from_names(list(c)))) for c in sets}
+
+
 class CookWorker:
     """The cook thread: ``queue`` holds (record, request, query) of accepted submissions."""
 
@@ -58,8 +73,8 @@ class CookWorker:
         self._asked_lock = threading.Lock()
         self.memory = MemoryKeeper(config.program_idle_s, self._device, lambda: self.registry.vertices)
         self.helper: BuildHelper | None = None  # set in run() when build_in_child applies
-        # feature combinations the helper built and ran, or the warm-up did (cook thread only)
-        self._warmed: set = {ClothParams().features.key()}
+        # kernel groups (World.build_key) the helper built and ran, or a warm-up did (cook thread only)
+        self._warmed: set = set()
 
     def _device(self):
         """The World's OpenCL Device (None for the reference solver or before the World)."""
@@ -69,10 +84,12 @@ class CookWorker:
         """The kernels of a cloth of ``fabric`` and ``params``: first built and run by the helper
         process when its feature combination is new here, then built in this process (from the
         driver's cache)."""
-        # once per feature combination (at most 32), not world.ready(): a program built here is
-        # still compiled again at its first launch (PoCL), and a released one is rebuilt from the
-        # cache the helper filled; the warm-up's own combination ran in this process already
-        key = params.features.key()
+        # once per group of kernels (World.build_key: the feature combination and, on the OpenCL
+        # solvers, local memory and pack lanes: a 32k-vertex mesh needs another program than the
+        # small cloths of its features), not world.ready(): a program built here is still compiled
+        # again at its first launch (PoCL, 0.47 s on the tick for that mesh), and a released one is
+        # rebuilt from the cache the helper filled; the warm-ups' keys ran already (run())
+        key = world.build_key(fabric, params)
         if self.helper is not None and key not in self._warmed:
             try:
                 warmed = self.helper.warm(fabric, params)
@@ -86,6 +103,9 @@ class CookWorker:
         dev = self._device()
         if dev is not None:  # the server warmed up before this thread started: keep its kernels
             dev.pin()
+            world = self._world()
+            if world is not None:  # what the warm-ups ran: this process's own, the child's at start
+                self._warmed = warmed_keys(world, all_sets=self.config.build_in_child != "off")
             if self.config.build_in_child == "always":
                 self.helper = BuildHelper(self.config.solver, self.config.device, memory_mb=self.config.build_memory_mb)
         try:

@@ -7,10 +7,11 @@ tick-thread tick in the window (``tick_max_ms``, from its stats' tick phase):
 - ``cold-burst``: a server started on an empty kernel cache (``DRAPE_CACHE_DIR``: Drape's PoCL
   cache too) gets the first cloth of every feature set at once, not one after the other
   (``new-features`` in :mod:`.chaos_faults`);
-- ``big-mesh``: a 32k-vertex triangle mesh beside the good client, then removed: no tick over the
-  budget, and the server's RSS back within the suite's 10 % after the memory upkeep ran. Its server
-  runs ``--no-admission``: admission refuses a 32k-vertex cloth beside a small load (trust is for
-  small cloths), which would leave nothing to measure here.
+- ``big-mesh``: a 32k-vertex triangle mesh beside the good client, then removed: refused
+  (``overloaded``) or served with no tick over the budget, and the server's RSS back within the
+  suite's 10 % after the memory upkeep ran. With the defaults admission refuses it on a CPU (trust
+  is for small cloths, and its one work-group takes about 50 ms a step there);
+  ``--serve-args=--no-admission`` serves it, to measure its preparation and its memory.
 
 Bounded in messages and seconds; talks only to 127.0.0.1.
 """
@@ -91,7 +92,7 @@ def cold_burst(ctx: Context) -> dict[str, Any]:
 def big_mesh(ctx: Context) -> dict[str, Any]:
     """A 32k-vertex mesh beside the good client, then removed: no stalled tick, memory given back."""
     req = mesh_request("mesh")
-    with Stage(ctx, "big-mesh", server_args=("--no-admission",)) as st:
+    with Stage(ctx, "big-mesh") as st:
         base = st.baseline()
         w = Window.open(st.server)
         t0 = time.monotonic()
@@ -115,6 +116,6 @@ def big_mesh(ctx: Context) -> dict[str, Any]:
         removed=removed,
     )
     fails = judge(m) + _stall(m)
-    if m["submit_outcome"] != "ok":
-        fails.append(f"the mesh was not served ({m['submit_outcome']})")
+    if m["submit_outcome"] not in ("ok", "overloaded"):
+        fails.append(f"the mesh's submit got {m['submit_outcome']}")
     return {**m, "fails": fails}

@@ -26,6 +26,7 @@ from typing import Any
 
 import msgpack
 import numpy as np
+import psutil
 import zenoh
 
 from drape.client import protocol as P
@@ -34,6 +35,7 @@ from drape.server.tools.procs import ProcessFigures, free_port, serve_command
 log = logging.getLogger(__name__)
 
 _RUNS = itertools.count()
+GAP_LIMIT_MS = 50.0  # issue 26: no gap over this between a good client's states
 WAIT = 180.0  # the longest any start-up or reply is waited for (a loaded 2-core machine; a cold
 # kernel cache: drape serve first builds every feature set in a child, build_in_child = "always")
 
@@ -386,23 +388,28 @@ class GoodClient:
         received = lost = 0
         worst_gap = 0.0
         rates = []
+        gaps: list[tuple[float, float]] = []  # (from, to) of every gap over GAP_LIMIT_MS
         for j in range(len(self.log.cloth_ids)):
             v = per.get(j, [])
             if not v:
                 worst_gap = max(worst_gap, t1 - t0)
+                gaps.append((t0, t1))
                 rates.append(0.0)
                 continue
             ticks = np.unique([k for k, _ in v])
             times = np.asarray([t0] + sorted(t for _, t in v) + [t1])
             received += len(ticks)
             lost += int(ticks[-1] - ticks[0] + 1 - len(ticks))
-            worst_gap = max(worst_gap, float(np.max(np.diff(times))))
+            d = np.diff(times)
+            worst_gap = max(worst_gap, float(np.max(d)))
+            gaps += [(float(times[i]), float(times[i + 1])) for i in np.flatnonzero(d > GAP_LIMIT_MS / 1000)]
             rates.append(len(ticks) / max(t1 - t0, 1e-9))
         return {
             "states": received,
             "lost": lost,
             "worst_gap_ms": round(1000 * worst_gap, 1),
             "rate_hz": round(float(min(rates)) if rates else 0.0, 1),
+            "gaps": gaps,
         }
 
     def last_receipt(self, cloth: int) -> float:
@@ -437,6 +444,77 @@ class GoodClient:
         if self.proc.is_alive():
             self.proc.kill()
             self.proc.join(5)
+
+
+# ---------------------------------------------------------------------------------------------
+# The machine's other work
+
+MACHINE_BUSY = 0.5  # cores of CPU work that is not this run's: a stats period with that much is the machine's
+
+
+class HostLoad:
+    """The machine's CPU work that is not this chaos run's, sampled every ``period`` s: the busy
+    time of every CPU (``/proc/stat``: user, nice, system, irq, softirq, steal) less that of this
+    process and all its descendants (servers, their build children, good clients, routers; the
+    reaped ones through their parents' children times), in cores. What a shared machine's other
+    users take; the server's own work, however heavy, is not in it (its device threads included).
+    One per process (:meth:`shared`), started on first use."""
+
+    _shared: HostLoad | None = None
+
+    def __init__(self, period: float = 0.1) -> None:
+        self.period = period
+        self.samples: list[tuple[float, float]] = []  # (monotonic end of the interval, foreign cores over it)
+        self._lock = threading.Lock()
+        self._me = psutil.Process()
+        self._tick = os.sysconf("SC_CLK_TCK")
+        threading.Thread(target=self._run, daemon=True, name="host-load").start()
+
+    @classmethod
+    def shared(cls) -> HostLoad:
+        if cls._shared is None:
+            cls._shared = cls()
+        return cls._shared
+
+    def _busy_s(self) -> float:
+        with open("/proc/stat") as fh:
+            f = [int(x) for x in fh.readline().split()[1:9]]
+        return (f[0] + f[1] + f[2] + f[5] + f[6] + f[7]) / self._tick
+
+    def _ours_s(self) -> float:
+        total = 0.0
+        for p in [self._me, *self._me.children(recursive=True)]:
+            try:
+                t = p.cpu_times()
+            except psutil.Error:
+                continue
+            total += t.user + t.system + t.children_user + t.children_system
+        return total
+
+    def _run(self) -> None:
+        try:
+            t0, b0, o0 = time.monotonic(), self._busy_s(), self._ours_s()
+            while True:
+                time.sleep(self.period)
+                t1, b1, o1 = time.monotonic(), self._busy_s(), self._ours_s()
+                foreign = max(0.0, ((b1 - b0) - (o1 - o0)) / max(t1 - t0, 1e-6))
+                with self._lock:
+                    self.samples.append((t1, foreign))
+                    if len(self.samples) > 36_000:  # an hour
+                        del self.samples[:6_000]
+                t0, b0, o0 = t1, b1, o1
+        except (OSError, ValueError, IndexError):  # no /proc: nothing attributed to the machine
+            log.warning("host load not measured here: missed ticks are all counted as the server's")
+
+    def cores(self, t0: float, t1: float, how: Any = max) -> float:
+        """``how`` (max, or a mean) of the foreign cores of the intervals that overlap [t0, t1]."""
+        with self._lock:
+            xs = [f for t, f in self.samples if t0 < t <= t1 + self.period]
+        return float(how(xs)) if xs else 0.0
+
+
+def _mean(xs: list[float]) -> float:
+    return sum(xs) / len(xs)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -477,8 +555,30 @@ class Window:
 
     @classmethod
     def open(cls, server: ChaosServer) -> Window:
+        HostLoad.shared()
         stats0 = server.stats.next(WAIT) or server.stats.latest()
         return cls(server, time.monotonic(), stats0, server.rss_mb(), server.log_counts(), len(server.stats.samples))
+
+    def attribute(self, out: dict[str, Any], gaps: list[tuple[float, float]]) -> None:
+        """Split the window's missed ticks by stats period, and the good clients' gaps over
+        ``GAP_LIMIT_MS``, into the machine's (``MACHINE_BUSY`` cores or more of other work in the
+        period or gap, :class:`HostLoad`) and the server's own."""
+        host = HostLoad.shared()
+        samples = self.server.stats.samples[max(self.n0 - 1, 0) :]
+        own = machine = 0
+        for (ta, sa), (tb, sb) in zip(samples, samples[1:], strict=False):
+            missed = int(sb.get("missed_ticks", 0)) - int(sa.get("missed_ticks", 0))
+            if missed <= 0:
+                continue
+            if host.cores(ta, tb) >= MACHINE_BUSY:
+                machine += missed
+            else:
+                own += missed
+        out["missed_ticks_own"], out["missed_ticks_machine"] = own, machine
+        own_gaps = [b - a for a, b in gaps if host.cores(a, b) < MACHINE_BUSY]
+        out["good_gaps_over_limit"] = len(gaps)
+        out["good_worst_gap_own_ms"] = round(1000 * max(own_gaps, default=0.0), 1)
+        out["host_other_cores"] = round(host.cores(self.t0, time.monotonic(), _mean), 2)
 
     def close(self, clients: Sequence[GoodClient] = (), settle_s: float = 0.0) -> dict[str, Any]:
         """Measure up to now; then let the server settle ``settle_s`` seconds and sample its RSS."""
@@ -493,12 +593,15 @@ class Window:
         out.update(stats_delta(self.stats0, stats1 or self.server.stats.latest()))
         periods = [st for _, st in self.server.stats.samples[self.n0 :]]
         out["tick_max_ms"] = round(max((_tick_max_ms(st) for st in periods), default=0.0), 1)
+        gaps: list[tuple[float, float]] = []
         if clients:
             per = [c.window(self.t0, t1) for c in clients]
             out["good_states"] = sum(p["states"] for p in per)
             out["good_lost"] = sum(p["lost"] for p in per)
             out["good_rate_hz"] = min(p["rate_hz"] for p in per)
             out["good_worst_gap_ms"] = max(p["worst_gap_ms"] for p in per)
+            gaps = [g for p in per for g in p["gaps"]]
+        self.attribute(out, gaps)
         if settle_s > 0:
             time.sleep(settle_s)
         log1 = self.server.log_counts()

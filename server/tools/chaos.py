@@ -18,7 +18,8 @@ reported as failures (exit status 1).
 
 Scenarios (``drape chaos --list``): fuzz, flood-ids, big-submit, big-cook, tiny-mass,
 new-features, cold-burst, big-mesh (builds and big preparations, issue 26: :mod:`.chaos_builds`),
-heavy-control, big-beside-small, share (admission, issue 26: :mod:`.chaos_admission`), kill, pause.
+heavy-control, big-beside-small, share (admission, issue 26: :mod:`.chaos_admission`), acl-placement
+(:mod:`.chaos_placement`), kill, pause.
 Each is bounded in messages and seconds; a server passing
 ``--rss-limit-mb`` is killed (and that is a failure). Prints a table; ``--json`` writes the report.
 """
@@ -40,7 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from ..service.config import ServerConfig
-from . import chaos_admission, chaos_builds, chaos_failover, chaos_faults, chaos_harness
+from . import chaos_admission, chaos_builds, chaos_failover, chaos_faults, chaos_harness, chaos_placement
 from .chaos_faults import Context
 
 #: Every scenario, by the name the command takes, in the order ``drape chaos`` runs them.
@@ -56,6 +57,7 @@ SCENARIOS: dict[str, Callable[[Context], dict[str, Any]]] = {
     "heavy-control": chaos_admission.heavy_control,
     "big-beside-small": chaos_admission.big_beside_small,
     "share": chaos_admission.share,
+    "acl-placement": chaos_placement.acl_placement,
     "kill": chaos_failover.kill,
     "pause": chaos_failover.pause,
 }

@@ -62,6 +62,7 @@ def cold_burst(ctx: Context) -> dict[str, Any]:
     t0 = time.monotonic()
     with Stage(ctx, "cold-burst", env={"DRAPE_CACHE_DIR": str(cache), "POCL_CACHE_DIR": None}) as st:
         startup_s = time.monotonic() - t0
+        st.declare_alive("burst")
         base = st.baseline()
         w = Window.open(st.server)
         t1 = time.monotonic()
@@ -93,6 +94,7 @@ def big_mesh(ctx: Context) -> dict[str, Any]:
     """A 32k-vertex mesh beside the good client, then removed: no stalled tick, memory given back."""
     req = mesh_request("mesh")
     with Stage(ctx, "big-mesh") as st:
+        st.declare_alive(req.client)  # its cook may take longer than the grace period
         base = st.baseline()
         w = Window.open(st.server)
         t0 = time.monotonic()

@@ -108,6 +108,7 @@ class Stage:
         self.session: zenoh.Session | None = None
         self.sessions: dict[str, zenoh.Session] = {}  # with a router: one per client user
         self.owners: dict[str, str] = {}  # cloth id -> the client that submitted it
+        self.tokens: list[Any] = []  # liveliness tokens held for clients (declare_alive)
         self.keys = P.Keys()
 
     def __enter__(self) -> Stage:
@@ -126,6 +127,8 @@ class Stage:
     def __exit__(self, *exc: object) -> None:
         if self.good is not None:
             self.good.close()
+        for t in self.tokens:
+            t.undeclare()
         for s in [self.session, *self.sessions.values()]:
             if s is not None:
                 s.close()
@@ -164,6 +167,12 @@ class Stage:
             )
             if k in b
         }
+
+    def declare_alive(self, client: str) -> None:
+        """Hold ``client``'s liveliness token (as its SDK would), so that its cloths are not reclaimed
+        after the grace period while it takes longer than that to be served."""
+        session, _ = self._route("submit", client)
+        self.tokens.append(session.liveliness().declare_token(self.keys.alive_client(client)))
 
     def request(
         self, queryable: str, payload: bytes, timeout: float = 60.0, client: str | None = None

@@ -389,6 +389,7 @@ class GoodClient:
         worst_gap = 0.0
         rates = []
         gaps: list[tuple[float, float]] = []  # (from, to) of every gap over GAP_LIMIT_MS
+        lost_spans: list[tuple[float, float, int]] = []  # (from, to, states) of every run of lost states
         for j in range(len(self.log.cloth_ids)):
             v = per.get(j, [])
             if not v:
@@ -400,6 +401,12 @@ class GoodClient:
             times = np.asarray([t0] + sorted(t for _, t in v) + [t1])
             received += len(ticks)
             lost += int(ticks[-1] - ticks[0] + 1 - len(ticks))
+            first: dict[int, float] = {}  # each tick's first receipt: a lost run of ticks lies between two of them
+            for k, t in sorted(v, key=lambda kt: kt[1]):
+                first.setdefault(k, t)
+            for a, b in zip(ticks[:-1], ticks[1:], strict=True):
+                if b - a > 1:
+                    lost_spans.append((first[int(a)], first[int(b)], int(b - a - 1)))
             d = np.diff(times)
             worst_gap = max(worst_gap, float(np.max(d)))
             gaps += [(float(times[i]), float(times[i + 1])) for i in np.flatnonzero(d > GAP_LIMIT_MS / 1000)]
@@ -410,6 +417,7 @@ class GoodClient:
             "worst_gap_ms": round(1000 * worst_gap, 1),
             "rate_hz": round(float(min(rates)) if rates else 0.0, 1),
             "gaps": gaps,
+            "lost_spans": lost_spans,
         }
 
     def last_receipt(self, cloth: int) -> float:
@@ -559,6 +567,11 @@ class Window:
         stats0 = server.stats.next(WAIT) or server.stats.latest()
         return cls(server, time.monotonic(), stats0, server.rss_mb(), server.log_counts(), len(server.stats.samples))
 
+    @staticmethod
+    def busy(t0: float, t1: float) -> bool:
+        """Whether other processes took ``MACHINE_BUSY`` cores or more at some point in [t0, t1]."""
+        return HostLoad.shared().cores(t0, t1) >= MACHINE_BUSY
+
     def attribute(self, out: dict[str, Any], gaps: list[tuple[float, float]]) -> None:
         """Split the window's missed ticks by stats period, and the good clients' gaps over
         ``GAP_LIMIT_MS``, into the machine's (``MACHINE_BUSY`` cores or more of other work in the
@@ -570,12 +583,12 @@ class Window:
             missed = int(sb.get("missed_ticks", 0)) - int(sa.get("missed_ticks", 0))
             if missed <= 0:
                 continue
-            if host.cores(ta, tb) >= MACHINE_BUSY:
+            if self.busy(ta, tb):
                 machine += missed
             else:
                 own += missed
         out["missed_ticks_own"], out["missed_ticks_machine"] = own, machine
-        own_gaps = [b - a for a, b in gaps if host.cores(a, b) < MACHINE_BUSY]
+        own_gaps = [b - a for a, b in gaps if not self.busy(a, b)]
         out["good_gaps_over_limit"] = len(gaps)
         out["good_worst_gap_own_ms"] = round(1000 * max(own_gaps, default=0.0), 1)
         out["host_other_cores"] = round(host.cores(self.t0, time.monotonic(), _mean), 2)
@@ -601,6 +614,7 @@ class Window:
             out["good_rate_hz"] = min(p["rate_hz"] for p in per)
             out["good_worst_gap_ms"] = max(p["worst_gap_ms"] for p in per)
             gaps = [g for p in per for g in p["gaps"]]
+            out["good_lost_own"] = sum(n for p in per for a, b, n in p["lost_spans"] if not self.busy(a, b))
         self.attribute(out, gaps)
         if settle_s > 0:
             time.sleep(settle_s)

@@ -1,7 +1,8 @@
-"""The build child's memory bound (issue 26, ``build_memory_mb``): a child past it is killed, the
-cloth that asked is refused ``too_large`` with a message naming the setting, it is not built in
-the server instead, and the server goes on serving. The bound here is below what any child
-takes (a Python process with OpenCL: over 100 MB), so every build passes it."""
+"""Memory a cloth's preparation may take and must give back (issue 26): the build child's bound
+(``build_memory_mb``: a child past it is killed, the cloth that asked is refused ``too_large``
+with a message naming the setting, it is not built in the server instead, and the server goes on
+serving; the bound here is below what any child takes, a Python process with OpenCL being over
+100 MB, so every build passes it), and the fabric cache's byte bound on what it keeps."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from conftest import collect, connect, make_config
 from drape.client import DrapeError
 from drape.server.service import Server
 from drape.server.service.cook.buildhelper import BuildHelper, BuildMemoryExceeded
+from drape.server.service.cook.fabrics import FabricStore, fabric_bytes
 from drape.server.sim.fabric import cook_grid
 from drape.server.sim.params import ClothParams, Features
 
@@ -43,3 +45,16 @@ def test_the_server_refuses_that_cloth_and_goes_on():
             assert len(collect(plain, 10)) == 10  # still served
         finally:
             c.close()
+
+
+def test_a_released_big_fabric_is_not_kept_for_resubmission_past_the_byte_bound():
+    """The fabric cache keeps unused fabrics for resubmissions, at most ``retain_bytes`` of them:
+    a big mesh's fabric goes when its cloth goes (issue 26: its memory was never given back)."""
+    small, big = cook_grid(8, 8, pinned=[0, 7]), cook_grid(64, 64, pinned=[0, 63])
+    store = FabricStore(retain_bytes=fabric_bytes(small) * 3)
+    assert fabric_bytes(big) > store.retain_bytes
+    for key, fab in (("small", small), ("big", big)):
+        assert store.acquire(key, lambda fab=fab: fab) is fab
+        store.release(fab)
+    assert store.spare_bytes == fabric_bytes(small)  # the big one went, the small one is kept
+    assert store.acquire("small", lambda: cook_grid(2, 2)) is small and store.cooked == 2

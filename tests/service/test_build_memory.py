@@ -6,15 +6,18 @@ serving; the bound here is below what any child takes, a Python process with Ope
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 from conftest import collect, connect, make_config
 
 from drape.client import DrapeError
+from drape.client import protocol as P
 from drape.server.service import Server
-from drape.server.service.cook.buildhelper import BuildHelper, BuildMemoryExceeded
-from drape.server.service.cook.fabrics import FabricStore, fabric_bytes
+from drape.server.service.cook.buildhelper import BuildHelper, BuildMemoryExceeded, cook_in_child
+from drape.server.service.cook.fabrics import FabricStore, cook_fabric, fabric_bytes
 from drape.server.sim.fabric import cook_grid
-from drape.server.sim.params import ClothParams, Features
+from drape.server.sim.params import ClothParams, Features, LinkOptions
+from drape.server.tools.chaos_builds import mesh_request
 
 pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
 
@@ -58,3 +61,21 @@ def test_a_released_big_fabric_is_not_kept_for_resubmission_past_the_byte_bound(
         store.release(fab)
     assert store.spare_bytes == fabric_bytes(small)  # the big one went, the small one is kept
     assert store.acquire("small", lambda: cook_grid(2, 2)) is small and store.cooked == 2
+
+
+def test_a_big_cook_in_a_child_gives_the_fabric_the_server_would_cook():
+    """cook_in_child (cloths of COOK_IN_CHILD_VERTICES or more, builds in a child): the same
+    arrays as the in-process cook, tethers and long-range links included; an invalid mesh is a
+    ValueError as in-process; past the memory bound, BuildMemoryExceeded."""
+    req = mesh_request("m", side=24)
+    links, pinned = LinkOptions(), np.unique(req.pinned.astype(np.int64))
+    here, there = cook_fabric(req, links, pinned), cook_in_child(req, links, pinned)
+    for name in ("rest_positions", "links", "rest_length", "colour_offsets", "jacobi_adj", "vtri"):
+        np.testing.assert_array_equal(getattr(here, name), getattr(there, name))
+    for a, b in zip((*here.tethers(), *here.long_range()), (*there.tethers(), *there.long_range()), strict=True):
+        np.testing.assert_array_equal(a, b)
+    bad = P.SubmitRequest(client="m", mesh=P.MeshSpec(req.mesh.vertices, req.mesh.triangles[:, [0, 0, 1]]))
+    with pytest.raises(ValueError, match="repeated vertex"):
+        cook_in_child(bad, links, np.zeros(0, np.int64))
+    with pytest.raises(BuildMemoryExceeded, match="build_memory_mb"):
+        cook_in_child(mesh_request("m", side=90), links, pinned, memory_mb=BOUND_MB)

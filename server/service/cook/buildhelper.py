@@ -1,5 +1,6 @@
-"""Kernel builds in a child process: the compiler's memory and the first launch's JIT stay out of
-the server.
+"""Kernel builds and big cooks in a child process: the compiler's memory, the first launch's JIT
+and a big mesh's seconds of Python stay out of the server (:func:`cook_in_child`: cloths of
+``COOK_IN_CHILD_VERTICES`` or more, where builds go to a child).
 
 On PoCL (the CPU device) a program built from source for the first time costs the process that
 builds it LLVM's high-water mark for good (measured: 150 -> 288 MB for the first build, not given
@@ -48,6 +49,7 @@ TIMEOUT_S = 120.0  # longest wait for one build and run (a cold 65k-vertex build
 START_TIMEOUT_S = 60.0
 NICE = 10  # the children's CPU priority below the server's (os.nice)
 WATCH_S = 0.05  # the parent samples a child's resident memory this often while it waits
+COOK_IN_CHILD_VERTICES = 8192  # cloths this large are cooked in a child (a 32k-vertex mesh: 7 s of Python)
 
 
 class BuildMemoryExceeded(RuntimeError):
@@ -244,6 +246,52 @@ def _warm_up_main(config: Any) -> None:
     for n in range(1, len(FEATURE_NAMES) + 1):
         for combo in itertools.combinations(FEATURE_NAMES, n):
             _run_one(world, fabric, ClothParams(features=Features.from_names(list(combo))))
+
+
+def _cook_main(conn: Any, req: Any, links: Any, pinned: Any) -> None:
+    """The one-shot cook child: the fabric with its tethers and long-range links, as init fields."""
+    lower_priority()
+    from .fabrics import cook_fabric
+
+    try:
+        fab = cook_fabric(req, links, pinned)
+        fab.tethers()
+        fab.long_range()
+        conn.send(("ok", {f.name: getattr(fab, f.name) for f in fields(fab) if f.init and f.name != "_tether_lock"}))
+    except ValueError as e:
+        conn.send(("invalid", str(e)))
+    except Exception as e:
+        conn.send(("error", f"{type(e).__name__}: {e}"))
+
+
+def cook_in_child(req: Any, links: Any, pinned: Any, memory_mb: float = 0.0, timeout: float = TIMEOUT_S) -> Any:
+    """:func:`.fabrics.cook_fabric` in a child process at lower priority, bounded in memory
+    (:func:`watch`) and time: a big mesh's cook is seconds of Python (a 32k-vertex mesh: 7 s,
+    mostly its tethers and long-range links) that would hold the GIL against the tick thread.
+    Raises ValueError (an invalid cloth, as the in-process cook does), BuildMemoryExceeded,
+    TimeoutError or RuntimeError."""
+    from ...sim.fabric import Fabric
+
+    ctx = mp.get_context("spawn")
+    parent, child = ctx.Pipe()
+    proc = ctx.Process(target=_cook_main, args=(child, req, links, pinned), daemon=True, name="drape-cook")
+    proc.start()
+    child.close()
+    try:
+        if not watch(proc, parent.poll, timeout, memory_mb, "cooking the cloth"):
+            proc.kill()
+            raise TimeoutError(f"cooking the cloth took more than {timeout:.0f} s")
+        status, payload = parent.recv()
+    finally:
+        parent.close()
+        proc.join(5)
+        if proc.is_alive():
+            proc.kill()
+    if status == "invalid":
+        raise ValueError(payload)
+    if status != "ok":
+        raise RuntimeError(f"cooking the cloth in a child failed: {payload}")
+    return Fabric(**payload)
 
 
 def warm_up_in_child(config: Any, timeout: float = START_TIMEOUT_S) -> bool:

@@ -32,7 +32,7 @@ from ..process.memory import PERIOD_S, MemoryKeeper
 from ..registry import Registry
 from ..replies import Replies, send
 from ..worldparams import pack, params_from_submit, with_preset
-from .buildhelper import BuildHelper, BuildMemoryExceeded
+from .buildhelper import COOK_IN_CHILD_VERTICES, BuildHelper, BuildMemoryExceeded, cook_in_child
 from .fabrics import FabricStore, cook_fabric
 
 log = logging.getLogger(__name__)
@@ -177,6 +177,19 @@ class CookWorker:
                 self._asked.discard((item.params.features.key(), item.fabric.key))
             log.exception("building kernels for a control failed")  # the tick thread builds them then
 
+    def _cook(self, req: P.SubmitRequest, links: LinkOptions, pinned: np.ndarray) -> Fabric:
+        """The cloth's fabric: a big one (``COOK_IN_CHILD_VERTICES``) cooked in a child where
+        builds go to one (``build_in_child``), falling back to this thread when the child fails."""
+        if self.config.build_in_child == "off" or req.n_vertices < COOK_IN_CHILD_VERTICES:
+            return cook_fabric(req, links, pinned)
+        try:
+            return cook_in_child(req, links, pinned, self.config.build_memory_mb)
+        except (ValueError, BuildMemoryExceeded):
+            raise
+        except Exception as e:
+            log.warning("cooking in a child failed (%s): cooking in the server", e)
+            return cook_fabric(req, links, pinned)
+
     def _one(self, rec, req: P.SubmitRequest, query) -> None:
         if self._stopping():
             self.registry.unreserve(rec)
@@ -185,9 +198,13 @@ class CookWorker:
         try:
             links = LinkOptions(**vars(req.links)) if req.links is not None else LinkOptions()
             pinned = np.unique(req.pinned.astype(np.int64))
-            fabric = self.fabrics.acquire(
-                FabricStore.digest(req, links, pinned), lambda: cook_fabric(req, links, pinned)
-            )
+            digest = FabricStore.digest(req, links, pinned)
+            fabric = self.fabrics.acquire(digest, lambda: self._cook(req, links, pinned))
+        except BuildMemoryExceeded as e:
+            self.registry.unreserve(rec)
+            log.warning("cloth %s of client %s refused: %s", rec.id, rec.client, e)
+            self.replies.send_error(query, P.ERR_TOO_LARGE, f"cannot cook this cloth: {e}", req.rid)
+            return
         except ValueError as e:
             self.registry.unreserve(rec)
             self.replies.send_error(query, P.ERR_INVALID_VALUE, f"cannot build the cloth: {e}", req.rid)

@@ -96,7 +96,7 @@ def share(ctx: Context) -> dict[str, Any]:
         for r in [*replies, nreply]:
             st.remove(r)
     m.update(baseline=base, filler_admitted=len(replies), filler_outcomes=dict(outcomes), newcomer_submit=newcomer)
-    fails = judge(m)
+    fails = judge(m, rss=False)  # its RSS "after" is read with the filler's cloths still held
     if newcomer != "ok":
         fails.append(f"a newcomer's small cloth got {newcomer} while the filler held its share")
     return {**m, "fails": fails}

@@ -578,12 +578,14 @@ class Window:
         period or gap, :class:`HostLoad`) and the server's own."""
         host = HostLoad.shared()
         samples = self.server.stats.samples[max(self.n0 - 1, 0) :]
-        own = machine = 0
+        own = machine = busy_periods = 0
         for (ta, sa), (tb, sb) in zip(samples, samples[1:], strict=False):
+            busy = self.busy(ta, tb)
+            busy_periods += busy
             missed = int(sb.get("missed_ticks", 0)) - int(sa.get("missed_ticks", 0))
             if missed <= 0:
                 continue
-            if self.busy(ta, tb):
+            if busy:
                 machine += missed
             else:
                 own += missed
@@ -592,6 +594,8 @@ class Window:
         out["good_gaps_over_limit"] = len(gaps)
         out["good_worst_gap_own_ms"] = round(1000 * max(own_gaps, default=0.0), 1)
         out["host_other_cores"] = round(host.cores(self.t0, time.monotonic(), _mean), 2)
+        # the share of the window's stats periods judged as the machine's: near 1, the window judges little
+        out["host_busy_share"] = round(busy_periods / max(len(samples) - 1, 1), 2)
 
     def close(self, clients: Sequence[GoodClient] = (), settle_s: float = 0.0) -> dict[str, Any]:
         """Measure up to now; then let the server settle ``settle_s`` seconds and sample its RSS."""

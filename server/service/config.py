@@ -345,9 +345,9 @@ class ServerConfig:
     )
     build_memory_mb: float = setting(
         2048.0,
-        "the most memory (resident, MB) a kernel build child may take: past it the child is killed, the cloth "
-        "that asked is refused (too_large: its build is not retried in the server) and the server goes on; "
-        "0: no bound",
+        "the most memory (resident, MB) a child building kernels or cooking a big cloth (8192 vertices or more) "
+        "may take: past it the child is killed, the cloth that asked is refused (too_large: not retried in the "
+        "server) and the server goes on; 0: no bound",
         group=SERVICE,
         low=0,
     )

@@ -13,7 +13,6 @@ serving). About once a second the same thread gives memory back
 
 from __future__ import annotations
 
-import itertools
 import logging
 import queue
 import threading
@@ -38,18 +37,13 @@ from .fabrics import FabricStore, cook_fabric
 log = logging.getLogger(__name__)
 
 
-def warmed_keys(world: World, all_sets: bool) -> set:
-    """The kernel groups (``World.build_key``) the warm-ups ran: the default set's small cloth in
-    this process, and with ``all_sets`` one small cloth (8 x 8, :func:`.buildhelper.warm_up_in_child`'s)
-    of every feature combination in the start-up child."""
+def warmed_keys(world: World) -> set:
+    """The kernel groups (``World.build_key``) this process's warm-up ran: the default set's small
+    cloth. (The start-up child's sets are not assumed: it may not have finished, e.g. on a cold
+    cache; the helper then runs each new group's first cloth, as it did per new feature set.)"""
     from ...sim.fabric import cook_grid
-    from ...sim.params import Features
 
-    small = cook_grid(8, 8, pinned=[0, 7])
-    sets: list[tuple[str, ...]] = [()]
-    if all_sets:
-        sets += [c for n in range(1, len(P.FEATURE_NAMES) + 1) for c in itertools.combinations(P.FEATURE_NAMES, n)]
-    return {world.build_key(small, ClothParams(features=Features.from_names(list(c)))) for c in sets}
+    return {world.build_key(cook_grid(8, 8, pinned=[0, 7]), ClothParams())}
 
 
 class CookWorker:
@@ -88,7 +82,7 @@ class CookWorker:
         # solvers, local memory and pack lanes: a 32k-vertex mesh needs another program than the
         # small cloths of its features), not world.ready(): a program built here is still compiled
         # again at its first launch (PoCL, 0.47 s on the tick for that mesh), and a released one is
-        # rebuilt from the cache the helper filled; the warm-ups' keys ran already (run())
+        # rebuilt from the cache the helper filled; the warm-up's key ran already (run())
         key = world.build_key(fabric, params)
         if self.helper is not None and key not in self._warmed:
             try:
@@ -104,8 +98,8 @@ class CookWorker:
         if dev is not None:  # the server warmed up before this thread started: keep its kernels
             dev.pin()
             world = self._world()
-            if world is not None:  # what the warm-ups ran: this process's own, the child's at start
-                self._warmed = warmed_keys(world, all_sets=self.config.build_in_child != "off")
+            if world is not None:  # what the warm-up ran in this process
+                self._warmed = warmed_keys(world)
             if self.config.build_in_child == "always":
                 self.helper = BuildHelper(self.config.solver, self.config.device, memory_mb=self.config.build_memory_mb)
         try:

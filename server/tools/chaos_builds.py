@@ -50,8 +50,10 @@ def mesh_request(client: str, side: int = MESH_SIDE, size: float = 1.0) -> P.Sub
 
 
 def _stall(m: dict[str, Any]) -> list[str]:
-    if m.get("tick_max_ms", 0.0) > STALL_BUDGET_MS:
-        return [f"a tick-thread tick took {m['tick_max_ms']} ms > {STALL_BUDGET_MS:.1f}"]
+    """A tick-thread tick over one period in a stats period without other load (the suite's rule,
+    :meth:`.chaos_harness.Window.attribute`; the raw longest is ``tick_max_ms``)."""
+    if m.get("tick_max_own_ms", 0.0) > STALL_BUDGET_MS:
+        return [f"a tick-thread tick took {m['tick_max_own_ms']} ms > {STALL_BUDGET_MS:.1f} without other load"]
     return []
 
 

@@ -579,9 +579,12 @@ class Window:
         host = HostLoad.shared()
         samples = self.server.stats.samples[max(self.n0 - 1, 0) :]
         own = machine = busy_periods = 0
+        tick_own = 0.0
         for (ta, sa), (tb, sb) in zip(samples, samples[1:], strict=False):
             busy = self.busy(ta, tb)
             busy_periods += busy
+            if not busy:
+                tick_own = max(tick_own, _tick_max_ms(sb))
             missed = int(sb.get("missed_ticks", 0)) - int(sa.get("missed_ticks", 0))
             if missed <= 0:
                 continue
@@ -590,6 +593,7 @@ class Window:
             else:
                 own += missed
         out["missed_ticks_own"], out["missed_ticks_machine"] = own, machine
+        out["tick_max_own_ms"] = round(tick_own, 1)  # the longest tick-thread tick of those periods
         own_gaps = [b - a for a, b in gaps if not self.busy(a, b)]
         out["good_gaps_over_limit"] = len(gaps)
         out["good_worst_gap_own_ms"] = round(1000 * max(own_gaps, default=0.0), 1)

@@ -47,6 +47,9 @@ log = logging.getLogger(__name__)
 IDLE_S = 30.0  # the child exits after this long without a request
 TIMEOUT_S = 120.0  # longest wait for one build and run (a cold 65k-vertex build on a busy CPU)
 START_TIMEOUT_S = 60.0
+# the start-up warm-up of every feature set: cold, 71-78 s on this 2-core CPU under others' load
+# (issue 26: killed at 60 s, it left the later first cloths to build in the server)
+WARM_UP_TIMEOUT_S = 180.0
 NICE = 10  # the children's CPU priority below the server's (os.nice)
 WATCH_S = 0.05  # the parent samples a child's resident memory this often while it waits
 COOK_IN_CHILD_VERTICES = 8192  # cloths this large are cooked in a child (a 32k-vertex mesh: 7 s of Python)
@@ -294,7 +297,7 @@ def cook_in_child(req: Any, links: Any, pinned: Any, memory_mb: float = 0.0, tim
     return Fabric(**payload)
 
 
-def warm_up_in_child(config: Any, timeout: float = START_TIMEOUT_S) -> bool:
+def warm_up_in_child(config: Any, timeout: float = WARM_UP_TIMEOUT_S) -> bool:
     """Run the server's warm-up (its default kernels, the frame encoder's) and one cloth of every
     feature combination in a child process first, so that the server builds them all from the
     driver's cache, at start and whenever a cloth asks for one later. True when it ran."""

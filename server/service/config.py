@@ -352,6 +352,14 @@ class ServerConfig:
         group=SERVICE,
         choices=BUILD_IN_CHILD,
     )
+    build_memory_mb: float = setting(
+        2048.0,
+        "the most memory (resident, MB) a child building kernels or cooking a big cloth (8192 vertices or more) "
+        "may take: past it the child is killed, the cloth that asked is refused (too_large: not retried in the "
+        "server) and the server goes on; 0: no bound",
+        group=SERVICE,
+        low=0,
+    )
     warm_features: str = setting(
         "tethers",
         "feature sets whose kernels are built and run at start-up besides the default set, so that a first cloth "

@@ -21,6 +21,7 @@ from __future__ import annotations
 import itertools
 import logging
 from abc import ABC, abstractmethod
+from collections.abc import Hashable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -135,6 +136,11 @@ class World(ABC):
     def prepare(self, fabric: Fabric, params: ClothParams) -> None:  # noqa: B027 (optional hook)
         """Build whatever a cloth of ``fabric`` and ``params`` will need (kernels) now, so that
         adding it later does not. Touches no cloth: may run on another thread than the ticks."""
+
+    def build_key(self, fabric: Fabric, params: ClothParams) -> Hashable:
+        """What a cloth of ``fabric`` and ``params`` shares its kernels by: two cloths of one key
+        need the same programs (here: the feature set)."""
+        return params.features.key()
 
     def ready(self, fabric: Fabric, params: ClothParams) -> bool:
         """Whether a cloth of ``fabric`` and ``params`` needs nothing built (see ``prepare``)."""

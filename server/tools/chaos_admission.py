@@ -40,6 +40,7 @@ def _served_or_refused(m: dict[str, Any], outcome: str) -> list[str]:
 def heavy_control(ctx: Context) -> dict[str, Any]:
     """An admitted 64x64 cloth raised by a control to 100 iterations x 100 substeps."""
     with Stage(ctx, "heavy-control") as st:
+        st.declare_alive("heavy")  # a game's client: its cloth is not reclaimed while it waits
         base = st.baseline()
         for _ in range(10):  # a plain cloth: 'overloaded' only while the host's noise fills the ticks
             submitted, reply = st.submit(grid_request("heavy", 64))
@@ -49,7 +50,7 @@ def heavy_control(ctx: Context) -> dict[str, Any]:
         time.sleep(1.0)  # the plain cloth's own arrival (a new group's buffers) is not the control's
         w = Window.open(st.server)
         ctl = P.ControlRequest(reply.get("cloth", ""), reply.get("token", ""), iterations=100, substeps=100)
-        outcome, _ = st.request("control", P.encode_control(ctl))
+        outcome, _ = st.request("control", P.encode_control(ctl), client="heavy")
         time.sleep(ctx.seconds)
         m = w.close([st.good] if st.good else [])
         st.remove(reply)
@@ -71,6 +72,8 @@ def big_beside_small(ctx: Context) -> dict[str, Any]:
 def share(ctx: Context) -> dict[str, Any]:
     """A client submits heavy cloths until refused; then a newcomer's small cloth must get in."""
     with Stage(ctx, "share") as st:
+        for client in ("filler", "newcomer"):  # game clients: the filler's cloths stay while it fills
+            st.declare_alive(client)
         base = st.baseline()
         w = Window.open(st.server)
         outcomes: Counter[str] = Counter()
@@ -93,7 +96,7 @@ def share(ctx: Context) -> dict[str, Any]:
         for r in [*replies, nreply]:
             st.remove(r)
     m.update(baseline=base, filler_admitted=len(replies), filler_outcomes=dict(outcomes), newcomer_submit=newcomer)
-    fails = judge(m)
+    fails = judge(m, rss=False)  # its RSS "after" is read with the filler's cloths still held
     if newcomer != "ok":
         fails.append(f"a newcomer's small cloth got {newcomer} while the filler held its share")
     return {**m, "fails": fails}

@@ -27,7 +27,8 @@ from drape.client import protocol as P
 
 from ..service.config import ServerConfig
 from . import chaos_fuzz
-from .chaos_harness import ChaosServer, GoodClient, Window, reply_outcome, zenoh_session
+from .chaos_harness import GAP_LIMIT_MS, ChaosServer, GoodClient, Window, reply_outcome, zenoh_session
+from .chaos_router import AuthRouter
 
 log = logging.getLogger(__name__)
 
@@ -57,13 +58,33 @@ class Context:
     kill_servers: int = 2  # kill: servers (2-4) the failover clients' cloths are placed on
     kills: int = 1  # kill: servers killed one after the other, each restarted after kill_gap s
     kill_gap: float = 1.0
+    auth: str = ""  # "tls" or "tcp": every Stage behind an authenticated ACL router (chaos_router); "": loopback peers
+
+
+#: The abusing clients' ids of the scenarios that use a Stage (users of the router with ``--auth``).
+AUTH_CLIENTS = ("heavy", "big", "filler", "newcomer", "features", "burst", "mesh", "cook", "tiny")
 
 
 class Stage:
-    """A server plus one measured good client: ``with Stage(ctx, "name") as st``."""
+    """A server plus one measured good client: ``with Stage(ctx, "name") as st``. With
+    ``ctx.auth`` both sit behind an authenticated ACL router (:class:`~.chaos_router.AuthRouter`),
+    the server with ``--identity keys``, and the scenario's requests go on each client's own keys
+    as that client's user."""
 
-    def __init__(self, ctx: Context, name: str, server_args: tuple[str, ...] = (), good_cloths: int = 1) -> None:
+    def __init__(
+        self,
+        ctx: Context,
+        name: str,
+        server_args: tuple[str, ...] = (),
+        good_cloths: int = 1,
+        env: dict[str, str | None] | None = None,
+    ) -> None:
         self.ctx = ctx
+        self.router: AuthRouter | None = None
+        if ctx.auth:
+            self.router = AuthRouter(
+                ctx.out, [ChaosServer.id_of(name)], [GoodClient.id_of("good", name), *AUTH_CLIENTS], ctx.auth
+            )
         self.server = ChaosServer(
             ctx.out,
             name,
@@ -78,19 +99,26 @@ class Stage:
                 *server_args,
             ),
             rss_limit_mb=ctx.rss_limit_mb,
+            env=env,
+            router=self.router,
         )
         self.good: GoodClient | None = None
         self.name = name
         self.good_cloths = good_cloths
         self.session: zenoh.Session | None = None
+        self.sessions: dict[str, zenoh.Session] = {}  # with a router: one per client user
+        self.owners: dict[str, str] = {}  # cloth id -> the client that submitted it
+        self.tokens: list[Any] = []  # liveliness tokens held for clients (declare_alive)
         self.keys = P.Keys()
 
     def __enter__(self) -> Stage:
         try:
             self.server.wait_ready()
-            self.good = GoodClient(self.server.endpoint, self.server.server_id, self.name, self.good_cloths)
+            sdk = None if self.router is None else self.router.sdk(GoodClient.id_of("good", self.name))
+            self.good = GoodClient(self.server.endpoint, self.server.server_id, self.name, self.good_cloths, sdk=sdk)
             self.good.wait_ready()
-            self.session = zenoh_session(self.server.endpoint)
+            if self.router is None:
+                self.session = zenoh_session(self.server.endpoint)
         except BaseException:
             self.__exit__()
             raise
@@ -99,9 +127,26 @@ class Stage:
     def __exit__(self, *exc: object) -> None:
         if self.good is not None:
             self.good.close()
-        if self.session is not None:
-            self.session.close()
+        for t in self.tokens:
+            t.undeclare()
+        for s in [self.session, *self.sessions.values()]:
+            if s is not None:
+                s.close()
         self.server.stop()
+        if self.router is not None:
+            self.router.close()
+
+    def _route(self, queryable: str, client: str | None) -> tuple[zenoh.Session, str]:
+        """The session and key of a request of ``client``: its own user's session and
+        client-scoped key behind a router, the shared session and server-wide key otherwise."""
+        if self.router is None or client is None or queryable == "info":
+            assert self.session is not None or self.router is not None
+            if self.session is None:
+                self.session = self.router.session(self.router.watcher)  # type: ignore[union-attr]
+            return self.session, getattr(self.keys, queryable)(self.server.server_id)
+        if client not in self.sessions:
+            self.sessions[client] = self.router.session(client)
+        return self.sessions[client], self.keys.client_request(queryable, self.server.server_id, client)
 
     def baseline(self) -> dict[str, Any]:
         """The good client and the server, undisturbed, for ``baseline_s`` (the machine's own noise)."""
@@ -113,27 +158,40 @@ class Stage:
             for k in (
                 "good_rate_hz",
                 "missed_ticks",
+                "missed_ticks_own",
+                "host_other_cores",
                 "good_lost",
+                "good_lost_own",
                 "good_worst_gap_ms",
+                "good_worst_gap_own_ms",
                 "server_tick_hz",
                 "rss_after_mb",
             )
             if k in b
         }
 
-    def request(self, queryable: str, payload: bytes, timeout: float = 60.0) -> tuple[str, dict[str, Any]]:
-        """One query; (outcome, reply map) with outcome ``ok``, an error code, or ``no_reply``."""
-        assert self.session is not None
-        for reply in self.session.get(
-            getattr(self.keys, queryable)(self.server.server_id), payload=payload, timeout=timeout
-        ):
+    def declare_alive(self, client: str) -> None:
+        """Hold ``client``'s liveliness token (as its SDK would), so that its cloths are not reclaimed
+        after the grace period while it takes longer than that to be served."""
+        session, _ = self._route("submit", client)
+        self.tokens.append(session.liveliness().declare_token(self.keys.alive_client(client)))
+
+    def request(
+        self, queryable: str, payload: bytes, timeout: float = 60.0, client: str | None = None
+    ) -> tuple[str, dict[str, Any]]:
+        """One query of ``client``; (outcome, reply map) with outcome ``ok``, an error code, or ``no_reply``."""
+        session, key = self._route(queryable, client)
+        for reply in session.get(key, payload=payload, timeout=timeout):
             outcome = reply_outcome(reply)
             data = reply.ok.payload.to_bytes() if reply.ok is not None else b""
             return outcome, (msgpack.unpackb(data, raw=False) if data else {})
         return "no_reply", {}
 
     def submit(self, req: P.SubmitRequest, timeout: float = 60.0) -> tuple[str, dict[str, Any]]:
-        return self.request("submit", P.encode_submit(req), timeout)
+        outcome, reply = self.request("submit", P.encode_submit(req), timeout, req.client)
+        if "cloth" in reply:
+            self.owners[reply["cloth"]] = req.client
+        return outcome, reply
 
     def submit_retrying(self, req: P.SubmitRequest, attempts: int = 10) -> str:
         """A submit, retried (1 s apart, at most ``attempts`` times) while the server answers with a
@@ -148,16 +206,17 @@ class Stage:
 
     def submit_async(self, req: P.SubmitRequest, timeout: float = 120.0) -> dict[str, Any]:
         """Send a submit without waiting; the returned dict gets ``outcome``/``reply`` when it comes."""
-        assert self.session is not None
+        session, key = self._route("submit", req.client)
         box: dict[str, Any] = {"done": threading.Event()}
 
         def on_reply(reply: zenoh.Reply) -> None:
             box["outcome"] = reply_outcome(reply)
             if reply.ok is not None:
                 box["reply"] = msgpack.unpackb(reply.ok.payload.to_bytes(), raw=False)
+                self.owners[box["reply"].get("cloth", "")] = req.client
 
-        self.session.get(
-            self.keys.submit(self.server.server_id),
+        session.get(
+            key,
             zenoh.handlers.Callback(on_reply, box["done"].set),
             payload=P.encode_submit(req),
             timeout=timeout,
@@ -167,7 +226,8 @@ class Stage:
     def remove(self, reply: dict[str, Any]) -> str:
         if "cloth" not in reply:
             return "nothing to remove"
-        return self.request("remove", P.encode_remove(P.RemoveRequest(reply["cloth"], reply["token"])))[0]
+        payload = P.encode_remove(P.RemoveRequest(reply["cloth"], reply["token"]))
+        return self.request("remove", payload, client=self.owners.get(reply["cloth"]))[0]
 
 
 def grid_request(client: str, n: int = 16, **kw: Any) -> P.SubmitRequest:
@@ -175,8 +235,10 @@ def grid_request(client: str, n: int = 16, **kw: Any) -> P.SubmitRequest:
 
 
 def judge(m: dict[str, Any], *, good: bool = True, rss: bool = True) -> list[str]:
-    """Which targets a window missed: good clients at the tick rate, 0 missed ticks, nothing lost,
-    0 tracebacks, the server alive and publishing, RSS back within 10 %."""
+    """Which targets a window missed: good clients at the tick rate, 0 missed ticks, 0 states lost
+    and no gap over ``GAP_LIMIT_MS`` between good states (the three counted where the machine's other work stayed
+    under ``MACHINE_BUSY`` cores: :meth:`.chaos_harness.Window.attribute`; the raw counts are
+    reported beside), 0 tracebacks, the server alive and publishing, RSS back within 10 %."""
     fails = []
     if not m.get("server_alive", True):
         fails.append("server died" + (" (killed at the RSS cap)" if m.get("killed_for_rss") else ""))
@@ -185,10 +247,14 @@ def judge(m: dict[str, Any], *, good: bool = True, rss: bool = True) -> list[str
     if good:
         if m.get("good_rate_hz", 0.0) < RATE_FLOOR * TICK_HZ:
             fails.append(f"good client at {m.get('good_rate_hz')} Hz < {RATE_FLOOR * TICK_HZ:.0f}")
-        if m.get("missed_ticks", 0):
-            fails.append(f"{m['missed_ticks']} missed ticks")
-        if m.get("good_lost", 0):
-            fails.append(f"{m['good_lost']} good states lost")
+        own = m.get("missed_ticks_own", m.get("missed_ticks", 0))
+        if own:
+            fails.append(f"{own} missed ticks (of {m.get('missed_ticks')}) in stats periods without other load")
+        lost = m.get("good_lost_own", m.get("good_lost", 0))
+        if lost:
+            fails.append(f"{lost} good states lost (of {m.get('good_lost')}) without other load")
+        if m.get("good_worst_gap_own_ms", 0.0) > GAP_LIMIT_MS:
+            fails.append(f"a gap of {m['good_worst_gap_own_ms']} ms between good states without other load")
     if m.get("tracebacks", 0):
         fails.append(f"{m['tracebacks']} tracebacks in the server log")
     if rss and m.get("rss_after_mb", 0) > (1 + RSS_SLACK) * m.get("rss_before_mb", float("inf")):
@@ -359,7 +425,4 @@ def new_features(ctx: Context) -> dict[str, Any]:
     m.update(
         baseline=base, combinations=len(combos), accepted=outcomes.count("ok"), submit_outcomes=dict(Counter(outcomes))
     )
-    fails = judge(m, rss=False)
-    if m.get("good_worst_gap_ms", 0) > 2000.0 / TICK_HZ:
-        fails.append(f"worst gap between good states {m['good_worst_gap_ms']} ms > 2 ticks")
-    return {**m, "fails": fails}
+    return {**m, "fails": judge(m, rss=False)}  # gaps: judge's GAP_LIMIT_MS (issue 26), not 2 ticks

@@ -26,6 +26,7 @@ from typing import Any
 
 import msgpack
 import numpy as np
+import psutil
 import zenoh
 
 from drape.client import protocol as P
@@ -34,6 +35,7 @@ from drape.server.tools.procs import ProcessFigures, free_port, serve_command
 log = logging.getLogger(__name__)
 
 _RUNS = itertools.count()
+GAP_LIMIT_MS = 50.0  # issue 26: no gap over this between a good client's states
 WAIT = 180.0  # the longest any start-up or reply is waited for (a loaded 2-core machine; a cold
 # kernel cache: drape serve first builds every feature set in a child, build_in_child = "always")
 
@@ -77,23 +79,49 @@ class ChaosServer:
         rss_limit_mb: float = 4096.0,
         endpoint: str | None = None,
         server_id: str | None = None,
+        env: dict[str, str | None] | None = None,
+        router: Any = None,
     ) -> None:
-        self.server_id = server_id or f"chaos-{name}-{os.getpid()}"
-        self.endpoint = endpoint or f"tcp/127.0.0.1:{free_port()}"
+        """``env``: environment variables for the server on top of ours (None: removed);
+        ``router``: a :class:`~.chaos_router.AuthRouter` the server runs behind (client mode,
+        ``--identity keys``; ``endpoint`` is then the router's)."""
+        self.server_id = server_id or self.id_of(name)
+        self.endpoint = router.endpoint if router is not None else endpoint or f"tcp/127.0.0.1:{free_port()}"
         self.log_path = out / f"{name}-{os.getpid()}-{next(_RUNS)}.log"
         self.rss_limit_mb = rss_limit_mb
         self.killed_for_rss = False
-        self.cmd = serve_command(self.endpoint, self.server_id, "--stats-period", "0.5", "--device", "cpu", *args)
+        if router is None:
+            self.cmd = serve_command(self.endpoint, self.server_id, "--stats-period", "0.5", "--device", "cpu", *args)
+        else:  # listens on nothing: a client of the router
+            self.cmd = serve_command(self.endpoint, self.server_id, "--stats-period", "0.5", "--device", "cpu", *args)
+            at = self.cmd.index("--listen")
+            del self.cmd[at : at + 2]
+            self.cmd += router.serve_args(self.server_id)
         for c in connect:
             self.cmd += ["--connect", c]
         log.info("starting %s", " ".join(self.cmd))
         self._log_fh = open(self.log_path, "w")
-        self.proc = subprocess.Popen(self.cmd, stdout=self._log_fh, stderr=subprocess.STDOUT, start_new_session=True)
+        environ = dict(os.environ)
+        for k, v in (env or {}).items():
+            if v is None:
+                environ.pop(k, None)
+            else:
+                environ[k] = v
+        self.proc = subprocess.Popen(
+            self.cmd, stdout=self._log_fh, stderr=subprocess.STDOUT, start_new_session=True, env=environ
+        )
         self.figures = ProcessFigures(self.proc.pid)
-        self.stats = StatsWatch(self.endpoint, self.server_id)
+        self.stats = StatsWatch(
+            self.endpoint, self.server_id, session=None if router is None else router.session(router.watcher)
+        )
         self._watch_stop = threading.Event()
         self._watch = threading.Thread(target=self._rss_watch, daemon=True, name=f"rss-{self.server_id}")
         self._watch.start()
+
+    @staticmethod
+    def id_of(name: str) -> str:
+        """The server id of scenario ``name``'s server (unless one is given)."""
+        return f"chaos-{name}-{os.getpid()}"
 
     def _rss_watch(self) -> None:
         """Sample RSS every 0.2 s; SIGKILL the server when it passes the cap (it would take the machine)."""
@@ -158,8 +186,10 @@ class ChaosServer:
 class StatsWatch:
     """A server's stats publications (msgpack maps) with the monotonic time they arrived."""
 
-    def __init__(self, endpoint: str, server_id: str, namespace: str = P.DEFAULT_NAMESPACE) -> None:
-        self.session = zenoh_session(endpoint)
+    def __init__(
+        self, endpoint: str, server_id: str, namespace: str = P.DEFAULT_NAMESPACE, session: zenoh.Session | None = None
+    ) -> None:
+        self.session = session if session is not None else zenoh_session(endpoint)
         self.samples: list[tuple[float, dict[str, Any]]] = []
         self._cond = threading.Condition()
         self._sub = self.session.declare_subscriber(P.Keys(namespace).stats(server_id), self._on)
@@ -202,7 +232,15 @@ class StatsWatch:
 
 
 def _good_client_main(
-    endpoint: str, server_id: str, client_id: str, cloths: int, size: int, records: Any, ready: Any, stop: Any
+    endpoint: str,
+    server_id: str,
+    client_id: str,
+    cloths: int,
+    size: int,
+    records: Any,
+    ready: Any,
+    stop: Any,
+    sdk: dict[str, Any] | None = None,
 ) -> None:
     logging.basicConfig(level=logging.WARNING)
     from drape.client import DrapeClient, DrapeError
@@ -219,7 +257,8 @@ def _good_client_main(
                 time.sleep(0.5)
 
     try:
-        with DrapeClient(endpoint, server_id=server_id, client_id=client_id, timeout=WAIT) as client:
+        kw = {"client_id": client_id, **(sdk or {})}  # sdk: an authenticated deployment's (chaos_router)
+        with DrapeClient(endpoint, server_id=server_id, timeout=WAIT, **kw) as client:
             handles = []
             for j in range(cloths):
                 h = submit(client, j)
@@ -255,16 +294,39 @@ class StateLog:
 class GoodClient:
     """A game client process holding ``cloths`` small cloths on one server and receiving every state."""
 
-    def __init__(self, endpoint: str, server_id: str, name: str, cloths: int = 1, size: int = 16) -> None:
-        self._start(_good_client_main, "good", endpoint, server_id, name, cloths, size)
+    def __init__(
+        self,
+        endpoint: str,
+        server_id: str,
+        name: str,
+        cloths: int = 1,
+        size: int = 16,
+        sdk: dict[str, Any] | None = None,
+    ) -> None:
+        """``sdk``: more ``DrapeClient`` arguments (an authenticated deployment's, whose
+        ``client_id`` must then be :meth:`id_of` ``("good", name)``)."""
+        self._start(_good_client_main, "good", endpoint, server_id, name, cloths, size, sdk)
+
+    @staticmethod
+    def id_of(kind: str, name: str) -> str:
+        """The client id of a client process of ``kind`` for scenario ``name``."""
+        return f"{kind}-{name}-{os.getpid()}"
 
     def _start(
-        self, target: Any, kind: str, where: Any, server_id: str | None, name: str, cloths: int, size: int
+        self,
+        target: Any,
+        kind: str,
+        where: Any,
+        server_id: str | None,
+        name: str,
+        cloths: int,
+        size: int,
+        sdk: dict[str, Any] | None = None,
     ) -> None:
         """Start the client process ``target(where, server_id, client_id, cloths, size, records,
-        ready, stop)`` and the thread draining its records."""
+        ready, stop[, sdk=])`` and the thread draining its records."""
         ctx = mp.get_context("spawn")
-        self.client_id = f"{kind}-{name}-{os.getpid()}"
+        self.client_id = self.id_of(kind, name)
         self.records = ctx.Queue()
         self.ready, self.stop_event = ctx.Event(), ctx.Event()
         self.log = StateLog()
@@ -274,6 +336,7 @@ class GoodClient:
             name=self.client_id,
             daemon=True,
             args=(where, server_id, self.client_id, cloths, size, self.records, self.ready, self.stop_event),
+            kwargs={} if sdk is None else {"sdk": sdk},
         )
         self.proc.start()
         self._drain = threading.Thread(target=self._drain_loop, daemon=True)
@@ -325,23 +388,36 @@ class GoodClient:
         received = lost = 0
         worst_gap = 0.0
         rates = []
+        gaps: list[tuple[float, float]] = []  # (from, to) of every gap over GAP_LIMIT_MS
+        lost_spans: list[tuple[float, float, int]] = []  # (from, to, states) of every run of lost states
         for j in range(len(self.log.cloth_ids)):
             v = per.get(j, [])
             if not v:
                 worst_gap = max(worst_gap, t1 - t0)
+                gaps.append((t0, t1))
                 rates.append(0.0)
                 continue
             ticks = np.unique([k for k, _ in v])
             times = np.asarray([t0] + sorted(t for _, t in v) + [t1])
             received += len(ticks)
             lost += int(ticks[-1] - ticks[0] + 1 - len(ticks))
-            worst_gap = max(worst_gap, float(np.max(np.diff(times))))
+            first: dict[int, float] = {}  # each tick's first receipt: a lost run of ticks lies between two of them
+            for k, t in sorted(v, key=lambda kt: kt[1]):
+                first.setdefault(k, t)
+            for a, b in zip(ticks[:-1], ticks[1:], strict=True):
+                if b - a > 1:
+                    lost_spans.append((first[int(a)], first[int(b)], int(b - a - 1)))
+            d = np.diff(times)
+            worst_gap = max(worst_gap, float(np.max(d)))
+            gaps += [(float(times[i]), float(times[i + 1])) for i in np.flatnonzero(d > GAP_LIMIT_MS / 1000)]
             rates.append(len(ticks) / max(t1 - t0, 1e-9))
         return {
             "states": received,
             "lost": lost,
             "worst_gap_ms": round(1000 * worst_gap, 1),
             "rate_hz": round(float(min(rates)) if rates else 0.0, 1),
+            "gaps": gaps,
+            "lost_spans": lost_spans,
         }
 
     def last_receipt(self, cloth: int) -> float:
@@ -379,6 +455,77 @@ class GoodClient:
 
 
 # ---------------------------------------------------------------------------------------------
+# The machine's other work
+
+MACHINE_BUSY = 0.5  # cores of CPU work that is not this run's: a stats period with that much is the machine's
+
+
+class HostLoad:
+    """The machine's CPU work that is not this chaos run's, sampled every ``period`` s: the busy
+    time of every CPU (``/proc/stat``: user, nice, system, irq, softirq, steal) less that of this
+    process and all its descendants (servers, their build children, good clients, routers; the
+    reaped ones through their parents' children times), in cores. What a shared machine's other
+    users take; the server's own work, however heavy, is not in it (its device threads included).
+    One per process (:meth:`shared`), started on first use."""
+
+    _shared: HostLoad | None = None
+
+    def __init__(self, period: float = 0.1) -> None:
+        self.period = period
+        self.samples: list[tuple[float, float]] = []  # (monotonic end of the interval, foreign cores over it)
+        self._lock = threading.Lock()
+        self._me = psutil.Process()
+        self._tick = os.sysconf("SC_CLK_TCK")
+        threading.Thread(target=self._run, daemon=True, name="host-load").start()
+
+    @classmethod
+    def shared(cls) -> HostLoad:
+        if cls._shared is None:
+            cls._shared = cls()
+        return cls._shared
+
+    def _busy_s(self) -> float:
+        with open("/proc/stat") as fh:
+            f = [int(x) for x in fh.readline().split()[1:9]]
+        return (f[0] + f[1] + f[2] + f[5] + f[6] + f[7]) / self._tick
+
+    def _ours_s(self) -> float:
+        total = 0.0
+        for p in [self._me, *self._me.children(recursive=True)]:
+            try:
+                t = p.cpu_times()
+            except psutil.Error:
+                continue
+            total += t.user + t.system + t.children_user + t.children_system
+        return total
+
+    def _run(self) -> None:
+        try:
+            t0, b0, o0 = time.monotonic(), self._busy_s(), self._ours_s()
+            while True:
+                time.sleep(self.period)
+                t1, b1, o1 = time.monotonic(), self._busy_s(), self._ours_s()
+                foreign = max(0.0, ((b1 - b0) - (o1 - o0)) / max(t1 - t0, 1e-6))
+                with self._lock:
+                    self.samples.append((t1, foreign))
+                    if len(self.samples) > 36_000:  # an hour
+                        del self.samples[:6_000]
+                t0, b0, o0 = t1, b1, o1
+        except (OSError, ValueError, IndexError):  # no /proc: nothing attributed to the machine
+            log.warning("host load not measured here: missed ticks are all counted as the server's")
+
+    def cores(self, t0: float, t1: float, how: Any = max) -> float:
+        """``how`` (max, or a mean) of the foreign cores of the intervals that overlap [t0, t1]."""
+        with self._lock:
+            xs = [f for t, f in self.samples if t0 < t <= t1 + self.period]
+        return float(how(xs)) if xs else 0.0
+
+
+def _mean(xs: list[float]) -> float:
+    return sum(xs) / len(xs)
+
+
+# ---------------------------------------------------------------------------------------------
 # A measured window
 
 
@@ -395,6 +542,14 @@ def stats_delta(s0: dict[str, Any], s1: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _tick_max_ms(stats: dict[str, Any]) -> float:
+    """The longest tick-thread tick (its own work) of a stats period."""
+    try:
+        return float(stats["phases"]["tick"]["max_ms"])
+    except (KeyError, TypeError, ValueError):
+        return 0.0
+
+
 @dataclass
 class Window:
     """Start-of-window figures of one server; :meth:`close` measures the window."""
@@ -404,11 +559,47 @@ class Window:
     stats0: dict[str, Any]
     rss0: float
     log0: dict[str, int]
+    n0: int = 0  # stats publications received before the window
 
     @classmethod
     def open(cls, server: ChaosServer) -> Window:
+        HostLoad.shared()
         stats0 = server.stats.next(WAIT) or server.stats.latest()
-        return cls(server, time.monotonic(), stats0, server.rss_mb(), server.log_counts())
+        return cls(server, time.monotonic(), stats0, server.rss_mb(), server.log_counts(), len(server.stats.samples))
+
+    @staticmethod
+    def busy(t0: float, t1: float) -> bool:
+        """Whether other processes took ``MACHINE_BUSY`` cores or more at some point in [t0, t1]."""
+        return HostLoad.shared().cores(t0, t1) >= MACHINE_BUSY
+
+    def attribute(self, out: dict[str, Any], gaps: list[tuple[float, float]]) -> None:
+        """Split the window's missed ticks by stats period, and the good clients' gaps over
+        ``GAP_LIMIT_MS``, into the machine's (``MACHINE_BUSY`` cores or more of other work in the
+        period or gap, :class:`HostLoad`) and the server's own."""
+        host = HostLoad.shared()
+        samples = self.server.stats.samples[max(self.n0 - 1, 0) :]
+        own = machine = busy_periods = 0
+        tick_own = 0.0
+        for (ta, sa), (tb, sb) in zip(samples, samples[1:], strict=False):
+            busy = self.busy(ta, tb)
+            busy_periods += busy
+            if not busy:
+                tick_own = max(tick_own, _tick_max_ms(sb))
+            missed = int(sb.get("missed_ticks", 0)) - int(sa.get("missed_ticks", 0))
+            if missed <= 0:
+                continue
+            if busy:
+                machine += missed
+            else:
+                own += missed
+        out["missed_ticks_own"], out["missed_ticks_machine"] = own, machine
+        out["tick_max_own_ms"] = round(tick_own, 1)  # the longest tick-thread tick of those periods
+        own_gaps = [b - a for a, b in gaps if not self.busy(a, b)]
+        out["good_gaps_over_limit"] = len(gaps)
+        out["good_worst_gap_own_ms"] = round(1000 * max(own_gaps, default=0.0), 1)
+        out["host_other_cores"] = round(host.cores(self.t0, time.monotonic(), _mean), 2)
+        # the share of the window's stats periods judged as the machine's: near 1, the window judges little
+        out["host_busy_share"] = round(busy_periods / max(len(samples) - 1, 1), 2)
 
     def close(self, clients: Sequence[GoodClient] = (), settle_s: float = 0.0) -> dict[str, Any]:
         """Measure up to now; then let the server settle ``settle_s`` seconds and sample its RSS."""
@@ -421,12 +612,18 @@ class Window:
             "stats_stalled": stalled,
         }
         out.update(stats_delta(self.stats0, stats1 or self.server.stats.latest()))
+        periods = [st for _, st in self.server.stats.samples[self.n0 :]]
+        out["tick_max_ms"] = round(max((_tick_max_ms(st) for st in periods), default=0.0), 1)
+        gaps: list[tuple[float, float]] = []
         if clients:
             per = [c.window(self.t0, t1) for c in clients]
             out["good_states"] = sum(p["states"] for p in per)
             out["good_lost"] = sum(p["lost"] for p in per)
             out["good_rate_hz"] = min(p["rate_hz"] for p in per)
             out["good_worst_gap_ms"] = max(p["worst_gap_ms"] for p in per)
+            gaps = [g for p in per for g in p["gaps"]]
+            out["good_lost_own"] = sum(n for p in per for a, b, n in p["lost_spans"] if not self.busy(a, b))
+        self.attribute(out, gaps)
         if settle_s > 0:
             time.sleep(settle_s)
         log1 = self.server.log_counts()

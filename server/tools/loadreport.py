@@ -116,7 +116,7 @@ def admission_capacity(reports: Sequence[Mapping[str, Any]], loads: Sequence[int
     taken from each report): each report's phase means become ten steady ticks (tick thread =
     tick - readback, device = solve, publisher = encode + publish). Tells what the model makes of
     a load test's figures, e.g. those of a quiet machine (docs/loadtest.md, session 12)."""
-    from drape.server.service.requests.admission import MeasuredCost, TickCost
+    from drape.server.service.requests.admission_model import MeasuredCost, TickCost
 
     model = MeasuredCost()
     vpc = 0

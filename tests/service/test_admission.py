@@ -12,9 +12,9 @@ from conftest import TIMEOUT, collect, connect, make_config, wait_until
 
 from drape.client import DrapeError, NotFound
 from drape.server.service import Server
-from drape.server.service.requests.admission import (
+from drape.server.service.requests.admission import Admission
+from drape.server.service.requests.admission_model import (
     UNMEASURED_VERTICES,
-    Admission,
     FixedCost,
     Line,
     MeasuredCost,

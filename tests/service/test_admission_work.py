@@ -15,16 +15,10 @@ from drape.client import protocol as P
 from drape.client.controls import BatchError
 from drape.server.service import Server
 from drape.server.service.registry import ClothRecord, Registry
-from drape.server.service.requests.admission import (
-    FEATURE_WORK,
-    Admission,
-    FixedCost,
-    MeasuredCost,
-    Pricing,
-    TickCost,
-    work_of,
-)
+from drape.server.service.requests.admission import FEATURE_WORK, SCENE_PASS_WORK, Admission, Pricing, work_of
+from drape.server.service.requests.admission_model import FixedCost, MeasuredCost, TickCost
 from drape.server.sim.params import ClothParams, Features
+from drape.server.sim.scenes import INTER_COLLISION_PASSES
 
 
 def _submit(client: str, cols: int, rows: int, **kw) -> P.SubmitRequest:
@@ -34,6 +28,7 @@ def _submit(client: str, cols: int, rows: int, **kw) -> P.SubmitRequest:
 def _admit(adm: Admission, reg: Registry, req: P.SubmitRequest, n: int) -> ClothRecord:
     """What the submit handler does: price and admit, then reserve."""
     rec = ClothRecord(id=f"{req.client}-{n}", client=req.client, token="t", key="k", n_vertices=req.n_vertices)
+    rec.scene = req.scene
     adm.admit_submit(reg, rec, req)
     reg.reserve(rec, n)
     return rec
@@ -88,6 +83,32 @@ def test_a_control_that_raises_a_cloths_work_is_checked_and_one_that_lowers_it_f
     assert work_of(recs[1]) == pytest.approx(1024 * FEATURE_WORK["self_collision"])
     adm.admit_control(reg, recs[0], P.ControlRequest(recs[0].id, "t", iterations=1))  # lower: always admitted
     assert work_of(recs[0]) < 1024
+
+
+def test_a_submit_into_a_scene_costs_its_inter_collision_and_a_scene_of_one_costs_none():
+    cfg = make_config(admission_budget=0.85, admission_client_share=1.0)
+    adm, reg = Admission(cfg), Registry(cfg)
+    per_vertex = INTER_COLLISION_PASSES * SCENE_PASS_WORK["cpu"]  # plain solves a scene vertex adds a step
+    assert adm.pricing.scene_work(1024) == pytest.approx(1024 * per_vertex) and per_vertex > 1.0
+    adm.model = FixedCost(per_vertex_s=adm.budget_s / 10_000)  # 10,000 work units fill the budget
+    host = _admit(adm, reg, _submit("host", 32, 32, scene="s"), 0)
+    assert adm.total_work(reg.cloths.values()) == pytest.approx(1024)  # a scene of one collides with nothing
+    with pytest.raises(DrapeError) as e:  # joining makes both cloths' vertices take part in every pass
+        _admit(adm, reg, _submit("host", 32, 32, scene="s"), 1)
+    assert e.value.code == "overloaded" and "budget" in e.value.message
+    _admit(adm, reg, _submit("host", 32, 32), 2)  # the same cloth in no scene fits
+    _admit(adm, reg, _submit("host", 32, 32, scene="t"), 3)  # and founding another scene costs no more
+    assert adm.total_work(reg.cloths.values()) == pytest.approx(3 * 1024)
+    reg.unreserve(reg.cloths["host-2"])
+    reg.unreserve(reg.cloths["host-3"])
+    adm.model = FixedCost(per_vertex_s=adm.budget_s / 40_000)  # a larger device: the scene grows
+    _admit(adm, reg, _submit("host", 32, 32, scene="s"), 4)  # the second cloth pays both cloths' passes
+    assert adm.total_work(reg.cloths.values()) == pytest.approx(2048 + adm.pricing.scene_work(2048))
+    third = adm.scene_growth(reg.cloths.values(), "s", 1024)  # a third pays its own vertices' passes only
+    assert third == pytest.approx(adm.pricing.scene_work(1024))
+    _admit(adm, reg, _submit("host", 32, 32, scene="s"), 5)
+    assert adm.total_work(reg.cloths.values()) == pytest.approx(3072 + adm.pricing.scene_work(3072))
+    assert host.scene == "s" and len(reg.scenes["s"].cloths) == 3
 
 
 def test_a_newcomers_small_cloth_is_admitted_while_another_client_holds_its_share():

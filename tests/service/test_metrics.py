@@ -366,7 +366,7 @@ def test_overload_refusals_counted_when_admission_refuses(served):
     admission = getattr(server, "admission", None)
     if admission is None:
         pytest.skip("this Server has no admission control yet")
-    from drape.server.service.requests.admission import FixedCost
+    from drape.server.service.requests.admission_model import FixedCost
 
     before = scrape(ops)
     saved = admission.model

@@ -24,7 +24,7 @@ from typing import Any
 import pytest
 import zenoh
 
-from drape.server.tools import acl
+from drape.server.tools import acl, chaos_router
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -97,31 +97,9 @@ def session(
 
 
 def make_certs(d: Path) -> dict[str, str]:
-    """A CA, a router certificate for localhost and one client certificate per party
-    (CN = name.drape.test), as deploy/certs/README.md makes them."""
-
-    def ossl(*a: str) -> None:
-        subprocess.run(["openssl", *a], cwd=d, check=True, capture_output=True)
-
-    ossl(
-        *("req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2", "-subj", "/CN=drape-test-ca"),
-        *("-keyout", "ca-key.pem", "-out", "ca.pem"),
-    )
-    ossl(
-        *("req", "-newkey", "rsa:2048", "-nodes", "-subj", "/CN=localhost"),
-        *("-keyout", "router-key.pem", "-out", "router.csr"),
-    )
-    (d / "san.ext").write_text("subjectAltName=DNS:localhost,IP:127.0.0.1\n")
-    signed = ("-CA", "ca.pem", "-CAkey", "ca-key.pem", "-CAcreateserial", "-days", "2")
-    ossl("x509", "-req", "-in", "router.csr", *signed, "-extfile", "san.ext", "-out", "router.pem")
-    (d / "client.ext").write_text("extendedKeyUsage=clientAuth\n")
-    for name in PASSWORDS:  # mutual TLS: one certificate per party, CN = name.drape.test
-        ossl(
-            *("req", "-newkey", "rsa:2048", "-nodes", "-subj", f"/CN={name}.drape.test"),
-            *("-keyout", f"{name}-key.pem", "-out", f"{name}.csr"),
-        )
-        ossl("x509", "-req", "-in", f"{name}.csr", *signed, "-extfile", "client.ext", "-out", f"{name}.pem")
-    return {"ca": str(d / "ca.pem"), "key": str(d / "router-key.pem"), "cert": str(d / "router.pem")}
+    """A CA, a router certificate for localhost and one client certificate per party of
+    ``PASSWORDS`` (CN = name.drape.test), as deploy/certs/README.md makes them."""
+    return chaos_router.make_certs(d, PASSWORDS)
 
 
 class Inbox:

@@ -1,5 +1,6 @@
-"""Kernel builds in a child process: the compiler's memory and the first launch's JIT stay out of
-the server.
+"""Kernel builds and big cooks in a child process: the compiler's memory, the first launch's JIT
+and a big mesh's seconds of Python stay out of the server (:func:`cook_in_child`: cloths of
+``COOK_IN_CHILD_VERTICES`` or more, where builds go to a child).
 
 On PoCL (the CPU device) a program built from source for the first time costs the process that
 builds it LLVM's high-water mark for good (measured: 150 -> 288 MB for the first build, not given
@@ -12,7 +13,12 @@ combination comes, then builds the program itself from the cache: measured with 
 the server's first step of 8 new combinations took 7.4 ms at worst instead of 323 ms, and its RSS
 stayed where it was.
 
-Both children run at a lower CPU priority (``NICE``): a build takes what the tick thread leaves.
+Both children run at a lower CPU priority (``NICE``): a build takes what the tick thread leaves,
+and are bounded in memory (``build_memory_mb``): the parent samples a child's resident memory
+every ``WATCH_S`` while it waits and kills a child past the bound. The helper then raises
+:class:`BuildMemoryExceeded` (the cook thread refuses that cloth ``too_large`` instead of building
+it in the server, which would take the same memory there); the start-up warm-up is reported and
+skipped. (Not RLIMIT_AS: a GPU driver reserves tens of GB of address space it never touches.)
 
 ``build_in_child = "start"``: :func:`warm_up_in_child` does it once, before ``drape serve`` starts serving, for
 the warm-up's kernels and one cloth of each of the 32 feature combinations (start-up 0.8 -> 2.9 s
@@ -41,7 +47,45 @@ log = logging.getLogger(__name__)
 IDLE_S = 30.0  # the child exits after this long without a request
 TIMEOUT_S = 120.0  # longest wait for one build and run (a cold 65k-vertex build on a busy CPU)
 START_TIMEOUT_S = 60.0
+# the start-up warm-up of every feature set: cold, 71-78 s on this 2-core CPU under others' load
+# (issue 26: killed at 60 s, it left the later first cloths to build in the server)
+WARM_UP_TIMEOUT_S = 180.0
 NICE = 10  # the children's CPU priority below the server's (os.nice)
+WATCH_S = 0.05  # the parent samples a child's resident memory this often while it waits
+COOK_IN_CHILD_VERTICES = 8192  # cloths this large are cooked in a child (a 32k-vertex mesh: 7 s of Python)
+
+
+class BuildMemoryExceeded(RuntimeError):
+    """A build child passed its memory bound (``build_memory_mb``) and was killed."""
+
+
+def rss_mb(pid: int) -> float:
+    """A process's resident memory in MB (0 where it cannot be read: gone, or not Linux)."""
+    try:
+        with open(f"/proc/{pid}/statm") as fh:
+            return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError, IndexError):
+        return 0.0
+
+
+def watch(proc: Any, done: Any, timeout: float, memory_mb: float, what: str) -> bool:
+    """Wait up to ``timeout`` s for ``done(wait_s)`` (a pipe's poll, a process's end), sampling
+    ``proc``'s resident memory every ``WATCH_S``; False on timeout. A child past ``memory_mb``
+    (0: no bound) is killed and :class:`BuildMemoryExceeded` raised."""
+    t_end = time.monotonic() + timeout
+    while True:
+        left = t_end - time.monotonic()
+        if left <= 0.0:
+            return False
+        if done(min(WATCH_S, left)):
+            return True
+        rss = rss_mb(proc.pid) if memory_mb > 0 else 0.0
+        if rss > memory_mb > 0:
+            proc.kill()
+            proc.join(5)
+            raise BuildMemoryExceeded(
+                f"{what} took {rss:.0f} MB, over build_memory_mb = {memory_mb:g} MB: the child was killed"
+            )
 
 
 def _fabric_fields(fabric: Any) -> dict[str, Any]:
@@ -98,11 +142,12 @@ def _child_main(conn: Any, solver: str, device: str | None, idle_s: float) -> No
 class BuildHelper:
     """The cook thread's helper process (thread-safe; one request at a time)."""
 
-    def __init__(self, solver: str, device: str | None, idle_s: float = IDLE_S) -> None:
-        self.solver, self.device, self.idle_s = solver, device, idle_s
+    def __init__(self, solver: str, device: str | None, idle_s: float = IDLE_S, memory_mb: float = 0.0) -> None:
+        self.solver, self.device, self.idle_s, self.memory_mb = solver, device, idle_s, memory_mb
         self.runs = 0  # cloths the child built and ran
         self.starts = 0  # child processes started
         self.failures = 0  # requests that fell back to an in-process build
+        self.memory_kills = 0  # children killed past memory_mb (their cloths refused)
         self.disabled = False  # after a failure to start: the server builds in-process
         self._lock = threading.Lock()
         self._proc: Any = None
@@ -110,16 +155,23 @@ class BuildHelper:
 
     def warm(self, fabric: Any, params: Any) -> bool:
         """Build and run a cloth of ``fabric`` and ``params`` in the child (blocking the caller,
-        never the tick). True when it did; False when the caller should simply build in-process."""
+        never the tick). True when it did; False when the caller should simply build in-process;
+        :class:`BuildMemoryExceeded` when the child passed ``memory_mb`` (the cloth is too large
+        to build: not in the server either)."""
         if self.disabled:
             return False
         with self._lock:
             try:
                 conn = self._connection()
                 conn.send((_fabric_fields(fabric), params))
-                if not conn.poll(TIMEOUT_S):
+                if not watch(self._proc, conn.poll, TIMEOUT_S, self.memory_mb, "building and running the cloth"):
                     raise TimeoutError(f"no answer in {TIMEOUT_S:.0f} s")
                 status, detail = conn.recv()
+            except BuildMemoryExceeded as e:
+                self.memory_kills += 1
+                log.warning("kernel build helper: %s", e)
+                self._stop()
+                raise
             except Exception as e:
                 self.failures += 1
                 log.warning("kernel build helper failed (%s): building in the server process", e)
@@ -144,7 +196,9 @@ class BuildHelper:
         )
         proc.start()
         child.close()
-        if not parent.poll(START_TIMEOUT_S):
+        self._proc = proc  # so that _stop ends it, whatever happens below
+        self._conn = parent
+        if not watch(proc, parent.poll, START_TIMEOUT_S, self.memory_mb, "starting the build helper"):
             proc.kill()
             self.disabled = True
             raise TimeoutError(f"the helper did not start in {START_TIMEOUT_S:.0f} s")
@@ -197,14 +251,69 @@ def _warm_up_main(config: Any) -> None:
             _run_one(world, fabric, ClothParams(features=Features.from_names(list(combo))))
 
 
-def warm_up_in_child(config: Any, timeout: float = START_TIMEOUT_S) -> bool:
+def _cook_main(conn: Any, req: Any, links: Any, pinned: Any) -> None:
+    """The one-shot cook child: the fabric with its tethers and long-range links, as init fields."""
+    lower_priority()
+    from .fabrics import cook_fabric
+
+    try:
+        fab = cook_fabric(req, links, pinned)
+        fab.tethers()
+        fab.long_range()
+        conn.send(("ok", {f.name: getattr(fab, f.name) for f in fields(fab) if f.init and f.name != "_tether_lock"}))
+    except ValueError as e:
+        conn.send(("invalid", str(e)))
+    except Exception as e:
+        conn.send(("error", f"{type(e).__name__}: {e}"))
+
+
+def cook_in_child(req: Any, links: Any, pinned: Any, memory_mb: float = 0.0, timeout: float = TIMEOUT_S) -> Any:
+    """:func:`.fabrics.cook_fabric` in a child process at lower priority, bounded in memory
+    (:func:`watch`) and time: a big mesh's cook is seconds of Python (a 32k-vertex mesh: 7 s,
+    mostly its tethers and long-range links) that would hold the GIL against the tick thread.
+    Raises ValueError (an invalid cloth, as the in-process cook does), BuildMemoryExceeded,
+    TimeoutError or RuntimeError."""
+    from ...sim.fabric import Fabric
+
+    ctx = mp.get_context("spawn")
+    parent, child = ctx.Pipe()
+    proc = ctx.Process(target=_cook_main, args=(child, req, links, pinned), daemon=True, name="drape-cook")
+    proc.start()
+    child.close()
+    try:
+        if not watch(proc, parent.poll, timeout, memory_mb, "cooking the cloth"):
+            proc.kill()
+            raise TimeoutError(f"cooking the cloth took more than {timeout:.0f} s")
+        status, payload = parent.recv()
+    finally:
+        parent.close()
+        proc.join(5)
+        if proc.is_alive():
+            proc.kill()
+    if status == "invalid":
+        raise ValueError(payload)
+    if status != "ok":
+        raise RuntimeError(f"cooking the cloth in a child failed: {payload}")
+    return Fabric(**payload)
+
+
+def warm_up_in_child(config: Any, timeout: float = WARM_UP_TIMEOUT_S) -> bool:
     """Run the server's warm-up (its default kernels, the frame encoder's) and one cloth of every
     feature combination in a child process first, so that the server builds them all from the
     driver's cache, at start and whenever a cloth asks for one later. True when it ran."""
     t = time.monotonic()
     proc = mp.get_context("spawn").Process(target=_warm_up_main, args=(config,), daemon=True, name="drape-warm-up")
     proc.start()
-    proc.join(timeout)
+
+    def ended(wait_s: float) -> bool:
+        proc.join(wait_s)
+        return not proc.is_alive()
+
+    try:
+        watch(proc, ended, timeout, config.build_memory_mb, "the warm-up in a child process")
+    except BuildMemoryExceeded as e:
+        log.warning("%s; the server builds its kernels itself", e)
+        return False
     if proc.is_alive():
         proc.kill()
         proc.join(5)

@@ -31,10 +31,19 @@ from ..process.memory import PERIOD_S, MemoryKeeper
 from ..registry import Registry
 from ..replies import Replies, send
 from ..worldparams import pack, params_from_submit, with_preset
-from .buildhelper import BuildHelper
+from .buildhelper import COOK_IN_CHILD_VERTICES, BuildHelper, BuildMemoryExceeded, cook_in_child
 from .fabrics import FabricStore, cook_fabric
 
 log = logging.getLogger(__name__)
+
+
+def warmed_keys(world: World) -> set:
+    """The kernel groups (``World.build_key``) this process's warm-up ran: the default set's small
+    cloth. (The start-up child's sets are not assumed: it may not have finished, e.g. on a cold
+    cache; the helper then runs each new group's first cloth, as it did per new feature set.)"""
+    from ...sim.fabric import cook_grid
+
+    return {world.build_key(cook_grid(8, 8, pinned=[0, 7]), ClothParams())}
 
 
 class CookWorker:
@@ -58,8 +67,8 @@ class CookWorker:
         self._asked_lock = threading.Lock()
         self.memory = MemoryKeeper(config.program_idle_s, self._device, lambda: self.registry.vertices)
         self.helper: BuildHelper | None = None  # set in run() when build_in_child applies
-        # feature combinations the helper built and ran, or the warm-up did (cook thread only)
-        self._warmed: set = {ClothParams().features.key()}
+        # kernel groups (World.build_key) the helper built and ran, or a warm-up did (cook thread only)
+        self._warmed: set = set()
 
     def _device(self):
         """The World's OpenCL Device (None for the reference solver or before the World)."""
@@ -69,12 +78,18 @@ class CookWorker:
         """The kernels of a cloth of ``fabric`` and ``params``: first built and run by the helper
         process when its feature combination is new here, then built in this process (from the
         driver's cache)."""
-        # once per feature combination (at most 32), not world.ready(): a program built here is
-        # still compiled again at its first launch (PoCL), and a released one is rebuilt from the
-        # cache the helper filled; the warm-up's own combination ran in this process already
-        key = params.features.key()
+        # once per group of kernels (World.build_key: the feature combination and, on the OpenCL
+        # solvers, local memory and pack lanes: a 32k-vertex mesh needs another program than the
+        # small cloths of its features), not world.ready(): a program built here is still compiled
+        # again at its first launch (PoCL, 0.47 s on the tick for that mesh), and a released one is
+        # rebuilt from the cache the helper filled; the warm-up's key ran already (run())
+        key = world.build_key(fabric, params)
         if self.helper is not None and key not in self._warmed:
-            if self.helper.warm(fabric, params):
+            try:
+                warmed = self.helper.warm(fabric, params)
+            except BuildMemoryExceeded as e:  # not built here either: it would take that memory here
+                raise P.ProtocolError(P.ERR_TOO_LARGE, f"cannot build this cloth's kernels: {e}") from e
+            if warmed:
                 self._warmed.add(key)
         world.prepare(fabric, params)
 
@@ -82,8 +97,11 @@ class CookWorker:
         dev = self._device()
         if dev is not None:  # the server warmed up before this thread started: keep its kernels
             dev.pin()
+            world = self._world()
+            if world is not None:  # what the warm-up ran in this process
+                self._warmed = warmed_keys(world)
             if self.config.build_in_child == "always":
-                self.helper = BuildHelper(self.config.solver, self.config.device)
+                self.helper = BuildHelper(self.config.solver, self.config.device, memory_mb=self.config.build_memory_mb)
         try:
             self._loop()
         finally:
@@ -153,6 +171,19 @@ class CookWorker:
                 self._asked.discard((item.params.features.key(), item.fabric.key))
             log.exception("building kernels for a control failed")  # the tick thread builds them then
 
+    def _cook(self, req: P.SubmitRequest, links: LinkOptions, pinned: np.ndarray) -> Fabric:
+        """The cloth's fabric: a big one (``COOK_IN_CHILD_VERTICES``) cooked in a child where
+        builds go to one (``build_in_child``), falling back to this thread when the child fails."""
+        if self.config.build_in_child == "off" or req.n_vertices < COOK_IN_CHILD_VERTICES:
+            return cook_fabric(req, links, pinned)
+        try:
+            return cook_in_child(req, links, pinned, self.config.build_memory_mb)
+        except (ValueError, BuildMemoryExceeded):
+            raise
+        except Exception as e:
+            log.warning("cooking in a child failed (%s): cooking in the server", e)
+            return cook_fabric(req, links, pinned)
+
     def _one(self, rec, req: P.SubmitRequest, query) -> None:
         if self._stopping():
             self.registry.unreserve(rec)
@@ -161,9 +192,13 @@ class CookWorker:
         try:
             links = LinkOptions(**vars(req.links)) if req.links is not None else LinkOptions()
             pinned = np.unique(req.pinned.astype(np.int64))
-            fabric = self.fabrics.acquire(
-                FabricStore.digest(req, links, pinned), lambda: cook_fabric(req, links, pinned)
-            )
+            digest = FabricStore.digest(req, links, pinned)
+            fabric = self.fabrics.acquire(digest, lambda: self._cook(req, links, pinned))
+        except BuildMemoryExceeded as e:
+            self.registry.unreserve(rec)
+            log.warning("cloth %s of client %s refused: %s", rec.id, rec.client, e)
+            self.replies.send_error(query, P.ERR_TOO_LARGE, f"cannot cook this cloth: {e}", req.rid)
+            return
         except ValueError as e:
             self.registry.unreserve(rec)
             self.replies.send_error(query, P.ERR_INVALID_VALUE, f"cannot build the cloth: {e}", req.rid)
@@ -201,6 +236,8 @@ class CookWorker:
             self.fabrics.release(fabric)
             self.registry.unreserve(rec)
             send(self.replies.error(query, e.code, e.message, req.rid))
+            if e.code == P.ERR_TOO_LARGE:
+                log.warning("cloth %s of client %s refused: %s", rec.id, rec.client, e.message)
         except Exception as e:
             log.exception("preparing cloth %s failed", rec.id)
             rec.fabric = None

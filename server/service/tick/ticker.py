@@ -40,7 +40,8 @@ from ..process.telemetry import PhaseTimer
 from ..publish.publisher import Job, Mailbox
 from ..registry import ClothRecord, Registry
 from ..replies import Replies, Reply, send
-from ..requests.admission import Admission, TickCost, work_of
+from ..requests.admission import Admission
+from ..requests.admission_model import TickCost
 from .adaptive import AdaptiveQuality
 from .applier import Applier
 
@@ -201,11 +202,12 @@ class Ticker:
         return job
 
     def _work(self, version: int) -> int:
-        """The work units of the cloths stepped (admission's prices, requests/admission.py): summed
-        once per layout and change of a price, not per tick."""
+        """The work units of the cloths stepped (admission's prices and their scenes'
+        inter-collision, requests/admission.py): summed once per layout and change of a price, not
+        per tick."""
         key = (version, self.admission.generation)
         if self._work_at[0] != key:
-            self._work_at = (key, round(sum(work_of(r) for r in self.applier.live.values())))
+            self._work_at = (key, round(self.admission.total_work(self.applier.live.values())))
         return self._work_at[1]
 
     def _start_next(self, job: Job) -> None:

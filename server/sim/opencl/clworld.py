@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Hashable
 
 import numpy as np
 
@@ -371,6 +372,11 @@ class CLWorld(World):
         for g in self.groups.values():
             if g.dirty:
                 self.launches.build_group(g)
+
+    def build_key(self, fabric: Fabric, params: ClothParams) -> Hashable:
+        """The group such a cloth joins: its features, local or global memory, pack lanes (a big
+        cloth needs another program than a small one of the same features)."""
+        return self._group_key(Cloth(0, fabric, params))[0]
 
     def ready(self, fabric: Fabric, params: ClothParams) -> bool:
         _, local, pack = self._group_key(Cloth(0, fabric, params))

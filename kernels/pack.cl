@@ -16,7 +16,9 @@
  * prediction, tethers, long-range links and velocities run across the lanes; positions and
  * velocities go back to global memory once per step. Otherwise the phases run lane by lane on
  * global memory with the functions every solver calls (integrate.cl), so every feature means
- * exactly what it means in wg_step.
+ * exactly what it means in wg_step; only the tethers run across the lanes there too, on the
+ * positions in local memory (before and after the links: on a 32 x 32 cape, whose colliders keep
+ * it off the vector path, lane-by-lane tethers were half of a substep's time).
  *
  * Self-collision runs lane by lane on global memory after the links (selfcollide.cl), as in
  * wg_step; with it the vectorised phases are off.
@@ -272,16 +274,12 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
                 LANE_CLOTH(j)
                 for (int v = 0; v < nv; ++v)
                     X[v] = predict_vertex(X[v], vel, prev, target, nrm, vbase + v, F, h, S - s);
-                for (int v = 0; v < nv; ++v) {
-                    float4 x = X[v];
-#if FEATURE_TETHERS
-                    if (x.w > 0.0f)
-                        x = tether_vertex(x, X, fb, I, F, v);
-                    X[v] = x;
-#endif
-                    lane_put(sxf, v, j, x);
-                }
+                for (int v = 0; v < nv; ++v)
+                    lane_put(sxf, v, j, X[v]);
             }
+#if FEATURE_TETHERS
+            pack_tethers(sx, anc, tlim, nv); /* across the lanes, as tether_vertex per lane */
+#endif
 #if FEATURE_XPBD
             if (!lamless)
                 for (int l = 0; l < nl; ++l)
@@ -434,13 +432,16 @@ __kernel void pack_step(const float dt, __global const int *packs, __global cons
             }
             continue;
         }
+#if FEATURE_TETHERS
+        pack_tethers(sx, anc, tlim, nv); /* after the links, across the lanes (finish_vertex's) */
+#endif
         /* per lane: out of the lanes, then colliders, velocities[, self-collision] on global memory */
         for (int j = 0; j < PACK_LANES; ++j) {
             LANE_CLOTH(j)
             for (int v = 0; v < nv; ++v)
                 X[v].xyz = lane_get3(sxf, v, j);
             for (int v = 0; v < nv; ++v) {
-                const float4 x = finish_vertex(X[v], X, fb, I, F, vel, prev, coll, v, vbase + v, h, s, S, 1);
+                const float4 x = finish_vertex(X[v], X, fb, I, F, vel, prev, coll, v, vbase + v, h, s, S, 0);
                 X[v] = x;
 #if (FEATURE_WIND || FEATURE_NORMALS) && !FEATURE_SELF_COLLISION
                 lane_put3(sxf, v, j, x.xyz); /* the normals read the lanes */

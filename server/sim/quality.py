@@ -1,9 +1,13 @@
 """Quality presets: named solver settings picked from the measured speed/accuracy Pareto front.
 
 ``apply_preset(params, name)`` returns the cloth's parameters with the preset's iterations,
-substeps, XPBD and tether switches. Presets never touch the material: an XPBD preset uses the
-material's own compliance (0, the default, is an inextensible cloth, what PBD with stiffness 1
-aims at); a material authored for PBD with stiffness below 1 should give a compliance too.
+substeps, XPBD and tether switches. The substeps depend on the cloth's features, read at cook
+time: a cloth in the wind or among colliders (``MOVING_FEATURES``) gets the preset's
+``moving_substeps``, more than a still one's ``substeps`` (wind, colliders and the motion they
+bring need short steps, which tethers and long-range links do not replace; docs/accuracy.md).
+Presets never touch the material: an XPBD preset uses the material's own compliance (0, the
+default, is an inextensible cloth, what PBD with stiffness 1 aims at); a material authored for
+PBD with stiffness below 1 should give a compliance too.
 
 The strains behind each preset (``drape tradeoff``, docs/accuracy.md) are for the hanging
 cloth, 64 x 64, 60 Hz. ``cost`` is each preset's cost as it runs, in multiples of the plain
@@ -33,6 +37,7 @@ from pathlib import Path
 from .params import ClothParams
 
 COSTS_FILE = Path(__file__).with_name("preset_costs.json")  # written by `drape tradeoff --costs`
+PRESET_TICK_HZ = 60.0  # the tick rate the presets' substeps are given for
 
 
 def measured(kind: str = "cpu", path: Path | None = None) -> dict[str, dict]:
@@ -59,11 +64,23 @@ def _unmeasured_cost(iterations: int, substeps: int) -> float:
     return iterations * substeps / 10.0
 
 
+# Features that make a cloth "moving" for the presets: it gets their ``moving_substeps``. Moving
+# pins alone cannot be seen at cook time (the game moves them later); a cloth on a moving
+# character usually has its body as a collider.
+MOVING_FEATURES: tuple[str, ...] = ("wind", "colliders")
+
+
+def is_moving(params: ClothParams) -> bool:
+    """Whether ``params`` has one of ``MOVING_FEATURES`` on."""
+    return any(getattr(params.features, f) for f in MOVING_FEATURES)
+
+
 @dataclass(frozen=True)
 class Preset:
     name: str
     iterations: int
-    substeps: int
+    substeps: int  # at 60 Hz, for a cloth without MOVING_FEATURES (cost and strains: this one's)
+    moving_substeps: int  # at 60 Hz, for a cloth with one of MOVING_FEATURES on
     xpbd: bool
     tethers: bool
     cost: float  # measured cost / the 10-iteration PBD solve's (hanging 64 x 64, 60 Hz; COSTS_FILE, CPU)
@@ -74,20 +91,31 @@ class Preset:
     def params(self, base: ClothParams) -> ClothParams:
         return apply_preset(base, self.name)
 
+    def substeps_for(self, params: ClothParams, tick_hz: float = PRESET_TICK_HZ) -> int:
+        """The substeps this preset gives ``params`` at ``tick_hz``: ``moving_substeps`` where the
+        cloth has one of MOVING_FEATURES, else ``substeps``, scaled from 60 Hz so that the substep
+        length stays the same (at most 100, at least 1)."""
+        if not (math.isfinite(tick_hz) and tick_hz > 0):
+            raise ValueError("tick_hz must be a positive number")
+        n = self.moving_substeps if is_moving(params) else self.substeps
+        return min(100, max(1, round(n * PRESET_TICK_HZ / tick_hz)))
 
-# Cheapest first: (name, iterations, substeps at 60 Hz, note). Cost and strains (hanging 64 x 64,
-# float32 on the device, 2 s) come from COSTS_FILE (drape tradeoff --costs --cost-front), where the
-# file's record was measured with the same iterations and substeps; docs/accuracy.md has the
-# other scenes.
+
+# Cheapest first: (name, iterations, substeps at 60 Hz still, and moving (MOVING_FEATURES), note).
+# Cost and strains (hanging 64 x 64, float32 on the device, 2 s) come from COSTS_FILE (drape
+# tradeoff --costs --cost-front), where the file's record was measured with the same iterations and
+# substeps; docs/accuracy.md has the other scenes (cape, flag, curtain: moving), whose substeps
+# are the fewest that keep every one of them within the strains of the presets before issue 24
+# (medians over jittered starts: their max strain is chaotic).
 _SETTINGS = (
-    ("fast", 1, 2, "at most the plain 10-iteration solve's cost; hanging 64 x 64 within 50 % / 1.5 %"),
-    ("balanced", 1, 8, "at most 3x the plain solve; hanging 64 x 64 within 10 % / 0.3 %"),
-    ("accurate", 1, 80, "the old accurate's substeps: every scene within its strains"),
-    ("exact", 2, 100, "reference-like"),
+    ("fast", 1, 2, 9, "at most the plain 10-iteration solve's cost; hanging 64 x 64 within 50 % / 1.5 %"),
+    ("balanced", 1, 8, 20, "at most 3x the plain solve; hanging 64 x 64 within 10 % / 0.3 %"),
+    ("accurate", 1, 80, 80, "the old accurate's substeps: every scene within its strains"),
+    ("exact", 2, 100, 100, "reference-like"),
 )
 
 
-def _preset(name: str, iterations: int, substeps: int, note: str, kind: str = "cpu") -> Preset:
+def _preset(name: str, iterations: int, substeps: int, moving: int, note: str, kind: str = "cpu") -> Preset:
     rec = measured(kind).get(name, {})
     same = rec.get("iterations") == iterations and rec.get("substeps") == substeps
     nan = float("nan")
@@ -95,6 +123,7 @@ def _preset(name: str, iterations: int, substeps: int, note: str, kind: str = "c
         name,
         iterations,
         substeps,
+        moving,
         True,
         True,
         float(rec["cost"]) if same else _unmeasured_cost(iterations, substeps),
@@ -106,7 +135,6 @@ def _preset(name: str, iterations: int, substeps: int, note: str, kind: str = "c
 
 PRESETS: dict[str, Preset] = {p.name: p for p in (_preset(*s) for s in _SETTINGS)}
 ORDER: tuple[str, ...] = tuple(PRESETS)
-PRESET_TICK_HZ = 60.0  # the tick rate the presets' substeps are given for
 DEFAULT = "balanced"
 
 
@@ -120,14 +148,14 @@ def preset(name: str) -> Preset:
 def apply_preset(params: ClothParams, name: str, tick_hz: float = PRESET_TICK_HZ) -> ClothParams:
     """``params`` with the preset's iterations, substeps, XPBD and tethers switched on or off.
     Material (stiffness, compliance, tether limit), gravity, wind and other features are kept.
+    The substeps are the preset's ``moving_substeps`` where ``params`` has wind or colliders on
+    (``MOVING_FEATURES``), else its ``substeps``.
 
     Presets are defined at 60 Hz; at another ``tick_hz`` the substeps scale so that the substep
     length (what accuracy depends on, Small Steps) and the cost per simulated second stay the
     same: 20 substeps at 60 Hz are 10 at 120 Hz and 40 at 30 Hz (at most 100, at least 1)."""
     p = preset(name)
-    if not (math.isfinite(tick_hz) and tick_hz > 0):
-        raise ValueError("tick_hz must be a positive number")
-    substeps = min(100, max(1, round(p.substeps * PRESET_TICK_HZ / tick_hz)))
+    substeps = p.substeps_for(params, tick_hz)
     features = replace(params.features, xpbd=p.xpbd, tethers=p.tethers)
     out = params.with_(iterations=p.iterations, substeps=substeps, features=features)
     out.validate()

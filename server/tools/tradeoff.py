@@ -150,6 +150,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--cost-file", default=None, help="--costs: write here (default: the presets' cost file)")
     parser.add_argument(
+        "--cost-scene",
+        default="hanging",
+        help="--costs: the scene (hanging 64 x 64 by default; another, e.g. flag or cape at --sizes, "
+        "gets the presets' moving substeps and needs --cost-file: the presets' file is the hanging cloth's)",
+    )
+    parser.add_argument(
         "--cost-front",
         default=None,
         help="--costs: also simulate every configuration once (hanging 64 x 64, 2 s, float32 on "
@@ -193,9 +199,11 @@ def run(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
 
     plan: list[tuple[str, int, Config]] = []
+    scene_cache: dict[tuple[str, int], Scene] = {}
     for scene_name, size, main in sweep_layout(level, scenes, csv_list(args.sizes) if args.sizes else None):
         cfgs = main_sweep(level, solvers) if main else side_sweep(level, solvers)
-        plan += [(scene_name, size, c) for c in cfgs]
+        scene = scene_cache.setdefault((scene_name, size), make_scene(scene_name, size))
+        plan += [(scene_name, size, c.for_scene(scene.params)) for c in cfgs]  # presets: the scene's substeps
     wanted = list(dict.fromkeys((s, n) for s, n, _ in plan))
     log.info(
         "tradeoff (%s): %d runs over %s, %.1f s simulated each",
@@ -219,7 +227,6 @@ def run(args: argparse.Namespace) -> int:
     device = Device(args.device) if any(c.solver != "reference" for _, _, c in plan) else None
     version = code_version()
     records: list[dict] = []
-    scene_cache: dict[tuple[str, int], Scene] = {}
     per_run: list[list[dict]] = []
     bar = progress(total=len(plan) * args.timing_rounds, desc="tradeoff", unit="run", quiet=args.quiet)
     for i, (sname, n, cfg) in enumerate(plan, 1):
@@ -308,6 +315,9 @@ def run_costs(args: argparse.Namespace) -> int:
     from .tradeoffcost import measure_costs, write_costs
 
     extra = [Config("workgroup", 1, int(n), True, True, tag="front") for n in csv_list(args.cost_substeps)]
+    if args.cost_scene != "hanging" and not args.cost_file:
+        raise SystemExit("--cost-scene other than hanging needs --cost-file (the presets' file is the hanging cloth's)")
+    size = {"size": int(csv_list(args.sizes)[0])} if args.sizes else {}
     res = measure_costs(
         device=args.device,
         rounds=args.cost_rounds,
@@ -315,6 +325,8 @@ def run_costs(args: argparse.Namespace) -> int:
         extra=extra,
         progress=lambda r, n: print(f"round {r}/{n}", flush=True),
         accuracy=bool(args.cost_front),
+        scene_name=args.cost_scene,
+        **size,
     )
     for name, c in res["configs"].items():
         acc = f"  max {100 * c['max_strain']:6.2f} %  mean {100 * c['mean_strain']:6.3f} %" if "max_strain" in c else ""

@@ -38,13 +38,14 @@ GPU_CLOTHS = 256
 BASELINE = Config("workgroup", 10, 1, False, False, tag="pbd10")
 
 
-def cost_configs(extra: list[Config] | None = None) -> dict[str, Config]:
-    """PBD-10, every preset, and any ``extra`` configurations (by their description)."""
+def cost_configs(extra: list[Config] | None = None, base: ClothParams | None = None) -> dict[str, Config]:
+    """PBD-10, every preset (with the substeps it gives a cloth like ``base``: a moving one's where
+    it has wind or colliders), and any ``extra`` configurations (by their description)."""
     from ..sim.quality import PRESETS
 
     out = {"pbd10": BASELINE}
     for name in PRESETS:
-        out[name] = Config.from_preset(name)
+        out[name] = Config.from_preset(name, base=base)
     for c in extra or []:
         out[c.describe()] = c
     return out
@@ -59,13 +60,16 @@ def measure_costs(
     size: int = COST_SIZE,
     progress=None,
     accuracy: bool = False,
+    scene_name: str = "hanging",
 ) -> dict[str, Any]:
-    """Interleaved rounds of every configuration against PBD-10 (module docstring)."""
+    """Interleaved rounds of every configuration against PBD-10 (module docstring), on
+    ``scene_name`` (hanging by default; a moving scene's pins and colliders stay where they are
+    at t = 0, which costs what they cost in motion)."""
     from ..sim import make_world
     from ..sim.opencl.device import Device
 
-    scene = make_scene("hanging", size)
-    configs = cost_configs(extra)
+    scene = make_scene(scene_name, size)
+    configs = cost_configs(extra, scene.params)
     worlds: dict[str, Any] = {}
     n = cloths
     dev = device if isinstance(device, Device) else Device(device)
@@ -82,7 +86,7 @@ def measure_costs(
                 lanes = []
                 for name, cfg in configs.items():
                     w = worlds[name]
-                    h = w.add(scene.fabric, cfg.apply(_base(scene)))
+                    h = w.add(scene.fabric, cfg.apply(_base(scene)), scene.positions)
                     lanes.append(max(1, w.groups[w.rec[h].group].pack))
                     w.remove(h)
                 n = max(lanes) * int(dev.info.compute_units)
@@ -91,7 +95,11 @@ def measure_costs(
             w = worlds[name]
             params = cfg.apply(_base(scene))
             for _ in range(n):
-                w.add(scene.fabric, params)
+                h = w.add(scene.fabric, params, scene.positions)
+                if scene.motion is not None:
+                    targets, colliders = scene.motion(0.0)
+                    w.set_pin_targets(h, scene.pins, targets)
+                    w.set_colliders(h, colliders)
             for _ in range(COST_WARMUP):
                 w.step(1.0 / cfg.tick_hz)
                 w.fetch()
@@ -129,7 +137,7 @@ def measure_costs(
     out: dict[str, Any] = {
         "kind": kind,
         "device": dev_name,
-        "scene": f"hanging {size} x {size}, 60 Hz",
+        "scene": f"{scene_name} {size} x {size}, 60 Hz",
         "cloths": n,
         "pack_lanes": lanes_used,
         "rounds": rounds,
@@ -185,6 +193,8 @@ def plot_front(result: dict[str, Any], path: Path, title: str = "") -> Path:
     import matplotlib.pyplot as plt
 
     cfgs = result["configs"]
+    scene = result.get("scene", "hanging 64 x 64").split(",")[0]
+    hanging = scene.startswith("hanging")  # the issue's targets are the hanging cloth's
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
     markers = {"fast": "o", "balanced": "s", "accurate": "D", "exact": "^", "pbd10": "X"}
     for ax, key, label in zip(
@@ -216,7 +226,7 @@ def plot_front(result: dict[str, Any], path: Path, title: str = "") -> Path:
                 zorder=5,
                 label=f"{n} ({c['describe'].replace('workgroup ', '').replace(' 60Hz', '')})",
             )
-        for (n, cmax, mx, mean), col in zip(TARGETS, ("tab:red", "tab:purple"), strict=True):
+        for (n, cmax, mx, mean), col in zip(TARGETS if hanging else (), ("tab:red", "tab:purple"), strict=False):
             t = 100 * (mx if key == "max_strain" else mean)
             ax.plot([0.5, cmax], [t, t], ls="--", color=col, lw=1)
             ax.axvline(cmax, ls=":", color=col, lw=0.8)
@@ -225,7 +235,7 @@ def plot_front(result: dict[str, Any], path: Path, title: str = "") -> Path:
         ax.set_xlim(left=0.5)
         ax.set_yscale("log")
         ax.set_xlabel("cost, x PBD-10 (median of interleaved rounds; bars: min..max)")
-        ax.set_ylabel(f"{label}, % (hanging 64 x 64, 2 s)")
+        ax.set_ylabel(f"{label}, % ({scene}, 2 s)")
         ax.grid(True, which="both", alpha=0.25)
     axes[0].legend(fontsize=7, loc="upper right")
     fig.suptitle(

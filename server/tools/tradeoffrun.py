@@ -190,11 +190,23 @@ class Config:
         return s + f" {self.tick_hz}Hz"
 
     @classmethod
-    def from_preset(cls, name: str, solver: str = "workgroup", tick_hz: int = 60) -> Config:
+    def from_preset(
+        cls, name: str, solver: str = "workgroup", tick_hz: int = 60, base: ClothParams | None = None
+    ) -> Config:
+        """The preset's settings; for a cloth like ``base`` where given (a moving cloth's
+        substeps: quality.MOVING_FEATURES), else for a still one."""
         from ..sim.quality import PRESETS
 
         p = PRESETS[name]  # presets keep the material: compliance 0 and tether limit 1 here
-        return cls(solver, p.iterations, p.substeps, p.xpbd, p.tethers, tick_hz=tick_hz, tag=f"preset:{name}")
+        ss = p.substeps_for(base if base is not None else ClothParams(), tick_hz)
+        return cls(solver, p.iterations, ss, p.xpbd, p.tethers, tick_hz=tick_hz, tag=f"preset:{name}")
+
+    def for_scene(self, base: ClothParams) -> Config:
+        """This configuration on a cloth like ``base``: a preset's takes the substeps the preset
+        gives that cloth (its features), every other one is itself."""
+        if not self.tag.startswith("preset:"):
+            return self
+        return self.from_preset(self.tag[len("preset:") :], self.solver, self.tick_hz, base)
 
 
 def reference_config(substeps: int = REF_SUBSTEPS, iterations: int = REF_ITERATIONS) -> Config:

@@ -1,13 +1,19 @@
 """Quality presets costed as they run: costs and strains come from the cost file that
-`drape tradeoff --costs` writes, only where its record has the preset's own settings."""
+`drape tradeoff --costs` writes, only where its record has the preset's own settings; a cloth in the
+wind or among colliders gets the preset's moving substeps."""
 
 from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
+
+import pytest
 
 from drape.server.sim import quality
+from drape.server.sim.params import ClothParams, Features
 from drape.server.tools.tradeoffcost import write_costs
+from drape.server.tools.tradeoffrun import Config, make_scene
 
 
 def _record(kind: str, configs: dict) -> dict:
@@ -39,7 +45,7 @@ def test_the_governor_predicts_with_the_measured_costs(tmp_path, monkeypatch):
     path = tmp_path / "costs.json"
     monkeypatch.setattr(quality, "COSTS_FILE", path)
     recs = {}
-    for name, it, ss, _ in quality._SETTINGS:
+    for name, it, ss, *_ in quality._SETTINGS:
         recs[name] = {"cost": {"fast": 1.0, "balanced": 5.0}.get(name, 20.0), "min": 0, "max": 0}
         recs[name] |= {"iterations": it, "substeps": ss}
     write_costs(_record("cpu", recs), path)
@@ -56,3 +62,44 @@ def test_the_governor_predicts_with_the_measured_costs(tmp_path, monkeypatch):
     for _ in range(10):
         gov.update(3.0)
     assert gov.current == "fast"
+
+
+@pytest.mark.parametrize("feature", quality.MOVING_FEATURES)
+def test_a_cloth_in_the_wind_or_among_colliders_gets_the_moving_substeps(feature):
+    """Wind and colliders need short steps that tethers do not replace: the preset gives such a
+    cloth its moving substeps (scaled with the tick rate like the still ones), and knows it again."""
+    still = ClothParams()
+    moving = still.with_(features=replace(still.features, **{feature: True}))
+    for p in quality.PRESETS.values():
+        assert p.moving_substeps >= p.substeps
+        assert quality.apply_preset(still, p.name).substeps == p.substeps
+        assert quality.apply_preset(moving, p.name).substeps == p.moving_substeps
+        assert quality.apply_preset(moving, p.name, tick_hz=30).substeps == min(100, 2 * p.moving_substeps)
+        assert quality.preset_of(quality.apply_preset(moving, p.name)) == p.name
+        assert quality.preset_of(quality.apply_preset(moving, p.name, 120), 120) == p.name
+    assert quality.PRESETS["fast"].moving_substeps > quality.PRESETS["fast"].substeps
+
+
+def test_tradeoff_runs_each_scene_at_the_substeps_its_preset_gives_it():
+    """drape tradeoff measures a preset on a scene with the scene's own substeps: the flag (wind),
+    cape and curtain (colliders) the moving ones, the hanging cloth the still ones."""
+    fast = quality.PRESETS["fast"]
+    cfg = Config.from_preset("fast")
+    assert cfg.substeps == fast.substeps and Config(tag="x").for_scene(ClothParams()) == Config(tag="x")
+    for name in ("flag", "cape", "curtain"):
+        assert quality.is_moving(make_scene(name, 4).params)
+        assert cfg.for_scene(make_scene(name, 4).params).substeps == fast.moving_substeps
+    assert cfg.for_scene(make_scene("hanging", 4).params) == cfg
+    assert not quality.is_moving(ClothParams(features=Features(xpbd=True, tethers=True)))
+
+
+def test_costs_on_a_moving_scene_run_the_presets_moving_substeps(device):
+    """`drape tradeoff --costs --cost-scene flag` costs each preset at the substeps it gives a flag,
+    written only where asked (the presets' own file is the hanging cloth's)."""
+    from drape.server.tools.tradeoffcost import measure_costs
+
+    res = measure_costs(device=device, rounds=1, frames=2, cloths=2, size=4, scene_name="flag")
+    assert res["scene"].startswith("flag 4 x 4")
+    for name, p in quality.PRESETS.items():
+        assert res["configs"][name]["substeps"] == p.moving_substeps
+        assert res["configs"][name]["cost"] > 0

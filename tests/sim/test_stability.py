@@ -419,7 +419,7 @@ def test_every_feature_at_once_under_load(device, rng, solver):
 # 1 or 2 iterations at each, with tethers and long-range links (which only the work-group, pack
 # and serial/coloured reference solvers apply), every feature, stiff (compliance 0, the presets'
 # material: the multiplier-free path) and compliant.
-PRESET_SUBSTEPS = sorted({5, 20, 80, 100} | {p.substeps for p in PRESETS.values()})
+PRESET_SUBSTEPS = sorted({5, 20, 80, 100} | {n for p in PRESETS.values() for n in (p.substeps, p.moving_substeps)})
 
 
 @pytest.mark.parametrize("solver", SOLVERS)

@@ -15,7 +15,8 @@ import pytest
 from drape.server.sim.opencl.device import kernel_dir, kernel_sources, program_text
 from drape.server.sim.params import Features
 
-PROGRAMS = ("cloth.cl", "encode.cl", "intercollide.cl")  # the files Device.program builds; the others are included
+# the files Device.program builds; the others are included
+PROGRAMS = ("cloth.cl", "encode.cl", "intercollide.cl", "meshcollide.cl")
 
 
 def _kernel_files() -> set[str]:

@@ -24,6 +24,7 @@ from drape.server.sim.opencl.clworld import CLWorld
 from drape.server.sim.opencl.meshes import SOURCE
 from drape.server.sim.params import ClothParams, Features, LinkOptions, Material
 from drape.server.sim.world import ReferenceWorld
+from drape.server.tools import penetration as tool
 
 DT = 1 / 60
 N = 9
@@ -33,7 +34,7 @@ THICKNESS = 0.005
 
 @pytest.fixture(scope="module")
 def body():
-    return body_mesh(segments=16, rings=10)  # a coarse body: the reference stays quick
+    return body_mesh(0.06)  # a coarse body: the reference stays quick
 
 
 def plate(size: float = 0.4):
@@ -136,9 +137,9 @@ def behind(states, mesh) -> list[int]:
     return [penetration(x, x, 0.0, invm=invm, meshes=[(mesh, body_pose(t))]).behind for t, x in enumerate(states)]
 
 
-def test_reference_keeps_the_cape_out_of_the_body(body):
+def test_reference_keeps_the_cape_out_of_the_body(body, references):
     """0 vertices inside the body at every tick with the mesh; without it the body walks through."""
-    assert max(behind(walk(ReferenceWorld(), body), body)) == 0
+    assert max(behind(references("coloured")[0], body)) == 0
     assert max(behind(walk(ReferenceWorld(), body, with_mesh=False), body)) > 10
 
 
@@ -151,12 +152,25 @@ SOLVERS = [
 ]
 
 
+@pytest.fixture(scope="module")
+def references(body):
+    """The walk in the float64 reference and in float32, per reference mode (computed once)."""
+    cache: dict[str, tuple[list, list]] = {}
+
+    def get(mode: str) -> tuple[list, list]:
+        if mode not in cache:
+            cache[mode] = (walk(ReferenceWorld(mode), body), walk(ReferenceWorld(mode, np.float32), body))
+        return cache[mode]
+
+    return get
+
+
 @pytest.mark.parametrize("kw, mode", SOLVERS)
-def test_device_follows_the_reference(device, body, kw, mode):
+def test_device_follows_the_reference(device, body, references, kw, mode):
+    kw = dict(kw)
     solver = kw.pop("solver")
-    ref = walk(ReferenceWorld(mode), body)
+    ref, f32 = references(mode)
     dev = walk(CLWorld(solver, device=device, **kw), body)
-    f32 = walk(ReferenceWorld(mode, np.float32), body)
     own = max(float(np.abs(a - b).max()) for a, b in zip(ref, f32, strict=True))
     err = max(float(np.abs(a - b).max()) for a, b in zip(ref, dev, strict=True))
     assert err < 3e-4 + 2 * own, (err, own)
@@ -233,3 +247,13 @@ def test_no_mesh_builds_nothing(device):
     world.set_mesh(h, None)
     world.step(DT)
     assert world.mesh_collision.n_attachments == 0
+
+
+def test_penetration_scenario_cape_on_a_running_body(device):
+    """The penetration tool's cape_body (small): 0 vertices inside the body at every tick of the
+    run and the turn; without the mesh the cape swings into it."""
+    records = tool.run("cape_body", CLWorld("workgroup", device=device, pack_lanes=0), 9, ticks=150)
+    assert max(r.behind for r in records) == 0 and max(r.crossed for r in records) == 0
+    world = CLWorld("workgroup", device=device, pack_lanes=0)
+    world.set_mesh = world.move_mesh = lambda *a, **k: None  # type: ignore[method-assign]
+    assert max(r.behind for r in tool.run("cape_body", world, 9, ticks=150)) > 0

@@ -79,10 +79,11 @@ inline float3 closest_on_triangle(float3 p, float3 a, float3 e1, float3 e2)
  * when the box covers more than MESH_MAX_QUERY_CELLS cells. */
 #define FOR_CANDIDATES(...)                                                                            \
     {                                                                                                  \
-        const int3 c0 = clamp(convert_int3_rtn((lo - org) * inv), (int3)(0), dims - 1);                \
-        const int3 c1 = clamp(convert_int3_rtn((hi - org) * inv), (int3)(0), dims - 1);                \
+        const int3 c0 = max(convert_int3_sat_rtn((lo - org) * inv), (int3)(0));                            \
+        const int3 c1 = min(convert_int3_sat_rtn((hi - org) * inv), dims - 1);                             \
         const int3 span = c1 - c0 + 1;                                                                 \
-        if (span.x * span.y * span.z > MESH_MAX_QUERY_CELLS) {                                         \
+        if (span.x <= 0 || span.y <= 0 || span.z <= 0) { /* the box misses the grid: no triangle */   \
+        } else if (span.x * span.y * span.z > MESH_MAX_QUERY_CELLS) {                                  \
             for (int ti = 0; ti < mi.s1; ++ti) {                                                       \
                 __VA_ARGS__                                                                                   \
             }                                                                                          \

@@ -47,12 +47,18 @@ class MeshColliders:
         self.scene: dict[str, MeshCollider] = {}
         self.version = 0
         self.moved = False
+        self._grids: dict[int, tuple[CollisionMesh, MeshGrid]] = {}
 
     def _grid(self, mesh: CollisionMesh) -> MeshGrid:
-        for mc in (*self.own.values(), *self.scene.values()):
-            if mc.mesh is mesh:
-                return mc.grid
-        return build_grid(mesh)
+        """The mesh's grid, built once per mesh object while some collider uses it."""
+        held = self._grids.get(id(mesh))
+        if held is not None and held[0] is mesh:
+            return held[1]
+        used = {id(mc.mesh) for mc in (*self.own.values(), *self.scene.values())}
+        self._grids = {k: v for k, v in self._grids.items() if k in used}
+        grid = build_grid(mesh)
+        self._grids[id(mesh)] = (mesh, grid)
+        return grid
 
     def _set(self, table: dict, key, mesh: CollisionMesh | None, pose: np.ndarray | None) -> None:
         if mesh is None:

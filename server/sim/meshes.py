@@ -51,7 +51,7 @@ MESH_EDGE_TOLERANCE = 1e-5
 #: A query box over more cells than this tests the whole mesh.
 MESH_MAX_QUERY_CELLS = 512
 #: Grid cells per triangle at most (the cell edge is grown until the grid fits).
-MESH_CELLS_PER_TRIANGLE = 4
+MESH_CELLS_PER_TRIANGLE = 8
 #: The least thickness kept from a mesh (a cloth whose material says less, 0 included).
 MESH_MIN_THICKNESS = 1e-3
 
@@ -155,15 +155,16 @@ class MeshGrid:
 
 
 def build_grid(mesh: CollisionMesh) -> MeshGrid:
-    """The grid of ``mesh``: cells of twice the mean triangle edge, grown until there are at
-    most MESH_CELLS_PER_TRIANGLE cells per triangle."""
+    """The grid of ``mesh``: cells of the mean triangle edge (a thickness's query then meets a
+    few cells of a few triangles each, and far from the surface only empty cells), grown until
+    there are at most MESH_CELLS_PER_TRIANGLE cells per triangle."""
     v, t = mesh.vertices, mesh.triangles
     tri = v[t]  # (m, 3, 3)
     lo, hi = tri.min(axis=1), tri.max(axis=1)
     origin = lo.min(axis=0)
     extent = np.maximum(hi.max(axis=0) - origin, 1e-6)
     edges = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2)
-    cell = max(2.0 * float(edges.mean()), float(extent.max()) / 256.0)
+    cell = max(float(edges.mean()), float(extent.max()) / 256.0)
     while True:
         dims = np.maximum(np.ceil(extent / cell).astype(np.int64), 1)
         if int(np.prod(dims)) <= MESH_CELLS_PER_TRIANGLE * len(t) + 8:

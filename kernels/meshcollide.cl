@@ -13,7 +13,7 @@
  * Attachments (a cloth and a mesh; a cloth's own mesh and its scene's are launched apart):
  *   att    int4 per attachment: (first row in pos/vel, vertices, mesh, first row in start)
  *   apar   10 float4 per attachment: the pose at the step's start inverted (3 rows [R | t]),
- *          the pose now inverted (3 rows), the pose now (3 rows), (thickness, -, -, -)
+ *          the pose now inverted (3 rows), the pose now (3 rows), (thickness, friction, -, -)
  *   start  the vertices' positions at the step's start (mc_save)
  * One work-group of MC_LS work-items per attachment, each a strided share of its vertices;
  * mc_collide is launched once per layer (a cloth's own meshes, then its scene's), from attachment
@@ -28,6 +28,9 @@
 #endif
 #ifndef MESH_EDGE_TOLERANCE
 #define MESH_EDGE_TOLERANCE 1e-5f
+#endif
+#ifndef MESH_SLIDES
+#define MESH_SLIDES 2
 #endif
 #ifndef MESH_MAX_QUERY_CELLS
 #define MESH_MAX_QUERY_CELLS 512
@@ -101,6 +104,41 @@ inline float3 closest_on_triangle(float3 p, float3 a, float3 e1, float3 e2)
         }                                                                                              \
     }
 
+/* The first triangle whose plane the segment a -> b crosses from its front to its back, inside the
+ * triangle (within MESH_EDGE_TOLERANCE of its barycentric range; the lower index on a tie): its
+ * normal, b's signed distance to its plane and the crossing's parameter along a -> b. */
+inline int first_crossing(float3 a, float3 b, float h, __global const float4 *T, __global const int *mcell,
+                          __global const int *mlist, int8 mi, float3 org, float inv, int3 dims, float3 *nout,
+                          float *dout, float *tout)
+{
+    const float3 lo = fmin(a, b) - h, hi = fmax(a, b) + h;
+    float tbest = 2.0f;
+    int best = 0x7fffffff;
+    FOR_CANDIDATES({
+        const float3 v0 = T[4 * ti].xyz, n = T[4 * ti + 3].xyz;
+        const float da = dot(a - v0, n), db = dot(b - v0, n);
+        if (da >= 0.0f && db < 0.0f) {
+            const float t = da / (da - db);
+            if (t < tbest || (t == tbest && ti < best)) {
+                const float3 e1 = T[4 * ti + 1].xyz, e2 = T[4 * ti + 2].xyz;
+                const float3 w = a + t * (b - a) - v0;
+                const float d00 = dot(e1, e1), d01 = dot(e1, e2), d11 = dot(e2, e2);
+                const float d20 = dot(w, e1), d21 = dot(w, e2);
+                const float det = d00 * d11 - d01 * d01;
+                const float bv = (d11 * d20 - d01 * d21) / det, bw = (d00 * d21 - d01 * d20) / det;
+                if (bv >= -MESH_EDGE_TOLERANCE && bw >= -MESH_EDGE_TOLERANCE && bv + bw <= 1.0f + MESH_EDGE_TOLERANCE) {
+                    tbest = t;
+                    best = ti;
+                    *nout = n;
+                    *dout = db;
+                    *tout = t;
+                }
+            }
+        }
+    })
+    return tbest <= 1.0f;
+}
+
 __kernel void mc_collide(__global float4 *pos, __global float4 *vel, __global const float4 *start,
                          __global const int4 *att, __global const float4 *apar, __global const float4 *mtri,
                          __global const int *mcell, __global const int *mlist, __global const int8 *minfo,
@@ -109,7 +147,7 @@ __kernel void mc_collide(__global float4 *pos, __global float4 *vel, __global co
     const int k = first + get_group_id(0), lid = get_local_id(0);
     const int4 at = att[k];
     __global const float4 *P = apar + 10 * k;
-    const float h = P[9].x;
+    const float h = P[9].x, mu = P[9].y;
     const int8 mi = minfo[at.z];
     const float4 g = mgeom[at.z];
     const float3 org = g.xyz;
@@ -123,39 +161,44 @@ __kernel void mc_collide(__global float4 *pos, __global float4 *vel, __global co
         const float3 a = xform(P, start[at.w + v].xyz);
         const float3 b0 = xform(P + 3, x4.xyz);
         float3 b = b0;
-        /* 1. continuous: the first front-to-back crossing of a -> b */
+        float3 ncon = (float3)(0.0f); /* the last contact's normal and the pushes' total length */
+        float pen = 0.0f;
+        /* 1. continuous: the first front-to-back crossing of p -> b puts b onto that plane at the
+         * thickness and the motion slides on from the contact (p: the contact at the thickness),
+         * MESH_SLIDES times; a motion that still crosses then stops at its last contact */
         {
-            const float3 lo = fmin(a, b) - h, hi = fmax(a, b) + h;
-            float tbest = 2.0f, dbest = 0.0f;
-            int best = 0x7fffffff;
-            float3 nbest = (float3)(0.0f);
-            FOR_CANDIDATES({
-                const float3 v0 = T[4 * ti].xyz, n = T[4 * ti + 3].xyz;
-                const float da = dot(a - v0, n), db = dot(b - v0, n);
-                if (da >= 0.0f && db < 0.0f) {
-                    const float t = da / (da - db);
-                    if (t < tbest || (t == tbest && ti < best)) {
-                        const float3 e1 = T[4 * ti + 1].xyz, e2 = T[4 * ti + 2].xyz;
-                        const float3 w = a + t * (b - a) - v0;
-                        const float d00 = dot(e1, e1), d01 = dot(e1, e2), d11 = dot(e2, e2);
-                        const float d20 = dot(w, e1), d21 = dot(w, e2);
-                        const float det = d00 * d11 - d01 * d01;
-                        const float bv = (d11 * d20 - d01 * d21) / det, bw = (d00 * d21 - d01 * d20) / det;
-                        if (bv >= -MESH_EDGE_TOLERANCE && bw >= -MESH_EDGE_TOLERANCE &&
-                            bv + bw <= 1.0f + MESH_EDGE_TOLERANCE) {
-                            tbest = t;
-                            best = ti;
-                            nbest = n;
-                            dbest = db;
-                        }
-                    }
-                }
-            })
-            if (tbest <= 1.0f)
-                b -= nbest * (dbest - h);
+            float3 p = a, nb;
+            float db, t;
+            int k = 0;
+            for (; k < MESH_SLIDES; ++k) {
+                if (!first_crossing(p, b, h, T, mcell, mlist, mi, org, inv, dims, &nb, &db, &t))
+                    break;
+                const float3 c = p + t * (b - p) + nb * h;
+                b -= nb * (db - h);
+                ncon = nb;
+                pen += h - db;
+                p = c;
+            }
+            if (k == MESH_SLIDES && first_crossing(p, b, h, T, mcell, mlist, mi, org, inv, dims, &nb, &db, &t))
+                b = p;
         }
         /* 2. the thickness: push away from the closest triangle within h */
         for (int pass = 0; pass < MESH_PASSES; ++pass) {
+            if (pass == 1 && pen > 0.0f && mu > 0.0f) {
+                /* 3. friction against the (still, in its frame) mesh after the first pass: the
+                 * tangential motion reduced by mu x pen, unless that move crosses the surface
+                 * (a crease); the passes after it keep the thickness */
+                const float3 rel = b - a;
+                const float3 tang = rel - ncon * dot(rel, ncon);
+                const float tl = length(tang);
+                if (tl > 1e-12f) {
+                    const float3 bf = b - tang * (fmin(mu * pen, tl) / tl);
+                    float3 nf;
+                    float df, tf;
+                    if (!first_crossing(b, bf, h, T, mcell, mlist, mi, org, inv, dims, &nf, &df, &tf))
+                        b = bf;
+                }
+            }
             const float3 lo = b - h, hi = b + h;
             float dmin = h;
             int best = 0x7fffffff;
@@ -170,12 +213,19 @@ __kernel void mc_collide(__global float4 *pos, __global float4 *vel, __global co
                     nbest = T[4 * ti + 3].xyz;
                 }
             })
-            if (best == 0x7fffffff)
+            if (best == 0x7fffffff) {
+                if (pass == 0 && pen > 0.0f && mu > 0.0f)
+                    continue; /* the friction of a continuous contact still comes */
                 break;
+            }
             const float3 dv = b - qbest;
             const int front = dot(dv, nbest) > 0.0f && dmin > 1e-9f;
-            b = qbest + (front ? dv / dmin : nbest) * h;
+            const float3 nb = qbest + (front ? dv / dmin : nbest) * h;
+            pen += length(nb - b);
+            ncon = front ? dv / dmin : nbest;
+            b = nb;
         }
+
         if (any(b != b0)) {
             const float3 moved = xform(P + 6, b) - xform(P + 6, b0);
             pos[at.x + v] = (float4)(x4.xyz + moved, x4.w);

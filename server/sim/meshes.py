@@ -18,18 +18,26 @@ exact at both ends and linear between):
 1. **continuous**: the first triangle that the segment ``a -> b`` crosses from its front
    (``a`` on or in front of its plane, ``b`` behind it, the crossing point inside the triangle
    within MESH_EDGE_TOLERANCE of its barycentric range) puts ``b`` back onto that plane's front at
-   the thickness: no vertex tunnels through the surface, however fast, even through a thin part;
+   the thickness, and the rest of the motion slides on from the contact (the contact, at the
+   thickness, is the next segment's start): MESH_SLIDES times; a motion that still crosses
+   then stops at its last contact (a plane's extension far from its triangle can lie inside
+   another part of a non-convex body). No vertex tunnels through the surface, however fast;
 2. **thickness**: MESH_PASSES passes, each finds the triangle closest to ``b`` among those
    within ``thickness`` of it; if ``b`` is in front of its plane, ``b`` is moved away from the
    closest point to the thickness (an edge or a corner pushes radially); behind it, onto the
    front at the thickness (one-sided).
+3. **friction** (the material's ``friction``, as against the other colliders), after the first
+   thickness pass (the passes after it keep the thickness): where 1 or 2 pushed the vertex, the
+   tangential part of its motion relative to the mesh (``b - a``, along the last push's normal)
+   is reduced by ``friction`` times the pushes' total length, unless that move crosses the
+   surface (tested as in 1: at a crease it could cross the next face).
 
 The thickness is the cloth's material ``thickness`` (the self-collision field, as scenes use it),
 at least MESH_MIN_THICKNESS (1 mm: float32 keeps a vertex on the surface only to its rounding).
-A vertex moved by ``dx`` gains ``dx / dt`` of velocity (as inter-cloth collision does). There is
-no friction against the mesh yet. The candidates are the triangles of the grid cells that the
-query's box (the segment's, grown by the thickness) covers; a box over MESH_MAX_QUERY_CELLS cells
-tests every triangle of the mesh instead, so the grid never misses a triangle.
+A vertex moved by ``dx`` gains ``dx / dt`` of velocity (as inter-cloth collision does). The
+candidates are the triangles of the grid cells that the query's box (the segment's, grown by the
+thickness) covers; a box over MESH_MAX_QUERY_CELLS cells tests every triangle of the mesh instead,
+so the grid never misses a triangle.
 """
 
 from __future__ import annotations
@@ -46,6 +54,8 @@ MESH_MAX_TRIANGLES = 65536
 MESH_MIN_AREA = 1e-10
 #: The thickness passes per step.
 MESH_PASSES = 2
+#: The continuous test's slides along the surface after a contact, per step.
+MESH_SLIDES = 2
 #: The crossing point's barycentric slack: a segment through a shared edge is caught by both.
 MESH_EDGE_TOLERANCE = 1e-5
 #: A query box over more cells than this tests the whole mesh.
@@ -244,6 +254,7 @@ def collide_mesh(
     pose_end: np.ndarray,
     thickness: float,
     dt: float,
+    friction: float = 0.0,
 ) -> None:
     """One cloth's vertices kept out of one mesh collider (the module's steps), ``x`` and ``v``
     in place; ``x_start``: the positions at the step's start."""
@@ -263,16 +274,61 @@ def collide_mesh(
     step = max(1, _CHUNK // max(len(near), 1))
     for s in range(0, len(b), step):
         sl = slice(s, s + step)
-        b[sl] = _collide_points(a[sl], b[sl], v0, e1, e2, n, h)
+        b[sl] = _collide_points(a[sl], b[sl], v0, e1, e2, n, h, friction)
     moved = apply_pose(pose_end, b) - apply_pose(pose_end, b0)
     x[free] += moved
     v[free] += moved / dt
 
 
-def _collide_points(a, b, v0, e1, e2, n, h):
+def _collide_points(a, b, v0, e1, e2, n, h, mu):
     if not len(v0):
         return b
-    # 1. continuous: the first front-to-back crossing
+    ncon = np.zeros_like(b)  # the last contact's normal and the pushes' total length, per point
+    pen = np.zeros(len(b))
+    # 1. continuous: the first front-to-back crossing, then the slides from the contact
+    p = a.copy()
+    live = np.arange(len(b))
+    for _ in range(MESH_SLIDES):
+        rows, nf, df, t = _first_crossing(p[live], b[live], v0, e1, e2, n)
+        r = live[rows]
+        c = p[r] + t[:, None] * (b[r] - p[r]) + nf * h
+        b[r] -= nf * (df - h)[:, None]
+        ncon[r] = nf
+        pen[r] += h - df
+        p[r] = c
+        live = r
+    rows = _first_crossing(p[live], b[live], v0, e1, e2, n)[0]
+    b[live[rows]] = p[live[rows]]  # still crossing: stopped at the last contact
+    # 2. the thickness, MESH_PASSES passes
+    for k_pass in range(MESH_PASSES):
+        if k_pass == 1:
+            _friction(a, b, ncon, pen, mu, h, v0, e1, e2, n)
+        q = closest_points(b[:, None], v0, e1, e2)  # (p, m, 3)
+        d = b[:, None] - q
+        dist = np.linalg.norm(d, axis=-1)
+        k = np.argmin(dist, axis=1)
+        r = np.arange(len(b))
+        dk = dist[r, k]
+        rows = np.nonzero(dk < h)[0]
+        if not len(rows):
+            if k_pass == 0:
+                continue  # the friction of a continuous contact still comes
+            break
+        kk = k[rows]
+        qk, nk, dv, dd = q[rows, kk], n[kk], d[rows, kk], dk[rows]
+        front = ((dv * nk).sum(-1) > 0.0) & (dd > 1e-9)
+        dirn = np.where(front[:, None], dv / np.where(front, dd, 1.0)[:, None], nk)
+        nb = qk + dirn * h
+        pen[rows] += np.linalg.norm(nb - b[rows], axis=1)
+        ncon[rows] = dirn
+        b[rows] = nb
+    return b
+
+
+def _first_crossing(a, b, v0, e1, e2, n):
+    """The points whose segment a -> b crosses a triangle's plane from its front to its back inside
+    the triangle (kernels/meshcollide.cl's first_crossing): their rows, the first such triangle's
+    normal, b's signed distance to its plane and the crossing's parameter along a -> b."""
     da = ((a[:, None] - v0) * n).sum(-1)  # (p, m)
     db = ((b[:, None] - v0) * n).sum(-1)
     cross = (da >= 0.0) & (db < 0.0)
@@ -288,26 +344,27 @@ def _collide_points(a, b, v0, e1, e2, n, h):
     t = np.where(inside, t, 2.0)
     first = np.argmin(t, axis=1)
     rows = np.nonzero(t[np.arange(len(b)), first] <= 1.0)[0]
-    if len(rows):
-        f = first[rows]
-        b[rows] -= n[f] * (db[rows, f] - h)[:, None]
-    # 2. the thickness, MESH_PASSES passes
-    for _ in range(MESH_PASSES):
-        q = closest_points(b[:, None], v0, e1, e2)  # (p, m, 3)
-        d = b[:, None] - q
-        dist = np.linalg.norm(d, axis=-1)
-        k = np.argmin(dist, axis=1)
-        r = np.arange(len(b))
-        dk = dist[r, k]
-        rows = np.nonzero(dk < h)[0]
-        if not len(rows):
-            break
-        kk = k[rows]
-        qk, nk, dv, dd = q[rows, kk], n[kk], d[rows, kk], dk[rows]
-        front = ((dv * nk).sum(-1) > 0.0) & (dd > 1e-9)
-        dirn = np.where(front[:, None], dv / np.where(front, dd, 1.0)[:, None], nk)
-        b[rows] = qk + dirn * h
-    return b
+    f = first[rows]
+    return rows, n[f], db[rows, f], t[rows, f]
+
+
+def _friction(a, b, ncon, pen, mu, h, v0, e1, e2, n):
+    """3. friction against the (still, in its frame) mesh, after the first pass: the tangential
+    motion reduced by mu x pen unless that move crosses the surface (a crease), ``b`` in place
+    (the passes after it keep the thickness)."""
+    rows = np.nonzero(pen > 0.0)[0] if mu > 0.0 else np.zeros(0, np.int64)
+    if not len(rows):
+        return
+    rel = b[rows] - a[rows]
+    nc = ncon[rows]
+    tang = rel - nc * (rel * nc).sum(-1)[:, None]
+    tl = np.linalg.norm(tang, axis=1)
+    ok = tl > 1e-12
+    cut = np.where(ok, np.minimum(mu * pen[rows], tl) / np.where(ok, tl, 1.0), 0.0)
+    bf = b[rows] - tang * cut[:, None]
+    hit = _first_crossing(b[rows], bf, v0, e1, e2, n)[0]
+    bf[hit] = b[rows[hit]]  # a move that crosses the surface (a crease) is not made
+    b[rows] = bf
 
 
 # --- the metric ----------------------------------------------------------------------------------

@@ -434,8 +434,8 @@ class ReferenceWorld(World):
         for layer in layers:  # 1.8: meshes last, each cloth's own then its scene's (meshes.py)
             for h, mc in layer:
                 st = self.states[h]
-                th = self.cloths[h].params.material.thickness
-                collide_mesh(st.x, st.v, start[h], st.invm, mc.mesh, mc.pose_prev, mc.pose, th, dt)
+                m = self.cloths[h].params.material
+                collide_mesh(st.x, st.v, start[h], st.invm, mc.mesh, mc.pose_prev, mc.pose, m.thickness, dt, m.friction)
         self.mesh_colliders.stepped()
         self.steps += 1
 

@@ -307,7 +307,7 @@ class CLWorld(World):
         m, was = cloth.params.material, old.material
         if cloth.scene is not None and (m.thickness, m.contact_stiffness) != (was.thickness, was.contact_stiffness):
             self.scene_collision.changed()
-        if m.thickness != was.thickness:
+        if (m.thickness, m.friction) != (was.thickness, was.friction):
             self.mesh_collision.changed()
 
     def _scenes_changed(self) -> None:

@@ -17,7 +17,14 @@ import numpy as np
 import pyopencl as cl
 
 from ..meshcolliders import MeshCollider, MeshColliders
-from ..meshes import MESH_EDGE_TOLERANCE, MESH_MAX_QUERY_CELLS, MESH_PASSES, invert_pose, mesh_thickness
+from ..meshes import (
+    MESH_EDGE_TOLERANCE,
+    MESH_MAX_QUERY_CELLS,
+    MESH_PASSES,
+    MESH_SLIDES,
+    invert_pose,
+    mesh_thickness,
+)
 from ..scenes import Scene
 from ..world import Cloth
 from .buffers import ClothSlot, DevArray, DeviceMemory
@@ -51,6 +58,7 @@ class MeshCollision:
         self.options = [
             f"-DMC_LS={self.ls}",
             f"-DMESH_PASSES={MESH_PASSES}",
+            f"-DMESH_SLIDES={MESH_SLIDES}",
             f"-DMESH_EDGE_TOLERANCE={MESH_EDGE_TOLERANCE!r}f",
             f"-DMESH_MAX_QUERY_CELLS={MESH_MAX_QUERY_CELLS}",
         ]
@@ -144,7 +152,8 @@ class MeshCollision:
             if b is None:
                 b = blocks[id(mc)] = np.concatenate([invert_pose(mc.pose_prev), invert_pose(mc.pose), mc.pose])
             rows[k, :9] = b
-            rows[k, 9, 0] = mesh_thickness(self.cloths[h].params.material.thickness)
+            m = self.cloths[h].params.material
+            rows[k, 9, :2] = mesh_thickness(m.thickness), m.friction
         _upload(self._apar, rows.reshape(len(rows), -1))
 
     def save(self) -> None:

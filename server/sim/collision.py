@@ -1,5 +1,6 @@
 """Collision of a cloth with itself, in float64 numpy: the reference of kernels/selfcollide.cl, and
-the penetration metric of issue 22 (what is left inside the thickness or behind a collider).
+the penetration metric of issue 22 (what is left inside the thickness, behind a collider or inside
+a mesh collider: meshes.py).
 
 Self-collision (feature ``self_collision``, protocol 1.6): a vertex keeps the material's
 ``thickness`` from every vertex of its cloth that is further than ``thickness`` from it at rest
@@ -12,10 +13,12 @@ hash finds the same pairs as the brute force here.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
+from .meshes import CollisionMesh, depth_inside
 from .params import COLLIDER_CAPSULE, COLLIDER_PLANE, SELF_COLLISION_PASSES
 
 _CHUNK = 256  # rows of the pairwise distances computed at once
@@ -98,12 +101,14 @@ def penetration(
     colliders: np.ndarray | None = None,
     invm: np.ndarray | None = None,
     tolerance: float = 1e-3,
+    meshes: Sequence[tuple[CollisionMesh, np.ndarray]] = (),
 ) -> Penetration:
     """The penetration metric of one cloth's positions ``x``: non-neighbouring vertex pairs closer
     than ``thickness - tolerance`` (neighbours: within ``thickness`` at rest, as self-collision
     has them), and free vertices (``invm`` > 0; all without it) more than ``tolerance`` inside
-    a packed collider (params.pack_colliders: spheres, capsules, behind planes). The tolerance
-    absorbs float32 rounding and what a finite number of passes leaves."""
+    a packed collider (params.pack_colliders: spheres, capsules, behind planes) or inside a mesh
+    collider (``meshes``: (mesh, pose) pairs, meshes.depth_inside). The tolerance absorbs float32
+    rounding and what a finite number of passes leaves."""
     x = np.asarray(x, np.float64)
     rest = np.asarray(rest, np.float64)
     pairs, deepest_pair = 0, 0.0
@@ -116,6 +121,8 @@ def penetration(
     depth = np.zeros(len(x))
     for c in np.asarray(colliders if colliders is not None else np.zeros((0, 2, 4)), np.float64).reshape(-1, 2, 4):
         depth = np.maximum(depth, _depth_inside(x, c))
+    for mesh, pose in meshes:
+        depth = np.maximum(depth, depth_inside(x, mesh, pose))
     if invm is not None:
         depth[np.asarray(invm) <= 0] = 0.0
     inside = depth > tolerance

@@ -29,6 +29,8 @@ import numpy as np
 from . import reference
 from .fabric import Fabric, vertex_masses
 from .frame import Frame, FramePool, HostBuffer, Layout, PendingFrame  # noqa: F401  re-exported
+from .meshcolliders import MeshColliders
+from .meshes import CollisionMesh, collide_mesh
 from .params import MAX_COLLIDERS_PER_CLOTH, ClothParams
 from .roster import Roster
 from .scenes import MAX_SCENE_CLOTHS, MAX_SCENE_COLLIDERS, Scene, SceneCloth, inter_collide
@@ -59,6 +61,7 @@ class World(ABC):
         self._live = np.zeros(64, bool)  # by handle (handles are never reused): set_pin_targets_block
         self._key_buffers = KeyBuffers()  # the host-encoded payloads' buffers (wire.HostWire)
         self.scenes: dict[str, Scene] = {}  # 1.7: a scene exists while it holds a cloth (scenes.py)
+        self.mesh_colliders = MeshColliders()  # 1.8: the cloths' and scenes' meshes (meshcolliders.py)
 
     # --- cloth lifecycle -------------------------------------------------------------------
     def add(
@@ -110,11 +113,13 @@ class World(ABC):
         self._live[handle] = False
         self._remove(cloth)
         self._layout = None
+        self.mesh_colliders.drop_cloth(handle)
         if cloth.scene is not None:
             sc = self.scenes[cloth.scene]
             sc.handles.remove(handle)
             if not sc.handles:
                 del self.scenes[cloth.scene]
+                self.mesh_colliders.drop_scene(cloth.scene)
             self._scenes_changed()
 
     def live(self, handles: np.ndarray) -> np.ndarray:
@@ -270,6 +275,25 @@ class World(ABC):
         )
         self._set_colliders(cloth)
 
+    def set_mesh(self, handle: int, mesh: CollisionMesh | None, pose: np.ndarray | None = None) -> None:
+        """A cloth's own mesh collider (meshes.py; None: none) at ``pose`` (3 x 4 ``[R | t]``,
+        default the identity) from now on: a new mesh starts still, the same triangles on new
+        vertices (a re-pose) move from the last pose."""
+        if handle not in self.cloths:
+            raise KeyError(handle)
+        self.mesh_colliders.set_cloth(handle, mesh, pose)
+
+    def move_mesh(self, handle: int, pose: np.ndarray) -> None:
+        """A cloth's mesh's pose for the end of the next step (rigid: the grid is kept)."""
+        self.mesh_colliders.move(self.mesh_colliders.own[handle], pose)
+
+    def set_scene_mesh(self, scene: str, mesh: CollisionMesh | None, pose: np.ndarray | None = None) -> None:
+        """A scene's mesh collider, for every cloth of it beside its own (one copy)."""
+        self.mesh_colliders.set_scene(scene, mesh, pose)
+
+    def move_scene_mesh(self, scene: str, pose: np.ndarray) -> None:
+        self.mesh_colliders.move(self.mesh_colliders.scene[scene], pose)
+
     def _scenes_changed(self) -> None:  # noqa: B027 (optional hook)
         """A cloth joined or left a scene (an OpenCL World rebuilds its scene tables)."""
 
@@ -405,12 +429,20 @@ class ReferenceWorld(World):
         st.v[:] = 0.0
 
     def step(self, dt: float) -> None:
+        layers = self.mesh_colliders.layers(self.scenes)
+        start = {h: self.states[h].x.copy() for layer in layers for h, _ in layer}
         for h, cloth in self.cloths.items():
             st = self.states[h]
             reference.step(st, cloth.fabric, cloth.params, dt, self.mode)
             st.colliders_prev = st.colliders  # a collider not moved again stays where it is
         for sc in self.scenes.values():  # 1.7: after every cloth's own solve (scenes.py)
             inter_collide([self._scene_cloth(h) for h in sc.handles], dt)
+        for layer in layers:  # 1.8: meshes last, each cloth's own then its scene's (meshes.py)
+            for h, mc in layer:
+                st = self.states[h]
+                m = self.cloths[h].params.material
+                collide_mesh(st.x, st.v, start[h], st.invm, mc.mesh, mc.pose_prev, mc.pose, m.thickness, dt, m.friction)
+        self.mesh_colliders.stepped()
         self.steps += 1
 
     def _scene_cloth(self, h: int) -> SceneCloth:

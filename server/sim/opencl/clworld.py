@@ -49,6 +49,7 @@ from .devencode import DeviceFrames
 from .device import Device, layout
 from .frames import FrameReadback
 from .launch import Group, GroupLaunches
+from .meshes import MeshCollision
 from .scenes import SceneCollision
 from .targets import PinTargets
 
@@ -127,6 +128,8 @@ class CLWorld(World):
         self.device_frames = DeviceFrames(self.dev, mem, self.rec, self.readback) if device_encode else None
         # 1.7: cloths of one scene kept apart after each step (nothing built while no scene has two)
         self.scene_collision = SceneCollision(self.dev, mem, self.rec, self.cloths, self.scenes)
+        # 1.8: cloths kept out of their meshes after each step (nothing built while none has one)
+        self.mesh_collision = MeshCollision(self.dev, mem, self.rec, self.cloths, self.scenes, self.mesh_colliders)
 
     # --- a tick's output ---------------------------------------------------------------------
     def fetch_async(self, roster: Roster, tick: int) -> PendingWire:
@@ -305,9 +308,12 @@ class CLWorld(World):
         m, was = cloth.params.material, old.material
         if cloth.scene is not None and (m.thickness, m.contact_stiffness) != (was.thickness, was.contact_stiffness):
             self.scene_collision.changed()
+        if (m.thickness, m.friction) != (was.thickness, was.friction):
+            self.mesh_collision.changed()
 
     def _scenes_changed(self) -> None:
         self.scene_collision.changed()
+        self.mesh_collision.changed()
 
     def _move_scene_colliders(self, sc: Scene) -> bool:
         """A scene's colliders moved (1.7, the per-tick case): the scene's rows of every cloth of it
@@ -405,8 +411,10 @@ class CLWorld(World):
     def step(self, dt: float) -> None:
         self._flush()
         self.readback.mark_step()  # device time of the step: frames.py
+        self.mesh_collision.save()
         self.launches.step(self.groups.values(), dt)
         self.scene_collision.step(dt)
+        self.mesh_collision.step(dt)
         self.steps += 1
         self._after_step()
 

@@ -20,6 +20,7 @@ import pyopencl as cl
 from drape.client.protocol.vocabulary import ENCODING_IDS
 
 from ..fabric import cook_grid
+from ..meshes import collision_mesh
 from ..params import Capsule, ClothParams, Features, LinkOptions, Sphere, pack_colliders
 from .clworld import CLWorld
 from .device import Device
@@ -78,6 +79,17 @@ def _exercise(dev: cl.Device, lanes: int) -> None:
     world.step(1 / 60)
     if not np.isfinite(world.fetch().xyz).all():
         raise RuntimeError("inter-cloth collision gave non-finite positions")
+
+    _stage("mesh collision (kernels/meshcollide.cl)")
+    world = CLWorld("workgroup", device=d, pack_lanes=lanes if not gpu else 0)
+    h = world.add(fabric, ClothParams(iterations=2))
+    box = np.array([[-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1], [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]])
+    faces = [[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4], [3, 7, 6], [3, 6, 2], [0, 4, 7]]
+    faces += [[0, 7, 3], [1, 2, 6], [1, 6, 5]]
+    world.set_mesh(h, collision_mesh(0.2 * box, np.array(faces)))
+    world.step(1 / 60)
+    if not np.isfinite(world.fetch().xyz).all():
+        raise RuntimeError("mesh collision gave non-finite positions")
 
     _stage("encode_frame (kernels/encode.cl)")
     world = CLWorld("workgroup", device=d, pack_lanes=lanes if not gpu else 0)

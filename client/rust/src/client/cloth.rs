@@ -49,6 +49,8 @@ pub(crate) struct Slot {
     pub(crate) features: Option<(u64, Vec<String>)>,
     /// Render times (client clock) as server times ([`Cloth::sample`]), from the states received.
     pub(crate) clock: ServerClock,
+    /// 1.8: the rate its states come at (a bundled cloth: its bundle's) and its governor.
+    pub(crate) rate: super::rates::SubRate,
 }
 
 /// What the game last sent by controls that a failover sends again (PROTOCOL.md 11.1): the last
@@ -192,6 +194,7 @@ impl ClothInner {
             last_tick: 0,
             features: None,
             clock: ServerClock::default(),
+            rate: super::rates::SubRate::new(crate::rates::Rate::Full),
         };
         Arc::new(ClothInner {
             handle,

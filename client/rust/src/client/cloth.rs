@@ -74,11 +74,14 @@ pub struct Counters {
     /// States received but dropped unread: a newer one replaced them (queue full, or a
     /// `latest_state` read skipped them).
     pub replaced: u64,
-    /// Ticks of which no state arrived (gaps in the tick numbers between received states).
+    /// Ticks of which no state arrived (gaps in the tick numbers between received states;
+    /// 1.8: at every k-th state, the stream's states that did not arrive, a switch of rate
+    /// rounded up).
     pub missed: u64,
     /// States received and waiting to be read now.
     pub unread: u64,
-    /// Ticks spanned: from the first state received on each placement to the newest.
+    /// Ticks spanned: from the first state received on each placement to the newest (1.8: at
+    /// every k-th state, the stream's states spanned).
     pub ticks: u64,
     /// Payloads that were not valid states.
     pub invalid: u64,

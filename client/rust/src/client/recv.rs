@@ -264,6 +264,25 @@ mod tests {
     }
 
     #[test]
+    fn at_every_kth_state_the_streams_states_are_counted() {
+        // 1.8, every 2nd state: ticks 2, 4, 8 (6 lost), then switched to every 3rd: 9, 12
+        let c = cloth(8);
+        c.slot.lock().unwrap().rate.rate = 2;
+        for t in [2, 4, 8] {
+            deliver(&c, state(t));
+        }
+        let k = counters(&c);
+        assert_eq!((k.received, k.missed, k.ticks), (3, 1, 4), "{k:?}");
+        c.slot.lock().unwrap().rate.rate = 3;
+        for t in [9, 12] {
+            deliver(&c, state(t));
+        }
+        let k = counters(&c);
+        assert_eq!((k.received, k.missed, k.ticks), (5, 1, 6), "{k:?}");
+        assert_eq!(k.read + k.replaced + k.missed + k.unread, k.ticks, "{k:?}");
+    }
+
+    #[test]
     fn a_queue_of_one_keeps_the_newest() {
         let c = cloth(1);
         for t in 1..=5 {

@@ -1104,31 +1104,32 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
             "item_errors": [None, "invalid_value", "invalid_type", "invalid_value", "invalid_value", None],
         }
     )
-    # Unknown minor version and unknown keys are accepted within major 1:
+    # Unknown minor version and unknown keys are accepted within major 1 (a minor after this one):
+    fut = P.PROTOCOL_MINOR + 1
     future = {
         "name": "submit_future_minor",
         "message": "submit",
-        "description": "Version 1.8 with a key this version does not know: accepted, the key ignored.",
+        "description": f"Version 1.{fut} with a key this version does not know: accepted, the key ignored.",
         "hex": msgpack.packb(
-            {"v": [1, 8], "rid": 0, "client": "c1", "grid": {"cols": 2, "rows": 2}, "hologram": True}
+            {"v": [1, fut], "rid": 0, "client": "c1", "grid": {"cols": 2, "rows": 2}, "hologram": True}
         ).hex(),
-        "value": {"v": [1, 8], "rid": 0, "client": "c1", "grid": {"cols": 2, "rows": 2}, "hologram": True},
+        "value": {"v": [1, fut], "rid": 0, "client": "c1", "grid": {"cols": 2, "rows": 2}, "hologram": True},
         "ignored": ["hologram"],
     }
     # A bundle of a future minor version: a longer header, an unknown flag, bytes after the last entry.
     later = bytearray(one[:32] + b"\xee" * 8 + one[32:] + b"trailing")
-    later[5] = 8
+    later[5] = fut
     later[6:8] = (40).to_bytes(2, "little")
     later[12:16] = (1 << 31).to_bytes(4, "little")
     future_bundle = {
         "name": "bundle_future_minor",
         "message": "bundle",
-        "description": "Version 1.8 bundle with a "
+        "description": f"Version 1.{fut} bundle with a "
         "40-byte header, an unknown flag and trailing bytes: read as the bundle it contains.",
         "hex": bytes(later).hex(),
         "value": {
             **bundles[1]["value"],
-            "minor": 8,
+            "minor": fut,
             "header_size": 40,
             "flags": 1 << 31,
             "size": len(later),

@@ -320,3 +320,27 @@ impl Client {
         self.inner.bundle_rate.lock().unwrap().counters()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_subscription_on_a_pre_1_8_server_takes_every_state_and_its_governor_idles() {
+        let mut r = SubRate::new(Rate::Every(2));
+        assert_eq!((r.rate, r.ok, r.governor.is_none()), (2, true, true));
+        let mut auto = SubRate::new(Rate::Auto);
+        auto.governor.as_mut().unwrap().rate = 3; // as after two steps down
+        for s in [&mut r, &mut auto] {
+            s.fall_back();
+            assert_eq!((s.rate, s.ok, s.pending), (1, false, None));
+        }
+        assert_eq!(auto.governor.as_ref().unwrap().rate, 1);
+        // late states feed nothing while the server cannot serve another rate
+        for t in 1..600u64 {
+            auto.observe(t, t * 16_666_667, t * 16_666_667 + t * 5_000_000);
+        }
+        assert_eq!((auto.pending, auto.counters().step_downs), (None, 0));
+        assert!(!speaks_rates((1, 7)) && check_k(4).is_err());
+    }
+}

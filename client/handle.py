@@ -109,6 +109,7 @@ class ClothHandle:
         # 1.8: every ``rate``-th state, on its own key (a bundled cloth's: its bundle receiver's)
         self.rate = rate
         self.governor = RateGovernor(rate=rate) if governed and self.bundle_key is None else None
+        self.rate_ok = True  # the server holding it speaks 1.8 (a failover may move it to one that does not)
         if self.bundle_key is None:
             self._sub = self._subscribe(rate)
 
@@ -130,7 +131,7 @@ class ClothHandle:
         if self.bundle_key is not None:
             raise ValueError("a bundled cloth takes its bundle's rate (DrapeClient.bundles.set_rate)")
         with self._cond:
-            if rate == self.rate or self.closed:
+            if rate == self.rate or self.closed or (rate != 1 and not self.rate_ok):
                 return
             self.rate = rate  # from now on the old key's states are ignored
             self.stream = P.StateStream(self.id)  # the new key's stream: its own states
@@ -175,7 +176,7 @@ class ClothHandle:
         if st is not None:
             self.deliver(st)
             gov = self.governor
-            if gov is not None and not st.extrapolated:
+            if gov is not None and self.rate_ok and not st.extrapolated:
                 new = gov.observe(st.tick, st.server_time_ns, now)
                 if new is not None:  # switched off this thread: its subscriber is undeclared
                     log.info("cloth %s: states every %d ticks from now", self.id, new)
@@ -273,11 +274,19 @@ class ClothHandle:
         with self._cond:
             return (None if self._fresh else self._prev), self._latest
 
-    def rebind(self, reply: P.SubmitReply, server: str) -> None:
+    def rebind(self, reply: P.SubmitReply, server: str, rated: bool = True) -> None:
         """Failover: the cloth lives on as ``reply.cloth`` on ``server``; states keep flowing to
-        this handle (its queue, callbacks and iterators)."""
+        this handle (its queue, callbacks and iterators). ``rated``: ``server`` speaks 1.8; else
+        the cloth's states come on the full-rate key (a decimated key would carry nothing) and
+        ``rate="auto"`` stays off until a failover onto a 1.8 server."""
         old_sub = None
         with self._cond:
+            self.rate_ok = rated
+            if not rated and self.rate != 1:
+                log.info("cloth %s: server %s is older than 1.8: every state from now on", self.id, server)
+                self.rate = 1
+                if self.governor is not None:
+                    self.governor = RateGovernor(rate=1)
             old_sub, self._sub = self._sub, None
             self.id, self.token, self.key = reply.cloth, reply.token, reply.key
             self.bundle_key = reply.bundle_key

@@ -28,6 +28,15 @@ from . import protocol as P
 
 AUTO = "auto"
 
+#: The first protocol version whose servers publish decimated keys: on an older one (a cloth's
+#: first server or the one a failover moves it to) a subscription stays on the full-rate key.
+RATES_SINCE = (1, 8)
+
+
+def speaks_rates(version: tuple[int, int] | None) -> bool:
+    """Whether a server of protocol ``version`` (None: unknown) serves ``{key}/every/{k}``."""
+    return version is not None and tuple(version) >= RATES_SINCE
+
 
 def rate_option(rate: int | str) -> tuple[int, bool]:
     """(the rate to start at, whether it is governed) of a client's ``rate`` option: one of
@@ -116,4 +125,4 @@ class RateGovernor:
         return rate
 
 
-__all__ = ["AUTO", "RateGovernor", "rate_option"]
+__all__ = ["AUTO", "RATES_SINCE", "RateGovernor", "rate_option", "speaks_rates"]

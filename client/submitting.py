@@ -21,6 +21,7 @@ from .controls import collider, links_of, vec3
 from .handle import ClothHandle, HandleOwner
 from .placement import PLACE_ELSEWHERE, Placement
 from .protocol import DrapeError
+from .rates import speaks_rates
 from .registry import Cloths
 
 log = logging.getLogger("drape.client.sdk")
@@ -177,8 +178,7 @@ class Submitter:
                     g = req.grid
                     rest, tris = P.grid_geometry(g.cols, g.rows, g.width, g.height, g.orientation, g.origin)
                 # 1.8: the client's rate, on a server that has decimated keys (an older one: full rate)
-                info = self.session.known_info(target)
-                rated = info is not None and info.version >= (1, 8)
+                rated = self._rated(target)
                 if rep.bundle_key is not None and not rated:
                     self.bundles.rate_ok = False
                     self.bundles.set_rate(1)
@@ -208,6 +208,11 @@ class Submitter:
                     raise
                 log.info("server %s refused a cloth (%s): trying the next", choice, e.code)
                 last = e
+
+    def _rated(self, server: str) -> bool:
+        """1.8: whether ``server`` (its info asked already, by _check_size) has decimated keys."""
+        info = self.session.known_info(server)
+        return speaks_rates(None if info is None else info.version)
 
     def _check_size(self, req: P.SubmitRequest, server: str, timeout: float | None = None) -> None:
         """Refuse a cloth larger than ``server`` takes (its ``max_vertices_per_cloth``, from the
@@ -252,9 +257,13 @@ class Submitter:
                 h = make(rep)
             else:
                 old_id = h.id
+                rated = self._rated(server)  # a failover onto an older server: full rate from now on
+                if rep.bundle_key is not None and not rated:
+                    self.bundles.rate_ok = False
+                    self.bundles.set_rate(1)
             with h.deliver_lock:  # states of the bundle reach the handle only after these
                 if old_id is not None:
-                    h.rebind(rep, server)
+                    h.rebind(rep, server, rated)
                 with self.cloths.lock:
                     self.cloths.add(h, old_id)
                     early = self.bundles.early_states(h.id) if bundled else []

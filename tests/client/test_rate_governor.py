@@ -101,3 +101,32 @@ def test_the_rates_vectors():
             v["value"]["ref_tick"],
             v["value"]["ref2_tick"],
         )
+
+
+def test_the_governor_vectors_replay():
+    """tests/vectors/rates.json's ``governor`` traces (what the Rust crate replays too): the
+    constants are RateGovernor's defaults and each trace steps at the same states."""
+    import json
+    from pathlib import Path
+
+    vectors = json.loads((Path(__file__).resolve().parents[1] / "vectors" / "rates.json").read_text())
+    traces = [v for v in vectors if v["message"] == "governor"]
+    assert len(traces) >= 5
+    for v in traces:
+        i = v["input"]
+        gov = RateGovernor()
+        assert i["constants"]["late_s"] == gov.late_s and i["constants"]["rates"] == list(gov.rates)
+        changes = []
+        for n, (t, late) in enumerate(zip(i["ticks"], i["late_us"], strict=True)):
+            server = t * i["tick_ns"]
+            new = gov.observe(t, server, server + i["offset_ns"] + i["link_ns"] + late * 1000)
+            if new is not None:
+                changes += [n, new]
+        want = v["value"]
+        assert changes == want["changes"], v["name"]
+        assert (gov.rate, gov.step_downs, gov.step_ups, gov._quiet) == (
+            want["rate"],
+            want["step_downs"],
+            want["step_ups"],
+            want["quiet_s"],
+        )

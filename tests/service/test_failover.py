@@ -6,6 +6,7 @@ Real Zenoh sessions on loopback, real ``drape serve`` processes, PoCL's CPU Open
 
 from __future__ import annotations
 
+import dataclasses
 import signal
 import subprocess
 import time
@@ -187,6 +188,38 @@ def test_kill_9_fails_every_cloth_over_under_the_same_handle(two_servers):
             _settle([h], 30)  # states keep arriving
         assert np.allclose(handles[0].latest().positions[[0, 5]], [[0.0, 2.0, 0.0], [0.5, 2.0, 0.0]], atol=1e-5)
         assert handles[0].move_pins([0, 5], [[0.0, 2.1, 0.0], [0.5, 2.1, 0.0]]) is not None  # controls go to B
+
+
+def test_a_failover_onto_a_server_older_than_1_8_takes_every_state(two_servers):
+    """A client at rate 2 (1.8) fails over onto a server whose info says 1.7: such a server has no
+    decimated keys, so each cloth (own key or bundle) falls back to the full-rate key and its
+    states keep coming, every tick. B is a real 1.8 ``drape serve`` whose info the client is told
+    says 1.7 (as test_bundles fakes a 1.0 server): it still publishes ``every/2``, so a client that
+    kept rate 2 would see even ticks only."""
+    a, b = two_servers
+    with _client(two_servers, a.server_id, rate=2) as client:
+        events = []
+        client.on_failover(events.append)
+        handles = [client.submit_grid(5, 5, origin=(j, 1.0, 0.0), pinned=[0, 4], bundle=(j == 1)) for j in range(2)]
+        _settle(handles, 10)
+        assert all(h.rate == 2 for h in handles) and client.bundles.rate == 2
+        assert all(h.next_state(EVENT_WAIT).tick % 2 == 0 for h in handles)
+        old = client.connection.info_of(b.server_id)
+        client.connection.set_info(b.server_id, dataclasses.replace(old, version=(1, 7)))
+        a.kill()
+        assert _wait(lambda: len(events) >= len(handles), EVENT_WAIT), f"{len(events)} failover events"
+        assert all(e.ok and e.new_server == b.server_id for e in events), events
+        assert all(h.rate == 1 and not h.rate_ok for h in handles) and client.bundles.rate == 1
+        for h in handles:
+            h.clear()
+            ticks = []
+            while len(ticks) < 12:
+                st = h.next_state(EVENT_WAIT)
+                if st.cloth == h.id and not st.extrapolated:
+                    ticks.append(st.tick)
+            assert any(t % 2 for t in ticks), f"cloth {h.id}: even ticks only {ticks}"
+        handles[0].set_rate(2)  # refused quietly on a 1.7 server
+        assert handles[0].rate == 1
 
 
 def test_reclaimed_cloths_come_back_when_the_client_returns(tmp_path):

@@ -165,7 +165,106 @@ def rates_vectors() -> list[dict[str, Any]]:
                 },
             }
         )
-    return out
+    return out + governor_vectors()
+
+
+#: The governor traces' clock: ticks of 60 Hz, the client's clock this far ahead of the server's
+#: (not lateness), and the link's own delay.
+GOVERNOR_TICK_NS = 16_666_667
+GOVERNOR_OFFSET_NS = 123_456_789_000
+GOVERNOR_LINK_NS = 20_000_000
+
+
+def governor_vectors() -> list[dict[str, Any]]:
+    """1.8: ``rate="auto"``'s rule (client/rates.py's RateGovernor with its defaults) as data, so
+    that every SDK steps at the same states with the same numbers: its constants, and traces of
+    states arriving (tick, server time ``tick * tick_ns``, receive time server time + offset +
+    link delay + ``late_us``) with the rate changes the Python governor made at each (the index
+    of the state, the new rate). The traces cover a growing backlog (two steps down, two up after
+    the quiet period), a link far too slow (one jump to the lowest rate), lost states, and step
+    ups that do not hold (the quiet period doubled)."""
+    from drape.client.rates import RateGovernor
+
+    base = RateGovernor()
+    constants = {
+        "rates": list(base.rates),
+        "window_s": base.window_s,
+        "late_s": base.late_s,
+        "jump_s": base.jump_s,
+        "lost_share": base.lost_share,
+        "quiet_s": base.quiet_s,
+        "max_quiet_s": base.max_quiet_s,
+        "baseline_windows": base._base_window,
+        "late_percentile": 90,
+        "settle_windows": 1.5,
+        "failed_up_windows": 3,
+    }
+
+    def trace(name: str, note: str, ticks: range, late_ms: Any, drop: Any = lambda gov, t: False) -> dict[str, Any]:
+        gov = RateGovernor()
+        fed: list[int] = []
+        late_us: list[int] = []
+        changes: list[list[int]] = []
+        for t in ticks:
+            if t % gov.rate or drop(gov, t):
+                continue
+            lus = int(round(late_ms(gov, t) * 1000))
+            server = t * GOVERNOR_TICK_NS
+            new = gov.observe(t, server, server + GOVERNOR_OFFSET_NS + GOVERNOR_LINK_NS + lus * 1000)
+            if new is not None:
+                changes.append([len(fed), new])
+            fed.append(t)
+            late_us.append(lus)
+        return {
+            "name": f"governor_{name}",
+            "message": "governor",
+            "description": f"1.8, rate=auto: {note}",
+            "input": {
+                "constants": constants,
+                "tick_ns": GOVERNOR_TICK_NS,
+                "offset_ns": GOVERNOR_OFFSET_NS,
+                "link_ns": GOVERNOR_LINK_NS,
+                "ticks": fed,
+                "late_us": late_us,
+            },
+            "value": {
+                "changes": [c for pair in changes for c in pair],
+                "rate": gov.rate,
+                "step_downs": gov.step_downs,
+                "step_ups": gov.step_ups,
+                "quiet_s": gov._quiet,
+            },
+        }
+
+    return [
+        trace("on_time", "states on time keep the full rate (30 s).", range(1, 60 * 30), lambda g, t: 0.0),
+        trace(
+            "backlog",
+            "a backlog growing at 60 and 30 Hz steps down twice, then on time it steps back up twice, "
+            "each after the quiet period (30 s).",
+            range(1, 60 * 30),
+            lambda g, t: 0.0 if g.rate == 3 or t >= 600 else (t % 600) * 0.5,
+        ),
+        trace(
+            "jump",
+            "lateness past jump_s goes straight to the lowest rate (3 s).",
+            range(1, 180),
+            lambda g, t: 0.0 if g.rate == 3 else t * 5.0,
+        ),
+        trace(
+            "lost",
+            "half the states never come: a step down (4 s).",
+            range(1, 240),
+            lambda g, t: 0.0,
+            lambda g, t: t % 2 == 1,
+        ),
+        trace(
+            "failed_up",
+            "the full rate never fits: step ups that do not hold double the quiet period (20 s).",
+            range(1, 60 * 20),
+            lambda g, t: (t % 120) * 2.0 if g.rate == 1 else 0.0,
+        ),
+    ]
 
 
 def predictive_vectors() -> list[dict[str, Any]]:
@@ -1005,31 +1104,32 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
             "item_errors": [None, "invalid_value", "invalid_type", "invalid_value", "invalid_value", None],
         }
     )
-    # Unknown minor version and unknown keys are accepted within major 1:
+    # Unknown minor version and unknown keys are accepted within major 1 (a minor after this one):
+    fut = P.PROTOCOL_MINOR + 1
     future = {
         "name": "submit_future_minor",
         "message": "submit",
-        "description": "Version 1.8 with a key this version does not know: accepted, the key ignored.",
+        "description": f"Version 1.{fut} with a key this version does not know: accepted, the key ignored.",
         "hex": msgpack.packb(
-            {"v": [1, 8], "rid": 0, "client": "c1", "grid": {"cols": 2, "rows": 2}, "hologram": True}
+            {"v": [1, fut], "rid": 0, "client": "c1", "grid": {"cols": 2, "rows": 2}, "hologram": True}
         ).hex(),
-        "value": {"v": [1, 8], "rid": 0, "client": "c1", "grid": {"cols": 2, "rows": 2}, "hologram": True},
+        "value": {"v": [1, fut], "rid": 0, "client": "c1", "grid": {"cols": 2, "rows": 2}, "hologram": True},
         "ignored": ["hologram"],
     }
     # A bundle of a future minor version: a longer header, an unknown flag, bytes after the last entry.
     later = bytearray(one[:32] + b"\xee" * 8 + one[32:] + b"trailing")
-    later[5] = 8
+    later[5] = fut
     later[6:8] = (40).to_bytes(2, "little")
     later[12:16] = (1 << 31).to_bytes(4, "little")
     future_bundle = {
         "name": "bundle_future_minor",
         "message": "bundle",
-        "description": "Version 1.8 bundle with a "
+        "description": f"Version 1.{fut} bundle with a "
         "40-byte header, an unknown flag and trailing bytes: read as the bundle it contains.",
         "hex": bytes(later).hex(),
         "value": {
             **bundles[1]["value"],
-            "minor": 8,
+            "minor": fut,
             "header_size": 40,
             "flags": 1 << 31,
             "size": len(later),

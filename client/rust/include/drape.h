@@ -173,6 +173,18 @@
 
 #define DRAPE_STEP_DEFAULT 0.001
 
+// `rate = auto`: the full rate, stepped down (to 30 then 20 Hz at the default tick) while
+// states arrive late or too few, back up after a quiet period (the Python SDK's rule).
+#define DRAPE_RATE_AUTO 0
+
+// Every state (60 Hz at the default tick), every 2nd (30 Hz), every 3rd (20 Hz). Other than
+// FULL needs a 1.8 server: a cloth on an older one takes every state.
+#define DRAPE_RATE_FULL 1
+
+#define DRAPE_RATE_HALF 2
+
+#define DRAPE_RATE_THIRD 3
+
 // Controls of many cloths sent as one batch control (opaque; not synchronized).
 typedef struct DrapeBatch DrapeBatch;
 
@@ -476,6 +488,18 @@ typedef struct DrapePredictiveCounters {
   // Keyframe queries this client sent for the cloth (at most one per 100 ms).
   uint64_t keyframe_requests;
 } DrapePredictiveCounters;
+
+// A subscription's rate and what DRAPE_RATE_AUTO did to it (`drape_cloth_rate_counters`,
+// `drape_client_bundle_rate_counters`).
+typedef struct DrapeRateCounters {
+  // Times the governor stepped the rate down, and up (0 without DRAPE_RATE_AUTO).
+  uint64_t step_downs;
+  uint64_t step_ups;
+  // Every `rate`-th state is taken now (DRAPE_RATE_FULL, _HALF, _THIRD).
+  uint32_t rate;
+  // A governor steps it (DRAPE_RATE_AUTO).
+  bool auto_;
+} DrapeRateCounters;
 
 #ifdef __cplusplus
 extern "C" {
@@ -806,6 +830,29 @@ int32_t drape_cloth_set_predictive(const struct DrapeCloth *cloth,
 // Fill `*out` with the cloth's predictive counters. Never blocks.
 int32_t drape_cloth_predictive_counters(const struct DrapeCloth *cloth,
                                         struct DrapePredictiveCounters *out);
+
+// The rate (DRAPE_RATE_*) later submissions of this client start at, and its bundle's from now
+// on (switched at once when subscribed). A rate the bundle cannot take (a bundled cloth on a
+// server older than 1.8) leaves it at full rate.
+int32_t drape_client_set_rate(const struct DrapeClient *client, uint32_t rate);
+
+// Take every `rate`-th bundle (DRAPE_RATE_FULL, _HALF, _THIRD) from now on, for every bundled
+// cloth at once. DRAPE_E_INVALID_VALUE for another rate than FULL while a bundled cloth lives on
+// a server older than 1.8.
+int32_t drape_client_set_bundle_rate(const struct DrapeClient *client, uint32_t rate);
+
+// Take every `rate`-th state of the cloth (DRAPE_RATE_FULL, _HALF, _THIRD) from now on; with
+// DRAPE_RATE_AUTO its governor goes on from there. DRAPE_E_INVALID_VALUE for a bundled cloth
+// (`drape_client_set_bundle_rate`) or another rate than FULL on a server older than 1.8.
+int32_t drape_cloth_set_rate(const struct DrapeCloth *cloth, uint32_t rate);
+
+// Fill `*out` with the cloth's rate and its governor's steps (a bundled cloth: its bundle's
+// rate; the steps are the bundle's, `drape_client_bundle_rate_counters`). Never blocks long.
+int32_t drape_cloth_rate_counters(const struct DrapeCloth *cloth, struct DrapeRateCounters *out);
+
+// Fill `*out` with the bundle's rate and its governor's steps.
+int32_t drape_client_bundle_rate_counters(const struct DrapeClient *client,
+                                          struct DrapeRateCounters *out);
 
 #ifdef __cplusplus
 }  // extern "C"

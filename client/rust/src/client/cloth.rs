@@ -49,6 +49,8 @@ pub(crate) struct Slot {
     pub(crate) features: Option<(u64, Vec<String>)>,
     /// Render times (client clock) as server times ([`Cloth::sample`]), from the states received.
     pub(crate) clock: ServerClock,
+    /// 1.8: the rate its states come at (a bundled cloth: its bundle's) and its governor.
+    pub(crate) rate: super::rates::SubRate,
 }
 
 /// What the game last sent by controls that a failover sends again (PROTOCOL.md 11.1): the last
@@ -72,11 +74,14 @@ pub struct Counters {
     /// States received but dropped unread: a newer one replaced them (queue full, or a
     /// `latest_state` read skipped them).
     pub replaced: u64,
-    /// Ticks of which no state arrived (gaps in the tick numbers between received states).
+    /// Ticks of which no state arrived (gaps in the tick numbers between received states;
+    /// 1.8: at every k-th state, the stream's states that did not arrive, a switch of rate
+    /// rounded up).
     pub missed: u64,
     /// States received and waiting to be read now.
     pub unread: u64,
-    /// Ticks spanned: from the first state received on each placement to the newest.
+    /// Ticks spanned: from the first state received on each placement to the newest (1.8: at
+    /// every k-th state, the stream's states spanned).
     pub ticks: u64,
     /// Payloads that were not valid states.
     pub invalid: u64,
@@ -192,6 +197,7 @@ impl ClothInner {
             last_tick: 0,
             features: None,
             clock: ServerClock::default(),
+            rate: super::rates::SubRate::new(crate::rates::Rate::Full),
         };
         Arc::new(ClothInner {
             handle,

@@ -6,20 +6,23 @@
 //!
 //! This file is the facade (options, events, the client's shared state and its open and close);
 //! the parts are `session` (servers, their info, waited requests), `sending` (requests not waited
-//! for), `submit`, `controls`, `cloth`, `recv` (states), `predictive`, `moves`, `placement` and
-//! `failover`.
+//! for), `submit`, `controls`, `cloth`, `recv` (states), `predictive`, `rates` (1.8: every k-th
+//! state, `rate = auto`), `moves`, `placement` and `failover`.
 mod cloth;
 mod controls;
 mod failover;
 mod moves;
 mod placement;
 mod predictive;
+mod rates;
 mod recv;
 mod sending;
 mod session;
 mod submit;
 
 pub use cloth::{Batch, Cloth, ClothStatus, Counters, StateInfo};
+pub use rates::RateCounters;
+pub use crate::rates::Rate;
 use sending::{SendJob, Sends};
 use session::reply_result;
 
@@ -77,6 +80,12 @@ pub struct ClientOptions {
     /// returning a client whose first request then waits the whole timeout. Default false in
     /// Rust; the C ABI sets it unless `DrapeClientOptions.lazy`.
     pub require_server: bool,
+    /// 1.8 (PROTOCOL.md 9.3): take every k-th state of each cloth and of the bundle
+    /// (`Rate::Every(2)`, `Rate::Every(3)`: 30 and 20 Hz at the default tick), each on its own
+    /// key, or `Rate::Auto`: full rate, stepped down by itself while states arrive late (and
+    /// back up after a quiet period; `crate::rates::Governor`). Default `Rate::Full`. Cloths on
+    /// a server older than 1.8 come at full rate. [`Cloth::set_rate`], [`Client::set_bundle_rate`].
+    pub rate: Rate,
 }
 
 impl Default for ClientOptions {
@@ -93,6 +102,7 @@ impl Default for ClientOptions {
             stall_timeout: Duration::from_millis(500),
             failover_give_up: Duration::from_secs(60),
             require_server: false,
+            rate: Rate::Full,
         }
     }
 }
@@ -164,7 +174,10 @@ pub(crate) struct Inner {
     events: Mutex<VecDeque<Event>>,
     events_cv: Condvar,
     pub(crate) closed: AtomicBool,
-    bundle_sub: Mutex<Option<Subscriber<()>>>,
+    pub(crate) bundle_sub: Mutex<Option<Subscriber<()>>>,
+    /// 1.8: the rate later submissions start at, and the bundle subscription's rate.
+    pub(crate) rate: Mutex<crate::rates::Rate>,
+    pub(crate) bundle_rate: Mutex<rates::SubRate>,
     /// Requests not waited for are handed to this client's sender thread, which gives them to
     /// Zenoh: the caller (a game thread) never waits on Zenoh's locks or transmission queue.
     sender: std::sync::mpsc::Sender<SendJob>,
@@ -285,6 +298,8 @@ impl Client {
             events_cv: Condvar::new(),
             closed: AtomicBool::new(false),
             bundle_sub: Mutex::new(None),
+            rate: Mutex::new(opts.rate),
+            bundle_rate: Mutex::new(rates::SubRate::new(opts.rate)),
             sender,
             sends,
             watch: Mutex::new(None),

@@ -13,7 +13,6 @@ use std::borrow::Cow;
 use std::collections::HashMap;
 use std::sync::Arc;
 use zenoh::bytes::ZBytes;
-use zenoh::Wait;
 
 const MAX_ORPHANS: usize = 256;
 
@@ -104,10 +103,10 @@ pub(crate) fn deliver(c: &ClothInner, l: Latest) -> Option<String> {
         s.counters.stale += 1;
         return None;
     }
-    s.counters.ticks += if s.last_tick == 0 { 1 } else { tick - s.last_tick };
-    if s.last_tick != 0 {
-        s.counters.missed += tick - s.last_tick - 1;
-    }
+    // 1.8: at every k-th state, the states the stream had between (a switch: rounded up)
+    let steps = if s.last_tick == 0 { 1 } else { (tick - s.last_tick).div_ceil(s.rate.rate.max(1) as u64) };
+    s.counters.ticks += steps;
+    s.counters.missed += steps - 1;
     s.last_tick = tick;
     if gap {
         s.counters.received += 1;
@@ -116,7 +115,8 @@ pub(crate) fn deliver(c: &ClothInner, l: Latest) -> Option<String> {
             return None;
         }
         s.counters.keyframe_requests += 1;
-        return Some(s.bundle_key.clone().unwrap_or_else(|| s.key.clone()));
+        let base = s.bundle_key.clone().unwrap_or_else(|| s.key.clone());
+        return crate::rates::every_key(&base, s.rate.rate); // the key its states come on
     }
     if let Some(keyframe) = decoded {
         s.counters.decoded += 1;
@@ -127,6 +127,8 @@ pub(crate) fn deliver(c: &ClothInner, l: Latest) -> Option<String> {
         s.counters.replaced += 1; // never read
     }
     s.clock.observe(l.receive_time_ns, server_time_ns);
+    let receive_time_ns = l.receive_time_ns;
+    s.rate.observe(tick, server_time_ns, receive_time_ns); // 1.8, rate = auto (a bundled cloth: none)
     s.unread.push_back(l.clone());
     s.prev = s.latest.replace(l); // the last two states: references, nothing copied
     s.last_receipt = std::time::Instant::now();
@@ -137,34 +139,19 @@ pub(crate) fn deliver(c: &ClothInner, l: Latest) -> Option<String> {
 }
 
 /// [`deliver`], then the keyframe query it asks for, if any.
-pub(crate) fn deliver_and_ask(inner: &Inner, c: &ClothInner, l: Latest) {
+pub(crate) fn deliver_and_ask(inner: &Arc<Inner>, c: &Arc<ClothInner>, l: Latest) {
     if let Some(key) = deliver(c, l) {
         ask_keyframe(&inner.session, &key);
     }
+    super::rates::after_delivery(inner, c);
 }
 
 /// The cloth entered the simulation on `server`: record the reply, subscribe to its key (or
 /// rely on the bundle), register it and hand it the bundle states that came before the reply.
 pub(crate) fn attach(inner: &Arc<Inner>, c: &Arc<ClothInner>, server: &str, rep: SubmitReply) -> Result<()> {
-    let sub = if rep.bundle_key.is_none() {
-        let weak = Arc::downgrade(c);
-        let client = Arc::downgrade(inner);
-        let sub = inner
-            .session
-            .declare_subscriber(rep.key.as_str())
-            .callback(move |s| {
-                if let (Some(c), Some(inner)) = (weak.upgrade(), client.upgrade()) {
-                    let buf = Buf::new(s.payload().clone());
-                    let len = buf.with(|d| d.len());
-                    deliver_and_ask(&inner, &c, Latest { buf, off: 0, len, receive_time_ns: now_ns() });
-                }
-            })
-            .wait()
-            .map_err(|e| super::zerr("state subscriber", e))?;
-        Some(sub)
-    } else {
-        None
-    };
+    // 1.8: every k-th state on its own key (full rate on a server older than 1.8)
+    let k = super::rates::placed(inner, c, server, rep.bundle_key.is_some());
+    let sub = if rep.bundle_key.is_none() { Some(super::rates::cloth_subscriber(inner, c, &rep.key, k)?) } else { None };
     let old_id = {
         let mut s = c.slot.lock().unwrap();
         let old = std::mem::replace(&mut s.id, rep.cloth.clone());
@@ -201,12 +188,13 @@ pub(crate) fn attach(inner: &Arc<Inner>, c: &Arc<ClothInner>, server: &str, rep:
 }
 
 /// A bundle arrived: hand each entry to its cloth (on the Zenoh thread; no decoding here).
-pub(crate) fn on_bundle(inner: &Inner, payload: ZBytes) {
+pub(crate) fn on_bundle(inner: &Arc<Inner>, payload: ZBytes) {
     let receive_time_ns = now_ns();
     let buf = Buf::new(payload);
     let mut targets: Vec<(Arc<ClothInner>, Latest)> = Vec::new();
     buf.with(|d| {
         let Ok(b) = parse_bundle(d) else { return };
+        super::rates::observe_bundle(inner, b.tick, b.server_time_ns, receive_time_ns); // 1.8, rate = auto
         let mut reg = inner.reg.lock().unwrap();
         for e in &b.entries {
             let l = Latest { buf: buf.clone(), off: e.state_offset, len: e.state_size, receive_time_ns };
@@ -273,6 +261,25 @@ mod tests {
         deliver(&c, Latest { buf: Buf::V(Arc::new(vec![1, 2, 3])), off: 0, len: 3, receive_time_ns: 0 });
         assert_eq!(counters(&c).invalid, 1);
         assert_eq!(counters(&c).ticks, 7);
+    }
+
+    #[test]
+    fn at_every_kth_state_the_streams_states_are_counted() {
+        // 1.8, every 2nd state: ticks 2, 4, 8 (6 lost), then switched to every 3rd: 9, 12
+        let c = cloth(8);
+        c.slot.lock().unwrap().rate.rate = 2;
+        for t in [2, 4, 8] {
+            deliver(&c, state(t));
+        }
+        let k = counters(&c);
+        assert_eq!((k.received, k.missed, k.ticks), (3, 1, 4), "{k:?}");
+        c.slot.lock().unwrap().rate.rate = 3;
+        for t in [9, 12] {
+            deliver(&c, state(t));
+        }
+        let k = counters(&c);
+        assert_eq!((k.received, k.missed, k.ticks), (5, 1, 6), "{k:?}");
+        assert_eq!(k.read + k.replaced + k.missed + k.unread, k.ticks, "{k:?}");
     }
 
     #[test]

@@ -37,6 +37,7 @@ impl Client {
         submit.client = self.inner.client_id.clone();
         let handle = self.inner.next_handle.fetch_add(1, Ordering::Relaxed);
         let c = cloth::ClothInner::new(handle, submit, rest, triangles, queue_size);
+        c.slot.lock().unwrap().rate = rates::SubRate::new(*self.inner.rate.lock().unwrap());
         self.inner.submit_placed(&c)?;
         Ok(Cloth { inner: c, client: self.inner.clone() })
     }
@@ -54,6 +55,7 @@ impl Client {
         submit.client = self.inner.client_id.clone();
         let handle = self.inner.next_handle.fetch_add(1, Ordering::Relaxed);
         let c = cloth::ClothInner::new(handle, submit, rest, triangles, queue_size);
+        c.slot.lock().unwrap().rate = rates::SubRate::new(*self.inner.rate.lock().unwrap());
         let (inner, c2) = (self.inner.clone(), c.clone());
         std::thread::Builder::new()
             .name("drape-submit".into())
@@ -109,6 +111,7 @@ impl Inner {
         self.check_open()?;
         let bundled = c.submit.state.and_then(|s| s.bundle).unwrap_or(false);
         if bundled {
+            rates::bundle_placing(self, server)?; // 1.8: an older server's bundles come on the full-rate key
             self.ensure_bundle_sub()?;
             self.reg.lock().unwrap().pending_bundled += 1;
         }
@@ -132,18 +135,8 @@ impl Inner {
     pub(crate) fn ensure_bundle_sub(self: &Arc<Self>) -> Result<()> {
         let mut b = self.bundle_sub.lock().unwrap();
         if b.is_none() {
-            let weak = Arc::downgrade(self);
-            let sub = self
-                .session
-                .declare_subscriber(self.keys.bundle(&self.client_id))
-                .callback(move |s| {
-                    if let Some(inner) = weak.upgrade() {
-                        recv::on_bundle(&inner, s.payload().clone());
-                    }
-                })
-                .wait()
-                .map_err(|e| zerr("bundle subscriber", e))?;
-            *b = Some(sub);
+            let k = self.bundle_rate.lock().unwrap().rate; // 1.8: every k-th bundle, on its own key
+            *b = Some(rates::bundle_subscriber(self, k)?);
         }
         Ok(())
     }

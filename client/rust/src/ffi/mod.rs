@@ -13,11 +13,13 @@ mod control;
 mod info;
 mod moves;
 mod predictive;
+mod rates;
 pub use cloth::*;
 pub use control::*;
 pub use info::*;
 pub use moves::*;
 pub use predictive::*;
+pub use rates::*;
 
 use crate::client::{Client, ClientOptions, Cloth, Event, LossReason};
 use crate::wire::error::{Error, ErrorCode};

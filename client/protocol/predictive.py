@@ -311,16 +311,19 @@ def unpack_frame(
 def blocks_unsymbols(blocks: np.ndarray, n: int, p: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """Grid values of C like cloths of ``n`` vertices from their symbols in block order
     (:func:`unpack_blocks`, (C * 3 * nb, 32), changed in place) and their predictions ``p``
-    ((C, n, 3) int32): (C, n, 3) int32 (into ``out`` when given). In place along each axis's
-    row: the zig-zag undone, the neighbour differences summed."""
+    ((C, n, 3) int32): (C, n, 3) int32 (into ``out`` when given, which may not be ``p``). The
+    zig-zag undone in place, the neighbour differences summed along each axis's row straight into
+    the vertex-major result, the predictions added."""
     u = blocks.reshape(len(p), 3, -1)
     sign = (u & 1).view(np.int32)
     np.negative(sign, out=sign)
     u >>= 1
     d = u.view(np.int32)
     d ^= sign
-    np.cumsum(d, axis=2, out=d)
-    return np.add(d[:, :, :n].transpose(0, 2, 1), p, out=out)
+    q = np.empty(p.shape, np.int32) if out is None else out
+    np.cumsum(d[:, :, :n], axis=2, out=q.transpose(0, 2, 1))  # the sums land in vertex order
+    q += p
+    return q
 
 
 def frame_unsymbols(z: np.ndarray, p: np.ndarray, counts: np.ndarray) -> np.ndarray:

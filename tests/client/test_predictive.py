@@ -189,6 +189,30 @@ def test_like_cloths_decode_as_one_frame_as_each_alone(rng):
     assert together[4].undecodable > 0
 
 
+def test_a_broken_header_among_many_raises_as_alone(rng):
+    """A bundle's headers are checked all at once; one that breaks a reading rule raises the
+    error its state raises alone (the receiver then decodes each alone: only it is lost)."""
+    from drape.client import protocol as Q
+    from drape.client.protocol.state import STATE_HEADER_SIZE
+
+    x = rng.uniform(-1, 1, (40, 3)).astype(np.float32)
+    payloads = [bytearray(Q.encode_predictive_state(1, 9, x, 0.001, P.History(), True)) for _ in range(4)]
+    for where, value in ((STATE_HEADER_SIZE + 4, 7), (0, ord("X")), (STATE_HEADER_SIZE, 0)):
+        bad = [bytearray(p) for p in payloads]
+        bad[2][where] = value
+        if where == STATE_HEADER_SIZE:  # the step: 0.0 (not a positive number)
+            bad[2][where : where + 4] = bytes(4)
+        with pytest.raises(Q.ProtocolError) as alone:
+            Q.StateStream("c").decode(bytes(bad[2]))
+        buf, offsets = bytearray(), []
+        for p in bad:
+            offsets.append(len(buf))
+            buf += p + bytes(-len(p) % 8)
+        with pytest.raises(Q.ProtocolError) as many:
+            Q.decode_predictive_many(bytes(buf), offsets, [Q.StateStream(f"c{i}") for i in range(4)])
+        assert many.value.message == alone.value.message, where
+
+
 def test_the_predictive_vectors_both_ways():
     """tests/vectors/predictive.json: the stream's states decode, in order, to their values and
     re-encode from their inputs to the same bytes; the submit asks for the encoding and step."""

@@ -22,6 +22,7 @@ import json
 import logging
 import math
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -290,7 +291,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.decode_only:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        (out / "codec-decode.json").write_text(json.dumps(_decode_report(), indent=1) + "\n")
+        doc = {
+            "command": "python -m drape.server.tools.codecbench "
+            + " ".join(argv if argv is not None else sys.argv[1:]),
+            "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "cores": os.cpu_count(),
+            **_decode_report(),
+        }
+        (out / "codec-decode.json").write_text(json.dumps(doc, indent=1) + "\n")
         return 0
     if args.record or not all((MOTIONS_DIR / f"{m}.npz").exists() for m in MOTIONS):
         record(args.device)

@@ -24,6 +24,8 @@ reference and a decoder in any language agree to the bit and no error accumulate
 
 ``encode_residuals`` / ``decode_residuals`` are this file's two halves; ``PredictiveStream``
 keeps an encoder's history of one stream, ``StreamDecoder`` a decoder's (the states it rebuilt).
+A bundle's states decode together: :func:`unpack_blocks` (every value's bits in a few whole-array
+passes) then, for like cloths, :func:`blocks_unsymbols` (stream.decode_predictive_many).
 """
 
 from __future__ import annotations

@@ -12,6 +12,9 @@ registered (:meth:`drape.client.submitting.Submitter.place`).
 1.8: the bundle is taken at one rate for all its cloths (every k-th bundle on its own key,
 :meth:`BundleReceiver.set_rate`; with ``rate="auto"`` a rates.RateGovernor steps it down when
 bundles arrive late), only while every server its cloths live on speaks 1.8 (``rate_ok``).
+
+:meth:`BundleReceiver.count_only`: some cloths' states are only counted from their headers (tick,
+server time), not decoded: for a client that measures the server (``drape loadtest``).
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -34,6 +38,10 @@ if TYPE_CHECKING:
 log = logging.getLogger("drape.client.sdk")
 
 MAX_ORPHAN_CLOTHS = 256  # bundle entries of cloths whose submit reply is still on its way, kept per id
+
+#: BundleReceiver.count_only's callback: (cloth ids, their states' ticks, server times (int64
+#: arrays), the bundle's receive time ns).
+HeadersCallback = Callable[[list[str], np.ndarray, np.ndarray, int], None]
 
 
 class BundleReceiver:
@@ -65,6 +73,9 @@ class BundleReceiver:
         self.rate = rate  # 1.8: every rate-th bundle, on its own key
         self.rate_ok = True  # every server of its cloths speaks 1.8 (else the full-rate key only)
         self.governor = RateGovernor(rate=rate) if governed else None
+        self.undecoded: frozenset[str] = frozenset()  # count_only's cloths
+        self.counted = 0  # their states seen (headers read, nothing decoded)
+        self._on_headers: HeadersCallback | None = None
 
     @property
     def step_downs(self) -> int:
@@ -99,6 +110,27 @@ class BundleReceiver:
                 pass
         if handles:
             handles[0].ask_keyframe(0.0)  # one query on the bundle's key: every stream of it
+
+    def count_only(self, cloths: Iterable[str], callback: HeadersCallback | None = None) -> None:
+        """Neither decode nor deliver the bundled states of ``cloths`` (ids) from now on: read
+        only their headers' tick and server time, all at once, and hand them to ``callback`` (on
+        the receiving thread; None: only ``counted``). For a client that counts states rather
+        than shows them (``drape loadtest``'s, which measure the server, not this SDK). Their
+        handles get no states, and their predictive streams stop (a cloth put back to decoding
+        needs a keyframe: it asks, as after a loss). An empty set decodes every cloth again."""
+        with self._lock:
+            self.undecoded = frozenset(cloths)
+            self._on_headers = callback
+
+    def _count(self, bundle: P.Bundle, cols: P.BundleEntries, entries: np.ndarray, receive_time_ns: int) -> None:
+        """count_only's states of a bundle: their ticks and server times, read at once."""
+        entries = entries[cols.sizes[entries] >= P.STATE_HEADER_SIZE]
+        raw = np.frombuffer(bundle.data, np.uint8)
+        fields = raw[cols.offsets[entries][:, None] + np.arange(16, 32)].view("<i8")  # tick, server time
+        self.counted += len(entries)
+        cb = self._on_headers
+        if cb is not None and len(entries):
+            cb([cols.cloths[i] for i in entries.tolist()], fields[:, 0], fields[:, 1], receive_time_ns)
 
     def subscribe(self, session: zenoh.Session) -> None:
         """Subscribe to the bundle key once, before the first bundled submission, so the
@@ -151,22 +183,29 @@ class BundleReceiver:
             return
         self.observe(bundle.tick, bundle.server_time_ns, receive_time_ns)
         cols = P.BundleEntries.of(bundle.entries)
+        entries: list[int] | range = range(len(cols))
+        if self.undecoded:  # count_only: those entries' headers only
+            skip = np.fromiter((c in self.undecoded for c in cols.cloths), bool, len(cols))
+            if skip.any():
+                self._count(bundle, cols, np.flatnonzero(skip), receive_time_ns)
+                entries = np.flatnonzero(~skip).tolist()
         # 1.5: predictive states are each their stream's (decoded together below); the others
         # whole-bundle as before
         raw = np.frombuffer(bundle.data, np.uint8)
         pred = (cols.sizes > 8) & (raw[np.minimum(cols.offsets + 8, len(raw) - 1)] == P.ENC_PREDICTIVE)
         states: list[ClothState | P.ProtocolError | None] = [None] * len(cols)
-        if not pred.all():
-            plain = np.flatnonzero(~pred)
+        plain = [i for i in entries if not pred[i]] if not pred.all() else []
+        if plain:
             decoded = P.decode_states(
                 bundle.data, cols.offsets[plain], cols.sizes[plain], [cols.cloths[i] for i in plain], receive_time_ns
             )
-            for i, one in zip(plain.tolist(), decoded, strict=True):
+            for i, one in zip(plain, decoded, strict=True):
                 states[i] = one
         now = time.monotonic()
         handles = self._handles
-        predicted = self._predictive(bundle, cols, np.flatnonzero(pred).tolist(), receive_time_ns)
-        for i, (cloth, st) in enumerate(zip(cols.cloths, states, strict=True)):
+        predicted = self._predictive(bundle, cols, [i for i in entries if pred[i]], receive_time_ns)
+        for i in entries:
+            cloth, st = cols.cloths[i], states[i]
             h = handles.get(cloth)
             if h is None:
                 h = self._orphan(cloth, st)
@@ -244,4 +283,4 @@ class BundleReceiver:
         return self._orphans.pop(cloth, [])
 
 
-__all__ = ["MAX_ORPHAN_CLOTHS", "BundleReceiver"]
+__all__ = ["MAX_ORPHAN_CLOTHS", "BundleReceiver", "HeadersCallback"]

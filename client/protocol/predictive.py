@@ -24,10 +24,13 @@ reference and a decoder in any language agree to the bit and no error accumulate
 
 ``encode_residuals`` / ``decode_residuals`` are this file's two halves; ``PredictiveStream``
 keeps an encoder's history of one stream, ``StreamDecoder`` a decoder's (the states it rebuilt).
+A bundle's states decode together: :func:`unpack_blocks` (every value's bits in a few whole-array
+passes) then, for like cloths, :func:`blocks_unsymbols` (stream.decode_predictive_many).
 """
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -202,42 +205,127 @@ def decode_residuals(data: bytes | bytearray | memoryview, n: int, at: int = 0) 
     return np.ascontiguousarray(z.T), int(sizes[0])
 
 
+def _bit_tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per block width ``w`` (0..32), for each of a block's 32 values: the word of the block its
+    bits start in ``(j * w) >> 5`` and the shift in it ``(j * w) & 31`` (uint8 both), and the
+    width's mask (uint32)."""
+    w = np.arange(BLOCK + 1, dtype=np.int64)[:, None]
+    at = np.arange(BLOCK, dtype=np.int64)[None, :] * w
+    mask = ((np.uint64(1) << np.arange(BLOCK + 1, dtype=np.uint64)) - np.uint64(1)).astype(np.uint32)
+    return (at >> 5).astype(np.uint8), (at & 31).astype(np.uint8), mask
+
+
+_WORD_OF, _SHIFT_OF, _MASK_OF = _bit_tables()
+
+
+class _Scratch(threading.local):
+    """Work arrays reused from one decode to the next (per thread): a fresh array of a few MB a
+    call costs page faults (glibc gives large blocks back to the system when they are freed)."""
+
+    def __init__(self) -> None:
+        self.arrays: dict[str, np.ndarray] = {}
+
+    def get(self, name: str, shape: tuple[int, ...], dtype: type) -> np.ndarray:
+        size = int(np.prod(shape))
+        a = self.arrays.get(name)
+        if a is None or a.size < size or a.dtype != dtype:
+            a = self.arrays[name] = np.empty(size + size // 4, dtype)
+        return a[:size].reshape(shape)
+
+
+_SCRATCH = _Scratch()
+
+
+def unpack_blocks(
+    data: bytes | bytearray | memoryview, starts: np.ndarray, counts: np.ndarray, scratch: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
+    """The symbols of many cloths' packed data in block order: ((B, 32) uint32, each cloth's
+    packed size), cloth ``i``'s at byte ``starts[i]`` (a multiple of 4), of ``counts[i]``
+    vertices; its ``3 * ceil(counts[i] / 32)`` blocks (all x, then y, then z; the padding values
+    0) follow the cloth before's. One pass per step over all values: each value's 64-bit window
+    (two words, paired once) gathered, shifted by its block width's precomputed shift, masked.
+    ``scratch``: the symbols are this thread's work array, valid until its next call. ValueError
+    if a cloth's data runs past the end or a width is over 32."""
+    buf = memoryview(data).cast("B")
+    starts = np.asarray(starts, np.int64)
+    counts = np.asarray(counts, np.int64)
+    if (starts % 4).any():
+        raise ValueError("predictive data must start at a multiple of 4 bytes")
+    nb, first, head = _frame_heads(counts)
+    if len(buf) < int((starts + head).max(initial=0)):
+        raise ValueError("predictive data is shorter than its width bytes")
+    raw = np.frombuffer(buf, np.uint8)
+    n_blocks = int(first[-1])
+    if len(counts) and (nb == nb[0]).all():  # like cloths (a bundle's): no per-block gather of the cloth
+        widths = raw[(starts[:, None] + np.arange(3 * int(nb[0]))[None, :]).ravel()]
+    else:
+        bcloth = np.repeat(np.arange(len(counts)), 3 * nb)
+        widths = raw[starts[bcloth] + np.arange(n_blocks) - first[bcloth]]
+    if widths.size and widths.max() > 32:
+        raise ValueError(f"a block width of {int(widths.max())} bits (at most 32)")
+    wsum = np.zeros(n_blocks + 1, np.int64)
+    np.cumsum(widths, out=wsum[1:])
+    sizes = head + 4 * (wsum[first[1:]] - wsum[first[:-1]])
+    if len(buf) < int((starts + sizes).max(initial=0)):
+        raise ValueError("predictive data is shorter than its widths say")
+    sc = _SCRATCH
+    n_words = len(buf) // 4
+    words = sc.get("words", (n_words + 2,), np.uint64)  # a value of a block at the end may read one word further
+    words[:n_words] = np.frombuffer(buf, "<u4", n_words)
+    words[n_words:] = 0
+    pairs = sc.get("pairs", (n_words + 1,), np.uint64)
+    np.left_shift(words[1:], np.uint64(32), out=pairs)
+    pairs |= words[:-1]  # every 64-bit window, once
+    # each block's first word in the whole data
+    base = np.repeat((starts + head) // 4 - wsum[first[:-1]], 3 * nb) + wsum[:-1]
+    shape = (n_blocks, BLOCK)
+    small = np.take(_WORD_OF, widths, axis=0, out=sc.get("small", shape, np.uint8))
+    at = np.add(base[:, None], small, out=sc.get("at", shape, np.int64))
+    window = np.take(pairs, at, out=sc.get("window", shape, np.uint64))
+    np.take(_SHIFT_OF, widths, axis=0, out=small)
+    z = sc.get("z", shape, np.uint32) if scratch else np.empty(shape, np.uint32)
+    np.right_shift(window, small, out=z, casting="unsafe")
+    z &= _MASK_OF[widths][:, None]
+    return z, sizes
+
+
+def _frame_heads(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Blocks per axis, each cloth's first block (and the total), width-byte head size."""
+    nb = -(-counts // BLOCK)
+    first = np.zeros(len(counts) + 1, np.int64)
+    np.cumsum(3 * nb, out=first[1:])
+    return nb, first, 4 * (-(-3 * nb // 4))
+
+
 def unpack_frame(
     data: bytes | bytearray | memoryview, starts: np.ndarray, counts: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """The inverse of :func:`pack_frame` for packed data anywhere in ``data``: cloth ``i``'s at
     byte ``starts[i]`` (a multiple of 4), of ``counts[i]`` vertices. ((N, 3) uint32 symbols back
     to back, each cloth's packed size). ValueError if a cloth's data runs past the end or a width
-    is over 32. Whole arrays: the states of a bundle decode together."""
-    buf = memoryview(data).cast("B")
-    starts = np.asarray(starts, np.int64)
+    is over 32. Whole arrays: :func:`unpack_blocks`, then each value to its vertex row."""
     counts = np.asarray(counts, np.int64)
-    if (starts % 4).any():
-        raise ValueError("predictive data must start at a multiple of 4 bytes")
-    nb, first, head, block, j = _frame_blocks(counts)
-    if len(buf) < int((starts + head).max(initial=0)):
-        raise ValueError("predictive data is shorter than its width bytes")
-    raw = np.frombuffer(buf, np.uint8)
-    bcloth = np.repeat(np.arange(len(counts)), 3 * nb)
-    widths = raw[starts[bcloth] + np.arange(int(first[-1])) - first[bcloth]]
-    if widths.size and widths.max() > 32:
-        raise ValueError(f"a block width of {int(widths.max())} bits (at most 32)")
-    wsum = np.zeros(len(widths) + 1, np.int64)
-    np.cumsum(widths, out=wsum[1:])
-    sizes = head + 4 * (wsum[first[1:]] - wsum[first[:-1]])
-    if len(buf) < int((starts + sizes).max(initial=0)):
-        raise ValueError("predictive data is shorter than its widths say")
-    n_words = len(buf) // 4
-    words = np.zeros(n_words + 2, np.uint64)  # a value of a block at the end may read one word further
-    words[:n_words] = np.frombuffer(buf, "<u4", n_words)
-    wbase = (starts[bcloth] + head[bcloth]) // 4 + wsum[:-1] - wsum[first[bcloth]]
-    w = widths.astype(np.int64)
-    bit = (wbase[block] << 5) + j * w[block]  # (N, 3): each value's first bit
-    word = bit >> 5
-    window = words[word] | (words[word + 1] << np.uint64(32))
-    mask = (np.uint64(1) << w[block].astype(np.uint64)) - np.uint64(1)
-    z = ((window >> (bit & 31).astype(np.uint64)) & mask).astype(np.uint32)
-    return z, sizes
+    blocks, sizes = unpack_blocks(data, starts, counts)
+    _, _, _, block, j = _frame_blocks(counts)
+    return blocks[block, j], sizes
+
+
+def blocks_unsymbols(blocks: np.ndarray, n: int, p: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """Grid values of C like cloths of ``n`` vertices from their symbols in block order
+    (:func:`unpack_blocks`, (C * 3 * nb, 32), changed in place) and their predictions ``p``
+    ((C, n, 3) int32): (C, n, 3) int32 (into ``out`` when given, which may not be ``p``). The
+    zig-zag undone in place, the neighbour differences summed along each axis's row straight into
+    the vertex-major result, the predictions added."""
+    u = blocks.reshape(len(p), 3, -1)
+    sign = (u & 1).view(np.int32)
+    np.negative(sign, out=sign)
+    u >>= 1
+    d = u.view(np.int32)
+    d ^= sign
+    q = np.empty(p.shape, np.int32) if out is None else out
+    np.cumsum(d[:, :, :n], axis=2, out=q.transpose(0, 2, 1))  # the sums land in vertex order
+    q += p
+    return q
 
 
 def frame_unsymbols(z: np.ndarray, p: np.ndarray, counts: np.ndarray) -> np.ndarray:

@@ -12,12 +12,27 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from .errors import ERR_INVALID_VALUE, ERR_MALFORMED, ProtocolError
-from .predictive import ORDER_INTRA, ORDER_LINEAR, History, dequantise, frame_unsymbols, prediction, unpack_frame
+from .keys import PROTOCOL_MAJOR
+from .predictive import (
+    ORDER_INTRA,
+    ORDER_LINEAR,
+    History,
+    _frame_blocks,
+    blocks_unsymbols,
+    frame_unsymbols,
+    prediction,
+    unpack_blocks,
+)
 from .state import (
     FLAG_NORMALS,
+    PREDICTIVE_HEADER_FIELDS,
+    PREDICTIVE_HEADER_SIZE,
+    STATE_HEADER_FIELDS,
+    STATE_MAGIC,
     ClothState,
     PredictiveHeader,
     decode_state,
+    header_dtype,
     read_predictive_header,
     read_state_header,
     snorm16_decode_many,
@@ -38,6 +53,7 @@ class StateStream:
     needs_keyframe: bool = False  # since the last undecodable state, until a keyframe
     last: ClothState | None = None  # the last two states decoded (extrapolate's velocity)
     before_last: ClothState | None = None
+    rows: tuple[int, int] = (-1, -1)  # the rows of the frames (decode_predictive_many) q1, q2 are
 
     def decode(self, data: bytes | bytearray | memoryview, receive_time_ns: int = 0) -> ClothState | None:
         """The state of ``data`` (the stream moves on), or None when it is predicted from a state
@@ -52,12 +68,15 @@ class StateStream:
     def holds_references(self, ph: PredictiveHeader) -> bool:
         """Whether this stream holds the states a predictive state of header ``ph`` is predicted
         from (a keyframe needs none); else it counts the state as undecodable."""
+        return self._holds(ph.order, ph.step, ph.ref_tick, ph.ref2_tick)
+
+    def _holds(self, order: int, step: float, ref_tick: int, ref2_tick: int) -> bool:
         h = self.history
-        have = ph.order == ORDER_INTRA or (
-            ph.step == self.step
+        have = order == ORDER_INTRA or (
+            step == self.step
             and h.q1 is not None
-            and h.tick1 == ph.ref_tick
-            and (ph.order < ORDER_LINEAR or (h.q2 is not None and h.tick2 == ph.ref2_tick))
+            and h.tick1 == ref_tick
+            and (order < ORDER_LINEAR or (h.q2 is not None and h.tick2 == ref2_tick))
         )
         if not have:
             self.undecodable += 1
@@ -98,49 +117,155 @@ def decode_predictive_many(
 ) -> list[ClothState | None]:
     """Many predictive states at once (a bundle's): the state at ``offsets[i]`` of ``data``
     (a multiple of 4) decoded by ``streams[i]`` exactly as :meth:`StateStream.decode` would, but
-    with one :func:`~.predictive.unpack_frame` over all of them. None for a state whose stream
-    lacks its reference (counted, as decode counts it); ProtocolError when a header is invalid."""
+    with one :func:`~.predictive.unpack_blocks` over all of them and, for like cloths (one vertex
+    count), one numpy pass per step over the whole frame (predictions, sums, positions); each
+    state's positions and each stream's history are views of the frame's arrays (no per-state
+    copy). None for a state whose stream lacks its reference (counted, as decode counts it);
+    ProtocolError when a header is invalid."""
     buf = data if isinstance(data, (bytes, bytearray)) else memoryview(data).cast("B")
     out: list[ClothState | None] = [None] * len(offsets)
-    go: list[tuple[int, int, int, int, int, int, tuple, PredictiveHeader]] = []
-    for k, (at, st) in enumerate(zip(offsets, streams, strict=True)):
-        hsize, enc, flags, n, tick, t_ns, *b = read_state_header(buf, len(buf) - at, at)
-        if enc != ENC_PREDICTIVE:
-            raise ProtocolError(ERR_INVALID_VALUE, f"state {k} is not predictive")
-        ph = read_predictive_header(buf, at)
-        if not st.holds_references(ph):
-            continue
-        go.append((k, at + hsize, n, flags, tick, t_ns, tuple(b), ph))
+    heads = _headers(buf, offsets)
+    if heads is None:  # one breaks a reading rule: read each alone, which raises the right error
+        heads = [_header(buf, at, k) for k, at in enumerate(offsets)]
+    go: list[tuple] = []
+    for k, (st, head) in enumerate(zip(streams, heads, strict=True)):
+        if st._holds(head[6], head[7], head[8], head[9]):
+            go.append((k, offsets[k] + head[0], *head[1:]))
     if not go:
         return out
-    counts = np.array([g[2] for g in go], np.int64)
+    counts = np.array([g[3] for g in go], np.int64)
     try:
-        z, sizes = unpack_frame(buf, np.array([g[1] for g in go], np.int64), counts)
+        blocks, sizes = unpack_blocks(buf, np.array([g[1] for g in go], np.int64), counts, scratch=True)
     except ValueError as e:
         for g in go:
             streams[g[0]].history.clear()
             streams[g[0]].needs_keyframe = True
         raise ProtocolError(ERR_MALFORMED, f"predictive states: {e}") from None
-    parts = [prediction(g[7].order, streams[g[0]].history.q1, streams[g[0]].history.q2, (g[2], 3)) for g in go]
-    q = frame_unsymbols(z, np.concatenate(parts) if len(parts) > 1 else parts[0], counts)
-    x = dequantise(q, np.repeat(np.array([g[7].step for g in go], np.float32), counts)[:, None])
-    rows = 0
-    for (k, data_at, n, flags, tick, t_ns, bb, ph), size in zip(go, sizes.tolist(), strict=True):
+    n0 = go[0][3]
+    steps = [g[8] for g in go]
+    step: float | np.ndarray = steps[0] if steps.count(steps[0]) == len(steps) else np.array(steps, np.float32)
+    if (counts == n0).all():  # like cloths: (C, n, 3) frames
+        q = blocks_unsymbols(blocks, n0, _predictions(go, streams, n0), out=None)
+        x = _positions(q, step if isinstance(step, float) else step[:, None, None])
+        views = [(q[c], x[c]) for c in range(len(go))]
+    else:
+        layout = _frame_blocks(counts)
+        z = blocks[layout[3], layout[4]]
+        parts = [prediction(g[7], streams[g[0]].history.q1, streams[g[0]].history.q2, (g[3], 3)) for g in go]
+        q = frame_unsymbols(z, np.concatenate(parts) if len(parts) > 1 else parts[0], counts)
+        x = _positions(q, step if isinstance(step, float) else np.repeat(step, counts)[:, None])
+        ends = np.cumsum(counts).tolist()
+        views = [(q[e - g[3] : e], x[e - g[3] : e]) for e, g in zip(ends, go, strict=True)]
+    for c, ((k, data_at, flags, n, tick, t_ns, bounds, order, step_, _, _), size, (qi, xi)) in enumerate(
+        zip(go, sizes.tolist(), views, strict=True)
+    ):
         st = streams[k]
-        qi = q[rows : rows + n]
-        if ph.order == ORDER_INTRA:
-            st.history.clear()
+        h = st.history
+        if order == ORDER_INTRA:
+            h.clear()
             st.keyframes += 1
             st.needs_keyframe = False
-        st.history.push(qi, tick)
-        st.step = ph.step
+        h.q2, h.tick2, h.q1, h.tick1 = h.q1, h.tick1, qi, tick  # History.push
+        st.rows = (c, st.rows[0])
+        st.step = step_
         normals = None
         if flags & FLAG_NORMALS:
             normals = snorm16_decode_many(np.frombuffer(buf, "<i2", n * 3, data_at + size).reshape(n, 3))
-        bounds = ((bb[0], bb[1], bb[2]), (bb[3], bb[4], bb[5]))
-        state = ClothState(
-            tick, t_ns, x[rows : rows + n], normals, receive_time_ns, "predictive", flags, bounds, st.cloth
-        )
-        out[k] = st._keep(state)
-        rows += n
+        state = ClothState(tick, t_ns, xi, normals, receive_time_ns, "predictive", flags, bounds, st.cloth)
+        st.decoded += 1  # StateStream._keep
+        st.before_last, st.last = st.last, state
+        out[k] = state
     return out
+
+
+#: A predictive state's whole header (PROTOCOL.md 9.2): many read at once.
+_PREDICTIVE_DTYPE = header_dtype(STATE_HEADER_FIELDS + PREDICTIVE_HEADER_FIELDS)
+
+
+def _headers(buf: bytes | bytearray | memoryview, offsets: list[int]) -> list[tuple] | None:
+    """The headers of the predictive states at ``offsets``, all read at once: per state
+    (header_size, flags, n, tick, server time, bounds, order, step, ref tick, ref2 tick); None
+    when one of them breaks any of the reading rules :func:`_header` checks."""
+    at = np.asarray(offsets, np.int64)
+    size = len(buf) - at
+    if not len(at) or int(size.min()) < PREDICTIVE_HEADER_SIZE:
+        return None
+    raw = np.frombuffer(buf, np.uint8)
+    h = raw[at[:, None] + np.arange(PREDICTIVE_HEADER_SIZE)].view(_PREDICTIVE_DTYPE)[:, 0]
+    n, flags, hsize, step = h["vertex_count"], h["flags"], h["header_size"], h["step"]
+    need = hsize + h["data_size"].astype(np.int64) + 6 * n.astype(np.int64) * (flags & FLAG_NORMALS)
+    if not (
+        (h["magic"] == STATE_MAGIC).all()
+        and (h["major"] == PROTOCOL_MAJOR).all()
+        and (hsize >= PREDICTIVE_HEADER_SIZE).all()
+        and (h["encoding"] == ENC_PREDICTIVE).all()
+        and (need <= size).all()
+        and (h["order"] <= ORDER_LINEAR).all()
+        and (np.isfinite(step) & (step > 0)).all()
+    ):
+        return None
+    lo, hi = h["bounds_min"].tolist(), h["bounds_max"].tolist()
+    return list(
+        zip(
+            hsize.tolist(),
+            flags.tolist(),
+            n.tolist(),
+            h["tick"].tolist(),
+            h["server_time_ns"].tolist(),
+            [(tuple(a), tuple(b)) for a, b in zip(lo, hi, strict=True)],
+            h["order"].tolist(),
+            step.tolist(),
+            h["ref_tick"].tolist(),
+            h["ref2_tick"].tolist(),
+            strict=True,
+        )
+    )
+
+
+def _header(buf: bytes | bytearray | memoryview, at: int, k: int) -> tuple:
+    """One predictive state's header as :func:`_headers` gives it, read by the reading rules
+    (ProtocolError for the first it breaks)."""
+    hsize, enc, flags, n, tick, t_ns, *b = read_state_header(buf, len(buf) - at, at)
+    if enc != ENC_PREDICTIVE:
+        raise ProtocolError(ERR_INVALID_VALUE, f"state {k} is not predictive")
+    ph = read_predictive_header(buf, at)
+    bounds = ((b[0], b[1], b[2]), (b[3], b[4], b[5]))
+    return (hsize, flags, n, tick, t_ns, bounds, ph.order, ph.step, ph.ref_tick, ph.ref2_tick)
+
+
+def _predictions(go: list, streams: list[StateStream], n: int) -> np.ndarray:
+    """(C, n, 3) int32 predictions of like cloths: ``2 q1 - q2`` of the whole frame at once where
+    the streams' last two states are the rows of two earlier frames in this order (a bundle's
+    steady state), each other cloth's alone."""
+    p = np.empty((len(go), n, 3), np.int32)
+    h0 = streams[go[0][0]].history
+    b1 = h0.q1.base if h0.q1 is not None else None
+    b2 = h0.q2.base if h0.q2 is not None else None
+    whole = False
+    if b1 is not None and b2 is not None and b1.shape == b2.shape == p.shape and b1.dtype == b2.dtype == p.dtype:
+        np.left_shift(b1, 1, out=p)
+        p -= b2
+        whole = True
+    for c, g in enumerate(go):
+        st = streams[g[0]]
+        h = st.history
+        if (
+            whole
+            and g[7] == ORDER_LINEAR
+            and st.rows == (c, c)
+            and h.q1 is not None
+            and h.q1.base is b1
+            and h.q2 is not None
+            and h.q2.base is b2
+        ):
+            continue
+        p[c] = prediction(g[7], h.q1, h.q2, (n, 3))
+    return p
+
+
+def _positions(q: np.ndarray, step: float | np.ndarray) -> np.ndarray:
+    """:func:`~.predictive.dequantise` in one pass: ``float32(float64(q) * float64(step))``."""
+    x = np.empty(q.shape, np.float32)
+    s = np.float64(np.float32(step)) if isinstance(step, float) else np.asarray(step, np.float32).astype(np.float64)
+    np.multiply(q, s, out=x, dtype=np.float64, casting="unsafe")
+    return x

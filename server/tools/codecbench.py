@@ -1,6 +1,7 @@
 """Bits per vertex of the predictive state encoding (protocol 1.5) over recorded cloth motions.
 
     python -m drape.server.tools.codecbench [--record] [--steps 0.25,0.5,1,2,4] [--out docs/results]
+    python -m drape.server.tools.codecbench --decode-only --out /tmp   # the client's decode cost
 
 The motions are kept in ``tests/data/motions/*.npz`` (float32 positions, (states, n, 3), 60 Hz):
 a cape whose character runs, turns and stops; a flag in gusting wind; a curtain pushed by a
@@ -21,6 +22,7 @@ import json
 import logging
 import math
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -187,32 +189,76 @@ def write_stream(x: np.ndarray, step: float, path: Path) -> None:
             f.write(struct.pack("<I", len(st)) + st)
 
 
-def decode_speed(x: np.ndarray, step: float, cloths: int = 64, rounds: int = 15) -> dict:
-    """Client decode cost of a bundle of ``cloths`` predictive states (the cape motion, each cloth
-    at another phase), through protocol.decode_predictive_many as the SDK's bundle receiver runs
-    it: median ns per vertex over ``rounds`` bundles, after a warm-up."""
+def decode_speed(x: np.ndarray, step: float, cloths: int = 64, rounds: int = 30) -> dict:
+    """Client decode cost of a bundle of ``cloths`` predictive 32x32 states (the cape motion, each
+    cloth at another phase, a keyframe a second), ns per vertex, two ways: ``codec``, through
+    protocol.decode_predictive_many as the SDK's bundle receiver runs it, and ``sdk``, the SDK's
+    whole receive path (:meth:`drape.client.bundles.BundleReceiver.receive` of a real client with
+    ``cloths`` bundled handles, one recording callback each, as ``drape loadtest``'s clients).
+    CPU time of the calling thread (waiting for a core on a shared machine is not counted):
+    median and min over ``rounds`` bundles, after a warm-up."""
     from drape.client import protocol as Q
+
+    from .decodebench import open_client
 
     n = x.shape[1]
     enc = [P.History() for _ in range(cloths)]
-    dec = [Q.StateStream(f"c{i}") for i in range(cloths)]
-    times = []
-    for t in range(rounds + 3):
+    dec = [Q.StateStream(f"{i:016x}") for i in range(cloths)]
+    warm = 3
+    bundles = []
+    for t in range(2 * (rounds + warm)):
         states = [
-            (f"c{i}", Q.encode_predictive_state(t, 0, x[(t + 7 * i) % len(x)], step, enc[i], t == 0))
+            (
+                f"{i:016x}",
+                Q.encode_predictive_state(t, 0, x[(t + 7 * i) % len(x)], step, enc[i], t % KEYFRAME_INTERVAL == 0),
+            )
             for i in range(cloths)
         ]
-        data = bytes(Q.encode_bundle(t, 0, states))
+        bundles.append(bytes(Q.encode_bundle(t, 0, states)))
+    times: dict[str, list[float]] = {"codec": [], "sdk": []}
+    for t, data in enumerate(bundles[: rounds + warm]):
         b = Q.parse_bundle(data)
         offsets = [e.offset for e in b.entries]
-        t0 = time.perf_counter()
+        t0 = time.thread_time()
         got = Q.decode_predictive_many(data, offsets, dec)
-        dt = time.perf_counter() - t0
+        dt = time.thread_time() - t0
         assert all(g is not None for g in got)
-        if t >= 3:
-            times.append(dt)
-    med = float(np.median(times))
-    return {"cloths": cloths, "vertices": n, "step_mm": step * 1e3, "ns_per_vertex": med / (cloths * n) * 1e9}
+        if t >= warm:
+            times["codec"].append(dt)
+    client, handles, seen = open_client(cloths)
+    try:
+        for t, data in enumerate(bundles):  # the same bundles from the start: the handles' streams are fresh
+            t0 = time.thread_time()
+            client.bundles.receive(data, time.time_ns())
+            dt = time.thread_time() - t0
+            if t >= warm and t < rounds + warm:
+                times["sdk"].append(dt)
+            for h, s in zip(handles, seen, strict=True):
+                h.clear()
+                s.clear()
+        assert all(h.stream.undecodable == 0 and h.received == len(bundles) for h in handles)
+    finally:
+        client.close(remove=False)
+    per = cloths * n / 1e9
+    out: dict = {"cloths": cloths, "vertices": n, "step_mm": step * 1e3, "rounds": rounds, "clock": "thread CPU time"}
+    for name, ts in times.items():
+        out[f"{name}_ns_per_vertex"] = float(np.median(ts)) / per
+        out[f"{name}_ns_per_vertex_min"] = float(np.min(ts)) / per
+    out["ns_per_vertex"] = out["codec_ns_per_vertex"]
+    return out
+
+
+def _decode_report() -> dict:
+    """Time the decode (:func:`decode_speed`), print it, return it with the machine's load."""
+    d = decode_speed(load("cape_run"), 0.002)
+    la = os.getloadavg()[0]
+    for name, what in (("codec", "decode_predictive_many"), ("sdk", "BundleReceiver.receive")):
+        print(
+            f"decode of a {d['cloths']}-cloth bundle of {d['vertices']} vertices, {what}: "
+            f"{d[name + '_ns_per_vertex']:.1f} ns per vertex (median; min {d[name + '_ns_per_vertex_min']:.1f}; "
+            f"CPU time; load average {la:.1f} on {os.cpu_count()} cores)"
+        )
+    return {**d, "load_average": la}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -221,7 +267,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device", default=None, help="OpenCL device for --record (env DRAPE_DEVICE)")
     ap.add_argument("--steps", default="0.25,0.5,1,2,4", help="steps in millimetres, comma separated")
     ap.add_argument("--out", default="docs/results", help="folder for codec-bits.json and codec-bits.png")
-    ap.add_argument("--decode", action="store_true", help="also time the client's decode of a 64-cloth bundle")
+    ap.add_argument(
+        "--decode",
+        action="store_true",
+        help="also time the client's decode of a 64-cloth bundle (the codec, the SDK's receive path)",
+    )
+    ap.add_argument(
+        "--decode-only",
+        action="store_true",
+        help="time only the decode (no bits over the motions); writes codec-decode.json to --out",
+    )
     ap.add_argument(
         "--stream",
         default=None,
@@ -232,6 +287,18 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.stream:
         write_stream(load("cape_run"), 0.002, Path(args.stream))
+        return 0
+    if args.decode_only:
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        doc = {
+            "command": "python -m drape.server.tools.codecbench "
+            + " ".join(argv if argv is not None else sys.argv[1:]),
+            "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "cores": os.cpu_count(),
+            **_decode_report(),
+        }
+        (out / "codec-decode.json").write_text(json.dumps(doc, indent=1) + "\n")
         return 0
     if args.record or not all((MOTIONS_DIR / f"{m}.npz").exists() for m in MOTIONS):
         record(args.device)
@@ -265,13 +332,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     report: dict = {"keyframe_interval": KEYFRAME_INTERVAL, "motions": rows, "mean": summary}
     if args.decode:
-        d = decode_speed(load("cape_run"), 0.002)
-        la = os.getloadavg()[0]
-        print(
-            f"decode of a {d['cloths']}-cloth bundle of {d['vertices']} vertices: "
-            f"{d['ns_per_vertex']:.1f} ns per vertex (median; load average {la:.1f} on {os.cpu_count()} cores)"
-        )
-        report["decode"] = {**d, "load_average": la}
+        report["decode"] = _decode_report()
     (out / "codec-bits.json").write_text(json.dumps(report, indent=1) + "\n")
     _plot(rows, summary, out / "codec-bits.png")
     return 0

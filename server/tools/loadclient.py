@@ -7,7 +7,10 @@ it moves every cloth's pins once per tick (with bundles one batch control per ti
 1.4 ``moves`` block, built from one (n, 2, 3) array with no loop over the cloths; one control
 per cloth without) and records every state it receives: tick, latency (server timestamp ->
 receipt, one host so one clock) and the time from the payload's arrival to the state's delivery
-(the SDK's decode cost). The parent tells it which server ticks the measured window covers; only
+(the SDK's decode cost). With ``decode_sample`` N > 1 (bundles) it decodes fully only one cloth
+in N and counts the others' states from their headers (tick, server time: received, lost, late
+and latency as for the decoded ones), so that the clients' cores measure the server's capacity
+rather than the SDK's decode. The parent tells it which server ticks the measured window covers; only
 states of those ticks count. Behind a home link (``ClientSpec.link_endpoint``, loadlink.py) it
 connects in client mode to its shaper only, shared memory off, at its rate (1.8), and reports its
 states per cloth and longest gap apart.
@@ -33,6 +36,8 @@ SUBMITS_IN_FLIGHT = 16  # a client's submits awaiting their reply at once
 OVERLOADED_RETRIES = 3  # tries again of a submit refused ``overloaded`` (ClientSpec.retries)
 RETRY_AFTER_S = 0.5  # the pause before each
 TURN_STATS_WAIT_S = 10.0  # at most this long for stats that count the clients placed before
+SAMPLED_DECODE = 16  # Workload.decode_one_in's auto: one cloth in this many decoded fully...
+AUTO_SAMPLE_ABOVE = 2048  # ...for predictive loads over this many cloths
 log = logging.getLogger(__name__)
 
 
@@ -50,6 +55,20 @@ class Workload:
     tick_rate: float = 60.0
     bundle: bool = True
     servers: int = 1  # servers the load is spread over; a client waits for them, then places by load
+    # with bundles, each client decodes fully one cloth in ``decode_sample`` (1: all); the others'
+    # states are counted from their headers (BundleReceiver.count_only). 0: auto (decode_one_in)
+    decode_sample: int = 0
+
+    def decode_one_in(self, cloths: int) -> int:
+        """The ``decode_sample`` a load of ``cloths`` runs with: as set, else (auto) one cloth in
+        SAMPLED_DECODE for predictive loads over AUTO_SAMPLE_ABOVE cloths with bundles (their
+        decode, ~1 ms of a core per 64-cloth bundle, would take the cores the server needs), all
+        cloths otherwise."""
+        if not self.bundle:
+            return 1
+        if self.decode_sample:
+            return self.decode_sample
+        return SAMPLED_DECODE if self.encoding == "predictive" and cloths > AUTO_SAMPLE_ABOVE else 1
 
     def workload(self) -> dict[str, Any]:
         """These settings as keyword arguments (for a ClientSpec of this load)."""
@@ -262,7 +281,27 @@ def client_main(
             shared["admitted"].value = len(handles)
             shared["ready"].set()
             shared["go"].wait()
-            cancels = [h.on_state(rec) for h, rec in zip(handles, recs, strict=True)]
+            sample = max(spec.decode_sample, 1) if spec.bundle else 1
+            decoded = [h for j, h in enumerate(handles) if j % sample == 0]
+            cancels = [h.on_state(recs[j]) for j, h in enumerate(handles) if j % sample == 0]
+            if sample > 1:  # the others: counted from their headers (tick, cloth), not decoded
+                counting = [True]
+                by_id = {h.id: recs[j] for j, h in enumerate(handles) if j % sample}
+
+                def on_headers(cloths: list[str], ticks: np.ndarray, server_ns: np.ndarray, rx: int) -> None:
+                    if not counting[0]:
+                        return
+                    now = time.time_ns()
+                    for c, t, s in zip(cloths, ticks.tolist(), server_ns.tolist(), strict=True):
+                        rec = by_id.get(c)
+                        if rec is not None:
+                            rec.ticks.append(t)
+                            rec.lat_ns.append(rx - s)
+                            rec.rx_ns.append(rx)
+                            rec.delay_ns.append(now - rx)
+
+                client.bundles.count_only(by_id, on_headers)
+                cancels.append(lambda: counting.__setitem__(0, False))
             cpu0, err0, opened = time.process_time(), client.send_errors, False
             period = 1.0 / spec.tick_rate
             t0 = next_t = time.monotonic()
@@ -363,6 +402,8 @@ def client_main(
                     "longest_gap_ms": gap,
                     "step_downs": steps,
                     "rate_at_end": rate_at_end,
+                    "decoded_cloths": len(decoded),
+                    "decode_sample": sample,
                 },
             ),
         )

@@ -75,7 +75,7 @@ class LoadSpec(Workload):
                 offered=base + (i < extra),
                 retries=retries,
                 client_rate=self.link.client_rate if shaped else "1",
-                **self.workload(),
+                **{**self.workload(), "decode_sample": self.decode_one_in(self.cloths)},
             )
             for i, shaped in zip(range(self.clients), self.link.shaped(self.clients), strict=True)
         ]
@@ -390,7 +390,7 @@ def run_fleet_load(
         messages_per_s=round(states / seconds, 1),
         bytes_per_s=round(bytes_put(per_server, out) / seconds, 1),
         send_errors=sum(r.send_errors for r in out),
-        decode_us=decode_summary(out, seconds),
+        decode_us={**decode_summary(out, seconds), "one_in": spec.decode_one_in(spec.cloths)},
         server=server_info,
         clients_cpu_percent=round(100.0 * sum(r.cpu_s for r in out) / elapsed, 1),
         host=f"{platform.node()} {os.cpu_count()} cores",

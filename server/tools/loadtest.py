@@ -13,7 +13,9 @@ tick rate from the two publications' tick counters and server timestamps, missed
 coalesced frames from their counters, per-phase server time from the publications in between,
 and, from the clients, the states of exactly those ticks (lost, duplicated, out of order),
 latency (server tick -> client receipt) p50/p99/max, message and byte rates and decode cost
-(arrival to delivery, per state and per bundle). The server's CPU and RSS (before the load, at
+(arrival to delivery, per state and per bundle; with ``--decode-sample N`` the clients decode one
+cloth in N and count the others' states from their headers, the default for predictive loads over
+2048 cloths). The server's CPU and RSS (before the load, at
 the window's start, at its end, max) come from psutil; the report also holds the host's load
 average at the window's ends and, per stats period, its ticks, missed ticks and coalesced frames
 (when the misses happen).
@@ -51,6 +53,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from .loadclient import AUTO_SAMPLE_ABOVE, SAMPLED_DECODE
 from .loadlink import add_arguments as add_link_arguments
 from .loadlink import link_spec, print_links
 from .loadreport import Report, markdown_table, print_report, write_plots, write_summary_plot
@@ -106,6 +109,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
         type=float,
         default=1.0,
         help="offer this many times each load (2: past the knee; refused submits are counted)",
+    )
+    parser.add_argument(
+        "--decode-sample",
+        type=int,
+        default=0,
+        metavar="N",
+        help="with bundles, each client decodes fully one cloth in N and counts the others' states from "
+        "their headers (tick, cloth: received, lost and latency counted alike), so that the clients measure "
+        f"the server, not the SDK's decode; 1: decode all. Default (0): auto, one in {SAMPLED_DECODE} for "
+        f"predictive loads over {AUTO_SAMPLE_ABOVE} cloths, all otherwise",
     )
     parser.add_argument("--size", type=int, default=32, help="each cloth is SIZE x SIZE vertices")
     parser.add_argument("--seconds", type=float, default=5.0, help="measured window per load (server stats to stats)")
@@ -360,6 +373,8 @@ def run(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace) -> int:
     if not 1 <= args.clients <= 256:
         raise SystemExit("--clients must be 1..256")
+    if args.decode_sample < 0:
+        raise SystemExit("--decode-sample must be 0 (auto) or more")
     if not 1 <= args.servers <= 16:
         raise SystemExit("--servers must be 1..16")
     if args.endpoint and (args.servers > 1 or args.scale_out):
@@ -383,6 +398,7 @@ def _run(args: argparse.Namespace) -> int:
         bundle=args.bundle,
         offered=args.offered,
         link=link_spec(args),
+        decode_sample=args.decode_sample,
     )
     loads = parse_loads(args.loads, args.encoding) if args.loads else [(base.cloths, base.encoding)]
     base = replace(base, cloths=loads[0][0], encoding=loads[0][1])
@@ -395,6 +411,11 @@ def _run(args: argparse.Namespace) -> int:
         def run_one(spec: LoadSpec) -> Report:
             report, results, window = run_fleet_load(spec, fleet.endpoint, fleet.targets, args.quiet, client_cpus)
             print_report(report)
+            if report.decode_us.get("one_in", 1) > 1:
+                print(
+                    f"  clients decoded one cloth in {report.decode_us['one_in']:.0f} fully "
+                    "(the others' states counted from their headers: --decode-sample)"
+                )
             print_links(report.links)
             tag = f"{report.cloths}-{report.encoding}" + (
                 f"-{len(fleet.targets)}servers" if len(fleet.targets) > 1 else ""

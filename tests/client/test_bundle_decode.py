@@ -342,6 +342,33 @@ def test_the_receiver_delivers_each_state_to_its_handle_with_its_guarantees(rng,
         assert older is queued[-2] and newer is queued[-1] and h.latest() is newer
 
 
+def test_cloths_counted_only_get_their_headers_and_the_others_their_states(rng, client):
+    """BundleReceiver.count_only: those cloths' states are neither decoded nor delivered, their
+    ticks and server times come from the headers, once per bundle; the other cloths are as
+    before, predictive streams included; an empty set decodes every cloth again."""
+    ids = [random_id(rng) for _ in range(6)]
+    handles = [bundled_handle(client, c) for c in ids]
+    counted: list[tuple[list[str], list[int], list[int], int]] = []
+    client.bundles.count_only(ids[::2], lambda c, t, s, r: counted.append((c, t.tolist(), s.tolist(), r)))
+    encs = [P.History() for _ in ids]
+    x = rng.uniform(-1, 1, (30, 3)).astype(np.float32)
+    for tick in range(1, 5):
+        states = [
+            (c, P.encode_predictive_state(tick, 50 + tick, x, 0.001, e, tick == 1))
+            for c, e in zip(ids, encs, strict=True)
+        ]
+        client.bundles.receive(bytes(P.encode_bundle(tick, 9, states)), 1000 + tick)
+    assert counted == [(ids[::2], [t] * 3, [50 + t] * 3, 1000 + t) for t in range(1, 5)]
+    assert client.bundles.counted == 12
+    assert [h.received for h in handles] == [0, 4] * 3
+    assert all(h.stream.undecodable == 0 and h.latest().tick == 4 for h in handles[1::2])
+    client.bundles.count_only(())
+    states = [(c, P.encode_predictive_state(5, 55, x, 0.001, e)) for c, e in zip(ids, encs, strict=True)]
+    client.bundles.receive(bytes(P.encode_bundle(5, 9, states)), 1005)
+    assert [h.received for h in handles] == [0, 5] * 3 and len(counted) == 4
+    assert all(h.stream.undecodable == 1 for h in handles[::2])  # no references: a keyframe is asked for
+
+
 def test_states_of_a_cloth_whose_reply_is_on_its_way_are_kept_for_it(rng, client):
     rx = client.bundles
     early = bundled_handle(client, "early", register=False)

@@ -149,6 +149,70 @@ def test_many_states_decode_at_once_as_each_alone(rng):
     assert together[2].undecodable > 0
 
 
+def test_like_cloths_decode_as_one_frame_as_each_alone(rng):
+    """Like cloths (one vertex count, a bundle's usual case) decode as one (C, n, 3) frame: the
+    same bytes as each stream alone, through keyframes at different ticks, a lost state, two
+    steps, blocks of 30 bits and more, and the cloths' order changing between bundles
+    (each stream's last two states are rows of earlier frames: used whole only in place)."""
+    from drape.client import protocol as Q
+
+    k, n = 9, 70
+    encs = [P.History() for _ in range(k)]
+    alone = [Q.StateStream(f"c{i}") for i in range(k)]
+    together = [Q.StateStream(f"c{i}") for i in range(k)]
+    x = [rng.uniform(-1, 1, (n, 3)).astype(np.float32) for _ in range(k)]
+    for tick in range(1, 14):
+        order = list(range(k)) if tick < 9 else list(rng.permutation(k))
+        payloads = []
+        for i in range(k):
+            jump = 1e6 if (tick + i) % 5 == 0 else 0.003  # blocks of 30+ bits now and then (clamped grid values)
+            x[i] = (x[i] + rng.normal(0, jump, (n, 3))).astype(np.float32)
+            step = 0.001 if i % 3 else 0.0025
+            key = tick == 1 or (tick + i) % 4 == 0
+            payloads.append(bytes(Q.encode_predictive_state(tick, 9, x[i], step, encs[i], key)))
+        if tick == 6:
+            alone[4].history.clear()
+            together[4].history.clear()
+        buf = bytearray()
+        offsets = []
+        for i in order:
+            offsets.append(len(buf))
+            buf += payloads[i] + bytes(-len(payloads[i]) % 8)
+        got = Q.decode_predictive_many(bytes(buf), offsets, [together[i] for i in order])
+        for g, i in zip(got, order, strict=True):
+            want = alone[i].decode(payloads[i])
+            assert (g is None) == (want is None), (tick, i)
+            if want is not None:
+                assert g.positions.tobytes() == want.positions.tobytes(), (tick, i)
+                assert g.positions.shape == (n, 3) and g.positions.dtype == np.float32
+    assert [s.undecodable for s in together] == [s.undecodable for s in alone]
+    assert together[4].undecodable > 0
+
+
+def test_a_broken_header_among_many_raises_as_alone(rng):
+    """A bundle's headers are checked all at once; one that breaks a reading rule raises the
+    error its state raises alone (the receiver then decodes each alone: only it is lost)."""
+    from drape.client import protocol as Q
+    from drape.client.protocol.state import STATE_HEADER_SIZE
+
+    x = rng.uniform(-1, 1, (40, 3)).astype(np.float32)
+    payloads = [bytearray(Q.encode_predictive_state(1, 9, x, 0.001, P.History(), True)) for _ in range(4)]
+    for where, value in ((STATE_HEADER_SIZE + 4, 7), (0, ord("X")), (STATE_HEADER_SIZE, 0)):
+        bad = [bytearray(p) for p in payloads]
+        bad[2][where] = value
+        if where == STATE_HEADER_SIZE:  # the step: 0.0 (not a positive number)
+            bad[2][where : where + 4] = bytes(4)
+        with pytest.raises(Q.ProtocolError) as alone:
+            Q.StateStream("c").decode(bytes(bad[2]))
+        buf, offsets = bytearray(), []
+        for p in bad:
+            offsets.append(len(buf))
+            buf += p + bytes(-len(p) % 8)
+        with pytest.raises(Q.ProtocolError) as many:
+            Q.decode_predictive_many(bytes(buf), offsets, [Q.StateStream(f"c{i}") for i in range(4)])
+        assert many.value.message == alone.value.message, where
+
+
 def test_the_predictive_vectors_both_ways():
     """tests/vectors/predictive.json: the stream's states decode, in order, to their values and
     re-encode from their inputs to the same bytes; the submit asks for the encoding and step."""

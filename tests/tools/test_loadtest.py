@@ -135,6 +135,45 @@ def test_clients_share_an_offered_load():
         lt.parse_loads("12x", "float32")
 
 
+def test_clients_decode_a_sample_of_big_predictive_loads():
+    """--decode-sample: as set, else (0, auto) one cloth in SAMPLED_DECODE for predictive loads over
+    AUTO_SAMPLE_ABOVE cloths with bundles, every cloth otherwise; each client gets it."""
+    from drape.server.tools.loadclient import AUTO_SAMPLE_ABOVE, SAMPLED_DECODE
+
+    big = AUTO_SAMPLE_ABOVE + 1
+    assert lt.LoadSpec(cloths=big, encoding="predictive").decode_one_in(big) == SAMPLED_DECODE
+    assert lt.LoadSpec(cloths=big, encoding="quant16").decode_one_in(big) == 1
+    assert lt.LoadSpec(cloths=big, encoding="predictive", bundle=False).decode_one_in(big) == 1
+    assert lt.LoadSpec(encoding="predictive").decode_one_in(AUTO_SAMPLE_ABOVE) == 1
+    assert lt.LoadSpec(decode_sample=4).decode_one_in(8) == 4
+    specs = lt.LoadSpec(clients=2, cloths=big, encoding="predictive").client_specs()
+    assert [c.decode_sample for c in specs] == [SAMPLED_DECODE] * 2
+
+
+def test_a_sampled_load_counts_every_state(tmp_path):
+    """Clients that decode one cloth in 2 (predictive states in bundles) count the others' states
+    from their headers: every state of the window is received or counted lost, as when all decode."""
+    spec = lt.LoadSpec(clients=1, cloths=4, size=8, seconds=1.5, iterations=2, encoding="predictive", decode_sample=2)
+    server = ServerProcess(
+        ["--tick-rate", "30", "--stats-period", "0.5", "--no-admission", "--solver", "workgroup"], server_id="lt-sample"
+    )
+    try:
+        stats = lt.StatsWatch(server.endpoint, server.server_id)
+        try:
+            report, results, _ = lt.run_load(spec, server.endpoint, server.server_id, server, stats, quiet=True)
+        finally:
+            stats.close()
+    finally:
+        assert server.stop() == 0, "drape serve did not stop cleanly"
+    assert report.cloths == 4 and report.decode_us["one_in"] == 2
+    assert results[0].extra["decoded_cloths"] == 2 and results[0].extra["decode_sample"] == 2
+    assert report.expected_states == 4 * report.ticks > 0
+    assert report.states == report.expected_states - report.lost and report.lost % 4 == 0
+    assert report.duplicated == 0 and report.out_of_order == 0
+    per_cloth = results[0].extra["per_cloth_states"]
+    assert len(per_cloth) == 4 and len(set(per_cloth)) == 1  # decoded and counted cloths alike
+
+
 def test_short_load_measures_only_its_window(tmp_path):
     """2 clients offer 3 cloths each to a server admitting 5: one submit is refused (counted by
     its code); the 5 admitted cloths receive every tick of the window."""

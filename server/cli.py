@@ -21,7 +21,7 @@ from drape.server import pip_hint, version
 from drape.server.service.process import logs
 
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("drape.server.tools.demo", "run a server and demo clients on loopback, write PNG frames and a GIF"),
+    "demo": ("drape.server.tools.demostages", "run a server and demo clients on loopback, write PNG frames and a GIF"),
     "serve": ("drape.server.service.process.daemon", "run the cloth server daemon"),
     "top": ("drape.server.tools.top", "live view of the servers on a Zenoh network, from their stats"),
     "bench": ("drape.server.tools.bench", "solver benchmarks (the talk's table and beyond)"),

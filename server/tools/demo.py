@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from .procs import ServerExited, ServerProcess, require_extra
+from .procs import ServerExited, ServerProcess
 
 log = logging.getLogger(__name__)
 
@@ -440,24 +440,6 @@ def render(
 # Command
 
 
-def configure(parser: argparse.ArgumentParser) -> None:
-    require_extra("server", "demo")
-    require_extra("tools", "demo")
-    parser.add_argument("--seconds", type=float, default=5.0, help="how long the clients run")
-    parser.add_argument("--out", type=Path, default=Path("out/demo"), help="where frames and the GIF go")
-    parser.add_argument("--fps", type=float, default=15.0, help="frames per second recorded and in the GIF")
-    parser.add_argument("--size", default="640x400", help="frame size WxH")
-    parser.add_argument("--port", type=int, default=0, help="server port on 127.0.0.1 (0: a free one)")
-    parser.add_argument("--solver", default=None, help="server solver (default: the server's)")
-    parser.add_argument("--device", default=None, help="OpenCL device for the server")
-    parser.add_argument(
-        "--stage",
-        default="three",
-        choices=["three", "crossing"],
-        help="three clients' cloths, or (demoscene) two characters whose capes brush past each other in one scene",
-    )
-
-
 class ClientFailed(RuntimeError):
     """A demo client process failed or did not get going (its server alive)."""
 
@@ -507,10 +489,7 @@ def _run_clients(server: ServerProcess, args: argparse.Namespace, out: Path) -> 
 
 
 def run(args: argparse.Namespace) -> int:
-    if getattr(args, "stage", "three") == "crossing":
-        from .demoscene import run as run_crossing
-
-        return run_crossing(args)
+    """The three-cloth stage (``drape demo``'s default, demostages.py)."""
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     # three small cloths: admission control (which refuses cloths while a busy machine stretches

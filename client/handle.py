@@ -21,6 +21,7 @@ import zenoh
 
 from . import protocol as P
 from .controls import SetOptions, collider, pin_changes, set_changes
+from .keyframes import KeyframeQueries
 from .protocol import ClothState, DrapeError, Unavailable
 from .rates import RateGovernor
 from .sending import ControlSender
@@ -38,11 +39,9 @@ class HandleOwner(Protocol):
     def session(self) -> zenoh.Session: ...  # its states and keyframe queries
     @property
     def sender(self) -> ControlSender: ...  # its controls, its requests, its moves record
+    @property
+    def keyframes(self) -> KeyframeQueries: ...  # its keyframe queries, one per key in a while
     def forget(self, handle: ClothHandle) -> None: ...  # it closed
-
-
-def _ignore_reply(_reply: zenoh.Reply) -> None:
-    """A keyframe query's answer: the keyframe itself comes as the stream's next state."""
 
 
 class ClothHandle:
@@ -94,7 +93,6 @@ class ClothHandle:
         self.clock = ServerClock()  # render times (client clock) as server times (smoothing.sample)
         self.gaps = 0
         self.keyframe_queries = 0
-        self._keyframe_asked = 0.0  # monotonic time of the last keyframe query
         self.closed = False
         self.close_reason = ""
         self.removing = False  # this client asked the server to remove it (controls sent before may find it gone)
@@ -203,17 +201,10 @@ class ClothHandle:
     def ask_keyframe(self, min_interval_s: float = 0.1) -> bool:
         """1.5: ask the server for a keyframe of this cloth's stream (a query on the key its
         states come on, not waited for); at most one every ``min_interval_s``. Whether asked."""
-        now = time.monotonic()
-        if now - self._keyframe_asked < min_interval_s:
-            return False
-        self._keyframe_asked = now
-        self.keyframe_queries += 1
         key = P.every_key(self.bundle_key or self.key, self.rate)
-        try:
-            self.client.session.get(key, _ignore_reply, timeout=1.0)
-        except Exception as e:  # the session closing
-            log.debug("keyframe query on %s failed: %s", key, e)
-            return False
+        if not self.client.keyframes.ask(self.client.session, key, min_interval_s):
+            return False  # asked lately, by this cloth or another of its bundle
+        self.keyframe_queries += 1
         return True
 
     def deliver(self, st: ClothState, now: float | None = None) -> None:

@@ -49,6 +49,7 @@ from .connection import ErrorCallback, Session
 from .controls import BatchError
 from .failover import Failover, FailoverCallback, FailoverEvent
 from .handle import ClothHandle, StateCallback
+from .keyframes import KeyframeQueries
 from .moves import MoveBook
 from .placement import PLACE_ELSEWHERE, Placement
 from .protocol import ClothState, DrapeError, Unavailable
@@ -144,6 +145,7 @@ class DrapeClient:
             self.cloths.by_id, self.cloths.lock, queue_size, self.keys.bundle(self.client_id), start, governed
         )
         self.sender = ControlSender(self.connection, MoveBook(self), self._cloth_not_found)
+        self.keyframes = KeyframeQueries()  # 1.5: one keyframe query per key in a while, for all its cloths
         self.submitter = Submitter(
             self, self.connection, self.placement, self.cloths, self.bundles, queue_size, (start, governed)
         )

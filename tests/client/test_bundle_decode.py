@@ -369,6 +369,33 @@ def test_cloths_counted_only_get_their_headers_and_the_others_their_states(rng, 
     assert all(h.stream.undecodable == 1 for h in handles[::2])  # no references: a keyframe is asked for
 
 
+def test_a_bundle_whose_cloths_all_miss_a_state_asks_one_keyframe(rng, client):
+    """Every cloth of a bundle that lost a state notices at once; one keyframe query on the
+    bundle's key answers them all (client/keyframes.py), so the client sends one, not one per
+    cloth, and the next within the interval from any of them is held back."""
+    ids = [random_id(rng) for _ in range(8)]
+    handles = [bundled_handle(client, c) for c in ids]
+    encs = [P.History() for _ in ids]
+    x = rng.uniform(-1, 1, (30, 3)).astype(np.float32)
+
+    def bundle(tick: int) -> bytes:
+        states = [
+            (c, P.encode_predictive_state(tick, 50 + tick, x, 0.001, e, tick == 1))
+            for c, e in zip(ids, encs, strict=True)
+        ]
+        return bytes(P.encode_bundle(tick, 9, states))
+
+    client.bundles.receive(bundle(1), 1001)
+    bundle(2)  # lost: never received
+    sent = client.keyframes.sent
+    client.bundles.receive(bundle(3), 1003)  # predicted from tick 2, which nobody here has
+    assert all(h.gaps == 1 for h in handles)
+    assert client.keyframes.sent == sent + 1  # one query for the bundle's eight cloths
+    assert sum(h.keyframe_queries for h in handles) == 1
+    assert not handles[-1].ask_keyframe()  # asked a moment ago, by another cloth of the bundle
+    assert handles[-1].ask_keyframe(0.0)  # unless asked regardless
+
+
 def test_states_of_a_cloth_whose_reply_is_on_its_way_are_kept_for_it(rng, client):
     rx = client.bundles
     early = bundled_handle(client, "early", register=False)

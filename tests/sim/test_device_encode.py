@@ -585,7 +585,10 @@ def test_predictive_frames_equal_the_host_encoder(device, rng, k, local_size, co
     and PredictiveStreams): keyframes at start and every interval, resets, keyframe requests,
     publications nobody watches, frames dropped, a step change (a new plan), bundles mixing
     encodings, normals; the compaction's work-group sizes, and (``short``) every frame's first
-    copy too short for it (the rest copied once its index is read)."""
+    copy too short for it (the rest copied once its index is read). A frame the publisher drops
+    whole is learned with the next one (as the service's tick thread does, before it steps
+    again): the streams go back, that frame is coded again against the last states sent and its
+    states are predicted, not keyframes (counted), as the host path's, which never coded it."""
     cloths, pos, nrm, pubs = _predictive_frame(rng, k)
     vel = [np.zeros_like(p) for p in pos]
     interval = 9
@@ -598,7 +601,8 @@ def test_predictive_frames_equal_the_host_encoder(device, rng, k, local_size, co
     plan = FramePlan.build(cloths, pubs)
     enc.set_plan(plan)
     ds.follow(plan)
-    keyframes = 0
+    keyframes = predicted_after_drop = drops = 0
+    drop_before: int | None = None  # the tick of the frame dropped last tick
     try:
         for tick in range(1, ticks + 1):
             if tick == ticks // 2:  # a new step for one cloth: a new plan, the streams go on
@@ -613,35 +617,48 @@ def test_predictive_frames_equal_the_host_encoder(device, rng, k, local_size, co
             time_ns = int(rng.integers(0, 2**63))
             flags = np.where(rng.random(k) < 0.05, P.FLAG_RESET, 0).astype(np.uint16)
             watched = sorted(rng.permutation(len(pubs))[: len(pubs) - int(rng.integers(0, 2))].tolist())
-            dropped = rng.random() < 0.1
-            ask = [] if dropped else [c.cloth for c in cloths if rng.random() < 0.05]
+            dropped = tick in (4, 7, 10) or rng.random() < 0.15
+            ask = [c.cloth for c in cloths if rng.random() < 0.05]
             ds.request(ask)  # in the service the device learns of them a frame later: here both at once
+            fe.streams.request(ask)  # a dropped frame's requests: kept for the next state on both paths
             P4, N4 = _world_arrays(rng, cloths, pos, nrm)
             pred, kf = ds.decide(tick, flags)
             enc.encode(device.queue, _buffer(device, P4), _buffer(device, N4), tick, time_ns, flags, predictive=pred)
+            after_drop = drop_before is not None
+            if drop_before is not None:  # the frame before was dropped: its streams taken back
+                drops += 1
+                if ds.dropped(drop_before):
+                    enc.forget(drop_before)
+                pred, kf = ds.redo(tick, flags)
+                enc.encode(
+                    device.queue, _buffer(device, P4), _buffer(device, N4), tick, time_ns, flags, predictive=pred
+                )
+                drop_before = None
             frame = enc.hold()
             # the frame read back is the wire bytes, back to back (each padded to 8 bytes)
             assert len(enc.read()) == sum(P.align8(len(v)) for v in frame.views)
             if dropped:  # the publisher dropped it: the host path never coded it
-                ds.lost(plan, np.flatnonzero(plan.predictive))
                 frame.release()
-                fe.streams.forget([c.cloth for c in cloths])  # both paths restart these streams
+                drop_before = tick
                 continue
-            fe.streams.request(ask)
             want = _host_predictive(fe, cloths, pos, nrm, pubs, tick, time_ns, flags, watched)
             got = dict(frame.payloads(watched))
             seen = np.zeros(len(pubs) + 1, bool)
             seen[watched] = True
             ds.lost(plan, np.flatnonzero(plan.predictive & ~seen[plan.owner]))
             keyframes += int((kf & seen[plan.owner]).sum())
+            if after_drop:
+                predicted_after_drop += int((plan.predictive & ~kf & seen[plan.owner]).sum())
             frame.release()
             assert sorted(got) == sorted(want)
             for j in watched:
                 _assert_same([got[j]], [want[j]], [pubs[j]])
         assert keyframes == fe.streams.keyframes
         assert keyframes > k  # keyframes came at start, on resets, requests, intervals, and after gaps
-        assert enc.compactor.frames == ticks  # every frame compacted on the device (counted, not timed)
-        assert enc.compactor.short == (ticks if short else enc.compactor.short)
+        assert drops > 0 and predicted_after_drop > 0  # the states after a dropped frame: predicted
+        encodes = ticks + drops  # a frame after a dropped one: coded twice
+        assert enc.compactor.frames == encodes  # every frame compacted on the device (counted, not timed)
+        assert enc.compactor.short == (encodes if short else enc.compactor.short)
     finally:
         enc.close()
 

@@ -7,12 +7,18 @@ The rules are statecodec's (:func:`~drape.server.sim.statecodec.keyframe_rule`,
 :func:`~drape.server.sim.statecodec.stream_phase`: one copy for both paths): a keyframe when a
 stream starts, every ``keyframe_interval`` ticks (at a phase of its own), after a reset, on a new
 step, when a subscriber asked (at most one every ``MIN_REQUESTED_GAP`` ticks) and after a tick
-its state was not put (nobody watched it, or the publisher dropped the frame: the decoders lack
-that state). The device encodes every published cloth every tick, right behind the step, before
-the publisher knows who watches; so what the publisher learns (requests, states not put) reaches
+its state was not put because nobody watched it (whoever subscribes next lacks that state). The
+device encodes every published cloth every tick, right behind the step, before the publisher
+knows who watches; so what the publisher learns (requests, states not put) reaches
 :class:`DeviceStreams` through :meth:`lost` and :meth:`request` (any thread) and applies from the
 next frame encoded. A state whose reference the decoders lack is dropped by them (its ref ticks
 say so; PROTOCOL.md 9.2), never shown.
+
+A frame the publisher drops whole (it had not taken it when the next one was back) is not a
+loss: the tick thread learns it with the next frame, before stepping again (:meth:`dropped`),
+the streams go back to where they were before the dropped tick (its requests and news kept),
+and the next frame's decision is taken again (:meth:`redo`) and coded again against the last
+states sent: a predicted state, as on the host path, where a dropped frame is never coded.
 
 A stream lives with its cloth id in the plan; it is carried across plans while the cloth keeps
 its vertex range (its history is indexed by the position buffer's vertices).
@@ -77,6 +83,7 @@ class DeviceStreams:
         self._lost: list[tuple[FramePlan, np.ndarray]] = []
         # the last decision, for redo: (tick, the state before it, requested and lost masks)
         self._last: tuple[int, _State, np.ndarray, np.ndarray] | None = None
+        self._prev: tuple[int, _State, np.ndarray, np.ndarray] | None = None  # the one before it
         self._kept: set[str] = set()
 
     # -- any thread -------------------------------------------------------------------------
@@ -110,8 +117,8 @@ class DeviceStreams:
             if j is not None and prev[j].vbase == c.vbase and prev[j].n == c.n:
                 rows.append(j)
                 at.append(i)
-        if rows:
-            old.take(np.array(rows, np.int64), new, np.array(at, np.int64))
+        r, a = np.array(rows, np.int64), np.array(at, np.int64)
+        old.take(r, new, a)
         self._ids = {c.cloth: i for i, c in enumerate(plan.cloths)}
         self._pred = plan.predictive & (plan.state_offset >= 0)
         new.valid &= self._pred
@@ -119,7 +126,16 @@ class DeviceStreams:
         self._steps = np.array([c.step for c in plan.cloths], np.float64)
         self._phase = np.array([zlib.crc32(c.cloth.encode()) for c in plan.cloths], np.int64)
         self._plan = plan
-        self._last = None
+        last = self._last  # the state before the last decision goes on too (if its frame is dropped)
+        if last is not None:
+            before = _State.empty(k)
+            last[1].take(r, before, a)
+            before.valid &= self._pred
+            masks = [np.zeros(k, bool), np.zeros(k, bool)]
+            for m, o in zip(masks, last[2:], strict=True):
+                m[a] = o[r]
+            self._last = (last[0], before, masks[0], masks[1])
+        self._prev = None
 
     def decide(self, tick: int, flags: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """This tick's (order, ref tick, ref2 tick) per plan cloth ((k, 3) uint64) and which
@@ -144,8 +160,25 @@ class DeviceStreams:
                     j = self._ids.get(plan.cloths[i].cloth)
                     if j is not None:
                         lost[j] = True
-        self._last = (tick, self._state, requested, lost)
+        self._prev, self._last = self._last, (tick, self._state, requested, lost)
         return self._decide(tick, flags)
+
+    def dropped(self, tick: int) -> bool:
+        """The frame of ``tick``, decided before the last one, was dropped whole (none of its
+        states went out): the streams go back to before it, the requests and news it took kept
+        for the last tick's decision, which the caller takes again (:meth:`redo`). False when
+        that cannot be (a plan changed in between): the last tick's states are then keyframes."""
+        last, prev = self._last, self._prev
+        if last is None:
+            return False
+        t, s, requested, lost = last
+        if prev is None or prev[0] != tick or len(prev[2]) != len(requested):
+            self._last = (t, s, requested, np.ones(len(requested), bool))
+            return False
+        _, ps, preq, plost = prev
+        self._last = (t, ps, preq | requested, plost | lost)
+        self._prev = None
+        return True
 
     def redo(self, tick: int, flags: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """The decision of the tick just decided again, with new flags (cloths reset after the

@@ -33,8 +33,12 @@ first row in a packed xyz buffer (``stride=3``). A frame's views stay valid unti
 publisher holds the frame it publishes while the next ones are encoded).
 
 Predictive states (protocol 1.5) are coded against the history the encoder keeps on the device
-(three buffers of grid values per position-buffer vertex, whose roles rotate per tick), with the
-order and reference ticks devstreams.DeviceStreams decides per tick (``encode(predictive=...)``).
+(:data:`HISTORY` buffers of grid values per position-buffer vertex, each holding one encoded
+tick's: the tick being coded, the frame before it whose fate the publisher has not told yet,
+and the two states the decoders hold before that, so that a frame the publisher drops is
+forgotten (:meth:`DeviceEncoder.forget`) and the next coded again against the states sent,
+as the host path does), with the order and reference ticks devstreams.DeviceStreams decides
+per tick (``encode(predictive=...)``: each buffer's role follows from them).
 Their size varies, so each is written into a slot of its largest size (the plan's layout stays
 fixed) and compact.py's :class:`~.compact.Compactor` (kernels/compact.cl, two more launches on
 the same queue) writes the frame's wire bytes back to back into a second buffer: the host copies
@@ -74,6 +78,8 @@ from .frameplan import (  # noqa: F401 (the plan's names, re-exported: encode.py
 )
 
 log = logging.getLogger(__name__)
+
+HISTORY = 4  # grid-value buffers: the tick coded, the frame before (its fate not yet told), the two sent
 
 MF = cl.mem_flags
 
@@ -221,14 +227,12 @@ class DeviceEncoder:
         self._flags_buf: cl.Buffer | None = None
         self._flags = np.zeros(0, np.uint16)
         # 1.5 predictive: per plan cloth (order, ref tick, ref2 tick) of this tick, and the grid
-        # values of the last three encoded ticks per position-buffer vertex (3 int32 each): this
-        # tick's, and the two states the decoders hold; their roles rotate once per new tick
+        # values of the last HISTORY encoded ticks per position-buffer vertex (3 int32 each)
         self._pred_buf: cl.Buffer | None = None
         self._pred = np.zeros((0, 3), np.uint64)
         self._hist: list[cl.Buffer] = []
         self._hist_cap = 0  # vertices
-        self._hist_tick: int | None = None
-        self._rot = 0
+        self._hist_of: dict[int, int] = {}  # tick -> the history buffer holding its grid values
         self._hosts: list[_HostFrame] = []
         self._next = 0
         self._last: _HostFrame | None = None
@@ -314,7 +318,7 @@ class DeviceEncoder:
         if self._hist and vertices <= self._hist_cap:
             return
         cap = max(vertices, 2 * self._hist_cap, 1)
-        new = [cl.Buffer(self.dev.ctx, MF.READ_WRITE, 12 * cap) for _ in range(3)]
+        new = [cl.Buffer(self.dev.ctx, MF.READ_WRITE, 12 * cap) for _ in range(HISTORY)]
         for old, nb in zip(self._hist, new, strict=False):
             cl.enqueue_copy(self.dev.queue, nb, old, byte_count=12 * self._hist_cap)
         self.dev.queue.finish()
@@ -405,10 +409,10 @@ class DeviceEncoder:
             if pr.shape != (k, 3):
                 raise ValueError(f"predictive of shape {pr.shape}; the plan has {k} cloths")
             self._pred = pr  # kept: the upload may still read it
+            roles = self._roles(tick, pr)
             events.append(cl.enqueue_copy(queue, self._pred_buf, pr, is_blocking=False))
-            if tick != self._hist_tick:
-                self._rot = (self._rot + 1) % 3
-                self._hist_tick = tick
+        else:
+            roles = (0, 0, 0)
         host = self._free_host()
         if host.event is not None:
             host.event.wait()  # its last copy (normally long done)
@@ -416,7 +420,6 @@ class DeviceEncoder:
         if n_rows:
             nb = normals if normals is not None else positions
             h = self._hist
-            r = self._rot
             self._kernel.set_args(
                 positions,
                 nb,
@@ -426,9 +429,9 @@ class DeviceEncoder:
                 np.uint64(time_ns),
                 self._out,
                 self._pred_buf,
-                h[r],
-                h[(r + 2) % 3],
-                h[(r + 1) % 3],
+                h[roles[0]],
+                h[roles[1]],
+                h[roles[2]],
             )
             ev = cl.enqueue_nd_range_kernel(
                 queue, self._kernel, (n_rows * self._wg,), (self._wg,), wait_for=events or None
@@ -455,6 +458,34 @@ class DeviceEncoder:
             host.event = cl.enqueue_marker(queue, wait_for=events or None)
         self._last = host
         return host.event
+
+    def _roles(self, tick: int, pred: np.ndarray) -> tuple[int, int, int]:
+        """The history buffers (this tick's, its reference's, its second reference's) for the
+        decisions ``pred``: every stream that predicts refers to the same ticks (each tick's
+        states all go out or none does). This tick's buffer is the one it had (coded again) or a
+        free one, else that of the oldest tick not referred to."""
+        order = pred[:, 0]
+        refs = [np.unique(pred[order >= 1, 1]), np.unique(pred[order >= 2, 2])]
+        if len(refs[0]) > 1 or len(refs[1]) > 1:
+            raise ValueError(f"predictive streams refer to different ticks {refs[0]} / {refs[1]}")
+        want = [int(r[0]) if len(r) else None for r in refs]
+        for t in want:
+            if t is not None and t not in self._hist_of:
+                raise ValueError(f"tick {t} is not in the encoder's history {sorted(self._hist_of)}")
+        cur = self._hist_of.get(tick)
+        if cur is None:
+            free = sorted(set(range(HISTORY)) - set(self._hist_of.values()))
+            if not free:
+                oldest = min(t for t in self._hist_of if t not in want)
+                free = [self._hist_of.pop(oldest)]
+            cur = self._hist_of[tick] = free[0]
+        r1, r2 = (self._hist_of[t] if t is not None else cur for t in want)
+        return cur, r1, r2
+
+    def forget(self, tick: int) -> None:
+        """The frame of ``tick`` was dropped (its states never went out): its history buffer is
+        free, and no later state refers to it."""
+        self._hist_of.pop(tick, None)
 
     def _free_host(self) -> _HostFrame:
         """The next host frame in turn that is not held; a new one when all are (a consumer

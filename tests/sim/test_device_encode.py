@@ -646,6 +646,7 @@ def test_predictive_frames_equal_the_host_encoder(device, rng, k, local_size, co
             seen = np.zeros(len(pubs) + 1, bool)
             seen[watched] = True
             ds.lost(plan, np.flatnonzero(plan.predictive & ~seen[plan.owner]))
+            ds.put(plan, np.flatnonzero(plan.predictive & seen[plan.owner]), tick)
             keyframes += int((kf & seen[plan.owner]).sum())
             if after_drop:
                 predicted_after_drop += int((plan.predictive & ~kf & seen[plan.owner]).sum())
@@ -659,6 +660,55 @@ def test_predictive_frames_equal_the_host_encoder(device, rng, k, local_size, co
         encodes = ticks + drops  # a frame after a dropped one: coded twice
         assert enc.compactor.frames == encodes  # every frame compacted on the device (counted, not timed)
         assert enc.compactor.short == (encodes if short else enc.compactor.short)
+    finally:
+        enc.close()
+
+
+def test_a_first_subscriber_never_gets_a_state_predicted_from_one_nobody_got(device, rng):
+    """The publisher's news come late (the service decides tick T + 1 before the publisher has
+    put T): a stream nobody watches at first, whose subscriber comes while its states go on,
+    sends keyframes until one of them is known to have gone out, then predicted states; the
+    subscriber decodes every state it gets (the flaky device-predictive test of
+    tests/service/test_published_bytes.py: one undecodable first state, then a keyframe)."""
+    cloths, pos, nrm, pubs = _predictive_frame(rng, 4, max_n=60)
+    cloths = [ClothEntry(c.cloth, c.vbase, c.n, P.ENC_PREDICTIVE, c.normals, 1e-3) for c in cloths]
+    plan = FramePlan.build(cloths, pubs)
+    vel = [np.zeros_like(p) for p in pos]
+    ds = DeviceStreams(keyframe_interval=1000)
+    enc = DeviceEncoder(device)
+    enc.set_plan(plan)
+    ds.follow(plan)
+    streams = {c.cloth: P.StateStream(c.cloth) for c in cloths}
+    news: tuple[int, np.ndarray] | None = None  # the last frame's (tick, put mask), told a tick late
+    every = list(range(len(pubs)))
+    try:
+        for tick in range(1, 13):
+            _move(rng, pos, vel)
+            P4, N4 = _world_arrays(rng, cloths, pos, nrm)
+            pred, _ = ds.decide(tick, None)
+            if news is not None:  # the frame before's, only now (after this tick was decided)
+                ds.lost(plan, np.flatnonzero(~news[1]))
+                ds.put(plan, np.flatnonzero(news[1]), news[0])
+            enc.encode(device.queue, _buffer(device, P4), _buffer(device, N4), tick, tick, None, predictive=pred)
+            frame = enc.hold()
+            watched = [] if tick == 1 else every  # the subscriber comes with the second state
+            got = dict(frame.payloads(watched))
+            frame.release()
+            shown = np.zeros(len(pubs) + 1, bool)
+            shown[watched] = True
+            news = (tick, shown[plan.owner])
+            for j, payload in got.items():
+                pub = pubs[j]
+                if pub.bundle:
+                    b = P.parse_bundle(payload)
+                    states = [(e.cloth, b.payload(i)) for i, e in enumerate(b.entries)]
+                else:
+                    states = [(cloths[pub.cloths[0]].cloth, payload)]
+                for cid, data in states:
+                    assert streams[cid].decode(data) is not None, (tick, cid)
+        published = [streams[cloths[i].cloth] for p in pubs for i in p.cloths]
+        assert published and all(s.undecodable == 0 and s.decoded == 11 for s in published)
+        assert all(1 < s.keyframes < 11 for s in published), [s.keyframes for s in published]  # then predicted
     finally:
         enc.close()
 
@@ -747,6 +797,7 @@ def test_predictive_closed_loop_with_lost_states_and_keyframe_requests(device, r
             frame = enc.hold()
             got = dict(frame.payloads(every))
             frame.release()
+            ds.put(plan, np.flatnonzero(plan.predictive), tick)
             asked = []
             for j, pub in enumerate(pubs):
                 if rng.random() < 0.03:

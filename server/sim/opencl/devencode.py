@@ -220,6 +220,7 @@ class DeviceWire(Wire):
             shown[np.asarray(watched, np.int64)] = True
             seen = shown[plan.owner]
             ds.lost(plan, np.flatnonzero(plan.predictive & ~seen))
+            ds.put(plan, np.flatnonzero(plan.predictive & seen), self.tick)
             streams.keyframes += int((self._keyframes & seen).sum())
         yield from enc.payloads(watched)
 

@@ -713,6 +713,42 @@ def test_a_first_subscriber_never_gets_a_state_predicted_from_one_nobody_got(dev
         enc.close()
 
 
+def test_rows_refer_to_history_ticks_of_their_own(device, rng):
+    """One launch, streams whose references differ per row (the groundwork of decimated streams,
+    docs/rates.md): half the cloths take every tick's state (references T - 1, T - 2), the
+    other half every second tick's (T - 2, T - 4), their decoders getting only those; every
+    state decodes within half a step (each row read its own history slots)."""
+    cloths, pos, nrm, pubs = _predictive_frame(rng, 6, max_n=80)
+    cloths = [ClothEntry(c.cloth, c.vbase, c.n, P.ENC_PREDICTIVE, c.normals, 1e-3) for c in cloths]
+    plan = FramePlan.build(cloths, [Publication(f"k/{i}", (i,)) for i in range(len(cloths))])
+    every = [1 + i % 2 for i in range(len(cloths))]
+    streams = [P.StateStream(c.cloth) for c in cloths]
+    vel = [np.zeros_like(p) for p in pos]
+    enc = DeviceEncoder(device)
+    enc.set_plan(plan)
+    try:
+        for tick in range(1, 14):
+            _move(rng, pos, vel)
+            P4, N4 = _world_arrays(rng, cloths, pos, nrm)
+            pred = np.zeros((len(cloths), 3), np.uint64)
+            for i, k in enumerate(every):
+                sent = (tick - 1) // k  # this stream's states before this tick's (ticks 1, 1 + k, ...)
+                if (tick - 1) % k == 0:
+                    pred[i] = (min(sent, 2), tick - k if sent >= 1 else 0, tick - 2 * k if sent >= 2 else 0)
+            enc.encode(device.queue, _buffer(device, P4), _buffer(device, N4), tick, tick, None, predictive=pred)
+            views = enc.slices()
+            for i, k in enumerate(every):
+                if (tick - 1) % k:
+                    continue
+                st = streams[i].decode(bytes(views[i]))
+                assert st is not None, (tick, i)
+                assert np.abs(st.positions - pos[i]).max() <= 5e-4 * (1 + 1e-5) + 1e-6 * np.abs(pos[i]).max()
+        assert [s.decoded for s in streams] == [13 if k == 1 else 7 for k in every]
+        assert all(s.keyframes == 1 for s in streams)
+    finally:
+        enc.close()
+
+
 def test_predictive_plan_with_nothing_published(device):
     """Predictive cloths in no publication (nobody subscribes yet): an empty frame, no launch of
     the compaction, no copy, nothing to publish."""

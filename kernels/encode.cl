@@ -24,9 +24,11 @@
  *
  *   predictive (1.5, PROTOCOL.md 9.2; byte-exact with drape.client.protocol.predictive.pack_frame):
  *            each vertex quantised on the step's grid (q = clamp(rint(x * inv_step)), float32
- *            product) into this tick's history buffer qcur (per position-buffer vertex, 3 ints);
+ *            product) into this tick's history slot qcur (per position-buffer vertex, 3 ints;
+ *            the history is slots of `hcap` vertices, each one tick's grid values, the row's
+ *            slots chosen per cloth by the host);
  *            the prediction of the order the host chose (0: none, 1: q1, 2: 2 q1 - q2 from the
- *            last two states the decoders hold, the buffers q1 and q2); the residual's
+ *            two states the decoders hold, the slots q1 and q2); the residual's
  *            neighbour difference zig-zagged; blocks of 32 symbols per axis, each block's width
  *            (bit length of the OR of its symbols), then every block's words at the offset the
  *            work-group's prefix sum of widths gives. A predictive state is written into a
@@ -53,6 +55,8 @@
 #define ENC_ROW_ENTRY 7      /* predictive: byte offset of its bundle entry's state size, or ENC_NONE */
 #define ENC_ROW_INVSTEP 8    /* predictive: float32 bits of 1 / step (predictive.inverse_step) */
 #define ENC_NONE 4294967295
+#define ENC_PRED_WORDS 4     /* predictive, per plan cloth (ulong): order, ref tick, ref2 tick, history slots */
+#define ENC_SLOT_BITS 8      /* the slots word: this tick's slot, ref's << 8, ref2's << 16 */
 
 /* Header field offsets and protocol constants come from drape.client.protocol (the one copy of
  * the wire layout): encode.py finds them in the protocol's structs and passes them as -D. */
@@ -220,10 +224,9 @@ __kernel void encode_frame(
     const ulong tick,
     const ulong time_ns,
     __global uchar *out,
-    __global const ulong *pred,        /* predictive: per plan cloth (order, ref tick, ref2 tick) */
-    __global int *qcur,                /* predictive: this tick's grid values, 3 per vertex */
-    __global const int *q1,            /* predictive: the decoders' last state, 3 per vertex */
-    __global const int *q2)            /* and the one before */
+    __global const ulong *pred,        /* predictive: per plan cloth ENC_PRED_WORDS */
+    __global int *hist,                /* predictive: history slots of hcap vertices, 3 ints each */
+    const uint hcap)
 {
     __local float4 lmin[ENC_WG];
     __local float4 lmax[ENC_WG];
@@ -297,7 +300,12 @@ __kernel void encode_frame(
     } else if (enc == ENC_PREDICTIVE) {
         const float inv = as_float(r[ENC_ROW_INVSTEP]);
         const uint ci = r[ENC_ROW_CLOTH];
-        const uint order = (uint)pred[3 * ci];
+        __global const ulong *pc = pred + ENC_PRED_WORDS * ci;
+        const uint order = (uint)pc[0];
+        const uint slots = (uint)pc[3], smask = (1u << ENC_SLOT_BITS) - 1;
+        __global int *qcur = hist + (size_t)3 * hcap * (slots & smask);
+        __global const int *q1 = hist + (size_t)3 * hcap * ((slots >> ENC_SLOT_BITS) & smask);
+        __global const int *q2 = hist + (size_t)3 * hcap * ((slots >> (2 * ENC_SLOT_BITS)) & smask);
         __global uchar *pd = st + PH_DATA;
         for (uint v = lid; v < n; v += ENC_WG)
             vstore3(quantise3(LOAD3(pos, vbase + v), inv), vbase + v, qcur);
@@ -354,7 +362,6 @@ __kernel void encode_frame(
                 vstore3(snorm4(load4(nrm, vbase + v)).xyz, v, on);
         }
         if (lid == 0) {
-            __global const ulong *pc = pred + 3 * ci;
             st[PH_ORDER] = (uchar)order;
             *(__global ulong *)(st + PH_REF1) = pc[1];
             *(__global ulong *)(st + PH_REF2) = pc[2];

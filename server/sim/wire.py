@@ -64,6 +64,13 @@ class Wire(ABC):
             if len(bad):
                 self.add_flags(bad, P.FLAG_RESET)
 
+    def after_dropped(self, older: Wire) -> None:
+        """On the tick thread, once this frame is back and before the next step: ``older``, the
+        frame before it, was dropped whole (the publisher never took it). Its reset flags are
+        carried; a device-encoded frame codes its predictive states again against the last
+        states sent (the host path codes them only when they are taken)."""
+        self.carry_flags(older)
+
     @abstractmethod
     def nonfinite(self) -> np.ndarray:
         """Frame indices of the cloths whose state is not finite."""

@@ -6,6 +6,7 @@ encoding and the step; the server's keyframes are counted."""
 from __future__ import annotations
 
 import threading
+import time
 
 import msgpack
 import numpy as np
@@ -197,3 +198,47 @@ def test_the_frame_encoder_writes_the_reference_bytes(rng):
     for k in keyframes:  # then one every 4 ticks at most apart, at the stream's own phase
         assert all(b - a <= 4 for a, b in zip(k, k[1:], strict=False))
     assert len({tuple(k[1:3]) for k in keyframes}) > 1  # not all in the same ticks
+
+
+@pytest.mark.parametrize("device_encode", [True, False], ids=["device", "host"])
+def test_frames_dropped_by_a_late_publisher_keep_the_stream_predicted(device_encode):
+    """Issue 21: a publisher late for a few ticks drops frames whole (counted ``skipped_frames``);
+    the states after each gap are predicted from the last states sent, on the device path as on
+    the host path: the subscriber decodes every one, none is a keyframe (the periodic keyframe
+    is out of reach here) and the server writes no more keyframes."""
+    server = Server(make_config(device_encode=device_encode, keyframe_interval=100_000)).start()
+    try:
+        c = connect(server)
+        try:
+            with c.submit_grid(12, 12, pinned=[0, 11], encoding="predictive", step=STEP) as h:
+                collect(h, 10)  # past its first keyframes (the device's until one is known sent)
+                first = h.stream.keyframes
+                publisher = server.publisher
+                publish, stalls = publisher.publish, [0]
+
+                def late(job) -> None:  # the publisher descheduled for 3 ticks, now and then
+                    stalls[0] += 1
+                    if stalls[0] % 8 == 0:
+                        time.sleep(0.05)
+                    publish(job)
+
+                skipped = server.registry.counters["skipped_frames"]
+                keyframes = server.registry.counters["keyframes"]
+                publisher.publish = late  # type: ignore[method-assign]
+                states = collect(h, 60)
+                publisher.publish = publish  # type: ignore[method-assign]
+                skipped = server.registry.counters["skipped_frames"] - skipped
+                ticks = [s.tick for s in states]
+                gaps = sum(b - a - 1 for a, b in zip(ticks, ticks[1:], strict=False))
+                assert skipped > 0 and gaps > 0, (skipped, ticks)
+                assert not any(s.extrapolated for s in states)
+                assert h.stream.undecodable == 0
+                assert h.stream.keyframes == first  # none since
+                assert server.registry.counters["keyframes"] == keyframes
+                on_device = getattr(server.ticker.world, "device_frames", None) is not None
+                assert on_device == device_encode
+        finally:
+            c.close()
+    finally:
+        server.stop()
+    assert server.failure is None

@@ -585,7 +585,10 @@ def test_predictive_frames_equal_the_host_encoder(device, rng, k, local_size, co
     and PredictiveStreams): keyframes at start and every interval, resets, keyframe requests,
     publications nobody watches, frames dropped, a step change (a new plan), bundles mixing
     encodings, normals; the compaction's work-group sizes, and (``short``) every frame's first
-    copy too short for it (the rest copied once its index is read)."""
+    copy too short for it (the rest copied once its index is read). A frame the publisher drops
+    whole is learned with the next one (as the service's tick thread does, before it steps
+    again): the streams go back, that frame is coded again against the last states sent and its
+    states are predicted, not keyframes (counted), as the host path's, which never coded it."""
     cloths, pos, nrm, pubs = _predictive_frame(rng, k)
     vel = [np.zeros_like(p) for p in pos]
     interval = 9
@@ -598,7 +601,8 @@ def test_predictive_frames_equal_the_host_encoder(device, rng, k, local_size, co
     plan = FramePlan.build(cloths, pubs)
     enc.set_plan(plan)
     ds.follow(plan)
-    keyframes = 0
+    keyframes = predicted_after_drop = drops = 0
+    drop_before: int | None = None  # the tick of the frame dropped last tick
     try:
         for tick in range(1, ticks + 1):
             if tick == ticks // 2:  # a new step for one cloth: a new plan, the streams go on
@@ -613,35 +617,134 @@ def test_predictive_frames_equal_the_host_encoder(device, rng, k, local_size, co
             time_ns = int(rng.integers(0, 2**63))
             flags = np.where(rng.random(k) < 0.05, P.FLAG_RESET, 0).astype(np.uint16)
             watched = sorted(rng.permutation(len(pubs))[: len(pubs) - int(rng.integers(0, 2))].tolist())
-            dropped = rng.random() < 0.1
-            ask = [] if dropped else [c.cloth for c in cloths if rng.random() < 0.05]
+            dropped = tick in (4, 7, 10) or rng.random() < 0.15
+            ask = [c.cloth for c in cloths if rng.random() < 0.05]
             ds.request(ask)  # in the service the device learns of them a frame later: here both at once
+            fe.streams.request(ask)  # a dropped frame's requests: kept for the next state on both paths
             P4, N4 = _world_arrays(rng, cloths, pos, nrm)
             pred, kf = ds.decide(tick, flags)
             enc.encode(device.queue, _buffer(device, P4), _buffer(device, N4), tick, time_ns, flags, predictive=pred)
+            after_drop = drop_before is not None
+            if drop_before is not None:  # the frame before was dropped: its streams taken back
+                drops += 1
+                if ds.dropped(drop_before):
+                    enc.forget(drop_before)
+                pred, kf = ds.redo(tick, flags)
+                enc.encode(
+                    device.queue, _buffer(device, P4), _buffer(device, N4), tick, time_ns, flags, predictive=pred
+                )
+                drop_before = None
             frame = enc.hold()
             # the frame read back is the wire bytes, back to back (each padded to 8 bytes)
             assert len(enc.read()) == sum(P.align8(len(v)) for v in frame.views)
             if dropped:  # the publisher dropped it: the host path never coded it
-                ds.lost(plan, np.flatnonzero(plan.predictive))
                 frame.release()
-                fe.streams.forget([c.cloth for c in cloths])  # both paths restart these streams
+                drop_before = tick
                 continue
-            fe.streams.request(ask)
             want = _host_predictive(fe, cloths, pos, nrm, pubs, tick, time_ns, flags, watched)
             got = dict(frame.payloads(watched))
             seen = np.zeros(len(pubs) + 1, bool)
             seen[watched] = True
             ds.lost(plan, np.flatnonzero(plan.predictive & ~seen[plan.owner]))
+            ds.put(plan, np.flatnonzero(plan.predictive & seen[plan.owner]), tick)
             keyframes += int((kf & seen[plan.owner]).sum())
+            if after_drop:
+                predicted_after_drop += int((plan.predictive & ~kf & seen[plan.owner]).sum())
             frame.release()
             assert sorted(got) == sorted(want)
             for j in watched:
                 _assert_same([got[j]], [want[j]], [pubs[j]])
         assert keyframes == fe.streams.keyframes
         assert keyframes > k  # keyframes came at start, on resets, requests, intervals, and after gaps
-        assert enc.compactor.frames == ticks  # every frame compacted on the device (counted, not timed)
-        assert enc.compactor.short == (ticks if short else enc.compactor.short)
+        assert drops > 0 and predicted_after_drop > 0  # the states after a dropped frame: predicted
+        encodes = ticks + drops  # a frame after a dropped one: coded twice
+        assert enc.compactor.frames == encodes  # every frame compacted on the device (counted, not timed)
+        assert enc.compactor.short == (encodes if short else enc.compactor.short)
+    finally:
+        enc.close()
+
+
+def test_a_first_subscriber_never_gets_a_state_predicted_from_one_nobody_got(device, rng):
+    """The publisher's news come late (the service decides tick T + 1 before the publisher has
+    put T): a stream nobody watches at first, whose subscriber comes while its states go on,
+    sends keyframes until one of them is known to have gone out, then predicted states; the
+    subscriber decodes every state it gets (the flaky device-predictive test of
+    tests/service/test_published_bytes.py: one undecodable first state, then a keyframe)."""
+    cloths, pos, nrm, pubs = _predictive_frame(rng, 4, max_n=60)
+    cloths = [ClothEntry(c.cloth, c.vbase, c.n, P.ENC_PREDICTIVE, c.normals, 1e-3) for c in cloths]
+    plan = FramePlan.build(cloths, pubs)
+    vel = [np.zeros_like(p) for p in pos]
+    ds = DeviceStreams(keyframe_interval=1000)
+    enc = DeviceEncoder(device)
+    enc.set_plan(plan)
+    ds.follow(plan)
+    streams = {c.cloth: P.StateStream(c.cloth) for c in cloths}
+    news: tuple[int, np.ndarray] | None = None  # the last frame's (tick, put mask), told a tick late
+    every = list(range(len(pubs)))
+    try:
+        for tick in range(1, 13):
+            _move(rng, pos, vel)
+            P4, N4 = _world_arrays(rng, cloths, pos, nrm)
+            pred, _ = ds.decide(tick, None)
+            if news is not None:  # the frame before's, only now (after this tick was decided)
+                ds.lost(plan, np.flatnonzero(~news[1]))
+                ds.put(plan, np.flatnonzero(news[1]), news[0])
+            enc.encode(device.queue, _buffer(device, P4), _buffer(device, N4), tick, tick, None, predictive=pred)
+            frame = enc.hold()
+            watched = [] if tick == 1 else every  # the subscriber comes with the second state
+            got = dict(frame.payloads(watched))
+            frame.release()
+            shown = np.zeros(len(pubs) + 1, bool)
+            shown[watched] = True
+            news = (tick, shown[plan.owner])
+            for j, payload in got.items():
+                pub = pubs[j]
+                if pub.bundle:
+                    b = P.parse_bundle(payload)
+                    states = [(e.cloth, b.payload(i)) for i, e in enumerate(b.entries)]
+                else:
+                    states = [(cloths[pub.cloths[0]].cloth, payload)]
+                for cid, data in states:
+                    assert streams[cid].decode(data) is not None, (tick, cid)
+        published = [streams[cloths[i].cloth] for p in pubs for i in p.cloths]
+        assert published and all(s.undecodable == 0 and s.decoded == 11 for s in published)
+        assert all(1 < s.keyframes < 11 for s in published), [s.keyframes for s in published]  # then predicted
+    finally:
+        enc.close()
+
+
+def test_rows_refer_to_history_ticks_of_their_own(device, rng):
+    """One launch, streams whose references differ per row (the groundwork of decimated streams,
+    docs/rates.md): half the cloths take every tick's state (references T - 1, T - 2), the
+    other half every second tick's (T - 2, T - 4), their decoders getting only those; every
+    state decodes within half a step (each row read its own history slots)."""
+    cloths, pos, nrm, pubs = _predictive_frame(rng, 6, max_n=80)
+    cloths = [ClothEntry(c.cloth, c.vbase, c.n, P.ENC_PREDICTIVE, c.normals, 1e-3) for c in cloths]
+    plan = FramePlan.build(cloths, [Publication(f"k/{i}", (i,)) for i in range(len(cloths))])
+    every = [1 + i % 2 for i in range(len(cloths))]
+    streams = [P.StateStream(c.cloth) for c in cloths]
+    vel = [np.zeros_like(p) for p in pos]
+    enc = DeviceEncoder(device)
+    enc.set_plan(plan)
+    try:
+        for tick in range(1, 14):
+            _move(rng, pos, vel)
+            P4, N4 = _world_arrays(rng, cloths, pos, nrm)
+            pred = np.zeros((len(cloths), 3), np.uint64)
+            for i, k in enumerate(every):
+                sent = (tick - 1) // k  # this stream's states before this tick's (ticks 1, 1 + k, ...)
+                if (tick - 1) % k == 0:
+                    pred[i] = (min(sent, 2), tick - k if sent >= 1 else 0, tick - 2 * k if sent >= 2 else 0)
+            enc.encode(device.queue, _buffer(device, P4), _buffer(device, N4), tick, tick, None, predictive=pred)
+            views = enc.slices()
+            for i, k in enumerate(every):
+                if (tick - 1) % k:
+                    continue
+                st = streams[i].decode(bytes(views[i]))
+                assert st is not None, (tick, i)
+                assert np.abs(st.positions - pos[i]).max() <= 5e-4 * (1 + 1e-5) + 1e-6 * np.abs(pos[i]).max()
+        assert [s.decoded for s in streams] == [13 if k == 1 else 7 for k in every]
+        assert all(s.keyframes == 1 for s in streams)
     finally:
         enc.close()
 
@@ -730,6 +833,7 @@ def test_predictive_closed_loop_with_lost_states_and_keyframe_requests(device, r
             frame = enc.hold()
             got = dict(frame.payloads(every))
             frame.release()
+            ds.put(plan, np.flatnonzero(plan.predictive), tick)
             asked = []
             for j, pub in enumerate(pubs):
                 if rng.random() < 0.03:

@@ -10,8 +10,10 @@ on the device (one ``bytes`` copy each). Publications whose key has no subscribe
 encoded or copied (counted ``unwatched``). The predictive streams (1.5) are kept here, with the
 keyframe requests of subscribers (:meth:`Publisher.request_keyframes`); the decimated keys of
 1.8 (every k-th state, their own streams) in :mod:`.rates`. A frame the publisher
-had not taken when the next one was ready is dropped and its replies carried over (counted
-``skipped_frames`` by the tick thread): the tick thread never waits for the network.
+had not taken when the next one was read back is dropped and its replies carried over (counted
+``skipped_frames`` by the tick thread, :meth:`Job.drop_older`, before it steps again: a
+device-encoded frame's predictive states are then coded again against the states sent): the
+tick thread never waits for the network.
 """
 
 from __future__ import annotations
@@ -57,6 +59,17 @@ class Job:
             self.wire.carry_flags(older.wire)  # a reset flag is not lost with its frame
         older.release()
 
+    def drop_older(self, older: Job) -> None:
+        """The tick thread, once this job's frame is back and before the next step: ``older``,
+        which the publisher never took, is dropped now (rather than when this job is handed
+        over), so that this frame's predictive states are coded again against the last states
+        sent (``Wire.after_dropped``) before the world moves on."""
+        if self.wire is not None and older.wire is not None:
+            self.wire.after_dropped(older.wire)
+            older.wire.release()
+            older.wire = None
+        self.absorb(older)
+
     def release(self) -> None:
         """Let the World reuse this job's host memory."""
         if self.wire is not None:
@@ -81,6 +94,12 @@ class Mailbox:
             self._job = job
             self._cond.notify()
             return coalesced
+
+    def withdraw(self) -> Job | None:
+        """The job the publisher has not taken yet, taken back (it is dropped), or None."""
+        with self._cond:
+            job, self._job = self._job, None
+            return job
 
     def take(self) -> Job | None:
         with self._cond:

@@ -174,6 +174,10 @@ class Ticker:
         self._wait_s = time.monotonic() - t
         job.wire = wire.hold()
         wire.set_time(time.time_ns())  # PROTOCOL.md: the server time is when the tick was read back
+        older = self.mailbox.withdraw()  # the frame before, not taken by the publisher: dropped now
+        if older is not None:
+            job.drop_older(older)
+            self.registry.count("skipped_frames")
         if len(self._reset_next):
             wire.add_flags(self._reset_next, P.FLAG_RESET)
             self._reset_next = np.zeros(0, np.int64)

@@ -141,6 +141,7 @@ class DeviceWire(Wire):
         self._bad = frames.encoder.nonfinite()
         self._keyframes = keyframes  # (k,) bool, predictive plans only
         self._put = False  # payloads taken (else, at release, its predictive states were lost)
+        self._dropped = False  # dropped whole and its streams taken back (after_dropped): nothing lost
 
     def set_time(self, time_ns: int) -> None:
         super().set_time(time_ns)
@@ -155,6 +156,22 @@ class DeviceWire(Wire):
             self.encoded, self._keyframes = self._frames.reencode(self.encoded, self.tick, self.time_ns, self.flags, [])
         else:
             self.encoded.add_flags(np.asarray(cloths).tolist(), flag)
+
+    def after_dropped(self, older: Wire) -> None:
+        """On the tick thread, before the next step (the world's positions are still this
+        frame's): the frame before, never taken by the publisher, is dropped whole; its streams
+        go back to the last states sent and this frame is coded again against them (a predicted
+        state, not a keyframe: what the host path sends), its reset flags carried."""
+        if not isinstance(older, DeviceWire) or older._keyframes is None or self._keyframes is None:
+            self.carry_flags(older)
+            return
+        older._dropped = True
+        frames = self._frames
+        if older.roster.version == self.roster.version:
+            Wire.add_flags(self, np.flatnonzero(older.flags & P.FLAG_RESET), P.FLAG_RESET)
+        if frames.streams.dropped(older.tick):
+            frames.encoder.forget(older.tick)
+        self.encoded, self._keyframes = frames.reencode(self.encoded, self.tick, self.time_ns, self.flags, [])
 
     def carry_flags(self, older: Wire) -> None:
         """On the publisher's thread: the header flags only (the older frame's predictive
@@ -203,11 +220,12 @@ class DeviceWire(Wire):
             shown[np.asarray(watched, np.int64)] = True
             seen = shown[plan.owner]
             ds.lost(plan, np.flatnonzero(plan.predictive & ~seen))
+            ds.put(plan, np.flatnonzero(plan.predictive & seen), self.tick)
             streams.keyframes += int((self._keyframes & seen).sum())
         yield from enc.payloads(watched)
 
     def release(self) -> None:
-        if not self._put and self._keyframes is not None:  # a dropped frame: its states never went out
+        if not self._put and not self._dropped and self._keyframes is not None:  # its states never went out
             plan = self.encoded.plan
             self._frames.streams.lost(plan, np.flatnonzero(plan.predictive))
         self._put = True

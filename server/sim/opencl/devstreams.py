@@ -7,12 +7,21 @@ The rules are statecodec's (:func:`~drape.server.sim.statecodec.keyframe_rule`,
 :func:`~drape.server.sim.statecodec.stream_phase`: one copy for both paths): a keyframe when a
 stream starts, every ``keyframe_interval`` ticks (at a phase of its own), after a reset, on a new
 step, when a subscriber asked (at most one every ``MIN_REQUESTED_GAP`` ticks) and after a tick
-its state was not put (nobody watched it, or the publisher dropped the frame: the decoders lack
-that state). The device encodes every published cloth every tick, right behind the step, before
-the publisher knows who watches; so what the publisher learns (requests, states not put) reaches
+its state was not put because nobody watched it (whoever subscribes next lacks that state). The
+device encodes every published cloth every tick, right behind the step, before the publisher
+knows who watches; so what the publisher learns (requests, states not put) reaches
 :class:`DeviceStreams` through :meth:`lost` and :meth:`request` (any thread) and applies from the
 next frame encoded. A state whose reference the decoders lack is dropped by them (its ref ticks
-say so; PROTOCOL.md 9.2), never shown.
+say so; PROTOCOL.md 9.2), never shown; so a stream that begins (a new cloth, a new subscriber
+after states nobody watched) sends keyframes until the publisher has told that one of its
+states went out (:meth:`put`): its first subscriber's first states are never undecodable (the
+frame after one the publisher found unwatched is decided before the publisher tells).
+
+A frame the publisher drops whole (it had not taken it when the next one was back) is not a
+loss: the tick thread learns it with the next frame, before stepping again (:meth:`dropped`),
+the streams go back to where they were before the dropped tick (its requests and news kept),
+and the next frame's decision is taken again (:meth:`redo`) and coded again against the last
+states sent: a predicted state, as on the host path, where a dropped frame is never coded.
 
 A stream lives with its cloth id in the plan; it is carried across plans while the cloth keeps
 its vertex range (its history is indexed by the position buffer's vertices).
@@ -45,24 +54,23 @@ class _State:
     since: np.ndarray  # int64, states since the keyframe, up to 2 (the order they allow)
     tick1: np.ndarray  # int64, ticks of the last two states
     tick2: np.ndarray
+    start: np.ndarray  # int64, the tick its chain began (its first keyframe after a start or a loss)
 
     @classmethod
     def empty(cls, k: int) -> _State:
         z = np.zeros(k, np.int64)
-        return cls(np.zeros(k, bool), np.full(k, _FAR, np.int64), np.zeros(k), z, z.copy(), z.copy())
-
-    def copy(self) -> _State:
-        return _State(*(a.copy() for a in (self.valid, self.key_tick, self.step, self.since, self.tick1, self.tick2)))
+        far = np.full(k, _FAR, np.int64)
+        return cls(np.zeros(k, bool), far, np.zeros(k), z, z.copy(), z.copy(), far.copy())
 
     def take(self, rows: np.ndarray, into: _State, at: np.ndarray) -> None:
-        for name in ("valid", "key_tick", "step", "since", "tick1", "tick2"):
+        for name in ("valid", "key_tick", "step", "since", "tick1", "tick2", "start"):
             getattr(into, name)[at] = getattr(self, name)[rows]
 
 
 class DeviceStreams:
     """The predictive streams of one device encoder's plans (the World's tick thread calls
-    :meth:`follow`, :meth:`decide` and :meth:`redo`; the publisher :meth:`lost` and
-    :meth:`request`)."""
+    :meth:`follow`, :meth:`decide`, :meth:`redo` and :meth:`dropped`; the publisher
+    :meth:`lost`, :meth:`put` and :meth:`request`)."""
 
     def __init__(self, keyframe_interval: int = 60) -> None:
         self.keyframe_interval = keyframe_interval
@@ -75,8 +83,11 @@ class DeviceStreams:
         self._lock = threading.Lock()
         self._requested: set[str] = set()
         self._lost: list[tuple[FramePlan, np.ndarray]] = []
+        self._put: list[tuple[FramePlan, np.ndarray, int]] = []
+        self._seen = np.zeros(0, np.int64)  # per plan cloth: the last tick its state was put
         # the last decision, for redo: (tick, the state before it, requested and lost masks)
         self._last: tuple[int, _State, np.ndarray, np.ndarray] | None = None
+        self._prev: tuple[int, _State, np.ndarray, np.ndarray] | None = None  # the one before it
         self._kept: set[str] = set()
 
     # -- any thread -------------------------------------------------------------------------
@@ -92,6 +103,15 @@ class DeviceStreams:
         if len(cloths):
             with self._lock:
                 self._lost.append((plan, np.asarray(cloths, np.int64)))
+
+    def put(self, plan: FramePlan, cloths: np.ndarray, tick: int) -> None:
+        """These plan cloths' states of ``tick`` (a frame of ``plan``) were put: a stream begun
+        on a keyframe is predicted only once one of its states is known to have gone out (the
+        publisher tells a frame later than the next one is decided, and a state predicted from
+        one nobody got is undecodable: a new subscriber's first states)."""
+        if len(cloths):
+            with self._lock:
+                self._put.append((plan, np.asarray(cloths, np.int64), tick))
 
     # -- the tick thread ----------------------------------------------------------------------
 
@@ -110,8 +130,11 @@ class DeviceStreams:
             if j is not None and prev[j].vbase == c.vbase and prev[j].n == c.n:
                 rows.append(j)
                 at.append(i)
-        if rows:
-            old.take(np.array(rows, np.int64), new, np.array(at, np.int64))
+        r, a = np.array(rows, np.int64), np.array(at, np.int64)
+        old.take(r, new, a)
+        seen = np.full(k, _FAR, np.int64)
+        seen[a] = self._seen[r]
+        self._seen = seen
         self._ids = {c.cloth: i for i, c in enumerate(plan.cloths)}
         self._pred = plan.predictive & (plan.state_offset >= 0)
         new.valid &= self._pred
@@ -119,7 +142,16 @@ class DeviceStreams:
         self._steps = np.array([c.step for c in plan.cloths], np.float64)
         self._phase = np.array([zlib.crc32(c.cloth.encode()) for c in plan.cloths], np.int64)
         self._plan = plan
-        self._last = None
+        last = self._last  # the state before the last decision goes on too (if its frame is dropped)
+        if last is not None:
+            before = _State.empty(k)
+            last[1].take(r, before, a)
+            before.valid &= self._pred
+            masks = [np.zeros(k, bool), np.zeros(k, bool)]
+            for m, o in zip(masks, last[2:], strict=True):
+                m[a] = o[r]
+            self._last = (last[0], before, masks[0], masks[1])
+        self._prev = None
 
     def decide(self, tick: int, flags: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """This tick's (order, ref tick, ref2 tick) per plan cloth ((k, 3) uint64) and which
@@ -130,6 +162,8 @@ class DeviceStreams:
             self._requested = set()
             lost_in = self._lost
             self._lost = []
+            put_in = self._put
+            self._put = []
         requested = np.zeros(k, bool)
         for c in asked:
             i = self._ids.get(c)
@@ -137,15 +171,36 @@ class DeviceStreams:
                 requested[i] = True
         lost = np.zeros(k, bool)
         for plan, idx in lost_in:
-            if plan is self._plan:
-                lost[idx] = True
-            else:  # a frame of an earlier plan: by id
-                for i in idx.tolist():
-                    j = self._ids.get(plan.cloths[i].cloth)
-                    if j is not None:
-                        lost[j] = True
-        self._last = (tick, self._state, requested, lost)
+            lost[self._rows(plan, idx)] = True
+        for plan, idx, t in put_in:
+            at = self._rows(plan, idx)
+            self._seen[at] = np.maximum(self._seen[at], t)
+        self._prev, self._last = self._last, (tick, self._state, requested, lost)
         return self._decide(tick, flags)
+
+    def _rows(self, plan: FramePlan, idx: np.ndarray) -> np.ndarray:
+        """This plan's rows of ``plan``'s cloths ``idx`` (an earlier plan's: by id)."""
+        if plan is self._plan:
+            return idx
+        got = [self._ids.get(plan.cloths[i].cloth) for i in idx.tolist()]
+        return np.array([j for j in got if j is not None], np.int64)
+
+    def dropped(self, tick: int) -> bool:
+        """The frame of ``tick``, decided before the last one, was dropped whole (none of its
+        states went out): the streams go back to before it, the requests and news it took kept
+        for the last tick's decision, which the caller takes again (:meth:`redo`). False when
+        that cannot be (a plan changed in between): the last tick's states are then keyframes."""
+        last, prev = self._last, self._prev
+        if last is None:
+            return False
+        t, s, requested, lost = last
+        if prev is None or prev[0] != tick or len(prev[2]) != len(requested):
+            self._last = (t, s, requested, np.ones(len(requested), bool))
+            return False
+        _, ps, preq, plost = prev
+        self._last = (t, ps, preq | requested, plost | lost)
+        self._prev = None
+        return True
 
     def redo(self, tick: int, flags: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """The decision of the tick just decided again, with new flags (cloths reset after the
@@ -160,6 +215,8 @@ class DeviceStreams:
         pred = self._pred
         k = len(pred)
         new = ~s.valid | lost
+        # a chain none of whose states is known to have gone out: keyframes until one is
+        unsure = pred & ~new & (self._seen < s.start)
         key_tick = np.where(new, _FAR, s.key_tick)
         old_step = np.where(new, 0.0, s.step)
         since = np.where(new, 0, s.since)
@@ -167,7 +224,8 @@ class DeviceStreams:
         keyframe, kept = keyframe_rule(tick, key_tick, self._steps, old_step, reset, requested, self.keyframe_interval)
         keyframe &= pred
         kept &= pred
-        order = np.where(keyframe, 0, np.minimum(since, 2))
+        intra = keyframe | unsure
+        order = np.where(intra, 0, np.minimum(since, 2))
         out = np.zeros((k, 3), np.uint64)
         out[:, 0] = order
         out[:, 1] = np.where(order >= 1, s.tick1, 0)
@@ -178,10 +236,11 @@ class DeviceStreams:
             pred.copy(),
             key_tick,
             self._steps.copy(),
-            np.where(keyframe, 1, np.minimum(since + 1, 2)),
+            np.where(intra, 1, np.minimum(since + 1, 2)),
             np.full(k, tick, np.int64),
-            np.where(keyframe, 0, s.tick1),
+            np.where(intra, 0, s.tick1),
+            np.where(new, tick, s.start),
         )
         plan = self._plan
         self._kept = {plan.cloths[i].cloth for i in np.flatnonzero(kept).tolist()} if plan is not None else set()
-        return out, keyframe
+        return out, intra

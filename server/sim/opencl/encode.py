@@ -33,8 +33,13 @@ first row in a packed xyz buffer (``stride=3``). A frame's views stay valid unti
 publisher holds the frame it publishes while the next ones are encoded).
 
 Predictive states (protocol 1.5) are coded against the history the encoder keeps on the device
-(three buffers of grid values per position-buffer vertex, whose roles rotate per tick), with the
-order and reference ticks devstreams.DeviceStreams decides per tick (``encode(predictive=...)``).
+(one buffer of :data:`HISTORY` slots of grid values per position-buffer vertex, each slot
+one encoded tick's: the tick being coded, the frame before it whose fate the publisher has not
+told yet, and the two states the decoders hold before that, so that a frame the publisher drops
+is forgotten (:meth:`DeviceEncoder.forget`) and the next coded again against the states sent,
+as the host path does), with the order and reference ticks devstreams.DeviceStreams decides
+per tick (``encode(predictive=...)``); each row's slots follow from its own reference ticks
+(uploaded with them), so streams referring to different ticks share one launch.
 Their size varies, so each is written into a slot of its largest size (the plan's layout stays
 fixed) and compact.py's :class:`~.compact.Compactor` (kernels/compact.cl, two more launches on
 the same queue) writes the frame's wire bytes back to back into a second buffer: the host copies
@@ -74,6 +79,10 @@ from .frameplan import (  # noqa: F401 (the plan's names, re-exported: encode.py
 )
 
 log = logging.getLogger(__name__)
+
+HISTORY = 4  # grid-value slots: the tick coded, the frame before (its fate not yet told), the two sent
+_PRED_WORDS = encode_layout()["ENC_PRED_WORDS"]  # per plan cloth: order, ref ticks, history slots
+_SLOT_BITS = encode_layout()["ENC_SLOT_BITS"]
 
 MF = cl.mem_flags
 
@@ -221,14 +230,12 @@ class DeviceEncoder:
         self._flags_buf: cl.Buffer | None = None
         self._flags = np.zeros(0, np.uint16)
         # 1.5 predictive: per plan cloth (order, ref tick, ref2 tick) of this tick, and the grid
-        # values of the last three encoded ticks per position-buffer vertex (3 int32 each): this
-        # tick's, and the two states the decoders hold; their roles rotate once per new tick
+        # values of the last HISTORY encoded ticks per position-buffer vertex (3 int32 each)
         self._pred_buf: cl.Buffer | None = None
-        self._pred = np.zeros((0, 3), np.uint64)
-        self._hist: list[cl.Buffer] = []
+        self._pred = np.zeros((0, 4), np.uint64)
+        self._hist: cl.Buffer | None = None  # HISTORY slots of _hist_cap vertices (encode.cl's hist)
         self._hist_cap = 0  # vertices
-        self._hist_tick: int | None = None
-        self._rot = 0
+        self._hist_of: dict[int, int] = {}  # tick -> the history buffer holding its grid values
         self._hosts: list[_HostFrame] = []
         self._next = 0
         self._last: _HostFrame | None = None
@@ -287,7 +294,7 @@ class DeviceEncoder:
         table = cl.Buffer(ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=rows)
         flags = np.zeros(max(len(plan.cloths), 1), np.uint16)
         flags_buf = cl.Buffer(ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=flags)
-        pred_buf = cl.Buffer(ctx, MF.READ_ONLY, 24 * max(len(plan.cloths), 1))
+        pred_buf = cl.Buffer(ctx, MF.READ_ONLY, 8 * _PRED_WORDS * max(len(plan.cloths), 1))
         self._grow_history(plan.vertex_end if plan.predictive.any() else 0)
         compact = bool(plan.predictive.any())
         if compact:
@@ -295,7 +302,7 @@ class DeviceEncoder:
         self._compact = compact
         hosts = [self._host_frame(plan) for _ in range(self._host_buffers)]
         self._release_hosts()
-        self._pred_buf, self._pred = pred_buf, np.zeros((0, 3), np.uint64)
+        self._pred_buf, self._pred = pred_buf, np.zeros((0, _PRED_WORDS), np.uint64)
         self._kernel, self._wg, self._out, self._table = kernel, wg, out, table
         self._flags, self._flags_buf = flags, flags_buf
         self._hosts, self._next = hosts, 0
@@ -311,12 +318,16 @@ class DeviceEncoder:
     def _grow_history(self, vertices: int) -> None:
         """The predictive history buffers hold ``vertices`` position-buffer vertices (grown,
         their contents kept: the streams go on across plans)."""
-        if self._hist and vertices <= self._hist_cap:
+        if self._hist is not None and vertices <= self._hist_cap:
             return
         cap = max(vertices, 2 * self._hist_cap, 1)
-        new = [cl.Buffer(self.dev.ctx, MF.READ_WRITE, 12 * cap) for _ in range(3)]
-        for old, nb in zip(self._hist, new, strict=False):
-            cl.enqueue_copy(self.dev.queue, nb, old, byte_count=12 * self._hist_cap)
+        new = cl.Buffer(self.dev.ctx, MF.READ_WRITE, 12 * cap * HISTORY)
+        if self._hist is not None:
+            old = 12 * self._hist_cap
+            for slot in range(HISTORY):
+                cl.enqueue_copy(
+                    self.dev.queue, new, self._hist, byte_count=old, src_offset=slot * old, dst_offset=slot * 12 * cap
+                )
         self.dev.queue.finish()
         self._hist, self._hist_cap = new, cap
 
@@ -401,22 +412,20 @@ class DeviceEncoder:
             assert self._pred_buf is not None
             if predictive is None:
                 raise ValueError("the plan has predictive cloths: give each its order and reference ticks")
-            pr = np.ascontiguousarray(predictive, np.uint64)
-            if pr.shape != (k, 3):
-                raise ValueError(f"predictive of shape {pr.shape}; the plan has {k} cloths")
+            given = np.asarray(predictive, np.uint64)
+            if given.shape != (k, 3):
+                raise ValueError(f"predictive of shape {given.shape}; the plan has {k} cloths")
+            pr = np.zeros((k, _PRED_WORDS), np.uint64)
+            pr[:, :3] = given
+            pr[:, 3] = self._slots(tick, given)
             self._pred = pr  # kept: the upload may still read it
             events.append(cl.enqueue_copy(queue, self._pred_buf, pr, is_blocking=False))
-            if tick != self._hist_tick:
-                self._rot = (self._rot + 1) % 3
-                self._hist_tick = tick
         host = self._free_host()
         if host.event is not None:
             host.event.wait()  # its last copy (normally long done)
         n_rows = len(plan.rows)
         if n_rows:
             nb = normals if normals is not None else positions
-            h = self._hist
-            r = self._rot
             self._kernel.set_args(
                 positions,
                 nb,
@@ -426,9 +435,8 @@ class DeviceEncoder:
                 np.uint64(time_ns),
                 self._out,
                 self._pred_buf,
-                h[r],
-                h[(r + 2) % 3],
-                h[(r + 1) % 3],
+                self._hist,
+                np.uint32(self._hist_cap),
             )
             ev = cl.enqueue_nd_range_kernel(
                 queue, self._kernel, (n_rows * self._wg,), (self._wg,), wait_for=events or None
@@ -455,6 +463,38 @@ class DeviceEncoder:
             host.event = cl.enqueue_marker(queue, wait_for=events or None)
         self._last = host
         return host.event
+
+    def _slots(self, tick: int, pred: np.ndarray) -> np.ndarray:
+        """Each plan cloth's history slots for the decisions ``pred`` (k, 3): this tick's (the
+        one it had when coded again, else a free one, else the oldest tick's that no row refers
+        to) and those of its two reference ticks (per row: streams may refer to different
+        ticks), packed as encode.cl's ``ENC_SLOT_BITS`` fields."""
+        order = pred[:, 0]
+        r1, r2 = order >= 1, order >= 2
+        want = set(np.unique(pred[r1, 1]).tolist()) | set(np.unique(pred[r2, 2]).tolist())
+        missing = sorted(t for t in want if t not in self._hist_of)
+        if missing:
+            raise ValueError(f"ticks {missing} are not in the encoder's history {sorted(self._hist_of)}")
+        cur = self._hist_of.get(tick)
+        if cur is None:
+            free = sorted(set(range(HISTORY)) - set(self._hist_of.values()))
+            if not free:
+                oldest = min((t for t in self._hist_of if t not in want), default=None)
+                if oldest is None:
+                    raise ValueError(f"{HISTORY} history slots, all referred to: {sorted(want)}")
+                free = [self._hist_of.pop(oldest)]
+            cur = self._hist_of[tick] = free[0]
+        ticks = np.array(sorted(self._hist_of), np.uint64)
+        slot_of = np.array([self._hist_of[t] for t in ticks.tolist()], np.uint64)
+        s1 = np.where(r1, slot_of[np.searchsorted(ticks, pred[:, 1]).clip(0, len(ticks) - 1)], cur)
+        s2 = np.where(r2, slot_of[np.searchsorted(ticks, pred[:, 2]).clip(0, len(ticks) - 1)], cur)
+        bits = np.uint64(_SLOT_BITS)
+        return np.uint64(cur) | (s1.astype(np.uint64) << bits) | (s2.astype(np.uint64) << (bits + bits))
+
+    def forget(self, tick: int) -> None:
+        """The frame of ``tick`` was dropped (its states never went out): its history buffer is
+        free, and no later state refers to it."""
+        self._hist_of.pop(tick, None)
 
     def _free_host(self) -> _HostFrame:
         """The next host frame in turn that is not held; a new one when all are (a consumer

@@ -485,7 +485,8 @@ typedef struct DrapePredictiveCounters {
   // `drape_cloth_counters`' `received` counts them; with them,
   // `read + replaced + missed + unread + undecodable == ticks`.
   uint64_t undecodable;
-  // Keyframe queries this client sent for the cloth (at most one per 100 ms).
+  // Keyframe queries this client sent for the cloth (one per query key at most every 100 ms
+  // for the whole client: of a bundle's cloths missing one state, one asks).
   uint64_t keyframe_requests;
 } DrapePredictiveCounters;
 

@@ -108,9 +108,11 @@ fn predictive_cloths_decode_resync_and_switch() {
     // A forced gap: nothing shown until the keyframe asked for; then it decodes again.
     for cloth in [&pred, &bundled] {
         let before = cloth.state_counters();
+        let sent = client.keyframe_queries();
         cloth.forget_predictive_stream();
         let k = wait_counters(cloth, "a keyframe after the gap", |k| k.keyframes > before.keyframes && k.decoded > before.decoded + 5);
         assert!(k.undecodable > before.undecodable && k.keyframe_requests > before.keyframe_requests, "{k:?}");
+        assert!(client.keyframe_queries() > sent, "the client counts the queries it sent");
         eprintln!("after the gap ({}): {k:?}", if cloth.bundled() { "bundled" } else { "own key" });
         assert_eq!(k.read + k.replaced + k.missed + k.unread + k.undecodable, k.ticks, "{k:?}");
     }

@@ -96,7 +96,9 @@ pub struct Counters {
     /// 1.5: states received but predicted from one this client lacks (a state lost, a late
     /// join): not shown (the last state stays) while the cloth waits for a keyframe.
     pub undecodable: u64,
-    /// 1.5: keyframe queries sent (at most one per 100 ms per cloth).
+    /// 1.5: keyframe queries sent for it (one per query key at most every 100 ms for the whole
+    /// client: of a bundle's cloths missing one state, one asks; `Client::keyframe_queries`:
+    /// all of them).
     pub keyframe_requests: u64,
 }
 

@@ -11,6 +11,7 @@
 mod cloth;
 mod controls;
 mod failover;
+mod keyframes;
 mod moves;
 mod placement;
 mod predictive;
@@ -178,6 +179,8 @@ pub(crate) struct Inner {
     /// 1.8: the rate later submissions start at, and the bundle subscription's rate.
     pub(crate) rate: Mutex<crate::rates::Rate>,
     pub(crate) bundle_rate: Mutex<rates::SubRate>,
+    /// 1.5: the keyframe queries sent, one per key in a while for all its cloths.
+    pub(crate) keyframes: keyframes::KeyframeQueries,
     /// Requests not waited for are handed to this client's sender thread, which gives them to
     /// Zenoh: the caller (a game thread) never waits on Zenoh's locks or transmission queue.
     sender: std::sync::mpsc::Sender<SendJob>,
@@ -300,6 +303,7 @@ impl Client {
             bundle_sub: Mutex::new(None),
             rate: Mutex::new(opts.rate),
             bundle_rate: Mutex::new(rates::SubRate::new(opts.rate)),
+            keyframes: keyframes::KeyframeQueries::default(),
             sender,
             sends,
             watch: Mutex::new(None),

@@ -5,15 +5,11 @@
 //! state predicted from one this client lacks (a state lost, a late join) is not shown: the
 //! cloth keeps its last state, counts the gap and asks the server for a keyframe with a Zenoh
 //! query on the key its states come on (what the Python SDK's `ClothHandle.ask_keyframe` sends;
-//! the server's `publish/keyframes.py` answers it), at most one every `KEYFRAME_QUERY_INTERVAL`.
+//! the server's `publish/keyframes.py` answers it), at most one per key in a while for the whole
+//! client (`keyframes.rs`: a bundle's cloths share its key and one query).
 use super::recv::{Buf, Latest};
 use crate::wire::PredictiveStream;
 use std::sync::Arc;
-use std::time::{Duration, Instant};
-use zenoh::{Session, Wait};
-
-/// The least time between two keyframe queries of one cloth (the Python SDK's 0.1 s).
-pub(crate) const KEYFRAME_QUERY_INTERVAL: Duration = Duration::from_millis(100);
 
 /// One cloth's predictive stream as this client rebuilt it (reset with each placement).
 #[derive(Default)]
@@ -21,7 +17,6 @@ pub(crate) struct Pred {
     stream: PredictiveStream,
     /// The tick of the newest state decoded (0: none yet).
     last_tick: u64,
-    asked: Option<Instant>,
 }
 
 /// What became of a delivered predictive state.
@@ -39,12 +34,11 @@ pub(crate) enum Outcome {
 impl Pred {
     /// A new placement's stream: nothing held (its first state must be a keyframe).
     pub(crate) fn reset(&mut self) {
-        let asked = self.asked;
-        *self = Pred { asked, ..Pred::default() };
+        *self = Pred::default();
     }
 
-    /// Drop the states held, keeping the newest tick (a later state is not stale) and the
-    /// query time: the next predicted state is a gap.
+    /// Drop the states held, keeping the newest tick (a later state is not stale): the next
+    /// predicted state is a gap.
     pub(crate) fn forget(&mut self) {
         self.stream = PredictiveStream::new();
     }
@@ -65,29 +59,12 @@ impl Pred {
             Err(_) => Outcome::Invalid,
         }
     }
-
-    /// Whether a keyframe query may be sent now (at most one per `KEYFRAME_QUERY_INTERVAL`);
-    /// if so, the time is noted.
-    pub(crate) fn may_ask(&mut self) -> bool {
-        let now = Instant::now();
-        if self.asked.is_some_and(|t| now.duration_since(t) < KEYFRAME_QUERY_INTERVAL) {
-            return false;
-        }
-        self.asked = Some(now);
-        true
-    }
-}
-
-/// Ask the server for a keyframe of the stream on `key` (the cloth's state key or its client's
-/// bundle key): a query without payload, its reply ignored (the keyframe comes as the stream's
-/// next state). Never waits for the reply.
-pub(crate) fn ask_keyframe(session: &Session, key: &str) -> bool {
-    session.get(key).callback(|_| {}).timeout(Duration::from_secs(1)).wait().is_ok()
 }
 
 #[cfg(test)]
 mod tests {
     use super::super::cloth::{ClothInner, Status};
+    use super::super::keyframes::{KeyframeQueries, KEYFRAME_QUERY_INTERVAL};
     use super::super::recv::deliver;
     use super::*;
     use crate::wire::{decode_state_into, Grid, Shape, Submit};
@@ -132,8 +109,9 @@ mod tests {
     fn states_decode_in_order_on_delivery() {
         let vs = vectors();
         let c = cloth();
+        let q = KeyframeQueries::default();
         for (data, _) in &vs {
-            assert_eq!(deliver(&c, latest(data)), None);
+            assert_eq!(deliver(&c, &q, latest(data)), None);
         }
         let got = unread(&c);
         assert_eq!(got.iter().map(|x| x.0).collect::<Vec<_>>(), vec![100, 101, 102, 103, 104]);
@@ -143,7 +121,7 @@ mod tests {
         let k = c.slot.lock().unwrap().counters;
         assert_eq!((k.received, k.decoded, k.keyframes, k.undecodable, k.keyframe_requests), (5, 5, 2, 0, 0));
         // delivered again: stale, counted once
-        deliver(&c, latest(&vs[3].0));
+        deliver(&c, &q, latest(&vs[3].0));
         assert_eq!(c.slot.lock().unwrap().counters.stale, 1);
     }
 
@@ -151,11 +129,12 @@ mod tests {
     fn a_gap_waits_for_a_keyframe_and_asks_once() {
         let vs = vectors();
         let c = cloth();
-        deliver(&c, latest(&vs[0].0));
+        let q = KeyframeQueries::default();
+        deliver(&c, &q, latest(&vs[0].0));
         // 101 lost: 102 and 103 cannot be decoded; a keyframe is asked once (rate limit)
-        assert_eq!(deliver(&c, latest(&vs[2].0)).as_deref(), Some("drape/cloth/x/state"));
-        assert_eq!(deliver(&c, latest(&vs[3].0)), None);
-        deliver(&c, latest(&vs[4].0));
+        assert_eq!(deliver(&c, &q, latest(&vs[2].0)).as_deref(), Some("drape/cloth/x/state"));
+        assert_eq!(deliver(&c, &q, latest(&vs[3].0)), None);
+        deliver(&c, &q, latest(&vs[4].0));
         let got = unread(&c);
         assert_eq!(got.iter().map(|x| x.0).collect::<Vec<_>>(), vec![100, 104], "nothing shown between");
         assert_eq!(got[1].1, vs[4].1);
@@ -166,7 +145,33 @@ mod tests {
         // a late joiner (nothing held): asks again once the interval has passed
         let late = cloth();
         std::thread::sleep(KEYFRAME_QUERY_INTERVAL);
-        assert!(deliver(&late, latest(&vs[1].0)).is_some());
+        assert!(deliver(&late, &q, latest(&vs[1].0)).is_some());
         assert!(unread(&late).is_empty());
+        assert_eq!(q.sent(), 2);
+    }
+
+    #[test]
+    fn a_bundle_whose_cloths_all_miss_a_state_asks_one_keyframe() {
+        // every cloth of a bundle that lost a state notices at once; one query on the bundle's
+        // key answers them all, so one is sent, not one per cloth
+        let vs = vectors();
+        let q = KeyframeQueries::default();
+        let bundle: Vec<_> = (0..8).map(|_| cloth()).collect();
+        for c in &bundle {
+            c.slot.lock().unwrap().bundle_key = Some("drape/bundle/x".into());
+            deliver(c, &q, latest(&vs[0].0));
+        }
+        // 101 lost: 102 is a gap for each of them
+        let asked: Vec<_> = bundle.iter().filter_map(|c| deliver(c, &q, latest(&vs[2].0))).collect();
+        assert_eq!(asked, vec!["drape/bundle/x".to_string()]);
+        assert_eq!(q.sent(), 1);
+        let ks: Vec<_> = bundle.iter().map(|c| c.slot.lock().unwrap().counters).collect();
+        assert!(ks.iter().all(|k| k.undecodable == 1), "{ks:?}");
+        assert_eq!(ks.iter().map(|k| k.keyframe_requests).sum::<u64>(), 1);
+        // a cloth on its own key asks for its own stream; a switch of rate asks regardless
+        let own = cloth();
+        assert!(deliver(&own, &q, latest(&vs[1].0)).is_some());
+        assert!(q.may_ask("drape/bundle/x", std::time::Duration::ZERO));
+        assert_eq!(q.sent(), 3);
     }
 }

@@ -5,12 +5,12 @@
 //! `rate = auto`'s [`Governor`] fed with each state's (or bundle's) times; a change it calls for
 //! is made off the Zenoh thread. A cloth on a server older than 1.8 stays on the full-rate key.
 use super::cloth::{Cloth, ClothInner, Status};
-use super::predictive::ask_keyframe;
 use super::recv::{self, now_ns, Buf, Latest};
 use super::{zerr, Client, Inner};
 use crate::rates::{every_key, speaks_rates, Governor, Rate, RATES};
 use crate::wire::error::{Error, ErrorCode, Result};
 use std::sync::Arc;
+use std::time::Duration;
 use zenoh::pubsub::Subscriber;
 use zenoh::Wait;
 
@@ -231,7 +231,7 @@ pub(crate) fn switch_cloth(inner: &Arc<Inner>, c: &Arc<ClothInner>, k: u8, by_ha
     };
     drop(old);
     if let Some(key) = every_key(&key, k) {
-        ask_keyframe(&inner.session, &key);
+        inner.keyframes.ask(&inner.session, &key, Duration::ZERO); // asked regardless
     }
     Ok(())
 }
@@ -268,7 +268,7 @@ pub(crate) fn switch_bundle(inner: &Arc<Inner>, k: u8, by_hand: bool) -> Result<
     let old = inner.bundle_sub.lock().unwrap().replace(new);
     drop(old);
     if let Some(key) = every_key(&inner.keys.bundle(&inner.client_id), k) {
-        ask_keyframe(&inner.session, &key);
+        inner.keyframes.ask(&inner.session, &key, Duration::ZERO); // asked regardless
     }
     Ok(())
 }

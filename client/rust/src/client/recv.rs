@@ -4,7 +4,8 @@
 //! it into its own buffers; a predictive one (1.5) is decoded on delivery, in order, by the
 //! cloth's stream (`predictive.rs`) and kept as the float32 state it gave.
 use super::cloth::{ClothInner, Status};
-use super::predictive::{ask_keyframe, Outcome};
+use super::keyframes::{send, KeyframeQueries, KEYFRAME_QUERY_INTERVAL};
+use super::predictive::Outcome;
 use super::Inner;
 use crate::wire::error::Result;
 use crate::wire::replies::SubmitReply;
@@ -75,8 +76,9 @@ pub(crate) fn now_ns() -> u64 {
 /// older than the newest is ignored (stale), a gap in tick numbers is counted as missed, and an
 /// unread state pushed out of a full queue as replaced. A predictive state is decoded here, in
 /// order; one predicted from a state this client lacks is counted (`undecodable`) and not
-/// shown: then the key to ask a keyframe on is returned ([`deliver_and_ask`] asks).
-pub(crate) fn deliver(c: &ClothInner, l: Latest) -> Option<String> {
+/// shown: then the key to ask a keyframe on is returned, unless `keyframes` says it was asked
+/// lately, by this cloth or another of its bundle ([`deliver_and_ask`] asks).
+pub(crate) fn deliver(c: &ClothInner, keyframes: &KeyframeQueries, l: Latest) -> Option<String> {
     let head = l.buf.with(|d| parse_state(&d[l.off..l.off + l.len]).map(|h| (h.tick, h.encoding, h.server_time_ns)));
     // (state, decoded from a predictive one: whether a keyframe, a gap)
     let (l, decoded, gap) = match head {
@@ -111,12 +113,13 @@ pub(crate) fn deliver(c: &ClothInner, l: Latest) -> Option<String> {
     if gap {
         s.counters.received += 1;
         s.counters.undecodable += 1;
-        if !c.pred.lock().unwrap().may_ask() {
+        let base = s.bundle_key.as_ref().unwrap_or(&s.key);
+        let key = crate::rates::every_key(base, s.rate.rate)?; // the key its states come on
+        if !keyframes.may_ask(&key, KEYFRAME_QUERY_INTERVAL) {
             return None;
         }
         s.counters.keyframe_requests += 1;
-        let base = s.bundle_key.clone().unwrap_or_else(|| s.key.clone());
-        return crate::rates::every_key(&base, s.rate.rate); // the key its states come on
+        return Some(key);
     }
     if let Some(keyframe) = decoded {
         s.counters.decoded += 1;
@@ -140,8 +143,8 @@ pub(crate) fn deliver(c: &ClothInner, l: Latest) -> Option<String> {
 
 /// [`deliver`], then the keyframe query it asks for, if any.
 pub(crate) fn deliver_and_ask(inner: &Arc<Inner>, c: &Arc<ClothInner>, l: Latest) {
-    if let Some(key) = deliver(c, l) {
-        ask_keyframe(&inner.session, &key);
+    if let Some(key) = deliver(c, &inner.keyframes, l) {
+        send(&inner.session, &key);
     }
     super::rates::after_delivery(inner, c);
 }
@@ -247,7 +250,7 @@ mod tests {
         // ticks 10, 11, 14 (12 and 13 never arrive), 12 late (stale), 15, 16 into a queue of 2
         let c = cloth(2);
         for t in [10, 11, 14, 12, 15, 16] {
-            deliver(&c, state(t));
+            deliver(&c, &KeyframeQueries::default(), state(t));
         }
         let k = counters(&c);
         assert_eq!((k.received, k.missed, k.stale, k.replaced, k.unread, k.ticks), (5, 2, 1, 3, 2, 7), "{k:?}");
@@ -258,7 +261,7 @@ mod tests {
         assert_eq!(k.read + k.replaced + k.missed + k.unread, k.ticks, "{k:?}");
         assert_eq!(k.received, k.read + k.replaced + k.unread);
         // an invalid payload is counted apart and changes nothing else
-        deliver(&c, Latest { buf: Buf::V(Arc::new(vec![1, 2, 3])), off: 0, len: 3, receive_time_ns: 0 });
+        deliver(&c, &KeyframeQueries::default(), Latest { buf: Buf::V(Arc::new(vec![1, 2, 3])), off: 0, len: 3, receive_time_ns: 0 });
         assert_eq!(counters(&c).invalid, 1);
         assert_eq!(counters(&c).ticks, 7);
     }
@@ -269,13 +272,13 @@ mod tests {
         let c = cloth(8);
         c.slot.lock().unwrap().rate.rate = 2;
         for t in [2, 4, 8] {
-            deliver(&c, state(t));
+            deliver(&c, &KeyframeQueries::default(), state(t));
         }
         let k = counters(&c);
         assert_eq!((k.received, k.missed, k.ticks), (3, 1, 4), "{k:?}");
         c.slot.lock().unwrap().rate.rate = 3;
         for t in [9, 12] {
-            deliver(&c, state(t));
+            deliver(&c, &KeyframeQueries::default(), state(t));
         }
         let k = counters(&c);
         assert_eq!((k.received, k.missed, k.ticks), (5, 1, 6), "{k:?}");
@@ -286,7 +289,7 @@ mod tests {
     fn a_queue_of_one_keeps_the_newest() {
         let c = cloth(1);
         for t in 1..=5 {
-            deliver(&c, state(t));
+            deliver(&c, &KeyframeQueries::default(), state(t));
         }
         let k = counters(&c);
         assert_eq!((k.received, k.replaced, k.unread, k.ticks, k.missed), (5, 4, 1, 5, 0));

@@ -128,9 +128,17 @@ class BundleReceiver:
         raw = np.frombuffer(bundle.data, np.uint8)
         fields = raw[cols.offsets[entries][:, None] + np.arange(16, 32)].view("<i8")  # tick, server time
         self.counted += len(entries)
+        cloths = [cols.cloths[i] for i in entries.tolist()]
+        # their states arrive: the cloths are alive (failover probes a cloth whose states stall,
+        # and took these, which get no states delivered, for stalled ones)
+        now, handles = time.monotonic(), self._handles
+        for c in cloths:
+            h = handles.get(c)
+            if h is not None:
+                h.last_receipt = now
         cb = self._on_headers
-        if cb is not None and len(entries):
-            cb([cols.cloths[i] for i in entries.tolist()], fields[:, 0], fields[:, 1], receive_time_ns)
+        if cb is not None and cloths:
+            cb(cloths, fields[:, 0], fields[:, 1], receive_time_ns)
 
     def subscribe(self, session: zenoh.Session) -> None:
         """Subscribe to the bundle key once, before the first bundled submission, so the

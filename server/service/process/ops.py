@@ -20,8 +20,10 @@ from __future__ import annotations
 import logging
 import os
 import socket
+import sys
 import threading
 import time
+import traceback
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -278,7 +280,8 @@ class Ops:
             if self.server.running and (age > self.watch.stall_s) != stalled:
                 stalled = not stalled
                 if stalled:
-                    log.warning("tick %d has not advanced for %.2f s", tick, age)
+                    where = _tick_stack()
+                    log.warning("tick %d has not advanced for %.2f s; the tick thread is at:\n%s", tick, age, where)
                 else:
                     log.info("ticking again at tick %d", tick)
             if self.watchdog_s is not None and time.monotonic() >= next_ping:
@@ -287,6 +290,16 @@ class Ops:
                     last_ping_tick = tick
                     if self._notify("WATCHDOG=1"):
                         self.pings += 1
+
+
+def _tick_stack() -> str:
+    """Where the server's tick thread is now (the innermost frames), for a stalled tick's log line:
+    what held it is the first thing an operator needs."""
+    frames = sys._current_frames()
+    for t in threading.enumerate():
+        if t.name.startswith("drape-tick-") and t.ident in frames:
+            return "".join(traceback.format_stack(frames[t.ident], limit=8))
+    return "(no tick thread)"
 
 
 def start(server: Any, config: ServerConfig | None = None, **kw: Any) -> Ops:

@@ -199,6 +199,15 @@ def _merge_features(a: P.ControlRequest, b: P.ControlRequest) -> dict[str, Any]:
     }
 
 
+def _merge_mesh(va: P.MeshCollider | None, vb: P.MeshCollider | None) -> P.MeshCollider | None:
+    """1.8: a rigid move ``vb`` after a new mesh or a re-pose ``va`` moves that one; else b's wins."""
+    if va is None or vb is None:
+        return vb if vb is not None else va
+    if vb.vertices is None and not vb.remove and va.vertices is not None:
+        return replace(va, position=vb.position, rotation=vb.rotation)
+    return vb
+
+
 #: requestfields.FIELD_MERGES -> a's and b's values of a field as one ("features": _merge_features).
 _MERGES: dict[str, Callable[[Any, Any], Any]] = {
     "pins": _merge_pins,
@@ -206,6 +215,7 @@ _MERGES: dict[str, Callable[[Any, Any], Any]] = {
     "update": lambda va, vb: {**va, **vb},
     "either": lambda va, vb: va or vb,
     "keywise": _merge_state,
+    "mesh": _merge_mesh,
 }
 assert {f.merge for f in CONTROL_FIELDS} <= {*_MERGES, "features"}, "a control field merges by an unknown rule"
 

@@ -41,6 +41,12 @@ EVERY_FIELD = {
     "features_add": ("xpbd",),
     "features_remove": ("tethers",),
     "reset": True,
+    "mesh_collider": P.MeshCollider(
+        np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32),
+        np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.uint32),
+        (0.0, 1.0, 0.0),
+        (0.5, 0.5, 0.5, 0.5),
+    ),
 }
 
 

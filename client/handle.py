@@ -416,7 +416,10 @@ class ClothHandle:
         The options (:class:`~drape.client.controls.SetOptions`, one per control field of
         ``protocol.CONTROL_FIELDS`` but pins and colliders): ``gravity``, ``wind`` (3 numbers),
         ``material``, ``features``, ``iterations``, ``substeps``, ``chebyshev_rho``, ``quality``,
-        ``features_add``, ``features_remove``, ``reset``, and the state's ``normals``,
+        ``features_add``, ``features_remove``, ``reset``, ``mesh_collider`` (1.8: the cloth's own
+        mesh collider: a ``(vertices, triangles)`` pair or an object with them, ``False`` to remove
+        it, ``P.MeshCollider.pose(position, rotation)`` to move it rigidly, the per-tick change;
+        :func:`~drape.client.controls.mesh_collider`), and the state's ``normals``,
         ``encoding`` and ``step``; an unknown name is a TypeError."""
         return self._control(wait, **set_changes(**options))
 

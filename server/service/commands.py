@@ -57,6 +57,7 @@ class Add:
     rid: int
     positions: np.ndarray | None = None  # 1.3 resume: the state the cloth starts at
     velocities: np.ndarray | None = None
+    mesh: P.MeshCollider | None = None  # 1.8: the cloth's own mesh collider
 
 
 @dataclass(eq=False)
@@ -64,9 +65,10 @@ class SceneColliders:
     """1.7: a scene's colliders, for every cloth of it from the next tick on; the reply waits."""
 
     scene: str
-    colliders: np.ndarray
+    colliders: np.ndarray | None  # None: left as they are
     query: zenoh.Query
     reply: P.SceneReply  # its tick set when applied
+    mesh: P.MeshCollider | None = None  # 1.8: the scene's mesh collider set, moved or removed
 
 
 @dataclass(eq=False)

@@ -6,7 +6,7 @@ defaults and ranges from here."""
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -287,7 +287,7 @@ class MeshCollider:
     remove: bool = False
 
     @classmethod
-    def pose(cls, position: Vec3, rotation: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)) -> MeshCollider:
+    def pose(cls, position: Iterable[float], rotation: Iterable[float] = (1.0, 0.0, 0.0, 0.0)) -> MeshCollider:
         """A rigid move of the current mesh (the per-tick change)."""
         return cls(None, None, tuple(map(float, position)), tuple(map(float, rotation)))  # type: ignore[arg-type]
 

@@ -453,8 +453,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--stage",
         default="three",
-        choices=["three", "crossing"],
-        help="three clients' cloths, or (demoscene) two characters whose capes brush past each other in one scene",
+        choices=["three", "crossing", "body"],
+        help="three clients' cloths, (demoscene) two characters whose capes brush past each other in one scene, "
+        "or (demobody) a cape on a running body mesh (1.8 mesh colliders)",
     )
 
 
@@ -511,6 +512,10 @@ def run(args: argparse.Namespace) -> int:
         from .demoscene import run as run_crossing
 
         return run_crossing(args)
+    if getattr(args, "stage", "three") == "body":
+        from .demobody import run as run_body
+
+        return run_body(args)
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     # three small cloths: admission control (which refuses cloths while a busy machine stretches

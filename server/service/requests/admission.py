@@ -199,19 +199,26 @@ class Admission:
 
     def price_control(self, rec: ClothRecord, req: P.ControlRequest) -> Priced | None:
         """The cloth's price once ``req`` applies; None where it changes no parameter
-        (``worldparams.changes_params``: pins, a moved collider) or is invalid (the applier
-        refuses it with its own error)."""
+        (``worldparams.changes_params``: pins, a moved collider) and sets or removes no mesh
+        collider (1.8), or is invalid (the applier refuses it with its own error)."""
         old = rec.priced
-        if not isinstance(old, Priced) or not changes_params(req, old.params):
+        if not isinstance(old, Priced):
             return None
-        try:
-            new = params_after_control(req, old.params)
-        except (TypeError, ValueError):
+        tris, mc = old.mesh_triangles, req.mesh_collider  # 1.8: a new mesh or a removal re-prices
+        if mc is not None and (mc.remove or mc.triangles is not None):
+            tris = 0 if mc.remove or mc.triangles is None else len(mc.triangles)
+        new = old.params
+        if changes_params(req, old.params):
+            try:
+                new = params_after_control(req, old.params)
+            except (TypeError, ValueError):
+                return None
+            if req.quality is not None:
+                new = with_preset(self.config, new, req.quality, req.rid)
+        elif tris == old.mesh_triangles:
             return None
-        if req.quality is not None:
-            new = with_preset(self.config, new, req.quality, req.rid)
-        work = self.pricing.work(rec.n_vertices, new, old.density, old.mesh_triangles)
-        return Priced(new, old.density, work, old.mesh_triangles)
+        work = self.pricing.work(rec.n_vertices, new, old.density, tris)
+        return Priced(new, old.density, work, tris)
 
     def total_work(self, records: Iterable[ClothRecord]) -> float:
         """The work units of these cloths stepped together: each one's price, plus the

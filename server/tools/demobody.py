@@ -127,3 +127,21 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {len(paths)} PNG frames: {paths[0]} .. {paths[-1]}")
     print(f"wrote {gif}")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m drape.server.tools.demobody`` (``deploy/h100.sh tool demobody``): the stage
+    alone, with ``drape demo``'s options that it reads."""
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seconds", type=float, default=5.0)
+    ap.add_argument("--out", type=Path, default=Path("out/demo-body"))
+    ap.add_argument("--fps", type=float, default=20.0)
+    ap.add_argument("--size", default="400x400")
+    ap.add_argument("--port", type=int, default=0)
+    ap.add_argument("--solver", default=None)
+    ap.add_argument("--device", default=None)
+    return run(ap.parse_args(argv))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -91,6 +91,32 @@ def vec3(v: Sequence[float] | None) -> P.Vec3 | None:
     return t  # type: ignore[return-value]
 
 
+def mesh_collider(
+    m: Any, position: Sequence[float] | None = None, rotation: Sequence[float] | None = None
+) -> P.MeshCollider | None:
+    """1.8: ``m`` as a protocol MeshCollider: one already (a :meth:`~P.MeshCollider.pose` move
+    included), ``False`` (remove the mesh), a ``(vertices, triangles)`` pair or an object with
+    ``vertices`` and ``triangles`` (a new mesh, e.g. ``drape.server.sim.bodymesh.body_mesh()``),
+    placed at ``position`` and ``rotation`` (w, x, y, z) when given. None: unchanged."""
+    if m is None:
+        return None
+    if m is False:
+        return P.MeshCollider.removal()
+    if isinstance(m, P.MeshCollider):
+        mc = m
+    else:
+        v, t = (m.vertices, m.triangles) if hasattr(m, "vertices") else m
+        mc = P.MeshCollider(np.asarray(v, np.float32).reshape(-1, 3), np.asarray(t, np.uint32).reshape(-1, 3))
+    if position is not None or rotation is not None:
+        mc = P.MeshCollider(
+            mc.vertices,
+            mc.triangles,
+            vec3(position) if position is not None else mc.position,  # type: ignore[arg-type]
+            tuple(float(x) for x in rotation) if rotation is not None else mc.rotation,  # type: ignore[arg-type]
+        )
+    return mc
+
+
 class SetOptions(TypedDict, total=False):
     """The keyword arguments of :meth:`ClothHandle.set <drape.client.handle.ClothHandle.set>` and
     :meth:`ControlBatch.set <drape.client.batching.ControlBatch.set>`: every control field of
@@ -109,6 +135,7 @@ class SetOptions(TypedDict, total=False):
     features_add: Iterable[str] | None
     features_remove: Iterable[str] | None
     reset: bool
+    mesh_collider: Any  # 1.8: P.MeshCollider (P.MeshCollider.pose(...): the per-tick move), a mesh, or False
     normals: bool | None
     encoding: str | None
     step: float | None
@@ -131,6 +158,7 @@ CONVERT_KIND: dict[str, Callable[[Any], Any]] = {
     "fraction": _same,
     "quality": _same,
     "flag": bool,
+    "mesh": mesh_collider,
 }
 #: The control fields ``set`` takes as they are (pins, colliders and state have their own shapes).
 SET_FIELDS = tuple(f for f in P.CONTROL_FIELDS if f.kind in CONVERT_KIND)
@@ -179,6 +207,7 @@ __all__ = [
     "features_delta",
     "item_outcomes",
     "links_of",
+    "mesh_collider",
     "pin_changes",
     "pins_only",
     "set_changes",

@@ -75,6 +75,7 @@ class ClothHandle:
         self._fresh = False  # rebound by a failover: the next state starts a new tick sequence
         self._last_pins: dict[int, np.ndarray] = {}  # pinned vertex -> the last target sent
         self._last_colliders: tuple[P.Collider, ...] | None = None
+        self._last_mesh: P.MeshCollider | None = request.mesh_collider if request is not None else None  # 1.8, whole
         self.id = reply.cloth
         self.token = reply.token
         self.key = reply.key
@@ -300,7 +301,7 @@ class ClothHandle:
         self._last_pins.update(zip(indices, targets, strict=True))
 
     def note_controls(self, changes: dict[str, Any]) -> None:
-        """Remember the last pin targets and colliders sent (a failover sends them again)."""
+        """Remember the last pin targets, colliders and mesh collider sent (a failover sends them again)."""
         self.client.sender.book.fold(self)  # moves blocks sent since (1.4) come before this control
         pins = changes.get("pins")
         if pins is not None:
@@ -308,11 +309,18 @@ class ClothHandle:
                 self._last_pins[i] = t
         if changes.get("colliders") is not None:
             self._last_colliders = changes["colliders"]
+        mc = changes.get("mesh_collider")
+        if mc is not None:  # 1.8: a move or a re-pose of the mesh last set is that mesh at its new pose
+            last = self._last_mesh
+            if not mc.remove and mc.triangles is None and last is not None and last.triangles is not None:
+                verts = last.vertices if mc.vertices is None else mc.vertices
+                mc = P.MeshCollider(verts, last.triangles, mc.position, mc.rotation)
+            self._last_mesh = mc
         if changes.get("reset"):
             self._last_pins.clear()
 
     def resend_controls(self) -> None:
-        """After a failover: the last pin targets and colliders, again (not waited for)."""
+        """After a failover: the last pin targets, colliders and mesh collider, again (not waited for)."""
         self.client.sender.book.fold(self)
         changes: dict[str, Any] = {}
         if self._last_pins:
@@ -320,6 +328,8 @@ class ClothHandle:
             changes["pins"] = P.PinUpdate(idx, np.stack(list(self._last_pins.values())).astype(np.float32))
         if self._last_colliders is not None:
             changes["colliders"] = self._last_colliders
+        if self._last_mesh is not None and (self._last_mesh.remove or self._last_mesh.triangles is not None):
+            changes["mesh_collider"] = self._last_mesh
         if changes:
             link = self.client.sender.session
             req = P.ControlRequest(self.id, self.token, rid=link.next_rid(), **changes)
@@ -416,7 +426,10 @@ class ClothHandle:
         The options (:class:`~drape.client.controls.SetOptions`, one per control field of
         ``protocol.CONTROL_FIELDS`` but pins and colliders): ``gravity``, ``wind`` (3 numbers),
         ``material``, ``features``, ``iterations``, ``substeps``, ``chebyshev_rho``, ``quality``,
-        ``features_add``, ``features_remove``, ``reset``, and the state's ``normals``,
+        ``features_add``, ``features_remove``, ``reset``, ``mesh_collider`` (1.8: the cloth's own
+        mesh collider: a ``(vertices, triangles)`` pair or an object with them, ``False`` to remove
+        it, ``P.MeshCollider.pose(position, rotation)`` to move it rigidly, the per-tick change;
+        :func:`~drape.client.controls.mesh_collider`), and the state's ``normals``,
         ``encoding`` and ``step``; an unknown name is a TypeError."""
         return self._control(wait, **set_changes(**options))
 

@@ -48,6 +48,7 @@ from .batching import ControlBatch
 from .bundles import MAX_ORPHAN_CLOTHS, BundleReceiver
 from .connection import ErrorCallback, Session
 from .controls import BatchError
+from .controls import mesh_collider as as_mesh_collider
 from .failover import Failover, FailoverCallback, FailoverEvent
 from .handle import ClothHandle, StateCallback
 from .keyframes import KeyframeQueries
@@ -433,18 +434,31 @@ class DrapeClient:
         members: Sequence[str] | None = None,
         timeout: float | None = None,
         server: str | None = None,
+        *,
+        mesh_collider: Any = None,
+        mesh_position: Sequence[float] | None = None,
+        mesh_rotation: Sequence[float] | None = None,
     ) -> P.SceneReply:
         """Protocol 1.7: move the colliders of ``scene`` (they act on every cloth of the scene
         beside its own; ``[]`` clears them) and/or set who else may submit cloths into it
         (client ids, ``"*"``: anyone), as the scene's owner: the client whose cloth founded it
         on ``server`` (PROTOCOL.md 5.3). None leaves a field as it is. Raises Forbidden for
-        another client's scene, NotFound for a scene without cloths."""
+        another client's scene, NotFound for a scene without cloths.
+
+        1.8 (PROTOCOL.md 5.4): ``mesh_collider``, the scene's mesh for every cloth of it (a
+        ``(vertices, triangles)`` pair or an object with them, ``False`` to remove it, or a
+        ``P.MeshCollider``), at ``mesh_position`` / ``mesh_rotation`` (w, x, y, z); the pose alone
+        (``mesh_collider`` None) moves the scene's mesh rigidly: the per-tick call."""
+        if mesh_collider is None and (mesh_position is not None or mesh_rotation is not None):
+            mesh_collider = P.MeshCollider.pose(mesh_position or (0.0, 0.0, 0.0))
+        mc = as_mesh_collider(mesh_collider, mesh_position, mesh_rotation)
         req = P.SceneRequest(
             self.client_id,
             scene,
             tuple(P.as_collider(c) for c in colliders) if colliders is not None else None,
             tuple(members) if members is not None else None,
             self.connection.next_rid(),
+            mc,
         )
         return P.scene_reply_from_map(self.connection.request("scene", P.encode_scene(req), timeout, server))
 

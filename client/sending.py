@@ -64,6 +64,11 @@ class ControlSender:
                 f"this one speaks {info.version[0]}.{info.version[1]}: send the "
                 "whole set with features= instead",
             )
+        if info.version < (1, 8) and any(r.mesh_collider is not None for r in reqs):
+            raise P.ProtocolError(
+                P.ERR_INVALID_VALUE,
+                f"mesh_collider needs a protocol 1.8 server; this one speaks {info.version[0]}.{info.version[1]}",
+            )
         return info
 
     def _on_error(self, h: Target, on_error: ErrorCallback | None) -> ErrorCallback:

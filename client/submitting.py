@@ -17,7 +17,7 @@ import numpy as np
 from . import protocol as P
 from .bundles import BundleReceiver
 from .connection import Session
-from .controls import collider, links_of, vec3
+from .controls import collider, links_of, mesh_collider, vec3
 from .handle import ClothHandle, HandleOwner
 from .placement import PLACE_ELSEWHERE, Placement
 from .protocol import DrapeError
@@ -43,6 +43,10 @@ cloth_options = (
     "step",
     "bundle",
     "quality",
+    "scene",
+    "mesh_collider",
+    "mesh_position",
+    "mesh_rotation",
     "timeout",
     "queue_size",
     "server",
@@ -102,9 +106,14 @@ def submit_request(
     bundle: bool = False,
     quality: str | None = None,
     scene: str | None = None,
+    mesh_collider: Any = None,
+    mesh_position: Sequence[float] | None = None,
+    mesh_rotation: Sequence[float] | None = None,
 ) -> P.SubmitRequest:
     """The SubmitRequest of ``client`` for a grid or a mesh with the SDK's options (``cloth_options``
-    but timeout, queue_size and server, which are the sending's)."""
+    but timeout, queue_size and server, which are the sending's). 1.8: ``mesh_collider``, the
+    cloth's own mesh collider (``(vertices, triangles)`` or an object with them, see
+    :func:`.controls.mesh_collider`) at ``mesh_position`` and ``mesh_rotation`` (w, x, y, z)."""
     pins = np.asarray(list(pinned), np.int64).reshape(-1)
     n = grid.cols * grid.rows if grid is not None else len(mesh.vertices) if mesh is not None else 0
     bad = pins[(pins < 0) | (pins >= n)]
@@ -133,7 +142,11 @@ def submit_request(
         quality=quality,
         rid=rid,
         scene=scene,
+        mesh_collider=_mesh_collider(mesh_collider, mesh_position, mesh_rotation),
     )
+
+
+_mesh_collider = mesh_collider  # the option's name shadows the converter in submit_request
 
 
 class Submitter:

@@ -35,7 +35,9 @@ against the last two its decoders rebuilt: PROTOCOL.md 9.2) and ``state.step``. 
 ``self_collision`` feature with the material's ``thickness`` and ``contact_stiffness``; 1.7 adds
 ``scene`` in submissions and the ``scene`` request (cloths of one scene collide with each other;
 PROTOCOL.md 5.3); 1.8 adds rates per subscriber (every k-th state on ``{key}/every/{k}``,
-:func:`every_key`, predicted against its own states: PROTOCOL.md 9.3).
+:func:`every_key`, predicted against its own states: PROTOCOL.md 9.3)
+and mesh colliders (:class:`MeshCollider`: a cloth's and a scene's triangle mesh, moved by a pose
+per tick: PROTOCOL.md 5.4).
 
 It imports only numpy, msgpack and the standard library, so a game client or a tool can use it
 without Zenoh or OpenCL installed.
@@ -304,6 +306,9 @@ from .vocabulary import (
     MAX_SCENE_COLLIDERS,
     MAX_SCENE_MEMBERS,
     MAX_STRING_BYTES,
+    MESH_MAX_TRIANGLES,
+    MESH_MAX_VERTICES,
+    MESH_MIN_AREA,
     MIN_MASS,
     ORIENTATIONS,
     PRESET_FEATURES,
@@ -318,6 +323,7 @@ from .vocabulary import (
     GridSpec,
     Limits,
     LinkSpec,
+    MeshCollider,
     MeshSpec,
     PinMoves,
     PinUpdate,
@@ -330,7 +336,9 @@ from .vocabulary import (
     as_collider,
     collider_shape,
     collider_shape_named,
+    mesh_problem,
 )
+from .wiremaps import mesh_collider_to_map
 
 __all__ = [
     "BAD_REQUEST_CODES",
@@ -363,6 +371,9 @@ __all__ = [
     "scene_reply_from_map",
     "MAX_SCENE_COLLIDERS",
     "MAX_SCENE_MEMBERS",
+    "MESH_MAX_TRIANGLES",
+    "MESH_MAX_VERTICES",
+    "MESH_MIN_AREA",
     "COLLIDER_IDS",
     "COLLIDER_SHAPES",
     "COLLIDER_TYPES",
@@ -436,7 +447,10 @@ __all__ = [
     "MAX_NESTING",
     "MAX_STRING_BYTES",
     "MIN_MASS",
+    "MeshCollider",
     "MeshSpec",
+    "mesh_problem",
+    "mesh_collider_to_map",
     "NAMESPACE_RE",
     "NotFound",
     "ORDER_INTRA",

@@ -53,6 +53,7 @@ from .replies import (  # noqa: F401  re-exported: codec names every message's c
 from .requestfields import CONTROL_WIRE_ORDER, SUBMIT_FIELDS, RequestField
 from .validate import (
     _check_finite_array,
+    _check_num,
     _header,
     _peek_rid,
     _read_colliders,
@@ -72,15 +73,19 @@ from .vocabulary import (
     DEFAULT_LIMITS,
     MAX_SCENE_COLLIDERS,
     MAX_SCENE_MEMBERS,
+    MESH_MAX_TRIANGLES,
+    MESH_MAX_VERTICES,
     ORIENTATIONS,
     QUALITY_PRESETS,
     GridSpec,
     Limits,
     LinkSpec,
+    MeshCollider,
     MeshSpec,
     PinUpdate,
     ResumeState,
     _empty_u32,
+    mesh_problem,
 )
 from .wiremaps import (  # noqa: F401  re-exported: codec names every message's codec
     control_batch_to_map,
@@ -236,7 +241,8 @@ def scene_from_map(m: Mapping[str, Any], limits: Limits = DEFAULT_LIMITS) -> Sce
             if x != SCENE_ANYONE and not ID_RE.match(x):
                 raise r.fail(ERR_INVALID_VALUE, f"'members[{i}]' must be a client id ({_ID_WHAT}) or '*', got {x!r}")
         members = tuple(raw)
-    return SceneRequest(client, scene, colliders, members, rid)  # type: ignore[arg-type]
+    mesh = _read_mesh_collider(r, "mesh_collider", False)  # 1.8
+    return SceneRequest(client, scene, colliders, members, rid, mesh)  # type: ignore[arg-type]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -263,6 +269,49 @@ def _read_pins(r: _Reader, key: str, n_vertices: int | None) -> PinUpdate | None
     return PinUpdate(idx, tgt)
 
 
+_MESH_KEYS = ("vertices", "triangles", "position", "rotation", "remove")
+
+
+def _read_mesh_collider(r: _Reader, key: str, submit: bool) -> MeshCollider | None:
+    """1.8: a ``mesh_collider`` map (PROTOCOL.md 5.4), checked by the protocol's one copy of the
+    mesh checks (vocabulary.mesh_problem): ``{remove: true}`` alone; else vertices and triangles
+    (a new mesh), vertices alone (a re-pose) or neither (a rigid move), with the pose. A
+    submission's is a new mesh."""
+    mr = r.sub(key)
+    if mr is None:
+        return None
+    unknown = sorted(set(mr.m) - set(_MESH_KEYS))
+    if unknown:
+        raise r.fail(ERR_INVALID_VALUE, f"'{r.name(key)}' has unknown key(s) {unknown}; known: {list(_MESH_KEYS)}")
+    if mr.bool_("remove"):
+        if len(mr.m) > 1:
+            raise r.fail(ERR_INVALID_VALUE, f"'{r.name(key)}' with 'remove' must have no other key")
+        if submit:
+            raise r.fail(ERR_INVALID_VALUE, f"'{r.name(key)}' of a submission cannot remove a mesh")
+        return MeshCollider.removal()
+    verts = mr.blob("vertices", "f4", 3, MESH_MAX_VERTICES)
+    tris = mr.blob("triangles", "u4", 3, MESH_MAX_TRIANGLES)
+    if tris is not None and verts is None:
+        raise r.fail(ERR_MISSING_FIELD, f"'{mr.name('vertices')}' is required with '{mr.name('triangles')}'")
+    if submit and tris is None:
+        raise r.fail(ERR_MISSING_FIELD, f"'{r.name(key)}' of a submission is a new mesh: vertices and triangles")
+    if verts is not None:
+        problem = mesh_problem(verts, tris)
+        if problem is not None:
+            raise r.fail(problem[0], f"'{r.name(key)}': {problem[1]}")
+        _check_finite_array(r, mr.name("vertices"), verts, r.limits.max_coordinate)
+    position = mr.vec3("position", r.limits.max_coordinate) or (0.0, 0.0, 0.0)
+    rotation: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0)
+    raw = mr.raw("rotation", False)
+    if raw is not None:
+        if not (isinstance(raw, list) and len(raw) == 4):
+            raise r.fail(ERR_INVALID_TYPE, f"'{mr.name('rotation')}' must be 4 numbers (w, x, y, z), got {_tname(raw)}")
+        rotation = tuple(_check_num(mr, f"{mr.name('rotation')}[{i}]", x, -1e3, 1e3) for i, x in enumerate(raw))
+        if not sum(x * x for x in rotation) > 1e-12:
+            raise r.fail(ERR_INVALID_VALUE, f"'{mr.name('rotation')}' must be a non-zero quaternion (w, x, y, z)")
+    return MeshCollider(verts, tris, position, rotation)  # type: ignore[arg-type]
+
+
 #: kind -> reader(reader, field, submission?, vertex count or None): the value, None if absent.
 _READERS: dict[str, Callable[[_Reader, RequestField, bool, int | None], Any]] = {
     "pins": lambda r, f, sub, n: _read_pins(r, f.name, n),
@@ -275,6 +324,7 @@ _READERS: dict[str, Callable[[_Reader, RequestField, bool, int | None], Any]] = 
     "state": lambda r, f, sub, n: _read_state_options(r, f.name, submit=sub),
     "quality": lambda r, f, sub, n: r.str_(f.name, choices=QUALITY_PRESETS),
     "flag": lambda r, f, sub, n: r.bool_(f.name),
+    "mesh": lambda r, f, sub, n: _read_mesh_collider(r, f.name, sub),
 }
 
 

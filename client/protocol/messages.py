@@ -16,6 +16,7 @@ from .vocabulary import (
     Collider,
     GridSpec,
     LinkSpec,
+    MeshCollider,
     MeshSpec,
     PinMoves,
     PinUpdate,
@@ -49,6 +50,7 @@ class SubmitRequest:
     rid: int = 0
     resume: ResumeState | None = None  # 1.3: start from this state instead of the rest pose
     scene: str | None = None  # 1.7: collide with the scene's other cloths and its colliders
+    mesh_collider: MeshCollider | None = None  # 1.8: the cloth's own mesh collider (a new mesh)
 
     @property
     def n_vertices(self) -> int:
@@ -82,6 +84,7 @@ class ControlRequest:
     rid: int = 0
     features_add: tuple[str, ...] | None = None  # 1.2: switched on, the others kept
     features_remove: tuple[str, ...] | None = None  # 1.2: switched off, the others kept
+    mesh_collider: MeshCollider | None = None  # 1.8: set, re-pose, move or remove the cloth's mesh
 
     def __eq__(self, other: object) -> bool:
         return isinstance(other, ControlRequest) and control_to_map(self) == control_to_map(other)
@@ -118,6 +121,7 @@ class SceneRequest:
     colliders: tuple[Collider, ...] | None = None  # replaces the scene's colliders; () clears them
     members: tuple[str, ...] | None = None  # replaces who else may put cloths in ("*": anyone); () nobody
     rid: int = 0
+    mesh_collider: MeshCollider | None = None  # 1.8: set, re-pose, move or remove the scene's mesh
 
     def __eq__(self, other: object) -> bool:
         return isinstance(other, SceneRequest) and scene_to_map(self) == scene_to_map(other)

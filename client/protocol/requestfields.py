@@ -29,6 +29,7 @@ FIELD_KINDS = {
     "state": "map of StateOptions",
     "quality": "one of QUALITY_PRESETS",
     "flag": "boolean, written only when true",
+    "mesh": "map {vertices: bin f32, triangles: bin u32, position: vec3, rotation: 4 floats, remove: true} (1.8)",
 }
 
 #: acts -> where the server applies the field.
@@ -41,6 +42,7 @@ FIELD_ACTS = {
     "quality": "a quality preset, applied after the other fields",
     "state": "the publication's options (state.normals also switches the normals feature)",
     "reset": "back to the rest pose, after the other fields",
+    "mesh": "the mesh collider set, re-posed, moved or removed (World.set_mesh / move_mesh), after the colliders",
 }
 
 #: merge -> how pending controls ``a`` then ``b`` of one cloth become one (server coalescing).
@@ -52,6 +54,7 @@ FIELD_MERGES = {
     "keywise": "b's options where given, else a's",
     "features": "features, features_add and features_remove together (b's replacement wins; else the "
     "additions and removals compose)",
+    "mesh": "b's when it sets, re-poses or removes a mesh, else (a move) a's mesh at b's pose",
 }
 
 
@@ -91,6 +94,7 @@ CONTROL_FIELDS: tuple[RequestField, ...] = (
     RequestField("features_add", "features", "features", "features", 6, submit=False, noop_empty=True),
     RequestField("features_remove", "features", "features", "features", 7, submit=False, noop_empty=True),
     RequestField("reset", "flag", "reset", "either", 13, submit=False, noop_empty=True),
+    RequestField("mesh_collider", "mesh", "mesh", "mesh", 14),  # 1.8
 )
 #: The control fields in the order the encoder writes (and the decoder reads) them.
 CONTROL_WIRE_ORDER: tuple[RequestField, ...] = tuple(sorted(CONTROL_FIELDS, key=lambda f: f.wire))

@@ -35,6 +35,8 @@ from .vocabulary import (
     MAX_MAP_KEYS,
     MAX_SCENE_COLLIDERS,
     MAX_SCENE_MEMBERS,
+    MESH_MAX_TRIANGLES,
+    MESH_MAX_VERTICES,
     ORIENTATIONS,
     QUALITY_PRESETS,
     STEP_MAX,
@@ -139,6 +141,19 @@ def _defs() -> dict[str, Any]:
             }
         ),
         "quality": {"enum": list(QUALITY_PRESETS)},
+        "mesh_collider": _obj(
+            {
+                "vertices": _bin("f32", 3 * MESH_MAX_VERTICES),
+                "triangles": _bin("u32", 3 * MESH_MAX_TRIANGLES),
+                "position": _vec3(bound),
+                "rotation": {"type": "array", "items": _num(), "minItems": 4, "maxItems": 4},
+                "remove": {"const": True},
+            },
+            closed=True,
+            description="1.8: a mesh collider (PROTOCOL.md 5.4): {remove: true} alone; vertices and "
+            "triangles (a new mesh), vertices alone (a re-pose) or neither (a rigid move), with the pose "
+            "(position, rotation as w, x, y, z)",
+        ),
         "tick": _int(0, U64_MAX),
         "error": _obj(
             {
@@ -165,6 +180,7 @@ _KIND_SCHEMAS: dict[str, Callable[[RequestField], dict[str, Any]]] = {
     "state": lambda f: {"$ref": "#/$defs/state"},
     "quality": lambda f: {"$ref": "#/$defs/quality"},
     "flag": lambda f: {"type": "boolean"},
+    "mesh": lambda f: {"$ref": "#/$defs/mesh_collider"},
 }
 
 
@@ -284,6 +300,7 @@ def schemas() -> dict[str, dict[str, Any]]:
                         "items": {"anyOf": [{"$ref": "#/$defs/id"}, {"const": SCENE_ANYONE}]},
                     }
                 ),
+                "mesh_collider": _nullable({"$ref": "#/$defs/mesh_collider"}),
             },
             ("v", "client", "scene"),
             description="1.7: a scene's colliders and members, from its owner (PROTOCOL.md 5.3)",

@@ -6,7 +6,7 @@ defaults and ranges from here."""
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -15,6 +15,11 @@ import numpy as np
 MAX_COLLIDERS_PER_CLOTH = 32  # the server's per-cloth collider capacity (device buffers)
 MAX_SCENE_COLLIDERS = 16  # 1.7: a scene's colliders (each cloth of it: its own + these <= MAX_COLLIDERS_PER_CLOTH)
 MAX_SCENE_MEMBERS = 64  # 1.7: client ids a scene request's members may list
+#: 1.8: a mesh collider's size limits (the device's buffers and the wire's; a 5,000-triangle body is
+#: far below them) and the least area of one of its triangles (m^2; a smaller one is degenerate).
+MESH_MAX_VERTICES = 65536
+MESH_MAX_TRIANGLES = 65536
+MESH_MIN_AREA = 1e-10
 
 #: Decoding caps against hostile input (1.2, PROTOCOL.md section 13), independent of the server's
 #: configured limits: no legitimate message comes near them. Nesting counts maps and arrays (a
@@ -260,6 +265,86 @@ class MeshSpec:
             and np.array_equal(self.vertices, other.vertices)
             and np.array_equal(self.triangles, other.triangles)
         )
+
+
+@dataclass(frozen=True, eq=False)
+class MeshCollider:
+    """1.8: a cloth's or a scene's triangle-mesh collider (PROTOCOL.md 5.4), one of four changes:
+
+    - a new mesh: ``vertices`` (n, 3) float32 in its own frame and ``triangles`` (m, 3) uint32,
+      counter-clockwise seen from outside, placed at the pose;
+    - a re-pose: ``vertices`` alone, new positions of the current mesh's vertices (same triangles);
+    - a rigid move: neither (:meth:`pose`), the current mesh to ``position`` and ``rotation``;
+    - a removal: ``remove`` (:meth:`removal`), nothing else.
+
+    The pose is a position (m) and a rotation quaternion ``(w, x, y, z)`` (normalised by the
+    server), mesh frame to world."""
+
+    vertices: np.ndarray | None = None
+    triangles: np.ndarray | None = None
+    position: Vec3 = (0.0, 0.0, 0.0)
+    rotation: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+    remove: bool = False
+
+    @classmethod
+    def pose(cls, position: Iterable[float], rotation: Iterable[float] = (1.0, 0.0, 0.0, 0.0)) -> MeshCollider:
+        """A rigid move of the current mesh (the per-tick change)."""
+        return cls(None, None, tuple(map(float, position)), tuple(map(float, rotation)))  # type: ignore[arg-type]
+
+    @classmethod
+    def removal(cls) -> MeshCollider:
+        return cls(remove=True)
+
+    def __eq__(self, other: object) -> bool:
+        return (
+            isinstance(other, MeshCollider)
+            and _same(self.vertices, other.vertices)
+            and _same(self.triangles, other.triangles)
+            and tuple(self.position) == tuple(other.position)
+            and tuple(self.rotation) == tuple(other.rotation)
+            and self.remove == other.remove
+        )
+
+
+def _same(a: np.ndarray | None, b: np.ndarray | None) -> bool:
+    return (a is None and b is None) or (a is not None and b is not None and np.array_equal(a, b))
+
+
+def mesh_problem(vertices: np.ndarray, triangles: np.ndarray | None) -> tuple[str, str] | None:
+    """What is wrong with a mesh collider, as (``too_large`` or ``invalid_value``, message), or
+    None: no vertices or triangles, more than MESH_MAX_VERTICES or MESH_MAX_TRIANGLES, a non-finite
+    vertex, non-integer indices, an index out of range, a degenerate triangle (area under
+    MESH_MIN_AREA m^2, repeated indices included). ``triangles`` None checks the vertices alone.
+    The one copy of these checks: the decoder and the server's ``meshes.collision_mesh`` call it."""
+    v = np.asarray(vertices, np.float64)
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
+        return "invalid_value", f"mesh vertices must be (n, 3) with n >= 1, got shape {v.shape}"
+    if len(v) > MESH_MAX_VERTICES:
+        return "too_large", f"mesh has {len(v)} vertices: at most {MESH_MAX_VERTICES}"
+    if not np.all(np.isfinite(v)):
+        return "invalid_value", "mesh vertices must be finite"
+    if triangles is None:
+        return None
+    t = np.asarray(triangles)
+    if t.ndim != 2 or t.shape[1] != 3 or len(t) == 0:
+        return "invalid_value", f"mesh triangles must be (m, 3) with m >= 1, got shape {t.shape}"
+    if len(t) > MESH_MAX_TRIANGLES:
+        return "too_large", f"mesh has {len(t)} triangles: at most {MESH_MAX_TRIANGLES}"
+    if not np.issubdtype(t.dtype, np.integer):
+        return "invalid_value", "mesh triangle indices must be integers"
+    bad = np.nonzero((t < 0) | (t >= len(v)))[0]
+    if len(bad):
+        return "invalid_value", f"mesh triangle {int(bad[0])} has an index out of range (vertices: {len(v)})"
+    t = t.astype(np.int64)
+    area = 0.5 * np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1)
+    bad = np.nonzero(~(area >= MESH_MIN_AREA))[0]
+    if len(bad):
+        return (
+            "invalid_value",
+            f"mesh triangle {int(bad[0])} is degenerate (area {area[bad[0]]:.3g} m^2 < {MESH_MIN_AREA:g});"
+            f" {len(bad)} such",
+        )
+    return None
 
 
 @dataclass(frozen=True)

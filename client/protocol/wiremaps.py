@@ -34,7 +34,24 @@ WRITERS: dict[str, Callable[[Any], Any]] = {
     "state": _state_map,
     "quality": str,
     "flag": lambda _: True,
+    "mesh": lambda mc: mesh_collider_to_map(mc),
 }
+
+
+def mesh_collider_to_map(mc: Any) -> dict[str, Any]:
+    """1.8: a MeshCollider's map (PROTOCOL.md 5.4): ``{remove: true}`` alone, or the vertices and
+    triangles given and the pose."""
+    if mc.remove:
+        return {"remove": True}
+    m: dict[str, Any] = {}
+    if mc.vertices is not None:
+        m["vertices"] = _blob(mc.vertices, "f4")
+    if mc.triangles is not None:
+        m["triangles"] = _blob(mc.triangles, "u4")
+    m["position"] = _v3(mc.position)
+    m["rotation"] = [_f(x) for x in mc.rotation]
+    return m
+
 
 #: (class, id of the table) -> its plan: (name, writer, whether a falsy value is unset) per field.
 _PLANS: dict[tuple[type, int], tuple[tuple[str, Callable[[Any], Any], bool], ...]] = {}
@@ -104,6 +121,8 @@ def scene_to_map(req: SceneRequest) -> dict[str, Any]:
         m["colliders"] = [collider_to_map(c) for c in req.colliders]
     if req.members is not None:
         m["members"] = [str(x) for x in req.members]
+    if req.mesh_collider is not None:  # 1.8
+        m["mesh_collider"] = mesh_collider_to_map(req.mesh_collider)
     return m
 
 

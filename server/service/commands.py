@@ -57,6 +57,7 @@ class Add:
     rid: int
     positions: np.ndarray | None = None  # 1.3 resume: the state the cloth starts at
     velocities: np.ndarray | None = None
+    mesh: P.MeshCollider | None = None  # 1.8: the cloth's own mesh collider
 
 
 @dataclass(eq=False)
@@ -64,9 +65,10 @@ class SceneColliders:
     """1.7: a scene's colliders, for every cloth of it from the next tick on; the reply waits."""
 
     scene: str
-    colliders: np.ndarray
+    colliders: np.ndarray | None  # None: left as they are
     query: zenoh.Query
     reply: P.SceneReply  # its tick set when applied
+    mesh: P.MeshCollider | None = None  # 1.8: the scene's mesh collider set, moved or removed
 
 
 @dataclass(eq=False)
@@ -199,6 +201,15 @@ def _merge_features(a: P.ControlRequest, b: P.ControlRequest) -> dict[str, Any]:
     }
 
 
+def _merge_mesh(va: P.MeshCollider | None, vb: P.MeshCollider | None) -> P.MeshCollider | None:
+    """1.8: a rigid move ``vb`` after a new mesh or a re-pose ``va`` moves that one; else b's wins."""
+    if va is None or vb is None:
+        return vb if vb is not None else va
+    if vb.vertices is None and not vb.remove and va.vertices is not None:
+        return replace(va, position=vb.position, rotation=vb.rotation)
+    return vb
+
+
 #: requestfields.FIELD_MERGES -> a's and b's values of a field as one ("features": _merge_features).
 _MERGES: dict[str, Callable[[Any, Any], Any]] = {
     "pins": _merge_pins,
@@ -206,6 +217,7 @@ _MERGES: dict[str, Callable[[Any, Any], Any]] = {
     "update": lambda va, vb: {**va, **vb},
     "either": lambda va, vb: va or vb,
     "keywise": _merge_state,
+    "mesh": _merge_mesh,
 }
 assert {f.merge for f in CONTROL_FIELDS} <= {*_MERGES, "features"}, "a control field merges by an unknown rule"
 

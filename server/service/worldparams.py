@@ -1,8 +1,12 @@
 """From validated protocol requests to what the World takes: cloth parameters (one helper for
-submit and control), packed colliders, feature sets after a control."""
+submit and control), packed colliders, feature sets after a control, mesh colliders (1.8) as the
+World's set_mesh / move_mesh calls."""
 
 from __future__ import annotations
 
+import hashlib
+import weakref
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -11,7 +15,9 @@ from drape.client import protocol as P
 from drape.client.protocol.requestfields import CONTROL_FIELDS, any_given
 
 from ..sim import quality
+from ..sim.meshes import CollisionMesh, collision_mesh, pose_matrix
 from ..sim.params import ClothParams, Features, Material, pack_colliders
+from ..sim.world import World
 from .config import ServerConfig
 
 
@@ -86,3 +92,52 @@ def with_preset(config: ServerConfig, params: ClothParams, name: str, rid: int) 
             rid,
         )
     return out
+
+
+#: Equal meshes sent by many clients (a crowd's one body) are one CollisionMesh, so the World
+#: builds one grid and the device holds one copy; an entry goes with the last collider using it.
+_MESHES: weakref.WeakValueDictionary[bytes, CollisionMesh] = weakref.WeakValueDictionary()
+
+
+def _interned(vertices: np.ndarray, triangles: np.ndarray) -> CollisionMesh:
+    key = hashlib.blake2b(
+        np.ascontiguousarray(vertices, "<f4").tobytes() + np.ascontiguousarray(triangles, "<u4").tobytes(),
+        digest_size=20,
+    ).digest()
+    mesh = _MESHES.get(key)
+    if mesh is None:
+        mesh = _MESHES[key] = collision_mesh(vertices, triangles)
+    return mesh
+
+
+def prepare_mesh(
+    world: World, spec: P.MeshCollider, handle: int | None = None, scene: str | None = None
+) -> Callable[[], None]:
+    """1.8: the World call that applies ``spec`` to cloth ``handle`` or to ``scene``, checked
+    before anything is applied (ValueError saying what is wrong: a move or a re-pose with no mesh
+    to change, a re-pose of another vertex count, a re-pose that makes a triangle degenerate)."""
+    mcs = world.mesh_colliders
+    current = mcs.own.get(handle) if scene is None else mcs.scene.get(scene)  # type: ignore[arg-type]
+
+    def set_(mesh: CollisionMesh | None, pose: np.ndarray | None) -> Callable[[], None]:
+        if scene is None:
+            return lambda: world.set_mesh(handle, mesh, pose)  # type: ignore[arg-type]
+        return lambda: world.set_scene_mesh(scene, mesh, pose)
+
+    if spec.remove:
+        return set_(None, None)
+    pose = pose_matrix(spec.position, spec.rotation)
+    if spec.triangles is not None:
+        assert spec.vertices is not None
+        return set_(_interned(spec.vertices, spec.triangles), pose)
+    what = "cloth" if scene is None else f"scene {scene!r}"
+    if current is None:
+        raise ValueError(f"mesh_collider: the {what} has no mesh to move or re-pose; send vertices and triangles first")
+    if spec.vertices is not None:
+        if len(spec.vertices) != len(current.mesh.vertices):
+            raise ValueError(
+                f"mesh_collider: a re-pose has {len(spec.vertices)} vertices; the {what}'s mesh has "
+                f"{len(current.mesh.vertices)} (send vertices and triangles for a new mesh)"
+            )
+        return set_(_interned(spec.vertices, current.mesh.triangles), pose)
+    return lambda: mcs.move(current, pose)

@@ -64,6 +64,8 @@ class MeshColliders:
         if mesh is None:
             if table.pop(key, None) is not None:
                 self.version += 1
+                used = {id(mc.mesh) for mc in (*self.own.values(), *self.scene.values())}
+                self._grids = {k: v for k, v in self._grids.items() if k in used}  # its grid given back
             return
         p = as_pose(pose)
         was = table.get(key)

@@ -46,12 +46,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: A mesh collider's size limits (the device's buffers and the wire's: a 5,000-triangle body is
-#: far below them).
-MESH_MAX_VERTICES = 65536
-MESH_MAX_TRIANGLES = 65536
-#: A triangle with a smaller area (m^2) is degenerate and refused.
-MESH_MIN_AREA = 1e-10
+# A mesh collider's size limits and its least triangle area: the protocol's (one copy).
+from drape.client.protocol.vocabulary import (  # noqa: F401 (the limits re-exported)
+    MESH_MAX_TRIANGLES,
+    MESH_MAX_VERTICES,
+    MESH_MIN_AREA,
+    mesh_problem,
+)
+
 #: The thickness passes per step.
 MESH_PASSES = 2
 #: The continuous test's slides along the surface after a contact, per step.
@@ -91,33 +93,12 @@ class CollisionMesh:
 def collision_mesh(vertices: np.ndarray, triangles: np.ndarray) -> CollisionMesh:
     """A checked mesh collider: ValueError (a message that says what is wrong) for no triangles,
     too many vertices or triangles, a non-finite vertex, an index out of range or a degenerate
-    triangle (area under MESH_MIN_AREA m^2, repeated indices included)."""
-    v = np.asarray(vertices, np.float64)
-    t = np.asarray(triangles)
-    if v.ndim != 2 or v.shape[1] != 3 or len(v) == 0:
-        raise ValueError(f"mesh vertices must be (n, 3) with n >= 1, got shape {v.shape}")
-    if t.ndim != 2 or t.shape[1] != 3 or len(t) == 0:
-        raise ValueError(f"mesh triangles must be (m, 3) with m >= 1, got shape {t.shape}")
-    if len(v) > MESH_MAX_VERTICES:
-        raise ValueError(f"mesh has {len(v)} vertices: at most {MESH_MAX_VERTICES}")
-    if len(t) > MESH_MAX_TRIANGLES:
-        raise ValueError(f"mesh has {len(t)} triangles: at most {MESH_MAX_TRIANGLES}")
-    if not np.issubdtype(t.dtype, np.integer):
-        raise ValueError("mesh triangle indices must be integers")
-    if not np.all(np.isfinite(v)):
-        raise ValueError("mesh vertices must be finite")
-    bad = np.nonzero((t < 0) | (t >= len(v)))[0]
-    if len(bad):
-        raise ValueError(f"mesh triangle {int(bad[0])} has an index out of range (vertices: {len(v)})")
-    t = t.astype(np.int32)
-    area = 0.5 * np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1)
-    bad = np.nonzero(~(area >= MESH_MIN_AREA))[0]
-    if len(bad):
-        raise ValueError(
-            f"mesh triangle {int(bad[0])} is degenerate (area {area[bad[0]]:.3g} m^2 < {MESH_MIN_AREA:g});"
-            f" {len(bad)} such"
-        )
-    return CollisionMesh(v, t)
+    triangle (area under MESH_MIN_AREA m^2, repeated indices included): the protocol's checks
+    (``vocabulary.mesh_problem``, one copy for the wire and the World)."""
+    problem = mesh_problem(vertices, triangles)
+    if problem is not None:
+        raise ValueError(problem[1])
+    return CollisionMesh(np.asarray(vertices, np.float64), np.asarray(triangles).astype(np.int32))
 
 
 # --- poses ---------------------------------------------------------------------------------------

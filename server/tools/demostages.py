@@ -2,7 +2,8 @@
 
 - ``three`` (default, server/tools/demo.py): three clients' cloths, a banner, a curtain and a cape;
 - ``crossing`` (server/tools/demoscene.py): two characters whose capes brush past each other in one
-  scene (protocol 1.7).
+  scene (protocol 1.7);
+- ``body`` (server/tools/demobody.py): a cape on a running body mesh (protocol 1.8 mesh colliders).
 
 Each stage module provides ``run(args) -> int``; the stages share the options below.
 """
@@ -19,6 +20,7 @@ from .procs import require_extra
 STAGES: dict[str, tuple[str, str]] = {
     "three": ("demo", "three clients' cloths: a banner in gusting wind, a curtain brushed by a ball, a walking cape"),
     "crossing": ("demoscene", "two characters whose capes brush past each other in one scene"),
+    "body": ("demobody", "a cape on a running body mesh (1.8 mesh colliders)"),
 }
 
 

@@ -5,8 +5,9 @@ drawn from behind, following the body (the camera moves with it; the body turns 
 
     python -m drape.server.tools.meshdemo [--out docs/mesh_demo] [--ticks 300] [--every 3] [--size 360]
 
-Writes ``OUT.gif`` and a few PNG frames ``OUT_NNN.png``. The Zenoh demo (``drape demo``) gets a
-mesh scene once mesh colliders are on the wire (protocol 1.8).
+Writes ``OUT.gif`` and a few PNG frames ``OUT_NNN.png``. The same scene over Zenoh, the body
+sent as a 1.8 mesh collider and moved by a pose per tick: ``drape demo --stage body``
+(:mod:`.demobody`, drawn by :func:`draw`).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import numpy as np
 
 from ..sim import make_world
 from ..sim.bodymesh import body_mesh
+from ..sim.meshes import CollisionMesh
 from . import penetration
 from .render import render_scene, write_gif, write_png
 
@@ -27,13 +29,31 @@ CAPE_BACK = (110, 25, 35)
 BODY = (190, 175, 160)
 _A = np.radians(235)  # the drawing turned about y: the body seen from behind and the side
 VIEW = np.array([[np.cos(_A), 0, np.sin(_A)], [0, 1, 0], [-np.sin(_A), 0, np.cos(_A)]])
+BOUNDS = ((-0.9, 0.0, -0.9), (0.9, 1.9, 0.9))  # around the body, in its frame
+
+
+def draw(
+    cape: np.ndarray, triangles: np.ndarray, body: CollisionMesh, pose: np.ndarray, size: int, caption: str
+) -> np.ndarray:
+    """One frame: the cape's positions ``cape`` (world) and the body at ``pose`` (3 x 4), seen
+    from behind and the side, the camera following the body (also ``drape demo --stage body``'s)."""
+    shift = pose[:, 3]
+    return render_scene(
+        (size, size),
+        [
+            ((cape - shift) @ VIEW.T, triangles, CAPE, CAPE_BACK),
+            (body.vertices @ (VIEW @ pose[:, :3]).T, body.triangles, BODY),
+        ],
+        view="iso",
+        bounds=BOUNDS,
+        title=caption,
+    )
 
 
 def frames(ticks: int, every: int, size: int, solver: str = "workgroup") -> list[np.ndarray]:
     world = make_world(solver)
     body = body_mesh()
     out = []
-    bounds = ((-0.9, 0.0, -0.9), (0.9, 1.9, 0.9))
     base = penetration.BASE.with_(
         features=replace(penetration.BASE.features, wind=True),  # still air: the cape streams behind
         material=replace(penetration.BASE.material, drag=1.0, lift=0.3),
@@ -43,22 +63,8 @@ def frames(ticks: int, every: int, size: int, solver: str = "workgroup") -> list
             continue
         cloth = t.cloths[0]
         _, pose = cloth.meshes[0]
-        shift = pose[:, 3]
-        cape = (t.x[0] - shift) @ VIEW.T
-        body_now = body.vertices @ (VIEW @ pose[:, :3]).T
         caption = f"t = {t.index / penetration.HZ:4.2f} s   cape 32 x 32 on a {body.n_triangles:,}-triangle body"
-        out.append(
-            render_scene(
-                (size, size),
-                [
-                    (cape, cloth.fabric.triangles, CAPE, CAPE_BACK),
-                    (body_now, body.triangles, BODY),
-                ],
-                view="iso",
-                bounds=bounds,
-                title=caption,
-            )
-        )
+        out.append(draw(t.x[0], cloth.fabric.triangles, body, pose, size, caption))
     world.close()
     return out
 

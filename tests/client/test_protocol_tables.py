@@ -41,6 +41,12 @@ EVERY_FIELD = {
     "features_add": ("xpbd",),
     "features_remove": ("tethers",),
     "reset": True,
+    "mesh_collider": P.MeshCollider(
+        np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32),
+        np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.uint32),
+        (0.0, 1.0, 0.0),
+        (0.5, 0.5, 0.5, 0.5),
+    ),
 }
 
 
@@ -141,3 +147,24 @@ def test_coalescing_drops_no_field():
         req = P.ControlRequest("a", TOKEN, **{name: value})
         assert merge_controls(req, empty) == req, name
         assert merge_controls(empty, req) == req, name
+
+
+def test_a_mesh_move_coalesced_after_a_new_mesh_moves_that_mesh():
+    """1.8: a new mesh (or a re-pose) then a rigid move, merged, is the mesh at the move's pose;
+    a move then a new mesh is the new mesh; a removal wins over an earlier move."""
+    from drape.server.service.commands import merge_controls
+
+    mesh = EVERY_FIELD["mesh_collider"]
+    move = P.MeshCollider.pose((1.0, 2.0, 3.0), (0.0, 1.0, 0.0, 0.0))
+
+    def merged(a: P.MeshCollider, b: P.MeshCollider) -> P.MeshCollider:
+        out = merge_controls(
+            P.ControlRequest("a", TOKEN, mesh_collider=a), P.ControlRequest("a", TOKEN, mesh_collider=b)
+        )
+        assert out.mesh_collider is not None
+        return out.mesh_collider
+
+    got = merged(mesh, move)
+    assert got.triangles is mesh.triangles and got.position == move.position and got.rotation == move.rotation
+    assert merged(move, mesh) == mesh
+    assert merged(move, P.MeshCollider.removal()).remove

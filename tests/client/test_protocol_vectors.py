@@ -67,7 +67,11 @@ REENCODE["control_batch"] = (
 )
 
 
-@pytest.mark.parametrize("vec", load("submit") + load("control") + load("misc"), ids=lambda v: v["name"])
+@pytest.mark.parametrize(
+    "vec",
+    load("submit") + load("control") + load("misc") + [v for v in load("meshes") if "error" not in v],
+    ids=lambda v: v["name"],
+)
 def test_message_vectors(vec):
     data = bytes.fromhex(vec["hex"])
     wire = json_to_wire(vec["value"])
@@ -178,7 +182,7 @@ DECODERS = {
 }
 
 
-@pytest.mark.parametrize("vec", load("invalid"), ids=lambda v: v["name"])
+@pytest.mark.parametrize("vec", load("invalid") + [v for v in load("meshes") if "error" in v], ids=lambda v: v["name"])
 def test_invalid_vectors(vec):
     decode = DECODERS[vec["message"]]
     data = bytes.fromhex(vec["hex"])

@@ -121,6 +121,34 @@ def test_demo_crossing_writes_two_capes(tmp_path):
         assert gif.n_frames == len(frames)
 
 
+def test_demo_body_writes_a_cape_on_a_body_mesh(tmp_path):
+    """``drape demo --stage body``: a cape on a body sent as a 1.8 mesh collider and moved by a
+    pose per tick, received over Zenoh, as frames and a GIF, with the vertices left inside."""
+    r = drape(
+        "demo",
+        "--stage",
+        "body",
+        "--seconds",
+        "0.5",
+        "--fps",
+        "10",
+        "--size",
+        "120x120",
+        "--port",
+        str(free_port()),
+        "--out",
+        str(tmp_path),
+    )
+    assert "received 30 states over Zenoh" in r.stdout and "vertices inside the body: at most" in r.stdout
+    frames = sorted(tmp_path.glob("body_*.png"))
+    assert len(frames) == 5
+    with Image.open(frames[-1]) as im:
+        rgb = np.asarray(im.convert("RGB")).astype(int)
+    assert (rgb[..., 0] - rgb[..., 2] > 40).sum() > 20  # the red cape
+    with Image.open(tmp_path / "drape-body.gif") as gif:
+        assert gif.n_frames == len(frames) and gif.size == (120, 120)
+
+
 def test_tradeoff_collision_writes_its_table(tmp_path):
     """``drape tradeoff --collision`` on the small scenarios: a record per scenario and setting."""
     r = drape(

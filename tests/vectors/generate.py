@@ -267,6 +267,135 @@ def governor_vectors() -> list[dict[str, Any]]:
     ]
 
 
+def mesh_vectors() -> list[dict[str, Any]]:
+    """1.8 (PROTOCOL.md 5.4): a mesh collider (a tetrahedron, counter-clockwise seen from outside)
+    sent with a submission, moved, re-posed and removed by controls and a batch item, set and
+    moved by a scene's owner; then what a decoder refuses (``error``)."""
+    verts = np.array([[0, 0, 0], [0.5, 0, 0], [0, 0.5, 0], [0, 0, 0.5]], np.float32)
+    tris = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], np.uint32)
+    quarter = (0.9238795325112867, 0.0, 0.3826834323650898, 0.0)  # 45 degrees about +y
+    tok = "0123456789abcdef0123456789abcdef"
+    mesh = P.MeshCollider(verts, tris, (0.0, 1.0, 0.0))
+    move = P.MeshCollider.pose((0.1, 1.0, 0.0), quarter)
+    out = [
+        msg_vector(
+            "submit_mesh_collider",
+            "submit",
+            "1.8: a 4x4 cape with its own mesh collider, a tetrahedron 1 m up.",
+            P.encode_submit(
+                P.SubmitRequest(
+                    client="game-7",
+                    grid=P.GridSpec(4, 4),
+                    pinned=np.array([0, 3], np.uint32),
+                    mesh_collider=mesh,
+                    rid=30,
+                )
+            ),
+        ),
+        msg_vector(
+            "control_mesh_move",
+            "control",
+            "1.8: the per-tick rigid move of the cloth's mesh: 0.1 m along x, turned 45 degrees about y.",
+            P.encode_control(P.ControlRequest("cape-1", tok, mesh_collider=move, rid=31)),
+        ),
+        msg_vector(
+            "control_mesh_repose",
+            "control",
+            "1.8: a re-pose: new positions of the mesh's 4 vertices, the same triangles, at the same pose.",
+            P.encode_control(
+                P.ControlRequest(
+                    "cape-1", tok, mesh_collider=P.MeshCollider(verts * 1.1, None, (0.0, 1.0, 0.0)), rid=32
+                )
+            ),
+        ),
+        msg_vector(
+            "control_mesh_remove",
+            "control",
+            "1.8: the cloth's mesh collider removed.",
+            P.encode_control(P.ControlRequest("cape-1", tok, mesh_collider=P.MeshCollider.removal(), rid=33)),
+        ),
+        msg_vector(
+            "control_batch_mesh_move",
+            "control_batch",
+            "1.8: a batch item moving one cloth's mesh beside another's pin move.",
+            P.encode_control_batch(
+                P.ControlBatchRequest(
+                    "game-7",
+                    [
+                        P.ControlRequest("cape-1", tok, mesh_collider=move),
+                        P.ControlRequest(
+                            "cape-2",
+                            tok,
+                            pins=P.PinUpdate(np.array([0], np.uint32), np.array([[0.0, 2.0, 0.0]], np.float32)),
+                        ),
+                    ],
+                    rid=34,
+                )
+            ),
+        ),
+        msg_vector(
+            "scene_mesh_set",
+            "scene",
+            "1.8: the owner of scene arena-1 gives it a mesh collider, for every cloth of it.",
+            P.encode_scene(P.SceneRequest("c1", "arena-1", rid=35, mesh_collider=mesh)),
+        ),
+        msg_vector(
+            "scene_mesh_move",
+            "scene",
+            "1.8: the owner of scene arena-1 moves the scene's mesh (the per-tick change).",
+            P.encode_scene(P.SceneRequest("c1", "arena-1", rid=36, mesh_collider=move)),
+        ),
+    ]
+
+    def control(mc: dict[str, Any]) -> bytes:
+        return msgpack.packb({"v": [1, 8], "rid": 40, "cloth": "cape-1", "token": tok, "mesh_collider": mc})
+
+    f4, u4 = verts.astype("<f4").tobytes(), tris.astype("<u4").tobytes()
+    bad = [
+        (
+            "mesh_degenerate",
+            {"vertices": f4, "triangles": np.array([[0, 1, 1]], "<u4").tobytes()},
+            "invalid_value",
+            "a triangle with a repeated index (area 0)",
+        ),
+        (
+            "mesh_index_out_of_range",
+            {"vertices": f4, "triangles": np.array([[0, 1, 4]], "<u4").tobytes()},
+            "invalid_value",
+            "a triangle naming vertex 4 of 4",
+        ),
+        (
+            "mesh_not_finite",
+            {
+                "vertices": np.array([[np.nan, 0, 0], [1, 0, 0], [0, 1, 0]], "<f4").tobytes(),
+                "triangles": np.array([[0, 1, 2]], "<u4").tobytes(),
+            },
+            "invalid_value",
+            "a NaN vertex",
+        ),
+        ("mesh_triangles_without_vertices", {"triangles": u4}, "missing_field", "triangles without vertices"),
+        (
+            "mesh_remove_and_more",
+            {"remove": True, "position": [0.0, 0.0, 0.0]},
+            "invalid_value",
+            "remove with another key",
+        ),
+        ("mesh_zero_rotation", {"rotation": [0.0, 0.0, 0.0, 0.0]}, "invalid_value", "a zero quaternion"),
+        ("mesh_unknown_key", {"scale": 2.0}, "invalid_value", "an unknown key"),
+    ]
+    out += [
+        {
+            "name": n,
+            "message": "control",
+            "description": f"1.8, refused: {why}.",
+            "hex": control(mc).hex(),
+            "error": code,
+        }
+        for n, mc, code, why in bad
+    ]
+    return out
+
+
 def predictive_vectors() -> list[dict[str, Any]]:
     """1.5: one stream of predictive states (PROTOCOL.md 9.2), in order: a keyframe, a state of
     order 1, two of order 2 (the last with normals), then a keyframe again; and a submit asking
@@ -1149,6 +1278,7 @@ def vectors() -> dict[str, list[dict[str, Any]]]:
         "accepted": [future, future_bundle],
         "predictive": predictive_vectors(),
         "rates": rates_vectors(),
+        "meshes": mesh_vectors(),
     }
 
 

@@ -217,7 +217,7 @@ class CookWorker:
             world = self._world()
             if world is not None:
                 self._build(world, fabric, params)  # kernels built here, not on the tick path
-            add = Add(rec, params, packed, query, req.rid)
+            add = Add(rec, params, packed, query, req.rid, mesh=getattr(req, "mesh_collider", None))
             rs = getattr(req, "resume", None)
             if rs is not None:  # 1.3: the tick thread adds the cloth at this state
                 add.positions, add.velocities = rs.positions, rs.velocities

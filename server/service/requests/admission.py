@@ -66,6 +66,13 @@ SCENE_VERTICES = 64 * 64  # the cost file's scene: hanging 64 x 64
 #: docs/collision.md's cost table, session 16's contacts found once: CPU pack 6.1 -> 9.8 ms for 4
 #: scenes of 8 in a quiet moment, 0.08 rounded up; H100 1.056 -> 5.47 ms for 64 scenes of 64).
 SCENE_PASS_WORK: dict[str, float] = {"cpu": 0.1, "gpu": 0.52}
+#: 1.8: a cloth's own mesh collider's work per vertex of the cloth, a part per cloth vertex and a
+#: part per cloth vertex and triangle, in plain solves of that vertex: docs/collision.md's meshbench
+#: on this CPU (128 capes of 1,024 vertices, 23.6 us a cape's plain solve): 25 us a cape with the
+#: 5,972-triangle body, 26 us with the 12,220-triangle one (the cost follows the vertices near the
+#: surface more than the triangles).
+MESH_VERTEX_WORK = 1.0
+MESH_TRIANGLE_WORK = 1.0e-5
 assert set(FEATURE_WORK) <= set(Features().__dataclass_fields__), FEATURE_WORK
 
 
@@ -130,11 +137,14 @@ class Pricing:
         lo, hi = DENSITY_LIMITS
         return min(hi, max(lo, n_triangles / n_vertices / GRID_TRIANGLES_PER_VERTEX))
 
-    def work(self, n_vertices: int, params: ClothParams, density: float = 1.0) -> float:
-        """A cloth's work units: vertices x relative frame cost x link density x features' factors."""
+    def work(self, n_vertices: int, params: ClothParams, density: float = 1.0, mesh_triangles: int = 0) -> float:
+        """A cloth's work units: vertices x relative frame cost x link density x features' factors,
+        and its own mesh collider's (1.8) of ``mesh_triangles`` (0: none)."""
         w = n_vertices * density * self.frame_cost(params.iterations, params.substeps, params.features.xpbd)
         for name in params.features.names():
             w *= FEATURE_WORK.get(name, 1.0)
+        if mesh_triangles:
+            w += n_vertices * (MESH_VERTEX_WORK + MESH_TRIANGLE_WORK * mesh_triangles)
         return w
 
 
@@ -147,6 +157,7 @@ class Priced:
     params: ClothParams
     density: float
     work: float
+    mesh_triangles: int = 0  # 1.8: its own mesh collider's, as submitted
 
 
 def work_of(rec: ClothRecord) -> float:
@@ -182,22 +193,32 @@ class Admission:
             params = with_preset(self.config, params, req.quality, req.rid)
         n = req.n_vertices
         density = Pricing.density(n, None if req.mesh is None else len(req.mesh.triangles))
-        return Priced(params, density, self.pricing.work(n, params, density))
+        mc = req.mesh_collider
+        tris = len(mc.triangles) if mc is not None and mc.triangles is not None else 0
+        return Priced(params, density, self.pricing.work(n, params, density, tris), tris)
 
     def price_control(self, rec: ClothRecord, req: P.ControlRequest) -> Priced | None:
         """The cloth's price once ``req`` applies; None where it changes no parameter
-        (``worldparams.changes_params``: pins, a moved collider) or is invalid (the applier
-        refuses it with its own error)."""
+        (``worldparams.changes_params``: pins, a moved collider) and sets or removes no mesh
+        collider (1.8), or is invalid (the applier refuses it with its own error)."""
         old = rec.priced
-        if not isinstance(old, Priced) or not changes_params(req, old.params):
+        if not isinstance(old, Priced):
             return None
-        try:
-            new = params_after_control(req, old.params)
-        except (TypeError, ValueError):
+        tris, mc = old.mesh_triangles, req.mesh_collider  # 1.8: a new mesh or a removal re-prices
+        if mc is not None and (mc.remove or mc.triangles is not None):
+            tris = 0 if mc.remove or mc.triangles is None else len(mc.triangles)
+        new = old.params
+        if changes_params(req, old.params):
+            try:
+                new = params_after_control(req, old.params)
+            except (TypeError, ValueError):
+                return None
+            if req.quality is not None:
+                new = with_preset(self.config, new, req.quality, req.rid)
+        elif tris == old.mesh_triangles:
             return None
-        if req.quality is not None:
-            new = with_preset(self.config, new, req.quality, req.rid)
-        return Priced(new, old.density, self.pricing.work(rec.n_vertices, new, old.density))
+        work = self.pricing.work(rec.n_vertices, new, old.density, tris)
+        return Priced(new, old.density, work, tris)
 
     def total_work(self, records: Iterable[ClothRecord]) -> float:
         """The work units of these cloths stepped together: each one's price, plus the

@@ -265,7 +265,8 @@ class Handlers:
         self.intake.put(Remove(rec, query, req.rid), req.rid)
 
     def on_scene(self, query: zenoh.Query, payload: bytes, client: str | None = None) -> None:
-        """1.7: a scene's colliders and members, from its owner only (PROTOCOL.md 5.3)."""
+        """1.7: a scene's colliders and members, 1.8: its mesh collider, from its owner only
+        (PROTOCOL.md 5.3, 5.4)."""
         req = P.decode_scene(payload, self.limits)
         self.same_client(req.client, client, req.rid)
         scene = self.registry.owned_scene(req.scene, req.client, req.rid)
@@ -274,10 +275,10 @@ class Handlers:
             if req.members is not None:
                 scene.members = req.members
             reply = P.SceneReply(self._tick() + 1, scene.owner, len(scene.cloths), scene.members, req.rid)
-        if packed is None:
+        if packed is None and req.mesh_collider is None:
             send(Reply(query, P.encode_scene_reply(reply)))
             return
-        self.intake.put(SceneColliders(req.scene, packed, query, reply), req.rid)
+        self.intake.put(SceneColliders(req.scene, packed, query, reply, req.mesh_collider), req.rid)
 
     def on_info(self, query: zenoh.Query, payload: bytes, client: str | None = None) -> None:
         req = P.decode_info(payload, self.limits)

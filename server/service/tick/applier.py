@@ -30,7 +30,7 @@ from ..cook.fabrics import FabricStore
 from ..publish.publisher import Job
 from ..registry import ClothRecord, Registry
 from ..replies import Replies, Reply, send
-from ..worldparams import changes_params, params_after_control, with_preset
+from ..worldparams import changes_params, params_after_control, prepare_mesh, with_preset
 from .adaptive import AdaptiveQuality
 from .moves import apply_blocks
 
@@ -99,7 +99,11 @@ class Applier:
             self._add(cmd, job, tick)
         elif isinstance(cmd, SceneColliders):  # 1.7: every cloth of the scene, from the next tick
             try:
-                w.set_scene_colliders(cmd.scene, cmd.colliders)
+                mesh = prepare_mesh(w, cmd.mesh, scene=cmd.scene) if cmd.mesh is not None else None  # 1.8
+                if cmd.colliders is not None:
+                    w.set_scene_colliders(cmd.scene, cmd.colliders)
+                if mesh is not None:
+                    mesh()
             except ValueError as e:
                 job.before.append(self.replies.error(cmd.query, P.ERR_INVALID_VALUE, str(e), cmd.reply.rid))
                 return
@@ -144,6 +148,8 @@ class Applier:
             h = w.add(rec.fabric, params, cmd.positions, cmd.velocities, scene=rec.scene)
             if cmd.colliders is not None:
                 w.set_colliders(h, cmd.colliders)
+            if cmd.mesh is not None:  # 1.8
+                prepare_mesh(w, cmd.mesh, h)()
         except Exception as e:
             if h is not None:
                 w.remove(h)
@@ -230,6 +236,12 @@ class Applier:
             pins[1].append(req.pins.indices)  # type: ignore[union-attr]
             pins[2].append(req.pins.targets)  # type: ignore[union-attr]
             return None
+        mesh = None
+        if req.mesh_collider is not None:  # 1.8: checked before anything of the control is applied
+            try:
+                mesh = prepare_mesh(w, req.mesh_collider, h)
+            except ValueError as e:
+                return P.ERR_INVALID_VALUE, str(e)
         p = w.cloths[h].params
         if changes_params(req, p):
             try:
@@ -256,6 +268,8 @@ class Applier:
                 w.set_params(h, new)
         if slot.colliders is not None:
             w.set_colliders(h, slot.colliders)
+        if mesh is not None:
+            mesh()
         if req.pins is not None and len(req.pins.indices):
             if req.reset:  # the reset puts the pins back: targets before it
                 w.set_pin_targets(h, req.pins.indices.astype(np.int64), req.pins.targets)

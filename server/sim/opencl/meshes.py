@@ -36,8 +36,11 @@ PAR_ROWS = 10  # float4 rows per attachment (kernels/meshcollide.cl's apar)
 
 
 def _upload(arr: DevArray, host: np.ndarray) -> None:
-    if arr.capacity < len(host):
-        arr.resize(1 << max(6, (len(host) - 1).bit_length()))
+    """``host`` into ``arr``, grown to fit; a buffer four times larger than it needs is given
+    back (a removed mesh's memory)."""
+    want = 1 << max(6, (len(host) - 1).bit_length()) if len(host) else 64
+    if arr.capacity < len(host) or arr.capacity > 4 * want:
+        arr.resize(want)
     arr.write(0, host)
 
 
@@ -122,6 +125,9 @@ class MeshCollision:
             _upload(self._mlist, np.concatenate(lists))
             _upload(self._minfo, np.asarray(info, np.int32))
             _upload(self._mgeom, np.asarray(geom, np.float32))
+        else:  # the last mesh went: its memory given back
+            for arr in (self._mtri, self._mcell, self._mlist, self._minfo, self._mgeom):
+                _upload(arr, np.zeros((0, arr.width), arr.dtype))
         return index
 
     def _rebuild(self) -> None:

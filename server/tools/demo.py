@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from .procs import ServerExited, ServerProcess
+from .procs import ServerExited, ServerProcess, demo_server
 
 log = logging.getLogger(__name__)
 
@@ -492,14 +492,7 @@ def run(args: argparse.Namespace) -> int:
     """The three-cloth stage (``drape demo``'s default, demostages.py)."""
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    # three small cloths: admission control (which refuses cloths while a busy machine stretches
-    # the ticks) would only make the demo fail on a loaded machine
-    serve_args = ["--tick-rate", str(TICK_HZ), "--no-admission"]
-    if args.solver:
-        serve_args += ["--solver", args.solver]
-    if args.device:
-        serve_args += ["--device", args.device]
-    server = ServerProcess(serve_args, server_id="demo", port=args.port)
+    server = demo_server(args, TICK_HZ)
     try:
         _run_clients(server, args, out)
     except (ServerExited, ClientFailed) as e:

@@ -27,7 +27,7 @@ from ..sim.collision import penetration
 from ..sim.meshes import pose_matrix
 from .meshdemo import draw
 from .penetration import DT, Runner
-from .procs import ServerExited, ServerProcess
+from .procs import ServerExited, demo_server
 from .render import write_gif, write_png
 
 log = logging.getLogger(__name__)
@@ -91,12 +91,7 @@ def drive(endpoint: str, seconds: float) -> tuple[np.ndarray, list[np.ndarray], 
 def run(args: argparse.Namespace) -> int:
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    serve_args = ["--tick-rate", "60", "--no-admission"]
-    if args.solver:
-        serve_args += ["--solver", args.solver]
-    if args.device:
-        serve_args += ["--device", args.device]
-    server = ServerProcess(serve_args, server_id="demo", port=args.port)
+    server = demo_server(args)
     try:
         tris, xs, ticks, poses = drive(server.endpoint, args.seconds)
     except ServerExited as e:

@@ -40,7 +40,7 @@ from .demo import (
     load_recording,
     render,
 )
-from .procs import ServerExited, ServerProcess
+from .procs import ServerExited, ServerProcess, demo_server
 
 log = logging.getLogger(__name__)
 
@@ -236,12 +236,7 @@ def _run_clients(server: ServerProcess, args: argparse.Namespace, out: Path) -> 
 def run(args: argparse.Namespace) -> int:
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    serve_args = ["--tick-rate", str(TICK_HZ), "--no-admission"]
-    if args.solver:
-        serve_args += ["--solver", args.solver]
-    if args.device:
-        serve_args += ["--device", args.device]
-    server = ServerProcess(serve_args, server_id="demo", port=args.port)
+    server = demo_server(args, TICK_HZ)
     try:
         _run_clients(server, args, out)
     except (ServerExited, ClientFailed) as e:

@@ -155,6 +155,19 @@ def serve_command(endpoint: str, server_id: str, *args: str) -> list[str]:
     return [sys.executable, "-m", "drape.server.cli", "serve", "--listen", endpoint, "--server-id", server_id, *args]
 
 
+def demo_server(args: Any, tick_hz: float = 60.0) -> ServerProcess:
+    """The ``drape serve`` a ``drape demo`` stage runs against (demostages.py): ``tick_hz``,
+    admission off (a few small cloths: admission, which refuses cloths while a busy machine
+    stretches the ticks, would only make a demo fail on a loaded machine), the stage's
+    ``--solver``, ``--device`` and ``--port`` options."""
+    serve_args = ["--tick-rate", str(tick_hz), "--no-admission"]
+    if args.solver:
+        serve_args += ["--solver", args.solver]
+    if args.device:
+        serve_args += ["--device", args.device]
+    return ServerProcess(serve_args, server_id="demo", port=args.port)
+
+
 class ServerExited(RuntimeError):
     """The ``drape serve`` child a tool started exited while the tool waited on it; the message
     says with which exit status, before what, and ends with the server's last log lines."""

@@ -269,7 +269,9 @@ def test_endpoint_with_several_server_ids_measures_running_workers(tmp_path):
             f"--endpoint {sup.endpoint} --server-id {ids} --clients 2 --cloths 2 --size 8 --iterations 2 "
             f"--seconds 1 --quiet --out {tmp_path} --json {out}".split()
         )
-        assert lt.run(args) == 0
+        # 0 held or 1 not held (a frame coalesced on a loaded machine): both are a measured run;
+        # 2 (bad arguments) and 3 (the run failed) are not
+        assert lt.run(args) in (0, 1)
     (report,) = json.loads(out.read_text())
     assert [s["server"] for s in report["servers"]] == ids.split(",")
     assert [s["cloths"] for s in report["servers"]] == [2, 2] and report["cloths"] == report["offered"] == 4

@@ -689,7 +689,9 @@ def test_scene_extremes(device, rng, solver, how):
     # the most the contact passes may move a vertex in a tick: the scene's passes and, on the cloth
     # with self-collision, its own passes (at a 1 m thickness the two together: a fresh seed's
     # reference run grew 1.4x past the scene's passes alone)
-    part = (INTER_COLLISION_PASSES + SELF_COLLISION_PASSES) * thickness * INTER_COLLISION_MARGIN / DT
+    # (twice that: a vertex between two cloths is pushed from both sides; fresh seeds' 1 m runs
+    # grew up to 1.7x past the single-sided bound in their first tick, then stayed bounded)
+    part = 2 * (INTER_COLLISION_PASSES + SELF_COLLISION_PASSES) * thickness * INTER_COLLISION_MARGIN / DT
     viol = max(violation(s, fab) for s in starts) / DT  # resolving the links' violation at the start (check_run's)
     allow = 3 * float(m.sum()) * (0.5 * (2 * speed) ** 2 + 9.81 * (size + thickness) + 0.5 * part**2 + viol**2)
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import os
 import signal
 import sys
 import threading
@@ -45,7 +46,23 @@ def run(args: argparse.Namespace) -> int:
         from .workers import supervise
 
         return supervise(config)
-    return serve(config)
+    return leave(serve(config))
+
+
+def leave(code: int) -> int:
+    """End the serving process with ``code`` once the server has stopped, without the
+    interpreter's finalization. The server's session is closed by then, but Zenoh's runtime
+    threads (Rust) may still enter Python for a last drop callback: CPython 3.11-3.13 ends a
+    thread that wants the GIL during finalization with pthread_exit, and its forced unwind
+    through Rust frames makes glibc abort the process ("FATAL: exception not rethrown", status
+    -6 after a clean stop; python/cpython#87135). Logs and stdio are flushed first."""
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(code)
 
 
 def start_ops(server, config: ServerConfig):

@@ -604,6 +604,16 @@ ENV_ONLY: tuple[Setting, ...] = (
         read_in="server/sim/opencl/devicecheck.py",
     ),
     Setting(
+        "profile",
+        str,
+        None,
+        "drape serve: sample the tick, publish, cook and request threads' stacks at 200 Hz and write PATH.folded and "
+        "PATH.txt at the stop (drape.server.service.process.sampler)",
+        ENV,
+        scope="env",
+        read_in="server/service/process/daemon.py",
+    ),
+    Setting(
         "config",
         str,
         None,

@@ -399,21 +399,25 @@ def test_a_busy_metrics_port_is_a_clear_error(served):
 
 
 def test_drape_serve_notifies_systemd_and_serves_metrics(tmp_path):
-    """The daemon end to end: READY=1, /readyz, /metrics, WATCHDOG=1, STOPPING=1, exit 0."""
+    """The daemon end to end: READY=1, /readyz, /metrics, WATCHDOG=1, STOPPING=1, exit 0; with
+    DRAPE_PROFILE its threads' sampled stacks written at the stop."""
     import signal
     import subprocess
     import sys
 
-    from drape.server.service.process import daemon
-
-    if not hasattr(daemon, "start_ops"):
-        pytest.skip("drape serve does not start the operator endpoints yet (daemon.start_ops)")
     port, mport = free_port(), free_port()
     path = str(tmp_path / "notify.sock")
     with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
         sock.bind(path)
         sock.settimeout(3 * TIMEOUT)
-        env = {**os.environ, "NOTIFY_SOCKET": path, "WATCHDOG_USEC": "1000000", "RUST_LOG": "error"}
+        profile = tmp_path / "prof"
+        env = {
+            **os.environ,
+            "NOTIFY_SOCKET": path,
+            "WATCHDOG_USEC": "1000000",
+            "RUST_LOG": "error",
+            "DRAPE_PROFILE": str(profile),
+        }
         env.pop("WATCHDOG_PID", None)
         env.pop("DRAPE_CONFIG", None)
         proc = subprocess.Popen(
@@ -452,3 +456,6 @@ def test_drape_serve_notifies_systemd_and_serves_metrics(tmp_path):
                 proc.kill()
                 proc.wait()
         assert "STOPPING=1" in _drain(sock, 1.0)
+    summary = (tmp_path / "prof.txt").read_text()
+    assert "== drape-tick:" in summary and "ticker.Ticker.run" in summary
+    assert (tmp_path / "prof.folded").read_text().startswith("drape-")

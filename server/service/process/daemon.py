@@ -98,9 +98,15 @@ def serve(config: ServerConfig) -> int:
         warm_up_in_child(config)
     server = Server(config)
     operator = None
+    profile = os.environ.get("DRAPE_PROFILE")
+    sampler = None
     try:
         server.start()
         operator = start_ops(server, config)
+        if profile:
+            from .sampler import ThreadSampler
+
+            sampler = ThreadSampler().start()
         while not stop.wait(0.25):
             if server.failure is not None:
                 log.error("tick loop failed: %s", server.failure)
@@ -112,7 +118,11 @@ def serve(config: ServerConfig) -> int:
     finally:
         if operator is not None:
             operator.stop()
+        if sampler is not None:
+            sampler.stop()
         server.stop()
+        if sampler is not None and profile:
+            sampler.write(profile)
         for s, h in previous.items():
             signal.signal(s, h)
     return 1 if server.failure is not None else 0

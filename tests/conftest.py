@@ -197,7 +197,8 @@ def make_config(**kw) -> ServerConfig:
 def connect(server, **kw):
     from drape.client import DrapeClient
 
-    return DrapeClient(server.config.listen[0], server_id=server.server_id, timeout=TIMEOUT, **kw)
+    kw.setdefault("timeout", TIMEOUT)
+    return DrapeClient(server.config.listen[0], server_id=server.server_id, **kw)
 
 
 @pytest.fixture

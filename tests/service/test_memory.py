@@ -14,7 +14,7 @@ import sys
 import textwrap
 
 import pytest
-from conftest import collect, connect, make_config, wait_until
+from conftest import TIMEOUT, collect, connect, make_config, wait_until
 
 from drape.server.service import Server
 from drape.server.service.process import memory as M
@@ -33,7 +33,9 @@ def test_programs_no_cloth_uses_are_released_and_the_heap_trimmed():
             params = ClothParams(features=Features.from_names(list(features)))
             return srv.call(lambda w: w.ready(cook_grid(6, 6, pinned=[0, 5]), params))
 
-        c = connect(srv)
+        # each new feature set's submit waits for its kernels, built in a child process first: at
+        # a loaded machine's pace (a CI run beside other work) that took longer than TIMEOUT
+        c = connect(srv, timeout=6 * TIMEOUT)
         try:
             kept = c.submit_grid(6, 6, pinned=[0, 5], features=["tethers", "wind"])
             gone = c.submit_grid(6, 6, pinned=[0, 5], features=["xpbd"])

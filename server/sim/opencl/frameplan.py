@@ -7,6 +7,7 @@ encode.py's DeviceEncoder runs a plan on the device; see its docstring.
 
 from __future__ import annotations
 
+import itertools
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -88,115 +89,71 @@ class FramePlan:
 
     @classmethod
     def build(cls, cloths: Sequence[ClothEntry], publications: Sequence[Publication]) -> FramePlan:
-        """Lay out a frame. Raises ValueError on a bad entry (unknown encoding, negative range,
-        a bundle with an invalid cloth id or no cloth, a single with other than one cloth, a
-        cloth in two publications, an index out of range)."""
+        """Lay out a frame, whole-frame numpy over the cloths' and publications' columns: every
+        state header, bundle header and bundle entry of the static bytes written as arrays (one
+        header packed per kind of state), so a plan of 8192 cloths costs milliseconds, not a
+        Python pass per cloth (docs/loadtest.md, tickbench). Raises ValueError on a bad entry
+        (unknown encoding, negative range, a bundle with an invalid cloth id or no cloth, a
+        single with other than one cloth, a cloth in two publications, an index out of range)."""
         cloths, publications = list(cloths), list(publications)
-        k = len(cloths)
-        for i, c in enumerate(cloths):
-            if c.encoding not in P.ENCODING_NAMES:
-                raise ValueError(f"cloth {i} ({c.cloth!r}): unknown encoding {c.encoding}")
-            if c.encoding == P.ENC_PREDICTIVE and not P.STEP_RANGE[0] <= c.step <= P.STEP_RANGE[1]:
-                raise ValueError(f"cloth {i} ({c.cloth!r}): step {c.step} out of {P.STEP_RANGE}")
-            if c.vbase < 0 or c.n < 0 or c.vbase + c.n >= 2**32:
-                raise ValueError(f"cloth {i} ({c.cloth!r}): bad vertex range {c.vbase}+{c.n}")
-        owner = np.full(k, -1, np.int64)
-        state_offset = np.full(k, -1, np.int64)
-        pub_offset = np.zeros(len(publications), np.int64)
-        pub_size = np.zeros(len(publications), np.int64)
+        cols = _Columns.of(cloths)
         W = encode_layout()
         none = W["ENC_NONE"]
-        rows: list[list[int]] = []
-        parts: list[tuple[int, Publication]] = []
-        at = 0
-        for p, pub in enumerate(publications):
-            idx = list(pub.cloths)
-            if not idx:
-                raise ValueError(f"publication {p} ({pub.key!r}) has no cloth")
-            if not pub.bundle and len(idx) != 1:
-                raise ValueError(f"single publication {p} ({pub.key!r}) has {len(idx)} cloths")
-            for i in idx:
-                if not 0 <= i < k:
-                    raise ValueError(f"publication {p} ({pub.key!r}) names cloth {i} of {k}")
-                if owner[i] >= 0:
-                    raise ValueError(f"cloth {i} ({cloths[i].cloth!r}) is in publications {owner[i]} and {p}")
-                owner[i] = p
-                if pub.bundle and not P.valid_id(cloths[i].cloth):
-                    raise ValueError(f"bundle {pub.key!r}: invalid cloth id {cloths[i].cloth!r}")
-            sizes = [state_size(cloths[i].n, cloths[i].encoding, cloths[i].normals) for i in idx]
-            if pub.bundle:
-                size = P.bundle_size((cloths[i].cloth, s) for i, s in zip(idx, sizes, strict=True))
-                s_at = at + P.BUNDLE_HEADER_SIZE
-                for j, (i, s) in enumerate(zip(idx, sizes, strict=True)):
-                    eh = P.bundle_entry_header_size(cloths[i].cloth)
-                    s_at += eh
-                    state_offset[i] = s_at
-                    rows.append(
-                        cls._row(cloths[i], s_at, at if j == 0 else none, i, s_at - eh + HEADER_OFFSETS["BE_SIZE"])
-                    )
-                    s_at += P.align8(s)
-            else:
-                size = sizes[0]
-                state_offset[idx[0]] = at
-                rows.append(cls._row(cloths[idx[0]], at, none, idx[0], none))
-            pub_offset[p], pub_size[p] = at, size
-            parts.append((at, pub))
-            at = P.align8(at + size)
+        n_pub = len(publications)
+        counts = np.fromiter((len(p.cloths) for p in publications), np.int64, n_pub)
+        is_bundle = np.fromiter((p.bundle for p in publications), bool, n_pub)
+        members = np.fromiter(itertools.chain.from_iterable(p.cloths for p in publications), np.int64)
+        pub_of = np.repeat(np.arange(n_pub), counts)  # each row's publication
+        owner = _check(cloths, publications, cols, counts, is_bundle, members, pub_of)
+        in_bundle = is_bundle[pub_of]
+        size = cols.size[members]
+        # each row's piece of its publication: a single's state, a bundle's entry header and state
+        entry = np.where(in_bundle, _align8(P.BUNDLE_ENTRY_SIZE + cols.id_len[members]), 0)
+        piece = np.where(in_bundle, entry + _align8(size), size)
+        starts = np.cumsum(counts) - counts  # each publication's first row
+        excl = np.cumsum(piece) - piece
+        before = excl - excl[starts][pub_of]  # bytes of the rows before in the same publication
+        pub_size = np.add.reduceat(piece, starts) if len(members) else np.zeros(n_pub, np.int64)
+        pub_size = pub_size + np.where(is_bundle, P.BUNDLE_HEADER_SIZE, 0)
+        pub_offset = np.cumsum(_align8(pub_size)) - _align8(pub_size)
+        at = int(_align8(pub_size).sum())
         if at >= 2**32:
             raise ValueError(f"a frame of {at} bytes does not fit 32-bit offsets")
+        state_at = pub_offset[pub_of] + np.where(in_bundle, P.BUNDLE_HEADER_SIZE + before + entry, 0)
+        state_offset = np.full(cols.k, -1, np.int64)
+        state_offset[members] = state_at
+        # the kernel's table, one row per publication member, in publication order
+        pred = cols.enc[members] == P.ENC_PREDICTIVE
+        opens = np.zeros(len(members), bool)
+        opens[starts] = True
+        table = np.zeros((len(members), W["ENC_ROW_WORDS"]), np.uint32)
+        table[:, W["ENC_ROW_VBASE"]] = cols.vbase[members]
+        table[:, W["ENC_ROW_N"]] = cols.n[members]
+        table[:, W["ENC_ROW_ENC"]] = cols.enc[members]
+        table[:, W["ENC_ROW_NORMALS"]] = cols.normals[members]
+        table[:, W["ENC_ROW_STATE"]] = state_at
+        table[:, W["ENC_ROW_BUNDLE"]] = np.where(opens & in_bundle, pub_offset[pub_of], none)
+        table[:, W["ENC_ROW_CLOTH"]] = members
+        entry_at = state_at - entry + HEADER_OFFSETS["BE_SIZE"]
+        table[:, W["ENC_ROW_ENTRY"]] = np.where(pred & in_bundle, entry_at, none)
+        table[:, W["ENC_ROW_INVSTEP"]] = np.where(pred, cols.inv_step_bits[members], 0)
+        # the static bytes
         template = np.zeros(at, np.uint8)
-        buf = memoryview(template).cast("B")  # type: ignore[arg-type]
-        for off, pub in parts:
-            if pub.bundle:
-                P.pack_bundle_header(buf[off:], 0, 0, len(pub.cloths))
-                for i in pub.cloths:
-                    c = cloths[i]
-                    so = int(state_offset[i])
-                    e = so - P.bundle_entry_header_size(c.cloth)
-                    P.pack_bundle_entry(buf, e, c.cloth, state_size(c.n, c.encoding, c.normals))
-            for i in pub.cloths:
-                c = cloths[i]
-                so = int(state_offset[i])
-                if c.encoding == P.ENC_PREDICTIVE:  # its static fields: the step, a stride of 1
-                    hs = P.PREDICTIVE_HEADER_SIZE
-                    P.pack_state_header(buf, so, c.encoding, 0, c.n, 0, 0, (0.0,) * 3, (0.0,) * 3, hs)
-                    P.PREDICTIVE_HEADER.pack_into(
-                        buf, so + P.STATE_HEADER_SIZE, float(np.float32(c.step)), 0, 1, 0, 0, 0
-                    )
-                else:
-                    P.pack_state_header(buf, so, c.encoding, 0, c.n, 0, 0, (0.0,) * 3, (0.0,) * 3)
-        table = np.array(rows, np.uint32).reshape(-1, W["ENC_ROW_WORDS"])
-        enc_idx = table[:, W["ENC_ROW_CLOTH"]].astype(np.int64)
+        _bundle_headers(template, pub_offset[is_bundle], counts[is_bundle])
+        b = in_bundle
+        _bundle_entries(template, state_at[b] - entry[b], members[b], size[b], cols)
+        _state_headers(template, state_at, members, cols)
         plan = cls(cloths, publications, pub_offset, pub_size, state_offset, table, template)
-        plan.max_n = int(table[:, W["ENC_ROW_N"]].max(initial=0))
-        ends = table[:, W["ENC_ROW_VBASE"]].astype(np.int64) + table[:, W["ENC_ROW_N"]]
-        plan.vertex_end = int(ends.max(initial=0))
-        plan.normals = bool(table[:, W["ENC_ROW_NORMALS"]].any())
-        plan._bounds_at = state_offset[enc_idx] if len(enc_idx) else np.zeros(0, np.int64)
-        plan.predictive = np.array([c.encoding == P.ENC_PREDICTIVE for c in cloths], bool)
+        plan.max_n = int(cols.n[members].max(initial=0))
+        plan.vertex_end = int((cols.vbase[members] + cols.n[members]).max(initial=0))
+        plan.normals = bool(cols.normals[members].any())
+        plan._bounds_at = state_at
+        plan.predictive = cols.enc == P.ENC_PREDICTIVE
         plan.owner = owner
-        plan.is_bundle = np.array([p.bundle for p in publications], bool)
-        plan._sizes = np.array([state_size(c.n, c.encoding, c.normals) for c in cloths], np.int64)
-        plan._pred_extra = np.array([P.PREDICTIVE_HEADER_SIZE + 6 * c.n * c.normals for c in cloths], np.int64)
+        plan.is_bundle = is_bundle
+        plan._sizes = cols.size
+        plan._pred_extra = P.PREDICTIVE_HEADER_SIZE + 6 * cols.n * cols.normals
         return plan
-
-    @staticmethod
-    def _row(c: ClothEntry, state_at: int, bundle_at: int, index: int, entry_at: int) -> list[int]:
-        W = encode_layout()
-        row = [0] * W["ENC_ROW_WORDS"]
-        row[W["ENC_ROW_VBASE"]] = c.vbase
-        row[W["ENC_ROW_N"]] = c.n
-        row[W["ENC_ROW_ENC"]] = c.encoding
-        row[W["ENC_ROW_NORMALS"]] = int(c.normals)
-        row[W["ENC_ROW_STATE"]] = state_at
-        row[W["ENC_ROW_BUNDLE"]] = bundle_at
-        row[W["ENC_ROW_CLOTH"]] = index
-        if c.encoding == P.ENC_PREDICTIVE:
-            row[W["ENC_ROW_ENTRY"]] = entry_at
-            row[W["ENC_ROW_INVSTEP"]] = int(np.array(P.inverse_step(c.step), np.float32).view(np.uint32))
-        else:
-            row[W["ENC_ROW_ENTRY"]] = W["ENC_NONE"]
-        return row
 
     def time_offsets(self, state_at: np.ndarray | None = None, pub_at: np.ndarray | None = None) -> np.ndarray:
         """Byte offsets of every server-time field of the frame (each encoded state's, each
@@ -215,6 +172,183 @@ class FramePlan:
     def encoded(self) -> np.ndarray:
         """Plan cloth indices that are encoded (in some publication), in row order."""
         return self.rows[:, encode_layout()["ENC_ROW_CLOTH"]].astype(np.int64)
+
+
+def _align8(n: np.ndarray) -> np.ndarray:
+    """P.align8 of every element."""
+    return (n + 7) & ~7
+
+
+def _kinds(*columns: np.ndarray) -> tuple[list[tuple[int, ...]], np.ndarray]:
+    """The distinct rows of some integer columns (each row's values as a tuple) and each row's
+    index among them: a plan's cloths are of few kinds, so a plan packs one header per kind."""
+    if not len(columns[0]):
+        return [], np.zeros(0, np.int64)
+    codes = np.zeros(len(columns[0]), np.int64)
+    for col in columns:  # factorised one column at a time (no row-wise sort of wide keys)
+        values, code = np.unique(col, return_inverse=True)
+        codes = codes * len(values) + code.reshape(-1)
+        codes = np.unique(codes, return_inverse=True)[1].reshape(-1)
+    first = np.unique(codes, return_index=True)[1]
+    return [tuple(int(col[i]) for col in columns) for i in first.tolist()], codes
+
+
+_ID_CHARS = np.zeros(256, bool)  # the bytes a valid id is made of (P.valid_id has the last word)
+_ID_CHARS[np.frombuffer(b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789_.-", np.uint8)] = True
+
+
+@dataclass(eq=False)
+class _Columns:
+    """A plan's cloths as arrays (one pass over the entries per field), checked."""
+
+    k: int
+    vbase: np.ndarray  # (k,) int64
+    n: np.ndarray  # (k,) int64
+    enc: np.ndarray  # (k,) int64
+    normals: np.ndarray  # (k,) bool
+    step: np.ndarray  # (k,) float64
+    id_len: np.ndarray  # (k,) int64: characters of each id
+    id_bytes: np.ndarray  # every id's bytes back to back (non-ASCII characters as b"?")
+    size: np.ndarray  # (k,) int64: each state's (largest) size
+    inv_step_bits: np.ndarray  # (k,) uint32: float32 bits of 1 / step (predictive.inverse_step)
+
+    @classmethod
+    def of(cls, cloths: list[ClothEntry]) -> _Columns:
+        k = len(cloths)
+        ids = [c.cloth for c in cloths]
+        vbase = np.fromiter((c.vbase for c in cloths), np.int64, k)
+        n = np.fromiter((c.n for c in cloths), np.int64, k)
+        enc = np.fromiter((c.encoding for c in cloths), np.int64, k)
+        normals = np.fromiter((c.normals for c in cloths), bool, k)
+        step = np.fromiter((c.step for c in cloths), np.float64, k)
+        known = np.isin(enc, np.fromiter(P.ENCODING_NAMES, np.int64))
+        pred = enc == P.ENC_PREDICTIVE
+        bad_step = pred & ~((step >= P.STEP_RANGE[0]) & (step <= P.STEP_RANGE[1]))
+        bad_range = (vbase < 0) | (n < 0) | (vbase + n >= 2**32)
+        wrong = np.flatnonzero(~known | bad_step | bad_range)
+        if len(wrong):
+            i = int(wrong[0])
+            c = cloths[i]
+            if not known[i]:
+                raise ValueError(f"cloth {i} ({c.cloth!r}): unknown encoding {c.encoding}")
+            if bad_step[i]:
+                raise ValueError(f"cloth {i} ({c.cloth!r}): step {c.step} out of {P.STEP_RANGE}")
+            raise ValueError(f"cloth {i} ({c.cloth!r}): bad vertex range {c.vbase}+{c.n}")
+        id_len = np.fromiter(map(len, ids), np.int64, k)
+        id_bytes = np.frombuffer("".join(ids).encode("ascii", "replace"), np.uint8)
+        # sizes and inverse steps: one call per distinct kind of cloth
+        kinds, inverse = _kinds(n, enc, normals)
+        size = np.array([state_size(a, e, bool(m)) for a, e, m in kinds], np.int64)[inverse]
+        inv_step_bits = np.zeros(k, np.uint32)
+        if pred.any():
+            steps, inverse = np.unique(step[pred], return_inverse=True)
+            inv = np.array([P.inverse_step(float(s)) for s in steps], np.float32).view(np.uint32)
+            inv_step_bits[pred] = inv[inverse.reshape(-1)]
+        return cls(k, vbase, n, enc, normals, step, id_len, id_bytes, size, inv_step_bits)
+
+    def invalid_ids(self, cloths: list[ClothEntry], idx: np.ndarray) -> np.ndarray:
+        """Those of cloths ``idx`` whose id is not a valid one (P.valid_id): whole arrays, and
+        P.valid_id itself only for ids that look wrong."""
+        start = np.cumsum(self.id_len) - self.id_len
+        odd = ~_ID_CHARS[self.id_bytes]
+        odd_ids = np.zeros(self.k, bool)
+        if odd.any():
+            odd_ids[np.searchsorted(start, np.flatnonzero(odd), side="right") - 1] = True
+        ln = self.id_len[idx]
+        maybe = idx[odd_ids[idx] | (ln < 1) | (ln > 64)]
+        return np.array([i for i in maybe.tolist() if not P.valid_id(cloths[i].cloth)], np.int64)
+
+
+def _check(
+    cloths: list[ClothEntry],
+    publications: list[Publication],
+    cols: _Columns,
+    counts: np.ndarray,
+    is_bundle: np.ndarray,
+    members: np.ndarray,
+    pub_of: np.ndarray,
+) -> np.ndarray:
+    """Each cloth's publication ((k,) int64, -1 for none); raises ValueError on the first bad
+    publication (in publication order)."""
+    k = cols.k
+    problems: list[tuple[int, str]] = []  # (publication, message): the first one is raised
+    for p in np.flatnonzero(counts == 0)[:1].tolist():
+        problems.append((p, f"publication {p} ({publications[p].key!r}) has no cloth"))
+    for p in np.flatnonzero(~is_bundle & (counts != 1))[:1].tolist():
+        problems.append((p, f"single publication {p} ({publications[p].key!r}) has {counts[p]} cloths"))
+    out = np.flatnonzero((members < 0) | (members >= k))
+    if len(out):
+        p, i = int(pub_of[out[0]]), int(members[out[0]])
+        problems.append((p, f"publication {p} ({publications[p].key!r}) names cloth {i} of {k}"))
+    else:
+        order = np.argsort(members, kind="stable")
+        again = np.flatnonzero(members[order][1:] == members[order][:-1])
+        if len(again):  # a cloth named twice: its first repeat, in row order, against its first naming
+            rows = order[again + 1]
+            j = int(np.argmin(rows))
+            later, earlier = int(rows[j]), int(order[again[j]])
+            i = int(members[later])
+            a, b = int(pub_of[earlier]), int(pub_of[later])
+            problems.append((b, f"cloth {i} ({cloths[i].cloth!r}) is in publications {a} and {b}"))
+        bad = cols.invalid_ids(cloths, members[is_bundle[pub_of]])
+        if len(bad):
+            row = int(np.flatnonzero(np.isin(members, bad) & is_bundle[pub_of])[0])
+            p, i = int(pub_of[row]), int(members[row])
+            problems.append((p, f"bundle {publications[p].key!r}: invalid cloth id {cloths[i].cloth!r}"))
+    if problems:
+        raise ValueError(min(problems, key=lambda pm: pm[0])[1])
+    owner = np.full(k, -1, np.int64)
+    owner[members] = pub_of
+    return owner
+
+
+def _words(template: np.ndarray, at: np.ndarray, header: bytes | bytearray) -> None:
+    """The same 8-byte aligned ``header`` at every offset ``at`` of the frame ``template``."""
+    words = np.frombuffer(bytes(header), "<u8")
+    template.view("<u8")[(at >> 3)[:, None] + np.arange(len(words))] = words
+
+
+def _bundle_headers(template: np.ndarray, at: np.ndarray, counts: np.ndarray) -> None:
+    """Every bundle's header (tick and time 0): one packed per distinct count."""
+    for count in np.unique(counts).tolist():
+        head = bytearray(P.BUNDLE_HEADER_SIZE)
+        P.pack_bundle_header(head, 0, 0, count)
+        _words(template, at[counts == count], head)
+
+
+def _bundle_entries(template: np.ndarray, at: np.ndarray, idx: np.ndarray, sizes: np.ndarray, cols: _Columns) -> None:
+    """The entry headers of bundle members ``idx`` at ``at`` (their fixed part, id and zeros)."""
+    if not len(idx):
+        return
+    ln = cols.id_len[idx]
+    fixed = np.zeros(len(idx), P.BUNDLE_ENTRY_DTYPE)
+    fixed["header_size"] = _align8(P.BUNDLE_ENTRY_SIZE + ln)
+    fixed["id_length"] = ln
+    fixed["state_size"] = sizes
+    template.view("<u8")[at >> 3] = fixed.view("<u8")
+    start = np.cumsum(cols.id_len) - cols.id_len
+    within = np.arange(int(ln.sum())) - np.repeat(np.cumsum(ln) - ln, ln)
+    template[np.repeat(at + P.BUNDLE_ENTRY_SIZE, ln) + within] = cols.id_bytes[np.repeat(start[idx], ln) + within]
+
+
+def _state_headers(template: np.ndarray, at: np.ndarray, idx: np.ndarray, cols: _Columns) -> None:
+    """The static state headers of cloths ``idx`` at ``at``: one packed per distinct (encoding,
+    vertex count, step); a predictive state's with its step and a stride of 1."""
+    if not len(idx):
+        return
+    pred = cols.enc[idx] == P.ENC_PREDICTIVE
+    step32 = np.where(pred, cols.step[idx], 0.0).astype(np.float32)
+    kinds, inverse = _kinds(cols.enc[idx], cols.n[idx], step32.view(np.uint32))
+    for j, (enc, n, bits) in enumerate(kinds):
+        if enc == P.ENC_PREDICTIVE:
+            head = bytearray(P.PREDICTIVE_HEADER_SIZE)
+            P.pack_state_header(head, 0, enc, 0, n, 0, 0, (0.0,) * 3, (0.0,) * 3, P.PREDICTIVE_HEADER_SIZE)
+            step = float(np.array(bits, np.uint32).view(np.float32))
+            P.PREDICTIVE_HEADER.pack_into(head, P.STATE_HEADER_SIZE, step, 0, 1, 0, 0, 0)
+        else:
+            head = bytearray(P.STATE_HEADER_SIZE)
+            P.pack_state_header(head, 0, enc, 0, n, 0, 0, (0.0,) * 3, (0.0,) * 3)
+        _words(template, at[inverse == j], head)
 
 
 def take_bytes(data: np.ndarray, at: np.ndarray, n: int) -> np.ndarray:

@@ -124,7 +124,7 @@ def run(load: Load, repeat: int, dev: Any | None) -> dict[str, list[float]]:
 
         n_vert = max(len(load.records) * load.nv, 1)
         pos = cl.Buffer(dev.ctx, cl.mem_flags.READ_WRITE, 16 * n_vert)
-        cl.enqueue_fill_buffer(dev.queue, pos, np.float32(0.25), 0, 16 * n_vert).wait()
+        cl.enqueue_fill_buffer(dev.queue, pos, np.full(1, 0.25, np.float32), 0, 16 * n_vert).wait()
         mem = SimpleNamespace(pos=SimpleNamespace(buf=pos), nrm=SimpleNamespace(buf=pos))
         frames = DeviceFrames(dev, mem, load.slots, SimpleNamespace(step_marker=None))  # type: ignore[arg-type]
         frames.build_all()

@@ -22,6 +22,7 @@ from ..roster import Roster
 from .platforms import kernel_dir
 
 SOURCE = "encode.cl"
+STATIC_SOURCE = "static.cl"  # a plan's static words put into the encoder's output buffer
 
 
 @lru_cache(maxsize=1)
@@ -73,7 +74,9 @@ class FramePlan:
     pub_size: np.ndarray  # (P,) int64
     state_offset: np.ndarray  # (k,) int64 per plan cloth, -1 when it is in no publication
     rows: np.ndarray  # (R, ENC_ROW_WORDS) uint32: the kernel's table, one row per encoded cloth
-    template: np.ndarray  # (size,) uint8: the static bytes of the whole frame
+    static_at: np.ndarray  # (m,) int64: the frame's 8-byte words holding static bytes (headers, ids)
+    static_words: np.ndarray  # (m,) uint64: their values (every other byte of the frame is 0)
+    nbytes: int  # the frame's size
     max_n: int = 0
     vertex_end: int = 0  # one past the last vertex any row reads
     normals: bool = False  # whether any row reads normals
@@ -85,9 +88,28 @@ class FramePlan:
     _sizes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (k,) each state's largest size
     _pred_extra: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # header and normals bytes
 
+    _template: np.ndarray | None = None
+
     @property
     def size(self) -> int:
-        return int(self.template.size)
+        return self.nbytes
+
+    @property
+    def template(self) -> np.ndarray:
+        """(size,) uint8: the static bytes of the whole frame, made on first use (a frame of
+        8192 predictive cloths is 100 MB, mostly zeros: :meth:`write_static` puts only the
+        static words into a zeroed frame)."""
+        if self._template is None:
+            t = np.zeros(self.nbytes, np.uint8)
+            self.write_static(t)
+            self._template = t
+        return self._template
+
+    def write_static(self, frame: np.ndarray) -> None:
+        """Put the static words into ``frame`` (uint8, at least :attr:`size` bytes, 8-byte
+        aligned, zero elsewhere)."""
+        if len(self.static_at):
+            frame[: self.nbytes].view("<u8")[self.static_at] = self.static_words
 
     @classmethod
     def build(cls, cloths: Sequence[ClothEntry], publications: Sequence[Publication]) -> FramePlan:
@@ -140,12 +162,15 @@ class FramePlan:
         table[:, W["ENC_ROW_ENTRY"]] = np.where(pred & in_bundle, entry_at, none)
         table[:, W["ENC_ROW_INVSTEP"]] = np.where(pred, cols.inv_step_bits[members], 0)
         # the static bytes
-        template = np.zeros(at, np.uint8)
-        _bundle_headers(template, pub_offset[is_bundle], counts[is_bundle])
         b = in_bundle
-        _bundle_entries(template, state_at[b] - entry[b], members[b], size[b], cols)
-        _state_headers(template, state_at, members, cols)
-        plan = cls(cloths, publications, pub_offset, pub_size, state_offset, table, template)
+        static = [
+            _bundle_headers(pub_offset[is_bundle], counts[is_bundle]),
+            _bundle_entries(state_at[b] - entry[b], members[b], size[b], cols),
+            _state_headers(state_at, members, cols),
+        ]
+        static_at = np.concatenate([s[0] for s in static])
+        static_words = np.concatenate([s[1] for s in static])
+        plan = cls(cloths, publications, pub_offset, pub_size, state_offset, table, static_at, static_words, at)
         plan.max_n = int(cols.n[members].max(initial=0))
         plan.vertex_end = int((cols.vbase[members] + cols.n[members]).max(initial=0))
         plan.normals = bool(cols.normals[members].any())
@@ -314,43 +339,63 @@ def _check(
     return owner
 
 
-def _words(template: np.ndarray, at: np.ndarray, header: bytes | bytearray) -> None:
-    """The same 8-byte aligned ``header`` at every offset ``at`` of the frame ``template``."""
+Words = tuple[np.ndarray, np.ndarray]  # (word index (m,) int64, value (m,) uint64) of a frame's static bytes
+
+
+def _same(at: np.ndarray, header: bytes | bytearray) -> Words:
+    """The same 8-byte aligned ``header`` at every byte offset ``at``."""
     words = np.frombuffer(bytes(header), "<u8")
-    template.view("<u8")[(at >> 3)[:, None] + np.arange(len(words))] = words
+    idx = (at >> 3)[:, None] + np.arange(len(words))
+    return idx.reshape(-1), np.broadcast_to(words, idx.shape).reshape(-1)
 
 
-def _bundle_headers(template: np.ndarray, at: np.ndarray, counts: np.ndarray) -> None:
+def _concat(parts: list[Words]) -> Words:
+    if not parts:
+        return np.zeros(0, np.int64), np.zeros(0, np.uint64)
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+
+def _bundle_headers(at: np.ndarray, counts: np.ndarray) -> Words:
     """Every bundle's header (tick and time 0): one packed per distinct count."""
+    parts = []
     for count in np.unique(counts).tolist():
         head = bytearray(P.BUNDLE_HEADER_SIZE)
         P.pack_bundle_header(head, 0, 0, count)
-        _words(template, at[counts == count], head)
+        parts.append(_same(at[counts == count], head))
+    return _concat(parts)
 
 
-def _bundle_entries(template: np.ndarray, at: np.ndarray, idx: np.ndarray, sizes: np.ndarray, cols: _Columns) -> None:
-    """The entry headers of bundle members ``idx`` at ``at`` (their fixed part, id and zeros)."""
+def _bundle_entries(at: np.ndarray, idx: np.ndarray, sizes: np.ndarray, cols: _Columns) -> Words:
+    """The entry headers of bundle members ``idx`` at ``at``: their fixed part, then their id
+    and its zeros up to the state."""
     if not len(idx):
-        return
+        return _concat([])
     ln = cols.id_len[idx]
     fixed = np.zeros(len(idx), P.BUNDLE_ENTRY_DTYPE)
     fixed["header_size"] = _align8(P.BUNDLE_ENTRY_SIZE + ln)
     fixed["id_length"] = ln
     fixed["state_size"] = sizes
-    template.view("<u8")[at >> 3] = fixed.view("<u8")
+    padded = _align8(ln)  # each id's bytes with their zeros, back to back
+    ids = np.zeros(int(padded.sum()), np.uint8)
     start = np.cumsum(cols.id_len) - cols.id_len
     within = np.arange(int(ln.sum())) - np.repeat(np.cumsum(ln) - ln, ln)
-    template[np.repeat(at + P.BUNDLE_ENTRY_SIZE, ln) + within] = cols.id_bytes[np.repeat(start[idx], ln) + within]
+    ids[np.repeat(np.cumsum(padded) - padded, ln) + within] = cols.id_bytes[np.repeat(start[idx], ln) + within]
+    nw = padded >> 3
+    id_at = (
+        np.repeat((at + P.BUNDLE_ENTRY_SIZE) >> 3, nw) + np.arange(int(nw.sum())) - np.repeat(np.cumsum(nw) - nw, nw)
+    )
+    return np.concatenate([at >> 3, id_at]), np.concatenate([fixed.view("<u8"), ids.view("<u8")])
 
 
-def _state_headers(template: np.ndarray, at: np.ndarray, idx: np.ndarray, cols: _Columns) -> None:
+def _state_headers(at: np.ndarray, idx: np.ndarray, cols: _Columns) -> Words:
     """The static state headers of cloths ``idx`` at ``at``: one packed per distinct (encoding,
     vertex count, step); a predictive state's with its step and a stride of 1."""
     if not len(idx):
-        return
+        return _concat([])
     pred = cols.enc[idx] == P.ENC_PREDICTIVE
     step32 = np.where(pred, cols.step[idx], 0.0).astype(np.float32)
     kinds, inverse = _kinds(cols.enc[idx], cols.n[idx], step32.view(np.uint32))
+    parts = []
     for j, (enc, n, bits) in enumerate(kinds):
         if enc == P.ENC_PREDICTIVE:
             head = bytearray(P.PREDICTIVE_HEADER_SIZE)
@@ -360,7 +405,8 @@ def _state_headers(template: np.ndarray, at: np.ndarray, idx: np.ndarray, cols: 
         else:
             head = bytearray(P.STATE_HEADER_SIZE)
             P.pack_state_header(head, 0, enc, 0, n, 0, 0, (0.0,) * 3, (0.0,) * 3)
-        _words(template, at[inverse == j], head)
+        parts.append(_same(at[inverse == j], head))
+    return _concat(parts)
 
 
 def take_bytes(data: np.ndarray, at: np.ndarray, n: int) -> np.ndarray:

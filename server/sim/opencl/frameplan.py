@@ -89,10 +89,36 @@ class FramePlan:
     _pred_extra: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # header and normals bytes
 
     _template: np.ndarray | None = None
+    _cols: _Columns | None = None
 
     @property
     def size(self) -> int:
         return self.nbytes
+
+    @property
+    def ids(self) -> list[str]:
+        """Each plan cloth's id (the columns of :attr:`cloths`, for whole-plan work)."""
+        return self._columns().ids
+
+    @property
+    def vbases(self) -> np.ndarray:
+        """(k,) int64: each plan cloth's first vertex."""
+        return self._columns().vbase
+
+    @property
+    def counts(self) -> np.ndarray:
+        """(k,) int64: each plan cloth's vertex count."""
+        return self._columns().n
+
+    @property
+    def steps(self) -> np.ndarray:
+        """(k,) float64: each plan cloth's grid step (predictive, 1.5)."""
+        return self._columns().step
+
+    def _columns(self) -> _Columns:
+        if self._cols is None:
+            self._cols = _Columns.of(self.cloths)
+        return self._cols
 
     @property
     def template(self) -> np.ndarray:
@@ -171,6 +197,7 @@ class FramePlan:
         static_at = np.concatenate([s[0] for s in static])
         static_words = np.concatenate([s[1] for s in static])
         plan = cls(cloths, publications, pub_offset, pub_size, state_offset, table, static_at, static_words, at)
+        plan._cols = cols
         plan.max_n = int(cols.n[members].max(initial=0))
         plan.vertex_end = int((cols.vbase[members] + cols.n[members]).max(initial=0))
         plan.normals = bool(cols.normals[members].any())
@@ -239,6 +266,7 @@ class _Columns:
     """A plan's cloths as arrays (one pass over the entries per field), checked."""
 
     k: int
+    ids: list[str]
     vbase: np.ndarray  # (k,) int64
     n: np.ndarray  # (k,) int64
     enc: np.ndarray  # (k,) int64
@@ -281,7 +309,7 @@ class _Columns:
             steps, inverse = np.unique(step[pred], return_inverse=True)
             inv = np.array([P.inverse_step(float(s)) for s in steps], np.float32).view(np.uint32)
             inv_step_bits[pred] = inv[inverse.reshape(-1)]
-        return cls(k, vbase, n, enc, normals, step, id_len, id_bytes, size, inv_step_bits)
+        return cls(k, ids, vbase, n, enc, normals, step, id_len, id_bytes, size, inv_step_bits)
 
     def invalid_ids(self, cloths: list[ClothEntry], idx: np.ndarray) -> np.ndarray:
         """Those of cloths ``idx`` whose id is not a valid one (P.valid_id): whole arrays, and

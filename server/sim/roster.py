@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from operator import attrgetter
 from typing import Protocol
 
 import numpy as np
@@ -46,22 +47,20 @@ class Roster:
     def of(cls, version: tuple[int, int], records: Sequence[Published], normals: np.ndarray) -> Roster:
         """The roster of ``records`` in frame order (``normals`` (k,) bool, the layout's): one
         pass per field, bundles in the order of their first cloth."""
-        ids = [r.id for r in records]
-        bundle_keys = [r.bundle_key for r in records]
+        ids = list(map(attrgetter("id"), records))
         bundles: dict[str, list[int]] = {}
         singles: list[int] = []
-        for i, bk in enumerate(bundle_keys):
+        for i, bk in enumerate(map(attrgetter("bundle_key"), records)):
             (bundles.setdefault(bk, []) if bk else singles).append(i)
-        enc_ids = P.ENCODING_IDS
         return cls(
             version,
             ids,
-            [r.key for r in records],
-            [enc_ids[r.encoding] for r in records],
+            list(map(attrgetter("key"), records)),
+            list(map(P.ENCODING_IDS.__getitem__, map(attrgetter("encoding"), records))),
             normals.copy(),
             np.array(singles, np.int64),
             [(k, np.array(v, np.int64)) for k, v in bundles.items()],
-            [r.step for r in records],
+            list(map(attrgetter("step"), records)),
         )
 
     @property

@@ -5,6 +5,8 @@ publication), and the same refusals."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -17,6 +19,7 @@ from drape.server.sim.opencl.frameplan import (
     encode_layout,
     state_size,
 )
+from drape.server.sim.roster import Roster
 
 
 def _reference_row(c: ClothEntry, state_at: int, bundle_at: int, index: int, entry_at: int) -> list[int]:
@@ -223,3 +226,35 @@ def test_a_bundle_may_hold_an_id_valid_only_by_the_protocol_s_own_check():
     else:
         with pytest.raises(ValueError, match="invalid cloth id"):
             FramePlan.build([c], pubs)
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_a_roster_s_plan_equals_the_plan_of_its_entries(seed):
+    """FramePlan.for_roster (the tick thread's, from the roster's columns, its entries made only
+    when asked for) == FramePlan.build of the same entries."""
+    rng = np.random.default_rng(100 + seed)
+    k = int(rng.integers(1, 50))
+    recs = [
+        SimpleNamespace(
+            id=f"c{i}",
+            key=f"k/c{i}",
+            encoding=str(rng.choice(list(P.ENCODING_IDS))),
+            step=float(rng.choice([1e-3, 4e-3])),
+            bundle_key=[None, "b/0", "b/1"][int(rng.integers(0, 3))],
+        )
+        for i in range(k)
+    ]
+    normals = rng.random(k) < 0.5
+    roster = Roster.of((1, 0), recs, normals)
+    vbase = np.cumsum(rng.integers(0, 50, k)).tolist()
+    counts = rng.integers(0, 40, k).tolist()
+    plan = FramePlan.for_roster(roster, vbase, counts)
+    entries = [
+        ClothEntry(r.id, vb, n, P.ENCODING_IDS[r.encoding], bool(nr), r.step)
+        for r, vb, n, nr in zip(recs, vbase, counts, normals, strict=True)
+    ]
+    pubs = [Publication(key, tuple(idx), b) for _, key, idx, b in roster.publications()]
+    _assert_same(plan, _reference(entries, pubs))
+    assert list(plan.cloths) == entries and plan.cloths[-1] == entries[-1] and plan.cloths[1:3] == entries[1:3]
+    assert plan.ids == [e.cloth for e in entries]
+    np.testing.assert_array_equal(plan.entry_header_sizes, [P.bundle_entry_header_size(e.cloth) for e in entries])

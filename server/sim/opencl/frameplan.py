@@ -12,7 +12,7 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import NamedTuple
+from typing import NamedTuple, overload
 
 import numpy as np
 
@@ -68,7 +68,7 @@ class Publication:
 class FramePlan:
     """Where every publication and state lies in the packed frame, and its static bytes."""
 
-    cloths: list[ClothEntry]
+    cloths: Sequence[ClothEntry]  # a list, or (for_roster) entries made when asked for
     publications: list[Publication]
     pub_offset: np.ndarray  # (P,) int64, multiples of 8
     pub_size: np.ndarray  # (P,) int64
@@ -117,7 +117,7 @@ class FramePlan:
 
     def _columns(self) -> _Columns:
         if self._cols is None:
-            self._cols = _Columns.of(self.cloths)
+            self._cols = _Columns.of(list(self.cloths))
         return self._cols
 
     @property
@@ -145,8 +145,12 @@ class FramePlan:
         Python pass per cloth (docs/loadtest.md, tickbench). Raises ValueError on a bad entry
         (unknown encoding, negative range, a bundle with an invalid cloth id or no cloth, a
         single with other than one cloth, a cloth in two publications, an index out of range)."""
-        cloths, publications = list(cloths), list(publications)
-        cols = _Columns.of(cloths)
+        cloths = list(cloths)
+        return cls._build(_Columns.of(cloths), cloths, publications)
+
+    @classmethod
+    def _build(cls, cols: _Columns, cloths: Sequence[ClothEntry], publications: Sequence[Publication]) -> FramePlan:
+        publications = list(publications)
         W = encode_layout()
         none = W["ENC_NONE"]
         n_pub = len(publications)
@@ -154,7 +158,7 @@ class FramePlan:
         is_bundle = np.fromiter((p.bundle for p in publications), bool, n_pub)
         members = np.fromiter(itertools.chain.from_iterable(p.cloths for p in publications), np.int64)
         pub_of = np.repeat(np.arange(n_pub), counts)  # each row's publication
-        owner = _check(cloths, publications, cols, counts, is_bundle, members, pub_of)
+        owner = _check(publications, cols, counts, is_bundle, members, pub_of)
         in_bundle = is_bundle[pub_of]
         size = cols.size[members]
         # each row's piece of its publication: a single's state, a bundle's entry header and state
@@ -213,11 +217,23 @@ class FramePlan:
     def for_roster(cls, roster: Roster, vbase: Sequence[int], counts: Sequence[int]) -> FramePlan:
         """The plan of a tick's roster: its cloths at vertex bases ``vbase`` with ``counts``
         vertices each (frame order), its publications in the roster's order."""
-        steps = roster.steps if len(roster.steps) == len(roster.ids) else [P.DEFAULT_STEP] * len(roster.ids)
-        fields = zip(roster.ids, vbase, counts, roster.encodings, roster.normals.tolist(), steps, strict=True)
-        cloths = list(map(ClothEntry._make, fields))
+        k = len(roster.ids)
+        steps = roster.steps if len(roster.steps) == k else [P.DEFAULT_STEP] * k
+        cols = _Columns.checked(
+            roster.ids,
+            np.fromiter(vbase, np.int64, k),
+            np.fromiter(counts, np.int64, k),
+            np.fromiter(roster.encodings, np.int64, k),
+            np.asarray(roster.normals, bool),
+            np.fromiter(steps, np.float64, k),
+        )
         pubs = [Publication(key, tuple(idx), bundle) for _, key, idx, bundle in roster.publications()]
-        return cls.build(cloths, pubs)
+        return cls._build(cols, _Entries(cols), pubs)
+
+    @property
+    def entry_header_sizes(self) -> np.ndarray:
+        """(k,) int64: each plan cloth's bundle entry header size (P.bundle_entry_header_size)."""
+        return _align8(P.BUNDLE_ENTRY_SIZE + self._columns().id_len)
 
     def time_offsets(self, state_at: np.ndarray | None = None, pub_at: np.ndarray | None = None) -> np.ndarray:
         """Byte offsets of every server-time field of the frame (each encoded state's, each
@@ -286,6 +302,14 @@ class _Columns:
         enc = np.fromiter((c.encoding for c in cloths), np.int64, k)
         normals = np.fromiter((c.normals for c in cloths), bool, k)
         step = np.fromiter((c.step for c in cloths), np.float64, k)
+        return cls.checked(ids, vbase, n, enc, normals, step)
+
+    @classmethod
+    def checked(
+        cls, ids: list[str], vbase: np.ndarray, n: np.ndarray, enc: np.ndarray, normals: np.ndarray, step: np.ndarray
+    ) -> _Columns:
+        """The columns of ``len(ids)`` cloths; raises ValueError on the first bad one."""
+        k = len(ids)
         known = np.isin(enc, np.fromiter(P.ENCODING_NAMES, np.int64))
         pred = enc == P.ENC_PREDICTIVE
         bad_step = pred & ~((step >= P.STEP_RANGE[0]) & (step <= P.STEP_RANGE[1]))
@@ -293,12 +317,11 @@ class _Columns:
         wrong = np.flatnonzero(~known | bad_step | bad_range)
         if len(wrong):
             i = int(wrong[0])
-            c = cloths[i]
             if not known[i]:
-                raise ValueError(f"cloth {i} ({c.cloth!r}): unknown encoding {c.encoding}")
+                raise ValueError(f"cloth {i} ({ids[i]!r}): unknown encoding {int(enc[i])}")
             if bad_step[i]:
-                raise ValueError(f"cloth {i} ({c.cloth!r}): step {c.step} out of {P.STEP_RANGE}")
-            raise ValueError(f"cloth {i} ({c.cloth!r}): bad vertex range {c.vbase}+{c.n}")
+                raise ValueError(f"cloth {i} ({ids[i]!r}): step {float(step[i])} out of {P.STEP_RANGE}")
+            raise ValueError(f"cloth {i} ({ids[i]!r}): bad vertex range {int(vbase[i])}+{int(n[i])}")
         id_len = np.fromiter(map(len, ids), np.int64, k)
         id_bytes = np.frombuffer("".join(ids).encode("ascii", "replace"), np.uint8)
         # sizes and inverse steps: one call per distinct kind of cloth
@@ -311,7 +334,17 @@ class _Columns:
             inv_step_bits[pred] = inv[inverse.reshape(-1)]
         return cls(k, ids, vbase, n, enc, normals, step, id_len, id_bytes, size, inv_step_bits)
 
-    def invalid_ids(self, cloths: list[ClothEntry], idx: np.ndarray) -> np.ndarray:
+    def entry(self, i: int) -> ClothEntry:
+        return ClothEntry(
+            self.ids[i],
+            int(self.vbase[i]),
+            int(self.n[i]),
+            int(self.enc[i]),
+            bool(self.normals[i]),
+            float(self.step[i]),
+        )
+
+    def invalid_ids(self, idx: np.ndarray) -> np.ndarray:
         """Those of cloths ``idx`` whose id is not a valid one (P.valid_id): whole arrays, and
         P.valid_id itself only for ids that look wrong."""
         start = np.cumsum(self.id_len) - self.id_len
@@ -321,11 +354,39 @@ class _Columns:
             odd_ids[np.searchsorted(start, np.flatnonzero(odd), side="right") - 1] = True
         ln = self.id_len[idx]
         maybe = idx[odd_ids[idx] | (ln < 1) | (ln > 64)]
-        return np.array([i for i in maybe.tolist() if not P.valid_id(cloths[i].cloth)], np.int64)
+        return np.array([i for i in maybe.tolist() if not P.valid_id(self.ids[i])], np.int64)
+
+
+class _Entries(Sequence[ClothEntry]):
+    """A plan's cloths as :class:`ClothEntry` items made when asked for (a plan of 8192 cloths
+    made from a roster's columns makes none on the tick thread)."""
+
+    def __init__(self, cols: _Columns) -> None:
+        self._cols = cols
+
+    def __len__(self) -> int:
+        return self._cols.k
+
+    @overload
+    def __getitem__(self, i: int) -> ClothEntry: ...
+
+    @overload
+    def __getitem__(self, i: slice) -> list[ClothEntry]: ...
+
+    def __getitem__(self, i: int | slice) -> ClothEntry | list[ClothEntry]:
+        if isinstance(i, slice):
+            return [self._cols.entry(j) for j in range(*i.indices(self._cols.k))]
+        if not -self._cols.k <= i < self._cols.k:
+            raise IndexError(i)
+        return self._cols.entry(i % self._cols.k)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Sequence) and list(self) == list(other)
+
+    __hash__ = None  # type: ignore[assignment]
 
 
 def _check(
-    cloths: list[ClothEntry],
     publications: list[Publication],
     cols: _Columns,
     counts: np.ndarray,
@@ -354,12 +415,12 @@ def _check(
             later, earlier = int(rows[j]), int(order[again[j]])
             i = int(members[later])
             a, b = int(pub_of[earlier]), int(pub_of[later])
-            problems.append((b, f"cloth {i} ({cloths[i].cloth!r}) is in publications {a} and {b}"))
-        bad = cols.invalid_ids(cloths, members[is_bundle[pub_of]])
+            problems.append((b, f"cloth {i} ({cols.ids[i]!r}) is in publications {a} and {b}"))
+        bad = cols.invalid_ids(members[is_bundle[pub_of]])
         if len(bad):
             row = int(np.flatnonzero(np.isin(members, bad) & is_bundle[pub_of])[0])
             p, i = int(pub_of[row]), int(members[row])
-            problems.append((p, f"bundle {publications[p].key!r}: invalid cloth id {cloths[i].cloth!r}"))
+            problems.append((p, f"bundle {publications[p].key!r}: invalid cloth id {cols.ids[i]!r}"))
     if problems:
         raise ValueError(min(problems, key=lambda pm: pm[0])[1])
     owner = np.full(k, -1, np.int64)

@@ -19,11 +19,13 @@ layout and vertex bases) and times, median over ``--repeat`` rounds:
   check).
 
 The process's heap is set as ``drape serve`` sets it, and the records are frozen out of the
-garbage collector's scans as its ``freeze_long_lived`` does (without it a full collection lands
-in some rounds: 10-15 ms at 8192 cloths). Everything the World's step, the applier's commands
+garbage collector's scans as its ``freeze_long_lived`` does. On a shared machine other
+processes' time lands in some rounds: the JSON keeps every sample (compare the minima too).
+Everything the World's step, the applier's commands
 and the publisher do is left out: this is the host work that grows with the cloth count.
 ``--no-device`` times the host-only stages (roster, plan, follow, decide) without OpenCL.
-``--profile`` prints cProfile's top functions of a roster change at the largest N. ``--json PATH`` writes the raw medians (and every sample).
+``--profile`` prints cProfile's top functions of a roster change at the largest N. ``--json
+PATH`` writes the raw medians (and every sample).
 """
 
 from __future__ import annotations

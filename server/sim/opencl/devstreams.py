@@ -185,7 +185,8 @@ class DeviceStreams:
         """This plan's rows of ``plan``'s cloths ``idx`` (an earlier plan's: by id)."""
         if plan is self._plan:
             return idx
-        got = [self._ids.get(plan.cloths[i].cloth) for i in idx.tolist()]
+        ids = plan.ids
+        got = [self._ids.get(ids[i]) for i in idx.tolist()]
         return np.array([j for j in got if j is not None], np.int64)
 
     def dropped(self, tick: int) -> bool:
@@ -245,5 +246,5 @@ class DeviceStreams:
             np.where(new, tick, s.start),
         )
         plan = self._plan
-        self._kept = {plan.cloths[i].cloth for i in np.flatnonzero(kept).tolist()} if plan is not None else set()
+        self._kept = {plan.ids[i] for i in np.flatnonzero(kept).tolist()} if plan is not None else set()
         return out, intra

@@ -9,11 +9,24 @@ publisher work per *publication* (a state or a bundle), never per cloth in Pytho
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from operator import attrgetter
+from typing import Protocol
 
 import numpy as np
 
 from drape.client import protocol as P
+
+
+class Published(Protocol):
+    """What a roster reads of a cloth (the service's ClothRecord)."""
+
+    id: str
+    key: str
+    encoding: str  # a protocol encoding name
+    step: float
+    bundle_key: str | None
 
 
 @dataclass(eq=False)
@@ -29,6 +42,26 @@ class Roster:
     bundles: list[tuple[str, np.ndarray]]  # (bundle key, frame indices)
     steps: list[float] = field(default_factory=list)  # 1.5, predictive cloths' grid steps (metres)
     _pubs: list[tuple[str, str, list[int], bool]] | None = None
+
+    @classmethod
+    def of(cls, version: tuple[int, int], records: Sequence[Published], normals: np.ndarray) -> Roster:
+        """The roster of ``records`` in frame order (``normals`` (k,) bool, the layout's): one
+        pass per field, bundles in the order of their first cloth."""
+        ids = list(map(attrgetter("id"), records))
+        bundles: dict[str, list[int]] = {}
+        singles: list[int] = []
+        for i, bk in enumerate(map(attrgetter("bundle_key"), records)):
+            (bundles.setdefault(bk, []) if bk else singles).append(i)
+        return cls(
+            version,
+            ids,
+            list(map(attrgetter("key"), records)),
+            list(map(P.ENCODING_IDS.__getitem__, map(attrgetter("encoding"), records))),
+            normals.copy(),
+            np.array(singles, np.int64),
+            [(k, np.array(v, np.int64)) for k, v in bundles.items()],
+            list(map(attrgetter("step"), records)),
+        )
 
     @property
     def predictive(self) -> bool:

@@ -16,7 +16,7 @@ from drape.server.sim.opencl.device import kernel_dir, kernel_sources, program_t
 from drape.server.sim.params import Features
 
 # the files Device.program builds; the others are included
-PROGRAMS = ("cloth.cl", "encode.cl", "compact.cl", "intercollide.cl", "meshcollide.cl")
+PROGRAMS = ("cloth.cl", "encode.cl", "compact.cl", "static.cl", "intercollide.cl", "meshcollide.cl")
 
 
 def _kernel_files() -> set[str]:

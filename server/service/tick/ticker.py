@@ -237,21 +237,8 @@ class Ticker:
         version = (lay.version, self.applier.pub_changes)
         if self._roster is not None and self._roster.version == version:
             return self._roster
-        recs = [self.applier.live[h] for h in lay.handles.tolist()]
-        bundles: dict[str, list[int]] = {}
-        singles: list[int] = []
-        for i, r in enumerate(recs):
-            (bundles.setdefault(r.bundle_key, []) if r.bundle_key else singles).append(i)
-        self._roster = Roster(
-            version,
-            [r.id for r in recs],
-            [r.key for r in recs],
-            [P.ENCODING_IDS[r.encoding] for r in recs],
-            lay.normals.copy(),
-            np.array(singles, np.int64),
-            [(k, np.array(v, np.int64)) for k, v in bundles.items()],
-            [r.step for r in recs],
-        )
+        live = self.applier.live
+        self._roster = Roster.of(version, [live[h] for h in lay.handles.tolist()], lay.normals)
         return self._roster
 
     # --- non-finite cloths -------------------------------------------------------------------------

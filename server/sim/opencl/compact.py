@@ -70,7 +70,7 @@ class Pieces:
         opens[first] = True
         pub_of_row = np.repeat(np.arange(len(counts)), counts)
         bundle = plan.is_bundle
-        entry = np.array([P.bundle_entry_header_size(c.cloth) for c in plan.cloths], np.int64)
+        entry = plan.entry_header_sizes
         prefix = np.where(bundle[pub_of_row], entry[cloth], 0) if n_rows else np.zeros(0, np.int64)
         prefix = prefix + np.where(opens & bundle[pub_of_row], P.BUNDLE_HEADER_SIZE, 0)
         pred = plan.predictive[cloth]

@@ -43,7 +43,7 @@ from ..wire import Payload, PendingWire, Wire
 from .buffers import ClothSlot, DeviceMemory
 from .device import Device
 from .devstreams import DeviceStreams
-from .encode import ClothEntry, DeviceEncoder, EncodedFrame, FramePlan, Publication
+from .encode import DeviceEncoder, EncodedFrame, FramePlan
 from .frames import FrameReadback, device_span
 
 log = logging.getLogger(__name__)
@@ -70,17 +70,8 @@ class DeviceFrames:
     def _plan(self, roster: Roster, lay: Layout) -> None:
         if self._plan_version == roster.version and self.encoder.plan is not None:
             return
-        counts = np.diff(lay.offsets).tolist()
-        rec = self.rec
-        steps = roster.steps if len(roster.steps) == len(roster.ids) else [P.DEFAULT_STEP] * len(roster.ids)
-        cloths = [
-            ClothEntry(cid, rec[h].vbase, n, enc, bool(nr), st)
-            for cid, h, n, enc, nr, st in zip(
-                roster.ids, lay.handles.tolist(), counts, roster.encodings, roster.normals.tolist(), steps, strict=True
-            )
-        ]
-        pubs = [Publication(key, tuple(idx), bundle) for _, key, idx, bundle in roster.publications()]
-        plan = FramePlan.build(cloths, pubs)
+        vbase = [self.rec[h].vbase for h in lay.handles.tolist()]
+        plan = FramePlan.for_roster(roster, vbase, np.diff(lay.offsets).tolist())
         self.encoder.set_plan(plan)
         self.streams.follow(plan)
         self._plan_version = roster.version

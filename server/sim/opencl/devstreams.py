@@ -29,6 +29,7 @@ its vertex range (its history is indexed by the position buffer's vertices).
 
 from __future__ import annotations
 
+import itertools
 import threading
 import zlib
 from collections.abc import Iterable
@@ -123,24 +124,26 @@ class DeviceStreams:
         k = len(plan.cloths)
         new = _State.empty(k)
         old_ids, old = self._ids, self._state
-        prev = self._plan.cloths if self._plan is not None else []
-        rows, at = [], []
-        for i, c in enumerate(plan.cloths):
-            j = old_ids.get(c.cloth)
-            if j is not None and prev[j].vbase == c.vbase and prev[j].n == c.n:
-                rows.append(j)
-                at.append(i)
-        r, a = np.array(rows, np.int64), np.array(at, np.int64)
+        ids = plan.ids
+        j = np.fromiter(map(old_ids.get, ids, itertools.repeat(-1)), np.int64, k)  # whole arrays, not per cloth
+        if self._plan is not None and len(j) and len(self._plan.cloths):
+            jj = np.maximum(j, 0)
+            prev_vb, prev_n = self._plan.vbases, self._plan.counts
+            same = (j >= 0) & (prev_vb[jj] == plan.vbases) & (prev_n[jj] == plan.counts)
+        else:
+            same = np.zeros(k, bool)
+        a = np.flatnonzero(same)
+        r = j[a]
         old.take(r, new, a)
         seen = np.full(k, _FAR, np.int64)
         seen[a] = self._seen[r]
         self._seen = seen
-        self._ids = {c.cloth: i for i, c in enumerate(plan.cloths)}
+        self._ids = dict(zip(ids, range(k), strict=True))
         self._pred = plan.predictive & (plan.state_offset >= 0)
         new.valid &= self._pred
         self._state = new
-        self._steps = np.array([c.step for c in plan.cloths], np.float64)
-        self._phase = np.array([zlib.crc32(c.cloth.encode()) for c in plan.cloths], np.int64)
+        self._steps = plan.steps.astype(np.float64)
+        self._phase = np.fromiter(map(zlib.crc32, map(str.encode, ids)), np.int64, k)
         self._plan = plan
         last = self._last  # the state before the last decision goes on too (if its frame is dropped)
         if last is not None:
@@ -182,7 +185,8 @@ class DeviceStreams:
         """This plan's rows of ``plan``'s cloths ``idx`` (an earlier plan's: by id)."""
         if plan is self._plan:
             return idx
-        got = [self._ids.get(plan.cloths[i].cloth) for i in idx.tolist()]
+        ids = plan.ids
+        got = [self._ids.get(ids[i]) for i in idx.tolist()]
         return np.array([j for j in got if j is not None], np.int64)
 
     def dropped(self, tick: int) -> bool:
@@ -242,5 +246,5 @@ class DeviceStreams:
             np.where(new, tick, s.start),
         )
         plan = self._plan
-        self._kept = {plan.cloths[i].cloth for i in np.flatnonzero(kept).tolist()} if plan is not None else set()
+        self._kept = {plan.ids[i] for i in np.flatnonzero(kept).tolist()} if plan is not None else set()
         return out, intra

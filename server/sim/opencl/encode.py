@@ -69,6 +69,7 @@ from .device import Device
 from .frameplan import (  # noqa: F401 (the plan's names, re-exported: encode.py is the entry point)
     HEADER_OFFSETS,
     SOURCE,
+    STATIC_SOURCE,
     ClothEntry,
     FramePlan,
     Publication,
@@ -274,6 +275,7 @@ class DeviceEncoder:
             self.dev.program(self._options(wg), source=SOURCE)
             wg *= 2
         self.compactor.build()
+        self.dev.program([], source=STATIC_SOURCE)
         return top.bit_length()
 
     def set_plan(self, plan: FramePlan) -> None:
@@ -281,13 +283,13 @@ class DeviceEncoder:
         (blocking), size the output and pinned host buffers. Everything is made before anything
         is replaced, so a failure leaves the previous plan in use. Views of earlier frames keep
         their bytes while held."""
-        ctx, q = self.dev.ctx, self.dev.queue
+        ctx = self.dev.ctx
         wg = self._pick_wg(plan.max_n)
         kernel = cl.Kernel(self.dev.program(self._options(wg), source=SOURCE), "encode_frame")
         size = max(plan.size, 8)
         out = cl.Buffer(ctx, MF.READ_WRITE, size)
         if plan.size:
-            cl.enqueue_copy(q, out, plan.template, is_blocking=True)
+            self._put_static(out, plan)
         rows = np.ascontiguousarray(plan.rows, np.uint32)
         if not rows.size:
             rows = np.zeros(1, np.uint32)
@@ -314,6 +316,22 @@ class DeviceEncoder:
             plan.size,
             wg,
         )
+
+    def _put_static(self, out: cl.Buffer, plan: FramePlan) -> None:
+        """``out`` filled with zeros and the plan's static words put in by kernels/static.cl
+        (blocking): a plan's words, not its whole template, cross to the device."""
+        q = self.dev.queue
+        cl.enqueue_fill_buffer(q, out, np.zeros(1, np.uint64), 0, plan.size)
+        n = len(plan.static_at)
+        if n:
+            ro = MF.READ_ONLY | MF.COPY_HOST_PTR
+            at = cl.Buffer(self.dev.ctx, ro, hostbuf=np.ascontiguousarray(plan.static_at, np.uint32))
+            words = cl.Buffer(self.dev.ctx, ro, hostbuf=np.ascontiguousarray(plan.static_words, np.uint64))
+            kernel = cl.Kernel(self.dev.program([], source=STATIC_SOURCE), "put_static")
+            kernel.set_args(np.uint32(n), at, words, out)
+            cl.enqueue_nd_range_kernel(q, kernel, (n,), None).wait()
+        else:
+            q.finish()
 
     def _grow_history(self, vertices: int) -> None:
         """The predictive history buffers hold ``vertices`` position-buffer vertices (grown,
@@ -346,7 +364,8 @@ class DeviceEncoder:
         )
         if self._compact:  # compacted frames: views made per frame from its index
             return _HostFrame(data.base, hb, data, [], plan=plan, index=self.compactor.host_index())
-        data[: plan.size] = plan.template  # a frame read before any encode is the static bytes
+        data[: plan.size] = 0  # a frame read before any encode is the static bytes
+        plan.write_static(data)
         mv = memoryview(data).cast("B")  # type: ignore[arg-type]
         views = [mv[o : o + s] for o, s in zip(plan.pub_offset.tolist(), plan.pub_size.tolist(), strict=True)]
         return _HostFrame(data.base, hb, data, views, plan=plan)

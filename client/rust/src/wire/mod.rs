@@ -9,6 +9,7 @@ pub mod geometry;
 pub mod half;
 pub mod keys;
 pub mod layout;
+pub mod meshcollider;
 pub mod moves;
 pub mod msg;
 mod msg_decode;
@@ -16,6 +17,7 @@ pub mod placement;
 pub mod predictive;
 pub mod reader;
 pub mod replies;
+pub mod scene;
 pub mod state;
 pub mod validate;
 
@@ -23,6 +25,7 @@ pub use bundle::{encode_bundle, parse_bundle, Bundle, BundleEntry, BUNDLE_HEADER
 pub use error::{Error, ErrorCode, Result};
 pub use geometry::{grid_geometry, parse_obj};
 pub use keys::{valid_id, valid_namespace, valid_token, Keys, CLIENT_REQUESTS};
+pub use meshcollider::{mesh_problem, MeshCollider, MESH_MAX_TRIANGLES, MESH_MAX_VERTICES, MESH_MIN_AREA};
 pub use moves::{DecodedBatch, MoveFailed, Moves, MovesReply};
 pub use msg::{
     Collider, Control, ControlBatch, Encoding, Grid, Links, Material, Mesh, Orientation, Pins, Resume, Shape,
@@ -30,6 +33,7 @@ pub use msg::{
 };
 pub use replies::{Applied, BatchItem, BatchReply, ErrorReply, SubmitReply};
 pub use placement::{rank, ServerLoad, PLACE_ELSEWHERE};
+pub use scene::{SceneReply, SceneRequest};
 pub use predictive::{is_predictive, parse_predictive, PredictiveHeader, Stream as PredictiveStream};
 pub use validate::Limits;
 pub use state::{decode_state_into, encode_state, parse_state, state_size, StateHeader, STATE_HEADER_SIZE};

@@ -473,6 +473,26 @@ typedef struct DrapeServerStats {
   uint64_t quality_degraded;
 } DrapeServerStats;
 
+// A mesh collider change (PROTOCOL.md 5.4), by the fields given; zero-initialise it:
+// - `vertices` and `triangles`: a new mesh (3 floats per vertex in its own frame, 3 indices per
+//   triangle, counter-clockwise seen from outside: the normals' side is outside) at the pose;
+// - `vertices` alone (`triangles` NULL): a re-pose, new positions of the current mesh's
+//   vertices (the same count);
+// - neither: a rigid move of the current mesh to the pose, the per-tick change;
+// - `remove`: the mesh dropped (nothing else may be set).
+//
+// The pose, mesh frame to world: `position` in metres and `rotation` a quaternion
+// `{w, x, y, z}` (normalised by the server; all four 0: the identity).
+typedef struct DrapeMeshCollider {
+  const float *vertices;
+  size_t vertex_count;
+  const uint32_t *triangles;
+  size_t triangle_count;
+  double position[3];
+  double rotation[4];
+  bool remove;
+} DrapeMeshCollider;
+
 // How a predictive cloth's states were decoded (`drape_cloth_predictive_counters`; all 0 for
 // the other encodings). Cumulative over the cloth's placements.
 typedef struct DrapePredictiveCounters {
@@ -795,6 +815,49 @@ int32_t drape_client_server_stats(const struct DrapeClient *client,
 // The name of the server this client uses by default (as `drape_client_server_id`) if one is
 // known already, without waiting: DRAPE_OK, or DRAPE_NO_DATA before any server was seen.
 int32_t drape_client_known_server(const struct DrapeClient *client, char *buf, size_t len);
+
+// Submit a grid cloth with its own mesh collider (a new mesh: `vertices` and `triangles`),
+// waiting for the reply as `drape_submit_grid`. Needs a 1.8 server (DRAPE_E_INVALID_VALUE
+// otherwise, nothing sent); a bad mesh is DRAPE_E_INVALID_VALUE (or TOO_LARGE past 65 536
+// vertices or triangles) with the triangle or value named by `drape_last_error`.
+int32_t drape_submit_grid_with_mesh_collider(const struct DrapeClient *client,
+                                             const struct DrapeGrid *grid,
+                                             const struct DrapeClothOptions *options,
+                                             const struct DrapeMeshCollider *mesh,
+                                             struct DrapeCloth **out);
+
+// Set, re-pose, move or remove the cloth's own mesh collider. `wait`: block for the reply and
+// put the first tick showing it in `*tick` (may be NULL); else return at once (a failure
+// becomes DRAPE_EVENT_REQUEST_FAILED). Needs a 1.8 server (DRAPE_E_INVALID_VALUE otherwise,
+// nothing sent). The mesh last set, at its last pose, is sent again after a failover.
+int32_t drape_cloth_set_mesh_collider(const struct DrapeCloth *cloth,
+                                      const struct DrapeMeshCollider *mesh,
+                                      bool wait,
+                                      uint64_t *tick);
+
+// The per-tick rigid move of the cloth's mesh collider: `position` (3 doubles) and `rotation`
+// (4 doubles, w x y z; NULL: the identity), as `drape_cloth_set_mesh_collider`.
+int32_t drape_cloth_move_mesh_collider(const struct DrapeCloth *cloth,
+                                       const double *position,
+                                       const double *rotation,
+                                       bool wait,
+                                       uint64_t *tick);
+
+// Add a change of `cloth`'s mesh collider to the batch (sent with `drape_batch_send`).
+int32_t drape_batch_set_mesh_collider(struct DrapeBatch *batch,
+                                      const struct DrapeCloth *cloth,
+                                      const struct DrapeMeshCollider *mesh);
+
+// As the owner of `scene` (the client whose cloth founded it), set, re-pose, move or remove
+// the scene's mesh collider, one for every cloth of the scene beside their own, on `server`
+// (NULL: the client's default server). Waits for the reply; `*tick` (may be NULL) gets the
+// first tick showing it. DRAPE_E_FORBIDDEN for another client's scene, DRAPE_E_NOT_FOUND for a
+// scene without cloths there; needs a 1.8 server.
+int32_t drape_client_set_scene_mesh_collider(const struct DrapeClient *client,
+                                             const char *scene,
+                                             const struct DrapeMeshCollider *mesh,
+                                             const char *server,
+                                             uint64_t *tick);
 
 // Move pinned vertices `indices[0..index_count]` of each of the `cloth_count` cloths
 // `cloths[j]`: its vertex `indices[i]` goes to `targets[3 * (j * index_count + i) ..][0..3]`

@@ -11,12 +11,14 @@
 mod cloth;
 mod control;
 mod info;
+mod meshes;
 mod moves;
 mod predictive;
 mod rates;
 pub use cloth::*;
 pub use control::*;
 pub use info::*;
+pub use meshes::*;
 pub use moves::*;
 pub use predictive::*;
 pub use rates::*;

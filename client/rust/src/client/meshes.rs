@@ -74,3 +74,27 @@ impl Cloth {
         self.set_mesh_collider(MeshCollider::pose(position, rotation), wait)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// What a failover sends again: the submission's mesh moved is that mesh at the new pose; a
+    /// re-pose keeps its triangles; a removal is a removal.
+    #[test]
+    fn the_mesh_last_sent_is_kept_whole_for_a_failover() {
+        let v = vec![0.0, 0.0, 0.0, 0.5, 0.0, 0.0, 0.0, 0.5, 0.0, 0.0, 0.0, 0.5];
+        let t = vec![0, 2, 1, 0, 1, 3, 0, 3, 2, 1, 2, 3];
+        let sub = Submit { mesh_collider: Some(MeshCollider::mesh(v.clone(), t.clone())), ..Submit::new("c", Shape::Grid(Grid::new(2, 2))) };
+        let c = cloth::ClothInner::new(1, sub, vec![0.0; 12], vec![], 1);
+        let mv = |mc: MeshCollider| c.note_sent(&Control { mesh_collider: Some(mc), ..Default::default() });
+        mv(MeshCollider::pose([1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]));
+        let last = c.sent.lock().unwrap().mesh.clone().unwrap();
+        assert_eq!((last.vertices.as_ref(), last.triangles.as_ref(), last.position), (Some(&v), Some(&t), [1.0, 0.0, 0.0]));
+        mv(MeshCollider::repose(vec![1.0; 12]).at([2.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]));
+        let last = c.sent.lock().unwrap().mesh.clone().unwrap();
+        assert_eq!((last.vertices.unwrap()[0], last.triangles.as_ref(), last.position), (1.0, Some(&t), [2.0, 0.0, 0.0]));
+        mv(MeshCollider::removal());
+        assert_eq!(c.sent.lock().unwrap().mesh, Some(MeshCollider::removal()));
+    }
+}

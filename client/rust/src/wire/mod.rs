@@ -1,5 +1,6 @@
 //! The Drape wire protocol 1.4 (PROTOCOL.md) without any network: key expressions, msgpack
-//! requests and replies (1.4's `moves` blocks included), the binary state (`DRPS`) and bundle
+//! requests and replies (1.4's `moves` blocks included; later minors' fields a client sends: 1.7's
+//! scene request, 1.8's mesh colliders), the binary state (`DRPS`) and bundle
 //! (`DRPB`) payloads, float16 / quant16, the geometry a client needs (grids, OBJ files) and the
 //! placement rule of section 11.3. Everything here is pure and
 //! allocation-conscious: states decode straight into caller-provided `f32` slices.

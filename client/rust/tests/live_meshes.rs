@@ -1,13 +1,13 @@
 //! Mesh colliders (protocol 1.8, PROTOCOL.md 5.4) against a real `drape serve` on loopback
 //! (tests/common): a cape dropped on a small closed mesh (a 0.4 m box sent with its submission)
 //! keeps every vertex outside it in every state received, also after the box is moved rigidly
-//! by a pose and re-posed by new vertices, while without the mesh the cape falls through the
+//! by a pose (also as a batch item) and re-posed by new vertices, while without the mesh the cape falls through the
 //! box; the scene request (1.7) sets and moves a scene's mesh, from its owner only; bad meshes
 //! are refused before sending (the triangle named) and changes of no mesh by the server.
 mod common;
 
 use drape::client::{Client, Cloth};
-use drape::wire::{ErrorCode, Grid, MeshCollider, Orientation, SceneRequest, Shape, Submit};
+use drape::wire::{Control, ErrorCode, Grid, MeshCollider, Orientation, SceneRequest, Shape, Submit};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
@@ -99,6 +99,11 @@ fn a_cape_dropped_on_a_mesh_stays_outside_it() {
     let tick = cape.move_mesh_collider(moved, IDENTITY, true).unwrap().unwrap();
     let (worst, n, _) = watch(&cape, Duration::from_millis(600), tick, moved);
     assert!(n >= 5 && worst == 0, "{worst} vertices inside the moved box ({n} states)");
+    // the same move as a batch item (one request for many cloths' meshes)
+    let mut batch = client.batch();
+    batch.add(&cape, Control { mesh_collider: Some(MeshCollider::pose(moved, IDENTITY)), ..Default::default() });
+    let items = client.send_batch_applied(batch).unwrap();
+    assert!(items.len() == 1 && items[0].is_ok(), "{items:?}");
     // a re-pose: the same box's vertices, 2 cm taller, at the moved pose
     let (mut v, _) = box_mesh(HALF);
     v.iter_mut().skip(1).step_by(3).for_each(|y| *y *= 1.1);

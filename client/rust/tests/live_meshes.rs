@@ -135,12 +135,19 @@ fn bad_meshes_are_refused_before_sending() {
     let sub = Submit { mesh_collider: Some(MeshCollider::mesh(v.clone(), t)), ..Submit::new("", Shape::Grid(g.clone())) };
     let e = client.submit_grid(g.clone(), sub).unwrap_err();
     assert!(e.code == ErrorCode::InvalidValue && e.message.contains("triangle 2"), "{e}");
-    let cape = client.submit_grid(g.clone(), Submit::new("", Shape::Grid(g))).unwrap();
+    let cape = client.submit_grid(g.clone(), Submit::new("", Shape::Grid(g.clone()))).unwrap();
     let e = cape.move_mesh_collider([0.0; 3], [0.0; 4], true).unwrap_err();
     assert!(e.code == ErrorCode::InvalidValue && e.message.contains("rotation"), "{e}");
     let e = cape.move_mesh_collider([0.0; 3], IDENTITY, true).unwrap_err(); // the server: no mesh to move
     assert_eq!(e.code, ErrorCode::InvalidValue, "{e}");
     client.close(true);
+    // placed by load (no server id): a 1.8 server takes a cloth with its own mesh
+    let placed = common::connect(&[server], None, false);
+    let (v, t) = box_mesh(HALF);
+    let sub = Submit { mesh_collider: Some(MeshCollider::mesh(v, t)), ..Submit::new("", Shape::Grid(g.clone())) };
+    let cape = placed.submit_grid(g, sub).unwrap();
+    assert_eq!(cape.server(), server.id);
+    placed.close(true);
 }
 
 #[test]

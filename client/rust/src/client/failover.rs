@@ -258,6 +258,11 @@ fn resubmit(inner: &Arc<Inner>, c: &Arc<ClothInner>, old_server: &str, old_id: &
     // the best live server not tried yet (PROTOCOL.md 11.3; no wait for stats: a loss is urgent)
     while let Some(target) = inner.placement.ranked(&inner.live_servers(), &tried, false).into_iter().next() {
         tried.insert(target.clone());
+        // 1.8: a cloth with its own mesh only onto a server that speaks mesh colliders
+        if let Err(e) = inner.check_mesh_version(&target, c.submit.mesh_collider.as_ref()) {
+            last_err = Some(e);
+            continue;
+        }
         match inner.place(c, &target, resume.clone()) {
             Ok(rep) => {
                 {

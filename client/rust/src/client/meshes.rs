@@ -2,7 +2,8 @@
 //! client: a cloth's own mesh set, re-posed, moved and removed by controls
 //! ([`Cloth::set_mesh_collider`], [`Cloth::move_mesh_collider`]), a scene's colliders, members
 //! and mesh sent by its owner ([`Client::set_scene`]), and the version each needs of the server
-//! (a 1.7 server would ignore a `mesh_collider`: refused here, nothing sent).
+//! (a 1.7 server would ignore a `mesh_collider`: refused here, nothing sent; placement and
+//! failover pass over such a server for a cloth with its own mesh).
 use super::*;
 use crate::wire::meshcollider::MeshCollider;
 use crate::wire::scene::{SceneReply, SceneRequest};

@@ -522,6 +522,21 @@ typedef struct DrapeRateCounters {
   bool auto_;
 } DrapeRateCounters;
 
+// Submission fields beyond `DrapeClothOptions`; zero-initialise it (0 and NULL: not sent).
+typedef struct DrapeSubmitExtras {
+  // 1.6: metres kept between non-neighbouring vertices (self_collision) and from a mesh
+  // collider (at least 0.001 there); 0: the server's default (0.01).
+  double thickness;
+  // 1.6: the share of a contact corrected per pass (0..1); 0: the server's default (1).
+  double contact_stiffness;
+  // 1.7: the scene the cloth collides in with the scene's other cloths (an id; NULL: none).
+  // The first cloth founds it and its client owns it; others need the owner's `members`.
+  const char *scene;
+  // 1.8: the cloth's own mesh collider, a new mesh (`vertices` and `triangles`) at its pose
+  // (NULL: none). Needs a 1.8 server (placement passes over older ones).
+  const struct DrapeMeshCollider *mesh_collider;
+} DrapeSubmitExtras;
+
 #ifdef __cplusplus
 extern "C" {
 #endif // __cplusplus
@@ -816,16 +831,6 @@ int32_t drape_client_server_stats(const struct DrapeClient *client,
 // known already, without waiting: DRAPE_OK, or DRAPE_NO_DATA before any server was seen.
 int32_t drape_client_known_server(const struct DrapeClient *client, char *buf, size_t len);
 
-// Submit a grid cloth with its own mesh collider (a new mesh: `vertices` and `triangles`),
-// waiting for the reply as `drape_submit_grid`. Needs a 1.8 server (DRAPE_E_INVALID_VALUE
-// otherwise, nothing sent); a bad mesh is DRAPE_E_INVALID_VALUE (or TOO_LARGE past 65 536
-// vertices or triangles) with the triangle or value named by `drape_last_error`.
-int32_t drape_submit_grid_with_mesh_collider(const struct DrapeClient *client,
-                                             const struct DrapeGrid *grid,
-                                             const struct DrapeClothOptions *options,
-                                             const struct DrapeMeshCollider *mesh,
-                                             struct DrapeCloth **out);
-
 // Set, re-pose, move or remove the cloth's own mesh collider. `wait`: block for the reply and
 // put the first tick showing it in `*tick` (may be NULL); else return at once (a failure
 // becomes DRAPE_EVENT_REQUEST_FAILED). Needs a 1.8 server (DRAPE_E_INVALID_VALUE otherwise,
@@ -917,6 +922,16 @@ int32_t drape_cloth_rate_counters(const struct DrapeCloth *cloth, struct DrapeRa
 // Fill `*out` with the bundle's rate and its governor's steps.
 int32_t drape_client_bundle_rate_counters(const struct DrapeClient *client,
                                           struct DrapeRateCounters *out);
+
+// Submit a grid cloth with `options` and the fields of `extras` (NULL: none, as
+// `drape_submit_grid`), waiting for the reply as `drape_submit_grid` does. A bad mesh is
+// DRAPE_E_INVALID_VALUE (or TOO_LARGE past 65 536 vertices or triangles) with the triangle or
+// value named by `drape_last_error`, nothing sent.
+int32_t drape_submit_grid_ex(const struct DrapeClient *client,
+                             const struct DrapeGrid *grid,
+                             const struct DrapeClothOptions *options,
+                             const struct DrapeSubmitExtras *extras,
+                             struct DrapeCloth **out);
 
 #ifdef __cplusplus
 }  // extern "C"

@@ -170,3 +170,50 @@ fn a_scenes_mesh_is_set_and_moved_by_its_owner_only() {
     stranger.close(true);
     owner.close(true);
 }
+
+/// The C ABI: a grid submitted with `drape_submit_grid_ex` into a scene of its own with a mesh
+/// and a thickness; its mesh moved in a batch; the scene's mesh set and moved by its owner (this
+/// C client: its cloth founded the scene); a zero quaternion refused before sending.
+#[test]
+fn c_abi_meshes_and_scene() {
+    use drape::ffi::*;
+    use std::ffi::CString;
+    let Some(s) = shared() else { return };
+    let connect = CString::new(s.endpoint.clone()).unwrap();
+    let server = CString::new(s.id.clone()).unwrap();
+    let scene = CString::new(format!("rs-c-{}", std::process::id())).unwrap();
+    let (v, t) = box_mesh(HALF);
+    unsafe {
+        let opts = common::c_client_options(&connect, Some(&server), None, 60_000, true);
+        let mut client = std::ptr::null_mut();
+        assert_eq!(drape_client_open(&opts, &mut client), DRAPE_OK);
+        let mesh = DrapeMeshCollider {
+            vertices: v.as_ptr(), vertex_count: 8, triangles: t.as_ptr(), triangle_count: 12,
+            position: [0.0, 1.0, 0.0], rotation: [0.0; 4], remove: false,
+        };
+        let extras = DrapeSubmitExtras { thickness: 0.02, contact_stiffness: 0.0, scene: scene.as_ptr(), mesh_collider: &mesh };
+        let grid = DrapeGrid { cols: 4, rows: 4, width: 0.0, height: 0.0, vertical: false, origin: [0.0, 2.0, 0.0] };
+        let copts = common::c_cloth_options(&[], false);
+        let mut cloth = std::ptr::null_mut();
+        assert_eq!(drape_submit_grid_ex(client, &grid, &copts, &extras, &mut cloth), DRAPE_OK);
+        let pose = DrapeMeshCollider { vertices: std::ptr::null(), triangles: std::ptr::null(), vertex_count: 0, triangle_count: 0,
+                                       position: [0.1, 1.0, 0.0], rotation: [1.0, 0.0, 0.0, 0.0], remove: false };
+        let batch = drape_batch_new();
+        assert_eq!(drape_batch_set_mesh_collider(batch, cloth, &pose), DRAPE_OK);
+        let (mut codes, mut ticks) = ([-1i32; 1], [0u64; 1]);
+        assert_eq!(drape_batch_send(client, batch, true, codes.as_mut_ptr(), ticks.as_mut_ptr(), 1), DRAPE_OK);
+        assert_eq!(codes[0], DRAPE_OK);
+        drape_batch_free(batch);
+        let mut tick = 0u64;
+        assert_eq!(drape_client_set_scene_mesh_collider(client, scene.as_ptr(), &mesh, std::ptr::null(), &mut tick), DRAPE_OK);
+        assert!(tick > 0);
+        assert_eq!(drape_client_set_scene_mesh_collider(client, scene.as_ptr(), &pose, std::ptr::null(), &mut tick), DRAPE_OK);
+        let zero = [0.0f64; 4];
+        assert_eq!(drape_cloth_move_mesh_collider(cloth, pose.position.as_ptr(), zero.as_ptr(), true, &mut tick), DRAPE_E_INVALID_VALUE);
+        let removal = DrapeMeshCollider { remove: true, ..pose };
+        assert_eq!(drape_cloth_set_mesh_collider(cloth, &removal, true, &mut tick), DRAPE_OK);
+        assert_eq!(drape_cloth_remove(cloth, std::ptr::null_mut()), DRAPE_OK);
+        drape_cloth_free(cloth);
+        drape_client_close(client, true);
+    }
+}

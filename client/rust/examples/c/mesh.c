@@ -1,5 +1,6 @@
 /* mesh.c: a mesh collider (protocol 1.8) over the drape C ABI (include/drape.h): a 9x9 cape
- * submitted with its own mesh collider, a closed 0.4 m box 0.3 m below it, falls onto the box;
+ * submitted (drape_submit_grid_ex) with its own mesh collider, a closed 0.4 m box 0.3 m below
+ * it, and a 2 cm thickness kept from it, falls onto the box;
  * every state received is checked for vertices inside the box (0 expected); then the box is
  * moved 5 cm sideways by a pose (the per-tick change, drape_cloth_move_mesh_collider) and
  * checked again, and a bad mesh is refused before sending with the triangle named. Exits 1 on
@@ -110,8 +111,11 @@ int main(int argc, char **argv) {
     DrapeClothOptions copts = {0};
     copts.substeps = 2;
     copts.material = &material;
+    DrapeSubmitExtras extras = {0};
+    extras.thickness = 0.02;
+    extras.mesh_collider = &bad;
     DrapeCloth *cape = NULL;
-    int32_t rc = drape_submit_grid_with_mesh_collider(client, &grid, &copts, &bad, &cape);
+    int32_t rc = drape_submit_grid_ex(client, &grid, &copts, &extras, &cape);
     char msg[512];
     drape_last_error(msg, sizeof msg);
     if (rc != DRAPE_E_INVALID_VALUE || !strstr(msg, "triangle 2")) {
@@ -120,7 +124,8 @@ int main(int argc, char **argv) {
     }
     printf("bad mesh refused: %s\n", msg);
 
-    check(drape_submit_grid_with_mesh_collider(client, &grid, &copts, &mesh, &cape), "drape_submit_grid_with_mesh_collider");
+    extras.mesh_collider = &mesh;
+    check(drape_submit_grid_ex(client, &grid, &copts, &extras, &cape), "drape_submit_grid_ex");
     uint32_t n = drape_cloth_vertex_count(cape);
     float *pos = malloc(sizeof(float) * 3 * n);
     int states = 0;

@@ -1,12 +1,12 @@
 //! C ABI of protocol 1.8's mesh colliders (PROTOCOL.md 5.4): one struct for the four changes
-//! (a new mesh, a re-pose, a rigid move, a removal), a grid submitted with its own mesh, a
+//! (a new mesh, a re-pose, a rigid move, a removal; a submission's: `submitex.rs`), a
 //! cloth's mesh changed (waited for or not, or in a batch) and a scene's mesh changed by its
 //! owner (1.7's scene request). New functions and a new struct: the layouts of
 //! `DrapeClothOptions` and `DrapeControl` are the ABI and stay as they are.
-use super::cloth::{grid_of, slice, submit_any, submit_of, DrapeBatch, DrapeCloth, DrapeClothOptions, DrapeGrid};
+use super::cloth::{slice, DrapeBatch, DrapeCloth};
 use super::{bad, fail, guard, opt_str, DrapeClient, DRAPE_OK};
 use crate::wire::meshcollider::{MeshCollider, IDENTITY};
-use crate::wire::{Control, SceneRequest, Shape};
+use crate::wire::{Control, SceneRequest};
 
 /// A mesh collider change (PROTOCOL.md 5.4), by the fields given; zero-initialise it:
 /// - `vertices` and `triangles`: a new mesh (3 floats per vertex in its own frame, 3 indices per
@@ -44,28 +44,6 @@ pub(crate) unsafe fn mesh_of(m: *const DrapeMeshCollider) -> Result<MeshCollider
     let vertices = slice(m.vertices, 3 * m.vertex_count).filter(|_| !m.vertices.is_null()).map(<[f32]>::to_vec);
     let triangles = slice(m.triangles, 3 * m.triangle_count).filter(|_| !m.triangles.is_null()).map(<[u32]>::to_vec);
     Ok(MeshCollider { vertices, triangles, position: m.position, rotation, remove: false })
-}
-
-/// Submit a grid cloth with its own mesh collider (a new mesh: `vertices` and `triangles`),
-/// waiting for the reply as `drape_submit_grid`. Needs a 1.8 server (DRAPE_E_INVALID_VALUE
-/// otherwise, nothing sent); a bad mesh is DRAPE_E_INVALID_VALUE (or TOO_LARGE past 65 536
-/// vertices or triangles) with the triangle or value named by `drape_last_error`.
-#[no_mangle]
-pub unsafe extern "C" fn drape_submit_grid_with_mesh_collider(client: *const DrapeClient, grid: *const DrapeGrid,
-                                                              options: *const DrapeClothOptions,
-                                                              mesh: *const DrapeMeshCollider, out: *mut *mut DrapeCloth) -> i32 {
-    guard(|| {
-        let (Some(c), Some(g)) = (client.as_ref(), grid.as_ref()) else { return bad("client or grid is NULL") };
-        if out.is_null() {
-            return bad("out is NULL");
-        }
-        let (mc, (mut sub, queue, retry)) = match (mesh_of(mesh), submit_of(options)) {
-            (Ok(m), Ok(s)) => (m, s),
-            (Err(code), _) | (_, Err(code)) => return code,
-        };
-        sub.mesh_collider = Some(mc);
-        submit_any(c, (sub, queue, retry), Shape::Grid(grid_of(g)), false, out)
-    })
 }
 
 /// Set, re-pose, move or remove the cloth's own mesh collider. `wait`: block for the reply and

@@ -15,6 +15,7 @@ mod meshes;
 mod moves;
 mod predictive;
 mod rates;
+mod submitex;
 pub use cloth::*;
 pub use control::*;
 pub use info::*;
@@ -22,6 +23,7 @@ pub use meshes::*;
 pub use moves::*;
 pub use predictive::*;
 pub use rates::*;
+pub use submitex::*;
 
 use crate::client::{Client, ClientOptions, Cloth, Event, LossReason};
 use crate::wire::error::{Error, ErrorCode};

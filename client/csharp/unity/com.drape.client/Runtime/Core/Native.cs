@@ -144,6 +144,16 @@ namespace Drape
             public byte remove;
         }
 
+        /// drape_submit_grid_ex's fields beyond DrapeClothOptions (0 / null: not sent): 1.6 thickness and
+        /// contact stiffness, 1.7 scene (a UTF-8 id), 1.8 the cloth's own mesh collider.
+        [StructLayout(LayoutKind.Sequential)]
+        public struct DrapeSubmitExtras
+        {
+            public double thickness, contact_stiffness;
+            public IntPtr scene;
+            public DrapeMeshCollider* mesh_collider;
+        }
+
         /// Protocol 1.8: a subscription's rate and what RATE_AUTO did to it.
         [StructLayout(LayoutKind.Sequential)]
         public struct DrapeRateCounters
@@ -225,8 +235,8 @@ namespace Drape
         [DllImport(Lib)] public static extern int drape_cloth_rate_counters(IntPtr cloth, DrapeRateCounters* counters);
         [DllImport(Lib)] public static extern int drape_client_bundle_rate_counters(IntPtr client, DrapeRateCounters* counters);
         // protocol 1.8: mesh colliders (a cloth's own, a scene's from its owner)
-        [DllImport(Lib)] public static extern int drape_submit_grid_with_mesh_collider(IntPtr client, DrapeGrid* grid, DrapeClothOptions* options,
-                                                                                      DrapeMeshCollider* mesh, out IntPtr cloth);
+        [DllImport(Lib)] public static extern int drape_submit_grid_ex(IntPtr client, DrapeGrid* grid, DrapeClothOptions* options,
+                                                                      DrapeSubmitExtras* extras, out IntPtr cloth);
         [DllImport(Lib)] public static extern int drape_cloth_set_mesh_collider(IntPtr cloth, DrapeMeshCollider* mesh, byte wait, ulong* tick);
         [DllImport(Lib)] public static extern int drape_cloth_move_mesh_collider(IntPtr cloth, double* position, double* rotation, byte wait,
                                                                                 ulong* tick);

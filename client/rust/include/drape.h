@@ -81,8 +81,9 @@
 
 #define DRAPE_FEATURE_NORMALS 16
 
-// Protocol 1.6: self-collision (the material's thickness and contact stiffness: server defaults
-// 0.01 m and 1 from C, whose DrapeMaterial does not carry them yet).
+// Protocol 1.6: self-collision (the material's thickness and contact stiffness: set at
+// submission by `drape_submit_grid_ex`'s `DrapeSubmitExtras`, else the server's defaults 0.01 m
+// and 1; DrapeMaterial does not carry them, so a control cannot change them from C).
 #define DRAPE_FEATURE_SELF_COLLISION 32
 
 // A feature mask the server did not report (a reply without `features`).

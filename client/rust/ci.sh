@@ -6,8 +6,9 @@
 # (protocol vectors of every version, hostile input, drape_wire.h layouts, the C header, live
 # tests against real `drape serve` processes), packages the library `cargo test` built (the dev
 # profile: no second build) with package.sh, builds the C examples with CMake from that archive
-# (find_package(drape)), runs them against a `drape serve` started here (cape.c; engine.c, 16
-# capes for 5 s, every state accounted for), then the C# binding's tests under Mono against the
+# (find_package(drape)), runs them against a `drape serve` started here (cape.c; mesh.c, a cape
+# dropped on a mesh collider, no vertex inside; engine.c, 16 capes for 5 s, every state
+# accounted for), then the C# binding's tests under Mono against the
 # same server and the archive's libdrape.so (client/csharp/ci.sh; it installs Mono from Debian
 # when missing). Exits non-zero on any failure. The server binary is $DRAPE_BIN (default:
 # <repo>/.venv/bin/drape); CI=true (the default here) makes a missing server a test failure,
@@ -83,6 +84,11 @@ if ! timeout 120 "$work/build/cape" "tcp/127.0.0.1:$port" 60; then
     echo "ci.sh: the C example failed; server log:" >&2
     cat "$log" >&2
     failed+=("C example")
+fi
+if ! timeout 120 "$work/build/mesh" "tcp/127.0.0.1:$port" 2; then
+    echo "ci.sh: the C mesh collider example failed; server log:" >&2
+    tail -40 "$log" >&2
+    failed+=("C mesh example")
 fi
 if ! timeout 180 "$work/build/engine" "tcp/127.0.0.1:$port" 5 16 8; then
     echo "ci.sh: the C engine loop failed; server log:" >&2

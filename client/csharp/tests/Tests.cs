@@ -35,6 +35,7 @@ static unsafe class Tests
         Run("open_without_server", () => OpenWithoutServer(closed));
         Run("sixteen_capes_every_state_no_allocation", () => SixteenCapes(endpoint));
         Run("control_async_and_ids", () => ControlAsync(endpoint));
+        Run("mesh_collider_and_rate", () => MeshColliderAndRate(endpoint));
         Console.WriteLine(failures == 0 ? "csharp: all tests passed" : "csharp: " + failures + " FAILED");
         return failures == 0 ? 0 : 1;
     }
@@ -79,6 +80,8 @@ static unsafe class Tests
             case "max_x": return "bounds_max";
             case "ax": return "a";
             case "bx": return "b";
+            case "position_x": return "position";
+            case "rotation_w": return "rotation";
             case "stiffness0": return "stiffness";
             case "compliance0": return "compliance";
             default: return f.EndsWith(">e__FixedBuffer") ? f : f;
@@ -251,6 +254,56 @@ static unsafe class Tests
             byte* small = stackalloc byte[4];
             int rc = Native.drape_cloth_id(cloth.Handle, small, (UIntPtr)4);
             Check(rc == Native.E_INVALID_VALUE && small[0] == 0, "a 4-byte id buffer: code " + rc + ", empty string");
+            cloth.Remove();
+            cloth.Dispose();
+        }
+    }
+
+    // Protocol 1.8 through the binding: a box set as a cloth's mesh collider (a bad one refused
+    // with its triangle named, before sending), moved by a pose every frame without waiting, the
+    // cloth kept out of it; removed; and the cloth's rate switched to every 2nd state.
+    static void MeshColliderAndRate(string endpoint)
+    {
+        using (var client = DrapeClient.Open(endpoint, timeoutMs: 30000))
+        {
+            var info = client.ServerInfo();
+            if (info.version_major == 1 && info.version_minor < 8) { Console.WriteLine("  skipped: server speaks 1." + info.version_minor); return; }
+            const double half = 0.2;
+            var box = new float[24];
+            for (int i = 0; i < 8; i++)
+                for (int k = 0; k < 3; k++) box[3 * i + k] = (float)((((i >> k) & 1) == 1 ? 1 : -1) * half);
+            uint[] tris = { 0, 4, 6, 0, 6, 2, 1, 3, 7, 1, 7, 5, 0, 1, 5, 0, 5, 4, 2, 6, 7, 2, 7, 3, 0, 2, 3, 0, 3, 1, 4, 5, 7, 4, 7, 6 };
+            var o = new ClothOptions { Substeps = 2, QueueSize = 64 };
+            var cloth = client.SubmitGrid(9, 9, 0.6, 0.6, false, -0.3, 1.0 + half + 0.3, -0.3, o, async: false);
+            var bad = (uint[])tris.Clone();
+            bad[7] = bad[6];
+            try
+            {
+                cloth.SetMeshCollider(box, bad, new[] { 0.0, 1.0, 0.0 });
+                Check(false, "a degenerate triangle was accepted");
+            }
+            catch (DrapeException e)
+            {
+                Check(e.Code == Native.E_INVALID_VALUE && e.Message.Contains("triangle 2"), "bad mesh refused: " + e.Message);
+            }
+            ulong tick = cloth.SetMeshCollider(box, tris, new[] { 0.0, 1.0, 0.0 });
+            var pos = new float[3 * cloth.VertexCount];
+            int inside = 0, states = 0;
+            var deadline = DateTime.UtcNow.AddSeconds(2);
+            while (DateTime.UtcNow < deadline)
+            {
+                cloth.MoveMeshCollider(0, 1, 0); // the per-tick pose (here: still)
+                Native.DrapeStateInfo si;
+                if (!cloth.ReadState(pos, Span<float>.Empty, out si)) { System.Threading.Thread.Sleep(16); continue; }
+                if (si.tick < tick + 1) continue;
+                states++;
+                for (int v = 0; v < cloth.VertexCount; v++)
+                    if (Math.Abs(pos[3 * v]) < half - 1e-3 && Math.Abs(pos[3 * v + 1] - 1.0) < half - 1e-3 && Math.Abs(pos[3 * v + 2]) < half - 1e-3) inside++;
+            }
+            Check(states > 10 && inside == 0, states + " states, " + inside + " vertices inside the box mesh");
+            cloth.RemoveMeshCollider();
+            cloth.SetRate(Native.RATE_HALF);
+            Check(cloth.RateCounters.rate == 2, "rate now every " + cloth.RateCounters.rate + " states");
             cloth.Remove();
             cloth.Dispose();
         }

@@ -31,6 +31,12 @@ int main(void) {
     F(DrapeControl, collider_count); F(DrapeControl, set_colliders); F(DrapeControl, features_add); F(DrapeControl, features_remove);
     F(DrapeControl, iterations); F(DrapeControl, substeps); F(DrapeControl, quality); F(DrapeControl, set_state); F(DrapeControl, encoding);
     F(DrapeControl, normals); F(DrapeControl, reset); F(DrapeControl, pin_indices); F(DrapeControl, pin_count); F(DrapeControl, pin_targets);
+    S(DrapeMeshCollider); F(DrapeMeshCollider, vertices); F(DrapeMeshCollider, vertex_count); F(DrapeMeshCollider, triangles);
+    F(DrapeMeshCollider, triangle_count); F(DrapeMeshCollider, position); F(DrapeMeshCollider, rotation); F(DrapeMeshCollider, remove);
+    S(DrapeSubmitExtras); F(DrapeSubmitExtras, thickness); F(DrapeSubmitExtras, contact_stiffness); F(DrapeSubmitExtras, scene);
+    F(DrapeSubmitExtras, mesh_collider);
+    S(DrapeRateCounters); F(DrapeRateCounters, step_downs); F(DrapeRateCounters, step_ups); F(DrapeRateCounters, rate);
+    F(DrapeRateCounters, auto_);
     S(DrapeStateCounters); F(DrapeStateCounters, received); F(DrapeStateCounters, read); F(DrapeStateCounters, replaced);
     F(DrapeStateCounters, missed); F(DrapeStateCounters, unread); F(DrapeStateCounters, ticks); F(DrapeStateCounters, invalid);
     F(DrapeStateCounters, stale); F(DrapeStateCounters, last_tick);

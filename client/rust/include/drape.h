@@ -81,8 +81,9 @@
 
 #define DRAPE_FEATURE_NORMALS 16
 
-// Protocol 1.6: self-collision (the material's thickness and contact stiffness: server defaults
-// 0.01 m and 1 from C, whose DrapeMaterial does not carry them yet).
+// Protocol 1.6: self-collision (the material's thickness and contact stiffness: set at
+// submission by `drape_submit_grid_ex`'s `DrapeSubmitExtras`, else the server's defaults 0.01 m
+// and 1; DrapeMaterial does not carry them, so a control cannot change them from C).
 #define DRAPE_FEATURE_SELF_COLLISION 32
 
 // A feature mask the server did not report (a reply without `features`).
@@ -473,6 +474,26 @@ typedef struct DrapeServerStats {
   uint64_t quality_degraded;
 } DrapeServerStats;
 
+// A mesh collider change (PROTOCOL.md 5.4), by the fields given; zero-initialise it:
+// - `vertices` and `triangles`: a new mesh (3 floats per vertex in its own frame, 3 indices per
+//   triangle, counter-clockwise seen from outside: the normals' side is outside) at the pose;
+// - `vertices` alone (`triangles` NULL): a re-pose, new positions of the current mesh's
+//   vertices (the same count);
+// - neither: a rigid move of the current mesh to the pose, the per-tick change;
+// - `remove`: the mesh dropped (nothing else may be set).
+//
+// The pose, mesh frame to world: `position` in metres and `rotation` a quaternion
+// `{w, x, y, z}` (normalised by the server; all four 0: the identity).
+typedef struct DrapeMeshCollider {
+  const float *vertices;
+  size_t vertex_count;
+  const uint32_t *triangles;
+  size_t triangle_count;
+  double position[3];
+  double rotation[4];
+  bool remove;
+} DrapeMeshCollider;
+
 // How a predictive cloth's states were decoded (`drape_cloth_predictive_counters`; all 0 for
 // the other encodings). Cumulative over the cloth's placements.
 typedef struct DrapePredictiveCounters {
@@ -501,6 +522,21 @@ typedef struct DrapeRateCounters {
   // A governor steps it (DRAPE_RATE_AUTO).
   bool auto_;
 } DrapeRateCounters;
+
+// Submission fields beyond `DrapeClothOptions`; zero-initialise it (0 and NULL: not sent).
+typedef struct DrapeSubmitExtras {
+  // 1.6: metres kept between non-neighbouring vertices (self_collision) and from a mesh
+  // collider (at least 0.001 there); 0: the server's default (0.01).
+  double thickness;
+  // 1.6: the share of a contact corrected per pass (0..1); 0: the server's default (1).
+  double contact_stiffness;
+  // 1.7: the scene the cloth collides in with the scene's other cloths (an id; NULL: none).
+  // The first cloth founds it and its client owns it; others need the owner's `members`.
+  const char *scene;
+  // 1.8: the cloth's own mesh collider, a new mesh (`vertices` and `triangles`) at its pose
+  // (NULL: none). Needs a 1.8 server (placement passes over older ones).
+  const struct DrapeMeshCollider *mesh_collider;
+} DrapeSubmitExtras;
 
 #ifdef __cplusplus
 extern "C" {
@@ -796,6 +832,39 @@ int32_t drape_client_server_stats(const struct DrapeClient *client,
 // known already, without waiting: DRAPE_OK, or DRAPE_NO_DATA before any server was seen.
 int32_t drape_client_known_server(const struct DrapeClient *client, char *buf, size_t len);
 
+// Set, re-pose, move or remove the cloth's own mesh collider. `wait`: block for the reply and
+// put the first tick showing it in `*tick` (may be NULL); else return at once (a failure
+// becomes DRAPE_EVENT_REQUEST_FAILED). Needs a 1.8 server (DRAPE_E_INVALID_VALUE otherwise,
+// nothing sent). The mesh last set, at its last pose, is sent again after a failover.
+int32_t drape_cloth_set_mesh_collider(const struct DrapeCloth *cloth,
+                                      const struct DrapeMeshCollider *mesh,
+                                      bool wait,
+                                      uint64_t *tick);
+
+// The per-tick rigid move of the cloth's mesh collider: `position` (3 doubles) and `rotation`
+// (4 doubles, w x y z; NULL: the identity), as `drape_cloth_set_mesh_collider`.
+int32_t drape_cloth_move_mesh_collider(const struct DrapeCloth *cloth,
+                                       const double *position,
+                                       const double *rotation,
+                                       bool wait,
+                                       uint64_t *tick);
+
+// Add a change of `cloth`'s mesh collider to the batch (sent with `drape_batch_send`).
+int32_t drape_batch_set_mesh_collider(struct DrapeBatch *batch,
+                                      const struct DrapeCloth *cloth,
+                                      const struct DrapeMeshCollider *mesh);
+
+// As the owner of `scene` (the client whose cloth founded it), set, re-pose, move or remove
+// the scene's mesh collider, one for every cloth of the scene beside their own, on `server`
+// (NULL: the client's default server). Waits for the reply; `*tick` (may be NULL) gets the
+// first tick showing it. DRAPE_E_FORBIDDEN for another client's scene, DRAPE_E_NOT_FOUND for a
+// scene without cloths there; needs a 1.8 server.
+int32_t drape_client_set_scene_mesh_collider(const struct DrapeClient *client,
+                                             const char *scene,
+                                             const struct DrapeMeshCollider *mesh,
+                                             const char *server,
+                                             uint64_t *tick);
+
 // Move pinned vertices `indices[0..index_count]` of each of the `cloth_count` cloths
 // `cloths[j]`: its vertex `indices[i]` goes to `targets[3 * (j * index_count + i) ..][0..3]`
 // (`3 * cloth_count * index_count` floats, cloth by cloth). To a protocol 1.4 server one
@@ -854,6 +923,16 @@ int32_t drape_cloth_rate_counters(const struct DrapeCloth *cloth, struct DrapeRa
 // Fill `*out` with the bundle's rate and its governor's steps.
 int32_t drape_client_bundle_rate_counters(const struct DrapeClient *client,
                                           struct DrapeRateCounters *out);
+
+// Submit a grid cloth with `options` and the fields of `extras` (NULL: none, as
+// `drape_submit_grid`), waiting for the reply as `drape_submit_grid` does. A bad mesh is
+// DRAPE_E_INVALID_VALUE (or TOO_LARGE past 65 536 vertices or triangles) with the triangle or
+// value named by `drape_last_error`, nothing sent.
+int32_t drape_submit_grid_ex(const struct DrapeClient *client,
+                             const struct DrapeGrid *grid,
+                             const struct DrapeClothOptions *options,
+                             const struct DrapeSubmitExtras *extras,
+                             struct DrapeCloth **out);
 
 #ifdef __cplusplus
 }  // extern "C"

@@ -9,7 +9,7 @@ mod common;
 
 use drape::client::{Client, Cloth, Counters};
 use drape::wire::{grid_geometry, Control, Encoding, Grid, Orientation, Shape, StateOptions, Submit};
-use std::collections::BTreeMap;
+use common::twin::{max_diff, read_by_age, ByAge};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
@@ -36,34 +36,6 @@ fn predictive(bundle: bool) -> StateOptions {
     StateOptions { encoding: Some(Encoding::Predictive), step: Some(STEP), bundle: bundle.then_some(true), ..Default::default() }
 }
 
-/// Every state read from `cloth` within `d`, by age (tick - first tick), and their encodings.
-fn read_for(cloth: &Cloth, d: Duration, out: &mut BTreeMap<u64, Vec<f32>>) -> Vec<Encoding> {
-    let mut pos = vec![0f32; 3 * (COLS * COLS) as usize];
-    let mut encodings = Vec::new();
-    let t0 = Instant::now();
-    while t0.elapsed() < d {
-        if let Some(st) = cloth.wait_state(&mut pos, None, Duration::from_millis(50)).unwrap() {
-            assert!(pos.iter().all(|x| x.is_finite()), "a shown state is never garbage");
-            out.insert(st.tick - cloth.first_tick(), pos.clone());
-            encodings.push(st.encoding);
-        }
-    }
-    encodings
-}
-
-/// The largest coordinate difference between states of the same age, and how many ages match.
-fn max_diff(a: &BTreeMap<u64, Vec<f32>>, b: &BTreeMap<u64, Vec<f32>>) -> (f32, usize) {
-    let mut worst = 0f32;
-    let mut n = 0;
-    for (age, p) in a {
-        if let Some(q) = b.get(age) {
-            n += 1;
-            worst = p.iter().zip(q).map(|(x, y)| (x - y).abs()).fold(worst, f32::max);
-        }
-    }
-    (worst, n)
-}
-
 fn wait_counters(cloth: &Cloth, what: &str, ok: impl Fn(&Counters) -> bool) -> Counters {
     let t0 = Instant::now();
     let mut pos = vec![0f32; 3 * (COLS * COLS) as usize];
@@ -87,10 +59,10 @@ fn predictive_cloths_decode_resync_and_switch() {
     assert!(bundled.bundled());
 
     // Decoded in order, each within step / 2 of the float32 twin's state of the same age.
-    let (mut a, mut b, mut c) = (BTreeMap::new(), BTreeMap::new(), BTreeMap::new());
-    let enc = read_for(&pred, Duration::from_secs(2), &mut a);
-    read_for(&bundled, Duration::from_millis(200), &mut c);
-    read_for(&twin, Duration::from_millis(200), &mut b);
+    let (mut a, mut b, mut c) = (ByAge::new(), ByAge::new(), ByAge::new());
+    let enc = read_by_age(&pred, Duration::from_secs(2), &mut a);
+    read_by_age(&bundled, Duration::from_millis(200), &mut c);
+    read_by_age(&twin, Duration::from_millis(200), &mut b);
     assert!(!enc.is_empty() && enc.iter().all(|e| *e == Encoding::Predictive), "{enc:?}");
     let (worst, n) = max_diff(&a, &b);
     let bound = (STEP / 2.0) as f32 * 1.001 + 1e-6;
@@ -99,7 +71,7 @@ fn predictive_cloths_decode_resync_and_switch() {
     assert!(worst <= bound, "predictive vs float32: {worst} m apart (step {STEP})");
     let (worst, n) = max_diff(&c, &b);
     assert!(n >= 20 && worst <= bound, "bundled predictive vs float32: {worst} m over {n} states");
-    let moved = a.values().next().unwrap().iter().zip(a.values().last().unwrap()).any(|(x, y)| (x - y).abs() > 0.01);
+    let moved = a.values().next().unwrap().1.iter().zip(&a.values().last().unwrap().1).any(|(x, y)| (x - y).abs() > 0.01);
     assert!(moved, "the cloth falls");
     let k = pred.state_counters();
     assert!(k.decoded >= 20 && k.keyframes >= 1, "{k:?}");
@@ -116,9 +88,9 @@ fn predictive_cloths_decode_resync_and_switch() {
         eprintln!("after the gap ({}): {k:?}", if cloth.bundled() { "bundled" } else { "own key" });
         assert_eq!(k.read + k.replaced + k.missed + k.unread + k.undecodable, k.ticks, "{k:?}");
     }
-    let mut a2 = BTreeMap::new();
-    read_for(&pred, Duration::from_secs(1), &mut a2);
-    read_for(&twin, Duration::from_millis(200), &mut b);
+    let mut a2 = ByAge::new();
+    read_by_age(&pred, Duration::from_secs(1), &mut a2);
+    read_by_age(&twin, Duration::from_millis(200), &mut b);
     let (worst, n) = max_diff(&a2, &b);
     assert!(n >= 10 && worst <= bound, "after the resync: {worst} m over {n} states");
 

@@ -8,7 +8,7 @@ mod common;
 
 use drape::client::{Client, Cloth, Rate};
 use drape::wire::{grid_geometry, Encoding, Grid, Orientation, Shape, StateOptions, Submit};
-use std::collections::BTreeMap;
+use common::twin::{by_age, max_diff};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
@@ -33,32 +33,6 @@ fn predictive(bundle: bool) -> StateOptions {
     StateOptions { encoding: Some(Encoding::Predictive), step: Some(STEP), bundle: bundle.then_some(true), ..Default::default() }
 }
 
-/// Every state read from `cloth` within `d`: by age (tick - first tick), with its tick.
-fn read_for(cloth: &Cloth, d: Duration) -> BTreeMap<u64, (u64, Vec<f32>)> {
-    let mut pos = vec![0f32; N];
-    let mut out = BTreeMap::new();
-    let t0 = Instant::now();
-    while t0.elapsed() < d {
-        if let Some(st) = cloth.wait_state(&mut pos, None, Duration::from_millis(50)).unwrap() {
-            assert!(pos.iter().all(|x| x.is_finite()), "a shown state is never garbage");
-            out.insert(st.tick - cloth.first_tick(), (st.tick, pos.clone()));
-        }
-    }
-    out
-}
-
-/// The largest coordinate difference to the twin's state of the same age, and how many matched.
-fn max_diff(a: &BTreeMap<u64, (u64, Vec<f32>)>, twin: &BTreeMap<u64, (u64, Vec<f32>)>) -> (f32, usize) {
-    let (mut worst, mut n) = (0f32, 0);
-    for (age, (_, p)) in a {
-        if let Some((_, q)) = twin.get(age) {
-            n += 1;
-            worst = p.iter().zip(q).map(|(x, y)| (x - y).abs()).fold(worst, f32::max);
-        }
-    }
-    (worst, n)
-}
-
 fn bound() -> f32 {
     (STEP / 2.0) as f32 * 1.001 + 1e-6
 }
@@ -77,8 +51,8 @@ fn check_switched(cloth: &Cloth, twin: &Cloth, k: u64, what: &str) {
         let _ = cloth.wait_state(&mut vec![0f32; N], None, Duration::from_millis(20));
     }
     let _ = cloth.latest_state(&mut vec![0f32; N], None); // drop what came before the switch
-    let got = read_for(cloth, Duration::from_millis(1500));
-    let twin_states = read_for(twin, Duration::from_millis(300));
+    let got = by_age(cloth, Duration::from_millis(1500));
+    let twin_states = by_age(twin, Duration::from_millis(300));
     assert!(got.len() >= 8, "{what}: {} states in 1.5 s", got.len());
     assert!(got.values().all(|(t, _)| t % k == 0), "{what}: ticks {:?}", got.values().map(|v| v.0).collect::<Vec<_>>());
     let (worst, n) = max_diff(&got, &twin_states);
@@ -97,9 +71,9 @@ fn a_30_hz_stream_within_half_a_step_and_switches() {
     assert_eq!((pred.rate_counters().rate, twin.rate_counters().rate, client.bundle_rate_counters().rate), (2, 1, 2));
 
     // 30 Hz, even ticks only, each within step / 2 of the twin at the same age
-    let a = read_for(&pred, Duration::from_secs(2));
-    let c = read_for(&bundled, Duration::from_millis(300));
-    let b = read_for(&twin, Duration::from_millis(300));
+    let a = by_age(&pred, Duration::from_secs(2));
+    let c = by_age(&bundled, Duration::from_millis(300));
+    let b = by_age(&twin, Duration::from_millis(300));
     assert!(a.values().all(|(t, _)| t % 2 == 0) && c.values().all(|(t, _)| t % 2 == 0), "even ticks only");
     assert!(a.len() >= 30, "{} states in 2 s at 30 Hz", a.len());
     let (worst, n) = max_diff(&a, &b);

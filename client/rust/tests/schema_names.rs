@@ -2,7 +2,8 @@
 //! written by `python -m drape.client.protocol.schemagen` from the protocol's tables: the control
 //! and submit fields of `requestfields.CONTROL_FIELDS`, the collider shapes of
 //! `vocabulary.COLLIDER_SHAPES`, the material fields, features and presets). A control or a
-//! submission with every field set must be written with exactly the schema's keys (and read back
+//! submission with every field set (1.8's mesh collider included; 1.7's scene request and its
+//! reply too) must be written with exactly the schema's keys (and read back
 //! whole), each collider shape with its schema's `type` and fields in order: a field or shape
 //! added to the tables and not to the crate fails here.
 use drape::wire::reader::Value;
@@ -16,9 +17,9 @@ use std::path::PathBuf;
 /// `predictive` encoding are written since the client decodes predictive streams).
 const STATE_KEYS_NOT_WRITTEN: &[&str] = &[];
 const ENCODINGS_NOT_WRITTEN: &[&str] = &[];
-/// Request fields the crate does not write yet: 1.8's mesh colliders (PROTOCOL.md 5.4: the
-/// Python SDK only, for now).
-const FIELDS_NOT_WRITTEN: &[&str] = &["mesh_collider"];
+/// Request fields the crate does not write yet: none (1.8's mesh colliders are written since
+/// the crate sends them).
+const FIELDS_NOT_WRITTEN: &[&str] = &[];
 
 fn schema(name: &str) -> Json {
     let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(format!("../protocol/schema/{name}.json"));
@@ -79,6 +80,12 @@ fn every_state() -> StateOptions {
     StateOptions { normals: Some(true), encoding: Some(Encoding::Predictive), bundle: Some(false), step: Some(0.002) }
 }
 
+/// A new mesh (a tetrahedron) at a pose: every key of a `mesh_collider` map but `remove`.
+fn every_mesh() -> MeshCollider {
+    let v = vec![0.0, 0.0, 0.0, 0.5, 0.0, 0.0, 0.0, 0.5, 0.0, 0.0, 0.0, 0.5];
+    MeshCollider::mesh(v, vec![0, 2, 1, 0, 1, 3, 0, 3, 2, 1, 2, 3]).at([0.0, 1.0, 0.0], [1.0, 0.0, 0.0, 0.0])
+}
+
 fn every_control() -> Control {
     Control {
         cloth: "5ba88a14c526242f".into(),
@@ -97,6 +104,7 @@ fn every_control() -> Control {
         state: Some(every_state()),
         quality: Some("fast".into()),
         reset: true,
+        mesh_collider: Some(every_mesh()),
     }
 }
 
@@ -132,6 +140,7 @@ fn submit_fields_are_the_schemas() {
     sub.quality = Some("fast".into());
     sub.resume = Some(Resume { positions: vec![0.0; 12], ..Default::default() });
     sub.scene = Some("arena-1".into());
+    sub.mesh_collider = Some(every_mesh());
     let Value::Map(m) = sub.to_value() else { panic!("not a map") };
     let mut written = set(keys(&m));
     written.insert("mesh".into()); // the other of grid / mesh
@@ -172,4 +181,28 @@ fn material_state_features_and_presets_are_the_schemas() {
     assert_eq!(encodings, enum_of(&defs["state"]["properties"]["encoding"]), "state encodings");
     assert_eq!(set(FEATURE_NAMES), enum_of(&defs["features"]["items"]), "feature names");
     assert_eq!(set(QUALITY_PRESETS), enum_of(&defs["quality"]), "quality presets");
+}
+
+#[test]
+fn mesh_collider_and_scene_fields_are_the_schemas() {
+    let defs = &schema("control")["$defs"];
+    let m = every_control().item_map();
+    let mut mesh = set(keys(map_at(&m, "mesh_collider")));
+    let Value::Map(removal) = MeshCollider::removal().to_value() else { panic!("not a map") };
+    mesh.extend(keys(&removal));
+    assert_eq!(mesh, set(prop_names(&defs["mesh_collider"])), "mesh_collider keys");
+    assert_eq!(mesh, set(drape::wire::meshcollider::MESH_KEYS), "MESH_KEYS");
+    let req = SceneRequest {
+        rid: 3,
+        colliders: Some(every_collider()),
+        members: Some(vec!["*".into()]),
+        mesh_collider: Some(every_mesh()),
+        ..SceneRequest::new("game-1", "arena-1")
+    };
+    let written = drape::wire::reader::unpack_message(&req.encode()).unwrap();
+    assert_eq!(set(keys(&written)), set(prop_names(&schema("scene"))), "the scene request's fields vs scene.json");
+    assert_eq!(SceneRequest::decode(&req.encode()).unwrap(), req, "every field read back");
+    let rep = SceneReply { rid: 3, tick: 9, owner: "game-1".into(), cloths: 2, members: vec!["*".into()] };
+    let written = drape::wire::reader::unpack_message(&rep.encode()).unwrap();
+    assert_eq!(set(keys(&written)), set(prop_names(&schema("reply_scene"))), "the scene reply's fields vs reply_scene.json");
 }

@@ -7,7 +7,7 @@ use crate::wire::error::{Error, ErrorCode, Result};
 use crate::wire::msg::{ControlBatch, Pins, Submit};
 use crate::wire::replies::{tick_of, Applied, BatchReply};
 use crate::smoothing::{sample_into, Frame, ServerClock, MAX_AHEAD};
-use crate::wire::{decode_state_into, parse_state, Collider, Control, Encoding};
+use crate::wire::{decode_state_into, parse_state, Collider, Control, Encoding, MeshCollider};
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::sync::{Arc, Condvar, Mutex, Weak};
 use std::time::{Duration, Instant};
@@ -59,6 +59,8 @@ pub(crate) struct Slot {
 pub(crate) struct Sent {
     pub(crate) pins: HashMap<u32, [f32; 3]>,
     pub(crate) colliders: Option<Vec<Collider>>,
+    /// 1.8: the whole mesh collider last sent by a control at its last pose, or its removal.
+    pub(crate) mesh: Option<MeshCollider>,
 }
 
 /// What became of the states of a cloth (cumulative over its placements). Every tick from the
@@ -217,11 +219,11 @@ impl ClothInner {
         })
     }
 
-    /// Remember the pin targets and colliders of a control about to be sent (a failover sends
-    /// the last ones again); a reset drops the pin targets, as the server does. No allocation
+    /// Remember the pin targets, colliders and (1.8) mesh collider of a control about to be sent
+    /// (a failover sends the last ones again); a reset drops the pin targets, as the server does. No allocation
     /// once each pinned vertex has been seen.
     pub(crate) fn note_sent(&self, ctl: &Control) {
-        if ctl.pins.is_none() && ctl.colliders.is_none() && !ctl.reset {
+        if ctl.pins.is_none() && ctl.colliders.is_none() && !ctl.reset && ctl.mesh_collider.is_none() {
             return;
         }
         if let Some(p) = &ctl.pins {
@@ -230,6 +232,10 @@ impl ClothInner {
         let mut sent = self.sent.lock().unwrap();
         if let Some(c) = &ctl.colliders {
             sent.colliders = Some(c.clone());
+        }
+        if let Some(mc) = &ctl.mesh_collider {
+            let last = sent.mesh.take().or_else(|| self.submit.mesh_collider.clone());
+            sent.mesh = Some(mc.applied_to(last.as_ref()));
         }
         if ctl.reset {
             sent.pins.clear();

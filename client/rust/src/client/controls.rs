@@ -4,8 +4,10 @@ use super::*;
 
 impl Inner {
     /// Refuse a control that uses 1.2 fields (`features_add` / `features_remove`) toward a
-    /// server older than 1.2, which would ignore them silently (PROTOCOL.md section 5.2).
+    /// server older than 1.2, which would ignore them silently (PROTOCOL.md section 5.2), and
+    /// likewise 1.5's predictive options and 1.8's `mesh_collider`.
     pub(crate) fn check_version(&self, server: &str, ctl: &Control) -> Result<()> {
+        self.check_mesh_version(server, ctl.mesh_collider.as_ref())?;
         let needs_1_5 = ctl.state.is_some_and(|s| s.needs_1_5());
         if !ctl.needs_1_2() && !needs_1_5 {
             return Ok(());

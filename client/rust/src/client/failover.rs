@@ -258,6 +258,11 @@ fn resubmit(inner: &Arc<Inner>, c: &Arc<ClothInner>, old_server: &str, old_id: &
     // the best live server not tried yet (PROTOCOL.md 11.3; no wait for stats: a loss is urgent)
     while let Some(target) = inner.placement.ranked(&inner.live_servers(), &tried, false).into_iter().next() {
         tried.insert(target.clone());
+        // 1.8: a cloth with its own mesh only onto a server that speaks mesh colliders
+        if let Err(e) = inner.check_mesh_version(&target, c.submit.mesh_collider.as_ref()) {
+            last_err = Some(e);
+            continue;
+        }
         match inner.place(c, &target, resume.clone()) {
             Ok(rep) => {
                 {
@@ -303,7 +308,7 @@ fn resubmit(inner: &Arc<Inner>, c: &Arc<ClothInner>, old_server: &str, old_id: &
     // else: stays lost; tried again on the next pass (a server may appear)
 }
 
-/// After a resubmission: the last pin targets and colliders the game sent, as one control (not
+/// After a resubmission: the last pin targets, colliders and mesh collider the game sent, as one control (not
 /// waited for; a failure becomes an event).
 fn resend_controls(inner: &Arc<Inner>, c: &Arc<ClothInner>) {
     let ctl = {
@@ -314,10 +319,12 @@ fn resend_controls(inner: &Arc<Inner>, c: &Arc<ClothInner>) {
         Control {
             pins: (!idx.is_empty()).then_some(Pins { indices: idx, targets }),
             colliders: sent.colliders.clone(),
+            // 1.8: the mesh last set, at its last pose (or its removal)
+            mesh_collider: sent.mesh.clone().filter(|m| m.remove || m.is_new_mesh()),
             ..Default::default()
         }
     };
-    if ctl.pins.is_none() && ctl.colliders.is_none() {
+    if ctl.pins.is_none() && ctl.colliders.is_none() && ctl.mesh_collider.is_none() {
         return;
     }
     if let Err(error) = inner.control(c, ctl, false) {

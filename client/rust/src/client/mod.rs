@@ -7,11 +7,12 @@
 //! This file is the facade (options, events, the client's shared state and its open and close);
 //! the parts are `session` (servers, their info, waited requests), `sending` (requests not waited
 //! for), `submit`, `controls`, `cloth`, `recv` (states), `predictive`, `rates` (1.8: every k-th
-//! state, `rate = auto`), `moves`, `placement` and `failover`.
+//! state, `rate = auto`), `meshes` (1.8's mesh colliders, 1.7's scene requests), `moves`, `placement` and `failover`.
 mod cloth;
 mod controls;
 mod failover;
 mod keyframes;
+mod meshes;
 mod moves;
 mod placement;
 mod predictive;

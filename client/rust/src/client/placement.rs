@@ -196,6 +196,11 @@ impl Inner {
             if !tried.insert(choice.clone()) {
                 return Err(last.unwrap_or_else(|| Error::new(ErrorCode::Unavailable, format!("server {choice} did not take the cloth"))));
             }
+            // 1.8: a cloth with its own mesh goes to a server that speaks mesh colliders
+            if let Err(e) = self.check_mesh_version(&choice, c.submit.mesh_collider.as_ref()) {
+                last = Some(e);
+                continue;
+            }
             match self.submit_to(c, &choice) {
                 Err(e) if PLACE_ELSEWHERE.contains(&e.code) => last = Some(e),
                 r => return r,

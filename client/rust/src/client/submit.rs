@@ -109,6 +109,7 @@ impl Inner {
     /// `resume` (1.3, failover): the state it continues from.
     pub(crate) fn place(self: &Arc<Self>, c: &Arc<cloth::ClothInner>, server: &str, resume: Option<Resume>) -> Result<SubmitReply> {
         self.check_open()?;
+        self.check_mesh_version(server, c.submit.mesh_collider.as_ref())?; // 1.8: an older server would ignore it
         let bundled = c.submit.state.and_then(|s| s.bundle).unwrap_or(false);
         if bundled {
             rates::bundle_placing(self, server)?; // 1.8: an older server's bundles come on the full-rate key

@@ -121,7 +121,7 @@ pub(crate) unsafe fn slice<'a, T>(p: *const T, n: usize) -> Option<&'a [T]> {
 }
 
 /// The submission options of `opts`, its queue size and its retry time.
-unsafe fn submit_of(opts: *const DrapeClothOptions) -> Result<(Submit, usize, Duration), i32> {
+pub(crate) unsafe fn submit_of(opts: *const DrapeClothOptions) -> Result<(Submit, usize, Duration), i32> {
     let s = Submit::new("", Shape::Grid(Grid::new(1, 1)));
     let Some(o) = opts.as_ref() else { return Ok((s, 1, Duration::ZERO)) };
     Ok((submit_fields(o, s)?, o.queue_size.max(1) as usize, Duration::from_millis(o.retry_ms as u64)))
@@ -148,14 +148,14 @@ unsafe fn submit_fields(o: &DrapeClothOptions, mut s: Submit) -> Result<Submit, 
     Ok(s)
 }
 
-unsafe fn grid_of(g: &DrapeGrid) -> Grid {
+pub(crate) unsafe fn grid_of(g: &DrapeGrid) -> Grid {
     let or1 = |x: f64| if x == 0.0 { 1.0 } else { x };
     let orientation = if g.vertical { Orientation::Vertical } else { Orientation::Horizontal };
     Grid { cols: g.cols, rows: g.rows, width: or1(g.width), height: or1(g.height), orientation, origin: g.origin }
 }
 
 /// Submit `sub` with its shape's rest geometry, waiting or not.
-fn submit_any(c: &DrapeClient, sub: (Submit, usize, Duration), shape: Shape, asynchronous: bool, out: *mut *mut DrapeCloth) -> i32 {
+pub(crate) fn submit_any(c: &DrapeClient, sub: (Submit, usize, Duration), shape: Shape, asynchronous: bool, out: *mut *mut DrapeCloth) -> i32 {
     let (sub, queue, retry) = sub;
     let geometry = match &shape {
         Shape::Grid(g) => crate::wire::grid_geometry(g.cols, g.rows, g.width, g.height, g.orientation, g.origin),

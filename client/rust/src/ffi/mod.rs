@@ -11,15 +11,19 @@
 mod cloth;
 mod control;
 mod info;
+mod meshes;
 mod moves;
 mod predictive;
 mod rates;
+mod submitex;
 pub use cloth::*;
 pub use control::*;
 pub use info::*;
+pub use meshes::*;
 pub use moves::*;
 pub use predictive::*;
 pub use rates::*;
+pub use submitex::*;
 
 use crate::client::{Client, ClientOptions, Cloth, Event, LossReason};
 use crate::wire::error::{Error, ErrorCode};
@@ -66,8 +70,9 @@ pub const DRAPE_FEATURE_TETHERS: u32 = 2;
 pub const DRAPE_FEATURE_COLLIDERS: u32 = 4;
 pub const DRAPE_FEATURE_WIND: u32 = 8;
 pub const DRAPE_FEATURE_NORMALS: u32 = 16;
-/// Protocol 1.6: self-collision (the material's thickness and contact stiffness: server defaults
-/// 0.01 m and 1 from C, whose DrapeMaterial does not carry them yet).
+/// Protocol 1.6: self-collision (the material's thickness and contact stiffness: set at
+/// submission by `drape_submit_grid_ex`'s `DrapeSubmitExtras`, else the server's defaults 0.01 m
+/// and 1; DrapeMaterial does not carry them, so a control cannot change them from C).
 pub const DRAPE_FEATURE_SELF_COLLISION: u32 = 32;
 /// A feature mask the server did not report (a reply without `features`).
 pub const DRAPE_FEATURES_UNKNOWN: u32 = 0xFFFF_FFFF;

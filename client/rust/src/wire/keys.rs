@@ -18,7 +18,8 @@ pub fn valid_token(s: &str) -> bool {
 
 /// The requests a 1.4 client sends on its own client-scoped key (PROTOCOL.md 11.2; `info` stays
 /// server-wide: a client asks it before it knows the server's version).
-pub const CLIENT_REQUESTS: [&str; 4] = ["submit", "control", "control_batch", "remove"];
+/// 1.7's `scene` request too (sent only to a server of 1.7 or later).
+pub const CLIENT_REQUESTS: [&str; 5] = ["submit", "control", "control_batch", "remove", "scene"];
 
 /// The key expressions of one namespace.
 #[derive(Debug, Clone, PartialEq, Eq)]

@@ -1,5 +1,6 @@
 //! The Drape wire protocol 1.4 (PROTOCOL.md) without any network: key expressions, msgpack
-//! requests and replies (1.4's `moves` blocks included), the binary state (`DRPS`) and bundle
+//! requests and replies (1.4's `moves` blocks included; later minors' fields a client sends: 1.7's
+//! scene request, 1.8's mesh colliders), the binary state (`DRPS`) and bundle
 //! (`DRPB`) payloads, float16 / quant16, the geometry a client needs (grids, OBJ files) and the
 //! placement rule of section 11.3. Everything here is pure and
 //! allocation-conscious: states decode straight into caller-provided `f32` slices.
@@ -9,6 +10,7 @@ pub mod geometry;
 pub mod half;
 pub mod keys;
 pub mod layout;
+pub mod meshcollider;
 pub mod moves;
 pub mod msg;
 mod msg_decode;
@@ -16,6 +18,7 @@ pub mod placement;
 pub mod predictive;
 pub mod reader;
 pub mod replies;
+pub mod scene;
 pub mod state;
 pub mod validate;
 
@@ -23,6 +26,7 @@ pub use bundle::{encode_bundle, parse_bundle, Bundle, BundleEntry, BUNDLE_HEADER
 pub use error::{Error, ErrorCode, Result};
 pub use geometry::{grid_geometry, parse_obj};
 pub use keys::{valid_id, valid_namespace, valid_token, Keys, CLIENT_REQUESTS};
+pub use meshcollider::{mesh_problem, MeshCollider, MESH_MAX_TRIANGLES, MESH_MAX_VERTICES, MESH_MIN_AREA};
 pub use moves::{DecodedBatch, MoveFailed, Moves, MovesReply};
 pub use msg::{
     Collider, Control, ControlBatch, Encoding, Grid, Links, Material, Mesh, Orientation, Pins, Resume, Shape,
@@ -30,6 +34,7 @@ pub use msg::{
 };
 pub use replies::{Applied, BatchItem, BatchReply, ErrorReply, SubmitReply};
 pub use placement::{rank, ServerLoad, PLACE_ELSEWHERE};
+pub use scene::{SceneReply, SceneRequest};
 pub use predictive::{is_predictive, parse_predictive, PredictiveHeader, Stream as PredictiveStream};
 pub use validate::Limits;
 pub use state::{decode_state_into, encode_state, parse_state, state_size, StateHeader, STATE_HEADER_SIZE};

@@ -3,6 +3,7 @@
 //! smallest integers) and decodes back, so the test vectors check both ways.
 use super::error::{invalid, Error, ErrorCode, Result};
 use super::msg_decode::{read_colliders, read_material, read_state, read_strings, u32v};
+use super::meshcollider::MeshCollider;
 use super::reader::{bin_f32, bin_u32, header, pack, s, unpack_message, vec3, Map, Reader, Value};
 
 /// State encodings (the state header's `encoding` byte).
@@ -210,6 +211,9 @@ pub struct Submit {
     pub resume: Option<Resume>,
     /// 1.7: the scene the cloth collides in (a 1.6 server ignores it: the cloth is alone).
     pub scene: Option<String>,
+    /// 1.8: the cloth's own mesh collider, a new mesh at its pose (PROTOCOL.md 5.4; a 1.7 server
+    /// ignores it: refused client-side toward one).
+    pub mesh_collider: Option<MeshCollider>,
 }
 
 impl Submit {
@@ -232,6 +236,7 @@ impl Submit {
             quality: None,
             resume: None,
             scene: None,
+            mesh_collider: None,
         }
     }
 }
@@ -258,6 +263,8 @@ pub struct Control {
     pub state: Option<StateOptions>,
     pub quality: Option<String>,
     pub reset: bool,
+    /// 1.8: sets, re-poses, moves or removes the cloth's own mesh collider (PROTOCOL.md 5.4).
+    pub mesh_collider: Option<MeshCollider>,
 }
 
 /// A batch control (section 5.1).
@@ -268,7 +275,7 @@ pub struct ControlBatch {
     pub items: Vec<Control>,
 }
 
-fn collider_value(c: &Collider) -> Value {
+pub(crate) fn collider_value(c: &Collider) -> Value {
     Value::Map(match *c {
         Collider::Sphere { center, radius } => {
             vec![(s("type"), s("sphere")), (s("center"), vec3(center)), (s("radius"), Value::F64(radius))]
@@ -328,7 +335,7 @@ fn state_map(o: &StateOptions) -> Value {
     Value::Map(m)
 }
 
-fn strings(v: &[String]) -> Value {
+pub(crate) fn strings(v: &[String]) -> Value {
     Value::Array(v.iter().map(|x| s(x)).collect())
 }
 
@@ -379,6 +386,9 @@ impl Submit {
         }
         if let Some(q) = &self.quality {
             m.push((s("quality"), s(q)));
+        }
+        if let Some(mc) = &self.mesh_collider {
+            m.push((s("mesh_collider"), mc.to_value()));
         }
         if let Some(r) = &self.resume {
             m.push((s("resume"), r.to_value()));
@@ -447,6 +457,7 @@ impl Submit {
                 Some(x) => Some(Resume::from_reader(&x)?),
             },
             scene: r.str("scene", false)?.map(str::to_string),
+            mesh_collider: MeshCollider::from_reader(&r, "mesh_collider")?,
         })
     }
 }
@@ -513,6 +524,9 @@ impl Control {
         if self.reset {
             m.push((s("reset"), Value::Boolean(true)));
         }
+        if let Some(mc) = &self.mesh_collider {
+            m.push((s("mesh_collider"), mc.to_value()));
+        }
         m
     }
 
@@ -545,6 +559,7 @@ impl Control {
             state: read_state(r)?,
             quality: r.str("quality", false)?.map(str::to_string),
             reset: r.bool("reset", false)?.unwrap_or(false),
+            mesh_collider: MeshCollider::from_reader(r, "mesh_collider")?,
         })
     }
 

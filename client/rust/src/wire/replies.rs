@@ -95,7 +95,7 @@ impl SubmitReply {
     }
 }
 
-fn ok_header(rid: u64) -> Map {
+pub(crate) fn ok_header(rid: u64) -> Map {
     let mut m = header(rid);
     m.push((s("ok"), Value::Boolean(true)));
     m

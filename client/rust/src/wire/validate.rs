@@ -82,7 +82,7 @@ fn material(m: &Material) -> Result<()> {
     Ok(())
 }
 
-fn colliders(c: &Option<Vec<Collider>>) -> Result<()> {
+pub(crate) fn colliders(c: &Option<Vec<Collider>>) -> Result<()> {
     let Some(c) = c else { return Ok(()) };
     if c.len() > MAX_COLLIDERS {
         return Err(err(ErrorCode::TooLarge, format!("{} colliders, at most {MAX_COLLIDERS}", c.len())));
@@ -203,6 +203,9 @@ impl Submit {
         colliders(&self.colliders)?;
         state_options(self.state.as_ref())?;
         options(Some(&self.features), self.quality.as_deref(), self.iterations, self.substeps, self.chebyshev_rho, lim)?;
+        if let Some(mc) = &self.mesh_collider {
+            mc.validate("mesh_collider", true)?;
+        }
         if let Some(sc) = &self.scene {
             if !valid_id(sc) {
                 return Err(invalid(format!("'scene' must be 1-64 characters of [A-Za-z0-9_.-], got {sc:?}")));
@@ -288,7 +291,10 @@ impl Control {
         if let Some(f) = self.features_remove.as_deref().unwrap_or_default().iter().find(|f| add.contains(f)) {
             return Err(invalid(format!("feature {f:?} is in both 'features_add' and 'features_remove'")));
         }
-        Ok(())
+        match &self.mesh_collider {
+            Some(mc) => mc.validate("mesh_collider", false),
+            None => Ok(()),
+        }
     }
 
     /// Whether the control uses a field a 1.1 server would silently ignore (1.2's

@@ -1,7 +1,10 @@
 //! Starting a real `drape serve` process for the live tests: found through `DRAPE_BIN`
 //! (default `../../.venv/bin/drape` from this crate), on a loopback port of its own, stopped
-//! when the test process ends (a watchdog shell kills it) or when `kill()` is called.
+//! when the test process ends (a watchdog shell kills it) or when `kill()` is called; `twin`:
+//! states compared with a float32 twin's.
 #![allow(dead_code)]
+pub mod twin;
+
 use std::io::{BufRead, BufReader};
 use std::path::PathBuf;
 use std::process::{Command, Stdio};

@@ -399,6 +399,68 @@ namespace Drape
             return ControlAsync(ref c);
         }
 
+        /// Protocol 1.8: set the cloth's own mesh collider (a new mesh: 3 floats per vertex in its own
+        /// frame, 3 indices per triangle, counter-clockwise seen from outside), or re-pose it
+        /// (`triangles` null: new positions of its vertices), at the pose (position; rotation w, x, y,
+        /// z, null: the identity). Waits for the reply: the first tick showing it. A bad mesh throws
+        /// with the offending triangle or value named, before anything is sent.
+        public ulong SetMeshCollider(float[] vertices, uint[] triangles, double[] position, double[] rotation = null)
+        {
+            ulong tick;
+            fixed (float* v = vertices)
+            fixed (uint* t = triangles)
+            {
+                var m = MeshOf(position, rotation);
+                m.vertices = v; m.vertex_count = (UIntPtr)(vertices.Length / 3);
+                m.triangles = t; m.triangle_count = (UIntPtr)(triangles == null ? 0 : triangles.Length / 3);
+                DrapeException.Check(Native.drape_cloth_set_mesh_collider(Handle, &m, 1, &tick), "drape_cloth_set_mesh_collider");
+            }
+            return tick;
+        }
+
+        /// Protocol 1.8: the per-tick rigid move of the cloth's mesh collider, without waiting (a
+        /// failure is a REQUEST_FAILED event). Allocates nothing.
+        public void MoveMeshCollider(double x, double y, double z, double qw = 1, double qx = 0, double qy = 0, double qz = 0)
+        {
+            double* p = stackalloc double[3];
+            double* q = stackalloc double[4];
+            p[0] = x; p[1] = y; p[2] = z;
+            q[0] = qw; q[1] = qx; q[2] = qy; q[3] = qz;
+            DrapeException.Check(Native.drape_cloth_move_mesh_collider(Handle, p, q, 0, null), "drape_cloth_move_mesh_collider");
+        }
+
+        /// Protocol 1.8: remove the cloth's mesh collider (waits for the reply).
+        public void RemoveMeshCollider()
+        {
+            var m = new Native.DrapeMeshCollider { remove = 1 };
+            DrapeException.Check(Native.drape_cloth_set_mesh_collider(Handle, &m, 1, null), "drape_cloth_set_mesh_collider");
+        }
+
+        internal static Native.DrapeMeshCollider MeshOf(double[] position, double[] rotation)
+        {
+            var m = new Native.DrapeMeshCollider();
+            if (position != null) { m.position_x = position[0]; m.position_y = position[1]; m.position_z = position[2]; }
+            if (rotation != null) { m.rotation_w = rotation[0]; m.rotation_x = rotation[1]; m.rotation_y = rotation[2]; m.rotation_z = rotation[3]; }
+            return m;
+        }
+
+        /// Protocol 1.8: take every `rate`-th state of this cloth (Native.RATE_FULL, _HALF, _THIRD).
+        public void SetRate(uint rate)
+        {
+            DrapeException.Check(Native.drape_cloth_set_rate(Handle, rate), "drape_cloth_set_rate");
+        }
+
+        /// Protocol 1.8: the cloth's rate and its governor's steps.
+        public Native.DrapeRateCounters RateCounters
+        {
+            get
+            {
+                Native.DrapeRateCounters k;
+                DrapeException.Check(Native.drape_cloth_rate_counters(Handle, &k), "drape_cloth_rate_counters");
+                return k;
+            }
+        }
+
         /// Remove the cloth from its server (waits for the reply). Returns its last tick.
         public ulong Remove()
         {

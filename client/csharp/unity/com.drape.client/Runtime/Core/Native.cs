@@ -129,6 +129,40 @@ namespace Drape
             public float* pin_targets;
         }
 
+        /// Protocol 1.8: a mesh collider change (drape.h's DrapeMeshCollider): vertices and triangles
+        /// a new mesh, vertices alone a re-pose, neither a rigid move to the pose, remove the removal.
+        /// rotation is w, x, y, z (all 0: the identity).
+        [StructLayout(LayoutKind.Sequential)]
+        public struct DrapeMeshCollider
+        {
+            public float* vertices;
+            public UIntPtr vertex_count;
+            public uint* triangles;
+            public UIntPtr triangle_count;
+            public double position_x, position_y, position_z;
+            public double rotation_w, rotation_x, rotation_y, rotation_z;
+            public byte remove;
+        }
+
+        /// drape_submit_grid_ex's fields beyond DrapeClothOptions (0 / null: not sent): 1.6 thickness and
+        /// contact stiffness, 1.7 scene (a UTF-8 id), 1.8 the cloth's own mesh collider.
+        [StructLayout(LayoutKind.Sequential)]
+        public struct DrapeSubmitExtras
+        {
+            public double thickness, contact_stiffness;
+            public IntPtr scene;
+            public DrapeMeshCollider* mesh_collider;
+        }
+
+        /// Protocol 1.8: a subscription's rate and what RATE_AUTO did to it.
+        [StructLayout(LayoutKind.Sequential)]
+        public struct DrapeRateCounters
+        {
+            public ulong step_downs, step_ups;
+            public uint rate;
+            public byte auto_;
+        }
+
         [StructLayout(LayoutKind.Sequential)]
         public struct DrapeStateCounters
         {
@@ -194,6 +228,21 @@ namespace Drape
         [DllImport(Lib)] public static extern int drape_cloth_control(IntPtr cloth, DrapeControl* control, ulong* tick, uint* features);
         [DllImport(Lib)] public static extern int drape_cloth_control_async(IntPtr cloth, DrapeControl* control, ulong* request);
         [DllImport(Lib)] public static extern int drape_cloth_remove(IntPtr cloth, ulong* last_tick);
+        // protocol 1.8: rates per subscriber (RATE_*)
+        [DllImport(Lib)] public static extern int drape_client_set_rate(IntPtr client, uint rate);
+        [DllImport(Lib)] public static extern int drape_client_set_bundle_rate(IntPtr client, uint rate);
+        [DllImport(Lib)] public static extern int drape_cloth_set_rate(IntPtr cloth, uint rate);
+        [DllImport(Lib)] public static extern int drape_cloth_rate_counters(IntPtr cloth, DrapeRateCounters* counters);
+        [DllImport(Lib)] public static extern int drape_client_bundle_rate_counters(IntPtr client, DrapeRateCounters* counters);
+        // protocol 1.8: mesh colliders (a cloth's own, a scene's from its owner)
+        [DllImport(Lib)] public static extern int drape_submit_grid_ex(IntPtr client, DrapeGrid* grid, DrapeClothOptions* options,
+                                                                      DrapeSubmitExtras* extras, out IntPtr cloth);
+        [DllImport(Lib)] public static extern int drape_cloth_set_mesh_collider(IntPtr cloth, DrapeMeshCollider* mesh, byte wait, ulong* tick);
+        [DllImport(Lib)] public static extern int drape_cloth_move_mesh_collider(IntPtr cloth, double* position, double* rotation, byte wait,
+                                                                                ulong* tick);
+        [DllImport(Lib)] public static extern int drape_batch_set_mesh_collider(IntPtr batch, IntPtr cloth, DrapeMeshCollider* mesh);
+        [DllImport(Lib)] public static extern int drape_client_set_scene_mesh_collider(IntPtr client, IntPtr scene, DrapeMeshCollider* mesh,
+                                                                                      IntPtr server, ulong* tick);
         [DllImport(Lib)] public static extern int drape_move_pins_many(IntPtr client, IntPtr* cloths, UIntPtr cloth_count,
                                                                       uint* indices, UIntPtr index_count, float* targets,
                                                                       byte wait, int* codes, ulong* ticks);

@@ -1,0 +1,46 @@
+//! Comparing a cloth's states with a float32 twin's (the same cloth submitted with
+//! `float32`): states read by age (tick - first tick), and the largest coordinate difference
+//! between states of the same age. The live tests of coded streams (predictive, decimated) use it.
+use drape::client::Cloth;
+use drape::wire::Encoding;
+use std::collections::BTreeMap;
+use std::time::{Duration, Instant};
+
+/// States by age (tick - the cloth's first tick): the state's tick and its positions.
+pub type ByAge = BTreeMap<u64, (u64, Vec<f32>)>;
+
+/// Every state read from `cloth` within `d`, added to `out` by age; their encodings, in order.
+/// A state shown is never garbage (every coordinate finite).
+pub fn read_by_age(cloth: &Cloth, d: Duration, out: &mut ByAge) -> Vec<Encoding> {
+    let mut pos = vec![0f32; 3 * cloth.vertex_count() as usize];
+    let mut encodings = Vec::new();
+    let t0 = Instant::now();
+    while t0.elapsed() < d {
+        if let Some(st) = cloth.wait_state(&mut pos, None, Duration::from_millis(50)).unwrap() {
+            assert!(pos.iter().all(|x| x.is_finite()), "a shown state is never garbage");
+            out.insert(st.tick - cloth.first_tick(), (st.tick, pos.clone()));
+            encodings.push(st.encoding);
+        }
+    }
+    encodings
+}
+
+/// [`read_by_age`] into a new map.
+pub fn by_age(cloth: &Cloth, d: Duration) -> ByAge {
+    let mut out = ByAge::new();
+    read_by_age(cloth, d, &mut out);
+    out
+}
+
+/// The largest coordinate difference to the twin's state of the same age, and how many ages
+/// matched.
+pub fn max_diff(a: &ByAge, twin: &ByAge) -> (f32, usize) {
+    let (mut worst, mut n) = (0f32, 0);
+    for (age, (_, p)) in a {
+        if let Some((_, q)) = twin.get(age) {
+            n += 1;
+            worst = p.iter().zip(q).map(|(x, y)| (x - y).abs()).fold(worst, f32::max);
+        }
+    }
+    (worst, n)
+}

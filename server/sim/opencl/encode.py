@@ -331,6 +331,12 @@ class DeviceEncoder:
             wg,
         )
 
+    def wait_static(self) -> None:
+        """Wait for the plan's static bytes (set_plan enqueues them behind the last frame and
+        the next encode waits for them): device work, which tools time apart."""
+        if self._static_event is not None:
+            self._static_event.wait()
+
     @property
     def buffers_made(self) -> int:
         """Frame-sized buffers allocated so far (the output, the compacted frame, the pinned host

@@ -8,8 +8,11 @@ layout and vertex bases) and times, median over ``--repeat`` rounds:
 - a **roster change** (one cloth comes or goes at N: the rounds alternate between the N cloths
   and N - 1 of them), what the tick thread does before it can enqueue the frame: ``roster``
   (Roster.of, ticker.py), ``plan`` (FramePlan.for_roster: the entries, the layout, the static
-  bytes), ``set_plan`` (DeviceEncoder.set_plan: the kernel, the table and template uploaded,
-  the pinned host frames; with a device only), ``follow`` (DeviceStreams.follow: the
+  bytes), ``set_plan`` (DeviceEncoder.set_plan: the kernel and the tables uploaded, the
+  buffers sized (kept across plans while they fit), the static bytes enqueued; with a device
+  only), ``fill`` (then waiting for those static bytes on the device: the output's zero fill
+  and kernels/static.cl, device work that the next frame waits for, not the tick thread's;
+  waited for after each change so that it does not overlap the next stage), ``follow`` (DeviceStreams.follow: the
   predictive streams carried over) and ``change`` (devencode.DeviceFrames._plan end to end,
   which is plan + set_plan + follow);
 - a **steady tick** (the same roster): ``enqueue`` (DeviceFrames.encode: the streams'
@@ -148,10 +151,13 @@ def run(load: Load, repeat: int, dev: Any | None) -> dict[str, list[float]]:
             add("follow", ms_follow)
         if frames is not None:
             ms_set, _ = _timed(lambda: frames.encoder.set_plan(plan))  # noqa: B023
+            ms_fill, _ = _timed(frames.encoder.wait_static)
             roster = Roster.of((lay.version, 1000 + r), [load.records[h] for h in lay.handles.tolist()], lay.normals)
             ms_change, _ = _timed(lambda: frames._plan(roster, lay))  # noqa: B023
+            frames.encoder.wait_static()
             if r >= 2:
                 add("set_plan", ms_set)
+                add("fill", ms_fill)
                 add("change", ms_change)
     # steady ticks on the full roster
     lay = load.layouts[0]
@@ -189,7 +195,7 @@ def run(load: Load, repeat: int, dev: Any | None) -> dict[str, list[float]]:
     return samples
 
 
-STAGES = ("roster", "plan", "set_plan", "follow", "change", "enqueue", "decide", "wait", "wire")
+STAGES = ("roster", "plan", "set_plan", "fill", "follow", "change", "enqueue", "decide", "wait", "wire")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -137,3 +137,122 @@ def test_states_decode_across_plan_changes(device, seed):
         assert all(s.undecodable == 0 for s in streams.values())
     finally:
         enc.close()
+
+
+def _frame_bytes(frame) -> list[bytes]:
+    return [bytes(v) for v in frame.views]
+
+
+def _decoded(scene: Scene, plan: FramePlan, frame, streams: dict[str, StateStream], tick: int) -> None:
+    """Every state of ``frame`` decodes (tick ``tick``) within half a step (quant16: a unit)."""
+    payloads = dict(frame.payloads(list(range(len(plan.publications)))))
+    states = _states(plan, payloads)
+    assert sorted(states) == sorted(scene.cloths)
+    for cid, data in states.items():
+        st = streams.setdefault(cid, StateStream(cid)).decode(data)
+        assert st is not None and st.tick == tick, cid
+        tol = 0.5 * scene.cloths[cid][1] if plan.predictive.any() else 1e-3 * np.abs(scene.pos[cid]).max()
+        assert np.abs(st.positions - scene.pos[cid]).max() <= tol * (1 + 1e-3) + 1e-6, cid
+
+
+@pytest.mark.parametrize("encoding", [P.ENC_PREDICTIVE, P.ENC_QUANT16])
+def test_held_frame_kept_across_plan_changes(device, encoding):
+    """A frame held across plan changes keeps its bytes while the encoder's buffers (kept from
+    plan to plan) take the later plans' frames; one released after a change is used again,
+    bound to the plan in use, and every state still decodes."""
+    rng = np.random.default_rng(7)
+    scene = Scene(rng, 10)
+
+    def plan() -> FramePlan:
+        p = scene.plan()
+        cloths = [c._replace(encoding=encoding) for c in p.cloths]
+        return FramePlan.build(cloths, list(p.publications))
+
+    enc, ds = DeviceEncoder(device), DeviceStreams(keyframe_interval=10_000)
+    streams: dict[str, StateStream] = {}
+    tick = 0
+
+    def encode(p: FramePlan):
+        nonlocal tick
+        tick += 1
+        scene.move()
+        pred = ds.decide(tick, None)[0] if p.predictive.any() else None
+        enc.encode(device.queue, scene.buffer(device), None, tick, tick, None, predictive=pred)
+        frame = enc.hold()
+        if p.predictive.any():
+            ds.put(p, np.flatnonzero(p.predictive), tick)
+        _decoded(scene, p, frame, streams, tick)
+        return frame
+
+    try:
+        p = plan()
+        enc.set_plan(p)
+        ds.follow(p)
+        held, kept = [], []
+        for _ in range(3):
+            frame = encode(p)
+            held.append(frame)
+            kept.append(_frame_bytes(frame))
+            scene.remove(sorted(scene.cloths)[0])  # a smaller plan: the buffers are kept
+            p = plan()
+            enc.set_plan(p)
+            ds.follow(p)
+        for i in range(6):  # more frames than the encoder's host buffers, all of the last plan
+            encode(p).release()
+            if i == 1:  # released after two plan changes: its memory is used again from here
+                assert _frame_bytes(held[0]) == kept[0]
+                held.pop(0).release()
+                kept.pop(0)
+        for frame, before in zip(held, kept, strict=True):
+            assert _frame_bytes(frame) == before
+            frame.release()
+    finally:
+        enc.close()
+
+
+def test_plan_changes_reuse_buffers(device):
+    """A plan of the same or a smaller size makes no new frame buffer; a larger one grows them
+    geometrically; one far smaller than them gives the memory back."""
+    rng = np.random.default_rng(3)
+    scene = Scene(rng, 16)
+    enc, ds = DeviceEncoder(device), DeviceStreams(keyframe_interval=10_000)
+
+    def change() -> FramePlan:
+        p = scene.plan()
+        enc.set_plan(p)
+        ds.follow(p)
+        return p
+
+    def tick_once(p: FramePlan, tick: int) -> None:
+        scene.move()
+        enc.encode(device.queue, scene.buffer(device), None, tick, tick, None, predictive=ds.decide(tick, None)[0])
+        enc.hold().release()
+        ds.put(p, np.flatnonzero(p.predictive), tick)
+
+    try:
+        p = change()
+        tick_once(p, 1)
+        made = enc.buffers_made
+        assert made == 6  # the output, the compacted frame, two pinned frames and their two indices
+        size = enc._out_reused.buf.size
+        for tick in range(2, 8):  # one goes and one comes (same size or smaller), or one goes
+            scene.remove(sorted(scene.cloths)[int(rng.integers(0, len(scene.cloths)))])
+            if tick % 2:
+                scene.add()
+            p = change()
+            tick_once(p, tick)
+        assert enc.buffers_made == made
+        while scene.plan().size <= size:  # past the capacity: grown once, by half
+            scene.add()
+        p = change()
+        tick_once(p, 8)
+        assert enc.buffers_made > made
+        assert enc._out_reused.buf.size >= 1.5 * size
+        for cid in sorted(scene.cloths)[1:]:  # one cloth left: far too large, made smaller
+            scene.remove(cid)
+        scene_small = scene.plan().size
+        p = change()
+        tick_once(p, 9)
+        assert enc._out_reused.buf.size <= max(2 * scene_small, 1 << 20)
+    finally:
+        enc.close()

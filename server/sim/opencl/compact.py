@@ -26,6 +26,7 @@ import pyopencl as cl
 
 from drape.client import protocol as P
 
+from . import reuse
 from .device import Device
 from .frameplan import HEADER_OFFSETS, FramePlan, encode_layout
 from .platforms import kernel_dir
@@ -127,6 +128,7 @@ class Compactor:
         self._table: cl.Buffer | None = None
         self._index: cl.Buffer | None = None
         self.packed: cl.Buffer | None = None
+        self._packed = reuse.ReusedBuffer(dev.ctx, MF.READ_WRITE)  # kept across plans while it fits
         self._recent: list[float] = []  # the last frames' compacted bytes per piece (the copy's guess)
         self.copied = 0  # bytes the last frame finished took from the device (its guess and the rest)
         self.frames = 0  # frames compacted
@@ -154,7 +156,7 @@ class Compactor:
         table_host = pieces.table if pieces.table.size else np.zeros((1, compact_layout()["CMP_ROW_WORDS"]), np.uint32)
         table = cl.Buffer(ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(table_host))
         index = cl.Buffer(ctx, MF.READ_WRITE, 4 * (2 * len(pieces.cloth) + 1))
-        packed = cl.Buffer(ctx, MF.READ_WRITE, max(plan.size, 8))
+        packed = self._packed.get(max(plan.size, 8))  # its last frame's bytes are read by then
         rows = np.uint32(len(pieces.cloth))
         scan, copy = cl.Kernel(prg, "compact_scan"), cl.Kernel(prg, "compact_copy")
         scan.set_args(rows, table, frame, index)
@@ -163,12 +165,18 @@ class Compactor:
         self.pieces = pieces
         return pieces
 
-    def host_index(self) -> np.ndarray:
-        """A host array for one frame's index, in pinned memory (ALLOC_HOST_PTR, mapped for good;
-        its mapping keeps the buffer): a driver may copy into pageable memory synchronously, which
-        would make the enqueue wait for the frame."""
+    @property
+    def buffers_made(self) -> int:
+        """Compacted-frame buffers allocated so far (kept across plans while they fit)."""
+        return self._packed.made
+
+    def host_index(self, n: int | None = None) -> np.ndarray:
+        """A host array for one frame's index (or of ``n`` entries, one kept for larger plans),
+        in pinned memory (ALLOC_HOST_PTR, mapped for good; its mapping keeps the buffer): a
+        driver may copy into pageable memory synchronously, which would make the enqueue wait
+        for the frame."""
         assert self.pieces is not None
-        n = 2 * len(self.pieces.cloth) + 1
+        n = 2 * len(self.pieces.cloth) + 1 if n is None else n
         try:
             buf = cl.Buffer(self.dev.ctx, MF.READ_WRITE | MF.ALLOC_HOST_PTR, 4 * n)
             arr, _ = cl.enqueue_map_buffer(  # type: ignore[misc]

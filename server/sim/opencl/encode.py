@@ -64,6 +64,7 @@ from dataclasses import dataclass
 import numpy as np
 import pyopencl as cl
 
+from . import reuse
 from .compact import Compactor, FrameIndex
 from .device import Device
 from .frameplan import (  # noqa: F401 (the plan's names, re-exported: encode.py is the entry point)
@@ -97,7 +98,7 @@ class _HostFrame:
 
     mapping: object  # pyopencl MemoryMap keeping the pinned buffer mapped
     buf: cl.Buffer
-    data: np.ndarray  # (size,) uint8
+    data: np.ndarray  # (size,) uint8: the plan's first bytes of ``full``
     views: list[memoryview]
     event: cl.Event | None = None
     plan: FramePlan | None = None
@@ -107,6 +108,9 @@ class _HostFrame:
     index: np.ndarray | None = None
     copied: int = 0
     where: FrameIndex | None = None
+    # the whole pinned arrays, kept from plan to plan while they fit (reuse.py)
+    full: np.ndarray | None = None  # (capacity,) uint8
+    index_full: np.ndarray | None = None  # (capacity,) uint32
 
     def state_at(self) -> np.ndarray:
         """(k,) each plan cloth's state offset in ``data`` (-1: in no publication)."""
@@ -227,6 +231,10 @@ class DeviceEncoder:
         self._kernel: cl.Kernel | None = None
         self._wg = 1
         self._out: cl.Buffer | None = None
+        self._out_reused = reuse.ReusedBuffer(dev.ctx, MF.READ_WRITE)  # the frame's slots, kept across plans
+        self._static_event: cl.Event | None = None  # the plan's static bytes put in (the next encode waits)
+        self._static_bufs: tuple[cl.Buffer, ...] = ()  # what that launch reads, kept until it is done
+        self.pinned_made = 0  # pinned host frames and indices allocated (kept across plans while they fit)
         self._table: cl.Buffer | None = None
         self._flags_buf: cl.Buffer | None = None
         self._flags = np.zeros(0, np.uint16)
@@ -279,17 +287,17 @@ class DeviceEncoder:
         return top.bit_length()
 
     def set_plan(self, plan: FramePlan) -> None:
-        """Use ``plan`` from the next frame on: build the kernel, upload its table and template
-        (blocking), size the output and pinned host buffers. Everything is made before anything
-        is replaced, so a failure leaves the previous plan in use. Views of earlier frames keep
-        their bytes while held."""
+        """Use ``plan`` from the next frame on: build the kernel, upload its table, size the
+        output and pinned host buffers and put the plan's static bytes in (enqueued behind the
+        last frame; the next encode waits for it). The output, compaction and pinned host
+        buffers are kept from plan to plan while they fit (reuse.py: no allocation when cloths
+        come or go within the capacity); the kernel and the tables are made before any buffer
+        is touched, so a failure there leaves the previous plan in use. Frames held
+        (:meth:`hold`) keep their bytes: their pinned memory is used again only once released."""
         ctx = self.dev.ctx
         wg = self._pick_wg(plan.max_n)
         kernel = cl.Kernel(self.dev.program(self._options(wg), source=SOURCE), "encode_frame")
         size = max(plan.size, 8)
-        out = cl.Buffer(ctx, MF.READ_WRITE, size)
-        if plan.size:
-            self._put_static(out, plan)
         rows = np.ascontiguousarray(plan.rows, np.uint32)
         if not rows.size:
             rows = np.zeros(1, np.uint32)
@@ -298,12 +306,18 @@ class DeviceEncoder:
         flags_buf = cl.Buffer(ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=flags)
         pred_buf = cl.Buffer(ctx, MF.READ_ONLY, 8 * _PRED_WORDS * max(len(plan.cloths), 1))
         self._grow_history(plan.vertex_end if plan.predictive.any() else 0)
+        # the last frame's commands (in flight, perhaps on another queue) come before the
+        # buffers they use are filled for this plan
+        behind = [e for e in (self._last.event if self._last else None, self._static_event) if e is not None]
+        out = self._out_reused.get(size)
+        if plan.size:
+            self._static_event = self._put_static(out, plan, behind)
         compact = bool(plan.predictive.any())
         if compact:
             self.compactor.set_plan(plan, out)
         self._compact = compact
-        hosts = [self._host_frame(plan) for _ in range(self._host_buffers)]
-        self._release_hosts()
+        hosts = self._hosts_for(plan)
+        self._last = None
         self._pred_buf, self._pred = pred_buf, np.zeros((0, _PRED_WORDS), np.uint64)
         self._kernel, self._wg, self._out, self._table = kernel, wg, out, table
         self._flags, self._flags_buf = flags, flags_buf
@@ -317,11 +331,25 @@ class DeviceEncoder:
             wg,
         )
 
-    def _put_static(self, out: cl.Buffer, plan: FramePlan) -> None:
-        """``out`` filled with zeros and the plan's static words put in by kernels/static.cl
-        (blocking): a plan's words, not its whole template, cross to the device."""
+    def wait_static(self) -> None:
+        """Wait for the plan's static bytes (set_plan enqueues them behind the last frame and
+        the next encode waits for them): device work, which tools time apart."""
+        if self._static_event is not None:
+            self._static_event.wait()
+
+    @property
+    def buffers_made(self) -> int:
+        """Frame-sized buffers allocated so far (the output, the compacted frame, the pinned host
+        frames and their indices): a plan change within their capacity makes none."""
+        return self._out_reused.made + self.compactor.buffers_made + self.pinned_made
+
+    def _put_static(self, out: cl.Buffer, plan: FramePlan, behind: list[cl.Event]) -> cl.Event:
+        """``out``'s first ``plan.size`` bytes filled with zeros and the plan's static words put
+        in by kernels/static.cl, enqueued behind the events ``behind`` (not waited for: the
+        next encode waits for the returned event): a plan's words, not its whole template,
+        cross to the device."""
         q = self.dev.queue
-        cl.enqueue_fill_buffer(q, out, np.zeros(1, np.uint64), 0, plan.size)
+        ev = cl.enqueue_fill_buffer(q, out, np.zeros(1, np.uint64), 0, plan.size, wait_for=behind or None)
         n = len(plan.static_at)
         if n:
             ro = MF.READ_ONLY | MF.COPY_HOST_PTR
@@ -329,9 +357,10 @@ class DeviceEncoder:
             words = cl.Buffer(self.dev.ctx, ro, hostbuf=np.ascontiguousarray(plan.static_words, np.uint64))
             kernel = cl.Kernel(self.dev.program([], source=STATIC_SOURCE), "put_static")
             kernel.set_args(np.uint32(n), at, words, out)
-            cl.enqueue_nd_range_kernel(q, kernel, (n,), None).wait()
-        else:
-            q.finish()
+            ev = cl.enqueue_nd_range_kernel(q, kernel, (n,), None, wait_for=[ev])
+            self._static_bufs = (at, words)
+        q.flush()
+        return ev
 
     def _grow_history(self, vertices: int) -> None:
         """The predictive history buffers hold ``vertices`` position-buffer vertices (grown,
@@ -349,26 +378,55 @@ class DeviceEncoder:
         self.dev.queue.finish()
         self._hist, self._hist_cap = new, cap
 
-    def _host_frame(self, plan: FramePlan) -> _HostFrame:
-        """One pinned (ALLOC_HOST_PTR, mapped for good) host copy of a frame of ``plan``."""
+    def _hosts_for(self, plan: FramePlan) -> list[_HostFrame]:
+        """``host_buffers`` host frames for ``plan``: the free ones bound to it (kept while they
+        fit), new ones for the rest; held frames stay as they are (bound to the plan in use
+        once released, :meth:`_free_host`), extra free ones go."""
+        free = [h for h in self._hosts if not h.held]
+        held = [h for h in self._hosts if h.held]
+        hosts = [self._host_frame(plan, free[i] if i < len(free) else None) for i in range(self._host_buffers)]
+        return hosts + held
+
+    def _host_frame(self, plan: FramePlan, old: _HostFrame | None = None) -> _HostFrame:
+        """A pinned (ALLOC_HOST_PTR, mapped for good) host copy of a frame of ``plan``: ``old``
+        (a frame no one holds) bound to it when its memory fits (reuse.py), else a new one.
+        Every encode copies the whole frame (or the compacted one and its index) into it
+        before it can be read."""
         size = max(plan.size, 8)
-        hb = cl.Buffer(self.dev.ctx, MF.READ_WRITE | MF.ALLOC_HOST_PTR, size)
-        data, _ev = cl.enqueue_map_buffer(  # type: ignore[misc]
-            self.dev.queue,
-            hb,
-            cl.map_flags.READ | cl.map_flags.WRITE,  # type: ignore[arg-type]
-            0,
-            (size,),
-            np.uint8,  # type: ignore[arg-type,type-var]
-            is_blocking=True,
-        )
+        if old is not None and old.full is not None and reuse.fits(old.full.size, size):
+            host = old
+            host.views, host.where, host.copied = [], None, 0
+        else:
+            cap = reuse.capacity(old.full.size if old is not None and old.full is not None else 0, size)
+            hb = cl.Buffer(self.dev.ctx, MF.READ_WRITE | MF.ALLOC_HOST_PTR, cap)
+            full, _ev = cl.enqueue_map_buffer(  # type: ignore[misc]
+                self.dev.queue,
+                hb,
+                cl.map_flags.READ | cl.map_flags.WRITE,  # type: ignore[arg-type]
+                0,
+                (cap,),
+                np.uint8,  # type: ignore[arg-type,type-var]
+                is_blocking=True,
+            )
+            self.pinned_made += 1
+            host = _HostFrame(full.base, hb, full[:size], [], full=full)
+            if old is not None and old.index_full is not None:
+                host.index_full = old.index_full
+        assert host.full is not None
+        host.plan, host.data = plan, host.full[:size]
         if self._compact:  # compacted frames: views made per frame from its index
-            return _HostFrame(data.base, hb, data, [], plan=plan, index=self.compactor.host_index())
-        data[: plan.size] = 0  # a frame read before any encode is the static bytes
-        plan.write_static(data)
-        mv = memoryview(data).cast("B")  # type: ignore[arg-type]
-        views = [mv[o : o + s] for o, s in zip(plan.pub_offset.tolist(), plan.pub_size.tolist(), strict=True)]
-        return _HostFrame(data.base, hb, data, views, plan=plan)
+            assert self.compactor.pieces is not None
+            n = 2 * len(self.compactor.pieces.cloth) + 1
+            have = host.index_full.size if host.index_full is not None else 0
+            if host.index_full is None or not reuse.fits(4 * have, 4 * n):
+                host.index_full = self.compactor.host_index(reuse.capacity(4 * have, 4 * n) // 4)
+                self.pinned_made += 1
+            host.index = host.index_full[:n]
+            return host
+        host.index = None
+        mv = memoryview(host.data).cast("B")  # type: ignore[arg-type]
+        host.views = [mv[o : o + s] for o, s in zip(plan.pub_offset.tolist(), plan.pub_size.tolist(), strict=True)]
+        return host
 
     def _release_hosts(self) -> None:
         """Drop the pinned host frames. A view still held elsewhere keeps its memory (and its
@@ -439,6 +497,9 @@ class DeviceEncoder:
             pr[:, 3] = self._slots(tick, given)
             self._pred = pr  # kept: the upload may still read it
             events.append(cl.enqueue_copy(queue, self._pred_buf, pr, is_blocking=False))
+        if self._static_event is not None:
+            events.append(self._static_event)  # the plan's static bytes (set_plan) are in
+            self._static_event = None
         host = self._free_host()
         if host.event is not None:
             host.event.wait()  # its last copy (normally long done)
@@ -518,12 +579,15 @@ class DeviceEncoder:
     def _free_host(self) -> _HostFrame:
         """The next host frame in turn that is not held; a new one when all are (a consumer
         holding frames longer than ``host_buffers`` ticks)."""
+        assert self.plan is not None
         for _ in range(len(self._hosts)):
-            host = self._hosts[self._next]
+            i = self._next
+            host = self._hosts[i]
             self._next = (self._next + 1) % len(self._hosts)
             if not host.held:
+                if host.plan is not self.plan:  # held across a plan change, released since
+                    host = self._hosts[i] = self._host_frame(self.plan, host)
                 return host
-        assert self.plan is not None
         host = self._host_frame(self.plan)
         self._hosts.append(host)
         if len(self._hosts) == 8 * self._host_buffers + 1:

@@ -24,8 +24,8 @@
  *                its count says so, and the passes walk the hash for it instead)
  *   INTER_COLLISION_PASSES ic_pass, from xa into xb and back (Jacobi): every free vertex sums,
  *                over its candidates u closer than d = (th_k + th_u) / 2, k (d - |x - x_u|) w /
- *                (w + w_u) along (x - x_u) / |x - x_u| (+y for the cloth that joined first, the
- *                lower t, where they coincide), and writes its moved position
+ *                (w + w_u) along (x - x_u) / |x - x_u| (+y for the cloth that joined first where
+ *                they coincide), and writes its moved position
  *   ic_finish    every vertex's last position into the World's positions, the displacement / dt
  *                added to its velocity; the bucket heads cleared for the next step
  * INTER_COLLISION_PASSES + 5 launches a step (13) whatever the number of scenes and cloths, their
@@ -105,9 +105,8 @@ inline int ic_bucket(int3 c, int scene, uint mask)
 }
 
 __kernel void ic_insert(__global const float4 *pos, __global const int *vidx, __global const int *vcl,
-                        __global const int8 *cinfo, __global const float2 *cpar, __global const int *active,
-                        __global int *heads, __global float4 *hx, __global float4 *xs0, __global float4 *xa,
-                        __global float2 *vpar, int nv, float inv, uint mask)
+                        __global const int8 *cinfo, __global const int *active, __global int *heads,
+                        __global int *next, __global float4 *xs0, __global float4 *xa, int nv, float inv, uint mask)
 {
     const int t = get_global_id(0);
     if (t >= nv)
@@ -116,16 +115,14 @@ __kernel void ic_insert(__global const float4 *pos, __global const int *vidx, __
     const float4 x = pos[vidx[t]];
     xs0[t] = x;
     xa[t] = x;
-    vpar[t] = cpar[k];
     if (!active[k])
         return;
     const int b = ic_bucket(convert_int3_sat_rtn(x.xyz * inv), cinfo[k].s2, mask);
-    hx[t] = (float4)(x.xyz, as_float(atomic_xchg(&heads[b], t)));
+    next[t] = atomic_xchg(&heads[b], t);
 }
 
-/* The contact of vertex t (at x, parameters pk) with vertex u at xu (pu): coincident, the lower t
- * (the cloth that joined first) goes +y. */
-inline float3 ic_push(float4 x, int t, float2 pk, float4 xu, int u, float2 pu)
+/* The contact of vertex t (at x, cloth k, parameters pk) with vertex u at xu (cloth ku, pu). */
+inline float3 ic_push(float4 x, int k, float2 pk, float4 xu, int ku, float2 pu)
 {
     const float d = 0.5f * (pk.x + pu.x), st = 0.5f * (pk.y + pu.y);
     const float3 df = x.xyz - xu.xyz;
@@ -133,54 +130,49 @@ inline float3 ic_push(float4 x, int t, float2 pk, float4 xu, int u, float2 pu)
     if (!(dist2 < d * d) || !(st > 0.0f))
         return (float3)(0.0f);
     const float dist = sqrt(dist2);
-    const float3 n = dist > 1e-12f ? df / dist : (float3)(0.0f, t < u ? 1.0f : -1.0f, 0.0f);
+    const float3 n = dist > 1e-12f ? df / dist : (float3)(0.0f, k < ku ? 1.0f : -1.0f, 0.0f);
     return n * (st * (d - dist) * x.w / (x.w + xu.w));
 }
 
-/* Walks the hash's 2 x 2 x 2 cells around vertex t's start position x0 (ci: its cloth's cinfo):
- * with list != 0 lists its candidates (count returned, IC_LIST at most stored, every nv-th int:
- * candidate i of every vertex side by side, so that a pass's work-items read them coalesced),
- * else sums its contacts at x. An entry of another scene (a shared bucket) or of its own cloth is
- * told by t's ranges; one further than the reach of the World's largest contact distance
- * (0.5 / inv) is passed without reading its parameters. */
-inline int ic_walk(int t, int8 ci, float2 pk, float4 x0, __global const float4 *hx, __global const float2 *vpar,
-                   __global const int *heads, float inv, uint mask, __global int *list, int nv,
-                   __global const float4 *x, float3 *corr)
+/* Walks the hash's 2 x 2 x 2 cells around vertex t's start position x0: with list != 0 lists its
+ * candidates (count returned, IC_LIST at most stored, every nv-th int: candidate i of every vertex
+ * side by side, so that a pass's work-items read them coalesced), else sums its contacts at x. */
+inline int ic_walk(int t, int k, int scene, float2 pk, float4 x0, __global const float4 *xs0,
+                   __global const int *vcl, __global const int8 *cinfo, __global const float2 *cpar,
+                   __global const int *heads, __global const int *next, float inv, uint mask,
+                   __global int *list, int nv, __global const float4 *x, float3 *corr)
 {
     const int3 c0 = convert_int3_sat_rtn(x0.xyz * inv - 0.5f);
-    const float rmax = 0.5f * (IC_REACH * pk.x + 0.5f / inv) * 1.0001f; /* >= every pair's reach */
     int seen[8];
     int nseen = 0, count = 0;
     for (int dz = 0; dz < 2; ++dz)
         for (int dy = 0; dy < 2; ++dy)
             for (int dx = 0; dx < 2; ++dx) {
-                const int b = ic_bucket(c0 + (int3)(dx, dy, dz), ci.s2, mask);
+                const int b = ic_bucket(c0 + (int3)(dx, dy, dz), scene, mask);
                 int dup = 0;
                 for (int i = 0; i < nseen; ++i)
                     dup |= seen[i] == b;
                 if (dup)
                     continue;
                 seen[nseen++] = b;
-                for (int u = heads[b]; u >= 0;) {
-                    const float4 e = hx[u];
-                    const int v = u;
-                    u = as_int(e.w);
-                    if (v < ci.s5 || v >= ci.s6 || (v >= ci.s7 && v < ci.s7 + ci.s1))
+                for (int u = heads[b]; u >= 0; u = next[u]) {
+                    const int ku = vcl[u];
+                    if (ku == k || cinfo[ku].s2 != scene)
                         continue;
-                    const float3 df = x0.xyz - e.xyz;
-                    const float dd = dot(df, df);
-                    if (!(dd < rmax * rmax))
-                        continue;
-                    const float2 pu = vpar[v];
-                    const float r = IC_REACH * 0.5f * (pk.x + pu.x);
-                    if (!(dd < r * r))
-                        continue;
+                    const float2 pu = cpar[ku];
                     if (list) {
-                        if (count < IC_LIST)
-                            list[(long)count * nv] = v;
-                        ++count;
+                        const float r = IC_REACH * 0.5f * (pk.x + pu.x);
+                        const float3 df = x0.xyz - xs0[u].xyz;
+                        if (dot(df, df) < r * r) {
+                            if (count < IC_LIST)
+                                list[(long)count * nv] = u;
+                            ++count;
+                        }
                     } else {
-                        *corr += ic_push(x[t], t, pk, x[v], v, pu);
+                        const float r = IC_REACH * 0.5f * (pk.x + pu.x);
+                        const float3 df = x0.xyz - xs0[u].xyz;
+                        if (dot(df, df) < r * r)
+                            *corr += ic_push(x[t], k, pk, x[u], ku, pu);
                     }
                 }
             }
@@ -188,8 +180,8 @@ inline int ic_walk(int t, int8 ci, float2 pk, float4 x0, __global const float4 *
 }
 
 __kernel void ic_find(__global const float4 *xs0, __global const int *vcl, __global const int8 *cinfo,
-                      __global const float2 *vpar, __global const int *active, __global const int *heads,
-                      __global const float4 *hx, __global int *nbr, __global int *count, int nv, float inv,
+                      __global const float2 *cpar, __global const int *active, __global const int *heads,
+                      __global const int *next, __global int *nbr, __global int *count, int nv, float inv,
                       uint mask)
 {
     const int t = get_global_id(0);
@@ -199,13 +191,14 @@ __kernel void ic_find(__global const float4 *xs0, __global const int *vcl, __glo
     const float4 x0 = xs0[t];
     int c = 0;
     if (active[k] && x0.w > 0.0f)
-        c = ic_walk(t, cinfo[k], vpar[t], x0, hx, vpar, heads, inv, mask, nbr + t, nv, xs0, 0);
+        c = ic_walk(t, k, cinfo[k].s2, cpar[k], x0, xs0, vcl, cinfo, cpar, heads, next, inv, mask, nbr + t, nv,
+                    xs0, 0);
     count[t] = c;
 }
 
 __kernel void ic_pass(__global const float4 *xs0, __global const float4 *xin, __global float4 *xout,
-                      __global const int *vcl, __global const int8 *cinfo, __global const float2 *vpar,
-                      __global const int *heads, __global const float4 *hx, __global const int *nbr,
+                      __global const int *vcl, __global const int8 *cinfo, __global const float2 *cpar,
+                      __global const int *heads, __global const int *next, __global const int *nbr,
                       __global const int *count, int nv, float inv, uint mask)
 {
     const int t = get_global_id(0);
@@ -215,14 +208,15 @@ __kernel void ic_pass(__global const float4 *xs0, __global const float4 *xin, __
     const int c = count[t];
     float3 corr = (float3)(0.0f);
     if (c > 0) {
-        const float2 pk = vpar[t];
+        const int k = vcl[t];
+        const float2 pk = cpar[k];
         if (c <= IC_LIST) {
             for (int i = 0; i < c; ++i) {
-                const int u = nbr[(long)i * nv + t];
-                corr += ic_push(x, t, pk, xin[u], u, vpar[u]);
+                const int u = nbr[(long)i * nv + t], ku = vcl[u];
+                corr += ic_push(x, k, pk, xin[u], ku, cpar[ku]);
             }
         } else {
-            ic_walk(t, cinfo[vcl[t]], pk, xs0[t], hx, vpar, heads, inv, mask, 0, nv, xin, &corr);
+            ic_walk(t, k, cinfo[k].s2, pk, xs0[t], xs0, vcl, cinfo, cpar, heads, next, inv, mask, 0, nv, xin, &corr);
         }
     }
     xout[t] = (float4)(x.xyz + corr, x.w);

@@ -65,8 +65,7 @@ class SceneCollision:
         self._cpar = DevArray(dev, np.float32, 2)
         self._box = DevArray(dev, np.float32, 8)
         self._active = DevArray(dev, np.int32, 1)
-        self._hx = DevArray(dev, np.float32, 4)  # the hash's entries: start position, next
-        self._vpar = DevArray(dev, np.float32, 2)
+        self._next = DevArray(dev, np.int32, 1)
         self._count = DevArray(dev, np.int32, 1)
         self._nbr = DevArray(dev, np.int32, IC_LIST)
         self._xs0 = DevArray(dev, np.float32, 4)
@@ -101,14 +100,11 @@ class SceneCollision:
         for si, sc in enumerate(self.scenes.values()):
             if len(sc.handles) < 2:
                 continue
-            first, t0 = len(cinfo), sum(len(v) for v in vidx)
-            t1 = t0 + sum(self.cloths[h].fabric.n_vertices for h in sc.handles)
-            t = t0
+            first = len(cinfo)
             for h in sc.handles:
                 k, slot, m = len(cinfo), self.rec[h], self.cloths[h].params.material
                 n = self.cloths[h].fabric.n_vertices
-                cinfo.append([slot.vbase, n, si, first, len(sc.handles), t0, t1, t])
-                t += n
+                cinfo.append([slot.vbase, n, si, first, len(sc.handles), 0, 0, 0])
                 cpar.append([m.thickness * INTER_COLLISION_MARGIN, m.contact_stiffness])
                 vidx.append(np.arange(slot.vbase, slot.vbase + n, dtype=np.int32))
                 vcl.append(np.full(n, k, np.int32))
@@ -129,7 +125,7 @@ class SceneCollision:
             if arr.capacity < len(host):
                 arr.resize(_pow2_at_least(len(host)))
             arr.write(0, host)
-        per_vertex = (self._hx, self._vpar, self._count, self._nbr, self._xs0, self._xa, self._xb)
+        per_vertex = (self._next, self._count, self._nbr, self._xs0, self._xa, self._xb)
         for arr, n in ((self._box, self.n_cloths), (self._active, self.n_cloths), *((a, nv) for a in per_vertex)):
             if arr.capacity < n:
                 arr.resize(_pow2_at_least(n))
@@ -150,14 +146,14 @@ class SceneCollision:
         ncl, nv, nb = np.int32(self.n_cloths), np.int32(self.n_vertices), np.int32(self._nb)
         inv, mask = np.float32(self._inv), np.uint32(self._nb - 1)
         vidx, vcl, cinfo, cpar = self._vidx.buf, self._vcl.buf, self._cinfo.buf, self._cpar.buf
-        box, active, heads, hx, vpar = self._box.buf, self._active.buf, self._heads.buf, self._hx.buf, self._vpar.buf
+        box, active, heads, nxt = self._box.buf, self._active.buf, self._heads.buf, self._next.buf
         nbr, count, xs0, xa, xb = self._nbr.buf, self._count.buf, self._xs0.buf, self._xa.buf, self._xb.buf
         k["ic_bounds"].set_args(pos, cinfo, cpar, box)
         k["ic_active"].set_args(cinfo, box, active, ncl)
-        k["ic_insert"].set_args(pos, vidx, vcl, cinfo, cpar, active, heads, hx, xs0, xa, vpar, nv, inv, mask)
-        k["ic_find"].set_args(xs0, vcl, cinfo, vpar, active, heads, hx, nbr, count, nv, inv, mask)
-        k["ic_pass"].set_args(xs0, xa, xb, vcl, cinfo, vpar, heads, hx, nbr, count, nv, inv, mask)
-        k["ic_pass_ba"].set_args(xs0, xb, xa, vcl, cinfo, vpar, heads, hx, nbr, count, nv, inv, mask)
+        k["ic_insert"].set_args(pos, vidx, vcl, cinfo, active, heads, nxt, xs0, xa, nv, inv, mask)
+        k["ic_find"].set_args(xs0, vcl, cinfo, cpar, active, heads, nxt, nbr, count, nv, inv, mask)
+        k["ic_pass"].set_args(xs0, xa, xb, vcl, cinfo, cpar, heads, nxt, nbr, count, nv, inv, mask)
+        k["ic_pass_ba"].set_args(xs0, xb, xa, vcl, cinfo, cpar, heads, nxt, nbr, count, nv, inv, mask)
         last = xa if INTER_COLLISION_PASSES % 2 == 0 else xb
         k["ic_finish"].set_args(pos, vel, vidx, xs0, last, heads, nv, nb, np.float32(1.0 / dt))
         self._dt = dt

@@ -97,14 +97,17 @@ class SceneCollision:
         vcl: list[np.ndarray] = []
         cinfo: list[list[int]] = []
         cpar: list[list[float]] = []
+        nt = 0  # scene vertices numbered so far
         for si, sc in enumerate(self.scenes.values()):
             if len(sc.handles) < 2:
                 continue
-            first = len(cinfo)
+            first, t0 = len(cinfo), nt  # the scene's first cloth and vertex
+            t1 = t0 + sum(self.cloths[h].fabric.n_vertices for h in sc.handles)
             for h in sc.handles:
                 k, slot, m = len(cinfo), self.rec[h], self.cloths[h].params.material
                 n = self.cloths[h].fabric.n_vertices
-                cinfo.append([slot.vbase, n, si, first, len(sc.handles), 0, 0, 0])
+                cinfo.append([slot.vbase, n, si, first, len(sc.handles), t0, t1, nt])
+                nt += n
                 cpar.append([m.thickness * INTER_COLLISION_MARGIN, m.contact_stiffness])
                 vidx.append(np.arange(slot.vbase, slot.vbase + n, dtype=np.int32))
                 vcl.append(np.full(n, k, np.int32))

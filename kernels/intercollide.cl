@@ -223,9 +223,17 @@ __kernel void ic_pass(__global const float4 *xs0, __global const float4 *xin, __
         const int k = vcl[t];
         const float2 pk = cpar[k];
         if (c <= IC_LIST) {
+            /* a candidate further than the contact distance with the World's largest thickness
+             * (dmax = 0.5 / (inv IC_REACH)) is passed without reading its cloth */
+            const float far = 0.5f * (pk.x + 0.5f / (inv * IC_REACH)) * 1.0001f;
             for (int i = 0; i < c; ++i) {
-                const int u = nbr[(long)i * nv + t], ku = vcl[u];
-                corr += ic_push(x, k, pk, xin[u], ku, cpar[ku]);
+                const int u = nbr[(long)i * nv + t];
+                const float4 xu = xin[u];
+                const float3 df = x.xyz - xu.xyz;
+                if (dot(df, df) < far * far) {
+                    const int ku = vcl[u];
+                    corr += ic_push(x, k, pk, xu, ku, cpar[ku]);
+                }
             }
         } else {
             ic_walk(t, k, cinfo[k], pk, xs0[t], xs0, vcl, cinfo, cpar, heads, next, inv, mask, 0, nv, xin, &corr);

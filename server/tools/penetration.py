@@ -371,8 +371,8 @@ def measure(tick: Tick) -> Record:
         rec.crossed += crossed(x, xb, cb, c.colliders, free)
     for name in {c.scene for c in tick.cloths} - {None}:
         members = [i for i, c in enumerate(tick.cloths) if c.scene == name]
-        th = [tick.cloths[i].params.material.thickness for i in members]
-        sp = scene_penetration([tick.x[i] for i in members], th)
+        thicknesses = [tick.cloths[i].params.material.thickness for i in members]
+        sp = scene_penetration([tick.x[i] for i in members], thicknesses)
         rec.scene_pairs += sp.pairs
         rec.deepest_scene_pair = max(rec.deepest_scene_pair, sp.deepest)
     return rec

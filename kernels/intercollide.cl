@@ -7,8 +7,12 @@
  * The scene cloths' vertices are numbered t = 0..nv-1 in one list, scene by scene, each scene's
  * cloths in the order they joined it: vidx[t] is vertex t's row of the World's position and
  * velocity buffers, vcl[t] its cloth k (0..ncl-1). Per cloth k, cinfo[k] = (vbase, n, scene,
- * first cloth of its scene, cloths of its scene, -, -, -) and cpar[k] = (thickness x
- * INTER_COLLISION_MARGIN, stiffness): the thickness the solve keeps.
+ * first cloth of its scene, cloths of its scene, the scene's first t, the scene's end t, the
+ * cloth's first t) and cpar[k] = (thickness x INTER_COLLISION_MARGIN, stiffness): the thickness
+ * the solve keeps. A walk tells another scene's vertex (a shared bucket) and its own cloth's by
+ * t's ranges, and reads a vertex's cloth and parameters only once it is within the reach of the
+ * World's largest contact distance: a hash entry it passes costs its next and, if of another
+ * cloth of its scene, its position.
  *
  * Once per step (the contacts are found once, at the step's positions, and iterated):
  *   ic_bounds    one work-group per cloth: its box grown by half its thickness x IC_REACH
@@ -21,14 +25,16 @@
  *   ic_find      every free vertex of an active cloth walks the 2 x 2 x 2 cells around it (each
  *                bucket once) and lists the vertices of the other cloths of its scene closer than
  *                IC_REACH x their contact distance: its candidates, IC_LIST at most in nbr (more:
- *                its count says so, and the passes walk the hash for it instead)
- *   INTER_COLLISION_PASSES ic_pass, from xa into xb and back (Jacobi): every free vertex sums,
+ *                its count says so, and the passes walk the hash for it instead); on the way it
+ *                sums the first pass's contacts at the start positions (the candidates' positions
+ *                it reads anyway) and writes that pass's result into xb: no launch of its own
+ *   INTER_COLLISION_PASSES - 1 ic_pass, from xb into xa and back (Jacobi): every free vertex sums,
  *                over its candidates u closer than d = (th_k + th_u) / 2, k (d - |x - x_u|) w /
  *                (w + w_u) along (x - x_u) / |x - x_u| (+y for the cloth that joined first where
  *                they coincide), and writes its moved position
  *   ic_finish    every vertex's last position into the World's positions, the displacement / dt
  *                added to its velocity; the bucket heads cleared for the next step
- * INTER_COLLISION_PASSES + 5 launches a step (13) whatever the number of scenes and cloths, their
+ * INTER_COLLISION_PASSES + 4 launches a step (12) whatever the number of scenes and cloths, their
  * arguments set once (ic_clear: every bucket head -1, once when the tables are rebuilt).
  */
 
@@ -106,7 +112,7 @@ inline int ic_bucket(int3 c, int scene, uint mask)
 
 __kernel void ic_insert(__global const float4 *pos, __global const int *vidx, __global const int *vcl,
                         __global const int8 *cinfo, __global const int *active, __global int *heads,
-                        __global int *next, __global float4 *xs0, __global float4 *xa, int nv, float inv, uint mask)
+                        __global int *next, __global float4 *xs0, int nv, float inv, uint mask)
 {
     const int t = get_global_id(0);
     if (t >= nv)
@@ -114,7 +120,6 @@ __kernel void ic_insert(__global const float4 *pos, __global const int *vidx, __
     const int k = vcl[t];
     const float4 x = pos[vidx[t]];
     xs0[t] = x;
-    xa[t] = x;
     if (!active[k])
         return;
     const int b = ic_bucket(convert_int3_sat_rtn(x.xyz * inv), cinfo[k].s2, mask);
@@ -136,19 +141,22 @@ inline float3 ic_push(float4 x, int k, float2 pk, float4 xu, int ku, float2 pu)
 
 /* Walks the hash's 2 x 2 x 2 cells around vertex t's start position x0: with list != 0 lists its
  * candidates (count returned, IC_LIST at most stored, every nv-th int: candidate i of every vertex
- * side by side, so that a pass's work-items read them coalesced), else sums its contacts at x. */
-inline int ic_walk(int t, int k, int scene, float2 pk, float4 x0, __global const float4 *xs0,
+ * side by side, so that a pass's work-items read them coalesced) and sums their contacts at the
+ * start positions (the first pass's: the same candidates in the same order as a pass over the
+ * list), else sums its contacts at x. */
+inline int ic_walk(int t, int k, int8 ci, float2 pk, float4 x0, __global const float4 *xs0,
                    __global const int *vcl, __global const int8 *cinfo, __global const float2 *cpar,
                    __global const int *heads, __global const int *next, float inv, uint mask,
                    __global int *list, int nv, __global const float4 *x, float3 *corr)
 {
     const int3 c0 = convert_int3_sat_rtn(x0.xyz * inv - 0.5f);
+    const float rmax = 0.5f * (IC_REACH * pk.x + 0.5f / inv) * 1.0001f; /* >= its every pair's reach */
     int seen[8];
     int nseen = 0, count = 0;
     for (int dz = 0; dz < 2; ++dz)
         for (int dy = 0; dy < 2; ++dy)
             for (int dx = 0; dx < 2; ++dx) {
-                const int b = ic_bucket(c0 + (int3)(dx, dy, dz), scene, mask);
+                const int b = ic_bucket(c0 + (int3)(dx, dy, dz), ci.s2, mask);
                 int dup = 0;
                 for (int i = 0; i < nseen; ++i)
                     dup |= seen[i] == b;
@@ -156,23 +164,25 @@ inline int ic_walk(int t, int k, int scene, float2 pk, float4 x0, __global const
                     continue;
                 seen[nseen++] = b;
                 for (int u = heads[b]; u >= 0; u = next[u]) {
-                    const int ku = vcl[u];
-                    if (ku == k || cinfo[ku].s2 != scene)
+                    if (u < ci.s5 || u >= ci.s6 || (u >= ci.s7 && u < ci.s7 + ci.s1))
+                        continue; /* another scene's (a shared bucket), or its own cloth's */
+                    const float4 xu = xs0[u];
+                    const float3 df = x0.xyz - xu.xyz;
+                    const float dd = dot(df, df);
+                    if (!(dd < rmax * rmax))
                         continue;
+                    const int ku = vcl[u];
                     const float2 pu = cpar[ku];
+                    const float r = IC_REACH * 0.5f * (pk.x + pu.x);
+                    if (!(dd < r * r))
+                        continue;
                     if (list) {
-                        const float r = IC_REACH * 0.5f * (pk.x + pu.x);
-                        const float3 df = x0.xyz - xs0[u].xyz;
-                        if (dot(df, df) < r * r) {
-                            if (count < IC_LIST)
-                                list[(long)count * nv] = u;
-                            ++count;
-                        }
+                        if (count < IC_LIST)
+                            list[(long)count * nv] = u;
+                        ++count;
+                        *corr += ic_push(x0, k, pk, xu, ku, pu); /* the first pass's, at the start */
                     } else {
-                        const float r = IC_REACH * 0.5f * (pk.x + pu.x);
-                        const float3 df = x0.xyz - xs0[u].xyz;
-                        if (dot(df, df) < r * r)
-                            *corr += ic_push(x[t], k, pk, x[u], ku, pu);
+                        *corr += ic_push(x[t], k, pk, x[u], ku, pu);
                     }
                 }
             }
@@ -181,8 +191,8 @@ inline int ic_walk(int t, int k, int scene, float2 pk, float4 x0, __global const
 
 __kernel void ic_find(__global const float4 *xs0, __global const int *vcl, __global const int8 *cinfo,
                       __global const float2 *cpar, __global const int *active, __global const int *heads,
-                      __global const int *next, __global int *nbr, __global int *count, int nv, float inv,
-                      uint mask)
+                      __global const int *next, __global int *nbr, __global int *count, __global float4 *xout,
+                      int nv, float inv, uint mask)
 {
     const int t = get_global_id(0);
     if (t >= nv)
@@ -190,10 +200,12 @@ __kernel void ic_find(__global const float4 *xs0, __global const int *vcl, __glo
     const int k = vcl[t];
     const float4 x0 = xs0[t];
     int c = 0;
+    float3 corr = (float3)(0.0f);
     if (active[k] && x0.w > 0.0f)
-        c = ic_walk(t, k, cinfo[k].s2, cpar[k], x0, xs0, vcl, cinfo, cpar, heads, next, inv, mask, nbr + t, nv,
-                    xs0, 0);
+        c = ic_walk(t, k, cinfo[k], cpar[k], x0, xs0, vcl, cinfo, cpar, heads, next, inv, mask, nbr + t, nv, xs0,
+                    &corr);
     count[t] = c;
+    xout[t] = (float4)(x0.xyz + corr, x0.w);
 }
 
 __kernel void ic_pass(__global const float4 *xs0, __global const float4 *xin, __global float4 *xout,
@@ -211,12 +223,20 @@ __kernel void ic_pass(__global const float4 *xs0, __global const float4 *xin, __
         const int k = vcl[t];
         const float2 pk = cpar[k];
         if (c <= IC_LIST) {
+            /* a candidate further than the contact distance with the World's largest thickness
+             * (dmax = 0.5 / (inv IC_REACH)) is passed without reading its cloth */
+            const float far = 0.5f * (pk.x + 0.5f / (inv * IC_REACH)) * 1.0001f;
             for (int i = 0; i < c; ++i) {
-                const int u = nbr[(long)i * nv + t], ku = vcl[u];
-                corr += ic_push(x, k, pk, xin[u], ku, cpar[ku]);
+                const int u = nbr[(long)i * nv + t];
+                const float4 xu = xin[u];
+                const float3 df = x.xyz - xu.xyz;
+                if (dot(df, df) < far * far) {
+                    const int ku = vcl[u];
+                    corr += ic_push(x, k, pk, xu, ku, cpar[ku]);
+                }
             }
         } else {
-            ic_walk(t, k, cinfo[k].s2, pk, xs0[t], xs0, vcl, cinfo, cpar, heads, next, inv, mask, 0, nv, xin, &corr);
+            ic_walk(t, k, cinfo[k], pk, xs0[t], xs0, vcl, cinfo, cpar, heads, next, inv, mask, 0, nv, xin, &corr);
         }
     }
     xout[t] = (float4)(x.xyz + corr, x.w);

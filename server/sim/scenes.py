@@ -40,7 +40,7 @@ INTER_COLLISION_PASSES = 8
 #: stays outside the contact distance; the device multiplies each cloth's thickness by it.
 INTER_COLLISION_MARGIN = 1.05
 #: Candidate pairs: closer than this many contact distances at the step's start (-DIC_REACH).
-INTER_COLLISION_REACH = 1.5
+INTER_COLLISION_REACH = 1.3
 #: Cloths of one scene at most (a scene is a shared space; the spatial hash is keyed by scene).
 MAX_SCENE_CLOTHS = 1024
 

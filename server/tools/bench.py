@@ -237,11 +237,8 @@ def bench_self(device, frames, max_seconds, step: Step = _no_step) -> list[Recor
     return out
 
 
-def bench_scenes(device, scenes: int, per_scene: int, frames, max_seconds, step: Step = _no_step) -> list[Record]:
-    """Inter-cloth collision's cost (protocol 1.7): ``scenes`` crowds of ``per_scene`` 32 x 32
-    capes (0.5 m, pinned at the shoulders) hanging in rows 0.3 m apart, each overlapping its
-    neighbours and 12 mm behind the row before (every box meets others: the whole crowd takes part),
-    on the work-group solver, with every cloth in its crowd's scene and with no scene at all."""
+def crowds(scenes: int, per_scene: int) -> tuple[Fabric, list[tuple[int, np.ndarray]]]:
+    """bench_scenes' capes: one 32 x 32 fabric and each cape's (scene, shift)."""
     n = 32
     # One fabric, each cape added at its place (cooking 4096 copies took minutes of host time:
     # why session 15's 64 x 64 run never reached its frames).
@@ -251,6 +248,15 @@ def bench_scenes(device, scenes: int, per_scene: int, frames, max_seconds, step:
         for s in range(scenes)
         for j in range(per_scene)
     ]
+    return fab, places
+
+
+def bench_scenes(device, scenes: int, per_scene: int, frames, max_seconds, step: Step = _no_step) -> list[Record]:
+    """Inter-cloth collision's cost (protocol 1.7): ``scenes`` crowds of ``per_scene`` 32 x 32
+    capes (0.5 m, pinned at the shoulders) hanging in rows 0.3 m apart, each overlapping its
+    neighbours and 12 mm behind the row before (every box meets others: the whole crowd takes part),
+    on the work-group solver, with every cloth in its crowd's scene and with no scene at all."""
+    fab, places = crowds(scenes, per_scene)
     out = []
     for label in ("none", "scenes"):
         step(f"scenes: {scenes} x {per_scene} {label}")

@@ -10,8 +10,8 @@ nothing, and the solvers' programs keep their build options. The tables (which v
 which cloth, which scene, thickness and stiffness) are rebuilt on the host only when a cloth
 joins or leaves a scene or a scene cloth's material changes (``changed``), never per tick; the
 kernels' arguments are set then (and when the World's buffers grow), so a step is the same
-INTER_COLLISION_PASSES + 5 launches whatever the number of scenes and cloths, with no Python
-per scene or cloth.
+INTER_COLLISION_PASSES + 4 launches (the candidates' walk runs the first pass) whatever the
+number of scenes and cloths, with no Python per scene or cloth.
 """
 
 from __future__ import annotations
@@ -97,14 +97,17 @@ class SceneCollision:
         vcl: list[np.ndarray] = []
         cinfo: list[list[int]] = []
         cpar: list[list[float]] = []
+        nt = 0  # scene vertices numbered so far
         for si, sc in enumerate(self.scenes.values()):
             if len(sc.handles) < 2:
                 continue
-            first = len(cinfo)
+            first, t0 = len(cinfo), nt  # the scene's first cloth and vertex
+            t1 = t0 + sum(self.cloths[h].fabric.n_vertices for h in sc.handles)
             for h in sc.handles:
                 k, slot, m = len(cinfo), self.rec[h], self.cloths[h].params.material
                 n = self.cloths[h].fabric.n_vertices
-                cinfo.append([slot.vbase, n, si, first, len(sc.handles), 0, 0, 0])
+                cinfo.append([slot.vbase, n, si, first, len(sc.handles), t0, t1, nt])
+                nt += n
                 cpar.append([m.thickness * INTER_COLLISION_MARGIN, m.contact_stiffness])
                 vidx.append(np.arange(slot.vbase, slot.vbase + n, dtype=np.int32))
                 vcl.append(np.full(n, k, np.int32))
@@ -150,8 +153,8 @@ class SceneCollision:
         nbr, count, xs0, xa, xb = self._nbr.buf, self._count.buf, self._xs0.buf, self._xa.buf, self._xb.buf
         k["ic_bounds"].set_args(pos, cinfo, cpar, box)
         k["ic_active"].set_args(cinfo, box, active, ncl)
-        k["ic_insert"].set_args(pos, vidx, vcl, cinfo, active, heads, nxt, xs0, xa, nv, inv, mask)
-        k["ic_find"].set_args(xs0, vcl, cinfo, cpar, active, heads, nxt, nbr, count, nv, inv, mask)
+        k["ic_insert"].set_args(pos, vidx, vcl, cinfo, active, heads, nxt, xs0, nv, inv, mask)
+        k["ic_find"].set_args(xs0, vcl, cinfo, cpar, active, heads, nxt, nbr, count, xb, nv, inv, mask)
         k["ic_pass"].set_args(xs0, xa, xb, vcl, cinfo, cpar, heads, nxt, nbr, count, nv, inv, mask)
         k["ic_pass_ba"].set_args(xs0, xb, xa, vcl, cinfo, cpar, heads, nxt, nbr, count, nv, inv, mask)
         last = xa if INTER_COLLISION_PASSES % 2 == 0 else xb
@@ -163,7 +166,11 @@ class SceneCollision:
             (k["ic_active"], (self.n_cloths,), None),
             (k["ic_insert"], per_vertex, None),
             (k["ic_find"], per_vertex, None),
-            *((k["ic_pass" if p % 2 == 0 else "ic_pass_ba"], per_vertex, None) for p in range(INTER_COLLISION_PASSES)),
+            # ic_find ran the first pass (into xb); then xb into xa, xa into xb, ...
+            *(
+                (k["ic_pass" if p % 2 == 0 else "ic_pass_ba"], per_vertex, None)
+                for p in range(1, INTER_COLLISION_PASSES)
+            ),
             (k["ic_finish"], per_vertex, None),
         ]
         self._finish = k["ic_finish"]

@@ -19,6 +19,7 @@ import pyopencl as cl
 from ..meshcolliders import MeshCollider, MeshColliders
 from ..meshes import (
     MESH_EDGE_TOLERANCE,
+    MESH_GUARD_BACKOFF,
     MESH_MAX_QUERY_CELLS,
     MESH_PASSES,
     MESH_SLIDES,
@@ -63,6 +64,7 @@ class MeshCollision:
             f"-DMESH_PASSES={MESH_PASSES}",
             f"-DMESH_SLIDES={MESH_SLIDES}",
             f"-DMESH_EDGE_TOLERANCE={MESH_EDGE_TOLERANCE!r}f",
+            f"-DMESH_GUARD_BACKOFF={MESH_GUARD_BACKOFF!r}f",
             f"-DMESH_MAX_QUERY_CELLS={MESH_MAX_QUERY_CELLS}",
         ]
         self._kernels: dict[str, cl.Kernel] | None = None

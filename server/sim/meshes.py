@@ -258,8 +258,9 @@ def collide_mesh(
     v0, e1, e2, n = _triangle_frames(mesh)
     tri = mesh.vertices[mesh.triangles]
     tlo, thi = tri.min(axis=1), tri.max(axis=1)
-    lo, hi = np.minimum(a, b).min(axis=0) - h, np.maximum(a, b).max(axis=0) + h
-    near = np.nonzero(np.all((thi >= lo) & (tlo <= hi), axis=1))[0]  # an exact cull: the cloth's box
+    # an exact cull: the cloth's box, grown by what a query reaches (a push ends within 2h of b)
+    lo, hi = np.minimum(a, b).min(axis=0) - 3 * h, np.maximum(a, b).max(axis=0) + 3 * h
+    near = np.nonzero(np.all((thi >= lo) & (tlo <= hi), axis=1))[0]
     v0, e1, e2, n = v0[near], e1[near], e2[near], n[near]
     step = max(1, _CHUNK // max(len(near), 1))
     for s in range(0, len(b), step):

@@ -222,6 +222,9 @@ __kernel void mc_collide(__global float4 *pos, __global float4 *vel, __global co
             int best = 0x7fffffff;
             float3 qbest = (float3)(0.0f), nbest = (float3)(0.0f);
             FOR_CANDIDATES({
+                /* a triangle is no nearer than its plane: most candidates end at one dot product */
+                if (fabs(dot(b - T[4 * ti].xyz, T[4 * ti + 3].xyz)) > dmin)
+                    continue;
                 const float3 q = closest_on_triangle(b, T[4 * ti].xyz, T[4 * ti + 1].xyz, T[4 * ti + 2].xyz);
                 const float d = length(b - q);
                 if (d < dmin || (d == dmin && ti < best && best != 0x7fffffff)) {

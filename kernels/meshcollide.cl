@@ -32,6 +32,9 @@
 #ifndef MESH_SLIDES
 #define MESH_SLIDES 2
 #endif
+#ifndef MESH_GUARD_BACKOFF
+#define MESH_GUARD_BACKOFF 0.5f
+#endif
 #ifndef MESH_MAX_QUERY_CELLS
 #define MESH_MAX_QUERY_CELLS 512
 #endif
@@ -139,6 +142,20 @@ inline int first_crossing(float3 a, float3 b, float h, __global const float4 *T,
     return tbest <= 1.0f;
 }
 
+/* The move s -> x of a point s outside the mesh, stopped MESH_GUARD_BACKOFF of the way to the first
+ * surface it would enter (x as given if none): a push away from one face of a crease narrower
+ * than twice the thickness would go through the other. The box's margin: the crossing point is on
+ * the segment, so the cells its box covers hold the triangle (a little more for the edge slack). */
+inline float3 guarded(float3 s, float3 x, __global const float4 *T, __global const int *mcell,
+                      __global const int *mlist, int8 mi, float3 org, float inv, int3 dims)
+{
+    float3 n;
+    float d, t;
+    if (first_crossing(s, x, 1e-4f, T, mcell, mlist, mi, org, inv, dims, &n, &d, &t))
+        return s + (MESH_GUARD_BACKOFF * t) * (x - s);
+    return x;
+}
+
 __kernel void mc_collide(__global float4 *pos, __global float4 *vel, __global const float4 *start,
                          __global const int4 *att, __global const float4 *apar, __global const float4 *mtri,
                          __global const int *mcell, __global const int *mlist, __global const int8 *minfo,
@@ -177,11 +194,12 @@ __kernel void mc_collide(__global float4 *pos, __global float4 *vel, __global co
                 b -= nb * (db - h);
                 ncon = nb;
                 pen += h - db;
-                p = c;
+                p = guarded(p, c, T, mcell, mlist, mi, org, inv, dims); /* the contact at the thickness, safely */
             }
             if (k == MESH_SLIDES && first_crossing(p, b, h, T, mcell, mlist, mi, org, inv, dims, &nb, &db, &t))
                 b = p;
         }
+        const float3 safe = b; /* outside: reached from the step's start by moves that entered nothing */
         /* 2. the thickness: push away from the closest triangle within h */
         for (int pass = 0; pass < MESH_PASSES; ++pass) {
             if (pass == 1 && pen > 0.0f && mu > 0.0f) {
@@ -204,6 +222,9 @@ __kernel void mc_collide(__global float4 *pos, __global float4 *vel, __global co
             int best = 0x7fffffff;
             float3 qbest = (float3)(0.0f), nbest = (float3)(0.0f);
             FOR_CANDIDATES({
+                /* a triangle is no nearer than its plane: most candidates end at one dot product */
+                if (fabs(dot(b - T[4 * ti].xyz, T[4 * ti + 3].xyz)) > dmin)
+                    continue;
                 const float3 q = closest_on_triangle(b, T[4 * ti].xyz, T[4 * ti + 1].xyz, T[4 * ti + 2].xyz);
                 const float d = length(b - q);
                 if (d < dmin || (d == dmin && ti < best && best != 0x7fffffff)) {
@@ -225,6 +246,9 @@ __kernel void mc_collide(__global float4 *pos, __global float4 *vel, __global co
             ncon = front ? dv / dmin : nbest;
             b = nb;
         }
+        /* 4. the guard: the passes' and friction's moves together enter nothing */
+        if (any(b != safe))
+            b = guarded(safe, b, T, mcell, mlist, mi, org, inv, dims);
 
         if (any(b != b0)) {
             const float3 moved = xform(P + 6, b) - xform(P + 6, b0);

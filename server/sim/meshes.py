@@ -31,6 +31,12 @@ exact at both ends and linear between):
    tangential part of its motion relative to the mesh (``b - a``, along the last push's normal)
    is reduced by ``friction`` times the pushes' total length, unless that move crosses the
    surface (tested as in 1: at a crease it could cross the next face).
+4. **the guard**: every move the steps make on their own (1's step from a contact out to the
+   thickness, 2 and 3 together from where 1 left the vertex) is tested as in 1 and stops
+   MESH_GUARD_BACKOFF of the way to the first surface it would enter: in a crease narrower than
+   twice the thickness a push away from one face goes through the other (then the vertex stays
+   between the faces, nearer than the thickness). A vertex outside at the step's start is
+   outside at its end: the metric's 0 does not hang on the pushes' geometry.
 
 The thickness is the cloth's material ``thickness`` (the self-collision field, as scenes use it),
 at least MESH_MIN_THICKNESS (1 mm: float32 keeps a vertex on the surface only to its rounding).
@@ -58,6 +64,9 @@ from drape.client.protocol.vocabulary import (  # noqa: F401 (the limits re-expo
 MESH_PASSES = 2
 #: The continuous test's slides along the surface after a contact, per step.
 MESH_SLIDES = 2
+#: A guarded move (a contact's push, the thickness passes' pushes) that would enter the surface
+#: stops this share of the way to where it would (a crease narrower than twice the thickness).
+MESH_GUARD_BACKOFF = 0.5
 #: The crossing point's barycentric slack: a segment through a shared edge is caught by both.
 MESH_EDGE_TOLERANCE = 1e-5
 #: A query box over more cells than this tests the whole mesh.
@@ -249,8 +258,9 @@ def collide_mesh(
     v0, e1, e2, n = _triangle_frames(mesh)
     tri = mesh.vertices[mesh.triangles]
     tlo, thi = tri.min(axis=1), tri.max(axis=1)
-    lo, hi = np.minimum(a, b).min(axis=0) - h, np.maximum(a, b).max(axis=0) + h
-    near = np.nonzero(np.all((thi >= lo) & (tlo <= hi), axis=1))[0]  # an exact cull: the cloth's box
+    # an exact cull: the cloth's box, grown by what a query reaches (a push ends within 2h of b)
+    lo, hi = np.minimum(a, b).min(axis=0) - 3 * h, np.maximum(a, b).max(axis=0) + 3 * h
+    near = np.nonzero(np.all((thi >= lo) & (tlo <= hi), axis=1))[0]
     v0, e1, e2, n = v0[near], e1[near], e2[near], n[near]
     step = max(1, _CHUNK // max(len(near), 1))
     for s in range(0, len(b), step):
@@ -276,10 +286,11 @@ def _collide_points(a, b, v0, e1, e2, n, h, mu):
         b[r] -= nf * (df - h)[:, None]
         ncon[r] = nf
         pen[r] += h - df
-        p[r] = c
+        p[r] = _guarded(p[r], c, v0, e1, e2, n)  # the contact at the thickness, reached safely
         live = r
     rows = _first_crossing(p[live], b[live], v0, e1, e2, n)[0]
     b[live[rows]] = p[live[rows]]  # still crossing: stopped at the last contact
+    safe = b.copy()  # outside: reached from the step's start by moves that entered nothing
     # 2. the thickness, MESH_PASSES passes
     for k_pass in range(MESH_PASSES):
         if k_pass == 1:
@@ -303,7 +314,20 @@ def _collide_points(a, b, v0, e1, e2, n, h, mu):
         pen[rows] += np.linalg.norm(nb - b[rows], axis=1)
         ncon[rows] = dirn
         b[rows] = nb
+    # 4. the guard: the passes' and friction's moves together enter nothing
+    rows = np.nonzero(np.any(b != safe, axis=1))[0]
+    b[rows] = _guarded(safe[rows], b[rows], v0, e1, e2, n)
     return b
+
+
+def _guarded(s, x, v0, e1, e2, n):
+    """The moves ``s -> x`` of points ``s`` outside the mesh, each stopped MESH_GUARD_BACKOFF of
+    the way to the first surface it would enter (``x`` elsewhere as given): a push away from one
+    face of a crease narrower than twice the thickness would go through the other."""
+    rows, _, _, t = _first_crossing(s, x, v0, e1, e2, n)
+    x = x.copy()
+    x[rows] = s[rows] + (MESH_GUARD_BACKOFF * t)[:, None] * (x[rows] - s[rows])
+    return x
 
 
 def _first_crossing(a, b, v0, e1, e2, n):

@@ -1,7 +1,9 @@
 """Triangle-mesh colliders (issue 22): bad meshes refused with clear errors, the float64 pieces
 (closest points, the grid, the inside metric), a cape kept out of a moving body mesh with nothing
 behind it at any tick (the reference), the OpenCL solvers against the reference (a cloth's own
-mesh with friction, a scene's, a re-pose, a fast thin plate), and a World without meshes building nothing new."""
+mesh with friction, a scene's, a re-pose, a fast thin plate), creases (the body's shoulders under a
+10 mm cape, a groove narrower than twice the thickness), and a World without meshes building
+nothing new."""
 
 from __future__ import annotations
 
@@ -43,6 +45,28 @@ def plate(size: float = 0.4):
     return collision_mesh(v, np.array([[0, 1, 2], [0, 2, 3]]))
 
 
+def groove(gap: float = 0.008, depth: float = 0.04):
+    """A closed 0.3 x 0.1 x 0.3 m block (top at y = 0.1) with a V-groove along z in its top, ``gap``
+    wide at the top and ``depth`` deep: a crease narrower than twice a 5-10 mm thickness."""
+    half, top = gap / 2, 0.1
+    sec = np.array(
+        [(-0.15, 0), (0, 0), (0.15, 0), (0.15, top), (half, top), (0, top - depth), (-half, top), (-0.15, top)]
+    )
+    m = len(sec)
+    v = np.concatenate([np.c_[sec, np.full(m, -0.15)], np.c_[sec, np.full(m, 0.15)]])
+    t = [[i, (i + 1) % m, m + (i + 1) % m] for i in range(m)] + [[i, m + (i + 1) % m, m + i] for i in range(m)]
+    for poly in ([0, 1, 5, 6, 7], [1, 2, 3, 4, 5]):  # the section's two convex halves, the ends fanned
+        for k in range(1, len(poly) - 1):
+            t += [[m + poly[0], m + poly[k], m + poly[k + 1]], [poly[0], poly[k + 1], poly[k]]]
+    return collision_mesh(v, np.array(t))
+
+
+def directed_edges(mesh) -> np.ndarray:
+    """Every triangle's three edges as (from, to) rows."""
+    t = mesh.triangles
+    return np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+
+
 # --- checks ------------------------------------------------------------------------------------
 @pytest.mark.parametrize(
     "vertices, triangles, message",
@@ -68,6 +92,16 @@ def test_the_body_has_5000_triangles_and_is_closed_outward():
     assert m.n_triangles >= 5000
     inside = depth_inside(np.array([[0, 1.3, 0], [0, 0.5, 0.0], [0, 1.3, 0.5], [0, 2.0, 0]]), m, pose_matrix())
     assert inside[0] > 0.1 and inside[1] == 0 and inside[2] == 0 and inside[3] == 0  # between the legs: outside
+
+
+@pytest.mark.parametrize("mesh", [pytest.param(lambda: body_mesh(0.05), id="body"), pytest.param(groove, id="groove")])
+def test_meshes_are_closed_and_consistently_oriented(mesh):
+    """Every edge once in each direction: a closed skin whose triangles all face out. The body's
+    triangles were turned by the distance's gradient at their centres, which turned 45 of 5,972
+    inward at the armpits (the 10 mm crease case below: a vertex entered through their backs)."""
+    e = directed_edges(mesh())
+    assert len(np.unique(e, axis=0)) == len(e)
+    assert len(np.unique(np.sort(e, axis=1), axis=0)) * 2 == len(e)
 
 
 def test_closest_points_against_dense_sampling(rng):
@@ -230,6 +264,49 @@ def test_a_fast_thin_plate_never_passes_through(device):
 
     for world in (ReferenceWorld(), CLWorld("workgroup", device=device, pack_lanes=0)):
         assert min(run(world)) > THICKNESS - 1e-4
+
+
+def test_the_shoulder_crease_under_a_10mm_cape(device):
+    """The crease case found over the wire, on the World: a 9 x 9 cape, 10 mm thick, dropped onto
+    the head and shoulders of the 5,972-triangle body (0.3 m down, turned a quarter) slides down
+    into the armpit crease; before the fix one vertex went 10-25 mm inside from tick 113 on."""
+    body = body_mesh(0.05)
+    pose = pose_matrix((0.0, -0.3, 0.0), (np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0))
+    world = CLWorld("workgroup", device=device, pack_lanes=0)
+    f = cook_grid(N, N, 0.6, 0.6, LinkOptions(), origin=(-0.3, 1.65, -0.3))
+    h = world.add(f, ClothParams(material=Material(thickness=0.01, friction=0.3), substeps=2))
+    world.set_mesh(h, body, pose)
+    got = []
+    for _ in range(130):
+        world.step(DT)
+        x = world.fetch().positions[h].astype(np.float64)
+        got.append(penetration(x, x, 0.0, meshes=[(body, pose)]).behind)
+    assert max(got) == 0, [(t, n) for t, n in enumerate(got) if n]
+    assert x[:, 1].min() < 1.1  # it reached the armpits
+
+
+@pytest.mark.parametrize("thickness", [0.01, 0.005])
+def test_a_groove_narrower_than_twice_the_thickness(device, thickness):
+    """A cloth dropped 0.3 m onto a block with an 8 mm wide V-groove, one column of vertices falling
+    into it: a push of the thickness away from one wall would go through the other (9 vertices
+    inside before the guard, in the reference as on the device); 0 at every tick, both worlds."""
+    mesh = groove()
+
+    def run(world):
+        f = cook_grid(N, N, 0.2, 0.2, LinkOptions(bending=True), origin=(-0.099, 0.4 + thickness, -0.1))
+        h = world.add(f, ClothParams(material=Material(thickness=thickness, friction=0.3), substeps=2))
+        world.set_mesh(h, mesh)
+        out = []
+        for _ in range(30):
+            world.step(DT)
+            x = world.fetch().positions[h].astype(np.float64)
+            out.append(penetration(x, x, 0.0, meshes=[(mesh, pose_matrix())]).behind)
+        return out, x
+
+    for world in (ReferenceWorld(), CLWorld("workgroup", device=device, pack_lanes=0)):
+        got, x = run(world)
+        assert max(got) == 0, (type(world).__name__, [(t, n) for t, n in enumerate(got) if n])
+        assert x[4::N, 1].max() < 0.1 + thickness  # the column over the groove is in the crease
 
 
 def test_no_mesh_builds_nothing(device):

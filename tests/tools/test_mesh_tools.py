@@ -23,10 +23,12 @@ def tool(name: str, *args: str) -> str:
 
 def test_meshbench_writes_every_case(tmp_path):
     out = tmp_path / "mesh.json"
-    tool("meshbench", "--cloths", "2", "--frames", "2", "--rounds", "1", "--cells", "0.08", "--json", str(out))
+    args = ("--cloths", "2", "--frames", "2", "--rounds", "1", "--cells", "0.08", "--into", "0.08")
+    tool("meshbench", *args, "--json", str(out))
     records = json.loads(out.read_text())
     assert [r["extra"]["features"] for r in records] == ["none", "mesh"]
     assert records[1]["extra"]["triangles"] > 0 and records[1]["extra"]["vs_none"] > 0
+    assert records[1]["extra"]["into"] == 0.08
 
 
 def test_meshdemo_writes_a_gif_and_frames(tmp_path):

@@ -14,11 +14,11 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 import numpy as np
-import pyopencl as cl
 
 from ..meshcolliders import MeshCollider, MeshColliders
 from ..meshes import (
     MESH_EDGE_TOLERANCE,
+    MESH_GUARD_BACKOFF,
     MESH_MAX_QUERY_CELLS,
     MESH_PASSES,
     MESH_SLIDES,
@@ -29,6 +29,7 @@ from ..scenes import Scene
 from ..world import Cloth
 from .buffers import ClothSlot, DevArray, DeviceMemory
 from .device import Device
+from .phase import WorldPhase
 
 SOURCE = "meshcollide.cl"
 KERNELS = ("mc_save", "mc_collide")
@@ -44,8 +45,10 @@ def _upload(arr: DevArray, host: np.ndarray) -> None:
     arr.write(0, host)
 
 
-class MeshCollision:
+class MeshCollision(WorldPhase):
     """Mesh collision of a World's cloths, given the World's memory, slots, cloths, scenes and meshes."""
+
+    SOURCE, KERNELS = SOURCE, KERNELS  # the module's names, the phase's program
 
     def __init__(
         self,
@@ -56,18 +59,9 @@ class MeshCollision:
         scenes: Mapping[str, Scene],
         meshes: MeshColliders,
     ) -> None:
-        self.dev, self.mem, self.rec, self.cloths, self.scenes, self.meshes = dev, mem, rec, cloths, scenes, meshes
-        self.ls = 64 if dev.info.is_gpu else 1
-        self.options = [
-            f"-DMC_LS={self.ls}",
-            f"-DMESH_PASSES={MESH_PASSES}",
-            f"-DMESH_SLIDES={MESH_SLIDES}",
-            f"-DMESH_EDGE_TOLERANCE={MESH_EDGE_TOLERANCE!r}f",
-            f"-DMESH_MAX_QUERY_CELLS={MESH_MAX_QUERY_CELLS}",
-        ]
-        self._kernels: dict[str, cl.Kernel] | None = None
+        super().__init__(dev, mem, rec, cloths, scenes)
+        self.meshes = meshes
         self._version = -1
-        self._dirty = True
         self._layers: list[tuple[int, int]] = []  # (first attachment, attachments) per layer
         self._att_mc: list[MeshCollider] = []
         self._att_h: list[int] = []
@@ -82,16 +76,15 @@ class MeshCollision:
         self._start = DevArray(dev, np.float32, 4)
         self.n_attachments = 0
 
-    def changed(self) -> None:
-        """A cloth joined or left a scene, or a cloth's material changed: the attachments rebuilt
-        before the next step."""
-        self._dirty = True
-
-    def kernels(self) -> dict[str, cl.Kernel]:
-        if self._kernels is None:
-            prg = self.dev.program(self.options, source=SOURCE)
-            self._kernels = {name: cl.Kernel(prg, name) for name in KERNELS}
-        return self._kernels
+    def build_options(self) -> list[str]:
+        return [
+            f"-DMC_LS={self.ls}",
+            f"-DMESH_PASSES={MESH_PASSES}",
+            f"-DMESH_SLIDES={MESH_SLIDES}",
+            f"-DMESH_EDGE_TOLERANCE={MESH_EDGE_TOLERANCE!r}f",
+            f"-DMESH_GUARD_BACKOFF={MESH_GUARD_BACKOFF!r}f",
+            f"-DMESH_MAX_QUERY_CELLS={MESH_MAX_QUERY_CELLS}",
+        ]
 
     def _upload_meshes(self) -> dict[int, int]:
         """Every distinct mesh in use on the device; its index by id(mesh)."""

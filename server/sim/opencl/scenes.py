@@ -25,6 +25,7 @@ from ..scenes import INTER_COLLISION_MARGIN, INTER_COLLISION_PASSES, INTER_COLLI
 from ..world import Cloth
 from .buffers import ClothSlot, DevArray, DeviceMemory
 from .device import Device
+from .phase import WorldPhase
 
 SOURCE = "intercollide.cl"
 KERNELS = ("ic_bounds", "ic_active", "ic_clear", "ic_insert", "ic_find", "ic_pass", "ic_finish")
@@ -36,8 +37,11 @@ def _pow2_at_least(n: int) -> int:
     return 1 << max(6, (max(n, 1) - 1).bit_length())
 
 
-class SceneCollision:
+class SceneCollision(WorldPhase):
     """Inter-cloth collision of a World's scenes, given the World's memory, slots, cloths and scenes."""
+
+    SOURCE, KERNELS = SOURCE, KERNELS  # the module's names, the phase's program
+    ALIASES = {"ic_pass_ba": "ic_pass"}  # ic_pass from xa into xb and from xb into xa, each with its arguments set once
 
     def __init__(
         self,
@@ -47,18 +51,9 @@ class SceneCollision:
         cloths: Mapping[int, Cloth],
         scenes: Mapping[str, Scene],
     ) -> None:
-        self.dev, self.mem, self.rec, self.cloths, self.scenes = dev, mem, rec, cloths, scenes
-        self.ls = 64 if dev.info.is_gpu else 1
-        self.options = [
-            f"-DIC_LS={self.ls}",
-            f"-DINTER_COLLISION_PASSES={INTER_COLLISION_PASSES}",
-            f"-DIC_REACH={INTER_COLLISION_REACH!r}f",
-            f"-DIC_LIST={IC_LIST}",
-        ]
-        self._dirty = True
+        super().__init__(dev, mem, rec, cloths, scenes)
         self.n_cloths = 0  # scene cloths taking part (scenes of two cloths or more)
         self.n_vertices = 0
-        self._kernels: dict[str, cl.Kernel] | None = None
         self._vidx = DevArray(dev, np.int32, 1)
         self._vcl = DevArray(dev, np.int32, 1)
         self._cinfo = DevArray(dev, np.int32, 8)
@@ -79,18 +74,13 @@ class SceneCollision:
         self._launches: list[tuple[cl.Kernel, tuple[int], tuple[int] | None]] = []
         self._finish: cl.Kernel | None = None
 
-    def changed(self) -> None:
-        """A cloth joined or left a scene, or a scene cloth's material changed: tables rebuilt
-        before the next step."""
-        self._dirty = True
-
-    def kernels(self) -> dict[str, cl.Kernel]:
-        if self._kernels is None:
-            prg = self.dev.program(self.options, source=SOURCE)
-            self._kernels = {name: cl.Kernel(prg, name) for name in KERNELS}
-            # ic_pass twice: from xa into xb and from xb into xa, each with its arguments set once
-            self._kernels["ic_pass_ba"] = cl.Kernel(prg, "ic_pass")
-        return self._kernels
+    def build_options(self) -> list[str]:
+        return [
+            f"-DIC_LS={self.ls}",
+            f"-DINTER_COLLISION_PASSES={INTER_COLLISION_PASSES}",
+            f"-DIC_REACH={INTER_COLLISION_REACH!r}f",
+            f"-DIC_LIST={IC_LIST}",
+        ]
 
     def _rebuild(self) -> None:
         vidx: list[np.ndarray] = []

@@ -103,6 +103,8 @@ def test_a_cloth_in_the_wind_or_among_colliders_gets_the_moving_substeps(feature
         assert p.moving_substeps >= p.substeps
         assert quality.apply_preset(still, p.name).substeps == p.substeps
         assert quality.apply_preset(moving, p.name).substeps == p.moving_substeps
+        assert quality.apply_preset(moving, p.name).iterations == (p.moving_iterations or p.iterations)
+        assert quality.apply_preset(still, p.name).iterations == p.iterations
         assert quality.apply_preset(moving, p.name, tick_hz=30).substeps == min(100, 2 * p.moving_substeps)
         assert quality.preset_of(quality.apply_preset(moving, p.name)) == p.name
         assert quality.preset_of(quality.apply_preset(moving, p.name, 120), 120) == p.name

@@ -153,7 +153,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--cost-scene",
         default="hanging",
         help="--costs: the scene (hanging 64 x 64 by default; another, e.g. flag or cape at --sizes, "
-        "gets the presets' moving substeps and needs --cost-file: the presets' file is the hanging cloth's)",
+        "gets the presets' moving settings and is written under the cost file's <kind>-moving record, "
+        "which the governor reads for moving cloths)",
     )
     parser.add_argument(
         "--cost-front",
@@ -315,8 +316,6 @@ def run_costs(args: argparse.Namespace) -> int:
     from .tradeoffcost import measure_costs, write_costs
 
     extra = [Config("workgroup", 1, int(n), True, True, tag="front") for n in csv_list(args.cost_substeps)]
-    if args.cost_scene != "hanging" and not args.cost_file:
-        raise SystemExit("--cost-scene other than hanging needs --cost-file (the presets' file is the hanging cloth's)")
     size = {"size": int(csv_list(args.sizes)[0])} if args.sizes else {}
     res = measure_costs(
         device=args.device,

@@ -9,8 +9,10 @@ world's median of the same round. A neighbour's load that lands on one round lan
 median over rounds is the cost, the min and max its spread.
 
 The result is written to the presets' cost file (``drape.server.sim.quality.COSTS_FILE``,
-``server/sim/preset_costs.json``), under the device's kind (``cpu`` or ``gpu``), which
-``quality.PRESETS`` and ``QualityGovernor`` read; never typed in by hand.
+``server/sim/preset_costs.json``), under the device's kind (``cpu`` or ``gpu``; a moving scene's,
+``--cost-scene flag``, whose presets run their moving settings, under ``cpu-moving`` or
+``gpu-moving``: ``quality.MOVING_KIND``), which ``quality.PRESETS`` and ``QualityGovernor`` read;
+never typed in by hand.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from ..sim.params import ClothParams, Material
+from ..sim.quality import MOVING_KIND, is_moving
 from .tradeoffrun import Config, make_scene, simulate
 
 log = logging.getLogger(__name__)
@@ -136,6 +139,7 @@ def measure_costs(
     base = np.array(ms["pbd10"])
     out: dict[str, Any] = {
         "kind": kind,
+        "moving": is_moving(scene.params),
         "device": dev_name,
         "scene": f"{scene_name} {size} x {size}, 60 Hz",
         "cloths": n,
@@ -168,12 +172,14 @@ def _base(scene) -> ClothParams:
 
 
 def write_costs(result: dict[str, Any], path: Path | None = None) -> Path:
-    """Store ``result`` under its kind in the presets' cost file (other kinds kept)."""
+    """Store ``result`` under its kind in the presets' cost file (other kinds kept): a moving
+    scene's under ``quality.MOVING_KIND`` of its kind."""
     from ..sim.quality import COSTS_FILE
 
     path = Path(path) if path is not None else COSTS_FILE
     data = json.loads(path.read_text()) if path.exists() else {}
-    data[result["kind"]] = result
+    kind = result["kind"]
+    data[MOVING_KIND.format(kind=kind) if result.get("moving") else kind] = result
     path.write_text(json.dumps(data, indent=1, sort_keys=True) + "\n")
     return path
 

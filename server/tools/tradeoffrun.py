@@ -198,8 +198,9 @@ class Config:
         from ..sim.quality import PRESETS
 
         p = PRESETS[name]  # presets keep the material: compliance 0 and tether limit 1 here
-        ss = p.substeps_for(base if base is not None else ClothParams(), tick_hz)
-        return cls(solver, p.iterations, ss, p.xpbd, p.tethers, tick_hz=tick_hz, tag=f"preset:{name}")
+        cloth = base if base is not None else ClothParams()
+        ss = p.substeps_for(cloth, tick_hz)
+        return cls(solver, p.iterations_for(cloth), ss, p.xpbd, p.tethers, tick_hz=tick_hz, tag=f"preset:{name}")
 
     def for_scene(self, base: ClothParams) -> Config:
         """This configuration on a cloth like ``base``: a preset's takes the substeps the preset

@@ -57,6 +57,25 @@ def test_preset_at_submit_and_by_control():
             assert srv.stats()["quality"]["presets"] == {"fast": 1}
 
 
+def test_the_server_governor_predicts_with_its_share_of_moving_cloths():
+    """A cloth among colliders runs the presets' moving settings, whose costs (the cost file's
+    moving record) the server's governor predicts with once it has seen the cloths."""
+    with (
+        Server(make_config(quality_budget=0.05)) as srv,
+        DrapeClient(srv.config.listen[0], server_id=srv.server_id, timeout=TIMEOUT) as client,
+    ):
+        srv.quality.measure = lambda seconds: 2.0 * srv.config.quality_budget * srv.config.dt
+        still = client.submit_grid(8, 8, pinned=[0, 7], quality="accurate")
+        moving = client.submit_grid(8, 8, pinned=[0, 7], quality="accurate", features=["colliders"])
+        assert wait_until(lambda: srv.stats()["quality"]["presets"].get("fast") == 2, timeout=TIMEOUT)
+        assert srv.quality.governor.moving == 0.5
+        fast = quality.PRESETS["fast"]
+        assert (_params(srv, still.id).substeps, _params(srv, moving.id).substeps) == (
+            fast.substeps,
+            fast.moving_substeps,
+        )
+
+
 def test_server_lowers_quality_under_load_and_restores_it():
     # Deterministic: the governor is fed injected tick costs (counted ticks, no wall-clock
     # dependence): first twice the budget, every tick, then nothing.

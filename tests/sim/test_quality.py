@@ -64,6 +64,35 @@ def test_the_governor_predicts_with_the_measured_costs(tmp_path, monkeypatch):
     assert gov.current == "fast"
 
 
+def test_the_governor_predicts_a_moving_cloth_with_the_moving_costs(tmp_path, monkeypatch):
+    """A moving scene's costs (`drape tradeoff --costs --cost-scene flag`) are stored under the
+    kind's moving record, read as the presets' moving_cost only for their moving settings, and
+    the governor of moving cloths predicts a step up with them, not with the still cloth's."""
+    path = tmp_path / "costs.json"
+    monkeypatch.setattr(quality, "COSTS_FILE", path)
+    still, moving = {}, {}
+    for name, it, ss, mit, mss, _ in quality._SETTINGS:
+        still[name] = {"cost": {"fast": 1.0, "balanced": 2.0}.get(name, 20.0), "iterations": it, "substeps": ss}
+        moving[name] = {"cost": {"fast": 1.0, "balanced": 6.0}.get(name, 40.0), "iterations": mit, "substeps": mss}
+    write_costs(_record("cpu", still), path)
+    write_costs(dict(_record("cpu", moving), moving=True), path)
+    assert set(json.loads(path.read_text())) == {"cpu", quality.MOVING_KIND.format(kind="cpu")}
+    assert quality.costs("cpu")["balanced"] == 2.0 and quality.costs("cpu", moving=True)["balanced"] == 6.0
+    bal = quality._preset(*quality._SETTINGS[1])
+    assert (bal.cost_for(False), bal.cost_for(True)) == (2.0, 6.0)
+    for share, goes_up in ((0.0, True), (1.0, False)):  # 3 ms x 2 = 6 ms fits 8 ms; 3 ms x 6 does not
+        gov = quality.QualityGovernor("balanced", budget_ms=8.0, patience=1, headroom=0.6, moving=share)
+        gov.current = "fast"
+        for _ in range(10):
+            gov.update(3.0)
+        assert (gov.current == "balanced") is goes_up, share
+    assert quality.QualityGovernor(moving=0.5).cost["balanced"] == 4.0
+    stale = dict(moving, balanced=dict(moving["balanced"], substeps=999))
+    write_costs(dict(_record("cpu", stale), moving=True), path)  # other settings: not this preset's cost
+    b = quality._preset(*quality._SETTINGS[1])
+    assert b.moving_cost == b.iterations_for(make_scene("flag", 4).params) * b.moving_substeps / 10.0
+
+
 @pytest.mark.parametrize("feature", quality.MOVING_FEATURES)
 def test_a_cloth_in_the_wind_or_among_colliders_gets_the_moving_substeps(feature):
     """Wind and colliders need short steps that tethers do not replace: the preset gives such a
@@ -74,6 +103,8 @@ def test_a_cloth_in_the_wind_or_among_colliders_gets_the_moving_substeps(feature
         assert p.moving_substeps >= p.substeps
         assert quality.apply_preset(still, p.name).substeps == p.substeps
         assert quality.apply_preset(moving, p.name).substeps == p.moving_substeps
+        assert quality.apply_preset(moving, p.name).iterations == (p.moving_iterations or p.iterations)
+        assert quality.apply_preset(still, p.name).iterations == p.iterations
         assert quality.apply_preset(moving, p.name, tick_hz=30).substeps == min(100, 2 * p.moving_substeps)
         assert quality.preset_of(quality.apply_preset(moving, p.name)) == p.name
         assert quality.preset_of(quality.apply_preset(moving, p.name, 120), 120) == p.name
@@ -94,12 +125,14 @@ def test_tradeoff_runs_each_scene_at_the_substeps_its_preset_gives_it():
 
 
 def test_costs_on_a_moving_scene_run_the_presets_moving_substeps(device):
-    """`drape tradeoff --costs --cost-scene flag` costs each preset at the substeps it gives a flag,
-    written only where asked (the presets' own file is the hanging cloth's)."""
+    """`drape tradeoff --costs --cost-scene flag` costs each preset at the settings it gives a flag
+    (a moving record: the cost file keeps it beside the hanging cloth's)."""
     from drape.server.tools.tradeoffcost import measure_costs
 
     res = measure_costs(device=device, rounds=1, frames=2, cloths=2, size=4, scene_name="flag")
-    assert res["scene"].startswith("flag 4 x 4")
+    assert res["scene"].startswith("flag 4 x 4") and res["moving"]
+    flag = make_scene("flag", 4).params
     for name, p in quality.PRESETS.items():
         assert res["configs"][name]["substeps"] == p.moving_substeps
+        assert res["configs"][name]["iterations"] == p.iterations_for(flag)
         assert res["configs"][name]["cost"] > 0

@@ -417,10 +417,11 @@ def test_every_feature_at_once_under_load(device, rng, solver):
 
 
 # The quality presets' substep counts (the old presets' 5, 20, 80, 100 and whatever they are now):
-# 1 or 2 iterations at each, with tethers and long-range links (which only the work-group, pack
-# and serial/coloured reference solvers apply), every feature, stiff (compliance 0, the presets'
-# material: the multiplier-free path) and compliant.
+# 1 to the presets' most iterations (exact's moving 3) at each, with tethers and long-range links
+# (which only the work-group, pack and serial/coloured reference solvers apply), every feature,
+# stiff (compliance 0, the presets' material: the multiplier-free path) and compliant.
 PRESET_SUBSTEPS = sorted({5, 20, 80, 100} | {n for p in PRESETS.values() for n in (p.substeps, p.moving_substeps)})
+PRESET_ITERATIONS = max(max(p.iterations, p.moving_iterations) for p in PRESETS.values())
 
 
 @pytest.mark.parametrize("solver", SOLVERS)
@@ -439,7 +440,7 @@ def test_preset_substeps_with_every_feature(device, rng, solver, substeps, compl
         material=Material(drag=1.0, lift=0.5, friction=0.5, compliance=(compliance, compliance, 1e-3)),
         gravity=(0.0, -30.0, 0.0),
         wind=(15.0, 0.0, 5.0),
-        iterations=int(rng.integers(1, 3)),
+        iterations=int(rng.integers(1, PRESET_ITERATIONS + 1)),
         substeps=substeps,
     )
     check_run(

@@ -79,6 +79,8 @@ class AdaptiveQuality:
         if g.current == before:
             return
         recs = [r for r in records() if r.quality_wanted is not None and r.handle is not None]
+        if world is not None and recs:  # its next predictions: this share of moving cloths' costs
+            g.moving = sum(quality.is_moving(world.cloths[cast(int, r.handle)].params) for r in recs) / len(recs)
         if _RANK[g.current] < _RANK[before]:
             top = max((_RANK[r.quality or cast(str, r.quality_wanted)] for r in recs), default=0)
             if top <= _RANK[g.current]:  # the cap was above every cloth: step down from the highest one

@@ -11,26 +11,23 @@ each through the client SDK and steer it every tick, as a game would:
   and legs are the cape's capsules, the air drags the cape out behind (colliders, tethers, wind).
 
 Each client keeps the states it received over Zenoh, with the poses of what it steered; the
-demo then renders them (server/tools/render.py: depth buffer, smooth per-pixel shading, shadows,
-a perspective camera) into PNG frames and an animated GIF in ``--out`` and prints where they are.
+stages' shared run (server/tools/demorun.py) then renders them (server/tools/render.py: depth
+buffer, smooth per-pixel shading, shadows, a perspective camera) into PNG frames and an animated
+GIF in ``--out`` and prints where they are.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
-import multiprocessing as mp
-import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .procs import ServerExited, ServerProcess, demo_server
+from .demorun import Recording, render_chunk, run_stage, save_recording
 
 log = logging.getLogger(__name__)
 
@@ -53,18 +50,6 @@ PIVOT, ROPE, BALL_R, SWING = (2.7, 3.35, -0.8), 2.1, 0.24, math.radians(32.0)
 CAPE_COLS, CAPE_ROWS, CAPE_LEN = 22, 26, 1.15
 SHOULDER_Y, NECK_R, HEM_R, CAPE_ARC = 1.47, 0.19, 0.34, math.radians(100.0)
 WALK_CENTRE, WALK_R, WALK_W = (4.75, 0.0, 0.2), 0.85, 1.5  # metres, metres, rad/s
-
-
-@dataclass
-class Recording:
-    kind: str
-    ticks: np.ndarray  # (F,)
-    positions: np.ndarray  # (F, n, 3)
-    triangles: np.ndarray
-    props: list  # per frame: the steered things, [(p0, p1, radius, colour)] (capsules; spheres p0 == p1)
-    received: int
-    missing: int
-    duplicates: int
 
 
 # ------------------------------------------------------------------------------------------------
@@ -270,32 +255,7 @@ def run_client(kind: str, endpoint: str, seconds: float, fps: float, out: str, r
                 props.append(drawn)
             if time.monotonic() - start > seconds:
                 break
-        span = (max(seen) - min(seen) + 1) if seen else 0
-        np.savez_compressed(
-            Path(out) / f"{kind}.npz",
-            ticks=np.asarray(ticks, np.int64),
-            positions=np.asarray(frames, np.float32).reshape(len(frames), -1, 3),
-            triangles=np.asarray(cloth.triangles, np.int32),
-            received=len(seen),
-            missing=span - len(seen),
-            duplicates=dup,
-        )
-        (Path(out) / f"{kind}-props.json").write_text(json.dumps(props))
-
-
-def load_recording(out: Path, kind: str) -> Recording:
-    d = np.load(out / f"{kind}.npz")
-    props = json.loads((out / f"{kind}-props.json").read_text())
-    return Recording(
-        kind,
-        d["ticks"],
-        d["positions"],
-        d["triangles"],
-        list(props),
-        int(d["received"]),
-        int(d["missing"]),
-        int(d["duplicates"]),
-    )
+        save_recording(out, kind, ticks, frames, cloth.triangles, props, seen, dup)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -317,35 +277,35 @@ def _uv(rows: int, cols: int) -> np.ndarray:
 
 def _flag_texture(uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The banner: three bands with a disc at the hoist, the same both sides."""
-    from .render import _linear
+    from .rendermath import linear
 
     u, v = uv[:, 0], uv[:, 1]
     band = np.clip((v * 3).astype(int), 0, 2)
-    col = _linear(np.array([(24, 96, 132), (238, 232, 214), (214, 84, 56)]))[band]
+    col = linear(np.array([(24, 96, 132), (238, 232, 214), (214, 84, 56)]))[band]
     disc = (u - 0.24) ** 2 * (FLAG_W / FLAG_H) ** 2 + (v - 0.5) ** 2 < 0.2**2
-    col[disc] = _linear((236, 178, 48))
+    col[disc] = linear((236, 178, 48))
     return col, col
 
 
 def _curtain_texture(uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Red velvet with a gold band above the hem; the back a duller lining."""
-    from .render import _linear
+    from .rendermath import linear
 
     v = uv[:, 1]
-    front = np.broadcast_to(_linear((150, 22, 34)), (len(v), 3)).copy()
-    front[(v > 0.9) & (v < 0.95)] = _linear((210, 160, 60))
+    front = np.broadcast_to(linear((150, 22, 34)), (len(v), 3)).copy()
+    front[(v > 0.9) & (v < 0.95)] = linear((210, 160, 60))
     return front, front * 0.6
 
 
 def _cape_texture(uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """A royal-blue cape with a gold border, lined in crimson."""
-    from .render import _linear
+    from .rendermath import linear
 
     u, v = uv[:, 0], uv[:, 1]
-    front = np.broadcast_to(_linear((38, 52, 132)), (len(u), 3)).copy()
+    front = np.broadcast_to(linear((38, 52, 132)), (len(u), 3)).copy()
     border = (u < 0.035) | (u > 0.965) | (v > 0.955)
-    front[border] = _linear((214, 166, 60))
-    back = np.broadcast_to(_linear((150, 26, 40)), (len(u), 3)).copy()
+    front[border] = linear((214, 166, 60))
+    back = np.broadcast_to(linear((150, 26, 40)), (len(u), 3)).copy()
     return front, back
 
 
@@ -371,7 +331,8 @@ def _static_props() -> list[list[Any]]:
 
 def render_frame(recs: list[Recording], index: dict[str, dict[int, int]], tick: int, size: tuple[int, int]) -> Any:
     """One frame: every recording's cloth at ``tick`` and the props, from the demo's camera."""
-    from .render import Camera, capsule_mesh, cloth_mesh, draw_scene
+    from .drawmeshes import capsule_mesh, cloth_mesh
+    from .render import Camera, draw_scene
 
     meshes = []
     props = _static_props()
@@ -399,119 +360,13 @@ def render_frame(recs: list[Recording], index: dict[str, dict[int, int]], tick: 
 
 
 def _render_chunk(args: tuple[Path, list[int], tuple[int, int], int]) -> list[Path]:
-    out, ticks, size, first = args
-    from .render import write_png
-
-    recs = [load_recording(out, k) for k in KINDS]
-    index = {r.kind: {int(t): i for i, t in enumerate(r.ticks)} for r in recs}
-    paths = []
-    for k, tick in enumerate(ticks):
-        paths.append(write_png(out / f"frame_{first + k:04d}.png", render_frame(recs, index, tick, size)))
-    return paths
-
-
-def render(
-    recs: list[Recording], out: Path, size: tuple[int, int], fps: float, chunk: Any = None, name: str = "drape-demo.gif"
-) -> tuple[list[Path], Path]:
-    """Every common tick's frame as PNG (in two processes: the demo machine may have two cores;
-    ``chunk`` renders a part, default this stage's), then the GIF ``name``."""
-    chunk = chunk or _render_chunk
-    from PIL import Image
-
-    from .render import write_gif
-
-    common = sorted(set.intersection(*(set(r.ticks.tolist()) for r in recs))) if recs else []
-    jobs = min(2, mp.cpu_count(), max(1, len(common)))
-    parts = np.array_split(np.arange(len(common)), jobs)
-    work = [(out, [common[i] for i in p.tolist()], size, int(p[0]) if len(p) else 0) for p in parts]
-    if jobs > 1:
-        with mp.get_context("spawn").Pool(jobs) as pool:
-            paths = [q for part in pool.map(chunk, work) for q in part]
-    else:
-        paths = chunk(work[0]) if common else []
-    frames = [np.asarray(Image.open(p).convert("RGB")) for p in paths]
-    gif = out / name
-    if frames:
-        write_gif(gif, frames, fps=fps, colours=256)  # smooth shading: 128 colours band
-    return paths, gif
+    return render_chunk(*args, KINDS, render_frame, "frame")
 
 
 # ------------------------------------------------------------------------------------------------
 # Command
 
 
-class ClientFailed(RuntimeError):
-    """A demo client process failed or did not get going (its server alive)."""
-
-
-def _run_clients(server: ServerProcess, args: argparse.Namespace, out: Path) -> None:
-    """The three client processes against ``server``: started, waited on until each has its
-    cloth accepted, told to go together, joined. The server is polled all along: when it exits,
-    :class:`ServerExited` says so at once (with its last log lines) rather than a client's
-    timeout blaming the client."""
-    ctx = mp.get_context("spawn")
-    procs = []
-    go = ctx.Event()
-    try:
-        for kind in KINDS:
-            ready = ctx.Event()
-            p = ctx.Process(
-                target=run_client,
-                args=(kind, server.endpoint, args.seconds, args.fps, str(out), ready, go),
-                name=f"demo-{kind}",
-            )
-            p.start()
-            procs.append((p, ready))
-        deadline = time.monotonic() + 60
-        for p, ready in procs:
-            while not ready.wait(0.2):
-                server.check("the demo clients' cloths were accepted")
-                if not p.is_alive():
-                    raise ClientFailed(f"{p.name} failed before its cloth was accepted (exit code {p.exitcode})")
-                if time.monotonic() > deadline:
-                    raise ClientFailed(f"{p.name} did not get its cloth accepted in 60 s")
-        go.set()
-        log.info("clients running for %.1f s", args.seconds)
-        deadline = time.monotonic() + args.seconds + 60
-        for p, _ in procs:
-            while p.is_alive() and time.monotonic() < deadline:
-                p.join(0.2)
-                if p.is_alive():
-                    server.check(f"the demo clients finished their {args.seconds:g} s")
-            if p.exitcode != 0:
-                server.check(f"the demo clients finished their {args.seconds:g} s")
-                raise ClientFailed(f"{p.name} failed (exit code {p.exitcode})")
-    finally:
-        for p, _ in procs:
-            if p.is_alive():
-                p.terminate()
-                p.join(5)
-
-
 def run(args: argparse.Namespace) -> int:
     """The three-cloth stage (``drape demo``'s default, demostages.py)."""
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    server = demo_server(args, TICK_HZ)
-    try:
-        _run_clients(server, args, out)
-    except (ServerExited, ClientFailed) as e:
-        print(f"drape demo: {e}", file=sys.stderr)
-        return 1
-    finally:
-        server.stop(grace=15)
-    recs = [load_recording(out, k) for k in KINDS]
-    for r in recs:
-        print(f"{r.kind:8s} received {r.received} states over Zenoh, {r.missing} missing, {r.duplicates} duplicated")
-        if len(r.positions) and not np.isfinite(r.positions).all():
-            raise RuntimeError(f"{r.kind}: non-finite positions received")
-    w, h = (int(v) for v in args.size.lower().split("x"))
-    log.info("rendering %d frames", min(len(r.ticks) for r in recs))
-    t0 = time.monotonic()
-    paths, gif = render(recs, out, (w, h), args.fps)
-    log.info("rendered %d frames in %.1f s", len(paths), time.monotonic() - t0)
-    if not paths:
-        raise RuntimeError("no frames: the clients received no common ticks")
-    print(f"wrote {len(paths)} PNG frames: {paths[0]} .. {paths[-1]}")
-    print(f"wrote {gif}")
-    return 0
+    return run_stage(args, TICK_HZ, KINDS, run_client, _render_chunk, "drape-demo.gif")

@@ -445,11 +445,11 @@ def test_encodings_normals_and_info(server, client):
 
 
 def test_ticks_keep_schedule_and_count_missed_ticks(server, client):
-    before = server.stats()
+    before = server.call(lambda w: server.stats())  # on the tick thread: its schedule kept up to date
     server.call(lambda w: time.sleep(0.25))  # a stall of 15 ticks on the tick thread
     time.sleep(0.75)
-    after = server.stats()
-    elapsed = (after["time_ns"] - before["time_ns"]) / 1e9  # the snapshots' own times (none descheduled between)
+    after = server.call(lambda w: server.stats())
+    elapsed = (after["time_ns"] - before["time_ns"]) / 1e9  # the snapshots' own times
     missed = after["missed_ticks"] - before["missed_ticks"]
     ticks = after["ticks"] - before["ticks"]
     assert missed >= 10, after
@@ -460,7 +460,7 @@ def test_ticks_keep_schedule_and_count_missed_ticks(server, client):
 
 @pytest.mark.parametrize("congestion", ["drop", "block"])
 def test_slow_subscriber_never_blocks_the_tick(congestion, monkeypatch):
-    """A subscriber whose network thread takes 200 ms per 120 KB state (Zenoh's own thread:
+    """A subscriber whose network thread takes 500 ms per 120 KB state (Zenoh's own thread:
     nothing buffers for it in Python). The tick thread never waits for the publisher: a frame
     the publisher has not taken when the next one is ready is coalesced and counted
     (``skipped_frames``), so every tick the fast client misses is a counted coalesced frame; with
@@ -480,16 +480,20 @@ def test_slow_subscriber_never_blocks_the_tick(congestion, monkeypatch):
 
             def slow_reader(sample: zenoh.Sample) -> None:  # on the slow session's network thread
                 slow_got.append(1)
-                done.wait(0.2)
+                done.wait(0.5)
 
             slow.declare_subscriber(h.key, zenoh.handlers.Callback(slow_reader, indirect=False))
+
+            def snapshot() -> dict:  # on the tick thread: its schedule kept up to date
+                return srv.call(lambda w: srv.stats())
+
             time.sleep(1.0)  # the slow session's socket buffers fill up
             h.clear()
-            before, seen, slow_seen = srv.stats(), bystander.received, len(slow_got)
+            before, seen, slow_seen = snapshot(), bystander.received, len(slow_got)
             states = [h.next_state(TIMEOUT)]
             while states[-1].tick - states[0].tick < 60:  # 60 ticks, however many states they gave
                 states.append(h.next_state(TIMEOUT))
-            after, seen, slow_seen = srv.stats(), bystander.received - seen, len(slow_got) - slow_seen
+            after, seen, slow_seen = snapshot(), bystander.received - seen, len(slow_got) - slow_seen
             ticks = after["ticks"] - before["ticks"]
             skipped = after["skipped_frames"] - before["skipped_frames"]
             span = states[-1].tick - states[0].tick + 1
@@ -520,10 +524,10 @@ def test_slow_subscriber_never_blocks_the_tick(congestion, monkeypatch):
             h.clear()
             release.set()
             assert last["skipped_frames"] - first["skipped_frames"] >= last["ticks"] - first["ticks"] - 2, (first, last)
-            got = [h.next_state(TIMEOUT).tick]
+            got = [h.next_state(TIMEOUT).tick]  # the held frame, then the newest
             while got[-1] < last["tick"] - 1:
                 got.append(h.next_state(TIMEOUT).tick)
-            assert len(got) <= 3, got  # the held frame, then the newest: those between were coalesced
+            assert not [t for t in got if first["tick"] < t < last["tick"] - 2], (first["tick"], got, last["tick"])
         finally:
             done.set()
             fast.close()

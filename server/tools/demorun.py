@@ -28,6 +28,7 @@ from .procs import ServerExited, ServerProcess, demo_server
 
 log = logging.getLogger(__name__)
 
+TICK_HZ = 60.0  #: the stages' server's tick rate
 #: a stage's render chunk: (out, ticks, size, first frame's number) -> the PNGs written
 Chunk = Callable[[tuple[Path, list[int], tuple[int, int], int]], list[Path]]
 
@@ -193,7 +194,6 @@ def render(
 
 def run_stage(
     args: argparse.Namespace,
-    tick_hz: float,
     kinds: Sequence[str],
     client: Callable[..., None],
     chunk: Chunk,
@@ -205,7 +205,7 @@ def run_stage(
     (frames and ``gif``); 1 when the server or a client failed."""
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    server = demo_server(args, tick_hz)
+    server = demo_server(args, TICK_HZ)
     try:
         run_clients(server, args, out, kinds, client, one_by_one)
     except (ServerExited, ClientFailed) as e:

@@ -7,8 +7,8 @@ that each cape keeps out of both bodies. Bob's client submits his cape into her 
 client pins its cape around its own walker's shoulders every tick; the walkers come towards each
 other along parallel lines 0.6 m apart, their capes (flared cones around their backs, dragged
 out behind by the air) meeting at the sides as they pass. The server is ``drape serve`` as in
-the three-cloth stage (server/tools/demo.py, whose cape, walker body, textures and renderer this
-stage reuses); frames and ``drape-crossing.gif`` go to ``--out``.
+the three-cloth stage (server/tools/demo.py; the cape, its wearer's body and texture are
+demowearer.py's); frames and ``drape-crossing.gif`` go to ``--out``.
 """
 
 from __future__ import annotations
@@ -23,17 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from .demo import (
-    CAPE_COLS,
-    CAPE_ROWS,
-    SHOULDER_Y,
-    TICK_HZ,
-    _cape_texture,
-    _uv,
-    body_parts,
-    cape_mesh,
-)
-from .demorun import Recording, render_chunk, run_stage, save_recording
+from .demorun import TICK_HZ, Recording, render_chunk, run_stage, save_recording
+from .demowearer import CAPE_COLS, CAPE_ROWS, SHOULDER_Y, body_parts, cape_mesh, cape_texture, grid_uv
 
 log = logging.getLogger(__name__)
 
@@ -134,7 +125,7 @@ def run_client(name: str, endpoint: str, seconds: float, fps: float, out: str, r
 
 
 def _bob_texture(uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Bob's cape: deep green with a silver border, lined in ochre (alice's is demo.py's blue)."""
+    """Bob's cape: deep green with a silver border, lined in ochre (alice's is demowearer.py's blue)."""
     from .rendermath import linear
 
     u, v = uv[:, 0], uv[:, 1]
@@ -143,7 +134,7 @@ def _bob_texture(uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return front, np.broadcast_to(linear((190, 140, 50)), (len(u), 3)).copy()
 
 
-TEXTURES = {"alice": _cape_texture, "bob": _bob_texture}
+TEXTURES = {"alice": cape_texture, "bob": _bob_texture}
 
 
 def render_frame(recs: list[Recording], index: dict[str, dict[int, int]], tick: int, size: tuple[int, int]) -> Any:
@@ -154,7 +145,7 @@ def render_frame(recs: list[Recording], index: dict[str, dict[int, int]], tick: 
     for r in recs:
         i = index[r.kind][tick]
         m = cloth_mesh(r.positions[i], r.triangles, (128, 128, 128))
-        m.uv, m.texture, m.sheen = _uv(CAPE_ROWS, CAPE_COLS), TEXTURES[r.kind], 0.2
+        m.uv, m.texture, m.sheen = grid_uv(CAPE_ROWS, CAPE_COLS), TEXTURES[r.kind], 0.2
         meshes.append(m)
         props += r.props[i]
     for p0, p1, radius, colour in props:
@@ -179,4 +170,4 @@ def _render_chunk(args: tuple[Path, list[int], tuple[int, int], int]) -> list[Pa
 
 def run(args: argparse.Namespace) -> int:
     """Alice first (her cape founds the scene and lets bob in), then bob; both go together."""
-    return run_stage(args, TICK_HZ, WALKERS, run_client, _render_chunk, "drape-crossing.gif", one_by_one=True)
+    return run_stage(args, WALKERS, run_client, _render_chunk, "drape-crossing.gif", one_by_one=True)

@@ -145,10 +145,14 @@ def test_plane_collider_and_reset(server, client):
     with client.submit_grid(5, 5, gravity=(0, -40.0, 0), colliders=[Plane((0, 1, 0), -0.3)]) as h:
         s = h.wait_for_tick(h.first_tick + 40, TIMEOUT)
         assert s.positions[:, 1].min() >= -0.3 - 1e-3 and s.positions[:, 1].max() < -0.2
+        coalesced = server.registry.counters["skipped_frames"]
         tick = h.reset()
         s = h.wait_for_tick(tick, TIMEOUT)
-        assert s.tick == tick and s.reset
-        assert s.positions[:, 1].max() > -0.05  # one step away from the rest pose
+        # the reset tick's state, or (a frame coalesced on a loaded machine, counted) the next one,
+        # which carries its reset flag
+        steps = s.tick - tick + 1
+        assert s.reset and 1 <= steps <= 1 + server.registry.counters["skipped_frames"] - coalesced, (s.tick, tick)
+        assert s.positions[:, 1].max() > -0.05 * steps * (steps + 1) / 2  # a step (or those few) from the rest pose
 
 
 def test_remove_stops_the_publications(server, client):
@@ -580,14 +584,15 @@ def test_drape_serve_process_stops_cleanly_on_sigterm(tmp_path: Path):
         env=env,
     )
     try:
-        with DrapeClient(ep, server_id="proc", timeout=15.0, failover=False) as c:  # the handle closes
+        # the bounds are a loaded machine's: drape serve's start (device check, warm-up) took over 15 s at load 10
+        with DrapeClient(ep, server_id="proc", timeout=60.0, failover=False) as c:  # the handle closes
             info = c.info()
             assert info["stats_period_s"] == 0.5 and info["grace_period_s"] == 2.0
             h = c.submit_grid(6, 6, pinned=[0, 5])
             collect(h, 5)
             proc.send_signal(signal.SIGTERM)
-            rc = proc.wait(15)
-            assert wait_until(lambda: h.closed, 3.0), "the server's liveliness token should vanish"
+            rc = proc.wait(60)
+            assert wait_until(lambda: h.closed, 10.0), "the server's liveliness token should vanish"
             assert "went away" in h.close_reason
         out = proc.stdout.read()
         assert rc == 0, out

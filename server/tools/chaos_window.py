@@ -107,6 +107,8 @@ class Window:
         out["host_other_cores"] = round(host.cores(self.t0, time.monotonic(), _mean), 2)
         # the share of the window's stats periods judged as the machine's: near 1, the window judges little
         out["host_busy_share"] = round(busy_periods / max(len(samples) - 1, 1), 2)
+        # the periods whose missed ticks were judged: none, and the window judged none of them
+        out["quiet_periods"] = max(len(samples) - 1, 0) - busy_periods
 
     def close(self, clients: Sequence[GoodClient] = (), settle_s: float = 0.0) -> dict[str, Any]:
         """Measure up to now; then let the server settle ``settle_s`` seconds and sample its RSS."""

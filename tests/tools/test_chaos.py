@@ -161,6 +161,7 @@ def test_missed_ticks_lost_states_and_gaps_are_the_servers_own_unless_other_work
     out: dict = {}
     w.attribute(out, gaps=[(11.3, 11.45), (13.1, 13.3)])  # one gap under the other work, one not
     assert out["missed_ticks_own"] == 5 and out["missed_ticks_machine"] == 4
+    assert out["quiet_periods"] == 6  # of 7: the window judged (a window with none is marked ~ in the table)
     assert out["good_worst_gap_own_ms"] == pytest.approx(200.0) and out["good_gaps_over_limit"] == 2
     fails = chaos_faults.judge({**out, "missed_ticks": 9, "good_rate_hz": 60.0, "good_lost": 3, "good_lost_own": 0})
     assert any("5 missed ticks (of 9)" in f for f in fails) and any("gap of 200.0 ms" in f for f in fails)

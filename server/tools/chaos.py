@@ -16,7 +16,7 @@ kills of ``--kill-servers`` servers (the game clients' cloths placed by load, ea
 restarted ``--kill-gap`` s later); pause: 100 % back within 1 s of SIGCONT. Failures are
 reported as failures (exit status 1). Missed ticks, lost states and gaps over 50 ms are judged
 where they are the server's own: not in stats periods where other processes took the machine
-(:class:`.chaos_harness.HostLoad`; the raw counts are reported beside). ``--auth tls|tcp`` runs
+(:class:`.chaos_hostload.HostLoad`; the raw counts are reported beside). ``--auth tls|tcp`` runs
 the one-server scenarios in the authenticated deployment (:mod:`.chaos_router`).
 
 Scenarios (``drape chaos --list``): fuzz, flood-ids, big-submit, big-cook, tiny-mass,
@@ -44,7 +44,7 @@ from pathlib import Path
 from typing import Any
 
 from ..service.config import ServerConfig
-from . import chaos_admission, chaos_builds, chaos_failover, chaos_faults, chaos_harness, chaos_placement
+from . import chaos_admission, chaos_builds, chaos_failover, chaos_faults, chaos_hostload, chaos_placement, chaos_window
 from .chaos_faults import Context
 
 #: Every scenario, by the name the command takes, in the order ``drape chaos`` runs them.
@@ -94,6 +94,7 @@ def run_scenarios(names: list[str], ctx: Context) -> dict[str, Any]:
         report["scenarios"][name] = result
         log.info("chaos: %s %s %s", name, "PASS" if result["passed"] else "FAIL", "; ".join(result["fails"]))
     report["passed"] = all(r["passed"] for r in report["scenarios"].values())
+    report["judging"] = chaos_window.judging()
     return report
 
 
@@ -125,7 +126,7 @@ def format_table(report: dict[str, Any]) -> str:
         base = f"{_cell(b, 'good_rate_hz')}/{_cell(b, 'missed_ticks')}" if b else "-"
         cells = [
             name,
-            "PASS" if r["passed"] else "FAIL",
+            ("PASS" if r["passed"] else "FAIL") + ("~" if r.get("quiet_periods") == 0 else ""),
             base,
             _cell(r, "good_rate_hz"),
             f"{_cell(r, 'missed_ticks')}/{_cell(r, 'missed_ticks_own')}",
@@ -139,8 +140,9 @@ def format_table(report: dict[str, Any]) -> str:
     lines.append(
         "(base: the good client and missed ticks before the abuse, the machine's own noise; missed/own: "
         "missed ticks, and those in stats periods where other processes took under "
-        f"{chaos_harness.MACHINE_BUSY} cores (judged); gap: worst gap between a good client's states; "
-        "tb: tracebacks in the server log)"
+        f"{chaos_hostload.MACHINE_BUSY} cores (judged); gap: worst gap between a good client's states; "
+        "tb: tracebacks in the server log; ~: no stats period quiet enough to judge missed ticks, lost states "
+        "and gaps: other processes took the machine throughout)"
     )
     lines.append("")
     for name, r in report["scenarios"].items():
@@ -151,6 +153,7 @@ def format_table(report: dict[str, Any]) -> str:
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = "Judging: " + chaos_window.judging()["rule"] + " (docs/reliability.md 1)."
     parser.add_argument(
         "scenarios", nargs="*", metavar="SCENARIO", help=f"scenarios to run (default: all): {', '.join(SCENARIOS)}"
     )

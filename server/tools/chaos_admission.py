@@ -23,7 +23,7 @@ from typing import Any
 from drape.client import protocol as P
 
 from .chaos_faults import RETRY_LATER, Context, Stage, _one_heavy, grid_request, judge
-from .chaos_harness import Window
+from .chaos_window import Window
 
 SHARE_CLOTHS = 60  # share: the filler's submits at most (under the default max_cloths_per_client of 64)
 SHARE_REFUSALS = 3  # share: the filler stops after this many refusals in a row (1 s apart: ticks get measured)

@@ -30,7 +30,8 @@ import numpy as np
 from drape.client import protocol as P
 
 from .chaos_faults import RETRY_LATER, TICK_HZ, Context, Stage, grid_request, judge
-from .chaos_harness import WAIT, Window
+from .chaos_harness import WAIT
+from .chaos_window import Window
 
 MESH_SIDE = 181  # big-mesh: 181 x 181 = 32,761 vertices, 64,800 triangles
 STALL_BUDGET_MS = 1000.0 / TICK_HZ  # a tick-thread tick over one period is a stall
@@ -51,7 +52,7 @@ def mesh_request(client: str, side: int = MESH_SIDE, size: float = 1.0) -> P.Sub
 
 def _stall(m: dict[str, Any]) -> list[str]:
     """A tick-thread tick over one period in a stats period without other load (the suite's rule,
-    :meth:`.chaos_harness.Window.attribute`; the raw longest is ``tick_max_ms``)."""
+    :meth:`.chaos_window.Window.attribute`; the raw longest is ``tick_max_ms``)."""
     if m.get("tick_max_own_ms", 0.0) > STALL_BUDGET_MS:
         return [f"a tick-thread tick took {m['tick_max_own_ms']} ms > {STALL_BUDGET_MS:.1f} without other load"]
     return []

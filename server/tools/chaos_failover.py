@@ -19,8 +19,10 @@ import numpy as np
 
 from drape.client.placement import spread
 
+from .chaos_clients import GoodClient
 from .chaos_faults import FAILOVER_GAP_S, Context, Stage, judge
-from .chaos_harness import WAIT, ChaosServer, GoodClient, Window
+from .chaos_harness import WAIT, ChaosServer
+from .chaos_window import Window
 
 log = logging.getLogger(__name__)
 

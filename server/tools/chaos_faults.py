@@ -27,8 +27,10 @@ from drape.client import protocol as P
 
 from ..service.config import ServerConfig
 from . import chaos_fuzz
-from .chaos_harness import GAP_LIMIT_MS, ChaosServer, GoodClient, Window, reply_outcome, zenoh_session
+from .chaos_clients import GoodClient
+from .chaos_harness import GAP_LIMIT_MS, ChaosServer, reply_outcome, zenoh_session
 from .chaos_router import AuthRouter
+from .chaos_window import Window
 
 log = logging.getLogger(__name__)
 
@@ -237,7 +239,7 @@ def grid_request(client: str, n: int = 16, **kw: Any) -> P.SubmitRequest:
 def judge(m: dict[str, Any], *, good: bool = True, rss: bool = True) -> list[str]:
     """Which targets a window missed: good clients at the tick rate, 0 missed ticks, 0 states lost
     and no gap over ``GAP_LIMIT_MS`` between good states (the three counted where the machine's other work stayed
-    under ``MACHINE_BUSY`` cores: :meth:`.chaos_harness.Window.attribute`; the raw counts are
+    under ``MACHINE_BUSY`` cores: :meth:`.chaos_window.Window.attribute`; the raw counts are
     reported beside), 0 tracebacks, the server alive and publishing, RSS back within 10 %."""
     fails = []
     if not m.get("server_alive", True):

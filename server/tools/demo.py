@@ -11,30 +11,27 @@ each through the client SDK and steer it every tick, as a game would:
   and legs are the cape's capsules, the air drags the cape out behind (colliders, tethers, wind).
 
 Each client keeps the states it received over Zenoh, with the poses of what it steered; the
-demo then renders them (server/tools/render.py: depth buffer, smooth per-pixel shading, shadows,
-a perspective camera) into PNG frames and an animated GIF in ``--out`` and prints where they are.
+stages' shared run (server/tools/demorun.py) then renders them (server/tools/render.py: depth
+buffer, smooth per-pixel shading, shadows, a perspective camera) into PNG frames and an animated
+GIF in ``--out`` and prints where they are.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
-import multiprocessing as mp
-import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .procs import ServerExited, ServerProcess, demo_server
+from .demorun import TICK_HZ, Recording, render_chunk, run_stage, save_recording
+from .demowearer import CAPE_COLS, CAPE_ROWS, SHOULDER_Y, body_parts, cape_mesh, cape_texture, grid_uv
 
 log = logging.getLogger(__name__)
 
-TICK_HZ = 60.0
 KINDS = ("flag", "curtain", "cape")
 #: The floor's extent (x-z) under the three, for the renderer's floor and shadows.
 BOUNDS = ((-1.2, 0.0, -2.2), (6.6, 3.0, 2.6))
@@ -49,22 +46,8 @@ CURTAIN_COLS, CURTAIN_ROWS, CURTAIN_W, CURTAIN_H = 34, 30, 1.7, 2.05
 CURTAIN_X, CURTAIN_Z, CURTAIN_TOP = 1.85, -1.0, 2.3
 PLEAT_DEPTH, PLEAT_COLUMNS = 0.045, 6
 PIVOT, ROPE, BALL_R, SWING = (2.7, 3.35, -0.8), 2.1, 0.24, math.radians(32.0)
-# the cape and its wearer: shoulder height, the cape's ring around the neck and its flare
-CAPE_COLS, CAPE_ROWS, CAPE_LEN = 22, 26, 1.15
-SHOULDER_Y, NECK_R, HEM_R, CAPE_ARC = 1.47, 0.19, 0.34, math.radians(100.0)
+# the cape's wearer (demowearer.py) walks a circle
 WALK_CENTRE, WALK_R, WALK_W = (4.75, 0.0, 0.2), 0.85, 1.5  # metres, metres, rad/s
-
-
-@dataclass
-class Recording:
-    kind: str
-    ticks: np.ndarray  # (F,)
-    positions: np.ndarray  # (F, n, 3)
-    triangles: np.ndarray
-    props: list  # per frame: the steered things, [(p0, p1, radius, colour)] (capsules; spheres p0 == p1)
-    received: int
-    missing: int
-    duplicates: int
 
 
 # ------------------------------------------------------------------------------------------------
@@ -92,23 +75,6 @@ def curtain_mesh() -> tuple[np.ndarray, np.ndarray]:
     return v, t
 
 
-def cape_mesh() -> tuple[np.ndarray, np.ndarray]:
-    """The cape's rest shape in its wearer's frame (x right, y up, z behind; the neck at the
-    origin): a flared cone around the back, its top row a ring of radius NECK_R at shoulder
-    height, widening to HEM_R at the hem. Triangles wound so that normals point outwards."""
-    from drape.client import protocol as P
-
-    _, t = P.grid_positions(CAPE_COLS, CAPE_ROWS, 1.0, 1.0, "vertical")
-    r = np.repeat(np.linspace(0.0, 1.0, CAPE_ROWS), CAPE_COLS)
-    a = np.tile(np.linspace(-CAPE_ARC, CAPE_ARC, CAPE_COLS), CAPE_ROWS)
-    rad = NECK_R + (HEM_R - NECK_R) * r**1.3
-    v = np.stack([rad * np.sin(a), -CAPE_LEN * r, rad * np.cos(a)], 1)
-    n = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
-    if float((n * v[t[:, 0]] * [1, 0, 1]).sum()) < 0:  # inward: turn the triangles around
-        t = t[:, ::-1].copy()
-    return v, t
-
-
 def ball_pose(t: float) -> tuple[np.ndarray, np.ndarray]:
     """The ball on its rope at time t: a pendulum swinging along x from its highest point, in
     front of the curtain. Returns (pivot, centre)."""
@@ -132,43 +98,10 @@ def walker_pose(t: float) -> tuple[np.ndarray, np.ndarray, float]:
     return pos, np.stack([right, up, -heading], 1), phase
 
 
-MANNEQUIN = (92, 98, 112)
-SKIN = (214, 176, 146)
-
-
 def walker_parts(t: float) -> tuple[list[list[Any]], list[dict[str, Any]]]:
     """The wearer's body at time t: capsules to draw [(p0, p1, radius, colour)] and the cape's
     colliders (torso, legs and head)."""
     return body_parts(*walker_pose(t))
-
-
-def body_parts(pos: np.ndarray, frame: np.ndarray, phase: float) -> tuple[list[list[Any]], list[dict[str, Any]]]:
-    """A walker's body at its feet ``pos``, ``frame`` (right, up, behind) and stride ``phase``:
-    capsules to draw and a cape's colliders (walker_parts; demoscene's two walkers)."""
-
-    def at(x: float, y: float, z: float) -> np.ndarray:
-        return pos + frame @ np.array([x, y, z])
-
-    swing = 0.45 * math.sin(phase)
-    parts: list[list[Any]] = []
-    colliders: list[dict[str, Any]] = []
-    torso = (at(0, 1.3, 0.0), at(0, 0.98, 0.0), 0.165)
-    parts.append([*torso, MANNEQUIN])
-    colliders.append({"type": "capsule", "p0": tuple(torso[0]), "p1": tuple(torso[1]), "radius": 0.18})
-    for side, s in ((-1, swing), (1, -swing)):
-        hip = at(0.09 * side, 0.92, 0.0)
-        foot = at(0.09 * side, 0.08, 0.0) + frame @ np.array([0.0, 0.0, -0.84 * math.sin(s)])
-        foot[1] = pos[1] + 0.08 + 0.05 * max(0.0, math.sin(phase + (0 if side < 0 else math.pi)))
-        parts.append([hip, foot, 0.075, MANNEQUIN])
-        colliders.append({"type": "capsule", "p0": tuple(hip), "p1": tuple(foot), "radius": 0.09})
-        shoulder = at(0.2 * side, 1.36, 0.0)
-        hand = at(0.23 * side, 0.78, 0.0) + frame @ np.array([0.0, 0.0, 0.45 * math.sin(s)])
-        parts.append([shoulder, hand, 0.055, MANNEQUIN])
-    parts.append([at(0, 1.42, 0), at(0, 1.52, 0), 0.06, SKIN])  # neck
-    head = at(0, 1.66, 0)
-    parts.append([head, head, 0.115, SKIN])
-    colliders.append({"type": "sphere", "center": tuple(head), "radius": 0.14})
-    return [[np.asarray(p[0]).tolist(), np.asarray(p[1]).tolist(), p[2], p[3]] for p in parts], colliders
 
 
 # ------------------------------------------------------------------------------------------------
@@ -270,32 +203,7 @@ def run_client(kind: str, endpoint: str, seconds: float, fps: float, out: str, r
                 props.append(drawn)
             if time.monotonic() - start > seconds:
                 break
-        span = (max(seen) - min(seen) + 1) if seen else 0
-        np.savez_compressed(
-            Path(out) / f"{kind}.npz",
-            ticks=np.asarray(ticks, np.int64),
-            positions=np.asarray(frames, np.float32).reshape(len(frames), -1, 3),
-            triangles=np.asarray(cloth.triangles, np.int32),
-            received=len(seen),
-            missing=span - len(seen),
-            duplicates=dup,
-        )
-        (Path(out) / f"{kind}-props.json").write_text(json.dumps(props))
-
-
-def load_recording(out: Path, kind: str) -> Recording:
-    d = np.load(out / f"{kind}.npz")
-    props = json.loads((out / f"{kind}-props.json").read_text())
-    return Recording(
-        kind,
-        d["ticks"],
-        d["positions"],
-        d["triangles"],
-        list(props),
-        int(d["received"]),
-        int(d["missing"]),
-        int(d["duplicates"]),
-    )
+        save_recording(out, kind, ticks, frames, cloth.triangles, props, seen, dup)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -308,51 +216,32 @@ ROD = (150, 118, 60)
 POLE_COLOUR = (88, 80, 74)
 
 
-def _uv(rows: int, cols: int) -> np.ndarray:
-    """Texture coordinates of a grid's vertices: u along a row (0..1), v down the columns."""
-    u = np.tile(np.linspace(0.0, 1.0, cols), rows)
-    v = np.repeat(np.linspace(0.0, 1.0, rows), cols)
-    return np.stack([u, v], 1)
-
-
 def _flag_texture(uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The banner: three bands with a disc at the hoist, the same both sides."""
-    from .render import _linear
+    from .rendermath import linear
 
     u, v = uv[:, 0], uv[:, 1]
     band = np.clip((v * 3).astype(int), 0, 2)
-    col = _linear(np.array([(24, 96, 132), (238, 232, 214), (214, 84, 56)]))[band]
+    col = linear(np.array([(24, 96, 132), (238, 232, 214), (214, 84, 56)]))[band]
     disc = (u - 0.24) ** 2 * (FLAG_W / FLAG_H) ** 2 + (v - 0.5) ** 2 < 0.2**2
-    col[disc] = _linear((236, 178, 48))
+    col[disc] = linear((236, 178, 48))
     return col, col
 
 
 def _curtain_texture(uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Red velvet with a gold band above the hem; the back a duller lining."""
-    from .render import _linear
+    from .rendermath import linear
 
     v = uv[:, 1]
-    front = np.broadcast_to(_linear((150, 22, 34)), (len(v), 3)).copy()
-    front[(v > 0.9) & (v < 0.95)] = _linear((210, 160, 60))
+    front = np.broadcast_to(linear((150, 22, 34)), (len(v), 3)).copy()
+    front[(v > 0.9) & (v < 0.95)] = linear((210, 160, 60))
     return front, front * 0.6
-
-
-def _cape_texture(uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A royal-blue cape with a gold border, lined in crimson."""
-    from .render import _linear
-
-    u, v = uv[:, 0], uv[:, 1]
-    front = np.broadcast_to(_linear((38, 52, 132)), (len(u), 3)).copy()
-    border = (u < 0.035) | (u > 0.965) | (v > 0.955)
-    front[border] = _linear((214, 166, 60))
-    back = np.broadcast_to(_linear((150, 26, 40)), (len(u), 3)).copy()
-    return front, back
 
 
 TEXTURES = {
     "flag": (_flag_texture, FLAG_ROWS, FLAG_COLS),
     "curtain": (_curtain_texture, CURTAIN_ROWS, CURTAIN_COLS),
-    "cape": (_cape_texture, CAPE_ROWS, CAPE_COLS),
+    "cape": (cape_texture, CAPE_ROWS, CAPE_COLS),
 }
 
 
@@ -371,7 +260,8 @@ def _static_props() -> list[list[Any]]:
 
 def render_frame(recs: list[Recording], index: dict[str, dict[int, int]], tick: int, size: tuple[int, int]) -> Any:
     """One frame: every recording's cloth at ``tick`` and the props, from the demo's camera."""
-    from .render import Camera, capsule_mesh, cloth_mesh, draw_scene
+    from .drawmeshes import capsule_mesh, cloth_mesh
+    from .render import Camera, draw_scene
 
     meshes = []
     props = _static_props()
@@ -379,7 +269,7 @@ def render_frame(recs: list[Recording], index: dict[str, dict[int, int]], tick: 
         i = index[r.kind][tick]
         tex, rows, cols = TEXTURES[r.kind]
         m = cloth_mesh(r.positions[i], r.triangles, (128, 128, 128))
-        m.uv, m.texture = _uv(rows, cols), tex
+        m.uv, m.texture = grid_uv(rows, cols), tex
         m.sheen = 0.5 if r.kind == "curtain" else 0.2
         meshes.append(m)
         props += r.props[i]
@@ -399,119 +289,13 @@ def render_frame(recs: list[Recording], index: dict[str, dict[int, int]], tick: 
 
 
 def _render_chunk(args: tuple[Path, list[int], tuple[int, int], int]) -> list[Path]:
-    out, ticks, size, first = args
-    from .render import write_png
-
-    recs = [load_recording(out, k) for k in KINDS]
-    index = {r.kind: {int(t): i for i, t in enumerate(r.ticks)} for r in recs}
-    paths = []
-    for k, tick in enumerate(ticks):
-        paths.append(write_png(out / f"frame_{first + k:04d}.png", render_frame(recs, index, tick, size)))
-    return paths
-
-
-def render(
-    recs: list[Recording], out: Path, size: tuple[int, int], fps: float, chunk: Any = None, name: str = "drape-demo.gif"
-) -> tuple[list[Path], Path]:
-    """Every common tick's frame as PNG (in two processes: the demo machine may have two cores;
-    ``chunk`` renders a part, default this stage's), then the GIF ``name``."""
-    chunk = chunk or _render_chunk
-    from PIL import Image
-
-    from .render import write_gif
-
-    common = sorted(set.intersection(*(set(r.ticks.tolist()) for r in recs))) if recs else []
-    jobs = min(2, mp.cpu_count(), max(1, len(common)))
-    parts = np.array_split(np.arange(len(common)), jobs)
-    work = [(out, [common[i] for i in p.tolist()], size, int(p[0]) if len(p) else 0) for p in parts]
-    if jobs > 1:
-        with mp.get_context("spawn").Pool(jobs) as pool:
-            paths = [q for part in pool.map(chunk, work) for q in part]
-    else:
-        paths = chunk(work[0]) if common else []
-    frames = [np.asarray(Image.open(p).convert("RGB")) for p in paths]
-    gif = out / name
-    if frames:
-        write_gif(gif, frames, fps=fps, colours=256)  # smooth shading: 128 colours band
-    return paths, gif
+    return render_chunk(*args, KINDS, render_frame, "frame")
 
 
 # ------------------------------------------------------------------------------------------------
 # Command
 
 
-class ClientFailed(RuntimeError):
-    """A demo client process failed or did not get going (its server alive)."""
-
-
-def _run_clients(server: ServerProcess, args: argparse.Namespace, out: Path) -> None:
-    """The three client processes against ``server``: started, waited on until each has its
-    cloth accepted, told to go together, joined. The server is polled all along: when it exits,
-    :class:`ServerExited` says so at once (with its last log lines) rather than a client's
-    timeout blaming the client."""
-    ctx = mp.get_context("spawn")
-    procs = []
-    go = ctx.Event()
-    try:
-        for kind in KINDS:
-            ready = ctx.Event()
-            p = ctx.Process(
-                target=run_client,
-                args=(kind, server.endpoint, args.seconds, args.fps, str(out), ready, go),
-                name=f"demo-{kind}",
-            )
-            p.start()
-            procs.append((p, ready))
-        deadline = time.monotonic() + 60
-        for p, ready in procs:
-            while not ready.wait(0.2):
-                server.check("the demo clients' cloths were accepted")
-                if not p.is_alive():
-                    raise ClientFailed(f"{p.name} failed before its cloth was accepted (exit code {p.exitcode})")
-                if time.monotonic() > deadline:
-                    raise ClientFailed(f"{p.name} did not get its cloth accepted in 60 s")
-        go.set()
-        log.info("clients running for %.1f s", args.seconds)
-        deadline = time.monotonic() + args.seconds + 60
-        for p, _ in procs:
-            while p.is_alive() and time.monotonic() < deadline:
-                p.join(0.2)
-                if p.is_alive():
-                    server.check(f"the demo clients finished their {args.seconds:g} s")
-            if p.exitcode != 0:
-                server.check(f"the demo clients finished their {args.seconds:g} s")
-                raise ClientFailed(f"{p.name} failed (exit code {p.exitcode})")
-    finally:
-        for p, _ in procs:
-            if p.is_alive():
-                p.terminate()
-                p.join(5)
-
-
 def run(args: argparse.Namespace) -> int:
     """The three-cloth stage (``drape demo``'s default, demostages.py)."""
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    server = demo_server(args, TICK_HZ)
-    try:
-        _run_clients(server, args, out)
-    except (ServerExited, ClientFailed) as e:
-        print(f"drape demo: {e}", file=sys.stderr)
-        return 1
-    finally:
-        server.stop(grace=15)
-    recs = [load_recording(out, k) for k in KINDS]
-    for r in recs:
-        print(f"{r.kind:8s} received {r.received} states over Zenoh, {r.missing} missing, {r.duplicates} duplicated")
-        if len(r.positions) and not np.isfinite(r.positions).all():
-            raise RuntimeError(f"{r.kind}: non-finite positions received")
-    w, h = (int(v) for v in args.size.lower().split("x"))
-    log.info("rendering %d frames", min(len(r.ticks) for r in recs))
-    t0 = time.monotonic()
-    paths, gif = render(recs, out, (w, h), args.fps)
-    log.info("rendered %d frames in %.1f s", len(paths), time.monotonic() - t0)
-    if not paths:
-        raise RuntimeError("no frames: the clients received no common ticks")
-    print(f"wrote {len(paths)} PNG frames: {paths[0]} .. {paths[-1]}")
-    print(f"wrote {gif}")
-    return 0
+    return run_stage(args, KINDS, run_client, _render_chunk, "drape-demo.gif")

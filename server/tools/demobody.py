@@ -25,10 +25,11 @@ import numpy as np
 from ..sim.bodymesh import body_mesh
 from ..sim.collision import penetration
 from ..sim.meshes import pose_matrix
+from .demorun import wrote
+from .imagefiles import write_gif, write_png
 from .meshdemo import draw
 from .penetration import DT, Runner
 from .procs import ServerExited, demo_server
-from .render import write_gif, write_png
 
 log = logging.getLogger(__name__)
 
@@ -118,10 +119,7 @@ def run(args: argparse.Namespace) -> int:
         caption = f"t = {t:4.2f} s  Zenoh, 1.8: {body.n_triangles:,}-triangle body"
         imgs.append(draw(xs[i], tris, body, poses[i], w, caption))
     paths = [write_png(out / f"body_{i * every:03d}.png", img) for i, img in enumerate(imgs)]
-    gif = write_gif(out / "drape-body.gif", imgs, fps=60 / every)
-    print(f"wrote {len(paths)} PNG frames: {paths[0]} .. {paths[-1]}")
-    print(f"wrote {gif}")
-    return 0
+    return wrote(paths, write_gif(out / "drape-body.gif", imgs, fps=60 / every))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -7,18 +7,15 @@ that each cape keeps out of both bodies. Bob's client submits his cape into her 
 client pins its cape around its own walker's shoulders every tick; the walkers come towards each
 other along parallel lines 0.6 m apart, their capes (flared cones around their backs, dragged
 out behind by the air) meeting at the sides as they pass. The server is ``drape serve`` as in
-the three-cloth stage (server/tools/demo.py, whose cape, walker body, textures and renderer this
-stage reuses); frames and ``drape-crossing.gif`` go to ``--out``.
+the three-cloth stage (server/tools/demo.py; the cape, its wearer's body and texture are
+demowearer.py's); frames and ``drape-crossing.gif`` go to ``--out``.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
-import multiprocessing as mp
-import sys
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
@@ -26,21 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from .demo import (
-    CAPE_COLS,
-    CAPE_ROWS,
-    SHOULDER_Y,
-    TICK_HZ,
-    ClientFailed,
-    Recording,
-    _cape_texture,
-    _uv,
-    body_parts,
-    cape_mesh,
-    load_recording,
-    render,
-)
-from .procs import ServerExited, ServerProcess, demo_server
+from .demorun import TICK_HZ, Recording, render_chunk, run_stage, save_recording
+from .demowearer import CAPE_COLS, CAPE_ROWS, SHOULDER_Y, body_parts, cape_mesh, cape_texture, grid_uv
 
 log = logging.getLogger(__name__)
 
@@ -137,40 +121,31 @@ def run_client(name: str, endpoint: str, seconds: float, fps: float, out: str, r
             if time.monotonic() - start > seconds:
                 break
         sender.shutdown()
-        span = (max(seen) - min(seen) + 1) if seen else 0
-        np.savez_compressed(
-            Path(out) / f"{name}.npz",
-            ticks=np.asarray(ticks, np.int64),
-            positions=np.asarray(frames, np.float32).reshape(len(frames), -1, 3),
-            triangles=np.asarray(cloth.triangles, np.int32),
-            received=len(seen),
-            missing=span - len(seen),
-            duplicates=0,
-        )
-        (Path(out) / f"{name}-props.json").write_text(json.dumps(props))
+        save_recording(out, name, ticks, frames, cloth.triangles, props, seen)
 
 
 def _bob_texture(uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Bob's cape: deep green with a silver border, lined in ochre (alice's is demo.py's blue)."""
-    from .render import _linear
+    """Bob's cape: deep green with a silver border, lined in ochre (alice's is demowearer.py's blue)."""
+    from .rendermath import linear
 
     u, v = uv[:, 0], uv[:, 1]
-    front = np.broadcast_to(_linear((28, 104, 64)), (len(u), 3)).copy()
-    front[(u < 0.035) | (u > 0.965) | (v > 0.955)] = _linear((200, 204, 210))
-    return front, np.broadcast_to(_linear((190, 140, 50)), (len(u), 3)).copy()
+    front = np.broadcast_to(linear((28, 104, 64)), (len(u), 3)).copy()
+    front[(u < 0.035) | (u > 0.965) | (v > 0.955)] = linear((200, 204, 210))
+    return front, np.broadcast_to(linear((190, 140, 50)), (len(u), 3)).copy()
 
 
-TEXTURES = {"alice": _cape_texture, "bob": _bob_texture}
+TEXTURES = {"alice": cape_texture, "bob": _bob_texture}
 
 
 def render_frame(recs: list[Recording], index: dict[str, dict[int, int]], tick: int, size: tuple[int, int]) -> Any:
-    from .render import Camera, capsule_mesh, cloth_mesh, draw_scene
+    from .drawmeshes import capsule_mesh, cloth_mesh
+    from .render import Camera, draw_scene
 
     meshes, props = [], []
     for r in recs:
         i = index[r.kind][tick]
         m = cloth_mesh(r.positions[i], r.triangles, (128, 128, 128))
-        m.uv, m.texture, m.sheen = _uv(CAPE_ROWS, CAPE_COLS), TEXTURES[r.kind], 0.2
+        m.uv, m.texture, m.sheen = grid_uv(CAPE_ROWS, CAPE_COLS), TEXTURES[r.kind], 0.2
         meshes.append(m)
         props += r.props[i]
     for p0, p1, radius, colour in props:
@@ -190,69 +165,9 @@ def render_frame(recs: list[Recording], index: dict[str, dict[int, int]], tick: 
 
 
 def _render_chunk(args: tuple[Path, list[int], tuple[int, int], int]) -> list[Path]:
-    out, ticks, size, first = args
-    from .render import write_png
-
-    recs = [load_recording(out, k) for k in WALKERS]
-    index = {r.kind: {int(t): i for i, t in enumerate(r.ticks)} for r in recs}
-    return [
-        write_png(out / f"crossing_{first + k:04d}.png", render_frame(recs, index, tick, size))
-        for k, tick in enumerate(ticks)
-    ]
-
-
-def _run_clients(server: ServerProcess, args: argparse.Namespace, out: Path) -> None:
-    """Alice first (her cape founds the scene and lets bob in), then bob; both go together."""
-    ctx = mp.get_context("spawn")
-    go, procs = ctx.Event(), []
-    try:
-        for name in WALKERS:
-            ready = ctx.Event()
-            p = ctx.Process(
-                target=run_client, args=(name, server.endpoint, args.seconds, args.fps, str(out), ready, go), name=name
-            )
-            p.start()
-            procs.append(p)
-            deadline = time.monotonic() + 150
-            while not ready.wait(0.2):
-                server.check("the demo clients' capes were accepted")
-                if not p.is_alive() or time.monotonic() > deadline:
-                    raise ClientFailed(f"{name}'s cape was not accepted (exit code {p.exitcode})")
-        go.set()
-        deadline = time.monotonic() + args.seconds + 60
-        for p in procs:
-            while p.is_alive() and time.monotonic() < deadline:
-                p.join(0.2)
-            if p.exitcode != 0:
-                server.check("the demo clients finished")
-                raise ClientFailed(f"{p.name} failed (exit code {p.exitcode})")
-    finally:
-        for p in procs:
-            if p.is_alive():
-                p.terminate()
-                p.join(5)
+    return render_chunk(*args, WALKERS, render_frame, "crossing")
 
 
 def run(args: argparse.Namespace) -> int:
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    server = demo_server(args, TICK_HZ)
-    try:
-        _run_clients(server, args, out)
-    except (ServerExited, ClientFailed) as e:
-        print(f"drape demo: {e}", file=sys.stderr)
-        return 1
-    finally:
-        server.stop(grace=15)
-    recs = [load_recording(out, k) for k in WALKERS]
-    for r in recs:
-        print(f"{r.kind:6s} received {r.received} states over Zenoh, {r.missing} missing")
-        if len(r.positions) and not np.isfinite(r.positions).all():
-            raise RuntimeError(f"{r.kind}: non-finite positions received")
-    w, h = (int(v) for v in args.size.lower().split("x"))
-    paths, gif = render(recs, out, (w, h), args.fps, chunk=_render_chunk, name="drape-crossing.gif")
-    if not paths:
-        raise RuntimeError("no frames: the clients received no common ticks")
-    print(f"wrote {len(paths)} PNG frames: {paths[0]} .. {paths[-1]}")
-    print(f"wrote {gif}")
-    return 0
+    """Alice first (her cape founds the scene and lets bob in), then bob; both go together."""
+    return run_stage(args, WALKERS, run_client, _render_chunk, "drape-crossing.gif", one_by_one=True)

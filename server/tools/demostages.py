@@ -5,7 +5,9 @@
   scene (protocol 1.7);
 - ``body`` (server/tools/demobody.py): a cape on a running body mesh (protocol 1.8 mesh colliders).
 
-Each stage module provides ``run(args) -> int``; the stages share the options below.
+Each stage module provides ``run(args) -> int``; the stages share the options below, and the
+recorded stages (``three``, ``crossing``: client processes, their recordings rendered afterwards)
+share their run (server/tools/demorun.py).
 """
 
 from __future__ import annotations

@@ -22,7 +22,8 @@ from ..sim import make_world
 from ..sim.bodymesh import body_mesh
 from ..sim.meshes import CollisionMesh
 from . import penetration
-from .render import render_scene, write_gif, write_png
+from .imagefiles import write_gif, write_png
+from .render import render_scene
 
 CAPE = (150, 30, 40)
 CAPE_BACK = (110, 25, 35)

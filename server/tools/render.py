@@ -1,33 +1,30 @@
 """Shaded 3-D pictures of cloths for ``drape demo``: a small numpy rasteriser with a depth buffer,
 per-pixel normals and shadows, with Pillow for the text and the files.
 
-Every primitive becomes triangles with per-vertex normals and colours: cloths (their normals
-averaged over the triangles around each vertex, so shading is smooth across the grid; two-sided,
-with a colour for each side), and collider balls and capsules (closed meshes). One pass finds
-each pixel's nearest triangle (a depth buffer: a ball pushed into a cloth meets it along the true
-intersection, never a painter's-algorithm edge) and its barycentric coordinates; normals,
+Every primitive becomes triangles with per-vertex normals and colours (``drawmeshes``). One
+pass finds each pixel's nearest triangle and its barycentric coordinates (``raster``); normals,
 colours and world positions are interpolated there and lit per pixel: a key light (with shadows
 from a shadow map, soft by percentage-closer filtering), a fill light, sky and ground ambient,
 specular highlights and light through thin cloth, in linear colour. The floor is the plane at
 the bottom of the bounds, traced per pixel (tiles, shadows, faded into the background). The
 camera is orthographic (fitting a box: ``front``, ``side``, ``top``, ``iso``) or perspective
 (:meth:`Camera.look_at`). Frames are drawn ``supersample`` times larger and scaled down (smooth
-edges). Frames are written as PNG and as an animated GIF with one palette for all frames.
-Pillow is imported inside the functions (the ``tools`` extra).
+edges). Colours and vectors: ``rendermath``; the PNG and GIF files: ``imagefiles``. Pillow is
+imported inside the functions (the ``tools`` extra).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import lru_cache
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-Colour = tuple[int, int, int]
+from .drawmeshes import Mesh, capsule_mesh, cloth_mesh, sphere_mesh
+from .raster import ShadowMap, Taps, rasterise
+from .rendermath import Colour, linear, rgb, srgb, unit
 
 
 def _rot_x(a: float) -> np.ndarray:
@@ -72,34 +69,10 @@ class Lighting:
     exposure: float = 1.0
 
     def key_dir(self) -> np.ndarray:
-        return _unit(np.asarray(self.key, np.float64))
+        return unit(np.asarray(self.key, np.float64))
 
 
 DEFAULT_LIGHTING = Lighting()
-
-
-def _unit(v: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
-    return v / np.where(n > 0, n, 1.0)
-
-
-def _linear(c: Any) -> np.ndarray:
-    """sRGB 0-255 colours (..., 3) to linear 0-1."""
-    return (np.asarray(c, np.float64)[..., :3] / 255.0) ** 2.2
-
-
-@lru_cache(maxsize=1)
-def _srgb_table() -> np.ndarray:
-    """Linear 0..2 in 4096 steps to sRGB uint8, highlights above 0.8 rolled off, not clipped."""
-    x = np.linspace(0.0, 2.0, 4096)
-    x = np.where(x > 0.8, 0.8 + 0.2 * np.tanh((x - 0.8) / 0.2), x)
-    return np.clip(255.0 * x ** (1 / 2.2) + 0.5, 0, 255).astype(np.uint8)
-
-
-def _srgb(x: np.ndarray) -> np.ndarray:
-    """Linear colours to sRGB 0-255 uint8 (by table)."""
-    i = np.clip(x * (4095 / 2.0), 0, 4095).astype(np.int32)
-    return _srgb_table()[i]
 
 
 class Camera:
@@ -132,8 +105,8 @@ class Camera:
         field of view, for an image of ``size`` (w, h) pixels."""
         cam = cls.__new__(cls)
         e, t = np.asarray(eye, np.float64), np.asarray(target, np.float64)
-        back = _unit(e - t)
-        right = _unit(np.cross([0.0, 1.0, 0.0], back))
+        back = unit(e - t)
+        right = unit(np.cross([0.0, 1.0, 0.0], back))
         up = np.cross(back, right)
         cam.R = np.array([right, up, back])
         cam.perspective = True
@@ -167,14 +140,14 @@ class Camera:
         u = (px - self.cx) / self.scale
         v = -(py - self.cy) / self.scale
         if self.perspective:
-            d = _unit(np.stack([u, v, -np.ones_like(u)], -1)) @ self.R
+            d = unit(np.stack([u, v, -np.ones_like(u)], -1)) @ self.R
             return np.broadcast_to(self.eye, d.shape), d
         o = np.stack([u + self.uc, v + self.vc, np.zeros_like(u)], -1) @ self.R
         return o, np.broadcast_to(-self.R[2], o.shape)
 
     def to_eye(self, p: np.ndarray) -> np.ndarray:
         if self.perspective:
-            return _unit(self.eye - p)
+            return unit(self.eye - p)
         return np.broadcast_to(self.R[2], p.shape)
 
 
@@ -189,266 +162,8 @@ def fit_bounds(points: Sequence[np.ndarray], margin: float = 0.05) -> np.ndarray
     return np.array([lo - margin * ext, hi + margin * ext])
 
 
-def _rgb(c: Sequence[int]) -> Colour:
-    return int(c[0]), int(c[1]), int(c[2])
-
-
-# ------------------------------------------------------------------------------------------------
-# Geometry: everything as triangles with per-vertex normals and colours
-
-
-@dataclass
-class Mesh:
-    """Triangles to draw: positions, unit normals, linear colours of the front and back sides
-    (n, 3) each, triangles (m, 3); ``two_sided``: a thin sheet (the side facing the viewer is lit,
-    light passes through); ``specular`` / ``shininess``: Blinn-Phong highlight."""
-
-    positions: np.ndarray
-    normals: np.ndarray
-    front: np.ndarray
-    back: np.ndarray
-    triangles: np.ndarray
-    two_sided: bool = False
-    specular: float = 0.0
-    shininess: float = 20.0
-    shadows: bool = True  # casts shadows
-    sheen: float = 0.0  # brightening at grazing angles (velvet, satin)
-    uv: np.ndarray | None = None  # (n, 2) texture coordinates, with ``texture``
-    texture: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None  # uv (k, 2) -> front, back
-
-
-def vertex_normals(p: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Per-vertex unit normals: the area-weighted sum of the normals of the triangles around each."""
-    face = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
-    n = np.zeros_like(p)
-    for k in range(3):
-        np.add.at(n, t[:, k], face)
-    return _unit(n)
-
-
-def cloth_mesh(pos: Any, tris: Any, colour: Any, back: Any = None) -> Mesh:
-    """A two-sided cloth; ``colour`` / ``back``: one sRGB colour or one per vertex (n, 3).
-    Triangles with a non-finite corner are dropped."""
-    p = np.asarray(pos, np.float64).reshape(-1, 3)
-    t = np.asarray(tris, np.int64).reshape(-1, 3)
-    if len(t) and (t.min() < 0 or t.max() >= len(p)):
-        raise ValueError(f"triangle indices out of range for {len(p)} positions")
-    t = t[np.isfinite(p[t]).all(axis=(1, 2))] if len(t) else t
-    p = np.where(np.isfinite(p), p, 0.0)
-    front = np.broadcast_to(_linear(colour), p.shape).copy()
-    backc = front * 0.8 if back is None else np.broadcast_to(_linear(back), p.shape).copy()
-    return Mesh(p, vertex_normals(p, t) if len(t) else np.zeros_like(p), front, backc, t, True, 0.04, 10.0)
-
-
-@lru_cache(maxsize=8)
-def _unit_rings(lat: int, lon: int) -> tuple[np.ndarray, np.ndarray]:
-    """Ring angles of a UV sphere: ``lat + 1`` latitudes from -90 to 90 degrees, ``lon`` longitudes."""
-    return np.linspace(-math.pi / 2, math.pi / 2, lat + 1), np.linspace(0, 2 * math.pi, lon, endpoint=False)
-
-
-def _ring_triangles(rings: int, lon: int) -> np.ndarray:
-    """Triangles joining ``rings`` consecutive rings of ``lon`` vertices each."""
-    i, j = np.meshgrid(np.arange(rings - 1), np.arange(lon), indexing="ij")
-    a = i * lon + j
-    b = i * lon + (j + 1) % lon
-    c = a + lon
-    d = b + lon
-    return np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
-
-
-@lru_cache(maxsize=64)
-def _capsule_template(segments: int, pieces: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A unit capsule in its own frame (e1, e2, axis): vertex directions (n, 3), each vertex's
-    place along the axis (0 at p0, 1 at p1) and the triangles; ``pieces`` cylinder sections
-    (0: a sphere)."""
-    lats, lons = _unit_rings(max(4, segments // 2), segments)
-    around = np.stack([np.cos(lons), np.sin(lons), np.zeros_like(lons)], 1)
-    dirs, along = [], []
-    for phi in lats:
-        ring = math.cos(phi) * around + [0.0, 0.0, math.sin(phi)]
-        dirs.append(ring)
-        along.append(np.full(len(lons), 1.0 if phi > 0 else 0.0))
-        if abs(phi) < 1e-9 and pieces:  # the cylinder between the ends, in short pieces
-            for f in np.linspace(0.0, 1.0, pieces + 1)[1:]:
-                dirs.append(ring)
-                along.append(np.full(len(lons), f))
-    return np.concatenate(dirs), np.concatenate(along), _ring_triangles(len(dirs), len(lons))
-
-
-def capsule_mesh(
-    p0: Any, p1: Any, radius: float, colour: Any, specular: float = 0.35, shininess: float = 40.0, segments: int = 24
-) -> Mesh:
-    """A capsule (a sphere when ``p0`` == ``p1``): smooth normals, ``segments`` around."""
-    a, b = np.asarray(p0, np.float64), np.asarray(p1, np.float64)
-    axis = b - a
-    ln = float(np.linalg.norm(axis))
-    w = axis / ln if ln > 1e-9 else np.array([0.0, 1.0, 0.0])
-    e1 = _unit(np.cross(w, [1.0, 0, 0] if abs(w[0]) < 0.9 else [0, 0, 1.0]))
-    e2 = np.cross(w, e1)
-    pieces = int(np.clip(math.ceil(ln / (3 * radius)), 1, 48)) if ln > 1e-9 else 0
-    local, along, t = _capsule_template(segments, pieces)
-    n = local @ np.array([e1, e2, w])
-    p = a + along[:, None] * axis + radius * n
-    c = np.broadcast_to(_linear(colour), p.shape).copy()
-    return Mesh(p, n, c, c, t, False, specular, shininess)
-
-
-def sphere_mesh(centre: Any, radius: float, colour: Any, specular: float = 0.35, shininess: float = 40.0) -> Mesh:
-    return capsule_mesh(centre, centre, radius, colour, specular, shininess)
-
-
-# ------------------------------------------------------------------------------------------------
-# Rasterising
-
-
-def rasterise(
-    sx: np.ndarray, sy: np.ndarray, depth: np.ndarray, w: int, h: int, chunk: int = 4_000_000
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The nearest triangle at each pixel centre of a ``w`` x ``h`` image.
-
-    ``sx``, ``sy``, ``depth``: (m, 3) each, the corners' pixel coordinates and depths (larger is
-    farther). Returns the depth buffer (h * w, inf where empty), the triangle index (-1 where
-    empty) and the barycentric weights of corners 1 and 2 there."""
-    zbuf = np.full(h * w, np.inf)
-    tri = np.full(h * w, -1, np.int64)
-    b1 = np.zeros(h * w)
-    b2 = np.zeros(h * w)
-    if not len(sx):
-        return zbuf, tri, b1, b2
-    x0, x1, x2 = sx.T
-    y0, y1, y2 = sy.T
-    area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
-    ok = np.isfinite(area) & (np.abs(area) > 1e-9) & np.isfinite(depth).all(axis=1)
-    with np.errstate(invalid="ignore"):
-        xmin = np.ceil(np.nan_to_num(sx.min(1)) - 0.5).clip(0, w).astype(np.int64)
-        xmax = np.floor(np.nan_to_num(sx.max(1)) - 0.5).clip(-1, w - 1).astype(np.int64)
-        ymin = np.ceil(np.nan_to_num(sy.min(1)) - 0.5).clip(0, h).astype(np.int64)
-        ymax = np.floor(np.nan_to_num(sy.max(1)) - 0.5).clip(-1, h - 1).astype(np.int64)
-    bw, bh = xmax - xmin + 1, ymax - ymin + 1
-    cnt = np.where(ok & (bw > 0) & (bh > 0), bw * bh, 0)
-    idx = np.nonzero(cnt)[0]
-    if not len(idx):
-        return zbuf, tri, b1, b2
-    # chunks of triangles of at most ``chunk`` candidate pixels (one huge triangle is one chunk)
-    csum = np.cumsum(cnt[idx])
-    bounds = np.searchsorted(csum, np.arange(chunk, int(csum[-1]) + chunk, chunk), side="right")
-    cands = []
-    start = 0
-    for stop in [*bounds.tolist(), len(idx)]:
-        if stop <= start:
-            continue
-        sel = idx[start:stop]
-        start = stop
-        c = cnt[sel]
-        t = np.repeat(sel, c)
-        off = np.arange(int(c.sum())) - np.repeat(np.cumsum(c) - c, c)
-        px = xmin[t] + off % bw[t]
-        py = ymin[t] + off // bw[t]
-        X, Y = px + 0.5 - x0[t], py + 0.5 - y0[t]
-        ar = area[t]
-        w1 = (X * (y2 - y0)[t] - (x2 - x0)[t] * Y) / ar
-        w2 = ((x1 - x0)[t] * Y - X * (y1 - y0)[t]) / ar
-        inside = (w1 >= -1e-6) & (w2 >= -1e-6) & (w1 + w2 <= 1 + 1e-6)
-        t, px, py, w1, w2 = t[inside], px[inside], py[inside], w1[inside], w2[inside]
-        d = depth[t]
-        z = d[:, 0] + w1 * (d[:, 1] - d[:, 0]) + w2 * (d[:, 2] - d[:, 0])
-        pix = py * w + px
-        np.minimum.at(zbuf, pix, z)
-        cands.append((pix, z, t, w1, w2))
-    for pix, z, t, w1, w2 in cands:
-        win = z <= zbuf[pix]
-        p = pix[win]
-        tri[p], b1[p], b2[p] = t[win], w1[win], w2[win]
-    return zbuf, tri, b1, b2
-
-
-@dataclass
-class _Taps:
-    """World points prepared for shadow lookups in one shadow map frame: which points fall in
-    it, their texel index in the padded map, bilinear weights and depths."""
-
-    near: np.ndarray
-    index: np.ndarray
-    fu: np.ndarray
-    fv: np.ndarray
-    depth: np.ndarray
-
-
-class ShadowMap:
-    """Depth from the key light (an orthographic view along it) over ``meshes``; :meth:`lit`
-    tells how lit world points are (0 shadowed .. 1 lit), filtered over neighbouring texels.
-    ``region`` (a world box): the map covers it, always the same texels (points prepared once
-    with :meth:`taps` serve every frame); None: it covers the meshes."""
-
-    def __init__(self, meshes: Sequence[Mesh], light: np.ndarray, res: int = 400, region: Any = None) -> None:
-        back = _unit(np.asarray(light, np.float64))
-        right = _unit(np.cross([0.0, 1.0, 0.0] if abs(back[1]) < 0.99 else [1.0, 0, 0], back))
-        self.R = np.array([right, np.cross(back, right), back])
-        cast = [m for m in meshes if m.shadows and len(m.triangles)]
-        self.empty = not cast
-        if cast:
-            p = np.concatenate([m.positions for m in cast])
-            off = np.cumsum([0] + [len(m.positions) for m in cast])[:-1]
-            t = np.concatenate([m.triangles + o for m, o in zip(cast, off, strict=True)])
-        else:
-            p, t = np.zeros((1, 3)), np.zeros((0, 3), np.int64)
-        v = p @ self.R.T
-        if region is not None:
-            lo3, hi3 = np.asarray(region, np.float64).reshape(2, 3)
-            box = np.array([[x, y, z] for x in (lo3[0], hi3[0]) for y in (lo3[1], hi3[1]) for z in (lo3[2], hi3[2])])
-            lo, hi = (box @ self.R.T)[:, :2].min(0), (box @ self.R.T)[:, :2].max(0)
-        else:
-            lo, hi = v[:, :2].min(0), v[:, :2].max(0)
-        pad = 0.02 * float((hi - lo).max()) + 1e-6
-        self.lo = lo - pad
-        self.texel = float((hi - lo).max() + 2 * pad) / res
-        self.w, self.h = (np.ceil((hi - lo + 2 * pad) / self.texel).astype(int) + 1).tolist()
-        self.key = (self.R.tobytes(), self.lo.tobytes(), self.texel, self.w, self.h)
-        sx, sy = self._uv(v)
-        zbuf, _, _, _ = rasterise(sx[t], sy[t], -v[:, 2][t], self.w, self.h)
-        self.z = zbuf.reshape(self.h, self.w)
-        self.zp = np.pad(self.z, 2, constant_values=np.inf).ravel().astype(np.float32)  # no bounds checks
-
-    def _uv(self, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return (v[..., 0] - self.lo[0]) / self.texel, (v[..., 1] - self.lo[1]) / self.texel
-
-    def taps(self, p: np.ndarray, bias: float) -> _Taps:
-        """Points ``p`` (k, 3) prepared for :meth:`lookup` (the same map frame: ``key``)."""
-        v = p @ self.R.T
-        u, w = self._uv(v)
-        near = np.nonzero((u > -1) & (u < self.w + 1) & (w > -1) & (w < self.h + 1))[0]
-        u, w = u[near] + 1.5, w[near] + 1.5
-        iu, iv = np.floor(u), np.floor(w)
-        stride = self.w + 4
-        i = (iv.astype(np.int64) * stride + iu.astype(np.int64)).clip(0, self.zp.size - stride - 2)
-        f32 = np.float32
-        return _Taps(near, i, (u - iu).astype(f32), (w - iv).astype(f32), (-v[near, 2] - bias).astype(f32))
-
-    def lookup(self, taps: _Taps, n: int) -> np.ndarray:
-        """How lit the ``n`` prepared points are: percentage-closer filtering, the four nearest
-        texels' depth tests weighted bilinearly."""
-        out = np.ones(n, np.float32)
-        if self.empty or not len(taps.near):
-            return out
-        z, i, d, fu = self.zp, taps.index, taps.depth, taps.fu
-        stride = self.w + 4
-        top = (d <= z[i]) + fu * ((d <= z[i + 1]).astype(np.float32) - (d <= z[i]))
-        bottom = (d <= z[i + stride]) + fu * ((d <= z[i + stride + 1]).astype(np.float32) - (d <= z[i + stride]))
-        out[taps.near] = top + taps.fv * (bottom - top)
-        return out
-
-    def lit(self, p: np.ndarray, bias: float) -> np.ndarray:
-        if self.empty or not len(p):
-            return np.ones(len(p), np.float32)
-        return self.lookup(self.taps(p, bias), len(p))
-
-
-# ------------------------------------------------------------------------------------------------
-# The scene
-
-
 def _background(h: int, w: int, light: Lighting) -> np.ndarray:
-    top, bottom = _linear(light.background_top), _linear(light.background_bottom)
+    top, bottom = linear(light.background_top), linear(light.background_bottom)
     f = np.linspace(0.0, 1.0, h)[:, None, None]
     return np.broadcast_to(top * (1 - f) + bottom * f, (h, w, 3)).astype(np.float32, order="C")
 
@@ -462,7 +177,7 @@ class _FloorLayer:
     pix: np.ndarray
     points: np.ndarray
     shadow: np.ndarray
-    taps: _Taps | None = None  # the points prepared for shadow lookups in a fixed map frame
+    taps: Taps | None = None  # the points prepared for shadow lookups in a fixed map frame
     taps_key: Any = None
 
 
@@ -515,7 +230,7 @@ def _floor_layer(
         pix, p, alpha = pix[keep], p[keep], alpha[keep, None]
         tile = light.floor_tile
         odd = ((np.floor(p[:, 0] / tile) + np.floor(p[:, 2] / tile)) % 2).astype(bool)
-        base = np.where(odd[:, None], _linear(light.floor_alt), _linear(light.floor))
+        base = np.where(odd[:, None], linear(light.floor_alt), linear(light.floor))
         sun = light.key_strength * max(light.key_dir()[1], 0.0) * 0.42 * np.asarray(light.key_colour)
         col = base * (np.asarray(light.sky) + sun)
         flat = img.reshape(-1, 3)
@@ -565,7 +280,7 @@ def _shade_meshes(
         return w0 * a[c[:, 0]] + w1 * a[c[:, 1]] + w2 * a[c[:, 2]]
 
     p = interp(P)
-    n = _unit(interp(N))
+    n = unit(interp(N))
     v = cam.to_eye(p)
     facing = (n * v).sum(1)
     flip = two[t] & (facing < 0)
@@ -585,10 +300,10 @@ def _shade_meshes(
     lit = shadow.lit(p, 0.03) if shadow is not None else np.ones(len(p))
     sun = 1 - light.shadow * (1 - lit)
     diffuse = np.maximum(ndl, 0) + np.where(two[t], light.translucency * np.maximum(-ndl, 0), 0.0)
-    fill = np.maximum(n @ _unit(np.asarray(light.fill, np.float64)), 0)
+    fill = np.maximum(n @ unit(np.asarray(light.fill, np.float64)), 0)
     up = 0.5 + 0.5 * n[:, 1]
     amb = up[:, None] * np.asarray(light.sky) + (1 - up[:, None]) * np.asarray(light.ground)
-    hv = _unit(key + v)
+    hv = unit(key + v)
     s = spec[t] * np.maximum((n * hv).sum(1), 0) ** shin[t] * (ndl > 0) * lit
     kc = np.asarray(light.key_colour)
     col = base * (
@@ -654,7 +369,7 @@ def draw_scene(
         lit = smap.lookup(layer.taps, len(layer.pix))
         dark = np.nonzero((lit < 1) & ~drawn[layer.pix])[0]
         img.reshape(-1, 3)[layer.pix[dark]] -= layer.shadow[dark] * (1 - lit[dark, None])
-    out = Image.fromarray(_srgb(img), "RGB")
+    out = Image.fromarray(srgb(img), "RGB")
     if (wk, hk) != (w, h):
         out = out.resize((w, h), Image.Resampling.LANCZOS)
     d = ImageDraw.Draw(out)
@@ -700,8 +415,8 @@ def render_scene(
         b = fit_bounds(pts)
     else:
         b = np.asarray(bounds, np.float64).reshape(2, 3)
-    meshes += [sphere_mesh(s[0], float(s[1]), _rgb(s[2]) if len(s) > 2 else COLLIDER) for s in spheres]
-    meshes += [capsule_mesh(c[0], c[1], float(c[2]), _rgb(c[3]) if len(c) > 3 else COLLIDER) for c in capsules]
+    meshes += [sphere_mesh(s[0], float(s[1]), rgb(s[2]) if len(s) > 2 else COLLIDER) for s in spheres]
+    meshes += [capsule_mesh(c[0], c[1], float(c[2]), rgb(c[3]) if len(c) > 3 else COLLIDER) for c in capsules]
     top = (max(12, round(min(w, h) / 25)) + 12) if title else 0
     pad = 6
     cam = Camera(view, b, (pad, top + pad, w - 1 - pad, h - 1 - pad))
@@ -716,39 +431,3 @@ def render_scene(
         supersample=supersample,
         title=title,
     )
-
-
-def write_png(path: str | Path, rgb: np.ndarray) -> Path:
-    """Write a uint8 (H, W, 3) image as PNG."""
-    from PIL import Image
-
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(np.ascontiguousarray(rgb, np.uint8), "RGB").save(p, optimize=True)
-    return p
-
-
-def write_gif(
-    path: str | Path, frames: Sequence[np.ndarray], fps: float = 15.0, colours: int = 128, dither: bool = False
-) -> Path:
-    """Write uint8 (H, W, 3) frames as a looping GIF. One palette of ``colours`` colours, made
-    from a few frames spread over the animation, is used for every frame (no flicker); frames
-    are mapped to it without dithering unless ``dither`` (dithering triples the file size)."""
-    from PIL import Image
-
-    if not len(frames):
-        raise ValueError("a GIF needs at least one frame")
-    imgs = [Image.fromarray(np.ascontiguousarray(f, np.uint8), "RGB") for f in frames]
-    picks = np.linspace(0, len(imgs) - 1, min(len(imgs), 6)).round().astype(int)
-    w, h = imgs[0].size
-    sheet = Image.new("RGB", (w, h * len(picks)))
-    for j, i in enumerate(picks.tolist()):
-        sheet.paste(imgs[i], (0, j * h))
-    palette = sheet.quantize(colors=colours, method=Image.Quantize.MEDIANCUT)
-    mode = Image.Dither.FLOYDSTEINBERG if dither else Image.Dither.NONE
-    pal = [im.quantize(palette=palette, dither=mode) for im in imgs]
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    delay = 10 * max(2, round(100 / fps))  # GIF delays are whole centiseconds (67 ms would be stored as 60)
-    pal[0].save(p, save_all=True, append_images=pal[1:], duration=delay, loop=0, optimize=False, disposal=1)
-    return p

@@ -257,6 +257,7 @@ def test_batch_control_applies_good_items_and_refuses_bad_ones_each_alone(server
             item(mine[1], material={"damping": 3.0}),  # out of range
         ]
         req = {"v": [1, 1], "rid": 42, "client": client.client_id, "items": items}
+        skipped = server.stats()["skipped_frames"]
         rep = P.control_batch_reply_from_map(client.request("control_batch", msgpack.packb(req, use_bin_type=True)))
         codes = [r.code or None for r in rep.results]
         assert codes == [
@@ -271,8 +272,8 @@ def test_batch_control_applies_good_items_and_refuses_bad_ones_each_alone(server
         ], [(r.code, r.message) for r in rep.results]
         assert rep.rid == 42 and rep.failed == 7 and rep.results[0].tick == rep.tick
         assert "items[7].material.damping" in rep.results[7].message
-        st = mine[0].wait_for_tick(rep.tick, TIMEOUT)
-        assert st.tick == rep.tick
+        st = mine[0].wait_for_tick(rep.tick, TIMEOUT)  # or a later one where its frame was coalesced (counted)
+        assert rep.tick <= st.tick <= rep.tick + server.stats()["skipped_frames"] - skipped
         np.testing.assert_array_equal(st.positions[0], tgt[0])  # applied from the reply's tick on
         assert np.allclose(theirs.wait_for_tick(rep.tick + 2, TIMEOUT).positions[0], 0.0)  # not moved
         assert np.allclose(mine[1].wait_for_tick(rep.tick + 2, TIMEOUT).positions[0], 0.0)

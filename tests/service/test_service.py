@@ -13,16 +13,19 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from pathlib import Path
 
 import msgpack
 import numpy as np
 import pytest
+import zenoh
 from conftest import GRACE, TIMEOUT, collect, connect, endpoint, make_config, wait_until  # shared helpers
 
 from drape.client import DrapeClient, Forbidden, LimitExceeded, NotFound, ProtocolError, Sphere
 from drape.client import protocol as P
+from drape.client.session import zenoh_config
 from drape.server.service import Server
 from drape.server.service.config import ServerConfig, add_arguments, from_args
 from drape.server.sim import make_world
@@ -142,10 +145,14 @@ def test_plane_collider_and_reset(server, client):
     with client.submit_grid(5, 5, gravity=(0, -40.0, 0), colliders=[Plane((0, 1, 0), -0.3)]) as h:
         s = h.wait_for_tick(h.first_tick + 40, TIMEOUT)
         assert s.positions[:, 1].min() >= -0.3 - 1e-3 and s.positions[:, 1].max() < -0.2
+        skipped = server.stats()["skipped_frames"]
         tick = h.reset()
         s = h.wait_for_tick(tick, TIMEOUT)
-        assert s.tick == tick and s.reset
-        assert s.positions[:, 1].max() > -0.05  # one step away from the rest pose
+        # the reset tick's state, or (a frame coalesced on a loaded machine, counted) the next one,
+        # which carries its reset flag
+        steps = s.tick - tick + 1
+        assert s.reset and 1 <= steps <= 1 + server.stats()["skipped_frames"] - skipped, (s.tick, tick)
+        assert s.positions[:, 1].max() > -0.05 * steps * (steps + 1) / 2  # a step (or those few) from the rest pose
 
 
 def test_remove_stops_the_publications(server, client):
@@ -442,12 +449,11 @@ def test_encodings_normals_and_info(server, client):
 
 
 def test_ticks_keep_schedule_and_count_missed_ticks(server, client):
-    before = server.stats()
-    t0 = time.monotonic()
+    before = server.call(lambda w: server.stats())  # on the tick thread: its schedule kept up to date
     server.call(lambda w: time.sleep(0.25))  # a stall of 15 ticks on the tick thread
     time.sleep(0.75)
-    after = server.stats()
-    elapsed = time.monotonic() - t0
+    after = server.call(lambda w: server.stats())
+    elapsed = (after["time_ns"] - before["time_ns"]) / 1e9  # the snapshots' own times
     missed = after["missed_ticks"] - before["missed_ticks"]
     ticks = after["ticks"] - before["ticks"]
     assert missed >= 10, after
@@ -457,34 +463,78 @@ def test_ticks_keep_schedule_and_count_missed_ticks(server, client):
 
 
 @pytest.mark.parametrize("congestion", ["drop", "block"])
-def test_slow_subscriber_never_blocks_the_tick(congestion):
-    """A subscriber that takes 200 ms per 120 KB state congests its link within a second. The
-    tick thread never waits for it; with DROP (the default) the other clients do not notice it
-    either, with BLOCK the publisher stalls and whole frames are coalesced (and counted)."""
+def test_slow_subscriber_never_blocks_the_tick(congestion, monkeypatch):
+    """A subscriber whose network thread takes 500 ms per 120 KB state (Zenoh's own thread:
+    nothing buffers for it in Python). The tick thread never waits for the publisher: a frame
+    the publisher has not taken when the next one is ready is coalesced and counted
+    (``skipped_frames``), so every tick the fast client misses is a counted coalesced frame; with
+    DROP (the default) the slow link's states are dropped, not waited for, and nobody else's
+    cloth notices. Then the publisher is held in one publication (as a link congested under
+    BLOCK holds it, however deep the host's socket buffers) while the tick thread counts 30
+    ticks, each frame coalesced. Asserted on counted events (ticks, coalesced frames, states
+    received), never on the tick schedule, which a loaded machine bends (CI's 2 shared cores)."""
     with Server(make_config(state_congestion=congestion, max_vertices_per_cloth=10000)) as srv:
-        fast, slow = connect(srv), connect(srv)
+        zc = zenoh_config("peer", connect=srv.config.listen)
+        zc.insert_json5("transport/link/tcp/so_rcvbuf", "65536")  # a small socket: it congests sooner
+        fast, slow, done = connect(srv), zenoh.open(zc), threading.Event()
         try:
             h = fast.submit_grid(100, 100, pinned=[0, 99])
             bystander = fast.submit_grid(8, 8, pinned=[0, 7])
-            slow.session.declare_subscriber(h.key, lambda smp: time.sleep(0.2))
+            slow_got: list[int] = []
+
+            def slow_reader(sample: zenoh.Sample) -> None:  # on the slow session's network thread
+                slow_got.append(1)
+                done.wait(0.5)
+
+            slow.declare_subscriber(h.key, zenoh.handlers.Callback(slow_reader, indirect=False))
+
+            def snapshot() -> dict:  # on the tick thread: its schedule kept up to date
+                return srv.call(lambda w: srv.stats())
+
             time.sleep(1.0)  # the slow session's socket buffers fill up
             h.clear()
-            before, t0, seen = srv.stats(), time.monotonic(), bystander.received
-            states = collect(h, 60)
-            after, elapsed, seen = srv.stats(), time.monotonic() - t0, bystander.received - seen
+            before, seen, slow_seen = snapshot(), bystander.received, len(slow_got)
+            states = [h.next_state(TIMEOUT)]
+            while states[-1].tick - states[0].tick < 60:  # 60 ticks, however many states they gave
+                states.append(h.next_state(TIMEOUT))
+            after, seen, slow_seen = snapshot(), bystander.received - seen, len(slow_got) - slow_seen
             ticks = after["ticks"] - before["ticks"]
-            missed = after["missed_ticks"] - before["missed_ticks"]
             skipped = after["skipped_frames"] - before["skipped_frames"]
-            assert missed <= 3, after  # the tick loop kept its schedule
-            assert abs(ticks + missed - elapsed * 60) < 6
             span = states[-1].tick - states[0].tick + 1
+            counts = dict(ticks=ticks, skipped=skipped, states=len(states), span=span, seen=seen, slow=slow_seen)
+            # every tick the fast client missed is a frame coalesced (and counted), not waited for
+            assert span - len(states) <= skipped + 3, counts
+            # no drift: ticks run + ticks missed account for the time between the two snapshots
+            missed = after["missed_ticks"] - before["missed_ticks"]
+            assert abs(ticks + missed - (after["time_ns"] - before["time_ns"]) * 60e-9) < 6, counts
             if congestion == "drop":
-                assert span <= len(states) + 3, "the fast client should see (almost) every tick"
-                assert skipped <= 3
-                assert seen >= ticks - 3  # and neither does anyone else's cloth
-            else:
-                assert span - len(states) <= skipped + 3  # every gap is a coalesced, counted frame
+                assert slow_seen * 2 < len(states), counts  # the slow link's states were dropped, not waited for
+                assert seen >= ticks - skipped - 3, counts  # nobody else's cloth noticed it
+
+            # the publisher held in one publication: the tick thread goes on, coalescing each frame
+            held, release, publish = threading.Event(), threading.Event(), srv.publisher.publish
+
+            def held_publish(job) -> None:
+                if not release.is_set():
+                    held.set()
+                    release.wait(60.0)  # let go below, whatever a loaded machine makes of the 30 ticks
+                publish(job)
+
+            monkeypatch.setattr(srv.publisher, "publish", held_publish)
+            assert held.wait(TIMEOUT)
+            first = srv.stats()
+            ticked = wait_until(lambda: srv.stats()["ticks"] - first["ticks"] >= 30, timeout=30.0)
+            assert ticked, "the tick waited for the publisher"
+            last = srv.stats()
+            h.clear()
+            release.set()
+            assert last["skipped_frames"] - first["skipped_frames"] >= last["ticks"] - first["ticks"] - 2, (first, last)
+            got = [h.next_state(TIMEOUT).tick]  # the held frame, then the newest
+            while got[-1] < last["tick"] - 1:
+                got.append(h.next_state(TIMEOUT).tick)
+            assert not [t for t in got if first["tick"] < t < last["tick"] - 2], (first["tick"], got, last["tick"])
         finally:
+            done.set()
             fast.close()
             slow.close()
 
@@ -535,14 +585,15 @@ def test_drape_serve_process_stops_cleanly_on_sigterm(tmp_path: Path):
         env=env,
     )
     try:
-        with DrapeClient(ep, server_id="proc", timeout=15.0, failover=False) as c:  # the handle closes
+        # the bounds are a loaded machine's: drape serve's start (device check, warm-up) took over 15 s at load 10
+        with DrapeClient(ep, server_id="proc", timeout=60.0, failover=False) as c:  # the handle closes
             info = c.info()
             assert info["stats_period_s"] == 0.5 and info["grace_period_s"] == 2.0
             h = c.submit_grid(6, 6, pinned=[0, 5])
             collect(h, 5)
             proc.send_signal(signal.SIGTERM)
-            rc = proc.wait(15)
-            assert wait_until(lambda: h.closed, 3.0), "the server's liveliness token should vanish"
+            rc = proc.wait(60)
+            assert wait_until(lambda: h.closed, 10.0), "the server's liveliness token should vanish"
             assert "went away" in h.close_reason
         out = proc.stdout.read()
         assert rc == 0, out

@@ -22,8 +22,9 @@ from drape.server.tools import (
     chaos_failover,
     chaos_faults,
     chaos_fuzz,
-    chaos_harness,
+    chaos_hostload,
     chaos_placement,
+    chaos_window,
 )
 
 pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
@@ -149,17 +150,18 @@ def test_missed_ticks_lost_states_and_gaps_are_the_servers_own_unless_other_work
     a stats period (or a gap, or a run of lost states) counts as the machine's only where processes
     other than the run's took ``MACHINE_BUSY`` cores or more during it (HostLoad's samples, here
     set at times long past so that its live sampling does not meet them)."""
-    host = chaos_harness.HostLoad.shared()
-    busy, idle = chaos_harness.MACHINE_BUSY + 0.5, 0.0
+    host = chaos_hostload.HostLoad.shared()
+    busy, idle = chaos_hostload.MACHINE_BUSY + 0.5, 0.0
     with host._lock:
         host.samples[:0] = [(10.0 + 0.1 * i, busy if 12 <= i < 16 else idle) for i in range(60)]
     stats = [(10.0 + 0.5 * k, {"missed_ticks": m}) for k, m in enumerate([0, 0, 3, 7, 7, 9, 9, 9])]
     # periods: 10.5-11.0 +3 (idle: own), 11.0-11.5 +4 (busy from 11.2 s: the machine's), 12.0-12.5 +2 (own)
     server = SimpleNamespace(stats=SimpleNamespace(samples=stats))
-    w = chaos_harness.Window(server, 10.0, stats[0][1], 0.0, {}, n0=1)  # type: ignore[arg-type]
+    w = chaos_window.Window(server, 10.0, stats[0][1], 0.0, {}, n0=1)  # type: ignore[arg-type]
     out: dict = {}
     w.attribute(out, gaps=[(11.3, 11.45), (13.1, 13.3)])  # one gap under the other work, one not
     assert out["missed_ticks_own"] == 5 and out["missed_ticks_machine"] == 4
+    assert out["quiet_periods"] == 6  # of 7: the window judged (a window with none is marked ~ in the table)
     assert out["good_worst_gap_own_ms"] == pytest.approx(200.0) and out["good_gaps_over_limit"] == 2
     fails = chaos_faults.judge({**out, "missed_ticks": 9, "good_rate_hz": 60.0, "good_lost": 3, "good_lost_own": 0})
     assert any("5 missed ticks (of 9)" in f for f in fails) and any("gap of 200.0 ms" in f for f in fails)

@@ -8,7 +8,7 @@ import pytest
 from PIL import Image
 
 from drape.server.sim.fabric import grid_mesh
-from drape.server.tools import plots, render
+from drape.server.tools import imagefiles, plots, render
 
 
 def _grid(cols: int = 12, rows: int = 9) -> tuple[np.ndarray, np.ndarray]:
@@ -105,9 +105,9 @@ def test_png_is_lossless_and_gif_keeps_every_frame(tmp_path):
         frames.append(
             render.render_scene((160, 100), [(w, t, (120, 60, 160))], bounds=((-0.2, -1, -0.5), (1.2, 0.2, 0.5)))
         )
-    p = render.write_png(tmp_path / "f.png", frames[3])
+    p = imagefiles.write_png(tmp_path / "f.png", frames[3])
     assert np.array_equal(_png(p), frames[3])
-    g = render.write_gif(tmp_path / "a.gif", frames, fps=10)
+    g = imagefiles.write_gif(tmp_path / "a.gif", frames, fps=10)
     with Image.open(g) as im:
         assert im.format == "GIF" and im.size == (160, 100) and im.n_frames == 6
         assert im.info["duration"] == 100 and im.info["loop"] == 0
@@ -116,7 +116,7 @@ def test_png_is_lossless_and_gif_keeps_every_frame(tmp_path):
     # one shared palette of 128 colours, no dithering: close to the frame
     assert np.abs(last - frames[5]).mean() < 6
     with pytest.raises(ValueError, match="at least one frame"):
-        render.write_gif(tmp_path / "none.gif", [])
+        imagefiles.write_gif(tmp_path / "none.gif", [])
 
 
 def test_a_ball_through_a_cloth_meets_it_along_their_intersection():

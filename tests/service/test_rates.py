@@ -22,10 +22,10 @@ pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest
 STEP = 0.002
 
 
-@pytest.fixture(scope="module")
-def server():
-    # decimated predictive streams are coded on the host path (publish/rates.py says why)
-    with Server(make_config(keyframe_interval=30, device_encode=False)) as srv:
+@pytest.fixture(scope="module", params=[True, False], ids=["device", "host"])
+def server(request):
+    # decimated predictive streams coded by the device encoder (sim/opencl/devrates.py) and the host path
+    with Server(make_config(keyframe_interval=30, device_encode=request.param)) as srv:
         yield srv
 
 
@@ -35,10 +35,18 @@ def _session(server) -> zenoh.Session:
     return zenoh.open(zenoh.Config.from_json5(conf))
 
 
+def _device_rate_frames(server) -> int | None:
+    """Decimated frames the device encoder coded (None: the host path)."""
+    frames = getattr(server.ticker.world, "device_frames", None)
+    return frames.rates.frames if frames is not None else None
+
+
 @pytest.mark.parametrize("every,bundle", [(2, False), (3, True)])
 def test_decimated_states_stay_within_half_a_step_of_float32(server, every, bundle):
     c = connect(server, rate=every)
     full = connect(server)
+    counters = server.registry.counters
+    published, unserved, coded = counters["rate_published"], counters["rate_unserved"], _device_rate_frames(server)
     try:
         opts = dict(pinned=[0, 11], features=["tethers"])
         pred = c.submit_grid(12, 12, encoding="predictive", step=STEP, bundle=bundle, **opts)
@@ -57,6 +65,12 @@ def test_decimated_states_stay_within_half_a_step_of_float32(server, every, bund
         assert pred.gaps == 0 and pred.stream.undecodable == 0
         # predicted against its own states: most are not keyframes
         assert pred.stream.keyframes < len(got) // 3  # (the first, then one every 30 ticks or so)
+        assert counters["rate_published"] >= published + len(got)
+        # served by the encoder of the frame (the device's decimated frames, no host fallback); a
+        # subscription seen after its tick's frame was encoded waits for its next tick (one state)
+        assert counters["rate_unserved"] <= unserved + 1
+        if coded is not None:
+            assert _device_rate_frames(server) >= coded + len(got)
     finally:
         c.close()
         full.close()

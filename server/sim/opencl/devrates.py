@@ -1,0 +1,216 @@
+"""Decimated predictive streams on the device encoder (protocol 1.8, PROTOCOL.md 9.3): every k-th
+tick's state of a watched cloth or bundle on its own key ``{key}/every/{k}``, coded against that
+key's own previous states, with no host fallback (bit-exact with the host path, wire.HostWire).
+
+A decimated stream needs no history of its own: its grid values at a tick are the full-rate
+stream's (the same positions on the same step's grid, which the decoders rebuild exactly), so its
+references (ticks T - k and T - 2k, or the last two it sent) are the full-rate encoder's history
+slots of those ticks. Per rate k with a subscriber, :class:`DeviceRates` keeps a small
+:class:`~.frameplan.FramePlan` of the watched publications holding a predictive cloth (their
+decimated keys; rebuilt when the roster or the watched set changes), a
+:class:`~.encode.DeviceEncoder` sharing the full-rate encoder's history (its own launch, its own
+compaction and copy, enqueued right behind the full-rate frame, only on the ticks ``T mod k = 0``:
+no work on the others) and a :class:`~.devstreams.DeviceStreams` of its own (decided on those
+ticks only, keyframes every ``k x keyframe_interval`` ticks). While any rate is planned the
+full-rate history is :data:`~.encode.HISTORY_RATES` ticks deep (12 bytes a vertex each, for every
+vertex of the position buffer) and keeps the ticks the decimated streams still refer to.
+
+The watched set is the publisher's (``RatePublishers.watching``, kept by Zenoh's matching
+listeners), read when a frame is encoded: a publication first watched after its tick's frame was
+encoded is served from its next tick of k (counted ``rate_unserved`` by the publisher).
+A float32 / float16 / quant16 publication's decimated state is the full-rate bytes (no plan).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+import pyopencl as cl
+
+from drape.client import protocol as P
+
+from ..roster import Roster
+from ..statecodec import PredictiveStreams
+from .device import Device
+from .devstreams import DeviceStreams
+from .encode import HISTORY_RATES, ClothEntry, DeviceEncoder, EncodedFrame, FramePlan, Publication
+
+log = logging.getLogger(__name__)
+
+Watching = Callable[[], Mapping[int, frozenset[str]]]  # rate -> idents of the publications watched
+
+
+@dataclass(eq=False)
+class _Rate:
+    """One decimated rate's plan, encoder and streams."""
+
+    every: int
+    encoder: DeviceEncoder
+    streams: DeviceStreams
+    version: tuple[object, frozenset[str]] | None = None
+    base: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # plan cloth -> frame cloth
+    pub_of: dict[int, int] = field(default_factory=dict)  # frame publication -> plan publication
+    roster_pub: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # plan pub -> frame pub
+
+    def cloths(self, frame_cloths: np.ndarray) -> np.ndarray:
+        """This plan's cloths of frame cloths ``frame_cloths``."""
+        return np.flatnonzero(np.isin(self.base, np.asarray(frame_cloths, np.int64)))
+
+
+@dataclass(eq=False)
+class RateFrame:
+    """A decimated rate's frame of one tick, held until released."""
+
+    rate: _Rate
+    frame: EncodedFrame
+    keyframes: np.ndarray  # (plan cloths,) bool
+    put: bool = False  # its payloads were taken (else, at release, its states were lost)
+    dropped: bool = False  # dropped whole and its streams taken back: nothing lost
+
+
+class DeviceRates:
+    """The decimated streams of one device encoder (a part DeviceFrames owns; the tick thread
+    calls everything but :meth:`watch`)."""
+
+    def __init__(self, dev: Device, encoder: DeviceEncoder) -> None:
+        self.dev, self.main = dev, encoder
+        self.rates: dict[int, _Rate] = {}
+        self._watching: Watching | None = None
+        self.plans = 0  # decimated plans built (the tests count them)
+        self.frames = 0  # decimated frames encoded
+
+    def watch(self, watching: Watching) -> None:
+        """Any thread: where the watched set is read from (the publisher's RatePublishers)."""
+        self._watching = watching
+
+    def needed(self) -> set[int]:
+        """The full-rate history ticks the decimated streams may still refer to."""
+        out: set[int] = set()
+        for r in self.rates.values():
+            out |= r.streams.needed()
+        return out
+
+    def follow(self, roster: Roster, plan: FramePlan, keyframe_interval: int) -> None:
+        """The decimated plans of ``roster`` (whose full-rate plan is ``plan``) and the watched
+        set now; a plan rebuilt only when either changed."""
+        want = dict(self._watching()) if self._watching is not None else {}
+        for k in sorted(set(want) | set(self.rates)):
+            idents = want.get(k, frozenset())
+            r = self.rates.get(k)
+            version = (roster.version, idents)
+            if r is not None and r.version == version:
+                continue
+            pubs = roster.publications()
+            pred = plan.predictive
+            sel = [j for j, p in enumerate(pubs) if p[0] in idents and pred[np.asarray(p[2], np.int64)].any()]
+            if not sel:
+                if r is not None:
+                    r.encoder.close()
+                    del self.rates[k]
+                continue
+            cloths: list[ClothEntry] = []
+            out: list[Publication] = []
+            base: list[int] = []
+            pub_of: dict[int, int] = {}
+            for j in sel:
+                _, key, idx, bundle = pubs[j]
+                at = tuple(range(len(cloths), len(cloths) + len(idx)))
+                cloths.extend(plan.cloths[i] for i in idx)
+                base.extend(idx)
+                pub_of[j] = len(out)
+                out.append(Publication(P.every_key(key, k), at, bundle))
+            sub = FramePlan.build(cloths, out)
+            if r is None:
+                self.main.deepen(HISTORY_RATES)
+                enc = DeviceEncoder(self.dev, stride=self.main.stride, history=self.main)
+                r = self.rates[k] = _Rate(k, enc, DeviceStreams(k * keyframe_interval))
+            r.encoder.set_plan(sub)
+            r.streams.follow(sub)
+            r.version, r.base, r.pub_of = version, np.array(base, np.int64), pub_of
+            r.roster_pub = np.array(sel, np.int64)
+            self.plans += 1
+            log.debug("rate %d: %d publications, %d cloths", k, len(out), len(cloths))
+
+    def encode(
+        self,
+        queue: cl.CommandQueue,
+        positions: cl.Buffer,
+        normals: cl.Buffer,
+        tick: int,
+        time_ns: int,
+        flags: np.ndarray | None,
+    ) -> list[tuple[_Rate, np.ndarray]]:
+        """Enqueue the frames of the rates whose tick this is (behind the full-rate frame of the
+        same tick, on the same queue); returns (rate, keyframes) of each, to hold once back."""
+        due = []
+        have = self.main.history_ticks()
+        for k, r in self.rates.items():
+            if tick % k:
+                continue
+            f = np.asarray(flags)[r.base] if flags is not None else None
+            pred, kf = r.streams.decide(tick, f, have)
+            r.encoder.encode(queue, positions, normals, tick, time_ns, f, predictive=pred)
+            self.frames += 1
+            due.append((r, kf))
+        return due
+
+    def reencode(
+        self,
+        frames: dict[int, RateFrame],
+        positions: cl.Buffer,
+        normals: cl.Buffer,
+        tick: int,
+        time_ns: int,
+        flags: np.ndarray,
+    ) -> None:
+        """Each of these frames encoded again (after the full-rate frame was: resets, flags
+        carried from a dropped frame), its decision taken again with ``flags`` (frame cloths)."""
+        for rf in frames.values():
+            r = rf.rate
+            rf.frame.release()
+            f = np.asarray(flags)[r.base]
+            pred, rf.keyframes = r.streams.redo(tick, f)
+            r.encoder.encode(self.dev.queue, positions, normals, tick, time_ns, f, predictive=pred).wait()
+            rf.frame = r.encoder.hold()
+
+    def payloads(
+        self, rf: RateFrame, watched: list[int], streams: PredictiveStreams, tick: int
+    ) -> Iterator[tuple[int, bytes]]:
+        """(frame publication, bytes) of the ``watched`` publications this rate frame holds; what
+        the publisher knows (requests, states put or not) reaches the rate's streams."""
+        r = rf.rate
+        ds = r.streams
+        ds.keyframe_interval = streams.keyframe_interval
+        ds.request(streams.take_requests())
+        plan = rf.frame.plan
+        sel = [r.pub_of[j] for j in watched if j in r.pub_of]
+        shown = np.zeros(len(plan.publications) + 1, bool)
+        shown[np.asarray(sel, np.int64)] = True
+        seen = shown[plan.owner]
+        ds.lost(plan, np.flatnonzero(plan.predictive & ~seen))
+        ds.put(plan, np.flatnonzero(plan.predictive & seen), tick)
+        streams.keyframes += int((rf.keyframes & seen).sum())
+        rf.put = True
+        for jj, payload in rf.frame.payloads(sel):
+            yield int(r.roster_pub[jj]), payload
+
+    def release(self, rf: RateFrame) -> None:
+        if not rf.put and not rf.dropped:  # its states never went out
+            plan = rf.frame.plan
+            rf.rate.streams.lost(plan, np.flatnonzero(plan.predictive))
+        rf.put = True
+        rf.frame.release()
+
+    def dropped(self, rf: RateFrame, tick: int) -> None:
+        """The frame of ``tick`` holding ``rf`` was dropped whole: its rate's streams go back."""
+        rf.dropped = True
+        if not rf.rate.streams.undo(tick):
+            rf.rate.streams.lost(rf.frame.plan, np.flatnonzero(rf.frame.plan.predictive))
+
+    def close(self) -> None:
+        for r in self.rates.values():
+            r.encoder.close()
+        self.rates = {}

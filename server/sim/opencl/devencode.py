@@ -98,7 +98,7 @@ class DeviceFrames:
         self._plan(roster, lay)
         mem = self.mem
         assert self.encoder.plan is not None
-        self.rates.follow(roster, self.encoder.plan, self.streams.keyframe_interval)
+        self.rates.follow(roster, self.encoder.plan, self.streams.keyframe_interval, tick)
         pred = keyframes = None
         if self.encoder.plan.predictive.any():
             pred, keyframes = self.streams.decide(tick, None)

@@ -93,11 +93,14 @@ class DeviceRates:
             out |= r.streams.needed()
         return out
 
-    def follow(self, roster: Roster, plan: FramePlan, keyframe_interval: int) -> None:
+    def follow(self, roster: Roster, plan: FramePlan, keyframe_interval: int, tick: int) -> None:
         """The decimated plans of ``roster`` (whose full-rate plan is ``plan``) and the watched
-        set now; a plan rebuilt only when either changed."""
+        set now, for the rates whose tick this is (as the host path sees the watched set only on
+        those); a plan rebuilt only when either changed."""
         want = dict(self._watching()) if self._watching is not None else {}
         for k in sorted(set(want) | set(self.rates)):
+            if tick % k:
+                continue
             idents = want.get(k, frozenset())
             r = self.rates.get(k)
             version = (roster.version, idents)

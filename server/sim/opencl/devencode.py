@@ -103,7 +103,6 @@ class DeviceFrames:
         if self.encoder.plan.predictive.any():
             pred, keyframes = self.streams.decide(tick, None)
             self.predictive_frames += 1
-            self.encoder.keep = self.rates.needed()
         ev = self.encoder.encode(self.dev.queue, mem.pos.buf, mem.nrm.buf, tick, 0, None, predictive=pred)
         self.frames += 1
         due = []

@@ -2,18 +2,19 @@
 tick's state of a watched cloth or bundle on its own key ``{key}/every/{k}``, coded against that
 key's own previous states, with no host fallback (bit-exact with the host path, wire.HostWire).
 
-A decimated stream needs no history of its own: its grid values at a tick are the full-rate
-stream's (the same positions on the same step's grid, which the decoders rebuild exactly), so its
-references (ticks T - k and T - 2k, or the last two it sent) are the full-rate encoder's history
-slots of those ticks. Per rate k with a subscriber, :class:`DeviceRates` keeps a small
-:class:`~.frameplan.FramePlan` of the watched publications holding a predictive cloth (their
-decimated keys; rebuilt when the roster or the watched set changes), a
-:class:`~.encode.DeviceEncoder` sharing the full-rate encoder's history (its own launch, its own
-compaction and copy, enqueued right behind the full-rate frame, only on the ticks ``T mod k = 0``:
-no work on the others) and a :class:`~.devstreams.DeviceStreams` of its own (decided on those
-ticks only, keyframes every ``k x keyframe_interval`` ticks). While any rate is planned the
-full-rate history is :data:`~.encode.HISTORY_RATES` ticks deep (12 bytes a vertex each, for every
-vertex of the position buffer) and keeps the ticks the decimated streams still refer to.
+Per rate k with a subscriber, :class:`DeviceRates` keeps a small :class:`~.frameplan.FramePlan`
+of the watched publications holding a predictive cloth (their decimated keys; rebuilt on the
+rate's ticks when the roster or the watched set changed), a :class:`~.encode.DeviceEncoder` of its
+own (its own launch, compaction and copy, enqueued right behind the full-rate frame on the same
+queue, only on the ticks ``T mod k = 0``: no work on the others) and a
+:class:`~.devstreams.DeviceStreams` (decided on those ticks only, keyframes every ``k x
+keyframe_interval`` ticks). Its encoder keeps its own history of grid values (the 4 slots of
+encode.py's :data:`~.encode.HISTORY`, of the rate's own ticks: T, T - k, T - 2k and T - 3k for a
+frame dropped on its tick), for the watched cloths' vertices only (``ClothEntry.hbase``: 48 bytes
+a watched vertex per rate; a cloth keeps its history range while it stays watched, so its stream
+goes on across plans). A grid value is the same whichever stream quantises it (the same
+position on the same step's grid), so the decimated rows quantise the positions again rather than
+read the full-rate history, which would have to hold 2 x 3 + 2 ticks for every vertex.
 
 The watched set is the publisher's (``RatePublishers.watching``, kept by Zenoh's matching
 listeners), read when a frame is encoded: a publication first watched after its tick's frame was
@@ -25,7 +26,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pyopencl as cl
@@ -36,7 +37,7 @@ from ..roster import Roster
 from ..statecodec import PredictiveStreams
 from .device import Device
 from .devstreams import DeviceStreams
-from .encode import HISTORY_RATES, ClothEntry, DeviceEncoder, EncodedFrame, FramePlan, Publication
+from .encode import ClothEntry, DeviceEncoder, EncodedFrame, FramePlan, Publication
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +79,7 @@ class DeviceRates:
     def __init__(self, dev: Device, encoder: DeviceEncoder) -> None:
         self.dev, self.main = dev, encoder
         self.rates: dict[int, _Rate] = {}
+        self._hist: dict[int, dict[str, tuple[int, int]]] = {}  # rate -> cloth -> (history base, n)
         self._watching: Watching | None = None
         self.plans = 0  # decimated plans built (the tests count them)
         self.frames = 0  # decimated frames encoded
@@ -85,13 +87,6 @@ class DeviceRates:
     def watch(self, watching: Watching) -> None:
         """Any thread: where the watched set is read from (the publisher's RatePublishers)."""
         self._watching = watching
-
-    def needed(self) -> set[int]:
-        """The full-rate history ticks the decimated streams may still refer to."""
-        out: set[int] = set()
-        for r in self.rates.values():
-            out |= r.streams.needed()
-        return out
 
     def follow(self, roster: Roster, plan: FramePlan, keyframe_interval: int, tick: int) -> None:
         """The decimated plans of ``roster`` (whose full-rate plan is ``plan``) and the watched
@@ -113,7 +108,9 @@ class DeviceRates:
                 if r is not None:
                     r.encoder.close()
                     del self.rates[k]
+                    self._hist.pop(k, None)
                 continue
+            hb = self._history_bases(k, [plan.cloths[i] for j in sel for i in pubs[j][2]])
             cloths: list[ClothEntry] = []
             out: list[Publication] = []
             base: list[int] = []
@@ -121,14 +118,13 @@ class DeviceRates:
             for j in sel:
                 _, key, idx, bundle = pubs[j]
                 at = tuple(range(len(cloths), len(cloths) + len(idx)))
-                cloths.extend(plan.cloths[i] for i in idx)
+                cloths.extend(replace(plan.cloths[i], hbase=hb[plan.cloths[i].cloth]) for i in idx)
                 base.extend(idx)
                 pub_of[j] = len(out)
                 out.append(Publication(P.every_key(key, k), at, bundle))
             sub = FramePlan.build(cloths, out)
             if r is None:
-                self.main.deepen(HISTORY_RATES)
-                enc = DeviceEncoder(self.dev, stride=self.main.stride, history=self.main)
+                enc = DeviceEncoder(self.dev, stride=self.main.stride)
                 r = self.rates[k] = _Rate(k, enc, DeviceStreams(k * keyframe_interval))
             r.encoder.set_plan(sub)
             r.streams.follow(sub)
@@ -136,6 +132,22 @@ class DeviceRates:
             r.roster_pub = np.array(sel, np.int64)
             self.plans += 1
             log.debug("rate %d: %d publications, %d cloths", k, len(out), len(cloths))
+
+    def _history_bases(self, k: int, cloths: list[ClothEntry]) -> dict[str, int]:
+        """Each cloth's first vertex in rate ``k``'s history: a cloth still watched keeps its range
+        (its stream goes on), a new one takes the next free; packed afresh (those streams restart
+        on keyframes) once the ranges span more than twice the vertices watched."""
+        old = self._hist.get(k, {})
+        keep = {c.cloth: old[c.cloth] for c in cloths if c.cloth in old and old[c.cloth][1] == c.n}
+        end = max((b + n for b, n in keep.values()), default=0)
+        if end > 2 * sum(c.n for c in cloths) + 4096:
+            keep, end = {}, 0
+        for c in cloths:
+            if c.cloth not in keep:
+                keep[c.cloth] = (end, c.n)
+                end += c.n
+        self._hist[k] = keep
+        return {c: b for c, (b, _) in keep.items()}
 
     def encode(
         self,
@@ -149,12 +161,11 @@ class DeviceRates:
         """Enqueue the frames of the rates whose tick this is (behind the full-rate frame of the
         same tick, on the same queue); returns (rate, keyframes) of each, to hold once back."""
         due = []
-        have = self.main.history_ticks()
         for k, r in self.rates.items():
             if tick % k:
                 continue
             f = np.asarray(flags)[r.base] if flags is not None else None
-            pred, kf = r.streams.decide(tick, f, have)
+            pred, kf = r.streams.decide(tick, f)
             r.encoder.encode(queue, positions, normals, tick, time_ns, f, predictive=pred)
             self.frames += 1
             due.append((r, kf))
@@ -210,7 +221,9 @@ class DeviceRates:
     def dropped(self, rf: RateFrame, tick: int) -> None:
         """The frame of ``tick`` holding ``rf`` was dropped whole: its rate's streams go back."""
         rf.dropped = True
-        if not rf.rate.streams.undo(tick):
+        if rf.rate.streams.undo(tick):
+            rf.rate.encoder.forget(tick)
+        else:
             rf.rate.streams.lost(rf.frame.plan, np.flatnonzero(rf.frame.plan.predictive))
 
     def close(self) -> None:

@@ -24,12 +24,11 @@ and the next frame's decision is taken again (:meth:`redo`) and coded again agai
 states sent: a predicted state, as on the host path, where a dropped frame is never coded.
 
 A decimated stream (1.8, every k-th tick's state on its own key) is a DeviceStreams of its own,
-decided on its ticks only, whose references are the full-rate encoder's history slots of those
-ticks (:meth:`needed` tells which to keep; a stream whose reference is gone from the history is
-coded intra, counted ``restarts``); a frame dropped on its tick is taken back with :meth:`undo`.
+decided on its ticks only (devrates.py); a frame dropped on its tick is taken back with
+:meth:`undo`.
 
 A stream lives with its cloth id in the plan; it is carried across plans while the cloth keeps
-its vertex range (its history is indexed by the position buffer's vertices).
+its vertex range and history base (its history is indexed by them).
 """
 
 from __future__ import annotations
@@ -94,8 +93,6 @@ class DeviceStreams:
         self._last: tuple[int, _State, np.ndarray, np.ndarray] | None = None
         self._prev: tuple[int, _State, np.ndarray, np.ndarray] | None = None  # the one before it
         self._kept: set[str] = set()
-        self._have: set[int] | None = None  # the ticks in the encoder's history (None: all referred to)
-        self.restarts = 0  # states coded intra because a reference had left the history
 
     # -- any thread -------------------------------------------------------------------------
 
@@ -134,7 +131,7 @@ class DeviceStreams:
         rows, at = [], []
         for i, c in enumerate(plan.cloths):
             j = old_ids.get(c.cloth)
-            if j is not None and prev[j].vbase == c.vbase and prev[j].n == c.n:
+            if j is not None and (prev[j].vbase, prev[j].n, prev[j].hbase) == (c.vbase, c.n, c.hbase):
                 rows.append(j)
                 at.append(i)
         r, a = np.array(rows, np.int64), np.array(at, np.int64)
@@ -160,24 +157,9 @@ class DeviceStreams:
             self._last = (last[0], before, masks[0], masks[1])
         self._prev = None
 
-    def needed(self) -> set[int]:
-        """The ticks the streams may still refer to: their last two states' and, while the last
-        decision's frame may yet be dropped, those before it."""
-        out: set[int] = set()
-        states = [self._state] + ([self._last[1]] if self._last is not None else [])
-        for s in states:
-            v = s.valid & self._pred if len(s.valid) == len(self._pred) else s.valid
-            out.update(np.unique(s.tick1[v & (s.since >= 1)]).tolist())
-            out.update(np.unique(s.tick2[v & (s.since >= 2)]).tolist())
-        return out
-
-    def decide(
-        self, tick: int, flags: np.ndarray | None, have: set[int] | None = None
-    ) -> tuple[np.ndarray, np.ndarray]:
+    def decide(self, tick: int, flags: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """This tick's (order, ref tick, ref2 tick) per plan cloth ((k, 3) uint64) and which
-        are keyframes ((k,) bool); the streams move on to ``tick``. ``have``: the ticks the
-        encoder's history holds (a stream referring to another is coded intra, counted)."""
-        self._have = have
+        are keyframes ((k,) bool); the streams move on to ``tick``."""
         k = len(self._pred)
         with self._lock:
             asked = self._requested | self._kept
@@ -268,14 +250,6 @@ class DeviceStreams:
         keyframe &= pred
         kept &= pred
         intra = keyframe | unsure
-        if self._have is not None:  # a reference gone from the history (frames dropped on its ticks)
-            have = np.array(sorted(self._have), np.int64)
-            since_p = np.where(intra | new, 0, np.minimum(since, 2))
-            gone = ((since_p >= 1) & ~np.isin(s.tick1, have)) | ((since_p >= 2) & ~np.isin(s.tick2, have))
-            gone &= pred
-            if gone.any():
-                self.restarts += int(gone.sum())
-                intra = intra | gone
         order = np.where(intra, 0, np.minimum(since, 2))
         out = np.zeros((k, 3), np.uint64)
         out[:, 0] = order

@@ -33,7 +33,8 @@ first row in a packed xyz buffer (``stride=3``). A frame's views stay valid unti
 publisher holds the frame it publishes while the next ones are encoded).
 
 Predictive states (protocol 1.5) are coded against the history the encoder keeps on the device
-(one buffer of :data:`HISTORY` slots of grid values per position-buffer vertex, each slot
+(one buffer of :data:`HISTORY` slots of grid values per position-buffer vertex (or per vertex
+of the rows' own history bases, ``ClothEntry.hbase``: a decimated streams' encoder), each slot
 one encoded tick's: the tick being coded, the frame before it whose fate the publisher has not
 told yet, and the two states the decoders hold before that, so that a frame the publisher drops
 is forgotten (:meth:`DeviceEncoder.forget`) and the next coded again against the states sent,
@@ -64,6 +65,8 @@ from dataclasses import dataclass
 import numpy as np
 import pyopencl as cl
 
+from drape.client import protocol as P
+
 from .compact import Compactor, FrameIndex
 from .device import Device
 from .frameplan import (  # noqa: F401 (the plan's names, re-exported: encode.py is the entry point)
@@ -81,9 +84,6 @@ from .frameplan import (  # noqa: F401 (the plan's names, re-exported: encode.py
 log = logging.getLogger(__name__)
 
 HISTORY = 4  # grid-value slots: the tick coded, the frame before (its fate not yet told), the two sent
-# with decimated streams (1.8, rates k = 2, 3): k = 3 refers to T - 3 and T - 6, and back to T - 9
-# after a frame dropped on its tick; the ticks any stream holds are kept (``keep``), the rest reused
-HISTORY_RATES = 8
 _PRED_WORDS = encode_layout()["ENC_PRED_WORDS"]  # per plan cloth: order, ref ticks, history slots
 _SLOT_BITS = encode_layout()["ENC_SLOT_BITS"]
 
@@ -185,6 +185,14 @@ class EncodedFrame:
             self._host = None
 
 
+def history_end(plan: FramePlan) -> int:
+    """One past the last history vertex a predictive row of ``plan`` refers to (0: none)."""
+    W = encode_layout()
+    rows = plan.rows[plan.rows[:, W["ENC_ROW_ENC"]] == P.ENC_PREDICTIVE] if len(plan.rows) else plan.rows
+    ends = rows[:, W["ENC_ROW_HIST"]].astype(np.int64) + rows[:, W["ENC_ROW_N"]]
+    return int(ends.max(initial=0))
+
+
 class DeviceEncoder:
     """Encode whole frames on ``dev`` with a :class:`FramePlan`.
 
@@ -202,7 +210,6 @@ class DeviceEncoder:
         host_buffers: int = 2,
         stride: int = 4,
         soft_half: bool | None = None,
-        history: DeviceEncoder | None = None,
     ) -> None:
         if not dev.device.endian_little:
             raise RuntimeError(f"{dev.info.name} is big-endian; the wire format is little-endian")
@@ -240,11 +247,6 @@ class DeviceEncoder:
         self._hist: cl.Buffer | None = None  # HISTORY slots of _hist_cap vertices (encode.cl's hist)
         self._hist_cap = 0  # vertices
         self._hist_of: dict[int, int] = {}  # tick -> the history buffer holding its grid values
-        self.history_slots = HISTORY
-        self.keep: set[int] = set()  # ticks other streams still refer to (decimated ones): not reused
-        # a decimated streams' encoder (1.8) codes against ``history``'s slots: the full-rate
-        # encoder's, which wrote this tick's grid values (the same: one grid per cloth and step)
-        self._owner = history
         self._hosts: list[_HostFrame] = []
         self._next = 0
         self._last: _HostFrame | None = None
@@ -304,10 +306,7 @@ class DeviceEncoder:
         flags = np.zeros(max(len(plan.cloths), 1), np.uint16)
         flags_buf = cl.Buffer(ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=flags)
         pred_buf = cl.Buffer(ctx, MF.READ_ONLY, 8 * _PRED_WORDS * max(len(plan.cloths), 1))
-        if self._owner is None:
-            self._grow_history(plan.vertex_end if plan.predictive.any() else 0)
-        elif plan.vertex_end > self._owner._hist_cap:
-            raise ValueError(f"the plan reads {plan.vertex_end} vertices; the history holds {self._owner._hist_cap}")
+        self._grow_history(history_end(plan))
         compact = bool(plan.predictive.any())
         if compact:
             self.compactor.set_plan(plan, out)
@@ -327,36 +326,21 @@ class DeviceEncoder:
             wg,
         )
 
-    def _grow_history(self, vertices: int, slots: int | None = None) -> None:
-        """The predictive history buffers hold ``vertices`` position-buffer vertices and
-        ``slots`` ticks (grown, their contents kept: the streams go on across plans)."""
-        want = max(slots or 0, self.history_slots)
-        if self._hist is not None and vertices <= self._hist_cap and want <= self.history_slots:
+    def _grow_history(self, vertices: int) -> None:
+        """The predictive history buffers hold ``vertices`` position-buffer vertices (grown,
+        their contents kept: the streams go on across plans)."""
+        if self._hist is not None and vertices <= self._hist_cap:
             return
-        cap = max(vertices, 2 * self._hist_cap, 1) if vertices > self._hist_cap else self._hist_cap
-        new = cl.Buffer(self.dev.ctx, MF.READ_WRITE, 12 * max(cap, 1) * want)
+        cap = max(vertices, 2 * self._hist_cap, 1)
+        new = cl.Buffer(self.dev.ctx, MF.READ_WRITE, 12 * cap * HISTORY)
         if self._hist is not None:
             old = 12 * self._hist_cap
-            for slot in range(self.history_slots):
+            for slot in range(HISTORY):
                 cl.enqueue_copy(
                     self.dev.queue, new, self._hist, byte_count=old, src_offset=slot * old, dst_offset=slot * 12 * cap
                 )
         self.dev.queue.finish()
-        self._hist, self._hist_cap, self.history_slots = new, max(cap, 1), want
-
-    def deepen(self, slots: int) -> None:
-        """At least ``slots`` ticks of history from now on (decimated streams: HISTORY_RATES),
-        the ticks held kept. 12 bytes a vertex of the position buffer per slot."""
-        if self._owner is not None:
-            raise RuntimeError("a decimated streams' encoder uses its full-rate encoder's history")
-        if slots > self.history_slots:
-            self._grow_history(self._hist_cap if self._hist is not None else 0, slots)
-            log.info("predictive history: %d ticks of %d vertices", self.history_slots, self._hist_cap)
-
-    def history_ticks(self) -> set[int]:
-        """The ticks whose grid values the history holds now."""
-        owner = self._owner or self
-        return set(owner._hist_of)
+        self._hist, self._hist_cap = new, cap
 
     def _host_frame(self, plan: FramePlan) -> _HostFrame:
         """One pinned (ALLOC_HOST_PTR, mapped for good) host copy of a frame of ``plan``."""
@@ -453,7 +437,6 @@ class DeviceEncoder:
         n_rows = len(plan.rows)
         if n_rows:
             nb = normals if normals is not None else positions
-            hist = self._owner or self
             self._kernel.set_args(
                 positions,
                 nb,
@@ -463,8 +446,8 @@ class DeviceEncoder:
                 np.uint64(time_ns),
                 self._out,
                 self._pred_buf,
-                hist._hist,
-                np.uint32(hist._hist_cap),
+                self._hist,
+                np.uint32(self._hist_cap),
             )
             ev = cl.enqueue_nd_range_kernel(
                 queue, self._kernel, (n_rows * self._wg,), (self._wg,), wait_for=events or None
@@ -500,26 +483,20 @@ class DeviceEncoder:
         order = pred[:, 0]
         r1, r2 = order >= 1, order >= 2
         want = set(np.unique(pred[r1, 1]).tolist()) | set(np.unique(pred[r2, 2]).tolist())
-        owner = self._owner or self
-        hist_of = owner._hist_of
-        missing = sorted(t for t in want if t not in hist_of)
+        missing = sorted(t for t in want if t not in self._hist_of)
         if missing:
-            raise ValueError(f"ticks {missing} are not in the encoder's history {sorted(hist_of)}")
-        cur = hist_of.get(tick)
-        if cur is None and self._owner is not None:
-            raise ValueError(f"tick {tick} is not in the full-rate encoder's history: encode it there first")
+            raise ValueError(f"ticks {missing} are not in the encoder's history {sorted(self._hist_of)}")
+        cur = self._hist_of.get(tick)
         if cur is None:
-            free = sorted(set(range(self.history_slots)) - set(hist_of.values()))
+            free = sorted(set(range(HISTORY)) - set(self._hist_of.values()))
             if not free:
-                # the oldest tick no row refers to now and no other stream holds (else any of them)
-                spare = [t for t in hist_of if t not in want]
-                oldest = min((t for t in spare if t not in self.keep), default=min(spare, default=None))
+                oldest = min((t for t in self._hist_of if t not in want), default=None)
                 if oldest is None:
-                    raise ValueError(f"{self.history_slots} history slots, all referred to: {sorted(want)}")
-                free = [hist_of.pop(oldest)]
-            cur = hist_of[tick] = free[0]
-        ticks = np.array(sorted(hist_of), np.uint64)
-        slot_of = np.array([hist_of[t] for t in ticks.tolist()], np.uint64)
+                    raise ValueError(f"{HISTORY} history slots, all referred to: {sorted(want)}")
+                free = [self._hist_of.pop(oldest)]
+            cur = self._hist_of[tick] = free[0]
+        ticks = np.array(sorted(self._hist_of), np.uint64)
+        slot_of = np.array([self._hist_of[t] for t in ticks.tolist()], np.uint64)
         s1 = np.where(r1, slot_of[np.searchsorted(ticks, pred[:, 1]).clip(0, len(ticks) - 1)], cur)
         s2 = np.where(r2, slot_of[np.searchsorted(ticks, pred[:, 2]).clip(0, len(ticks) - 1)], cur)
         bits = np.uint64(_SLOT_BITS)
@@ -528,7 +505,7 @@ class DeviceEncoder:
     def forget(self, tick: int) -> None:
         """The frame of ``tick`` was dropped (its states never went out): its history buffer is
         free, and no later state refers to it."""
-        (self._owner or self)._hist_of.pop(tick, None)
+        self._hist_of.pop(tick, None)
 
     def _free_host(self) -> _HostFrame:
         """The next host frame in turn that is not held; a new one when all are (a consumer

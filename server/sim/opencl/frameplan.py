@@ -39,7 +39,8 @@ def state_size(n: int, encoding: int, normals: bool) -> int:
 class ClothEntry:
     """One cloth of a plan: its id, vertex range ``[vbase, vbase + n)`` in the world's float4
     position (and normal) buffers, protocol encoding id, whether normals follow and (predictive,
-    1.5) its grid step in metres."""
+    1.5) its grid step in metres and its first vertex in the encoder's history (1.8: a decimated
+    streams' encoder keeps its own, for its cloths only; -1: ``vbase``)."""
 
     cloth: str
     vbase: int
@@ -47,6 +48,7 @@ class ClothEntry:
     encoding: int = P.ENC_FLOAT32
     normals: bool = False
     step: float = P.DEFAULT_STEP
+    hbase: int = -1  # predictive: its first vertex in the encoder's history (-1: vbase)
 
 
 @dataclass(frozen=True)
@@ -194,6 +196,7 @@ class FramePlan:
         if c.encoding == P.ENC_PREDICTIVE:
             row[W["ENC_ROW_ENTRY"]] = entry_at
             row[W["ENC_ROW_INVSTEP"]] = int(np.array(P.inverse_step(c.step), np.float32).view(np.uint32))
+            row[W["ENC_ROW_HIST"]] = c.hbase if c.hbase >= 0 else c.vbase
         else:
             row[W["ENC_ROW_ENTRY"]] = W["ENC_NONE"]
         return row

@@ -7,6 +7,7 @@ stream's next state intra-coded."""
 from __future__ import annotations
 
 import threading
+import time
 
 import msgpack
 import numpy as np
@@ -139,3 +140,51 @@ def test_a_subscription_switches_rate_and_resyncs_on_a_keyframe(server, bundle):
         assert len(got) >= 7 and all(s.tick % 3 == 0 for s in got)
     finally:
         c.close()
+
+
+@pytest.mark.parametrize("device_encode", [True, False], ids=["device", "host"])
+def test_frames_dropped_on_decimated_ticks_keep_the_stream_predicted(device_encode):
+    """A publisher late for a few ticks drops frames whole, some on the decimated stream's ticks:
+    its states after each gap are predicted from the last two it sent (the device's decimated
+    streams taken back, as the host path, which never coded them): the subscriber of every 2nd
+    state decodes every one, none is a keyframe, and the server writes no more keyframes."""
+    server = Server(make_config(device_encode=device_encode, keyframe_interval=100_000)).start()
+    try:
+        c = connect(server, rate=2)
+        try:
+            with c.submit_grid(12, 12, pinned=[0, 11], encoding="predictive", step=STEP) as h:
+                collect(h, 8)  # past its first keyframes
+                first = h.stream.keyframes
+                publisher = server.publisher
+                publish, stalls = publisher.publish, [0]
+
+                def late(job) -> None:  # the publisher descheduled for 3 ticks, now and then
+                    stalls[0] += 1
+                    if stalls[0] % 7 == 0:
+                        time.sleep(0.05)
+                    publish(job)
+
+                counters = server.registry.counters
+                skipped, keyframes = counters["skipped_frames"], counters["keyframes"]
+                unserved = counters["rate_unserved"]
+                publisher.publish = late  # type: ignore[method-assign]
+                states = collect(h, 40)
+                publisher.publish = publish  # type: ignore[method-assign]
+                ticks = [s.tick for s in states]
+                assert all(t % 2 == 0 for t in ticks)
+                assert counters["skipped_frames"] > skipped and any(
+                    b - a > 2 for a, b in zip(ticks, ticks[1:], strict=False)
+                )
+                assert not any(s.extrapolated for s in states)
+                assert h.stream.undecodable == 0
+                assert h.stream.keyframes == first  # none since
+                assert counters["keyframes"] == keyframes and counters["rate_unserved"] == unserved
+                frames = getattr(server.ticker.world, "device_frames", None)
+                assert (frames is not None) == device_encode
+                if frames is not None:
+                    assert frames.rates.frames >= len(states)
+        finally:
+            c.close()
+    finally:
+        server.stop()
+    assert server.failure is None

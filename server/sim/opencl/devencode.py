@@ -271,9 +271,11 @@ class DeviceWire(Wire):
         """1.8: the decimated payloads of the ``watched`` publications: a publication without a
         predictive cloth, the full-rate bytes; one with, its rate frame's (those first watched
         after this frame was encoded: none yet, the publisher counts them)."""
-        pred = self.encoded.plan.predictive
-        pubs = self.roster.publications()
-        plain = [j for j in watched if not pred[np.asarray(pubs[j][2], np.int64)].any()]
+        plan = self.encoded.plan
+        has_pred = np.zeros(len(plan.publications) + 1, bool)  # [-1]: in no publication
+        has_pred[plan.owner[plan.predictive]] = True
+        w = np.asarray(watched, np.int64)
+        plain = w[~has_pred[w]].tolist()
         if plain:
             yield from self.encoded.payloads(plain)
         rf = self._rates.get(every)

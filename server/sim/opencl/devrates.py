@@ -53,7 +53,7 @@ class _Rate:
     streams: DeviceStreams
     version: tuple[object, frozenset[str]] | None = None
     base: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # plan cloth -> frame cloth
-    pub_of: dict[int, int] = field(default_factory=dict)  # frame publication -> plan publication
+    pub_of: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # frame pub -> plan pub, -1
     roster_pub: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # plan pub -> frame pub
 
     def cloths(self, frame_cloths: np.ndarray) -> np.ndarray:
@@ -114,13 +114,11 @@ class DeviceRates:
             cloths: list[ClothEntry] = []
             out: list[Publication] = []
             base: list[int] = []
-            pub_of: dict[int, int] = {}
             for j in sel:
                 _, key, idx, bundle = pubs[j]
                 at = tuple(range(len(cloths), len(cloths) + len(idx)))
                 cloths.extend(replace(plan.cloths[i], hbase=hb[plan.cloths[i].cloth]) for i in idx)
                 base.extend(idx)
-                pub_of[j] = len(out)
                 out.append(Publication(P.every_key(key, k), at, bundle))
             sub = FramePlan.build(cloths, out)
             if r is None:
@@ -128,8 +126,10 @@ class DeviceRates:
                 r = self.rates[k] = _Rate(k, enc, DeviceStreams(k * keyframe_interval))
             r.encoder.set_plan(sub)
             r.streams.follow(sub)
-            r.version, r.base, r.pub_of = version, np.array(base, np.int64), pub_of
+            r.version, r.base = version, np.array(base, np.int64)
             r.roster_pub = np.array(sel, np.int64)
+            r.pub_of = np.full(len(pubs), -1, np.int64)
+            r.pub_of[r.roster_pub] = np.arange(len(sel))
             self.plans += 1
             log.debug("rate %d: %d publications, %d cloths", k, len(out), len(cloths))
 
@@ -200,15 +200,16 @@ class DeviceRates:
         ds.keyframe_interval = streams.keyframe_interval
         ds.request(streams.take_requests())
         plan = rf.frame.plan
-        sel = [r.pub_of[j] for j in watched if j in r.pub_of]
+        at = r.pub_of[np.asarray(watched, np.int64)] if len(watched) else np.zeros(0, np.int64)
+        sel = at[at >= 0]
         shown = np.zeros(len(plan.publications) + 1, bool)
-        shown[np.asarray(sel, np.int64)] = True
+        shown[sel] = True
         seen = shown[plan.owner]
         ds.lost(plan, np.flatnonzero(plan.predictive & ~seen))
         ds.put(plan, np.flatnonzero(plan.predictive & seen), tick)
         streams.keyframes += int((rf.keyframes & seen).sum())
         rf.put = True
-        for jj, payload in rf.frame.payloads(sel):
+        for jj, payload in rf.frame.payloads(sel.tolist()):
             yield int(r.roster_pub[jj]), payload
 
     def release(self, rf: RateFrame) -> None:

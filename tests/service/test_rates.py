@@ -142,6 +142,28 @@ def test_a_subscription_switches_rate_and_resyncs_on_a_keyframe(server, bundle):
         c.close()
 
 
+def test_a_non_finite_cloth_on_a_decimated_key_comes_back_at_rest(server):
+    """A cloth gone non-finite is reset by the server; on its decimated key (every 2nd state,
+    with normals) every state stays finite, decodes and lies near the rest pose (on a decimated
+    tick the device codes its rate frame again with the reset, as the full-rate frame, never the
+    non-finite positions: three resets, some land on a decimated tick)."""
+    c = connect(server, rate=2)
+    try:
+        with c.submit_grid(6, 5, pinned=[0], normals=True, encoding="predictive", step=STEP) as h:
+            collect(h, 3)
+            handle = server.world_handle(h.id)
+            for _ in range(3):
+                server.call(lambda w: w.reset(handle, np.full((30, 3), np.nan)))
+                for s in collect(h, 4):
+                    assert np.isfinite(s.positions).all() and np.isfinite(s.normals).all()
+                    # a few ticks' fall from rest at most (a state coded from non-finite positions
+                    # would lie at the grid's clamp, kilometres away)
+                    assert np.abs(s.positions - h.rest_positions).max() <= 0.5
+            assert h.stream.undecodable == 0
+    finally:
+        c.close()
+
+
 @pytest.mark.parametrize("device_encode", [True, False], ids=["device", "host"])
 def test_frames_dropped_on_decimated_ticks_keep_the_stream_predicted(device_encode):
     """A publisher late for a few ticks drops frames whole, some on the decimated stream's ticks:

@@ -950,7 +950,7 @@ def test_decimated_streams_equal_the_host_encoder(device, rng, seed_ticks):
             enc.encode(device.queue, pb, nb, tick, time_ns, flags, predictive=pred)
             due = rates.encode(device.queue, pb, nb, tick, time_ns, flags)
             assert sorted(r.every for r, _ in due) == [k for k in (2, 3) if tick % k == 0 and k in watching]
-            frames = {r.every: RateFrame(r, r.encoder.hold(), kf) for r, kf in due}
+            frames = DeviceRates.hold(due)
             if older is not None:  # the frame before was dropped whole (DeviceWire.after_dropped)
                 for rf in older[1].values():
                     rates.dropped(rf, older[0])

@@ -164,7 +164,7 @@ class DeviceWire(Wire):
         self._frames = frames
         self.encoded = frames.encoder.hold()
         # 1.8: the decimated rates whose tick this is, each its own frame (devrates.py)
-        self._rates = {r.every: RateFrame(r, r.encoder.hold(), kf) for r, kf in (due or [])}
+        self._rates = DeviceRates.hold(due or [])
         self._bad = frames.encoder.nonfinite()
         self._keyframes = keyframes  # (k,) bool, predictive plans only
         self._put = False  # payloads taken (else, at release, its predictive states were lost)
@@ -191,7 +191,7 @@ class DeviceWire(Wire):
         else:
             self.encoded.add_flags(np.asarray(cloths).tolist(), flag)
             for rf in self._rates.values():
-                rf.frame.add_flags(rf.rate.cloths(cloths).tolist(), flag)
+                rf.frame.add_flags(rf.layout.cloths(cloths).tolist(), flag)
 
     def after_dropped(self, older: Wire) -> None:
         """On the tick thread, before the next step (the world's positions are still this
@@ -220,7 +220,7 @@ class DeviceWire(Wire):
                 Wire.add_flags(self, bad, P.FLAG_RESET)
                 self.encoded.add_flags(bad.tolist(), P.FLAG_RESET)
                 for rf in self._rates.values():
-                    rf.frame.add_flags(rf.rate.cloths(bad).tolist(), P.FLAG_RESET)
+                    rf.frame.add_flags(rf.layout.cloths(bad).tolist(), P.FLAG_RESET)
 
     def nonfinite(self) -> np.ndarray:
         return self._bad

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pyopencl as cl
@@ -44,6 +44,22 @@ log = logging.getLogger(__name__)
 Watching = Callable[[], Mapping[int, frozenset[str]]]  # rate -> idents of the publications watched
 
 
+@dataclass(frozen=True, eq=False)
+class _Layout:
+    """Where a rate plan's cloths and publications lie in the full-rate frame's roster."""
+
+    base: np.ndarray  # plan cloth -> frame cloth
+    pub_of: np.ndarray  # frame publication -> plan publication, -1 for none
+    roster_pub: np.ndarray  # plan publication -> frame publication
+
+    def cloths(self, frame_cloths: np.ndarray) -> np.ndarray:
+        """The plan's cloths of frame cloths ``frame_cloths``."""
+        return np.flatnonzero(np.isin(self.base, np.asarray(frame_cloths, np.int64)))
+
+
+_NONE = _Layout(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64))
+
+
 @dataclass(eq=False)
 class _Rate:
     """One decimated rate's plan, encoder and streams."""
@@ -52,13 +68,7 @@ class _Rate:
     encoder: DeviceEncoder
     streams: DeviceStreams
     version: tuple[object, frozenset[str]] | None = None
-    base: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # plan cloth -> frame cloth
-    pub_of: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # frame pub -> plan pub, -1
-    roster_pub: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # plan pub -> frame pub
-
-    def cloths(self, frame_cloths: np.ndarray) -> np.ndarray:
-        """This plan's cloths of frame cloths ``frame_cloths``."""
-        return np.flatnonzero(np.isin(self.base, np.asarray(frame_cloths, np.int64)))
+    layout: _Layout = _NONE  # of the plan now (a frame keeps its own: the publisher may lag)
 
 
 @dataclass(eq=False)
@@ -68,6 +78,7 @@ class RateFrame:
     rate: _Rate
     frame: EncodedFrame
     keyframes: np.ndarray  # (plan cloths,) bool
+    layout: _Layout  # its plan's
     put: bool = False  # its payloads were taken (else, at release, its states were lost)
     dropped: bool = False  # dropped whole and its streams taken back: nothing lost
 
@@ -126,10 +137,9 @@ class DeviceRates:
                 r = self.rates[k] = _Rate(k, enc, DeviceStreams(k * keyframe_interval))
             r.encoder.set_plan(sub)
             r.streams.follow(sub)
-            r.version, r.base = version, np.array(base, np.int64)
-            r.roster_pub = np.array(sel, np.int64)
-            r.pub_of = np.full(len(pubs), -1, np.int64)
-            r.pub_of[r.roster_pub] = np.arange(len(sel))
+            pub_of = np.full(len(pubs), -1, np.int64)
+            pub_of[np.array(sel, np.int64)] = np.arange(len(sel))
+            r.version, r.layout = version, _Layout(np.array(base, np.int64), pub_of, np.array(sel, np.int64))
             self.plans += 1
             log.debug("rate %d: %d publications, %d cloths", k, len(out), len(cloths))
 
@@ -159,17 +169,23 @@ class DeviceRates:
         flags: np.ndarray | None,
     ) -> list[tuple[_Rate, np.ndarray]]:
         """Enqueue the frames of the rates whose tick this is (behind the full-rate frame of the
-        same tick, on the same queue); returns (rate, keyframes) of each, to hold once back."""
+        same tick, on the same queue); returns (rate, keyframes) of each, to :meth:`hold` once
+        back."""
         due = []
         for k, r in self.rates.items():
             if tick % k:
                 continue
-            f = np.asarray(flags)[r.base] if flags is not None else None
+            f = np.asarray(flags)[r.layout.base] if flags is not None else None
             pred, kf = r.streams.decide(tick, f)
             r.encoder.encode(queue, positions, normals, tick, time_ns, f, predictive=pred)
             self.frames += 1
             due.append((r, kf))
         return due
+
+    @staticmethod
+    def hold(due: list[tuple[_Rate, np.ndarray]]) -> dict[int, RateFrame]:
+        """The frames :meth:`encode` enqueued (waits for them), each kept with its plan's layout."""
+        return {r.every: RateFrame(r, r.encoder.hold(), kf, r.layout) for r, kf in due}
 
     def reencode(
         self,
@@ -185,7 +201,7 @@ class DeviceRates:
         for rf in frames.values():
             r = rf.rate
             rf.frame.release()
-            f = np.asarray(flags)[r.base]
+            f = np.asarray(flags)[rf.layout.base]
             pred, rf.keyframes = r.streams.redo(tick, f)
             r.encoder.encode(self.dev.queue, positions, normals, tick, time_ns, f, predictive=pred).wait()
             rf.frame = r.encoder.hold()
@@ -200,7 +216,8 @@ class DeviceRates:
         ds.keyframe_interval = streams.keyframe_interval
         ds.request(streams.take_requests())
         plan = rf.frame.plan
-        at = r.pub_of[np.asarray(watched, np.int64)] if len(watched) else np.zeros(0, np.int64)
+        lay = rf.layout
+        at = lay.pub_of[np.asarray(watched, np.int64)] if len(watched) else np.zeros(0, np.int64)
         sel = at[at >= 0]
         shown = np.zeros(len(plan.publications) + 1, bool)
         shown[sel] = True
@@ -210,7 +227,7 @@ class DeviceRates:
         streams.keyframes += int((rf.keyframes & seen).sum())
         rf.put = True
         for jj, payload in rf.frame.payloads(sel.tolist()):
-            yield int(r.roster_pub[jj]), payload
+            yield int(lay.roster_pub[jj]), payload
 
     def release(self, rf: RateFrame) -> None:
         if not rf.put and not rf.dropped:  # its states never went out

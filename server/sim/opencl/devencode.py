@@ -46,7 +46,7 @@ from ..statecodec import PredictiveStreams
 from ..wire import Payload, PendingWire, Wire
 from .buffers import ClothSlot, DeviceMemory
 from .device import Device
-from .devrates import DeviceRates, RateFrame, Watching
+from .devrates import DeviceRates, Due, RateFrame, Watching
 from .devstreams import DeviceStreams
 from .encode import ClothEntry, DeviceEncoder, EncodedFrame, FramePlan, Publication
 from .frames import FrameReadback, device_span
@@ -105,7 +105,7 @@ class DeviceFrames:
             self.predictive_frames += 1
         ev = self.encoder.encode(self.dev.queue, mem.pos.buf, mem.nrm.buf, tick, 0, None, predictive=pred)
         self.frames += 1
-        due = []
+        due: Due = []
         if keyframes is not None:  # 1.8: the decimated streams whose tick this is, behind it
             due = self.rates.encode(self.dev.queue, mem.pos.buf, mem.nrm.buf, tick, 0, None)
         frame = Frame(step, lay, np.zeros((0, 3), np.float32), None)
@@ -158,7 +158,7 @@ class DeviceWire(Wire):
         tick: int,
         frames: DeviceFrames,
         keyframes: np.ndarray | None,
-        due: list | None = None,
+        due: Due | None = None,
     ) -> None:
         super().__init__(frame, roster, tick)
         self._frames = frames

@@ -83,6 +83,9 @@ class RateFrame:
     dropped: bool = False  # dropped whole and its streams taken back: nothing lost
 
 
+Due = list[tuple[_Rate, np.ndarray]]  # the rates encoded this tick and their keyframes
+
+
 class DeviceRates:
     """The decimated streams of one device encoder (a part DeviceFrames owns; the tick thread
     calls everything but :meth:`watch`)."""
@@ -167,11 +170,11 @@ class DeviceRates:
         tick: int,
         time_ns: int,
         flags: np.ndarray | None,
-    ) -> list[tuple[_Rate, np.ndarray]]:
+    ) -> Due:
         """Enqueue the frames of the rates whose tick this is (behind the full-rate frame of the
         same tick, on the same queue); returns (rate, keyframes) of each, to :meth:`hold` once
         back."""
-        due = []
+        due: Due = []
         for k, r in self.rates.items():
             if tick % k:
                 continue
@@ -183,7 +186,7 @@ class DeviceRates:
         return due
 
     @staticmethod
-    def hold(due: list[tuple[_Rate, np.ndarray]]) -> dict[int, RateFrame]:
+    def hold(due: Due) -> dict[int, RateFrame]:
         """The frames :meth:`encode` enqueued (waits for them), each kept with its plan's layout."""
         return {r.every: RateFrame(r, r.encoder.hold(), kf, r.layout) for r, kf in due}
 

@@ -139,6 +139,8 @@ class RatePublishers:
                 watched = set(self._watched[k])
             if watched:
                 out.append((k, [j for j, p in enumerate(pubs) if p[0] in watched]))
+            elif self.streams[k].streams:  # nobody left: whoever comes next starts on a keyframe
+                self.streams[k].keep_only(set())
         return out
 
     def publisher(self, ident: str, every: int) -> zenoh.Publisher | None:

@@ -24,7 +24,8 @@
  *
  *   predictive (1.5, PROTOCOL.md 9.2; byte-exact with drape.client.protocol.predictive.pack_frame):
  *            each vertex quantised on the step's grid (q = clamp(rint(x * inv_step)), float32
- *            product) into this tick's history slot qcur (per position-buffer vertex, 3 ints;
+ *            product) into this tick's history slot qcur (3 ints per vertex, at the row's
+ *            history base: the position-buffer vertex, or a decimated streams' encoder's own;
  *            the history is slots of `hcap` vertices, each one tick's grid values, the row's
  *            slots chosen per cloth by the host);
  *            the prediction of the order the host chose (0: none, 1: q1, 2: 2 q1 - q2 from the
@@ -44,7 +45,7 @@
  */
 
 /* Table of encoded cloths: ENC_ROW_WORDS uints per row (parsed by encode.py, the one copy). */
-#define ENC_ROW_WORDS 9
+#define ENC_ROW_WORDS 10
 #define ENC_ROW_VBASE 0      /* first vertex of the cloth in the positions / normals buffers */
 #define ENC_ROW_N 1          /* vertex count */
 #define ENC_ROW_ENC 2        /* protocol encoding id: 0 float32, 1 float16, 2 quant16 */
@@ -54,6 +55,7 @@
 #define ENC_ROW_CLOTH 6      /* index of the cloth in the plan (into the per-tick flags) */
 #define ENC_ROW_ENTRY 7      /* predictive: byte offset of its bundle entry's state size, or ENC_NONE */
 #define ENC_ROW_INVSTEP 8    /* predictive: float32 bits of 1 / step (predictive.inverse_step) */
+#define ENC_ROW_HIST 9       /* predictive: first vertex of the cloth in the history slots */
 #define ENC_NONE 4294967295
 #define ENC_PRED_WORDS 4     /* predictive, per plan cloth (ulong): order, ref tick, ref2 tick, history slots */
 #define ENC_SLOT_BITS 8      /* the slots word: this tick's slot, ref's << 8, ref2's << 16 */
@@ -306,9 +308,10 @@ __kernel void encode_frame(
         __global int *qcur = hist + (size_t)3 * hcap * (slots & smask);
         __global const int *q1 = hist + (size_t)3 * hcap * ((slots >> ENC_SLOT_BITS) & smask);
         __global const int *q2 = hist + (size_t)3 * hcap * ((slots >> (2 * ENC_SLOT_BITS)) & smask);
+        const uint hb = r[ENC_ROW_HIST];
         __global uchar *pd = st + PH_DATA;
         for (uint v = lid; v < n; v += ENC_WG)
-            vstore3(quantise3(LOAD3(pos, vbase + v), inv), vbase + v, qcur);
+            vstore3(quantise3(LOAD3(pos, vbase + v), inv), hb + v, qcur);
         barrier(CLK_GLOBAL_MEM_FENCE);
         const uint nb = (n + 31) / 32, nblk = 3 * nb;
         const uint head = 4 * ((nblk + 3) / 4);
@@ -318,7 +321,7 @@ __kernel void encode_frame(
         uint wsum = 0;
         uint z[32];
         for (uint b = b0; b < b1; b++) {
-            block_symbols(qcur, q1, q2, vbase, n, nb, order, b, z);
+            block_symbols(qcur, q1, q2, hb, n, nb, order, b, z);
             uint m = 0;
             for (uint j = 0; j < 32; j++)
                 m |= z[j];
@@ -343,7 +346,7 @@ __kernel void encode_frame(
             uint w = pd[b];
             if (!w)
                 continue;
-            block_symbols(qcur, q1, q2, vbase, n, nb, order, b, z);
+            block_symbols(qcur, q1, q2, hb, n, nb, order, b, z);
             uint cur = 0, fill = 0;
             for (uint j = 0; j < 32; j++) {
                 cur |= z[j] << fill;

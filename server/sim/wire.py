@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import logging
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 
 import numpy as np
 
@@ -89,6 +89,19 @@ class Wire(ABC):
         """(publication index, payload) of the ``watched`` publications, in order, encoded as
         they are taken; None for one that failed (logged). ``streams``: the service's predictive
         streams (statecodec's docstring says why the World does not keep them)."""
+
+    def rate_payloads(
+        self, every: int, watched: list[int], streams: PredictiveStreams
+    ) -> Iterator[tuple[int, Payload]]:
+        """1.8: (publication index, payload) of the ``watched`` publications' rate-``every``
+        keys this tick (``streams``: that rate's own predictive streams); a publication it cannot
+        serve this tick is left out. The host path codes them as the full rate's."""
+        return self.payloads(watched, streams)
+
+    def watch_rates(self, watching: Callable[[], Mapping[int, frozenset[str]]]) -> None:
+        """1.8: where the publications watched per rate are read (a device-encoded World plans
+        their decimated streams from it); the host path needs nothing."""
+        return None
 
     def hold(self) -> Wire:
         """Keep this tick's host memory from reuse until :meth:`release`."""

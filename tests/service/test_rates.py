@@ -2,11 +2,12 @@
 state of a cloth or bundle on its own key, predicted against that key's own states, only while
 someone subscribes (counted); the SDK's decimated states decode within half a step of the
 full-rate float32 states of the same motion; a keyframe query on a decimated key makes that
-stream's next state intra-coded."""
+stream's next state intra-coded; on the device encoder (sim/opencl/devrates.py) as on the host."""
 
 from __future__ import annotations
 
 import threading
+import time
 
 import msgpack
 import numpy as np
@@ -22,10 +23,10 @@ pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest
 STEP = 0.002
 
 
-@pytest.fixture(scope="module")
-def server():
-    # decimated predictive streams are coded on the host path (publish/rates.py says why)
-    with Server(make_config(keyframe_interval=30, device_encode=False)) as srv:
+@pytest.fixture(scope="module", params=[True, False], ids=["device", "host"])
+def server(request):
+    # decimated predictive streams coded by the device encoder (sim/opencl/devrates.py) and the host path
+    with Server(make_config(keyframe_interval=30, device_encode=request.param)) as srv:
         yield srv
 
 
@@ -35,10 +36,18 @@ def _session(server) -> zenoh.Session:
     return zenoh.open(zenoh.Config.from_json5(conf))
 
 
+def _device_rate_frames(server) -> int | None:
+    """Decimated frames the device encoder coded (None: the host path)."""
+    frames = getattr(server.ticker.world, "device_frames", None)
+    return frames.rates.frames if frames is not None else None
+
+
 @pytest.mark.parametrize("every,bundle", [(2, False), (3, True)])
 def test_decimated_states_stay_within_half_a_step_of_float32(server, every, bundle):
     c = connect(server, rate=every)
     full = connect(server)
+    counters = server.registry.counters
+    published, unserved, coded = counters["rate_published"], counters["rate_unserved"], _device_rate_frames(server)
     try:
         opts = dict(pinned=[0, 11], features=["tethers"])
         pred = c.submit_grid(12, 12, encoding="predictive", step=STEP, bundle=bundle, **opts)
@@ -57,6 +66,12 @@ def test_decimated_states_stay_within_half_a_step_of_float32(server, every, bund
         assert pred.gaps == 0 and pred.stream.undecodable == 0
         # predicted against its own states: most are not keyframes
         assert pred.stream.keyframes < len(got) // 3  # (the first, then one every 30 ticks or so)
+        assert counters["rate_published"] >= published + len(got)
+        # served by the encoder of the frame (the device's decimated frames, no host fallback); a
+        # subscription seen after its tick's frame was encoded waits for its next tick (one state)
+        assert counters["rate_unserved"] <= unserved + 1
+        if coded is not None:
+            assert _device_rate_frames(server) >= coded + len(got)
     finally:
         c.close()
         full.close()
@@ -79,7 +94,7 @@ def test_a_decimated_key_is_encoded_only_while_subscribed_and_keyframes_on_its_o
         def on_sample(sample: zenoh.Sample) -> None:
             data = sample.payload.to_bytes()
             st = stream.decode(data)
-            order = P.read_predictive_header(data, P.STATE_HEADER_SIZE).order if st is not None else None
+            order = P.read_predictive_header(data).order if st is not None else None
             with lock:
                 got.append((P.read_state_header(data, len(data))[4], order))
 
@@ -94,11 +109,14 @@ def test_a_decimated_key_is_encoded_only_while_subscribed_and_keyframes_on_its_o
             answer = msgpack.unpackb(replies[0].ok.payload.to_bytes())
             assert answer["cloths"] == 1 and answer["tick"] % 2 == 0
             assert counters["keyframe_queries"] == queries + 1
-            assert wait_until(lambda: any(t >= answer["tick"] for t, _ in got))
+            assert wait_until(lambda: any(t >= answer["tick"] + 4 for t, _ in got))
             with lock:
-                after = [o for t, o in got if t >= answer["tick"]]
+                near = [o for t, o in got if answer["tick"] - 2 <= t <= answer["tick"] + 4]
                 ticks = [t for t, _ in got]
-            assert after[0] == 0  # the stream's next state is a keyframe
+            # the stream's next state is a keyframe: the answer's tick is the earliest, which a
+            # publisher already past its request takes, the host path one tick sooner (its state
+            # coded as it is put) and the device one of the rate's ticks later (decided a frame ahead)
+            assert 0 in near, near
             assert all(t % 2 == 0 for t in ticks)
             sub.undeclare()
 
@@ -108,6 +126,27 @@ def test_a_decimated_key_is_encoded_only_while_subscribed_and_keyframes_on_its_o
                 return counters["rate_published"] <= stopped + 1
 
             assert wait_until(quiet), "the listener should see it go"  # however late a loaded machine runs it
+            # a subscriber coming back after nobody watched (once the server has forgotten the
+            # rate's streams: the host path's on a tick of the rate, the device's plan with them)
+            # gets a keyframe first
+            frames = getattr(server.ticker.world, "device_frames", None)
+            rates = server.publisher.rates
+            assert wait_until(lambda: not rates.streams[2].streams and (frames is None or 2 not in frames.rates.rates))
+            again = P.StateStream(pred.id)
+            firsts: list[int | None] = []
+
+            def on_again(sample: zenoh.Sample) -> None:
+                data = sample.payload.to_bytes()
+                with lock:  # decoded and counted in one go (samples may come on several threads)
+                    st = again.decode(data)
+                    firsts.append(P.read_predictive_header(data).order if st is not None else None)
+
+            sub = session.declare_subscriber(key, on_again)
+            assert wait_until(lambda: len(firsts) >= 3)
+            sub.undeclare()
+            with lock:
+                assert firsts[0] == 0 and None not in firsts, firsts
+            assert again.undecodable == 0
         finally:
             session.close()
     finally:
@@ -128,3 +167,73 @@ def test_a_subscription_switches_rate_and_resyncs_on_a_keyframe(server, bundle):
         assert len(got) >= 7 and all(s.tick % 3 == 0 for s in got)
     finally:
         c.close()
+
+
+def test_a_non_finite_cloth_on_a_decimated_key_comes_back_at_rest(server):
+    """A cloth gone non-finite is reset by the server; on its decimated key (every 2nd state,
+    with normals) every state stays finite, decodes and lies near the rest pose (on a decimated
+    tick the device codes its rate frame again with the reset, as the full-rate frame, never the
+    non-finite positions: three resets, some land on a decimated tick)."""
+    c = connect(server, rate=2)
+    try:
+        with c.submit_grid(6, 5, pinned=[0], normals=True, encoding="predictive", step=STEP) as h:
+            collect(h, 3)
+            handle = server.world_handle(h.id)
+            for _ in range(3):
+                server.call(lambda w: w.reset(handle, np.full((30, 3), np.nan)))
+                for s in collect(h, 4):
+                    assert np.isfinite(s.positions).all() and np.isfinite(s.normals).all()
+                    # a few ticks' fall from rest at most (a state coded from non-finite positions
+                    # would lie at the grid's clamp, kilometres away)
+                    assert np.abs(s.positions - h.rest_positions).max() <= 0.5
+            assert h.stream.undecodable == 0
+    finally:
+        c.close()
+
+
+@pytest.mark.parametrize("device_encode", [True, False], ids=["device", "host"])
+def test_frames_dropped_on_decimated_ticks_keep_the_stream_predicted(device_encode):
+    """A publisher late for a few ticks drops frames whole, some on the decimated stream's ticks:
+    its states after each gap are predicted from the last two it sent (the device's decimated
+    streams taken back, as the host path, which never coded them): the subscriber of every 2nd
+    state decodes every one, none is a keyframe, and the server writes no more keyframes."""
+    server = Server(make_config(device_encode=device_encode, keyframe_interval=100_000)).start()
+    try:
+        c = connect(server, rate=2)
+        try:
+            with c.submit_grid(12, 12, pinned=[0, 11], encoding="predictive", step=STEP) as h:
+                collect(h, 8)  # past its first keyframes
+                first = h.stream.keyframes
+                publisher = server.publisher
+                publish, stalls = publisher.publish, [0]
+
+                def late(job) -> None:  # the publisher descheduled for 3 ticks, now and then
+                    stalls[0] += 1
+                    if stalls[0] % 7 == 0:
+                        time.sleep(0.05)
+                    publish(job)
+
+                counters = server.registry.counters
+                skipped, keyframes = counters["skipped_frames"], counters["keyframes"]
+                unserved = counters["rate_unserved"]
+                publisher.publish = late  # type: ignore[method-assign]
+                states = collect(h, 40)
+                publisher.publish = publish  # type: ignore[method-assign]
+                ticks = [s.tick for s in states]
+                assert all(t % 2 == 0 for t in ticks)
+                assert counters["skipped_frames"] > skipped and any(
+                    b - a > 2 for a, b in zip(ticks, ticks[1:], strict=False)
+                )
+                assert not any(s.extrapolated for s in states)
+                assert h.stream.undecodable == 0
+                assert h.stream.keyframes == first  # none since
+                assert counters["keyframes"] == keyframes and counters["rate_unserved"] == unserved
+                frames = getattr(server.ticker.world, "device_frames", None)
+                assert (frames is not None) == device_encode
+                if frames is not None:
+                    assert frames.rates.frames >= len(states)
+        finally:
+            c.close()
+    finally:
+        server.stop()
+    assert server.failure is None

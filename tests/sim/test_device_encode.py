@@ -16,6 +16,7 @@ from conftest import random_grid_fabric
 from drape.client import protocol as P
 from drape.client.protocol.predictive import Q_LIMIT
 from drape.server.sim.opencl.compact import Compactor
+from drape.server.sim.opencl.devrates import DeviceRates, RateFrame
 from drape.server.sim.opencl.devstreams import DeviceStreams
 from drape.server.sim.opencl.encode import (
     HEADER_OFFSETS,
@@ -24,7 +25,9 @@ from drape.server.sim.opencl.encode import (
     DeviceEncoder,
     FramePlan,
     Publication,
+    history_end,
 )
+from drape.server.sim.roster import Roster
 from drape.server.sim.statecodec import FrameEncoder, PredictiveStreams
 
 VECTORS = Path(__file__).resolve().parents[1] / "vectors"
@@ -871,4 +874,127 @@ def test_predictive_closed_loop_with_lost_states_and_keyframe_requests(device, r
         assert worst_wait <= 60
         assert sum(s.undecodable for s in streams.values()) > 0  # losses were noticed and recovered from
     finally:
+        enc.close()
+
+
+# --- 1.8 decimated predictive streams -------------------------------------------------------------
+
+
+def _roster(cloths: list[ClothEntry], pubs: list[Publication]) -> tuple[Roster, list[Publication]]:
+    """The service's Roster of these publications, and the publications in its order."""
+    singles = [p.cloths[0] for p in pubs if not p.bundle]
+    bundles = [(p.key, np.array(p.cloths, np.int64)) for p in pubs if p.bundle]
+    roster = Roster(
+        (1, 0),
+        [c.cloth for c in cloths],
+        [f"state/{c.cloth}" for c in cloths],
+        [c.encoding for c in cloths],
+        np.array([c.normals for c in cloths], bool),
+        np.array(singles, np.int64),
+        bundles,
+        [c.step for c in cloths],
+    )
+    ordered = [Publication(key, tuple(idx), bundle) for _, key, idx, bundle in roster.publications()]
+    return roster, ordered
+
+
+@pytest.mark.parametrize("seed_ticks", [40, 61])
+def test_decimated_streams_equal_the_host_encoder(device, rng, seed_ticks):
+    """Decimated predictive streams (1.8: every 2nd and every 3rd state on keys of their own)
+    coded on the device (devrates.DeviceRates: a plan per watched rate, encoded behind the
+    full-rate frame on its ticks against the full-rate history) byte for byte the host path's
+    (statecodec.FrameEncoder with a PredictiveStreams of k x the keyframe interval, given the
+    states of the ticks T mod k = 0 only), tick after tick: resets, keyframe requests on the
+    decimated streams, subscribers coming and going (seen on the rate's ticks, as the host path
+    sees them), frames dropped whole on decimated ticks (the streams taken back, the next state
+    predicted from the last two sent, as the host path, which never coded it), bundles mixing
+    encodings. No decimated work on the other ticks."""
+    cloths, pos, nrm, pubs = _predictive_frame(rng, 10, max_n=120)
+    roster, pubs = _roster(cloths, pubs)
+    vel = [np.zeros_like(p) for p in pos]
+    interval = 5
+    idents = [p[0] for p in roster.publications()]
+    plan = FramePlan.build(cloths, pubs)
+    enc = DeviceEncoder(device)
+    enc.set_plan(plan)
+    ds = DeviceStreams(interval)
+    ds.follow(plan)
+    rates = DeviceRates(device, enc)
+    watching: dict[int, frozenset[str]] = {}
+    rates.watch(lambda: watching)
+    host = {k: FrameEncoder(streams=PredictiveStreams(k * interval)) for k in (2, 3)}
+    told = {k: PredictiveStreams(k * interval) for k in (2, 3)}  # the publisher's (requests, counts)
+    compared = {2: 0, 3: 0}
+    predicted = {2: 0, 3: 0}
+    older: tuple[int, dict[int, RateFrame]] | None = None  # the frame dropped last tick
+    drops = 0
+    try:
+        for tick in range(1, seed_ticks + 1):
+            # subscribers: every 2nd state of every publication but one that goes and comes back;
+            # every 3rd of half of them from tick 4 on, all of them from tick 20
+            gone = {idents[0]} if 9 <= tick < 17 else set()
+            watching = {2: frozenset(idents) - gone}
+            if tick >= 4 and not 24 <= tick < 31:  # nobody for a while: then on keyframes
+                watching[3] = frozenset(idents if tick >= 20 else idents[::2])
+            _move(rng, pos, vel)
+            time_ns = int(rng.integers(0, 2**63))
+            flags = np.where(rng.random(len(cloths)) < 0.04, P.FLAG_RESET, 0).astype(np.uint16)
+            dropped = tick in (6, 9, 14, 27) or (tick % 2 == 0 and rng.random() < 0.1)
+            for k in (2, 3):
+                if tick % k == 0 and rng.random() < 0.3:
+                    ask = [c.cloth for c in cloths if rng.random() < 0.2]
+                    told[k].request(ask)  # a keyframe query on the decimated key
+                    host[k].streams.request(ask)
+            P4, N4 = _world_arrays(rng, cloths, pos, nrm)
+            pb, nb = _buffer(device, P4), _buffer(device, N4)
+            rates.follow(roster, plan, interval, tick)
+            for k, r in rates.rates.items():  # in the service the device learns them with the payloads
+                r.streams.request(told[k].take_requests() if tick % k == 0 else [])
+            pred, _ = ds.decide(tick, flags)
+            enc.encode(device.queue, pb, nb, tick, time_ns, flags, predictive=pred)
+            due = rates.encode(device.queue, pb, nb, tick, time_ns, flags)
+            assert sorted(r.every for r, _ in due) == [k for k in (2, 3) if tick % k == 0 and k in watching]
+            frames = DeviceRates.hold(due)
+            if older is not None:  # the frame before was dropped whole (DeviceWire.after_dropped)
+                for rf in older[1].values():
+                    rates.dropped(rf, older[0])
+                    rates.release(rf)
+                if ds.dropped(older[0]):
+                    enc.forget(older[0])
+                pred, _ = ds.redo(tick, flags)
+                enc.encode(device.queue, pb, nb, tick, time_ns, flags, predictive=pred).wait()
+                rates.reencode(frames, pb, nb, tick, time_ns, flags)
+                older = None
+            main = enc.hold()
+            ds.put(plan, np.flatnonzero(plan.predictive), tick)
+            main.release()
+            if dropped:
+                older = (tick, frames)
+                drops += bool(frames)
+                continue
+            for k in (2, 3):  # the publisher's streams of a rate nobody watches on its tick: forgotten
+                if tick % k == 0 and k not in watching:
+                    host[k].streams.keep_only(set())
+            for k, rf in frames.items():
+                watched = [j for j, i in enumerate(idents) if i in watching[k]]
+                want = _host_predictive(host[k], cloths, pos, nrm, pubs, tick, time_ns, flags, watched)
+                kf = int(told[k].keyframes)
+                got = dict(rates.payloads(rf, watched, told[k], tick))
+                plain = [j for j in watched if not plan.predictive[list(pubs[j].cloths)].any()]
+                assert sorted(got) == sorted(set(watched) - set(plain))
+                for j in got:
+                    _assert_same([got[j]], [want[j]], [pubs[j]])
+                compared[k] += len(got)
+                predicted[k] += int((rf.frame.plan.predictive & ~rf.keyframes).sum())
+                assert told[k].keyframes - kf == int((rf.keyframes & rf.frame.plan.predictive).sum())
+                rates.release(rf)
+        assert all(told[k].keyframes == host[k].streams.keyframes for k in (2, 3))
+        assert compared[2] > 10 and compared[3] > 5 and predicted[2] > 10 and predicted[3] > 5
+        assert drops >= 3 and rates.plans >= 4
+        # each rate's history: its watched cloths' vertices only (none of the full rate's)
+        for r in rates.rates.values():
+            assert r.encoder.plan is not None
+            assert history_end(r.encoder.plan) <= 2 * sum(c.n for c in r.encoder.plan.cloths) + 4096
+    finally:
+        rates.close()
         enc.close()

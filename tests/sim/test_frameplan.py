@@ -35,6 +35,7 @@ def _reference_row(c: ClothEntry, state_at: int, bundle_at: int, index: int, ent
     if c.encoding == P.ENC_PREDICTIVE:
         row[W["ENC_ROW_ENTRY"]] = entry_at
         row[W["ENC_ROW_INVSTEP"]] = int(np.array(P.inverse_step(c.step), np.float32).view(np.uint32))
+        row[W["ENC_ROW_HIST"]] = c.hbase if c.hbase >= 0 else c.vbase
     else:
         row[W["ENC_ROW_ENTRY"]] = W["ENC_NONE"]
     return row
@@ -141,7 +142,8 @@ def _random_roster(rng: np.random.Generator, k: int) -> tuple[list[ClothEntry], 
         cid = cid[-64:]
         n = int(rng.choice([0, 1, 3, 31, 32, 33, 100, 1024]))
         enc = int(rng.choice(list(P.ENCODING_NAMES)))
-        cloths.append(ClothEntry(cid, vbase, n, enc, bool(rng.integers(0, 2)), float(rng.choice(steps))))
+        hbase = int(rng.integers(0, 2**20)) if rng.random() < 0.3 else -1  # a decimated streams' history
+        cloths.append(ClothEntry(cid, vbase, n, enc, bool(rng.integers(0, 2)), float(rng.choice(steps)), hbase))
         vbase += n + int(rng.integers(0, 5))
     order = rng.permutation(k).tolist()
     pubs: list[Publication] = []

@@ -28,7 +28,7 @@ import zenoh
 from drape.client import protocol as P
 
 from ...sim.statecodec import PredictiveStreams
-from ...sim.wire import HostWire, Wire
+from ...sim.wire import Wire
 from ..config import ServerConfig
 from ..process.memory import freeze_long_lived
 from ..process.telemetry import PhaseTimer
@@ -271,26 +271,22 @@ class Publisher:
 
     def _put_rates(self, wire: Wire) -> float:
         """1.8: the decimated keys someone subscribes to whose state is this tick's, each coded
-        against its own streams (the host path; a device-encoded frame is served only when it holds
-        no predictive cloth, rates.py says why). Returns the seconds it took."""
+        against its own streams (``Wire.rate_payloads``: on the host, or the device's decimated
+        frames, rates.py). Returns the seconds it took."""
+        wire.watch_rates(self.rates.watching)  # a device encoder plans the next frames' rates from it
         due = self.rates.due(wire.tick, wire.roster)
         if not due:
             return 0.0
         a = time.perf_counter()
         pubs = wire.roster.publications()
-        own_streams = isinstance(wire, HostWire)  # its payloads code predictive states against the given streams
         published = unserved = errors = n_bytes = 0
         for k, watched in due:
             streams = self.rates.streams[k]
-            if not own_streams and wire.roster.predictive:  # its payloads would tell the device streams of lost states
-                unserved += sum(len(pubs[j][2]) for j in watched)
-                if not self.rates.warned:
-                    self.rates.warned = True
-                    log.warning("decimated keys of device-encoded predictive frames need device_encode = false")
-                continue
             keyframes = streams.keyframes
-            for j, payload in wire.payloads(watched, streams):
+            served = 0
+            for j, payload in wire.rate_payloads(k, watched, streams):
                 ident, _, idx, _ = pubs[j]
+                served += len(idx)
                 pub = self.rates.publisher(ident, k)
                 if payload is None or pub is None:
                     errors += len(idx)
@@ -304,6 +300,7 @@ class Publisher:
                     log.warning("publishing %s every %d at tick %d failed: %s", ident, k, wire.tick, e)
             if streams.keyframes != keyframes:
                 self.registry.count("keyframes", streams.keyframes - keyframes)
+            unserved += sum(len(pubs[j][2]) for j in watched) - served  # watched after the frame was encoded
         self.registry.count_many(
             rate_published=published, rate_unserved=unserved, published_bytes=n_bytes, publish_errors=errors
         )

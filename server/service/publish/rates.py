@@ -9,13 +9,11 @@ A decimated key is encoded only while someone subscribes to it: its publisher's 
 (on Zenoh's threads) keeps the set of watched (publication, k), and the publisher thread looks at
 that set only on the ticks of k, so the cost of rates nobody takes is one listener per key.
 
-Only a World whose payloads code predictive states against the streams they are given (the host
-path, ``wire.HostWire``) can code a decimated predictive stream; on a device-encoded frame
-(whose predictive history is one per cloth on the device, and whose payloads report the states
-not taken to the device's streams) the decimated keys are served only while the frame holds no
-predictive cloth (float32 / float16 / quant16: the full-rate bytes every k-th tick); otherwise
-they are not (counted ``rate_unserved``, logged once): a server that offers decimated predictive
-streams runs with ``device_encode = false`` until the device encoder keeps a history per rate.
+The World's wire codes them (``Wire.rate_payloads``): the host path against these streams, a
+device-encoded frame from its own decimated frames (sim/opencl/devrates.py), planned from the
+watched set read at each encode (:meth:`RatePublishers.watching`, handed to the wire); a
+publication first watched after its tick's frame was encoded is served from its next tick of k
+(its states meanwhile counted ``rate_unserved``).
 """
 
 from __future__ import annotations
@@ -54,8 +52,8 @@ class RatePublishers:
     streams: dict[int, PredictiveStreams] = field(default_factory=dict)
     _keys: dict[tuple[str, int], _RateKey] = field(default_factory=dict)  # (ident, k)
     _watched: dict[int, set[str]] = field(default_factory=dict)  # k -> idents with a subscriber
+    _frozen: dict[int, frozenset[str]] = field(default_factory=dict)  # the same, as read by encoders
     _lock: threading.Lock = field(default_factory=threading.Lock)
-    warned: bool = False
 
     def __post_init__(self) -> None:
         # a periodic keyframe every keyframe_interval of the stream's own states (k x the ticks)
@@ -69,6 +67,15 @@ class RatePublishers:
                 self._watched[every].add(ident)
             else:
                 self._watched[every].discard(ident)
+            self._freeze(every)
+
+    def _freeze(self, every: int) -> None:
+        """(under the lock) the watched set of ``every`` as a new mapping (read without a lock)."""
+        self._frozen = {**self._frozen, every: frozenset(self._watched[every])}
+
+    def watching(self) -> dict[int, frozenset[str]]:
+        """Any thread: the idents of the publications watched per rate (a device encoder's plans)."""
+        return self._frozen
 
     def request_keyframes(self, cloths: list[str], every: int) -> None:
         """1.8, any thread: the next state of these cloths' rate-``every`` streams is a keyframe."""
@@ -93,6 +100,7 @@ class RatePublishers:
             if pub.matching_status.matching:  # type: ignore[attr-defined]
                 with self._lock:
                     self._watched[k].add(ident)
+                    self._freeze(k)
 
     def _drop(self, ident: str, every: int) -> None:
         have = self._keys.pop((ident, every), None)
@@ -105,6 +113,7 @@ class RatePublishers:
         undeclare(have.pub)
         with self._lock:
             self._watched[every].discard(ident)
+            self._freeze(every)
 
     def remove(self, ident: str) -> None:
         """A cloth (or bundle) no longer published."""
@@ -130,6 +139,8 @@ class RatePublishers:
                 watched = set(self._watched[k])
             if watched:
                 out.append((k, [j for j, p in enumerate(pubs) if p[0] in watched]))
+            elif self.streams[k].streams:  # nobody left: whoever comes next starts on a keyframe
+                self.streams[k].keep_only(set())
         return out
 
     def publisher(self, ident: str, every: int) -> zenoh.Publisher | None:

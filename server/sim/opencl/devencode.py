@@ -22,6 +22,10 @@ cloth reset on the tick thread after its frame was encoded (:meth:`DeviceWire.ad
 :meth:`DeviceWire.reset`) is coded again as a keyframe; the publisher's news (keyframe
 requests, states nobody watched, frames it dropped) reach the streams through
 :meth:`DeviceWire.payloads` and :meth:`DeviceWire.release` (O(news), not O(cloths), per tick).
+
+Decimated predictive streams (1.8: ``{key}/every/{k}`` while watched) are devrates.py's
+:class:`~.devrates.DeviceRates`: a small plan per rate, encoded right behind the full-rate frame on
+its ticks against the full-rate history; :meth:`DeviceWire.rate_payloads` gives their bytes.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ from ..statecodec import PredictiveStreams
 from ..wire import Payload, PendingWire, Wire
 from .buffers import ClothSlot, DeviceMemory
 from .device import Device
+from .devrates import DeviceRates, Due, RateFrame, Watching
 from .devstreams import DeviceStreams
 from .encode import DeviceEncoder, EncodedFrame, FramePlan
 from .frames import FrameReadback, device_span
@@ -58,6 +63,7 @@ class DeviceFrames:
         self.dev, self.mem, self.rec, self.readback = dev, mem, rec, readback
         self.encoder = DeviceEncoder(dev, stride=4)
         self.streams = DeviceStreams()
+        self.rates = DeviceRates(dev, self.encoder)  # 1.8: the decimated streams watched
         self._plan_version: tuple[int, int] | None = None
         self.plans = 0  # plans built (the tests count them)
         self.frames = 0  # frames encoded
@@ -83,23 +89,33 @@ class DeviceFrames:
         self._plan(roster, lay)
         mem = self.mem
         assert self.encoder.plan is not None
+        self.rates.follow(roster, self.encoder.plan, self.streams.keyframe_interval, tick)
         pred = keyframes = None
         if self.encoder.plan.predictive.any():
             pred, keyframes = self.streams.decide(tick, None)
             self.predictive_frames += 1
         ev = self.encoder.encode(self.dev.queue, mem.pos.buf, mem.nrm.buf, tick, 0, None, predictive=pred)
         self.frames += 1
+        due: Due = []
+        if keyframes is not None:  # 1.8: the decimated streams whose tick this is, behind it
+            due = self.rates.encode(self.dev.queue, mem.pos.buf, mem.nrm.buf, tick, 0, None)
         frame = Frame(step, lay, np.zeros((0, 3), np.float32), None)
         pending = PendingFrame(frame, ev.wait, device_span(self.readback.step_marker, ev))
-        return PendingWire(pending, lambda f: DeviceWire(f, roster, tick, self, keyframes))
+        return PendingWire(pending, lambda f: DeviceWire(f, roster, tick, self, keyframes, due))
 
     def reencode(
-        self, old: EncodedFrame, tick: int, time_ns: int, flags: np.ndarray, reset: list[tuple[int, Fabric]]
+        self,
+        old: EncodedFrame,
+        tick: int,
+        time_ns: int,
+        flags: np.ndarray,
+        reset: list[tuple[int, Fabric]],
+        rates: dict[int, RateFrame] | None = None,
     ) -> tuple[EncodedFrame, np.ndarray | None]:
         """The frame encoded again after the World reset some cloths (``reset``: (handle,
         fabric) of those carrying normals, whose rest normals are written first); its
-        predictive cloths' decisions taken again with ``flags`` (reset: keyframes). Returns the
-        frame and its keyframes."""
+        predictive cloths' decisions taken again with ``flags`` (reset: keyframes), and its
+        decimated ``rates`` frames (replaced in place). Returns the frame and its keyframes."""
         mem = self.mem
         for h, fabric in reset:
             n = fabric.n_vertices
@@ -113,10 +129,13 @@ class DeviceFrames:
         if self.encoder.plan.predictive.any():
             pred, keyframes = self.streams.redo(tick, flags)
         self.encoder.encode(self.dev.queue, mem.pos.buf, mem.nrm.buf, tick, time_ns, flags, predictive=pred).wait()
+        if rates:
+            self.rates.reencode(rates, mem.pos.buf, mem.nrm.buf, tick, time_ns, flags)
         log.debug("frame of tick %d encoded again after resets in %.3f ms", tick, 1e3 * (time.perf_counter() - t))
         return self.encoder.hold(), keyframes
 
     def close(self) -> None:
+        self.rates.close()
         self.encoder.close()
 
 
@@ -124,11 +143,19 @@ class DeviceWire(Wire):
     """A tick's payloads as encoded on the device: slices of pinned host memory, held until released."""
 
     def __init__(
-        self, frame: Frame, roster: Roster, tick: int, frames: DeviceFrames, keyframes: np.ndarray | None
+        self,
+        frame: Frame,
+        roster: Roster,
+        tick: int,
+        frames: DeviceFrames,
+        keyframes: np.ndarray | None,
+        due: Due | None = None,
     ) -> None:
         super().__init__(frame, roster, tick)
         self._frames = frames
         self.encoded = frames.encoder.hold()
+        # 1.8: the decimated rates whose tick this is, each its own frame (devrates.py)
+        self._rates = DeviceRates.hold(due or [])
         self._bad = frames.encoder.nonfinite()
         self._keyframes = keyframes  # (k,) bool, predictive plans only
         self._put = False  # payloads taken (else, at release, its predictive states were lost)
@@ -137,6 +164,13 @@ class DeviceWire(Wire):
     def set_time(self, time_ns: int) -> None:
         super().set_time(time_ns)
         self.encoded.set_time(self.time_ns)
+        for rf in self._rates.values():
+            rf.frame.set_time(self.time_ns)
+
+    def _reencode(self, reset: list[tuple[int, Fabric]]) -> None:
+        self.encoded, self._keyframes = self._frames.reencode(
+            self.encoded, self.tick, self.time_ns, self.flags, reset, self._rates
+        )
 
     def add_flags(self, cloths: np.ndarray, flag: int) -> None:
         """On the tick thread, before the next frame is encoded: a predictive cloth reset is
@@ -144,9 +178,11 @@ class DeviceWire(Wire):
         super().add_flags(cloths, flag)
         plan = self.encoded.plan
         if flag & P.FLAG_RESET and plan.predictive[np.asarray(cloths, np.int64)].any():
-            self.encoded, self._keyframes = self._frames.reencode(self.encoded, self.tick, self.time_ns, self.flags, [])
+            self._reencode([])
         else:
             self.encoded.add_flags(np.asarray(cloths).tolist(), flag)
+            for rf in self._rates.values():
+                rf.frame.add_flags(rf.layout.cloths(cloths).tolist(), flag)
 
     def after_dropped(self, older: Wire) -> None:
         """On the tick thread, before the next step (the world's positions are still this
@@ -160,9 +196,11 @@ class DeviceWire(Wire):
         frames = self._frames
         if older.roster.version == self.roster.version:
             Wire.add_flags(self, np.flatnonzero(older.flags & P.FLAG_RESET), P.FLAG_RESET)
+        for rf in older._rates.values():  # its decimated states: never coded on the host path either
+            frames.rates.dropped(rf, older.tick)
         if frames.streams.dropped(older.tick):
             frames.encoder.forget(older.tick)
-        self.encoded, self._keyframes = frames.reencode(self.encoded, self.tick, self.time_ns, self.flags, [])
+        self._reencode([])
 
     def carry_flags(self, older: Wire) -> None:
         """On the publisher's thread: the header flags only (the older frame's predictive
@@ -172,6 +210,8 @@ class DeviceWire(Wire):
             if len(bad):
                 Wire.add_flags(self, bad, P.FLAG_RESET)
                 self.encoded.add_flags(bad.tolist(), P.FLAG_RESET)
+                for rf in self._rates.values():
+                    rf.frame.add_flags(rf.layout.cloths(bad).tolist(), P.FLAG_RESET)
 
     def nonfinite(self) -> np.ndarray:
         return self._bad
@@ -185,9 +225,7 @@ class DeviceWire(Wire):
             if h in live and lay.normals[i]:
                 normals.append((h, fabric))
         # the frame again, the reset cloths at rest with the reset flag (as the host path publishes)
-        self.encoded, self._keyframes = self._frames.reencode(
-            self.encoded, self.tick, self.time_ns, self.flags, normals
-        )
+        self._reencode(normals)
         self._bad = np.zeros(0, np.int64)
 
     def sizes(self) -> list[int]:
@@ -215,10 +253,33 @@ class DeviceWire(Wire):
             streams.keyframes += int((self._keyframes & seen).sum())
         yield from enc.payloads(watched)
 
+    def watch_rates(self, watching: Watching) -> None:
+        self._frames.rates.watch(watching)
+
+    def rate_payloads(
+        self, every: int, watched: list[int], streams: PredictiveStreams
+    ) -> Iterator[tuple[int, Payload]]:
+        """1.8: the decimated payloads of the ``watched`` publications: a publication without a
+        predictive cloth, the full-rate bytes; one with, its rate frame's (those first watched
+        after this frame was encoded: none yet, the publisher counts them)."""
+        plan = self.encoded.plan
+        has_pred = np.zeros(len(plan.publications) + 1, bool)  # [-1]: in no publication
+        has_pred[plan.owner[plan.predictive]] = True
+        w = np.asarray(watched, np.int64)
+        plain = w[~has_pred[w]].tolist()
+        if plain:
+            yield from self.encoded.payloads(plain)
+        rf = self._rates.get(every)
+        if rf is not None:
+            yield from self._frames.rates.payloads(rf, watched, streams, self.tick)
+
     def release(self) -> None:
         if not self._put and not self._dropped and self._keyframes is not None:  # its states never went out
             plan = self.encoded.plan
             self._frames.streams.lost(plan, np.flatnonzero(plan.predictive))
         self._put = True
         self.encoded.release()
+        for rf in self._rates.values():
+            self._frames.rates.release(rf)
+        self._rates = {}
         super().release()

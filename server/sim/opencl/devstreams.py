@@ -23,8 +23,12 @@ the streams go back to where they were before the dropped tick (its requests and
 and the next frame's decision is taken again (:meth:`redo`) and coded again against the last
 states sent: a predicted state, as on the host path, where a dropped frame is never coded.
 
+A decimated stream (1.8, every k-th tick's state on its own key) is a DeviceStreams of its own,
+decided on its ticks only (devrates.py); a frame dropped on its tick is taken back with
+:meth:`undo`.
+
 A stream lives with its cloth id in the plan; it is carried across plans while the cloth keeps
-its vertex range (its history is indexed by the position buffer's vertices).
+its vertex range and history base (its history is indexed by them).
 """
 
 from __future__ import annotations
@@ -128,8 +132,8 @@ class DeviceStreams:
         j = np.fromiter(map(old_ids.get, ids, itertools.repeat(-1)), np.int64, k)  # whole arrays, not per cloth
         if self._plan is not None and len(j) and len(self._plan.cloths):
             jj = np.maximum(j, 0)
-            prev_vb, prev_n = self._plan.vbases, self._plan.counts
-            same = (j >= 0) & (prev_vb[jj] == plan.vbases) & (prev_n[jj] == plan.counts)
+            prev_vb, prev_n, prev_hb = self._plan.vbases, self._plan.counts, self._plan.hbases
+            same = (j >= 0) & (prev_vb[jj] == plan.vbases) & (prev_n[jj] == plan.counts) & (prev_hb[jj] == plan.hbases)
         else:
             same = np.zeros(k, bool)
         a = np.flatnonzero(same)
@@ -204,6 +208,27 @@ class DeviceStreams:
         _, ps, preq, plost = prev
         self._last = (t, ps, preq | requested, plost | lost)
         self._prev = None
+        return True
+
+    def undo(self, tick: int) -> bool:
+        """The frame of ``tick``, the last decided, was dropped whole (a decimated stream's: the
+        next decision is on a later tick of its own): the streams go back to before it, its
+        requests and news kept for the next decision. False when it was not the last decided."""
+        last = self._last
+        if last is None or last[0] != tick:
+            return False
+        _, s, requested, lost = last
+        if len(requested) != len(self._pred):
+            return False
+        self._state = s
+        plan = self._plan
+        if plan is not None:
+            with self._lock:
+                self._requested.update(plan.ids[i] for i in np.flatnonzero(requested).tolist())
+                if lost.any():
+                    self._lost.append((plan, np.flatnonzero(lost)))
+        self._kept = set()
+        self._last, self._prev = self._prev, None
         return True
 
     def redo(self, tick: int, flags: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:

@@ -33,7 +33,8 @@ first row in a packed xyz buffer (``stride=3``). A frame's views stay valid unti
 publisher holds the frame it publishes while the next ones are encoded).
 
 Predictive states (protocol 1.5) are coded against the history the encoder keeps on the device
-(one buffer of :data:`HISTORY` slots of grid values per position-buffer vertex, each slot
+(one buffer of :data:`HISTORY` slots of grid values per position-buffer vertex (or per vertex
+of the rows' own history bases, ``ClothEntry.hbase``: a decimated streams' encoder), each slot
 one encoded tick's: the tick being coded, the frame before it whose fate the publisher has not
 told yet, and the two states the decoders hold before that, so that a frame the publisher drops
 is forgotten (:meth:`DeviceEncoder.forget`) and the next coded again against the states sent,
@@ -63,6 +64,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import pyopencl as cl
+
+from drape.client import protocol as P
 
 from . import reuse
 from .compact import Compactor, FrameIndex
@@ -187,6 +190,14 @@ class EncodedFrame:
             self._host = None
 
 
+def history_end(plan: FramePlan) -> int:
+    """One past the last history vertex a predictive row of ``plan`` refers to (0: none)."""
+    W = encode_layout()
+    rows = plan.rows[plan.rows[:, W["ENC_ROW_ENC"]] == P.ENC_PREDICTIVE] if len(plan.rows) else plan.rows
+    ends = rows[:, W["ENC_ROW_HIST"]].astype(np.int64) + rows[:, W["ENC_ROW_N"]]
+    return int(ends.max(initial=0))
+
+
 class DeviceEncoder:
     """Encode whole frames on ``dev`` with a :class:`FramePlan`.
 
@@ -305,7 +316,7 @@ class DeviceEncoder:
         flags = np.zeros(max(len(plan.cloths), 1), np.uint16)
         flags_buf = cl.Buffer(ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=flags)
         pred_buf = cl.Buffer(ctx, MF.READ_ONLY, 8 * _PRED_WORDS * max(len(plan.cloths), 1))
-        self._grow_history(plan.vertex_end if plan.predictive.any() else 0)
+        self._grow_history(history_end(plan))
         # the last frame's commands (in flight, perhaps on another queue) come before the
         # buffers they use are filled for this plan
         behind = [e for e in (self._last.event if self._last else None, self._static_event) if e is not None]

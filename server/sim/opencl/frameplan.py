@@ -42,8 +42,10 @@ def state_size(n: int, encoding: int, normals: bool) -> int:
 class ClothEntry(NamedTuple):
     """One cloth of a plan: its id, vertex range ``[vbase, vbase + n)`` in the world's float4
     position (and normal) buffers, protocol encoding id, whether normals follow and (predictive,
-    1.5) its grid step in metres. A named tuple, not a frozen dataclass: a plan of 8192 cloths
-    makes 8192 of them on the tick thread, 4x faster so (docs/loadtest.md, tickbench)."""
+    1.5) its grid step in metres and its first vertex in the encoder's history (1.8: a decimated
+    streams' encoder keeps its own, for its cloths only; -1: ``vbase``). A named tuple, not a
+    frozen dataclass: a plan of 8192 cloths makes 8192 of them on the tick thread, 4x faster so
+    (docs/loadtest.md, tickbench)."""
 
     cloth: str
     vbase: int
@@ -51,6 +53,7 @@ class ClothEntry(NamedTuple):
     encoding: int = P.ENC_FLOAT32
     normals: bool = False
     step: float = P.DEFAULT_STEP
+    hbase: int = -1  # predictive: its first vertex in the encoder's history (-1: vbase)
 
 
 @dataclass(frozen=True)
@@ -104,6 +107,11 @@ class FramePlan:
     def vbases(self) -> np.ndarray:
         """(k,) int64: each plan cloth's first vertex."""
         return self._columns().vbase
+
+    @property
+    def hbases(self) -> np.ndarray:
+        """(k,) int64: each plan cloth's first vertex in the encoder's history (-1: its vbase)."""
+        return self._columns().hbase
 
     @property
     def counts(self) -> np.ndarray:
@@ -191,6 +199,8 @@ class FramePlan:
         entry_at = state_at - entry + HEADER_OFFSETS["BE_SIZE"]
         table[:, W["ENC_ROW_ENTRY"]] = np.where(pred & in_bundle, entry_at, none)
         table[:, W["ENC_ROW_INVSTEP"]] = np.where(pred, cols.inv_step_bits[members], 0)
+        hist = np.where(cols.hbase[members] >= 0, cols.hbase[members], cols.vbase[members])
+        table[:, W["ENC_ROW_HIST"]] = np.where(pred, hist, 0)
         # the static bytes
         b = in_bundle
         static = [
@@ -292,6 +302,7 @@ class _Columns:
     id_bytes: np.ndarray  # every id's bytes back to back (non-ASCII characters as b"?")
     size: np.ndarray  # (k,) int64: each state's (largest) size
     inv_step_bits: np.ndarray  # (k,) uint32: float32 bits of 1 / step (predictive.inverse_step)
+    hbase: np.ndarray  # (k,) int64: first vertex in the encoder's history, -1: vbase
 
     @classmethod
     def of(cls, cloths: list[ClothEntry]) -> _Columns:
@@ -302,14 +313,25 @@ class _Columns:
         enc = np.fromiter((c.encoding for c in cloths), np.int64, k)
         normals = np.fromiter((c.normals for c in cloths), bool, k)
         step = np.fromiter((c.step for c in cloths), np.float64, k)
-        return cls.checked(ids, vbase, n, enc, normals, step)
+        hbase = np.fromiter((c.hbase for c in cloths), np.int64, k)
+        return cls.checked(ids, vbase, n, enc, normals, step, hbase)
 
     @classmethod
     def checked(
-        cls, ids: list[str], vbase: np.ndarray, n: np.ndarray, enc: np.ndarray, normals: np.ndarray, step: np.ndarray
+        cls,
+        ids: list[str],
+        vbase: np.ndarray,
+        n: np.ndarray,
+        enc: np.ndarray,
+        normals: np.ndarray,
+        step: np.ndarray,
+        hbase: np.ndarray | None = None,
     ) -> _Columns:
-        """The columns of ``len(ids)`` cloths; raises ValueError on the first bad one."""
+        """The columns of ``len(ids)`` cloths (``hbase`` None: every cloth's history at its
+        ``vbase``); raises ValueError on the first bad one."""
         k = len(ids)
+        if hbase is None:
+            hbase = np.full(k, -1, np.int64)
         known = np.isin(enc, np.fromiter(P.ENCODING_NAMES, np.int64))
         pred = enc == P.ENC_PREDICTIVE
         bad_step = pred & ~((step >= P.STEP_RANGE[0]) & (step <= P.STEP_RANGE[1]))
@@ -332,7 +354,7 @@ class _Columns:
             steps, inverse = np.unique(step[pred], return_inverse=True)
             inv = np.array([P.inverse_step(float(s)) for s in steps], np.float32).view(np.uint32)
             inv_step_bits[pred] = inv[inverse.reshape(-1)]
-        return cls(k, ids, vbase, n, enc, normals, step, id_len, id_bytes, size, inv_step_bits)
+        return cls(k, ids, vbase, n, enc, normals, step, id_len, id_bytes, size, inv_step_bits, hbase)
 
     def entry(self, i: int) -> ClothEntry:
         return ClothEntry(
@@ -342,6 +364,7 @@ class _Columns:
             int(self.enc[i]),
             bool(self.normals[i]),
             float(self.step[i]),
+            int(self.hbase[i]),
         )
 
     def invalid_ids(self, idx: np.ndarray) -> np.ndarray:

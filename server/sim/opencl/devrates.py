@@ -128,8 +128,8 @@ class DeviceRates:
                     del self.rates[k]
                     self._hist.pop(k, None)
                 continue
-            members = plan.members(sel)
-            hb = self._history_bases(k, [plan.ids[i] for i in members.tolist()], plan.counts[members])
+            members, ids = plan.members(sel), plan.ids
+            hb = self._history_bases(k, [ids[i] for i in members.tolist()], plan.counts[members])
             sub, base = plan.subset(sel, [P.every_key(pubs[j][1], k) for j in sel], hb)
             if r is None:
                 enc = DeviceEncoder(self.dev, stride=self.main.stride)

@@ -10,8 +10,9 @@ layout and vertex bases) and times, median over ``--repeat`` rounds:
   (Roster.of, ticker.py), ``plan`` (FramePlan.for_roster: the entries, the layout, the static
   bytes), ``set_plan`` (DeviceEncoder.set_plan: the kernel and the tables uploaded, the
   buffers sized (kept across plans while they fit), the static bytes enqueued; with a device
-  only), ``fill`` (then waiting for those static bytes on the device: the output's zero fill
-  and kernels/static.cl, device work that the next frame waits for, not the tick thread's;
+  only), ``fill`` (then waiting for those static bytes on the device: kernels/static.cl's
+  words, no zero fill since encode.cl writes every state's padding; device work that the next
+  frame waits for, not the tick thread's;
   waited for after each change so that it does not overlap the next stage), ``follow`` (DeviceStreams.follow: the
   predictive streams carried over) and ``change`` (devencode.DeviceFrames._plan end to end,
   which is plan + set_plan + follow);

@@ -2,10 +2,13 @@
  * written straight into one packed output buffer laid out per publication (single states and
  * section 9.1 bundles), so the host reads back one buffer and publishes slices of it.
  *
- * The host (drape.server.sim.opencl.encode) writes every static byte once into the output
+ * The host (drape.server.sim.opencl.encode) writes every static word once into the output
  * buffer (magics, versions, header sizes, encodings, vertex counts, bundle entry tables, cloth
- * ids, zero padding); per tick encode_frame writes only the dynamic fields: a state's flags,
- * tick, server time and bounds, a bundle header's tick and server time, and the vertex data.
+ * ids and their padding: kernels/static.cl); per tick encode_frame writes the dynamic fields (a
+ * state's flags, tick, server time and bounds, a bundle header's tick and server time), the
+ * vertex data and every other byte of each state it codes, the padding to 8 bytes included
+ * (a predictive state's: its width bytes' padding too), so that the buffer needs no zero fill
+ * when a plan change keeps it (bytes of a predictive slot past its real size are never sent).
  *
  * One work-group per encoded cloth (a row of the table), one launch for the whole frame:
  *   1. per-axis min/max of the cloth's positions reduced in local memory (NaN propagates, as in
@@ -218,6 +221,14 @@ inline void block_symbols(__global const int *qc, __global const int *h1, __glob
     }
 }
 
+/* zeros from byte `end` of a state up to the next multiple of 8 (the state starts at one): every
+ * byte of a state is written on every encode, so a buffer kept across plans needs no zero fill */
+inline void pad8(__global uchar *st, uint end)
+{
+    for (uint e = end; e & 7; e++)
+        st[e] = 0;
+}
+
 __kernel void encode_frame(
     __global const float *pos,         /* ENC_STRIDE floats per vertex */
     __global const float *nrm,         /* the same layout; any buffer when no row has normals */
@@ -279,8 +290,10 @@ __kernel void encode_frame(
         }
     }
 
-    /* 3. vertex data, then normals */
+    /* 3. vertex data, then normals, then zeros up to 8 bytes */
     __global uchar *data = st + ST_DATA;
+    if (lid == 0 && enc != ENC_PREDICTIVE)
+        pad8(st, ST_DATA + (enc == 0 ? 12u : 6u) * n * (has_nrm ? 2u : 1u));
     if (enc == 0) {
         __global float *o = (__global float *)data;
         for (uint v = lid; v < n; v += ENC_WG)
@@ -315,6 +328,9 @@ __kernel void encode_frame(
         barrier(CLK_GLOBAL_MEM_FENCE);
         const uint nb = (n + 31) / 32, nblk = 3 * nb;
         const uint head = 4 * ((nblk + 3) / 4);
+        if (lid == 0)
+            for (uint b = nblk; b < head; b++) /* the widths' zeros up to the first word */
+                pd[b] = 0;
         /* each work-item a contiguous share of the blocks: their widths, then their words */
         const uint per = (nblk + ENC_WG - 1) / ENC_WG;
         const uint b0 = min(lid * per, nblk), b1 = min(b0 + per, nblk);
@@ -373,8 +389,7 @@ __kernel void encode_frame(
             uint eo = r[ENC_ROW_ENTRY];
             if (eo != ENC_NONE)
                 *(__global uint *)(out + eo) = size;
-            for (uint e = size; e & 7; e++) /* zeros up to the next entry (a bundle's padding) */
-                st[e] = 0;
+            pad8(st, size);
         }
     } else {
         float4 lo4 = (float4)(lo, lo.x), hi4 = (float4)(hi, hi.x);

@@ -10,8 +10,9 @@ layout and vertex bases) and times, median over ``--repeat`` rounds:
   (Roster.of, ticker.py), ``plan`` (FramePlan.for_roster: the entries, the layout, the static
   bytes), ``set_plan`` (DeviceEncoder.set_plan: the kernel and the tables uploaded, the
   buffers sized (kept across plans while they fit), the static bytes enqueued; with a device
-  only), ``fill`` (then waiting for those static bytes on the device: the output's zero fill
-  and kernels/static.cl, device work that the next frame waits for, not the tick thread's;
+  only), ``fill`` (then waiting for those static bytes on the device: kernels/static.cl's
+  words, no zero fill since encode.cl writes every state's padding; device work that the next
+  frame waits for, not the tick thread's;
   waited for after each change so that it does not overlap the next stage), ``follow`` (DeviceStreams.follow: the
   predictive streams carried over) and ``change`` (devencode.DeviceFrames._plan end to end,
   which is plan + set_plan + follow);
@@ -26,6 +27,9 @@ garbage collector's scans as its ``freeze_long_lived`` does. On a shared machine
 processes' time lands in some rounds: the JSON keeps every sample (compare the minima too).
 Everything the World's step, the applier's commands
 and the publisher do is left out: this is the host work that grows with the cloth count.
+``--watch-rate K`` adds ``rate``: DeviceRates.follow when rate K's watched set changes (every
+publication's ``/every/K`` key watched, then all but one: a decimated plan rebuilt from the frame
+plan's columns, its encoder's set_plan, its streams followed; device only).
 ``--no-device`` times the host-only stages (roster, plan, follow, decide) without OpenCL.
 ``--profile`` prints cProfile's top functions of a roster change at the largest N. ``--json
 PATH`` writes the raw medians (and every sample).
@@ -119,8 +123,9 @@ def _timed(fn: Callable[[], Any]) -> tuple[float, Any]:
     return 1e3 * (time.perf_counter() - t), out
 
 
-def run(load: Load, repeat: int, dev: Any | None) -> dict[str, list[float]]:
-    """Every stage's samples (ms): ``repeat`` roster changes, then ``repeat`` steady ticks."""
+def run(load: Load, repeat: int, dev: Any | None, watch_rate: int = 0) -> dict[str, list[float]]:
+    """Every stage's samples (ms): ``repeat`` roster changes, then ``repeat`` steady ticks (then,
+    with ``watch_rate`` k, ``repeat`` changes of rate k's watched set)."""
     samples: dict[str, list[float]] = {}
 
     def add(name: str, ms: float) -> None:
@@ -191,11 +196,28 @@ def run(load: Load, repeat: int, dev: Any | None) -> dict[str, list[float]]:
     for tick in range(repeat + 3, 2 * repeat + 3):
         ms, _ = _timed(lambda: frames.streams.decide(tick, None))  # noqa: B023
         add("decide", ms)
+    if watch_rate:
+        _rate_changes(frames, roster, watch_rate, repeat, add)
     frames.close()
     return samples
 
 
-STAGES = ("roster", "plan", "set_plan", "fill", "follow", "change", "enqueue", "decide", "wait", "wire")
+def _rate_changes(frames: Any, roster: Roster, k: int, repeat: int, add: Callable[[str, float], None]) -> None:
+    """``rate``: DeviceRates.follow when rate ``k``'s watched set changes (a subscriber of every
+    publication's ``/every/k`` key comes, or the last one's goes: the rounds alternate between
+    every publication and all but one), on a tick of k, as the tick thread runs it: the rate's
+    plan built from the frame plan's columns, its encoder's set_plan, its streams followed."""
+    assert frames.encoder.plan is not None
+    idents = [p[0] for p in roster.publications()]
+    sets = (frozenset(idents), frozenset(idents[:-1]))
+    for r in range(repeat + 2):
+        frames.rates.watch(lambda s=sets[r % 2]: {k: s})
+        ms, _ = _timed(lambda: frames.rates.follow(roster, frames.encoder.plan, 60, k * (r + 1)))  # noqa: B023
+        if r >= 2:
+            add("rate", ms)
+
+
+STAGES = ("roster", "plan", "set_plan", "fill", "follow", "change", "enqueue", "decide", "wait", "wire", "rate")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -208,6 +230,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeat", type=int, default=10, help="timed rounds per stage (median)")
     ap.add_argument("--device", default=None, help="DRAPE_DEVICE: auto, gpu, cpu or part of a name")
     ap.add_argument("--no-device", action="store_true", help="host-only stages, no OpenCL")
+    ap.add_argument(
+        "--watch-rate", type=int, default=0, metavar="K", help="time rate K's plan rebuilt when its subscribers change"
+    )
     ap.add_argument("--profile", action="store_true", help="cProfile a roster change at the largest count")
     ap.add_argument("--json", type=Path, default=None, help="write the medians and samples here")
     args = ap.parse_args(argv)
@@ -229,7 +254,7 @@ def main(argv: list[str] | None = None) -> int:
         load = Load.make(n, args.side, args.bundle, args.encoding, args.step)
         gc.collect()
         gc.freeze()  # as drape serve's freeze_long_lived after a layout change: the records out of the scans
-        samples = run(load, args.repeat, dev)
+        samples = run(load, args.repeat, dev, args.watch_rate)
         gc.unfreeze()
         med = {s: statistics.median(v) for s, v in samples.items()}
         print(f"{n:6d} | " + " ".join(f"{med[s]:8.2f}" if s in med else f"{'-':>8}" for s in STAGES), flush=True)

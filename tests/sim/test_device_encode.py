@@ -140,6 +140,16 @@ def _encode(device, enc: DeviceEncoder, P4, N4, tick, time_ns, flags) -> list[by
     return [bytes(v) for v in enc.slices()]
 
 
+def _dirty(device, enc: DeviceEncoder, plan: FramePlan) -> None:
+    """The encoder's output buffer filled with garbage, then ``plan`` set again on the buffer kept
+    (no zero fill: the kernel writes every byte of every state it codes, padding included)."""
+    assert enc._out is not None
+    made = enc.buffers_made
+    cl.enqueue_fill_buffer(device.queue, enc._out, np.full(1, 0xA5, np.uint8), 0, enc._out.size).wait()
+    enc.set_plan(plan)
+    assert enc.buffers_made == made
+
+
 def _assert_same(got: list[bytes], want: list[bytes], pubs) -> None:
     assert len(got) == len(want)
     for g, w, pub in zip(got, want, pubs, strict=True):
@@ -170,15 +180,18 @@ def test_random_frames_equal_the_protocol_encoder(device, rng, k, local_size, st
     plan = FramePlan.build(cloths, pubs)
     enc = DeviceEncoder(device, local_size=local_size, stride=stride, soft_half=soft_half)
     enc.set_plan(plan)
+    _dirty(device, enc, plan)
     try:
         for tick in (1, 2**40 + 3):  # the same plan over ticks: dynamic fields rewritten, ring of host buffers
             time_ns = int(rng.integers(0, 2**63))
             flags = rng.choice([0, P.FLAG_RESET, P.FLAG_NORMALS, 0x8000], k).astype(np.uint16)
             got = _encode(device, enc, P4, N4, tick, time_ns, flags)
-            _assert_same(got, _reference(cloths, pos, nrm, pubs, tick, time_ns, flags), pubs)
-            whole = bytes(enc.read())
-            for view, off in zip(got, plan.pub_offset.tolist(), strict=True):
-                assert whole[off : off + len(view)] == view
+            want = _reference(cloths, pos, nrm, pubs, tick, time_ns, flags)
+            _assert_same(got, want, pubs)
+            whole = bytearray(plan.size)  # the publications at their offsets, zeros up to 8 bytes
+            for w, off in zip(want, plan.pub_offset.tolist(), strict=True):
+                whole[off : off + len(w)] = w
+            assert bytes(enc.read()) == bytes(whole)
             pos = [p[rng.permutation(len(p))] for p in pos]  # new positions for the next tick
             P4, N4 = _world_arrays(rng, cloths, pos, nrm, stride)
         assert len(enc.nonfinite()) == 0
@@ -603,6 +616,7 @@ def test_predictive_frames_equal_the_host_encoder(device, rng, k, local_size, co
         enc.compactor.guess = lambda size: 8  # type: ignore[method-assign]
     plan = FramePlan.build(cloths, pubs)
     enc.set_plan(plan)
+    _dirty(device, enc, plan)
     ds.follow(plan)
     keyframes = predicted_after_drop = drops = 0
     drop_before: int | None = None  # the tick of the frame dropped last tick
@@ -614,7 +628,7 @@ def test_predictive_frames_equal_the_host_encoder(device, rng, k, local_size, co
                     cloths[i].cloth, cloths[i].vbase, cloths[i].n, P.ENC_PREDICTIVE, cloths[i].normals, 5e-4
                 )
                 plan = FramePlan.build(cloths, pubs)
-                enc.set_plan(plan)
+                _dirty(device, enc, plan)  # the kept buffer as the last plan left it, and garbage
                 ds.follow(plan)
             _move(rng, pos, vel)
             time_ns = int(rng.integers(0, 2**63))

@@ -260,3 +260,28 @@ def test_a_roster_s_plan_equals_the_plan_of_its_entries(seed):
     assert list(plan.cloths) == entries and plan.cloths[-1] == entries[-1] and plan.cloths[1:3] == entries[1:3]
     assert plan.ids == [e.cloth for e in entries]
     np.testing.assert_array_equal(plan.entry_header_sizes, [P.bundle_entry_header_size(e.cloth) for e in entries])
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_a_subset_equals_the_plan_of_its_entries(seed):
+    """FramePlan.subset (devrates.py's decimated plans, from the plan's columns) == the per-cloth
+    build devrates.py did before: the selected publications' cloths in row order, each with its
+    history base, under new keys."""
+    rng = np.random.default_rng(200 + seed)
+    cloths, pubs = _random_roster(rng, int(rng.integers(1, 60)))
+    plan = FramePlan.build(cloths, pubs)
+    sel = sorted(rng.permutation(len(pubs))[: int(rng.integers(0, len(pubs) + 1))].tolist())
+    keys = [f"{pubs[j].key}/every/2" for j in sel]
+    idx = [i for j in sel for i in pubs[j].cloths]
+    hb = rng.integers(0, 2**20, len(idx))
+    sub, members = plan.subset(sel, keys, hb)
+    np.testing.assert_array_equal(members, idx)
+    entries, out = [], []
+    for key, j in zip(keys, sel, strict=True):
+        at = tuple(range(len(entries), len(entries) + len(pubs[j].cloths)))
+        entries.extend([cloths[i]._replace(hbase=int(hb[a])) for a, i in zip(at, pubs[j].cloths, strict=True)])
+        out.append(Publication(key, at, pubs[j].bundle))
+    _assert_same(sub, _reference(entries, out))
+    assert list(sub.cloths) == entries and sub.publications == out
+    with pytest.raises(ValueError, match="ascending"):
+        plan.members([1, 0] if len(pubs) > 1 else [0, 0])

@@ -30,7 +30,20 @@ def test_host_stages_without_a_device(tmp_path, capsys):
 @pytest.mark.parametrize("encoding", ["predictive", "quant16"])
 def test_every_stage_on_the_device(tmp_path, encoding):
     out = tmp_path / "tick.json"
-    args = ["--cloths", "70", "--side", "4", "--bundle", "16", "--repeat", "2", "--encoding", encoding]
+    args = [
+        "--cloths",
+        "70",
+        "--side",
+        "4",
+        "--bundle",
+        "16",
+        "--repeat",
+        "2",
+        "--encoding",
+        encoding,
+        "--watch-rate",
+        "2",
+    ]
     args += ["--json", str(out)] + (["--device", os.environ["DRAPE_DEVICE"]] if "DRAPE_DEVICE" in os.environ else [])
     assert tickbench.main(args) == 0
     assert set(_medians(out)[70]) == set(tickbench.STAGES)

@@ -37,7 +37,7 @@ from ..roster import Roster
 from ..statecodec import PredictiveStreams
 from .device import Device
 from .devstreams import DeviceStreams
-from .encode import ClothEntry, DeviceEncoder, EncodedFrame, FramePlan, Publication
+from .encode import DeviceEncoder, EncodedFrame, FramePlan
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +83,8 @@ class RateFrame:
     dropped: bool = False  # dropped whole and its streams taken back: nothing lost
 
 
+_NO_HISTORY = (np.zeros(0, "<U1"), np.zeros(0, np.int64), np.zeros(0, np.int64))
+
 Due = list[tuple[_Rate, np.ndarray]]  # the rates encoded this tick and their keyframes
 
 
@@ -93,7 +95,8 @@ class DeviceRates:
     def __init__(self, dev: Device, encoder: DeviceEncoder) -> None:
         self.dev, self.main = dev, encoder
         self.rates: dict[int, _Rate] = {}
-        self._hist: dict[int, dict[str, tuple[int, int]]] = {}  # rate -> cloth -> (history base, n)
+        # rate -> (its cloths' ids, sorted; their history bases; their vertex counts)
+        self._hist: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._watching: Watching | None = None
         self.plans = 0  # decimated plans built (the tests count them)
         self.frames = 0  # decimated frames encoded
@@ -115,26 +118,19 @@ class DeviceRates:
             version = (roster.version, idents)
             if r is not None and r.version == version:
                 continue
-            pubs = roster.publications()
-            pred = plan.predictive
-            sel = [j for j, p in enumerate(pubs) if p[0] in idents and pred[np.asarray(p[2], np.int64)].any()]
+            pubs = roster.publications()  # the plan's publications, in its order (FramePlan.for_roster)
+            has_pred = np.zeros(len(pubs) + 1, bool)  # [-1]: in no publication
+            has_pred[plan.owner[plan.predictive]] = True
+            sel = [j for j, (p, h) in enumerate(zip(pubs, has_pred[:-1].tolist(), strict=True)) if h and p[0] in idents]
             if not sel:
                 if r is not None:
                     r.encoder.close()
                     del self.rates[k]
                     self._hist.pop(k, None)
                 continue
-            hb = self._history_bases(k, [plan.cloths[i] for j in sel for i in pubs[j][2]])
-            cloths: list[ClothEntry] = []
-            out: list[Publication] = []
-            base: list[int] = []
-            for j in sel:
-                _, key, idx, bundle = pubs[j]
-                at = tuple(range(len(cloths), len(cloths) + len(idx)))
-                cloths.extend(plan.cloths[i]._replace(hbase=hb[plan.cloths[i].cloth]) for i in idx)
-                base.extend(idx)
-                out.append(Publication(P.every_key(key, k), at, bundle))
-            sub = FramePlan.build(cloths, out)
+            members, ids = plan.members(sel), plan.ids
+            hb = self._history_bases(k, [ids[i] for i in members.tolist()], plan.counts[members])
+            sub, base = plan.subset(sel, [P.every_key(pubs[j][1], k) for j in sel], hb)
             if r is None:
                 enc = DeviceEncoder(self.dev, stride=self.main.stride)
                 r = self.rates[k] = _Rate(k, enc, DeviceStreams(k * keyframe_interval))
@@ -142,25 +138,31 @@ class DeviceRates:
             r.streams.follow(sub)
             pub_of = np.full(len(pubs), -1, np.int64)
             pub_of[np.array(sel, np.int64)] = np.arange(len(sel))
-            r.version, r.layout = version, _Layout(np.array(base, np.int64), pub_of, np.array(sel, np.int64))
+            r.version, r.layout = version, _Layout(base, pub_of, np.array(sel, np.int64))
             self.plans += 1
-            log.debug("rate %d: %d publications, %d cloths", k, len(out), len(cloths))
+            log.debug("rate %d: %d publications, %d cloths", k, len(sel), len(base))
 
-    def _history_bases(self, k: int, cloths: list[ClothEntry]) -> dict[str, int]:
-        """Each cloth's first vertex in rate ``k``'s history: a cloth still watched keeps its range
-        (its stream goes on), a new one takes the next free; packed afresh (those streams restart
-        on keyframes) once the ranges span more than twice the vertices watched."""
-        old = self._hist.get(k, {})
-        keep = {c.cloth: old[c.cloth] for c in cloths if c.cloth in old and old[c.cloth][1] == c.n}
-        end = max((b + n for b, n in keep.values()), default=0)
-        if end > 2 * sum(c.n for c in cloths) + 4096:
-            keep, end = {}, 0
-        for c in cloths:
-            if c.cloth not in keep:
-                keep[c.cloth] = (end, c.n)
-                end += c.n
-        self._hist[k] = keep
-        return {c: b for c, (b, _) in keep.items()}
+    def _history_bases(self, k: int, ids: list[str], n: np.ndarray) -> np.ndarray:
+        """The first vertex in rate ``k``'s history of each cloth ``ids`` (of ``n`` vertices),
+        whole arrays: a cloth still watched keeps its range (its stream goes on), a new one takes
+        the next free, in order; packed afresh (those streams restart on keyframes) once the
+        ranges span more than twice the vertices watched."""
+        old_ids, old_base, old_n = self._hist.get(k, _NO_HISTORY)
+        want = np.array(ids, str)
+        kept = np.zeros(len(ids), bool)
+        base = np.zeros(len(ids), np.int64)
+        if len(old_ids):
+            at = np.searchsorted(old_ids, want).clip(0, len(old_ids) - 1)
+            kept = (old_ids[at] == want) & (old_n[at] == n)
+            base[kept] = old_base[at[kept]]
+        end = int((base + n)[kept].max(initial=0))
+        if end > 2 * int(n.sum()) + 4096:
+            kept[:], end = False, 0
+        new = np.where(kept, 0, n)
+        base = np.where(kept, base, end + np.cumsum(new) - new)
+        order = np.argsort(want, kind="stable")
+        self._hist[k] = (want[order], base[order], n[order])
+        return base
 
     def encode(
         self,

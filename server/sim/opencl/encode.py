@@ -3,12 +3,13 @@
 :class:`FramePlan` (frameplan.py, re-exported here) lays a frame out once (when the set of
 published cloths, their encodings, normals or bundling changes): every publication (a single
 state, or a client's section 9.1 bundle) at an 8-byte aligned offset of one buffer, every
-cloth's state at a known offset, and a *template* holding every static byte (magics, versions,
-header sizes, encodings, vertex counts, bundle entry tables and cloth ids, zero padding), built
-with :mod:`drape.client.protocol`'s own structs. :class:`DeviceEncoder` uploads the template
-once into the device output buffer; per tick one launch of ``encode_frame`` (kernels/encode.cl:
-one work-group per cloth) writes only the dynamic bytes (flags, tick, time, bounds, vertex data,
-normals) straight from the world's float4 position and normal buffers, and one copy brings the
+cloth's state at a known offset, and its static words (magics, versions, header sizes,
+encodings, vertex counts, bundle entry tables and cloth ids with their padding), built with
+:mod:`drape.client.protocol`'s own structs. :class:`DeviceEncoder` puts those words once into
+the device output buffer (kernels/static.cl; no zero fill: a buffer kept across plans is used as
+it is); per tick one launch of ``encode_frame`` (kernels/encode.cl: one work-group per cloth)
+writes the dynamic bytes (flags, tick, time, bounds, vertex data, normals) and every state's
+padding straight from the world's float4 position and normal buffers, and one copy brings the
 whole frame into pinned host memory. :meth:`DeviceEncoder.slices` then gives each publication's
 bytes as a memoryview of that memory, without copying. No per-cloth Python runs per tick.
 
@@ -355,12 +356,13 @@ class DeviceEncoder:
         return self._out_reused.made + self.compactor.buffers_made + self.pinned_made
 
     def _put_static(self, out: cl.Buffer, plan: FramePlan, behind: list[cl.Event]) -> cl.Event:
-        """``out``'s first ``plan.size`` bytes filled with zeros and the plan's static words put
-        in by kernels/static.cl, enqueued behind the events ``behind`` (not waited for: the
-        next encode waits for the returned event): a plan's words, not its whole template,
-        cross to the device."""
+        """The plan's static words put into ``out`` by kernels/static.cl, enqueued behind the
+        events ``behind`` (not waited for: the next encode waits for the returned event): a
+        plan's words, not its whole template, cross to the device. No zero fill: encode.cl
+        writes every other byte of every state it codes (padding included), so whatever a kept
+        buffer held before is overwritten or never sent (a predictive slot past its state)."""
         q = self.dev.queue
-        ev = cl.enqueue_fill_buffer(q, out, np.zeros(1, np.uint64), 0, plan.size, wait_for=behind or None)
+        ev = cl.enqueue_marker(q, wait_for=behind or None)
         n = len(plan.static_at)
         if n:
             ro = MF.READ_ONLY | MF.COPY_HOST_PTR

@@ -240,6 +240,35 @@ class FramePlan:
         pubs = [Publication(key, tuple(idx), bundle) for _, key, idx, bundle in roster.publications()]
         return cls._build(cols, _Entries(cols), pubs)
 
+    def members(self, publications: Sequence[int] | np.ndarray) -> np.ndarray:
+        """(m,) int64: the cloths of publications ``publications`` (ascending), in row order."""
+        sel = np.asarray(publications, np.int64)
+        if (np.diff(sel) <= 0).any():
+            raise ValueError("publications must be given in ascending order")
+        counts = np.fromiter((len(p.cloths) for p in self.publications), np.int64, len(self.publications))
+        return self.encoded[np.repeat(np.isin(np.arange(len(counts)), sel), counts)]  # rows: publication order
+
+    def subset(
+        self, publications: Sequence[int] | np.ndarray, keys: Sequence[str], hbase: np.ndarray | None = None
+    ) -> tuple[FramePlan, np.ndarray]:
+        """A plan of some of this plan's publications (indices ``publications``, ascending, under new
+        ``keys``), their cloths in row order with history bases ``hbase`` (one per cloth; None:
+        their own), from this plan's columns (no entry made per cloth: devrates.py's decimated
+        plans). Returns it and its cloths' indices in this plan."""
+        sel = np.asarray(publications, np.int64)
+        members = self.members(sel)
+        counts = np.fromiter((len(self.publications[j].cloths) for j in sel.tolist()), np.int64, len(sel))
+        c = self._columns()
+        ids = [c.ids[i] for i in members.tolist()]
+        m = members
+        cols = _Columns.checked(ids, c.vbase[m], c.n[m], c.enc[m], c.normals[m], c.step[m], hbase)
+        at = np.cumsum(counts) - counts
+        pubs = [
+            Publication(key, tuple(range(a, a + n)), self.publications[j].bundle)
+            for key, j, a, n in zip(keys, sel.tolist(), at.tolist(), counts.tolist(), strict=True)
+        ]
+        return FramePlan._build(cols, _Entries(cols), pubs), members
+
     @property
     def entry_header_sizes(self) -> np.ndarray:
         """(k,) int64: each plan cloth's bundle entry header size (P.bundle_entry_header_size)."""

@@ -941,6 +941,7 @@ def test_decimated_streams_equal_the_host_encoder(device, rng, seed_ticks):
     compared = {2: 0, 3: 0}
     predicted = {2: 0, 3: 0}
     older: tuple[int, dict[int, RateFrame]] | None = None  # the frame dropped last tick
+    unwatched: dict[int, set[str]] = {2: set(), 3: set()}  # keys left unwatched since the last frame put
     drops = 0
     try:
         for tick in range(1, seed_ticks + 1):
@@ -982,12 +983,18 @@ def test_decimated_streams_equal_the_host_encoder(device, rng, seed_ticks):
             main = enc.hold()
             ds.put(plan, np.flatnonzero(plan.predictive), tick)
             main.release()
+            for k in (2, 3):  # keys that lost their last subscriber (the publisher's matching listeners)
+                unwatched[k] |= set(idents) - watching.get(k, frozenset())
             if dropped:
                 older = (tick, frames)
                 drops += bool(frames)
                 continue
-            for k in (2, 3):  # the publisher's streams of a rate nobody watches on its tick: forgotten
-                if tick % k == 0 and k not in watching:
+            for k in (2, 3):  # the publisher, at the next frame it puts: their streams forgotten
+                host[k].streams.forget(
+                    [cloths[i].cloth for j in range(len(pubs)) if idents[j] in unwatched[k] for i in pubs[j].cloths]
+                )
+                unwatched[k] = set()
+                if tick % k == 0 and k not in watching:  # a rate nobody watches on its tick: all forgotten
                     host[k].streams.keep_only(set())
             for k, rf in frames.items():
                 watched = [j for j, i in enumerate(idents) if i in watching[k]]

@@ -53,12 +53,14 @@ class RatePublishers:
     _keys: dict[tuple[str, int], _RateKey] = field(default_factory=dict)  # (ident, k)
     _watched: dict[int, set[str]] = field(default_factory=dict)  # k -> idents with a subscriber
     _frozen: dict[int, frozenset[str]] = field(default_factory=dict)  # the same, as read by encoders
+    _gone: dict[int, set[str]] = field(default_factory=dict)  # k -> idents that lost their last subscriber
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
     def __post_init__(self) -> None:
         # a periodic keyframe every keyframe_interval of the stream's own states (k x the ticks)
         self.streams = {k: PredictiveStreams(k * self.keyframe_interval) for k in DECIMATED}
         self._watched = {k: set() for k in DECIMATED}
+        self._gone = {k: set() for k in DECIMATED}
 
     # -- Zenoh's threads ------------------------------------------------------------------
     def _matching(self, ident: str, every: int, status: zenoh.MatchingStatus) -> None:
@@ -67,6 +69,7 @@ class RatePublishers:
                 self._watched[every].add(ident)
             else:
                 self._watched[every].discard(ident)
+                self._gone[every].add(ident)  # its streams restart for whoever subscribes next
             self._freeze(every)
 
     def _freeze(self, every: int) -> None:
@@ -133,6 +136,15 @@ class RatePublishers:
         out = []
         pubs = roster.publications()
         for k in DECIMATED:
+            with self._lock:
+                gone, self._gone[k] = self._gone[k], set()
+            if gone and self.streams[k].streams:
+                # a key that lost its last subscriber starts its next subscriber on a keyframe, as
+                # the device's decimated plans do (a publication unwatched leaves the rate's
+                # plan): noticed on the next frame put, whether or not the frame of the tick it
+                # left on was dropped
+                ids = roster.ids
+                self.streams[k].forget([ids[i] for p in pubs if p[0] in gone for i in p[2]])
             if tick % k:
                 continue
             with self._lock:

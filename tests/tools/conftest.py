@@ -117,9 +117,9 @@ class Inbox:
                 self.payloads.append(sample.payload.to_bytes())
             self._cond.notify_all()
 
-    def wait_for(self, predicate: Callable[[Inbox], bool]) -> bool:
+    def wait_for(self, predicate: Callable[[Inbox], bool], timeout: float = WAIT) -> bool:
         with self._cond:
-            return self._cond.wait_for(lambda: predicate(self), WAIT)
+            return self._cond.wait_for(lambda: predicate(self), timeout)
 
 
 def wait_long(pred: Callable[[], bool], timeout: float = WAIT, step: float = 0.1) -> bool:

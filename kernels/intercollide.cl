@@ -32,11 +32,22 @@
  *                over its candidates u closer than d = (th_k + th_u) / 2, k (d - |x - x_u|) w /
  *                (w + w_u) along (x - x_u) / |x - x_u| (+y for the cloth that joined first where
  *                they coincide), and writes its moved position
+ *   ic_find and every ic_pass put a vertex they moved back out of its cloth's colliders (spheres,
+ *                capsules, planes at their end pose, without friction: colliders.cl's
+ *                collide_vertex, as the solvers' refinish_vertex calls it; cslot[k] is cloth k's
+ *                row of the World's int table, -1 without the colliders feature), so that a pile's
+ *                corrections never push its bottom cloth through what it rests on
  *   ic_finish    every vertex's last position into the World's positions, the displacement / dt
  *                added to its velocity; the bucket heads cleared for the next step
  * INTER_COLLISION_PASSES + 4 launches a step (12) whatever the number of scenes and cloths, their
  * arguments set once (ic_clear: every bucket head -1, once when the tables are rebuilt).
  */
+
+#include "layout.h"
+#ifndef EPS_LEN2
+#define EPS_LEN2 1e-20f
+#endif
+#include "colliders.cl"
 
 #ifndef INTER_COLLISION_PASSES
 #define INTER_COLLISION_PASSES 8
@@ -126,6 +137,19 @@ __kernel void ic_insert(__global const float4 *pos, __global const int *vidx, __
     next[t] = atomic_xchg(&heads[b], t);
 }
 
+/* x moved by corr, back out of cloth k's colliders at their end pose (cslot[k] < 0: none) */
+inline float3 ic_keep_out(float3 x, float3 corr, int k, __global const int *cslot, __global const int *ci,
+                          __global const float4 *coll)
+{
+    x += corr;
+    const int s = cslot[k];
+    if (s >= 0 && (corr.x != 0.0f || corr.y != 0.0f || corr.z != 0.0f)) {
+        __global const int *I = ci + (long)s * CI_STRIDE;
+        x = collide_vertex(x, x, coll, I[CI_COLL], I[CI_NCOLL], 1.0f, 1.0f, 0.0f);
+    }
+    return x;
+}
+
 /* The contact of vertex t (at x, cloth k, parameters pk) with vertex u at xu (cloth ku, pu). */
 inline float3 ic_push(float4 x, int k, float2 pk, float4 xu, int ku, float2 pu)
 {
@@ -192,7 +216,8 @@ inline int ic_walk(int t, int k, int8 ci, float2 pk, float4 x0, __global const f
 __kernel void ic_find(__global const float4 *xs0, __global const int *vcl, __global const int8 *cinfo,
                       __global const float2 *cpar, __global const int *active, __global const int *heads,
                       __global const int *next, __global int *nbr, __global int *count, __global float4 *xout,
-                      int nv, float inv, uint mask)
+                      __global const int *cslot, __global const int *ci, __global const float4 *coll, int nv,
+                      float inv, uint mask)
 {
     const int t = get_global_id(0);
     if (t >= nv)
@@ -205,22 +230,23 @@ __kernel void ic_find(__global const float4 *xs0, __global const int *vcl, __glo
         c = ic_walk(t, k, cinfo[k], cpar[k], x0, xs0, vcl, cinfo, cpar, heads, next, inv, mask, nbr + t, nv, xs0,
                     &corr);
     count[t] = c;
-    xout[t] = (float4)(x0.xyz + corr, x0.w);
+    xout[t] = (float4)(ic_keep_out(x0.xyz, corr, k, cslot, ci, coll), x0.w);
 }
 
 __kernel void ic_pass(__global const float4 *xs0, __global const float4 *xin, __global float4 *xout,
                       __global const int *vcl, __global const int8 *cinfo, __global const float2 *cpar,
                       __global const int *heads, __global const int *next, __global const int *nbr,
-                      __global const int *count, int nv, float inv, uint mask)
+                      __global const int *count, __global const int *cslot, __global const int *ci,
+                      __global const float4 *coll, int nv, float inv, uint mask)
 {
     const int t = get_global_id(0);
     if (t >= nv)
         return;
     const float4 x = xin[t];
     const int c = count[t];
+    const int k = vcl[t];
     float3 corr = (float3)(0.0f);
     if (c > 0) {
-        const int k = vcl[t];
         const float2 pk = cpar[k];
         if (c <= IC_LIST) {
             /* a candidate further than the contact distance with the World's largest thickness
@@ -239,7 +265,7 @@ __kernel void ic_pass(__global const float4 *xs0, __global const float4 *xin, __
             ic_walk(t, k, cinfo[k], pk, xs0[t], xs0, vcl, cinfo, cpar, heads, next, inv, mask, 0, nv, xin, &corr);
         }
     }
-    xout[t] = (float4)(x.xyz + corr, x.w);
+    xout[t] = (float4)(ic_keep_out(x.xyz, corr, k, cslot, ci, coll), x.w);
 }
 
 __kernel void ic_finish(__global float4 *pos, __global float4 *vel, __global const int *vidx,

@@ -17,7 +17,11 @@ Solver. The contacts are found once, at the step's positions, then iterated:
    closer than ``d'`` by ``k (d' - |x_a - x_b|) w_a / (w_a + w_b)`` along the pair's direction
    (``k`` the mean of the two materials' ``contact_stiffness``, ``w`` inverse masses; two
    coincident vertices part along +y for the cloth added first, -y for the other): Jacobi, every
-   contact from the same positions, so the order of the work does not matter.
+   contact from the same positions, so the order of the work does not matter; after each pass,
+   every vertex the pass moved is put back out of its cloth's colliders (spheres, capsules,
+   planes at their end-of-step pose, without friction: the cloth step's own projection,
+   drape.server.sim.reference.collide), so a pile's corrections never push its bottom cloth
+   through what it rests on (the contact's other end takes the whole correction over the passes).
 
 A pair that comes within ``d'`` only during the passes from further than the reach at the start
 is left to the next step (the passes move vertices apart, by a share of the contact distance).
@@ -33,6 +37,8 @@ import numpy as np
 
 from drape.client.protocol.vocabulary import MAX_SCENE_COLLIDERS  # noqa: F401 (the scenes' collider capacity)
 
+from .reference import collide
+
 #: Inter-cloth collision's passes per step (the kernels' -DINTER_COLLISION_PASSES, the reference's).
 INTER_COLLISION_PASSES = 8
 #: The solve keeps each pair this much further than its contact distance (1.05: 1.5 mm at 3 cm),
@@ -43,6 +49,8 @@ INTER_COLLISION_MARGIN = 1.05
 INTER_COLLISION_REACH = 1.3
 #: Cloths of one scene at most (a scene is a shared space; the spatial hash is keyed by scene).
 MAX_SCENE_CLOTHS = 1024
+
+_NONE = np.zeros((0, 2, 4))
 
 _CHUNK = 512  # rows of the pairwise distances computed at once
 
@@ -66,6 +74,7 @@ class SceneCloth:
     invm: np.ndarray  # (n,) inverse masses (0: pinned)
     thickness: float
     stiffness: float
+    colliders: np.ndarray = field(default_factory=lambda: _NONE)  # (m, 2, 4) packed, at the step's end pose
 
 
 def bounds(x: np.ndarray, grow: float) -> np.ndarray:
@@ -133,8 +142,19 @@ def inter_collide(cloths: list[SceneCloth], dt: float, passes: int = INTER_COLLI
             np.add.at(corr[b], j, -push * wb[:, None])
         for c, dx in zip(cloths, corr, strict=True):
             c.x += dx
+            if len(c.colliders):
+                _keep_out(c, np.flatnonzero(np.any(dx != 0.0, axis=1)))
     for c, x0 in zip(cloths, start, strict=True):
         c.v += (c.x - x0) / dt
+
+
+def _keep_out(c: SceneCloth, rows: np.ndarray) -> None:
+    """Rows ``rows`` of ``c`` back out of its colliders at their end pose, without friction (the
+    cloth step's projection; kernels/intercollide.cl calls colliders.cl's collide_vertex so)."""
+    if len(rows):
+        x = c.x[rows]
+        collide(x, x.copy(), c.invm[rows], c.colliders, c.colliders, 0.0)
+        c.x[rows] = x
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,8 @@
 step, after every launch group's solve, the cloths of each scene are kept apart from each other
 on the device by kernels/intercollide.cl (the broad phase over the cloths' boxes, a spatial hash
 keyed by scene over every vertex of the cloths whose box meets another of their scene, each
-vertex's candidates listed once, then INTER_COLLISION_PASSES Jacobi passes over them), the
+vertex's candidates listed once, then INTER_COLLISION_PASSES Jacobi passes over them, each
+putting the vertices it moved back out of their cloth's colliders), the
 float64 twin being drape.server.sim.scenes.inter_collide.
 
 Nothing is built or launched while no scene holds two cloths: a World without scenes pays
@@ -58,6 +59,7 @@ class SceneCollision(WorldPhase):
         self._vcl = DevArray(dev, np.int32, 1)
         self._cinfo = DevArray(dev, np.int32, 8)
         self._cpar = DevArray(dev, np.float32, 2)
+        self._cslot = DevArray(dev, np.int32, 1)  # each cloth's row of the int table (colliders), -1: none
         self._box = DevArray(dev, np.float32, 8)
         self._active = DevArray(dev, np.int32, 1)
         self._next = DevArray(dev, np.int32, 1)
@@ -87,6 +89,7 @@ class SceneCollision(WorldPhase):
         vcl: list[np.ndarray] = []
         cinfo: list[list[int]] = []
         cpar: list[list[float]] = []
+        cslot: list[int] = []
         nt = 0  # scene vertices numbered so far
         for si, sc in enumerate(self.scenes.values()):
             if len(sc.handles) < 2:
@@ -99,6 +102,7 @@ class SceneCollision(WorldPhase):
                 cinfo.append([slot.vbase, n, si, first, len(sc.handles), t0, t1, nt])
                 nt += n
                 cpar.append([m.thickness * INTER_COLLISION_MARGIN, m.contact_stiffness])
+                cslot.append(slot.slot if self.cloths[h].params.features.colliders else -1)
                 vidx.append(np.arange(slot.vbase, slot.vbase + n, dtype=np.int32))
                 vcl.append(np.full(n, k, np.int32))
         self._dirty = False
@@ -114,6 +118,7 @@ class SceneCollision(WorldPhase):
             (self._vcl, np.concatenate(vcl)),
             (self._cinfo, np.asarray(cinfo, np.int32)),
             (self._cpar, np.asarray(cpar, np.float32)),
+            (self._cslot, np.asarray(cslot, np.int32)),
         ):
             if arr.capacity < len(host):
                 arr.resize(_pow2_at_least(len(host)))
@@ -135,7 +140,7 @@ class SceneCollision(WorldPhase):
         """The kernels' arguments, set once per table rebuild or buffer growth, and the launches."""
         k = self.kernels()
         mem = self.mem
-        pos, vel = mem.pos.buf, mem.vel.buf
+        pos, vel, ci, coll, cslot = mem.pos.buf, mem.vel.buf, mem.ci.buf, mem.coll.buf, self._cslot.buf
         ncl, nv, nb = np.int32(self.n_cloths), np.int32(self.n_vertices), np.int32(self._nb)
         inv, mask = np.float32(self._inv), np.uint32(self._nb - 1)
         vidx, vcl, cinfo, cpar = self._vidx.buf, self._vcl.buf, self._cinfo.buf, self._cpar.buf
@@ -144,9 +149,9 @@ class SceneCollision(WorldPhase):
         k["ic_bounds"].set_args(pos, cinfo, cpar, box)
         k["ic_active"].set_args(cinfo, box, active, ncl)
         k["ic_insert"].set_args(pos, vidx, vcl, cinfo, active, heads, nxt, xs0, nv, inv, mask)
-        k["ic_find"].set_args(xs0, vcl, cinfo, cpar, active, heads, nxt, nbr, count, xb, nv, inv, mask)
-        k["ic_pass"].set_args(xs0, xa, xb, vcl, cinfo, cpar, heads, nxt, nbr, count, nv, inv, mask)
-        k["ic_pass_ba"].set_args(xs0, xb, xa, vcl, cinfo, cpar, heads, nxt, nbr, count, nv, inv, mask)
+        k["ic_find"].set_args(xs0, vcl, cinfo, cpar, active, heads, nxt, nbr, count, xb, cslot, ci, coll, nv, inv, mask)
+        k["ic_pass"].set_args(xs0, xa, xb, vcl, cinfo, cpar, heads, nxt, nbr, count, cslot, ci, coll, nv, inv, mask)
+        k["ic_pass_ba"].set_args(xs0, xb, xa, vcl, cinfo, cpar, heads, nxt, nbr, count, cslot, ci, coll, nv, inv, mask)
         last = xa if INTER_COLLISION_PASSES % 2 == 0 else xb
         k["ic_finish"].set_args(pos, vel, vidx, xs0, last, heads, nv, nb, np.float32(1.0 / dt))
         self._dt = dt
@@ -164,7 +169,7 @@ class SceneCollision(WorldPhase):
             (k["ic_finish"], per_vertex, None),
         ]
         self._finish = k["ic_finish"]
-        self._bound = (pos, vel)
+        self._bound = (pos, vel, ci, coll)
 
     def step(self, dt: float) -> None:
         """The scenes' inter-cloth collision, after the solvers' launches of a step."""
@@ -172,7 +177,10 @@ class SceneCollision(WorldPhase):
             self._rebuild()
         if self.n_cloths < 2 or self._inv <= 0.0:
             return
-        if self._bound is None or self._bound[0] is not self.mem.pos.buf or self._bound[1] is not self.mem.vel.buf:
+        mem = self.mem
+        if self._bound is None or any(
+            a is not b for a, b in zip(self._bound, (mem.pos.buf, mem.vel.buf, mem.ci.buf, mem.coll.buf), strict=True)
+        ):
             self._bind(dt)
         elif dt != self._dt:
             assert self._finish is not None

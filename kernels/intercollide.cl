@@ -14,7 +14,7 @@
  * World's largest contact distance: a hash entry it passes costs its next and, if of another
  * cloth of its scene, its position.
  *
- * Once per step (the contacts are found once, at the step's positions, and iterated):
+ * Each round (the contacts are found once, at the round's positions, and iterated):
  *   ic_bounds    one work-group per cloth: its box grown by half its thickness x IC_REACH
  *   ic_active    per cloth: whether its box meets another box of its scene (else it takes no part)
  *   ic_insert    every vertex's start position into xs0 (w: inverse mass), and every vertex of an
@@ -32,15 +32,22 @@
  *                over its candidates u closer than d = (th_k + th_u) / 2, k (d - |x - x_u|) w /
  *                (w + w_u) along (x - x_u) / |x - x_u| (+y for the cloth that joined first where
  *                they coincide), and writes its moved position
+ *   (a contact within IC_SHOCK of +y moves its lower end less, not at all straight below, where
+ *                the upper end is free: shock propagation, so a pile's weight reaches what its
+ *                bottom rests on instead of sinking through it)
  *   ic_find and every ic_pass put a vertex they moved back out of its cloth's colliders (spheres,
  *                capsules, planes at their end pose, without friction: colliders.cl's
  *                collide_vertex, as the solvers' refinish_vertex calls it; cslot[k] is cloth k's
  *                row of the World's int table, -1 without the colliders feature), so that a pile's
  *                corrections never push its bottom cloth through what it rests on
  *   ic_finish    every vertex's last position into the World's positions, the displacement / dt
- *                added to its velocity; the bucket heads cleared for the next step
- * INTER_COLLISION_PASSES + 4 launches a step (12) whatever the number of scenes and cloths, their
- * arguments set once (ic_clear: every bucket head -1, once when the tables are rebuilt).
+ *                added to its velocity, but no faster along it than before (inelastic); the
+ *                bucket heads cleared for the next step
+ * That round (ic_bounds to ic_finish: the candidates found at the round's start positions, then
+ * INTER_COLLISION_PASSES / INTER_COLLISION_ROUNDS passes, 2) runs INTER_COLLISION_ROUNDS (4) times
+ * a step, so that a pair the passes bring together from beyond the reach is seen in the next round:
+ * 24 launches a step whatever the number of scenes and cloths, their arguments set once
+ * (ic_clear: every bucket head -1, once when the tables are rebuilt).
  */
 
 #include "layout.h"
@@ -57,6 +64,9 @@
 #endif
 #ifndef IC_REACH
 #define IC_REACH 1.5f /* candidates: pairs closer than IC_REACH x their contact distance at the step's start */
+#endif
+#ifndef IC_SHOCK
+#define IC_SHOCK 0.7f /* a contact within this cosine of +y: its lower end does not yield */
 #endif
 #ifndef IC_LIST
 #define IC_LIST 16 /* candidates listed per vertex (more: found again in the hash each pass) */
@@ -150,7 +160,9 @@ inline float3 ic_keep_out(float3 x, float3 corr, int k, __global const int *cslo
     return x;
 }
 
-/* The contact of vertex t (at x, cloth k, parameters pk) with vertex u at xu (cloth ku, pu). */
+/* The contact of vertex t (at x, cloth k, parameters pk) with vertex u at xu (cloth ku, pu); the
+ * lower end of a contact within IC_SHOCK (a cosine) of +y has its inverse mass scaled down,
+ * linearly to 0 straight below (shock propagation: drape.server.sim.scenes.shock). */
 inline float3 ic_push(float4 x, int k, float2 pk, float4 xu, int ku, float2 pu)
 {
     const float d = 0.5f * (pk.x + pu.x), st = 0.5f * (pk.y + pu.y);
@@ -160,7 +172,15 @@ inline float3 ic_push(float4 x, int k, float2 pk, float4 xu, int ku, float2 pu)
         return (float3)(0.0f);
     const float dist = sqrt(dist2);
     const float3 n = dist > 1e-12f ? df / dist : (float3)(0.0f, k < ku ? 1.0f : -1.0f, 0.0f);
-    return n * (st * (d - dist) * x.w / (x.w + xu.w));
+    const float m = clamp((1.0f - fabs(n.y)) / (1.0f - IC_SHOCK), 0.0f, 1.0f);
+    float w = x.w, wu = xu.w;
+    if (n.y < 0.0f && wu > 0.0f)
+        w *= m;
+    else if (n.y > 0.0f && w > 0.0f)
+        wu *= m;
+    if (!(w > 0.0f))
+        return (float3)(0.0f);
+    return n * (st * (d - dist) * w / (w + wu));
 }
 
 /* Walks the hash's 2 x 2 x 2 cells around vertex t's start position x0: with list != 0 lists its
@@ -281,6 +301,9 @@ __kernel void ic_finish(__global float4 *pos, __global float4 *vel, __global con
     if (d.x != 0.0f || d.y != 0.0f || d.z != 0.0f) {
         const int g = vidx[t];
         pos[g].xyz = x[t].xyz;
-        vel[g].xyz += d * inv_dt;
+        /* inelastic: no faster along d than before (or 0): scenes.inelastic */
+        const float3 v = vel[g].xyz, n = d / length(d), out = v + d * inv_dt;
+        const float over = dot(out, n) - fmax(dot(v, n), 0.0f);
+        vel[g].xyz = over > 0.0f ? out - n * over : out;
     }
 }

@@ -11,8 +11,9 @@ nothing, and the solvers' programs keep their build options. The tables (which v
 which cloth, which scene, thickness and stiffness) are rebuilt on the host only when a cloth
 joins or leaves a scene or a scene cloth's material changes (``changed``), never per tick; the
 kernels' arguments are set then (and when the World's buffers grow), so a step is the same
-INTER_COLLISION_PASSES + 4 launches (the candidates' walk runs the first pass) whatever the
-number of scenes and cloths, with no Python per scene or cloth.
+INTER_COLLISION_ROUNDS x (INTER_COLLISION_PASSES / INTER_COLLISION_ROUNDS + 4) launches (each
+round's candidates' walk runs its first pass) whatever the number of scenes and cloths, with no
+Python per scene or cloth.
 """
 
 from __future__ import annotations
@@ -22,7 +23,14 @@ from collections.abc import Mapping
 import numpy as np
 import pyopencl as cl
 
-from ..scenes import INTER_COLLISION_MARGIN, INTER_COLLISION_PASSES, INTER_COLLISION_REACH, Scene
+from ..scenes import (
+    INTER_COLLISION_MARGIN,
+    INTER_COLLISION_PASSES,
+    INTER_COLLISION_REACH,
+    INTER_COLLISION_ROUNDS,
+    INTER_COLLISION_SHOCK,
+    Scene,
+)
 from ..world import Cloth
 from .buffers import ClothSlot, DevArray, DeviceMemory
 from .device import Device
@@ -82,6 +90,7 @@ class SceneCollision(WorldPhase):
             f"-DINTER_COLLISION_PASSES={INTER_COLLISION_PASSES}",
             f"-DIC_REACH={INTER_COLLISION_REACH!r}f",
             f"-DIC_LIST={IC_LIST}",
+            f"-DIC_SHOCK={INTER_COLLISION_SHOCK!r}f",
         ]
 
     def _rebuild(self) -> None:
@@ -152,22 +161,21 @@ class SceneCollision(WorldPhase):
         k["ic_find"].set_args(xs0, vcl, cinfo, cpar, active, heads, nxt, nbr, count, xb, cslot, ci, coll, nv, inv, mask)
         k["ic_pass"].set_args(xs0, xa, xb, vcl, cinfo, cpar, heads, nxt, nbr, count, cslot, ci, coll, nv, inv, mask)
         k["ic_pass_ba"].set_args(xs0, xb, xa, vcl, cinfo, cpar, heads, nxt, nbr, count, cslot, ci, coll, nv, inv, mask)
-        last = xa if INTER_COLLISION_PASSES % 2 == 0 else xb
+        passes = INTER_COLLISION_PASSES // INTER_COLLISION_ROUNDS  # each round's
+        last = xa if passes % 2 == 0 else xb
         k["ic_finish"].set_args(pos, vel, vidx, xs0, last, heads, nv, nb, np.float32(1.0 / dt))
         self._dt = dt
         per_vertex = (self.n_vertices,)
-        self._launches = [
+        one_round = [
             (k["ic_bounds"], (self.n_cloths * self.ls,), (self.ls,)),
             (k["ic_active"], (self.n_cloths,), None),
             (k["ic_insert"], per_vertex, None),
             (k["ic_find"], per_vertex, None),
             # ic_find ran the first pass (into xb); then xb into xa, xa into xb, ...
-            *(
-                (k["ic_pass" if p % 2 == 0 else "ic_pass_ba"], per_vertex, None)
-                for p in range(1, INTER_COLLISION_PASSES)
-            ),
+            *((k["ic_pass" if p % 2 == 0 else "ic_pass_ba"], per_vertex, None) for p in range(1, passes)),
             (k["ic_finish"], per_vertex, None),
         ]
+        self._launches = one_round * INTER_COLLISION_ROUNDS  # the candidates found again each round
         self._finish = k["ic_finish"]
         self._bound = (pos, vel, ci, coll)
 

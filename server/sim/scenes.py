@@ -144,7 +144,7 @@ def inelastic(v: np.ndarray, dx: np.ndarray, dt: float) -> np.ndarray:
     cloths landing on each other at their contact distance a tick are not launched)."""
     out = v + dx / dt
     dl = np.linalg.norm(dx, axis=1)
-    n = dx / np.maximum(dl, 1e-300)[:, None]
+    n = dx / np.where(dl > 0, dl, 1.0)[:, None]
     over = np.einsum("ij,ij->i", out, n) - np.maximum(np.einsum("ij,ij->i", v, n), 0.0)
     return np.where(((dl > 0) & (over > 0))[:, None], out - n * over[:, None], out)
 

@@ -14,7 +14,7 @@
  * World's largest contact distance: a hash entry it passes costs its next and, if of another
  * cloth of its scene, its position.
  *
- * Once per step (the contacts are found once, at the step's positions, and iterated):
+ * Each round (the contacts are found once, at the round's positions, and iterated):
  *   ic_bounds    one work-group per cloth: its box grown by half its thickness x IC_REACH
  *   ic_active    per cloth: whether its box meets another box of its scene (else it takes no part)
  *   ic_insert    every vertex's start position into xs0 (w: inverse mass), and every vertex of an
@@ -32,11 +32,29 @@
  *                over its candidates u closer than d = (th_k + th_u) / 2, k (d - |x - x_u|) w /
  *                (w + w_u) along (x - x_u) / |x - x_u| (+y for the cloth that joined first where
  *                they coincide), and writes its moved position
+ *   (a contact within IC_SHOCK of +y moves its lower end less, not at all straight below, where
+ *                the upper end is free: shock propagation, so a pile's weight reaches what its
+ *                bottom rests on instead of sinking through it)
+ *   ic_find and every ic_pass put a vertex they moved back out of its cloth's colliders (spheres,
+ *                capsules, planes at their end pose, without friction: colliders.cl's
+ *                collide_vertex, as the solvers' refinish_vertex calls it; cslot[k] is cloth k's
+ *                row of the World's int table, -1 without the colliders feature), so that a pile's
+ *                corrections never push its bottom cloth through what it rests on
  *   ic_finish    every vertex's last position into the World's positions, the displacement / dt
- *                added to its velocity; the bucket heads cleared for the next step
- * INTER_COLLISION_PASSES + 4 launches a step (12) whatever the number of scenes and cloths, their
- * arguments set once (ic_clear: every bucket head -1, once when the tables are rebuilt).
+ *                added to its velocity, but no faster along it than before (inelastic); the
+ *                bucket heads cleared for the next step
+ * That round (ic_bounds to ic_finish: the candidates found at the round's start positions, then
+ * INTER_COLLISION_PASSES / INTER_COLLISION_ROUNDS passes, 2) runs INTER_COLLISION_ROUNDS (4) times
+ * a step, so that a pair the passes bring together from beyond the reach is seen in the next round:
+ * 24 launches a step whatever the number of scenes and cloths, their arguments set once
+ * (ic_clear: every bucket head -1, once when the tables are rebuilt).
  */
+
+#include "layout.h"
+#ifndef EPS_LEN2
+#define EPS_LEN2 1e-20f
+#endif
+#include "colliders.cl"
 
 #ifndef INTER_COLLISION_PASSES
 #define INTER_COLLISION_PASSES 8
@@ -46,6 +64,9 @@
 #endif
 #ifndef IC_REACH
 #define IC_REACH 1.5f /* candidates: pairs closer than IC_REACH x their contact distance at the step's start */
+#endif
+#ifndef IC_SHOCK
+#define IC_SHOCK 0.7f /* a contact within this cosine of +y: its lower end does not yield */
 #endif
 #ifndef IC_LIST
 #define IC_LIST 16 /* candidates listed per vertex (more: found again in the hash each pass) */
@@ -126,7 +147,22 @@ __kernel void ic_insert(__global const float4 *pos, __global const int *vidx, __
     next[t] = atomic_xchg(&heads[b], t);
 }
 
-/* The contact of vertex t (at x, cloth k, parameters pk) with vertex u at xu (cloth ku, pu). */
+/* x moved by corr, back out of cloth k's colliders at their end pose (cslot[k] < 0: none) */
+inline float3 ic_keep_out(float3 x, float3 corr, int k, __global const int *cslot, __global const int *ci,
+                          __global const float4 *coll)
+{
+    x += corr;
+    const int s = cslot[k];
+    if (s >= 0 && (corr.x != 0.0f || corr.y != 0.0f || corr.z != 0.0f)) {
+        __global const int *I = ci + (long)s * CI_STRIDE;
+        x = collide_vertex(x, x, coll, I[CI_COLL], I[CI_NCOLL], 1.0f, 1.0f, 0.0f);
+    }
+    return x;
+}
+
+/* The contact of vertex t (at x, cloth k, parameters pk) with vertex u at xu (cloth ku, pu); the
+ * lower end of a contact within IC_SHOCK (a cosine) of +y has its inverse mass scaled down,
+ * linearly to 0 straight below (shock propagation: drape.server.sim.scenes.shock). */
 inline float3 ic_push(float4 x, int k, float2 pk, float4 xu, int ku, float2 pu)
 {
     const float d = 0.5f * (pk.x + pu.x), st = 0.5f * (pk.y + pu.y);
@@ -136,7 +172,15 @@ inline float3 ic_push(float4 x, int k, float2 pk, float4 xu, int ku, float2 pu)
         return (float3)(0.0f);
     const float dist = sqrt(dist2);
     const float3 n = dist > 1e-12f ? df / dist : (float3)(0.0f, k < ku ? 1.0f : -1.0f, 0.0f);
-    return n * (st * (d - dist) * x.w / (x.w + xu.w));
+    const float m = clamp((1.0f - fabs(n.y)) / (1.0f - IC_SHOCK), 0.0f, 1.0f);
+    float w = x.w, wu = xu.w;
+    if (n.y < 0.0f && wu > 0.0f)
+        w *= m;
+    else if (n.y > 0.0f && w > 0.0f)
+        wu *= m;
+    if (!(w > 0.0f))
+        return (float3)(0.0f);
+    return n * (st * (d - dist) * w / (w + wu));
 }
 
 /* Walks the hash's 2 x 2 x 2 cells around vertex t's start position x0: with list != 0 lists its
@@ -192,7 +236,8 @@ inline int ic_walk(int t, int k, int8 ci, float2 pk, float4 x0, __global const f
 __kernel void ic_find(__global const float4 *xs0, __global const int *vcl, __global const int8 *cinfo,
                       __global const float2 *cpar, __global const int *active, __global const int *heads,
                       __global const int *next, __global int *nbr, __global int *count, __global float4 *xout,
-                      int nv, float inv, uint mask)
+                      __global const int *cslot, __global const int *ci, __global const float4 *coll, int nv,
+                      float inv, uint mask)
 {
     const int t = get_global_id(0);
     if (t >= nv)
@@ -205,22 +250,23 @@ __kernel void ic_find(__global const float4 *xs0, __global const int *vcl, __glo
         c = ic_walk(t, k, cinfo[k], cpar[k], x0, xs0, vcl, cinfo, cpar, heads, next, inv, mask, nbr + t, nv, xs0,
                     &corr);
     count[t] = c;
-    xout[t] = (float4)(x0.xyz + corr, x0.w);
+    xout[t] = (float4)(ic_keep_out(x0.xyz, corr, k, cslot, ci, coll), x0.w);
 }
 
 __kernel void ic_pass(__global const float4 *xs0, __global const float4 *xin, __global float4 *xout,
                       __global const int *vcl, __global const int8 *cinfo, __global const float2 *cpar,
                       __global const int *heads, __global const int *next, __global const int *nbr,
-                      __global const int *count, int nv, float inv, uint mask)
+                      __global const int *count, __global const int *cslot, __global const int *ci,
+                      __global const float4 *coll, int nv, float inv, uint mask)
 {
     const int t = get_global_id(0);
     if (t >= nv)
         return;
     const float4 x = xin[t];
     const int c = count[t];
+    const int k = vcl[t];
     float3 corr = (float3)(0.0f);
     if (c > 0) {
-        const int k = vcl[t];
         const float2 pk = cpar[k];
         if (c <= IC_LIST) {
             /* a candidate further than the contact distance with the World's largest thickness
@@ -239,7 +285,7 @@ __kernel void ic_pass(__global const float4 *xs0, __global const float4 *xin, __
             ic_walk(t, k, cinfo[k], pk, xs0[t], xs0, vcl, cinfo, cpar, heads, next, inv, mask, 0, nv, xin, &corr);
         }
     }
-    xout[t] = (float4)(x.xyz + corr, x.w);
+    xout[t] = (float4)(ic_keep_out(x.xyz, corr, k, cslot, ci, coll), x.w);
 }
 
 __kernel void ic_finish(__global float4 *pos, __global float4 *vel, __global const int *vidx,
@@ -255,6 +301,9 @@ __kernel void ic_finish(__global float4 *pos, __global float4 *vel, __global con
     if (d.x != 0.0f || d.y != 0.0f || d.z != 0.0f) {
         const int g = vidx[t];
         pos[g].xyz = x[t].xyz;
-        vel[g].xyz += d * inv_dt;
+        /* inelastic: no faster along d than before (or 0): scenes.inelastic */
+        const float3 v = vel[g].xyz, n = d / length(d), out = v + d * inv_dt;
+        const float over = dot(out, n) - fmax(dot(v, n), 0.0f);
+        vel[g].xyz = over > 0.0f ? out - n * over : out;
     }
 }

@@ -5,7 +5,8 @@ colliders), and inter-cloth collision in float64 numpy: the reference of kernels
 
 Inter-cloth collision runs once per step (tick), after every cloth's own solve (its substeps,
 links, self-collision, colliders): a World-level phase, as NvCloth puts inter-collision on its
-Solver. The contacts are found once, at the step's positions, then iterated:
+Solver. It is INTER_COLLISION_ROUNDS rounds, each of which finds the contacts at the round's
+start positions, then iterates them:
 
 1. every cloth's bounds (its positions' box grown by half its thickness x margin x
    INTER_COLLISION_REACH): the broad phase, a cloth whose box meets no other box of its scene
@@ -13,16 +14,27 @@ Solver. The contacts are found once, at the step's positions, then iterated:
 2. the candidates: every pair of vertices of two different cloths of one scene closer than
    INTER_COLLISION_REACH times the pair's contact distance ``d' = (thickness_a + thickness_b) / 2
    x INTER_COLLISION_MARGIN`` (the materials' ``thickness``), the distance the solve sets them at;
-3. INTER_COLLISION_PASSES passes, each of which moves each free end of every candidate pair now
-   closer than ``d'`` by ``k (d' - |x_a - x_b|) w_a / (w_a + w_b)`` along the pair's direction
-   (``k`` the mean of the two materials' ``contact_stiffness``, ``w`` inverse masses; two
-   coincident vertices part along +y for the cloth added first, -y for the other): Jacobi, every
-   contact from the same positions, so the order of the work does not matter.
+3. INTER_COLLISION_PASSES / INTER_COLLISION_ROUNDS passes, each of which moves each free end of
+   every candidate pair now closer than ``d'`` by ``k (d' - |x_a - x_b|) w_a / (w_a + w_b)``
+   along the pair's direction (``k`` the mean of the two materials' ``contact_stiffness``, ``w``
+   inverse masses; two coincident vertices part along +y for the cloth added first, -y for the
+   other): Jacobi, every contact from the same positions, so the order of the work does not
+   matter. Where the pair's direction is within INTER_COLLISION_SHOCK (a cosine) of +y, the lower
+   end's ``w`` is scaled down linearly to 0 straight below (``shock``, where the upper end is
+   free): shock propagation, so a pile's weight is carried down to what its bottom rests on. After each
+   pass, every vertex the pass moved is put back out of its cloth's colliders (spheres,
+   capsules, planes at their end-of-step pose, without friction: the cloth step's own
+   projection, drape.server.sim.reference.collide), so a pile's corrections never push its bottom
+   cloth through what it rests on.
 
-A pair that comes within ``d'`` only during the passes from further than the reach at the start
-is left to the next step (the passes move vertices apart, by a share of the contact distance).
-A vertex moved by ``dx`` in these passes also gains ``dx / dt`` of velocity (the step's
-velocity is its displacement over the step, as PBD has it), so contacts carry cloths along.
+A pair that comes within ``d'`` during a round's passes from further than the reach at the
+round's start is seen by the next round (a pile landing at its contact distance per tick: the
+second cloth, pushed back out of the first, lands in the third's way), or else left to the next
+step. A vertex moved by ``dx`` in a round's passes also gains ``dx / dt`` of velocity (the step's
+velocity is its displacement over the step, as PBD has it), so contacts carry cloths along, but
+no more along ``dx`` than it had (``inelastic``): a contact stops an approach and never throws a
+vertex off (coincident cloths of a landing pile parted by a contact distance in one tick would
+otherwise leave at that distance per tick).
 """
 
 from __future__ import annotations
@@ -33,6 +45,8 @@ import numpy as np
 
 from drape.client.protocol.vocabulary import MAX_SCENE_COLLIDERS  # noqa: F401 (the scenes' collider capacity)
 
+from .reference import collide
+
 #: Inter-cloth collision's passes per step (the kernels' -DINTER_COLLISION_PASSES, the reference's).
 INTER_COLLISION_PASSES = 8
 #: The solve keeps each pair this much further than its contact distance (1.05: 1.5 mm at 3 cm),
@@ -41,8 +55,18 @@ INTER_COLLISION_PASSES = 8
 INTER_COLLISION_MARGIN = 1.05
 #: Candidate pairs: closer than this many contact distances at the step's start (-DIC_REACH).
 INTER_COLLISION_REACH = 1.3
+#: The candidates are found again this many times a step, each followed by its share of the passes
+#: (-DIC_ROUNDS): a pair the passes bring together from further than the reach is seen in the next
+#: round (a pile landing: its second cloth pushed back out of the bottom one into the third's way).
+INTER_COLLISION_ROUNDS = 4
+#: Shock propagation (-DIC_SHOCK): where a contact's direction is within this cosine of +y, the
+#: lower end yields less, and not at all straight below (its inverse mass scaled by ``shock``),
+#: so a pile's weight is carried down to what its bottom rests on instead of sinking through it.
+INTER_COLLISION_SHOCK = 0.7
 #: Cloths of one scene at most (a scene is a shared space; the spatial hash is keyed by scene).
 MAX_SCENE_CLOTHS = 1024
+
+_NONE = np.zeros((0, 2, 4))
 
 _CHUNK = 512  # rows of the pairwise distances computed at once
 
@@ -66,6 +90,7 @@ class SceneCloth:
     invm: np.ndarray  # (n,) inverse masses (0: pinned)
     thickness: float
     stiffness: float
+    colliders: np.ndarray = field(default_factory=lambda: _NONE)  # (m, 2, 4) packed, at the step's end pose
 
 
 def bounds(x: np.ndarray, grow: float) -> np.ndarray:
@@ -99,12 +124,38 @@ def _pairs(xa: np.ndarray, xb: np.ndarray, d: float) -> tuple[np.ndarray, np.nda
 
 
 def inter_collide(cloths: list[SceneCloth], dt: float, passes: int = INTER_COLLISION_PASSES) -> None:
-    """Inter-cloth collision of one scene's cloths (in the order they joined it), in place."""
+    """Inter-cloth collision of one scene's cloths (in the order they joined it), in place:
+    INTER_COLLISION_ROUNDS rounds, each finding the candidates at its start positions and running
+    its share of the ``passes``."""
     if len(cloths) < 2:
         return
-    start = [c.x.copy() for c in cloths]
+    for _ in range(INTER_COLLISION_ROUNDS):
+        start = [c.x.copy() for c in cloths]
+        cands = _candidates(cloths)
+        for _ in range(passes // INTER_COLLISION_ROUNDS):
+            _pass(cloths, cands)
+        for c, x0 in zip(cloths, start, strict=True):
+            c.v[:] = inelastic(c.v, c.x - x0, dt)
+
+
+def inelastic(v: np.ndarray, dx: np.ndarray, dt: float) -> np.ndarray:
+    """Velocities ``v`` after a round's displacement ``dx``: ``v + dx / dt``, but no faster along
+    ``dx`` than ``v`` was (or 0): a contact stops an approach, never throws a vertex off (a pile's
+    cloths landing on each other at their contact distance a tick are not launched)."""
+    out = v + dx / dt
+    dl = np.linalg.norm(dx, axis=1)
+    n = dx / np.where(dl > 0, dl, 1.0)[:, None]
+    over = np.einsum("ij,ij->i", out, n) - np.maximum(np.einsum("ij,ij->i", v, n), 0.0)
+    return np.where(((dl > 0) & (over > 0))[:, None], out - n * over[:, None], out)
+
+
+Candidates = list[tuple[int, int, np.ndarray, np.ndarray, float, float]]
+
+
+def _candidates(cloths: list[SceneCloth]) -> Candidates:
+    """(a, b, i, j, d, k): the candidate pairs of cloths a and b (a < b) at their positions now."""
     boxes = [bounds(c.x, 0.5 * c.thickness * INTER_COLLISION_MARGIN * INTER_COLLISION_REACH) for c in cloths]
-    cands = []  # (a, b, i, j, d, k): the candidate pairs of cloths a and b, found once
+    cands = []
     for a, b in overlapping(boxes):
         ca, cb = cloths[a], cloths[b]
         d = 0.5 * (ca.thickness + cb.thickness) * INTER_COLLISION_MARGIN
@@ -115,26 +166,49 @@ def inter_collide(cloths: list[SceneCloth], dt: float, passes: int = INTER_COLLI
         keep = (ca.invm[i] + cb.invm[j]) > 0
         if np.any(keep):
             cands.append((a, b, i[keep], j[keep], d, k))
-    for _ in range(passes):
-        corr = [np.zeros_like(c.x) for c in cloths]
-        for a, b, i0, j0, d, k in cands:
-            ca, cb = cloths[a], cloths[b]
-            diff = ca.x[i0] - cb.x[j0]
-            dist = np.linalg.norm(diff, axis=1)
-            near = dist < d
-            if not np.any(near):
-                continue
-            i, j, diff, dist = i0[near], j0[near], diff[near], dist[near]
-            wa, wb = ca.invm[i], cb.invm[j]
-            apart = dist > 1e-12
-            n = np.where(apart[:, None], diff / np.where(apart, dist, 1.0)[:, None], np.array([0.0, 1.0, 0.0]))
-            push = n * (k * (d - dist) / (wa + wb))[:, None]
-            np.add.at(corr[a], i, push * wa[:, None])
-            np.add.at(corr[b], j, -push * wb[:, None])
-        for c, dx in zip(cloths, corr, strict=True):
-            c.x += dx
-    for c, x0 in zip(cloths, start, strict=True):
-        c.v += (c.x - x0) / dt
+    return cands
+
+
+def _pass(cloths: list[SceneCloth], cands: Candidates) -> None:
+    """One Jacobi pass over the candidates, then each moved vertex out of its cloth's colliders."""
+    corr = [np.zeros_like(c.x) for c in cloths]
+    for a, b, i0, j0, d, k in cands:
+        ca, cb = cloths[a], cloths[b]
+        diff = ca.x[i0] - cb.x[j0]
+        dist = np.linalg.norm(diff, axis=1)
+        near = dist < d
+        if not np.any(near):
+            continue
+        i, j, diff, dist = i0[near], j0[near], diff[near], dist[near]
+        wa, wb = ca.invm[i], cb.invm[j]
+        apart = dist > 1e-12
+        n = np.where(apart[:, None], diff / np.where(apart, dist, 1.0)[:, None], np.array([0.0, 1.0, 0.0]))
+        m = shock(n[:, 1])  # the lower end of a stacked pair yields less, none where it is straight below
+        wa = np.where((n[:, 1] < 0.0) & (wb > 0), wa * m, wa)
+        wb = np.where((n[:, 1] > 0.0) & (wa > 0), wb * m, wb)
+        push = n * (k * (d - dist) / (wa + wb))[:, None]
+        np.add.at(corr[a], i, push * wa[:, None])
+        np.add.at(corr[b], j, -push * wb[:, None])
+    for c, dx in zip(cloths, corr, strict=True):
+        c.x += dx
+        if len(c.colliders):
+            _keep_out(c, np.flatnonzero(np.any(dx != 0.0, axis=1)))
+
+
+def shock(ny: np.ndarray) -> np.ndarray:
+    """Shock propagation: the factor of the lower end's inverse mass in a contact whose direction
+    has ``ny`` of +y: 1 up to INTER_COLLISION_SHOCK, falling linearly to 0 straight up or down
+    (continuous, so that rounding never flips a contact's shares)."""
+    return np.clip((1.0 - np.abs(ny)) / (1.0 - INTER_COLLISION_SHOCK), 0.0, 1.0)
+
+
+def _keep_out(c: SceneCloth, rows: np.ndarray) -> None:
+    """Rows ``rows`` of ``c`` back out of its colliders at their end pose, without friction (the
+    cloth step's projection; kernels/intercollide.cl calls colliders.cl's collide_vertex so)."""
+    if len(rows):
+        x = c.x[rows]
+        collide(x, x.copy(), c.invm[rows], c.colliders, c.colliders, 0.0)
+        c.x[rows] = x
 
 
 @dataclass(frozen=True)

@@ -446,8 +446,9 @@ class ReferenceWorld(World):
         self.steps += 1
 
     def _scene_cloth(self, h: int) -> SceneCloth:
-        st, m = self.states[h], self.cloths[h].params.material
-        return SceneCloth(st.x, st.v, st.invm, m.thickness, m.contact_stiffness)
+        st, p = self.states[h], self.cloths[h].params
+        coll = st.colliders if p.features.colliders and st.colliders is not None else np.zeros((0, 2, 4))
+        return SceneCloth(st.x, st.v, st.invm, p.material.thickness, p.material.contact_stiffness, coll)
 
     def frame_async(self) -> PendingFrame:
         lay = self.layout()

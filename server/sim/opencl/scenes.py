@@ -2,7 +2,8 @@
 step, after every launch group's solve, the cloths of each scene are kept apart from each other
 on the device by kernels/intercollide.cl (the broad phase over the cloths' boxes, a spatial hash
 keyed by scene over every vertex of the cloths whose box meets another of their scene, each
-vertex's candidates listed once, then INTER_COLLISION_PASSES Jacobi passes over them), the
+vertex's candidates listed once, then INTER_COLLISION_PASSES Jacobi passes over them, each
+putting the vertices it moved back out of their cloth's colliders), the
 float64 twin being drape.server.sim.scenes.inter_collide.
 
 Nothing is built or launched while no scene holds two cloths: a World without scenes pays
@@ -10,8 +11,9 @@ nothing, and the solvers' programs keep their build options. The tables (which v
 which cloth, which scene, thickness and stiffness) are rebuilt on the host only when a cloth
 joins or leaves a scene or a scene cloth's material changes (``changed``), never per tick; the
 kernels' arguments are set then (and when the World's buffers grow), so a step is the same
-INTER_COLLISION_PASSES + 4 launches (the candidates' walk runs the first pass) whatever the
-number of scenes and cloths, with no Python per scene or cloth.
+INTER_COLLISION_ROUNDS x (INTER_COLLISION_PASSES / INTER_COLLISION_ROUNDS + 4) launches (each
+round's candidates' walk runs its first pass) whatever the number of scenes and cloths, with no
+Python per scene or cloth.
 """
 
 from __future__ import annotations
@@ -21,7 +23,14 @@ from collections.abc import Mapping
 import numpy as np
 import pyopencl as cl
 
-from ..scenes import INTER_COLLISION_MARGIN, INTER_COLLISION_PASSES, INTER_COLLISION_REACH, Scene
+from ..scenes import (
+    INTER_COLLISION_MARGIN,
+    INTER_COLLISION_PASSES,
+    INTER_COLLISION_REACH,
+    INTER_COLLISION_ROUNDS,
+    INTER_COLLISION_SHOCK,
+    Scene,
+)
 from ..world import Cloth
 from .buffers import ClothSlot, DevArray, DeviceMemory
 from .device import Device
@@ -58,6 +67,7 @@ class SceneCollision(WorldPhase):
         self._vcl = DevArray(dev, np.int32, 1)
         self._cinfo = DevArray(dev, np.int32, 8)
         self._cpar = DevArray(dev, np.float32, 2)
+        self._cslot = DevArray(dev, np.int32, 1)  # each cloth's row of the int table (colliders), -1: none
         self._box = DevArray(dev, np.float32, 8)
         self._active = DevArray(dev, np.int32, 1)
         self._next = DevArray(dev, np.int32, 1)
@@ -80,6 +90,7 @@ class SceneCollision(WorldPhase):
             f"-DINTER_COLLISION_PASSES={INTER_COLLISION_PASSES}",
             f"-DIC_REACH={INTER_COLLISION_REACH!r}f",
             f"-DIC_LIST={IC_LIST}",
+            f"-DIC_SHOCK={INTER_COLLISION_SHOCK!r}f",
         ]
 
     def _rebuild(self) -> None:
@@ -87,6 +98,7 @@ class SceneCollision(WorldPhase):
         vcl: list[np.ndarray] = []
         cinfo: list[list[int]] = []
         cpar: list[list[float]] = []
+        cslot: list[int] = []
         nt = 0  # scene vertices numbered so far
         for si, sc in enumerate(self.scenes.values()):
             if len(sc.handles) < 2:
@@ -99,6 +111,7 @@ class SceneCollision(WorldPhase):
                 cinfo.append([slot.vbase, n, si, first, len(sc.handles), t0, t1, nt])
                 nt += n
                 cpar.append([m.thickness * INTER_COLLISION_MARGIN, m.contact_stiffness])
+                cslot.append(slot.slot if self.cloths[h].params.features.colliders else -1)
                 vidx.append(np.arange(slot.vbase, slot.vbase + n, dtype=np.int32))
                 vcl.append(np.full(n, k, np.int32))
         self._dirty = False
@@ -114,6 +127,7 @@ class SceneCollision(WorldPhase):
             (self._vcl, np.concatenate(vcl)),
             (self._cinfo, np.asarray(cinfo, np.int32)),
             (self._cpar, np.asarray(cpar, np.float32)),
+            (self._cslot, np.asarray(cslot, np.int32)),
         ):
             if arr.capacity < len(host):
                 arr.resize(_pow2_at_least(len(host)))
@@ -135,7 +149,7 @@ class SceneCollision(WorldPhase):
         """The kernels' arguments, set once per table rebuild or buffer growth, and the launches."""
         k = self.kernels()
         mem = self.mem
-        pos, vel = mem.pos.buf, mem.vel.buf
+        pos, vel, ci, coll, cslot = mem.pos.buf, mem.vel.buf, mem.ci.buf, mem.coll.buf, self._cslot.buf
         ncl, nv, nb = np.int32(self.n_cloths), np.int32(self.n_vertices), np.int32(self._nb)
         inv, mask = np.float32(self._inv), np.uint32(self._nb - 1)
         vidx, vcl, cinfo, cpar = self._vidx.buf, self._vcl.buf, self._cinfo.buf, self._cpar.buf
@@ -144,27 +158,26 @@ class SceneCollision(WorldPhase):
         k["ic_bounds"].set_args(pos, cinfo, cpar, box)
         k["ic_active"].set_args(cinfo, box, active, ncl)
         k["ic_insert"].set_args(pos, vidx, vcl, cinfo, active, heads, nxt, xs0, nv, inv, mask)
-        k["ic_find"].set_args(xs0, vcl, cinfo, cpar, active, heads, nxt, nbr, count, xb, nv, inv, mask)
-        k["ic_pass"].set_args(xs0, xa, xb, vcl, cinfo, cpar, heads, nxt, nbr, count, nv, inv, mask)
-        k["ic_pass_ba"].set_args(xs0, xb, xa, vcl, cinfo, cpar, heads, nxt, nbr, count, nv, inv, mask)
-        last = xa if INTER_COLLISION_PASSES % 2 == 0 else xb
+        k["ic_find"].set_args(xs0, vcl, cinfo, cpar, active, heads, nxt, nbr, count, xb, cslot, ci, coll, nv, inv, mask)
+        k["ic_pass"].set_args(xs0, xa, xb, vcl, cinfo, cpar, heads, nxt, nbr, count, cslot, ci, coll, nv, inv, mask)
+        k["ic_pass_ba"].set_args(xs0, xb, xa, vcl, cinfo, cpar, heads, nxt, nbr, count, cslot, ci, coll, nv, inv, mask)
+        passes = INTER_COLLISION_PASSES // INTER_COLLISION_ROUNDS  # each round's
+        last = xa if passes % 2 == 0 else xb
         k["ic_finish"].set_args(pos, vel, vidx, xs0, last, heads, nv, nb, np.float32(1.0 / dt))
         self._dt = dt
         per_vertex = (self.n_vertices,)
-        self._launches = [
+        one_round = [
             (k["ic_bounds"], (self.n_cloths * self.ls,), (self.ls,)),
             (k["ic_active"], (self.n_cloths,), None),
             (k["ic_insert"], per_vertex, None),
             (k["ic_find"], per_vertex, None),
             # ic_find ran the first pass (into xb); then xb into xa, xa into xb, ...
-            *(
-                (k["ic_pass" if p % 2 == 0 else "ic_pass_ba"], per_vertex, None)
-                for p in range(1, INTER_COLLISION_PASSES)
-            ),
+            *((k["ic_pass" if p % 2 == 0 else "ic_pass_ba"], per_vertex, None) for p in range(1, passes)),
             (k["ic_finish"], per_vertex, None),
         ]
+        self._launches = one_round * INTER_COLLISION_ROUNDS  # the candidates found again each round
         self._finish = k["ic_finish"]
-        self._bound = (pos, vel)
+        self._bound = (pos, vel, ci, coll)
 
     def step(self, dt: float) -> None:
         """The scenes' inter-cloth collision, after the solvers' launches of a step."""
@@ -172,7 +185,10 @@ class SceneCollision(WorldPhase):
             self._rebuild()
         if self.n_cloths < 2 or self._inv <= 0.0:
             return
-        if self._bound is None or self._bound[0] is not self.mem.pos.buf or self._bound[1] is not self.mem.vel.buf:
+        mem = self.mem
+        if self._bound is None or any(
+            a is not b for a, b in zip(self._bound, (mem.pos.buf, mem.vel.buf, mem.ci.buf, mem.coll.buf), strict=True)
+        ):
             self._bind(dt)
         elif dt != self._dt:
             assert self._finish is not None

@@ -65,7 +65,13 @@ SCENE_VERTICES = 64 * 64  # the cost file's scene: hanging 64 x 64
 #: frame without, over the passes and the cloths' own frame (docs/reliability.md, issue 26;
 #: docs/collision.md's cost table, session 16's contacts found once: CPU pack 6.1 -> 9.8 ms for 4
 #: scenes of 8 in a quiet moment, 0.08 rounded up; H100 1.056 -> 5.47 ms for 64 scenes of 64).
-SCENE_PASS_WORK: dict[str, float] = {"cpu": 0.1, "gpu": 0.52}
+#: Session 17: the candidates found again in each of 4 rounds (a pile of scene cloths holds) made
+#: the scenes' part of a CPU frame 2.5-2.7x what it was (`drape bench scenes --scenes 4,8`, the
+#: code before and after in turn: 5.2-6.4 -> 14.1-16.4 ms), so the CPU's price is 0.1 x 2.7,
+#: rounded up; the H100's is estimated from the counted device reads per scene vertex and step
+#: (440 in session 16's code, 225 after the cheaper walk, 610 with four walks: 0.52 x 610 / 440),
+#: not measured (no device time this session): docs/collision.md.
+SCENE_PASS_WORK: dict[str, float] = {"cpu": 0.3, "gpu": 0.75}
 #: 1.8: a cloth's own mesh collider's work per vertex of the cloth, a part per cloth vertex and a
 #: part per cloth vertex and triangle, in plain solves of that vertex: docs/collision.md's meshbench
 #: on this CPU (128 capes of 1,024 vertices, 23.6 us a cape's plain solve): 25 us a cape with the

@@ -81,8 +81,9 @@ inline float3 closest_on_triangle(float3 p, float3 a, float3 e1, float3 e2)
 }
 
 /* Every candidate triangle ti (index within the mesh) of the query box [lo, hi]: the triangles of
- * the grid cells it covers (a triangle may come more than once), or every triangle of the mesh
- * when the box covers more than MESH_MAX_QUERY_CELLS cells. */
+ * the grid cells it covers (a triangle may come more than once: see REPEAT), or every triangle of
+ * the mesh when the box covers more than MESH_MAX_QUERY_CELLS cells. The body sees the query's
+ * first cell c0 and the cell cc it walks. */
 #define FOR_CANDIDATES(...)                                                                            \
     {                                                                                                  \
         const int3 c0 = max(convert_int3_sat_rtn((lo - org) * inv), (int3)(0));                            \
@@ -90,13 +91,15 @@ inline float3 closest_on_triangle(float3 p, float3 a, float3 e1, float3 e2)
         const int3 span = c1 - c0 + 1;                                                                 \
         if (span.x <= 0 || span.y <= 0 || span.z <= 0) { /* the box misses the grid: no triangle */   \
         } else if (span.x * span.y * span.z > MESH_MAX_QUERY_CELLS) {                                  \
+            const int3 cc = c0; /* every triangle once: none a repeat */                               \
             for (int ti = 0; ti < mi.s1; ++ti) {                                                       \
-                __VA_ARGS__                                                                                   \
+                __VA_ARGS__                                                                            \
             }                                                                                          \
         } else {                                                                                       \
             for (int cz = c0.z; cz <= c1.z; ++cz)                                                      \
                 for (int cy = c0.y; cy <= c1.y; ++cy)                                                  \
                     for (int cx = c0.x; cx <= c1.x; ++cx) {                                            \
+                        const int3 cc = (int3)(cx, cy, cz);                                            \
                         const int cell = mi.s2 + cx + dims.x * (cy + dims.y * cz);                     \
                         const int e = mcell[cell + 1];                                                 \
                         for (int q = mcell[cell]; q < e; ++q) {                                        \
@@ -106,6 +109,13 @@ inline float3 closest_on_triangle(float3 p, float3 a, float3 e1, float3 e2)
                     }                                                                                  \
         }                                                                                              \
     }
+
+/* In the walk of FOR_CANDIDATES, a triangle whose box starts at tlo comes again in a cell after its
+ * first one in the query's cells: along some axis the walk is past the query's first cell and the
+ * triangle reaches clearly (a thousandth of a cell: more than float32's rounding of the host's
+ * float64 grid) into the cell before, which lists it too. At least one cell of the walk takes it
+ * (the lowest that lists it, along each axis), now and then two near a cell's face. */
+#define REPEAT(tlo) any((cc > c0) & (((tlo) - org) * inv < convert_float3(cc) - 1e-3f))
 
 /* The first triangle whose plane the segment a -> b crosses from its front to its back, inside the
  * triangle (within MESH_EDGE_TOLERANCE of its barycentric range; the lower index on a tie): its
@@ -222,10 +232,19 @@ __kernel void mc_collide(__global float4 *pos, __global float4 *vel, __global co
             int best = 0x7fffffff;
             float3 qbest = (float3)(0.0f), nbest = (float3)(0.0f);
             FOR_CANDIDATES({
-                /* a triangle is no nearer than its plane: most candidates end at one dot product */
-                if (fabs(dot(b - T[4 * ti].xyz, T[4 * ti + 3].xyz)) > dmin)
+                /* a triangle is no nearer than its plane: most candidates end at one dot product;
+                 * nor than its box (the coplanar neighbours of a contact), and one seen in an
+                 * earlier cell of the walk is not tested again */
+                const float3 v0 = T[4 * ti].xyz;
+                if (fabs(dot(b - v0, T[4 * ti + 3].xyz)) > dmin)
                     continue;
-                const float3 q = closest_on_triangle(b, T[4 * ti].xyz, T[4 * ti + 1].xyz, T[4 * ti + 2].xyz);
+                const float3 e1 = T[4 * ti + 1].xyz, e2 = T[4 * ti + 2].xyz;
+                const float3 tlo = fmin(v0, v0 + fmin(fmin(e1, e2), 0.0f));
+                const float3 thi = fmax(v0, v0 + fmax(fmax(e1, e2), 0.0f));
+                const float3 out = fmax(fmax(tlo - b, b - thi), 0.0f);
+                if (dot(out, out) > dmin * dmin || REPEAT(tlo))
+                    continue;
+                const float3 q = closest_on_triangle(b, v0, e1, e2);
                 const float d = length(b - q);
                 if (d < dmin || (d == dmin && ti < best && best != 0x7fffffff)) {
                     dmin = d;

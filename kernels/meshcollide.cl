@@ -117,22 +117,55 @@ inline float3 closest_on_triangle(float3 p, float3 a, float3 e1, float3 e2)
  * (the lowest that lists it, along each axis), now and then two near a cell's face. */
 #define REPEAT(tlo) any((cc > c0) & (((tlo) - org) * inv < convert_float3(cc) - 1e-3f))
 
+/* In a FOR_CANDIDATES walk, triangle ti (its first corner v0) kept as p's nearest within dmin (the
+ * distance, triangle, closest point and normal in dmin, best, qbest, nbest), pd: p's signed
+ * distance to its plane. A triangle is no nearer than its plane (most candidates end at the one
+ * dot product that gave pd) nor than its box (the coplanar neighbours of a contact), and one seen
+ * in an earlier cell of the walk is not tested again. */
+#define NEAREST(p, pd, v0)                                                                             \
+    if (fabs(pd) <= dmin) {                                                                            \
+        const float3 e1 = T[4 * ti + 1].xyz, e2 = T[4 * ti + 2].xyz;                                   \
+        const float3 tlo = fmin(v0, v0 + fmin(fmin(e1, e2), 0.0f));                                    \
+        const float3 thi = fmax(v0, v0 + fmax(fmax(e1, e2), 0.0f));                                    \
+        const float3 out = fmax(fmax(tlo - (p), (p) - thi), 0.0f);                                     \
+        if (dot(out, out) <= dmin * dmin && !REPEAT(tlo)) {                                            \
+            const float3 q = closest_on_triangle(p, v0, e1, e2);                                       \
+            const float d = length((p) - q);                                                           \
+            if (d < dmin || (d == dmin && ti < best && best != 0x7fffffff)) {                          \
+                dmin = d;                                                                              \
+                best = ti;                                                                             \
+                qbest = q;                                                                             \
+                nbest = T[4 * ti + 3].xyz;                                                             \
+            }                                                                                          \
+        }                                                                                              \
+    }
+
 /* The first triangle whose plane the segment a -> b crosses from its front to its back, inside the
  * triangle (within MESH_EDGE_TOLERANCE of its barycentric range; the lower index on a tie): its
- * normal, b's signed distance to its plane and the crossing's parameter along a -> b. */
-inline int first_crossing(float3 a, float3 b, float h, __global const float4 *T, __global const int *mcell,
-                          __global const int *mlist, int8 mi, float3 org, float inv, int3 dims, float3 *nout,
-                          float *dout, float *tout)
+ * normal, b's signed distance to its plane and the crossing's parameter along a -> b. With ``near``
+ * the same walk also finds b's nearest triangle within h (dnear, inear, qnear, nnear: dmin, best,
+ * qbest, nbest of NEAREST), as a thickness pass's own walk at b would (its box, b's grown by h,
+ * lies inside the segment's, so its triangles are among the walk's): the first pass of a vertex
+ * that crossed nothing walks no grid of its own. */
+inline int first_crossing_near(float3 a, float3 b, float h, __global const float4 *T, __global const int *mcell,
+                               __global const int *mlist, int8 mi, float3 org, float inv, int3 dims, float3 *nout,
+                               float *dout, float *tout, const int near, float *dnear, int *inear, float3 *qnear,
+                               float3 *nnear)
 {
     const float3 lo = fmin(a, b) - h, hi = fmax(a, b) + h;
     float tbest = 2.0f;
+    int bestx = 0x7fffffff;
+    float dmin = h; /* b's nearest triangle within h (near), as a thickness pass at b finds it */
     int best = 0x7fffffff;
+    float3 qbest = (float3)(0.0f), nbest = (float3)(0.0f);
     FOR_CANDIDATES({
         const float3 v0 = T[4 * ti].xyz, n = T[4 * ti + 3].xyz;
         const float da = dot(a - v0, n), db = dot(b - v0, n);
+        if (near)
+            NEAREST(b, db, v0)
         if (da >= 0.0f && db < 0.0f) {
             const float t = da / (da - db);
-            if (t < tbest || (t == tbest && ti < best)) {
+            if (t < tbest || (t == tbest && ti < bestx)) {
                 const float3 e1 = T[4 * ti + 1].xyz, e2 = T[4 * ti + 2].xyz;
                 const float3 w = a + t * (b - a) - v0;
                 const float d00 = dot(e1, e1), d01 = dot(e1, e2), d11 = dot(e2, e2);
@@ -141,7 +174,7 @@ inline int first_crossing(float3 a, float3 b, float h, __global const float4 *T,
                 const float bv = (d11 * d20 - d01 * d21) / det, bw = (d00 * d21 - d01 * d20) / det;
                 if (bv >= -MESH_EDGE_TOLERANCE && bw >= -MESH_EDGE_TOLERANCE && bv + bw <= 1.0f + MESH_EDGE_TOLERANCE) {
                     tbest = t;
-                    best = ti;
+                    bestx = ti;
                     *nout = n;
                     *dout = db;
                     *tout = t;
@@ -149,7 +182,24 @@ inline int first_crossing(float3 a, float3 b, float h, __global const float4 *T,
             }
         }
     })
+    if (near) {
+        *dnear = dmin;
+        *inear = best;
+        *qnear = qbest;
+        *nnear = nbest;
+    }
     return tbest <= 1.0f;
+}
+
+inline int first_crossing(float3 a, float3 b, float h, __global const float4 *T, __global const int *mcell,
+                          __global const int *mlist, int8 mi, float3 org, float inv, int3 dims, float3 *nout,
+                          float *dout, float *tout)
+{
+    float *dnear = 0;
+    int *inear = 0;
+    float3 *qnear = 0, *nnear = 0;
+    return first_crossing_near(a, b, h, T, mcell, mlist, mi, org, inv, dims, nout, dout, tout, 0, dnear, inear,
+                               qnear, nnear);
 }
 
 /* The move s -> x of a point s outside the mesh, stopped MESH_GUARD_BACKOFF of the way to the first
@@ -190,6 +240,11 @@ __kernel void mc_collide(__global float4 *pos, __global float4 *vel, __global co
         float3 b = b0;
         float3 ncon = (float3)(0.0f); /* the last contact's normal and the pushes' total length */
         float pen = 0.0f;
+        /* the first pass's nearest triangle, found by the first crossing test where nothing crossed
+         * (fresh: b is where that test looked) */
+        float ndmin = h;
+        int nbi = 0x7fffffff, fresh = 0;
+        float3 nq = (float3)(0.0f), nn = (float3)(0.0f);
         /* 1. continuous: the first front-to-back crossing of p -> b puts b onto that plane at the
          * thickness and the motion slides on from the contact (p: the contact at the thickness),
          * MESH_SLIDES times; a motion that still crosses then stops at its last contact */
@@ -198,8 +253,11 @@ __kernel void mc_collide(__global float4 *pos, __global float4 *vel, __global co
             float db, t;
             int k = 0;
             for (; k < MESH_SLIDES; ++k) {
-                if (!first_crossing(p, b, h, T, mcell, mlist, mi, org, inv, dims, &nb, &db, &t))
+                if (!first_crossing_near(p, b, h, T, mcell, mlist, mi, org, inv, dims, &nb, &db, &t, k == 0, &ndmin,
+                                         &nbi, &nq, &nn)) {
+                    fresh = k == 0;
                     break;
+                }
                 const float3 c = p + t * (b - p) + nb * h;
                 b -= nb * (db - h);
                 ncon = nb;
@@ -227,32 +285,21 @@ __kernel void mc_collide(__global float4 *pos, __global float4 *vel, __global co
                         b = bf;
                 }
             }
-            const float3 lo = b - h, hi = b + h;
             float dmin = h;
             int best = 0x7fffffff;
             float3 qbest = (float3)(0.0f), nbest = (float3)(0.0f);
-            FOR_CANDIDATES({
-                /* a triangle is no nearer than its plane: most candidates end at one dot product;
-                 * nor than its box (the coplanar neighbours of a contact), and one seen in an
-                 * earlier cell of the walk is not tested again */
-                const float3 v0 = T[4 * ti].xyz;
-                if (fabs(dot(b - v0, T[4 * ti + 3].xyz)) > dmin)
-                    continue;
-                const float3 e1 = T[4 * ti + 1].xyz, e2 = T[4 * ti + 2].xyz;
-                const float3 tlo = fmin(v0, v0 + fmin(fmin(e1, e2), 0.0f));
-                const float3 thi = fmax(v0, v0 + fmax(fmax(e1, e2), 0.0f));
-                const float3 out = fmax(fmax(tlo - b, b - thi), 0.0f);
-                if (dot(out, out) > dmin * dmin || REPEAT(tlo))
-                    continue;
-                const float3 q = closest_on_triangle(b, v0, e1, e2);
-                const float d = length(b - q);
-                if (d < dmin || (d == dmin && ti < best && best != 0x7fffffff)) {
-                    dmin = d;
-                    best = ti;
-                    qbest = q;
-                    nbest = T[4 * ti + 3].xyz;
-                }
-            })
+            if (pass == 0 && fresh) {
+                dmin = ndmin;
+                best = nbi;
+                qbest = nq;
+                nbest = nn;
+            } else {
+                const float3 lo = b - h, hi = b + h;
+                FOR_CANDIDATES({
+                    const float3 v0 = T[4 * ti].xyz;
+                    NEAREST(b, dot(b - v0, T[4 * ti + 3].xyz), v0)
+                })
+            }
             if (best == 0x7fffffff) {
                 if (pass == 0 && pen > 0.0f && mu > 0.0f)
                     continue; /* the friction of a continuous contact still comes */

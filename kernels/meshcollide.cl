@@ -230,6 +230,7 @@ __kernel void mc_collide(__global float4 *pos, __global float4 *vel, __global co
     const float3 org = g.xyz;
     const float inv = g.w;
     const int3 dims = (int3)(mi.s4, mi.s5, mi.s6);
+    const float3 ghi = org + convert_float3(dims) / inv; /* the grid's far corner */
     __global const float4 *T = mtri + 4 * mi.s0;
     for (int v = lid; v < at.y; v += MC_LS) {
         const float4 x4 = pos[at.x + v];
@@ -237,6 +238,10 @@ __kernel void mc_collide(__global float4 *pos, __global float4 *vel, __global co
             continue;
         const float3 a = xform(P, start[at.w + v].xyz);
         const float3 b0 = xform(P + 3, x4.xyz);
+        /* a motion whose box, grown by the thickness, misses the grid's meets no triangle: the
+         * steps below would leave it as it is (most vertices of a cloth off the body) */
+        if (any(fmax(a, b0) + h < org) || any(fmin(a, b0) - h > ghi))
+            continue;
         float3 b = b0;
         float3 ncon = (float3)(0.0f); /* the last contact's normal and the pushes' total length */
         float pen = 0.0f;

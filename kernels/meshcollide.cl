@@ -13,7 +13,8 @@
  * Attachments (a cloth and a mesh; a cloth's own mesh and its scene's are launched apart):
  *   att    int4 per attachment: (first row in pos/vel, vertices, mesh, first row in start)
  *   apar   10 float4 per attachment: the pose at the step's start inverted (3 rows [R | t]),
- *          the pose now inverted (3 rows), the pose now (3 rows), (thickness, friction, -, -)
+ *          the pose now inverted (3 rows), the pose now (3 rows), (thickness, friction, fresh, -);
+ *          fresh: 1 in the first step of a mesh set or re-posed (its deep vertices put out)
  *   start  the vertices' positions at the step's start (mc_save)
  * One work-group of MC_LS work-items per attachment, each a strided share of its vertices;
  * mc_collide is launched once per layer (a cloth's own meshes, then its scene's), from attachment
@@ -37,6 +38,9 @@
 #endif
 #ifndef MESH_MAX_QUERY_CELLS
 #define MESH_MAX_QUERY_CELLS 512
+#endif
+#ifndef MESH_DEEP_TIE
+#define MESH_DEEP_TIE 1e-4f
 #endif
 
 __kernel void mc_save(__global const float4 *pos, __global const int4 *att, __global float4 *start)
@@ -225,6 +229,7 @@ __kernel void mc_collide(__global float4 *pos, __global float4 *vel, __global co
     const int4 at = att[k];
     __global const float4 *P = apar + 10 * k;
     const float h = P[9].x, mu = P[9].y;
+    const int fresh_mesh = P[9].z > 0.0f;
     const int8 mi = minfo[at.z];
     const float4 g = mgeom[at.z];
     const float3 org = g.xyz;
@@ -304,6 +309,45 @@ __kernel void mc_collide(__global float4 *pos, __global float4 *vel, __global co
                     const float3 v0 = T[4 * ti].xyz;
                     NEAREST(b, dot(b - v0, T[4 * ti + 3].xyz), v0)
                 })
+            }
+            if (best == 0x7fffffff && pass == 0 && fresh_mesh) {
+                /* 5. deep: in a mesh's first step (set or re-posed onto the cloth), a vertex with
+                 * no triangle within h looks for its nearest triangle anywhere (boxes growing by
+                 * 4x, the whole mesh past MESH_MAX_QUERY_CELLS cells); behind that triangle's
+                 * plane it is inside, and put out onto its front at the thickness below */
+                for (float r = 4.0f * h;; r *= 4.0f) {
+                    const float3 lo = b - r, hi = b + r;
+                    const int3 s0 = max(convert_int3_sat_rtn((lo - org) * inv), (int3)(0));
+                    const int3 s1 = min(convert_int3_sat_rtn((hi - org) * inv), dims - 1);
+                    const int3 sp = s1 - s0 + 1;
+                    /* a box over the whole grid (or walked as the whole mesh) takes any triangle */
+                    const int whole = (all(s0 == 0) && all(s1 == dims - 1)) || sp.x * sp.y * sp.z > MESH_MAX_QUERY_CELLS;
+                    dmin = whole ? MAXFLOAT : r;
+                    FOR_CANDIDATES({
+                        const float3 v0 = T[4 * ti].xyz;
+                        NEAREST(b, dot(b - v0, T[4 * ti + 3].xyz), v0)
+                    })
+                    if (best != 0x7fffffff || whole)
+                        break;
+                }
+                /* inside only if behind the plane of every triangle as near (within MESH_DEEP_TIE: a
+                 * nearest point on an edge or corner is shared; outside a corner's region a point
+                 * is in front of at least one of them), else nothing to do */
+                if (best != 0x7fffffff) {
+                    const float tie = dmin * (1.0f + MESH_DEEP_TIE) + 1e-6f;
+                    const float3 lo = b - tie, hi = b + tie;
+                    int inside = 1;
+                    FOR_CANDIDATES({
+                        const float3 v0 = T[4 * ti].xyz, n = T[4 * ti + 3].xyz;
+                        if (fabs(dot(b - v0, n)) <= tie) {
+                            const float3 q = closest_on_triangle(b, v0, T[4 * ti + 1].xyz, T[4 * ti + 2].xyz);
+                            if (length(b - q) <= tie && !(dot(b - q, n) < 0.0f))
+                                inside = 0;
+                        }
+                    })
+                    if (!inside)
+                        best = 0x7fffffff;
+                }
             }
             if (best == 0x7fffffff) {
                 if (pass == 0 && pen > 0.0f && mu > 0.0f)

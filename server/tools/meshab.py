@@ -28,6 +28,7 @@ import pyopencl as cl
 from ..sim.bodymesh import body_mesh
 from ..sim.fabric import cook_grid
 from ..sim.meshes import pose_matrix
+from ..sim.opencl.clworld import CLWorld
 from ..sim.params import ClothParams, LinkOptions, Material
 from .bench import DT, make
 
@@ -38,6 +39,7 @@ def mesh_ab(cloths: int, into: float, cell: float, rounds: int, old: str, push: 
     fab = cook_grid(N, N, 0.5, 0.9, LinkOptions(bending=True), [0, N - 1], "vertical", (-0.25, 1.45, -0.15))
     p = ClothParams(iterations=10, material=Material(thickness=0.005))
     w = make("workgroup", device)
+    assert isinstance(w, CLWorld)
     body = body_mesh(cell)
     side = int(np.ceil(np.sqrt(cloths)))
     for i in range(cloths):

@@ -4,7 +4,8 @@ metres into them), run 30 frames, then one frame's inputs for the mesh pass (eac
 next inertial motion, pushed ``--push`` metres further back, toward the body) restored before
 every launch; kernels/meshcollide.cl against another copy of it (``--old FILE``, a kernel file
 name in kernels/, e.g. one written by ``git show REV:kernels/meshcollide.cl > kernels/old.cl``),
-launched in interleaved rounds in one process.
+launched in interleaved rounds in one process. Remove that copy afterwards (every file in kernels/
+belongs to a program: tests/sim/test_kernel_sources.py).
 
     python -m drape.server.tools.meshab --old old.cl [--cloths 32] [--into 0.08] [--cell 0.05]
                                         [--rounds 15] [--push 0.003] [--json FILE]

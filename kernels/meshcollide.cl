@@ -315,13 +315,16 @@ __kernel void mc_collide(__global float4 *pos, __global float4 *vel, __global co
                  * no triangle within h looks for its nearest triangle anywhere (boxes growing by
                  * 4x, the whole mesh past MESH_MAX_QUERY_CELLS cells); behind that triangle's
                  * plane it is inside, and put out onto its front at the thickness below */
-                for (float r = 4.0f * h;; r *= 4.0f) {
+                float r = 4.0f * h;
+                for (int grow = 0;; ++grow, r *= 4.0f) {
                     const float3 lo = b - r, hi = b + r;
                     const int3 s0 = max(convert_int3_sat_rtn((lo - org) * inv), (int3)(0));
                     const int3 s1 = min(convert_int3_sat_rtn((hi - org) * inv), dims - 1);
                     const int3 sp = s1 - s0 + 1;
                     /* a box over the whole grid (or walked as the whole mesh) takes any triangle */
-                    const int whole = (all(s0 == 0) && all(s1 == dims - 1)) || sp.x * sp.y * sp.z > MESH_MAX_QUERY_CELLS;
+                    /* (or the 12th box, 4^12 x 4 thicknesses: a NaN vertex ends here) */
+                    const int whole = (all(s0 == 0) && all(s1 == dims - 1)) || sp.x * sp.y * sp.z > MESH_MAX_QUERY_CELLS
+                                      || grow == 11;
                     dmin = whole ? MAXFLOAT : r;
                     FOR_CANDIDATES({
                         const float3 v0 = T[4 * ti].xyz;

@@ -13,7 +13,8 @@
  * Attachments (a cloth and a mesh; a cloth's own mesh and its scene's are launched apart):
  *   att    int4 per attachment: (first row in pos/vel, vertices, mesh, first row in start)
  *   apar   10 float4 per attachment: the pose at the step's start inverted (3 rows [R | t]),
- *          the pose now inverted (3 rows), the pose now (3 rows), (thickness, friction, -, -)
+ *          the pose now inverted (3 rows), the pose now (3 rows), (thickness, friction, fresh, -);
+ *          fresh: 1 in the first step of a mesh set or re-posed (its deep vertices put out)
  *   start  the vertices' positions at the step's start (mc_save)
  * One work-group of MC_LS work-items per attachment, each a strided share of its vertices;
  * mc_collide is launched once per layer (a cloth's own meshes, then its scene's), from attachment
@@ -37,6 +38,9 @@
 #endif
 #ifndef MESH_MAX_QUERY_CELLS
 #define MESH_MAX_QUERY_CELLS 512
+#endif
+#ifndef MESH_DEEP_TIE
+#define MESH_DEEP_TIE 1e-4f
 #endif
 
 __kernel void mc_save(__global const float4 *pos, __global const int4 *att, __global float4 *start)
@@ -81,8 +85,9 @@ inline float3 closest_on_triangle(float3 p, float3 a, float3 e1, float3 e2)
 }
 
 /* Every candidate triangle ti (index within the mesh) of the query box [lo, hi]: the triangles of
- * the grid cells it covers (a triangle may come more than once), or every triangle of the mesh
- * when the box covers more than MESH_MAX_QUERY_CELLS cells. */
+ * the grid cells it covers (a triangle may come more than once: see REPEAT), or every triangle of
+ * the mesh when the box covers more than MESH_MAX_QUERY_CELLS cells. The body sees the query's
+ * first cell c0 and the cell cc it walks. */
 #define FOR_CANDIDATES(...)                                                                            \
     {                                                                                                  \
         const int3 c0 = max(convert_int3_sat_rtn((lo - org) * inv), (int3)(0));                            \
@@ -90,13 +95,15 @@ inline float3 closest_on_triangle(float3 p, float3 a, float3 e1, float3 e2)
         const int3 span = c1 - c0 + 1;                                                                 \
         if (span.x <= 0 || span.y <= 0 || span.z <= 0) { /* the box misses the grid: no triangle */   \
         } else if (span.x * span.y * span.z > MESH_MAX_QUERY_CELLS) {                                  \
+            const int3 cc = c0; /* every triangle once: none a repeat */                               \
             for (int ti = 0; ti < mi.s1; ++ti) {                                                       \
-                __VA_ARGS__                                                                                   \
+                __VA_ARGS__                                                                            \
             }                                                                                          \
         } else {                                                                                       \
             for (int cz = c0.z; cz <= c1.z; ++cz)                                                      \
                 for (int cy = c0.y; cy <= c1.y; ++cy)                                                  \
                     for (int cx = c0.x; cx <= c1.x; ++cx) {                                            \
+                        const int3 cc = (int3)(cx, cy, cz);                                            \
                         const int cell = mi.s2 + cx + dims.x * (cy + dims.y * cz);                     \
                         const int e = mcell[cell + 1];                                                 \
                         for (int q = mcell[cell]; q < e; ++q) {                                        \
@@ -107,22 +114,62 @@ inline float3 closest_on_triangle(float3 p, float3 a, float3 e1, float3 e2)
         }                                                                                              \
     }
 
+/* In the walk of FOR_CANDIDATES, a triangle whose box starts at tlo comes again in a cell after its
+ * first one in the query's cells: along some axis the walk is past the query's first cell and the
+ * triangle reaches clearly (a thousandth of a cell: more than float32's rounding of the host's
+ * float64 grid) into the cell before, which lists it too. At least one cell of the walk takes it
+ * (the lowest that lists it, along each axis), now and then two near a cell's face. */
+#define REPEAT(tlo) any((cc > c0) & (((tlo) - org) * inv < convert_float3(cc) - 1e-3f))
+
+/* In a FOR_CANDIDATES walk, triangle ti (its first corner v0) kept as p's nearest within dmin (the
+ * distance, triangle, closest point and normal in dmin, best, qbest, nbest), pd: p's signed
+ * distance to its plane. A triangle is no nearer than its plane (most candidates end at the one
+ * dot product that gave pd) nor than its box (the coplanar neighbours of a contact), and one seen
+ * in an earlier cell of the walk is not tested again. */
+#define NEAREST(p, pd, v0)                                                                             \
+    if (fabs(pd) <= dmin) {                                                                            \
+        const float3 e1 = T[4 * ti + 1].xyz, e2 = T[4 * ti + 2].xyz;                                   \
+        const float3 tlo = fmin(v0, v0 + fmin(fmin(e1, e2), 0.0f));                                    \
+        const float3 thi = fmax(v0, v0 + fmax(fmax(e1, e2), 0.0f));                                    \
+        const float3 out = fmax(fmax(tlo - (p), (p) - thi), 0.0f);                                     \
+        if (dot(out, out) <= dmin * dmin && !REPEAT(tlo)) {                                            \
+            const float3 q = closest_on_triangle(p, v0, e1, e2);                                       \
+            const float d = length((p) - q);                                                           \
+            if (d < dmin || (d == dmin && ti < best && best != 0x7fffffff)) {                          \
+                dmin = d;                                                                              \
+                best = ti;                                                                             \
+                qbest = q;                                                                             \
+                nbest = T[4 * ti + 3].xyz;                                                             \
+            }                                                                                          \
+        }                                                                                              \
+    }
+
 /* The first triangle whose plane the segment a -> b crosses from its front to its back, inside the
  * triangle (within MESH_EDGE_TOLERANCE of its barycentric range; the lower index on a tie): its
- * normal, b's signed distance to its plane and the crossing's parameter along a -> b. */
-inline int first_crossing(float3 a, float3 b, float h, __global const float4 *T, __global const int *mcell,
-                          __global const int *mlist, int8 mi, float3 org, float inv, int3 dims, float3 *nout,
-                          float *dout, float *tout)
+ * normal, b's signed distance to its plane and the crossing's parameter along a -> b. With ``near``
+ * the same walk also finds b's nearest triangle within h (dnear, inear, qnear, nnear: dmin, best,
+ * qbest, nbest of NEAREST), as a thickness pass's own walk at b would (its box, b's grown by h,
+ * lies inside the segment's, so its triangles are among the walk's): the first pass of a vertex
+ * that crossed nothing walks no grid of its own. */
+inline int first_crossing_near(float3 a, float3 b, float h, __global const float4 *T, __global const int *mcell,
+                               __global const int *mlist, int8 mi, float3 org, float inv, int3 dims, float3 *nout,
+                               float *dout, float *tout, const int near, float *dnear, int *inear, float3 *qnear,
+                               float3 *nnear)
 {
     const float3 lo = fmin(a, b) - h, hi = fmax(a, b) + h;
     float tbest = 2.0f;
+    int bestx = 0x7fffffff;
+    float dmin = h; /* b's nearest triangle within h (near), as a thickness pass at b finds it */
     int best = 0x7fffffff;
+    float3 qbest = (float3)(0.0f), nbest = (float3)(0.0f);
     FOR_CANDIDATES({
         const float3 v0 = T[4 * ti].xyz, n = T[4 * ti + 3].xyz;
         const float da = dot(a - v0, n), db = dot(b - v0, n);
+        if (near)
+            NEAREST(b, db, v0)
         if (da >= 0.0f && db < 0.0f) {
             const float t = da / (da - db);
-            if (t < tbest || (t == tbest && ti < best)) {
+            if (t < tbest || (t == tbest && ti < bestx)) {
                 const float3 e1 = T[4 * ti + 1].xyz, e2 = T[4 * ti + 2].xyz;
                 const float3 w = a + t * (b - a) - v0;
                 const float d00 = dot(e1, e1), d01 = dot(e1, e2), d11 = dot(e2, e2);
@@ -131,7 +178,7 @@ inline int first_crossing(float3 a, float3 b, float h, __global const float4 *T,
                 const float bv = (d11 * d20 - d01 * d21) / det, bw = (d00 * d21 - d01 * d20) / det;
                 if (bv >= -MESH_EDGE_TOLERANCE && bw >= -MESH_EDGE_TOLERANCE && bv + bw <= 1.0f + MESH_EDGE_TOLERANCE) {
                     tbest = t;
-                    best = ti;
+                    bestx = ti;
                     *nout = n;
                     *dout = db;
                     *tout = t;
@@ -139,7 +186,24 @@ inline int first_crossing(float3 a, float3 b, float h, __global const float4 *T,
             }
         }
     })
+    if (near) {
+        *dnear = dmin;
+        *inear = best;
+        *qnear = qbest;
+        *nnear = nbest;
+    }
     return tbest <= 1.0f;
+}
+
+inline int first_crossing(float3 a, float3 b, float h, __global const float4 *T, __global const int *mcell,
+                          __global const int *mlist, int8 mi, float3 org, float inv, int3 dims, float3 *nout,
+                          float *dout, float *tout)
+{
+    float *dnear = 0;
+    int *inear = 0;
+    float3 *qnear = 0, *nnear = 0;
+    return first_crossing_near(a, b, h, T, mcell, mlist, mi, org, inv, dims, nout, dout, tout, 0, dnear, inear,
+                               qnear, nnear);
 }
 
 /* The move s -> x of a point s outside the mesh, stopped MESH_GUARD_BACKOFF of the way to the first
@@ -165,11 +229,13 @@ __kernel void mc_collide(__global float4 *pos, __global float4 *vel, __global co
     const int4 at = att[k];
     __global const float4 *P = apar + 10 * k;
     const float h = P[9].x, mu = P[9].y;
+    const int fresh_mesh = P[9].z > 0.0f;
     const int8 mi = minfo[at.z];
     const float4 g = mgeom[at.z];
     const float3 org = g.xyz;
     const float inv = g.w;
     const int3 dims = (int3)(mi.s4, mi.s5, mi.s6);
+    const float3 ghi = org + convert_float3(dims) / inv; /* the grid's far corner */
     __global const float4 *T = mtri + 4 * mi.s0;
     for (int v = lid; v < at.y; v += MC_LS) {
         const float4 x4 = pos[at.x + v];
@@ -177,9 +243,18 @@ __kernel void mc_collide(__global float4 *pos, __global float4 *vel, __global co
             continue;
         const float3 a = xform(P, start[at.w + v].xyz);
         const float3 b0 = xform(P + 3, x4.xyz);
+        /* a motion whose box, grown by the thickness, misses the grid's meets no triangle: the
+         * steps below would leave it as it is (most vertices of a cloth off the body) */
+        if (any(fmax(a, b0) + h < org) || any(fmin(a, b0) - h > ghi))
+            continue;
         float3 b = b0;
         float3 ncon = (float3)(0.0f); /* the last contact's normal and the pushes' total length */
         float pen = 0.0f;
+        /* the first pass's nearest triangle, found by the first crossing test where nothing crossed
+         * (fresh: b is where that test looked) */
+        float ndmin = h;
+        int nbi = 0x7fffffff, fresh = 0;
+        float3 nq = (float3)(0.0f), nn = (float3)(0.0f);
         /* 1. continuous: the first front-to-back crossing of p -> b puts b onto that plane at the
          * thickness and the motion slides on from the contact (p: the contact at the thickness),
          * MESH_SLIDES times; a motion that still crosses then stops at its last contact */
@@ -188,8 +263,11 @@ __kernel void mc_collide(__global float4 *pos, __global float4 *vel, __global co
             float db, t;
             int k = 0;
             for (; k < MESH_SLIDES; ++k) {
-                if (!first_crossing(p, b, h, T, mcell, mlist, mi, org, inv, dims, &nb, &db, &t))
+                if (!first_crossing_near(p, b, h, T, mcell, mlist, mi, org, inv, dims, &nb, &db, &t, k == 0, &ndmin,
+                                         &nbi, &nq, &nn)) {
+                    fresh = k == 0;
                     break;
+                }
                 const float3 c = p + t * (b - p) + nb * h;
                 b -= nb * (db - h);
                 ncon = nb;
@@ -217,23 +295,63 @@ __kernel void mc_collide(__global float4 *pos, __global float4 *vel, __global co
                         b = bf;
                 }
             }
-            const float3 lo = b - h, hi = b + h;
             float dmin = h;
             int best = 0x7fffffff;
             float3 qbest = (float3)(0.0f), nbest = (float3)(0.0f);
-            FOR_CANDIDATES({
-                /* a triangle is no nearer than its plane: most candidates end at one dot product */
-                if (fabs(dot(b - T[4 * ti].xyz, T[4 * ti + 3].xyz)) > dmin)
-                    continue;
-                const float3 q = closest_on_triangle(b, T[4 * ti].xyz, T[4 * ti + 1].xyz, T[4 * ti + 2].xyz);
-                const float d = length(b - q);
-                if (d < dmin || (d == dmin && ti < best && best != 0x7fffffff)) {
-                    dmin = d;
-                    best = ti;
-                    qbest = q;
-                    nbest = T[4 * ti + 3].xyz;
+            if (pass == 0 && fresh) {
+                dmin = ndmin;
+                best = nbi;
+                qbest = nq;
+                nbest = nn;
+            } else {
+                const float3 lo = b - h, hi = b + h;
+                FOR_CANDIDATES({
+                    const float3 v0 = T[4 * ti].xyz;
+                    NEAREST(b, dot(b - v0, T[4 * ti + 3].xyz), v0)
+                })
+            }
+            if (best == 0x7fffffff && pass == 0 && fresh_mesh) {
+                /* 5. deep: in a mesh's first step (set or re-posed onto the cloth), a vertex with
+                 * no triangle within h looks for its nearest triangle anywhere (boxes growing by
+                 * 4x, the whole mesh past MESH_MAX_QUERY_CELLS cells); behind that triangle's
+                 * plane it is inside, and put out onto its front at the thickness below */
+                float r = 4.0f * h;
+                for (int grow = 0;; ++grow, r *= 4.0f) {
+                    const float3 lo = b - r, hi = b + r;
+                    const int3 s0 = max(convert_int3_sat_rtn((lo - org) * inv), (int3)(0));
+                    const int3 s1 = min(convert_int3_sat_rtn((hi - org) * inv), dims - 1);
+                    const int3 sp = s1 - s0 + 1;
+                    /* a box over the whole grid (or walked as the whole mesh) takes any triangle */
+                    /* (or the 12th box, 4^12 x 4 thicknesses: a NaN vertex ends here) */
+                    const int whole = (all(s0 == 0) && all(s1 == dims - 1)) || sp.x * sp.y * sp.z > MESH_MAX_QUERY_CELLS
+                                      || grow == 11;
+                    dmin = whole ? MAXFLOAT : r;
+                    FOR_CANDIDATES({
+                        const float3 v0 = T[4 * ti].xyz;
+                        NEAREST(b, dot(b - v0, T[4 * ti + 3].xyz), v0)
+                    })
+                    if (best != 0x7fffffff || whole)
+                        break;
                 }
-            })
+                /* inside only if behind the plane of every triangle as near (within MESH_DEEP_TIE: a
+                 * nearest point on an edge or corner is shared; outside a corner's region a point
+                 * is in front of at least one of them), else nothing to do */
+                if (best != 0x7fffffff) {
+                    const float tie = dmin * (1.0f + MESH_DEEP_TIE) + 1e-6f;
+                    const float3 lo = b - tie, hi = b + tie;
+                    int inside = 1;
+                    FOR_CANDIDATES({
+                        const float3 v0 = T[4 * ti].xyz, n = T[4 * ti + 3].xyz;
+                        if (fabs(dot(b - v0, n)) <= tie) {
+                            const float3 q = closest_on_triangle(b, v0, T[4 * ti + 1].xyz, T[4 * ti + 2].xyz);
+                            if (length(b - q) <= tie && !(dot(b - q, n) < 0.0f))
+                                inside = 0;
+                        }
+                    })
+                    if (!inside)
+                        best = 0x7fffffff;
+                }
+            }
             if (best == 0x7fffffff) {
                 if (pass == 0 && pen > 0.0f && mu > 0.0f)
                     continue; /* the friction of a continuous contact still comes */

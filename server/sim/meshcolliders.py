@@ -23,6 +23,7 @@ class MeshCollider:
     grid: MeshGrid
     pose: np.ndarray  # (3, 4): mesh frame to world at the end of the next step
     pose_prev: np.ndarray  # at its start
+    fresh: bool = True  # set or re-posed since the last step: its deep vertices are put out (meshes.py)
 
 
 def as_pose(pose: np.ndarray | None) -> np.ndarray:
@@ -86,7 +87,9 @@ class MeshColliders:
         self.moved = True
 
     def stepped(self) -> None:
-        """After a step: every pose's end becomes the next step's start."""
+        """After a step: every pose's end becomes the next step's start; no mesh is fresh."""
+        for mc in (*self.own.values(), *self.scene.values()):
+            mc.fresh = False
         if self.moved:
             for mc in (*self.own.values(), *self.scene.values()):
                 mc.pose_prev = mc.pose

@@ -38,6 +38,13 @@ exact at both ends and linear between):
    between the faces, nearer than the thickness). A vertex outside at the step's start is
    outside at its end: the metric's 0 does not hang on the pushes' geometry.
 
+5. **deep** (in a mesh's first step, set or re-posed onto a cloth that overlaps it): a vertex
+   with no triangle within the thickness that is behind the plane of every triangle nearest to it
+   (within MESH_DEEP_TIE of the nearest's distance: a corner or an edge is shared; outside a
+   corner a point is in front of at least one of its faces) is inside, and the first thickness
+   pass puts it onto the nearest's front at the thickness, as a vertex behind within the
+   thickness.
+
 The thickness is the cloth's material ``thickness`` (the self-collision field, as scenes use it),
 at least MESH_MIN_THICKNESS (1 mm: float32 keeps a vertex on the surface only to its rounding).
 A vertex moved by ``dx`` gains ``dx / dt`` of velocity (as inter-cloth collision does). The
@@ -71,6 +78,8 @@ MESH_GUARD_BACKOFF = 0.5
 MESH_EDGE_TOLERANCE = 1e-5
 #: A query box over more cells than this tests the whole mesh.
 MESH_MAX_QUERY_CELLS = 512
+#: A deep vertex's nearest triangles: those within this share of the nearest's distance (step 5).
+MESH_DEEP_TIE = 1e-4
 #: Grid cells per triangle at most (the cell edge is grown until the grid fits).
 MESH_CELLS_PER_TRIANGLE = 8
 #: The least thickness kept from a mesh (a cloth whose material says less, 0 included).
@@ -245,9 +254,11 @@ def collide_mesh(
     thickness: float,
     dt: float,
     friction: float = 0.0,
+    fresh: bool = False,
 ) -> None:
     """One cloth's vertices kept out of one mesh collider (the module's steps), ``x`` and ``v``
-    in place; ``x_start``: the positions at the step's start."""
+    in place; ``x_start``: the positions at the step's start; ``fresh``: the mesh's first step
+    (set or re-posed), its deep vertices put out (step 5)."""
     free = np.nonzero(np.asarray(invm) > 0)[0]
     if not len(free):
         return
@@ -260,18 +271,18 @@ def collide_mesh(
     tlo, thi = tri.min(axis=1), tri.max(axis=1)
     # an exact cull: the cloth's box, grown by what a query reaches (a push ends within 2h of b)
     lo, hi = np.minimum(a, b).min(axis=0) - 3 * h, np.maximum(a, b).max(axis=0) + 3 * h
-    near = np.nonzero(np.all((thi >= lo) & (tlo <= hi), axis=1))[0]
+    near = np.nonzero(np.all((thi >= lo) & (tlo <= hi), axis=1) | fresh)[0]  # fresh: every triangle
     v0, e1, e2, n = v0[near], e1[near], e2[near], n[near]
     step = max(1, _CHUNK // max(len(near), 1))
     for s in range(0, len(b), step):
         sl = slice(s, s + step)
-        b[sl] = _collide_points(a[sl], b[sl], v0, e1, e2, n, h, friction)
+        b[sl] = _collide_points(a[sl], b[sl], v0, e1, e2, n, h, friction, fresh)
     moved = apply_pose(pose_end, b) - apply_pose(pose_end, b0)
     x[free] += moved
     v[free] += moved / dt
 
 
-def _collide_points(a, b, v0, e1, e2, n, h, mu):
+def _collide_points(a, b, v0, e1, e2, n, h, mu, fresh=False):
     if not len(v0):
         return b
     ncon = np.zeros_like(b)  # the last contact's normal and the pushes' total length, per point
@@ -301,7 +312,14 @@ def _collide_points(a, b, v0, e1, e2, n, h, mu):
         k = np.argmin(dist, axis=1)
         r = np.arange(len(b))
         dk = dist[r, k]
-        rows = np.nonzero(dk < h)[0]
+        within = dk < h
+        if k_pass == 0 and fresh:
+            # 5. deep (a fresh mesh: ``near`` is every triangle): no triangle within h, and behind
+            # the plane of every nearest one: inside, put onto its front at the thickness below
+            tied = dist <= (dk * (1.0 + MESH_DEEP_TIE) + 1e-6)[:, None]
+            behind_all = np.all(~tied | ((d * n[None]).sum(-1) < 0.0), axis=1)
+            within |= behind_all
+        rows = np.nonzero(within)[0]
         if not len(rows):
             if k_pass == 0:
                 continue  # the friction of a continuous contact still comes

@@ -441,7 +441,9 @@ class ReferenceWorld(World):
             for h, mc in layer:
                 st = self.states[h]
                 m = self.cloths[h].params.material
-                collide_mesh(st.x, st.v, start[h], st.invm, mc.mesh, mc.pose_prev, mc.pose, m.thickness, dt, m.friction)
+                collide_mesh(
+                    st.x, st.v, start[h], st.invm, mc.mesh, mc.pose_prev, mc.pose, m.thickness, dt, m.friction, mc.fresh
+                )
         self.mesh_colliders.stepped()
         self.steps += 1
 

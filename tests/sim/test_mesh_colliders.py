@@ -16,6 +16,7 @@ from drape.server.sim.fabric import cook_grid
 from drape.server.sim.meshes import (
     MESH_MAX_TRIANGLES,
     MESH_MAX_VERTICES,
+    apply_pose,
     build_grid,
     closest_points,
     collision_mesh,
@@ -339,3 +340,44 @@ def test_penetration_scenario_cape_on_a_running_body(device):
     world = CLWorld("workgroup", device=device, pack_lanes=0)
     world.set_mesh = world.move_mesh = lambda *a, **k: None  # type: ignore[method-assign]
     assert max(r.behind for r in tool.run("cape_body", world, 9, ticks=150)) > 0
+
+
+def test_a_mesh_set_onto_an_overlapping_cape_puts_its_deep_vertices_out(device, body):
+    """The body set (then re-posed) right through a hanging cape: the vertices deeper inside than
+    the thickness come out in the mesh's first step, on the device as in the reference; the
+    vertices far outside do not move."""
+    inside_pose = pose_matrix((0, 0, -0.2))
+    invm = np.ones(N * N)
+    invm[PINS] = 0
+
+    def run(world, with_mesh=True):
+        params = ClothParams(material=Material(thickness=THICKNESS), iterations=10, substeps=2)
+        h = world.add(cape(), params)
+        world.step(DT)
+        before = world.fetch().positions[h].astype(np.float64)
+        if not with_mesh:
+            world.step(DT)
+            return before, [world.fetch().positions[h].astype(np.float64)]
+        world.set_mesh(h, body, inside_pose)
+        out = []
+        for t in range(3):
+            if t == 2:  # re-posed (the same triangles) onto the cape again, 5 % larger
+                world.set_mesh(h, body.reposed(body.vertices * 1.05), inside_pose)
+            world.step(DT)
+            out.append(world.fetch().positions[h].astype(np.float64))
+        return before, out
+
+    (before, ref), (_, dev) = run(ReferenceWorld()), run(CLWorld("workgroup", device=device, pack_lanes=0))
+    deep = depth_inside(before, body, inside_pose) > THICKNESS
+    assert deep.sum() > 5  # the scene: a cape through the body
+    for states in (ref, dev):
+        for x in states:
+            assert penetration(x, x, 0.0, invm=invm, meshes=[(body, inside_pose)]).behind == 0
+    err = max(float(np.abs(a - b).max()) for a, b in zip(ref, dev, strict=True))
+    assert err < 1e-3, err
+    # outside and clear of the surface (the body's nearest vertex further than 5 cm): as without it
+    free = run(ReferenceWorld(), with_mesh=False)[1][0]
+    gap = np.linalg.norm(before[:, None] - apply_pose(inside_pose, body.vertices)[None], axis=-1).min(axis=1)
+    far = (gap > 0.05) & ~(depth_inside(before, body, inside_pose) > 0)
+    assert far.sum() > 5
+    assert np.abs(ref[0][far] - free[far]).max() < 1e-9

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..meshcolliders import MeshCollider, MeshColliders
 from ..meshes import (
+    MESH_DEEP_TIE,
     MESH_EDGE_TOLERANCE,
     MESH_GUARD_BACKOFF,
     MESH_MAX_QUERY_CELLS,
@@ -84,6 +85,7 @@ class MeshCollision(WorldPhase):
             f"-DMESH_EDGE_TOLERANCE={MESH_EDGE_TOLERANCE!r}f",
             f"-DMESH_GUARD_BACKOFF={MESH_GUARD_BACKOFF!r}f",
             f"-DMESH_MAX_QUERY_CELLS={MESH_MAX_QUERY_CELLS}",
+            f"-DMESH_DEEP_TIE={MESH_DEEP_TIE!r}f",
         ]
 
     def _upload_meshes(self) -> dict[int, int]:
@@ -152,7 +154,7 @@ class MeshCollision(WorldPhase):
                 b = blocks[id(mc)] = np.concatenate([invert_pose(mc.pose_prev), invert_pose(mc.pose), mc.pose])
             rows[k, :9] = b
             m = self.cloths[h].params.material
-            rows[k, 9, :2] = mesh_thickness(m.thickness), m.friction
+            rows[k, 9, :3] = mesh_thickness(m.thickness), m.friction, float(mc.fresh)
         _upload(self._apar, rows.reshape(len(rows), -1))
 
     def save(self) -> None:

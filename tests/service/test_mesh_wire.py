@@ -124,7 +124,7 @@ def test_only_the_owner_moves_a_scene_mesh(server, body):
 
 
 def test_admission_prices_a_cloth_s_own_mesh_per_vertex_and_triangle(body):
-    """A submission's mesh adds vertices x (MESH_VERTEX_WORK + MESH_TRIANGLE_WORK x triangles);
+    """A submission's mesh adds vertices x (MESH_VERTEX_WORK of the device's kind + MESH_TRIANGLE_WORK x triangles);
     a control that removes it takes that off, one that moves it changes nothing."""
     from types import SimpleNamespace
 
@@ -135,7 +135,7 @@ def test_admission_prices_a_cloth_s_own_mesh_per_vertex_and_triangle(body):
     mesh = P.MeshCollider(body.vertices.astype(np.float32), body.triangles.astype(np.uint32))
     plain = adm.price_submit(P.SubmitRequest("c", grid))
     priced = adm.price_submit(P.SubmitRequest("c", grid, mesh_collider=mesh))
-    extra = N * N * (MESH_VERTEX_WORK + MESH_TRIANGLE_WORK * body.n_triangles)
+    extra = N * N * (MESH_VERTEX_WORK[adm.pricing.kind] + MESH_TRIANGLE_WORK * body.n_triangles)
     assert priced.mesh_triangles == body.n_triangles and priced.work == pytest.approx(plain.work + extra)
     rec = SimpleNamespace(priced=priced, n_vertices=N * N)
     token = "0" * 32

@@ -76,8 +76,12 @@ SCENE_PASS_WORK: dict[str, float] = {"cpu": 0.3, "gpu": 0.75}
 #: part per cloth vertex and triangle, in plain solves of that vertex: docs/collision.md's meshbench
 #: on this CPU (128 capes of 1,024 vertices, 23.6 us a cape's plain solve): 25 us a cape with the
 #: 5,972-triangle body, 26 us with the 12,220-triangle one (the cost follows the vertices near the
-#: surface more than the triangles).
-MESH_VERTEX_WORK = 1.0
+#: surface more than the triangles). Those capes never touched the body (session 17): with
+#: contacts (`python -m drape.server.tools.meshab --into 0.08`, 128 capes) the mesh kernel takes
+#: 11.2 ms a launch on this CPU against 3.0 ms for the capes' plain solve, 3.7 plain solves a
+#: vertex, the price on a CPU; a GPU's stays session 16's (1.06x the bare solve at 4096 capes
+#: without contact; with contacts not measured: no device time).
+MESH_VERTEX_WORK: dict[str, float] = {"cpu": 3.7, "gpu": 1.0}
 MESH_TRIANGLE_WORK = 1.0e-5
 assert set(FEATURE_WORK) <= set(Features().__dataclass_fields__), FEATURE_WORK
 
@@ -150,7 +154,8 @@ class Pricing:
         for name in params.features.names():
             w *= FEATURE_WORK.get(name, 1.0)
         if mesh_triangles:
-            w += n_vertices * (MESH_VERTEX_WORK + MESH_TRIANGLE_WORK * mesh_triangles)
+            vertex = MESH_VERTEX_WORK.get(self.kind, max(MESH_VERTEX_WORK.values()))
+            w += n_vertices * (vertex + MESH_TRIANGLE_WORK * mesh_triangles)
         return w
 
 

@@ -17,6 +17,16 @@ and what this client placed since; not round robin; a refusal tries the next), u
 targets and colliders the game sent are sent again right after. ``on_failover`` callbacks get a
 :class:`FailoverEvent` per cloth.
 
+Scenes (1.7, PROTOCOL.md 5.3) stay together and keep their owner: the lost cloths of one scene go
+to ONE server, the one holding this client's other cloths of the scene if any is still up, else
+the placement's choice. A client that owns the scene (client/scenes.py) resubmits its first cloth
+there, which founds the scene, then sends the scene's last state again (members, colliders, mesh
+collider, as its ``scene`` requests last set them), then its other cloths. A member waits for the
+owner: it resubmits to the live server that holds the scene (found by probing), retrying while
+the scene is not there yet or its submission is ``forbidden`` (the owner has not admitted it
+again yet); only after ``scene_wait`` seconds without the scene does it found it itself (the owner
+is gone too), which makes it the new owner there.
+
 Per state, the handle only keeps references to the last two decoded states (no copies, no
 per-vertex Python).
 """
@@ -40,10 +50,12 @@ from .handle import ClothHandle
 from .placement import PLACE_ELSEWHERE, Placement
 from .protocol import DrapeError
 from .registry import Cloths
+from .scenes import SceneBook
 
 log = logging.getLogger(__name__)
 
 DEFAULT_TICK_RATE = 60.0  # Hz, when the lost server's stats never said
+SCENE_WAIT = 10.0  # s a member's cloths wait for their scene's owner to found it again
 
 
 @dataclass(frozen=True)
@@ -105,8 +117,12 @@ class Failover:
         *,
         stall_timeout: float = 0.5,
         give_up_after: float = 60.0,
+        scenes: SceneBook | None = None,
+        scene_wait: float = SCENE_WAIT,
     ) -> None:
         self.session = session
+        self.scenes = scenes if scenes is not None else SceneBook(session)
+        self.scene_wait = scene_wait  # a member waits this long for the owner to found the scene again
         self.cloths = cloths
         self.place = place
         self.stall_timeout = stall_timeout  # no state for this long: probe the cloth
@@ -190,6 +206,7 @@ class Failover:
                 log.exception("failover worker")
 
     def _recover(self, todo: list[tuple[ClothHandle, str, str, int]]) -> None:
+        scenes: dict[str, list[tuple[ClothHandle, str, str, int]]] = {}
         for h, old_server, reason, t0 in todo:
             if h.closed:
                 self._done(h)
@@ -213,9 +230,59 @@ class Failover:
                     )
                 )
                 continue
-            self._resubmit(h, old_server, reason, t0)
+            scene = h.request.scene if h.request is not None else None
+            if scene is None:
+                self._resubmit(h, old_server, reason, t0)
+            else:
+                scenes.setdefault(scene, []).append((h, old_server, reason, t0))
+        for scene, items in scenes.items():
+            self._recover_scene(scene, items)
 
-    def _resubmit(self, h: ClothHandle, old_server: str, reason: str, t0: int) -> None:
+    def _recover_scene(self, scene: str, items: list[tuple[ClothHandle, str, str, int]]) -> None:
+        """The lost cloths of ``scene`` to one server: the owner's founding the scene again and its
+        last state sent before the next; a member's waiting for the scene (module docstring)."""
+        owner = self.scenes.owns(scene)
+        for h, old_server, reason, t0 in items:
+            target = self.cloths.scene_server(scene)  # this client's cloths of it that still live
+            founds = target is None
+            if target is None and not owner:
+                target = self.scenes.locate(scene, self.placement.ranked(wait=False))
+                if target is None:
+                    if time.monotonic_ns() - t0 < self.scene_wait * 1e9:
+                        return  # the owner has not founded it again yet: the next pass
+                    log.warning("scene %s: no live server holds it after %.0f s, founding it", scene, self.scene_wait)
+                founds = target is None
+            if not self._resubmit(h, old_server, reason, t0, target, retry_forbidden=not owner):
+                return  # stays lost (the next pass), or given up: the scene's next cloths wait too
+            if founds and owner:
+                self._replay_scene(scene, h.server_id)
+
+    def _replay_scene(self, scene: str, server: str) -> None:
+        """The scene's last state (its owner's scene requests) sent to ``server``, where this
+        client's cloth just founded it again."""
+        req = self.scenes.get(scene).replay(self.session.client_id, scene, self.session.next_rid())
+        if req is None:
+            return
+        try:
+            rep = P.scene_reply_from_map(self.session.request("scene", P.encode_scene(req), None, server))
+        except DrapeError as e:
+            log.warning("scene %s founded again on server %s, but its state was refused: %s", scene, server, e)
+            return
+        self.scenes.sent(req, rep)
+        log.info("scene %s founded again on server %s with its members and colliders", scene, server)
+
+    def _resubmit(
+        self,
+        h: ClothHandle,
+        old_server: str,
+        reason: str,
+        t0: int,
+        target: str | None = None,
+        retry_forbidden: bool = False,
+    ) -> bool:
+        """Resubmit ``h`` to ``target`` alone, or (None) to the live servers by load; True when it
+        was placed. ``retry_forbidden``: a ``forbidden`` (a member's cloth, its scene's owner not
+        back yet) leaves it lost for the next pass instead of closing it."""
         tried: set[str] = set()
         last_err: DrapeError | None = None
         if h.request is None:  # a handle made outside DrapeClient.submit: nothing to resubmit
@@ -225,11 +292,15 @@ class Failover:
             self._emit(
                 FailoverEvent(h, reason, h.id, old_server, error=err, detected_ns=t0, done_ns=time.monotonic_ns())
             )
-            return
+            return False
         fatal = False
+        given = target
         while True:
-            # the least loaded live server (placement counts what this round already placed)
-            target = self.placement.choose(tried, wait=False)
+            # the given server, else the least loaded live one (placement counts what this round placed)
+            if given is not None:
+                target = given if given not in tried and given in self.session.live_servers() else None
+            else:
+                target = self.placement.choose(tried, wait=False)
             if target is None:
                 break
             tried.add(target)
@@ -244,6 +315,8 @@ class Failover:
                 log.warning("resubmitting cloth %s to server %s failed: %s", old_id, target, e)
                 if e.code in PLACE_ELSEWHERE:  # overloaded, busy, limit_exceeded, no reply: the next server
                     continue
+                if retry_forbidden and e.code == P.ERR_FORBIDDEN:  # not admitted again yet: the next pass
+                    break
                 fatal = True  # the request itself is refused (PROTOCOL.md 11.3): reported at once
                 break
             h.failovers += 1
@@ -264,7 +337,7 @@ class Failover:
                     done_ns=time.monotonic_ns(),
                 )
             )
-            return
+            return True
         if fatal or time.monotonic_ns() - t0 > self.give_up_after * 1e9:
             err = last_err or P.Unavailable(
                 P.ERR_UNAVAILABLE, f"no live server to fail cloth {h.id} over to within {self.give_up_after} s"
@@ -275,6 +348,7 @@ class Failover:
                 FailoverEvent(h, reason, h.id, old_server, error=err, detected_ns=t0, done_ns=time.monotonic_ns())
             )
         # else: stays lost; tried again on the next pass (a server may appear)
+        return False
 
     def _still_there(self, h: ClothHandle) -> bool:
         """Probe with an empty control: True when the server still holds the cloth."""
@@ -350,4 +424,4 @@ class Failover:
                 log.exception("on_failover callback failed")
 
 
-__all__ = ["DEFAULT_TICK_RATE", "Failover", "FailoverCallback", "FailoverEvent", "Place", "resume_from"]
+__all__ = ["DEFAULT_TICK_RATE", "SCENE_WAIT", "Failover", "FailoverCallback", "FailoverEvent", "Place", "resume_from"]

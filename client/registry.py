@@ -1,5 +1,6 @@
 """One client's open cloths (:class:`Cloths`): its handles by cloth id, and the lock that guards
-them, shared with the bundle receiver (client/bundles.py), which reads the map without it."""
+them, shared with the bundle receiver (client/bundles.py), which reads the map without it; and
+where this client's cloths of a scene live (placement and failover keep a scene on one server)."""
 
 from __future__ import annotations
 
@@ -32,6 +33,15 @@ class Cloths:
         """The handles of cloths living on ``server``."""
         with self.lock:
             return [h for h in self.by_id.values() if h.server_id == server]
+
+    def scene_server(self, scene: str) -> str | None:
+        """The server holding this client's cloths of ``scene`` (open and not being failed over;
+        None: it has none): where its next cloth of the scene goes (PROTOCOL.md 5.3)."""
+        with self.lock:
+            for h in self.by_id.values():
+                if h.request is not None and h.request.scene == scene and not h.lost and not h.closed:
+                    return h.server_id
+        return None
 
     def all(self) -> list[ClothHandle]:
         with self.lock:

@@ -57,6 +57,7 @@ from .placement import PLACE_ELSEWHERE, Placement
 from .protocol import ClothState, DrapeError, Unavailable
 from .rates import rate_option
 from .registry import Cloths
+from .scenes import SceneBook
 from .sending import ControlSender, Target
 from .session import zenoh_config
 from .submitting import Submitter, cloth_options, grid_spec, mesh_spec, submit_request
@@ -149,8 +150,9 @@ class DrapeClient:
         )
         self.sender = ControlSender(self.connection, MoveBook(self), self._cloth_not_found)
         self.keyframes = KeyframeQueries()  # 1.5: one keyframe query per key in a while, for all its cloths
+        self.scenes = SceneBook(self.connection)  # 1.7: the scenes' owners and last requests (client/scenes.py)
         self.submitter = Submitter(
-            self, self.connection, self.placement, self.cloths, self.bundles, queue_size, (start, governed)
+            self, self.connection, self.placement, self.cloths, self.bundles, queue_size, (start, governed), self.scenes
         )
         # failover (the default): cloths survive the loss of their server (client/failover.py, PROTOCOL.md 11.1)
         if failover:
@@ -161,6 +163,7 @@ class DrapeClient:
                 self.submitter.place,
                 stall_timeout=stall_timeout,
                 give_up_after=failover_give_up,
+                scenes=self.scenes,
             )
         self.connection.watch(self._on_server)
         log.debug("drape client %s connected to %s", self.client_id, list(connect))
@@ -448,7 +451,11 @@ class DrapeClient:
         1.8 (PROTOCOL.md 5.4): ``mesh_collider``, the scene's mesh for every cloth of it (a
         ``(vertices, triangles)`` pair or an object with them, ``False`` to remove it, or a
         ``P.MeshCollider``), at ``mesh_position`` / ``mesh_rotation`` (w, x, y, z); the pose alone
-        (``mesh_collider`` None) moves the scene's mesh rigidly: the per-tick call."""
+        (``mesh_collider`` None) moves the scene's mesh rigidly: the per-tick call.
+
+        ``server`` None: the server of this client's cloths of the scene (else the default server).
+        What a request that succeeded set is remembered (``client.scenes``): a failover founds the
+        scene again with it (client/failover.py)."""
         if mesh_collider is None and (mesh_position is not None or mesh_rotation is not None):
             mesh_collider = P.MeshCollider.pose(mesh_position or (0.0, 0.0, 0.0))
         mc = as_mesh_collider(mesh_collider, mesh_position, mesh_rotation)
@@ -460,7 +467,10 @@ class DrapeClient:
             self.connection.next_rid(),
             mc,
         )
-        return P.scene_reply_from_map(self.connection.request("scene", P.encode_scene(req), timeout, server))
+        server = server or self.cloths.scene_server(scene)
+        rep = P.scene_reply_from_map(self.connection.request("scene", P.encode_scene(req), timeout, server))
+        self.scenes.sent(req, rep)
+        return rep
 
     def _submit(
         self,

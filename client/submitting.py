@@ -3,12 +3,16 @@ friendly options (:func:`submit_request`, its options ``cloth_options``; pure), 
 :class:`Submitter`, which sends one (``submit``) to the server the placement ranks first
 (PROTOCOL.md 11.3, the next one on a refusal another server may not give) and registers the new
 handle with the client (``place``, also the failover's resubmission) before any state of its
-bundle reaches it.
+bundle reaches it. A cloth naming a ``scene`` (1.7) without ``server`` goes where the scene is:
+the server of this client's cloths of it, else the live server that holds it (another client
+founded it there), else the placement's choice (it founds the scene there); whether this client
+owns the scene is asked once after its first cloth of it (client/scenes.py).
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
@@ -23,6 +27,7 @@ from .placement import PLACE_ELSEWHERE, Placement
 from .protocol import DrapeError
 from .rates import speaks_rates
 from .registry import Cloths
+from .scenes import SceneBook
 
 log = logging.getLogger("drape.client.sdk")
 
@@ -162,8 +167,12 @@ class Submitter:
         bundles: BundleReceiver,
         queue_size: int = 64,
         rate: tuple[int, bool] = (1, False),
+        scenes: SceneBook | None = None,
     ) -> None:
         self.owner = owner
+        self.scenes = scenes if scenes is not None else SceneBook(session)
+        self._scene_locks: dict[str, threading.Lock] = {}  # one scene's first placements, one at a time
+        self._locks_lock = threading.Lock()
         self.rate = rate  # 1.8: (the rate new cloths start at, governed by rates.RateGovernor)
         self.session = session
         self.placement = placement
@@ -204,7 +213,30 @@ class Submitter:
 
         if server is not None or self.session.server_given:
             target = server or self.session.server_id
-            return self.place(None, req, target, timeout, make(target))
+            h = self.place(None, req, target, timeout, make(target))
+            if req.scene is not None and self.scenes.get(req.scene).owner is None:
+                self.scenes.learn_owner(req.scene, target)
+            return h
+        if req.scene is not None:
+            with self._scene_lock(req.scene):
+                where = self.cloths.scene_server(req.scene) or self.scenes.locate(
+                    req.scene, self.placement.ranked(wait=False)
+                )
+                h = self.place(None, req, where, timeout, make(where)) if where else self._by_load(req, timeout, make)
+                if self.scenes.get(req.scene).owner is None:
+                    self.scenes.learn_owner(req.scene, h.server_id)
+                return h
+        return self._by_load(req, timeout, make)
+
+    def _scene_lock(self, scene: str) -> threading.Lock:
+        with self._locks_lock:
+            return self._scene_locks.setdefault(scene, threading.Lock())
+
+    def _by_load(
+        self, req: P.SubmitRequest, timeout: float | None, make: Callable[[str], Callable[[P.SubmitReply], ClothHandle]]
+    ) -> ClothHandle:
+        """To the live server the placement ranks first, a refusal another server may not give
+        trying the next one."""
         tried: set[str] = set()
         last: DrapeError | None = None
         while True:

@@ -43,7 +43,7 @@ if TYPE_CHECKING:
 #: marker -> what a test so marked opens
 NEEDS = {"opencl": "OpenCL", "zenoh": "Zenoh"}
 #: fixtures that open OpenCL or Zenoh -> the markers of a test that uses one
-FIXTURE_MARKS = {"device": ("opencl",)}
+FIXTURE_MARKS = {"device": ("opencl",), "server_pair": ("opencl", "zenoh")}
 UNIT_GUARD = Path(__file__).resolve().parent / "unitguard"
 
 
@@ -224,6 +224,23 @@ def wait_until(pred, timeout: float = TIMEOUT, step: float = 0.02) -> bool:
             return True
         time.sleep(step)
     return pred()
+
+
+#: flags of the two ``drape serve`` processes of ``server_pair``
+PAIR_ARGS = ("--device", "cpu", "--grace-period", "1", "--stats-period", "0.25", "--no-admission")
+
+
+@pytest.fixture
+def server_pair():
+    """Two real ``drape serve`` processes on loopback, each on its own port (placement, failover)."""
+    from drape.server.tools.procs import ServerProcess
+
+    pair = [ServerProcess(PAIR_ARGS, server_id=f"pl-{k}-{os.getpid()}") for k in "ab"]
+    try:
+        yield pair
+    finally:
+        for s in pair:
+            s.stop(grace=20.0)
 
 
 @pytest.fixture

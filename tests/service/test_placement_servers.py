@@ -11,6 +11,7 @@ import signal
 import time
 
 import pytest
+from conftest import PAIR_ARGS
 
 from drape.client import DrapeClient
 from drape.client import protocol as P
@@ -22,21 +23,10 @@ pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest
 SERVER_WAIT = 90.0  # a drape serve starting (OpenCL warm-up) on a loaded CI machine
 EVENT_WAIT = 30.0
 CLOTHS = 8
-SERVE_ARGS = ("--device", "cpu", "--grace-period", "1", "--stats-period", "0.25", "--no-admission")
 
 
-@pytest.fixture
-def servers():
-    pair = [ServerProcess(SERVE_ARGS, server_id=f"pl-{k}-{os.getpid()}") for k in "ab"]
-    try:
-        yield pair
-    finally:
-        for s in pair:
-            s.stop(grace=20.0)
-
-
-def test_cloths_spread_over_two_servers_and_come_back_after_a_kill(servers, svc):
-    a, b = servers
+def test_cloths_spread_over_two_servers_and_come_back_after_a_kill(server_pair, svc):
+    a, b = server_pair
     with DrapeClient([a.endpoint, b.endpoint], timeout=SERVER_WAIT, failover=True) as client:
         ids = {a.server_id, b.server_id}
         assert svc.wait_until(lambda: set(client.live_servers()) == ids, SERVER_WAIT)
@@ -76,8 +66,8 @@ def test_a_refusing_server_sends_the_cloth_to_the_next(svc):
     """A server at its limit answers ``limit_exceeded`` (as one past its tick budget answers
     ``overloaded``): the SDK places the cloth on the next server in the ranking instead of
     failing the submit; with every server refusing, the last refusal is raised."""
-    full = ServerProcess((*SERVE_ARGS, "--max-cloths", "1"), server_id=f"pl-full-{os.getpid()}")
-    room = ServerProcess((*SERVE_ARGS, "--max-cloths", "3"), server_id=f"pl-room-{os.getpid()}")
+    full = ServerProcess((*PAIR_ARGS, "--max-cloths", "1"), server_id=f"pl-full-{os.getpid()}")
+    room = ServerProcess((*PAIR_ARGS, "--max-cloths", "3"), server_id=f"pl-room-{os.getpid()}")
     try:
         with DrapeClient([full.endpoint, room.endpoint], timeout=SERVER_WAIT) as client:
             ids = {full.server_id, room.server_id}

@@ -5,7 +5,7 @@ mod common;
 
 use drape::client::{Client, Cloth, Event, LossReason};
 use drape::wire::reader::Reader;
-use drape::wire::{Control, ErrorCode, Grid, Orientation, Submit};
+use drape::wire::{Control, ErrorCode, Grid, Orientation, SceneRequest, Submit};
 use std::collections::HashMap;
 use std::time::{Duration, Instant};
 
@@ -208,4 +208,48 @@ fn c_abi_moves(s: &common::Server) {
         }
         drape_client_close(client, true);
     }
+}
+
+/// A grid of `scene` (1.7): small, pinned at one corner.
+fn scene_cloth(client: &Client, scene: Option<&str>) -> Cloth {
+    let sub = Submit { pinned: vec![0], scene: scene.map(str::to_string), ..Submit::new("", drape::wire::Shape::Grid(Grid::new(1, 1))) };
+    client.submit_grid(Grid::new(4, 4), sub).expect("submit")
+}
+
+/// Scenes (PROTOCOL.md 5.3's SDK note): a host's cloths of a scene, and then a guest's, all on one
+/// server while cloths without a scene spread; after a `kill -9` of that server the whole scene is
+/// on the survivor, founded again by the host (its members back: the guest's cloths got in, and a
+/// guest's scene request is still `forbidden`).
+#[test]
+fn a_scene_stays_on_one_server_and_keeps_its_owner() {
+    let Some(bin) = common::drape_bin() else { return };
+    let (a, b) = (common::start(&bin, &[]), common::start(&bin, &[]));
+    let host = common::connect(&[&a, &b], None, true);
+    let guest = common::connect(&[&a, &b], None, true);
+    let t0 = Instant::now();
+    while [&host, &guest].iter().any(|c| c.stats(&a.id).is_none() || c.stats(&b.id).is_none()) {
+        assert!(t0.elapsed() < common::START_TIMEOUT, "no stats from {} or {}", a.id, b.id);
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let free: Vec<Cloth> = (0..4).map(|_| scene_cloth(&host, None)).collect();
+    assert!(free.iter().any(|c| c.server() == a.id) && free.iter().any(|c| c.server() == b.id), "not spread");
+    let mine: Vec<Cloth> = (0..3).map(|_| scene_cloth(&host, Some("m"))).collect();
+    let members = SceneRequest { members: Some(vec![guest.client_id().to_string()]), ..SceneRequest::new("", "m") };
+    assert_eq!(host.set_scene(members, None).unwrap().cloths, 3);
+    let theirs: Vec<Cloth> = (0..2).map(|_| scene_cloth(&guest, Some("m"))).collect();
+    let home = mine[0].server();
+    assert!(mine.iter().chain(&theirs).all(|c| c.server() == home), "the scene is split");
+    let (dead, alive) = if home == a.id { (&a, &b) } else { (&b, &a) };
+    dead.kill();
+    let t0 = Instant::now();
+    while !mine.iter().chain(&theirs).all(|c| c.server() == alive.id) {
+        assert!(t0.elapsed() < Duration::from_secs(30), "the scene's cloths not all on {} within 30 s", alive.id);
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let err = guest.set_scene(SceneRequest { colliders: Some(vec![]), ..SceneRequest::new("", "m") }, None).unwrap_err();
+    assert_eq!(err.code, ErrorCode::Forbidden);
+    let rep = host.set_scene(SceneRequest::new("", "m"), None).unwrap();
+    assert_eq!((rep.owner.as_str(), rep.cloths, rep.members), (host.client_id(), 5, vec![guest.client_id().to_string()]));
+    guest.close(true);
+    host.close(true);
 }

@@ -14,6 +14,12 @@
 //! server; any other error means the request itself is wrong and the cloth is lost with it. The last pin targets and colliders the game sent are
 //! sent again right after, and an [`Event::ClothResubmitted`] reports it.
 //!
+//! Scenes (1.7, PROTOCOL.md 5.3's SDK note, `scenes.rs`): a scene's lost cloths go to one server
+//! (that of this client's cloths of it still live, else the placement's choice); its owner's
+//! first cloth founds it there and the scene's last state (members, colliders, mesh) is sent again
+//! before its next; a member waits up to `SCENE_WAIT` for a live server holding the scene and
+//! retries on `forbidden` until the owner admitted it again.
+//!
 //! Per state nothing is copied or decoded for this: a cloth keeps references to its last two
 //! received payloads (the buffers Zenoh delivered); they are decoded only when a failover needs
 //! them.
@@ -166,7 +172,10 @@ fn done(inner: &Inner, handle: u64) {
     }
 }
 
+type Lost = (Arc<ClothInner>, String, String, LossReason, Instant); // cloth, old server, old id, reason, since
+
 fn recover(inner: &Arc<Inner>, todo: Vec<(u64, Arc<ClothInner>, String, LossReason, Instant)>) {
+    let mut scenes: Vec<(String, Vec<Lost>)> = Vec::new(); // 1.7: each scene's lost cloths, in order
     for (handle, c, old_server, reason, since) in todo {
         let (status, old_id, token) = {
             let s = c.slot.lock().unwrap();
@@ -200,7 +209,46 @@ fn recover(inner: &Arc<Inner>, todo: Vec<(u64, Arc<ClothInner>, String, LossReas
             });
             continue;
         }
-        resubmit(inner, &c, &old_server, &old_id, reason, since);
+        match c.submit.scene.clone() {
+            None => {
+                resubmit(inner, &c, &old_server, &old_id, reason, since, None, false);
+            }
+            Some(scene) => {
+                let item = (c, old_server, old_id, reason, since);
+                match scenes.iter_mut().find(|(s, _)| *s == scene) {
+                    Some((_, items)) => items.push(item),
+                    None => scenes.push((scene, vec![item])),
+                }
+            }
+        }
+    }
+    for (scene, items) in scenes {
+        recover_scene(inner, &scene, items);
+    }
+}
+
+/// A scene's lost cloths to one server (PROTOCOL.md 5.3's SDK note): the server of this client's
+/// cloths of it still live, else, for its owner, the placement's choice, its first cloth founding
+/// the scene there and the scene's last state sent again before the next; a member waits (up to
+/// `SCENE_WAIT`) for a live server that holds the scene, retrying on `forbidden`.
+fn recover_scene(inner: &Arc<Inner>, scene: &str, items: Vec<Lost>) {
+    let owner = inner.scenes.owner(scene) == Some(true);
+    for (c, old_server, old_id, reason, since) in items {
+        let mut target = inner.scene_server(scene, c.handle);
+        let founds = target.is_none();
+        if target.is_none() && !owner {
+            target = inner.locate_scene(scene);
+            if target.is_none() && since.elapsed() < super::scenes::SCENE_WAIT {
+                return; // its owner has not founded it again yet: the next pass
+            }
+        }
+        if !resubmit(inner, &c, &old_server, &old_id, reason, since, target.as_deref(), !owner) {
+            return; // stays lost (or was given up): the scene's next cloths wait too
+        }
+        if founds && owner {
+            let server = c.slot.lock().unwrap().server.clone();
+            inner.replay_scene(scene, &server);
+        }
     }
 }
 
@@ -243,7 +291,12 @@ pub(crate) fn resume_from(prev: Option<&Latest>, last: Option<&Latest>, n: usize
     })
 }
 
-fn resubmit(inner: &Arc<Inner>, c: &Arc<ClothInner>, old_server: &str, old_id: &str, reason: LossReason, since: Instant) {
+/// Resubmit `c` to `only` (None: the live servers by load); true once placed. `retry_forbidden`:
+/// a `forbidden` (a member's cloth whose scene's owner has not admitted it again) leaves it lost
+/// for the next pass.
+#[allow(clippy::too_many_arguments)]
+fn resubmit(inner: &Arc<Inner>, c: &Arc<ClothInner>, old_server: &str, old_id: &str, reason: LossReason, since: Instant,
+            only: Option<&str>, retry_forbidden: bool) -> bool {
     let (prev, last, old_sub) = {
         let mut s = c.slot.lock().unwrap();
         (s.prev.clone(), s.latest.clone(), s.sub.take())
@@ -256,7 +309,11 @@ fn resubmit(inner: &Arc<Inner>, c: &Arc<ClothInner>, old_server: &str, old_id: &
     let mut last_err = None;
     let mut wrong = false;
     // the best live server not tried yet (PROTOCOL.md 11.3; no wait for stats: a loss is urgent)
-    while let Some(target) = inner.placement.ranked(&inner.live_servers(), &tried, false).into_iter().next() {
+    let next = |tried: &HashSet<String>| match only {
+        Some(s) => (!tried.contains(s) && inner.live_servers().iter().any(|l| l == s)).then(|| s.to_string()),
+        None => inner.placement.ranked(&inner.live_servers(), tried, false).into_iter().next(),
+    };
+    while let Some(target) = next(&tried) {
         tried.insert(target.clone());
         // 1.8: a cloth with its own mesh only onto a server that speaks mesh colliders
         if let Err(e) = inner.check_mesh_version(&target, c.submit.mesh_collider.as_ref()) {
@@ -283,10 +340,15 @@ fn resubmit(inner: &Arc<Inner>, c: &Arc<ClothInner>, old_server: &str, old_id: &
                     resumed_tick,
                     kept: false,
                 });
-                return;
+                return true;
             }
             // overloaded, busy, limit_exceeded, no reply: the next best server
             Err(e) if PLACE_ELSEWHERE.contains(&e.code) => last_err = Some(e),
+            // 1.7: not admitted into the scene again yet (its owner refounds it): the next pass
+            Err(e) if retry_forbidden && e.code == ErrorCode::Forbidden => {
+                last_err = Some(e);
+                break;
+            }
             // the request itself is wrong (PROTOCOL.md 11.3): no server will take it
             Err(e) => {
                 last_err = Some(e);
@@ -306,6 +368,7 @@ fn resubmit(inner: &Arc<Inner>, c: &Arc<ClothInner>, old_server: &str, old_id: &
         inner.push_event(Event::ClothLost { handle: c.handle, cloth: old_id.to_string(), server: old_server.to_string(), error });
     }
     // else: stays lost; tried again on the next pass (a server may appear)
+    false
 }
 
 /// After a resubmission: the last pin targets, colliders and mesh collider the game sent, as one control (not

@@ -31,24 +31,27 @@ impl Inner {
 }
 
 impl Client {
-    /// 1.7 (PROTOCOL.md 5.3): the owner's change of a scene on `server` (None: the client's
-    /// default server, [`Client::server_id`]): its colliders (they act on every cloth of the
+    /// 1.7 (PROTOCOL.md 5.3): the owner's change of a scene on `server` (None: the server of
+    /// this client's cloths of the scene, else the default server, [`Client::server_id`]): its colliders (they act on every cloth of the
     /// scene beside its own; `Some(vec![])` clears them), its members (client ids, `"*"`:
     /// anyone) and (1.8) its mesh collider, one for every cloth of the scene; `None` fields are
     /// left as they are. `req.client` and `req.rid` are set here. Waited for: the reply's tick
     /// is the first whose states reflect it. `forbidden` for another client's scene,
-    /// `not_found` for a scene without cloths on that server.
+    /// `not_found` for a scene without cloths on that server. What it set is remembered: a
+    /// failover founds the scene again with it (`scenes`).
     pub fn set_scene(&self, mut req: SceneRequest, server: Option<&str>) -> Result<SceneReply> {
         req.client = self.inner.client_id.clone();
         req.rid = self.inner.next_rid();
         req.validate()?;
-        let server = match server {
-            Some(s) => s.to_string(),
+        let server = match server.map(str::to_string).or_else(|| self.inner.scene_server(&req.scene, u64::MAX)) {
+            Some(s) => s,
             None => self.server_id()?,
         };
         self.inner.require_version(&server, (1, 7), "a scene request")?;
         self.inner.check_mesh_version(&server, req.mesh_collider.as_ref())?;
-        SceneReply::from_map(&self.inner.request(&server, "scene", req.encode())?)
+        let rep = SceneReply::from_map(&self.inner.request(&server, "scene", req.encode())?)?;
+        self.inner.scenes.sent(&req, &rep, &self.inner.client_id); // what a failover founds it again with
+        Ok(rep)
     }
 
     /// 1.8: the per-tick rigid move of `scene`'s mesh collider (its owner's; about 80 bytes).

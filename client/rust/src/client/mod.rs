@@ -7,7 +7,7 @@
 //! This file is the facade (options, events, the client's shared state and its open and close);
 //! the parts are `session` (servers, their info, waited requests), `sending` (requests not waited
 //! for), `submit`, `controls`, `cloth`, `recv` (states), `predictive`, `rates` (1.8: every k-th
-//! state, `rate = auto`), `meshes` (1.8's mesh colliders, 1.7's scene requests), `moves`, `placement` and `failover`.
+//! state, `rate = auto`), `meshes` (1.8's mesh colliders, 1.7's scene requests), `moves`, `placement`, `scenes` (1.7: a scene kept on one server, founded again by its owner) and `failover`.
 mod cloth;
 mod controls;
 mod failover;
@@ -18,6 +18,7 @@ mod placement;
 mod predictive;
 mod rates;
 mod recv;
+mod scenes;
 mod sending;
 mod session;
 mod submit;
@@ -165,6 +166,8 @@ pub(crate) struct Inner {
     pub(crate) fo: Option<failover::Failover>,
     /// The servers' loads and this client's choice of a server (PROTOCOL.md 11.3).
     pub(crate) placement: placement::Placement,
+    /// 1.7: the scenes' owners and last requests (a scene kept on one server, founded again by its owner).
+    pub(crate) scenes: scenes::SceneBook,
     /// `ClientOptions::server_id` was given: every submission goes there.
     pub(crate) server_given: bool,
     stats_sub: Mutex<Option<Subscriber<()>>>,
@@ -291,6 +294,7 @@ impl Client {
             timeout: opts.timeout,
             fo: opts.failover.then(|| failover::Failover::new(opts.stall_timeout, opts.failover_give_up)),
             placement,
+            scenes: scenes::SceneBook::default(),
             server_given: opts.server_id.is_some(),
             stats_sub: Mutex::new(None),
             rid: AtomicU64::new(1),

@@ -178,11 +178,31 @@ impl Inner {
     }
 
     /// Submit a new cloth: to the given server (with failover: its replacement once it was
-    /// lost), else by placement, trying the next server on a refusal another may not give.
+    /// lost), else, for a cloth of a scene, where the scene is (`scenes`), else by placement,
+    /// trying the next server on a refusal another may not give.
     pub(crate) fn submit_placed(self: &Arc<Self>, c: &Arc<ClothInner>) -> Result<()> {
         if self.server_given {
-            return self.submit_to(c, &self.server_id()?);
+            let server = self.server_id()?;
+            self.submit_to(c, &server)?;
+            if let Some(scene) = &c.submit.scene {
+                self.learn_scene_owner(scene, &server);
+            }
+            return Ok(());
         }
+        if let Some(scene) = &c.submit.scene {
+            // 1.7: where the scene is (this client's cloths of it, else the live server holding it)
+            let placed = match self.scene_server(scene, c.handle).or_else(|| self.locate_scene(scene)) {
+                Some(server) => self.submit_to(c, &server).map(|_| server),
+                None => self.submit_by_load(c).map(|_| c.slot.lock().unwrap().server.clone()),
+            }?;
+            self.learn_scene_owner(scene, &placed);
+            return Ok(());
+        }
+        self.submit_by_load(c)
+    }
+
+    /// By placement, trying the next server on a refusal another may not give.
+    fn submit_by_load(self: &Arc<Self>, c: &Arc<ClothInner>) -> Result<()> {
         let mut tried = HashSet::new();
         let mut last: Option<Error> = None;
         loop {

@@ -45,7 +45,14 @@
  *                bucket heads cleared for the next step
  * That round (ic_bounds to ic_finish: the candidates found at the round's start positions, then
  * INTER_COLLISION_PASSES / INTER_COLLISION_ROUNDS passes, 2) runs INTER_COLLISION_ROUNDS (4) times
- * a step, so that a pair the passes bring together from beyond the reach is seen in the next round:
+ * a step, so that a pair the passes bring together from beyond the reach is seen in the next round.
+ * The first round's ic_find also keeps each vertex's skin list (within the reach plus 2 sk, sk =
+ * INTER_COLLISION_SKIN dmax: the cells are 2 (IC_REACH dmax + 2 sk) wide) and its positions (xs1);
+ * a later round's ic_insert marks the vertices that moved further than sk since (mv, also those
+ * without a full skin list) and hashes them again apart (heads2), and ic_refind gives each vertex
+ * the same candidates as a walk would: a moved one walks the hash, another keeps the unmoved
+ * vertices of its skin list now within the reach and walks the moved ones' hash (a pair whose two
+ * ends moved less than sk was within the reach plus 2 sk at the first round):
  * 24 launches a step whatever the number of scenes and cloths, their arguments set once
  * (ic_clear: every bucket head -1, once when the tables are rebuilt).
  */
@@ -133,7 +140,9 @@ inline int ic_bucket(int3 c, int scene, uint mask)
 
 __kernel void ic_insert(__global const float4 *pos, __global const int *vidx, __global const int *vcl,
                         __global const int8 *cinfo, __global const int *active, __global int *heads,
-                        __global int *next, __global float4 *xs0, int nv, float inv, uint mask)
+                        __global int *next, __global float4 *xs0, int nv, float inv, uint mask,
+                        __global const int *cnt1, __global const float4 *xs1, __global int *mv, __global int *heads2,
+                        __global int *next2, float sk, int later)
 {
     const int t = get_global_id(0);
     if (t >= nv)
@@ -141,10 +150,21 @@ __kernel void ic_insert(__global const float4 *pos, __global const int *vidx, __
     const int k = vcl[t];
     const float4 x = pos[vidx[t]];
     xs0[t] = x;
-    if (!active[k])
+    if (!active[k]) {
+        if (later)
+            mv[t] = 2; /* takes no part: in no list */
         return;
+    }
     const int b = ic_bucket(convert_int3_sat_rtn(x.xyz * inv), cinfo[k].s2, mask);
     next[t] = atomic_xchg(&heads[b], t);
+    if (later) { /* moved further than sk since the first round, or without a full skin list */
+        const int c1 = cnt1[t];
+        const float3 d = x.xyz - xs1[t].xyz;
+        const int m = c1 < 0 || c1 > IC_LIST || !(dot(d, d) <= sk * sk);
+        mv[t] = m;
+        if (m)
+            next2[t] = atomic_xchg(&heads2[b], t);
+    }
 }
 
 /* x moved by corr, back out of cloth k's colliders at their end pose (cslot[k] < 0: none) */
@@ -183,20 +203,24 @@ inline float3 ic_push(float4 x, int k, float2 pk, float4 xu, int ku, float2 pu)
     return n * (st * (d - dist) * w / (w + wu));
 }
 
-/* Walks the hash's 2 x 2 x 2 cells around vertex t's start position x0: with list != 0 lists its
- * candidates (count returned, IC_LIST at most stored, every nv-th int: candidate i of every vertex
- * side by side, so that a pass's work-items read them coalesced) and sums their contacts at the
- * start positions (the first pass's: the same candidates in the same order as a pass over the
- * list), else sums its contacts at x. */
+/* Walks the hash (heads, next: entries at xs0) in the 2 x 2 x 2 cells around vertex t's start
+ * position x0: with list != 0 lists its candidates after the count it is given (count returned,
+ * IC_LIST at most stored, every nv-th int: candidate i of every vertex side by side, so that a
+ * pass's work-items read them coalesced) and sums their contacts at the start positions (the first
+ * pass's: the same candidates in the same order as a pass over the list), else sums its contacts
+ * at x. With skin != 0 it also lists into skin (nskin) the vertices within the reach plus 2 sk:
+ * the round's list that the later rounds filter (ic_refind). */
 inline int ic_walk(int t, int k, int8 ci, float2 pk, float4 x0, __global const float4 *xs0,
                    __global const int *vcl, __global const int8 *cinfo, __global const float2 *cpar,
-                   __global const int *heads, __global const int *next, float inv, uint mask,
-                   __global int *list, int nv, __global const float4 *x, float3 *corr)
+                   __global const int *heads, __global const int *next, float inv, uint mask, float dmax,
+                   __global int *list, int count, __global int *skin, int *nskin, float sk, int nv,
+                   __global const float4 *x, float3 *corr)
 {
     const int3 c0 = convert_int3_sat_rtn(x0.xyz * inv - 0.5f);
-    const float rmax = 0.5f * (IC_REACH * pk.x + 0.5f / inv) * 1.0001f; /* >= its every pair's reach */
+    const float sk2 = skin ? 2.0f * sk : 0.0f;
+    const float rmax = (0.5f * IC_REACH * (pk.x + dmax) + sk2) * 1.0001f; /* >= its every pair's reach */
     int seen[8];
-    int nseen = 0, count = 0;
+    int nseen = 0;
     for (int dz = 0; dz < 2; ++dz)
         for (int dy = 0; dy < 2; ++dy)
             for (int dx = 0; dx < 2; ++dx) {
@@ -218,6 +242,11 @@ inline int ic_walk(int t, int k, int8 ci, float2 pk, float4 x0, __global const f
                     const int ku = vcl[u];
                     const float2 pu = cpar[ku];
                     const float r = IC_REACH * 0.5f * (pk.x + pu.x);
+                    if (skin && dd < (r + sk2) * (r + sk2)) {
+                        if (*nskin < IC_LIST)
+                            skin[(long)*nskin * nv] = u;
+                        ++*nskin;
+                    }
                     if (!(dd < r * r))
                         continue;
                     if (list) {
@@ -233,22 +262,80 @@ inline int ic_walk(int t, int k, int8 ci, float2 pk, float4 x0, __global const f
     return count;
 }
 
+/* The step's first round: the candidates as above, the skin list (within the reach plus 2 sk, nbr1,
+ * cnt1: -1 for a vertex of a cloth that takes no part) and the round's start positions (xs1) kept
+ * for the later rounds. */
 __kernel void ic_find(__global const float4 *xs0, __global const int *vcl, __global const int8 *cinfo,
                       __global const float2 *cpar, __global const int *active, __global const int *heads,
                       __global const int *next, __global int *nbr, __global int *count, __global float4 *xout,
                       __global const int *cslot, __global const int *ci, __global const float4 *coll, int nv,
-                      float inv, uint mask)
+                      float inv, uint mask, float dmax, __global int *nbr1, __global int *cnt1,
+                      __global float4 *xs1, float sk)
 {
     const int t = get_global_id(0);
     if (t >= nv)
         return;
     const int k = vcl[t];
     const float4 x0 = xs0[t];
-    int c = 0;
+    int c = 0, c1 = 0;
     float3 corr = (float3)(0.0f);
-    if (active[k] && x0.w > 0.0f)
-        c = ic_walk(t, k, cinfo[k], cpar[k], x0, xs0, vcl, cinfo, cpar, heads, next, inv, mask, nbr + t, nv, xs0,
-                    &corr);
+    const int act = active[k];
+    if (act && x0.w > 0.0f)
+        c = ic_walk(t, k, cinfo[k], cpar[k], x0, xs0, vcl, cinfo, cpar, heads, next, inv, mask, dmax, nbr + t, 0,
+                    nbr1 + t, &c1, sk, nv, xs0, &corr);
+    count[t] = c;
+    cnt1[t] = act ? c1 : -1;
+    xs1[t] = x0;
+    xout[t] = (float4)(ic_keep_out(x0.xyz, corr, k, cslot, ci, coll), x0.w);
+}
+
+/* A later round's candidates, the same as ic_find's at the round's start positions: a vertex that
+ * moved (mv 1: further than sk since the first round, or without a full skin list) walks the
+ * hash; one that did not (mv 0) keeps those of its skin list that did not move either and are now
+ * within the reach (a pair of two such ends was within the reach plus 2 sk at the first round),
+ * then walks the hash of the moved vertices alone (heads2, next2) for the others. */
+__kernel void ic_refind(__global const float4 *xs0, __global const int *vcl, __global const int8 *cinfo,
+                        __global const float2 *cpar, __global const int *active, __global const int *heads,
+                        __global const int *next, __global int *nbr, __global int *count, __global float4 *xout,
+                        __global const int *cslot, __global const int *ci, __global const float4 *coll, int nv,
+                        float inv, uint mask, float dmax, __global const int *nbr1, __global const int *cnt1,
+                        __global const int *mv, __global const int *heads2, __global const int *next2)
+{
+    const int t = get_global_id(0);
+    if (t >= nv)
+        return;
+    const int k = vcl[t];
+    const float4 x0 = xs0[t];
+    int c = 0, none = 0;
+    float3 corr = (float3)(0.0f);
+    if (active[k] && x0.w > 0.0f) {
+        const int8 cik = cinfo[k];
+        const float2 pk = cpar[k];
+        if (mv[t]) {
+            c = ic_walk(t, k, cik, pk, x0, xs0, vcl, cinfo, cpar, heads, next, inv, mask, dmax, nbr + t, 0, 0, &none,
+                        0.0f, nv, xs0, &corr);
+        } else {
+            const int c1 = cnt1[t];
+            for (int i = 0; i < c1; ++i) {
+                const int u = nbr1[(long)i * nv + t];
+                if (mv[u])
+                    continue;
+                const float4 xu = xs0[u];
+                const float3 df = x0.xyz - xu.xyz;
+                const int ku = vcl[u];
+                const float2 pu = cpar[ku];
+                const float r = IC_REACH * 0.5f * (pk.x + pu.x);
+                if (!(dot(df, df) < r * r))
+                    continue;
+                if (c < IC_LIST)
+                    nbr[(long)c * nv + t] = u;
+                ++c;
+                corr += ic_push(x0, k, pk, xu, ku, pu);
+            }
+            c = ic_walk(t, k, cik, pk, x0, xs0, vcl, cinfo, cpar, heads2, next2, inv, mask, dmax, nbr + t, c, 0,
+                        &none, 0.0f, nv, xs0, &corr);
+        }
+    }
     count[t] = c;
     xout[t] = (float4)(ic_keep_out(x0.xyz, corr, k, cslot, ci, coll), x0.w);
 }
@@ -257,7 +344,7 @@ __kernel void ic_pass(__global const float4 *xs0, __global const float4 *xin, __
                       __global const int *vcl, __global const int8 *cinfo, __global const float2 *cpar,
                       __global const int *heads, __global const int *next, __global const int *nbr,
                       __global const int *count, __global const int *cslot, __global const int *ci,
-                      __global const float4 *coll, int nv, float inv, uint mask)
+                      __global const float4 *coll, int nv, float inv, uint mask, float dmax)
 {
     const int t = get_global_id(0);
     if (t >= nv)
@@ -270,8 +357,8 @@ __kernel void ic_pass(__global const float4 *xs0, __global const float4 *xin, __
         const float2 pk = cpar[k];
         if (c <= IC_LIST) {
             /* a candidate further than the contact distance with the World's largest thickness
-             * (dmax = 0.5 / (inv IC_REACH)) is passed without reading its cloth */
-            const float far = 0.5f * (pk.x + 0.5f / (inv * IC_REACH)) * 1.0001f;
+             * (dmax) is passed without reading its cloth */
+            const float far = 0.5f * (pk.x + dmax) * 1.0001f;
             for (int i = 0; i < c; ++i) {
                 const int u = nbr[(long)i * nv + t];
                 const float4 xu = xin[u];
@@ -282,19 +369,23 @@ __kernel void ic_pass(__global const float4 *xs0, __global const float4 *xin, __
                 }
             }
         } else {
-            ic_walk(t, k, cinfo[k], pk, xs0[t], xs0, vcl, cinfo, cpar, heads, next, inv, mask, 0, nv, xin, &corr);
+            int none = 0;
+            ic_walk(t, k, cinfo[k], pk, xs0[t], xs0, vcl, cinfo, cpar, heads, next, inv, mask, dmax, 0, 0, 0, &none,
+                    0.0f, nv, xin, &corr);
         }
     }
     xout[t] = (float4)(ic_keep_out(x.xyz, corr, k, cslot, ci, coll), x.w);
 }
 
 __kernel void ic_finish(__global float4 *pos, __global float4 *vel, __global const int *vidx,
-                        __global const float4 *xs0, __global const float4 *x, __global int *heads, int nv, int nb,
-                        float inv_dt)
+                        __global const float4 *xs0, __global const float4 *x, __global int *heads, __global int *heads2,
+                        int nv, int nb, float inv_dt)
 {
     const int t = get_global_id(0);
-    for (int b = t; b < nb; b += nv)
+    for (int b = t; b < nb; b += nv) {
         heads[b] = -1;
+        heads2[b] = -1;
+    }
     if (t >= nv)
         return;
     const float3 d = x[t].xyz - xs0[t].xyz;

@@ -59,6 +59,12 @@ INTER_COLLISION_REACH = 1.3
 #: (-DIC_ROUNDS): a pair the passes bring together from further than the reach is seen in the next
 #: round (a pile landing: its second cloth pushed back out of the bottom one into the third's way).
 INTER_COLLISION_ROUNDS = 4
+#: The device's later rounds (kernels/intercollide.cl): the first round also lists each vertex's
+#: pairs within the reach plus twice this many of the World's largest contact distances (its skin
+#: list); a later round walks the hash again only around the vertices that moved further than that
+#: since the first round, the others keep their skin list's pairs now within the reach (the same
+#: candidates as a walk: this reference finds them again by brute force).
+INTER_COLLISION_SKIN = 0.1
 #: Shock propagation (-DIC_SHOCK): where a contact's direction is within this cosine of +y, the
 #: lower end yields less, and not at all straight below (its inverse mass scaled by ``shock``),
 #: so a pile's weight is carried down to what its bottom rests on instead of sinking through it.

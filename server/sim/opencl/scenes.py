@@ -55,7 +55,7 @@ class SceneCollision(WorldPhase):
     SOURCE, KERNELS = SOURCE, KERNELS  # the module's names, the phase's program
     # ic_pass from xa into xb and from xb into xa, ic_insert of the first round and of the later
     # ones, each with its arguments set once
-    ALIASES = {"ic_pass_ba": "ic_pass", "ic_insert_later": "ic_insert"}
+    ALIASES = {"ic_pass_ba": "ic_pass", "ic_insert_later": "ic_insert", "ic_rewalk": "ic_refind"}
 
     def __init__(
         self,
@@ -83,12 +83,12 @@ class SceneCollision(WorldPhase):
         self._xb = DevArray(dev, np.float32, 4)
         self._heads = DevArray(dev, np.int32, 1)
         # the later rounds': the first round's skin lists and positions, which vertex moved, their hash
-        self._nbr1 = DevArray(dev, np.int32, IC_LIST)
-        self._cnt1 = DevArray(dev, np.int32, 1)
         self._xs1 = DevArray(dev, np.float32, 4)
         self._mv = DevArray(dev, np.int32, 1)
-        self._next2 = DevArray(dev, np.int32, 1)
-        self._heads2 = DevArray(dev, np.int32, 1)
+        self._xnbr = DevArray(dev, np.int32, IC_LIST)  # an unmoved vertex's moved candidates
+        self._xcount = DevArray(dev, np.int32, 1)
+        self._moved = DevArray(dev, np.int32, 1)  # the vertices that moved, then their number
+        self._nmoved = DevArray(dev, np.int32, 1)
         self._nb = 64
         self._inv = 1.0
         self._dmax = 0.0
@@ -146,23 +146,21 @@ class SceneCollision(WorldPhase):
                 arr.resize(_pow2_at_least(len(host)))
             arr.write(0, host)
         per_vertex: tuple[DevArray, ...] = (self._next, self._count, self._nbr, self._xs0, self._xa, self._xb)
-        per_vertex += (self._nbr1, self._cnt1, self._xs1, self._mv, self._next2)  # the later rounds'
+        per_vertex += (self._xs1, self._mv, self._moved, self._xnbr, self._xcount)  # the later rounds'
 
         for arr, n in ((self._box, self.n_cloths), (self._active, self.n_cloths), *((a, nv) for a in per_vertex)):
             if arr.capacity < n:
                 arr.resize(_pow2_at_least(n))
         self._nb = _pow2_at_least(2 * nv)
-        for heads in (self._heads, self._heads2):
-            if heads.capacity < self._nb:
-                heads.resize(self._nb)
+        if self._heads.capacity < self._nb:
+            self._heads.resize(self._nb)
         self._dmax = dmax = float(np.max(np.asarray(cpar)[:, 0]))
-        # cells of twice the largest reach plus 2 skins: a walk of 2 x 2 x 2 of them sees the skin lists'
-        reach = dmax * (INTER_COLLISION_REACH + 2 * INTER_COLLISION_SKIN)
-        self._inv = 0.5 / reach if dmax > 0 else 0.0
+        self._inv = 0.5 / (dmax * INTER_COLLISION_REACH) if dmax > 0 else 0.0
+        self._nmoved.write(0, np.zeros(1, np.int32))  # then ic_finish sets it back to 0
+        self._xcount.write(0, np.zeros(nv, np.int32))  # then ic_refind sets them back to 0
         if self._inv > 0.0:  # every head -1 before the first step's inserts (then ic_finish clears them)
             clear = self.kernels()["ic_clear"]
-            for heads in (self._heads, self._heads2):
-                clear(self.dev.queue, (self._nb,), None, heads.buf, np.int32(self._nb))
+            clear(self.dev.queue, (self._nb,), None, self._heads.buf, np.int32(self._nb))
 
     def _bind(self, dt: float) -> None:
         """The kernels' arguments, set once per table rebuild or buffer growth, and the launches."""
@@ -175,42 +173,41 @@ class SceneCollision(WorldPhase):
         vidx, vcl, cinfo, cpar = self._vidx.buf, self._vcl.buf, self._cinfo.buf, self._cpar.buf
         box, active, heads, nxt = self._box.buf, self._active.buf, self._heads.buf, self._next.buf
         nbr, count, xs0, xa, xb = self._nbr.buf, self._count.buf, self._xs0.buf, self._xa.buf, self._xb.buf
-        nbr1, cnt1, xs1, mv = self._nbr1.buf, self._cnt1.buf, self._xs1.buf, self._mv.buf
-        heads2, nxt2 = self._heads2.buf, self._next2.buf
+        xs1, mv, moved, nmoved = self._xs1.buf, self._mv.buf, self._moved.buf, self._nmoved.buf
         k["ic_bounds"].set_args(pos, cinfo, cpar, box)
         k["ic_active"].set_args(cinfo, box, active, ncl)
-        insert = (pos, vidx, vcl, cinfo, active, heads, nxt, xs0, nv, inv, mask, cnt1, xs1, mv, heads2, nxt2, sk)
-        k["ic_insert"].set_args(*insert, np.int32(0))
-        k["ic_insert_later"].set_args(*insert, np.int32(1))
-        find = (
-            xs0,
+        insert = (
+            pos,
+            vidx,
             vcl,
             cinfo,
-            cpar,
             active,
             heads,
             nxt,
-            nbr,
-            count,
-            xb,
-            cslot,
-            ci,
-            coll,
+            xs0,
             nv,
             inv,
             mask,
-            dmax,
-            nbr1,
-            cnt1,
+            count,
+            xs1,
+            mv,
+            moved,
+            nmoved,
+            sk,
         )
-        k["ic_find"].set_args(*find, xs1, sk)
-        k["ic_refind"].set_args(*find, mv, heads2, nxt2)
+        k["ic_insert"].set_args(*insert, np.int32(0))
+        k["ic_insert_later"].set_args(*insert, np.int32(1))
+        find = (xs0, vcl, cinfo, cpar, active, heads, nxt, nbr, count, xb, cslot, ci, coll, nv, inv, mask, dmax, xs1)
+        k["ic_find"].set_args(*find)
+        xnbr, xcount = self._xnbr.buf, self._xcount.buf
+        k["ic_refind"].set_args(*find, mv, xnbr, xcount, moved, nmoved, np.int32(0))
+        k["ic_rewalk"].set_args(*find, mv, xnbr, xcount, moved, nmoved, np.int32(1))
         pass_args = (vcl, cinfo, cpar, heads, nxt, nbr, count, cslot, ci, coll, nv, inv, mask, dmax)
         k["ic_pass"].set_args(xs0, xa, xb, *pass_args)
         k["ic_pass_ba"].set_args(xs0, xb, xa, *pass_args)
         passes = INTER_COLLISION_PASSES // INTER_COLLISION_ROUNDS  # each round's
         last = xa if passes % 2 == 0 else xb
-        k["ic_finish"].set_args(pos, vel, vidx, xs0, last, heads, heads2, nv, nb, np.float32(1.0 / dt))
+        k["ic_finish"].set_args(pos, vel, vidx, xs0, last, heads, nmoved, nv, nb, np.float32(1.0 / dt))
         self._dt = dt
         per_vertex = (self.n_vertices,)
 
@@ -219,6 +216,7 @@ class SceneCollision(WorldPhase):
                 (k["ic_bounds"], (self.n_cloths * self.ls,), (self.ls,)),
                 (k["ic_active"], (self.n_cloths,), None),
                 (k["ic_insert_later" if later else "ic_insert"], per_vertex, None),
+                *([(k["ic_rewalk"], per_vertex, None)] if later else []),
                 (k["ic_refind" if later else "ic_find"], per_vertex, None),
                 # ic_find ran the first pass (into xb); then xb into xa, xa into xb, ...
                 *((k["ic_pass" if p % 2 == 0 else "ic_pass_ba"], per_vertex, None) for p in range(1, passes)),

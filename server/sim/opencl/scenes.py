@@ -4,8 +4,9 @@ on the device by kernels/intercollide.cl (the broad phase over the cloths' boxes
 keyed by scene over every vertex of the cloths whose box meets another of their scene, each
 vertex's candidates listed once a round, then the round's Jacobi passes over them, each
 putting the vertices it moved back out of their cloth's colliders; the later rounds of a step walk
-the hash again only for the vertices that moved further than INTER_COLLISION_SKIN since the
-first, the others filtering the first round's skin lists), the float64 twin being
+the hash again only for the vertices that moved further than INTER_COLLISION_SKIN since their
+list was found, the others keeping their list's unmoved entries and gaining the moved vertices
+that find them), the float64 twin being
 drape.server.sim.scenes.inter_collide.
 
 Nothing is built or launched while no scene holds two cloths: a World without scenes pays
@@ -13,9 +14,9 @@ nothing, and the solvers' programs keep their build options. The tables (which v
 which cloth, which scene, thickness and stiffness) are rebuilt on the host only when a cloth
 joins or leaves a scene or a scene cloth's material changes (``changed``), never per tick; the
 kernels' arguments are set then (and when the World's buffers grow), so a step is the same
-INTER_COLLISION_ROUNDS x (INTER_COLLISION_PASSES / INTER_COLLISION_ROUNDS + 4) launches (each
-round's candidates' walk runs its first pass) whatever the number of scenes and cloths, with no
-Python per scene or cloth.
+INTER_COLLISION_ROUNDS x (INTER_COLLISION_PASSES / INTER_COLLISION_ROUNDS + 4) launches and one
+ic_rewalk per later round (each round's candidates' find runs its first pass) whatever the
+number of scenes and cloths, with no Python per scene or cloth.
 """
 
 from __future__ import annotations

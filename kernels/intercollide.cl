@@ -45,8 +45,14 @@
  *                bucket heads cleared for the next step
  * That round (ic_bounds to ic_finish: the candidates found at the round's start positions, then
  * INTER_COLLISION_PASSES / INTER_COLLISION_ROUNDS passes, 2) runs INTER_COLLISION_ROUNDS (4) times
- * a step, so that a pair the passes bring together from beyond the reach is seen in the next round:
- * 24 launches a step whatever the number of scenes and cloths, their arguments set once
+ * a step, so that a pair the passes bring together from beyond the reach is seen in the next round.
+ * Only the first round walks the hash for every vertex (ic_find, which keeps where each vertex
+ * was, xs1). A later round's ic_insert marks the vertices that moved further than sk =
+ * INTER_COLLISION_SKIN dmax since their list was found (mv; also those without a full list) and
+ * lists them (moved, nmoved); ic_rewalk walks the hash for those alone and adds each to the extra
+ * list of the unmoved vertices it finds; ic_refind gives every unmoved vertex the unmoved entries
+ * of its list and its extra list (see ic_refind for why that misses no pair in contact):
+ * 27 launches a step (ic_rewalk in the 3 later rounds) whatever the number of scenes and cloths, their arguments set once
  * (ic_clear: every bucket head -1, once when the tables are rebuilt).
  */
 
@@ -133,7 +139,9 @@ inline int ic_bucket(int3 c, int scene, uint mask)
 
 __kernel void ic_insert(__global const float4 *pos, __global const int *vidx, __global const int *vcl,
                         __global const int8 *cinfo, __global const int *active, __global int *heads,
-                        __global int *next, __global float4 *xs0, int nv, float inv, uint mask)
+                        __global int *next, __global float4 *xs0, int nv, float inv, uint mask,
+                        __global const int *count, __global const float4 *xs1, __global int *mv, __global int *moved,
+                        __global int *nmoved, float sk, int later)
 {
     const int t = get_global_id(0);
     if (t >= nv)
@@ -141,10 +149,21 @@ __kernel void ic_insert(__global const float4 *pos, __global const int *vidx, __
     const int k = vcl[t];
     const float4 x = pos[vidx[t]];
     xs0[t] = x;
-    if (!active[k])
+    if (!active[k]) {
+        if (later)
+            mv[t] = 2; /* takes no part: in no list */
         return;
+    }
     const int b = ic_bucket(convert_int3_sat_rtn(x.xyz * inv), cinfo[k].s2, mask);
     next[t] = atomic_xchg(&heads[b], t);
+    if (later) { /* moved further than sk since its list was found, or without a full list */
+        const int c = count[t];
+        const float3 d = x.xyz - xs1[t].xyz;
+        const int m = c < 0 || c > IC_LIST || !(dot(d, d) <= sk * sk);
+        mv[t] = m;
+        if (m)
+            moved[atomic_inc(nmoved)] = t; /* ic_rewalk's first work-items walk for them */
+    }
 }
 
 /* x moved by corr, back out of cloth k's colliders at their end pose (cslot[k] < 0: none) */
@@ -183,20 +202,22 @@ inline float3 ic_push(float4 x, int k, float2 pk, float4 xu, int ku, float2 pu)
     return n * (st * (d - dist) * w / (w + wu));
 }
 
-/* Walks the hash's 2 x 2 x 2 cells around vertex t's start position x0: with list != 0 lists its
- * candidates (count returned, IC_LIST at most stored, every nv-th int: candidate i of every vertex
- * side by side, so that a pass's work-items read them coalesced) and sums their contacts at the
- * start positions (the first pass's: the same candidates in the same order as a pass over the
- * list), else sums its contacts at x. */
+/* Walks the hash (heads, next: entries at xs0) in the 2 x 2 x 2 cells around vertex t's start
+ * position x0: with list != 0 lists its candidates after the count it is given (count returned,
+ * IC_LIST at most stored, every nv-th int: candidate i of every vertex side by side, so that a
+ * pass's work-items read them coalesced) and sums their contacts at the start positions (the first
+ * pass's: the same candidates in the same order as a pass over the list), else sums its contacts
+ * at x. */
 inline int ic_walk(int t, int k, int8 ci, float2 pk, float4 x0, __global const float4 *xs0,
                    __global const int *vcl, __global const int8 *cinfo, __global const float2 *cpar,
-                   __global const int *heads, __global const int *next, float inv, uint mask,
-                   __global int *list, int nv, __global const float4 *x, float3 *corr)
+                   __global const int *heads, __global const int *next, float inv, uint mask, float dmax,
+                   __global int *list, int count, int nv, __global const float4 *x, float3 *corr,
+                   __global const int *mv, __global int *xnbr, __global int *xcount)
 {
     const int3 c0 = convert_int3_sat_rtn(x0.xyz * inv - 0.5f);
-    const float rmax = 0.5f * (IC_REACH * pk.x + 0.5f / inv) * 1.0001f; /* >= its every pair's reach */
+    const float rmax = 0.5f * IC_REACH * (pk.x + dmax) * 1.0001f; /* >= its every pair's reach */
     int seen[8];
-    int nseen = 0, count = 0;
+    int nseen = 0;
     for (int dz = 0; dz < 2; ++dz)
         for (int dy = 0; dy < 2; ++dy)
             for (int dx = 0; dx < 2; ++dx) {
@@ -225,6 +246,11 @@ inline int ic_walk(int t, int k, int8 ci, float2 pk, float4 x0, __global const f
                             list[(long)count * nv] = u;
                         ++count;
                         *corr += ic_push(x0, k, pk, xu, ku, pu); /* the first pass's, at the start */
+                        if (xcount && mv[u] == 0) { /* a moved vertex: the unmoved one's list gets t */
+                            const int s = atomic_inc(&xcount[u]);
+                            if (s < IC_LIST)
+                                xnbr[(long)s * nv + u] = t;
+                        }
                     } else {
                         *corr += ic_push(x[t], k, pk, x[u], ku, pu);
                     }
@@ -233,11 +259,13 @@ inline int ic_walk(int t, int k, int8 ci, float2 pk, float4 x0, __global const f
     return count;
 }
 
+/* The step's first round: every free vertex of an active cloth walks the hash (count -1: of a
+ * cloth that takes no part), its start position kept in xs1 (where its list was found). */
 __kernel void ic_find(__global const float4 *xs0, __global const int *vcl, __global const int8 *cinfo,
                       __global const float2 *cpar, __global const int *active, __global const int *heads,
                       __global const int *next, __global int *nbr, __global int *count, __global float4 *xout,
                       __global const int *cslot, __global const int *ci, __global const float4 *coll, int nv,
-                      float inv, uint mask)
+                      float inv, uint mask, float dmax, __global float4 *xs1)
 {
     const int t = get_global_id(0);
     if (t >= nv)
@@ -246,10 +274,85 @@ __kernel void ic_find(__global const float4 *xs0, __global const int *vcl, __glo
     const float4 x0 = xs0[t];
     int c = 0;
     float3 corr = (float3)(0.0f);
-    if (active[k] && x0.w > 0.0f)
-        c = ic_walk(t, k, cinfo[k], cpar[k], x0, xs0, vcl, cinfo, cpar, heads, next, inv, mask, nbr + t, nv, xs0,
-                    &corr);
-    count[t] = c;
+    const int act = active[k];
+    if (act && x0.w > 0.0f)
+        c = ic_walk(t, k, cinfo[k], cpar[k], x0, xs0, vcl, cinfo, cpar, heads, next, inv, mask, dmax, nbr + t, 0, nv,
+                    xs0, &corr, 0, 0, 0);
+    count[t] = act ? c : -1;
+    xs1[t] = x0;
+    xout[t] = (float4)(ic_keep_out(x0.xyz, corr, k, cslot, ci, coll), x0.w);
+}
+
+/* A later round's candidates. A vertex that moved (mv 1: further than sk since its list was found,
+ * or without a full list) walks the hash (part 1: the i-th that moved, side by side, so that the
+ * few walks do not hold up the other work-items), lists what it finds and adds itself to the extra
+ * list (xnbr, xcount) of each unmoved one it finds; one that did not move (part 0, after) keeps the
+ * entries of its list that did not move either and adds its extra list (or walks the hash, where
+ * that overflowed). A pair is so listed by both ends or by neither, and one listed by neither was
+ * further than the reach when either end last walked, the end that walked moving less than sk
+ * since and the other less than 2 sk: with sk 0.1 contact distances (the reach's margin, 0.3, over
+ * 3) it is not in contact at the round's start. */
+__kernel void ic_refind(__global const float4 *xs0, __global const int *vcl, __global const int8 *cinfo,
+                        __global const float2 *cpar, __global const int *active, __global const int *heads,
+                        __global const int *next, __global int *nbr, __global int *count, __global float4 *xout,
+                        __global const int *cslot, __global const int *ci, __global const float4 *coll, int nv,
+                        float inv, uint mask, float dmax, __global float4 *xs1, __global const int *mv,
+                        __global int *xnbr, __global int *xcount, __global const int *moved,
+                        __global const int *nmoved, int part)
+{
+    const int i = get_global_id(0);
+    if (i >= nv)
+        return;
+    int t = i;
+    if (part == 1) {
+        if (i >= *nmoved)
+            return;
+        t = moved[i];
+    } else if (mv[t] == 1) {
+        return;
+    }
+    const int k = vcl[t];
+    const float4 x0 = xs0[t];
+    int c = 0;
+    float3 corr = (float3)(0.0f);
+    const int act = active[k];
+    if (act && x0.w > 0.0f) {
+        const int8 cik = cinfo[k];
+        const float2 pk = cpar[k];
+        const int xc = part == 1 ? 0 : xcount[t];
+        if (part == 1 || xc > IC_LIST) {
+            const int p1 = part == 1; /* an unmoved one walks where its extra list overflowed */
+            c = ic_walk(t, k, cik, pk, x0, xs0, vcl, cinfo, cpar, heads, next, inv, mask, dmax, nbr + t, 0, nv, xs0,
+                        &corr, mv, p1 ? xnbr : 0, p1 ? xcount : 0);
+            if (p1)
+                xs1[t] = x0;
+        } else {
+            const int c1 = count[t]; /* 0..IC_LIST: else it moved */
+            const float far = 0.5f * (pk.x + dmax) * 1.0001f;
+            for (int j = 0; j < c1 + xc; ++j) {
+                int u;
+                if (j < c1) {
+                    u = nbr[(long)j * nv + t];
+                    if (mv[u])
+                        continue; /* moved (in the extra list, if within the reach) or out */
+                } else {
+                    u = xnbr[(long)(j - c1) * nv + t];
+                }
+                if (c < IC_LIST)
+                    nbr[(long)c * nv + t] = u;
+                ++c;
+                const float4 xu = xs0[u];
+                const float3 df = x0.xyz - xu.xyz;
+                if (dot(df, df) < far * far) {
+                    const int ku = vcl[u];
+                    corr += ic_push(x0, k, pk, xu, ku, cpar[ku]);
+                }
+            }
+        }
+    }
+    if (part == 0)
+        xcount[t] = 0;
+    count[t] = act ? c : -1;
     xout[t] = (float4)(ic_keep_out(x0.xyz, corr, k, cslot, ci, coll), x0.w);
 }
 
@@ -257,7 +360,7 @@ __kernel void ic_pass(__global const float4 *xs0, __global const float4 *xin, __
                       __global const int *vcl, __global const int8 *cinfo, __global const float2 *cpar,
                       __global const int *heads, __global const int *next, __global const int *nbr,
                       __global const int *count, __global const int *cslot, __global const int *ci,
-                      __global const float4 *coll, int nv, float inv, uint mask)
+                      __global const float4 *coll, int nv, float inv, uint mask, float dmax)
 {
     const int t = get_global_id(0);
     if (t >= nv)
@@ -270,8 +373,8 @@ __kernel void ic_pass(__global const float4 *xs0, __global const float4 *xin, __
         const float2 pk = cpar[k];
         if (c <= IC_LIST) {
             /* a candidate further than the contact distance with the World's largest thickness
-             * (dmax = 0.5 / (inv IC_REACH)) is passed without reading its cloth */
-            const float far = 0.5f * (pk.x + 0.5f / (inv * IC_REACH)) * 1.0001f;
+             * (dmax) is passed without reading its cloth */
+            const float far = 0.5f * (pk.x + dmax) * 1.0001f;
             for (int i = 0; i < c; ++i) {
                 const int u = nbr[(long)i * nv + t];
                 const float4 xu = xin[u];
@@ -282,19 +385,22 @@ __kernel void ic_pass(__global const float4 *xs0, __global const float4 *xin, __
                 }
             }
         } else {
-            ic_walk(t, k, cinfo[k], pk, xs0[t], xs0, vcl, cinfo, cpar, heads, next, inv, mask, 0, nv, xin, &corr);
+            ic_walk(t, k, cinfo[k], pk, xs0[t], xs0, vcl, cinfo, cpar, heads, next, inv, mask, dmax, 0, 0, nv, xin,
+                    &corr, 0, 0, 0);
         }
     }
     xout[t] = (float4)(ic_keep_out(x.xyz, corr, k, cslot, ci, coll), x.w);
 }
 
 __kernel void ic_finish(__global float4 *pos, __global float4 *vel, __global const int *vidx,
-                        __global const float4 *xs0, __global const float4 *x, __global int *heads, int nv, int nb,
-                        float inv_dt)
+                        __global const float4 *xs0, __global const float4 *x, __global int *heads, __global int *nmoved,
+                        int nv, int nb, float inv_dt)
 {
     const int t = get_global_id(0);
     for (int b = t; b < nb; b += nv)
         heads[b] = -1;
+    if (t == 0)
+        *nmoved = 0;
     if (t >= nv)
         return;
     const float3 d = x[t].xyz - xs0[t].xyz;

@@ -59,6 +59,13 @@ INTER_COLLISION_REACH = 1.3
 #: (-DIC_ROUNDS): a pair the passes bring together from further than the reach is seen in the next
 #: round (a pile landing: its second cloth pushed back out of the bottom one into the third's way).
 INTER_COLLISION_ROUNDS = 4
+#: The device's later rounds (kernels/intercollide.cl): only the vertices that moved further than
+#: this many of the World's largest contact distances since their candidates were found walk the
+#: hash again; the others keep their unmoved candidates and gain the moved ones that find them. A
+#: pair missed so was further than the reach when last found, its ends moving less than 3 x this
+#: since (the reach's margin, 0.3): not in contact at the round's start. This reference keeps the
+#: full find each round.
+INTER_COLLISION_SKIN = 0.1
 #: Shock propagation (-DIC_SHOCK): where a contact's direction is within this cosine of +y, the
 #: lower end yields less, and not at all straight below (its inverse mass scaled by ``shock``),
 #: so a pile's weight is carried down to what its bottom rests on instead of sinking through it.

@@ -8,7 +8,8 @@ collision kernels timed by their OpenCL events, and the candidates they found.
 Each row: a kernel of kernels/intercollide.cl, its median device milliseconds a frame (its
 launches summed), its share of the scenes' time and its fastest frame (on a shared CPU the least
 disturbed: compare builds by it, in interleaved runs); then the scenes' total, the mean
-candidates of a scene vertex and the share of scene vertices with any. On a CPU this steers the
+candidates of a scene vertex, the share of scene vertices with any and the share that walked the
+hash again in the step's last round (the others kept their first round's skin list). On a CPU this steers the
 GPU's work (which kernels to cut, by how much), never its ratio: the solver itself runs several
 times slower here.
 """
@@ -36,14 +37,14 @@ class _Recorder:
     """pyopencl as the scenes' part sees it, each launch's event kept (a tool's probe)."""
 
     def __init__(self) -> None:
-        self.events: list[tuple[str, cl.Event]] = []
+        self.events: list[tuple[cl.Kernel, cl.Event]] = []
 
     def __getattr__(self, name: str) -> object:
         return getattr(cl, name)
 
     def enqueue_nd_range_kernel(self, queue, kernel, gsize, lsize):  # type: ignore[no-untyped-def]
         ev = cl.enqueue_nd_range_kernel(queue, kernel, gsize, lsize)
-        self.events.append((kernel.function_name, ev))
+        self.events.append((kernel, ev))
         return ev
 
 
@@ -102,6 +103,8 @@ def profile(scenes: int, per_scene: int, frames: int, device: str | None = None)
         for _ in range(2):
             w.step(DT)
         w.sync()
+        # each launch by its name in the phase (an alias apart from its kernel function)
+        names = {id(k): name for name, k in w.scene_collision.kernels().items()}  # type: ignore[attr-defined]
         per: dict[str, list[float]] = defaultdict(list)
         total: list[float] = []
         for _ in range(frames):
@@ -109,8 +112,8 @@ def profile(scenes: int, per_scene: int, frames: int, device: str | None = None)
             w.step(DT)
             w.sync()
             frame: dict[str, float] = defaultdict(float)
-            for name, ev in rec.events:
-                frame[name] += _ms(ev)
+            for kern, ev in rec.events:
+                frame[names.get(id(kern), kern.function_name)] += _ms(ev)
             for name, ms in frame.items():
                 per[name].append(ms)
             total.append(sum(frame.values()))
@@ -120,12 +123,15 @@ def profile(scenes: int, per_scene: int, frames: int, device: str | None = None)
     alone: dict[str, list[float]] = defaultdict(list)
     q, clear = w.dev.queue, sc.kernels()["ic_clear"]  # type: ignore[attr-defined]
     for _ in range(20):  # the hash built again and walked, then one pass: each alone, fastest of 20
-        cl.enqueue_nd_range_kernel(q, clear, (sc._nb,), None)
+        clear(q, (sc._nb,), None, sc._heads.buf, np.int32(sc._nb))
         evs = [(k.function_name, cl.enqueue_nd_range_kernel(q, k, g, ls)) for k, g, ls in sc._launches[:5]]
         w.sync()
         for name, ev in evs[3:]:
             alone[name].append(_ms(ev))
     count = sc._count.read(0, sc.n_vertices)[:, 0]
+    # the later rounds' walkers: the share of scene vertices that walked the whole hash in the last
+    # round (moved further than the skin since the first round), None before the skin lists
+    mv = sc._mv.read(0, sc.n_vertices)[:, 0] if hasattr(sc, "_mv") else None
     x0 = sc._xs0.read(0, sc.n_vertices)[:, :3].astype(np.float64)
     cloth = sc._vcl.read(0, sc.n_vertices)[:, 0]
     scene = cloth // per_scene
@@ -147,6 +153,7 @@ def profile(scenes: int, per_scene: int, frames: int, device: str | None = None)
         "scenes_min_ms": round(min(total), 4),
         "candidates_mean": round(float(count.mean()), 3),
         "with_candidates": round(float((count > 0).mean()), 4),
+        "moved_last_round": None if mv is None else round(float((mv == 1).mean()), 4),
         "entries_walked": work,
         "alone_min_ms": {k: round(min(v), 4) for k, v in alone.items()},
     }
@@ -174,6 +181,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  {k:<12} {ms:9.3f} ms  {ms / r['scenes_ms']:6.1%}  (min {r['kernels_min_ms'][k]:.3f})")
         print(f"  {'scenes':<12} {r['scenes_ms']:9.3f} ms          (min {r['scenes_min_ms']:.3f})")
         print(f"  candidates a vertex {r['candidates_mean']}, vertices with any {r['with_candidates']:.1%}")
+        print(f"  walking the hash again in the last round: {r['moved_last_round']}")
         print(f"  hash entries a vertex walks: {r['entries_walked']}")
         print(f"  alone, fastest of 20 launches: {r['alone_min_ms']}")
     if a.json:

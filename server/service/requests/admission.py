@@ -70,8 +70,11 @@ SCENE_VERTICES = 64 * 64  # the cost file's scene: hanging 64 x 64
 #: code before and after in turn: 5.2-6.4 -> 14.1-16.4 ms), so the CPU's price is 0.1 x 2.7,
 #: rounded up; the H100's is estimated from the counted device reads per scene vertex and step
 #: (440 in session 16's code, 225 after the cheaper walk, 610 with four walks: 0.52 x 610 / 440),
-#: not measured (no device time this session): docs/collision.md.
-SCENE_PASS_WORK: dict[str, float] = {"cpu": 0.3, "gpu": 0.75}
+#: not measured (no device time this session): docs/collision.md. Then the later rounds walked
+#: the hash only for the vertices that moved (branch h-scenerounds): the scenes' part of the CPU
+#: frame 14.0, 15.2 -> 10.8, 11.5 ms (`drape bench scenes --scenes 4,8`, before and after in turn,
+#: docs/results/scenerounds/), 0.76x: the CPU's 0.27 x 0.76 rounded up; the GPU's kept (not measured).
+SCENE_PASS_WORK: dict[str, float] = {"cpu": 0.25, "gpu": 0.75}
 #: 1.8: a cloth's own mesh collider's work per vertex of the cloth, a part per cloth vertex and a
 #: part per cloth vertex and triangle, in plain solves of that vertex: docs/collision.md's meshbench
 #: on this CPU (128 capes of 1,024 vertices, 23.6 us a cape's plain solve): 25 us a cape with the

@@ -2,18 +2,21 @@
 step, after every launch group's solve, the cloths of each scene are kept apart from each other
 on the device by kernels/intercollide.cl (the broad phase over the cloths' boxes, a spatial hash
 keyed by scene over every vertex of the cloths whose box meets another of their scene, each
-vertex's candidates listed once, then INTER_COLLISION_PASSES Jacobi passes over them, each
-putting the vertices it moved back out of their cloth's colliders), the
-float64 twin being drape.server.sim.scenes.inter_collide.
+vertex's candidates listed once a round, then the round's Jacobi passes over them, each
+putting the vertices it moved back out of their cloth's colliders; the later rounds of a step walk
+the hash again only for the vertices that moved further than INTER_COLLISION_SKIN since their
+list was found, the others keeping their list's unmoved entries and gaining the moved vertices
+that find them), the float64 twin being
+drape.server.sim.scenes.inter_collide.
 
 Nothing is built or launched while no scene holds two cloths: a World without scenes pays
 nothing, and the solvers' programs keep their build options. The tables (which vertex rows,
 which cloth, which scene, thickness and stiffness) are rebuilt on the host only when a cloth
 joins or leaves a scene or a scene cloth's material changes (``changed``), never per tick; the
 kernels' arguments are set then (and when the World's buffers grow), so a step is the same
-INTER_COLLISION_ROUNDS x (INTER_COLLISION_PASSES / INTER_COLLISION_ROUNDS + 4) launches (each
-round's candidates' walk runs its first pass) whatever the number of scenes and cloths, with no
-Python per scene or cloth.
+INTER_COLLISION_ROUNDS x (INTER_COLLISION_PASSES / INTER_COLLISION_ROUNDS + 4) launches and one
+ic_rewalk per later round (each round's candidates' find runs its first pass) whatever the
+number of scenes and cloths, with no Python per scene or cloth.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from ..scenes import (
     INTER_COLLISION_REACH,
     INTER_COLLISION_ROUNDS,
     INTER_COLLISION_SHOCK,
+    INTER_COLLISION_SKIN,
     Scene,
 )
 from ..world import Cloth
@@ -37,7 +41,7 @@ from .device import Device
 from .phase import WorldPhase
 
 SOURCE = "intercollide.cl"
-KERNELS = ("ic_bounds", "ic_active", "ic_clear", "ic_insert", "ic_find", "ic_pass", "ic_finish")
+KERNELS = ("ic_bounds", "ic_active", "ic_clear", "ic_insert", "ic_find", "ic_refind", "ic_pass", "ic_finish")
 #: Candidates listed per vertex (-DIC_LIST); a vertex with more walks the hash in every pass instead.
 IC_LIST = 16
 
@@ -50,7 +54,9 @@ class SceneCollision(WorldPhase):
     """Inter-cloth collision of a World's scenes, given the World's memory, slots, cloths and scenes."""
 
     SOURCE, KERNELS = SOURCE, KERNELS  # the module's names, the phase's program
-    ALIASES = {"ic_pass_ba": "ic_pass"}  # ic_pass from xa into xb and from xb into xa, each with its arguments set once
+    # ic_pass from xa into xb and from xb into xa, ic_insert of the first round and of the later
+    # ones, each with its arguments set once
+    ALIASES = {"ic_pass_ba": "ic_pass", "ic_insert_later": "ic_insert", "ic_rewalk": "ic_refind"}
 
     def __init__(
         self,
@@ -77,8 +83,16 @@ class SceneCollision(WorldPhase):
         self._xa = DevArray(dev, np.float32, 4)
         self._xb = DevArray(dev, np.float32, 4)
         self._heads = DevArray(dev, np.int32, 1)
+        # the later rounds': the first round's skin lists and positions, which vertex moved, their hash
+        self._xs1 = DevArray(dev, np.float32, 4)
+        self._mv = DevArray(dev, np.int32, 1)
+        self._xnbr = DevArray(dev, np.int32, IC_LIST)  # an unmoved vertex's moved candidates
+        self._xcount = DevArray(dev, np.int32, 1)
+        self._moved = DevArray(dev, np.int32, 1)  # the vertices that moved, then their number
+        self._nmoved = DevArray(dev, np.int32, 1)
         self._nb = 64
         self._inv = 1.0
+        self._dmax = 0.0
         self._bound: tuple[object, ...] | None = None  # the buffers the kernels' arguments were set for
         self._dt = 0.0
         self._launches: list[tuple[cl.Kernel, tuple[int], tuple[int] | None]] = []
@@ -132,15 +146,19 @@ class SceneCollision(WorldPhase):
             if arr.capacity < len(host):
                 arr.resize(_pow2_at_least(len(host)))
             arr.write(0, host)
-        per_vertex = (self._next, self._count, self._nbr, self._xs0, self._xa, self._xb)
+        per_vertex: tuple[DevArray, ...] = (self._next, self._count, self._nbr, self._xs0, self._xa, self._xb)
+        per_vertex += (self._xs1, self._mv, self._moved, self._xnbr, self._xcount)  # the later rounds'
+
         for arr, n in ((self._box, self.n_cloths), (self._active, self.n_cloths), *((a, nv) for a in per_vertex)):
             if arr.capacity < n:
                 arr.resize(_pow2_at_least(n))
         self._nb = _pow2_at_least(2 * nv)
         if self._heads.capacity < self._nb:
             self._heads.resize(self._nb)
-        dmax = float(np.max(np.asarray(cpar)[:, 0]))
+        self._dmax = dmax = float(np.max(np.asarray(cpar)[:, 0]))
         self._inv = 0.5 / (dmax * INTER_COLLISION_REACH) if dmax > 0 else 0.0
+        self._nmoved.write(0, np.zeros(1, np.int32))  # then ic_finish sets it back to 0
+        self._xcount.write(0, np.zeros(nv, np.int32))  # then ic_refind sets them back to 0
         if self._inv > 0.0:  # every head -1 before the first step's inserts (then ic_finish clears them)
             clear = self.kernels()["ic_clear"]
             clear(self.dev.queue, (self._nb,), None, self._heads.buf, np.int32(self._nb))
@@ -152,30 +170,62 @@ class SceneCollision(WorldPhase):
         pos, vel, ci, coll, cslot = mem.pos.buf, mem.vel.buf, mem.ci.buf, mem.coll.buf, self._cslot.buf
         ncl, nv, nb = np.int32(self.n_cloths), np.int32(self.n_vertices), np.int32(self._nb)
         inv, mask = np.float32(self._inv), np.uint32(self._nb - 1)
+        dmax, sk = np.float32(self._dmax), np.float32(self._dmax * INTER_COLLISION_SKIN)
         vidx, vcl, cinfo, cpar = self._vidx.buf, self._vcl.buf, self._cinfo.buf, self._cpar.buf
         box, active, heads, nxt = self._box.buf, self._active.buf, self._heads.buf, self._next.buf
         nbr, count, xs0, xa, xb = self._nbr.buf, self._count.buf, self._xs0.buf, self._xa.buf, self._xb.buf
+        xs1, mv, moved, nmoved = self._xs1.buf, self._mv.buf, self._moved.buf, self._nmoved.buf
         k["ic_bounds"].set_args(pos, cinfo, cpar, box)
         k["ic_active"].set_args(cinfo, box, active, ncl)
-        k["ic_insert"].set_args(pos, vidx, vcl, cinfo, active, heads, nxt, xs0, nv, inv, mask)
-        k["ic_find"].set_args(xs0, vcl, cinfo, cpar, active, heads, nxt, nbr, count, xb, cslot, ci, coll, nv, inv, mask)
-        k["ic_pass"].set_args(xs0, xa, xb, vcl, cinfo, cpar, heads, nxt, nbr, count, cslot, ci, coll, nv, inv, mask)
-        k["ic_pass_ba"].set_args(xs0, xb, xa, vcl, cinfo, cpar, heads, nxt, nbr, count, cslot, ci, coll, nv, inv, mask)
+        insert = (
+            pos,
+            vidx,
+            vcl,
+            cinfo,
+            active,
+            heads,
+            nxt,
+            xs0,
+            nv,
+            inv,
+            mask,
+            count,
+            xs1,
+            mv,
+            moved,
+            nmoved,
+            sk,
+        )
+        k["ic_insert"].set_args(*insert, np.int32(0))
+        k["ic_insert_later"].set_args(*insert, np.int32(1))
+        find = (xs0, vcl, cinfo, cpar, active, heads, nxt, nbr, count, xb, cslot, ci, coll, nv, inv, mask, dmax, xs1)
+        k["ic_find"].set_args(*find)
+        xnbr, xcount = self._xnbr.buf, self._xcount.buf
+        k["ic_refind"].set_args(*find, mv, xnbr, xcount, moved, nmoved, np.int32(0))
+        k["ic_rewalk"].set_args(*find, mv, xnbr, xcount, moved, nmoved, np.int32(1))
+        pass_args = (vcl, cinfo, cpar, heads, nxt, nbr, count, cslot, ci, coll, nv, inv, mask, dmax)
+        k["ic_pass"].set_args(xs0, xa, xb, *pass_args)
+        k["ic_pass_ba"].set_args(xs0, xb, xa, *pass_args)
         passes = INTER_COLLISION_PASSES // INTER_COLLISION_ROUNDS  # each round's
         last = xa if passes % 2 == 0 else xb
-        k["ic_finish"].set_args(pos, vel, vidx, xs0, last, heads, nv, nb, np.float32(1.0 / dt))
+        k["ic_finish"].set_args(pos, vel, vidx, xs0, last, heads, nmoved, nv, nb, np.float32(1.0 / dt))
         self._dt = dt
         per_vertex = (self.n_vertices,)
-        one_round = [
-            (k["ic_bounds"], (self.n_cloths * self.ls,), (self.ls,)),
-            (k["ic_active"], (self.n_cloths,), None),
-            (k["ic_insert"], per_vertex, None),
-            (k["ic_find"], per_vertex, None),
-            # ic_find ran the first pass (into xb); then xb into xa, xa into xb, ...
-            *((k["ic_pass" if p % 2 == 0 else "ic_pass_ba"], per_vertex, None) for p in range(1, passes)),
-            (k["ic_finish"], per_vertex, None),
-        ]
-        self._launches = one_round * INTER_COLLISION_ROUNDS  # the candidates found again each round
+
+        def one_round(later: bool) -> list[tuple[cl.Kernel, tuple[int], tuple[int] | None]]:
+            return [
+                (k["ic_bounds"], (self.n_cloths * self.ls,), (self.ls,)),
+                (k["ic_active"], (self.n_cloths,), None),
+                (k["ic_insert_later" if later else "ic_insert"], per_vertex, None),
+                *([(k["ic_rewalk"], per_vertex, None)] if later else []),
+                (k["ic_refind" if later else "ic_find"], per_vertex, None),
+                # ic_find ran the first pass (into xb); then xb into xa, xa into xb, ...
+                *((k["ic_pass" if p % 2 == 0 else "ic_pass_ba"], per_vertex, None) for p in range(1, passes)),
+                (k["ic_finish"], per_vertex, None),
+            ]
+
+        # the candidates found again each round: by the later rounds from the first's skin lists
+        self._launches = one_round(False) + one_round(True) * (INTER_COLLISION_ROUNDS - 1)
         self._finish = k["ic_finish"]
         self._bound = (pos, vel, ci, coll)
 
@@ -192,7 +242,7 @@ class SceneCollision(WorldPhase):
             self._bind(dt)
         elif dt != self._dt:
             assert self._finish is not None
-            self._finish.set_arg(8, np.float32(1.0 / dt))
+            self._finish.set_arg(9, np.float32(1.0 / dt))
             self._dt = dt
         q = self.dev.queue
         for kernel, gsize, lsize in self._launches:

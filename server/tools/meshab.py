@@ -72,24 +72,7 @@ def mesh_ab(cloths: int, into: float, cell: float, rounds: int, old: str, push: 
         cl.enqueue_copy(q, mem.vel.buf, vel)
         q.finish()
         t0, c0 = time.perf_counter(), time.process_time()
-        for first, n in mc._layers:
-            k(
-                q,
-                (n * mc.ls,),
-                (mc.ls,),
-                mem.pos.buf,
-                mem.vel.buf,
-                mc._start.buf,
-                mc._att.buf,
-                mc._apar.buf,
-                mc._mtri.buf,
-                mc._mcell.buf,
-                mc._mlist.buf,
-                mc._minfo.buf,
-                mc._mgeom.buf,
-                np.float32(1.0 / DT),
-                np.int32(first),
-            )
+        mc.enqueue(DT, k)
         q.finish()
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         out = np.empty_like(pos)

@@ -14,6 +14,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 import numpy as np
+import pyopencl as cl
 
 from ..meshcolliders import MeshCollider, MeshColliders
 from ..meshes import (
@@ -179,26 +180,31 @@ class MeshCollision(WorldPhase):
         if self.n_attachments:
             if moved or self._poses_stale:
                 self._upload_poses()
-            k = self.kernels()["mc_collide"]
-            q, mem = self.dev.queue, self.mem
-            for first, n in self._layers:
-                k(
-                    q,
-                    (n * self.ls,),
-                    (self.ls,),
-                    mem.pos.buf,
-                    mem.vel.buf,
-                    self._start.buf,
-                    self._att.buf,
-                    self._apar.buf,
-                    self._mtri.buf,
-                    self._mcell.buf,
-                    self._mlist.buf,
-                    self._minfo.buf,
-                    self._mgeom.buf,
-                    np.float32(1.0 / dt),
-                    np.int32(first),
-                )
+            self.enqueue(dt)
         # a pose moved this step becomes the next step's start: the table changes once more
         self._poses_stale = moved
         self.meshes.stepped()
+
+    def enqueue(self, dt: float, kernel: cl.Kernel | None = None) -> None:
+        """``mc_collide`` over every layer of attachments, as uploaded; ``kernel``: another build
+        of it with the same arguments (meshab's A/B of two versions)."""
+        k = kernel if kernel is not None else self.kernels()["mc_collide"]
+        q, mem = self.dev.queue, self.mem
+        for first, n in self._layers:
+            k(
+                q,
+                (n * self.ls,),
+                (self.ls,),
+                mem.pos.buf,
+                mem.vel.buf,
+                self._start.buf,
+                self._att.buf,
+                self._apar.buf,
+                self._mtri.buf,
+                self._mcell.buf,
+                self._mlist.buf,
+                self._minfo.buf,
+                self._mgeom.buf,
+                np.float32(1.0 / dt),
+                np.int32(first),
+            )

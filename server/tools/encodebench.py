@@ -45,6 +45,7 @@ from drape.client import protocol as P
 
 from ..service.config import ServerConfig
 from ..service.process.memory import configure_heap
+from ..sim.opencl.buffers import map_pinned
 from ..sim.opencl.device import Device
 from ..sim.opencl.devstreams import DeviceStreams
 from ..sim.opencl.encode import ClothEntry, DeviceEncoder, FramePlan, Publication
@@ -111,16 +112,7 @@ class HostPath:
         self.dev, self.pos_buf, self.plan = dev, pos_buf, plan
         self.k, self.nv = len(plan.cloths), side * side
         # pinned host memory, as the world reads frames back into
-        self._pinned = cl.Buffer(dev.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.ALLOC_HOST_PTR, self.k * self.nv * 16)
-        self.host, _ = cl.enqueue_map_buffer(  # type: ignore[misc,type-var]
-            dev.queue,
-            self._pinned,
-            cl.map_flags.READ | cl.map_flags.WRITE,  # type: ignore[arg-type]
-            0,
-            (self.k * self.nv, 4),
-            np.float32,
-            is_blocking=True,
-        )
+        self._pinned, self.host = map_pinned(dev, (self.k * self.nv, 4), np.float32)
         self.offsets = np.arange(self.k + 1, dtype=np.int64) * self.nv
         self.encoder = FrameEncoder(streams=PredictiveStreams(keyframe_interval))
         self.ids = [c.cloth for c in plan.cloths]

@@ -96,6 +96,29 @@ class DevArray:
         return out
 
 
+def map_pinned(dev: Device, shape: int | tuple[int, ...], dtype: Any) -> tuple[cl.Buffer, np.ndarray]:
+    """A host array of ``shape`` and ``dtype`` in pinned memory: a buffer of ALLOC_HOST_PTR
+    memory mapped once for good (the array's base keeps the mapping). A driver may copy into
+    pageable memory synchronously; into this one a copy can stay non-blocking. Raises
+    cl.Error where the driver has no mappable host memory (the callers fall back to numpy)."""
+    dims = (shape,) if isinstance(shape, int) else tuple(shape)
+    buf = cl.Buffer(
+        dev.ctx, cl.mem_flags.READ_WRITE | cl.mem_flags.ALLOC_HOST_PTR, int(np.prod(dims)) * np.dtype(dtype).itemsize
+    )
+    # pyopencl's stub is wrong here: flags are OR-ed map_flags (an int), dtype any dtype-like,
+    # and the call returns (array, event)
+    arr, _ = cl.enqueue_map_buffer(  # type: ignore[misc]
+        dev.queue,
+        buf,
+        cl.map_flags.READ | cl.map_flags.WRITE,  # type: ignore[arg-type]
+        0,
+        dims,
+        dtype,
+        is_blocking=True,
+    )
+    return buf, arr
+
+
 def fabric_blob(f: Fabric) -> tuple[np.ndarray, dict[str, int]]:
     """Every fabric array the kernels read, as one int32 blob, and where each part starts."""
     links = np.zeros((f.n_links, L["LINK_WORDS"]), np.int32)

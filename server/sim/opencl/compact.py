@@ -27,6 +27,7 @@ import pyopencl as cl
 from drape.client import protocol as P
 
 from . import reuse
+from .buffers import map_pinned
 from .device import Device
 from .frameplan import HEADER_OFFSETS, FramePlan, encode_layout
 from .platforms import kernel_dir
@@ -178,16 +179,7 @@ class Compactor:
         assert self.pieces is not None
         n = 2 * len(self.pieces.cloth) + 1 if n is None else n
         try:
-            buf = cl.Buffer(self.dev.ctx, MF.READ_WRITE | MF.ALLOC_HOST_PTR, 4 * n)
-            arr, _ = cl.enqueue_map_buffer(  # type: ignore[misc]
-                self.dev.queue,
-                buf,
-                cl.map_flags.READ | cl.map_flags.WRITE,  # type: ignore[arg-type]
-                0,
-                (n,),
-                np.uint32,  # type: ignore[arg-type,type-var]
-                is_blocking=True,
-            )
+            _, arr = map_pinned(self.dev, n, np.uint32)  # the mapping keeps the buffer
             return arr
         except cl.Error as e:  # a driver without mappable host memory: plain numpy
             log.debug("no mapped host buffer for the index (%s): plain host memory", e)

@@ -69,6 +69,7 @@ import pyopencl as cl
 from drape.client import protocol as P
 
 from . import reuse
+from .buffers import map_pinned
 from .compact import Compactor, FrameIndex
 from .device import Device
 from .frameplan import (  # noqa: F401 (the plan's names, re-exported: encode.py is the entry point)
@@ -411,16 +412,7 @@ class DeviceEncoder:
             host.views, host.where, host.copied = [], None, 0
         else:
             cap = reuse.capacity(old.full.size if old is not None and old.full is not None else 0, size)
-            hb = cl.Buffer(self.dev.ctx, MF.READ_WRITE | MF.ALLOC_HOST_PTR, cap)
-            full, _ev = cl.enqueue_map_buffer(  # type: ignore[misc]
-                self.dev.queue,
-                hb,
-                cl.map_flags.READ | cl.map_flags.WRITE,  # type: ignore[arg-type]
-                0,
-                (cap,),
-                np.uint8,  # type: ignore[arg-type,type-var]
-                is_blocking=True,
-            )
+            hb, full = map_pinned(self.dev, cap, np.uint8)
             self.pinned_made += 1
             host = _HostFrame(full.base, hb, full[:size], [], full=full)
             if old is not None and old.index_full is not None:

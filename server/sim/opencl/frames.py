@@ -18,12 +18,10 @@ import numpy as np
 import pyopencl as cl
 
 from ..frame import Frame, FramePool, Layout, PendingFrame
-from .buffers import ClothSlot, DevArray, DeviceMemory
+from .buffers import ClothSlot, DevArray, DeviceMemory, map_pinned
 from .device import Device
 
 log = logging.getLogger(__name__)
-
-MF = cl.mem_flags
 
 
 def device_span(start: cl.Event | None, end: cl.Event) -> Callable[[], float | None]:
@@ -59,19 +57,7 @@ class FrameReadback:
     def _host_array(self, rows: int) -> np.ndarray:
         """A (rows, 3) float32 host array in ALLOC_HOST_PTR memory, mapped once for good."""
         try:
-            buf = cl.Buffer(self.dev.ctx, MF.READ_WRITE | MF.ALLOC_HOST_PTR, rows * 12)
-            # pyopencl's stub is wrong here: flags are OR-ed map_flags (an int), dtype any dtype-like,
-            # and the call returns (array, event)
-            flags = cl.map_flags.READ | cl.map_flags.WRITE
-            arr, _ = cl.enqueue_map_buffer(  # type: ignore[type-var, misc]
-                self.dev.queue,
-                buf,
-                flags,  # type: ignore[arg-type]
-                0,
-                (rows, 3),
-                np.float32,
-                is_blocking=True,
-            )
+            buf, arr = map_pinned(self.dev, (rows, 3), np.float32)
             self._pinned.append(buf)
             return arr
         except cl.Error as e:  # a driver without mappable host memory: plain numpy

@@ -218,6 +218,8 @@ def run(
         tc = time.perf_counter()
         views: list = [b for _, b in frame.payloads(every)]
         frame.release()
+        if predictive:  # every state put, as the publisher tells the streams (else they keyframe on)
+            streams.put(plan, np.flatnonzero(plan.predictive), f)
         t2 = time.perf_counter()
         if f <= (warmup if predictive else 0) and hb is not None:
             differ = sum(bytes(a) != bytes(b) for a, b in zip(hb, views, strict=True))

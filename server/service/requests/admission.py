@@ -73,8 +73,12 @@ SCENE_VERTICES = 64 * 64  # the cost file's scene: hanging 64 x 64
 #: not measured (no device time this session): docs/collision.md. Then the later rounds walked
 #: the hash only for the vertices that moved (branch h-scenerounds): the scenes' part of the CPU
 #: frame 14.0, 15.2 -> 10.8, 11.5 ms (`drape bench scenes --scenes 4,8`, before and after in turn,
-#: docs/results/scenerounds/), 0.76x: the CPU's 0.27 x 0.76 rounded up; the GPU's kept (not measured).
-SCENE_PASS_WORK: dict[str, float] = {"cpu": 0.25, "gpu": 0.75}
+#: docs/results/scenerounds/), 0.76x: the CPU's 0.27 x 0.76 rounded up. Session 18, measured on
+#: one H100 (`bash deploy/h100.sh bench scenes --scenes 64,64 --frames 20`): 1.031 -> 15.171 ms a
+#: frame, (15.171 - 1.031) / 1.031 / 8 passes = 1.71 plain solves a vertex and pass, rounded up
+#: (the estimate of 0.75 was low: the later rounds' re-walk, cheap on the CPU, is 56 % of the
+#: scenes' time on the GPU: docs/results/s18/scenepass-h100.txt).
+SCENE_PASS_WORK: dict[str, float] = {"cpu": 0.25, "gpu": 1.75}
 #: 1.8: a cloth's own mesh collider's work per vertex of the cloth, a part per cloth vertex and a
 #: part per cloth vertex and triangle, in plain solves of that vertex: docs/collision.md's meshbench
 #: on this CPU (128 capes of 1,024 vertices, 23.6 us a cape's plain solve): 25 us a cape with the
@@ -82,8 +86,11 @@ SCENE_PASS_WORK: dict[str, float] = {"cpu": 0.25, "gpu": 0.75}
 #: surface more than the triangles). Those capes never touched the body (session 17): with
 #: contacts (`python -m drape.server.tools.meshab --into 0.08`, 128 capes) the mesh kernel takes
 #: 11.2 ms a launch on this CPU against 3.0 ms for the capes' plain solve, 3.7 plain solves a
-#: vertex, the price on a CPU; a GPU's stays session 16's (1.06x the bare solve at 4096 capes
-#: without contact; with contacts not measured: no device time).
+#: vertex, the price on a CPU. A GPU's, with contacts, measured in session 18 on one H100
+#: (`bash deploy/h100.sh tool meshbench --cloths 4096 --frames 10 --rounds 3 --into 0.08`): 4096
+#: capes 1.566 ms a frame bare, 2.970 with the 5,972-triangle body (1.90x), 3.479 with the
+#: 12,220-triangle one (2.22x): 0.84 and 1.10 plain solves a vertex once the triangle part is
+#: taken off; 1.0 stands.
 MESH_VERTEX_WORK: dict[str, float] = {"cpu": 3.7, "gpu": 1.0}
 MESH_TRIANGLE_WORK = 1.0e-5
 assert set(FEATURE_WORK) <= set(Features().__dataclass_fields__), FEATURE_WORK

@@ -134,8 +134,13 @@ class CLWorld(World):
     # --- a tick's output ---------------------------------------------------------------------
     def fetch_async(self, roster: Roster, tick: int) -> PendingWire:
         if self.device_frames is not None:
-            return self.device_frames.encode(roster, tick, self.layout(), self.steps)
-        return super().fetch_async(roster, tick)
+            pending = self.device_frames.encode(roster, tick, self.layout(), self.steps)
+        else:
+            pending = super().fetch_async(roster, tick)
+        # the step and its read-back submitted now: a driver may hold enqueued commands until a
+        # flush or a wait, and the pipelined tick waits for this frame a tick later
+        self.dev.queue.flush()  # FLUSH
+        return pending
 
     def warm_wire(self) -> None:
         if self.device_frames is not None:  # the frame encoder's programs: the tick thread never compiles

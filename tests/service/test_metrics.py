@@ -14,7 +14,7 @@ import urllib.error
 import urllib.request
 
 import pytest
-from conftest import free_port, wait_until  # shared helpers
+from conftest import WAIT, free_port, wait_until  # shared helpers
 from conftest import make_config as shared_config
 from prometheus_client.openmetrics.parser import text_string_to_metric_families as parse_openmetrics
 from prometheus_client.parser import text_string_to_metric_families
@@ -155,7 +155,7 @@ def test_counters_follow_submit_control_refusal_and_remove(served, client):
     server, ops = served
     before = scrape(ops)
     with client.submit_grid(6, 5, pinned=[0, 5], quality="fast") as cape:
-        cape.next_state(TIMEOUT)  # subscribed and published at least once
+        cape.next_state(WAIT)  # subscribed and published at least once
         cape.move_pins([0, 5], [[0, 0, 0], [1, 0, 0]])
         with pytest.raises(LimitExceeded):  # max_cloths_per_client = 1
             client.submit_grid(4, 4)

@@ -49,9 +49,8 @@ for _name, _value in vars(_root).items():
     globals()[_name] = _value
 make_config, connect, collect = _root.make_config, _root.connect, _root.collect
 free_port, endpoint, wait_until = _root.free_port, _root.endpoint, _root.wait_until
-TIMEOUT, GRACE = _root.TIMEOUT, _root.GRACE
+TIMEOUT, GRACE, WAIT = _root.TIMEOUT, _root.GRACE, _root.WAIT
 EXAMPLE = REPO / "deploy" / "users.example.toml"
-WAIT = 20.0  # seconds to wait for a positive event (a loaded CI machine), never asserted on
 SERVER_WAIT = 90.0  # a drape serve starting (OpenCL warm-up) on a loaded CI machine
 
 USERS = """
@@ -122,12 +121,6 @@ class Inbox:
             return self._cond.wait_for(lambda: predicate(self), timeout)
 
 
-def wait_long(pred: Callable[[], bool], timeout: float = WAIT, step: float = 0.1) -> bool:
-    """tests/conftest.py's ``wait_until`` with a loaded machine's patience: for server-side
-    outcomes only a query can observe, never to wait out something that must not happen."""
-    return bool(_root.wait_until(pred, timeout, step))
-
-
 def user_file(d: Path, user: str, password: str) -> str:
     """A client-mode Zenoh JSON5 file with the user's name and password (what a deployment ships)."""
     p = d / f"{user}.json5"
@@ -161,7 +154,7 @@ def acl_kit() -> SimpleNamespace:
         make_certs=make_certs,
         user_file=user_file,
         router_config=router_config,
-        wait_until=wait_long,
+        wait_until=wait_until,
     )
 
 

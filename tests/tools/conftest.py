@@ -1,7 +1,8 @@
 """Shared fixtures of the access-control tests (test_acl.py, test_identity.py): a users file, a real
 Zenoh router with user/password authentication and the generated ACL (over TCP and TLS with a CA
 made by openssl), client-mode sessions of a user, an inbox of samples, ``drape serve`` behind the
-router. Helpers are offered as the ``acl_kit`` fixture (no test imports another test).
+router. Helpers are offered as the ``acl_kit`` fixture (no test imports another test); the load
+tests' run of a load against a ``drape serve`` started for it as ``load_on_server``.
 
 Being a second ``conftest`` module, this one is what ``from conftest import ...`` finds in the tools
 tests: it re-exports the shared service helpers of tests/conftest.py under the same names.
@@ -248,3 +249,27 @@ def drape_behind_router(tmp_path, request) -> Iterator[DrapeBehindRouter]:
 
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line("markers", "serve_args(*args): extra drape serve arguments of drape_behind_router")
+
+
+def _load_on_server(spec: Any, serve_args: list[str], server_id: str) -> tuple[Any, Any, Any]:
+    """``drape loadtest``'s run of ``spec`` (a LoadSpec) against a ``drape serve`` with
+    ``serve_args`` started for it, its stats watched; the server stopped after (cleanly, asserted):
+    (report, client results, window)."""
+    from drape.server.tools import loadtest as lt
+    from drape.server.tools.procs import ServerProcess
+
+    server = ServerProcess(serve_args, server_id=server_id)
+    try:
+        stats = lt.StatsWatch(server.endpoint, server.server_id)
+        try:
+            return lt.run_load(spec, server.endpoint, server.server_id, server, stats, quiet=True)
+        finally:
+            stats.close()
+    finally:
+        assert server.stop() == 0, "drape serve did not stop cleanly"
+
+
+@pytest.fixture
+def load_on_server() -> Callable[[Any, list[str], str], tuple[Any, Any, Any]]:
+    """:func:`_load_on_server`: (spec, serve_args, server_id) -> (report, client results, window)."""
+    return _load_on_server

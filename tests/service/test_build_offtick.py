@@ -14,11 +14,8 @@ from __future__ import annotations
 
 import itertools
 import time
-import urllib.request
 
 import pytest
-from conftest import free_port  # shared helpers
-from prometheus_client.parser import text_string_to_metric_families
 
 from drape.client import protocol as P
 from drape.server.tools.chaos_faults import grid_request
@@ -27,19 +24,6 @@ from drape.server.tools.chaos_harness import ChaosServer, reply_outcome, zenoh_s
 pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
 
 SETS = 8  # feature sets of the burst (the first ones of every combination of FEATURE_NAMES)
-
-
-def counters(url: str) -> dict[tuple[str, str], float]:
-    """The build counters of a ``/metrics`` scrape: (sample name, its label's value) -> value."""
-    with urllib.request.urlopen(url, timeout=30.0) as r:
-        text = r.read().decode()
-    out = {}
-    for fam in text_string_to_metric_families(text):
-        if fam.name in ("drape_kernel_builds", "drape_build_child_cloths"):
-            for s in fam.samples:
-                if s.name.endswith("_total"):
-                    out[(s.name, next(iter(s.labels.values())))] = s.value
-    return out
 
 
 def stats_where(server: ChaosServer, ok, timeout: float = 120.0) -> dict:
@@ -56,12 +40,10 @@ def test_a_burst_of_new_feature_sets_on_a_cold_kernel_cache_builds_nothing_on_th
     monkeypatch.setenv("DRAPE_CACHE_DIR", str(tmp_path / "cache"))  # device verdicts and PoCL: cold
     monkeypatch.delenv("POCL_CACHE_DIR", raising=False)
     monkeypatch.delenv("DRAPE_BUILD_IN_CHILD", raising=False)  # the default (tests/conftest.py sets off)
-    metrics = f"127.0.0.1:{free_port()}"
-    server = ChaosServer(tmp_path, "offtick", args=["--metrics-listen", metrics])
-    url = f"http://{metrics}/metrics"
+    server = ChaosServer(tmp_path, "offtick", metrics=True)
     try:
         server.wait_ready(timeout=600.0)
-        before = counters(url)
+        before = server.build_counts()
         session = zenoh_session(server.endpoint)
         keys = P.Keys()
         # held like a game's SDK: on a loaded machine a first build outlasts the grace period
@@ -83,23 +65,18 @@ def test_a_burst_of_new_feature_sets_on_a_cold_kernel_cache_builds_nothing_on_th
             # every cloth on the server, then a later tick: each has been stepped, so built
             first = stats_where(server, lambda st: st.get("cloths") == SETS)
             stats_where(server, lambda st: st.get("tick", 0) > first.get("tick", 0))
-            after = counters(url)
+            after = server.build_counts()
         finally:
             token.undeclare()
             session.close()
         assert outcomes == ["ok"] * len(combos), outcomes
 
-        def grew(name: str, label: str) -> float:
-            return after[(name, label)] - before[(name, label)]
-
-        builds = "drape_kernel_builds_total"
-        assert after[(builds, "tick")] == 0, f"kernels built on the tick thread: {after}"
-        since = {label: after[(n, label)] - before.get((n, label), 0.0) for n, label in after if n == builds}
+        builds = {t: n - before["kernel_builds"].get(t, 0) for t, n in after["kernel_builds"].items()}
+        assert after["kernel_builds"]["tick"] == 0, f"kernels built on the tick thread: {after}"
         # every program since start-up built by the cook thread (a set whose options are another's shares its program)
-        assert since["cook"] > 0 and sum(since.values()) == since["cook"], f"builds since start-up by thread: {since}"
-        child = "drape_build_child_cloths_total"
-        assert grew(child, "ran") == SETS, f"each set's first cloth built and run in the child: {before} -> {after}"
-        assert after[(child, "failed")] == after[(child, "memory_killed")] == 0, after
+        assert builds["cook"] > 0 and sum(builds.values()) == builds["cook"], f"builds since start-up: {builds}"
+        child = {o: n - before["build_child"].get(o, 0) for o, n in after["build_child"].items()}
+        assert child == {"ran": SETS, "failed": 0, "memory_killed": 0}, f"the build child's first cloths: {child}"
         assert server.log_counts()["tracebacks"] == 0
     finally:
         server.stop()

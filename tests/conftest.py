@@ -155,7 +155,11 @@ def random_grid_fabric(rng: np.random.Generator, options: LinkOptions = LinkOpti
 # The service end to end: helpers (plain functions, also offered as the ``svc`` fixture)
 
 GRACE = 1.0  # grace period of the test servers' vanished clients
-TIMEOUT = 5.0
+TIMEOUT = 5.0  # a test client's request timeout
+# seconds to wait for a positive event (states, a tick, a counter reached): never asserted on, so
+# generous; a deadline of TIMEOUT made collect(h, 60) a 12-states-per-second minimum that a loaded
+# CI machine's pace could miss
+WAIT = 30.0
 
 
 def free_port() -> int:
@@ -209,7 +213,7 @@ def client(server):
     c.close()
 
 
-def collect(handle, n: int, timeout: float = TIMEOUT) -> list:
+def collect(handle, n: int, timeout: float = WAIT) -> list:
     out = []
     deadline = time.monotonic() + timeout
     while len(out) < n:
@@ -217,7 +221,7 @@ def collect(handle, n: int, timeout: float = TIMEOUT) -> list:
     return out
 
 
-def wait_until(pred, timeout: float = TIMEOUT, step: float = 0.02) -> bool:
+def wait_until(pred, timeout: float = WAIT, step: float = 0.02) -> bool:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if pred():
@@ -246,7 +250,7 @@ def server_pair():
 @pytest.fixture
 def svc() -> SimpleNamespace:
     """The service test helpers: make_config, connect, collect, wait_until, free_port, endpoint,
-    TIMEOUT, GRACE."""
+    TIMEOUT, WAIT, GRACE."""
     return SimpleNamespace(
         make_config=make_config,
         connect=connect,
@@ -255,6 +259,7 @@ def svc() -> SimpleNamespace:
         free_port=free_port,
         endpoint=endpoint,
         TIMEOUT=TIMEOUT,
+        WAIT=WAIT,
         GRACE=GRACE,
     )
 

@@ -6,7 +6,8 @@ tick-thread tick in the window (``tick_max_ms``, from its stats' tick phase):
 
 - ``cold-burst``: a server started on an empty kernel cache (``DRAPE_CACHE_DIR``: Drape's PoCL
   cache too) gets the first cloth of every feature set at once, not one after the other
-  (``new-features`` in :mod:`.chaos_faults`);
+  (``new-features`` in :mod:`.chaos_faults`); also judged by counted events from the server's
+  ``/metrics`` (``kernel_builds``: none on the tick thread; ``build_child``: none failed);
 - ``big-mesh``: a 32k-vertex triangle mesh beside the good client, then removed: refused
   (``overloaded``) or served with no tick over the budget, and the server's RSS back within the
   suite's 10 % after the memory upkeep ran. With the defaults admission refuses it on a CPU (trust
@@ -63,10 +64,12 @@ def cold_burst(ctx: Context) -> dict[str, Any]:
     combos = [c for n in range(len(P.FEATURE_NAMES) + 1) for c in itertools.combinations(P.FEATURE_NAMES, n)]
     cache = Path(tempfile.mkdtemp(prefix="cold-cache-", dir=ctx.out))
     t0 = time.monotonic()
-    with Stage(ctx, "cold-burst", env={"DRAPE_CACHE_DIR": str(cache), "POCL_CACHE_DIR": None}) as st:
+    env = {"DRAPE_CACHE_DIR": str(cache), "POCL_CACHE_DIR": None}
+    with Stage(ctx, "cold-burst", env=env, metrics=True) as st:
         startup_s = time.monotonic() - t0
         st.declare_alive("burst")
         base = st.baseline()
+        built = st.server.build_counts()
         w = Window.open(st.server)
         t1 = time.monotonic()
         boxes = [st.submit_async(grid_request("burst", 16, features=combo)) for combo in combos]
@@ -75,6 +78,7 @@ def cold_burst(ctx: Context) -> dict[str, Any]:
         replied_s = time.monotonic() - t1
         time.sleep(1.0)  # the admitted cloths' first ticks
         m = w.close([st.good] if st.good else [])
+        after = st.server.build_counts()
         for box in boxes:
             st.remove(box.get("reply", {}))
     outcomes = Counter(str(box.get("outcome", "no reply")) for box in boxes)
@@ -85,8 +89,15 @@ def cold_burst(ctx: Context) -> dict[str, Any]:
         accepted=outcomes["ok"],
         submit_outcomes=dict(outcomes),
         replies_s=round(replied_s, 2),
+        # counted: the server's kernel builds during the burst by thread, its build child's cloths
+        kernel_builds={t: n - built["kernel_builds"].get(t, 0) for t, n in after["kernel_builds"].items()},
+        build_child={o: n - built["build_child"].get(o, 0) for o, n in after["build_child"].items()},
     )
     fails = judge(m, rss=False) + _stall(m)
+    if m["kernel_builds"].get("tick", 0):
+        fails.append(f"{m['kernel_builds']['tick']} kernel builds on the tick thread")
+    if m["build_child"].get("failed", 0) or m["build_child"].get("memory_killed", 0):
+        fails.append(f"the build child did not build every new set: {m['build_child']}")
     odd = {o: n for o, n in outcomes.items() if o != "ok" and o not in RETRY_LATER}
     if odd:
         fails.append(f"submits answered {odd}")

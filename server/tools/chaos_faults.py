@@ -80,6 +80,7 @@ class Stage:
         server_args: tuple[str, ...] = (),
         good_cloths: int = 1,
         env: dict[str, str | None] | None = None,
+        metrics: bool = False,
     ) -> None:
         self.ctx = ctx
         self.router: AuthRouter | None = None
@@ -103,6 +104,7 @@ class Stage:
             rss_limit_mb=ctx.rss_limit_mb,
             env=env,
             router=self.router,
+            metrics=metrics,
         )
         self.good: GoodClient | None = None
         self.name = name

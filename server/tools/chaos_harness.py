@@ -17,12 +17,14 @@ import signal
 import subprocess
 import threading
 import time
+import urllib.request
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import msgpack
 import zenoh
+from prometheus_client.parser import text_string_to_metric_families
 
 from drape.client import protocol as P
 from drape.server.tools.procs import ProcessFigures, free_port, serve_command
@@ -30,6 +32,11 @@ from drape.server.tools.procs import ProcessFigures, free_port, serve_command
 log = logging.getLogger(__name__)
 
 _RUNS = itertools.count()
+# the /metrics families of ChaosServer.build_counts: family -> (its key there, the label it splits by)
+BUILD_FAMILIES = {
+    "drape_kernel_builds": ("kernel_builds", "thread"),
+    "drape_build_child_cloths": ("build_child", "outcome"),
+}
 GAP_LIMIT_MS = 50.0  # issue 26: no gap over this between a good client's states
 WAIT = 180.0  # the longest any start-up or reply is waited for (a loaded 2-core machine; a cold
 # kernel cache: drape serve first builds every feature set in a child, build_in_child = "always")
@@ -76,10 +83,12 @@ class ChaosServer:
         server_id: str | None = None,
         env: dict[str, str | None] | None = None,
         router: Any = None,
+        metrics: bool = False,
     ) -> None:
         """``env``: environment variables for the server on top of ours (None: removed);
         ``router``: a :class:`~.chaos_router.AuthRouter` the server runs behind (client mode,
-        ``--identity keys``; ``endpoint`` is then the router's)."""
+        ``--identity keys``; ``endpoint`` is then the router's); ``metrics``: its operator
+        listener on a free loopback port (:meth:`build_counts`)."""
         self.server_id = server_id or self.id_of(name)
         self.endpoint = router.endpoint if router is not None else endpoint or f"tcp/127.0.0.1:{free_port()}"
         self.log_path = out / f"{name}-{os.getpid()}-{next(_RUNS)}.log"
@@ -94,6 +103,11 @@ class ChaosServer:
             self.cmd += router.serve_args(self.server_id)
         for c in connect:
             self.cmd += ["--connect", c]
+        self.metrics_url: str | None = None
+        if metrics:
+            listen = f"127.0.0.1:{free_port()}"
+            self.cmd += ["--metrics-listen", listen]
+            self.metrics_url = f"http://{listen}/metrics"
         log.info("starting %s", " ".join(self.cmd))
         self._log_fh = open(self.log_path, "w")
         environ = dict(os.environ)
@@ -156,6 +170,24 @@ class ChaosServer:
         except OSError:
             pass
         return counts
+
+    def build_counts(self) -> dict[str, dict[str, int]]:
+        """The server's kernel builds by the thread that built them (``kernel_builds``: main, cook,
+        tick...) and the cloths its build child took by outcome (``build_child``: ran, failed,
+        memory_killed), from its ``/metrics`` (a server started with ``metrics=True``): counted
+        events, whatever the machine's pace."""
+        if self.metrics_url is None:
+            raise RuntimeError("the server was started without metrics=True")
+        with urllib.request.urlopen(self.metrics_url, timeout=30.0) as r:
+            text = r.read().decode()
+        out: dict[str, dict[str, int]] = {"kernel_builds": {}, "build_child": {}}
+        for fam in text_string_to_metric_families(text):
+            if fam.name in BUILD_FAMILIES:
+                key, name = BUILD_FAMILIES[fam.name]
+                for sample in fam.samples:
+                    if sample.name.endswith("_total"):
+                        out[key][sample.labels[name]] = int(sample.value)
+        return out
 
     def kill(self, sig: int) -> None:
         if self.alive():

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from .demorun import TICK_HZ, Recording, render_chunk, run_stage, save_recording
-from .demowearer import CAPE_COLS, CAPE_ROWS, SHOULDER_Y, body_parts, cape_mesh, cape_texture, grid_uv
+from .demowearer import CAPE_COLS, CAPE_OPTIONS, CAPE_ROWS, SHOULDER_Y, body_parts, cape_mesh, cape_texture, grid_uv
 
 log = logging.getLogger(__name__)
 
@@ -154,20 +154,7 @@ def run_client(kind: str, endpoint: str, seconds: float, fps: float, out: str, r
                 v,
                 tris,
                 pinned=list(range(CAPE_COLS)),
-                features=["colliders", "tethers", "wind"],
-                links={"bending": True},
-                material={
-                    "mass": 0.6,
-                    "stiffness": (1.0, 0.8, 0.15),
-                    "friction": 0.3,
-                    "tether_limit": 1.05,
-                    "damping": 0.01,
-                    "drag": 1.0,
-                    "lift": 0.0,
-                },
-                wind=(0.0, 0.0, 0.0),
-                iterations=10,
-                substeps=2,
+                **CAPE_OPTIONS,
             )
             _, body = walker_parts(0.0)
             cloth.move_pins(list(range(CAPE_COLS)), top, colliders=body)

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from .demorun import TICK_HZ, Recording, render_chunk, run_stage, save_recording
-from .demowearer import CAPE_COLS, CAPE_ROWS, SHOULDER_Y, body_parts, cape_mesh, cape_texture, grid_uv
+from .demowearer import CAPE_COLS, CAPE_OPTIONS, CAPE_ROWS, SHOULDER_Y, body_parts, cape_mesh, cape_texture, grid_uv
 
 log = logging.getLogger(__name__)
 
@@ -78,21 +78,7 @@ def run_client(name: str, endpoint: str, seconds: float, fps: float, out: str, r
             v,
             tris,
             pinned=pins,
-            features=["colliders", "tethers", "wind"],
-            links={"bending": True},
-            material={
-                "mass": 0.6,
-                "stiffness": (1.0, 0.8, 0.15),
-                "friction": 0.3,
-                "tether_limit": 1.05,
-                "damping": 0.01,
-                "drag": 1.0,
-                "lift": 0.0,
-                "thickness": THICKNESS,
-            },
-            wind=(0.0, 0.0, 0.0),
-            iterations=10,
-            substeps=2,
+            **{**CAPE_OPTIONS, "material": {**CAPE_OPTIONS["material"], "thickness": THICKNESS}},
             scene=SCENE,
         )
         if name == "alice":

@@ -1,7 +1,7 @@
 """The cape and its wearer, shared by ``drape demo``'s three-cloth stage (demo.py: one walker on
 a circle) and its crossing stage (demoscene.py: two walkers passing): the cape's rest shape in
 its wearer's frame, the walker's body (capsules to draw, the cape's colliders) at a pose, the
-cape's texture and a grid's texture coordinates."""
+cape's texture and a grid's texture coordinates, and the cape's submission options."""
 
 from __future__ import annotations
 
@@ -13,6 +13,24 @@ import numpy as np
 # the cape and its wearer: shoulder height, the cape's ring around the neck and its flare
 CAPE_COLS, CAPE_ROWS, CAPE_LEN = 22, 26, 1.15
 SHOULDER_Y, NECK_R, HEM_R, CAPE_ARC = 1.47, 0.19, 0.34, math.radians(100.0)
+# the cape's submission options (features, links, material, solver), the same on every stage that
+# drapes it (the crossing stage adds its thickness to the material)
+CAPE_OPTIONS: dict[str, Any] = {
+    "features": ["colliders", "tethers", "wind"],
+    "links": {"bending": True},
+    "material": {
+        "mass": 0.6,
+        "stiffness": (1.0, 0.8, 0.15),
+        "friction": 0.3,
+        "tether_limit": 1.05,
+        "damping": 0.01,
+        "drag": 1.0,
+        "lift": 0.0,
+    },
+    "wind": (0.0, 0.0, 0.0),
+    "iterations": 10,
+    "substeps": 2,
+}
 MANNEQUIN = (92, 98, 112)
 SKIN = (214, 176, 146)
 

@@ -15,7 +15,8 @@ each way, and its readers at most one chunk), so that bytes wait in the link's q
 sender's, never megabytes in the proxy's receive buffer, which a real link does not have (the
 kernel grows a receive buffer to several MB while the proxy does not read). ``rate_bps`` 0: no
 limit. The proxy
-runs on its own asyncio loop in a thread; it counts the bytes each way.
+runs on its own asyncio loop in a thread; it counts the bytes each way and keeps the last chunks'
+schedule (``Direction.chunks``: when each was read, left at the rate, was due and was delivered).
 """
 
 from __future__ import annotations
@@ -34,6 +35,23 @@ CHUNK = 16 << 10  # bytes read at a time
 SOCKET_BUFFER = 64 << 10  # SO_RCVBUF of the proxy's sockets (the kernel doubles it)
 
 
+CHUNKS_KEPT = 1024  # chunks whose schedule a Direction keeps
+
+
+@dataclass
+class Chunk:
+    """One chunk through a direction (monotonic seconds): read from the sender, its turn on the
+    link (``start``: when the bytes before it have left), ``left`` (sent at the rate), ``due``
+    (``left`` + the delay) and ``delivered`` (written to the receiver: ``due`` or later)."""
+
+    n: int
+    read: float
+    start: float
+    left: float
+    due: float
+    delivered: float = 0.0
+
+
 @dataclass
 class Direction:
     """One direction's shape, and what went through it."""
@@ -43,6 +61,8 @@ class Direction:
     queue_bytes: int = 256 << 10
     bytes: int = 0  # delivered
     peak_queue: int = 0
+    # the last chunks' schedule, oldest first: what the shaper decided, whatever the machine's pace
+    chunks: deque[Chunk] = field(default_factory=lambda: deque(maxlen=CHUNKS_KEPT))
 
 
 @dataclass
@@ -161,7 +181,7 @@ class Shaper:
     async def _pump(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, d: Direction) -> None:
         """Read while the link's backlog (bytes not yet sent at its rate) leaves room in its
         queue; a second task delivers each chunk once it has been sent and its delay has passed."""
-        queue: deque[tuple[float, bytes]] = deque()  # (delivery time, bytes), in order
+        queue: deque[tuple[Chunk, bytes]] = deque()  # in order
         more = asyncio.Event()
         free_at = 0.0  # when the link has sent everything read so far
         done = False
@@ -173,11 +193,13 @@ class Shaper:
                         return
                     more.clear()
                     await more.wait()
-                at, data = queue[0]
-                wait = at - time.monotonic()
+                chunk, data = queue[0]
+                wait = chunk.due - time.monotonic()
                 if wait > 0:
                     await asyncio.sleep(wait)
                 queue.popleft()
+                chunk.delivered = time.monotonic()
+                d.chunks.append(chunk)  # before the receiver can see it
                 writer.write(data)
                 await writer.drain()
                 d.bytes += len(data)
@@ -195,9 +217,10 @@ class Shaper:
                 data = await reader.read(CHUNK)
                 if not data:
                     break
-                start = max(time.monotonic(), free_at)
+                read = time.monotonic()
+                start = max(read, free_at)
                 free_at = start + (len(data) * 8 / d.rate_bps if d.rate_bps > 0 else 0.0)
-                queue.append((free_at + d.delay_s, data))
+                queue.append((Chunk(len(data), read, start, free_at, free_at + d.delay_s), data))
                 more.set()
         finally:
             done = True

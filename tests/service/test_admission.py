@@ -8,7 +8,7 @@ import threading
 
 import numpy as np
 import pytest
-from conftest import TIMEOUT, collect, connect, make_config, wait_until
+from conftest import TIMEOUT, WAIT, collect, connect, make_config, wait_until
 
 from drape.client import DrapeError, NotFound
 from drape.server.service import Server
@@ -125,7 +125,7 @@ def test_a_new_feature_combination_is_built_by_the_cook_thread_not_the_tick():
             at = len(dev.builds)
             tick = h.set(features_add=["wind", "xpbd"])  # a control too: its kernels built off the tick
             # the first state at or after the control's tick (a state may be dropped on a loaded machine)
-            assert h.wait_for_tick(tick, TIMEOUT).tick >= tick and h.features == ("xpbd", "tethers", "wind")
+            assert h.wait_for_tick(tick, WAIT).tick >= tick and h.features == ("xpbd", "tethers", "wind")
             assert len(dev.builds) > at
         finally:
             c.close()

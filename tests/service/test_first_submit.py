@@ -8,7 +8,7 @@ import logging
 
 import numpy as np
 import pytest
-from conftest import TIMEOUT, collect, connect, make_config
+from conftest import collect, connect, make_config
 
 from drape.client import ProtocolError
 from drape.client import protocol as P
@@ -89,7 +89,7 @@ def test_a_grid_too_large_is_refused_before_anything_is_built(server):
         with client.submit_grid(64, 64) as big:  # the limit itself is fine, and its rest pose is there
             assert big.n_vertices == 4096 and big.rest_positions.shape == (4096, 3)
             assert big.triangles.shape == (2 * 63 * 63, 3)
-            assert collect(big, 1, TIMEOUT)[0].positions.shape == (4096, 3)
+            assert collect(big, 1)[0].positions.shape == (4096, 3)
 
 
 def test_the_first_cloths_of_the_default_features_build_nothing():

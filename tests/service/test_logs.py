@@ -15,7 +15,7 @@ import threading
 import time
 
 import pytest
-from conftest import free_port  # shared helpers
+from conftest import WAIT, free_port  # shared helpers
 
 from drape.client import DrapeClient
 from drape.server import cli
@@ -184,7 +184,7 @@ def test_drape_serve_writes_json_lines(tmp_path):
         assert up.wait(TIMEOUT), f"the server did not come up: {''.join(raw)}"
         with DrapeClient(f"tcp/127.0.0.1:{port}", server_id=sid, timeout=TIMEOUT) as client:
             with client.submit_grid(4, 4, pinned=[0, 3]) as h:
-                h.next_state(TIMEOUT)
+                h.next_state(WAIT)
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(TIMEOUT) == 0
     finally:

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import TIMEOUT, collect, connect, make_config
+from conftest import WAIT, collect, connect, make_config
 
 from drape.client import protocol as P
 from drape.server.service.server import Server
@@ -65,7 +65,7 @@ def test_a_cape_dropped_on_a_body_mesh_keeps_out_of_it(server, body):
         tick = h.set(mesh_collider=P.MeshCollider.pose(*moved))
         after = []
         while len(after) < 25:  # the states queued before the move are older
-            s = h.next_state(TIMEOUT)
+            s = h.next_state(WAIT)
             if s.tick >= tick:
                 after.append(s)
         got = behind(after, body, pose_matrix(*moved))

@@ -14,7 +14,7 @@ import urllib.error
 import urllib.request
 
 import pytest
-from conftest import free_port, wait_until  # shared helpers
+from conftest import WAIT, free_port, wait_until  # shared helpers
 from conftest import make_config as shared_config
 from prometheus_client.openmetrics.parser import text_string_to_metric_families as parse_openmetrics
 from prometheus_client.parser import text_string_to_metric_families
@@ -24,7 +24,7 @@ from drape.client import protocol as P
 from drape.server.service import Server
 from drape.server.service.config import ServerConfig, add_arguments, from_args
 from drape.server.service.process import ops as OPS
-from drape.server.service.process.metrics import METRICS, OPTIONAL, families, overload_refusals
+from drape.server.service.process.metrics import METRICS, OPTIONAL, families, overload_refusals, thread_role
 from drape.server.service.process.telemetry import PHASES, PhaseTimer
 
 pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
@@ -123,6 +123,10 @@ def test_exposition_parses_and_carries_every_metric_with_its_type(served):
     assert info.labels["server"] == server.server_id and info.labels["solver"] == "workgroup"
     assert info.labels["device"] == server.device_name and info.labels["namespace"] == "drape"
     assert info.labels["version"] == P.VERSION_STRING
+    # Kernel builds by thread: the warm-up's on the main thread, none on the tick; no build child here
+    assert value(fams, "drape_kernel_builds_total", thread="main") > 0
+    assert value(fams, "drape_kernel_builds_total", thread="tick") == 0
+    assert value(fams, "drape_build_child_cloths_total", outcome="ran") == 0
     # Every phase is a histogram with cumulative buckets ending in +Inf == count.
     h = fams["drape_tick_phase_seconds"]
     assert {s.labels["phase"] for s in h.samples} == set(PHASES)
@@ -151,7 +155,7 @@ def test_counters_follow_submit_control_refusal_and_remove(served, client):
     server, ops = served
     before = scrape(ops)
     with client.submit_grid(6, 5, pinned=[0, 5], quality="fast") as cape:
-        cape.next_state(TIMEOUT)  # subscribed and published at least once
+        cape.next_state(WAIT)  # subscribed and published at least once
         cape.move_pins([0, 5], [[0, 0, 0], [1, 0, 0]])
         with pytest.raises(LimitExceeded):  # max_cloths_per_client = 1
             client.submit_grid(4, 4)
@@ -190,6 +194,15 @@ def _has(fams: dict, name: str, **labels) -> bool:
         return True
     except KeyError:
         return False
+
+
+def test_thread_roles_of_kernel_builds():
+    assert [thread_role(n) for n in ("drape-tick-a-b-1", "drape-cook-s", "MainThread", "Thread-3")] == [
+        "tick",
+        "cook",
+        "main",
+        "other",
+    ]
 
 
 def test_overload_refusals_from_stats_or_error_code():

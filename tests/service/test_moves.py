@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import TIMEOUT, connect, make_config
+from conftest import TIMEOUT, WAIT, connect, make_config
 
 from drape.client import protocol as P
 from drape.server.service import Server
@@ -45,7 +45,7 @@ def block(handles: list, targets: np.ndarray, tokens: list[str] | None = None) -
 
 
 def pins_at(handle, tick: int) -> np.ndarray:
-    return handle.wait_for_tick(tick, TIMEOUT).positions[PINS]
+    return handle.wait_for_tick(tick, WAIT).positions[PINS]
 
 
 def test_block_moves_pins_and_refuses_per_move(client, server):

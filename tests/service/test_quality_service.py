@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import msgpack
 import pytest
-from conftest import make_config, wait_until
+from conftest import WAIT, make_config, wait_until
 
 from drape.client import DrapeClient, ProtocolError
 from drape.client import protocol as P
@@ -42,7 +42,7 @@ def test_preset_at_submit_and_by_control():
         DrapeClient(srv.config.listen[0], server_id=srv.server_id, timeout=TIMEOUT) as client,
     ):
         with client.submit_grid(8, 8, pinned=[0, 7], quality="balanced") as h:
-            h.next_state(TIMEOUT)
+            h.next_state(WAIT)
             p = _params(srv, h.id)
             want = quality.apply_preset(p, "balanced", srv.config.tick_rate)
             assert (p.iterations, p.substeps, p.features.xpbd, p.features.tethers) == (
@@ -52,7 +52,7 @@ def test_preset_at_submit_and_by_control():
                 True,
             )
             tick = h.set(quality="fast")
-            h.wait_for_tick(tick, TIMEOUT)
+            h.wait_for_tick(tick, WAIT)
             assert _params(srv, h.id).substeps == quality.PRESETS["fast"].substeps
             assert srv.stats()["quality"]["presets"] == {"fast": 1}
 
@@ -67,7 +67,7 @@ def test_the_server_governor_predicts_with_its_share_of_moving_cloths():
         srv.quality.measure = lambda seconds: 2.0 * srv.config.quality_budget * srv.config.dt
         still = client.submit_grid(8, 8, pinned=[0, 7], quality="accurate")
         moving = client.submit_grid(8, 8, pinned=[0, 7], quality="accurate", features=["colliders"])
-        assert wait_until(lambda: srv.stats()["quality"]["presets"].get("fast") == 2, timeout=TIMEOUT)
+        assert wait_until(lambda: srv.stats()["quality"]["presets"].get("fast") == 2)
         assert srv.quality.governor.moving == 0.5
         fast = quality.PRESETS["fast"]
         assert (_params(srv, still.id).substeps, _params(srv, moving.id).substeps) == (
@@ -86,16 +86,16 @@ def test_server_lowers_quality_under_load_and_restores_it():
         budget_s = srv.config.quality_budget * srv.config.dt
         srv.quality.measure = lambda seconds: 2.0 * budget_s
         cloths = [client.submit_grid(16, 16, pinned=[0, 15], quality="accurate") for _ in range(2)]
-        assert wait_until(lambda: srv.stats()["quality"]["presets"].get("fast") == 2, timeout=TIMEOUT)
+        assert wait_until(lambda: srv.stats()["quality"]["presets"].get("fast") == 2)
         st = srv.stats()["quality"]
         assert st["degraded"] == 2 and st["changes"] >= 2 and st["last_change"]["direction"] == "down"
         assert st["degraded_since_ns"] is not None
         assert all(_params(srv, c.id).substeps == quality.PRESETS["fast"].substeps for c in cloths)
         # the load goes away: back up, one preset at a time, to what was asked
         srv.quality.measure = lambda seconds: 0.0
-        assert wait_until(lambda: srv.stats()["quality"]["presets"].get("accurate") == 2, timeout=TIMEOUT)
+        assert wait_until(lambda: srv.stats()["quality"]["presets"].get("accurate") == 2)
         st = srv.stats()["quality"]
         assert st["degraded"] == 0 and st["degraded_since_ns"] is None and st["degraded_s"] > 0
         assert st["last_change"]["direction"] == "up"
         for c in cloths:
-            assert c.next_state(TIMEOUT).tick > 0
+            assert c.next_state(WAIT).tick > 0

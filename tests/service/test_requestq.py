@@ -98,12 +98,12 @@ def test_a_flood_past_the_bound_is_answered_busy_at_once_and_ticks_go_on(request
             tick0 = srv.tick
             flood = [asker.ask(keys.submit(sid), GARBAGE) for _ in range(20)]
             # 4 wait in the queue; the other 16 are answered busy while the request thread is held
-            assert wait_until(lambda: asker.tally(flood)["busy"] == 16, TIMEOUT), asker.tally(flood)
+            assert wait_until(lambda: asker.tally(flood)["busy"] == 16), asker.tally(flood)
             assert srv.handlers.request_queue.waiting() == (4, 4 * len(GARBAGE))
-            assert wait_until(lambda: srv.tick >= tick0 + 10, TIMEOUT), "the server stopped ticking"
+            assert wait_until(lambda: srv.tick >= tick0 + 10), "the server stopped ticking"
             assert not asker.replied([first])
             release.set()
-            assert wait_until(asker.finished, 2 * TIMEOUT), "a query got no end"
+            assert wait_until(asker.finished), "a query got no end"
             assert asker.tally([first]) == Counter(ok=1)
             assert asker.tally(flood) == Counter(busy=16, malformed=4)  # the queued ones decoded in turn
             assert all(len(o) == 1 for o in asker.outcomes), "every query gets exactly one reply"
@@ -128,13 +128,13 @@ def test_the_byte_bound_turns_away_what_would_not_fit() -> None:
             assert entered.wait(TIMEOUT)
             q = srv.handlers.request_queue
             a = asker.ask(keys.control(sid), GARBAGE)  # 600 bytes: fits
-            assert wait_until(lambda: q.waiting() == (1, 600), TIMEOUT)
+            assert wait_until(lambda: q.waiting() == (1, 600))
             b = asker.ask(keys.control(sid), GARBAGE)  # 1200 > 1000: busy now
-            assert wait_until(lambda: asker.replied([b]), TIMEOUT)
+            assert wait_until(lambda: asker.replied([b]))
             small = asker.ask(keys.remove(sid), GARBAGE[:100])  # 700: fits
-            assert wait_until(lambda: q.waiting() == (2, 700), TIMEOUT)
+            assert wait_until(lambda: q.waiting() == (2, 700))
             release.set()
-            assert wait_until(asker.finished, 2 * TIMEOUT)
+            assert wait_until(asker.finished)
             assert asker.tally([b]) == Counter(busy=1)
             assert asker.tally([a, small]) == Counter(malformed=2)
     finally:
@@ -154,11 +154,11 @@ def test_queries_still_queued_at_stop_are_answered_busy() -> None:
             assert entered.wait(TIMEOUT)
             queued = [asker.ask(keys.info(sid), P.encode_info(P.InfoRequest(rid=2 + i))) for i in range(3)]
             q = srv.handlers.request_queue
-            assert wait_until(lambda: q.waiting()[0] == 3, TIMEOUT)
+            assert wait_until(lambda: q.waiting()[0] == 3)
             stopper.start()
-            assert wait_until(lambda: q.closed, TIMEOUT)
+            assert wait_until(lambda: q.closed)
             release.set()  # the held request finishes; the three waiting ones are refused, not handled
-            assert wait_until(asker.finished, 2 * TIMEOUT)
+            assert wait_until(asker.finished)
             assert asker.tally([first]) == Counter(ok=1)
             assert asker.tally(queued) == Counter(busy=3)
             assert q.handled == 1
@@ -178,7 +178,7 @@ def test_the_tick_gate_holds_requests_while_the_tick_thread_works() -> None:
     gate.tick_sleeps(False)  # the tick thread woke
     t = threading.Thread(target=gate.enter)
     t.start()
-    assert wait_until(lambda: gate.waits == 1, TIMEOUT)
+    assert wait_until(lambda: gate.waits == 1)
     assert t.is_alive(), "a request started while the tick thread worked"
     gate.tick_sleeps(True)  # it sleeps again: the request goes ahead
     t.join(TIMEOUT)

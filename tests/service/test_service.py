@@ -21,7 +21,7 @@ import msgpack
 import numpy as np
 import pytest
 import zenoh
-from conftest import GRACE, TIMEOUT, collect, connect, endpoint, make_config, wait_until  # shared helpers
+from conftest import GRACE, TIMEOUT, WAIT, collect, connect, endpoint, make_config, wait_until  # shared helpers
 
 from drape.client import DrapeClient, Forbidden, LimitExceeded, NotFound, ProtocolError, Sphere
 from drape.client import protocol as P
@@ -89,7 +89,7 @@ def test_control_takes_effect_on_the_next_tick(server, client):
         target = np.array([[0.1, 0.4, -0.2]], np.float32)
         tick = h.move_pins([0], target)
         while tick not in seen:
-            s = h.next_state(TIMEOUT)
+            s = h.next_state(WAIT)
             seen[s.tick] = s
         assert tick - 1 in seen, "the state just before the change"
         before = seen[tick - 1]
@@ -100,7 +100,7 @@ def test_control_takes_effect_on_the_next_tick(server, client):
         tick2 = h.set(gravity=(0.0, -30.0, 0.0), material={"damping": 0.05}, iterations=12)
         assert tick2 > tick
         tick3 = h.set_colliders([Sphere((0.5, -0.4, 0.5), 0.2)])
-        s = h.wait_for_tick(tick3 + 40, TIMEOUT)
+        s = h.wait_for_tick(tick3 + 40, WAIT)
         d = np.linalg.norm(s.positions - np.array([0.5, -0.4, 0.5], np.float32), axis=1)
         assert d.min() > 0.2 - 0.02  # no vertex inside the sphere
 
@@ -143,11 +143,11 @@ def test_the_readmes_clean_exit_logs_no_warning(server, caplog):
 
 def test_plane_collider_and_reset(server, client):
     with client.submit_grid(5, 5, gravity=(0, -40.0, 0), colliders=[Plane((0, 1, 0), -0.3)]) as h:
-        s = h.wait_for_tick(h.first_tick + 40, TIMEOUT)
+        s = h.wait_for_tick(h.first_tick + 40, WAIT)
         assert s.positions[:, 1].min() >= -0.3 - 1e-3 and s.positions[:, 1].max() < -0.2
         skipped = server.stats()["skipped_frames"]
         tick = h.reset()
-        s = h.wait_for_tick(tick, TIMEOUT)
+        s = h.wait_for_tick(tick, WAIT)
         # the reset tick's state, or (a frame coalesced on a loaded machine, counted) the next one,
         # which carries its reset flag
         steps = s.tick - tick + 1
@@ -440,7 +440,7 @@ def test_encodings_normals_and_info(server, client):
         ext = np.subtract(s.bounds[1], s.bounds[0])
         assert np.all(s.positions >= np.array(s.bounds[0]) - 1e-6)
         tick = b.set(encoding="float16", normals=False)
-        s2 = b.wait_for_tick(tick, TIMEOUT)
+        s2 = b.wait_for_tick(tick, WAIT)
         assert s2.encoding == "float16" and s2.normals is None
         assert ext.max() < 5.0
     finally:
@@ -494,9 +494,9 @@ def test_slow_subscriber_never_blocks_the_tick(congestion, monkeypatch):
             time.sleep(1.0)  # the slow session's socket buffers fill up
             h.clear()
             before, seen, slow_seen = snapshot(), bystander.received, len(slow_got)
-            states = [h.next_state(TIMEOUT)]
+            states = [h.next_state(WAIT)]
             while states[-1].tick - states[0].tick < 60:  # 60 ticks, however many states they gave
-                states.append(h.next_state(TIMEOUT))
+                states.append(h.next_state(WAIT))
             after, seen, slow_seen = snapshot(), bystander.received - seen, len(slow_got) - slow_seen
             ticks = after["ticks"] - before["ticks"]
             skipped = after["skipped_frames"] - before["skipped_frames"]
@@ -529,9 +529,9 @@ def test_slow_subscriber_never_blocks_the_tick(congestion, monkeypatch):
             h.clear()
             release.set()
             assert last["skipped_frames"] - first["skipped_frames"] >= last["ticks"] - first["ticks"] - 2, (first, last)
-            got = [h.next_state(TIMEOUT).tick]  # the held frame, then the newest
+            got = [h.next_state(WAIT).tick]  # the held frame, then the newest
             while got[-1] < last["tick"] - 1:
-                got.append(h.next_state(TIMEOUT).tick)
+                got.append(h.next_state(WAIT).tick)
             assert not [t for t in got if first["tick"] < t < last["tick"] - 2], (first["tick"], got, last["tick"])
         finally:
             done.set()

@@ -1,7 +1,8 @@
 """Shared fixtures of the access-control tests (test_acl.py, test_identity.py): a users file, a real
 Zenoh router with user/password authentication and the generated ACL (over TCP and TLS with a CA
 made by openssl), client-mode sessions of a user, an inbox of samples, ``drape serve`` behind the
-router. Helpers are offered as the ``acl_kit`` fixture (no test imports another test).
+router. Helpers are offered as the ``acl_kit`` fixture (no test imports another test); the load
+tests' run of a load against a ``drape serve`` started for it as ``load_on_server``.
 
 Being a second ``conftest`` module, this one is what ``from conftest import ...`` finds in the tools
 tests: it re-exports the shared service helpers of tests/conftest.py under the same names.
@@ -49,9 +50,8 @@ for _name, _value in vars(_root).items():
     globals()[_name] = _value
 make_config, connect, collect = _root.make_config, _root.connect, _root.collect
 free_port, endpoint, wait_until = _root.free_port, _root.endpoint, _root.wait_until
-TIMEOUT, GRACE = _root.TIMEOUT, _root.GRACE
+TIMEOUT, GRACE, WAIT = _root.TIMEOUT, _root.GRACE, _root.WAIT
 EXAMPLE = REPO / "deploy" / "users.example.toml"
-WAIT = 20.0  # seconds to wait for a positive event (a loaded CI machine), never asserted on
 SERVER_WAIT = 90.0  # a drape serve starting (OpenCL warm-up) on a loaded CI machine
 
 USERS = """
@@ -122,12 +122,6 @@ class Inbox:
             return self._cond.wait_for(lambda: predicate(self), timeout)
 
 
-def wait_long(pred: Callable[[], bool], timeout: float = WAIT, step: float = 0.1) -> bool:
-    """tests/conftest.py's ``wait_until`` with a loaded machine's patience: for server-side
-    outcomes only a query can observe, never to wait out something that must not happen."""
-    return bool(_root.wait_until(pred, timeout, step))
-
-
 def user_file(d: Path, user: str, password: str) -> str:
     """A client-mode Zenoh JSON5 file with the user's name and password (what a deployment ships)."""
     p = d / f"{user}.json5"
@@ -161,7 +155,7 @@ def acl_kit() -> SimpleNamespace:
         make_certs=make_certs,
         user_file=user_file,
         router_config=router_config,
-        wait_until=wait_long,
+        wait_until=wait_until,
     )
 
 
@@ -255,3 +249,27 @@ def drape_behind_router(tmp_path, request) -> Iterator[DrapeBehindRouter]:
 
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line("markers", "serve_args(*args): extra drape serve arguments of drape_behind_router")
+
+
+def _load_on_server(spec: Any, serve_args: list[str], server_id: str) -> tuple[Any, Any, Any]:
+    """``drape loadtest``'s run of ``spec`` (a LoadSpec) against a ``drape serve`` with
+    ``serve_args`` started for it, its stats watched; the server stopped after (cleanly, asserted):
+    (report, client results, window)."""
+    from drape.server.tools import loadtest as lt
+    from drape.server.tools.procs import ServerProcess
+
+    server = ServerProcess(serve_args, server_id=server_id)
+    try:
+        stats = lt.StatsWatch(server.endpoint, server.server_id)
+        try:
+            return lt.run_load(spec, server.endpoint, server.server_id, server, stats, quiet=True)
+        finally:
+            stats.close()
+    finally:
+        assert server.stop() == 0, "drape serve did not stop cleanly"
+
+
+@pytest.fixture
+def load_on_server() -> Callable[[Any, list[str], str], tuple[Any, Any, Any]]:
+    """:func:`_load_on_server`: (spec, serve_args, server_id) -> (report, client results, window)."""
+    return _load_on_server

@@ -11,7 +11,6 @@ import pytest
 from drape.server.tools import loadtest as lt
 from drape.server.tools.loadclient import ClientResult
 from drape.server.tools.loadlink import LinkSpec, group_summary, longest_gap_ms
-from drape.server.tools.procs import ServerProcess
 
 pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
 
@@ -38,31 +37,23 @@ def test_the_last_clients_are_shaped_and_summarised_apart():
     assert longest_gap_ms(np.array([0, 10_000_000, 50_000_000])) == 40.0
 
 
-def test_a_load_with_one_client_behind_a_home_link():
+def test_a_load_with_one_client_behind_a_home_link(load_on_server):
     link = LinkSpec(rate_mbit=20, delay_ms=5, share=0.5, client_rate="2")
     spec = lt.LoadSpec(clients=2, cloths=4, size=8, seconds=2.0, iterations=2, encoding="quant16", link=link)
-    server = ServerProcess(
-        ["--tick-rate", "60", "--stats-period", "0.5", "--no-admission", "--solver", "workgroup"], server_id="ll-ci"
-    )
-    try:
-        stats = lt.StatsWatch(server.endpoint, server.server_id)
-        try:
-            report, results, _ = lt.run_load(spec, server.endpoint, server.server_id, server, stats, quiet=True)
-        finally:
-            stats.close()
-    finally:
-        assert server.stop() == 0, "drape serve did not stop cleanly"
+    args = ["--tick-rate", "60", "--stats-period", "0.5", "--no-admission", "--solver", "workgroup"]
+    report, results, _ = load_on_server(spec, args, "ll-ci")
     links = report.links
     assert links["link"]["rate_mbit"] == 20 and links["link"]["client_rate"] == "2"
     shaped, plain = links["shaped"], links["unshaped"]
     assert shaped["clients"] == 1 and plain["clients"] == 1 and shaped["cloths"] == plain["cloths"] == 2
     assert shaped["rate_at_end"] == [2] and plain["rate_at_end"] == [1]
-    # the shaped client takes every 2nd state: about half the unshaped one's (frames a busy CI box
-    # coalesced are missing for both)
+    # the shaped client takes every 2nd state, the unshaped one every state of every frame the
+    # server did not coalesce (counted: a busy CI box coalesces frames, missing for both; the
+    # counter counts one at the next tick, so one at either edge of the window may fall outside it)
     (s,) = [r for r in results if r.extra["shaped"]]
     (p,) = [r for r in results if not r.extra["shaped"]]
     assert 0 < max(s.extra["per_cloth_states"]) <= report.ticks // 2 + 1
-    assert min(p.extra["per_cloth_states"]) > report.ticks // 2 + 1
+    assert min(p.extra["per_cloth_states"]) >= report.ticks - report.skipped_frames - 2, report.skipped_frames
     assert np.isfinite(shaped["latency_ms"]["p99"]) and shaped["longest_gap_ms"] > 0
     # the report's own figures are the unshaped client's (the server's, not the link's)
     assert report.expected_states == 2 * report.ticks and report.states == sum(p.extra["per_cloth_states"])

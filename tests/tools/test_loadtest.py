@@ -150,21 +150,12 @@ def test_clients_decode_a_sample_of_big_predictive_loads():
     assert [c.decode_sample for c in specs] == [SAMPLED_DECODE] * 2
 
 
-def test_a_sampled_load_counts_every_state(tmp_path):
+def test_a_sampled_load_counts_every_state(load_on_server):
     """Clients that decode one cloth in 2 (predictive states in bundles) count the others' states
     from their headers: every state of the window is received or counted lost, as when all decode."""
     spec = lt.LoadSpec(clients=1, cloths=4, size=8, seconds=1.5, iterations=2, encoding="predictive", decode_sample=2)
-    server = ServerProcess(
-        ["--tick-rate", "30", "--stats-period", "0.5", "--no-admission", "--solver", "workgroup"], server_id="lt-sample"
-    )
-    try:
-        stats = lt.StatsWatch(server.endpoint, server.server_id)
-        try:
-            report, results, _ = lt.run_load(spec, server.endpoint, server.server_id, server, stats, quiet=True)
-        finally:
-            stats.close()
-    finally:
-        assert server.stop() == 0, "drape serve did not stop cleanly"
+    args = ["--tick-rate", "30", "--stats-period", "0.5", "--no-admission", "--solver", "workgroup"]
+    report, results, _ = load_on_server(spec, args, "lt-sample")
     assert report.cloths == 4 and report.decode_us["one_in"] == 2
     assert results[0].extra["decoded_cloths"] == 2 and results[0].extra["decode_sample"] == 2
     assert report.expected_states == 4 * report.ticks > 0
@@ -174,22 +165,12 @@ def test_a_sampled_load_counts_every_state(tmp_path):
     assert len(per_cloth) == 4 and len(set(per_cloth)) == 1  # decoded and counted cloths alike
 
 
-def test_short_load_measures_only_its_window(tmp_path):
+def test_short_load_measures_only_its_window(tmp_path, load_on_server):
     """2 clients offer 3 cloths each to a server admitting 5: one submit is refused (counted by
     its code); the 5 admitted cloths receive every tick of the window."""
     spec = lt.LoadSpec(clients=2, cloths=6, size=12, seconds=2.0, iterations=4)
-    server = ServerProcess(
-        ["--tick-rate", "60", "--stats-period", "0.5", "--max-cloths", "5", "--no-admission", "--solver", "workgroup"],
-        server_id="lt-ci",
-    )
-    try:
-        stats = lt.StatsWatch(server.endpoint, server.server_id)
-        try:
-            report, results, window = lt.run_load(spec, server.endpoint, server.server_id, server, stats, quiet=True)
-        finally:
-            stats.close()
-    finally:
-        assert server.stop() == 0, "drape serve did not stop cleanly"
+    args = ["--tick-rate", "60", "--stats-period", "0.5", "--max-cloths", "5", "--no-admission"]
+    report, results, window = load_on_server(spec, [*args, "--solver", "workgroup"], "lt-ci")
     print(json.dumps(report.to_dict(), indent=1))
     assert report.offered == 6 and report.cloths == 5
     assert report.refused == {"limit_exceeded": 1}

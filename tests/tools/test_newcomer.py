@@ -3,7 +3,8 @@ server exited (its exit status and last log lines) instead of timing out and bla
 ``drape loadtest``'s exit status tells a script whether the load was held; ``drape top``'s live
 view quits on ``q``, its terminal restored. Real processes, real Zenoh and PoCL; the servers that
 fail do so on a real error (an OpenCL device that does not exist, a SIGKILL). Exit statuses and
-messages are asserted; durations only against generous bounds far below the old timeouts."""
+messages are asserted; durations only against what the same failure takes alone on the same machine
+at the same moment, with generous slack, far below the old timeouts."""
 
 from __future__ import annotations
 
@@ -25,8 +26,11 @@ from drape.server.tools.procs import ServerExited, ServerProcess, free_port
 
 pytestmark = [pytest.mark.opencl, pytest.mark.zenoh]  # not unit (tests/conftest.py)
 
-#: A run that fails must fail well before the waits it used to sit out (30-67 s in issue 20).
-FAIL_BOUND_S = 25.0
+#: A run that fails must fail well before the waits it used to sit out (30-67 s in issue 20): within
+#: this many times what a failing server alone takes on the same machine at the same moment (the
+#: load test is two interpreters: its own and its server's), plus SLACK_S for the clients' starts.
+FAIL_FACTOR = 3.0
+SLACK_S = 15.0
 
 
 def drape(*args: str, timeout: float = 240) -> subprocess.CompletedProcess[str]:
@@ -45,6 +49,11 @@ def test_demo_says_its_server_exited_with_its_last_log_lines(tmp_path):
 
 
 def test_loadtest_says_its_server_exited_with_its_last_log_lines(tmp_path):
+    # what a failing server alone takes here now: the bound scales with the machine's load
+    t0 = time.monotonic()
+    alone = drape("serve", "--device", "no-such-device", "--listen", f"tcp/127.0.0.1:{free_port()}", timeout=120)
+    assert alone.returncode == 1 and "no OpenCL device matches 'no-such-device'" in alone.stderr, alone.stderr
+    alone_s = time.monotonic() - t0
     t0 = time.monotonic()
     r = drape(
         *("loadtest", "--device", "no-such-device", "--clients", "2", "--cloths", "1", "--size", "8"),
@@ -57,7 +66,8 @@ def test_loadtest_says_its_server_exited_with_its_last_log_lines(tmp_path):
     assert re.search(r"exited with code 1 before the clients( connected|' submits were answered)", r.stderr)
     assert "no OpenCL device matches 'no-such-device'" in r.stderr.split("its last", 1)[1]
     assert "no stats publication" not in r.stderr and "Traceback" not in r.stderr
-    assert time.monotonic() - t0 < FAIL_BOUND_S * 2  # two interpreters start; the old wait was 60 s and more
+    took = time.monotonic() - t0
+    assert took < FAIL_FACTOR * alone_s + SLACK_S, (took, alone_s)  # not a wait sat out: noticed as it exited
 
 
 def test_a_server_killed_while_waited_on_is_reported_with_its_signal():

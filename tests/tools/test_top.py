@@ -9,7 +9,7 @@ import sys
 import time
 
 import pytest
-from conftest import free_port, make_config  # shared helpers
+from conftest import WAIT, free_port, make_config  # shared helpers
 
 from drape.client import DrapeClient
 from drape.client import protocol as P
@@ -50,7 +50,7 @@ def test_once_renders_every_server_on_the_network(capsys):
         with DrapeClient(a.config.listen[0], server_id=a.server_id, timeout=TIMEOUT) as client:
             cloths = [client.submit_grid(5, 4, pinned=[0, 4], quality="fast") for _ in range(2)]
             for c in cloths:
-                c.next_state(TIMEOUT)
+                c.next_state(WAIT)
             capsys.readouterr()
             assert main(["top", "--once", "--endpoint", a.config.listen[0], "--wait", str(TIMEOUT)]) == 0
             out = capsys.readouterr().out

@@ -62,7 +62,7 @@ fn grid_states_and_pins() {
     let t0 = Instant::now();
     // (a pin reaches its target to within 1 float32 ulp per coordinate, PROTOCOL.md section 12)
     while pos[0..3].iter().zip([0.0f32, 2.59, 0.0]).any(|(p, t)| (p - t).abs() > 1e-6) {
-        assert!(t0.elapsed() < Duration::from_secs(5), "the unwaited pin moves are not applied: {:?}", &pos[0..3]);
+        assert!(t0.elapsed() < common::WAIT, "the unwaited pin moves are not applied: {:?}", &pos[0..3]);
         wait(&cloth, &mut pos);
     }
     let last_tick = cloth.remove().unwrap();
@@ -101,7 +101,7 @@ fn mesh_obj_encodings_and_errors() {
     cloth.move_pins(&[2], &[0.0, 0.0, 0.0], false).unwrap();
     let t0 = Instant::now();
     let mut ev = None;
-    while t0.elapsed() < Duration::from_secs(5) && !matches!(ev, Some(Event::RequestFailed { .. })) {
+    while t0.elapsed() < common::WAIT && !matches!(ev, Some(Event::RequestFailed { .. })) {
         ev = client.poll_event(Duration::from_millis(100));
     }
     assert!(matches!(&ev, Some(Event::RequestFailed { handle: Some(h), error, .. }) if *h == cloth.handle() && error.code == ErrorCode::InvalidValue), "{ev:?}");
@@ -384,7 +384,7 @@ fn feature_changes_keep_the_other_features() {
     // Not waited for: the reply's set is kept on the cloth when it comes.
     assert!(cloth.change_features(&["tethers"], &[], false).unwrap().is_none());
     let t0 = Instant::now();
-    while cloth.features().is_none_or(|f| !f.contains(&"tethers".to_string())) && t0.elapsed() < Duration::from_secs(5) {
+    while cloth.features().is_none_or(|f| !f.contains(&"tethers".to_string())) && t0.elapsed() < common::WAIT {
         std::thread::sleep(Duration::from_millis(20));
     }
     let later = cloth.features();
@@ -403,18 +403,14 @@ fn feature_changes_keep_the_other_features() {
 #[test]
 fn c_abi_feature_changes() {
     use drape::ffi::*;
-    use std::ffi::{CStr, CString};
+    use std::ffi::CStr;
     let Some(s) = shared() else { return };
-    let connect = CString::new(s.endpoint.clone()).unwrap();
-    let server = CString::new(s.id.clone()).unwrap();
     let name = |code: i32| unsafe { CStr::from_ptr(drape_error_name(code)) }.to_str().unwrap().to_string();
     assert_eq!(name(DRAPE_E_OVERLOADED), "overloaded");
     assert_eq!(name(DRAPE_E_UNKNOWN), "unknown");
     assert!(unsafe { CStr::from_ptr(drape_version()) }.to_str().unwrap().ends_with("protocol 1.4"));
     unsafe {
-        let opts = common::c_client_options(&connect, Some(&server), None, 60_000, true);
-        let mut client = std::ptr::null_mut();
-        assert_eq!(drape_client_open(&opts, &mut client), DRAPE_OK);
+        let client = common::c_open(s, None);
         let grid = DrapeGrid { cols: 4, rows: 4, width: 0.0, height: 0.0, vertical: false, origin: [0.0; 3] };
         let pins = [0u32, 3];
         let copts = common::c_cloth_options(&pins, true);
@@ -499,7 +495,7 @@ fn identity_keys_server() {
     cloth.move_pins(&[0], &[0.0, 2.6, 0.0], false).unwrap();
     let t0 = Instant::now();
     while pos[0..3].iter().zip([0.0f32, 2.6, 0.0]).any(|(p, t)| (p - t).abs() > 1e-6) {
-        assert!(t0.elapsed() < Duration::from_secs(5), "the unwaited pin move is not applied: {:?}", &pos[0..3]);
+        assert!(t0.elapsed() < common::WAIT, "the unwaited pin move is not applied: {:?}", &pos[0..3]);
         wait(&cloth, &mut pos);
     }
     // a bundled cloth and a batch control (control_batch on the client's key)
@@ -543,29 +539,18 @@ fn identity_keys_server() {
 #[test]
 fn c_abi_identity_keys_server() {
     use drape::ffi::*;
-    use std::ffi::CString;
     let Some(bin) = common::drape_bin() else { return };
     let s = common::start(&bin, &["--identity", "keys"]);
-    let connect = CString::new(s.endpoint.clone()).unwrap();
-    let server = CString::new(s.id.clone()).unwrap();
-    let me = CString::new(format!("c-abi-{}", std::process::id())).unwrap();
+    let me = format!("c-abi-{}", std::process::id());
     unsafe {
-        let opts = common::c_client_options(&connect, Some(&server), Some(&me), 60_000, true);
-        let mut client = std::ptr::null_mut();
-        assert_eq!(drape_client_open(&opts, &mut client), DRAPE_OK);
+        let client = common::c_open(&s, Some(me.as_str()));
         let grid = DrapeGrid { cols: 4, rows: 4, width: 0.0, height: 0.0, vertical: false, origin: [0.0; 3] };
         let pins = [0u32, 3];
         let copts = common::c_cloth_options(&pins, false);
         let mut cloth = std::ptr::null_mut();
         assert_eq!(drape_submit_grid(client, &grid, &copts, &mut cloth), DRAPE_OK);
         let mut pos = [0f32; 48];
-        let t0 = Instant::now();
-        let mut got = DRAPE_NO_DATA;
-        while got == DRAPE_NO_DATA && t0.elapsed() < Duration::from_secs(10) {
-            std::thread::sleep(Duration::from_millis(20));
-            got = drape_cloth_read_state(cloth, pos.as_mut_ptr(), 48, std::ptr::null_mut(), 0, std::ptr::null_mut());
-        }
-        assert_eq!(got, DRAPE_OK, "no state within 10 s");
+        common::c_first_state(cloth, &mut pos, Duration::from_secs(10));
         let mut tick = 0u64;
         let idx = [0u32];
         let target = [0.0f32, 1.0, 0.0];

@@ -9,7 +9,7 @@ mod common;
 
 use drape::client::{Client, Cloth, Counters};
 use drape::wire::{grid_geometry, Control, Encoding, Grid, Orientation, Shape, StateOptions, Submit};
-use common::twin::{max_diff, read_by_age, ByAge};
+use common::twin::{max_diff, read_by_age, read_n_by_age, ByAge};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
@@ -60,7 +60,7 @@ fn predictive_cloths_decode_resync_and_switch() {
 
     // Decoded in order, each within step / 2 of the float32 twin's state of the same age.
     let (mut a, mut b, mut c) = (ByAge::new(), ByAge::new(), ByAge::new());
-    let enc = read_by_age(&pred, Duration::from_secs(2), &mut a);
+    let enc = read_n_by_age(&pred, 40, &mut a); // counted states, whatever the machine's pace
     read_by_age(&bundled, Duration::from_millis(200), &mut c);
     read_by_age(&twin, Duration::from_millis(200), &mut b);
     assert!(!enc.is_empty() && enc.iter().all(|e| *e == Encoding::Predictive), "{enc:?}");
@@ -89,7 +89,7 @@ fn predictive_cloths_decode_resync_and_switch() {
         assert_eq!(k.read + k.replaced + k.missed + k.unread + k.undecodable, k.ticks, "{k:?}");
     }
     let mut a2 = ByAge::new();
-    read_by_age(&pred, Duration::from_secs(1), &mut a2);
+    read_n_by_age(&pred, 20, &mut a2);
     read_by_age(&twin, Duration::from_millis(200), &mut b);
     let (worst, n) = max_diff(&a2, &b);
     assert!(n >= 10 && worst <= bound, "after the resync: {worst} m over {n} states");
@@ -111,14 +111,9 @@ fn predictive_cloths_decode_resync_and_switch() {
 #[test]
 fn c_abi_predictive_cloth() {
     use drape::ffi::*;
-    use std::ffi::CString;
     let Some(s) = shared() else { return };
-    let connect = CString::new(s.endpoint.clone()).unwrap();
-    let server = CString::new(s.id.clone()).unwrap();
     unsafe {
-        let opts = common::c_client_options(&connect, Some(&server), None, 60_000, true);
-        let mut client = std::ptr::null_mut();
-        assert_eq!(drape_client_open(&opts, &mut client), DRAPE_OK);
+        let client = common::c_open(s, None);
         assert_eq!(drape_client_set_predictive_step(client, 0.5), DRAPE_E_INVALID_VALUE);
         assert_eq!(drape_client_set_predictive_step(client, STEP), DRAPE_OK);
         let grid = DrapeGrid { cols: 8, rows: 8, width: 0.0, height: 0.0, vertical: true, origin: [0.0, 2.0, 0.0] };

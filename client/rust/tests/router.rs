@@ -208,13 +208,7 @@ fn c_abi_authenticated_client_through_an_acl_router() {
             std::thread::sleep(Duration::from_millis(500));
         }
         let mut pos = [0f32; 48];
-        let t0 = Instant::now();
-        let mut got = DRAPE_NO_DATA;
-        while got == DRAPE_NO_DATA && t0.elapsed() < Duration::from_secs(30) {
-            std::thread::sleep(Duration::from_millis(20));
-            got = drape_cloth_read_state(cloth, pos.as_mut_ptr(), 48, std::ptr::null_mut(), 0, std::ptr::null_mut());
-        }
-        assert_eq!(got, DRAPE_OK, "no state within 30 s");
+        common::c_first_state(cloth, &mut pos, Duration::from_secs(30));
         let mut tick = 0u64;
         let target = [0.0f32, 1.0, 0.0];
         assert_eq!(drape_cloth_move_pins(cloth, [0u32].as_ptr(), 1, target.as_ptr(), true, &mut tick), DRAPE_OK);

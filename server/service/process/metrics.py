@@ -101,6 +101,12 @@ METRICS: tuple[tuple[str, str, str], ...] = (
     ("drape_quality_degraded_cloths", "gauge", "Cloths below the preset their client asked for"),
     ("drape_quality_degraded_seconds", "counter", "Seconds with any cloth degraded"),
     ("drape_quality_changes", "counter", "Adaptive quality preset changes"),
+    (
+        "drape_kernel_builds",
+        "counter",
+        "OpenCL programs built in the server process, by the thread that built them (tick: a stalled tick)",
+    ),
+    ("drape_build_child_cloths", "counter", "First cloths of a kernel group handed to the build child, by outcome"),
 )
 
 #: stats key -> (name, type) of the families exported only when the stats carry the key: every
@@ -129,6 +135,42 @@ def phase_timers(server: Any) -> Mapping[str, PhaseTimer]:
         if timers:
             return timers
     return {}
+
+
+#: the roles ``drape_kernel_builds_total`` always shows (0 when none): the tick's is the one that must stay 0
+BUILD_THREADS = ("main", "cook", "tick")
+
+
+def thread_role(name: str) -> str:
+    """A server thread's role from its name: ``drape-tick-<server id>`` -> ``tick``, the main thread
+    ``main``, any other ``other``."""
+    if name == "MainThread":
+        return "main"
+    parts = name.split("-")
+    return parts[1] if len(parts) > 2 and parts[0] == "drape" else "other"
+
+
+def kernel_builds(server: Any) -> dict[str, int]:
+    """Programs the server's OpenCL Device built, by :func:`thread_role` (``Device.builds``);
+    0 for each of ``BUILD_THREADS`` on a server without one (the reference solver)."""
+    world = getattr(getattr(server, "ticker", None), "world", None)
+    counts = dict.fromkeys(BUILD_THREADS, 0)
+    for _, thread in list(getattr(getattr(world, "dev", None), "builds", ())):
+        role = thread_role(thread)
+        counts[role] = counts.get(role, 0) + 1
+    return counts
+
+
+def build_child_cloths(server: Any) -> dict[str, int]:
+    """The cook thread's build child (``BuildHelper``): cloths it built and ran (``ran``), that fell
+    back to a build in the server (``failed``), or that it refused past ``build_memory_mb``
+    (``memory_killed``); all 0 without a helper (``build_in_child`` other than "always")."""
+    helper = getattr(getattr(server, "cook", None), "helper", None)
+    return {
+        "ran": int(getattr(helper, "runs", 0)),
+        "failed": int(getattr(helper, "failures", 0)),
+        "memory_killed": int(getattr(helper, "memory_kills", 0)),
+    }
 
 
 def overload_refusals(stats: Mapping[str, Any]) -> int:
@@ -164,6 +206,14 @@ class DrapeCollector(Collector):
             log.debug("info() failed during a scrape: %s", e)
             info = {}
         yield from families(stats, info, phase_timers(self.server), self.namespace)
+        builds = CounterMetricFamily("drape_kernel_builds", _HELP["drape_kernel_builds"], labels=["thread"])
+        for role, n in kernel_builds(self.server).items():
+            builds.add_metric([role], n)
+        yield builds
+        child = CounterMetricFamily("drape_build_child_cloths", _HELP["drape_build_child_cloths"], labels=["outcome"])
+        for outcome, n in build_child_cloths(self.server).items():
+            child.add_metric([outcome], n)
+        yield child
 
 
 def families(

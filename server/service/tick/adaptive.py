@@ -38,7 +38,7 @@ class AdaptiveQuality:
         self.degraded_since: int | None = None
         self.degraded_s = 0.0
         self._last_check = time.monotonic()
-        self._share_of = -1  # how many cloths the governor's moving share was last taken over
+        self._share_of = -1  # how many cloths in the World the governor's moving share was last taken over
 
     def use_device(self, is_gpu: bool) -> None:
         """A governor with the presets' costs of the world's kind of device (quality.COSTS_FILE
@@ -77,15 +77,16 @@ class AdaptiveQuality:
         g.budget_ms = 1e3 * self.config.quality_budget * self.config.dt
         before = g.current
         g.update(1e3 * self.measure(tick_s))
-        live = list(records())
-        if g.current == before and len(live) == self._share_of:
+        # the cloths in the World (a submission's record exists, without a handle, from its
+        # admission until the tick that adds it: counted then, its share would never be taken)
+        recs = [r for r in records() if r.quality_wanted is not None and r.handle is not None]
+        if g.current == before and len(recs) == self._share_of:
             return
-        recs = [r for r in live if r.quality_wanted is not None and r.handle is not None]
         if world is not None and recs:  # its next predictions: this share of moving cloths' costs
             # taken again when it steps and when cloths came or went (one arriving after the
             # governor settled would otherwise leave the share of the cloths before it)
             g.moving = sum(quality.is_moving(world.cloths[cast(int, r.handle)].params) for r in recs) / len(recs)
-        self._share_of = len(live)
+        self._share_of = len(recs)
         if g.current == before:
             return
         if _RANK[g.current] < _RANK[before]:

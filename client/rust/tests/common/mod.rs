@@ -80,6 +80,9 @@ impl Drop for Server {
 }
 
 pub const START_TIMEOUT: Duration = Duration::from_secs(60);
+/// A loaded machine's patience for an event that must come (a state, an applied control, a reply's
+/// event): a deadline, never a rate; the tests pass as soon as it comes.
+pub const WAIT: Duration = Duration::from_secs(60);
 
 /// A client connected to every server of `servers` (timeout 10 s), returned once it sees each
 /// one's liveliness token (a cold server builds its kernels first: up to `START_TIMEOUT`).
@@ -118,6 +121,34 @@ pub fn c_client_options(connect: &std::ffi::CStr, server_id: Option<&std::ffi::C
         no_failover,
         lazy: false,
     }
+}
+
+/// A C ABI client of `server` (`drape_client_open`, asserted to succeed): its endpoint and id,
+/// the client id `client_id` (None: `$DRAPE_CLIENT_ID` or random), a 60 s timeout, failover off,
+/// not lazy. The caller closes it (`drape_client_close`).
+pub fn c_open(server: &Server, client_id: Option<&str>) -> *mut drape::ffi::DrapeClient {
+    let connect = std::ffi::CString::new(server.endpoint.clone()).unwrap();
+    let id = std::ffi::CString::new(server.id.clone()).unwrap();
+    let me = client_id.map(|c| std::ffi::CString::new(c).unwrap());
+    let opts = c_client_options(&connect, Some(&id), me.as_deref(), 60_000, true);
+    let mut client = std::ptr::null_mut();
+    assert_eq!(unsafe { drape::ffi::drape_client_open(&opts, &mut client) }, drape::ffi::DRAPE_OK);
+    client
+}
+
+/// Polls `drape_cloth_read_state` (positions only, into `pos`) until the C ABI cloth's first state,
+/// failing the test after `within`.
+///
+/// # Safety
+/// `cloth` is a live cloth of the C ABI.
+pub unsafe fn c_first_state(cloth: *const drape::ffi::DrapeCloth, pos: &mut [f32], within: Duration) {
+    let t0 = std::time::Instant::now();
+    let mut got = drape::ffi::DRAPE_NO_DATA;
+    while got == drape::ffi::DRAPE_NO_DATA && t0.elapsed() < within {
+        std::thread::sleep(Duration::from_millis(20));
+        got = drape::ffi::drape_cloth_read_state(cloth, pos.as_mut_ptr(), pos.len(), std::ptr::null_mut(), 0, std::ptr::null_mut());
+    }
+    assert_eq!(got, drape::ffi::DRAPE_OK, "no state within {within:?}");
 }
 
 /// C ABI submission options pinning `pins`: float32, no bundle, server defaults for the rest.

@@ -4,6 +4,7 @@
 use drape::client::Cloth;
 use drape::wire::Encoding;
 use std::collections::BTreeMap;
+use super::WAIT;
 use std::time::{Duration, Instant};
 
 /// States by age (tick - the cloth's first tick): the state's tick and its positions.
@@ -12,10 +13,30 @@ pub type ByAge = BTreeMap<u64, (u64, Vec<f32>)>;
 /// Every state read from `cloth` within `d`, added to `out` by age; their encodings, in order.
 /// A state shown is never garbage (every coordinate finite).
 pub fn read_by_age(cloth: &Cloth, d: Duration, out: &mut ByAge) -> Vec<Encoding> {
+    let t0 = Instant::now();
+    read_while(cloth, out, |_| t0.elapsed() < d)
+}
+
+/// States read from `cloth` into `out` by age until it holds `n` more ages (counted, whatever the
+/// machine's pace; panics after [`WAIT`] without them); their encodings, in order.
+pub fn read_n_by_age(cloth: &Cloth, n: usize, out: &mut ByAge) -> Vec<Encoding> {
+    let (t0, want) = (Instant::now(), out.len() + n);
+    let enc = read_while(cloth, out, |got| got.len() < want && t0.elapsed() < WAIT);
+    assert!(out.len() >= want, "{} of {n} states in {WAIT:?}", n - (want - out.len()));
+    enc
+}
+
+/// [`read_n_by_age`] into a new map.
+pub fn n_by_age(cloth: &Cloth, n: usize) -> ByAge {
+    let mut out = ByAge::new();
+    read_n_by_age(cloth, n, &mut out);
+    out
+}
+
+fn read_while(cloth: &Cloth, out: &mut ByAge, more: impl Fn(&ByAge) -> bool) -> Vec<Encoding> {
     let mut pos = vec![0f32; 3 * cloth.vertex_count() as usize];
     let mut encodings = Vec::new();
-    let t0 = Instant::now();
-    while t0.elapsed() < d {
+    while more(out) {
         if let Some(st) = cloth.wait_state(&mut pos, None, Duration::from_millis(50)).unwrap() {
             assert!(pos.iter().all(|x| x.is_finite()), "a shown state is never garbage");
             out.insert(st.tick - cloth.first_tick(), (st.tick, pos.clone()));

@@ -82,9 +82,14 @@ def _random_normals(rng: np.random.Generator, n: int) -> np.ndarray:
     return m.astype(np.float32)
 
 
-def _random_id(rng: np.random.Generator) -> str:
+def _random_id(rng: np.random.Generator, taken: set[str]) -> str:
+    """A random valid id of 1-64 characters not in ``taken`` (added to it): a server's cloths
+    have distinct ids (FramePlan refuses one twice; seed 20 once drew "n" for two cloths)."""
     alphabet = np.array(list("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_.-"))
-    return "".join(rng.choice(alphabet, int(rng.integers(1, 65))))
+    while (cid := "".join(rng.choice(alphabet, int(rng.integers(1, 65))))) in taken:
+        pass
+    taken.add(cid)
+    return cid
 
 
 def _random_frame(rng: np.random.Generator, k: int, max_n: int = 700):
@@ -98,8 +103,11 @@ def _random_frame(rng: np.random.Generator, k: int, max_n: int = 700):
     for i in order:
         vbase[i] = at
         at += int(sizes[i]) + int(rng.integers(0, 5))
+    taken: set[str] = set()
     cloths = [
-        ClothEntry(_random_id(rng), int(vbase[i]), int(sizes[i]), int(rng.choice(ENCS)), bool(rng.random() < 0.5))
+        ClothEntry(
+            _random_id(rng, taken), int(vbase[i]), int(sizes[i]), int(rng.choice(ENCS)), bool(rng.random() < 0.5)
+        )
         for i in range(k)
     ]
     pos = [_random_positions(rng, c.n) for c in cloths]

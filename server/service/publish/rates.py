@@ -142,7 +142,8 @@ class RatePublishers:
                 # a key that lost its last subscriber starts its next subscriber on a keyframe, as
                 # the device's decimated plans do (a publication unwatched leaves the rate's
                 # plan): noticed on the next frame put, whether or not the frame of the tick it
-                # left on was dropped
+                # left on was dropped; a rate nobody watches any more has lost them all so
+                # (tests/service/test_rates.py, a key watched again, alone and beside another)
                 ids = roster.ids
                 self.streams[k].forget([ids[i] for p in pubs if p[0] in gone for i in p[2]])
             if tick % k:
@@ -151,8 +152,6 @@ class RatePublishers:
                 watched = set(self._watched[k])
             if watched:
                 out.append((k, [j for j, p in enumerate(pubs) if p[0] in watched]))
-            elif self.streams[k].streams:  # nobody left: whoever comes next starts on a keyframe
-                self.streams[k].keep_only(set())
         return out
 
     def publisher(self, ident: str, every: int) -> zenoh.Publisher | None:

@@ -252,10 +252,10 @@ def test_a_held_frame_is_never_reused_and_takes_flags(device, rng):
         held.release()
         with pytest.raises(RuntimeError):
             held.add_flags(bad, P.FLAG_RESET)
-        hosts = len(enc._hosts)
+        hosts = len(enc.hosts)
         for t in range(16, 20):  # released: back in the ring, no new buffer
             enc.encode(device.queue, pb2, nb, t, t * 10, zeros)
-        assert len(enc._hosts) == hosts
+        assert len(enc.hosts) == hosts
     finally:
         enc.close()
 

@@ -41,7 +41,8 @@ from ..roster import Roster
 from ..statecodec import PredictiveStreams
 from .device import Device
 from .devstreams import DeviceStreams
-from .encode import DeviceEncoder, EncodedFrame, FramePlan
+from .encode import DeviceEncoder, FramePlan
+from .hostframes import EncodedFrame
 
 log = logging.getLogger(__name__)
 

@@ -59,7 +59,8 @@ class RatePublishers:
     keyframe_interval: int = 60
     streams: dict[int, PredictiveStreams] = field(default_factory=dict)
     _keys: dict[tuple[str, int], _RateKey] = field(default_factory=dict)  # (ident, k)
-    _watched: dict[int, set[str]] = field(default_factory=dict)  # k -> idents with a subscriber
+    # k -> idents with a subscriber -> times their key lost its last one before (as _left had it)
+    _watched: dict[int, dict[str, int]] = field(default_factory=dict)
     _frozen: dict[int, Mapping[str, int]] = field(default_factory=dict)  # the same, as read by encoders
     _gone: dict[int, set[str]] = field(default_factory=dict)  # k -> idents that lost their last subscriber
     _left: dict[int, dict[str, int]] = field(default_factory=dict)  # k -> ident -> times it lost them all
@@ -68,7 +69,7 @@ class RatePublishers:
     def __post_init__(self) -> None:
         # a periodic keyframe every keyframe_interval of the stream's own states (k x the ticks)
         self.streams = {k: PredictiveStreams(k * self.keyframe_interval) for k in DECIMATED}
-        self._watched = {k: set() for k in DECIMATED}
+        self._watched = {k: {} for k in DECIMATED}
         self._gone = {k: set() for k in DECIMATED}
         self._left = {k: {} for k in DECIMATED}
 
@@ -76,9 +77,9 @@ class RatePublishers:
     def _matching(self, ident: str, every: int, status: zenoh.MatchingStatus) -> None:
         with self._lock:
             if status.matching:
-                self._watched[every].add(ident)
+                self._watched[every][ident] = self._left[every].get(ident, 0)
             else:
-                self._watched[every].discard(ident)
+                self._watched[every].pop(ident, None)
                 self._gone[every].add(ident)  # its streams restart for whoever subscribes next
                 left = self._left[every]
                 left[ident] = left.get(ident, 0) + 1
@@ -86,8 +87,7 @@ class RatePublishers:
 
     def _freeze(self, every: int) -> None:
         """(under the lock) the watched set of ``every`` as a new mapping (read without a lock)."""
-        left = self._left[every]
-        self._frozen = {**self._frozen, every: MappingProxyType({i: left.get(i, 0) for i in self._watched[every]})}
+        self._frozen = {**self._frozen, every: MappingProxyType(dict(self._watched[every]))}
 
     def watching(self) -> dict[int, Mapping[str, int]]:
         """Any thread: per rate, the idents of the publications watched, each with the times its
@@ -117,7 +117,7 @@ class RatePublishers:
             self._keys[(ident, k)] = _RateKey(pub, listener, block)
             if pub.matching_status.matching:  # type: ignore[attr-defined]
                 with self._lock:
-                    self._watched[k].add(ident)
+                    self._watched[k][ident] = self._left[k].get(ident, 0)
                     self._freeze(k)
 
     def _drop(self, ident: str, every: int) -> None:
@@ -130,7 +130,7 @@ class RatePublishers:
             pass
         undeclare(have.pub)
         with self._lock:
-            self._watched[every].discard(ident)
+            self._watched[every].pop(ident, None)
             self._freeze(every)
 
     def remove(self, ident: str) -> None:

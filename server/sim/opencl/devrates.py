@@ -147,9 +147,10 @@ class DeviceRates:
             r.encoder.set_plan(sub)
             r.streams.follow(sub)
             # watched again since the last plan (its key lost its last subscriber meanwhile): restarted
-            again = [jj for jj, j in enumerate(sel) if before.get(pubs[j][0], idents[pubs[j][0]]) != idents[pubs[j][0]]]
-            if again:
-                r.streams.lost(sub, np.array([i for jj in again for i in sub.publications[jj].cloths], np.int64))
+            back = {i for i, _ in idents.items() - before.items() if i in before}
+            if back:
+                again = [i for jj, j in enumerate(sel) if pubs[j][0] in back for i in sub.publications[jj].cloths]
+                r.streams.lost(sub, np.array(again, np.int64))
             pub_of = np.full(len(pubs), -1, np.int64)
             pub_of[np.array(sel, np.int64)] = np.arange(len(sel))
             r.version, r.layout = version, _Layout(base, pub_of, np.array(sel, np.int64))

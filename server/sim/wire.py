@@ -98,7 +98,7 @@ class Wire(ABC):
         serve this tick is left out. The host path codes them as the full rate's."""
         return self.payloads(watched, streams)
 
-    def watch_rates(self, watching: Callable[[], Mapping[int, frozenset[str]]]) -> None:
+    def watch_rates(self, watching: Callable[[], Mapping[int, Mapping[str, int]]]) -> None:
         """1.8: where the publications watched per rate are read (a device-encoded World plans
         their decimated streams from it); the host path needs nothing."""
         return None

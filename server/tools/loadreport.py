@@ -16,7 +16,16 @@ from typing import Any
 
 import numpy as np
 
+from drape.client.protocol.stats import stat_field
+
 from .loadclient import ClientResult
+
+#: The decimated keys' counters of the stats (protocol 1.8, PROTOCOL.md 10) a report carries over
+#: its window: states put on ``{key}/every/{k}`` keys, and those of watched decimated keys not put
+#: (a publication first watched after its tick's frame was encoded).
+RATE_COUNTERS: tuple[str, ...] = tuple(  # stat_field: each a field of the stats table, or KeyError
+    stat_field(name).name for name in ("rate_published", "rate_unserved")
+)
 
 
 def achieved_rate(s0: Mapping[str, Any], s1: Mapping[str, Any]) -> float:
@@ -40,8 +49,9 @@ def server_window(
 ) -> dict[str, Any]:
     """One server's figures over a window (two of its stats publications, those in between):
     cloths and vertices at its end, achieved rate, ticks, missed ticks, coalesced frames, the
-    bytes it put (None when its stats do not report them), the mean tick and the window's
-    length on its clock."""
+    bytes it put (None when its stats do not report them), the decimated keys' counters
+    (:data:`RATE_COUNTERS`, those its stats report), the mean tick and the window's length on
+    its clock."""
     ph = phase_means(window)
     return {
         "server": server,
@@ -52,6 +62,7 @@ def server_window(
         "missed_ticks": counter_delta(s0, s1, "missed_ticks"),
         "skipped_frames": counter_delta(s0, s1, "skipped_frames"),
         "published_bytes": counter_delta(s0, s1, "published_bytes") if "published_bytes" in s1 else None,
+        "rates": {name: counter_delta(s0, s1, name) for name in RATE_COUNTERS if name in s1},
         "tick_ms": ph.get("tick", {}).get("mean", float("nan")),
         "seconds": (int(s1["time_ns"]) - int(s0["time_ns"])) / 1e9,
     }
@@ -59,6 +70,16 @@ def server_window(
 
 def counter_delta(s0: Mapping[str, Any], s1: Mapping[str, Any], key: str) -> int:
     return int(s1.get(key, 0)) - int(s0.get(key, 0))
+
+
+def rate_counts(per_server: Sequence[Mapping[str, Any]]) -> dict[str, int]:
+    """``Report.rates``: the servers' windows' decimated-key counters summed (a counter no server
+    reports is left out)."""
+    out: dict[str, int] = {}
+    for p in per_server:
+        for name, n in p.get("rates", {}).items():
+            out[name] = out.get(name, 0) + int(n)
+    return out
 
 
 def timeline(s0: Mapping[str, Any], window: Sequence[Mapping[str, Any]]) -> list[list[float]]:
@@ -174,6 +195,7 @@ class Report:
     load_average: list[float] = field(default_factory=list)  # the host's 1-minute load at the window's start, end
     affinity: dict[str, str] = field(default_factory=dict)  # CPUs the clients / each server were kept on, if any
     links: dict[str, Any] = field(default_factory=dict)  # issue 21: home links' clients apart (loadlink.py)
+    rates: dict[str, int] = field(default_factory=dict)  # 1.8: RATE_COUNTERS over the window, all servers
     timeline: list[list[float]] = field(default_factory=list)  # per stats period: s, ticks, missed, coalesced
 
     @property
@@ -273,6 +295,8 @@ def print_report(r: Report) -> None:
         f"{r.out_of_order} out of order; {r.messages_per_s:.0f} msg/s, {r.bytes_per_s / 1e6:.2f} MB/s; "
         f"control errors {r.send_errors}"
     )
+    if r.rates:
+        print(f"  {rates_summary(r.rates, r.seconds)}")
     print(
         f"  client decode: {r.decode_us['per_state']:.1f} us per state, {r.decode_us['per_payload']:.1f} us per "
         f"{'bundle' if r.bundle else 'state message'}, {r.decode_us['cpu_percent']:.0f}% of one core in all"
@@ -299,6 +323,18 @@ def print_report(r: Report) -> None:
     if r.cloths != r.offered:
         print(f"  admitted cloths served: {'yes' if r.served else 'NO'}")
     print(f"  held: {'yes' if r.held else 'NO (' + r.why_not_held() + ')'}")
+
+
+def rates_summary(rates: Mapping[str, int], seconds: float) -> str:
+    """``Report.rates`` in words: states put on decimated keys (and per second), those unserved."""
+    put, unserved = rates.get("rate_published"), rates.get("rate_unserved")
+    words = []
+    if put is not None:
+        per_s = f" ({put / seconds:.0f}/s)" if seconds > 0 else ""
+        words.append(f"{put} states put on decimated keys{per_s}")
+    if unserved is not None:
+        words.append(f"{unserved} of watched decimated keys not served")
+    return "decimated rates (1.8): " + ", ".join(words)
 
 
 COLUMNS = (

@@ -45,6 +45,7 @@ from .loadreport import (
     decode_summary,
     latency_summary,
     phase_means,
+    rate_counts,
     server_window,
     timeline,
 )
@@ -404,6 +405,7 @@ def run_fleet_load(
         load_average=[x for x in (load0, load1) if x is not None],
         timeline=timeline(s0, [st for _, st in windows[0]]),
         links=links_report(out, seconds, spec.link),
+        rates=rate_counts(per_server),
     )
     return report, out, windows[0]
 

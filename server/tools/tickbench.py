@@ -209,7 +209,7 @@ def _rate_changes(frames: Any, roster: Roster, k: int, repeat: int, add: Callabl
     plan built from the frame plan's columns, its encoder's set_plan, its streams followed."""
     assert frames.encoder.plan is not None
     idents = [p[0] for p in roster.publications()]
-    sets = (frozenset(idents), frozenset(idents[:-1]))
+    sets = (dict.fromkeys(idents, 0), dict.fromkeys(idents[:-1], 0))  # ident -> times it lost its subscribers
     for r in range(repeat + 2):
         frames.rates.watch(lambda s=sets[r % 2]: {k: s})
         ms, _ = _timed(lambda: frames.rates.follow(roster, frames.encoder.plan, 60, k * (r + 1)))  # noqa: B023

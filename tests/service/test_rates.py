@@ -153,6 +153,66 @@ def test_a_decimated_key_is_encoded_only_while_subscribed_and_keyframes_on_its_o
         c.close()
 
 
+def _decimated_orders(session: zenoh.Session, key: str, cloth: str) -> tuple[zenoh.Subscriber, P.StateStream, list]:
+    """A subscriber of ``key`` (one cloth's decimated key) decoding its states in order: the
+    stream and each state's predictor order as received (None: not decodable)."""
+    stream = P.StateStream(cloth)
+    orders: list[int | None] = []
+    lock = threading.Lock()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        data = sample.payload.to_bytes()
+        with lock:  # decoded and counted in one go (samples may come on several threads)
+            st = stream.decode(data)
+            orders.append(P.read_predictive_header(data).order if st is not None else None)
+
+    return session.declare_subscriber(key, on_sample), stream, orders
+
+
+@pytest.mark.parametrize("beside", [False, True], ids=["alone", "beside"])
+def test_a_key_watched_again_restarts_on_a_keyframe(server, beside):
+    """A decimated key watched, unwatched for a few of its rate's ticks and watched again: the
+    key's own forgetting (rates.py: a key that lost its last subscriber; the device's decimated
+    plan without it) makes the returning subscriber's first state a keyframe, and it decodes
+    every state with no keyframe query; alone (nobody watches the rate meanwhile) and beside
+    another cloth's key of the same rate watched throughout (whose subscriber misses nothing)."""
+    c = connect(server)
+    try:
+        opts = dict(pinned=[0, 11], encoding="predictive", step=STEP)
+        a, b = c.submit_grid(12, 12, **opts), c.submit_grid(10, 10, **opts)
+        collect(a, 3)
+        collect(b, 3)
+        rates, publisher = server.publisher.rates, server.publisher
+        counters = server.registry.counters
+        session = _session(server)
+        try:
+            keep, kept, _ = _decimated_orders(session, P.every_key(b.key, 2), b.id) if beside else (None, None, [])
+            sub, first, orders = _decimated_orders(session, P.every_key(a.key, 2), a.id)
+            assert wait_until(lambda: len(orders) >= 5 and (kept is None or kept.decoded >= 5))
+            queries = counters["keyframe_queries"]
+            sub.undeclare()
+            assert wait_until(lambda: a.id not in rates.watching().get(2, frozenset()))  # the listener saw it go
+            # the publisher puts 6 more ticks (3 of the rate, encoded after it went: the frames
+            # in flight then are 2 at most), the key unwatched on them
+            t0 = publisher.last_tick
+            assert wait_until(lambda: publisher.last_tick >= t0 + 6)
+            assert (b.id in rates.watching().get(2, frozenset())) == beside
+            decoded = kept.decoded if kept is not None else 0
+            sub, again, orders_again = _decimated_orders(session, P.every_key(a.key, 2), a.id)
+            assert wait_until(lambda: len(orders_again) >= 4 and (kept is None or kept.decoded >= decoded + 4))
+            sub.undeclare()
+            if keep is not None:
+                keep.undeclare()
+        finally:
+            session.close()
+        assert None not in orders and first.undecodable == 0
+        assert orders_again[0] == 0 and None not in orders_again, orders_again
+        assert again.undecodable == 0 and (kept is None or kept.undecodable == 0)
+        assert counters["keyframe_queries"] == queries  # nobody asked
+    finally:
+        c.close()
+
+
 @pytest.mark.parametrize("bundle", [False, True])
 def test_a_subscription_switches_rate_and_resyncs_on_a_keyframe(server, bundle):
     c = connect(server)

@@ -219,6 +219,25 @@ def test_bad_plans_are_refused_as_before(case):
     assert str(got.value) == str(want.value)
 
 
+def test_an_id_two_cloths_share_is_refused():
+    """Two cloths of one id in a frame (what test_predictive_frames_equal_the_host_encoder drew
+    with DRAPE_TEST_SEED=20: "n" twice, one unwatched) would code two streams on the device (one
+    per plan row) and one on the host (one per id: the unwatched cloth's forgetting restarted
+    the other's, a keyframe where the device predicted) that no decoder could tell apart: the
+    plan refuses it, from entries and from a roster alike."""
+    cloths = [ClothEntry("n", 0, 4, P.ENC_PREDICTIVE), ClothEntry("m", 4, 4), ClothEntry("n", 8, 4, P.ENC_PREDICTIVE)]
+    pubs = [Publication("x", (0,)), Publication("y", (2, 1), True)]
+    with pytest.raises(ValueError, match=r"cloth 2 \('n'\): the id of cloth 0 too"):
+        FramePlan.build(cloths, pubs)
+    recs = [
+        SimpleNamespace(id=c.cloth, key=f"k/{i}", encoding="predictive", step=1e-3, bundle_key=None)
+        for i, c in enumerate(cloths)
+    ]
+    with pytest.raises(ValueError, match="the id of cloth 0 too"):
+        FramePlan.for_roster(Roster.of((1, 0), recs, np.zeros(3, bool)), [0, 4, 8], [4, 4, 4])
+    FramePlan.build([cloths[0], cloths[1], cloths[2]._replace(cloth="o")], pubs)  # distinct: fine
+
+
 def test_a_bundle_may_hold_an_id_valid_only_by_the_protocol_s_own_check():
     """Ids are checked by P.valid_id (the one copy of the rule), whatever the fast check thinks."""
     c = ClothEntry("ok\n", 0, 4)

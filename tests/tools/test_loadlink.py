@@ -57,3 +57,7 @@ def test_a_load_with_one_client_behind_a_home_link(load_on_server):
     assert np.isfinite(shaped["latency_ms"]["p99"]) and shaped["longest_gap_ms"] > 0
     # the report's own figures are the unshaped client's (the server's, not the link's)
     assert report.expected_states == 2 * report.ticks and report.states == sum(p.extra["per_cloth_states"])
+    # the server's decimated-key counters over the window (1.8): the shaped client's 2 cloths'
+    # every 2nd state (a tick's slip at either end of the window at most)
+    assert 0 < report.rates["rate_published"] <= 2 * (report.ticks // 2 + 2)
+    assert report.rates["rate_unserved"] >= 0

@@ -105,6 +105,27 @@ def test_bytes_are_what_the_servers_put_when_they_report_it():
     assert old["published_bytes"] is None and bytes_put([a, old], clients) == 123_456  # type: ignore[arg-type]
 
 
+def test_the_decimated_rate_counters_are_reported_over_the_window():
+    """Report.rates: each server's window deltas of the stats' decimated-key counters (1.8),
+    summed over servers, in words with a rate; a server whose stats lack them adds nothing."""
+    from drape.client.protocol.stats import STAT_COUNTERS
+    from drape.server.tools.loadreport import RATE_COUNTERS, rate_counts, rates_summary, server_window
+
+    assert set(RATE_COUNTERS) <= set(STAT_COUNTERS)
+    s0 = {"ticks": 0, "time_ns": 0, "rate_published": 100, "rate_unserved": 3}
+    s1 = {"ticks": 120, "time_ns": 2_000_000_000, "rate_published": 700, "rate_unserved": 5}
+    a = server_window("a", s0, s1, [])
+    b = server_window("b", s0, {**s1, "rate_published": 300}, [])
+    old = server_window("c", {"ticks": 0, "time_ns": 0}, {"ticks": 120, "time_ns": 2_000_000_000}, [])
+    assert a["rates"] == {"rate_published": 600, "rate_unserved": 2} and old["rates"] == {}
+    assert rate_counts([a, b, old]) == {"rate_published": 800, "rate_unserved": 4}
+    assert rate_counts([old]) == {}
+    assert (
+        rates_summary(rate_counts([a, b]), 2.0)
+        == "decimated rates (1.8): 800 states put on decimated keys (400/s), 4 of watched decimated keys not served"
+    )
+
+
 def test_window_counts_only_the_window_ticks():
     # ticks 10..20 are the window (lo=9, hi=20); 5..9 are warm-up, 21.. after it
     ticks = np.array([5, 6, 9, 10, 11, 13, 12, 12, 14, 15, 16, 17, 18, 19, 20, 21, 22])

@@ -14,13 +14,21 @@ device-encoded frame from its own decimated frames (sim/opencl/devrates.py), pla
 watched set read at each encode (:meth:`RatePublishers.watching`, handed to the wire); a
 publication first watched after its tick's frame was encoded is served from its next tick of k
 (its states meanwhile counted ``rate_unserved``).
+
+A key that loses its last subscriber restarts its streams, so that whoever subscribes next starts
+on a keyframe: the host path forgets them at the next frame put (:meth:`RatePublishers.due`), the
+device encoder leaves the publication out of its next plan, or, when a subscriber came back
+before the rate's next tick, restarts them from the count of such losses that
+:meth:`RatePublishers.watching` gives with each watched publication.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 
 import zenoh
 
@@ -51,33 +59,40 @@ class RatePublishers:
     keyframe_interval: int = 60
     streams: dict[int, PredictiveStreams] = field(default_factory=dict)
     _keys: dict[tuple[str, int], _RateKey] = field(default_factory=dict)  # (ident, k)
-    _watched: dict[int, set[str]] = field(default_factory=dict)  # k -> idents with a subscriber
-    _frozen: dict[int, frozenset[str]] = field(default_factory=dict)  # the same, as read by encoders
+    # k -> idents with a subscriber -> times their key lost its last one before (as _left had it)
+    _watched: dict[int, dict[str, int]] = field(default_factory=dict)
+    _frozen: dict[int, Mapping[str, int]] = field(default_factory=dict)  # the same, as read by encoders
     _gone: dict[int, set[str]] = field(default_factory=dict)  # k -> idents that lost their last subscriber
+    _left: dict[int, dict[str, int]] = field(default_factory=dict)  # k -> ident -> times it lost them all
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
     def __post_init__(self) -> None:
         # a periodic keyframe every keyframe_interval of the stream's own states (k x the ticks)
         self.streams = {k: PredictiveStreams(k * self.keyframe_interval) for k in DECIMATED}
-        self._watched = {k: set() for k in DECIMATED}
+        self._watched = {k: {} for k in DECIMATED}
         self._gone = {k: set() for k in DECIMATED}
+        self._left = {k: {} for k in DECIMATED}
 
     # -- Zenoh's threads ------------------------------------------------------------------
     def _matching(self, ident: str, every: int, status: zenoh.MatchingStatus) -> None:
         with self._lock:
             if status.matching:
-                self._watched[every].add(ident)
+                self._watched[every][ident] = self._left[every].get(ident, 0)
             else:
-                self._watched[every].discard(ident)
+                self._watched[every].pop(ident, None)
                 self._gone[every].add(ident)  # its streams restart for whoever subscribes next
+                left = self._left[every]
+                left[ident] = left.get(ident, 0) + 1
             self._freeze(every)
 
     def _freeze(self, every: int) -> None:
         """(under the lock) the watched set of ``every`` as a new mapping (read without a lock)."""
-        self._frozen = {**self._frozen, every: frozenset(self._watched[every])}
+        self._frozen = {**self._frozen, every: MappingProxyType(dict(self._watched[every]))}
 
-    def watching(self) -> dict[int, frozenset[str]]:
-        """Any thread: the idents of the publications watched per rate (a device encoder's plans)."""
+    def watching(self) -> dict[int, Mapping[str, int]]:
+        """Any thread: per rate, the idents of the publications watched, each with the times its
+        key lost its last subscriber (a device encoder's plans: a publication watched again since
+        its last plan restarts its streams); one mapping per rate until its watched set changes."""
         return self._frozen
 
     def request_keyframes(self, cloths: list[str], every: int) -> None:
@@ -102,7 +117,7 @@ class RatePublishers:
             self._keys[(ident, k)] = _RateKey(pub, listener, block)
             if pub.matching_status.matching:  # type: ignore[attr-defined]
                 with self._lock:
-                    self._watched[k].add(ident)
+                    self._watched[k][ident] = self._left[k].get(ident, 0)
                     self._freeze(k)
 
     def _drop(self, ident: str, every: int) -> None:
@@ -115,7 +130,7 @@ class RatePublishers:
             pass
         undeclare(have.pub)
         with self._lock:
-            self._watched[every].discard(ident)
+            self._watched[every].pop(ident, None)
             self._freeze(every)
 
     def remove(self, ident: str) -> None:
@@ -129,6 +144,10 @@ class RatePublishers:
             self._drop(ident, k)
         for s in self.streams.values():
             s.keep_only(cloths)
+        with self._lock:
+            for left in self._left.values():
+                for ident in [i for i in left if i not in idents]:
+                    del left[ident]
 
     def due(self, tick: int, roster: Roster) -> list[tuple[int, list[int]]]:
         """(k, publication indices someone watches at rate k) of the rates whose state is this
@@ -142,7 +161,8 @@ class RatePublishers:
                 # a key that lost its last subscriber starts its next subscriber on a keyframe, as
                 # the device's decimated plans do (a publication unwatched leaves the rate's
                 # plan): noticed on the next frame put, whether or not the frame of the tick it
-                # left on was dropped
+                # left on was dropped; a rate nobody watches any more has lost them all so
+                # (tests/service/test_rates.py, a key watched again, alone and beside another)
                 ids = roster.ids
                 self.streams[k].forget([ids[i] for p in pubs if p[0] in gone for i in p[2]])
             if tick % k:
@@ -151,8 +171,6 @@ class RatePublishers:
                 watched = set(self._watched[k])
             if watched:
                 out.append((k, [j for j, p in enumerate(pubs) if p[0] in watched]))
-            elif self.streams[k].streams:  # nobody left: whoever comes next starts on a keyframe
-                self.streams[k].keep_only(set())
         return out
 
     def publisher(self, ident: str, every: int) -> zenoh.Publisher | None:

@@ -48,8 +48,9 @@ from .buffers import ClothSlot, DeviceMemory
 from .device import Device
 from .devrates import DeviceRates, Due, RateFrame, Watching
 from .devstreams import DeviceStreams
-from .encode import DeviceEncoder, EncodedFrame, FramePlan
+from .encode import DeviceEncoder, FramePlan
 from .frames import FrameReadback, device_span
+from .hostframes import EncodedFrame
 
 log = logging.getLogger(__name__)
 

@@ -18,7 +18,11 @@ read the full-rate history, which would have to hold 2 x 3 + 2 ticks for every v
 
 The watched set is the publisher's (``RatePublishers.watching``, kept by Zenoh's matching
 listeners), read when a frame is encoded: a publication first watched after its tick's frame was
-encoded is served from its next tick of k (counted ``rate_unserved`` by the publisher).
+encoded is served from its next tick of k (counted ``rate_unserved`` by the publisher). A
+publication whose key lost its last subscriber leaves the plan, so its streams restart; one that
+lost it and was watched again between two of the rate's ticks (the watched set the same) restarts
+its streams too, from the count of such losses the watched set carries (as the host path forgets
+them: its next subscriber starts on a keyframe).
 A float32 / float16 / quant16 publication's decimated state is the full-rate bytes (no plan).
 """
 
@@ -37,11 +41,14 @@ from ..roster import Roster
 from ..statecodec import PredictiveStreams
 from .device import Device
 from .devstreams import DeviceStreams
-from .encode import DeviceEncoder, EncodedFrame, FramePlan
+from .encode import DeviceEncoder, FramePlan
+from .hostframes import EncodedFrame
 
 log = logging.getLogger(__name__)
 
-Watching = Callable[[], Mapping[int, frozenset[str]]]  # rate -> idents of the publications watched
+# rate -> idents of the publications watched -> times each one's key lost its last subscriber
+Watching = Callable[[], Mapping[int, Mapping[str, int]]]
+_NOBODY: Mapping[str, int] = {}
 
 
 @dataclass(frozen=True, eq=False)
@@ -67,7 +74,7 @@ class _Rate:
     every: int
     encoder: DeviceEncoder
     streams: DeviceStreams
-    version: tuple[object, frozenset[str]] | None = None
+    version: tuple[object, Mapping[str, int]] | None = None
     layout: _Layout = _NONE  # of the plan now (a frame keeps its own: the publisher may lag)
 
 
@@ -113,7 +120,7 @@ class DeviceRates:
         for k in sorted(set(want) | set(self.rates)):
             if tick % k:
                 continue
-            idents = want.get(k, frozenset())
+            idents = want.get(k, _NOBODY)
             r = self.rates.get(k)
             version = (roster.version, idents)
             if r is not None and r.version == version:
@@ -131,11 +138,19 @@ class DeviceRates:
             members, ids = plan.members(sel), plan.ids
             hb = self._history_bases(k, [ids[i] for i in members.tolist()], plan.counts[members])
             sub, base = plan.subset(sel, [P.every_key(pubs[j][1], k) for j in sel], hb)
+            before: Mapping[str, int] = _NOBODY
             if r is None:
                 enc = DeviceEncoder(self.dev, stride=self.main.stride)
                 r = self.rates[k] = _Rate(k, enc, DeviceStreams(k * keyframe_interval))
+            elif r.version is not None:
+                before = r.version[1]
             r.encoder.set_plan(sub)
             r.streams.follow(sub)
+            # watched again since the last plan (its key lost its last subscriber meanwhile): restarted
+            back = {i for i, _ in idents.items() - before.items() if i in before}
+            if back:
+                again = [i for jj, j in enumerate(sel) if pubs[j][0] in back for i in sub.publications[jj].cloths]
+                r.streams.lost(sub, np.array(again, np.int64))
             pub_of = np.full(len(pubs), -1, np.int64)
             pub_of[np.array(sel, np.int64)] = np.arange(len(sel))
             r.version, r.layout = version, _Layout(base, pub_of, np.array(sel, np.int64))

@@ -31,7 +31,8 @@ zero-copy path.)
 first row in a packed xyz buffer (``stride=3``). A frame's views stay valid until
 ``host_buffers`` (2) more frames have been encoded, or while held across a new plan;
 :meth:`DeviceEncoder.hold` keeps a frame from reuse until it is released (the service's
-publisher holds the frame it publishes while the next ones are encoded).
+publisher holds the frame it publishes while the next ones are encoded): the pinned host frames
+and the held frame are hostframes.py's.
 
 Predictive states (protocol 1.5) are coded against the history the encoder keeps on the device
 (one buffer of :data:`HISTORY` slots of grid values per position-buffer vertex (or per vertex
@@ -60,8 +61,7 @@ The bytes equal :func:`drape.client.protocol.encode_state` / :func:`~drape.clien
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
 
 import numpy as np
 import pyopencl as cl
@@ -69,8 +69,7 @@ import pyopencl as cl
 from drape.client import protocol as P
 
 from . import reuse
-from .buffers import map_pinned
-from .compact import Compactor, FrameIndex
+from .compact import Compactor
 from .device import Device
 from .frameplan import (  # noqa: F401 (the plan's names, re-exported: encode.py is the entry point)
     HEADER_OFFSETS,
@@ -80,10 +79,10 @@ from .frameplan import (  # noqa: F401 (the plan's names, re-exported: encode.py
     FramePlan,
     Publication,
     encode_layout,
-    put_words,
     state_size,
     take_bytes,
 )
+from .hostframes import EncodedFrame, HostFrame, HostFrames
 
 log = logging.getLogger(__name__)
 
@@ -95,101 +94,6 @@ MF = cl.mem_flags
 
 #: quant16 / snorm16 units a device without fp64 may differ from the float64 reference by.
 QUANT16_FP32_TOLERANCE = 1
-
-
-@dataclass(eq=False)
-class _HostFrame:
-    """One pinned host copy of the frame, and each publication's view of it."""
-
-    mapping: object  # pyopencl MemoryMap keeping the pinned buffer mapped
-    buf: cl.Buffer
-    data: np.ndarray  # (size,) uint8: the plan's first bytes of ``full``
-    views: list[memoryview]
-    event: cl.Event | None = None
-    plan: FramePlan | None = None
-    held: bool = False
-    # a compacted frame (plans with predictive states): the kernel's index, the bytes the first
-    # copy brought, and where things lie once it is back (views are then made on demand)
-    index: np.ndarray | None = None
-    copied: int = 0
-    where: FrameIndex | None = None
-    # the whole pinned arrays, kept from plan to plan while they fit (reuse.py)
-    full: np.ndarray | None = None  # (capacity,) uint8
-    index_full: np.ndarray | None = None  # (capacity,) uint32
-
-    def state_at(self) -> np.ndarray:
-        """(k,) each plan cloth's state offset in ``data`` (-1: in no publication)."""
-        assert self.plan is not None
-        return self.where.state_at if self.where is not None else self.plan.state_offset
-
-
-class EncodedFrame:
-    """A frame kept from reuse (:meth:`DeviceEncoder.hold`) until :meth:`release`: the
-    publications' payload views (``slices``) of its pinned host memory, in plan order."""
-
-    def __init__(self, host: _HostFrame) -> None:
-        assert host.plan is not None
-        self._host: _HostFrame | None = host
-        self.plan = host.plan
-        self._views = list(host.views) if host.where is None else None
-        self._where = host.where
-        self._data = host.data
-        host.held = True
-
-    @property
-    def views(self) -> list[memoryview]:
-        """Each publication's bytes, a view of the pinned host memory, in plan order."""
-        if self._views is None:
-            assert self._where is not None
-            self._views = self._where.views(self._data)
-        return self._views
-
-    def add_flags(self, cloths: Sequence[int], flags: int) -> None:
-        """OR ``flags`` into the state headers of plan cloths ``cloths`` (e.g. FLAG_RESET carried
-        over from a frame that was dropped); cloths in no publication are ignored."""
-        if self._host is None:
-            raise RuntimeError("frame already released")
-        at = self._host.state_at()[np.asarray(list(cloths), np.int64)]
-        at = at[at >= 0] + HEADER_OFFSETS["ST_FLAGS"]
-        if len(at):
-            f = self._host.data[at] | np.uint8(flags & 0xFF)
-            f2 = self._host.data[at + 1] | np.uint8((flags >> 8) & 0xFF)
-            self._host.data[at], self._host.data[at + 1] = f, f2
-
-    def set_time(self, time_ns: int) -> None:
-        """Rewrite the server time of every state and bundle header (PROTOCOL.md: when the tick
-        was read back, known only after the encode): one vectorised write per frame."""
-        if self._host is None:
-            raise RuntimeError("frame already released")
-        w = self._where
-        at = self.plan.time_offsets() if w is None else self.plan.time_offsets(w.state_at, w.pub_at)
-        if len(at):
-            put_words(self._host.data, at, np.frombuffer(int(time_ns).to_bytes(8, "little"), np.uint8))
-
-    def payloads(self, watched: Sequence[int]) -> Iterator[tuple[int, bytes]]:
-        """(publication index, its bytes) of the ``watched`` publications, in order: one
-        ``bytes`` copy of each (of a compacted frame: a slice of it, no view made)."""
-        if self._host is None:
-            raise RuntimeError("frame already released")
-        w = self._where
-        if w is None:
-            views = self.views
-            for j in watched:
-                yield j, bytes(views[j])
-            return
-        sel = np.asarray(watched, np.int64)
-        mv = memoryview(self._data).cast("B")  # type: ignore[arg-type]
-        for j, a, b in zip(watched, w.pub_at[sel].tolist(), (w.pub_at[sel] + w.pub_len[sel]).tolist(), strict=True):
-            yield j, mv[a:b].tobytes()
-
-    def sizes(self) -> list[int]:
-        """Each publication's payload size, in plan order (no view made)."""
-        return (self._where.pub_len if self._where is not None else self.plan.pub_size).tolist()
-
-    def release(self) -> None:
-        if self._host is not None:
-            self._host.held = False
-            self._host = None
 
 
 def history_end(plan: FramePlan) -> int:
@@ -225,8 +129,6 @@ class DeviceEncoder:
         self.stride = stride
         # float16 by integer SIMD (bit-exact with numpy) on CPUs, vstore_half_rte (hardware) on GPUs
         self.soft_half = (not dev.info.is_gpu) if soft_half is None else bool(soft_half)
-        if host_buffers < 1:
-            raise ValueError("host_buffers must be at least 1")
         self.dev = dev
         has64 = "cl_khr_fp64" in dev.device.extensions
         if fp64 and not has64:
@@ -239,7 +141,7 @@ class DeviceEncoder:
                 QUANT16_FP32_TOLERANCE,
             )
         self._local_size = local_size
-        self._host_buffers = host_buffers
+        self.hosts = HostFrames(dev, host_buffers)  # the pinned host copies, used in turn (hostframes.py)
         self.plan: FramePlan | None = None
         self._kernel: cl.Kernel | None = None
         self._wg = 1
@@ -247,7 +149,6 @@ class DeviceEncoder:
         self._out_reused = reuse.ReusedBuffer(dev.ctx, MF.READ_WRITE)  # the frame's slots, kept across plans
         self._static_event: cl.Event | None = None  # the plan's static bytes put in (the next encode waits)
         self._static_bufs: tuple[cl.Buffer, ...] = ()  # what that launch reads, kept until it is done
-        self.pinned_made = 0  # pinned host frames and indices allocated (kept across plans while they fit)
         self._table: cl.Buffer | None = None
         self._flags_buf: cl.Buffer | None = None
         self._flags = np.zeros(0, np.uint16)
@@ -258,9 +159,7 @@ class DeviceEncoder:
         self._hist: cl.Buffer | None = None  # HISTORY slots of _hist_cap vertices (encode.cl's hist)
         self._hist_cap = 0  # vertices
         self._hist_of: dict[int, int] = {}  # tick -> the history buffer holding its grid values
-        self._hosts: list[_HostFrame] = []
-        self._next = 0
-        self._last: _HostFrame | None = None
+        self._last: HostFrame | None = None
         self.kernel_event: cl.Event | None = None  # the last launch (profiling on a profiling queue)
         self.compactor = Compactor(dev)  # plans with predictive states: compacted on the device
         self._uploads: list[cl.Event] = []  # this frame's uploads (flags, predictive decisions)
@@ -329,12 +228,11 @@ class DeviceEncoder:
         if compact:
             self.compactor.set_plan(plan, out)
         self._compact = compact
-        hosts = self._hosts_for(plan)
+        self.hosts.bind(plan, self.compactor if compact else None)
         self._last = None
         self._pred_buf, self._pred = pred_buf, np.zeros((0, _PRED_WORDS), np.uint64)
         self._kernel, self._wg, self._out, self._table = kernel, wg, out, table
         self._flags, self._flags_buf = flags, flags_buf
-        self._hosts, self._next = hosts, 0
         self.plan = plan
         log.debug(
             "frame plan: %d publications, %d cloths, %d bytes, work-group %d",
@@ -354,7 +252,7 @@ class DeviceEncoder:
     def buffers_made(self) -> int:
         """Frame-sized buffers allocated so far (the output, the compacted frame, the pinned host
         frames and their indices): a plan change within their capacity makes none."""
-        return self._out_reused.made + self.compactor.buffers_made + self.pinned_made
+        return self._out_reused.made + self.compactor.buffers_made + self.hosts.made
 
     def _put_static(self, out: cl.Buffer, plan: FramePlan, behind: list[cl.Event]) -> cl.Event:
         """The plan's static words put into ``out`` by kernels/static.cl, enqueued behind the
@@ -391,53 +289,6 @@ class DeviceEncoder:
                 )
         self.dev.queue.finish()
         self._hist, self._hist_cap = new, cap
-
-    def _hosts_for(self, plan: FramePlan) -> list[_HostFrame]:
-        """``host_buffers`` host frames for ``plan``: the free ones bound to it (kept while they
-        fit), new ones for the rest; held frames stay as they are (bound to the plan in use
-        once released, :meth:`_free_host`), extra free ones go."""
-        free = [h for h in self._hosts if not h.held]
-        held = [h for h in self._hosts if h.held]
-        hosts = [self._host_frame(plan, free[i] if i < len(free) else None) for i in range(self._host_buffers)]
-        return hosts + held
-
-    def _host_frame(self, plan: FramePlan, old: _HostFrame | None = None) -> _HostFrame:
-        """A pinned (ALLOC_HOST_PTR, mapped for good) host copy of a frame of ``plan``: ``old``
-        (a frame no one holds) bound to it when its memory fits (reuse.py), else a new one.
-        Every encode copies the whole frame (or the compacted one and its index) into it
-        before it can be read."""
-        size = max(plan.size, 8)
-        if old is not None and old.full is not None and reuse.fits(old.full.size, size):
-            host = old
-            host.views, host.where, host.copied = [], None, 0
-        else:
-            cap = reuse.capacity(old.full.size if old is not None and old.full is not None else 0, size)
-            hb, full = map_pinned(self.dev, cap, np.uint8)
-            self.pinned_made += 1
-            host = _HostFrame(full.base, hb, full[:size], [], full=full)
-            if old is not None and old.index_full is not None:
-                host.index_full = old.index_full
-        assert host.full is not None
-        host.plan, host.data = plan, host.full[:size]
-        if self._compact:  # compacted frames: views made per frame from its index
-            assert self.compactor.pieces is not None
-            n = 2 * len(self.compactor.pieces.cloth) + 1
-            have = host.index_full.size if host.index_full is not None else 0
-            if host.index_full is None or not reuse.fits(4 * have, 4 * n):
-                host.index_full = self.compactor.host_index(reuse.capacity(4 * have, 4 * n) // 4)
-                self.pinned_made += 1
-            host.index = host.index_full[:n]
-            return host
-        host.index = None
-        mv = memoryview(host.data).cast("B")  # type: ignore[arg-type]
-        host.views = [mv[o : o + s] for o, s in zip(plan.pub_offset.tolist(), plan.pub_size.tolist(), strict=True)]
-        return host
-
-    def _release_hosts(self) -> None:
-        """Drop the pinned host frames. A view still held elsewhere keeps its memory (and its
-        mapping) alive until it is dropped too, so it never dangles."""
-        self._hosts = []
-        self._last = None
 
     # -- per tick ----------------------------------------------------------------------------
 
@@ -505,7 +356,7 @@ class DeviceEncoder:
         if self._static_event is not None:
             events.append(self._static_event)  # the plan's static bytes (set_plan) are in
             self._static_event = None
-        host = self._free_host()
+        host = self.hosts.next_free(plan, self.compactor if self._compact else None)
         if host.event is not None:
             host.event.wait()  # its last copy (normally long done)
         n_rows = len(plan.rows)
@@ -581,29 +432,11 @@ class DeviceEncoder:
         free, and no later state refers to it."""
         self._hist_of.pop(tick, None)
 
-    def _free_host(self) -> _HostFrame:
-        """The next host frame in turn that is not held; a new one when all are (a consumer
-        holding frames longer than ``host_buffers`` ticks)."""
-        assert self.plan is not None
-        for _ in range(len(self._hosts)):
-            i = self._next
-            host = self._hosts[i]
-            self._next = (self._next + 1) % len(self._hosts)
-            if not host.held:
-                if host.plan is not self.plan:  # held across a plan change, released since
-                    host = self._hosts[i] = self._host_frame(self.plan, host)
-                return host
-        host = self._host_frame(self.plan)
-        self._hosts.append(host)
-        if len(self._hosts) == 8 * self._host_buffers + 1:
-            log.warning("%d pinned frames held: is a consumer not releasing them?", len(self._hosts))
-        return host
-
     def hold(self) -> EncodedFrame:
         """The frame last encoded (waits for it), kept from reuse until its ``release()``."""
         return EncodedFrame(self._frame())
 
-    def _frame(self) -> _HostFrame:
+    def _frame(self) -> HostFrame:
         if self._last is None:
             raise RuntimeError("no frame encoded yet")
         if self._last.event is not None:
@@ -612,7 +445,7 @@ class DeviceEncoder:
             self._finish(self._last)
         return self._last
 
-    def _finish(self, host: _HostFrame) -> None:
+    def _finish(self, host: HostFrame) -> None:
         """A compacted frame's index read, and its bytes past the first copy's guess copied."""
         assert host.index is not None
         if host.event is not None:
@@ -648,5 +481,7 @@ class DeviceEncoder:
         return self.plan.encoded[~np.isfinite(b).all(axis=1)]
 
     def close(self) -> None:
-        self._release_hosts()
+        """Drop the pinned host frames (a view still held elsewhere keeps its memory alive)."""
+        self.hosts.clear()
+        self._last = None
         self.plan = None

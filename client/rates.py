@@ -22,12 +22,15 @@ tests drive it with injected times.
 
 from __future__ import annotations
 
+import logging
 from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from . import protocol as P
+
+log = logging.getLogger(__name__)
 
 AUTO = "auto"
 
@@ -107,6 +110,9 @@ class RateGovernor:
         late = float(np.percentile(diffs - min(self._mins), 90)) / 1e9
         self._start = None
         self._last_tick = 0
+        log.debug(
+            "every %d: %d states, late %.1f ms (p90), %.0f %% lost", self.rate, len(diffs), late * 1e3, 100 * lost
+        )
         if now < self._settle_until:
             return None
         i = self.rates.index(self.rate)

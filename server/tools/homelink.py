@@ -120,6 +120,7 @@ def _measure(
         "latency_p50_ms": float(np.percentile(a, 50)),
         "latency_p99_ms": float(np.percentile(a, 99)),
         "latency_p50_last_2s_ms": float(np.percentile(late_end, 50)) if late_end else float("nan"),
+        "latency_p99_last_2s_ms": float(np.percentile(late_end, 99)) if late_end else float("nan"),
         "link_peak_queue_kib": shaper.down.peak_queue / 1024,
         "longest_gap_ms": float(max(longest)),
         "down_mbit_per_s": down * 8 / elapsed / 1e6,

@@ -95,7 +95,10 @@ class BundleReceiver:
             raise ValueError(f"rate {rate!r}: one of {P.RATES}")
         with self._lock:
             rate = fit_rate(rate, self.served)
-            if rate == self.rate or self._session is None:
+            if rate == self.rate:
+                return
+            if self._session is None:  # not subscribed yet: subscribe() takes this rate
+                self.rate = rate
                 return
             self.rate = rate  # from now on the old key's bundles are ignored
             handles = [h for h in self._handles.values() if h.bundle_key is not None]

@@ -11,7 +11,8 @@ registered (:meth:`drape.client.submitting.Submitter.place`).
 
 1.8: the bundle is taken at one rate for all its cloths (every k-th bundle on its own key,
 :meth:`BundleReceiver.set_rate`; with ``rate="auto"`` a rates.RateGovernor steps it down when
-bundles arrive late), only while every server its cloths live on speaks 1.8 (``rate_ok``).
+bundles arrive late), at the rates every server its cloths live on serves (``served``: none but the
+full rate on a 1.7 server, down to every 3rd on a 1.8 one, every 12th on a 1.9 one).
 
 :meth:`BundleReceiver.count_only`: some cloths' states are only counted from their headers (tick,
 server time), not decoded: for a client that measures the server (``drape loadtest``).
@@ -30,7 +31,7 @@ import zenoh
 
 from . import protocol as P
 from .protocol import ClothState, DrapeError
-from .rates import RateGovernor
+from .rates import RateGovernor, fit_rate
 
 if TYPE_CHECKING:
     from .handle import ClothHandle
@@ -71,7 +72,9 @@ class BundleReceiver:
         self._sub: Any = None
         self._session: zenoh.Session | None = None
         self.rate = rate  # 1.8: every rate-th bundle, on its own key
-        self.rate_ok = True  # every server of its cloths speaks 1.8 (else the full-rate key only)
+        # the rates every server of its cloths serves (protocol.served_rates; a 1.7 one among
+        # them: the full-rate key only, a 1.8 one: down to every 3rd)
+        self.served: tuple[int, ...] = P.RATES
         self.governor = RateGovernor(rate=rate) if governed else None
         self.undecoded: frozenset[str] = frozenset()  # count_only's cloths
         self.counted = 0  # their states seen (headers read, nothing decoded)
@@ -91,7 +94,11 @@ class BundleReceiver:
         if rate not in P.RATES:
             raise ValueError(f"rate {rate!r}: one of {P.RATES}")
         with self._lock:
-            if rate == self.rate or self._session is None or (rate != 1 and not self.rate_ok):
+            rate = fit_rate(rate, self.served)
+            if rate == self.rate:
+                return
+            if self._session is None:  # not subscribed yet: subscribe() takes this rate
+                self.rate = rate
                 return
             self.rate = rate  # from now on the old key's bundles are ignored
             handles = [h for h in self._handles.values() if h.bundle_key is not None]
@@ -110,6 +117,16 @@ class BundleReceiver:
                 pass
         if handles:
             handles[0].ask_keyframe(0.0)  # one query on the bundle's key: every stream of it
+
+    def limit(self, served: tuple[int, ...]) -> None:
+        """A cloth of the bundle lives on a server serving the rates ``served``: the bundle keeps
+        to the rates every server of its cloths serves (stepping to the one below when its rate
+        is not among them; the governor's ladder too)."""
+        with self._lock:
+            self.served = tuple(k for k in self.served if k in served)
+            if self.governor is not None:
+                self.governor.limit(self.served)
+        self.set_rate(self.rate)  # fit to what is served (nothing when it is)
 
     def count_only(self, cloths: Iterable[str], callback: HeadersCallback | None = None) -> None:
         """Neither decode nor deliver the bundled states of ``cloths`` (ids) from now on: read
@@ -173,7 +190,7 @@ class BundleReceiver:
         """1.8, ``rate="auto"``: a bundle of ``tick`` arrived; the rate stepped when it calls for it
         (the subscription switched off the receiving thread)."""
         gov = self.governor
-        if gov is None or not self.rate_ok:
+        if gov is None or len(self.served) == 1:
             return
         new = gov.observe(tick, server_ns, receive_ns)
         if new is not None:

@@ -23,7 +23,7 @@ from . import protocol as P
 from .controls import SetOptions, collider, pin_changes, set_changes
 from .keyframes import KeyframeQueries
 from .protocol import ClothState, DrapeError, Unavailable
-from .rates import RateGovernor
+from .rates import RateGovernor, fit_rate
 from .sending import ControlSender
 from .smoothing import ServerClock, sample
 
@@ -63,6 +63,7 @@ class ClothHandle:
         request: P.SubmitRequest | None = None,
         rate: int = 1,
         governed: bool = False,
+        served: tuple[int, ...] = P.RATES,
     ) -> None:
         self.client = client
         self.server_id = server_id  # the server holding the cloth now (failover may change it)
@@ -107,8 +108,10 @@ class ClothHandle:
         self._sub: Any = None
         # 1.8: every ``rate``-th state, on its own key (a bundled cloth's: its bundle receiver's)
         self.rate = rate
-        self.governor = RateGovernor(rate=rate) if governed and self.bundle_key is None else None
-        self.rate_ok = True  # the server holding it speaks 1.8 (a failover may move it to one that does not)
+        # the rates its server serves (protocol.served_rates: 1.8's 2 and 3, 1.9's 6 and 12 too; a
+        # failover may move it to a server that serves fewer)
+        self.served = served
+        self.governor = RateGovernor(rate=rate, rates=served) if governed and self.bundle_key is None else None
         if self.bundle_key is None:
             self._sub = self._subscribe(rate)
 
@@ -123,14 +126,16 @@ class ClothHandle:
 
     def set_rate(self, rate: int) -> None:
         """1.8: take every ``rate``-th state (protocol.RATES) from now on, on its own key: the
-        stream starts afresh with a keyframe asked for. A bundled cloth's rate is its bundle's
-        (BundleReceiver.set_rate)."""
+        stream starts afresh with a keyframe asked for; on a server that does not serve ``rate``
+        (6 or 12 from a 1.8 server) the served rate below it. A bundled cloth's rate is its
+        bundle's (BundleReceiver.set_rate)."""
         if rate not in P.RATES:
             raise ValueError(f"rate {rate!r}: one of {P.RATES}")
         if self.bundle_key is not None:
             raise ValueError("a bundled cloth takes its bundle's rate (DrapeClient.bundles.set_rate)")
         with self._cond:
-            if rate == self.rate or self.closed or (rate != 1 and not self.rate_ok):
+            rate = fit_rate(rate, self.served)
+            if rate == self.rate or self.closed:
                 return
             self.rate = rate  # from now on the old key's states are ignored
             self.stream = P.StateStream(self.id)  # the new key's stream: its own states
@@ -175,7 +180,7 @@ class ClothHandle:
         if st is not None:
             self.deliver(st)
             gov = self.governor
-            if gov is not None and self.rate_ok and not st.extrapolated:
+            if gov is not None and len(self.served) > 1 and not st.extrapolated:
                 new = gov.observe(st.tick, st.server_time_ns, now)
                 if new is not None:  # switched off this thread: its subscriber is undeclared
                     log.info("cloth %s: states every %d ticks from now", self.id, new)
@@ -266,19 +271,22 @@ class ClothHandle:
         with self._cond:
             return (None if self._fresh else self._prev), self._latest
 
-    def rebind(self, reply: P.SubmitReply, server: str, rated: bool = True) -> None:
+    def rebind(self, reply: P.SubmitReply, server: str, served: tuple[int, ...] = P.RATES) -> None:
         """Failover: the cloth lives on as ``reply.cloth`` on ``server``; states keep flowing to
-        this handle (its queue, callbacks and iterators). ``rated``: ``server`` speaks 1.8; else
-        the cloth's states come on the full-rate key (a decimated key would carry nothing) and
-        ``rate="auto"`` stays off until a failover onto a 1.8 server."""
+        this handle (its queue, callbacks and iterators). ``served``: the rates ``server`` serves
+        (protocol.served_rates); a rate it does not serve becomes the served one below it (a
+        decimated key would carry nothing): the full-rate key on a server older than 1.8, where
+        ``rate="auto"`` stays off until a failover onto a 1.8 server, and at most every 3rd state
+        on a 1.8 one."""
         old_sub = None
         with self._cond:
-            self.rate_ok = rated
-            if not rated and self.rate != 1:
-                log.info("cloth %s: server %s is older than 1.8: every state from now on", self.id, server)
-                self.rate = 1
-                if self.governor is not None:
-                    self.governor = RateGovernor(rate=1)
+            self.served = served
+            rate = fit_rate(self.rate, served)
+            if rate != self.rate:
+                log.info("cloth %s: server %s does not serve every %d: every %d", self.id, server, self.rate, rate)
+                self.rate = rate
+            if self.governor is not None:
+                self.governor.limit(served)
             old_sub, self._sub = self._sub, None
             self.id, self.token, self.key = reply.cloth, reply.token, reply.key
             self.bundle_key = reply.bundle_key

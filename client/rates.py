@@ -1,7 +1,10 @@
-"""Rates per subscriber on the Python SDK's side (protocol 1.8, PROTOCOL.md 9.3): which key a
-subscription takes (every k-th state: :func:`drape.client.protocol.every_key`) and, with
-``rate="auto"``, :class:`RateGovernor`, which steps a subscription down (60 -> 30 -> 20 Hz at the
-default tick) when its states arrive late or too few, and back up after a quiet period.
+"""Rates per subscriber on the Python SDK's side (protocol 1.8, 1.9's lower rates; PROTOCOL.md
+9.3): which key a subscription takes (every k-th state: :func:`drape.client.protocol.every_key`),
+which rates a server serves (:func:`drape.client.protocol.served_rates`: 2 and 3 since 1.8, 6 and
+12 since 1.9) and, with ``rate="auto"``, :class:`RateGovernor`, which steps a subscription down
+the ladder of the rates its server serves (60 -> 30 -> 20 -> 10 -> 5 Hz at the default tick on a
+1.9 server, stopping at 20 Hz on a 1.8 one) when its states arrive late or too few, and back up
+after a quiet period.
 
 "Late" is measured without a shared clock: a state's lateness is its ``receive - server`` time
 minus the smallest such difference seen lately (the clock offset plus the link's shortest delay,
@@ -19,6 +22,7 @@ tests drive it with injected times.
 
 from __future__ import annotations
 
+import logging
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -26,16 +30,16 @@ import numpy as np
 
 from . import protocol as P
 
+log = logging.getLogger(__name__)
+
 AUTO = "auto"
 
-#: The first protocol version whose servers publish decimated keys: on an older one (a cloth's
-#: first server or the one a failover moves it to) a subscription stays on the full-rate key.
-RATES_SINCE = (1, 8)
 
-
-def speaks_rates(version: tuple[int, int] | None) -> bool:
-    """Whether a server of protocol ``version`` (None: unknown) serves ``{key}/every/{k}``."""
-    return version is not None and tuple(version) >= RATES_SINCE
+def fit_rate(rate: int, served: tuple[int, ...]) -> int:
+    """The rate a subscription asking for every ``rate``-th state takes from a server serving
+    ``served`` (protocol.served_rates): ``rate`` itself, or the served rate nearest below it (a
+    1.8 server asked for 6 or 12 gives every 3rd state)."""
+    return max(k for k in served if k <= rate)
 
 
 def rate_option(rate: int | str) -> tuple[int, bool]:
@@ -77,6 +81,14 @@ class RateGovernor:
         self._quiet = self.quiet_s
         self._mins = deque(maxlen=self._base_window)
 
+    def limit(self, rates: tuple[int, ...]) -> int:
+        """The ladder of the rates the subscription's server serves (protocol.served_rates: a
+        subscription placed, or failed over, on a 1.8 server stops at 3); the rate it is at now
+        (fit_rate: the current one, or the served one below it)."""
+        self.rates = rates
+        self.rate = fit_rate(self.rate, rates)
+        return self.rate
+
     def observe(self, tick: int, server_ns: int, receive_ns: int) -> int | None:
         """A state (or bundle) of ``tick`` stamped ``server_ns`` by the server arrived at
         ``receive_ns``; the new rate when this changes it, else None."""
@@ -98,6 +110,9 @@ class RateGovernor:
         late = float(np.percentile(diffs - min(self._mins), 90)) / 1e9
         self._start = None
         self._last_tick = 0
+        log.debug(
+            "every %d: %d states, late %.1f ms (p90), %.0f %% lost", self.rate, len(diffs), late * 1e3, 100 * lost
+        )
         if now < self._settle_until:
             return None
         i = self.rates.index(self.rate)
@@ -125,4 +140,4 @@ class RateGovernor:
         return rate
 
 
-__all__ = ["AUTO", "RATES_SINCE", "RateGovernor", "rate_option", "speaks_rates"]
+__all__ = ["AUTO", "RateGovernor", "fit_rate", "rate_option"]

@@ -90,11 +90,11 @@ class DrapeClient:
     none, a cloth lost with its server is closed (issue 26: a game using the first example lost
     every cloth with its server while failover was opt-in).
 
-    ``rate`` (1.8): take every k-th state (1, 2, 3: 60, 30, 20 Hz at the default tick) of each
-    cloth and bundle, on its own key, or ``"auto"``: full rate, stepped down by itself when states
-    arrive late (and back up after a quiet period; client/rates.py), counted in each handle's
-    ``step_downs`` / ``step_ups`` (a bundle's: ``client.bundles``). Cloths on a server older than
-    1.8 come at full rate."""
+    ``rate`` (1.8): take every k-th state (1, 2, 3: 60, 30, 20 Hz at the default tick; 1.9: 6,
+    12: 10, 5 Hz) of each cloth and bundle, on its own key, or ``"auto"``: full rate, stepped down
+    by itself when states arrive late (and back up after a quiet period; client/rates.py), counted
+    in each handle's ``step_downs`` / ``step_ups`` (a bundle's: ``client.bundles``). Cloths on a
+    server older than 1.8 come at full rate, on a 1.8 server at every 3rd state at most."""
 
     def __init__(
         self,

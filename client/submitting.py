@@ -25,7 +25,7 @@ from .controls import collider, links_of, mesh_collider, vec3
 from .handle import ClothHandle, HandleOwner
 from .placement import PLACE_ELSEWHERE, Placement
 from .protocol import DrapeError
-from .rates import speaks_rates
+from .rates import fit_rate
 from .registry import Cloths
 from .scenes import SceneBook
 
@@ -199,14 +199,14 @@ class Submitter:
                 if rest is None and req.grid is not None:  # built once the server took the cloth
                     g = req.grid
                     rest, tris = P.grid_geometry(g.cols, g.rows, g.width, g.height, g.orientation, g.origin)
-                # 1.8: the client's rate, on a server that has decimated keys (an older one: full rate)
-                rated = self._rated(target)
-                if rep.bundle_key is not None and not rated:
-                    self.bundles.rate_ok = False
-                    self.bundles.set_rate(1)
-                rate, governed = self.rate if rated else (1, False)
+                # 1.8: the client's rate, or the one below it the server serves (1.7: full rate)
+                served = self._served(target)
+                if rep.bundle_key is not None:
+                    self.bundles.limit(served)
+                rate, governed = self.rate
+                rate, governed = fit_rate(rate, served), governed and len(served) > 1
                 return ClothHandle(
-                    self.owner, rep, rest, tris, queue_size or self.queue_size, target, req, rate, governed
+                    self.owner, rep, rest, tris, queue_size or self.queue_size, target, req, rate, governed, served
                 )
 
             return handle
@@ -254,10 +254,10 @@ class Submitter:
                 log.info("server %s refused a cloth (%s): trying the next", choice, e.code)
                 last = e
 
-    def _rated(self, server: str) -> bool:
-        """1.8: whether ``server`` (its info asked already, by _check_size) has decimated keys."""
+    def _served(self, server: str) -> tuple[int, ...]:
+        """1.8: the rates ``server`` (its info asked already, by _check_size) serves."""
         info = self.session.known_info(server)
-        return speaks_rates(None if info is None else info.version)
+        return P.served_rates(None if info is None else info.version)
 
     def _check_size(self, req: P.SubmitRequest, server: str, timeout: float | None = None) -> None:
         """Refuse a cloth larger than ``server`` takes (its ``max_vertices_per_cloth``, from the
@@ -302,13 +302,12 @@ class Submitter:
                 h = make(rep)
             else:
                 old_id = h.id
-                rated = self._rated(server)  # a failover onto an older server: full rate from now on
-                if rep.bundle_key is not None and not rated:
-                    self.bundles.rate_ok = False
-                    self.bundles.set_rate(1)
+                served = self._served(server)  # a failover onto an older server: fewer rates from now on
+                if rep.bundle_key is not None:
+                    self.bundles.limit(served)
             with h.deliver_lock:  # states of the bundle reach the handle only after these
                 if old_id is not None:
-                    h.rebind(rep, server, rated)
+                    h.rebind(rep, server, served)
                 with self.cloths.lock:
                     self.cloths.add(h, old_id)
                     early = self.bundles.early_states(h.id) if bundled else []

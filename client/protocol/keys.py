@@ -6,11 +6,11 @@ import re
 from dataclasses import dataclass
 
 PROTOCOL_MAJOR = 1
-PROTOCOL_MINOR = 8
+PROTOCOL_MINOR = 9
 PROTOCOL_VERSION: tuple[int, int] = (PROTOCOL_MAJOR, PROTOCOL_MINOR)
 VERSION_STRING = f"{PROTOCOL_MAJOR}.{PROTOCOL_MINOR}"
 #: The minor versions this side has vectors for (every minor of the major is accepted on the wire).
-KNOWN_MINORS = (0, 1, 2, 3, 4, 5, 6, 7)
+KNOWN_MINORS = (0, 1, 2, 3, 4, 5, 6, 7, 8)
 
 DEFAULT_NAMESPACE = "drape"
 DEFAULT_PORT = 7447
@@ -25,9 +25,11 @@ TOKEN_RE = re.compile(r"^[0-9a-f]{32}$")
 CLIENT_REQUESTS = ("submit", "control", "control_batch", "remove", "scene")
 #: 1.7: the members entry that lets every client put cloths into a scene.
 SCENE_ANYONE = "*"
-#: 1.8: the rates a subscriber may take a state or bundle key at: every k-th state (k = 1: the key
-#: itself; 2 and 3: 30 and 20 Hz at the default 60 Hz tick), each on its own key (:func:`every_key`).
-RATES = (1, 2, 3)
+#: The rates a subscriber may take a state or bundle key at: every k-th state (k = 1: the key
+#: itself; 1.8: 2 and 3, 30 and 20 Hz at the default 60 Hz tick; 1.9: 6 and 12, 10 and 5 Hz), each
+#: on its own key (:func:`every_key`), with the first protocol version whose servers serve it.
+RATE_SINCE: dict[int, tuple[int, int]] = {1: (1, 0), 2: (1, 8), 3: (1, 8), 6: (1, 9), 12: (1, 9)}
+RATES = tuple(RATE_SINCE)
 #: 1.8: the chunk that names a decimated stream's key: ``{state or bundle key}/every/{k}``.
 EVERY_CHUNK = "every"
 
@@ -37,11 +39,18 @@ def valid_id(s: object) -> bool:
 
 
 def every_key(key: str, every: int) -> str:
-    """1.8: the key of every ``every``-th state published on ``key`` (a state or bundle key; a
+    """1.8 (1.9: 6, 12): the key of every ``every``-th state published on ``key`` (a state or bundle key; a
     stream of its own, predicted against its own states); ``key`` itself for 1."""
     if every not in RATES:
         raise ValueError(f"rate every={every!r}: one of {RATES}")
     return key if every == 1 else f"{key}/{EVERY_CHUNK}/{every}"
+
+
+def served_rates(version: tuple[int, int] | None) -> tuple[int, ...]:
+    """The rates a server of protocol ``version`` serves (None: unknown, the full rate only)."""
+    if version is None:
+        return RATES[:1]
+    return tuple(k for k, since in RATE_SINCE.items() if tuple(version) >= since)
 
 
 def split_every(key: str) -> tuple[str, int]:

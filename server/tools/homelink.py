@@ -2,7 +2,7 @@
 longest gap, with the server's states crossing a link shaper (issue 21's player target).
 
     python -m drape.server.tools.homelink [--rate 20 --delay 20 --capes 16 --encodings quant16,predictive]
-        [--client-rate 1|2|3|auto] [--server-flags="--no-device-encode"]
+        [--client-rate 1|2|3|6|12|auto] [--server-flags="--no-device-encode"]
 
 A ``drape serve`` process (peer, loopback, admission off) and, in this process, a game client in
 Zenoh client mode connected to the server only through a :class:`~.shaper.Shaper` (``--rate``
@@ -11,9 +11,9 @@ Mbit/s down and up, ``--delay`` ms one way, ``--queue`` KiB): it submits ``--cap
 for each encoding in turn. Over ``--seconds`` it counts per cape the states received, the latency
 of each (receive time minus the server's time: one host clock) and the longest gap between two
 received states. Printed and written (``--json``) per encoding, with the link's measured bytes.
-``--client-rate`` (protocol 1.8): the player takes every k-th state, or steps down by itself
-(``auto``: the rate it ended at and its steps are reported); decimated predictive streams need
-the server's host encoder (``--server-flags=--no-device-encode``).
+``--client-rate`` (protocol 1.8; 1.9: 6 and 12): the player takes every k-th state, or steps
+down by itself (``auto``: the rate it ended at and its steps are reported); the server's device
+encoder and its host path (``--server-flags=--no-device-encode``) both serve decimated streams.
 """
 
 from __future__ import annotations
@@ -120,6 +120,7 @@ def _measure(
         "latency_p50_ms": float(np.percentile(a, 50)),
         "latency_p99_ms": float(np.percentile(a, 99)),
         "latency_p50_last_2s_ms": float(np.percentile(late_end, 50)) if late_end else float("nan"),
+        "latency_p99_last_2s_ms": float(np.percentile(late_end, 99)) if late_end else float("nan"),
         "link_peak_queue_kib": shaper.down.peak_queue / 1024,
         "longest_gap_ms": float(max(longest)),
         "down_mbit_per_s": down * 8 / elapsed / 1e6,
@@ -140,7 +141,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--step", type=float, default=2.0, help="predictive step, mm")
     ap.add_argument("--encodings", default="quant16,predictive")
-    ap.add_argument("--client-rate", default="1", help="1.8: every k-th state (1, 2, 3) or auto (steps down by itself)")
+    ap.add_argument(
+        "--client-rate", default="1", help="1.8: every k-th state (1, 2, 3; 1.9: 6, 12) or auto (steps down by itself)"
+    )
     ap.add_argument("--server-flags", default="", help="more drape serve flags, space-separated (--no-device-encode)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)

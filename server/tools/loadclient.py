@@ -85,7 +85,7 @@ class ClientSpec(Workload):
     # a game loading a level does): 0 when the load is offered past the nominal on purpose
     retries: int = 0
     link_endpoint: str = ""  # behind a home link: its shaper's endpoint (loadlink.py); "": none
-    client_rate: str = "1"  # 1.8: the rate it takes (1, 2, 3 or auto)
+    client_rate: str = "1"  # 1.8: the rate it takes (1, 2, 3; 1.9: 6, 12; or auto)
 
 
 @dataclass

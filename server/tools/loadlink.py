@@ -20,6 +20,8 @@ from typing import Any
 
 import numpy as np
 
+from drape.client import protocol as P
+
 from .shaper import Shaper
 
 #: A shaped client's Zenoh configuration: no shared memory (on one host Zenoh would hand the
@@ -74,7 +76,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--link-queue", type=int, default=256, help="KiB each direction of the link queues")
     g.add_argument("--link-share", type=float, default=1.0, help="share of the clients behind the link (the last ones)")
     g.add_argument(
-        "--link-client-rate", default="1", choices=["1", "2", "3", "auto"], help="1.8: the rate shaped clients take"
+        "--link-client-rate",
+        default="1",
+        choices=[*map(str, P.RATES), "auto"],
+        help="1.8 (1.9: 6, 12): the rate shaped clients take",
     )
 
 

@@ -17,7 +17,7 @@ def test_state_header_layout_matches_the_document():
     data = bytes(P.encode_state(0x0102030405060708, 99, pos, nrm, "float32", P.FLAG_RESET))
     assert len(data) == 64 + 2 * 12 * 2 == P.state_size(2, "float32", True)
     assert data[0:4] == b"DRPS"
-    assert data[4] == 1 and data[5] == P.PROTOCOL_MINOR == 8  # major, minor
+    assert data[4] == 1 and data[5] == P.PROTOCOL_MINOR == 9  # major, minor
     assert struct.unpack_from("<H", data, 6)[0] == 64  # header size
     assert data[8] == 0 and data[9] == 0  # encoding float32, reserved
     assert struct.unpack_from("<H", data, 10)[0] == P.FLAG_NORMALS | P.FLAG_RESET == 3

@@ -225,7 +225,7 @@ def test_accepted_vectors():
         assert all(k not in known for k in vec["ignored"])
 
 
-FROZEN = {v: VECTORS / f"v{v}" for v in ("1.0", "1.1", "1.2", "1.3", "1.4", "1.5", "1.6", "1.7")}
+FROZEN = {v: VECTORS / f"v{v}" for v in ("1.0", "1.1", "1.2", "1.3", "1.4", "1.5", "1.6", "1.7", "1.8")}
 
 
 def _as_current(wire: dict) -> dict:

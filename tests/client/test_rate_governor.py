@@ -1,13 +1,14 @@
-"""The SDK's rate step-down (protocol 1.8, client/rates.py) driven by injected times: states that
-arrive late step a subscription down 60 -> 30 -> 20 Hz, lost ones too; a quiet period steps it
-back up, a step up that does not hold doubles the wait; a constant clock offset is not lateness."""
+"""The SDK's rate step-down (protocol 1.8, 1.9's lower rates; client/rates.py) driven by injected
+times: states that arrive late step a subscription down 60 -> 30 -> 20 -> 10 -> 5 Hz (on a 1.8
+server no lower than 20 Hz), lost ones too; a quiet period steps it back up, a step up that does
+not hold doubles the wait; a constant clock offset is not lateness."""
 
 from __future__ import annotations
 
 import pytest
 
 from drape.client import protocol as P
-from drape.client.rates import RateGovernor, rate_option
+from drape.client.rates import RateGovernor, fit_rate, rate_option
 
 TICK_NS = 16_666_667
 OFFSET = 123_456_789_000  # the client's clock minus the server's: not lateness
@@ -46,10 +47,27 @@ def test_a_growing_backlog_steps_down_to_20_hz_and_back_up_after_a_quiet_period(
     assert 5 * 60 <= up[0][0] - down[-1][0] <= 8 * 60 and 5 * 60 <= up[1][0] - up[0][0] <= 8 * 60
 
 
-def test_a_link_far_too_slow_steps_straight_to_20_hz():
+def test_a_link_far_too_slow_steps_straight_to_5_hz():
     gov = RateGovernor()
-    changes = feed(gov, range(1, 60 * 3), late_ms=lambda t: 0.0 if gov.rate == 3 else t * 5.0)  # 300 ms a second
-    assert [r for _, r in changes] == [3] and gov.step_downs == 1
+    changes = feed(gov, range(1, 60 * 3), late_ms=lambda t: 0.0 if gov.rate == 12 else t * 5.0)  # 300 ms a second
+    assert [r for _, r in changes] == [12] and gov.step_downs == 1
+
+
+def test_facing_a_1_8_server_the_ladder_stops_at_20_hz():
+    gov = RateGovernor(rates=P.served_rates((1, 8)))
+    changes = feed(gov, range(1, 60 * 6), late_ms=lambda t: t * 5.0)  # late at every rate
+    assert [r for _, r in changes] == [3] and gov.rate == 3
+    # a failover from a 1.9 server at every 12th state onto a 1.8 one: every 3rd from then on
+    gov = RateGovernor(rate=12)
+    assert gov.limit(P.served_rates((1, 8))) == 3 and gov.rates == (1, 2, 3)
+    assert RateGovernor(rate=2).limit(P.served_rates((1, 7))) == 1
+
+
+def test_the_rates_each_version_serves():
+    assert P.served_rates(None) == (1,) and P.served_rates((1, 7)) == (1,)
+    assert P.served_rates((1, 8)) == (1, 2, 3) and P.served_rates((1, 9)) == P.RATES == (1, 2, 3, 6, 12)
+    assert P.served_rates((1, 12)) == P.RATES
+    assert fit_rate(12, (1, 2, 3)) == 3 and fit_rate(6, P.RATES) == 6 and fit_rate(12, (1,)) == 1
 
 
 def test_lost_states_step_down_too():
@@ -68,10 +86,13 @@ def test_a_step_up_that_does_not_hold_doubles_the_wait():
 
 def test_rate_options():
     assert rate_option(1) == (1, False) and rate_option(3) == (3, False) and rate_option("auto") == (1, True)
+    assert rate_option(6) == (6, False) and rate_option(12) == (12, False)
     with pytest.raises(ValueError):
         rate_option(4)
     assert P.every_key("drape/client/c/states", 2) == "drape/client/c/states/every/2"
     assert P.split_every("drape/cloth/x/state/every/3") == ("drape/cloth/x/state", 3)
+    assert P.every_key("drape/cloth/x/state", 12) == "drape/cloth/x/state/every/12"
+    assert P.split_every("drape/cloth/x/state/every/12") == ("drape/cloth/x/state", 12)
     assert P.split_every("drape/cloth/x/state/every/9") == ("drape/cloth/x/state/every/9", 1)
 
 
@@ -111,11 +132,12 @@ def test_the_governor_vectors_replay():
 
     vectors = json.loads((Path(__file__).resolve().parents[1] / "vectors" / "rates.json").read_text())
     traces = [v for v in vectors if v["message"] == "governor"]
-    assert len(traces) >= 5
+    assert len(traces) >= 7
     for v in traces:
         i = v["input"]
-        gov = RateGovernor()
-        assert i["constants"]["late_s"] == gov.late_s and i["constants"]["rates"] == list(gov.rates)
+        gov = RateGovernor(rates=tuple(i["rates"]))
+        assert i["constants"]["late_s"] == gov.late_s and i["constants"]["rates"] == list(P.RATES)
+        assert i["rates"] == list(P.served_rates((1, 8) if v["name"].endswith("1_8") else P.PROTOCOL_VERSION))
         changes = []
         for n, (t, late) in enumerate(zip(i["ticks"], i["late_us"], strict=True)):
             server = t * i["tick_ns"]

@@ -119,7 +119,7 @@ def state_value(st: P.ClothState, data: bytes | memoryview) -> dict[str, Any]:
 
 
 def rates_vectors() -> list[dict[str, Any]]:
-    """1.8 (PROTOCOL.md 9.3): the decimated keys of a state key and a bundle key, and a stream of
+    """1.8 (PROTOCOL.md 9.3; 1.9's k = 6, 12): the decimated keys of a state key and a bundle key, and a stream of
     every 2nd state (ticks 100, 102, 104 of the motion of ``predictive_vectors``' first three
     frames, sampled at 30 Hz), each predicted from the key's own states (ref ticks T - 2, T - 4)."""
     keys = P.Keys()
@@ -127,7 +127,7 @@ def rates_vectors() -> list[dict[str, Any]]:
         {
             "name": f"rate_key_{kind}_{k}",
             "message": "key",
-            "description": f"1.8: the key of every {k}-th state of a {kind} key.",
+            "description": f"{'.'.join(map(str, P.RATE_SINCE[k]))}: the key of every {k}-th state of a {kind} key.",
             "input": {"key": base, "every": k},
             "value": {"key": P.every_key(base, k)},
         }
@@ -182,7 +182,9 @@ def governor_vectors() -> list[dict[str, Any]]:
     link delay + ``late_us``) with the rate changes the Python governor made at each (the index
     of the state, the new rate). The traces cover a growing backlog (two steps down, two up after
     the quiet period), a link far too slow (one jump to the lowest rate), lost states, and step
-    ups that do not hold (the quiet period doubled)."""
+    ups that do not hold (the quiet period doubled). Each trace's ``input.rates`` is the ladder of
+    the rates its server serves (protocol.served_rates: 1.9's 1, 2, 3, 6, 12, or a 1.8 server's
+    1, 2, 3, where ``auto`` stops at 3), the governor's ``rates``."""
     from drape.client.rates import RateGovernor
 
     base = RateGovernor()
@@ -200,8 +202,15 @@ def governor_vectors() -> list[dict[str, Any]]:
         "failed_up_windows": 3,
     }
 
-    def trace(name: str, note: str, ticks: range, late_ms: Any, drop: Any = lambda gov, t: False) -> dict[str, Any]:
-        gov = RateGovernor()
+    def trace(
+        name: str,
+        note: str,
+        ticks: range,
+        late_ms: Any,
+        drop: Any = lambda gov, t: False,
+        version: tuple[int, int] = P.PROTOCOL_VERSION,
+    ) -> dict[str, Any]:
+        gov = RateGovernor(rates=P.served_rates(version))
         fed: list[int] = []
         late_us: list[int] = []
         changes: list[list[int]] = []
@@ -218,9 +227,10 @@ def governor_vectors() -> list[dict[str, Any]]:
         return {
             "name": f"governor_{name}",
             "message": "governor",
-            "description": f"1.8, rate=auto: {note}",
+            "description": f"rate=auto facing a {version[0]}.{version[1]} server: {note}",
             "input": {
                 "constants": constants,
+                "rates": list(gov.rates),
                 "tick_ns": GOVERNOR_TICK_NS,
                 "offset_ns": GOVERNOR_OFFSET_NS,
                 "link_ns": GOVERNOR_LINK_NS,
@@ -246,10 +256,25 @@ def governor_vectors() -> list[dict[str, Any]]:
             lambda g, t: 0.0 if g.rate == 3 or t >= 600 else (t % 600) * 0.5,
         ),
         trace(
+            "ladder",
+            "a backlog growing at every rate down to 5 Hz steps down one rate at a time (2, 3, 6, 12), "
+            "then on time it steps back up one at a time, each after the quiet period (50 s).",
+            range(1, 60 * 50),
+            lambda g, t: 0.0 if g.rate == 12 or t >= 800 else (t % 300) * 0.5,
+        ),
+        trace(
             "jump",
-            "lateness past jump_s goes straight to the lowest rate (3 s).",
+            "lateness past jump_s goes straight to the lowest rate, every 12th state (3 s).",
             range(1, 180),
-            lambda g, t: 0.0 if g.rate == 3 else t * 5.0,
+            lambda g, t: 0.0 if g.rate == 12 else t * 5.0,
+        ),
+        trace(
+            "jump_1_8",
+            "the same link far too slow facing a 1.8 server: straight to its lowest rate, every 3rd "
+            "state, and no lower (6 s).",
+            range(1, 360),
+            lambda g, t: t * 5.0,
+            version=(1, 8),
         ),
         trace(
             "lost",

@@ -174,17 +174,24 @@
 
 #define DRAPE_STEP_DEFAULT 0.001
 
-// `rate = auto`: the full rate, stepped down (to 30 then 20 Hz at the default tick) while
-// states arrive late or too few, back up after a quiet period (the Python SDK's rule).
+// `rate = auto`: the full rate, stepped down (to 30 then 20 Hz at the default tick, on a 1.9
+// server on to 10 and 5 Hz) while states arrive late or too few, back up after a quiet period
+// (the Python SDK's rule).
 #define DRAPE_RATE_AUTO 0
 
-// Every state (60 Hz at the default tick), every 2nd (30 Hz), every 3rd (20 Hz). Other than
-// FULL needs a 1.8 server: a cloth on an older one takes every state.
+// Every state (60 Hz at the default tick), every 2nd (30 Hz), every 3rd (20 Hz); HALF and THIRD
+// need a 1.8 server (a cloth on an older one takes every state).
 #define DRAPE_RATE_FULL 1
 
 #define DRAPE_RATE_HALF 2
 
 #define DRAPE_RATE_THIRD 3
+
+// Every 6th state (10 Hz at the default tick), every 12th (5 Hz): for links too slow even for
+// 20 Hz; they need a 1.9 server (on a 1.8 one a governed subscription stops at THIRD).
+#define DRAPE_RATE_SIXTH 6
+
+#define DRAPE_RATE_TWELFTH 12
 
 // Controls of many cloths sent as one batch control (opaque; not synchronized).
 typedef struct DrapeBatch DrapeBatch;
@@ -517,7 +524,7 @@ typedef struct DrapeRateCounters {
   // Times the governor stepped the rate down, and up (0 without DRAPE_RATE_AUTO).
   uint64_t step_downs;
   uint64_t step_ups;
-  // Every `rate`-th state is taken now (DRAPE_RATE_FULL, _HALF, _THIRD).
+  // Every `rate`-th state is taken now (DRAPE_RATE_FULL, _HALF, _THIRD, _SIXTH, _TWELFTH).
   uint32_t rate;
   // A governor steps it (DRAPE_RATE_AUTO).
   bool auto_;
@@ -903,18 +910,21 @@ int32_t drape_cloth_predictive_counters(const struct DrapeCloth *cloth,
 
 // The rate (DRAPE_RATE_*) later submissions of this client start at, and its bundle's from now
 // on (switched at once when subscribed). A rate the bundle cannot take (a bundled cloth on a
-// server older than 1.8) leaves it at full rate.
+// server older than 1.8, or 6 or 12 with one on a 1.8 server) leaves it where it is.
 int32_t drape_client_set_rate(const struct DrapeClient *client, uint32_t rate);
 
-// Take every `rate`-th bundle (DRAPE_RATE_FULL, _HALF, _THIRD) from now on, for every bundled
-// cloth at once. DRAPE_E_INVALID_VALUE for another rate than FULL while a bundled cloth lives on
-// a server older than 1.8.
-int32_t drape_client_set_bundle_rate(const struct DrapeClient *client, uint32_t rate);
+// Take every `rate`-th bundle (DRAPE_RATE_FULL, _HALF, _THIRD, _SIXTH, _TWELFTH) from now on, for every bundled
+// cloth at once. DRAPE_E_INVALID_VALUE for a rate a server of a bundled cloth does not serve
+// (other than FULL before 1.8, SIXTH or TWELFTH on a 1.8 server).
+int32_t drape_client_set_bundle_rate(const struct DrapeClient *client,
+                                     uint32_t rate);
 
-// Take every `rate`-th state of the cloth (DRAPE_RATE_FULL, _HALF, _THIRD) from now on; with
+// Take every `rate`-th state of the cloth (DRAPE_RATE_FULL, _HALF, _THIRD, _SIXTH, _TWELFTH) from now on; with
 // DRAPE_RATE_AUTO its governor goes on from there. DRAPE_E_INVALID_VALUE for a bundled cloth
-// (`drape_client_set_bundle_rate`) or another rate than FULL on a server older than 1.8.
-int32_t drape_cloth_set_rate(const struct DrapeCloth *cloth, uint32_t rate);
+// (`drape_client_set_bundle_rate`) or a rate its server does not serve (other than FULL before
+// 1.8, SIXTH or TWELFTH on a 1.8 server).
+int32_t drape_cloth_set_rate(const struct DrapeCloth *cloth,
+                             uint32_t rate);
 
 // Fill `*out` with the cloth's rate and its governor's steps (a bundled cloth: its bundle's
 // rate; the steps are the bundle's, `drape_client_bundle_rate_counters`). Never blocks long.

@@ -1,5 +1,7 @@
-//! Rates per subscriber (protocol 1.8, PROTOCOL.md 9.3), no network: the decimated keys
-//! (`{state or bundle key}/every/{k}`, k in [`RATES`]) and [`Governor`], `rate = auto`'s rule,
+//! Rates per subscriber (protocol 1.8, 1.9's lower rates; PROTOCOL.md 9.3), no network: the
+//! decimated keys (`{state or bundle key}/every/{k}`, k in [`RATES`]), which rates a server of a
+//! version serves ([`served_rates`]) and [`Governor`], `rate = auto`'s rule, stepping along the
+//! ladder of the rates its subscription's server serves,
 //! the Python SDK's `client/rates.py` `RateGovernor` step for step: over each window of receive
 //! time it looks at the 90th percentile of its states' lateness (`receive - server` time minus
 //! the smallest such difference over the last windows: the clock offset and the link's own delay
@@ -11,17 +13,35 @@
 //! governor's and traces of its decisions, which `tests/rates.rs` replays against this one.
 use std::collections::VecDeque;
 
-/// The rates a subscriber may take a key at: every k-th state (1: the key itself; 2 and 3: 30
-/// and 20 Hz at the default 60 Hz tick).
-pub const RATES: [u8; 3] = [1, 2, 3];
+/// The rates a subscriber may take a key at, each with the first protocol version whose servers
+/// serve it: every k-th state (1: the key itself; 1.8: 2 and 3, 30 and 20 Hz at the default 60 Hz
+/// tick; 1.9: 6 and 12, 10 and 5 Hz). The Python SDK's `protocol.RATE_SINCE`.
+pub const RATE_SINCE: [(u8, (u8, u8)); 5] = [(1, (1, 0)), (2, (1, 8)), (3, (1, 8)), (6, (1, 9)), (12, (1, 9))];
 
-/// The first protocol version whose servers publish the decimated keys; a cloth on an older
-/// server stays on the full-rate key.
-pub const RATES_SINCE: (u8, u8) = (1, 8);
+/// The rates of [`RATE_SINCE`], in order.
+pub const RATES: [u8; RATE_SINCE.len()] = {
+    let mut out = [0u8; RATE_SINCE.len()];
+    let mut i = 0;
+    while i < out.len() {
+        out[i] = RATE_SINCE[i].0;
+        i += 1;
+    }
+    out
+};
 
-/// Whether a server of protocol `version` serves `{key}/every/{k}`.
-pub fn speaks_rates(version: (u8, u8)) -> bool {
-    version >= RATES_SINCE
+/// The rates a server of protocol `version` serves (None: unknown, the full rate only): a cloth
+/// on a 1.7 server stays on the full-rate key, on a 1.8 one takes at most every 3rd state.
+pub fn served_rates(version: Option<(u8, u8)>) -> Vec<u8> {
+    match version {
+        None => vec![1],
+        Some(v) => RATE_SINCE.iter().filter(|(_, since)| v >= *since).map(|(k, _)| *k).collect(),
+    }
+}
+
+/// The rate a subscription asking for every `k`-th state takes from a server serving `served`:
+/// `k` itself, or the served rate nearest below it (a 1.8 server asked for 6 or 12: every 3rd).
+pub fn fit_rate(k: u8, served: &[u8]) -> u8 {
+    served.iter().copied().filter(|&r| r <= k).max().unwrap_or(1)
 }
 
 /// The key of every `every`-th state of a state or bundle key (`every` = 1: `key` itself);
@@ -57,13 +77,12 @@ pub enum Rate {
 }
 
 impl Rate {
-    /// The rate of `k` (1, 2, 3), or `Auto` for 0 (the C ABI's `DRAPE_RATE_AUTO`); None otherwise.
+    /// The rate of `k` (one of [`RATES`]), or `Auto` for 0 (the C ABI's `DRAPE_RATE_AUTO`); None otherwise.
     pub fn from_k(k: u32) -> Option<Rate> {
         match k {
             0 => Some(Rate::Auto),
             1 => Some(Rate::Full),
-            2 | 3 => Some(Rate::Every(k as u8)),
-            _ => None,
+            _ => u8::try_from(k).ok().filter(|k| RATES.contains(k)).map(Rate::Every),
         }
     }
     /// (the k to start at, whether a governor steps it).
@@ -124,6 +143,8 @@ pub struct Governor {
     pub cfg: GovernorConfig,
     /// The rate it holds now.
     pub rate: u8,
+    /// The ladder it steps along: the rates its subscription's server serves ([`served_rates`]).
+    pub rates: Vec<u8>,
     pub step_downs: u64,
     pub step_ups: u64,
     /// The quiet period now (seconds).
@@ -147,6 +168,7 @@ impl Governor {
         Governor {
             cfg,
             rate,
+            rates: RATES.to_vec(),
             step_downs: 0,
             step_ups: 0,
             quiet_s: cfg.quiet_s,
@@ -159,6 +181,14 @@ impl Governor {
             good_since: None,
             up_at: None,
         }
+    }
+
+    /// The ladder of the rates the subscription's server serves (placed, or failed over, on a 1.8
+    /// server: it stops at 3); the rate it holds now ([`fit_rate`]: its own or the one below).
+    pub fn limit(&mut self, rates: &[u8]) -> u8 {
+        self.rates = rates.to_vec();
+        self.rate = fit_rate(self.rate, rates);
+        self.rate
     }
 
     /// The subscription was switched to `rate` by hand: judged from there (the next window
@@ -204,10 +234,11 @@ impl Governor {
         if now < self.settle_until {
             return None;
         }
-        let i = RATES.iter().position(|&r| r == self.rate).unwrap_or(0);
+        let rates = &self.rates;
+        let i = rates.iter().position(|&r| r == self.rate).unwrap_or(0);
         if late > self.cfg.late_s || lost > self.cfg.lost_share {
             self.good_since = None;
-            if i + 1 >= RATES.len() {
+            if i + 1 >= rates.len() {
                 return None;
             }
             if self.up_at.is_some_and(|u| (now as f64 - u as f64) <= self.cfg.failed_up_windows * self.cfg.window_s * 1e9) {
@@ -215,7 +246,7 @@ impl Governor {
             }
             self.up_at = None;
             self.step_downs += 1;
-            let to = if late > self.cfg.jump_s { RATES[RATES.len() - 1] } else { RATES[i + 1] };
+            let to = if late > self.cfg.jump_s { rates[rates.len() - 1] } else { rates[i + 1] };
             return Some(self.change(to, now));
         }
         let since = *self.good_since.get_or_insert(now);
@@ -223,7 +254,7 @@ impl Governor {
             self.step_ups += 1;
             self.up_at = Some(now);
             self.good_since = None;
-            return Some(self.change(RATES[i - 1], now));
+            return Some(self.change(self.rates[i - 1], now));
         }
         None
     }
@@ -260,10 +291,22 @@ mod tests {
         assert_eq!(every_key("k", 4), None);
         assert_eq!(split_every("drape/cloth/x/state/every/3"), ("drape/cloth/x/state", 3));
         assert_eq!(split_every("drape/cloth/x/state/every/9"), ("drape/cloth/x/state/every/9", 1));
-        assert!(speaks_rates((1, 8)) && speaks_rates((2, 0)) && !speaks_rates((1, 7)));
+        assert_eq!(every_key("k", 12).unwrap(), "k/every/12");
+        assert_eq!(split_every("drape/cloth/x/state/every/6"), ("drape/cloth/x/state", 6));
+        assert_eq!(RATES, [1, 2, 3, 6, 12]);
+        assert_eq!(served_rates(Some((1, 8))), [1, 2, 3]);
+        assert_eq!(served_rates(Some((1, 9))), RATES);
+        assert_eq!(served_rates(Some((2, 0))), RATES);
+        assert_eq!(served_rates(Some((1, 7))), [1]);
+        assert_eq!(served_rates(None), [1]);
+        assert_eq!((fit_rate(12, &[1, 2, 3]), fit_rate(6, &RATES), fit_rate(3, &[1])), (3, 6, 1));
         assert_eq!(Rate::from_k(0), Some(Rate::Auto));
         assert_eq!(Rate::from_k(3).map(Rate::start), Some((3, false)));
+        assert_eq!(Rate::from_k(12).map(Rate::start), Some((12, false)));
         assert_eq!(Rate::from_k(4), None);
+        assert_eq!(Rate::from_k(268), None);
+        let mut g = Governor::new(12);
+        assert_eq!((g.limit(&served_rates(Some((1, 8)))), g.rates.as_slice()), (3, &[1u8, 2, 3][..]));
     }
 
     #[test]

@@ -3,7 +3,8 @@
 //! : with the client's rate at every 2nd state a predictive cloth receives a 30 Hz stream, even
 //! ticks only, each state within step / 2 of a float32 twin's (taken at full rate) at the same
 //! age; `Cloth::set_rate` switches it to every 3rd (make before break, a keyframe on the new
-//! key); the bundle the same with `Client::set_bundle_rate`; and the C ABI's rate functions.
+//! key); the bundle the same with `Client::set_bundle_rate`; and the C ABI's rate functions (1.9:
+//! `DRAPE_RATE_TWELFTH`, two states 12 ticks apart).
 mod common;
 
 use drape::client::{Client, Cloth, Rate};
@@ -128,6 +129,19 @@ fn c_abi_rates() {
             }
             assert!(t0.elapsed() < Duration::from_secs(10), "no state of every 3rd");
         }
+        // 1.9: every 12th state (5 Hz), two in a row 12 ticks apart
+        assert_eq!(drape_cloth_set_rate(cloth, DRAPE_RATE_TWELFTH), DRAPE_OK);
+        let (t0, mut last) = (Instant::now(), 0);
+        loop {
+            assert_eq!(drape_cloth_wait_state(cloth, pos.as_mut_ptr(), 192, std::ptr::null_mut(), 0, 5000, &mut info), DRAPE_OK);
+            if info.tick % 12 == 0 && last != 0 && info.tick == last + 12 {
+                break;
+            }
+            last = info.tick;
+            assert!(t0.elapsed() < Duration::from_secs(15), "no two states of every 12th");
+        }
+        assert_eq!(drape_cloth_rate_counters(cloth, &mut k), DRAPE_OK);
+        assert_eq!(k.rate, DRAPE_RATE_TWELFTH);
         assert_eq!(drape_client_set_rate(client, DRAPE_RATE_AUTO), DRAPE_OK);
         assert_eq!(drape_client_bundle_rate_counters(client, &mut k), DRAPE_OK);
         assert!(k.auto_ && k.rate == DRAPE_RATE_FULL, "{k:?}");

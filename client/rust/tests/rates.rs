@@ -1,9 +1,10 @@
-//! Rates per subscriber (protocol 1.8, PROTOCOL.md 9.3): `tests/vectors/rates.json` read by the
-//! crate's `rates` module. The decimated keys; a stream of every 2nd state decoding in order, each
-//! predicted from the key's own states (ref ticks T - 2, T - 4); and `rate = auto`'s rule: the
-//! Python governor's constants are this crate's, and each of its traces (states arriving with
-//! injected receive times) makes the Rust governor step at the same states to the same rates.
-use drape::rates::{every_key, split_every, Governor, GovernorConfig, RATES};
+//! Rates per subscriber (protocol 1.8, 1.9's every 6th and 12th; PROTOCOL.md 9.3):
+//! `tests/vectors/rates.json` read by the crate's `rates` module. The decimated keys; a stream of
+//! every 2nd state decoding in order, each predicted from the key's own states (ref ticks T - 2,
+//! T - 4); and `rate = auto`'s rule: the Python governor's constants are this crate's, and each of
+//! its traces (states arriving with injected receive times, along the ladder of the rates its
+//! server serves) makes the Rust governor step at the same states to the same rates.
+use drape::rates::{every_key, served_rates, split_every, Governor, GovernorConfig, RATES};
 use drape::wire::*;
 use serde_json::Value as Json;
 
@@ -20,7 +21,7 @@ fn of(kind: &str) -> Vec<Json> {
 #[test]
 fn decimated_keys() {
     let keys = of("key");
-    assert_eq!(keys.len(), 4);
+    assert_eq!(keys.len(), 2 * (RATES.len() - 1));
     for v in keys {
         let (key, k) = (v["input"]["key"].as_str().unwrap(), v["input"]["every"].as_u64().unwrap() as u8);
         let want = v["value"]["key"].as_str().unwrap();
@@ -54,7 +55,7 @@ fn a_stream_of_every_2nd_state_decodes_in_order() {
 #[test]
 fn the_governor_is_the_python_sdks() {
     let traces = of("governor");
-    assert!(traces.len() >= 5);
+    assert!(traces.len() >= 7);
     let ours = GovernorConfig::default();
     for v in traces {
         let (name, i, want) = (v["name"].as_str().unwrap(), &v["input"], &v["value"]);
@@ -79,7 +80,11 @@ fn the_governor_is_the_python_sdks() {
         let (tick_ns, offset_ns, link_ns) = (u("tick_ns"), u("offset_ns"), u("link_ns"));
         let ticks = i["ticks"].as_array().unwrap();
         let late = i["late_us"].as_array().unwrap();
+        let ladder: Vec<u8> = i["rates"].as_array().unwrap().iter().map(|r| r.as_u64().unwrap() as u8).collect();
+        let version = if name.ends_with("1_8") { (1, 8) } else { (1, 9) };
+        assert_eq!(ladder, served_rates(Some(version)), "{name}: the ladder of a {version:?} server");
         let mut gov = Governor::new(1);
+        gov.limit(&ladder);
         let mut changes = Vec::new();
         for (n, (t, l)) in ticks.iter().zip(late).enumerate() {
             let (t, l) = (t.as_u64().unwrap(), l.as_u64().unwrap());

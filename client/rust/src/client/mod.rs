@@ -84,10 +84,11 @@ pub struct ClientOptions {
     /// Rust; the C ABI sets it unless `DrapeClientOptions.lazy`.
     pub require_server: bool,
     /// 1.8 (PROTOCOL.md 9.3): take every k-th state of each cloth and of the bundle
-    /// (`Rate::Every(2)`, `Rate::Every(3)`: 30 and 20 Hz at the default tick), each on its own
-    /// key, or `Rate::Auto`: full rate, stepped down by itself while states arrive late (and
-    /// back up after a quiet period; `crate::rates::Governor`). Default `Rate::Full`. Cloths on
-    /// a server older than 1.8 come at full rate. [`Cloth::set_rate`], [`Client::set_bundle_rate`].
+    /// (`Rate::Every(2)`, `Rate::Every(3)`: 30 and 20 Hz at the default tick; 1.9:
+    /// `Rate::Every(6)`, `Rate::Every(12)`: 10 and 5 Hz), each on its own key, or `Rate::Auto`:
+    /// full rate, stepped down by itself while states arrive late (and back up after a quiet
+    /// period; `crate::rates::Governor`). Default `Rate::Full`. Cloths on a server older than
+    /// 1.8 come at full rate, on a 1.8 server at every 3rd state at most. [`Cloth::set_rate`], [`Client::set_bundle_rate`].
     pub rate: Rate,
 }
 

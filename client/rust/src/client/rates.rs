@@ -3,11 +3,13 @@
 //! switch from one rate to another (make before break, as the Python SDK: the new key subscribed
 //! before the old one is dropped, its stream started afresh and a keyframe asked for on it), and
 //! `rate = auto`'s [`Governor`] fed with each state's (or bundle's) times; a change it calls for
-//! is made off the Zenoh thread. A cloth on a server older than 1.8 stays on the full-rate key.
+//! is made off the Zenoh thread, along the rates the subscription's server serves
+//! (`crate::rates::served_rates`): a cloth on a server older than 1.8 stays on the full-rate key,
+//! one on a 1.8 server takes at most every 3rd state (1.9 adds every 6th and 12th).
 use super::cloth::{Cloth, ClothInner, Status};
 use super::recv::{self, now_ns, Buf, Latest};
 use super::{zerr, Client, Inner};
-use crate::rates::{every_key, speaks_rates, Governor, Rate, RATES};
+use crate::rates::{every_key, fit_rate, served_rates, Governor, Rate, RATES};
 use crate::wire::error::{Error, ErrorCode, Result};
 use std::sync::Arc;
 use std::time::Duration;
@@ -19,8 +21,9 @@ use zenoh::Wait;
 pub(crate) struct SubRate {
     /// Every `rate`-th state is taken, on the key's `every/{rate}` twin (1: the key itself).
     pub(crate) rate: u8,
-    /// Its server (every server of the bundle's cloths) speaks 1.8; else the full rate only.
-    pub(crate) ok: bool,
+    /// The rates its server (every server of the bundle's cloths) serves: `[1]` before 1.8,
+    /// `[1, 2, 3]` on 1.8, all of `RATES` from 1.9.
+    pub(crate) served: Vec<u8>,
     /// `Rate::Auto`: steps the rate (a bundled cloth has none: its bundle's steps).
     pub(crate) governor: Option<Governor>,
     /// A change the governor called for on delivery, made off the Zenoh thread.
@@ -30,22 +33,23 @@ pub(crate) struct SubRate {
 impl SubRate {
     pub(crate) fn new(rate: Rate) -> SubRate {
         let (k, auto) = rate.start();
-        SubRate { rate: k, ok: true, governor: auto.then(|| Governor::new(k)), pending: None }
+        SubRate { rate: k, served: RATES.to_vec(), governor: auto.then(|| Governor::new(k)), pending: None }
     }
 
-    /// Its server does not speak 1.8: the full-rate key, the governor idle.
-    fn fall_back(&mut self) {
-        self.ok = false;
-        self.rate = 1;
-        self.pending = None;
+    /// Its server serves the rates `served`: the rate the served one at or below its own (the
+    /// full-rate key, the governor idle, on a server older than 1.8), the governor's ladder those.
+    fn limit(&mut self, served: &[u8]) {
+        self.served = served.to_vec();
+        self.rate = fit_rate(self.rate, served);
+        self.pending = self.pending.filter(|k| served.contains(k));
         if let Some(g) = self.governor.as_mut() {
-            *g = Governor::new(1);
+            g.limit(served);
         }
     }
 
     /// A state of `tick` arrived: the governor's verdict kept in `pending`.
     pub(crate) fn observe(&mut self, tick: u64, server_ns: u64, receive_ns: u64) {
-        if !self.ok {
+        if self.served.len() < 2 {
             return;
         }
         if let Some(new) = self.governor.as_mut().and_then(|g| g.observe(tick, server_ns, receive_ns)) {
@@ -67,7 +71,7 @@ impl SubRate {
 /// A subscription's rate and what `rate = auto` did to it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct RateCounters {
-    /// Every `rate`-th state is taken now (1, 2, 3).
+    /// Every `rate`-th state is taken now (one of `RATES`: 1, 2, 3, 6, 12).
     pub rate: u8,
     /// A governor steps it (`Rate::Auto`).
     pub auto: bool,
@@ -84,9 +88,9 @@ fn check_k(k: u8) -> Result<()> {
     }
 }
 
-/// Whether `server` (its info asked once) serves the decimated keys.
-pub(crate) fn server_rated(inner: &Inner, server: &str) -> bool {
-    inner.server_info(server).map(|(v, _)| speaks_rates(v)).unwrap_or(false)
+/// The rates `server` (its info asked once) serves; the full rate only when unknown.
+pub(crate) fn server_served(inner: &Inner, server: &str) -> Vec<u8> {
+    served_rates(inner.server_info(server).map(|(v, _)| v).ok())
 }
 
 /// A subscriber of `c`'s state `key` at rate `k` whose states count only while `k` is the
@@ -158,17 +162,14 @@ pub(crate) fn observe_bundle(inner: &Arc<Inner>, tick: u64, server_ns: u64, rece
     }
 }
 
-/// The rate `c` takes on its new placement on `server` (attach): its own, or 1 on a server older
-/// than 1.8; a bundled cloth's is the bundle's.
+/// The rate `c` takes on its new placement on `server` (attach): its own, or the one below it
+/// that `server` serves (1 on a server older than 1.8, at most 3 on a 1.8 one); a bundled
+/// cloth's is the bundle's.
 pub(crate) fn placed(inner: &Inner, c: &ClothInner, server: &str, bundled: bool) -> u8 {
-    let rated = server_rated(inner, server);
+    let served = server_served(inner, server);
     let bundle = bundled.then(|| inner.bundle_rate.lock().unwrap().rate);
     let mut s = c.slot.lock().unwrap();
-    if !rated {
-        s.rate.fall_back();
-    } else {
-        s.rate.ok = true;
-    }
+    s.rate.limit(&served);
     if let Some(k) = bundle {
         s.rate.rate = k;
         s.rate.governor = None;
@@ -176,21 +177,22 @@ pub(crate) fn placed(inner: &Inner, c: &ClothInner, server: &str, bundled: bool)
     s.rate.rate
 }
 
-/// Before a bundled cloth is placed on `server`: a server older than 1.8 puts the bundle on its
-/// full-rate key for good (its bundles would not come on a decimated key).
+/// Before a bundled cloth is placed on `server`: the bundle keeps to the rates every server of
+/// its cloths serves, for good (a server older than 1.8: the full-rate key; a 1.8 one: at most
+/// every 3rd bundle), switched now when its rate is not among them.
 pub(crate) fn bundle_placing(inner: &Arc<Inner>, server: &str) -> Result<()> {
-    if server_rated(inner, server) {
-        return Ok(());
-    }
-    let k = {
+    let served = server_served(inner, server);
+    let (k, to) = {
         let mut b = inner.bundle_rate.lock().unwrap();
         let k = b.rate;
-        b.fall_back();
+        let both: Vec<u8> = b.served.iter().copied().filter(|r| served.contains(r)).collect();
+        b.limit(&both);
+        let to = b.rate;
         b.rate = k; // switched below
-        k
+        (k, to)
     };
-    if k != 1 {
-        switch_bundle(inner, 1, false)?;
+    if to != k {
+        switch_bundle(inner, to, false)?;
     }
     Ok(())
 }
@@ -207,8 +209,9 @@ pub(crate) fn switch_cloth(inner: &Arc<Inner>, c: &Arc<ClothInner>, k: u8, by_ha
         if s.status != Status::Live {
             return Err(Error::new(ErrorCode::Unavailable, "the cloth is not live"));
         }
-        if k != 1 && !s.rate.ok {
-            return Err(Error::new(ErrorCode::InvalidValue, format!("server {} speaks a protocol older than 1.8: the full rate only", s.server)));
+        if !s.rate.served.contains(&k) {
+            let why = if s.rate.served.len() < 2 { "older than 1.8: the full rate only" } else { "1.8: every 3rd state at most" };
+            return Err(Error::new(ErrorCode::InvalidValue, format!("server {} speaks a protocol {why}", s.server)));
         }
         if s.rate.rate == k {
             return Ok(());
@@ -242,8 +245,8 @@ pub(crate) fn switch_bundle(inner: &Arc<Inner>, k: u8, by_hand: bool) -> Result<
     check_k(k)?;
     {
         let mut b = inner.bundle_rate.lock().unwrap();
-        if k != 1 && !b.ok {
-            return Err(Error::new(ErrorCode::InvalidValue, "a server of the bundle's cloths speaks a protocol older than 1.8: the full rate only"));
+        if !b.served.contains(&k) {
+            return Err(Error::new(ErrorCode::InvalidValue, format!("a server of the bundle's cloths serves the rates {:?} only", b.served)));
         }
         if b.rate == k {
             return Ok(());
@@ -274,11 +277,13 @@ pub(crate) fn switch_bundle(inner: &Arc<Inner>, k: u8, by_hand: bool) -> Result<
 }
 
 impl Cloth {
-    /// 1.8: take every `k`-th state (1, 2, 3: 60, 30, 20 Hz at the default tick) from now on, on
+    /// 1.8: take every `k`-th state (1, 2, 3: 60, 30, 20 Hz at the default tick; 1.9: 6, 12: 10,
+    /// 5 Hz) from now on, on
     /// the state key's `every/{k}` twin: the new key is subscribed before the old one is dropped,
     /// and its stream starts with a keyframe asked for. With `Rate::Auto` the governor goes on
     /// from `k`. `invalid_value` for a bundled cloth (its bundle's rate:
-    /// [`Client::set_bundle_rate`]) or a rate other than 1 on a server older than 1.8.
+    /// [`Client::set_bundle_rate`]) or a rate its server does not serve (other than 1 before 1.8,
+    /// 6 or 12 on a 1.8 server).
     pub fn set_rate(&self, k: u8) -> Result<()> {
         switch_cloth(&self.client, &self.inner, k, true)
     }
@@ -308,9 +313,10 @@ impl Client {
         self.set_bundle_rate(k).or_else(|e| if k != 1 && e.code == ErrorCode::InvalidValue { Ok(()) } else { Err(e) })
     }
 
-    /// 1.8: take every `k`-th bundle (1, 2, 3) of this client's bundle key from now on (every
-    /// bundled cloth at once; make before break, a keyframe asked for on the new key).
-    /// `invalid_value` for a rate other than 1 while a bundled cloth lives on a server older than 1.8.
+    /// 1.8: take every `k`-th bundle (1, 2, 3; 1.9: 6, 12) of this client's bundle key from now on
+    /// (every bundled cloth at once; make before break, a keyframe asked for on the new key).
+    /// `invalid_value` for a rate a server of a bundled cloth does not serve (other than 1 before
+    /// 1.8, 6 or 12 on a 1.8 server).
     pub fn set_bundle_rate(&self, k: u8) -> Result<()> {
         switch_bundle(&self.inner, k, true)
     }
@@ -328,12 +334,12 @@ mod tests {
     #[test]
     fn a_subscription_on_a_pre_1_8_server_takes_every_state_and_its_governor_idles() {
         let mut r = SubRate::new(Rate::Every(2));
-        assert_eq!((r.rate, r.ok, r.governor.is_none()), (2, true, true));
+        assert_eq!((r.rate, r.served.as_slice(), r.governor.is_none()), (2, &RATES[..], true));
         let mut auto = SubRate::new(Rate::Auto);
         auto.governor.as_mut().unwrap().rate = 3; // as after two steps down
         for s in [&mut r, &mut auto] {
-            s.fall_back();
-            assert_eq!((s.rate, s.ok, s.pending), (1, false, None));
+            s.limit(&served_rates(Some((1, 7))));
+            assert_eq!((s.rate, s.served.as_slice(), s.pending), (1, &[1u8][..], None));
         }
         assert_eq!(auto.governor.as_ref().unwrap().rate, 1);
         // late states feed nothing while the server cannot serve another rate
@@ -341,6 +347,21 @@ mod tests {
             auto.observe(t, t * 16_666_667, t * 16_666_667 + t * 5_000_000);
         }
         assert_eq!((auto.pending, auto.counters().step_downs), (None, 0));
-        assert!(!speaks_rates((1, 7)) && check_k(4).is_err());
+        assert!(check_k(4).is_err() && check_k(12).is_ok());
+    }
+
+    #[test]
+    fn a_subscription_on_a_1_8_server_stops_at_every_3rd_state() {
+        let mut auto = SubRate::new(Rate::Auto);
+        auto.governor.as_mut().unwrap().rate = 12; // as after a jump on a 1.9 server
+        auto.rate = 12;
+        auto.limit(&served_rates(Some((1, 8))));
+        assert_eq!((auto.rate, auto.governor.as_ref().unwrap().rate), (3, 3));
+        // far too late at every rate: no step below 3
+        for t in (3..1200u64).step_by(3) {
+            auto.observe(t, t * 16_666_667, t * 16_666_667 + t * 5_000_000);
+        }
+        assert_eq!(auto.pending, None);
+        assert_eq!(auto.governor.as_ref().unwrap().rate, 3);
     }
 }

@@ -444,7 +444,7 @@ namespace Drape
             return m;
         }
 
-        /// Protocol 1.8: take every `rate`-th state of this cloth (Native.RATE_FULL, _HALF, _THIRD).
+        /// Protocol 1.8: take every `rate`-th state of this cloth (Native.RATE_FULL, _HALF, _THIRD; 1.9: _SIXTH, _TWELFTH).
         public void SetRate(uint rate)
         {
             DrapeException.Check(Native.drape_cloth_set_rate(Handle, rate), "drape_cloth_set_rate");

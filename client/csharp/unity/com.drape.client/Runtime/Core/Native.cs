@@ -24,9 +24,10 @@ namespace Drape
         /// the library on delivery, read as float32; its step: drape_client_set_predictive_step).
         public const int ENCODING_FLOAT32 = 0, ENCODING_FLOAT16 = 1, ENCODING_QUANT16 = 2, ENCODING_PREDICTIVE = 3;
         /// Rates per subscriber (protocol 1.8; drape_client_set_rate, drape_cloth_set_rate,
-        /// drape_client_set_bundle_rate): every state, every 2nd, every 3rd, or AUTO (client-wide: full
-        /// rate, stepped down while states arrive late). A cloth on a server older than 1.8 takes every state.
-        public const uint RATE_AUTO = 0, RATE_FULL = 1, RATE_HALF = 2, RATE_THIRD = 3;
+        /// drape_client_set_bundle_rate): every state, every 2nd, every 3rd, (1.9) every 6th, every 12th,
+        /// or AUTO (client-wide: full rate, stepped down while states arrive late). A cloth on a server
+        /// older than 1.8 takes every state; on a 1.8 server every 3rd at most.
+        public const uint RATE_AUTO = 0, RATE_FULL = 1, RATE_HALF = 2, RATE_THIRD = 3, RATE_SIXTH = 6, RATE_TWELFTH = 12;
         public const uint MATERIAL_MASS = 1, MATERIAL_STIFFNESS = 2, MATERIAL_COMPLIANCE = 4, MATERIAL_DAMPING = 8,
                           MATERIAL_FRICTION = 16, MATERIAL_DRAG = 32, MATERIAL_LIFT = 64, MATERIAL_AIR_DENSITY = 128,
                           MATERIAL_TETHER_LIMIT = 256;

@@ -44,6 +44,13 @@ SOURCE = "intercollide.cl"
 KERNELS = ("ic_bounds", "ic_active", "ic_clear", "ic_insert", "ic_find", "ic_refind", "ic_pass", "ic_finish")
 #: Candidates listed per vertex (-DIC_LIST); a vertex with more walks the hash in every pass instead.
 IC_LIST = 16
+#: ic_insert's work-group (-DIC_CG) on a GPU and on a CPU: the later rounds' lists of the vertices
+#: that walk the hash again and of the others are appended with one atomic per group (a scan of the
+#: group's flags in local memory), each group's vertices in their order.
+IC_CG = {"gpu": 256, "cpu": 64}
+#: Whether ic_refind runs over a list of the vertices that did not move (-DIC_KEPT; else over every
+#: vertex, those that moved idle): dense warps on a GPU; on PoCL the list made it 2x slower.
+IC_KEPT = {"gpu": True, "cpu": False}
 
 
 def _pow2_at_least(n: int) -> int:
@@ -66,6 +73,8 @@ class SceneCollision(WorldPhase):
         cloths: Mapping[int, Cloth],
         scenes: Mapping[str, Scene],
     ) -> None:
+        kind = "gpu" if dev.info.is_gpu else "cpu"
+        self.cg, self.kept = IC_CG[kind], IC_KEPT[kind]  # before the build options
         super().__init__(dev, mem, rec, cloths, scenes)
         self.n_cloths = 0  # scene cloths taking part (scenes of two cloths or more)
         self.n_vertices = 0
@@ -89,7 +98,7 @@ class SceneCollision(WorldPhase):
         self._xnbr = DevArray(dev, np.int32, IC_LIST)  # an unmoved vertex's moved candidates
         self._xcount = DevArray(dev, np.int32, 1)
         self._moved = DevArray(dev, np.int32, 1)  # the vertices that moved, then their number
-        self._nmoved = DevArray(dev, np.int32, 1)
+        self._nmoved = DevArray(dev, np.int32, 1)  # how many moved, how many did not (ic_refind's)
         self._nb = 64
         self._inv = 1.0
         self._dmax = 0.0
@@ -104,6 +113,8 @@ class SceneCollision(WorldPhase):
             f"-DINTER_COLLISION_PASSES={INTER_COLLISION_PASSES}",
             f"-DIC_REACH={INTER_COLLISION_REACH!r}f",
             f"-DIC_LIST={IC_LIST}",
+            f"-DIC_CG={self.cg}",
+            f"-DIC_KEPT={int(self.kept)}",
             f"-DIC_SHOCK={INTER_COLLISION_SHOCK!r}f",
         ]
 
@@ -157,7 +168,7 @@ class SceneCollision(WorldPhase):
             self._heads.resize(self._nb)
         self._dmax = dmax = float(np.max(np.asarray(cpar)[:, 0]))
         self._inv = 0.5 / (dmax * INTER_COLLISION_REACH) if dmax > 0 else 0.0
-        self._nmoved.write(0, np.zeros(1, np.int32))  # then ic_finish sets it back to 0
+        self._nmoved.write(0, np.zeros(2, np.int32))  # then ic_finish sets them back to 0
         self._xcount.write(0, np.zeros(nv, np.int32))  # then ic_refind sets them back to 0
         if self._inv > 0.0:  # every head -1 before the first step's inserts (then ic_finish clears them)
             clear = self.kernels()["ic_clear"]
@@ -211,12 +222,14 @@ class SceneCollision(WorldPhase):
         k["ic_finish"].set_args(pos, vel, vidx, xs0, last, heads, nmoved, nv, nb, np.float32(1.0 / dt))
         self._dt = dt
         per_vertex = (self.n_vertices,)
+        cg = self.cg
+        inserts = (-(-self.n_vertices // cg) * cg,)  # ic_insert's groups: whole ones
 
         def one_round(later: bool) -> list[tuple[cl.Kernel, tuple[int], tuple[int] | None]]:
             return [
                 (k["ic_bounds"], (self.n_cloths * self.ls,), (self.ls,)),
                 (k["ic_active"], (self.n_cloths,), None),
-                (k["ic_insert_later" if later else "ic_insert"], per_vertex, None),
+                (k["ic_insert_later" if later else "ic_insert"], inserts, (cg,)),
                 *([(k["ic_rewalk"], per_vertex, None)] if later else []),
                 (k["ic_refind" if later else "ic_find"], per_vertex, None),
                 # ic_find ran the first pass (into xb); then xb into xa, xa into xb, ...

@@ -20,6 +20,7 @@ import argparse
 import json
 import statistics
 from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -34,15 +35,19 @@ from .procs import csv_list
 
 
 class _Recorder:
-    """pyopencl as the scenes' part sees it, each launch's event kept (a tool's probe)."""
+    """pyopencl as the scenes' part sees it, each launch's event kept (a tool's probe); ``before``,
+    if set, is called with each kernel before it is enqueued."""
 
     def __init__(self) -> None:
         self.events: list[tuple[cl.Kernel, cl.Event]] = []
+        self.before: Callable[[cl.Kernel, tuple[int, ...]], None] | None = None
 
     def __getattr__(self, name: str) -> object:
         return getattr(cl, name)
 
     def enqueue_nd_range_kernel(self, queue, kernel, gsize, lsize):  # type: ignore[no-untyped-def]
+        if self.before is not None:
+            self.before(kernel, gsize)
         ev = cl.enqueue_nd_range_kernel(queue, kernel, gsize, lsize)
         self.events.append((kernel, ev))
         return ev
@@ -90,6 +95,154 @@ def walk_work(
     }
 
 
+#: Work-items that run in lock step on a GPU (an NVIDIA warp): warp_entries' group.
+WARP = 32
+#: The kernels that walk the hash or a list, whose work warp_work counts.
+WALKS = ("ic_find", "ic_rewalk", "ic_refind", "ic_pass", "ic_pass_ba")
+
+
+def warp_entries(work: np.ndarray) -> int:
+    """The work of a launch as a GPU pays it: over each group of WARP consecutive work-items (a
+    warp, which waits for its slowest lane), the most entries one of its lanes walks, summed."""
+    w = np.zeros(-(-len(work) // WARP) * WARP, np.int64)
+    w[: len(work)] = work
+    return int(w.reshape(-1, WARP).max(axis=1).sum())
+
+
+def _bucket(c: np.ndarray, scene: np.ndarray, mask: int) -> np.ndarray:
+    """kernels/intercollide.cl's ic_bucket of cells ``c`` (..., 3) in ``scene`` (...)."""
+    u = np.ascontiguousarray(c, np.int32).view(np.uint32)
+    h = u[..., 0] * np.uint32(73856093) ^ u[..., 1] * np.uint32(19349663) ^ u[..., 2] * np.uint32(83492791)
+    return ((h ^ scene.astype(np.uint32) * np.uint32(2654435761)) & np.uint32(mask)).astype(np.int64)
+
+
+def hash_walks(
+    x0: np.ndarray, scene: np.ndarray, inserted: np.ndarray, inv: float, mask: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each vertex's walk of the hash (ic_walk: the distinct buckets of the 2 x 2 x 2 cells around
+    it, each bucket's whole list) for positions ``x0`` (float32, as on the device), their
+    ``scene`` and the vertices ``inserted`` into the hash (those of active cloths): the entries
+    each walk passes, the buckets it walks (n, 8; -1 for a bucket met twice) and every bucket's size."""
+    inv32 = np.float32(inv)
+    x = x0.astype(np.float32)
+    home = _bucket(np.floor(x[inserted] * inv32), scene[inserted], mask)
+    size = np.bincount(home, minlength=mask + 1)
+    off = np.array([(dx, dy, dz) for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)], np.int32)
+    c0 = np.floor(x * inv32 - np.float32(0.5)).astype(np.int32)
+    b = np.sort(_bucket(c0[:, None, :] + off[None], np.repeat(scene[:, None], 8, 1), mask), axis=1)
+    b[:, 1:][b[:, 1:] == b[:, :-1]] = -1  # each bucket once
+    return np.where(b >= 0, size[b], 0).sum(axis=1), b, size
+
+
+def warp_reads(buckets: np.ndarray, size: np.ndarray, walker: np.ndarray) -> int:
+    """The hash entries a GPU reads for a launch whose work-item i walks for vertex ``walker[i]``
+    (-1: none), ``buckets`` each vertex's (hash_walks): over each warp, the entries of the distinct
+    buckets its lanes walk, summed (lanes that walk one bucket read the same entries, together).
+    Against warp_entries, it tells lanes that walk apart (scattered vertices) from lanes that walk
+    together (neighbours)."""
+    n = -(-len(walker) // WARP) * WARP
+    idx = np.full(n, -1, np.int64)
+    idx[: len(walker)] = walker
+    total = 0
+    for lo in range(0, n, WARP * 4096):  # a few thousand warps at a time
+        part = idx[lo : lo + WARP * 4096]
+        b = np.where(part[:, None] >= 0, buckets[np.maximum(part, 0)], -1).reshape(-1, WARP * 8)
+        b.sort(axis=1)
+        b[:, 1:][b[:, 1:] == b[:, :-1]] = -1
+        total += int(np.where(b >= 0, size[np.maximum(b, 0)], 0).sum())
+    return total
+
+
+def warp_work(w, sc) -> dict[str, dict[str, float]]:  # type: ignore[no-untyped-def]
+    """One more step of World ``w`` (its scenes' part ``sc``, already stepped) with the work of
+    each launch of the walking kernels (WALKS) counted from its inputs, read back before it
+    runs: per work-item, the hash entries it walks (or the list entries it loops over), in the
+    order of the launch's work-items. Per kernel: ``entries`` (all lanes' work, summed over the
+    step), ``warp_entries`` (warp_entries of each launch, summed: what a GPU pays, the lanes
+    that idle in a warp included), their ratio ``lanes_busy`` (entries / (WARP warp_entries))
+    and, for the hash walks, ``warp_reads`` (warp_reads: the entries its warps read)."""
+    names = {id(k): name for name, k in sc.kernels().items()}
+    nv = sc.n_vertices
+    cinfo = sc._cinfo.read(0, sc.n_cloths)
+    vcl = sc._vcl.read(0, nv)[:, 0]
+    scene = cinfo[vcl, 2]
+    ic_list = cl_scenes.IC_LIST
+    out: dict[str, dict[str, float]] = defaultdict(lambda: defaultdict(float))
+    state: dict[str, np.ndarray] = {}
+
+    def count(name: str, work: np.ndarray, walker: np.ndarray | None = None) -> None:
+        out[name]["entries"] += float(work.sum())
+        out[name]["warp_entries"] += warp_entries(work)
+        if walker is not None:
+            out[name]["warp_reads"] += warp_reads(state["B"], state["size"], walker)
+
+    def before(kernel: cl.Kernel, gsize: tuple[int, ...]) -> None:
+        name = names.get(id(kernel), kernel.function_name)
+        if name not in WALKS:
+            return
+        w.sync()
+        if name in ("ic_find", "ic_rewalk"):  # a round's first walk: its hash
+            act = sc._active.read(0, sc.n_cloths)[:, 0][vcl] != 0
+            xs0 = sc._xs0.read(0, nv)
+            state["free"] = act & (xs0[:, 3] > 0)
+            e, state["B"], state["size"] = hash_walks(xs0[:, :3], scene, act, sc._inv, sc._nb - 1)
+            state["E"] = e * state["free"]
+        e, free = state["E"], state["free"]
+        n = gsize[0]
+        work = np.zeros(n, np.int64)
+        walker = np.full(n, -1, np.int64)
+        if name == "ic_find":
+            work[:nv] = e
+            walker[:nv] = np.where(free, np.arange(nv), -1)
+            count(name, work, walker)
+            return
+        nmoved = sc._nmoved.read(0, 2)[:, 0]
+        if name == "ic_rewalk":
+            nm = int(nmoved[0])
+            t = sc._moved.read(0, nm)[:, 0].astype(np.int64)
+            work[:nm] = e[t]
+            walker[:nm] = np.where(free[t], t, -1)
+            count(name, work, walker)
+            # the same walks in a GPU's order with one counter for the list (the code before
+            # h-scenegpu): each warp's vertices together, the warps in any order
+            t = np.sort(t)
+            starts = np.flatnonzero(np.r_[True, t[1:] // WARP != t[:-1] // WARP])
+            chunks = np.split(np.arange(nm), starts[1:])
+            perm = np.concatenate([chunks[j] for j in np.random.default_rng(0).permutation(len(chunks))])
+            work[:nm], walker[:nm] = e[t[perm]], np.where(free[t[perm]], t[perm], -1)
+            count("ic_rewalk (warps shuffled)", work, walker)
+            return
+        c = sc._count.read(0, nv)[:, 0].astype(np.int64)
+        if name == "ic_refind":  # the unmoved: their list and extra list, or the hash
+            mv = sc._mv.read(0, nv)[:, 0]
+            xc = sc._xcount.read(0, nv)[:, 0].astype(np.int64)
+            lst = np.where(free & (mv != 1), np.where(xc > ic_list, e, c + xc), 0)
+            kept = np.flatnonzero(mv != 1)  # IC_KEPT's list: in vertex order within each group
+            # as launched here (IC_KEPT on a GPU), and the other way
+            for label, on in ((name, sc.kept), (f"{name} ({'every vertex' if sc.kept else 'kept list'})", not sc.kept)):
+                work[:] = 0
+                if on:
+                    work[: len(kept)] = lst[kept]
+                else:
+                    work[:nv] = lst
+                count(label, work)
+            return
+        work[:nv] = np.where(c > ic_list, e, np.maximum(c, 0))  # a pass: its list, or the hash (overflow)
+        count(name, work)
+
+    rec = _Recorder()
+    rec.before = before
+    cl_scenes.cl = rec  # type: ignore[assignment]
+    try:
+        w.step(DT)
+        w.sync()
+    finally:
+        cl_scenes.cl = cl  # type: ignore[assignment]
+    for r in out.values():
+        r["lanes_busy"] = round(r["entries"] / max(WARP * r["warp_entries"], 1), 4)
+    return {k: dict(v) for k, v in out.items()}
+
+
 def profile(scenes: int, per_scene: int, frames: int, device: str | None = None) -> dict:
     """The kernels' median device ms a frame and the candidates' statistics."""
     fab, places = crowds(scenes, per_scene)
@@ -120,6 +273,7 @@ def profile(scenes: int, per_scene: int, frames: int, device: str | None = None)
     finally:
         cl_scenes.cl = cl  # type: ignore[assignment]
     sc = w.scene_collision  # type: ignore[attr-defined]
+    warps = warp_work(w, sc)  # before the launches alone, which leave the hash's heads set
     alone: dict[str, list[float]] = defaultdict(list)
     q, clear = w.dev.queue, sc.kernels()["ic_clear"]  # type: ignore[attr-defined]
     for _ in range(20):  # the hash built again and walked, then one pass: each alone, fastest of 20
@@ -156,6 +310,7 @@ def profile(scenes: int, per_scene: int, frames: int, device: str | None = None)
         "moved_last_round": None if mv is None else round(float((mv == 1).mean()), 4),
         "entries_walked": work,
         "alone_min_ms": {k: round(min(v), 4) for k, v in alone.items()},
+        "warp_work": warps,
     }
 
 
@@ -184,6 +339,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  walking the hash again in the last round: {r['moved_last_round']}")
         print(f"  hash entries a vertex walks: {r['entries_walked']}")
         print(f"  alone, fastest of 20 launches: {r['alone_min_ms']}")
+        print(f"  work of one step, entries walked (all lanes; warp-entries: a {WARP}-lane warp's slowest lane):")
+        for k, ww in r["warp_work"].items():
+            e, we = ww["entries"], ww["warp_entries"]
+            reads = f"  warp reads {ww['warp_reads']:14,.0f}" if "warp_reads" in ww else ""
+            print(f"    {k:<20} {e:14,.0f} entries  {we:12,.0f} warp-entries  lanes busy {ww['lanes_busy']:.1%}{reads}")
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)
         a.json.write_text(json.dumps(out, indent=1) + "\n")

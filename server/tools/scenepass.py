@@ -12,6 +12,14 @@ candidates of a scene vertex, the share of scene vertices with any and the share
 hash again in the step's last round (the others kept their first round's skin list). On a CPU this steers the
 GPU's work (which kernels to cut, by how much), never its ratio: the solver itself runs several
 times slower here.
+
+Then the work of one more step counted from each walking launch's inputs, no clock (warp_work):
+per kernel the entries its lanes walk, its warp-entries (per warp of 32 consecutive work-items,
+the most one lane walks, summed: a GPU's warp waits for its slowest lane, idle lanes included)
+and, for the hash walks, its warp reads (the entries of the distinct buckets a warp's lanes walk:
+lanes walking one bucket read it together); ``ic_rewalk`` also in the orders one counter for its
+list may give on a GPU (the code before: warps shuffled, or every vertex apart), ``ic_refind``
+also the other way (over every vertex, or over the list of the unmoved: IC_KEPT).
 """
 
 from __future__ import annotations
@@ -203,14 +211,18 @@ def warp_work(w, sc) -> dict[str, dict[str, float]]:  # type: ignore[no-untyped-
             work[:nm] = e[t]
             walker[:nm] = np.where(free[t], t, -1)
             count(name, work, walker)
-            # the same walks in a GPU's order with one counter for the list (the code before
-            # h-scenegpu): each warp's vertices together, the warps in any order
+            # the same walks in the order one counter for the list may give on a GPU (the code
+            # before h-scenegpu): each warp's vertices together, the warps in any order
             t = np.sort(t)
             starts = np.flatnonzero(np.r_[True, t[1:] // WARP != t[:-1] // WARP])
             chunks = np.split(np.arange(nm), starts[1:])
             perm = np.concatenate([chunks[j] for j in np.random.default_rng(0).permutation(len(chunks))])
             work[:nm], walker[:nm] = e[t[perm]], np.where(free[t[perm]], t[perm], -1)
             count("ic_rewalk (warps shuffled)", work, walker)
+            # or each vertex apart (one counter's atomics not gathered by warp)
+            perm = np.random.default_rng(0).permutation(nm)
+            work[:nm], walker[:nm] = e[t[perm]], np.where(free[t[perm]], t[perm], -1)
+            count("ic_rewalk (shuffled)", work, walker)
             return
         c = sc._count.read(0, nv)[:, 0].astype(np.int64)
         if name == "ic_refind":  # the unmoved: their list and extra list, or the hash
@@ -339,11 +351,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  walking the hash again in the last round: {r['moved_last_round']}")
         print(f"  hash entries a vertex walks: {r['entries_walked']}")
         print(f"  alone, fastest of 20 launches: {r['alone_min_ms']}")
-        print(f"  work of one step, entries walked (all lanes; warp-entries: a {WARP}-lane warp's slowest lane):")
+        print(f"  work of one step, entries walked (all lanes; warp-entries: a {WARP}-lane warp's slowest lane;")
+        print("  warp reads: the entries of the distinct buckets a warp's lanes walk):")
         for k, ww in r["warp_work"].items():
             e, we = ww["entries"], ww["warp_entries"]
             reads = f"  warp reads {ww['warp_reads']:14,.0f}" if "warp_reads" in ww else ""
-            print(f"    {k:<20} {e:14,.0f} entries  {we:12,.0f} warp-entries  lanes busy {ww['lanes_busy']:.1%}{reads}")
+            print(f"    {k:<26} {e:12,.0f} entries  {we:12,.0f} warp-entries  lanes busy {ww['lanes_busy']:.1%}{reads}")
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)
         a.json.write_text(json.dumps(out, indent=1) + "\n")

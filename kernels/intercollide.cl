@@ -49,7 +49,8 @@
  * Only the first round walks the hash for every vertex (ic_find, which keeps where each vertex
  * was, xs1). A later round's ic_insert marks the vertices that moved further than sk =
  * INTER_COLLISION_SKIN dmax since their list was found (mv; also those without a full list) and
- * lists them (moved, nmoved); ic_rewalk walks the hash for those alone and adds each to the extra
+ * lists them (moved, nmoved: one atomic per work-group of IC_CG, each group's vertices in order, so
+ * that a GPU's warps walk neighbours, together); ic_rewalk walks the hash for those alone and adds each to the extra
  * list of the unmoved vertices it finds; ic_refind gives every unmoved vertex the unmoved entries
  * of its list and its extra list (see ic_refind for why that misses no pair in contact):
  * 27 launches a step (ic_rewalk in the 3 later rounds) whatever the number of scenes and cloths, their arguments set once
@@ -75,10 +76,13 @@
 #define IC_SHOCK 0.7f /* a contact within this cosine of +y: its lower end does not yield */
 #endif
 #ifndef IC_CG
-#define IC_CG 1 /* work-items of ic_insert's groups, whose lists are appended with one atomic: a power of 2 */
+#define IC_CG 1 /* work-items of ic_insert's groups, whose lists are appended with one atomic: a power of 2 (1: an atomic a vertex) */
 #endif
 #ifndef IC_KEPT
 #define IC_KEPT 0 /* ic_insert lists the vertices that did not move too, ic_refind runs over that list */
+#endif
+#if IC_KEPT && IC_CG == 1
+#error "IC_KEPT needs ic_insert's groups (IC_CG > 1)"
 #endif
 #ifndef IC_LIST
 #define IC_LIST 16 /* candidates listed per vertex (more: found again in the hash each pass) */
@@ -153,13 +157,18 @@ inline int ic_bucket(int3 c, int scene, uint mask)
  * so that consecutive work-items of ic_rewalk and ic_refind are neighbours of one cloth, that walk
  * the same buckets (a warp's lanes read the same entries) and write side by side, and the lists'
  * two counters take one atomic per group, not one per vertex (on a GPU, tens of thousands of
- * work-items incrementing one counter wait on each other). Launched over nv rounded up to IC_CG. */
+ * work-items incrementing one counter wait on each other). Launched over nv rounded up to IC_CG.
+ * With IC_CG 1 (a CPU's) one atomic a vertex appends the first list, in the order they come. */
 __kernel void ic_insert(__global const float4 *pos, __global const int *vidx, __global const int *vcl,
                         __global const int8 *cinfo, __global const int *active, __global int *heads,
                         __global int *next, __global float4 *xs0, int nv, float inv, uint mask,
                         __global const int *count, __global const float4 *xs1, __global int *mv, __global int *moved,
                         __global int *nmoved, float sk, int later)
 {
+#if IC_CG > 1
+    __local int scan[IC_CG]; /* later rounds: the group's flags, scanned */
+    __local int base[2];     /* where the group's vertices go in the two lists */
+#endif
     const int t = get_global_id(0);
     int m = 0; /* must walk the hash again (later rounds) */
     if (t < nv) {
@@ -182,8 +191,10 @@ __kernel void ic_insert(__global const float4 *pos, __global const int *vidx, __
     }
     if (!later)
         return; /* the same for every work-item of the launch */
-    __local int scan[IC_CG];
-    __local int base[2];
+#if IC_CG == 1 /* a CPU's: one atomic a vertex costs less than the scan's barriers */
+    if (m)
+        moved[atomic_inc(&nmoved[0])] = t;
+#else
     const int lid = get_local_id(0);
     scan[lid] = m;
     barrier(CLK_LOCAL_MEM_FENCE);
@@ -206,6 +217,7 @@ __kernel void ic_insert(__global const float4 *pos, __global const int *vidx, __
 #if IC_KEPT
     else if (t < nv)
         moved[nv - 1 - (base[1] + lid - scan[lid])] = t;
+#endif
 #endif
 }
 

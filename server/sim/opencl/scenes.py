@@ -46,8 +46,9 @@ KERNELS = ("ic_bounds", "ic_active", "ic_clear", "ic_insert", "ic_find", "ic_ref
 IC_LIST = 16
 #: ic_insert's work-group (-DIC_CG) on a GPU and on a CPU: the later rounds' lists of the vertices
 #: that walk the hash again and of the others are appended with one atomic per group (a scan of the
-#: group's flags in local memory), each group's vertices in their order.
-IC_CG = {"gpu": 256, "cpu": 64}
+#: group's flags in local memory), each group's vertices in their order; 1: one atomic a vertex
+#: (PoCL: the scan's barriers made ic_insert's later launches 2x slower than the atomics).
+IC_CG = {"gpu": 256, "cpu": 1}
 #: Whether ic_refind runs over a list of the vertices that did not move (-DIC_KEPT; else over every
 #: vertex, those that moved idle): dense warps on a GPU; on PoCL the list made it 2x slower.
 IC_KEPT = {"gpu": True, "cpu": False}
@@ -224,12 +225,13 @@ class SceneCollision(WorldPhase):
         per_vertex = (self.n_vertices,)
         cg = self.cg
         inserts = (-(-self.n_vertices // cg) * cg,)  # ic_insert's groups: whole ones
+        insert_group = (cg,) if cg > 1 else None
 
         def one_round(later: bool) -> list[tuple[cl.Kernel, tuple[int], tuple[int] | None]]:
             return [
                 (k["ic_bounds"], (self.n_cloths * self.ls,), (self.ls,)),
                 (k["ic_active"], (self.n_cloths,), None),
-                (k["ic_insert_later" if later else "ic_insert"], inserts, (cg,)),
+                (k["ic_insert_later" if later else "ic_insert"], inserts, insert_group),
                 *([(k["ic_rewalk"], per_vertex, None)] if later else []),
                 (k["ic_refind" if later else "ic_find"], per_vertex, None),
                 # ic_find ran the first pass (into xb); then xb into xa, xa into xb, ...

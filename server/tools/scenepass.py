@@ -17,9 +17,10 @@ Then the work of one more step counted from each walking launch's inputs, no clo
 per kernel the entries its lanes walk, its warp-entries (per warp of 32 consecutive work-items,
 the most one lane walks, summed: a GPU's warp waits for its slowest lane, idle lanes included)
 and, for the hash walks, its warp reads (the entries of the distinct buckets a warp's lanes walk:
-lanes walking one bucket read it together); ``ic_rewalk`` also in the orders one counter for its
-list may give on a GPU (the code before: warps shuffled, or every vertex apart), ``ic_refind``
-also the other way (over every vertex, or over the list of the unmoved: IC_KEPT).
+lanes walking one bucket read it together); ``ic_rewalk`` also in the order a GPU's groups give
+its list now and in those one counter for it may give on a GPU (the code before: warps shuffled,
+or every vertex apart), ``ic_refind`` also the other way (over every vertex, or over the list of
+the unmoved: IC_KEPT).
 """
 
 from __future__ import annotations
@@ -161,6 +162,16 @@ def warp_reads(buckets: np.ndarray, size: np.ndarray, walker: np.ndarray) -> int
     return total
 
 
+def _groups_shuffled(t: np.ndarray, size: int) -> np.ndarray:
+    """Vertices ``t`` in groups of ``size`` consecutive vertex numbers, each group's in order, the
+    groups in a random order (a list appended a group at a time by concurrent work-groups)."""
+    t = np.sort(t)
+    starts = np.flatnonzero(np.r_[True, t[1:] // size != t[:-1] // size]) if len(t) else np.zeros(0, np.int64)
+    groups = np.split(t, starts[1:])
+    order = np.random.default_rng(0).permutation(len(groups))
+    return np.concatenate([groups[j] for j in order]) if len(t) else t
+
+
 def warp_work(w, sc) -> dict[str, dict[str, float]]:  # type: ignore[no-untyped-def]
     """One more step of World ``w`` (its scenes' part ``sc``, already stepped) with the work of
     each launch of the walking kernels (WALKS) counted from its inputs, read back before it
@@ -207,27 +218,28 @@ def warp_work(w, sc) -> dict[str, dict[str, float]]:  # type: ignore[no-untyped-
         nmoved = sc._nmoved.read(0, 2)[:, 0]
         if name == "ic_rewalk":
             nm = int(nmoved[0])
+            # ic_insert's list of them: one atomic on one counter a walker before, one a group now
+            out["ic_insert_later"]["walkers"] += nm
+            out["ic_insert_later"]["list_atomics_gpu"] += (1 + cl_scenes.IC_KEPT["gpu"]) * -(
+                -nv // cl_scenes.IC_CG["gpu"]
+            )
             t = sc._moved.read(0, nm)[:, 0].astype(np.int64)
             work[:nm] = e[t]
             walker[:nm] = np.where(free[t], t, -1)
             count(name, work, walker)
-            # the same walks in the order one counter for the list may give on a GPU (the code
-            # before h-scenegpu): each warp's vertices together, the warps in any order
-            t = np.sort(t)
-            starts = np.flatnonzero(np.r_[True, t[1:] // WARP != t[:-1] // WARP])
-            chunks = np.split(np.arange(nm), starts[1:])
-            perm = np.concatenate([chunks[j] for j in np.random.default_rng(0).permutation(len(chunks))])
-            work[:nm], walker[:nm] = e[t[perm]], np.where(free[t[perm]], t[perm], -1)
-            count("ic_rewalk (warps shuffled)", work, walker)
-            # or each vertex apart (one counter's atomics not gathered by warp)
-            perm = np.random.default_rng(0).permutation(nm)
-            work[:nm], walker[:nm] = e[t[perm]], np.where(free[t[perm]], t[perm], -1)
-            count("ic_rewalk (shuffled)", work, walker)
+            # the same walks in other orders: the GPU's now (ic_insert's groups of IC_CG, in any
+            # order), and those one counter for the list may give on a GPU (the code before
+            # h-scenegpu): each warp's vertices together, the warps in any order, or every one apart
+            for label, size in (("GPU's groups", cl_scenes.IC_CG["gpu"]), ("warps shuffled", WARP), ("shuffled", 1)):
+                o = _groups_shuffled(t, size)
+                work[:nm], walker[:nm] = e[o], np.where(free[o], o, -1)
+                count(f"ic_rewalk ({label})", work, walker)
             return
         c = sc._count.read(0, nv)[:, 0].astype(np.int64)
         if name == "ic_refind":  # the unmoved: their list and extra list, or the hash
             mv = sc._mv.read(0, nv)[:, 0]
             xc = sc._xcount.read(0, nv)[:, 0].astype(np.int64)
+            out["ic_rewalk"]["extra_list_atomics"] += float(xc.sum())  # a walker found an unmoved vertex
             lst = np.where(free & (mv != 1), np.where(xc > ic_list, e, c + xc), 0)
             kept = np.flatnonzero(mv != 1)  # IC_KEPT's list: in vertex order within each group
             # as launched here (IC_KEPT on a GPU), and the other way
@@ -251,7 +263,8 @@ def warp_work(w, sc) -> dict[str, dict[str, float]]:  # type: ignore[no-untyped-
     finally:
         cl_scenes.cl = cl  # type: ignore[assignment]
     for r in out.values():
-        r["lanes_busy"] = round(r["entries"] / max(WARP * r["warp_entries"], 1), 4)
+        if "warp_entries" in r:
+            r["lanes_busy"] = round(r["entries"] / max(WARP * r["warp_entries"], 1), 4)
     return {k: dict(v) for k, v in out.items()}
 
 
@@ -354,9 +367,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  work of one step, entries walked (all lanes; warp-entries: a {WARP}-lane warp's slowest lane;")
         print("  warp reads: the entries of the distinct buckets a warp's lanes walk):")
         for k, ww in r["warp_work"].items():
+            if "warp_entries" not in ww:
+                continue
             e, we = ww["entries"], ww["warp_entries"]
             reads = f"  warp reads {ww['warp_reads']:14,.0f}" if "warp_reads" in ww else ""
             print(f"    {k:<26} {e:12,.0f} entries  {we:12,.0f} warp-entries  lanes busy {ww['lanes_busy']:.1%}{reads}")
+        ins, rw = r["warp_work"].get("ic_insert_later", {}), r["warp_work"].get("ic_rewalk", {})
+        print(
+            f"  atomics of one step: ic_insert's lists {ins.get('walkers', 0):,.0f} on one counter before,"
+            f" {ins.get('list_atomics_gpu', 0):,.0f} now on a GPU; ic_rewalk's extra lists"
+            f" {rw.get('extra_list_atomics', 0):,.0f}"
+        )
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)
         a.json.write_text(json.dumps(out, indent=1) + "\n")

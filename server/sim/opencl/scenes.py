@@ -5,7 +5,8 @@ keyed by scene over every vertex of the cloths whose box meets another of their 
 vertex's candidates listed once a round, then the round's Jacobi passes over them, each
 putting the vertices it moved back out of their cloth's colliders; the later rounds of a step walk
 the hash again only for the vertices that moved further than INTER_COLLISION_SKIN since their
-list was found, the others keeping their list's unmoved entries and gaining the moved vertices
+list was found, listed by ic_insert a work-group at a time on a GPU (IC_CG, IC_KEPT: dense,
+ordered warps), the others keeping their list's unmoved entries and gaining the moved vertices
 that find them), the float64 twin being
 drape.server.sim.scenes.inter_collide.
 

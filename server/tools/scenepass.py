@@ -3,7 +3,11 @@
 overlapping their neighbours: contacts every frame) on one World, each frame's inter-cloth
 collision kernels timed by their OpenCL events, and the candidates they found.
 
-    python -m drape.server.tools.scenepass [--scenes S,C] [--frames F] [--json FILE]
+    python -m drape.server.tools.scenepass [--scenes S,C] [--frames F] [--groups 1,256] [--rounds R] [--json FILE]
+
+``--groups`` runs each round once per value of ic_insert's groups (IC_CG; 1 is the code before
+h-scenegpu: one atomic a walker on one counter, ic_refind over every vertex), interleaved on one
+device: the A/B of the later rounds' lists on a GPU.
 
 Each row: a kernel of kernels/intercollide.cl, its median device milliseconds a frame (its
 launches summed), its share of the scenes' time and its fastest frame (on a shared CPU the least
@@ -218,11 +222,10 @@ def warp_work(w, sc) -> dict[str, dict[str, float]]:  # type: ignore[no-untyped-
         nmoved = sc._nmoved.read(0, 2)[:, 0]
         if name == "ic_rewalk":
             nm = int(nmoved[0])
-            # ic_insert's list of them: one atomic on one counter a walker before, one a group now
+            # ic_insert's list of them: one atomic on one counter a walker before, one a group (of
+            # IC_CG, on each list) as launched here with IC_CG > 1
             out["ic_insert_later"]["walkers"] += nm
-            out["ic_insert_later"]["list_atomics_gpu"] += (1 + cl_scenes.IC_KEPT["gpu"]) * -(
-                -nv // cl_scenes.IC_CG["gpu"]
-            )
+            out["ic_insert_later"]["list_atomics"] += nm if sc.cg == 1 else (1 + sc.kept) * -(-nv // sc.cg)
             t = sc._moved.read(0, nm)[:, 0].astype(np.int64)
             work[:nm] = e[t]
             walker[:nm] = np.where(free[t], t, -1)
@@ -349,39 +352,69 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--frames", type=int, default=10)
     ap.add_argument("--rounds", type=int, default=1, help="repeat the run (interleaving with another build)")
+    ap.add_argument(
+        "--groups",
+        type=lambda t: [int(x) for x in csv_list(t)],
+        default=None,
+        help="A,B,...: each round runs with ic_insert's groups IC_CG of each in turn on this device's kind"
+        " (1: one atomic a vertex, the code before h-scenegpu; > 1 with IC_KEPT on a GPU), interleaved",
+    )
     ap.add_argument("--device", default=None)
     ap.add_argument("--json", type=Path, default=None)
     a = ap.parse_args(argv)
     out = []
     for _ in range(a.rounds):
-        r = profile(a.scenes[0], a.scenes[1], a.frames, a.device)
-        out.append(r)
-        print(f"{r['scenes']} scenes of {r['per_scene']} ({r['vertices']} vertices), {a.frames} frames:")
-        for k, ms in r["kernels_ms"].items():
-            print(f"  {k:<12} {ms:9.3f} ms  {ms / r['scenes_ms']:6.1%}  (min {r['kernels_min_ms'][k]:.3f})")
-        print(f"  {'scenes':<12} {r['scenes_ms']:9.3f} ms          (min {r['scenes_min_ms']:.3f})")
-        print(f"  candidates a vertex {r['candidates_mean']}, vertices with any {r['with_candidates']:.1%}")
-        print(f"  walking the hash again in the last round: {r['moved_last_round']}")
-        print(f"  hash entries a vertex walks: {r['entries_walked']}")
-        print(f"  alone, fastest of 20 launches: {r['alone_min_ms']}")
-        print(f"  work of one step, entries walked (all lanes; warp-entries: a {WARP}-lane warp's slowest lane;")
-        print("  warp reads: the entries of the distinct buckets a warp's lanes walk):")
-        for k, ww in r["warp_work"].items():
-            if "warp_entries" not in ww:
-                continue
-            e, we = ww["entries"], ww["warp_entries"]
-            reads = f"  warp reads {ww['warp_reads']:14,.0f}" if "warp_reads" in ww else ""
-            print(f"    {k:<26} {e:12,.0f} entries  {we:12,.0f} warp-entries  lanes busy {ww['lanes_busy']:.1%}{reads}")
-        ins, rw = r["warp_work"].get("ic_insert_later", {}), r["warp_work"].get("ic_rewalk", {})
-        print(
-            f"  atomics of one step: ic_insert's lists {ins.get('walkers', 0):,.0f} on one counter before,"
-            f" {ins.get('list_atomics_gpu', 0):,.0f} now on a GPU; ic_rewalk's extra lists"
-            f" {rw.get('extra_list_atomics', 0):,.0f}"
-        )
+        for groups in [None] if a.groups is None else a.groups:
+            r = _profile_with(groups, a)
+            out.append(r)
+            _report(r, a.frames)
     if a.json:
         a.json.parent.mkdir(parents=True, exist_ok=True)
         a.json.write_text(json.dumps(out, indent=1) + "\n")
     return 0
+
+
+def _profile_with(groups: int | None, a: argparse.Namespace) -> dict:
+    """profile() with ic_insert's groups set to ``groups`` for every device kind (None: as shipped)."""
+    saved = dict(cl_scenes.IC_CG), dict(cl_scenes.IC_KEPT)
+    if groups is not None:
+        for kind in cl_scenes.IC_CG:
+            cl_scenes.IC_CG[kind] = groups
+            cl_scenes.IC_KEPT[kind] = groups > 1 and saved[1][kind]
+    try:
+        r = profile(a.scenes[0], a.scenes[1], a.frames, a.device)
+    finally:
+        cl_scenes.IC_CG.update(saved[0])
+        cl_scenes.IC_KEPT.update(saved[1])
+    r["ic_cg"] = groups
+    return r
+
+
+def _report(r: dict, frames: int) -> None:
+    """One profile() record, printed."""
+    g = "" if r.get("ic_cg") is None else f", ic_insert's groups {r['ic_cg']}"
+    print(f"{r['scenes']} scenes of {r['per_scene']} ({r['vertices']} vertices), {frames} frames{g}:")
+    for k, ms in r["kernels_ms"].items():
+        print(f"  {k:<12} {ms:9.3f} ms  {ms / r['scenes_ms']:6.1%}  (min {r['kernels_min_ms'][k]:.3f})")
+    print(f"  {'scenes':<12} {r['scenes_ms']:9.3f} ms          (min {r['scenes_min_ms']:.3f})")
+    print(f"  candidates a vertex {r['candidates_mean']}, vertices with any {r['with_candidates']:.1%}")
+    print(f"  walking the hash again in the last round: {r['moved_last_round']}")
+    print(f"  hash entries a vertex walks: {r['entries_walked']}")
+    print(f"  alone, fastest of 20 launches: {r['alone_min_ms']}")
+    print(f"  work of one step, entries walked (all lanes; warp-entries: a {WARP}-lane warp's slowest lane;")
+    print("  warp reads: the entries of the distinct buckets a warp's lanes walk):")
+    for k, ww in r["warp_work"].items():
+        if "warp_entries" not in ww:
+            continue
+        e, we = ww["entries"], ww["warp_entries"]
+        reads = f"  warp reads {ww['warp_reads']:14,.0f}" if "warp_reads" in ww else ""
+        print(f"    {k:<26} {e:12,.0f} entries  {we:12,.0f} warp-entries  lanes busy {ww['lanes_busy']:.1%}{reads}")
+    ins, rw = r["warp_work"].get("ic_insert_later", {}), r["warp_work"].get("ic_rewalk", {})
+    print(
+        f"  atomics of one step: ic_insert's lists {ins.get('walkers', 0):,.0f} with one counter (a walker's),"
+        f" {ins.get('list_atomics', 0):,.0f} as launched here; ic_rewalk's extra lists"
+        f" {rw.get('extra_list_atomics', 0):,.0f}"
+    )
 
 
 if __name__ == "__main__":

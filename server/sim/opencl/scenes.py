@@ -27,6 +27,7 @@ from collections.abc import Mapping
 import numpy as np
 import pyopencl as cl
 
+from ..fabric import Fabric
 from ..scenes import (
     INTER_COLLISION_MARGIN,
     INTER_COLLISION_PASSES,
@@ -36,6 +37,7 @@ from ..scenes import (
     INTER_COLLISION_SKIN,
     Scene,
 )
+from ..tethers import morton
 from ..world import Cloth
 from .buffers import ClothSlot, DevArray, DeviceMemory
 from .device import Device
@@ -102,6 +104,7 @@ class SceneCollision(WorldPhase):
         self._moved = DevArray(dev, np.int32, 1)  # the vertices that moved, then their number
         self._nmoved = DevArray(dev, np.int32, 1)  # how many moved, how many did not (ic_refind's)
         self._nb = 64
+        self._orders: dict[int, tuple[Fabric, np.ndarray]] = {}  # each fabric's vertex order (_order)
         self._inv = 1.0
         self._dmax = 0.0
         self._bound: tuple[object, ...] | None = None  # the buffers the kernels' arguments were set for
@@ -120,6 +123,17 @@ class SceneCollision(WorldPhase):
             f"-DIC_SHOCK={INTER_COLLISION_SHOCK!r}f",
         ]
 
+    def _order(self, fab: Fabric, orders: dict[int, tuple[Fabric, np.ndarray]]) -> np.ndarray:
+        """A cloth's vertices in the order the scene numbers them: the Morton order of the fabric's
+        rest positions, so that a GPU's warp of consecutive scene vertices is a compact patch of
+        the cloth (its lanes walk and read the same few buckets), not a row across it. Computed
+        once per fabric (kept in ``orders``, from the tables before)."""
+        got = orders.get(id(fab)) or self._orders.get(id(fab))
+        if got is None or got[0] is not fab:
+            got = (fab, np.argsort(morton(fab.rest_positions), kind="stable").astype(np.int32))
+        orders[id(fab)] = got
+        return got[1]
+
     def _rebuild(self) -> None:
         vidx: list[np.ndarray] = []
         vcl: list[np.ndarray] = []
@@ -127,6 +141,7 @@ class SceneCollision(WorldPhase):
         cpar: list[list[float]] = []
         cslot: list[int] = []
         nt = 0  # scene vertices numbered so far
+        orders: dict[int, tuple[Fabric, np.ndarray]] = {}  # the fabrics' orders in use
         for si, sc in enumerate(self.scenes.values()):
             if len(sc.handles) < 2:
                 continue
@@ -139,8 +154,9 @@ class SceneCollision(WorldPhase):
                 nt += n
                 cpar.append([m.thickness * INTER_COLLISION_MARGIN, m.contact_stiffness])
                 cslot.append(slot.slot if self.cloths[h].params.features.colliders else -1)
-                vidx.append(np.arange(slot.vbase, slot.vbase + n, dtype=np.int32))
+                vidx.append(slot.vbase + self._order(self.cloths[h].fabric, orders))
                 vcl.append(np.full(n, k, np.int32))
+        self._orders = orders
         self._dirty = False
         self._bound = None
         self.n_cloths = len(cinfo)

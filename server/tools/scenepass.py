@@ -43,6 +43,7 @@ from ..sim import make_world
 from ..sim.opencl import scenes as cl_scenes
 from ..sim.params import ClothParams, Material
 from ..sim.scenes import INTER_COLLISION_MARGIN, INTER_COLLISION_REACH
+from ..sim.tethers import morton
 from .bench import DT, crowds
 from .procs import csv_list
 
@@ -176,14 +177,16 @@ def _groups_shuffled(t: np.ndarray, size: int) -> np.ndarray:
     return np.concatenate([groups[j] for j in order]) if len(t) else t
 
 
-def warp_work(w, sc) -> dict[str, dict[str, float]]:  # type: ignore[no-untyped-def]
+def warp_work(w, sc, other_order: np.ndarray | None = None) -> dict[str, dict[str, float]]:  # type: ignore[no-untyped-def]
     """One more step of World ``w`` (its scenes' part ``sc``, already stepped) with the work of
     each launch of the walking kernels (WALKS) counted from its inputs, read back before it
     runs: per work-item, the hash entries it walks (or the list entries it loops over), in the
     order of the launch's work-items. Per kernel: ``entries`` (all lanes' work, summed over the
     step), ``warp_entries`` (warp_entries of each launch, summed: what a GPU pays, the lanes
     that idle in a warp included), their ratio ``lanes_busy`` (entries / (WARP warp_entries))
-    and, for the hash walks, ``warp_reads`` (warp_reads: the entries its warps read)."""
+    and, for the hash walks, ``warp_reads`` (warp_reads: the entries its warps read); with
+    ``other_order`` (work-item i walking scene vertex other_order[i]) ``ic_find`` is counted in that
+    order too (the scene's vertices numbered the other way: IC_MORTON)."""
     names = {id(k): name for name, k in sc.kernels().items()}
     nv = sc.n_vertices
     cinfo = sc._cinfo.read(0, sc.n_cloths)
@@ -218,6 +221,10 @@ def warp_work(w, sc) -> dict[str, dict[str, float]]:  # type: ignore[no-untyped-
             work[:nv] = e
             walker[:nv] = np.where(free, np.arange(nv), -1)
             count(name, work, walker)
+            if other_order is not None:
+                o = other_order
+                work[:nv], walker[:nv] = e[o], np.where(free[o], o, -1)
+                count(f"ic_find ({'rows' if sc.morton else 'Morton order'})", work, walker)
             return
         nmoved = sc._nmoved.read(0, 2)[:, 0]
         if name == "ic_rewalk":
@@ -301,7 +308,11 @@ def profile(scenes: int, per_scene: int, frames: int, device: str | None = None)
     finally:
         cl_scenes.cl = cl  # type: ignore[assignment]
     sc = w.scene_collision  # type: ignore[attr-defined]
-    warps = warp_work(w, sc)  # before the launches alone, which leave the hash's heads set
+    # the crowd's scene vertices (every cape one fabric) in the other numbering: Morton or rows
+    n = fab.n_vertices
+    in_morton = (np.arange(len(places))[:, None] * n + np.argsort(morton(fab.rest_positions), kind="stable")).ravel()
+    other = np.argsort(in_morton) if sc.morton else in_morton
+    warps = warp_work(w, sc, other)  # before the launches alone, which leave the hash's heads set
     alone: dict[str, list[float]] = defaultdict(list)
     q, clear = w.dev.queue, sc.kernels()["ic_clear"]  # type: ignore[attr-defined]
     for _ in range(20):  # the hash built again and walked, then one pass: each alone, fastest of 20

@@ -222,9 +222,10 @@ def test_a_step_is_the_same_launches_whatever_the_scenes(device):
 
 
 def test_the_gpus_later_round_lists_give_the_same_positions(device, monkeypatch):
-    """A GPU's later rounds (ic_insert's lists appended a work-group of IC_CG at a time after a
-    scan, ic_refind over the list of the unmoved: IC_KEPT), forced on this device, move the capes
-    as the CPU's (one atomic a walker, ic_refind over every vertex) do, through the drag."""
+    """A GPU's shape (ic_insert's lists appended a work-group of IC_CG at a time after a scan,
+    ic_refind over the list of the unmoved: IC_KEPT; the scene's vertices in Morton order:
+    IC_MORTON), forced on this device, moves the capes as the CPU's (one atomic a walker, ic_refind
+    over every vertex, the fabric's order) does, through the drag."""
     from drape.server.sim.opencl import scenes as cl_scenes
 
     kind = "gpu" if device.info.is_gpu else "cpu"
@@ -232,6 +233,7 @@ def test_the_gpus_later_round_lists_give_the_same_positions(device, monkeypatch)
     for cg, kept in ((1, False), (256, True)):
         monkeypatch.setitem(cl_scenes.IC_CG, kind, cg)
         monkeypatch.setitem(cl_scenes.IC_KEPT, kind, kept)
+        monkeypatch.setitem(cl_scenes.IC_MORTON, kind, kept)
         w = CLWorld("workgroup", device=device, pack_lanes=0)
         runs.append(drag(w, "s", ticks=35))
         assert f"-DIC_CG={cg}" in w.scene_collision.options and f"-DIC_KEPT={int(kept)}" in w.scene_collision.options

@@ -55,6 +55,9 @@ IC_CG = {"gpu": 256, "cpu": 1}
 #: Whether ic_refind runs over a list of the vertices that did not move (-DIC_KEPT; else over every
 #: vertex, those that moved idle): dense warps on a GPU; on PoCL the list made it 2x slower.
 IC_KEPT = {"gpu": True, "cpu": False}
+#: Whether the scene numbers a cloth's vertices in its fabric's Morton order (_order; else in the
+#: fabric's): a GPU's warps walk compact patches; on PoCL the scattered rows made ic_finish 3x slower.
+IC_MORTON = {"gpu": True, "cpu": False}
 
 
 def _pow2_at_least(n: int) -> int:
@@ -78,7 +81,7 @@ class SceneCollision(WorldPhase):
         scenes: Mapping[str, Scene],
     ) -> None:
         kind = "gpu" if dev.info.is_gpu else "cpu"
-        self.cg, self.kept = IC_CG[kind], IC_KEPT[kind]  # before the build options
+        self.cg, self.kept, self.morton = IC_CG[kind], IC_KEPT[kind], IC_MORTON[kind]  # before the build options
         super().__init__(dev, mem, rec, cloths, scenes)
         self.n_cloths = 0  # scene cloths taking part (scenes of two cloths or more)
         self.n_vertices = 0
@@ -124,8 +127,8 @@ class SceneCollision(WorldPhase):
         ]
 
     def _order(self, fab: Fabric, orders: dict[int, tuple[Fabric, np.ndarray]]) -> np.ndarray:
-        """A cloth's vertices in the order the scene numbers them: the Morton order of the fabric's
-        rest positions, so that a GPU's warp of consecutive scene vertices is a compact patch of
+        """A cloth's vertices in the order the scene numbers them on a GPU (IC_MORTON): the Morton
+        order of the fabric's rest positions, so that a GPU's warp of consecutive scene vertices is a compact patch of
         the cloth (its lanes walk and read the same few buckets), not a row across it. Computed
         once per fabric (kept in ``orders``, from the tables before)."""
         got = orders.get(id(fab)) or self._orders.get(id(fab))
@@ -154,7 +157,8 @@ class SceneCollision(WorldPhase):
                 nt += n
                 cpar.append([m.thickness * INTER_COLLISION_MARGIN, m.contact_stiffness])
                 cslot.append(slot.slot if self.cloths[h].params.features.colliders else -1)
-                vidx.append(slot.vbase + self._order(self.cloths[h].fabric, orders))
+                order = self._order(self.cloths[h].fabric, orders) if self.morton else np.arange(n, dtype=np.int32)
+                vidx.append(slot.vbase + order)
                 vcl.append(np.full(n, k, np.int32))
         self._orders = orders
         self._dirty = False

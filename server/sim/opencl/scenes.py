@@ -6,8 +6,9 @@ vertex's candidates listed once a round, then the round's Jacobi passes over the
 putting the vertices it moved back out of their cloth's colliders; the later rounds of a step walk
 the hash again only for the vertices that moved further than INTER_COLLISION_SKIN since their
 list was found, listed by ic_insert a work-group at a time on a GPU (IC_CG, IC_KEPT: dense,
-ordered warps), the others keeping their list's unmoved entries and gaining the moved vertices
-that find them), the float64 twin being
+ordered warps, each cloth's vertices numbered in Morton order there: IC_MORTON), the others
+keeping their list's unmoved entries and gaining the moved vertices that find them), the float64
+twin being
 drape.server.sim.scenes.inter_collide.
 
 Nothing is built or launched while no scene holds two cloths: a World without scenes pays
@@ -128,9 +129,9 @@ class SceneCollision(WorldPhase):
 
     def _order(self, fab: Fabric, orders: dict[int, tuple[Fabric, np.ndarray]]) -> np.ndarray:
         """A cloth's vertices in the order the scene numbers them on a GPU (IC_MORTON): the Morton
-        order of the fabric's rest positions, so that a GPU's warp of consecutive scene vertices is a compact patch of
-        the cloth (its lanes walk and read the same few buckets), not a row across it. Computed
-        once per fabric (kept in ``orders``, from the tables before)."""
+        order of the fabric's rest positions, so that a GPU's warp of consecutive scene vertices
+        is a compact patch of the cloth (its lanes walk and read the same few buckets), not a row
+        across it. Computed once per fabric in use (kept in ``orders``, from the tables before)."""
         got = orders.get(id(fab)) or self._orders.get(id(fab))
         if got is None or got[0] is not fab:
             got = (fab, np.argsort(morton(fab.rest_positions), kind="stable").astype(np.int32))

@@ -50,9 +50,9 @@
  * was, xs1). A later round's ic_insert marks the vertices that moved further than sk =
  * INTER_COLLISION_SKIN dmax since their list was found (mv; also those without a full list) and
  * lists them (moved, nmoved: one atomic per work-group of IC_CG, each group's vertices in order, so
- * that a GPU's warps walk neighbours, together); ic_rewalk walks the hash for those alone and adds each to the extra
- * list of the unmoved vertices it finds; ic_refind gives every unmoved vertex the unmoved entries
- * of its list and its extra list (see ic_refind for why that misses no pair in contact):
+ * that a GPU's warps walk neighbours, together); ic_rewalk walks the hash for those alone and adds
+ * each to the extra list of the unmoved vertices it finds; ic_refind gives every unmoved vertex
+ * the unmoved entries of its list and its extra list (see ic_refind for why that misses no pair in contact):
  * 27 launches a step (ic_rewalk in the 3 later rounds) whatever the number of scenes and cloths, their arguments set once
  * (ic_clear: every bucket head -1, once when the tables are rebuilt).
  */
@@ -76,7 +76,8 @@
 #define IC_SHOCK 0.7f /* a contact within this cosine of +y: its lower end does not yield */
 #endif
 #ifndef IC_CG
-#define IC_CG 1 /* work-items of ic_insert's groups, whose lists are appended with one atomic: a power of 2 (1: an atomic a vertex) */
+/* work-items of ic_insert's groups, whose lists are appended with one atomic: a power of 2 (1: an atomic a vertex) */
+#define IC_CG 1
 #endif
 #ifndef IC_KEPT
 #define IC_KEPT 0 /* ic_insert lists the vertices that did not move too, ic_refind runs over that list */
@@ -152,12 +153,14 @@ inline int ic_bucket(int3 c, int scene, uint mask)
  * moved further than sk since their list was found, or have no full list, in moved[0..nmoved[0])
  * (ic_rewalk's work-items, one each), and with IC_KEPT (a GPU's) the others in moved[nv - 1 - i]
  * for i in 0..nmoved[1] (ic_refind's: without, it runs over every vertex, those that moved idle,
- * which PoCL's vectorised work-items do faster than through the list). Each list is appended by one atomic per work-group of IC_CG, after a
- * scan of the group's flags in local memory: a list holds each group's vertices in their order,
- * so that consecutive work-items of ic_rewalk and ic_refind are neighbours of one cloth, that walk
- * the same buckets (a warp's lanes read the same entries) and write side by side, and the lists'
- * two counters take one atomic per group, not one per vertex (on a GPU, tens of thousands of
- * work-items incrementing one counter wait on each other). Launched over nv rounded up to IC_CG.
+ * which PoCL's vectorised work-items do faster than through the list). Each list is appended by
+ * one atomic per work-group of IC_CG, after a scan of the group's flags in local memory: a list
+ * holds each group's vertices in their order, so that consecutive work-items of ic_rewalk and
+ * ic_refind are neighbours of one cloth (the scene numbers a cloth's vertices in Morton order on a
+ * GPU: IC_MORTON in drape.server.sim.opencl.scenes), that walk the same buckets (a warp's lanes
+ * read the same entries) and write side by side, and the lists' two counters take one atomic per
+ * group, not one per vertex (on a GPU, tens of thousands of work-items incrementing one counter
+ * wait on each other). Launched over nv rounded up to IC_CG.
  * With IC_CG 1 (a CPU's) one atomic a vertex appends the first list, in the order they come. */
 __kernel void ic_insert(__global const float4 *pos, __global const int *vidx, __global const int *vcl,
                         __global const int8 *cinfo, __global const int *active, __global int *heads,

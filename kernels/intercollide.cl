@@ -49,9 +49,10 @@
  * Only the first round walks the hash for every vertex (ic_find, which keeps where each vertex
  * was, xs1). A later round's ic_insert marks the vertices that moved further than sk =
  * INTER_COLLISION_SKIN dmax since their list was found (mv; also those without a full list) and
- * lists them (moved, nmoved); ic_rewalk walks the hash for those alone and adds each to the extra
- * list of the unmoved vertices it finds; ic_refind gives every unmoved vertex the unmoved entries
- * of its list and its extra list (see ic_refind for why that misses no pair in contact):
+ * lists them (moved, nmoved: one atomic per work-group of IC_CG, each group's vertices in order, so
+ * that a GPU's warps walk neighbours, together); ic_rewalk walks the hash for those alone and adds
+ * each to the extra list of the unmoved vertices it finds; ic_refind gives every unmoved vertex
+ * the unmoved entries of its list and its extra list (see ic_refind for why that misses no pair in contact):
  * 27 launches a step (ic_rewalk in the 3 later rounds) whatever the number of scenes and cloths, their arguments set once
  * (ic_clear: every bucket head -1, once when the tables are rebuilt).
  */
@@ -73,6 +74,16 @@
 #endif
 #ifndef IC_SHOCK
 #define IC_SHOCK 0.7f /* a contact within this cosine of +y: its lower end does not yield */
+#endif
+#ifndef IC_CG
+/* work-items of ic_insert's groups, whose lists are appended with one atomic: a power of 2 (1: an atomic a vertex) */
+#define IC_CG 1
+#endif
+#ifndef IC_KEPT
+#define IC_KEPT 0 /* ic_insert lists the vertices that did not move too, ic_refind runs over that list */
+#endif
+#if IC_KEPT && IC_CG == 1
+#error "IC_KEPT needs ic_insert's groups (IC_CG > 1)"
 #endif
 #ifndef IC_LIST
 #define IC_LIST 16 /* candidates listed per vertex (more: found again in the hash each pass) */
@@ -137,33 +148,80 @@ inline int ic_bucket(int3 c, int scene, uint mask)
     return (int)((u.x * 73856093u ^ u.y * 19349663u ^ u.z * 83492791u ^ (uint)scene * 2654435761u) & mask);
 }
 
+/* Every vertex's start position into xs0 and, of an active cloth, into its bucket; a later round
+ * (later != 0) also marks (mv) and lists the vertices that must walk the hash again: those that
+ * moved further than sk since their list was found, or have no full list, in moved[0..nmoved[0])
+ * (ic_rewalk's work-items, one each), and with IC_KEPT (a GPU's) the others in moved[nv - 1 - i]
+ * for i in 0..nmoved[1] (ic_refind's: without, it runs over every vertex, those that moved idle,
+ * which PoCL's vectorised work-items do faster than through the list). Each list is appended by
+ * one atomic per work-group of IC_CG, after a scan of the group's flags in local memory: a list
+ * holds each group's vertices in their order, so that consecutive work-items of ic_rewalk and
+ * ic_refind are neighbours of one cloth (the scene numbers a cloth's vertices in Morton order on a
+ * GPU: IC_MORTON in drape.server.sim.opencl.scenes), that walk the same buckets (a warp's lanes
+ * read the same entries) and write side by side, and the lists' two counters take one atomic per
+ * group, not one per vertex (on a GPU, tens of thousands of work-items incrementing one counter
+ * wait on each other). Launched over nv rounded up to IC_CG.
+ * With IC_CG 1 (a CPU's) one atomic a vertex appends the first list, in the order they come. */
 __kernel void ic_insert(__global const float4 *pos, __global const int *vidx, __global const int *vcl,
                         __global const int8 *cinfo, __global const int *active, __global int *heads,
                         __global int *next, __global float4 *xs0, int nv, float inv, uint mask,
                         __global const int *count, __global const float4 *xs1, __global int *mv, __global int *moved,
                         __global int *nmoved, float sk, int later)
 {
+#if IC_CG > 1
+    __local int scan[IC_CG]; /* later rounds: the group's flags, scanned */
+    __local int base[2];     /* where the group's vertices go in the two lists */
+#endif
     const int t = get_global_id(0);
-    if (t >= nv)
-        return;
-    const int k = vcl[t];
-    const float4 x = pos[vidx[t]];
-    xs0[t] = x;
-    if (!active[k]) {
-        if (later)
-            mv[t] = 2; /* takes no part: in no list */
-        return;
+    int m = 0; /* must walk the hash again (later rounds) */
+    if (t < nv) {
+        const int k = vcl[t];
+        const float4 x = pos[vidx[t]];
+        xs0[t] = x;
+        if (!active[k]) {
+            if (later)
+                mv[t] = 2; /* takes no part: in no list */
+        } else {
+            const int b = ic_bucket(convert_int3_sat_rtn(x.xyz * inv), cinfo[k].s2, mask);
+            next[t] = atomic_xchg(&heads[b], t);
+            if (later) { /* moved further than sk since its list was found, or without a full list */
+                const int c = count[t];
+                const float3 d = x.xyz - xs1[t].xyz;
+                m = c < 0 || c > IC_LIST || !(dot(d, d) <= sk * sk);
+                mv[t] = m;
+            }
+        }
     }
-    const int b = ic_bucket(convert_int3_sat_rtn(x.xyz * inv), cinfo[k].s2, mask);
-    next[t] = atomic_xchg(&heads[b], t);
-    if (later) { /* moved further than sk since its list was found, or without a full list */
-        const int c = count[t];
-        const float3 d = x.xyz - xs1[t].xyz;
-        const int m = c < 0 || c > IC_LIST || !(dot(d, d) <= sk * sk);
-        mv[t] = m;
-        if (m)
-            moved[atomic_inc(nmoved)] = t; /* ic_rewalk's first work-items walk for them */
+    if (!later)
+        return; /* the same for every work-item of the launch */
+#if IC_CG == 1 /* a CPU's: one atomic a vertex costs less than the scan's barriers */
+    if (m)
+        moved[atomic_inc(&nmoved[0])] = t;
+#else
+    const int lid = get_local_id(0);
+    scan[lid] = m;
+    barrier(CLK_LOCAL_MEM_FENCE);
+    for (int s = 1; s < IC_CG; s <<= 1) { /* inclusive scan of the group's flags */
+        const int v = lid >= s ? scan[lid - s] : 0;
+        barrier(CLK_LOCAL_MEM_FENCE);
+        scan[lid] += v;
+        barrier(CLK_LOCAL_MEM_FENCE);
     }
+    if (lid == IC_CG - 1) {
+        base[0] = atomic_add(&nmoved[0], scan[lid]);
+#if IC_KEPT
+        const int t0 = t - lid, n = min(IC_CG, nv - t0); /* the group's vertices */
+        base[1] = atomic_add(&nmoved[1], n - scan[lid]);
+#endif
+    }
+    barrier(CLK_LOCAL_MEM_FENCE);
+    if (m)
+        moved[base[0] + scan[lid] - 1] = t;
+#if IC_KEPT
+    else if (t < nv)
+        moved[nv - 1 - (base[1] + lid - scan[lid])] = t;
+#endif
+#endif
 }
 
 /* x moved by corr, back out of cloth k's colliders at their end pose (cslot[k] < 0: none) */
@@ -284,9 +342,10 @@ __kernel void ic_find(__global const float4 *xs0, __global const int *vcl, __glo
 }
 
 /* A later round's candidates. A vertex that moved (mv 1: further than sk since its list was found,
- * or without a full list) walks the hash (part 1: the i-th that moved, side by side, so that the
- * few walks do not hold up the other work-items), lists what it finds and adds itself to the extra
- * list (xnbr, xcount) of each unmoved one it finds; one that did not move (part 0, after) keeps the
+ * or without a full list) walks the hash (part 1, ic_rewalk: work-item i the i-th that moved, as
+ * ic_insert listed them), lists what it finds and adds itself to the extra list (xnbr, xcount) of
+ * each unmoved one it finds; one that did not move (part 0, after: with IC_KEPT work-item i the
+ * i-th of the others, moved[nv - 1 - i], else work-item t vertex t) keeps the
  * entries of its list that did not move either and adds its extra list (or walks the hash, where
  * that overflowed). A pair is so listed by both ends or by neither, and one listed by neither was
  * further than the reach when either end last walked, the end that walked moving less than sk
@@ -301,16 +360,17 @@ __kernel void ic_refind(__global const float4 *xs0, __global const int *vcl, __g
                         __global const int *nmoved, int part)
 {
     const int i = get_global_id(0);
-    if (i >= nv)
+#if IC_KEPT
+    if (i >= nmoved[part == 1 ? 0 : 1])
         return;
-    int t = i;
-    if (part == 1) {
-        if (i >= *nmoved)
-            return;
-        t = moved[i];
-    } else if (mv[t] == 1) {
+    const int t = part == 1 ? moved[i] : moved[nv - 1 - i];
+#else
+    if (i >= (part == 1 ? nmoved[0] : nv))
         return;
-    }
+    const int t = part == 1 ? moved[i] : i;
+    if (part == 0 && mv[t] == 1)
+        return;
+#endif
     const int k = vcl[t];
     const float4 x0 = xs0[t];
     int c = 0;
@@ -400,7 +460,7 @@ __kernel void ic_finish(__global float4 *pos, __global float4 *vel, __global con
     for (int b = t; b < nb; b += nv)
         heads[b] = -1;
     if (t == 0)
-        *nmoved = 0;
+        nmoved[0] = nmoved[1] = 0;
     if (t >= nv)
         return;
     const float3 d = x[t].xyz - xs0[t].xyz;

@@ -248,7 +248,7 @@ def long_range_links(
     return np.array(list(pairs.keys()), np.int32).reshape(-1, 2), np.array(list(pairs.values()), np.float64)
 
 
-def _morton(x: np.ndarray) -> np.ndarray:
+def morton(x: np.ndarray) -> np.ndarray:
     """Morton (Z-order) codes of points on a 1024^3 grid over their bounding box: nearby codes
     are nearby points."""
     lo, hi = x.min(axis=0), x.max(axis=0)

@@ -221,6 +221,28 @@ def test_a_step_is_the_same_launches_whatever_the_scenes(device):
     assert counts == [INTER_COLLISION_PASSES + 5 * INTER_COLLISION_ROUNDS - 1] * 2  # ic_rewalk: later rounds
 
 
+def test_the_gpus_later_round_lists_give_the_same_positions(device, monkeypatch):
+    """A GPU's shape (ic_insert's lists appended a work-group of IC_CG at a time after a scan,
+    ic_refind over the list of the unmoved: IC_KEPT; the scene's vertices in Morton order:
+    IC_MORTON), forced on this device, moves the capes as the CPU's (one atomic a walker, ic_refind
+    over every vertex, the fabric's order) does, through the drag."""
+    from drape.server.sim.opencl import scenes as cl_scenes
+
+    kind = "gpu" if device.info.is_gpu else "cpu"
+    runs = []
+    for cg, kept in ((1, False), (256, True)):
+        monkeypatch.setitem(cl_scenes.IC_CG, kind, cg)
+        monkeypatch.setitem(cl_scenes.IC_KEPT, kind, kept)
+        monkeypatch.setitem(cl_scenes.IC_MORTON, kind, kept)
+        w = CLWorld("workgroup", device=device, pack_lanes=0)
+        runs.append(drag(w, "s", ticks=35))
+        assert f"-DIC_CG={cg}" in w.scene_collision.options and f"-DIC_KEPT={int(kept)}" in w.scene_collision.options
+        w.close()
+    assert max(pairs_left(runs[0])) == 0 and max(pairs_left(runs[1])) == 0
+    for (a0, b0), (a1, b1) in zip(*runs, strict=True):  # summed in another order at most
+        assert np.abs(a0 - a1).max() < 1e-5 and np.abs(b0 - b1).max() < 1e-5
+
+
 @pytest.mark.parametrize("solver", ["reference", "workgroup", "coloured", "jacobi"])
 def test_a_pile_of_scene_cloths_rests_on_a_plane(device, solver):
     """The penetration tool's scene_stack (8 9 x 9 cloths of one scene dropped onto a plane, each

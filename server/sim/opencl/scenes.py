@@ -5,8 +5,10 @@ keyed by scene over every vertex of the cloths whose box meets another of their 
 vertex's candidates listed once a round, then the round's Jacobi passes over them, each
 putting the vertices it moved back out of their cloth's colliders; the later rounds of a step walk
 the hash again only for the vertices that moved further than INTER_COLLISION_SKIN since their
-list was found, the others keeping their list's unmoved entries and gaining the moved vertices
-that find them), the float64 twin being
+list was found, listed by ic_insert a work-group at a time on a GPU (IC_CG, IC_KEPT: dense,
+ordered warps, each cloth's vertices numbered in Morton order there: IC_MORTON), the others
+keeping their list's unmoved entries and gaining the moved vertices that find them), the float64
+twin being
 drape.server.sim.scenes.inter_collide.
 
 Nothing is built or launched while no scene holds two cloths: a World without scenes pays
@@ -26,6 +28,7 @@ from collections.abc import Mapping
 import numpy as np
 import pyopencl as cl
 
+from ..fabric import Fabric
 from ..scenes import (
     INTER_COLLISION_MARGIN,
     INTER_COLLISION_PASSES,
@@ -35,6 +38,7 @@ from ..scenes import (
     INTER_COLLISION_SKIN,
     Scene,
 )
+from ..tethers import morton
 from ..world import Cloth
 from .buffers import ClothSlot, DevArray, DeviceMemory
 from .device import Device
@@ -44,6 +48,17 @@ SOURCE = "intercollide.cl"
 KERNELS = ("ic_bounds", "ic_active", "ic_clear", "ic_insert", "ic_find", "ic_refind", "ic_pass", "ic_finish")
 #: Candidates listed per vertex (-DIC_LIST); a vertex with more walks the hash in every pass instead.
 IC_LIST = 16
+#: ic_insert's work-group (-DIC_CG) on a GPU and on a CPU: the later rounds' lists of the vertices
+#: that walk the hash again and of the others are appended with one atomic per group (a scan of the
+#: group's flags in local memory), each group's vertices in their order; 1: one atomic a vertex
+#: (PoCL: the scan's barriers made ic_insert's later launches 2x slower than the atomics).
+IC_CG = {"gpu": 256, "cpu": 1}
+#: Whether ic_refind runs over a list of the vertices that did not move (-DIC_KEPT; else over every
+#: vertex, those that moved idle): dense warps on a GPU; on PoCL the list made it 2x slower.
+IC_KEPT = {"gpu": True, "cpu": False}
+#: Whether the scene numbers a cloth's vertices in its fabric's Morton order (_order; else in the
+#: fabric's): a GPU's warps walk compact patches; on PoCL the scattered rows made ic_finish 3x slower.
+IC_MORTON = {"gpu": True, "cpu": False}
 
 
 def _pow2_at_least(n: int) -> int:
@@ -66,6 +81,8 @@ class SceneCollision(WorldPhase):
         cloths: Mapping[int, Cloth],
         scenes: Mapping[str, Scene],
     ) -> None:
+        kind = "gpu" if dev.info.is_gpu else "cpu"
+        self.cg, self.kept, self.morton = IC_CG[kind], IC_KEPT[kind], IC_MORTON[kind]  # before the build options
         super().__init__(dev, mem, rec, cloths, scenes)
         self.n_cloths = 0  # scene cloths taking part (scenes of two cloths or more)
         self.n_vertices = 0
@@ -89,8 +106,9 @@ class SceneCollision(WorldPhase):
         self._xnbr = DevArray(dev, np.int32, IC_LIST)  # an unmoved vertex's moved candidates
         self._xcount = DevArray(dev, np.int32, 1)
         self._moved = DevArray(dev, np.int32, 1)  # the vertices that moved, then their number
-        self._nmoved = DevArray(dev, np.int32, 1)
+        self._nmoved = DevArray(dev, np.int32, 1)  # how many moved, how many did not (ic_refind's)
         self._nb = 64
+        self._orders: dict[int, tuple[Fabric, np.ndarray]] = {}  # each fabric's vertex order (_order)
         self._inv = 1.0
         self._dmax = 0.0
         self._bound: tuple[object, ...] | None = None  # the buffers the kernels' arguments were set for
@@ -104,8 +122,21 @@ class SceneCollision(WorldPhase):
             f"-DINTER_COLLISION_PASSES={INTER_COLLISION_PASSES}",
             f"-DIC_REACH={INTER_COLLISION_REACH!r}f",
             f"-DIC_LIST={IC_LIST}",
+            f"-DIC_CG={self.cg}",
+            f"-DIC_KEPT={int(self.kept)}",
             f"-DIC_SHOCK={INTER_COLLISION_SHOCK!r}f",
         ]
+
+    def _order(self, fab: Fabric, orders: dict[int, tuple[Fabric, np.ndarray]]) -> np.ndarray:
+        """A cloth's vertices in the order the scene numbers them on a GPU (IC_MORTON): the Morton
+        order of the fabric's rest positions, so that a GPU's warp of consecutive scene vertices
+        is a compact patch of the cloth (its lanes walk and read the same few buckets), not a row
+        across it. Computed once per fabric in use (kept in ``orders``, from the tables before)."""
+        got = orders.get(id(fab)) or self._orders.get(id(fab))
+        if got is None or got[0] is not fab:
+            got = (fab, np.argsort(morton(fab.rest_positions), kind="stable").astype(np.int32))
+        orders[id(fab)] = got
+        return got[1]
 
     def _rebuild(self) -> None:
         vidx: list[np.ndarray] = []
@@ -114,6 +145,7 @@ class SceneCollision(WorldPhase):
         cpar: list[list[float]] = []
         cslot: list[int] = []
         nt = 0  # scene vertices numbered so far
+        orders: dict[int, tuple[Fabric, np.ndarray]] = {}  # the fabrics' orders in use
         for si, sc in enumerate(self.scenes.values()):
             if len(sc.handles) < 2:
                 continue
@@ -126,8 +158,10 @@ class SceneCollision(WorldPhase):
                 nt += n
                 cpar.append([m.thickness * INTER_COLLISION_MARGIN, m.contact_stiffness])
                 cslot.append(slot.slot if self.cloths[h].params.features.colliders else -1)
-                vidx.append(np.arange(slot.vbase, slot.vbase + n, dtype=np.int32))
+                order = self._order(self.cloths[h].fabric, orders) if self.morton else np.arange(n, dtype=np.int32)
+                vidx.append(slot.vbase + order)
                 vcl.append(np.full(n, k, np.int32))
+        self._orders = orders
         self._dirty = False
         self._bound = None
         self.n_cloths = len(cinfo)
@@ -157,7 +191,7 @@ class SceneCollision(WorldPhase):
             self._heads.resize(self._nb)
         self._dmax = dmax = float(np.max(np.asarray(cpar)[:, 0]))
         self._inv = 0.5 / (dmax * INTER_COLLISION_REACH) if dmax > 0 else 0.0
-        self._nmoved.write(0, np.zeros(1, np.int32))  # then ic_finish sets it back to 0
+        self._nmoved.write(0, np.zeros(2, np.int32))  # then ic_finish sets them back to 0
         self._xcount.write(0, np.zeros(nv, np.int32))  # then ic_refind sets them back to 0
         if self._inv > 0.0:  # every head -1 before the first step's inserts (then ic_finish clears them)
             clear = self.kernels()["ic_clear"]
@@ -211,12 +245,15 @@ class SceneCollision(WorldPhase):
         k["ic_finish"].set_args(pos, vel, vidx, xs0, last, heads, nmoved, nv, nb, np.float32(1.0 / dt))
         self._dt = dt
         per_vertex = (self.n_vertices,)
+        cg = self.cg
+        inserts = (-(-self.n_vertices // cg) * cg,)  # ic_insert's groups: whole ones
+        insert_group = (cg,) if cg > 1 else None
 
         def one_round(later: bool) -> list[tuple[cl.Kernel, tuple[int], tuple[int] | None]]:
             return [
                 (k["ic_bounds"], (self.n_cloths * self.ls,), (self.ls,)),
                 (k["ic_active"], (self.n_cloths,), None),
-                (k["ic_insert_later" if later else "ic_insert"], per_vertex, None),
+                (k["ic_insert_later" if later else "ic_insert"], inserts, insert_group),
                 *([(k["ic_rewalk"], per_vertex, None)] if later else []),
                 (k["ic_refind" if later else "ic_find"], per_vertex, None),
                 # ic_find ran the first pass (into xb); then xb into xa, xa into xb, ...

@@ -427,6 +427,7 @@ class ReferenceWorld(World):
         st = self.states[cloth.handle]
         st.x[:] = positions
         st.v[:] = 0.0
+        st.target[:] = positions  # the pins put back too, as the OpenCL world does
 
     def step(self, dt: float) -> None:
         layers = self.mesh_colliders.layers(self.scenes)

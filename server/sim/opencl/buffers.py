@@ -73,6 +73,7 @@ class DevArray:
         self.width = width
         self.itembytes = self.dtype.itemsize * width
         self.capacity = 0
+        self._inflight: list[cl.Event] = []  # non-blocking writes not known to be done (write)
         self.buf: cl.Buffer  # set by resize below (never None after)
         self.resize(capacity)
 
@@ -84,10 +85,19 @@ class DevArray:
             cl.enqueue_copy(self.dev.queue, new, self.buf, byte_count=n)
         self.buf, self.capacity = new, capacity
 
-    def write(self, start: int, host: np.ndarray) -> None:
+    def write(self, start: int, host: np.ndarray, blocking: bool = True) -> None:
+        """``host`` into items ``start``...; ``blocking=False``: returns at once, never waiting
+        for the commands queued before it (a blocking write waits for the whole in-order queue,
+        a step included). The caller must not change ``host`` afterwards: the copy may still be
+        reading it (pyopencl's transfer event keeps it alive, held here until complete)."""
         host = np.ascontiguousarray(host, self.dtype)
-        if host.size:
-            cl.enqueue_copy(self.dev.queue, self.buf, host, dst_offset=start * self.itembytes)
+        if not host.size:
+            return
+        ev = cl.enqueue_copy(self.dev.queue, self.buf, host, dst_offset=start * self.itembytes, is_blocking=blocking)
+        if not blocking:  # a dropped transfer event waits for its copy: kept until it is done
+            done = cl.command_execution_status.COMPLETE
+            self._inflight = [e for e in self._inflight if e.command_execution_status != done]
+            self._inflight.append(ev)
 
     def read(self, start: int, n: int) -> np.ndarray:
         out = np.empty((n, self.width), self.dtype)

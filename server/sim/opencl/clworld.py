@@ -103,6 +103,9 @@ class CLWorld(World):
         self.coll_host = np.zeros((1, L["COLLIDER_WORDS"], 4), np.float32)
         self._coll_dirty = False
         self._moved: set[int] = set()
+        # the vertex ranges of the cloths added since the last flush: handle -> (vbase, float4
+        # positions with inverse mass, float4 velocities or None), written together (_write_staged)
+        self._staged: dict[int, tuple[int, np.ndarray, np.ndarray | None]] = {}
         self.fabrics: dict[str, FabricSlot] = {}
         self.rec: dict[int, ClothSlot] = {}
         self.ci_host = np.zeros((64, L["CI_STRIDE"]), np.int32)
@@ -133,6 +136,7 @@ class CLWorld(World):
 
     # --- a tick's output ---------------------------------------------------------------------
     def fetch_async(self, roster: Roster, tick: int) -> PendingWire:
+        self._write_staged()  # a frame asked for before a step shows the adds at their start
         if self.device_frames is not None:
             return self.device_frames.encode(roster, tick, self.layout(), self.steps)
         return super().fetch_async(roster, tick)
@@ -172,27 +176,60 @@ class CLWorld(World):
         self.rec[cloth.handle] = rec
         self.targets.note_vbase(cloth.handle, vbase)
         x = f.rest_positions if positions is None else positions
-        self._write_vertices(cloth, rec, x)
+        v = None
         if velocities is not None:  # protocol 1.3 resume: the velocity buffer is the state (xyz, w unused)
             v = np.zeros((n, 4), np.float32)
             v[:, :3] = velocities
-            self.mem.vel.write(rec.vbase, v)
+        # written with the tick's other adds before anything reads or writes the vertex buffers
+        self._staged[cloth.handle] = (vbase, self._vertex_rows(cloth, x), v)
         self._write_tables(cloth, rec)
         self._regroup(cloth, rec)
 
-    def _write_vertices(self, cloth: Cloth, rec: ClothSlot, x: np.ndarray) -> None:
-        n = cloth.fabric.n_vertices
-        p = np.zeros((n, 4), np.float32)
+    def _vertex_rows(self, cloth: Cloth, x: np.ndarray) -> np.ndarray:
+        """A cloth's float4 rows: positions ``x``, its inverse masses in w."""
+        p = np.empty((cloth.fabric.n_vertices, 4), np.float32)
         p[:, :3] = x
         p[:, 3] = inverse_masses(cloth.fabric, cloth.params)
+        return p
+
+    def _write_vertices(self, vbase: int, p: np.ndarray, v: np.ndarray | None = None) -> None:
+        """Rows ``p`` (float4, see _vertex_rows) as positions, previous positions and pin targets
+        from ``vbase`` on, velocities ``v`` (zero if None), normals zero: one non-blocking write
+        per buffer."""
         mem = self.mem
-        mem.pos.write(rec.vbase, p)
-        mem.prev.write(rec.vbase, p)
-        mem.target.write(rec.vbase, p)
-        mem.vel.write(rec.vbase, np.zeros((n, 4), np.float32))
-        mem.nrm.write(rec.vbase, np.zeros((n, 4), np.float32))
-        if mem.pos2 is not None:
-            mem.pos2.write(rec.vbase, p)
+        zeros = np.zeros_like(p)
+        for arr in (mem.pos, mem.prev, mem.target, *([mem.pos2] if mem.pos2 is not None else [])):
+            arr.write(vbase, p, blocking=False)
+        mem.vel.write(vbase, zeros if v is None else v, blocking=False)
+        mem.nrm.write(vbase, zeros, blocking=False)
+
+    def _write_staged(self) -> None:
+        """The staged adds' vertex rows, one write per buffer per run of adjacent ranges (the
+        allocator hands a tick's adds adjacent ranges while it has room): the adds of one tick
+        cost a few device writes, not several per cloth. Called before anything that reads or
+        writes the vertex buffers (a step, a frame, pin targets, a reset, a mass change)."""
+        if not self._staged:
+            return
+        entries = sorted(self._staged.values(), key=lambda e: e[0])
+        self._staged.clear()
+        runs: list[list[tuple[int, np.ndarray, np.ndarray | None]]] = [[entries[0]]]
+        for e in entries[1:]:
+            last = runs[-1][-1]
+            if last[0] + len(last[1]) == e[0]:
+                runs[-1].append(e)
+            else:
+                runs.append([e])
+        for run in runs:
+            p = np.concatenate([e[1] for e in run]) if len(run) > 1 else run[0][1]
+            v = None
+            if any(e[2] is not None for e in run):
+                v = np.concatenate([e[2] if e[2] is not None else np.zeros_like(e[1]) for e in run])
+            self._write_vertices(run[0][0], p, v)
+
+    def _upload_targets(self) -> None:
+        """The pending pin targets scattered (after the staged adds they may target)."""
+        self._write_staged()
+        self.targets.upload()
 
     def _write_tables(self, cloth: Cloth, rec: ClothSlot) -> None:
         f, p, m = cloth.fabric, cloth.params, cloth.params.material
@@ -277,7 +314,8 @@ class CLWorld(World):
 
     def _remove(self, cloth: Cloth) -> None:
         if self.targets.pending:  # targets still queued for this cloth must not land in its freed range
-            self.targets.upload()
+            self._upload_targets()
+        self._staged.pop(cloth.handle, None)  # added and removed before a flush: never written
         rec = self.rec.pop(cloth.handle)
         self.targets.note_vbase(cloth.handle, -1)
         self._leave_group(cloth.handle, rec)
@@ -300,9 +338,10 @@ class CLWorld(World):
     def _set_params(self, cloth: Cloth, old: ClothParams) -> None:
         rec = self.rec[cloth.handle]
         if old.material.mass != cloth.params.material.mass:
+            self._write_staged()
             x = self.mem.pos.read(rec.vbase, cloth.fabric.n_vertices)
             x[:, 3] = inverse_masses(cloth.fabric, cloth.params)
-            self.mem.pos.write(rec.vbase, x)
+            self.mem.pos.write(rec.vbase, x, blocking=False)
         self._write_tables(cloth, rec)
         self._regroup(cloth, rec)
         m, was = cloth.params.material, old.material
@@ -355,25 +394,31 @@ class CLWorld(World):
         self._write_tables(cloth, rec)
 
     def _reset(self, cloth: Cloth, positions: np.ndarray) -> None:
+        staged = self._staged.get(cloth.handle)
+        if staged is not None:  # added this tick: it starts at ``positions`` at rest
+            self._staged[cloth.handle] = (staged[0], self._vertex_rows(cloth, positions), None)
+            return
         if self.targets.pending:  # earlier pin targets first: the reset puts the pins back too
-            self.targets.upload()
-        self._write_vertices(cloth, self.rec[cloth.handle], positions)
+            self._upload_targets()
+        self._write_vertices(self.rec[cloth.handle].vbase, self._vertex_rows(cloth, positions))
 
     # --- stepping ---------------------------------------------------------------------------
     def _flush(self) -> None:
         mem = self.mem
+        self._write_staged()
         if self.targets.pending:
             self.targets.upload()
-        if self._tables_dirty:
+        if self._tables_dirty:  # copies: the writes do not wait, and the host tables change on
             n = len(self.ci_host)
             if mem.ci.capacity < n:
                 mem.ci.resize(n)
                 mem.cf.resize(n)
-            mem.ci.write(0, self.ci_host)
-            mem.cf.write(0, self.cf_host)
+            mem.ci.write(0, self.ci_host.copy(), blocking=False)
+            mem.cf.write(0, self.cf_host.copy(), blocking=False)
             self._tables_dirty = False
         if self._coll_dirty:
-            mem.coll.write(0, self.coll_host[: mem.coll.capacity].reshape(-1, 4 * L["COLLIDER_WORDS"]))
+            coll = self.coll_host[: mem.coll.capacity].reshape(-1, 4 * L["COLLIDER_WORDS"])
+            mem.coll.write(0, coll.copy(), blocking=False)
             self._coll_dirty = False
         for g in self.groups.values():
             if g.dirty:
@@ -451,4 +496,5 @@ class CLWorld(World):
         self.readback.layout_changed(layout)
 
     def frame_async(self) -> PendingFrame:
+        self._write_staged()
         return self.readback.frame_async(self.layout(), self.steps)

@@ -138,14 +138,18 @@ class GroupLaunches:
         return int(k.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, self.dev.device))
 
     def build_group(self, g: Group) -> None:
+        """A group's launches sized for its cloths now: once per tick whose commands changed it,
+        its cost one pass over the cloths plus one per *fabric* (a group of thousands of cloths
+        mostly shares a few fabrics: the fabric figures are taken once each)."""
         handles = sorted(g.handles)
         recs = [self.rec[h] for h in handles]
         cloths = [self.cloths[h] for h in handles]
-        g.slots = np.array([r.slot for r in recs], np.int32)
+        fabrics = list({c.fabric.key: c.fabric for c in cloths}.values())
+        g.slots = np.fromiter((r.slot for r in recs), np.int32, len(recs))
         g.cloths_buf = cl.Buffer(self.dev.ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=g.slots)
         g.max_iters = max(c.params.iterations for c in cloths)
-        g.max_colours = max(c.fabric.n_colours for c in cloths)
-        g.max_vertices = max(c.fabric.n_vertices for c in cloths)
+        g.max_colours = max(f.n_colours for f in fabrics)
+        g.max_vertices = max(f.n_vertices for f in fabrics)
         g.substeps = cloths[0].params.substeps
         if g.pack:
             keys = [(c.fabric.key, c.params.iterations, c.params.substeps) for c in cloths]
@@ -154,15 +158,13 @@ class GroupLaunches:
             g.packs_buf = cl.Buffer(self.dev.ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=table)
             # local memory of the largest pack: positions, then (XPBD) multipliers, per lane
             xpbd = g.features.xpbd
-            g.pack_local_bytes = (
-                4 * g.pack * max(4 * c.fabric.n_vertices + (c.fabric.n_links if xpbd else 0) for c in cloths)
-            )
+            g.pack_local_bytes = 4 * g.pack * max(4 * f.n_vertices + (f.n_links if xpbd else 0) for f in fabrics)
             g.local_size = 1
             g.dirty = False
             return
         widest = max(
-            max(c.fabric.n_vertices for c in cloths),
-            max((int(np.diff(c.fabric.colour_offsets).max()) if c.fabric.n_colours else 1) for c in cloths),
+            g.max_vertices,
+            max((int(np.diff(f.colour_offsets).max()) if f.n_colours else 1) for f in fabrics),
         )
         if self.solver == "workgroup":
             cap = self.max_local_size if g.use_local else self.max_global_path_size
@@ -184,8 +186,9 @@ class GroupLaunches:
             g.colour_totals, g.prefix_buf = [], None
         elif self.solver == "coloured":
             counts = np.zeros((g.max_colours, len(cloths) + 1), np.int32)
+            sizes_of = {f.key: np.diff(f.colour_offsets) for f in fabrics}
             for j, c in enumerate(cloths):
-                sizes = np.diff(c.fabric.colour_offsets)
+                sizes = sizes_of[c.fabric.key]
                 counts[: len(sizes), j + 1] = sizes
             prefix = np.cumsum(counts, axis=1, dtype=np.int64)
             if prefix.size and prefix.max() >= 2**31:

@@ -18,6 +18,7 @@ frames intact; a consumer that needs one longer ``hold()``s it and ``release()``
 
 from __future__ import annotations
 
+import functools
 import itertools
 import logging
 from abc import ABC, abstractmethod
@@ -76,7 +77,7 @@ class World(ABC):
         default zero; protocol 1.3 ``resume``: a cloth continued from another server's state).
         Pinned vertices start at ``positions`` with their pin targets there, and keep zero velocity.
         ``scene`` (1.7): the cloth collides with the scene's other cloths and its colliders."""
-        params.validate()
+        _validate(params)
         if scene is not None and len(self.scenes.get(scene, Scene(scene)).handles) >= MAX_SCENE_CLOTHS:
             raise ValueError(f"scene {scene!r} is full: {MAX_SCENE_CLOTHS} cloths")
         if positions is not None:
@@ -384,6 +385,21 @@ class World(ABC):
 
     @abstractmethod
     def _reset(self, cloth: Cloth, positions: np.ndarray) -> None: ...
+
+
+@functools.lru_cache(maxsize=256)
+def _validated(params: ClothParams) -> bool:
+    params.validate()  # raises (and so is not remembered) when invalid
+    return True
+
+
+def _validate(params: ClothParams) -> None:
+    """``params.validate()``, remembered for the last few valid ones: a tick of many adds mostly
+    repeats a few parameter sets (frozen, hashable; one with a list in it is checked every time)."""
+    try:
+        _validated(params)
+    except TypeError:  # unhashable: a field given as a list
+        params.validate()
 
 
 def inverse_masses(fabric: Fabric, params: ClothParams) -> np.ndarray:

@@ -6,7 +6,7 @@ cloth tables, kernels/layout.h)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -99,6 +99,12 @@ class DevArray:
             self._inflight = [e for e in self._inflight if e.command_execution_status != done]
             self._inflight.append(ev)
 
+    def zero(self, start: int, n: int) -> None:
+        """Items ``start`` .. ``start + n`` set to zero on the device (no host array, no wait)."""
+        if n:
+            b = self.itembytes
+            cl.enqueue_fill_buffer(self.dev.queue, self.buf, np.zeros(1, np.float32), start * b, n * b)
+
     def read(self, start: int, n: int) -> np.ndarray:
         out = np.empty((n, self.width), self.dtype)
         if n:
@@ -167,12 +173,14 @@ def fabric_blob(f: Fabric) -> tuple[np.ndarray, dict[str, int]]:
 
 @dataclass
 class FabricSlot:
-    """A fabric's blob in the int arena, shared by its cloths (``refs``)."""
+    """A fabric's blob in the int arena, shared by its cloths (``refs``), and its vertex rows at
+    rest (float4, inverse masses in w) by total mass, made once for all its cloths of that mass."""
 
     base: int
     size: int
     refs: int
     offsets: dict[str, int]
+    rest_rows: dict[float, np.ndarray] = field(default_factory=dict)
 
 
 @dataclass

@@ -113,6 +113,7 @@ class CLWorld(World):
         self._free_slots: list[int] = list(range(63, -1, -1))
         self._tables_dirty = True
         self.groups: dict[tuple, Group] = {}
+        self._group_keys: dict[tuple, tuple[tuple, bool, int]] = {}  # _group_key's, by its inputs
         base_options = [*Features().build_options(), "-DUSE_LOCAL=0"]
         self.launches = GroupLaunches(
             self.dev,
@@ -175,33 +176,47 @@ class CLWorld(World):
         rec = ClothSlot(self._table_slot(), vbase, self._fabric_slot(f))
         self.rec[cloth.handle] = rec
         self.targets.note_vbase(cloth.handle, vbase)
-        x = f.rest_positions if positions is None else positions
         v = None
         if velocities is not None:  # protocol 1.3 resume: the velocity buffer is the state (xyz, w unused)
             v = np.zeros((n, 4), np.float32)
             v[:, :3] = velocities
         # written with the tick's other adds before anything reads or writes the vertex buffers
-        self._staged[cloth.handle] = (vbase, self._vertex_rows(cloth, x), v)
+        self._staged[cloth.handle] = (vbase, self._vertex_rows(cloth, positions), v)
         self._write_tables(cloth, rec)
         self._regroup(cloth, rec)
 
-    def _vertex_rows(self, cloth: Cloth, x: np.ndarray) -> np.ndarray:
-        """A cloth's float4 rows: positions ``x``, its inverse masses in w."""
-        p = np.empty((cloth.fabric.n_vertices, 4), np.float32)
+    def _vertex_rows(self, cloth: Cloth, x: np.ndarray | None) -> np.ndarray:
+        """A cloth's float4 rows: positions ``x`` (None: at rest), its inverse masses in w. At
+        rest they are the fabric's rows for that mass, shared (read-only) by its cloths."""
+        fs = self.rec[cloth.handle].fabric
+        mass = cloth.params.material.mass
+        rest = fs.rest_rows.get(mass)
+        if rest is None:
+            if len(fs.rest_rows) >= 16:  # many masses of one fabric: keep the latest few
+                fs.rest_rows.clear()
+            rest = np.empty((cloth.fabric.n_vertices, 4), np.float32)
+            rest[:, :3] = cloth.fabric.rest_positions
+            rest[:, 3] = inverse_masses(cloth.fabric, cloth.params)
+            rest.flags.writeable = False
+            fs.rest_rows[mass] = rest
+        if x is None:
+            return rest
+        p = rest.copy()
         p[:, :3] = x
-        p[:, 3] = inverse_masses(cloth.fabric, cloth.params)
         return p
 
     def _write_vertices(self, vbase: int, p: np.ndarray, v: np.ndarray | None = None) -> None:
         """Rows ``p`` (float4, see _vertex_rows) as positions, previous positions and pin targets
         from ``vbase`` on, velocities ``v`` (zero if None), normals zero: one non-blocking write
-        per buffer."""
+        or fill per buffer."""
         mem = self.mem
-        zeros = np.zeros_like(p)
         for arr in (mem.pos, mem.prev, mem.target, *([mem.pos2] if mem.pos2 is not None else [])):
             arr.write(vbase, p, blocking=False)
-        mem.vel.write(vbase, zeros if v is None else v, blocking=False)
-        mem.nrm.write(vbase, zeros, blocking=False)
+        if v is None:
+            mem.vel.zero(vbase, len(p))
+        else:
+            mem.vel.write(vbase, v, blocking=False)
+        mem.nrm.zero(vbase, len(p))
 
     def _write_staged(self) -> None:
         """The staged adds' vertex rows, one write per buffer per run of adjacent ranges (the
@@ -272,7 +287,17 @@ class CLWorld(World):
         self._tables_dirty = True
 
     def _group_key(self, cloth: Cloth) -> tuple[tuple, bool, int]:
-        """(group key, local memory, pack lanes) of the group the cloth joins."""
+        """(group key, local memory, pack lanes) of the group the cloth joins (worked out once per
+        fabric, features and substeps: a tick of many adds mostly repeats a few)."""
+        memo = (cloth.fabric.key, cloth.params.features, cloth.params.substeps)
+        got = self._group_keys.get(memo)
+        if got is None:
+            if len(self._group_keys) >= 1024:
+                self._group_keys.clear()
+            got = self._group_keys[memo] = self._work_out_group(cloth)
+        return got
+
+    def _work_out_group(self, cloth: Cloth) -> tuple[tuple, bool, int]:
         f = cloth.params.features
         if self.solver == "workgroup":
             budget = self.dev.info.local_mem - 1024

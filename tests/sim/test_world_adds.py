@@ -1,7 +1,7 @@
 """A tick's adds written as one batch (clworld.py's staged vertex rows): the same positions as
 cloths written one by one, whatever else the tick does to them (removes, resets, pin targets,
-mass changes, resumed velocities), against the float64 reference too; and a few device writes
-per tick, not several per cloth."""
+mass changes, resumed velocities), against the float64 reference too; a few device writes per
+tick, not several per cloth; and the readback's gather map kept where the layout kept cloths."""
 
 from __future__ import annotations
 
@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 from conftest import random_grid_fabric, random_mesh_fabric
 
+from drape.server.sim.frame import Layout
 from drape.server.sim.opencl.clworld import CLWorld
+from drape.server.sim.opencl.frames import kept_runs
 from drape.server.sim.params import ClothParams, Material
 from drape.server.sim.world import ReferenceWorld, World
 
@@ -134,3 +136,20 @@ def test_a_tick_of_adds_writes_each_vertex_buffer_once(device, rng):
     assert calls["n"] == 3  # one per run of adjacent ranges
     frame = world.fetch()
     assert np.isfinite(frame.xyz).all() and len(frame.handles) == 41
+
+
+def _layout(version: int, handles: list[int], rows: dict[int, int]) -> Layout:
+    hs = np.array(handles, np.int64)
+    offsets = np.concatenate([[0], np.cumsum([rows[h] for h in handles])]).astype(np.int64)
+    return Layout(version, hs, offsets, np.zeros(len(hs), bool), {h: i for i, h in enumerate(handles)})
+
+
+def test_gather_map_keeps_the_rows_of_cloths_that_stay():
+    rows = {1: 2, 2: 3, 3: 2, 4: 1, 5: 4, 6: 3}
+    old = _layout(1, [1, 2, 3, 4, 5], rows)
+    # 2 and 4 left, 6 came: 1, 3, 5 keep their rows in three runs, 6's are new
+    assert kept_runs(old, _layout(2, [1, 3, 5, 6], rows)) == (3, [(0, 0, 2), (5, 2, 2), (8, 4, 4)])
+    assert kept_runs(old, _layout(3, [1, 2, 3, 4, 5, 6], rows)) == (5, [(0, 0, 12)])  # only added: in place
+    assert kept_runs(old, _layout(4, [6], rows)) == (0, [])  # every cloth new
+    assert kept_runs(old, _layout(5, [2, 1, 3, 4, 5], rows)) is None  # reordered: rebuilt whole
+    assert kept_runs(None, old) is None

@@ -11,7 +11,9 @@ scenes' inter-cloth collision after each step (``scene_collision``, scenes.Scene
 Layout (see kernels/layout.h):
 - vertex buffers (positions with inverse mass in w, velocities, previous positions, pin
   targets, normals) hold each cloth in a contiguous range handed out by a first-fit allocator,
-  so adding or removing a cloth never moves the others;
+  so adding or removing a cloth never moves the others; an added cloth's rows are staged and
+  the tick's adds written together before anything touches those buffers (one non-blocking write
+  per buffer per run of adjacent ranges, ``_write_staged``), not several writes per cloth;
 - one int arena holds each *fabric* once (links sorted by colour, colour offsets, tether
   anchors, Jacobi adjacency, vertex-triangle lists): cloths of one fabric share it;
 - per-cloth int/float tables carry ranges and parameters; kernels read them by cloth index.

@@ -316,6 +316,8 @@ class CLWorld(World):
         return (f.key(), cloth.params.substeps), False, 0
 
     def _regroup(self, cloth: Cloth, rec: ClothSlot) -> None:
+        p = cloth.params
+        self.launches.note(cloth.handle, rec.slot, rec.fabric.base, p.iterations, p.substeps)
         key, local, pack = self._group_key(cloth)
         if rec.group == key:
             self.groups[key].dirty = True

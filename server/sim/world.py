@@ -18,6 +18,7 @@ frames intact; a consumer that needs one longer ``hold()``s it and ``release()``
 
 from __future__ import annotations
 
+import functools
 import itertools
 import logging
 from abc import ABC, abstractmethod
@@ -59,6 +60,10 @@ class World(ABC):
         self._layout: Layout | None = None
         self._layout_version = 0
         self._live = np.zeros(64, bool)  # by handle (handles are never reused): set_pin_targets_block
+        # by handle, what the layout is made of: a layout is a few vectorised gathers, not a pass
+        # over the cloths in Python (a tick that adds or removes cloths rebuilds it)
+        self._rows_of = np.zeros(64, np.int64)  # vertices
+        self._normals_of = np.zeros(64, bool)  # the state carries normals
         self._key_buffers = KeyBuffers()  # the host-encoded payloads' buffers (wire.HostWire)
         self.scenes: dict[str, Scene] = {}  # 1.7: a scene exists while it holds a cloth (scenes.py)
         self.mesh_colliders = MeshColliders()  # 1.8: the cloths' and scenes' meshes (meshcolliders.py)
@@ -76,7 +81,7 @@ class World(ABC):
         default zero; protocol 1.3 ``resume``: a cloth continued from another server's state).
         Pinned vertices start at ``positions`` with their pin targets there, and keep zero velocity.
         ``scene`` (1.7): the cloth collides with the scene's other cloths and its colliders."""
-        params.validate()
+        _validate(params)
         if scene is not None and len(self.scenes.get(scene, Scene(scene)).handles) >= MAX_SCENE_CLOTHS:
             raise ValueError(f"scene {scene!r} is full: {MAX_SCENE_CLOTHS} cloths")
         if positions is not None:
@@ -103,8 +108,13 @@ class World(ABC):
             if len(sc.colliders):
                 self._apply_colliders(cloth)
         if h >= len(self._live):
-            self._live = np.concatenate([self._live, np.zeros(max(h + 1, len(self._live)), bool)])
+            grow = max(h + 1, len(self._live))
+            self._live = np.concatenate([self._live, np.zeros(grow, bool)])
+            self._rows_of = np.concatenate([self._rows_of, np.zeros(grow, np.int64)])
+            self._normals_of = np.concatenate([self._normals_of, np.zeros(grow, bool)])
         self._live[h] = True
+        self._rows_of[h] = fabric.n_vertices
+        self._normals_of[h] = params.features.normals
         self._layout = None
         return h
 
@@ -136,6 +146,7 @@ class World(ABC):
         cloth.params = params
         self._set_params(cloth, old)
         if old.features.normals != params.features.normals:
+            self._normals_of[handle] = params.features.normals
             self._layout = None
 
     def prepare(self, fabric: Fabric, params: ClothParams) -> None:  # noqa: B027 (optional hook)
@@ -307,14 +318,14 @@ class World(ABC):
     def layout(self) -> Layout:
         """Where each cloth is in the frames from now on (cached until cloths change)."""
         if self._layout is None:
-            cl = list(self.cloths.values())
-            handles = np.fromiter((c.handle for c in cl), np.int64, len(cl))
-            offsets = np.zeros(len(cl) + 1, np.int64)
-            np.cumsum(np.fromiter((c.fabric.n_vertices for c in cl), np.int64, len(cl)), out=offsets[1:])
-            normals = np.fromiter((c.params.features.normals for c in cl), bool, len(cl))
+            k = len(self.cloths)
+            handles = np.fromiter(self.cloths, np.int64, k)  # insertion order: new cloths last
+            offsets = np.zeros(k + 1, np.int64)
+            np.cumsum(self._rows_of[handles], out=offsets[1:])
+            normals = self._normals_of[handles]
             self._layout_version += 1
             self._layout = Layout(
-                self._layout_version, handles, offsets, normals, {int(h): i for i, h in enumerate(handles.tolist())}
+                self._layout_version, handles, offsets, normals, dict(zip(handles.tolist(), range(k), strict=True))
             )
             self._layout_changed(self._layout)
         return self._layout
@@ -386,6 +397,21 @@ class World(ABC):
     def _reset(self, cloth: Cloth, positions: np.ndarray) -> None: ...
 
 
+@functools.lru_cache(maxsize=256)
+def _validated(params: ClothParams) -> bool:
+    params.validate()  # raises (and so is not remembered) when invalid
+    return True
+
+
+def _validate(params: ClothParams) -> None:
+    """``params.validate()``, remembered for the last few valid ones: a tick of many adds mostly
+    repeats a few parameter sets (frozen, hashable; one with a list in it is checked every time)."""
+    try:
+        _validated(params)
+    except TypeError:  # unhashable: a field given as a list
+        params.validate()
+
+
 def inverse_masses(fabric: Fabric, params: ClothParams) -> np.ndarray:
     m = vertex_masses(fabric, params.material.mass)
     return np.where(fabric.pinned, 0.0, 1.0 / m)
@@ -427,6 +453,7 @@ class ReferenceWorld(World):
         st = self.states[cloth.handle]
         st.x[:] = positions
         st.v[:] = 0.0
+        st.target[:] = positions  # the pins put back too, as the OpenCL world does
 
     def step(self, dt: float) -> None:
         layers = self.mesh_colliders.layers(self.scenes)

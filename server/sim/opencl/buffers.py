@@ -6,7 +6,7 @@ cloth tables, kernels/layout.h)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -73,6 +73,7 @@ class DevArray:
         self.width = width
         self.itembytes = self.dtype.itemsize * width
         self.capacity = 0
+        self._inflight: list[cl.Event] = []  # non-blocking writes not known to be done (write)
         self.buf: cl.Buffer  # set by resize below (never None after)
         self.resize(capacity)
 
@@ -84,10 +85,25 @@ class DevArray:
             cl.enqueue_copy(self.dev.queue, new, self.buf, byte_count=n)
         self.buf, self.capacity = new, capacity
 
-    def write(self, start: int, host: np.ndarray) -> None:
+    def write(self, start: int, host: np.ndarray, blocking: bool = True) -> None:
+        """``host`` into items ``start``...; ``blocking=False``: returns at once, never waiting
+        for the commands queued before it (a blocking write waits for the whole in-order queue,
+        a step included). The caller must not change ``host`` afterwards: the copy may still be
+        reading it (pyopencl's transfer event keeps it alive, held here until complete)."""
         host = np.ascontiguousarray(host, self.dtype)
-        if host.size:
-            cl.enqueue_copy(self.dev.queue, self.buf, host, dst_offset=start * self.itembytes)
+        if not host.size:
+            return
+        ev = cl.enqueue_copy(self.dev.queue, self.buf, host, dst_offset=start * self.itembytes, is_blocking=blocking)
+        if not blocking:  # a dropped transfer event waits for its copy: kept until it is done
+            done = cl.command_execution_status.COMPLETE
+            self._inflight = [e for e in self._inflight if e.command_execution_status != done]
+            self._inflight.append(ev)
+
+    def zero(self, start: int, n: int) -> None:
+        """Items ``start`` .. ``start + n`` set to zero on the device (no host array, no wait)."""
+        if n:
+            b = self.itembytes
+            cl.enqueue_fill_buffer(self.dev.queue, self.buf, np.zeros(1, np.float32), start * b, n * b)
 
     def read(self, start: int, n: int) -> np.ndarray:
         out = np.empty((n, self.width), self.dtype)
@@ -157,12 +173,14 @@ def fabric_blob(f: Fabric) -> tuple[np.ndarray, dict[str, int]]:
 
 @dataclass
 class FabricSlot:
-    """A fabric's blob in the int arena, shared by its cloths (``refs``)."""
+    """A fabric's blob in the int arena, shared by its cloths (``refs``), and its vertex rows at
+    rest (float4, inverse masses in w) by total mass, made once for all its cloths of that mass."""
 
     base: int
     size: int
     refs: int
     offsets: dict[str, int]
+    rest_rows: dict[float, np.ndarray] = field(default_factory=dict)
 
 
 @dataclass

@@ -11,7 +11,9 @@ scenes' inter-cloth collision after each step (``scene_collision``, scenes.Scene
 Layout (see kernels/layout.h):
 - vertex buffers (positions with inverse mass in w, velocities, previous positions, pin
   targets, normals) hold each cloth in a contiguous range handed out by a first-fit allocator,
-  so adding or removing a cloth never moves the others;
+  so adding or removing a cloth never moves the others; an added cloth's rows are staged and
+  the tick's adds written together before anything touches those buffers (one non-blocking write
+  per buffer per run of adjacent ranges, ``_write_staged``), not several writes per cloth;
 - one int arena holds each *fabric* once (links sorted by colour, colour offsets, tether
   anchors, Jacobi adjacency, vertex-triangle lists): cloths of one fabric share it;
 - per-cloth int/float tables carry ranges and parameters; kernels read them by cloth index.
@@ -103,6 +105,9 @@ class CLWorld(World):
         self.coll_host = np.zeros((1, L["COLLIDER_WORDS"], 4), np.float32)
         self._coll_dirty = False
         self._moved: set[int] = set()
+        # the vertex ranges of the cloths added since the last flush: handle -> (vbase, float4
+        # positions with inverse mass, float4 velocities or None), written together (_write_staged)
+        self._staged: dict[int, tuple[int, np.ndarray, np.ndarray | None]] = {}
         self.fabrics: dict[str, FabricSlot] = {}
         self.rec: dict[int, ClothSlot] = {}
         self.ci_host = np.zeros((64, L["CI_STRIDE"]), np.int32)
@@ -110,6 +115,7 @@ class CLWorld(World):
         self._free_slots: list[int] = list(range(63, -1, -1))
         self._tables_dirty = True
         self.groups: dict[tuple, Group] = {}
+        self._group_keys: dict[tuple, tuple[tuple, bool, int]] = {}  # _group_key's, by its inputs
         base_options = [*Features().build_options(), "-DUSE_LOCAL=0"]
         self.launches = GroupLaunches(
             self.dev,
@@ -133,13 +139,14 @@ class CLWorld(World):
 
     # --- a tick's output ---------------------------------------------------------------------
     def fetch_async(self, roster: Roster, tick: int) -> PendingWire:
+        self._write_staged()  # a frame asked for before a step shows the adds at their start
         if self.device_frames is not None:
             pending = self.device_frames.encode(roster, tick, self.layout(), self.steps)
         else:
             pending = super().fetch_async(roster, tick)
         # the step and its read-back submitted now: a driver may hold enqueued commands until a
         # flush or a wait, and the pipelined tick waits for this frame a tick later
-        self.dev.queue.flush()  # FLUSH
+        self.dev.queue.flush()
         return pending
 
     def warm_wire(self) -> None:
@@ -176,28 +183,75 @@ class CLWorld(World):
         rec = ClothSlot(self._table_slot(), vbase, self._fabric_slot(f))
         self.rec[cloth.handle] = rec
         self.targets.note_vbase(cloth.handle, vbase)
-        x = f.rest_positions if positions is None else positions
-        self._write_vertices(cloth, rec, x)
+        v = None
         if velocities is not None:  # protocol 1.3 resume: the velocity buffer is the state (xyz, w unused)
             v = np.zeros((n, 4), np.float32)
             v[:, :3] = velocities
-            self.mem.vel.write(rec.vbase, v)
+        # written with the tick's other adds before anything reads or writes the vertex buffers
+        self._staged[cloth.handle] = (vbase, self._vertex_rows(cloth, positions), v)
         self._write_tables(cloth, rec)
         self._regroup(cloth, rec)
 
-    def _write_vertices(self, cloth: Cloth, rec: ClothSlot, x: np.ndarray) -> None:
-        n = cloth.fabric.n_vertices
-        p = np.zeros((n, 4), np.float32)
+    def _vertex_rows(self, cloth: Cloth, x: np.ndarray | None) -> np.ndarray:
+        """A cloth's float4 rows: positions ``x`` (None: at rest), its inverse masses in w. At
+        rest they are the fabric's rows for that mass, shared (read-only) by its cloths."""
+        fs = self.rec[cloth.handle].fabric
+        mass = cloth.params.material.mass
+        rest = fs.rest_rows.get(mass)
+        if rest is None:
+            if len(fs.rest_rows) >= 16:  # many masses of one fabric: keep the latest few
+                fs.rest_rows.clear()
+            rest = np.empty((cloth.fabric.n_vertices, 4), np.float32)
+            rest[:, :3] = cloth.fabric.rest_positions
+            rest[:, 3] = inverse_masses(cloth.fabric, cloth.params)
+            rest.flags.writeable = False
+            fs.rest_rows[mass] = rest
+        if x is None:
+            return rest
+        p = rest.copy()
         p[:, :3] = x
-        p[:, 3] = inverse_masses(cloth.fabric, cloth.params)
+        return p
+
+    def _write_vertices(self, vbase: int, p: np.ndarray, v: np.ndarray | None = None) -> None:
+        """Rows ``p`` (float4, see _vertex_rows) as positions, previous positions and pin targets
+        from ``vbase`` on, velocities ``v`` (zero if None), normals zero: one non-blocking write
+        or fill per buffer."""
         mem = self.mem
-        mem.pos.write(rec.vbase, p)
-        mem.prev.write(rec.vbase, p)
-        mem.target.write(rec.vbase, p)
-        mem.vel.write(rec.vbase, np.zeros((n, 4), np.float32))
-        mem.nrm.write(rec.vbase, np.zeros((n, 4), np.float32))
-        if mem.pos2 is not None:
-            mem.pos2.write(rec.vbase, p)
+        for arr in (mem.pos, mem.prev, mem.target, *([mem.pos2] if mem.pos2 is not None else [])):
+            arr.write(vbase, p, blocking=False)
+        if v is None:
+            mem.vel.zero(vbase, len(p))
+        else:
+            mem.vel.write(vbase, v, blocking=False)
+        mem.nrm.zero(vbase, len(p))
+
+    def _write_staged(self) -> None:
+        """The staged adds' vertex rows, one write per buffer per run of adjacent ranges (the
+        allocator hands a tick's adds adjacent ranges while it has room): the adds of one tick
+        cost a few device writes, not several per cloth. Called before anything that reads or
+        writes the vertex buffers (a step, a frame, pin targets, a reset, a mass change)."""
+        if not self._staged:
+            return
+        entries = sorted(self._staged.values(), key=lambda e: e[0])
+        self._staged.clear()
+        runs: list[list[tuple[int, np.ndarray, np.ndarray | None]]] = [[entries[0]]]
+        for e in entries[1:]:
+            last = runs[-1][-1]
+            if last[0] + len(last[1]) == e[0]:
+                runs[-1].append(e)
+            else:
+                runs.append([e])
+        for run in runs:
+            p = np.concatenate([e[1] for e in run]) if len(run) > 1 else run[0][1]
+            v = None
+            if any(e[2] is not None for e in run):
+                v = np.concatenate([e[2] if e[2] is not None else np.zeros_like(e[1]) for e in run])
+            self._write_vertices(run[0][0], p, v)
+
+    def _upload_targets(self) -> None:
+        """The pending pin targets scattered (after the staged adds they may target)."""
+        self._write_staged()
+        self.targets.upload()
 
     def _write_tables(self, cloth: Cloth, rec: ClothSlot) -> None:
         f, p, m = cloth.fabric, cloth.params, cloth.params.material
@@ -240,7 +294,17 @@ class CLWorld(World):
         self._tables_dirty = True
 
     def _group_key(self, cloth: Cloth) -> tuple[tuple, bool, int]:
-        """(group key, local memory, pack lanes) of the group the cloth joins."""
+        """(group key, local memory, pack lanes) of the group the cloth joins (worked out once per
+        fabric, features and substeps: a tick of many adds mostly repeats a few)."""
+        memo = (cloth.fabric.key, cloth.params.features, cloth.params.substeps)
+        got = self._group_keys.get(memo)
+        if got is None:
+            if len(self._group_keys) >= 1024:
+                self._group_keys.clear()
+            got = self._group_keys[memo] = self._work_out_group(cloth)
+        return got
+
+    def _work_out_group(self, cloth: Cloth) -> tuple[tuple, bool, int]:
         f = cloth.params.features
         if self.solver == "workgroup":
             budget = self.dev.info.local_mem - 1024
@@ -257,6 +321,8 @@ class CLWorld(World):
         return (f.key(), cloth.params.substeps), False, 0
 
     def _regroup(self, cloth: Cloth, rec: ClothSlot) -> None:
+        p = cloth.params
+        self.launches.note(cloth.handle, rec.slot, rec.fabric.base, p.iterations, p.substeps)
         key, local, pack = self._group_key(cloth)
         if rec.group == key:
             self.groups[key].dirty = True
@@ -282,7 +348,8 @@ class CLWorld(World):
 
     def _remove(self, cloth: Cloth) -> None:
         if self.targets.pending:  # targets still queued for this cloth must not land in its freed range
-            self.targets.upload()
+            self._upload_targets()
+        self._staged.pop(cloth.handle, None)  # added and removed before a flush: never written
         rec = self.rec.pop(cloth.handle)
         self.targets.note_vbase(cloth.handle, -1)
         self._leave_group(cloth.handle, rec)
@@ -305,9 +372,10 @@ class CLWorld(World):
     def _set_params(self, cloth: Cloth, old: ClothParams) -> None:
         rec = self.rec[cloth.handle]
         if old.material.mass != cloth.params.material.mass:
+            self._write_staged()
             x = self.mem.pos.read(rec.vbase, cloth.fabric.n_vertices)
             x[:, 3] = inverse_masses(cloth.fabric, cloth.params)
-            self.mem.pos.write(rec.vbase, x)
+            self.mem.pos.write(rec.vbase, x, blocking=False)
         self._write_tables(cloth, rec)
         self._regroup(cloth, rec)
         m, was = cloth.params.material, old.material
@@ -360,25 +428,31 @@ class CLWorld(World):
         self._write_tables(cloth, rec)
 
     def _reset(self, cloth: Cloth, positions: np.ndarray) -> None:
+        staged = self._staged.get(cloth.handle)
+        if staged is not None:  # added this tick: it starts at ``positions`` at rest
+            self._staged[cloth.handle] = (staged[0], self._vertex_rows(cloth, positions), None)
+            return
         if self.targets.pending:  # earlier pin targets first: the reset puts the pins back too
-            self.targets.upload()
-        self._write_vertices(cloth, self.rec[cloth.handle], positions)
+            self._upload_targets()
+        self._write_vertices(self.rec[cloth.handle].vbase, self._vertex_rows(cloth, positions))
 
     # --- stepping ---------------------------------------------------------------------------
     def _flush(self) -> None:
         mem = self.mem
+        self._write_staged()
         if self.targets.pending:
             self.targets.upload()
-        if self._tables_dirty:
+        if self._tables_dirty:  # copies: the writes do not wait, and the host tables change on
             n = len(self.ci_host)
             if mem.ci.capacity < n:
                 mem.ci.resize(n)
                 mem.cf.resize(n)
-            mem.ci.write(0, self.ci_host)
-            mem.cf.write(0, self.cf_host)
+            mem.ci.write(0, self.ci_host.copy(), blocking=False)
+            mem.cf.write(0, self.cf_host.copy(), blocking=False)
             self._tables_dirty = False
         if self._coll_dirty:
-            mem.coll.write(0, self.coll_host[: mem.coll.capacity].reshape(-1, 4 * L["COLLIDER_WORDS"]))
+            coll = self.coll_host[: mem.coll.capacity].reshape(-1, 4 * L["COLLIDER_WORDS"])
+            mem.coll.write(0, coll.copy(), blocking=False)
             self._coll_dirty = False
         for g in self.groups.values():
             if g.dirty:
@@ -456,4 +530,5 @@ class CLWorld(World):
         self.readback.layout_changed(layout)
 
     def frame_async(self) -> PendingFrame:
+        self._write_staged()
         return self.readback.frame_async(self.layout(), self.steps)

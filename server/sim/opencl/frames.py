@@ -4,9 +4,11 @@ One ``pack_rows`` launch gathers every cloth's positions (xyz, without the inver
 back in the layout's order into one device buffer (normals likewise when a cloth carries them),
 and one non-blocking copy brings it into a host buffer mapped from ``ALLOC_HOST_PTR`` memory
 (pinned where the driver does that), reused from tick to tick (world.FramePool). The gather map
-(frame row -> vertex) is uploaded only when the layout changes. ``frame_async`` returns at once;
-its ``wait`` waits on that copy's event only; ``device_s`` is the step-to-readback device time
-from the queue's profiling timestamps.
+(frame row -> vertex) changes only with the layout, and then only where it changed: the rows of
+cloths that stay are kept on the device (moved there in runs where cloths before them left),
+the rows of new cloths computed and uploaded (O(changed cloths) on the host, not O(rows)).
+``frame_async`` returns at once; its ``wait`` waits on that copy's event only; ``device_s`` is
+the step-to-readback device time from the queue's profiling timestamps.
 """
 
 from __future__ import annotations
@@ -22,6 +24,34 @@ from .buffers import ClothSlot, DevArray, DeviceMemory, map_pinned
 from .device import Device
 
 log = logging.getLogger(__name__)
+
+MAX_MOVED_RUNS = 256  # a new layout keeping its cloths' rows in more runs than this is rebuilt whole
+
+
+def kept_runs(old: Layout | None, new: Layout) -> tuple[int, list[tuple[int, int, int]]] | None:
+    """How ``new`` keeps ``old``'s rows: (k, runs) where ``new``'s first k cloths are the cloths
+    of ``old`` still there, in ``old``'s order (cloths come at the end of a layout and leave
+    anywhere), and each run (old first row, new first row, rows) is a stretch of them that was
+    contiguous in ``old``; None when ``new`` is not so made (rebuilt whole)."""
+    if old is None:
+        return None
+    keep = np.isin(old.handles, new.handles)
+    idx = np.flatnonzero(keep)
+    k = len(idx)
+    if k > len(new.handles) or not np.array_equal(old.handles[idx], new.handles[:k]):
+        return None
+    if not k:
+        return 0, []
+    breaks = np.flatnonzero(np.diff(idx) != 1) + 1
+    if len(breaks) >= MAX_MOVED_RUNS:
+        return None
+    starts = [0, *breaks.tolist()]
+    ends = [*breaks.tolist(), k]
+    runs = []
+    for s, e in zip(starts, ends, strict=True):
+        a, b = int(idx[s]), int(idx[e - 1]) + 1
+        runs.append((int(old.offsets[a]), int(new.offsets[s]), int(old.offsets[b] - old.offsets[a])))
+    return k, runs
 
 
 def device_span(start: cl.Event | None, end: cl.Event) -> Callable[[], float | None]:
@@ -46,6 +76,8 @@ class FrameReadback:
         self._pool = FramePool(self._host_array)
         self._pinned: list[cl.Buffer] = []  # host buffers of the frames, alive as long as the world
         self._pack_src = DevArray(dev, np.int32, 1, 1024)  # frame row -> vertex of the buffers
+        self._pack_spare = DevArray(dev, np.int32, 1, 1024)  # the next map, where rows move
+        self._layout: Layout | None = None  # the layout of _pack_src
         self._packed = DevArray(dev, np.float32, 3, 1024)
         self._packed_nrm = DevArray(dev, np.float32, 3, 1024)
         self.step_marker: cl.Event | None = None  # the last step's start (its device time)
@@ -65,15 +97,39 @@ class FrameReadback:
             return np.zeros((rows, 3), np.float32)
 
     def layout_changed(self, layout: Layout) -> None:
-        """The gather map of a new layout (frame row -> vertex), uploaded once."""
+        """The gather map of a new layout (frame row -> vertex): the kept cloths' rows kept or
+        moved on the device (kept_runs), the new cloths' computed and written, behind the step
+        without waiting for it."""
         n = layout.n_rows
-        counts = np.diff(layout.offsets)
-        vbase = np.fromiter((self.rec[h].vbase for h in layout.handles.tolist()), np.int64, len(counts))
-        src = (np.repeat(vbase - layout.offsets[:-1], counts) + np.arange(n)).astype(np.int32)
-        for arr in (self._pack_src, self._packed, self._packed_nrm):
+        for arr in (self._pack_src, self._pack_spare, self._packed, self._packed_nrm):
             if arr.capacity < n:
                 arr.resize(2 * n)
-        self._pack_src.write(0, src)
+        kept = kept_runs(self._layout, layout)
+        self._layout = layout
+        k = 0
+        if kept is not None:
+            k, runs = kept
+            if runs and runs != [(0, 0, runs[0][2])]:  # cloths left before some kept ones: moved
+                cur, nxt = self._pack_src, self._pack_spare
+                for old_row, new_row, count in runs:
+                    cl.enqueue_copy(
+                        self.dev.queue,
+                        nxt.buf,
+                        cur.buf,
+                        byte_count=count * cur.itembytes,
+                        src_offset=old_row * cur.itembytes,
+                        dst_offset=new_row * cur.itembytes,
+                    )
+                self._pack_src, self._pack_spare = nxt, cur
+        handles = layout.handles[k:]
+        offsets = layout.offsets[k:]
+        if not len(handles):
+            return
+        counts = np.diff(offsets)
+        vbase = np.fromiter((self.rec[h].vbase for h in handles.tolist()), np.int64, len(counts))
+        rows = np.arange(int(offsets[0]), n, dtype=np.int64)
+        src = (np.repeat(vbase - offsets[:-1], counts) + rows).astype(np.int32)
+        self._pack_src.write(int(offsets[0]), src, blocking=False)  # behind the step, not waiting for it
 
     def _pack(self, n: int, src: DevArray, out: DevArray) -> None:
         k = self.dev.kernel(self.base_options, "pack_rows")

@@ -110,6 +110,8 @@ class GroupLaunches:
         self.dev, self.mem, self.rec, self.cloths, self.solver = dev, mem, rec, cloths, solver
         self.chunk, self.link_group_size = chunk, link_group_size
         self.max_local_size, self.max_global_path_size = max_local_size, max_global_path_size
+        # by handle: (table row, fabric arena base, iterations, substeps), set by ``note``
+        self._cols = np.zeros((64, 4), np.int64)
 
     def options(self, g: Group, local: bool | None = None) -> list[str]:
         return self.options_for(g.features, g.use_local if local is None else local, g.pack)
@@ -137,56 +139,71 @@ class GroupLaunches:
         k = self.dev.kernel(self.options(g), name)
         return int(k.get_work_group_info(cl.kernel_work_group_info.WORK_GROUP_SIZE, self.dev.device))
 
+    def note(self, handle: int, slot: int, fabric_base: int, iterations: int, substeps: int) -> None:
+        """A cloth's figures its group is built from (its table row, its fabric's place in the
+        arena, which tells fabrics apart, iterations, substeps): set as it joins or changes."""
+        if handle >= len(self._cols):
+            grown = np.zeros((max(handle + 1, 2 * len(self._cols)), 4), np.int64)
+            grown[: len(self._cols)] = self._cols
+            self._cols = grown
+        self._cols[handle] = (slot, fabric_base, iterations, substeps)
+
     def build_group(self, g: Group) -> None:
-        handles = sorted(g.handles)
-        recs = [self.rec[h] for h in handles]
-        cloths = [self.cloths[h] for h in handles]
-        g.slots = np.array([r.slot for r in recs], np.int32)
+        """A group's launches sized for its cloths now: once per tick whose commands changed it,
+        from the cloths' columns (``note``) in a few vectorised gathers, and one pass per
+        *fabric* (a group of thousands of cloths mostly shares a few), not a pass over the
+        cloths in Python (but for the CPU packs' table)."""
+        handles = np.fromiter(g.handles, np.int64, len(g.handles))
+        handles.sort()
+        cols = self._cols[handles]
+        slots, bases, iters, subs = cols[:, 0], cols[:, 1], cols[:, 2], cols[:, 3]
+        _, first, fab_of = np.unique(bases, return_index=True, return_inverse=True)
+        fabrics = [self.cloths[int(handles[i])].fabric for i in first.tolist()]  # by fabric index
+        nv = np.array([f.n_vertices for f in fabrics], np.int64)
+        g.slots = slots.astype(np.int32)
         g.cloths_buf = cl.Buffer(self.dev.ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=g.slots)
-        g.max_iters = max(c.params.iterations for c in cloths)
-        g.max_colours = max(c.fabric.n_colours for c in cloths)
-        g.max_vertices = max(c.fabric.n_vertices for c in cloths)
-        g.substeps = cloths[0].params.substeps
+        g.max_iters = int(iters.max())
+        g.max_colours = max(f.n_colours for f in fabrics)
+        g.max_vertices = int(nv.max())
+        g.substeps = int(subs[0])
         if g.pack:
-            keys = [(c.fabric.key, c.params.iterations, c.params.substeps) for c in cloths]
-            table = pack_lanes(keys, [int(s) for s in g.slots], g.pack, self.dev.info.compute_units)
+            keys = list(zip(fab_of.tolist(), iters.tolist(), subs.tolist(), strict=True))
+            table = pack_lanes(keys, g.slots.tolist(), g.pack, self.dev.info.compute_units)
             g.n_packs = len(table)
             g.packs_buf = cl.Buffer(self.dev.ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=table)
             # local memory of the largest pack: positions, then (XPBD) multipliers, per lane
             xpbd = g.features.xpbd
-            g.pack_local_bytes = (
-                4 * g.pack * max(4 * c.fabric.n_vertices + (c.fabric.n_links if xpbd else 0) for c in cloths)
-            )
+            g.pack_local_bytes = 4 * g.pack * max(4 * f.n_vertices + (f.n_links if xpbd else 0) for f in fabrics)
             g.local_size = 1
             g.dirty = False
             return
         widest = max(
-            max(c.fabric.n_vertices for c in cloths),
-            max((int(np.diff(c.fabric.colour_offsets).max()) if c.fabric.n_colours else 1) for c in cloths),
+            g.max_vertices,
+            max((int(np.diff(f.colour_offsets).max()) if f.n_colours else 1) for f in fabrics),
         )
         if self.solver == "workgroup":
             cap = self.max_local_size if g.use_local else self.max_global_path_size
         else:
             cap = self.max_local_size
             widest = min(widest, self.chunk)
-            chunks = [
-                (r.slot, v0)
-                for r, c in zip(recs, cloths, strict=True)
-                for v0 in range(0, c.fabric.n_vertices, self.chunk)
-            ]
+            # (cloth slot, first vertex) per chunk of each cloth, cloth by cloth
+            per = (-(-nv // self.chunk))[fab_of]
+            first_chunk = np.repeat(np.cumsum(per) - per, per)
+            chunks = np.empty((int(per.sum()), 2), np.int32)
+            chunks[:, 0] = np.repeat(slots, per)
+            chunks[:, 1] = (np.arange(len(chunks)) - first_chunk) * self.chunk
             g.n_chunks = len(chunks)
-            g.chunks_buf = cl.Buffer(
-                self.dev.ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(chunks, np.int32)
-            )
+            g.chunks_buf = cl.Buffer(self.dev.ctx, MF.READ_ONLY | MF.COPY_HOST_PTR, hostbuf=chunks)
         g.local_size = int(min(cap, max(min(32, cap), _next_pow2(widest))))
         g.local_size = min(g.local_size, self.kernel_limit(g))
         if self.solver == "coloured" and g.max_colours == 0:  # cloths without links (1 vertex)
             g.colour_totals, g.prefix_buf = [], None
         elif self.solver == "coloured":
-            counts = np.zeros((g.max_colours, len(cloths) + 1), np.int32)
-            for j, c in enumerate(cloths):
-                sizes = np.diff(c.fabric.colour_offsets)
-                counts[: len(sizes), j + 1] = sizes
+            sizes = np.zeros((len(fabrics), g.max_colours), np.int32)  # links per colour, by fabric
+            for i, f in enumerate(fabrics):
+                sizes[i, : f.n_colours] = np.diff(f.colour_offsets)
+            counts = np.zeros((g.max_colours, len(handles) + 1), np.int32)
+            counts[:, 1:] = sizes[fab_of].T
             prefix = np.cumsum(counts, axis=1, dtype=np.int64)
             if prefix.size and prefix.max() >= 2**31:
                 raise RuntimeError("too many links in one colour batch")

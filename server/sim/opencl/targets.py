@@ -78,8 +78,8 @@ class PinTargets:
         if self._scatter_idx.capacity < len(idx):
             self._scatter_idx.resize(2 * len(idx))
             self._scatter_val.resize(2 * len(idx))
-        self._scatter_idx.write(0, idx)
-        self._scatter_val.write(0, val)
+        self._scatter_idx.write(0, idx, blocking=False)
+        self._scatter_val.write(0, val, blocking=False)
         k = self.dev.kernel(self.base_options, "scatter_targets")
         n = len(idx)
         k(

@@ -77,8 +77,10 @@ SCENE_VERTICES = 64 * 64  # the cost file's scene: hanging 64 x 64
 #: one H100 (`bash deploy/h100.sh bench scenes --scenes 64,64 --frames 20`): 1.031 -> 15.171 ms a
 #: frame, (15.171 - 1.031) / 1.031 / 8 passes = 1.71 plain solves a vertex and pass, rounded up
 #: (the estimate of 0.75 was low: the later rounds' re-walk, cheap on the CPU, is 56 % of the
-#: scenes' time on the GPU: docs/results/s18/scenepass-h100.txt).
-SCENE_PASS_WORK: dict[str, float] = {"cpu": 0.25, "gpu": 1.75}
+#: scenes' time on the GPU: docs/results/s18/scenepass-h100.txt). Then the later rounds' lists
+#: shaped for a GPU (branch h-scenegpu), the same command in a later machine session: 1.039 ->
+#: 12.603 ms, (12.603 - 1.039) / 1.039 / 8 = 1.39 plain solves a vertex and pass, rounded up.
+SCENE_PASS_WORK: dict[str, float] = {"cpu": 0.25, "gpu": 1.4}
 #: 1.8: a cloth's own mesh collider's work per vertex of the cloth, a part per cloth vertex and a
 #: part per cloth vertex and triangle, in plain solves of that vertex: docs/collision.md's meshbench
 #: on this CPU (128 capes of 1,024 vertices, 23.6 us a cape's plain solve): 25 us a cape with the

@@ -521,7 +521,7 @@ def test_slow_subscriber_never_blocks_the_tick(congestion, monkeypatch):
                 publish(job)
 
             monkeypatch.setattr(srv.publisher, "publish", held_publish)
-            assert held.wait(TIMEOUT)
+            assert held.wait(WAIT)
             first = srv.stats()
             ticked = wait_until(lambda: srv.stats()["ticks"] - first["ticks"] >= 30, timeout=30.0)
             assert ticked, "the tick waited for the publisher"

@@ -66,7 +66,7 @@ def test_controls_for_one_cloth_in_one_tick_coalesce_latest_wins():
             gate, inside = threading.Event(), threading.Event()
             held = threading.Thread(target=srv.call, args=(lambda w: (inside.set(), gate.wait(TIMEOUT)),), daemon=True)
             held.start()  # the tick thread waits inside this call: the controls below pile up
-            assert inside.wait(TIMEOUT)
+            assert inside.wait(WAIT)
             n = 10
             for k in range(n):
                 h.move_pins([0], [[0.0, 0.01 * (k + 1), 0.0]], wait=False)
@@ -412,7 +412,7 @@ def test_a_feature_change_is_never_merged_and_replies_report_the_feature_set():
             gate, inside = threading.Event(), threading.Event()
             held = threading.Thread(target=srv.call, args=(lambda w: (inside.set(), gate.wait(TIMEOUT)),), daemon=True)
             held.start()
-            assert inside.wait(TIMEOUT)
+            assert inside.wait(WAIT)
             for k in range(5):
                 h.move_pins([0], [[0.0, 0.01 * (k + 1), 0.0]], wait=False)
             h.set(features_add=["wind"], wind=(2.0, 0.0, 0.0), wait=False)

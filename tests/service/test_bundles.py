@@ -12,7 +12,7 @@ import time
 import msgpack
 import numpy as np
 import pytest
-from conftest import TIMEOUT, connect, make_config, wait_until
+from conftest import WAIT, connect, make_config, wait_until
 
 from drape.client import BatchError, Forbidden
 from drape.client import protocol as P
@@ -33,7 +33,8 @@ def server(request):
     assert s.failure is None
 
 
-def drain(handle, until_tick: int, timeout: float = TIMEOUT) -> list[P.ClothState]:
+def drain(handle, until_tick: int, timeout: float = WAIT) -> list[P.ClothState]:
+    """The handle's states up to tick `until_tick` (a deadline for states that must come, never a rate)."""
     out: list[P.ClothState] = []
     deadline = time.monotonic() + timeout
     while not out or out[-1].tick < until_tick:
@@ -272,11 +273,11 @@ def test_batch_control_applies_good_items_and_refuses_bad_ones_each_alone(server
         ], [(r.code, r.message) for r in rep.results]
         assert rep.rid == 42 and rep.failed == 7 and rep.results[0].tick == rep.tick
         assert "items[7].material.damping" in rep.results[7].message
-        st = mine[0].wait_for_tick(rep.tick, TIMEOUT)  # or a later one where its frame was coalesced (counted)
+        st = mine[0].wait_for_tick(rep.tick, WAIT)  # or a later one where its frame was coalesced (counted)
         assert rep.tick <= st.tick <= rep.tick + server.stats()["skipped_frames"] - skipped
         np.testing.assert_array_equal(st.positions[0], tgt[0])  # applied from the reply's tick on
-        assert np.allclose(theirs.wait_for_tick(rep.tick + 2, TIMEOUT).positions[0], 0.0)  # not moved
-        assert np.allclose(mine[1].wait_for_tick(rep.tick + 2, TIMEOUT).positions[0], 0.0)
+        assert np.allclose(theirs.wait_for_tick(rep.tick + 2, WAIT).positions[0], 0.0)  # not moved
+        assert np.allclose(mine[1].wait_for_tick(rep.tick + 2, WAIT).positions[0], 0.0)
 
         # The SDK's forms: a waited batch raises BatchError carrying every outcome ...
         with pytest.raises(BatchError) as e:
@@ -302,7 +303,7 @@ def test_batch_control_applies_good_items_and_refuses_bad_ones_each_alone(server
             many, [0, 3], [np.array([[0, 0.1 * k, 0], [1, 0, 0]]) for k in range(12)], wait=True
         )
         assert len(ticks) == 12 and all(isinstance(t, int) for t in ticks)
-        s = mine[0].wait_for_tick(max(ticks), TIMEOUT)
+        s = mine[0].wait_for_tick(max(ticks), WAIT)
         np.testing.assert_allclose(s.positions[0], [0, 0.9, 0], atol=1e-6)  # the last item for it wins
         # a 1.0 server has no batch control: the SDK falls back to one control per item
         sid = mine[0].server_id  # what its info says, as a 1.0 server's
@@ -388,7 +389,7 @@ def test_hostile_batch_and_bundle_requests_get_errors_and_the_server_keeps_servi
         states = drain(bystander, server.tick + 10)
         assert gaps([s.tick for s in states]) <= server.stats()["skipped_frames"] - skipped
         res = client.batch(wait=True).move_pins(bystander, [0], [[0.0, 0.2, 0.0]]).send()
-        assert bystander.wait_for_tick(res[0], TIMEOUT).positions[0, 1] == pytest.approx(0.2)
+        assert bystander.wait_for_tick(res[0], WAIT).positions[0, 1] == pytest.approx(0.2)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -94,7 +94,7 @@ class TickBlock:
 
     def __enter__(self) -> TickBlock:
         self.thread.start()
-        assert self.entered.wait(TIMEOUT), "the tick thread never ran the call"
+        assert self.entered.wait(WAIT), "the tick thread never ran the call"
         return self
 
     def __exit__(self, *exc) -> None:

@@ -12,7 +12,7 @@ import msgpack
 import numpy as np
 import pytest
 import zenoh
-from conftest import collect, connect, make_config, wait_until
+from conftest import WAIT, collect, connect, make_config, wait_until
 
 from drape.client import protocol as P
 from drape.client.smoothing import sample
@@ -103,7 +103,7 @@ def test_a_late_joiner_asks_for_a_keyframe_and_resyncs(server):
         try:
             sub = session.declare_subscriber(pred.key, on_sample)
             assert wait_until(lambda: len(got) >= 3)
-            replies = list(session.get(pred.key, timeout=2.0))
+            replies = list(session.get(pred.key, timeout=WAIT))
             assert len(replies) == 1
             answer = msgpack.unpackb(replies[0].ok.payload.to_bytes())
             assert answer["v"] == list(P.PROTOCOL_VERSION) and answer["cloths"] == 1 and answer["tick"] > 0

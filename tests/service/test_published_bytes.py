@@ -14,7 +14,7 @@ import threading
 
 import numpy as np
 import pytest
-from conftest import TIMEOUT, connect, make_config, wait_until
+from conftest import WAIT, connect, make_config, wait_until
 
 from drape.client import protocol as P
 from drape.server.service import Server
@@ -74,7 +74,7 @@ def test_published_bytes_equal_the_protocol_encoding(device_encode, rng):
             raws = {h.id: Raw(client.session, h.key) for h, _, _, b in cloths if not b}
             bundle_raw = Raw(client.session, client.bundle_key)
             assert wait_until(
-                lambda: all(len(r.payloads()) >= 5 for r in raws.values()) and len(bundle_raw.payloads()) >= 5, TIMEOUT
+                lambda: all(len(r.payloads()) >= 5 for r in raws.values()) and len(bundle_raw.payloads()) >= 5, WAIT
             )
             frames = getattr(server.ticker.world, "device_frames", None)
             if device_encode:
@@ -121,12 +121,12 @@ def test_non_finite_cloth_with_normals_is_published_at_rest_with_rest_normals(de
         try:
             kw = {"encoding": "predictive", "step": 1e-3} if encoding == "predictive" else {}
             with client.submit_grid(6, 5, pinned=[0], normals=True, **kw) as h:
-                h.next_state(TIMEOUT)
+                h.next_state(WAIT)
                 handle = server.world_handle(h.id)
                 fabric = server.call(lambda w: w.cloths[handle].fabric)
                 server.call(lambda w: w.reset(handle, np.full((30, 3), np.nan)))
                 for _ in range(20):
-                    s = h.next_state(TIMEOUT)
+                    s = h.next_state(WAIT)
                     assert np.isfinite(s.positions).all() and np.isfinite(s.normals).all()
                     if s.reset:
                         break
@@ -137,7 +137,7 @@ def test_non_finite_cloth_with_normals_is_published_at_rest_with_rest_normals(de
                 np.testing.assert_allclose(s.normals, want, atol=1 / 32767 if pred else 1e-6)
                 if pred:
                     for _ in range(5):
-                        assert not h.next_state(TIMEOUT).extrapolated
+                        assert not h.next_state(WAIT).extrapolated
                     assert h.stream.undecodable == 0
                 assert (getattr(server.ticker.world, "device_frames", None) is not None) == device_encode
         finally:
@@ -169,7 +169,7 @@ def test_predictive_states_decode_within_half_a_step(device_encode, rng):
             bundle_raw = Raw(client.session, client.bundle_key)
             assert wait_until(
                 lambda: all(len(r.payloads()) >= 16 for r in raws.values()) and len(bundle_raw.payloads()) >= 16,
-                TIMEOUT,
+                WAIT,
             )
             frames = getattr(server.ticker.world, "device_frames", None)
             if device_encode:  # a counted event, not a timing: frames with predictive states coded on the device
@@ -220,9 +220,9 @@ def test_published_bytes_count_what_was_put(device_encode, rng):
             fixed = client.submit_mesh(v, t, pinned=list(range(len(v))), encoding="quant16")
             pred = client.submit_mesh(v, t, pinned=list(range(len(v))), encoding="predictive", step=1e-3)
             raws = [Raw(client.session, h.key) for h in (fixed, pred)]
-            assert wait_until(lambda: all(len(r.payloads()) >= 40 for r in raws), TIMEOUT)
+            assert wait_until(lambda: all(len(r.payloads()) >= 40 for r in raws), WAIT)
             s0 = server.stats()
-            assert wait_until(lambda: server.stats()["published"] >= s0["published"] + 40, TIMEOUT)
+            assert wait_until(lambda: server.stats()["published"] >= s0["published"] + 40, WAIT)
             s1 = server.stats()
             states, put = s1["published"] - s0["published"], s1["published_bytes"] - s0["published_bytes"]
             q16, largest = P.state_size(len(v), "quant16"), P.state_size(len(v), "predictive")

@@ -16,7 +16,7 @@ import msgpack
 import numpy as np
 import pytest
 import zenoh
-from conftest import collect, connect, make_config, wait_until
+from conftest import WAIT, collect, connect, make_config, wait_until
 
 from drape.client import protocol as P
 from drape.server.service.server import Server
@@ -133,7 +133,7 @@ def test_a_decimated_key_is_encoded_only_while_subscribed_and_keyframes_on_its_o
             assert wait_until(lambda: counters["rate_published"] >= before + 5)
             assert wait_until(lambda: len(got) >= 5)
             queries = counters["keyframe_queries"]
-            replies = list(session.get(key, timeout=2.0))
+            replies = list(session.get(key, timeout=WAIT))
             assert len(replies) == 1
             answer = msgpack.unpackb(replies[0].ok.payload.to_bytes())
             assert answer["cloths"] == 1 and answer["tick"] % 2 == 0

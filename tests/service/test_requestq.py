@@ -15,7 +15,7 @@ from collections import Counter
 import msgpack
 import pytest
 import zenoh
-from conftest import TIMEOUT, connect, make_config, wait_until
+from conftest import TIMEOUT, WAIT, connect, make_config, wait_until
 
 from drape.client import protocol as P
 from drape.server.service import Server
@@ -94,7 +94,7 @@ def test_a_flood_past_the_bound_is_answered_busy_at_once_and_ticks_go_on(request
             keys, sid = P.Keys(srv.config.namespace), srv.server_id
             asker = Asker(c.session)
             first = asker.ask(keys.info(sid), P.encode_info(P.InfoRequest(rid=1)))
-            assert entered.wait(TIMEOUT), "the request thread never ran the info handler"
+            assert entered.wait(WAIT), "the request thread never ran the info handler"
             tick0 = srv.tick
             flood = [asker.ask(keys.submit(sid), GARBAGE) for _ in range(20)]
             # 4 wait in the queue; the other 16 are answered busy while the request thread is held
@@ -125,7 +125,7 @@ def test_the_byte_bound_turns_away_what_would_not_fit() -> None:
             keys, sid = P.Keys(srv.config.namespace), srv.server_id
             asker = Asker(c.session)
             asker.ask(keys.info(sid), P.encode_info(P.InfoRequest(rid=1)))
-            assert entered.wait(TIMEOUT)
+            assert entered.wait(WAIT)
             q = srv.handlers.request_queue
             a = asker.ask(keys.control(sid), GARBAGE)  # 600 bytes: fits
             assert wait_until(lambda: q.waiting() == (1, 600))
@@ -151,7 +151,7 @@ def test_queries_still_queued_at_stop_are_answered_busy() -> None:
             keys, sid = P.Keys(srv.config.namespace), srv.server_id
             asker = Asker(c.session)
             first = asker.ask(keys.info(sid), P.encode_info(P.InfoRequest(rid=1)))
-            assert entered.wait(TIMEOUT)
+            assert entered.wait(WAIT)
             queued = [asker.ask(keys.info(sid), P.encode_info(P.InfoRequest(rid=2 + i))) for i in range(3)]
             q = srv.handlers.request_queue
             assert wait_until(lambda: q.waiting()[0] == 3)

@@ -148,7 +148,7 @@ def test_undecodable_stats_are_counted_not_shown(payload):
     with zenoh.open(cfg) as s:
         sub = s.declare_subscriber(P.Keys().stats("*"), board.on_sample)
         s.put(P.Keys().stats("x"), payload)
-        deadline = time.monotonic() + TIMEOUT
+        deadline = time.monotonic() + WAIT
         while board.invalid == 0 and time.monotonic() < deadline:
             time.sleep(0.01)
         sub.undeclare()

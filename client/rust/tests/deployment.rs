@@ -24,7 +24,7 @@ fn client_id_from_drape_client_id() {
     let mut pos = vec![0f32; 48];
     let t0 = Instant::now();
     while cloth.wait_state(&mut pos, None, Duration::from_secs(1)).unwrap().is_none() {
-        assert!(t0.elapsed() < Duration::from_secs(10), "no state; server log:\n{}", s.log_text());
+        assert!(t0.elapsed() < common::WAIT, "no state; server log:\n{}", s.log_text());
     }
     cloth.remove().unwrap();
     client.close(true);

@@ -9,7 +9,7 @@ mod common;
 
 use drape::client::{Client, Cloth, Counters};
 use drape::wire::{grid_geometry, Control, Encoding, Grid, Orientation, Shape, StateOptions, Submit};
-use common::twin::{max_diff, read_by_age, read_n_by_age, ByAge};
+use common::twin::{last_age, max_diff, read_n_by_age, read_to_age, ByAge};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
@@ -44,7 +44,7 @@ fn wait_counters(cloth: &Cloth, what: &str, ok: impl Fn(&Counters) -> bool) -> C
         if ok(&k) {
             return k;
         }
-        assert!(t0.elapsed() < Duration::from_secs(10), "{what}: {k:?}");
+        assert!(t0.elapsed() < common::WAIT, "{what}: {k:?}");
         let _ = cloth.wait_state(&mut pos, None, Duration::from_millis(20));
     }
 }
@@ -61,8 +61,8 @@ fn predictive_cloths_decode_resync_and_switch() {
     // Decoded in order, each within step / 2 of the float32 twin's state of the same age.
     let (mut a, mut b, mut c) = (ByAge::new(), ByAge::new(), ByAge::new());
     let enc = read_n_by_age(&pred, 40, &mut a); // counted states, whatever the machine's pace
-    read_by_age(&bundled, Duration::from_millis(200), &mut c);
-    read_by_age(&twin, Duration::from_millis(200), &mut b);
+    read_to_age(&bundled, last_age(&a).unwrap(), &mut c); // as far as the states compared
+    read_to_age(&twin, last_age(&a).unwrap(), &mut b);
     assert!(!enc.is_empty() && enc.iter().all(|e| *e == Encoding::Predictive), "{enc:?}");
     let (worst, n) = max_diff(&a, &b);
     let bound = (STEP / 2.0) as f32 * 1.001 + 1e-6;
@@ -90,7 +90,7 @@ fn predictive_cloths_decode_resync_and_switch() {
     }
     let mut a2 = ByAge::new();
     read_n_by_age(&pred, 20, &mut a2);
-    read_by_age(&twin, Duration::from_millis(200), &mut b);
+    read_to_age(&twin, last_age(&a2).unwrap(), &mut b);
     let (worst, n) = max_diff(&a2, &b);
     assert!(n >= 10 && worst <= bound, "after the resync: {worst} m over {n} states");
 
@@ -125,7 +125,7 @@ fn c_abi_predictive_cloth() {
         let mut info: DrapeStateInfo = std::mem::zeroed();
         let mut first = None;
         for _ in 0..20 {
-            let rc = drape_cloth_wait_state(cloth, pos.as_mut_ptr(), 192, nrm.as_mut_ptr(), 192, 5000, &mut info);
+            let rc = drape_cloth_wait_state(cloth, pos.as_mut_ptr(), 192, nrm.as_mut_ptr(), 192, common::WAIT.as_millis() as u32, &mut info);
             assert_eq!(rc, DRAPE_OK);
             assert_eq!(info.encoding as i32, DRAPE_ENCODING_PREDICTIVE);
             assert!(info.has_normals && pos.iter().chain(&nrm).all(|x| x.is_finite()));
@@ -151,7 +151,7 @@ fn c_abi_predictive_cloth() {
             if k.keyframes >= 2 {
                 break;
             }
-            assert!(t0.elapsed() < Duration::from_secs(5), "no keyframe after the new step: {k:?}");
+            assert!(t0.elapsed() < common::WAIT, "no keyframe after the new step: {k:?}");
             drape_cloth_wait_state(cloth, pos.as_mut_ptr(), 192, std::ptr::null_mut(), 0, 100, &mut info);
         }
         assert_eq!(drape_cloth_remove(cloth, std::ptr::null_mut()), DRAPE_OK);

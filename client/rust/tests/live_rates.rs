@@ -9,7 +9,7 @@ mod common;
 
 use drape::client::{Client, Cloth, Rate};
 use drape::wire::{grid_geometry, Encoding, Grid, Orientation, Shape, StateOptions, Submit};
-use common::twin::{by_age, max_diff, n_by_age};
+use common::twin::{last_age, max_diff, n_by_age, to_age};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
@@ -48,12 +48,12 @@ fn check_switched(cloth: &Cloth, twin: &Cloth, k: u64, what: &str) {
         if c.keyframes > before.keyframes && c.decoded > before.decoded + 3 {
             break;
         }
-        assert!(t0.elapsed() < Duration::from_secs(10), "{what}: no keyframe on the new key: {c:?}");
+        assert!(t0.elapsed() < common::WAIT, "{what}: no keyframe on the new key: {c:?}");
         let _ = cloth.wait_state(&mut vec![0f32; N], None, Duration::from_millis(20));
     }
     let _ = cloth.latest_state(&mut vec![0f32; N], None); // drop what came before the switch
     let got = n_by_age(cloth, 12); // counted states, whatever the machine's pace
-    let twin_states = by_age(twin, Duration::from_millis(300));
+    let twin_states = to_age(twin, last_age(&got).unwrap()); // as far as the states compared
     assert!(got.values().all(|(t, _)| t % k == 0), "{what}: ticks {:?}", got.values().map(|v| v.0).collect::<Vec<_>>());
     let (worst, n) = max_diff(&got, &twin_states);
     eprintln!("{what}: max {worst} m from the float32 twin over {n} states");
@@ -72,8 +72,7 @@ fn a_30_hz_stream_within_half_a_step_and_switches() {
 
     // 30 Hz, even ticks only, each within step / 2 of the twin at the same age
     let a = n_by_age(&pred, 40); // counted states, whatever the machine's pace
-    let c = by_age(&bundled, Duration::from_millis(300));
-    let b = by_age(&twin, Duration::from_millis(300));
+    let (c, b) = (to_age(&bundled, last_age(&a).unwrap()), to_age(&twin, last_age(&a).unwrap())); // as far as `a`
     assert!(a.values().all(|(t, _)| t % 2 == 0) && c.values().all(|(t, _)| t % 2 == 0), "even ticks only");
     let (worst, n) = max_diff(&a, &b);
     eprintln!("every 2nd predictive state vs float32 twin: max {worst} m over {n} states (step {STEP})");
@@ -113,7 +112,7 @@ fn c_abi_rates() {
         let mut pos = vec![0f32; 192];
         let mut info: DrapeStateInfo = std::mem::zeroed();
         for _ in 0..10 {
-            assert_eq!(drape_cloth_wait_state(cloth, pos.as_mut_ptr(), 192, std::ptr::null_mut(), 0, 5000, &mut info), DRAPE_OK);
+            assert_eq!(drape_cloth_wait_state(cloth, pos.as_mut_ptr(), 192, std::ptr::null_mut(), 0, common::WAIT.as_millis() as u32, &mut info), DRAPE_OK);
             assert_eq!(info.tick % 2, 0, "every 2nd state");
         }
         let mut k = DrapeRateCounters::default();
@@ -123,22 +122,22 @@ fn c_abi_rates() {
         assert_eq!(drape_cloth_set_rate(cloth, DRAPE_RATE_THIRD), DRAPE_OK);
         let t0 = Instant::now();
         loop {
-            assert_eq!(drape_cloth_wait_state(cloth, pos.as_mut_ptr(), 192, std::ptr::null_mut(), 0, 5000, &mut info), DRAPE_OK);
+            assert_eq!(drape_cloth_wait_state(cloth, pos.as_mut_ptr(), 192, std::ptr::null_mut(), 0, common::WAIT.as_millis() as u32, &mut info), DRAPE_OK);
             if info.tick % 3 == 0 && info.tick % 2 != 0 {
                 break; // a state of the new key only
             }
-            assert!(t0.elapsed() < Duration::from_secs(10), "no state of every 3rd");
+            assert!(t0.elapsed() < common::WAIT, "no state of every 3rd");
         }
         // 1.9: every 12th state (5 Hz), two in a row 12 ticks apart
         assert_eq!(drape_cloth_set_rate(cloth, DRAPE_RATE_TWELFTH), DRAPE_OK);
         let (t0, mut last) = (Instant::now(), 0);
         loop {
-            assert_eq!(drape_cloth_wait_state(cloth, pos.as_mut_ptr(), 192, std::ptr::null_mut(), 0, 5000, &mut info), DRAPE_OK);
+            assert_eq!(drape_cloth_wait_state(cloth, pos.as_mut_ptr(), 192, std::ptr::null_mut(), 0, common::WAIT.as_millis() as u32, &mut info), DRAPE_OK);
             if info.tick % 12 == 0 && last != 0 && info.tick == last + 12 {
                 break;
             }
             last = info.tick;
-            assert!(t0.elapsed() < Duration::from_secs(15), "no two states of every 12th");
+            assert!(t0.elapsed() < common::WAIT, "no two states of every 12th");
         }
         assert_eq!(drape_cloth_rate_counters(cloth, &mut k), DRAPE_OK);
         assert_eq!(k.rate, DRAPE_RATE_TWELFTH);

@@ -28,22 +28,22 @@ fn pins_reach(c: &Cloth, tick: u64, want: &[f32; 6]) {
     let mut pos = vec![0f32; 96];
     let t0 = Instant::now();
     loop {
-        let st = c.wait_state(&mut pos, None, Duration::from_secs(5)).expect("read").expect("no state within 5 s");
+        let st = c.wait_state(&mut pos, None, common::WAIT).expect("read").expect("a state");
         if st.tick >= tick {
             let got = [pos[0], pos[1], pos[2], pos[21], pos[22], pos[23]];
             assert!(got.iter().zip(want).all(|(g, w)| (g - w).abs() <= 1e-6), "cloth {}: pins at {got:?}, want {want:?}", c.handle());
             return;
         }
-        assert!(t0.elapsed() < Duration::from_secs(20), "cloth {}: no state of tick {tick}", c.handle());
+        assert!(t0.elapsed() < common::WAIT, "cloth {}: no state of tick {tick}", c.handle());
     }
 }
 
-/// A counter of the server's stats (PROTOCOL.md 10), waiting up to 10 s for one >= `least`.
+/// A counter of the server's stats (PROTOCOL.md 10), waiting up to `common::WAIT` for one >= `least`.
 fn stat_reaches(client: &Client, server: &str, key: &str, least: u64) -> u64 {
     let t0 = Instant::now();
     loop {
         let v = client.stats(server).and_then(|m| Reader::new(&m, "").u64(key, false).ok().flatten()).unwrap_or(0);
-        if v >= least || t0.elapsed() > Duration::from_secs(10) {
+        if v >= least || t0.elapsed() > common::WAIT {
             return v;
         }
         std::thread::sleep(Duration::from_millis(100));
@@ -86,7 +86,7 @@ fn placement_spreads_and_failover_gathers() {
     let mut pending = gone.clone();
     let t0 = Instant::now();
     while !pending.is_empty() {
-        assert!(t0.elapsed() < Duration::from_secs(30), "cloths {pending:?} not resubmitted within 30 s");
+        assert!(t0.elapsed() < common::WAIT, "cloths {pending:?} not resubmitted");
         if let Some(Event::ClothResubmitted { handle, server, old_server, reason, kept, .. }) = client.poll_event(Duration::from_millis(200)) {
             assert_eq!((&server, &old_server, reason, kept), (&b.id, &a.id, LossReason::ServerLost, false));
             pending.retain(|h| *h != handle);
@@ -188,7 +188,7 @@ fn c_abi_moves(s: &common::Server) {
         for (j, c) in cloths.iter().enumerate() {
             loop {
                 let mut info: DrapeStateInfo = std::mem::zeroed();
-                assert_eq!(drape_cloth_wait_state(*c, pos.as_mut_ptr(), 96, std::ptr::null_mut(), 0, 5000, &mut info), DRAPE_OK);
+                assert_eq!(drape_cloth_wait_state(*c, pos.as_mut_ptr(), 96, std::ptr::null_mut(), 0, common::WAIT.as_millis() as u32, &mut info), DRAPE_OK);
                 if info.tick >= ticks[j] {
                     let want = targets(j, 4);
                     assert!([pos[0], pos[1], pos[2], pos[21], pos[22], pos[23]].iter().zip(want).all(|(g, w)| (g - w).abs() <= 1e-6));
@@ -243,7 +243,7 @@ fn a_scene_stays_on_one_server_and_keeps_its_owner() {
     dead.kill();
     let t0 = Instant::now();
     while !mine.iter().chain(&theirs).all(|c| c.server() == alive.id) {
-        assert!(t0.elapsed() < Duration::from_secs(30), "the scene's cloths not all on {} within 30 s", alive.id);
+        assert!(t0.elapsed() < common::WAIT, "the scene's cloths not all on {}", alive.id);
         std::thread::sleep(Duration::from_millis(100));
     }
     let err = guest.set_scene(SceneRequest { colliders: Some(vec![]), ..SceneRequest::new("", "m") }, None).unwrap_err();

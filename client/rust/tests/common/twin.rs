@@ -10,11 +10,19 @@ use std::time::{Duration, Instant};
 /// States by age (tick - the cloth's first tick): the state's tick and its positions.
 pub type ByAge = BTreeMap<u64, (u64, Vec<f32>)>;
 
-/// Every state read from `cloth` within `d`, added to `out` by age; their encodings, in order.
-/// A state shown is never garbage (every coordinate finite).
-pub fn read_by_age(cloth: &Cloth, d: Duration, out: &mut ByAge) -> Vec<Encoding> {
+/// States read from `cloth` into `out` by age until it holds age `age` or a later one (the twin
+/// read as far as the states it is compared with: counted, whatever the machine's pace; panics
+/// after [`WAIT`] without it); their encodings, in order. A state shown is never garbage.
+pub fn read_to_age(cloth: &Cloth, age: u64, out: &mut ByAge) -> Vec<Encoding> {
     let t0 = Instant::now();
-    read_while(cloth, out, |_| t0.elapsed() < d)
+    let enc = read_while(cloth, out, |got| last_age(got).is_none_or(|a| a < age) && t0.elapsed() < WAIT);
+    assert!(last_age(out).is_some_and(|a| a >= age), "no state of age {age} or later in {WAIT:?}");
+    enc
+}
+
+/// The newest (largest) age held (None: no state).
+pub fn last_age(states: &ByAge) -> Option<u64> {
+    states.keys().next_back().copied()
 }
 
 /// States read from `cloth` into `out` by age until it holds `n` more ages (counted, whatever the
@@ -46,10 +54,10 @@ fn read_while(cloth: &Cloth, out: &mut ByAge, more: impl Fn(&ByAge) -> bool) -> 
     encodings
 }
 
-/// [`read_by_age`] into a new map.
-pub fn by_age(cloth: &Cloth, d: Duration) -> ByAge {
+/// [`read_to_age`] into a new map.
+pub fn to_age(cloth: &Cloth, age: u64) -> ByAge {
     let mut out = ByAge::new();
-    read_by_age(cloth, d, &mut out);
+    read_to_age(cloth, age, &mut out);
     out
 }
 

@@ -216,7 +216,7 @@ fn lost_server_is_reported_and_failover_resumes() {
     }
     // the client's last received states, just before the kill
     for (c, l) in [&moved, &bundled].iter().zip(last.iter_mut()) {
-        c.latest_state(l, None).unwrap().unwrap();
+        common::latest(c, l);
     }
     let (old, handle) = (moved.id(), moved.handle());
     a.kill();
@@ -253,7 +253,7 @@ fn lost_server_is_reported_and_failover_resumes() {
         assert!(from_rest > 0.5, "the cloth did not restart from its rest pose ({from_rest} m from it)");
         // the pins stay where the game moved them
         std::thread::sleep(Duration::from_millis(200));
-        c.latest_state(&mut pos, None).unwrap().unwrap();
+        common::latest(&c, &mut pos);
         assert!(max_dist(&pos[..3], &lifted[..3]) < 1e-3 && max_dist(&pos[9..12], &lifted[3..]) < 1e-3, "pins: {:?}", &pos[..12]);
         assert!(c.move_pins(&[0], &[0.0, 0.5, 0.0], true).unwrap().is_some());
     }
@@ -318,7 +318,7 @@ fn reclaimed_cloth_is_resumed() {
     }
     // the last state received before the removal (no state comes after it)
     std::thread::sleep(Duration::from_millis(150));
-    cloth.latest_state(&mut last, None).unwrap().unwrap();
+    common::latest(&cloth, &mut last);
     let t0 = Instant::now();
     let ev = loop {
         assert!(t0.elapsed() < common::WAIT, "no failover");

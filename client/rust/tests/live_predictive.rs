@@ -100,7 +100,7 @@ fn predictive_cloths_decode_resync_and_switch() {
     let k = wait_counters(&twin, "the switched cloth's states", |k| k.decoded >= 10);
     assert!(k.keyframes >= 1, "{k:?}");
     let mut pos = vec![0f32; 3 * (COLS * COLS) as usize];
-    let st = twin.latest_state(&mut pos, None).unwrap().unwrap();
+    let st = common::latest(&twin, &mut pos);
     assert!(st.tick >= tick && st.encoding == Encoding::Predictive && pos.iter().all(|x| x.is_finite()));
     // Out of range: refused before sending.
     let bad = StateOptions { step: Some(0.5), ..Default::default() };

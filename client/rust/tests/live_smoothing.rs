@@ -119,7 +119,7 @@ fn a_144_hz_sampler_moves_every_frame() {
         frame: |t, now_ns| {
             cloth.move_pins(&PINS, &targets(t), false).unwrap();
             assert!(cloth.sample(Some(now_ns), None, false, &mut pos).unwrap());
-            let st = cloth.latest_state(&mut raw, None).unwrap().expect("a state");
+            let st = common::latest(&cloth, &mut raw);
             (pos.clone(), raw.clone(), st.tick)
         },
     });
@@ -173,7 +173,7 @@ fn c_abi_a_144_hz_sampler_moves_every_frame() {
                 mv(t);
                 assert_eq!(drape_cloth_sample(cloth, now_ns, -1, false, pos.as_mut_ptr(), n), DRAPE_OK);
                 let mut info: DrapeStateInfo = std::mem::zeroed();
-                assert_eq!(drape_cloth_read_latest(cloth, raw.as_mut_ptr(), n, std::ptr::null_mut(), 0, &mut info), DRAPE_OK);
+                common::c_latest(cloth, &mut raw, &mut info);
                 (pos.clone(), raw.clone(), info.tick)
             },
         });

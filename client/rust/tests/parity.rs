@@ -140,7 +140,7 @@ fn parity_controls_queues_and_counters() {
         assert!(lowest > 1.45 && lowest < 1.7, "lowest vertex at y = {lowest}: the floor collider was not applied");
 
         // the latest state again (read before: not counted again)
-        assert_eq!(drape_cloth_read_latest(cloth, pos.as_mut_ptr(), n, std::ptr::null_mut(), 0, &mut st), DRAPE_OK);
+        common::c_latest(cloth, &mut pos[..n], &mut st);
         assert!(st.tick >= last);
 
         // every control field, waited for: the floor removed and the cloth falls below it

@@ -151,6 +151,39 @@ pub unsafe fn c_first_state(cloth: *const drape::ffi::DrapeCloth, pos: &mut [f32
     assert_eq!(got, drape::ffi::DRAPE_OK, "no state within {within:?}");
 }
 
+/// The newest state received (`Cloth::latest_state`), for a cloth that has received one: the
+/// call never blocks, so it returns None while a Zenoh thread is delivering a state at that very
+/// instant (a preempted delivery holds the slot for as long as it is off the CPU); tried again
+/// until it answers, failing the test after `WAIT`.
+pub fn latest(cloth: &drape::client::Cloth, pos: &mut [f32]) -> drape::client::StateInfo {
+    let t0 = std::time::Instant::now();
+    loop {
+        if let Some(st) = cloth.latest_state(pos, None).unwrap() {
+            return st;
+        }
+        assert!(t0.elapsed() < WAIT, "no latest state within {WAIT:?}");
+        std::thread::yield_now();
+    }
+}
+
+/// `latest` through the C ABI (`drape_cloth_read_latest`): DRAPE_NO_DATA while a state is being
+/// delivered at that instant, tried again; any other answer than DRAPE_OK fails the test.
+///
+/// # Safety
+/// `cloth` is a live cloth of the C ABI that has received a state.
+pub unsafe fn c_latest(cloth: *const drape::ffi::DrapeCloth, pos: &mut [f32], info: *mut drape::ffi::DrapeStateInfo) {
+    let t0 = std::time::Instant::now();
+    loop {
+        let rc = drape::ffi::drape_cloth_read_latest(cloth, pos.as_mut_ptr(), pos.len(), std::ptr::null_mut(), 0, info);
+        if rc == drape::ffi::DRAPE_OK {
+            return;
+        }
+        assert_eq!(rc, drape::ffi::DRAPE_NO_DATA, "drape_cloth_read_latest");
+        assert!(t0.elapsed() < WAIT, "no latest state within {WAIT:?}");
+        std::thread::yield_now();
+    }
+}
+
 /// C ABI submission options pinning `pins`: float32, no bundle, server defaults for the rest.
 pub fn c_cloth_options(pins: &[u32], normals: bool) -> drape::ffi::DrapeClothOptions {
     drape::ffi::DrapeClothOptions {

@@ -322,17 +322,28 @@ def test_chebyshev_jacobi_matches_reference_and_converges_faster(device, rng):
         lengths = np.linalg.norm(x[fabric.links[:, 1]] - x[fabric.links[:, 0]], axis=1)
         return float(np.abs(lengths - fabric.rest_length).sum())
 
-    # One step of 30 iterations from a perturbed pose, on 15 random grids. Over 300 grids the
-    # residual ratio (Chebyshev / plain) had median 0.72, 99th percentile 0.985 and one grid at
-    # 1.0007: the gain depends on the mesh (rho must suit it; docs/benchmarks.md), so the claim
-    # is about the typical grid, and that it never makes things much worse.
+    # One step of 30 iterations from a perturbed pose, on 15 random grids. rho must suit the mesh
+    # (docs/benchmarks.md): 0.95 suits a grid whose longer side has 7 vertices or more; on smaller
+    # ones plain Jacobi's error falls faster than rho assumes and the schedule overshoots (ratio
+    # up to 1.056 on 3 x 5 .. 4 x 6 grids, seed 418293324). Over 900 such grids the residual ratio
+    # (Chebyshev / plain) was at most 0.95 and its median over 15 at most 0.78.
     ratios = []
     for _ in range(15):
-        f = random_grid_fabric(rng, n_pins=2)
+        long, short = int(rng.integers(7, 14)), int(rng.integers(3, 14))
+        cols, rows = (long, short) if rng.random() < 0.5 else (short, long)
+        f = cook_grid(
+            cols,
+            rows,
+            rng.uniform(0.5, 2.0),
+            rng.uniform(0.5, 2.0),
+            LinkOptions(bending=True),
+            rng.choice(cols * rows, 2, replace=False),
+            orientation=str(rng.choice(["horizontal", "vertical"])),
+        )
         p0 = random_state(rng, f, 0.02)
         ratios.append(residual(f, p0, cheb) / residual(f, p0, base))
     assert np.median(ratios) < 0.9, ratios
-    assert max(ratios) < 1.05, ratios
+    assert max(ratios) < 1.0, ratios
 
 
 @pytest.mark.parametrize("solver", ["workgroup", "reference"])

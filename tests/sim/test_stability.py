@@ -13,7 +13,8 @@ What "bounded" means here (``check_run``):
   solver may legitimately make resolving an initial constraint violation in one step), plus
   float32 rounding far from the origin. An explosion overshoots this by orders of magnitude;
 - strain: the largest structural strain ``|l - l0| / l0`` is below the bound a case states
-  (stiff cloth: a fixed bound; stiffness 0 or huge compliance: no links to speak of, the
+  (stiff cloth: a fixed bound, or the sag of the soft spring few iterations make of it where
+  that is larger, ``stiff_strain``; stiffness 0 or huge compliance: no links to speak of, the
   envelope is the bound), or, at dt 1/10, does not grow over the run.
 
 A solver that blows up fails here; nothing is marked xfail. Known failures are listed in

@@ -55,10 +55,50 @@ def tol(ref_pos, steps):
     return 2e-5 * scale * steps
 
 
+# The float32 ensemble that measures a run's float32 sensitivity (as test_features's, for a plain
+# run from given positions): the float32 reference from the start and from ENSEMBLE - 1 copies of
+# it moved by at most one float32 ulp per coordinate; the device may stray F32_SPREAD x as far as
+# the farthest of them.
+ENSEMBLE = 8
+F32_SPREAD = 2.0
+
+
+def float32_sensitivity(fab, params, positions, steps: int, ref, mode: str = "coloured") -> float:
+    """How far float32 rounding alone carries this run from the float64 reference's end positions
+    ``ref``: the largest distance of ENSEMBLE float32 reference runs (fixed seed: the same ensemble
+    every run). It comes from the reference, never from the device under test."""
+    ulp_rng = np.random.default_rng(0)
+    p32 = np.asarray(positions, np.float32)
+    sens = 0.0
+    for k in range(ENSEMBLE):
+        start = p32 if k == 0 else np.nextafter(p32, ulp_rng.choice([-np.inf, np.inf], p32.shape).astype(np.float32))
+        world = ReferenceWorld(mode, np.float32)
+        h = world.add(fab, params, start)
+        for _ in range(steps):
+            world.step(DT)
+        sens = max(sens, float(np.abs(world.positions(h) - ref).max()))
+    return sens
+
+
+def assert_within_float32_reach(a, b, fab, params, positions, steps: int, mode: str = "coloured") -> None:
+    """The device's end positions ``a`` within tol of the float64 reference's ``b``, or, where the
+    run amplifies float32 rounding past that, within F32_SPREAD x its float32 sensitivity more."""
+    assert np.all(np.isfinite(a))
+    err = float(np.abs(a - b).max())
+    if err <= tol(b, steps):
+        return
+    sens = float32_sensitivity(fab, params, positions, steps, b, mode)
+    assert err <= tol(b, steps) + F32_SPREAD * sens, f"device {err:.3g} m from float64, float32 reference {sens:.3g} m"
+
+
 @pytest.mark.parametrize("solver", GS_SOLVERS)
 @pytest.mark.parametrize("xpbd", [False, True])
 @pytest.mark.parametrize("local_size", [1, 64], ids=["serial", "parallel"])
 def test_gauss_seidel_solvers_match_reference_in_colour_order(device, rng, solver, xpbd, local_size):
+    """Within tol of the float64 reference, or of its float32 reach where the run amplifies
+    rounding: a random state compresses links to a third of their rest length and a mesh may buckle
+    either way (seed 4084327806, PBD: every device solver 9.6e-4 m from float64 against a tol of
+    1.5e-4, the float32 reference 9.3e-4 m, the device 3e-5 m from it)."""
     for maker in (random_mesh_fabric, random_grid_fabric):
         fab = maker(rng)
         params = random_params(rng, Features(xpbd=xpbd))
@@ -66,8 +106,7 @@ def test_gauss_seidel_solvers_match_reference_in_colour_order(device, rng, solve
         steps = 5
         world = CLWorld(solver, device=device, local_size=local_size)
         a, b = run_pair(world, ReferenceWorld("coloured"), fab, params, pos, steps)
-        assert np.all(np.isfinite(a))
-        np.testing.assert_allclose(a, b, atol=tol(b, steps), rtol=0)
+        assert_within_float32_reach(a, b, fab, params, pos, steps)
 
 
 def test_workgroup_global_memory_path_matches_local(device, rng):
@@ -283,17 +322,28 @@ def test_chebyshev_jacobi_matches_reference_and_converges_faster(device, rng):
         lengths = np.linalg.norm(x[fabric.links[:, 1]] - x[fabric.links[:, 0]], axis=1)
         return float(np.abs(lengths - fabric.rest_length).sum())
 
-    # One step of 30 iterations from a perturbed pose, on 15 random grids. Over 300 grids the
-    # residual ratio (Chebyshev / plain) had median 0.72, 99th percentile 0.985 and one grid at
-    # 1.0007: the gain depends on the mesh (rho must suit it; docs/benchmarks.md), so the claim
-    # is about the typical grid, and that it never makes things much worse.
+    # One step of 30 iterations from a perturbed pose, on 15 random grids. rho must suit the mesh
+    # (docs/benchmarks.md): 0.95 suits a grid whose longer side has 7 vertices or more; on smaller
+    # ones plain Jacobi's error falls faster than rho assumes and the schedule overshoots (ratio
+    # up to 1.056 on 3 x 5 .. 4 x 6 grids, seed 418293324). Over 900 such grids the residual ratio
+    # (Chebyshev / plain) was at most 0.95 and its median over 15 at most 0.78.
     ratios = []
     for _ in range(15):
-        f = random_grid_fabric(rng, n_pins=2)
+        long, short = int(rng.integers(7, 14)), int(rng.integers(3, 14))
+        cols, rows = (long, short) if rng.random() < 0.5 else (short, long)
+        f = cook_grid(
+            cols,
+            rows,
+            rng.uniform(0.5, 2.0),
+            rng.uniform(0.5, 2.0),
+            LinkOptions(bending=True),
+            rng.choice(cols * rows, 2, replace=False),
+            orientation=str(rng.choice(["horizontal", "vertical"])),
+        )
         p0 = random_state(rng, f, 0.02)
         ratios.append(residual(f, p0, cheb) / residual(f, p0, base))
     assert np.median(ratios) < 0.9, ratios
-    assert max(ratios) < 1.05, ratios
+    assert max(ratios) < 1.0, ratios
 
 
 @pytest.mark.parametrize("solver", ["workgroup", "reference"])
@@ -533,20 +583,9 @@ def test_long_range_attachments_match_reference(device, rng, solver, compliance,
         a, b = run_pair(world, ReferenceWorld("coloured"), fab, params, pos, steps)
         if solver == "pack":
             assert [g.pack for g in world.groups.values()] == [world.pack_lanes]
-        assert np.all(np.isfinite(a))
         # the unilateral limits switch on and off at a threshold, where float32 rounding alone
         # may tip a vertex over: the float32 reference shows how far that carries this run
-        # (as test_features: the float32 reference from the start and from 7 copies of it moved
-        # by at most one float32 ulp a coordinate, the device within twice the farthest)
-        sens = 0.0
-        p32 = np.asarray(pos, np.float32)
-        for k in range(8):
-            start = p32 if k == 0 else np.nextafter(p32, rng.choice([-np.inf, np.inf], p32.shape).astype(np.float32))
-            r32 = run_pair(ReferenceWorld("coloured", np.float32), ReferenceWorld(), fab, params, start, steps)[0]
-            sens = max(sens, float(np.abs(r32 - b).max()))
-        err = float(np.abs(a - b).max())
-        print(f"{solver} mesh={mesh}: device {err:.3g} m, float32 reference {sens:.3g} m from float64")
-        assert err <= tol(b, steps) + 2 * sens, (err, sens)
+        assert_within_float32_reach(a, b, fab, params, pos, steps)
         # and the attachments matter here: without them the same run ends elsewhere
         c = run_pair(
             ReferenceWorld("coloured"),

@@ -133,6 +133,26 @@ def test_a_newcomers_small_cloth_is_admitted_while_another_client_holds_its_shar
     assert "budget" in e.value.message
 
 
+def test_a_cloth_admitted_on_trust_is_not_refused_by_a_share_of_the_proportional_capacity():
+    """One light load measured (another client's 1024 work units, a tick stage of 2.6 ms): the
+    budget check admits a plain 64 x 64 of a client holding nothing on trust; the proportional
+    line's capacity (5,579 units: the light load's fixed costs counted per unit) put that cloth
+    past the client's share while the total passed the newcomers' reserve, so the share check
+    refused it (`drape chaos heavy-control`: 10 retries refused on a quiet machine). Past a
+    prediction the share still holds (test above)."""
+    cfg = make_config(admission_budget=0.85, admission_client_share=0.5, admission_newcomer_reserve=0.1)
+    adm, reg = Admission(cfg), Registry(cfg)
+    m = MeasuredCost()
+    adm.model = m
+    for k in range(4):
+        _admit(adm, reg, _submit("good", 16, 16), k)  # before any tick: no opinion
+    for _ in range(30):
+        m.observe(TickCost(1024, 0.0026, 0.0005, 0.0002))
+    assert m.capacity(adm.budget_s) == pytest.approx(5579, rel=1e-3)
+    _admit(adm, reg, _submit("heavy", 64, 64), 10)
+    assert adm.total_work(reg.cloths.values()) == pytest.approx(1024 + 4096)
+
+
 def test_one_huge_cloth_beside_a_small_steady_load_is_not_admitted_on_trust():
     """One load measured, light: trust admits one cloth of about its size, not a 256x256 that
     the proportional line puts under the trust limit (issue 26: 3 runs of 5 let it in)."""

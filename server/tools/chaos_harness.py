@@ -27,16 +27,14 @@ import zenoh
 from prometheus_client.parser import text_string_to_metric_families
 
 from drape.client import protocol as P
+from drape.server.service.process.metrics import LABELLED
 from drape.server.tools.procs import ProcessFigures, free_port, serve_command
 
 log = logging.getLogger(__name__)
 
 _RUNS = itertools.count()
-# the /metrics families of ChaosServer.build_counts: family -> (its key there, the label it splits by)
-BUILD_FAMILIES = {
-    "drape_kernel_builds": ("kernel_builds", "thread"),
-    "drape_build_child_cloths": ("build_child", "outcome"),
-}
+# the /metrics families of ChaosServer.build_counts: family -> its key there (its label: metrics.LABELLED)
+BUILD_FAMILIES = {"drape_kernel_builds": "kernel_builds", "drape_build_child_cloths": "build_child"}
 GAP_LIMIT_MS = 50.0  # issue 26: no gap over this between a good client's states
 WAIT = 180.0  # the longest any start-up or reply is waited for (a loaded 2-core machine; a cold
 # kernel cache: drape serve first builds every feature set in a child, build_in_child = "always")
@@ -183,10 +181,10 @@ class ChaosServer:
         out: dict[str, dict[str, int]] = {"kernel_builds": {}, "build_child": {}}
         for fam in text_string_to_metric_families(text):
             if fam.name in BUILD_FAMILIES:
-                key, name = BUILD_FAMILIES[fam.name]
+                key, label = BUILD_FAMILIES[fam.name], LABELLED[fam.name][0]
                 for sample in fam.samples:
                     if sample.name.endswith("_total"):
-                        out[key][sample.labels[name]] = int(sample.value)
+                        out[key][sample.labels[label]] = int(sample.value)
         return out
 
     def kill(self, sig: int) -> None:

@@ -173,6 +173,15 @@ def build_child_cloths(server: Any) -> dict[str, int]:
     }
 
 
+#: the families counted from the server's parts rather than its stats, each split by one label:
+#: family -> (its label, what reads the counts by label value); the collector and ``drape chaos``
+#: (chaos_harness.ChaosServer.build_counts) both go by it
+LABELLED: dict[str, tuple[str, Callable[[Any], dict[str, int]]]] = {
+    "drape_kernel_builds": ("thread", kernel_builds),
+    "drape_build_child_cloths": ("outcome", build_child_cloths),
+}
+
+
 def overload_refusals(stats: Mapping[str, Any]) -> int:
     """Submits refused for overload: the stats' ``overload_refusals`` when the server counts them
     apart, else its ``overloaded`` error replies (0 for a server older than protocol 1.2)."""
@@ -206,14 +215,11 @@ class DrapeCollector(Collector):
             log.debug("info() failed during a scrape: %s", e)
             info = {}
         yield from families(stats, info, phase_timers(self.server), self.namespace)
-        builds = CounterMetricFamily("drape_kernel_builds", _HELP["drape_kernel_builds"], labels=["thread"])
-        for role, n in kernel_builds(self.server).items():
-            builds.add_metric([role], n)
-        yield builds
-        child = CounterMetricFamily("drape_build_child_cloths", _HELP["drape_build_child_cloths"], labels=["outcome"])
-        for outcome, n in build_child_cloths(self.server).items():
-            child.add_metric([outcome], n)
-        yield child
+        for name, (label, read) in LABELLED.items():
+            fam = CounterMetricFamily(name, _HELP[name], labels=[label])
+            for value, n in read(self.server).items():
+                fam.add_metric([value], n)
+            yield fam
 
 
 def families(
